@@ -1,0 +1,1 @@
+"""torchcbf: batched, differentiable safe planning and control in PyTorch."""

@@ -1,0 +1,237 @@
+"""Standard control-affine models.
+
+Every model takes the keyword arguments of :class:`ControlAffine`: ``sigma``, ``u_min``,
+``u_max``, ``disturbance_bound`` and ``disturbance_matrix``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from torchcbf._checks import check_positive
+from torchcbf.dynamics.base import ControlAffine
+
+
+def _zeros(x: Tensor, *shape: int) -> Tensor:
+    return x.new_zeros(*x.shape[:-1], *shape)
+
+
+def _eye_g(x: Tensor, n: int, m: int, row: int) -> Tensor:
+    """``g`` with an identity block ``I_m`` in rows ``row:row+m`` and zeros elsewhere."""
+    g = _zeros(x, n, m)
+    g[..., row : row + m, :] = torch.eye(m, dtype=x.dtype, device=x.device)
+    return g
+
+
+class SingleIntegrator(ControlAffine):
+    """``xdot = u`` in ``dim`` dimensions (state = position, control = velocity)."""
+
+    def __init__(self, dim: int = 2, **kwargs: Any) -> None:
+        super().__init__(dim, dim, **kwargs)
+
+    def f(self, x: Tensor) -> Tensor:
+        return torch.zeros_like(x)
+
+    def g(self, x: Tensor) -> Tensor:
+        return _eye_g(x, self.state_dim, self.control_dim, 0)
+
+    def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
+        return u.expand(torch.broadcast_shapes(x.shape, u.shape))
+
+
+class DoubleIntegrator(ControlAffine):
+    """``pdot = v, vdot = u`` in ``dim`` dimensions: state ``(p, v)`` of size ``2 dim``."""
+
+    def __init__(self, dim: int = 2, **kwargs: Any) -> None:
+        super().__init__(2 * dim, dim, **kwargs)
+        self.dim = dim
+
+    def f(self, x: Tensor) -> Tensor:
+        return torch.cat([x[..., self.dim :], torch.zeros_like(x[..., self.dim :])], dim=-1)
+
+    def g(self, x: Tensor) -> Tensor:
+        return _eye_g(x, self.state_dim, self.control_dim, self.dim)
+
+    def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
+        v, u = torch.broadcast_tensors(x[..., self.dim :], u)
+        return torch.cat([v, u], dim=-1)
+
+
+class Unicycle(ControlAffine):
+    """Kinematic unicycle: state ``(x, y, theta)``, control ``(v, omega)``."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(3, 2, **kwargs)
+
+    def f(self, x: Tensor) -> Tensor:
+        return torch.zeros_like(x)
+
+    def g(self, x: Tensor) -> Tensor:
+        theta = x[..., 2]
+        zero, one = torch.zeros_like(theta), torch.ones_like(theta)
+        rows = [
+            torch.stack([torch.cos(theta), zero], -1),
+            torch.stack([torch.sin(theta), zero], -1),
+            torch.stack([zero, one], -1),
+        ]
+        return torch.stack(rows, -2)
+
+    def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
+        theta = x[..., 2]
+        v, omega = u[..., 0], u[..., 1]
+        return torch.stack(torch.broadcast_tensors(v * torch.cos(theta), v * torch.sin(theta), omega), -1)
+
+
+class AccelUnicycle(ControlAffine):
+    """Unicycle with acceleration input: state ``(x, y, v, theta)``, control ``(a, omega)``.
+
+    ``x' = v cos(theta), y' = v sin(theta), v' = a, theta' = omega`` (scenario B).
+    """
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(4, 2, **kwargs)
+
+    def f(self, x: Tensor) -> Tensor:
+        v, theta = x[..., 2], x[..., 3]
+        zero = torch.zeros_like(v)
+        return torch.stack([v * torch.cos(theta), v * torch.sin(theta), zero, zero], -1)
+
+    def g(self, x: Tensor) -> Tensor:
+        return _eye_g(x, 4, 2, 2)
+
+    def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
+        v, theta = x[..., 2], x[..., 3]
+        parts = torch.broadcast_tensors(v * torch.cos(theta), v * torch.sin(theta), u[..., 0], u[..., 1])
+        return torch.stack(parts, -1)
+
+
+class Bicycle(ControlAffine):
+    """Kinematic bicycle (rear-axle reference): state ``(x, y, theta, delta)``,
+    control ``(v, steering_rate)``.
+
+    ``x' = v cos(theta), y' = v sin(theta), theta' = v tan(delta) / wheelbase,
+    delta' = steering_rate``. Speed enters linearly, which makes the model control-affine.
+    """
+
+    def __init__(self, wheelbase: float = 1.0, **kwargs: Any) -> None:
+        super().__init__(4, 2, **kwargs)
+        self.register_buffer("wheelbase", torch.tensor(check_positive("wheelbase", wheelbase)))
+
+    def f(self, x: Tensor) -> Tensor:
+        return torch.zeros_like(x)
+
+    def g(self, x: Tensor) -> Tensor:
+        theta, delta = x[..., 2], x[..., 3]
+        zero, one = torch.zeros_like(theta), torch.ones_like(theta)
+        rows = [
+            torch.stack([torch.cos(theta), zero], -1),
+            torch.stack([torch.sin(theta), zero], -1),
+            torch.stack([torch.tan(delta) / self.wheelbase.to(x), zero], -1),
+            torch.stack([zero, one], -1),
+        ]
+        return torch.stack(rows, -2)
+
+
+class VanDerPol(ControlAffine):
+    """Van der Pol oscillator with a force input: ``x1' = x2``,
+    ``x2' = mu (1 - x1^2) x2 - x1 + u``."""
+
+    def __init__(self, mu: float = 1.0, **kwargs: Any) -> None:
+        super().__init__(2, 1, **kwargs)
+        self.register_buffer("mu", torch.tensor(float(mu)))
+
+    def f(self, x: Tensor) -> Tensor:
+        x1, x2 = x[..., 0], x[..., 1]
+        return torch.stack([x2, self.mu.to(x) * (1 - x1**2) * x2 - x1], -1)
+
+    def g(self, x: Tensor) -> Tensor:
+        return _eye_g(x, 2, 1, 1)
+
+
+class Quadrotor(ControlAffine):
+    """Rigid-body quadrotor with ZYX Euler angles.
+
+    State (12): position ``(x, y, z)``, angles ``(phi, theta, psi)``, world-frame velocity
+    ``(vx, vy, vz)``, body rates ``(p, q, r)``. Control (4): collective thrust ``T`` and body
+    torques ``(tau_x, tau_y, tau_z)``. ``z`` points up; gravity acts along ``-z``.
+    """
+
+    def __init__(
+        self,
+        mass: float = 1.0,
+        inertia: tuple[float, float, float] = (0.01, 0.01, 0.02),
+        gravity: float = 9.81,
+        **kwargs: Any,
+    ) -> None:
+        super().__init__(12, 4, **kwargs)
+        self.register_buffer("mass", torch.tensor(check_positive("mass", mass)))
+        inertia_t = torch.as_tensor(inertia, dtype=torch.get_default_dtype())
+        if inertia_t.shape != (3,) or bool((inertia_t <= 0).any()):
+            raise ValueError(f"inertia must be 3 positive numbers, got {inertia}")
+        self.register_buffer("inertia", inertia_t)
+        self.register_buffer("gravity", torch.tensor(float(gravity)))
+
+    def f(self, x: Tensor) -> Tensor:
+        phi, theta = x[..., 3], x[..., 4]
+        vel, rates = x[..., 6:9], x[..., 9:12]
+        p, q, r = rates.unbind(-1)
+        sphi, cphi, ttheta, ctheta = torch.sin(phi), torch.cos(phi), torch.tan(theta), torch.cos(theta)
+        angle_rates = torch.stack(
+            [
+                p + sphi * ttheta * q + cphi * ttheta * r,
+                cphi * q - sphi * r,
+                (sphi * q + cphi * r) / ctheta,
+            ],
+            -1,
+        )
+        zero = torch.zeros_like(phi)
+        accel = torch.stack([zero, zero, -self.gravity.to(x).expand_as(zero)], -1)
+        J = self.inertia.to(x)
+        rate_accel = -torch.linalg.cross(rates, rates * J) / J
+        return torch.cat([vel, angle_rates, accel, rate_accel], -1)
+
+    def g(self, x: Tensor) -> Tensor:
+        phi, theta, psi = x[..., 3], x[..., 4], x[..., 5]
+        sphi, cphi = torch.sin(phi), torch.cos(phi)
+        sth, cth = torch.sin(theta), torch.cos(theta)
+        spsi, cpsi = torch.sin(psi), torch.cos(psi)
+        thrust_dir = torch.stack(
+            [cphi * sth * cpsi + sphi * spsi, cphi * sth * spsi - sphi * cpsi, cphi * cth], -1
+        )
+        g = _zeros(x, 12, 4)
+        g[..., 6:9, 0] = thrust_dir / self.mass.to(x)
+        g[..., 9:12, 1:4] = torch.diag(1.0 / self.inertia.to(x))
+        return g
+
+
+class FixedWing(ControlAffine):
+    """Kinematic fixed-wing aircraft: state ``(x, y, z, v, gamma, psi)`` (airspeed, flight-path
+    angle, heading), control ``(a, gamma_rate, psi_rate)``.
+
+    ``x' = v cos(gamma) cos(psi), y' = v cos(gamma) sin(psi), z' = v sin(gamma),
+    v' = a, gamma' = gamma_rate, psi' = psi_rate``.
+    """
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(6, 3, **kwargs)
+
+    def f(self, x: Tensor) -> Tensor:
+        v, gamma, psi = x[..., 3], x[..., 4], x[..., 5]
+        zero = torch.zeros_like(v)
+        return torch.stack(
+            [
+                v * torch.cos(gamma) * torch.cos(psi),
+                v * torch.cos(gamma) * torch.sin(psi),
+                v * torch.sin(gamma),
+                zero,
+                zero,
+                zero,
+            ],
+            -1,
+        )
+
+    def g(self, x: Tensor) -> Tensor:
+        return _eye_g(x, 6, 3, 3)

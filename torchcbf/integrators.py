@@ -1,0 +1,100 @@
+"""One-step integrators for control-affine dynamics (zero-order hold on the control).
+
+All methods are batched over any leading dimensions of ``x [..., n]`` and ``u [..., m]``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from torchcbf._checks import check_positive
+from torchcbf.dynamics.base import ControlAffine
+
+Method = Literal["euler", "rk4", "euler_maruyama"]
+METHODS: tuple[str, ...] = ("euler", "rk4", "euler_maruyama")
+
+
+def euler(dynamics: ControlAffine, x: Tensor, u: Tensor, dt: float, w: Tensor | None = None) -> Tensor:
+    """Explicit Euler: ``x + dt * xdot(x, u)``."""
+    return x + dt * dynamics(x, u, w)
+
+
+def rk4(dynamics: ControlAffine, x: Tensor, u: Tensor, dt: float, w: Tensor | None = None) -> Tensor:
+    """Classical fourth-order Runge-Kutta with ``u`` (and ``w``) held over the step."""
+    k1 = dynamics(x, u, w)
+    k2 = dynamics(x + 0.5 * dt * k1, u, w)
+    k3 = dynamics(x + 0.5 * dt * k2, u, w)
+    k4 = dynamics(x + dt * k3, u, w)
+    return x + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def euler_maruyama(
+    dynamics: ControlAffine,
+    x: Tensor,
+    u: Tensor,
+    dt: float,
+    w: Tensor | None = None,
+    *,
+    generator: torch.Generator | None = None,
+    noise: Tensor | None = None,
+) -> Tensor:
+    """Euler-Maruyama for ``dx = (f + g u) dt + sigma dW``: ``x + dt xdot + sqrt(dt) sigma z``.
+
+    ``z ~ N(0, I_q)`` is drawn from ``generator`` or given as ``noise [..., q]``. Without a
+    diffusion this is :func:`euler`.
+    """
+    drift = x + dt * dynamics(x, u, w)
+    sigma = dynamics.sigma(x)
+    if sigma is None:
+        return drift
+    q = sigma.shape[-1]
+    if noise is None:
+        if generator is None:
+            raise ValueError(
+                "euler_maruyama on a model with a diffusion needs generator= or noise= "
+                "(torchcbf never draws from the global random state)"
+            )
+        shape = torch.broadcast_shapes(drift.shape[:-1], sigma.shape[:-2]) + (q,)
+        noise = torch.randn(shape, generator=generator, device=x.device, dtype=x.dtype)
+    elif noise.shape[-1] != q:
+        raise ValueError(f"noise must have shape [..., {q}], got {tuple(noise.shape)}")
+    return drift + math.sqrt(dt) * (sigma @ noise.unsqueeze(-1)).squeeze(-1)
+
+
+def step(
+    dynamics: ControlAffine,
+    x: Tensor,
+    u: Tensor,
+    dt: float,
+    method: Method = "rk4",
+    generator: torch.Generator | None = None,
+    *,
+    w: Tensor | None = None,
+    noise: Tensor | None = None,
+) -> Tensor:
+    """Advance ``x [..., n]`` by ``dt`` under control ``u [..., m]`` (held constant).
+
+    Args:
+        method: ``"euler"``, ``"rk4"`` or ``"euler_maruyama"`` (needs ``generator`` or
+            ``noise`` when the model has a diffusion).
+        w: optional disturbance ``[..., p]`` entering as ``M w``.
+        noise: optional standard-normal sample ``[..., q]`` for ``euler_maruyama``.
+
+    Returns:
+        The next state ``[..., n]`` (batch dimensions broadcast between ``x`` and ``u``).
+    """
+    if not isinstance(dynamics, ControlAffine):
+        raise TypeError(f"dynamics must be a ControlAffine module, got {type(dynamics).__name__}")
+    dynamics.check_inputs(x, u)
+    dt = check_positive("dt", dt)
+    if method == "euler":
+        return euler(dynamics, x, u, dt, w)
+    if method == "rk4":
+        return rk4(dynamics, x, u, dt, w)
+    if method == "euler_maruyama":
+        return euler_maruyama(dynamics, x, u, dt, w, generator=generator, noise=noise)
+    raise ValueError(f"method must be one of {METHODS}, got {method!r}")
