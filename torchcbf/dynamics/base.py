@@ -24,6 +24,9 @@ class ControlAffine(nn.Module):
     ``f(x) -> [..., n]`` and ``g(x) -> [..., n, m]``. They may override ``_xdot`` with a
     faster closed form of ``f + g u`` (used by ``forward`` and the integrators).
 
+    Constants given as numbers are stored as float64 buffers (exact under ``.double()``);
+    ``.to(dtype)`` casts them and every method casts them to the input's dtype on use.
+
     Args:
         state_dim: ``n``.
         control_dim: ``m``.
@@ -66,9 +69,9 @@ class ControlAffine(nn.Module):
         self.register_buffer("disturbance_bound", None)
         if disturbance_bound is not None or disturbance_matrix is not None:
             M = (
-                torch.eye(self.state_dim)
+                torch.eye(self.state_dim, dtype=torch.float64)
                 if disturbance_matrix is None
-                else as_tensor("disturbance_matrix", disturbance_matrix)
+                else as_tensor("disturbance_matrix", disturbance_matrix, dtype=torch.float64)
             )
             if M.dim() != 2 or M.shape[0] != self.state_dim:
                 raise ValueError(
@@ -145,7 +148,7 @@ class ControlAffine(nn.Module):
 def _limit(name: str, value: LimitSpec, size: int) -> Tensor | None:
     if value is None:
         return None
-    t = as_tensor(name, value)
+    t = as_tensor(name, value, dtype=torch.float64)
     if t.dim() == 0:
         t = t.expand(size).clone()
     if t.shape != (size,):
@@ -154,7 +157,7 @@ def _limit(name: str, value: LimitSpec, size: int) -> Tensor | None:
 
 
 def _sigma_matrix(sigma: float | Tensor, n: int) -> Tensor:
-    s = as_tensor("sigma", sigma)
+    s = as_tensor("sigma", sigma, dtype=torch.float64)
     if s.dim() == 0:
         return s * torch.eye(n, dtype=s.dtype)
     if s.dim() == 1:

@@ -118,7 +118,7 @@ class Bicycle(ControlAffine):
 
     def __init__(self, wheelbase: float = 1.0, **kwargs: Any) -> None:
         super().__init__(4, 2, **kwargs)
-        self.register_buffer("wheelbase", torch.tensor(check_positive("wheelbase", wheelbase)))
+        self.register_buffer("wheelbase", torch.tensor(check_positive("wheelbase", wheelbase), dtype=torch.float64))
 
     def f(self, x: Tensor) -> Tensor:
         return torch.zeros_like(x)
@@ -141,7 +141,7 @@ class VanDerPol(ControlAffine):
 
     def __init__(self, mu: float = 1.0, **kwargs: Any) -> None:
         super().__init__(2, 1, **kwargs)
-        self.register_buffer("mu", torch.tensor(float(mu)))
+        self.register_buffer("mu", torch.tensor(float(mu), dtype=torch.float64))
 
     def f(self, x: Tensor) -> Tensor:
         x1, x2 = x[..., 0], x[..., 1]
@@ -167,12 +167,12 @@ class Quadrotor(ControlAffine):
         **kwargs: Any,
     ) -> None:
         super().__init__(12, 4, **kwargs)
-        self.register_buffer("mass", torch.tensor(check_positive("mass", mass)))
-        inertia_t = torch.as_tensor(inertia, dtype=torch.get_default_dtype())
+        self.register_buffer("mass", torch.tensor(check_positive("mass", mass), dtype=torch.float64))
+        inertia_t = torch.as_tensor(inertia, dtype=torch.float64)
         if inertia_t.shape != (3,) or bool((inertia_t <= 0).any()):
             raise ValueError(f"inertia must be 3 positive numbers, got {inertia}")
         self.register_buffer("inertia", inertia_t)
-        self.register_buffer("gravity", torch.tensor(float(gravity)))
+        self.register_buffer("gravity", torch.tensor(float(gravity), dtype=torch.float64))
 
     def f(self, x: Tensor) -> Tensor:
         phi, theta = x[..., 3], x[..., 4]

@@ -1,0 +1,133 @@
+"""Integrators: convergence order, Euler-Maruyama statistics, seeding, errors."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchcbf.dynamics import ControlAffine, DoubleIntegrator, SingleIntegrator, VanDerPol
+from torchcbf.integrators import step
+
+
+class _Decay(ControlAffine):
+    """xdot = -x + u: with constant u the solution is u + (x0 - u) exp(-t)."""
+
+    def __init__(self) -> None:
+        super().__init__(1, 1)
+
+    def f(self, x: torch.Tensor) -> torch.Tensor:
+        return -x
+
+    def g(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.ones_like(x).unsqueeze(-1)
+
+
+class _Rotation(ControlAffine):
+    """Harmonic oscillator xdot = (x2, -x1): a rotation, solution known in closed form."""
+
+    def __init__(self) -> None:
+        super().__init__(2, 1)
+
+    def f(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.stack([x[..., 1], -x[..., 0]], -1)
+
+    def g(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.zeros(*x.shape[:-1], 2, 1, dtype=x.dtype, device=x.device)
+
+
+def _error(method: str, dt: float, T: float = 1.0) -> float:
+    model = _Rotation()
+    x = torch.tensor([1.0, 0.0], dtype=torch.float64)
+    u = torch.zeros(1, dtype=torch.float64)
+    for _ in range(round(T / dt)):
+        x = step(model, x, u, dt, method=method)
+    exact = torch.tensor([math.cos(T), -math.sin(T)], dtype=torch.float64)
+    return float((x - exact).norm())
+
+
+@pytest.mark.parametrize(("method", "order"), [("euler", 1), ("rk4", 4)])
+def test_convergence_order(method: str, order: int) -> None:
+    errors = [_error(method, dt) for dt in (0.1, 0.05, 0.025)]
+    ratios = [errors[i] / errors[i + 1] for i in range(2)]
+    for r in ratios:
+        assert abs(math.log2(r) - order) < 0.15, (errors, ratios)
+
+
+def test_rk4_matches_exact_solution_with_control(dtype: torch.dtype, device) -> None:
+    model = _Decay().to(device=device, dtype=dtype)
+    x0 = torch.linspace(-2, 2, 9, dtype=dtype, device=device).unsqueeze(-1)
+    u = torch.full_like(x0, 0.5)
+    x = x0
+    for _ in range(10):
+        x = step(model, x, u, 0.1)
+    exact = 0.5 + (x0 - 0.5) * math.exp(-1.0)
+    tol = 1e-6 if dtype == torch.float64 else 1e-5
+    torch.testing.assert_close(x, exact, atol=tol, rtol=tol)
+
+
+@pytest.mark.parametrize("batch", [(), (4,), (3, 5)])
+@pytest.mark.parametrize("method", ["euler", "rk4", "euler_maruyama"])
+def test_batched_equals_loop(method: str, batch: tuple[int, ...]) -> None:
+    model = VanDerPol(mu=2.0).double()
+    gen = torch.Generator().manual_seed(1)
+    x = torch.randn(*batch, 2, generator=gen, dtype=torch.float64)
+    u = torch.randn(*batch, 1, generator=gen, dtype=torch.float64)
+    out = step(model, x, u, 0.05, method=method)
+    flat_x, flat_u, flat_out = x.reshape(-1, 2), u.reshape(-1, 1), out.reshape(-1, 2)
+    for i in range(flat_x.shape[0]):
+        torch.testing.assert_close(flat_out[i], step(model, flat_x[i], flat_u[i], 0.05, method=method))
+
+
+def test_euler_maruyama_variance_and_seeding() -> None:
+    sigma, dt, steps, paths = 0.7, 0.01, 50, 100_000
+    model = SingleIntegrator(1, sigma=sigma).double()
+    state = torch.random.get_rng_state()
+
+    def run(seed: int) -> torch.Tensor:
+        gen = torch.Generator().manual_seed(seed)
+        x = torch.zeros(paths, 1, dtype=torch.float64)
+        u = torch.zeros(1, dtype=torch.float64)
+        for _ in range(steps):
+            x = step(model, x, u, dt, method="euler_maruyama", generator=gen)
+        return x
+
+    x = run(3)
+    t = dt * steps
+    assert abs(float(x.var()) / (sigma**2 * t) - 1.0) < 0.03
+    assert abs(float(x.mean())) < 4 * sigma * math.sqrt(t / paths)
+    assert torch.equal(x, run(3))
+    assert not torch.equal(x, run(4))
+    assert torch.equal(state, torch.random.get_rng_state())
+
+
+def test_euler_maruyama_given_noise_and_no_diffusion() -> None:
+    model = DoubleIntegrator(1, sigma=torch.tensor([0.0, 2.0])).double()
+    x = torch.zeros(2, dtype=torch.float64)
+    z = torch.tensor([0.3, -1.0], dtype=torch.float64)
+    out = step(model, x, torch.zeros(1, dtype=torch.float64), 0.04, method="euler_maruyama", noise=z)
+    torch.testing.assert_close(out, torch.tensor([0.0, 0.2 * 2.0 * -1.0], dtype=torch.float64))
+    ode = DoubleIntegrator(1)
+    torch.testing.assert_close(
+        step(ode, torch.ones(2), torch.ones(1), 0.1, method="euler_maruyama"),
+        step(ode, torch.ones(2), torch.ones(1), 0.1, method="euler"),
+    )
+
+
+def test_bad_inputs() -> None:
+    model = SingleIntegrator(2, sigma=0.1)
+    with pytest.raises(ValueError, match="generator= or noise="):
+        step(model, torch.zeros(2), torch.zeros(2), 0.1, method="euler_maruyama")
+    with pytest.raises(ValueError, match="method must be one of"):
+        step(model, torch.zeros(2), torch.zeros(2), 0.1, method="midpoint")
+    with pytest.raises(ValueError, match="dt must be a finite positive"):
+        step(model, torch.zeros(2), torch.zeros(2), -0.1)
+    with pytest.raises(ValueError, match=r"x must have shape \[\.\.\., 2\], got \(3,\)"):
+        step(model, torch.zeros(3), torch.zeros(2), 0.1)
+    with pytest.raises(ValueError, match=r"batch dimensions of x \(4, 2\) and u \(3, 2\)"):
+        step(model, torch.zeros(4, 2), torch.zeros(3, 2), 0.1)
+    with pytest.raises(TypeError, match="dynamics must be a ControlAffine"):
+        step(lambda x, u: x, torch.zeros(2), torch.zeros(2), 0.1)
+    with pytest.raises(TypeError, match="u must be a torch.Tensor"):
+        step(model, torch.zeros(2), 0.0, 0.1)

@@ -1,0 +1,104 @@
+"""The record of a batch of closed-loop runs."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+
+@dataclass
+class Trajectory:
+    """B scenarios over T steps of length ``dt``.
+
+    Attributes:
+        t: times ``[T+1]``.
+        x: true states ``[B, T+1, n]``.
+        x_hat: estimated (or measured) states the controllers saw ``[B, T+1, n]``.
+        u_nom: nominal controls ``[B, T, m]`` (planner or nominal controller output).
+        u: applied controls ``[B, T, m]``.
+        h: barrier values reported by the safety filter ``[B, T, k]`` (``None`` without one).
+        status: safety-filter status per step ``[B, T]`` (``None`` without a filter).
+        failed: ``[B]`` bool, a scenario whose state, estimate or a component's output went
+            non-finite; from ``fail_step [B]`` on (``-1`` if never) it is frozen.
+        planner: snapshots of planner outputs, ``{step: output}`` (on the device it ran on).
+    """
+
+    t: Tensor
+    x: Tensor
+    x_hat: Tensor
+    u_nom: Tensor
+    u: Tensor
+    h: Tensor | None
+    status: Tensor | None
+    failed: Tensor
+    fail_step: Tensor
+    planner: dict[int, Any] = field(default_factory=dict)
+
+    @property
+    def batch_size(self) -> int:
+        return self.x.shape[0]
+
+    @property
+    def dt(self) -> float:
+        return float(self.t[1] - self.t[0]) if self.t.numel() > 1 else 0.0
+
+    def _map(self, fn) -> Trajectory:
+        def apply(value: Any) -> Any:
+            if isinstance(value, Tensor):
+                return fn(value)
+            if isinstance(value, tuple) and hasattr(value, "_fields"):
+                return type(value)(*(apply(v) for v in value))
+            if isinstance(value, dict):
+                return {k: apply(v) for k, v in value.items()}
+            return value
+
+        return Trajectory(**{f.name: apply(getattr(self, f.name)) for f in dataclasses.fields(self)})
+
+    def to(self, device: torch.device | str) -> Trajectory:
+        """A copy with every tensor on ``device``."""
+        return self._map(lambda v: v.to(device))
+
+    def numpy(self) -> dict[str, Any]:
+        """Every field as numpy arrays (planner snapshots as dicts of arrays)."""
+
+        def conv(value: Any) -> Any:
+            if isinstance(value, Tensor):
+                return value.detach().cpu().numpy()
+            if isinstance(value, tuple) and hasattr(value, "_fields"):
+                return {k: conv(v) for k, v in value._asdict().items()}
+            if isinstance(value, dict):
+                return {k: conv(v) for k, v in value.items()}
+            return value
+
+        return {f.name: conv(getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+    def save(self, path: str | Path) -> None:
+        """Save with ``torch.save`` (tensors moved to the CPU)."""
+        torch.save(dataclasses.asdict(self.to("cpu")), Path(path))
+
+    @classmethod
+    def load(cls, path: str | Path, map_location: str | torch.device = "cpu") -> Trajectory:
+        """Load a trajectory written by :meth:`save`."""
+        data = torch.load(Path(path), map_location=map_location, weights_only=False)
+        return cls(**data)
+
+    def scenario(self, index: int) -> Trajectory:
+        """Scenario ``index`` alone (batch of one)."""
+        sl = slice(index, index + 1)
+        return Trajectory(
+            t=self.t,
+            x=self.x[sl],
+            x_hat=self.x_hat[sl],
+            u_nom=self.u_nom[sl],
+            u=self.u[sl],
+            h=None if self.h is None else self.h[sl],
+            status=None if self.status is None else self.status[sl],
+            failed=self.failed[sl],
+            fail_step=self.fail_step[sl],
+            planner={},
+        )
