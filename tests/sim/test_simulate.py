@@ -1,0 +1,185 @@
+"""Closed-loop simulator: batch equals single runs, failure isolation, records, metrics."""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import pytest
+import torch
+
+from torchcbf.dynamics import AccelUnicycle, SingleIntegrator
+from torchcbf.integrators import step
+from torchcbf.sim import Goal, Trajectory, metrics, simulate, summarize, wilson_interval
+
+
+class _Plan(NamedTuple):
+    u: torch.Tensor
+    plan: torch.Tensor
+
+
+class _TowardsOrigin:
+    """A toy planner: a constant-velocity plan towards the origin, recording its calls."""
+
+    dt = 0.2
+
+    def __init__(self) -> None:
+        self.calls: list[float] = []
+
+    def reset(self) -> None:
+        self.calls.clear()
+
+    def __call__(self, x: torch.Tensor, t: float) -> _Plan:
+        self.calls.append(t)
+        plan = torch.stack([-x * (1.0 + i) for i in range(5)], dim=1)
+        return _Plan(plan[:, 0], plan)
+
+
+class _NoisySensor(torch.nn.Module):
+    def __init__(self, std: float) -> None:
+        super().__init__()
+        self.register_buffer("R", std**2 * torch.eye(4, dtype=torch.float64))
+
+    def expected(self, x: torch.Tensor) -> torch.Tensor:
+        return x
+
+
+def _heading_controller(x: torch.Tensor, t: float) -> torch.Tensor:
+    goal = x.new_tensor([2.0, 4.0])
+    d = goal - x[..., :2]
+    heading = torch.atan2(d[..., 1], d[..., 0])
+    err = torch.atan2(torch.sin(heading - x[..., 3]), torch.cos(heading - x[..., 3]))
+    v_d = torch.clamp(d.norm(dim=-1), max=2.0)
+    return torch.stack([v_d - x[..., 2], 10.0 * err], -1)
+
+
+def test_batch_equals_single_runs_with_same_seeds() -> None:
+    dyn = AccelUnicycle(sigma=0.28).double()
+    x0 = torch.tensor([[0.0, 0.0, 0.0, math.pi / 4]], dtype=torch.float64).repeat(4, 1)
+    x0[:, 0] += torch.arange(4, dtype=torch.float64) * 0.1
+    seeds = [11, 5, 7, 3]
+    sensor = _NoisySensor(0.05)
+    batch = simulate(dyn, x0, 40, 0.01, nominal=_heading_controller, sensor=sensor, seed=seeds, progress=False)
+    for b in range(4):
+        single = simulate(
+            dyn, x0[b : b + 1], 40, 0.01, nominal=_heading_controller, sensor=sensor, seed=[seeds[b]], progress=False
+        )
+        torch.testing.assert_close(batch.x[b], single.x[0], atol=1e-12, rtol=0)
+        torch.testing.assert_close(batch.x_hat[b], single.x_hat[0], atol=1e-12, rtol=0)
+    again = simulate(dyn, x0, 40, 0.01, nominal=_heading_controller, sensor=sensor, seed=seeds, progress=False)
+    assert torch.equal(batch.x, again.x)
+    other = simulate(dyn, x0, 40, 0.01, nominal=_heading_controller, sensor=sensor, seed=0, progress=False)
+    assert not torch.equal(batch.x, other.x)
+
+
+def test_noise_free_loop_matches_hand_written_loop(dtype: torch.dtype, device) -> None:
+    dyn = SingleIntegrator(2, u_min=-0.5, u_max=0.5).to(device=device, dtype=dtype)
+    x0 = torch.tensor([[1.0, -2.0], [0.3, 0.1]], device=device, dtype=dtype)
+    traj = simulate(dyn, x0, 30, 0.1, nominal=lambda x, t: -2.0 * x, progress=False)
+    x = x0
+    for k in range(30):
+        u = torch.clamp(-2.0 * x, -0.5, 0.5)
+        torch.testing.assert_close(traj.u[:, k], u)
+        x = step(dyn, x, u, 0.1)
+    torch.testing.assert_close(traj.x[:, -1], x)
+    assert traj.t.shape == (31,) and traj.x.shape == (2, 31, 2) and traj.u.shape == (2, 30, 2)
+    assert traj.h is None and traj.status is None and not bool(traj.failed.any())
+
+
+def test_non_finite_scenario_is_flagged_and_isolated() -> None:
+    dyn = SingleIntegrator(2).double()
+    x0 = torch.tensor([[1.0, 1.0], [float("nan"), 0.0], [2.0, 0.0]], dtype=torch.float64)
+
+    def nominal(x: torch.Tensor, t: float) -> torch.Tensor:
+        u = -x
+        if t > 0.45:  # a controller that fails for scenario 2 after a while
+            u = u.clone()
+            u[2] = float("inf")
+        return u
+
+    traj = simulate(dyn, x0, 10, 0.1, nominal=nominal, progress=False)
+    assert traj.failed.tolist() == [False, True, True]
+    assert traj.fail_step.tolist() == [-1, 0, 5]
+    clean = simulate(dyn, x0[:1], 10, 0.1, nominal=lambda x, t: -x, progress=False)
+    torch.testing.assert_close(traj.x[0], clean.x[0])
+    assert torch.isfinite(traj.x[2]).all() and torch.isfinite(traj.u).all()
+    # the failed scenario is frozen at its last finite state
+    torch.testing.assert_close(traj.x[2, 6:], traj.x[2, 5].expand(5, 2))
+
+
+def test_planner_at_lower_rate_follows_its_plan() -> None:
+    dyn = SingleIntegrator(2).double()
+    planner = _TowardsOrigin()
+    x0 = torch.ones(2, 2, dtype=torch.float64)
+    traj = simulate(dyn, x0, 12, 0.1, planner=planner, planner_every=4, snapshot_steps=[0, 8], progress=False)
+    assert planner.calls == pytest.approx([0.0, 0.4, 0.8])
+    assert set(traj.planner) == {0, 8}
+    # steps 0..3 after a replan use plan indices 0, 0, 1, 1 (planner dt 0.2, loop dt 0.1)
+    plan0 = traj.planner[0].plan
+    torch.testing.assert_close(traj.u[:, 1], plan0[:, 0])
+    torch.testing.assert_close(traj.u[:, 2], plan0[:, 1])
+    # a nominal controller receives the planner's control
+    seen: list[torch.Tensor] = []
+    simulate(dyn, x0, 3, 0.1, planner=_TowardsOrigin(), nominal=lambda x, t, up: seen.append(up) or up, progress=False)
+    assert len(seen) == 3
+
+
+def test_trajectory_round_trips(tmp_path) -> None:
+    dyn = SingleIntegrator(2)
+    traj = simulate(dyn, torch.randn(3, 2), 5, 0.1, planner=_TowardsOrigin(), snapshot_steps=[0], progress=False)
+    path = tmp_path / "traj.pt"
+    traj.save(path)
+    loaded = Trajectory.load(path)
+    assert torch.equal(loaded.x, traj.x) and torch.equal(loaded.planner[0].plan, traj.planner[0].plan)
+    arrays = traj.numpy()
+    assert arrays["x"].shape == (3, 6, 2) and arrays["planner"][0]["plan"].shape == (3, 5, 2)
+    assert traj.to("cpu").u.device.type == "cpu"
+    one = traj.scenario(1)
+    assert torch.equal(one.x[0], traj.x[1])
+
+
+def test_metrics_against_a_loop() -> None:
+    dyn = SingleIntegrator(2).double()
+    x0 = torch.tensor([[-2.0, 0.05], [-2.0, 1.5], [-2.0, -0.3]], dtype=torch.float64)
+    traj = simulate(dyn, x0, 40, 0.1, nominal=lambda x, t: x.new_tensor([1.0, 0.0]).expand_as(x), progress=False)
+
+    def ball(x: torch.Tensor) -> torch.Tensor:
+        return (x**2).sum(-1) - 0.5**2
+
+    m = metrics(traj, barriers=[ball], goals=[Goal((2.0, 0.0), 0.5, deadline=3.9)])
+    for b in range(3):
+        hb = [float(ball(traj.x[b, k])) for k in range(41)]
+        hit = [k for k, v in enumerate(hb) if v < 0]
+        assert bool(m["collision"][b]) == bool(hit)
+        assert float(m["min_h"][b]) == pytest.approx(min(hb))
+        if hit:
+            assert float(m["first_collision_time"][b]) == pytest.approx(0.1 * hit[0])
+        else:
+            assert math.isnan(float(m["first_collision_time"][b]))
+        reached = [k for k in range(41) if float((traj.x[b, k] - traj.x.new_tensor([2.0, 0.0])).norm()) <= 0.5 and k * 0.1 <= 3.9 + 1e-9]
+        assert bool(m["goal0_reached"][b]) == bool(reached)
+    assert m["collision"].tolist() == [True, False, True]
+    s = summarize(m)
+    assert s["collision"]["count"] == 2 and s["collision"]["n"] == 3
+    assert s["effort"]["mean"] == pytest.approx(4.0)
+
+
+def test_wilson_interval_known_values() -> None:
+    lo, hi = wilson_interval(0, 32)
+    assert lo == 0.0 and hi == pytest.approx(0.1072, abs=1e-3)
+    lo, hi = wilson_interval(16, 32)
+    assert lo == pytest.approx(0.3363, abs=1e-3) and hi == pytest.approx(0.6637, abs=1e-3)
+
+
+def test_bad_inputs() -> None:
+    dyn = SingleIntegrator(2)
+    with pytest.raises(ValueError, match=r"x0 must have shape \[\.\.\., 2\]"):
+        simulate(dyn, torch.zeros(3, 3), 5, 0.1)
+    with pytest.raises(ValueError, match="steps must be a positive int"):
+        simulate(dyn, torch.zeros(3, 2), 0, 0.1)
+    with pytest.raises(ValueError, match="integrator must be one of"):
+        simulate(dyn, torch.zeros(3, 2), 5, 0.1, integrator="heun")
+    with pytest.raises(ValueError, match="one seed per scenario"):
+        simulate(dyn, torch.zeros(3, 2), 5, 0.1, seed=[1, 2])
+    with pytest.raises(TypeError, match="dynamics must be a ControlAffine"):
+        simulate(object(), torch.zeros(3, 2), 5, 0.1)
