@@ -1,0 +1,242 @@
+"""Matplotlib figures of closed-loop runs: trajectories over obstacles and goals, barrier values
+over time, MPPI rollouts coloured by weight, and a GIF animation.
+
+Obstacles are drawn as the unsafe set ``{h < 0}`` of any barrier (or function of the state)
+on a grid, so closed-form shapes, compositions and learned barriers all plot the same way.
+Goals are anything with ``center`` and ``radius`` (and optionally ``interval``, a time window).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import matplotlib.pyplot as plt
+import numpy as np
+import torch
+from matplotlib.animation import FuncAnimation, PillowWriter
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from matplotlib.patches import Circle
+
+from torchcbf.sim.trajectory import Trajectory
+
+BarrierFn = Callable[[torch.Tensor], torch.Tensor]
+
+
+def _np(value: Any) -> np.ndarray:
+    if isinstance(value, torch.Tensor):
+        return value.detach().cpu().numpy()
+    return np.asarray(value)
+
+
+def draw_unsafe_set(
+    ax: Axes,
+    barrier: BarrierFn,
+    xlim: tuple[float, float],
+    ylim: tuple[float, float],
+    *,
+    state_dim: int = 2,
+    index: tuple[int, int] = (0, 1),
+    fill: Sequence[float] | None = None,
+    resolution: int = 300,
+    color: str = "tab:red",
+    label: str | None = "obstacle",
+) -> None:
+    """Shade ``{h < 0}`` of ``barrier`` over the plane of state components ``index``.
+
+    The other state components are taken from ``fill`` (zeros by default). A barrier that
+    returns ``[..., k]`` is reduced by its minimum over ``k``.
+    """
+    xs = np.linspace(*xlim, resolution)
+    ys = np.linspace(*ylim, resolution)
+    X, Y = np.meshgrid(xs, ys)
+    base = np.zeros(state_dim) if fill is None else np.asarray(fill, dtype=float)
+    states = np.broadcast_to(base, (*X.shape, state_dim)).copy()
+    states[..., index[0]] = X
+    states[..., index[1]] = Y
+    param = next(iter(barrier.parameters()), None) if isinstance(barrier, torch.nn.Module) else None
+    buf = next(iter(barrier.buffers()), None) if isinstance(barrier, torch.nn.Module) else None
+    ref = param if param is not None else buf
+    dtype = ref.dtype if ref is not None and ref.is_floating_point() else torch.float64
+    device = ref.device if ref is not None else "cpu"
+    with torch.no_grad():
+        h = barrier(torch.as_tensor(states, dtype=dtype, device=device))
+    h = _np(h)
+    if h.ndim == X.ndim + 1:
+        h = h.min(-1)
+    ax.contourf(X, Y, h, levels=[h.min() - 1.0, 0.0], colors=[color], alpha=0.35)
+    ax.contour(X, Y, h, levels=[0.0], colors=[color], linewidths=1.2)
+    if label:
+        ax.plot([], [], color=color, lw=6, alpha=0.35, label=label)
+
+
+def draw_goals(ax: Axes, goals: Sequence[Any], color: str = "tab:green") -> None:
+    """Circles for goal regions, annotated with their time windows when they have one."""
+    for i, goal in enumerate(goals):
+        c = _np(goal.center).reshape(-1)[:2]
+        r = float(goal.radius)
+        ax.add_patch(Circle(tuple(c), r, facecolor=color, alpha=0.25, edgecolor=color, lw=1.5))
+        interval = getattr(goal, "interval", None)
+        text = f"g{i + 1}"
+        if interval is not None:
+            text += f"  [{float(interval[0]):g}, {float(interval[1]):g}] s"
+        deadline = getattr(goal, "deadline", None)
+        if deadline is not None:
+            text += f"  by {float(deadline):g} s"
+        ax.annotate(text, (c[0] + r, c[1] + r), fontsize=8, color="darkgreen")
+
+
+def _limits(traj_xy: np.ndarray, goals: Sequence[Any], margin: float = 1.0) -> tuple[tuple[float, float], tuple[float, float]]:
+    pts = [traj_xy.reshape(-1, 2)]
+    for g in goals:
+        pts.append(_np(g.center).reshape(1, -1)[:, :2])
+    allp = np.concatenate(pts)
+    allp = allp[np.isfinite(allp).all(-1)]
+    lo, hi = allp.min(0) - margin, allp.max(0) + margin
+    return (float(lo[0]), float(hi[0])), (float(lo[1]), float(hi[1]))
+
+
+def plot_trajectories(
+    trajectory: Trajectory,
+    barriers: Sequence[BarrierFn] = (),
+    goals: Sequence[Any] = (),
+    *,
+    index: tuple[int, int] = (0, 1),
+    ax: Axes | None = None,
+    title: str | None = None,
+    xlim: tuple[float, float] | None = None,
+    ylim: tuple[float, float] | None = None,
+    color: str | None = None,
+    label: str | None = None,
+    max_paths: int = 64,
+) -> Figure:
+    """Paths of (up to ``max_paths``) scenarios over obstacles and goal regions."""
+    fig, ax = (ax.figure, ax) if ax is not None else plt.subplots(figsize=(6, 6))
+    xy = _np(trajectory.x)[..., list(index)]
+    auto_x, auto_y = _limits(xy, goals)
+    xlim, ylim = xlim or auto_x, ylim or auto_y
+    for j, barrier in enumerate(barriers):
+        draw_unsafe_set(
+            ax, barrier, xlim, ylim, state_dim=trajectory.x.shape[-1], index=index, label="obstacle" if j == 0 else None
+        )
+    draw_goals(ax, goals)
+    for b in range(min(xy.shape[0], max_paths)):
+        ax.plot(xy[b, :, 0], xy[b, :, 1], color=color or "tab:blue", lw=1.0, alpha=0.6, label=label if b == 0 else None)
+    ax.plot(xy[:, 0, 0], xy[:, 0, 1], "k.", ms=6)
+    ax.set_xlim(*xlim)
+    ax.set_ylim(*ylim)
+    ax.set_aspect("equal")
+    ax.set_xlabel(f"x[{index[0]}]")
+    ax.set_ylabel(f"x[{index[1]}]")
+    if title:
+        ax.set_title(title)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="best", fontsize=8)
+    return fig
+
+
+def plot_barrier_values(
+    t: Any,
+    h: Any,
+    *,
+    ax: Axes | None = None,
+    title: str = "barrier values",
+    labels: Sequence[str] | None = None,
+) -> Figure:
+    """``h [B, T, k]`` (or ``[B, T]``) over time: the minimum over barriers for each scenario,
+    with the batch's minimum in bold and the safety boundary ``h = 0`` dashed."""
+    fig, ax = (ax.figure, ax) if ax is not None else plt.subplots(figsize=(7, 3.5))
+    t, h = _np(t), _np(h)
+    if h.ndim == 3:
+        h = h.min(-1)
+    t = t[: h.shape[1]]
+    for b in range(h.shape[0]):
+        ax.plot(t, h[b], color="tab:blue", alpha=0.3, lw=0.8)
+    ax.plot(t, h.min(0), color="tab:blue", lw=2.0, label="minimum over scenarios")
+    ax.axhline(0.0, color="tab:red", ls="--", lw=1.0, label="h = 0")
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("min_i h_i(x)")
+    ax.set_title(title)
+    ax.legend(loc="best", fontsize=8)
+    return fig
+
+
+def plot_rollouts(
+    rollouts: Any,
+    weights: Any,
+    plan_states: Any | None = None,
+    *,
+    barriers: Sequence[BarrierFn] = (),
+    goals: Sequence[Any] = (),
+    executed: Any | None = None,
+    index: tuple[int, int] = (0, 1),
+    ax: Axes | None = None,
+    title: str = "MPPI rollouts",
+    xlim: tuple[float, float] | None = None,
+    ylim: tuple[float, float] | None = None,
+) -> Figure:
+    """Sampled rollouts ``[K, H+1, n]`` coloured by their weight ``[K]`` (the paper's third
+    figure), the chosen plan's states ``[H+1, n]`` and the executed path ``[T, n]``."""
+    fig, ax = (ax.figure, ax) if ax is not None else plt.subplots(figsize=(6, 6))
+    R = _np(rollouts)[..., list(index)]
+    w = _np(weights).astype(float)
+    w = w / max(w.max(), 1e-300)
+    auto_x, auto_y = _limits(R, goals)
+    xlim, ylim = xlim or auto_x, ylim or auto_y
+    for j, barrier in enumerate(barriers):
+        draw_unsafe_set(ax, barrier, xlim, ylim, state_dim=_np(rollouts).shape[-1], index=index, label="obstacle" if j == 0 else None)
+    draw_goals(ax, goals)
+    cmap = plt.get_cmap("viridis")
+    for k in np.argsort(w):
+        ax.plot(R[k, :, 0], R[k, :, 1], color=cmap(w[k]), lw=0.6, alpha=0.25 + 0.75 * w[k])
+    sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, 1))
+    fig.colorbar(sm, ax=ax, label="normalised weight")
+    if executed is not None:
+        E = _np(executed)[..., list(index)]
+        ax.plot(E[:, 0], E[:, 1], "k-", lw=2.0, label="executed")
+    if plan_states is not None:
+        P = _np(plan_states)[..., list(index)]
+        ax.plot(P[:, 0], P[:, 1], color="tab:orange", lw=2.5, label="chosen plan")
+    ax.set_xlim(*xlim)
+    ax.set_ylim(*ylim)
+    ax.set_aspect("equal")
+    ax.set_title(title)
+    ax.legend(loc="best", fontsize=8)
+    return fig
+
+
+def animate(
+    trajectory: Trajectory,
+    path: str | Path,
+    barriers: Sequence[BarrierFn] = (),
+    goals: Sequence[Any] = (),
+    *,
+    index: tuple[int, int] = (0, 1),
+    frames: int = 60,
+    fps: int = 15,
+    max_paths: int = 16,
+) -> Path:
+    """Write a GIF of the scenarios moving over obstacles and goals; returns its path."""
+    path = Path(path)
+    fig = plot_trajectories(trajectory, barriers, goals, index=index, max_paths=0)
+    ax = fig.axes[0]
+    xy = _np(trajectory.x)[: max_paths, :, list(index)]
+    t = _np(trajectory.t)
+    lines = [ax.plot([], [], color="tab:blue", lw=1.2)[0] for _ in range(xy.shape[0])]
+    dots = ax.plot([], [], "o", color="tab:blue", ms=4)[0]
+    stamp = ax.text(0.02, 0.97, "", transform=ax.transAxes, va="top")
+    ticks = np.linspace(0, xy.shape[1] - 1, min(frames, xy.shape[1])).round().astype(int)
+
+    def draw(i: int) -> list[Any]:
+        k = ticks[i]
+        for b, line in enumerate(lines):
+            line.set_data(xy[b, : k + 1, 0], xy[b, : k + 1, 1])
+        dots.set_data(xy[:, k, 0], xy[:, k, 1])
+        stamp.set_text(f"t = {t[k]:.2f} s")
+        return [*lines, dots, stamp]
+
+    FuncAnimation(fig, draw, frames=len(ticks), blit=False).save(path, writer=PillowWriter(fps=fps))
+    plt.close(fig)
+    return path
