@@ -1,0 +1,120 @@
+"""Batched linear-algebra helpers for the Kalman filters (private).
+
+Every function works on a flat batch: vectors ``[B, k]`` and matrices ``[B, k, k]``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+
+def symmetrize(A: Tensor) -> Tensor:
+    """``(A + A^T) / 2`` for ``[..., k, k]``."""
+    return 0.5 * (A + A.mT)
+
+
+def jacobian(
+    fn: Callable[[Tensor], Tensor], x: Tensor, create_graph: bool
+) -> tuple[Tensor, Tensor]:
+    """Value and Jacobian of a row-wise map ``fn: [B, n] -> [B, k]``.
+
+    Rows are independent, so the Jacobian of row ``b`` is the gradient of the summed output
+    component: one backward pass per output component (a loop over ``k``, never over rows).
+    With ``create_graph`` the result stays differentiable (second derivatives included);
+    without it the value and the Jacobian are detached.
+
+    Returns:
+        ``(fn(x) [B, k], J [B, k, n])``.
+    """
+    with torch.enable_grad():
+        if create_graph and x.requires_grad:
+            xr = x
+        else:
+            xr = x.detach().requires_grad_(True)
+        out = fn(xr)
+        rows = []
+        for i in range(out.shape[-1]):
+            (grad,) = torch.autograd.grad(
+                out[..., i].sum(),
+                xr,
+                retain_graph=True,
+                create_graph=create_graph,
+                allow_unused=True,
+            )
+            rows.append(torch.zeros_like(xr) if grad is None else grad)
+    J = torch.stack(rows, dim=-2)
+    if not create_graph:
+        return out.detach(), J.detach()
+    return out, J
+
+
+def discretize(
+    F: Tensor, h: float, xdot: Tensor | None = None, Qc: Tensor | None = None
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """Exact discretization of ``d(dx)/dt = F dx + xdot`` and ``dP/dt = F P + P F^T + Qc``.
+
+    One matrix exponential of the block matrix ``[[F, Qc, xdot], [0, -F^T, 0], [0, 0, 0]] h``
+    gives ``Phi = exp(F h)`` (top-left), ``G`` (top-middle) with ``Qd = G Phi^T =
+    int_0^h exp(F s) Qc exp(F s)^T ds`` (Van Loan) and ``phi1(F h) h xdot`` (top-right
+    column), the exponential-Euler increment.
+
+    Args:
+        F: ``[B, n, n]``; xdot: ``[B, n]`` or None; Qc: ``[B, n, n]`` or None.
+
+    Returns:
+        ``(Phi [B, n, n], dx [B, n] or None, Qd [B, n, n] or None)``.
+    """
+    B, n = F.shape[0], F.shape[-1]
+    size = n + (n if Qc is not None else 0) + (1 if xdot is not None else 0)
+    M = F.new_zeros(B, size, size)
+    M[:, :n, :n] = F
+    col = n
+    if Qc is not None:
+        M[:, :n, n : 2 * n] = Qc
+        M[:, n : 2 * n, n : 2 * n] = -F.mT
+        col = 2 * n
+    if xdot is not None:
+        M[:, :n, col] = xdot
+    E = torch.linalg.matrix_exp(M * h)
+    Phi = E[:, :n, :n]
+    dx = E[:, :n, col] if xdot is not None else None
+    Qd = symmetrize(E[:, :n, n : 2 * n] @ Phi.mT) if Qc is not None else None
+    return Phi, dx, Qd
+
+
+def robust_cholesky(A: Tensor) -> tuple[Tensor, Tensor]:
+    """Lower Cholesky factor of a symmetric ``A [B, k, k]`` that never raises.
+
+    Rows whose factorization fails are retried with a jitter ``eps^(3/4) s I`` and then
+    ``eps^(1/2) s I`` (``s`` the mean absolute diagonal, ``eps`` the dtype's machine epsilon);
+    a row that still fails gets the diagonal square root ``diag(sqrt(max(diag A, tiny)))``.
+    Every attempt runs on the whole batch and is selected with ``torch.where``: no host sync.
+
+    Returns:
+        ``(L [B, k, k], regularized [B] bool)``.
+    """
+    A = symmetrize(A)
+    L, info = torch.linalg.cholesky_ex(A)
+    ok = info == 0
+    regularized = ~ok
+    finfo = torch.finfo(A.dtype)
+    k = A.shape[-1]
+    eye = torch.eye(k, dtype=A.dtype, device=A.device)
+    scale = A.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(finfo.tiny)
+    for power in (0.75, 0.5):
+        jitter = (finfo.eps**power) * scale
+        Lj, info_j = torch.linalg.cholesky_ex(A + jitter[:, None, None] * eye)
+        use = ~ok & (info_j == 0)
+        L = torch.where(use[:, None, None], Lj, L)
+        ok = ok | use
+    diag = torch.diag_embed(A.diagonal(dim1=-2, dim2=-1).clamp_min(finfo.tiny).sqrt())
+    L = torch.where(ok[:, None, None], L, diag)
+    return L, regularized
+
+
+def wrap_angle(a: Tensor) -> Tensor:
+    """Wrap angles to ``[-pi, pi)``."""
+    return torch.remainder(a + torch.pi, 2 * torch.pi) - torch.pi

@@ -1,0 +1,315 @@
+"""The estimator protocol, its state, :class:`PassThrough` and the shared Kalman-filter base."""
+
+from __future__ import annotations
+
+from enum import IntEnum
+from typing import NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from torchcbf._checks import (
+    as_tensor,
+    check_batch_match,
+    check_last_dim,
+    check_positive,
+    check_spd,
+    check_tensor,
+)
+from torchcbf.dynamics.base import ControlAffine
+from torchcbf.estimation._linalg import symmetrize
+from torchcbf.estimation.sensors import Perfect, Sensor
+
+
+class EstimatorStatus(IntEnum):
+    """Per-row status bits of an :class:`EstimatorState` (a row may carry several, OR-ed).
+
+    ``REGULARIZED``: a covariance (``P`` or the innovation covariance ``S``) was not
+    numerically positive definite and a jitter or diagonal fallback was used.
+    ``NON_FINITE``: the step produced a non-finite value in that row (or its measurement
+    was non-finite); the row kept its previous mean and covariance.
+    """
+
+    OK = 0
+    REGULARIZED = 1
+    NON_FINITE = 2
+
+
+class EstimatorState(NamedTuple):
+    """State of an estimator for a batch of scenarios.
+
+    Attributes:
+        mean: ``[..., n]`` state estimate.
+        cov: ``[..., n, n]`` covariance (symmetric positive definite for the Kalman filters).
+        status: ``[...]`` int64, :class:`EstimatorStatus` bits of the last ``predict`` and the
+            ``update`` that followed it (``predict`` clears the bits, ``update`` adds).
+    """
+
+    mean: Tensor
+    cov: Tensor
+    status: Tensor
+
+
+class Estimator(nn.Module):
+    """Protocol of every estimator (what the simulator calls)::
+
+        state = estimator.init(x0_hat, P0)           # once
+        state = estimator.predict(state, u, dt)      # each step, u applied over dt
+        y = sensor.measure(x_true, generator)        # the sensor the estimator was built with
+        state = estimator.update(state, y)
+        controller(state.mean)
+
+    ``step(state, u, dt, y)`` is ``update(predict(state, u, dt), y)``. States are
+    NamedTuples with at least ``mean [..., n]``, ``cov [..., n, n]`` and ``status [...]``.
+    """
+
+    state_dim: int | None
+
+    def init(self, x0: Tensor, P0: Tensor | None = None) -> EstimatorState:
+        """Initial state from the prior mean ``x0 [..., n]`` and covariance ``P0 [..., n, n]``."""
+        raise NotImplementedError(f"{type(self).__name__} must define init")
+
+    def predict(self, state: EstimatorState, u: Tensor, dt: float) -> EstimatorState:
+        """Propagate over ``dt`` with the control ``u [..., m]`` held constant."""
+        raise NotImplementedError(f"{type(self).__name__} must define predict")
+
+    def update(self, state: EstimatorState, y: Tensor) -> EstimatorState:
+        """Correct with the measurement ``y [..., p]``."""
+        raise NotImplementedError(f"{type(self).__name__} must define update")
+
+    def step(self, state: EstimatorState, u: Tensor, dt: float, y: Tensor) -> EstimatorState:
+        """``update(predict(state, u, dt), y)``."""
+        return self.update(self.predict(state, u, dt), y)
+
+
+class PassThrough(Estimator):
+    """The identity estimator for a :class:`~torchcbf.estimation.Perfect` sensor: the mean is
+    the last measurement, the covariance zero, ``predict`` changes nothing.
+
+    Args:
+        state_dim: ``n`` if known (then measurements are checked against it).
+    """
+
+    def __init__(self, state_dim: int | None = None) -> None:
+        super().__init__()
+        self.state_dim = state_dim
+
+    def init(self, x0: Tensor, P0: Tensor | None = None) -> EstimatorState:
+        """``mean = x0 [..., n]``, ``cov = P0`` (zeros when ``None``), status OK."""
+        x0 = _check_vector("x0", x0, self.state_dim)
+        n = x0.shape[-1]
+        cov = x0.new_zeros(*x0.shape, n) if P0 is None else _check_cov("P0", P0, x0, spd=False)
+        return EstimatorState(x0, cov, _zero_status(x0))
+
+    def predict(self, state: EstimatorState, u: Tensor, dt: float) -> EstimatorState:
+        """Returns ``state`` unchanged (after checking ``dt``)."""
+        _check_state(state, self.state_dim)
+        check_positive("dt", dt)
+        return state
+
+    def update(self, state: EstimatorState, y: Tensor) -> EstimatorState:
+        """``mean = y [..., n]`` (broadcast with the state's batch), zero covariance."""
+        mean, _, _ = _check_state(state, self.state_dim)
+        n = mean.shape[-1]
+        check_last_dim("y", y, n)
+        check_batch_match("state.mean", mean, "y", y)
+        bs = torch.broadcast_shapes(mean.shape[:-1], y.shape[:-1])
+        y = y.to(mean).expand(*bs, n)
+        return EstimatorState(y, y.new_zeros(*bs, n, n), _zero_status(y))
+
+
+# -- helpers shared by the Kalman filters ----------------------------------------------------
+
+
+def _zero_status(mean: Tensor) -> Tensor:
+    return torch.zeros(mean.shape[:-1], dtype=torch.int64, device=mean.device)
+
+
+def _check_vector(name: str, x: object, n: int | None) -> Tensor:
+    x = check_tensor(name, x)
+    if x.dim() == 0 or (n is not None and x.shape[-1] != n):
+        raise ValueError(
+            f"{name} must have shape [..., {n if n is not None else 'n'}], got {tuple(x.shape)}"
+        )
+    if not x.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor, got {x.dtype}")
+    return x
+
+
+def _check_cov(name: str, P: object, mean: Tensor, *, spd: bool = True) -> Tensor:
+    """Check ``P [..., n, n]`` against ``mean [..., n]`` and broadcast it to the mean's batch."""
+    P = check_tensor(name, P)
+    n = mean.shape[-1]
+    if P.dim() < 2 or P.shape[-2:] != (n, n):
+        raise ValueError(f"{name} must have shape [..., {n}, {n}], got {tuple(P.shape)}")
+    try:
+        bs = torch.broadcast_shapes(mean.shape[:-1], P.shape[:-2])
+    except RuntimeError:
+        bs = None
+    if bs != mean.shape[:-1]:
+        raise ValueError(
+            f"the batch of {name} {tuple(P.shape)} must broadcast to that of x0 {tuple(mean.shape)}"
+        )
+    if spd:
+        check_spd(name, P)
+    return P.to(mean).expand(*bs, n, n)
+
+
+def _check_state(state: object, n: int | None) -> tuple[Tensor, Tensor, Tensor]:
+    if not (isinstance(state, tuple) and hasattr(state, "mean") and hasattr(state, "cov")):
+        raise TypeError(f"state must be an EstimatorState from init(), got {type(state).__name__}")
+    mean = _check_vector("state.mean", state.mean, n)
+    k = mean.shape[-1]
+    cov = check_tensor("state.cov", state.cov)
+    if cov.shape != mean.shape + (k,):
+        raise ValueError(
+            f"state.cov must have shape {tuple(mean.shape) + (k,)}, got {tuple(cov.shape)}"
+        )
+    status = state.status
+    if not isinstance(status, Tensor) or status.shape != mean.shape[:-1]:
+        raise ValueError(f"state.status must have shape {tuple(mean.shape[:-1])}")
+    return mean, cov, status
+
+
+def _noise_spec(name: str, value: object, n: int) -> Tensor:
+    """A covariance given as a scalar (``v I``), a vector (diagonal) or ``[n, n]``; must be SPD."""
+    t = as_tensor(name, value)
+    if t.dim() == 0:
+        t = t * torch.eye(n, dtype=t.dtype)
+    elif t.dim() == 1 and t.shape[0] == n:
+        t = torch.diag(t)
+    if t.shape != (n, n):
+        raise ValueError(f"{name} must be a scalar, [{n}] or [{n}, {n}], got {tuple(t.shape)}")
+    return check_spd(name, t)
+
+
+class _KalmanFilter(Estimator):
+    """Shared construction, validation and batching of the Kalman-type filters.
+
+    Process noise: ``Q`` is the continuous-time intensity ``Q_c [n, n]`` of the white noise
+    in ``dx = (f + g u) dt + dW_Q``; it must be symmetric positive definite (given as a scalar
+    ``q I``, a diagonal ``[n]`` or ``[n, n]``). With ``Q=None`` the dynamics' diffusion is used,
+    ``Q_c = sigma(x) sigma(x)^T`` evaluated at the mean (positive semidefinite is fine there);
+    a model without diffusion then needs an explicit ``Q``.
+    """
+
+    def __init__(
+        self,
+        dynamics: ControlAffine,
+        sensor: Sensor,
+        Q: Tensor | float | None = None,
+        R: Tensor | float | None = None,
+        *,
+        substeps: int = 1,
+    ) -> None:
+        super().__init__()
+        if not isinstance(dynamics, ControlAffine):
+            raise TypeError(
+                f"dynamics must be a ControlAffine module, got {type(dynamics).__name__}"
+            )
+        if not isinstance(sensor, Sensor):
+            raise TypeError(f"sensor must be a Sensor module, got {type(sensor).__name__}")
+        n = dynamics.state_dim
+        if isinstance(sensor, Perfect):
+            raise ValueError(
+                "a Perfect sensor needs no Kalman filter: use PassThrough (or no estimator)"
+            )
+        if sensor.state_dim is not None and sensor.state_dim != n:
+            raise ValueError(f"sensor expects states of size {sensor.state_dim}, dynamics has {n}")
+        if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
+            raise ValueError(f"substeps must be an integer >= 1, got {substeps!r}")
+        self.dynamics = dynamics
+        self.sensor = sensor
+        self.state_dim = n
+        self.substeps = substeps
+        if Q is None and not dynamics.has_diffusion:
+            raise ValueError(
+                f"Q is required: {type(dynamics).__name__} has no diffusion sigma to derive it from"
+            )
+        self.register_buffer("Q", None if Q is None else _noise_spec("Q", Q, n))
+        if R is None:
+            if sensor.R is None:
+                raise ValueError(f"R is required: {type(sensor).__name__} has no noise covariance")
+            R_t = None
+        else:
+            p = sensor.output_dim if sensor.output_dim is not None else as_tensor("R", R).shape[-1]
+            R_t = _noise_spec("R", R, p)
+        self.register_buffer("R_override", R_t)
+
+    # -- pieces used by the subclasses ------------------------------------------------------
+    def _R(self, like: Tensor) -> Tensor:
+        R = self.R_override if self.R_override is not None else self.sensor.R
+        return R.to(like)
+
+    def _Qc(self, m: Tensor) -> Tensor:
+        """Continuous process-noise intensity at the mean ``m [B, n]``: ``[B, n, n]``."""
+        if self.Q is not None:
+            return self.Q.to(m).expand(m.shape[0], -1, -1)
+        s = self.dynamics.sigma(m)
+        return s @ s.mT
+
+    def _needs_graph(self, module: nn.Module, *tensors: Tensor) -> bool:
+        if not torch.is_grad_enabled():
+            return False
+        return any(t.requires_grad for t in tensors) or any(
+            p.requires_grad for p in module.parameters()
+        )
+
+    def init(self, x0: Tensor, P0: Tensor | None = None) -> EstimatorState:
+        """Prior ``x0 [..., n]``, ``P0 [n, n]`` or ``[..., n, n]`` (symmetric positive definite).
+
+        Returns an :class:`EstimatorState` with the batch of ``x0``.
+        """
+        x0 = _check_vector("x0", x0, self.state_dim)
+        if P0 is None:
+            raise ValueError(f"{type(self).__name__}.init needs the prior covariance P0")
+        P = _check_cov("P0", P0, x0)
+        return EstimatorState(x0, P, _zero_status(x0))
+
+    def _flat_predict(self, state: EstimatorState, u: Tensor, dt: float):
+        mean, cov, status = _check_state(state, self.state_dim)
+        dt = check_positive("dt", dt)
+        check_last_dim("u", u, self.dynamics.control_dim)
+        check_batch_match("state.mean", mean, "u", u)
+        bs = torch.broadcast_shapes(mean.shape[:-1], u.shape[:-1])
+        n, m = self.state_dim, self.dynamics.control_dim
+        return (
+            bs,
+            mean.expand(*bs, n).reshape(-1, n),
+            cov.expand(*bs, n, n).reshape(-1, n, n),
+            u.to(mean).expand(*bs, m).reshape(-1, m),
+            dt,
+        )
+
+    def _flat_update(self, state: EstimatorState, y: Tensor):
+        mean, cov, status = _check_state(state, self.state_dim)
+        p = self._R(mean).shape[-1]
+        check_last_dim("y", y, p)
+        check_batch_match("state.mean", mean, "y", y)
+        bs = torch.broadcast_shapes(mean.shape[:-1], y.shape[:-1])
+        n = self.state_dim
+        return (
+            bs,
+            mean.expand(*bs, n).reshape(-1, n),
+            cov.expand(*bs, n, n).reshape(-1, n, n),
+            status.expand(bs).reshape(-1),
+            y.to(mean).expand(*bs, p).reshape(-1, p),
+        )
+
+    @staticmethod
+    def _finish(
+        bs: torch.Size,
+        prev_mean: Tensor,
+        prev_cov: Tensor,
+        mean: Tensor,
+        cov: Tensor,
+        status: Tensor,
+    ) -> EstimatorState:
+        """Symmetrise, reject non-finite rows (keep the previous estimate) and reshape."""
+        cov = symmetrize(cov)
+        finite = torch.isfinite(mean).all(-1) & torch.isfinite(cov).flatten(1).all(-1)
+        mean = torch.where(finite[:, None], mean, prev_mean)
+        cov = torch.where(finite[:, None, None], cov, prev_cov)
+        status = status | torch.where(finite, 0, int(EstimatorStatus.NON_FINITE))
+        n = mean.shape[-1]
+        return EstimatorState(mean.reshape(*bs, n), cov.reshape(*bs, n, n), status.reshape(bs))

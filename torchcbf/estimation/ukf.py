@@ -1,0 +1,121 @@
+"""Continuous-discrete unscented Kalman filter derived from a ControlAffine model."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchcbf.dynamics.base import ControlAffine
+from torchcbf.estimation._linalg import discretize, jacobian, robust_cholesky, symmetrize
+from torchcbf.estimation.base import EstimatorState, EstimatorStatus, _KalmanFilter
+from torchcbf.estimation.sensors import Sensor
+
+
+class UKF(_KalmanFilter):
+    """Unscented Kalman filter with scaled sigma points, batched over scenarios.
+
+    ``2n + 1`` sigma points ``m, m +- sqrt(n + lam) L_i`` (``L`` a robust Cholesky factor of
+    ``P``, ``lam = alpha^2 (n + kappa) - n``), weights ``Wm_0 = lam / (n + lam)``,
+    ``Wc_0 = Wm_0 + 1 - alpha^2 + beta``, ``W_i = 1 / (2 (n + lam))``.
+
+    Prediction (per substep of length ``h``): each sigma point goes through the same
+    step map as the :class:`EKF` mean, the exponential-Euler step linearized at that point
+    (exact for linear dynamics); ``P = sum Wc (Y - m)(Y - m)^T + Qd`` with the Van Loan
+    ``Qd`` of ``Q_c`` under the Jacobian at the mean. On a linear system this is the exact
+    Kalman filter. Update: sigma points through ``sensor.expected``; means and deviations of
+    the measurements use ``sensor.residual`` (so bearings are averaged on the circle);
+    ``P = P - K S K^T``, symmetrised.
+
+    The default ``alpha = 1`` (``lam = kappa``) keeps the weights of order ``1/n``: small
+    ``alpha`` (e.g. 1e-3) gives weights of order ``1/alpha^2`` whose cancellation costs about
+    ``-2 log10(alpha)`` digits, too many in float32.
+
+    Args:
+        dynamics, sensor, Q, R, substeps: as for :class:`EKF`.
+        alpha, beta, kappa: sigma-point spread, prior-kurtosis weight and secondary scaling
+            (``n + kappa`` must be positive).
+    """
+
+    def __init__(
+        self,
+        dynamics: ControlAffine,
+        sensor: Sensor,
+        Q: Tensor | float | None = None,
+        R: Tensor | float | None = None,
+        *,
+        alpha: float = 1.0,
+        beta: float = 2.0,
+        kappa: float = 0.0,
+        substeps: int = 1,
+    ) -> None:
+        super().__init__(dynamics, sensor, Q, R, substeps=substeps)
+        n = self.state_dim
+        if not alpha > 0 or not math.isfinite(alpha):
+            raise ValueError(f"alpha must be a finite positive number, got {alpha}")
+        if not n + kappa > 0:
+            raise ValueError(f"n + kappa must be positive, got n={n}, kappa={kappa}")
+        self.alpha, self.beta, self.kappa = float(alpha), float(beta), float(kappa)
+        c = alpha**2 * (n + kappa)  # n + lam
+        lam = c - n
+        wm = torch.full((2 * n + 1,), 0.5 / c, dtype=torch.float64)
+        wc = wm.clone()
+        wm[0] = lam / c
+        wc[0] = lam / c + 1.0 - alpha**2 + beta
+        self.register_buffer("Wm", wm.to(torch.get_default_dtype()))
+        self.register_buffer("Wc", wc.to(torch.get_default_dtype()))
+        self._spread = math.sqrt(c)
+
+    def _sigma_points(self, m: Tensor, P: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Sigma points ``[B, 2n+1, n]``, their deviations from ``m`` and a regularized flag."""
+        L, regularized = robust_cholesky(P)
+        D = self._spread * L.mT  # row i is column i of L
+        dX = torch.cat([torch.zeros_like(m).unsqueeze(1), D, -D], dim=1)
+        return m.unsqueeze(1) + dX, dX, regularized
+
+    def _mean(self, Y: Tensor, Wm: Tensor, residual) -> tuple[Tensor, Tensor]:
+        """Weighted mean of ``Y [B, 2n+1, k]`` taken relative to ``Y_0``, and deviations."""
+        Y0 = Y[:, :1]
+        ybar = Y0.squeeze(1) + (Wm[1:, None] * residual(Y[:, 1:], Y0)).sum(1)
+        return ybar, residual(Y, ybar.unsqueeze(1))
+
+    def predict(self, state: EstimatorState, u: Tensor, dt: float) -> EstimatorState:
+        """Propagate ``state`` (mean ``[..., n]``, cov ``[..., n, n]``) with ``u [..., m]``."""
+        bs, m, P, u, dt = self._flat_predict(state, u, dt)
+        m0, P0 = m, P
+        B, n = m.shape
+        Wm, Wc = self.Wm.to(m), self.Wc.to(m)
+        h = dt / self.substeps
+        status = torch.zeros(B, dtype=torch.int64, device=m.device)
+        u_rep = u.unsqueeze(1).expand(B, 2 * n + 1, u.shape[-1]).reshape(-1, u.shape[-1])
+        for _ in range(self.substeps):
+            X, _, regularized = self._sigma_points(m, P)
+            status = status | torch.where(regularized, int(EstimatorStatus.REGULARIZED), 0)
+            Xf = X.reshape(-1, n)
+            graph = self._needs_graph(self.dynamics, Xf, u_rep)
+            xdot, F = jacobian(lambda z: self.dynamics(z, u_rep), Xf, graph)
+            _, dx, _ = discretize(F, h, xdot)
+            Y = (Xf + dx).reshape(B, 2 * n + 1, n)
+            F0 = F.reshape(B, 2 * n + 1, n, n)[:, 0]
+            _, _, Qd = discretize(F0, h, None, self._Qc(m))
+            m, dY = self._mean(Y, Wm, torch.sub)
+            P = symmetrize((dY * Wc[:, None]).mT @ dY + Qd)
+        return self._finish(bs, m0, P0, m, P, status)
+
+    def update(self, state: EstimatorState, y: Tensor) -> EstimatorState:
+        """Correct ``state`` with ``y [..., p]`` (a non-finite ``y`` row is skipped and flagged)."""
+        bs, m, P, status, y = self._flat_update(state, y)
+        Wm, Wc = self.Wm.to(m), self.Wc.to(m)
+        X, dX, reg_p = self._sigma_points(m, P)
+        Yp = self.sensor.expected(X)
+        y_pred, dY = self._mean(Yp, Wm, self.sensor.residual)
+        WdY = dY * Wc[:, None]
+        S = symmetrize(WdY.mT @ dY + self._R(m))
+        Pxy = dX.mT @ WdY  # [B, n, p]
+        L, reg_s = robust_cholesky(S)
+        K = torch.cholesky_solve(Pxy.mT, L).mT  # Pxy S^-1
+        mean = m + (K @ self.sensor.residual(y, y_pred).unsqueeze(-1)).squeeze(-1)
+        cov = P - K @ S @ K.mT
+        flags = torch.where(reg_p | reg_s, int(EstimatorStatus.REGULARIZED), 0)
+        return self._finish(bs, m, P, mean, cov, status | flags)
