@@ -1,0 +1,62 @@
+"""Hard and smooth minimum/maximum over the last axis, with their closed-form derivatives."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from torchcbf.barriers.lie import AnalyticDerivatives, HessQuad
+
+Mode = Literal["min", "max"]
+
+
+def reduce(values: Tensor, mode: Mode, smooth: bool, temperature: float) -> Tensor:
+    """``[..., c] -> [...]``: ``min``/``max``, or ``-T logsumexp(-v/T)`` / ``T logsumexp(v/T)``."""
+    if not smooth:
+        return values.amin(-1) if mode == "min" else values.amax(-1)
+    sign = -1.0 if mode == "min" else 1.0
+    return sign * temperature * torch.logsumexp(sign * values / temperature, dim=-1)
+
+
+def combine(
+    values: Tensor,
+    dhdx: Tensor,
+    dhdt: Tensor,
+    hess_quad: HessQuad,
+    mode: Mode,
+    smooth: bool,
+    temperature: float,
+) -> AnalyticDerivatives:
+    """Derivatives of :func:`reduce` from those of its ``c`` arguments.
+
+    ``values, dhdt [..., c]``, ``dhdx [..., c, n]``, ``hess_quad(S) -> [..., c]``. The hard
+    version uses the active argument (a subgradient at ties); the smooth one with weights
+    ``w = softmax(+-v/T)`` has gradient ``sum w_i g_i`` and Hessian
+    ``sum w_i H_i +- (sum w_i g_i g_i' - gbar gbar') / T`` (+ for max, - for min).
+    """
+    if not smooth:
+        idx = values.argmin(-1, keepdim=True) if mode == "min" else values.argmax(-1, keepdim=True)
+        h = values.gather(-1, idx).squeeze(-1)
+        gidx = idx.unsqueeze(-1).expand(*idx.shape, dhdx.shape[-1])
+        grad = dhdx.gather(-2, gidx).squeeze(-2)
+        dt = dhdt.gather(-1, idx).squeeze(-1)
+
+        def quad(s: Tensor) -> Tensor:
+            return hess_quad(s).gather(-1, idx).squeeze(-1)
+
+        return AnalyticDerivatives(h, grad, dt, quad)
+    sign = -1.0 if mode == "min" else 1.0
+    h = reduce(values, mode, smooth, temperature)
+    w = torch.softmax(sign * values / temperature, dim=-1)
+    grad = (w.unsqueeze(-1) * dhdx).sum(-2)
+    dt = (w * dhdt).sum(-1)
+
+    def smooth_quad(s: Tensor) -> Tensor:
+        gs = dhdx @ s  # [..., c, q]: g_i' S
+        gbar_s = grad.unsqueeze(-2) @ s  # [..., 1, q]
+        spread = (w * (gs**2).sum(-1)).sum(-1) - (gbar_s**2).sum((-2, -1))
+        return (w * hess_quad(s)).sum(-1) + sign * spread / temperature
+
+    return AnalyticDerivatives(h, grad, dt, smooth_quad)

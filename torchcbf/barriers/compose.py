@@ -1,0 +1,111 @@
+"""Composition of barriers: stacks (``k`` barriers at once), intersections and unions."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from torchcbf.barriers._minmax import Mode, combine, reduce
+from torchcbf.barriers.base import Barrier
+from torchcbf.barriers.lie import AnalyticDerivatives, LieFunction
+
+
+def _as_columns(h: Tensor, x: Tensor) -> Tensor:
+    """``[...] -> [..., 1]``; ``[..., k]`` unchanged."""
+    return h.unsqueeze(-1) if h.shape == x.shape[:-1] else h
+
+
+class BarrierStack(Barrier):
+    """``k`` barriers as one multi-output barrier: ``h [..., k]`` (children's outputs
+    concatenated in order; a child with ``k_i`` outputs contributes ``k_i`` columns).
+
+    ``lie`` then returns every barrier's terms for a batch in one call:
+    ``h, lfh, dhdt, hess_trace [..., k]``, ``lgh [..., k, m]``, ``dhdx [..., k, n]``.
+    For many shapes of one kind, a batched shape (``Ball(center=[k, d], ...)``) is faster.
+    """
+
+    def __init__(self, *barriers: LieFunction) -> None:
+        super().__init__()
+        if not barriers:
+            raise ValueError("BarrierStack needs at least one barrier")
+        for i, b in enumerate(barriers):
+            if not isinstance(b, LieFunction):
+                raise TypeError(f"barriers[{i}] must be a Barrier, got {type(b).__name__}")
+        self.barriers = nn.ModuleList(barriers)
+        self.time_varying = any(b.time_varying for b in barriers)
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """``x [..., n] -> h [..., k]``."""
+        return torch.cat([_as_columns(b(x, t), x) for b in self.barriers], -1)
+
+    @property
+    def has_analytic(self) -> bool:
+        return all(b.has_analytic for b in self.barriers)
+
+    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        return _stack_analytic(self.barriers, x, t)
+
+
+def _stack_analytic(barriers: nn.ModuleList, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+    parts = [b._analytic(x, t) for b in barriers]
+    batch = x.shape[:-1]
+    single = [p.h.shape == batch for p in parts]
+    h = torch.cat([_as_columns(p.h, x) for p in parts], -1)
+    dhdx = torch.cat(
+        [p.dhdx.unsqueeze(-2) if s else p.dhdx for p, s in zip(parts, single, strict=True)], -2
+    )
+    dhdt = torch.cat([_as_columns(p.dhdt, x) for p in parts], -1)
+
+    def quad(s: Tensor) -> Tensor:
+        return torch.cat([_as_columns(p.hess_quad(s), x) for p in parts], -1)
+
+    return AnalyticDerivatives(h, dhdx, dhdt, quad)
+
+
+class _Reduction(Barrier):
+    mode: Mode
+
+    def __init__(
+        self, *barriers: LieFunction, smooth: bool = False, temperature: float = 0.1
+    ) -> None:
+        super().__init__()
+        if not barriers:
+            raise ValueError(f"{type(self).__name__} needs at least one barrier")
+        if not temperature > 0:
+            raise ValueError(f"temperature must be positive, got {temperature}")
+        self.stack = BarrierStack(*barriers)
+        self.time_varying = self.stack.time_varying
+        self.smooth = bool(smooth)
+        self.temperature = float(temperature)
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """``x [..., n] -> h [...]``."""
+        return reduce(self.stack(x, t), self.mode, self.smooth, self.temperature)
+
+    @property
+    def has_analytic(self) -> bool:
+        return self.stack.has_analytic
+
+    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        d = self.stack._analytic(x, t)
+        return combine(d.h, d.dhdx, d.dhdt, d.hess_quad, self.mode, self.smooth, self.temperature)
+
+    def extra_repr(self) -> str:
+        return f"smooth={self.smooth}, temperature={self.temperature}"
+
+
+class Intersection(_Reduction):
+    """Safe where every barrier is: ``h = min_i h_i`` (hard, default) or the smooth
+    under-approximation ``h = -T logsumexp(-h_i / T)`` (``smooth=True``, ``temperature=T``),
+    which is ``<= min_i h_i`` so its safe set lies inside the intersection.
+    Multi-output children contribute every output."""
+
+    mode: Mode = "min"
+
+
+class Union(_Reduction):
+    """Safe where any barrier is: ``h = max_i h_i`` (hard) or ``T logsumexp(h_i / T)``
+    (``smooth=True``; ``>= max_i h_i``, so the smooth safe set slightly over-approximates the
+    union by at most ``T log(c)`` in ``h``)."""
+
+    mode: Mode = "max"

@@ -1,0 +1,280 @@
+"""Lie derivatives of scalar (or k-output) functions of the state, by batched autograd.
+
+One routine, :func:`lie_derivatives`, serves barriers and Lyapunov functions alike. For a
+function ``h(x, t)`` and dynamics ``dx = (f + g u) dt + sigma dW`` it returns
+:class:`LieTerms`: ``h``, ``L_f h = dh/dx f``, ``L_g h = dh/dx g``, ``dh/dt``,
+``tr(sigma' d2h/dx2 sigma)`` and ``dh/dx``.
+
+Batching: rows of a batch are independent, so ``d/dx sum_rows h`` gives every row's gradient
+in one backward pass. A k-output function (``h [..., k]``) needs one pass per output.
+The Hessian trace is ``sum_j s_j' H s_j`` over the ``q`` columns ``s_j`` of ``sigma``:
+one batched Hessian-vector product per column.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+from typing import Literal, NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from torchcbf._checks import as_tensor, check_tensor
+from torchcbf.dynamics.base import ControlAffine
+
+LieMethod = Literal["autograd", "analytic"]
+HessQuad = Callable[[Tensor], Tensor]
+
+
+class LieTerms(NamedTuple):
+    """Everything a CBF/CLF condition needs at a batch of states.
+
+    Shapes for a scalar function (``k`` outputs add a ``k`` axis before the last one):
+    ``h [...]``, ``lfh [...]``, ``lgh [..., m]``, ``dhdt [...]``, ``hess_trace [...]`` or
+    ``None`` (dynamics without diffusion, or ``hessian=False``), ``dhdx [..., n]``.
+    With ``k`` outputs: ``h, lfh, dhdt, hess_trace [..., k]``, ``lgh [..., k, m]``,
+    ``dhdx [..., k, n]``.
+    """
+
+    h: Tensor
+    lfh: Tensor
+    lgh: Tensor
+    dhdt: Tensor
+    hess_trace: Tensor | None
+    dhdx: Tensor
+
+
+class AnalyticDerivatives(NamedTuple):
+    """Closed-form derivatives a shape may provide (see :meth:`LieFunction._analytic`).
+
+    ``h [...]`` (or ``[..., k]``), ``dhdx [..., n]`` (or ``[..., k, n]``), ``dhdt`` like ``h``,
+    and ``hess_quad(S [..., n, q]) -> tr(S' d2h/dx2 S)`` shaped like ``h``.
+    """
+
+    h: Tensor
+    dhdx: Tensor
+    dhdt: Tensor
+    hess_quad: HessQuad
+
+
+class LieFunction(nn.Module):
+    """Base of :class:`~torchcbf.barriers.Barrier` and :class:`~torchcbf.barriers.Lyapunov`.
+
+    Subclasses write ``forward(x [..., n], t=None) -> [...]`` (or ``[..., k]`` for ``k``
+    functions evaluated at once). Time-varying subclasses set ``time_varying = True`` and
+    receive ``t`` as a tensor broadcastable to the batch shape ``[...]``. Subclasses may add
+    closed-form derivatives by overriding :meth:`_analytic` and :attr:`has_analytic`.
+    """
+
+    time_varying: bool = False
+
+    @property
+    def has_analytic(self) -> bool:
+        """Whether ``lie(..., method="analytic")`` is available."""
+        return False
+
+    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        raise ValueError(
+            f"{type(self).__name__} has no closed-form derivatives; use method='autograd'"
+        )
+
+    def lie(
+        self,
+        x: Tensor,
+        dynamics: ControlAffine,
+        t: Tensor | float | None = None,
+        *,
+        method: LieMethod = "autograd",
+        hessian: bool = True,
+    ) -> LieTerms:
+        """Lie derivatives at ``x [..., n]`` (see :func:`lie_derivatives`)."""
+        return lie_derivatives(self, x, dynamics, t, method=method, hessian=hessian)
+
+
+def time_tensor(t: Tensor | float | None, x: Tensor) -> Tensor:
+    """``t`` (``None`` means 0) as a tensor of the batch shape ``x.shape[:-1]``, x's dtype."""
+    batch = x.shape[:-1]
+    if t is None:
+        return x.new_zeros(batch)
+    t = as_tensor("t", t, dtype=x.dtype, device=x.device)
+    try:
+        return torch.broadcast_to(t, batch)
+    except RuntimeError:
+        raise ValueError(
+            f"t must broadcast to the batch shape {tuple(batch)}, got {tuple(t.shape)}"
+        ) from None
+
+
+def _grad(out: Tensor, inputs: tuple[Tensor, ...], create: bool) -> tuple[Tensor, ...]:
+    """Gradient of ``out.sum()`` w.r.t. ``inputs``; zeros where ``out`` does not depend on one."""
+    if not out.requires_grad:
+        return tuple(torch.zeros_like(i) for i in inputs)
+    return torch.autograd.grad(
+        out.sum(),
+        inputs,
+        create_graph=create,
+        retain_graph=True,
+        allow_unused=True,
+        materialize_grads=True,
+    )
+
+
+def lie_derivatives(
+    fn: LieFunction,
+    x: Tensor,
+    dynamics: ControlAffine,
+    t: Tensor | float | None = None,
+    *,
+    method: LieMethod = "autograd",
+    hessian: bool = True,
+    control: bool = True,
+) -> LieTerms:
+    """Lie derivatives of ``fn`` along ``dynamics`` at a batch of states, in one call.
+
+    Args:
+        fn: a :class:`LieFunction` with ``fn(x, t) -> [...]`` or ``[..., k]``.
+        x: states ``[..., n]`` with ``n = dynamics.state_dim``.
+        dynamics: the control-affine model.
+        t: time, a number or a tensor broadcastable to ``[...]`` (``None``: 0).
+        method: ``"autograd"`` (default, any function) or ``"analytic"`` (closed forms of a
+            shape, raises ``ValueError`` for functions without them).
+        hessian: compute ``hess_trace`` when the dynamics has a diffusion.
+        control: compute ``lgh`` (otherwise it is returned as zeros ``[..., (k,) m]``).
+
+    Returns:
+        :class:`LieTerms`. When grad mode is on, the graph is kept (``create_graph=True``):
+        every term differentiates w.r.t. ``x``, ``t`` and the parameters of ``fn`` and
+        ``dynamics``. Under ``torch.no_grad()``/``torch.inference_mode()`` the terms are
+        computed all the same and returned detached.
+    """
+    dynamics.check_inputs(x)
+    if method not in ("autograd", "analytic"):
+        raise ValueError(f"method must be 'autograd' or 'analytic', got {method!r}")
+    grad_mode = torch.is_grad_enabled()
+    inference = torch.is_inference_mode_enabled()
+    diffusion = hessian and dynamics.has_diffusion
+    ctx = torch.inference_mode(False) if inference else contextlib.nullcontext()
+    with ctx, torch.enable_grad():
+        if inference:
+            x = x.clone()
+            t = t.clone() if isinstance(t, Tensor) else t
+        if method == "analytic":
+            terms = _analytic_terms(fn, x, dynamics, t, diffusion, control)
+        else:
+            terms = _autograd_terms(fn, x, dynamics, t, diffusion, control, grad_mode)
+    if not grad_mode:
+        terms = LieTerms(*(None if v is None else v.detach() for v in terms))
+    return terms
+
+
+def _autograd_terms(
+    fn: LieFunction,
+    x: Tensor,
+    dynamics: ControlAffine,
+    t: Tensor | float | None,
+    diffusion: bool,
+    control: bool,
+    grad_mode: bool,
+) -> LieTerms:
+    # ``xr`` is the variable we differentiate w.r.t.: a clone when ``x`` is itself part of a
+    # graph (nested Lie derivatives, learning), so that f, g and sigma evaluated at ``x``
+    # are constants for these gradients yet keep their own path to ``x``.
+    xr = x.clone() if x.requires_grad else x.detach().requires_grad_()
+    tt = time_tensor(t, x)
+    if fn.time_varying:
+        tr = tt.clone() if tt.requires_grad else tt.detach().requires_grad_()
+        inputs: tuple[Tensor, ...] = (xr, tr)
+    else:
+        tr = tt
+        inputs = (xr,)
+    create = grad_mode or diffusion
+    h = fn(xr, tr)
+    multi = _check_output(fn, h, x)
+    outs = h.unbind(-1) if multi else (h,)
+    grads = [_grad(hj, inputs, create) for hj in outs]
+    dhdx = [gr[0] for gr in grads]
+    dhdt = [
+        gr[1] if fn.time_varying else torch.zeros_like(hj)
+        for gr, hj in zip(grads, outs, strict=True)
+    ]
+    hess = None
+    if diffusion:
+        sigma = dynamics.sigma(x)
+        cols = sigma.unbind(-1)
+        hess = []
+        for dj in dhdx:
+            acc = torch.zeros_like(dj[..., 0])
+            for s in cols:
+                # sigma is computed at ``x``, not ``xr``: a constant direction in this HVP.
+                (hv,) = _grad((dj * s).sum(-1), (xr,), create)
+                acc = acc + (hv * s).sum(-1)
+            hess.append(acc)
+    stack = (lambda v: torch.stack(v, -2)) if multi else (lambda v: v[0])
+    stack1 = (lambda v: torch.stack(v, -1)) if multi else (lambda v: v[0])
+    return _assemble(
+        h,
+        stack(dhdx),
+        stack1(dhdt),
+        None if hess is None else stack1(hess),
+        x,
+        dynamics,
+        multi,
+        control,
+    )
+
+
+def _analytic_terms(
+    fn: LieFunction,
+    x: Tensor,
+    dynamics: ControlAffine,
+    t: Tensor | float | None,
+    diffusion: bool,
+    control: bool,
+) -> LieTerms:
+    if not fn.has_analytic:
+        raise ValueError(
+            f"{type(fn).__name__} has no closed-form derivatives; use method='autograd'"
+        )
+    d = fn._analytic(x, time_tensor(t, x))
+    multi = _check_output(fn, d.h, x)
+    hess = d.hess_quad(dynamics.sigma(x)) if diffusion else None
+    return _assemble(d.h, d.dhdx, d.dhdt, hess, x, dynamics, multi, control)
+
+
+def _check_output(fn: nn.Module, h: Tensor, x: Tensor) -> bool:
+    """Whether ``h`` is ``[..., k]`` (True) or ``[...]`` (False); raise on anything else."""
+    check_tensor(f"{type(fn).__name__} output", h)
+    batch = x.shape[:-1]
+    if h.shape == batch:
+        return False
+    if h.dim() == x.dim() and h.shape[:-1] == batch:
+        return True
+    raise ValueError(
+        f"{type(fn).__name__} must return [...] or [..., k] for a state of shape "
+        f"{tuple(x.shape)}, got {tuple(h.shape)}"
+    )
+
+
+def _assemble(
+    h: Tensor,
+    dhdx: Tensor,
+    dhdt: Tensor,
+    hess: Tensor | None,
+    x: Tensor,
+    dynamics: ControlAffine,
+    multi: bool,
+    control: bool,
+) -> LieTerms:
+    f = dynamics.f(x)
+    if multi:
+        lfh = (dhdx * f.unsqueeze(-2)).sum(-1)
+    else:
+        lfh = (dhdx * f).sum(-1)
+    if control:
+        g = dynamics.g(x)
+        lgh = dhdx @ g if multi else (dhdx.unsqueeze(-2) @ g).squeeze(-2)
+    else:
+        lead = (*h.shape, dynamics.control_dim)
+        lgh = h.new_zeros(lead)
+    return LieTerms(h, lfh, lgh, dhdt, hess, dhdx)

@@ -1,0 +1,335 @@
+"""Relative-degree rectification: high-order (HOCBF) and exponential (ECBF) barriers.
+
+A barrier whose control input appears only after ``r`` time derivatives gives a CBF
+condition with ``L_g h = 0``; :func:`rectify` turns it into a relative-degree-one barrier.
+Everything is built from :class:`LieDerivative` modules (``D h = L_f h + dh/dt``, computed
+by nested autograd with ``create_graph``), so the result is itself a :class:`Barrier`:
+its own ``lie`` works (``hess_trace`` included) and it differentiates w.r.t. the original
+barrier's parameters.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from torchcbf._checks import as_tensor
+from torchcbf.barriers._params import float_spec, register
+from torchcbf.barriers.base import Barrier
+from torchcbf.barriers.lie import LieFunction, lie_derivatives
+from torchcbf.dynamics.base import ControlAffine
+
+Form = Literal["high_order", "exponential"]
+GainSpec = float | Sequence[float] | Tensor | None
+
+
+class LieDerivative(Barrier):
+    """The drift derivative ``D h = L_f h + dh/dt`` of a barrier as a new barrier module.
+
+    For a barrier of relative degree ``r > 1``, ``D^k h = L_f^k h`` (plus time terms) is the
+    ``k``-th time derivative of ``h`` along any trajectory, for ``k < r``.
+    Shapes follow the inner barrier (``[...]`` or ``[..., k]``).
+    """
+
+    def __init__(self, barrier: LieFunction, dynamics: ControlAffine) -> None:
+        super().__init__()
+        self.barrier = barrier
+        self.dynamics = dynamics
+        self.time_varying = barrier.time_varying
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """``x [..., n] -> D h [...]`` (or ``[..., k]``)."""
+        terms = lie_derivatives(self.barrier, x, self.dynamics, t, hessian=False, control=False)
+        return terms.lfh + terms.dhdt
+
+
+def _gain_tensor(
+    module: nn.Module, name: str, gains: GainSpec, count: int, default: float
+) -> Tensor:
+    """Register ``count`` gains (a number is repeated) as a buffer, or as given ``nn.Parameter``."""
+    if gains is None:
+        gains = default
+    if isinstance(gains, nn.Parameter):
+        value: Tensor = gains
+        if value.shape != (count,):
+            raise ValueError(
+                f"{name} as an nn.Parameter must have shape [{count}], got {tuple(value.shape)}"
+            )
+        module.register_parameter(name, value)
+    else:
+        value = as_tensor(name, gains).detach().clone()
+        if value.dim() == 0:
+            value = value.expand(count).clone()
+        if value.shape != (count,):
+            raise ValueError(
+                f"{name} must be a number or have {count} entries, got shape {tuple(value.shape)}"
+            )
+        module.register_buffer(name, value)
+    return getattr(module, name)
+
+
+class HighOrderBarrier(Barrier):
+    """High-order CBF (Xiao & Belta) with linear class-K gains.
+
+    ``psi_0 = h``, ``psi_i = D psi_{i-1} + alpha_i psi_{i-1}`` for ``i = 1..r-1``; this module
+    is ``psi_{r-1}`` (relative degree one). Enforcing ``D psi + L_g psi u >= -alpha_r psi``
+    on it keeps every ``psi_i >= 0``, hence ``h >= 0``, from a start where all are ``>= 0``.
+
+    Args:
+        barrier: the original barrier (``[...]`` or ``[..., k]``).
+        dynamics: the model.
+        relative_degree: ``r >= 2``.
+        gains: ``alpha_1..alpha_{r-1} > 0``: a number (all equal, default 1) or ``r - 1``
+            numbers / a tensor / an ``nn.Parameter`` (then learnable).
+    """
+
+    def __init__(
+        self,
+        barrier: LieFunction,
+        dynamics: ControlAffine,
+        relative_degree: int,
+        gains: GainSpec = None,
+    ) -> None:
+        super().__init__()
+        if relative_degree < 2:
+            raise ValueError(
+                f"relative_degree must be >= 2 for a high-order barrier, got {relative_degree}"
+            )
+        self.barrier = barrier
+        self.dynamics = dynamics
+        self.relative_degree = int(relative_degree)
+        g = _gain_tensor(self, "gains", gains, relative_degree - 1, 1.0)
+        if bool((g.detach() <= 0).any()):
+            raise ValueError(f"gains must be positive, got {g.detach().tolist()}")
+        self.time_varying = barrier.time_varying
+
+    def psi(self, x: Tensor, t: Tensor | float | None, order: int) -> Tensor:
+        """``psi_order(x, t)`` for ``0 <= order <= r - 1``."""
+        if order == 0:
+            return self.barrier(x, t)
+        step = _Psi(self, order - 1)
+        terms = lie_derivatives(step, x, self.dynamics, t, hessian=False, control=False)
+        return terms.lfh + terms.dhdt + self.gains[order - 1].to(x) * terms.h
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """``x [..., n] -> psi_{r-1} [...]`` (or ``[..., k]``)."""
+        return self.psi(x, t, self.relative_degree - 1)
+
+
+class _Psi(LieFunction):
+    """``psi_order`` of a :class:`HighOrderBarrier` as a function (a view, not a copy)."""
+
+    def __init__(self, parent: HighOrderBarrier, order: int) -> None:
+        super().__init__()
+        object.__setattr__(self, "_parent", parent)  # not a submodule: no cycle
+        self.order = order
+        self.time_varying = parent.time_varying
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        return self._parent.psi(x, t, self.order)
+
+
+class ExponentialBarrier(Barrier):
+    """Exponential CBF (Nguyen & Sreenath) in relative-degree-one form.
+
+    ``h_e = D^{r-1} h + k_{r-2} D^{r-2} h + ... + k_0 h`` (``D = L_f + d/dt``): the polynomial
+    ``s^{r-1} + k_{r-2} s^{r-2} + ... + k_0`` must be Hurwitz; with real negative roots
+    ``-p_i`` the condition ``dh_e/dt >= -alpha h_e`` keeps ``h >= 0`` from a start where the
+    chain of first-order factors is non-negative.
+
+    Args:
+        barrier, dynamics, relative_degree: as for :class:`HighOrderBarrier`.
+        coefficients: ``[k_0, ..., k_{r-2}]`` (a tensor, or an ``nn.Parameter`` to learn them).
+    """
+
+    def __init__(
+        self,
+        barrier: LieFunction,
+        dynamics: ControlAffine,
+        relative_degree: int,
+        coefficients: Tensor | Sequence[float],
+    ) -> None:
+        super().__init__()
+        if relative_degree < 2:
+            raise ValueError(
+                f"relative_degree must be >= 2 for an exponential barrier, got {relative_degree}"
+            )
+        self.barrier = barrier
+        self.dynamics = dynamics
+        self.relative_degree = int(relative_degree)
+        k = register(self, "coefficients", coefficients, False)
+        if k.shape != (relative_degree - 1,):
+            raise ValueError(
+                f"coefficients must have {relative_degree - 1} entries [k_0, ..., k_(r-2)], "
+                f"got shape {tuple(k.shape)}"
+            )
+        _check_hurwitz(k.detach())
+        chain: list[LieFunction] = [barrier]
+        for _ in range(relative_degree - 2):
+            chain.append(LieDerivative(chain[-1], dynamics))
+        self.chain = nn.ModuleList(chain[1:])
+        self.time_varying = barrier.time_varying
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """``x [..., n] -> h_e [...]`` (or ``[..., k]``)."""
+        r = self.relative_degree
+        chain = [self.barrier, *self.chain]  # D^0 h .. D^{r-2} h
+        terms = lie_derivatives(chain[-1], x, self.dynamics, t, hessian=False, control=False)
+        k = self.coefficients.to(x)
+        out = terms.lfh + terms.dhdt + k[r - 2] * terms.h  # D^{r-1} h + k_{r-2} D^{r-2} h
+        for i in range(r - 2):
+            out = out + k[i] * chain[i](x, t)
+        return out
+
+
+def _check_hurwitz(coefficients: Tensor) -> None:
+    poly = np.concatenate([[1.0], coefficients.flip(0).cpu().double().numpy()])
+    roots = np.roots(poly)
+    if not bool(np.all(roots.real < 0)):
+        raise ValueError(
+            "exponential-CBF coefficients [k_0, ..., k_(r-2)] must make "
+            f"s^(r-1) + ... + k_0 Hurwitz; its roots are {roots.tolist()}"
+        )
+
+
+def coefficients_from_poles(poles: Sequence[float] | Tensor) -> Tensor:
+    """``[k_0, ..., k_{r-2}]`` of ``prod_i (s - p_i)`` for real negative poles ``p_i``."""
+    p = np.asarray(torch.as_tensor(poles, dtype=torch.float64).reshape(-1), dtype=np.float64)
+    if p.size == 0 or not bool(np.all(np.isfinite(p))) or not bool(np.all(p < 0)):
+        raise ValueError(f"poles must be finite negative real numbers, got {p.tolist()}")
+    coeffs = np.poly(p)  # [1, c_{r-2}, ..., c_0]
+    return torch.as_tensor(coeffs[1:][::-1].copy(), dtype=torch.get_default_dtype())
+
+
+def find_relative_degree(
+    barrier: LieFunction,
+    dynamics: ControlAffine,
+    samples: Tensor | int = 256,
+    *,
+    seed: int = 0,
+    scale: float = 2.0,
+    tol: float = 1e-6,
+    time: Tensor | float | None = None,
+) -> int:
+    """Relative degree ``r`` of ``barrier`` w.r.t. ``dynamics``, by autograd on sample states.
+
+    ``r`` is the least ``k`` with ``L_g D^{k-1} h`` non-zero at some sample (relative to
+    ``tol * max(1, max|dD^{k-1}h/dx| * max|g|)``, which absorbs round-off).
+
+    Args:
+        samples: states ``[N, n]``, or a number ``N`` of states drawn from
+            ``N(0, scale^2 I)`` with ``seed``.
+        time: times of the samples for time-varying barriers (default ``U(0, scale)``).
+
+    Raises ``ValueError`` if the control does not appear within ``n`` derivatives, or if the
+    outputs of a multi-output barrier have different relative degrees.
+    """
+    n = dynamics.state_dim
+    device, dtype = float_spec(barrier)
+    gen = torch.Generator(device=device).manual_seed(seed)
+    if isinstance(samples, int):
+        if samples < 1:
+            raise ValueError(f"samples must be >= 1, got {samples}")
+        x = scale * torch.randn(samples, n, generator=gen, device=device, dtype=dtype)
+    else:
+        x = samples
+        dynamics.check_inputs(x)
+    if time is None and barrier.time_varying:
+        time = scale * torch.rand(x.shape[:-1], generator=gen, device=x.device, dtype=x.dtype)
+    psi: LieFunction = barrier
+    degree: Tensor | None = None
+    with torch.no_grad():
+        g_max = dynamics.g(x).abs().amax().clamp_min(1.0)
+        for k in range(1, n + 1):
+            terms = lie_derivatives(psi, x, dynamics, time, hessian=False)
+            lgh = terms.lgh.nan_to_num(0.0, 0.0, 0.0).abs()
+            grad = terms.dhdx.nan_to_num(0.0, 0.0, 0.0).abs()
+            rows = tuple(range(x.dim() - 1))
+            lg_max = lgh.amax(dim=(*rows, lgh.dim() - 1))  # [] or [k]
+            scale_k = (grad.amax(dim=(*rows, grad.dim() - 1)) * g_max).clamp_min(1.0)
+            found = lg_max > tol * scale_k
+            if degree is None:
+                degree = torch.zeros_like(found, dtype=torch.long)
+            degree = torch.where((degree == 0) & found, torch.full_like(degree, k), degree)
+            if bool((degree > 0).all()):
+                break
+            psi = LieDerivative(psi, dynamics)
+    assert degree is not None
+    if bool((degree == 0).any()):
+        raise ValueError(
+            f"the control of {type(dynamics).__name__} does not appear within {n} "
+            f"derivatives of {type(barrier).__name__} (L_g L_f^k h = 0 on all samples): "
+            "not a valid control barrier function for this model"
+        )
+    values = sorted(set(degree.reshape(-1).tolist()))
+    if len(values) > 1:
+        raise ValueError(
+            f"the outputs of {type(barrier).__name__} have different relative degrees "
+            f"{degree.tolist()}; rectify them separately"
+        )
+    return int(values[0])
+
+
+def rectify(
+    barrier: LieFunction,
+    dynamics: ControlAffine,
+    form: Form = "high_order",
+    gains: GainSpec = None,
+    *,
+    relative_degree: int | None = None,
+    poles: Sequence[float] | Tensor | None = None,
+    samples: Tensor | int = 256,
+    seed: int = 0,
+    tol: float = 1e-6,
+) -> LieFunction:
+    """A relative-degree-one barrier from ``barrier``, detecting its relative degree.
+
+    Args:
+        barrier: the barrier ``h`` (``[...]`` or ``[..., k]``; all outputs of one degree).
+        dynamics: the model.
+        form: ``"high_order"`` (:class:`HighOrderBarrier`, ``gains`` = ``alpha_1..alpha_{r-1}``,
+            default 1) or ``"exponential"`` (:class:`ExponentialBarrier`, ``gains`` =
+            ``[k_0, ..., k_{r-2}]``, or ``poles`` = ``r - 1`` negative reals; default all
+            poles at -1).
+        relative_degree: skip detection and use this ``r``.
+        samples, seed, tol: for :func:`find_relative_degree`.
+
+    Returns:
+        ``barrier`` itself when ``r = 1``, otherwise a new :class:`Barrier` holding it.
+    """
+    if form not in ("high_order", "exponential"):
+        raise ValueError(f"form must be 'high_order' or 'exponential', got {form!r}")
+    if poles is not None and (gains is not None or form != "exponential"):
+        raise ValueError("poles are only for form='exponential', and exclude gains")
+    if relative_degree is None:
+        r = find_relative_degree(barrier, dynamics, samples, seed=seed, tol=tol)
+    else:
+        if (
+            isinstance(relative_degree, bool)
+            or not isinstance(relative_degree, int)
+            or relative_degree < 1
+        ):
+            raise ValueError(f"relative_degree must be an integer >= 1, got {relative_degree!r}")
+        if relative_degree > dynamics.state_dim:
+            raise ValueError(
+                f"relative_degree={relative_degree} exceeds the state dimension "
+                f"{dynamics.state_dim}"
+            )
+        r = relative_degree
+    if r == 1:
+        return barrier
+    if form == "high_order":
+        return HighOrderBarrier(barrier, dynamics, r, gains)
+    if gains is None:
+        coefficients = coefficients_from_poles([-1.0] * (r - 1) if poles is None else poles)
+        if coefficients.shape != (r - 1,):
+            raise ValueError(f"poles must hold r - 1 = {r - 1} values, got {coefficients.numel()}")
+    elif isinstance(gains, Tensor):
+        coefficients = gains
+    else:
+        coefficients = torch.as_tensor(gains, dtype=torch.get_default_dtype()).reshape(-1)
+    return ExponentialBarrier(barrier, dynamics, r, coefficients)

@@ -1,0 +1,414 @@
+"""Geometric barriers: balls (fixed or moving), ellipses, half-spaces and boxes.
+
+Every shape stores its constants as buffers, or as ``nn.Parameter`` when given one or built
+with ``learnable=True``, so ``.to(device, dtype)`` works and learned shapes train through
+the Lie derivatives. Shapes with a leading ``k`` axis on their constants (``center [k, d]``)
+are ``k`` barriers evaluated at once: ``h [..., k]``.
+
+``index`` names the state components the shape lives on (``x[..., index]``). It is checked
+against the state when one is seen, or at construction when ``state_dim`` is given.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import torch
+from torch import Tensor
+
+from torchcbf.barriers._minmax import combine, reduce
+from torchcbf.barriers._params import StateIndex, register
+from torchcbf.barriers.base import Barrier
+from torchcbf.barriers.lie import AnalyticDerivatives, time_tensor
+
+
+def _check_positive_tensor(name: str, value: Tensor) -> None:
+    if not bool(torch.isfinite(value).all()) or bool((value <= 0).any()):
+        raise ValueError(f"{name} must be finite and positive, got {value.detach().tolist()}")
+
+
+def _check_centers(name: str, center: Tensor) -> int | None:
+    """Number of shapes ``k`` for ``center [k, d]``, or ``None`` for ``center [d]``."""
+    if center.dim() not in (1, 2) or center.shape[-1] == 0:
+        raise ValueError(f"{name} must have shape [d] or [k, d], got {tuple(center.shape)}")
+    return center.shape[0] if center.dim() == 2 else None
+
+
+def _check_per_shape(name: str, value: Tensor, k: int | None) -> None:
+    """A per-shape scalar: ``[]`` or, for ``k`` shapes, ``[]``/``[k]``."""
+    ok = value.dim() == 0 or (k is not None and value.shape == (k,))
+    if not ok:
+        want = "a scalar" if k is None else f"a scalar or [{k}]"
+        raise ValueError(f"{name} must be {want}, got shape {tuple(value.shape)}")
+
+
+class Ball(Barrier):
+    """A ball obstacle ``h = |p - c(t)|^2 - r^2`` (keep-out; ``keep_in=True`` flips the sign).
+
+    Args:
+        center: ``[d]``, or ``[k, d]`` for ``k`` balls at once (``h [..., k]``).
+        radius: ``r > 0``, scalar (or ``[k]``).
+        index: the ``d`` state components holding the position ``p`` (default ``(0, 1)``).
+        keep_in: safe inside the ball: ``h = r^2 - |p - c|^2``.
+        velocity: constant centre velocity, shaped like ``center``: ``c(t) = c + v t`` (the
+            barrier becomes time-varying; ``lie`` reports ``dhdt``).
+        learnable: store ``center``, ``radius`` (and ``velocity``) as ``nn.Parameter``.
+        state_dim: check ``index`` (and the state size) at construction.
+    """
+
+    def __init__(
+        self,
+        center: Tensor | Sequence[float],
+        radius: Tensor | float,
+        index: Sequence[int] = (0, 1),
+        *,
+        keep_in: bool = False,
+        velocity: Tensor | Sequence[float] | None = None,
+        learnable: bool = False,
+        state_dim: int | None = None,
+    ) -> None:
+        super().__init__()
+        c = register(self, "center", center, learnable)
+        self.num = _check_centers("center", c)
+        r = register(self, "radius", radius, learnable)
+        _check_per_shape("radius", r, self.num)
+        _check_positive_tensor("radius", r.detach())
+        self.register_buffer("velocity", None)
+        if velocity is not None:
+            v = register(self, "velocity", velocity, learnable)
+            if v.shape != c.shape:
+                raise ValueError(
+                    f"velocity must have the shape of center {tuple(c.shape)}, got {tuple(v.shape)}"
+                )
+        self.time_varying = velocity is not None
+        self.keep_in = bool(keep_in)
+        self._sel = StateIndex(index, c.shape[-1], state_dim)
+
+    def _sign(self) -> float:
+        return -1.0 if self.keep_in else 1.0
+
+    def _diff(self, x: Tensor, t: Tensor | float | None) -> Tensor:
+        p = self._sel(x)
+        c = self.center.to(x)
+        if self.num is not None:
+            p = p.unsqueeze(-2)
+        if self.velocity is not None:
+            tt = time_tensor(t, x)[..., None]
+            if self.num is not None:
+                tt = tt[..., None]
+            c = c + self.velocity.to(x) * tt
+        return p - c
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """``x [..., n] -> h [...]`` (or ``[..., k]``)."""
+        diff = self._diff(x, t)
+        return self._sign() * ((diff**2).sum(-1) - self.radius.to(x) ** 2)
+
+    @property
+    def has_analytic(self) -> bool:
+        return True
+
+    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        sign = self._sign()
+        diff = self._diff(x, t)
+        h = sign * ((diff**2).sum(-1) - self.radius.to(x) ** 2)
+        dhdx = self._sel.scatter(2 * sign * diff, x.shape[-1])
+        if self.velocity is None:
+            dhdt = torch.zeros_like(h)
+        else:
+            dhdt = -2 * sign * (diff * self.velocity.to(x)).sum(-1)
+
+        def quad(s: Tensor) -> Tensor:
+            val = 2 * sign * (self._sel.rows(s) ** 2).sum((-2, -1))
+            return val.unsqueeze(-1).expand_as(h) if self.num is not None else val
+
+        return AnalyticDerivatives(h, dhdx, dhdt, quad)
+
+    def extra_repr(self) -> str:
+        return f"index={self._sel.index}, keep_in={self.keep_in}, k={self.num}"
+
+
+class MovingBall(Barrier):
+    """A ball whose centre follows a trajectory: ``h = |p - c(t)|^2 - r^2``.
+
+    Args:
+        trajectory: ``t [...] -> c [..., d]`` (a function or an ``nn.Module``, registered as a
+            submodule so its parameters train and move with ``.to``).
+        radius: ``r > 0``.
+        index, keep_in, learnable, state_dim: as for :class:`Ball`.
+
+    ``dhdt`` is obtained by autograd through ``trajectory``.
+    """
+
+    time_varying = True
+
+    def __init__(
+        self,
+        trajectory: Callable[[Tensor], Tensor],
+        radius: Tensor | float,
+        index: Sequence[int] = (0, 1),
+        *,
+        keep_in: bool = False,
+        learnable: bool = False,
+        state_dim: int | None = None,
+    ) -> None:
+        super().__init__()
+        if not callable(trajectory):
+            raise TypeError(f"trajectory must be callable t -> center, got {type(trajectory)}")
+        self.trajectory = trajectory
+        r = register(self, "radius", radius, learnable)
+        _check_per_shape("radius", r, None)
+        _check_positive_tensor("radius", r.detach())
+        self.keep_in = bool(keep_in)
+        self._sel = StateIndex(index, len(tuple(index)), state_dim)
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """``x [..., n], t [...] -> h [...]``."""
+        p = self._sel(x)
+        c = self.trajectory(time_tensor(t, x))
+        if c.shape[-1] != p.shape[-1]:
+            raise ValueError(
+                f"trajectory must return centres [..., {p.shape[-1]}], got {tuple(c.shape)}"
+            )
+        h = ((p - c) ** 2).sum(-1) - self.radius.to(x) ** 2
+        return -h if self.keep_in else h
+
+
+class Ellipse(Barrier):
+    """An ellipse (ellipsoid) obstacle ``h = sum_i (q_i / a_i)^2 - 1`` with body coordinates
+    ``q = R(angle)' (p - c)`` (keep-out; ``keep_in=True`` flips the sign).
+
+    Without ``angle`` this is scenario B's ``((x-xo)/a1)^2 + ((y-yo)/a2)^2 - 1`` (any ``d``).
+
+    Args:
+        center: ``[d]`` or ``[k, d]`` for ``k`` ellipses at once (``h [..., k]``).
+        axes: semi-axes ``a > 0``, shaped like ``center``.
+        index: the ``d`` state components of the position (default ``(0, 1)``).
+        angle: rotation of the body axes (radians, counter-clockwise), scalar or ``[k]``;
+            ``d = 2`` only.
+        keep_in, learnable, state_dim: as for :class:`Ball`.
+    """
+
+    def __init__(
+        self,
+        center: Tensor | Sequence[float],
+        axes: Tensor | Sequence[float],
+        index: Sequence[int] = (0, 1),
+        *,
+        angle: Tensor | float | None = None,
+        keep_in: bool = False,
+        learnable: bool = False,
+        state_dim: int | None = None,
+    ) -> None:
+        super().__init__()
+        c = register(self, "center", center, learnable)
+        self.num = _check_centers("center", c)
+        a = register(self, "axes", axes, learnable)
+        if a.shape != c.shape:
+            raise ValueError(
+                f"axes must have the shape of center {tuple(c.shape)}, got {tuple(a.shape)}"
+            )
+        _check_positive_tensor("axes", a.detach())
+        self.register_buffer("angle", None)
+        if angle is not None:
+            if c.shape[-1] != 2:
+                raise ValueError(f"angle needs a 2-D ellipse, got center of shape {tuple(c.shape)}")
+            ang = register(self, "angle", angle, learnable)
+            _check_per_shape("angle", ang, self.num)
+        self.keep_in = bool(keep_in)
+        self._sel = StateIndex(index, c.shape[-1], state_dim)
+
+    def _sign(self) -> float:
+        return -1.0 if self.keep_in else 1.0
+
+    def _rot(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        ang = self.angle.to(x)
+        if self.num is not None and ang.dim() == 1:
+            ang = ang.unsqueeze(-1)  # [k, 1] against [..., k, q]
+        return torch.cos(ang), torch.sin(ang)
+
+    def _body(self, v: Tensor, x: Tensor, transpose: bool = True) -> Tensor:
+        """``R' v`` (``transpose``) or ``R v`` for ``v [..., 2]`` (or ``[..., k, 2]``)."""
+        if self.angle is None:
+            return v
+        cos, sin = self._rot(x)
+        if self.num is not None:
+            cos, sin = cos.squeeze(-1), sin.squeeze(-1)
+        s = sin if transpose else -sin
+        return torch.stack([cos * v[..., 0] + s * v[..., 1], -s * v[..., 0] + cos * v[..., 1]], -1)
+
+    def _q(self, x: Tensor) -> Tensor:
+        p = self._sel(x)
+        if self.num is not None:
+            p = p.unsqueeze(-2)
+        return self._body(p - self.center.to(x), x)
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """``x [..., n] -> h [...]`` (or ``[..., k]``)."""
+        q = self._q(x) / self.axes.to(x)
+        return self._sign() * ((q**2).sum(-1) - 1)
+
+    @property
+    def has_analytic(self) -> bool:
+        return True
+
+    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        sign = self._sign()
+        a = self.axes.to(x)
+        q = self._q(x)
+        h = sign * (((q / a) ** 2).sum(-1) - 1)
+        grad_p = self._body(2 * sign * q / a**2, x, transpose=False)
+        dhdx = self._sel.scatter(grad_p, x.shape[-1])
+
+        def quad(s: Tensor) -> Tensor:
+            sp = self._sel.rows(s)  # [..., d, q]
+            if self.num is not None:
+                sp = sp.unsqueeze(-3)  # [..., 1, d, q]
+            if self.angle is not None:
+                cos, sin = self._rot(x)
+                sp = torch.stack(
+                    [
+                        cos * sp[..., 0, :] + sin * sp[..., 1, :],
+                        -sin * sp[..., 0, :] + cos * sp[..., 1, :],
+                    ],
+                    -2,
+                )
+            return 2 * sign * ((sp / a.unsqueeze(-1)) ** 2).sum((-2, -1))
+
+        return AnalyticDerivatives(h, dhdx, torch.zeros_like(h), quad)
+
+    def extra_repr(self) -> str:
+        return f"index={self._sel.index}, keep_in={self.keep_in}, k={self.num}"
+
+
+class HalfSpace(Barrier):
+    """The half-space ``{a' p <= b}``: ``h = b - a' p`` (safe where ``a' p <= b``).
+
+    Args:
+        a: normal ``[d]`` (pointing out of the safe set), or ``[k, d]`` for ``k`` half-spaces
+            (``h [..., k]``, a polytope ``A p <= b`` as a stack).
+        b: offset, scalar (or ``[k]``).
+        index: the ``d`` state components ``p``; ``None`` (default) means the whole state,
+            which must then have size ``d``.
+        learnable, state_dim: as for :class:`Ball`.
+    """
+
+    def __init__(
+        self,
+        a: Tensor | Sequence[float],
+        b: Tensor | float,
+        index: Sequence[int] | None = None,
+        *,
+        learnable: bool = False,
+        state_dim: int | None = None,
+    ) -> None:
+        super().__init__()
+        av = register(self, "a", a, learnable)
+        self.num = _check_centers("a", av)
+        bv = register(self, "b", b, learnable)
+        _check_per_shape("b", bv, self.num)
+        if bool((av.detach().abs().sum(-1) == 0).any()):
+            raise ValueError("a must be a non-zero normal vector")
+        d = av.shape[-1]
+        if index is None and state_dim is None:
+            state_dim = d
+        self._sel = StateIndex(index, d, state_dim)
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """``x [..., n] -> h [...]`` (or ``[..., k]``)."""
+        p = self._sel(x)
+        a = self.a.to(x)
+        if self.num is not None:
+            return self.b.to(x) - p @ a.mT
+        return self.b.to(x) - (p * a).sum(-1)
+
+    @property
+    def has_analytic(self) -> bool:
+        return True
+
+    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        h = self.forward(x)
+        a = self.a.to(x)
+        grad_p = (-a).expand(*h.shape, a.shape[-1])
+        dhdx = self._sel.scatter(grad_p, x.shape[-1])
+
+        def quad(s: Tensor) -> Tensor:
+            return torch.zeros_like(h)
+
+        return AnalyticDerivatives(h, dhdx, torch.zeros_like(h), quad)
+
+    def extra_repr(self) -> str:
+        return f"index={self._sel.index}, k={self.num}"
+
+
+class Box(Barrier):
+    """Keep-in box ``low <= p <= high``: ``h = min_i min(p_i - low_i, high_i - p_i)``.
+
+    The hard minimum over the ``2 d`` faces (default) is exact but only piecewise smooth (its
+    gradient is that of the closest face, its Hessian zero). ``smooth=True`` uses
+    ``-T logsumexp(-faces / T)``, a smooth under-approximation (by at most ``T log(2d)``).
+
+    Args:
+        low, high: ``[d]`` corners with ``low < high``.
+        index: the ``d`` state components; ``None`` means the whole state (size ``d``).
+        smooth, temperature: smooth minimum and its temperature ``T > 0``.
+        learnable, state_dim: as for :class:`Ball`.
+    """
+
+    def __init__(
+        self,
+        low: Tensor | Sequence[float],
+        high: Tensor | Sequence[float],
+        index: Sequence[int] | None = None,
+        *,
+        smooth: bool = False,
+        temperature: float = 0.05,
+        learnable: bool = False,
+        state_dim: int | None = None,
+    ) -> None:
+        super().__init__()
+        lo = register(self, "low", low, learnable)
+        hi = register(self, "high", high, learnable)
+        if lo.dim() != 1 or hi.shape != lo.shape:
+            raise ValueError(
+                "low and high must both have shape [d], got "
+                f"{tuple(lo.shape)} and {tuple(hi.shape)}"
+            )
+        if bool((lo.detach() >= hi.detach()).any()):
+            raise ValueError(f"low {lo.tolist()} must be below high {hi.tolist()} everywhere")
+        if not temperature > 0:
+            raise ValueError(f"temperature must be positive, got {temperature}")
+        self.smooth = bool(smooth)
+        self.temperature = float(temperature)
+        d = lo.shape[0]
+        if index is None and state_dim is None:
+            state_dim = d
+        self._sel = StateIndex(index, d, state_dim)
+
+    def _faces(self, x: Tensor) -> Tensor:
+        p = self._sel(x)
+        return torch.cat([p - self.low.to(x), self.high.to(x) - p], -1)
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """``x [..., n] -> h [...]``."""
+        return reduce(self._faces(x), "min", self.smooth, self.temperature)
+
+    @property
+    def has_analytic(self) -> bool:
+        return True
+
+    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        faces = self._faces(x)
+        d = faces.shape[-1] // 2
+        eye = torch.eye(d, dtype=x.dtype, device=x.device)
+        grad_p = torch.cat([eye, -eye], 0).expand(*faces.shape, d)  # [..., 2d, d]
+        dhdx = self._sel.scatter(grad_p, x.shape[-1])
+        zeros = torch.zeros_like(faces)
+
+        def quad(s: Tensor) -> Tensor:
+            return zeros
+
+        return combine(faces, dhdx, zeros, quad, "min", self.smooth, self.temperature)
+
+    def extra_repr(self) -> str:
+        return f"index={self._sel.index}, smooth={self.smooth}"
