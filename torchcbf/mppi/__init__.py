@@ -1,0 +1,33 @@
+"""MPPI planner, rollout costs and timed reach-avoid specifications."""
+
+from torchcbf.mppi.costs import (
+    BarrierCost,
+    ObstacleCost,
+    QuadraticGoal,
+    RolloutCost,
+    StageCost,
+    SumCost,
+)
+from torchcbf.mppi.history import History, HistoryBuffer
+from torchcbf.mppi.planner import MPPI, MPPIOutput
+from torchcbf.mppi.specs import Always, And, Avoid, Eventually, Or, Reach, Spec
+
+__all__ = [
+    "MPPI",
+    "Always",
+    "And",
+    "Avoid",
+    "BarrierCost",
+    "Eventually",
+    "History",
+    "HistoryBuffer",
+    "MPPIOutput",
+    "ObstacleCost",
+    "Or",
+    "QuadraticGoal",
+    "Reach",
+    "RolloutCost",
+    "Spec",
+    "StageCost",
+    "SumCost",
+]

@@ -1,0 +1,407 @@
+"""Model Predictive Path Integral (MPPI) control, batched over environments and samples.
+
+One call plans for ``B`` environments at once with ``K`` sampled control sequences each; the
+rollouts of all ``B * K`` samples are one batched computation (the only Python loop is over
+the ``H`` steps of the horizon).
+
+Algorithm (per environment, as pytorch-mppi / Williams et al. 2017):
+
+1. warm start: the plan ``U [H, m]`` of the previous call is shifted one step (the vacated
+   last control is zero, or the previous last control with ``shift_fill="last"``);
+2. noise ``eps_k = z_k L'`` with ``z_k ~ N(0, I)`` and ``L = cholesky(Sigma)``;
+3. the perturbed controls are clamped to the limits and the noise recomputed,
+   ``v_k = clamp(U + eps_k)``, ``eps_k = v_k - U``;
+4. rollouts ``x_{j+1} = step(x_j, v_{k,j})`` from the current state (``euler`` or ``rk4``,
+   nominal noise-free dynamics);
+5. ``S_k = cost(rollout_k) + gamma * sum_j U_j' Sigma^-1 eps_{k,j}`` (the pytorch-mppi form
+   of the control cost, ``gamma = control_cost_weight``);
+6. ``w_k = exp(-(S_k - min S) / lambda) / sum(...)`` (``lambda = temperature``, floored at
+   the dtype's smallest normal number; non-finite costs get weight zero);
+7. ``U <- U + sum_k w_k eps_k``; the first control ``U_0`` is returned.
+
+Randomness: environment ``b`` draws its noise from its own ``torch.Generator`` on the
+device, seeded with ``seed + b``. Environment ``b`` of a batched planner therefore produces
+exactly the plans of a one-environment planner built with ``seed + b``. The global RNG is
+never used. ``reset()`` re-seeds the generators.
+
+Compilation: ``MPPI(..., compile=True)`` (or a dict of ``torch.compile`` keyword arguments)
+compiles the rollout + cost evaluation; noise sampling, weights and the plan update stay
+eager. The first call compiles (tens of seconds on a CPU for long horizons); later calls with
+the same ``B`` reuse the compiled code.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from torchcbf._checks import as_tensor, check_last_dim, check_positive, check_spd
+from torchcbf.dynamics.base import ControlAffine
+from torchcbf.mppi.history import History, HistoryBuffer
+
+INTEGRATORS = ("euler", "rk4")
+SHIFT_FILLS = ("zero", "last")
+
+
+class MPPIOutput(NamedTuple):
+    """Result of one planning call (``B`` dimension absent when ``x`` was ``[n]``).
+
+    Attributes:
+        u: ``[B, m]`` first control of the updated plan.
+        plan: ``[B, H, m]`` updated plan (a copy).
+        cost_min: ``[B]`` lowest sample cost.
+        cost_mean: ``[B]`` mean of the finite sample costs.
+        ess: ``[B]`` effective sample size ``1 / sum_k w_k^2`` (0 when ``status != 0``).
+        status: ``[B]`` int64, 0 = ok, 1 = no sample had a finite cost (plan only shifted).
+        best_states: ``[B, H+1, n]`` rollout of the lowest-cost sample.
+        rollouts: ``[B, R, H+1, n]`` the first ``R = keep_rollouts`` sampled rollouts, or None.
+        rollout_weights: ``[B, R]`` their weights, or None.
+    """
+
+    u: Tensor
+    plan: Tensor
+    cost_min: Tensor
+    cost_mean: Tensor
+    ess: Tensor
+    status: Tensor
+    best_states: Tensor
+    rollouts: Tensor | None
+    rollout_weights: Tensor | None
+
+
+def _covariance(noise_sigma: object, m: int) -> Tensor:
+    cov = as_tensor("noise_sigma", noise_sigma)
+    if cov.dim() == 0:
+        cov = cov * torch.eye(m, dtype=cov.dtype)
+    elif cov.dim() == 1:
+        if cov.shape[0] != m:
+            raise ValueError(
+                f"noise_sigma as a vector must have shape [{m}], got {tuple(cov.shape)}"
+            )
+        cov = torch.diag(cov)
+    if cov.shape != (m, m):
+        raise ValueError(
+            f"noise_sigma must be a scalar, [{m}] or [{m}, {m}] covariance, got {tuple(cov.shape)}"
+        )
+    if not bool(torch.isfinite(cov).all()):
+        raise ValueError("noise_sigma must be finite")
+    return check_spd("noise_sigma", cov)
+
+
+def _limit(name: str, value: object, m: int) -> Tensor | None:
+    if value is None:
+        return None
+    t = as_tensor(name, value)
+    if t.dim() == 0:
+        t = t.expand(m).clone()
+    if t.shape != (m,):
+        raise ValueError(f"{name} must be a scalar or have shape [{m}], got {tuple(t.shape)}")
+    return t
+
+
+class MPPI(nn.Module):
+    """MPPI planner (see the module docstring for the algorithm and the RNG scheme).
+
+    Args:
+        dynamics: a :class:`~torchcbf.dynamics.ControlAffine` model (nominal dynamics).
+        cost: ``cost(states [B, K, H+1, n], controls [B, K, H, m], t0 [B]) -> [B, K]``; a
+            callable or module. Costs with ``needs_history = True`` (the specifications of
+            :mod:`torchcbf.mppi.specs`) are also given ``dt=`` and ``history=``.
+        horizon: ``H >= 1`` steps.
+        num_samples: ``K >= 1`` samples per environment.
+        dt: rollout time step.
+        noise_sigma: control noise covariance: scalar (``s I``), vector (diagonal) or
+            ``[m, m]`` symmetric positive definite matrix.
+        temperature: ``lambda > 0``.
+        control_cost_weight: ``gamma >= 0`` of ``gamma sum_j U_j' Sigma^-1 eps_j``.
+        u_min, u_max: control limits (scalar or ``[m]``); default: the dynamics' limits.
+        integrator: ``"euler"`` (default) or ``"rk4"``.
+        seed: environment ``b`` uses a generator seeded with ``seed + b``.
+        keep_rollouts: return the first ``R`` sampled rollouts and weights (0: none).
+        history_size: slots of the executed-state history read by specifications.
+        shift_fill: ``"zero"`` (default) or ``"last"``: control appended by the warm start.
+        zero_noise_samples: the first samples of each environment get no noise (they
+            evaluate the shifted previous plan itself).
+        compile: ``True`` or a dict of ``torch.compile`` kwargs to compile rollout + cost.
+    """
+
+    def __init__(
+        self,
+        dynamics: ControlAffine,
+        cost: Callable[..., Tensor],
+        horizon: int,
+        num_samples: int,
+        dt: float,
+        noise_sigma: float | Tensor,
+        temperature: float,
+        control_cost_weight: float = 0.0,
+        u_min: float | Tensor | None = None,
+        u_max: float | Tensor | None = None,
+        integrator: str = "euler",
+        seed: int = 0,
+        *,
+        keep_rollouts: int = 0,
+        history_size: int = 1024,
+        shift_fill: str = "zero",
+        zero_noise_samples: int = 0,
+        compile: bool | dict[str, Any] = False,
+    ) -> None:
+        super().__init__()
+        if not isinstance(dynamics, ControlAffine):
+            raise TypeError(
+                f"dynamics must be a ControlAffine module, got {type(dynamics).__name__}"
+            )
+        if not callable(cost):
+            raise TypeError(f"cost must be callable, got {type(cost).__name__}")
+        for name, value, low in (
+            ("horizon", horizon, 1),
+            ("num_samples", num_samples, 1),
+            ("history_size", history_size, 1),
+            ("keep_rollouts", keep_rollouts, 0),
+            ("zero_noise_samples", zero_noise_samples, 0),
+        ):
+            if not isinstance(value, int) or isinstance(value, bool) or value < low:
+                raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+        if keep_rollouts > num_samples or zero_noise_samples > num_samples:
+            raise ValueError(
+                f"keep_rollouts ({keep_rollouts}) and zero_noise_samples ({zero_noise_samples})"
+                f" must not exceed num_samples ({num_samples})"
+            )
+        if integrator not in INTEGRATORS:
+            raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
+        if shift_fill not in SHIFT_FILLS:
+            raise ValueError(f"shift_fill must be one of {SHIFT_FILLS}, got {shift_fill!r}")
+        if not isinstance(control_cost_weight, (int, float)) or not control_cost_weight >= 0:
+            raise ValueError(f"control_cost_weight must be >= 0, got {control_cost_weight!r}")
+        if not isinstance(seed, int):
+            raise TypeError(f"seed must be an int, got {type(seed).__name__}")
+        self.dynamics = dynamics
+        self.cost = cost
+        m = dynamics.control_dim
+        self.horizon, self.num_samples = horizon, num_samples
+        self.dt = check_positive("dt", dt)
+        self.temperature = check_positive("temperature", temperature)
+        self.control_cost_weight = float(control_cost_weight)
+        self.integrator, self.seed, self.shift_fill = integrator, seed, shift_fill
+        self.keep_rollouts, self.history_size = keep_rollouts, history_size
+        self.zero_noise_samples = zero_noise_samples
+
+        cov = _covariance(noise_sigma, m)
+        self.register_buffer("noise_cov", cov)
+        self.register_buffer("noise_chol", torch.linalg.cholesky(cov))
+        self.register_buffer("noise_cov_inv", torch.cholesky_inverse(self.noise_chol))
+        self._diagonal = bool(torch.equal(cov, torch.diag(torch.diagonal(cov))))
+        lo = _limit("u_min", u_min, m) if u_min is not None else dynamics.u_min
+        hi = _limit("u_max", u_max, m) if u_max is not None else dynamics.u_max
+        if lo is not None and hi is not None and bool((lo > hi).any()):
+            raise ValueError(f"u_min {lo.tolist()} exceeds u_max {hi.tolist()}")
+        self.register_buffer("u_min", None if lo is None else lo.clone())
+        self.register_buffer("u_max", None if hi is None else hi.clone())
+
+        self._needs_history = bool(getattr(cost, "needs_history", False))
+        evaluate = self._evaluate
+        if compile:
+            kwargs = compile if isinstance(compile, dict) else {}
+            evaluate = torch.compile(self._evaluate, **kwargs)
+        self._evaluate_fn = evaluate
+        self._compiled = bool(compile)
+        self._key: tuple[Any, ...] | None = None
+        self._fresh = True
+
+    # -- state -------------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget the plan, the history and re-seed the generators (next call starts afresh)."""
+        self._key = None
+        self._fresh = True
+
+    def _ensure_state(self, B: int, device: torch.device, dtype: torch.dtype) -> None:
+        key = (B, device, dtype)
+        if self._key == key:
+            return
+        H, K = self.horizon, self.num_samples
+        m, n = self.dynamics.control_dim, self.dynamics.state_dim
+        self._plan = torch.zeros(B, H, m, device=device, dtype=dtype)
+        self._eps = torch.empty(B, K, H, m, device=device, dtype=dtype)
+        self._controls = torch.empty(B, K, H, m, device=device, dtype=dtype)
+        self._states = torch.empty(B, K, H + 1, n, device=device, dtype=dtype)
+        self._generators = [
+            torch.Generator(device=device).manual_seed(self.seed + b) for b in range(B)
+        ]
+        self._history = HistoryBuffer(self.history_size, B, n, device=device, dtype=dtype)
+        self._rows = torch.arange(B, device=device)
+        self._key = key
+        self._fresh = True
+
+    @property
+    def history(self) -> History | None:
+        """The recorded executed states and times (``None`` before the first call)."""
+        return None if self._key is None else self._history.view()
+
+    # -- one planning call -------------------------------------------------------------------
+    def forward(self, x: Tensor, t: float | Tensor = 0.0, shift: bool = True) -> MPPIOutput:
+        """Plan from ``x [n]`` or ``[B, n]`` at global time ``t`` (scalar or ``[B]``).
+
+        ``shift=False`` refines the plan without the warm-start shift (e.g. several
+        iterations at the same time).
+        """
+        n = self.dynamics.state_dim
+        check_last_dim("x", x, n)
+        if x.dim() > 2:
+            raise ValueError(f"x must have shape [{n}] or [B, {n}], got {tuple(x.shape)}")
+        if not x.is_floating_point():
+            raise TypeError(f"x must be a floating tensor, got {x.dtype}")
+        unbatched = x.dim() == 1
+        xb = x.unsqueeze(0) if unbatched else x
+        B = xb.shape[0]
+        self._ensure_state(B, xb.device, xb.dtype)
+        t0 = torch.as_tensor(t, device=xb.device, dtype=xb.dtype)
+        if t0.dim() > 1 or (t0.dim() == 1 and t0.shape[0] not in (1, B)):
+            raise ValueError(f"t must be a scalar or have shape [{B}], got {tuple(t0.shape)}")
+        t0 = t0.reshape(-1).expand(B)
+        self._history.record(xb, t0)
+
+        plan = self._plan
+        if shift and not self._fresh:
+            fill = plan[:, -1:].clone() if self.shift_fill == "last" else None
+            plan[:, :-1] = plan[:, 1:].clone()
+            if fill is None:
+                plan[:, -1].zero_()
+            else:
+                plan[:, -1:] = fill
+        self._fresh = False
+
+        eps = self._sample_noise()
+        history = self._history.view() if self._needs_history else None
+        if self._compiled:
+            cost, states, eps = self._evaluate_fn(xb, eps, plan, t0, history, None)
+        else:
+            bufs = (self._controls, self._states)
+            cost, states, eps = self._evaluate_fn(xb, eps, plan, t0, history, bufs)
+        return self._update(cost, states, eps, unbatched)
+
+    def _sample_noise(self) -> Tensor:
+        eps = self._eps
+        for b, gen in enumerate(self._generators):
+            torch.randn(eps.shape[1:], generator=gen, out=eps[b])
+        if self._diagonal:
+            eps.mul_(torch.diagonal(self.noise_cov).to(eps).sqrt())
+        else:
+            eps.copy_(eps @ self.noise_chol.to(eps).mT)
+        if self.zero_noise_samples:
+            eps[:, : self.zero_noise_samples].zero_()
+        return eps
+
+    def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
+        return self.dynamics._xdot(x, u)
+
+    def _step(self, x: Tensor, u: Tensor, out: Tensor | None) -> Tensor:
+        dt = self.dt
+        if self.integrator == "euler":
+            k = self._xdot(x, u)
+            return torch.add(x, k, alpha=dt) if out is None else torch.add(x, k, alpha=dt, out=out)
+        k1 = self._xdot(x, u)
+        k2 = self._xdot(x + (0.5 * dt) * k1, u)
+        k3 = self._xdot(x + (0.5 * dt) * k2, u)
+        k4 = self._xdot(x + dt * k3, u)
+        incr = k1 + 2.0 * (k2 + k3) + k4
+        return x + (dt / 6.0) * incr if out is None else torch.add(x, incr, alpha=dt / 6.0, out=out)
+
+    def _evaluate(
+        self,
+        x: Tensor,
+        eps: Tensor,
+        plan: Tensor,
+        t0: Tensor,
+        history: History | None,
+        bufs: tuple[Tensor, Tensor] | None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Clamp the samples, roll them out and score them. Returns cost ``[B, K]``, states
+        ``[B, K, H+1, n]`` and the recomputed noise ``[B, K, H, m]``. With ``bufs`` the
+        controls and states are written into preallocated buffers (and ``eps`` in place)."""
+        lo = None if self.u_min is None else self.u_min.to(x)
+        hi = None if self.u_max is None else self.u_max.to(x)
+        nominal = plan.unsqueeze(1)
+        B, K, H = eps.shape[0], eps.shape[1], self.horizon
+        if bufs is None:
+            controls = nominal + eps
+            if lo is not None or hi is not None:
+                controls = controls.clamp(lo, hi)
+                eps = controls - nominal
+            xs = [x.unsqueeze(1).expand(B, K, x.shape[-1])]
+            for j in range(H):
+                xs.append(self._step(xs[-1], controls[:, :, j], None))
+            states = torch.stack(xs, dim=2)
+        else:
+            controls, states = bufs
+            torch.add(eps, nominal, out=controls)
+            if lo is not None or hi is not None:
+                controls.clamp_(lo, hi)
+                torch.sub(controls, nominal, out=eps)
+            states[:, :, 0] = x.unsqueeze(1)
+            for j in range(H):
+                self._step(states[:, :, j], controls[:, :, j], states[:, :, j + 1])
+        if self._needs_history:
+            cost = self.cost(states, controls, t0, dt=self.dt, history=history)
+        else:
+            cost = self.cost(states, controls, t0)
+        if self.control_cost_weight > 0.0:
+            weighted = plan @ self.noise_cov_inv.to(plan)  # [B, H, m]
+            ctrl = torch.bmm(eps.reshape(B, K, -1), weighted.reshape(B, -1, 1)).squeeze(-1)
+            cost = cost + self.control_cost_weight * ctrl
+        return cost, states, eps
+
+    def _update(self, cost: Tensor, states: Tensor, eps: Tensor, unbatched: bool) -> MPPIOutput:
+        B, K = cost.shape
+        if cost.shape != (B, K) or B != self._plan.shape[0] or K != self.num_samples:
+            raise ValueError(
+                f"cost must return shape [{self._plan.shape[0]}, {self.num_samples}], "
+                f"got {tuple(cost.shape)}"
+            )
+        finite = torch.isfinite(cost)
+        clean = torch.where(finite, cost, torch.full_like(cost, math.inf))
+        cost_min, best = clean.min(-1)
+        ok = torch.isfinite(cost_min)
+        lam = max(self.temperature, torch.finfo(cost.dtype).tiny)
+        shifted = torch.where(ok.unsqueeze(-1), clean - cost_min.unsqueeze(-1), clean)
+        w = torch.exp(shifted.mul_(-1.0 / lam))
+        w = w / w.sum(-1, keepdim=True).clamp_min(1.0)  # the best sample has weight 1 before
+        plan = self._plan
+        plan.add_(torch.bmm(w.unsqueeze(1), eps.reshape(B, K, -1)).reshape(plan.shape))
+        if self.u_min is not None or self.u_max is not None:
+            lo = None if self.u_min is None else self.u_min.to(plan)
+            hi = None if self.u_max is None else self.u_max.to(plan)
+            plan.clamp_(lo, hi)
+        count = finite.sum(-1)
+        cost_mean = torch.where(finite, cost, torch.zeros_like(cost)).sum(-1) / count.clamp_min(1)
+        ess = torch.where(ok, 1.0 / w.square().sum(-1).clamp_min(1e-30), torch.zeros_like(cost_min))
+        status = (~ok).long()
+        best_states = states[self._rows, best]
+        rollouts = weights = None
+        if self.keep_rollouts:
+            rollouts = states[:, : self.keep_rollouts].clone()
+            weights = w[:, : self.keep_rollouts].clone()
+        out = MPPIOutput(
+            u=plan[:, 0].clone(),
+            plan=plan.clone(),
+            cost_min=cost_min,
+            cost_mean=cost_mean,
+            ess=ess,
+            status=status,
+            best_states=best_states,
+            rollouts=rollouts,
+            rollout_weights=weights,
+        )
+        if unbatched:
+            out = MPPIOutput(*(None if v is None else v.squeeze(0) for v in out))
+        return out
+
+    def extra_repr(self) -> str:
+        return (
+            f"horizon={self.horizon}, num_samples={self.num_samples}, dt={self.dt}, "
+            f"temperature={self.temperature}, control_cost_weight={self.control_cost_weight}, "
+            f"integrator={self.integrator!r}, seed={self.seed}"
+        )

@@ -1,0 +1,334 @@
+"""Timed reach-avoid specifications in global time, usable as MPPI costs and as success checks.
+
+The fragment: Boolean combinations (:class:`And`, :class:`Or`) of timed :class:`Always` /
+:class:`Eventually` of *state predicates* ``rho(x) [..., n] -> [...]`` (``rho >= 0`` means the
+predicate holds). Intervals are in global time (the time of the simulation, not relative to
+the evaluation time), closed, with a tolerance ``time_tol`` (1e-5 s) so that sampled times
+like ``35 * 0.1`` fall inside ``[0, 3.5]`` in float32. :class:`Reach` and :class:`Avoid` are
+the two predicates of SCENARIOS.md A.
+
+**Robustness** (``robustness(states [..., T, n], times [T] or [..., T]) -> [...]``, positive
+= satisfied) is the usual max/min semantics over the sampled times:
+
+- ``Eventually[t1, t2] rho``: ``max rho(x_j)`` over the samples with ``t_j`` in the window
+  (``-inf`` when none is);
+- ``Always[t1, t2] rho``: ``min rho(x_j)`` over the window (``+inf`` when none is);
+- ``And``: minimum, ``Or``: maximum of the children.
+
+For :class:`Reach`, ``rho = r - |p - g|`` and for :class:`Avoid` ``rho = |p - o| - r`` (or the
+barrier value ``b(x)``), so ``robustness >= 0`` is exactly "every goal is reached
+(``|p - g| <= r``) at some sampled time inside its window and ``|p - o| >= r`` at every
+sampled time".
+
+**Cost** (the spec as an MPPI cost, ``spec(states [B, K, T, n], controls, t0 [B], dt=,
+history=) -> [B, K]``, the rollout's state ``k`` being at time ``t0 + k dt``). Each temporal
+node has a pointwise cost ``c(x)`` (``Reach``: ``weight (|p - g|^2 - r^2)``; ``Avoid``:
+``weight / max(rho(x), eps)``; by default ``c = -rho``):
+
+- ``Eventually``: the minimum of ``c`` over the states whose time lies in the window, taken
+  from the executed history (:class:`~torchcbf.mppi.History`) for times already past and
+  from the rollout for times to come. If the window opens after the rollout's last state,
+  the rollout's last state stands in for it (so the robot heads to the goal in time). Once
+  the history holds a state inside the window where ``rho >= 0`` (goal reached), or once the
+  window has closed (``t0 > t2``), the term is frozen to the history's minimum (``0`` when
+  the history has no state in the window): the same value for every sample, so it no longer
+  pulls the robot.
+- ``Always``: the maximum of ``c`` over the rollout states inside the window (``0`` when none
+  is); history states are the same for every sample and are ignored.
+- ``And``: the **sum** of the children's costs (a min would only ever push on the currently
+  worst term); ``Or``: the minimum.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import torch
+from torch import Tensor, nn
+
+from torchcbf._checks import as_tensor, check_positive
+from torchcbf.mppi.costs import _as_index, _select
+from torchcbf.mppi.history import History
+
+Predicate = Callable[[Tensor], Tensor]
+
+
+class Spec(nn.Module):
+    """Base of the specifications: ``robustness`` and the MPPI cost ``forward``."""
+
+    #: The planner passes ``dt=`` and ``history=`` to costs that set this.
+    needs_history = True
+
+    def robustness(self, states: Tensor, times: Tensor) -> Tensor:
+        """Robustness ``[...]`` of trajectories ``states [..., T, n]`` sampled at global
+        ``times [T]`` or ``[..., T]``; ``>= 0`` means satisfied."""
+        raise NotImplementedError(f"{type(self).__name__} must define robustness()")
+
+    def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
+        """Cost ``[B, K]`` of rollouts ``states [B, K, T, n]`` at ``times [B, T]``."""
+        raise NotImplementedError(f"{type(self).__name__} must define plan_cost()")
+
+    def forward(
+        self,
+        states: Tensor,
+        controls: Tensor | None = None,
+        t0: Tensor | float | None = None,
+        dt: float | None = None,
+        history: History | None = None,
+    ) -> Tensor:
+        """MPPI cost ``[B, K]`` of ``states [B, K, T, n]``, state ``k`` at ``t0 + k dt``."""
+        if dt is None:
+            raise ValueError(f"{type(self).__name__} as a cost needs dt= (the rollout step)")
+        if states.dim() != 4:
+            raise ValueError(f"states must have shape [B, K, T, n], got {tuple(states.shape)}")
+        t0_t = torch.zeros((), device=states.device, dtype=states.dtype) if t0 is None else t0
+        t0_t = torch.as_tensor(t0_t, device=states.device, dtype=states.dtype)
+        steps = torch.arange(states.shape[-2], device=states.device, dtype=states.dtype)
+        times = t0_t.reshape(-1, 1) * 1.0 + dt * steps
+        times = times.expand(states.shape[0], states.shape[-2])
+        return self.plan_cost(states, times, history)
+
+    def __and__(self, other: Spec) -> And:
+        return And(self, other)
+
+    def __or__(self, other: Spec) -> Or:
+        return Or(self, other)
+
+
+class _Temporal(Spec):
+    """A timed temporal operator over a state predicate (base of Always and Eventually)."""
+
+    time_tol: float = 1e-5
+
+    def __init__(
+        self,
+        predicate: Predicate | None,
+        interval: tuple[float, float] | None,
+        cost: Predicate | None,
+    ) -> None:
+        super().__init__()
+        if predicate is not None and not callable(predicate):
+            raise TypeError(f"predicate must be callable, got {type(predicate).__name__}")
+        if cost is not None and not callable(cost):
+            raise TypeError(f"cost must be callable or None, got {type(cost).__name__}")
+        if interval is None:
+            interval = (-math.inf, math.inf)
+        if len(interval) != 2 or not float(interval[0]) <= float(interval[1]):
+            raise ValueError(f"interval must be (t1, t2) with t1 <= t2, got {interval}")
+        self.interval = (float(interval[0]), float(interval[1]))
+        self.predicate_fn = predicate
+        self.cost_fn = cost
+
+    def predicate(self, states: Tensor) -> Tensor:
+        """Pointwise robustness ``rho(x)``: ``[..., n] -> [...]``."""
+        assert self.predicate_fn is not None
+        return self.predicate_fn(states)
+
+    def pointwise_cost(self, states: Tensor) -> Tensor:
+        """Pointwise cost ``c(x)``: ``[..., n] -> [...]`` (``-rho`` by default)."""
+        return -self.predicate(states) if self.cost_fn is None else self.cost_fn(states)
+
+    def in_window(self, times: Tensor) -> Tensor:
+        """Bool mask of the times inside the interval (closed, with ``time_tol``)."""
+        t1, t2 = self.interval
+        return (times >= t1 - self.time_tol) & (times <= t2 + self.time_tol)
+
+    def extra_repr(self) -> str:
+        return f"interval={self.interval}"
+
+
+class Eventually(_Temporal):
+    """``F[t1, t2] rho``: the predicate holds at some sampled time in the window.
+
+    Args:
+        predicate: ``rho: [..., n] -> [...]``, ``>= 0`` where it holds.
+        interval: ``(t1, t2)`` in global time, ``None`` for all times.
+        cost: pointwise planning cost ``c: [..., n] -> [...]`` (default ``-rho``).
+    """
+
+    def __init__(
+        self,
+        predicate: Predicate | None = None,
+        interval: tuple[float, float] | None = None,
+        cost: Predicate | None = None,
+    ) -> None:
+        super().__init__(predicate, interval, cost)
+
+    def robustness(self, states: Tensor, times: Tensor) -> Tensor:
+        rho = self.predicate(states)
+        mask = self.in_window(times.to(rho.dtype)).expand(rho.shape)
+        return rho.masked_fill(~mask, -math.inf).amax(-1)
+
+    def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
+        c = self.pointwise_cost(states)  # [B, K, T]
+        window = self.in_window(times)  # [B, T]
+        roll_min = c.masked_fill(~window.unsqueeze(1), math.inf).amin(-1)
+        roll = torch.where(window.any(-1, keepdim=True), roll_min, c[..., -1])
+        passed = times[:, 0] > self.interval[1] + self.time_tol
+        if history is None:
+            return torch.where(passed.unsqueeze(-1), torch.zeros_like(roll), roll)
+        h_window = history.valid & self.in_window(history.times)  # [B, N]
+        h_min = self.pointwise_cost(history.states).masked_fill(~h_window, math.inf).amin(-1)
+        reached = (h_window & (self.predicate(history.states) >= 0)).any(-1)
+        frozen = (reached | passed).unsqueeze(-1)
+        h_min = h_min.unsqueeze(-1)
+        constant = torch.where(torch.isfinite(h_min), h_min, torch.zeros_like(h_min))
+        return torch.where(frozen, constant, torch.minimum(roll, h_min))
+
+
+class Always(_Temporal):
+    """``G[t1, t2] rho``: the predicate holds at every sampled time in the window.
+
+    Args:
+        predicate: ``rho: [..., n] -> [...]``, ``>= 0`` where it holds.
+        interval: ``(t1, t2)`` in global time, ``None`` for all times.
+        cost: pointwise planning cost ``c: [..., n] -> [...]`` (default ``-rho``).
+    """
+
+    def __init__(
+        self,
+        predicate: Predicate | None = None,
+        interval: tuple[float, float] | None = None,
+        cost: Predicate | None = None,
+    ) -> None:
+        super().__init__(predicate, interval, cost)
+
+    def robustness(self, states: Tensor, times: Tensor) -> Tensor:
+        rho = self.predicate(states)
+        mask = self.in_window(times.to(rho.dtype)).expand(rho.shape)
+        return rho.masked_fill(~mask, math.inf).amin(-1)
+
+    def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
+        c = self.pointwise_cost(states)  # [B, K, T]
+        window = self.in_window(times).unsqueeze(1)  # [B, 1, T]
+        worst = c.masked_fill(~window, -math.inf).amax(-1)
+        return torch.where(window.any(-1), worst, torch.zeros_like(worst))
+
+
+class Reach(Eventually):
+    """Reach the disc ``|p - center| <= radius`` at some time in ``interval``.
+
+    ``rho = radius - |p - center|``; planning cost ``weight (|p - center|^2 - radius^2)``
+    (SCENARIOS.md A: ``c_g``, ``weight = k_g``). ``p = x[..., index]``.
+    """
+
+    def __init__(
+        self,
+        center: Tensor | Sequence[float],
+        radius: float,
+        interval: tuple[float, float] | None = None,
+        weight: float = 1.0,
+        index: Sequence[int] = (0, 1),
+    ) -> None:
+        super().__init__(None, interval, None)
+        center_t = as_tensor("center", center).reshape(-1)
+        self.index = _as_index(index)
+        d = self.index.stop - self.index.start if isinstance(self.index, slice) else len(self.index)
+        if d != center_t.numel():
+            raise ValueError(f"center has {center_t.numel()} entries but index names {d}")
+        self.register_buffer("center", center_t)
+        self.radius = check_positive("radius", radius)
+        self.weight = check_positive("weight", weight)
+
+    def _sq_dist(self, states: Tensor) -> Tensor:
+        return (_select(states, self.index) - self.center).square().sum(-1)
+
+    def predicate(self, states: Tensor) -> Tensor:
+        return self.radius - self._sq_dist(states).sqrt()
+
+    def pointwise_cost(self, states: Tensor) -> Tensor:
+        return self.weight * (self._sq_dist(states) - self.radius**2)
+
+    def extra_repr(self) -> str:
+        return f"center={self.center.tolist()}, radius={self.radius}, interval={self.interval}"
+
+
+class Avoid(Always):
+    """Stay out of the disc ``|p - center| < radius``, or in ``barrier(x) >= 0``, during
+    ``interval`` (all times by default).
+
+    ``rho = |p - center| - radius`` (or ``barrier(x)`` for any callable/module
+    ``[..., n] -> [...]``); planning cost ``weight / max(rho, eps)`` (SCENARIOS.md A: ``c_o``
+    with ``weight = k_o = 0.3``, ``eps = 0.01``).
+    """
+
+    def __init__(
+        self,
+        center: Tensor | Sequence[float] | None = None,
+        radius: float | None = None,
+        *,
+        barrier: Predicate | None = None,
+        weight: float = 1.0,
+        eps: float = 0.01,
+        interval: tuple[float, float] | None = None,
+        index: Sequence[int] = (0, 1),
+    ) -> None:
+        super().__init__(None, interval, None)
+        if (barrier is None) == (center is None):
+            raise ValueError("Avoid needs either center= and radius= or barrier=, not both")
+        self.register_buffer("center", None)
+        self.barrier = barrier
+        if barrier is not None:
+            if not callable(barrier):
+                raise TypeError(f"barrier must be callable, got {type(barrier).__name__}")
+        else:
+            if radius is None or radius < 0:
+                raise ValueError(f"Avoid with a center needs radius >= 0, got {radius}")
+            self.center = as_tensor("center", center).reshape(-1)
+            self.index = _as_index(index)
+        self.radius = None if radius is None else float(radius)
+        self.weight = check_positive("weight", weight)
+        self.eps = check_positive("eps", eps)
+
+    def predicate(self, states: Tensor) -> Tensor:
+        if self.barrier is not None:
+            return self.barrier(states)
+        p = _select(states, self.index)
+        return (p - self.center).square().sum(-1).sqrt() - self.radius
+
+    def pointwise_cost(self, states: Tensor) -> Tensor:
+        return self.weight / self.predicate(states).clamp_min(self.eps)
+
+
+class _Combination(Spec):
+    def __init__(self, *specs: Spec) -> None:
+        super().__init__()
+        if not specs:
+            raise ValueError(f"{type(self).__name__} needs at least one specification")
+        for s in specs:
+            if not isinstance(s, Spec):
+                raise TypeError(f"{type(self).__name__} takes Spec objects, got {type(s).__name__}")
+        self.specs = nn.ModuleList(specs)
+
+
+class And(_Combination):
+    """All children hold. Robustness: minimum; cost: sum of the children's costs."""
+
+    def robustness(self, states: Tensor, times: Tensor) -> Tensor:
+        out = self.specs[0].robustness(states, times)
+        for s in self.specs[1:]:
+            out = torch.minimum(out, s.robustness(states, times))
+        return out
+
+    def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
+        out = self.specs[0].plan_cost(states, times, history)
+        for s in self.specs[1:]:
+            out = out + s.plan_cost(states, times, history)
+        return out
+
+
+class Or(_Combination):
+    """Some child holds. Robustness: maximum; cost: minimum of the children's costs."""
+
+    def robustness(self, states: Tensor, times: Tensor) -> Tensor:
+        out = self.specs[0].robustness(states, times)
+        for s in self.specs[1:]:
+            out = torch.maximum(out, s.robustness(states, times))
+        return out
+
+    def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
+        out = self.specs[0].plan_cost(states, times, history)
+        for s in self.specs[1:]:
+            out = torch.minimum(out, s.plan_cost(states, times, history))
+        return out
