@@ -1,0 +1,334 @@
+"""Robot arms from a URDF: kinematic joint-space models with batched, differentiable FK.
+
+:class:`Manipulator` is a control-affine model of a serial arm in joint space, with the
+forward kinematics of :mod:`pytorch_kinematics` (an optional dependency: ``pip install
+"torchcbf[arm]"``). Two control modes:
+
+- ``control="velocity"``: state ``q [dof]``, control ``qdot [dof]`` (``f = 0``, ``g = I``).
+  The URDF velocity limits become ``u_min = -v_max``, ``u_max = v_max``.
+- ``control="acceleration"``: state ``(q, qdot) [2 dof]``, control ``qddot [dof]``
+  (``f = (qdot, 0)``, ``g = (0, I)``). A URDF has no acceleration limits: ``accel_limit``
+  (or ``u_min``/``u_max``) sets them, otherwise the control is unbounded. The URDF velocity
+  limits then act on the state: enforce them with
+  :class:`~torchcbf.barriers.workspace.JointVelocityBarrier`.
+
+Joint position limits are read from the URDF too; enforce them with
+:class:`~torchcbf.barriers.workspace.JointLimitBarrier` (relative degree one under velocity
+control, two under acceleration control: wrap it in :func:`~torchcbf.barriers.rectify`).
+Effort limits are stored (``effort_limit``) for reference only: these are kinematic models
+without an inertia matrix, so torques are not modelled.
+
+Small arm descriptions ship with torchcbf: ``asset_path("planar3")`` (three revolute joints
+about ``z``, links 0.5, 0.4, 0.3 m) and ``asset_path("arm7")`` (seven joints, axes ``z y z y
+z y z``).
+"""
+
+from __future__ import annotations
+
+import copy
+import importlib
+import importlib.resources
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+from torch import Tensor
+
+from torchcbf._checks import as_tensor, check_tensor
+from torchcbf.dynamics.base import ControlAffine, LimitSpec, SigmaSpec
+
+ControlMode = Literal["velocity", "acceleration"]
+ASSETS = ("planar3", "arm7")
+_INSTALL_HINT = 'the arm models need pytorch-kinematics: pip install "torchcbf[arm]"'
+
+
+def _pk() -> Any:
+    """Import :mod:`pytorch_kinematics` lazily, with an install hint when it is missing."""
+    try:
+        return importlib.import_module("pytorch_kinematics")
+    except ImportError as err:
+        raise ImportError(_INSTALL_HINT) from err
+
+
+def asset_path(name: str) -> Path:
+    """Path of a URDF shipped with torchcbf: ``"planar3"`` or ``"arm7"`` (``.urdf`` optional)."""
+    stem = name[:-5] if name.endswith(".urdf") else name
+    if stem not in ASSETS:
+        raise ValueError(f"name must be one of {list(ASSETS)}, got {name!r}")
+    return Path(str(importlib.resources.files("torchcbf") / "assets" / f"{stem}.urdf"))
+
+
+def _read_urdf(source: str | bytes | os.PathLike[str]) -> str:
+    """URDF XML from a path, an asset name, XML text or bytes."""
+    if isinstance(source, bytes):
+        return source.decode()
+    if isinstance(source, os.PathLike):
+        return Path(source).read_text()
+    if not isinstance(source, str):
+        raise TypeError(
+            "urdf must be a path, an asset name, or URDF XML (str/bytes), "
+            f"got {type(source).__name__}"
+        )
+    if source.lstrip().startswith("<"):
+        return source
+    if source in ASSETS:
+        return asset_path(source).read_text()
+    path = Path(source)
+    if not path.is_file():
+        raise ValueError(
+            f"urdf {source!r} is neither URDF XML, an asset name {list(ASSETS)}, nor a file"
+        )
+    return path.read_text()
+
+
+def _limits(values: Sequence[float], fallback: float) -> list[float]:
+    return [fallback if v is None or not math.isfinite(v) else float(v) for v in values]
+
+
+class Manipulator(ControlAffine):
+    """A serial robot arm in joint space, kinematics from a URDF (see the module docstring).
+
+    Args:
+        urdf: a path, an asset name (``"planar3"``, ``"arm7"``), or the URDF XML (str/bytes).
+        end_link: the end-effector link (default: the only leaf link of the URDF tree).
+        control: ``"velocity"`` (state ``q``) or ``"acceleration"`` (state ``(q, qdot)``).
+        links: the links whose frame origins :meth:`fk` returns by default (default: every
+            link moved by a joint, in chain order, ending with ``end_link``).
+        root_link: the base link of the chain (default: the URDF root).
+        accel_limit: ``|qddot| <= accel_limit`` for acceleration control, scalar or
+            ``[dof]`` (ignored when ``u_min``/``u_max`` are given).
+        sigma, u_min, u_max, disturbance_bound, disturbance_matrix: as for
+            :class:`~torchcbf.dynamics.ControlAffine`; ``u_min``/``u_max`` override the
+            limits read from the URDF.
+
+    Buffers (float64, ``[dof]``): ``q_min``, ``q_max`` (position limits, ``+-inf`` for a
+    joint without), ``velocity_limit`` and ``effort_limit`` (``inf`` where absent).
+
+    The pytorch-kinematics chain is not a module: the model keeps one copy per
+    ``(dtype, device)`` it has seen, converted lazily, so the FK follows its input's dtype
+    and device (and ``.to()`` of the module is enough). Note that pytorch-kinematics parses
+    URDF origins in float32, so link offsets carry float32 rounding (~1e-8 m) even in float64.
+    """
+
+    def __init__(
+        self,
+        urdf: str | bytes | os.PathLike[str],
+        end_link: str | None = None,
+        *,
+        control: ControlMode = "velocity",
+        links: Sequence[str] | None = None,
+        root_link: str = "",
+        accel_limit: LimitSpec = None,
+        sigma: SigmaSpec = None,
+        u_min: LimitSpec = None,
+        u_max: LimitSpec = None,
+        disturbance_bound: LimitSpec = None,
+        disturbance_matrix: Tensor | None = None,
+    ) -> None:
+        if control not in ("velocity", "acceleration"):
+            raise ValueError(f"control must be 'velocity' or 'acceleration', got {control!r}")
+        pk = _pk()
+        text = _read_urdf(urdf)
+        if end_link is None:
+            end_link = _leaf_link(pk.build_chain_from_urdf(text))
+        try:
+            chain = pk.build_serial_chain_from_urdf(text, end_link, root_link)
+        except (KeyError, ValueError) as err:
+            raise ValueError(f"end_link {end_link!r} / root_link {root_link!r}: {err}") from err
+        dof = int(chain.n_joints)
+        if dof < 1:
+            raise ValueError(
+                f"the chain from {root_link or 'the root'} to {end_link!r} has no joint"
+            )
+        lo, hi = chain.get_joint_limits()
+        _, vel = chain.get_joint_velocity_limits()
+        _, eff = chain.get_joint_effort_limits()
+        vel_lim = _limits(vel, math.inf)
+        if control == "velocity":
+            state_dim = dof
+            if u_min is None and u_max is None:
+                u_min = [-v for v in vel_lim]
+                u_max = list(vel_lim)
+        else:
+            state_dim = 2 * dof
+            if u_min is None and u_max is None and accel_limit is not None:
+                a = as_tensor("accel_limit", accel_limit, dtype=torch.float64)
+                if bool((a <= 0).any()):
+                    raise ValueError(f"accel_limit must be positive, got {a.tolist()}")
+                u_min, u_max = -a, a
+        super().__init__(
+            state_dim,
+            dof,
+            sigma=sigma,
+            u_min=u_min,
+            u_max=u_max,
+            disturbance_bound=disturbance_bound,
+            disturbance_matrix=disturbance_matrix,
+        )
+        self.control = control
+        self.dof = dof
+        self.urdf = text
+        self.end_link = end_link
+        self.joint_names: list[str] = list(chain.get_joint_parameter_names())
+        self._frame_index: dict[str, int] = dict(chain.frame_to_idx)
+        self.link_names: list[str] = sorted(self._frame_index, key=self._frame_index.__getitem__)
+        moving = [f.link.name for f in chain._serial_frames if f.joint.joint_type != "fixed"]
+        if moving[-1] != end_link:
+            moving.append(end_link)
+        self.links: list[str] = self._check_links(moving if links is None else links)
+        f64 = torch.float64
+        self.register_buffer("q_min", torch.tensor(_limits(lo, -math.inf), dtype=f64))
+        self.register_buffer("q_max", torch.tensor(_limits(hi, math.inf), dtype=f64))
+        self.register_buffer("velocity_limit", torch.tensor(vel_lim, dtype=f64))
+        self.register_buffer("effort_limit", torch.tensor(_limits(eff, math.inf), dtype=f64))
+        self._chain = chain
+        self._chains: dict[tuple[torch.dtype, torch.device], Any] = {}
+
+    @classmethod
+    def from_urdf(
+        cls,
+        urdf: str | bytes | os.PathLike[str],
+        end_link: str | None = None,
+        *,
+        control: ControlMode = "velocity",
+        **kwargs: Any,
+    ) -> Manipulator:
+        """Build from a URDF path, asset name or XML (same arguments as the constructor)."""
+        return cls(urdf, end_link, control=control, **kwargs)
+
+    # -- dynamics --------------------------------------------------------------------------
+    def f(self, x: Tensor) -> Tensor:
+        """Drift ``[..., n] -> [..., n]``: zero (velocity control) or ``(qdot, 0)``."""
+        if self.control == "velocity":
+            return torch.zeros_like(x)
+        return torch.cat([x[..., self.dof :], torch.zeros_like(x[..., self.dof :])], -1)
+
+    def g(self, x: Tensor) -> Tensor:
+        """Control matrix ``[..., n] -> [..., n, dof]``: ``I`` or ``(0, I)`` stacked."""
+        eye = torch.eye(self.dof, dtype=x.dtype, device=x.device)
+        if self.control == "acceleration":
+            eye = torch.cat([torch.zeros_like(eye), eye], 0)
+        return eye.expand(*x.shape[:-1], *eye.shape)
+
+    def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
+        if self.control == "velocity":
+            return u.expand(torch.broadcast_shapes(x.shape, u.shape))
+        qd = x[..., self.dof :]
+        shape = torch.broadcast_shapes(qd.shape, u.shape)
+        return torch.cat([qd.expand(shape), u.expand(shape)], -1)
+
+    # -- kinematics ------------------------------------------------------------------------
+    def joint_positions(self, x: Tensor) -> Tensor:
+        """Joint angles ``q [..., dof]`` of a state ``[..., n]`` (or of ``q`` itself)."""
+        check_tensor("x", x)
+        if x.dim() == 0 or x.shape[-1] not in (self.dof, self.state_dim):
+            raise ValueError(
+                f"x must have shape [..., {self.dof}] (q) or [..., {self.state_dim}] (state), "
+                f"got {tuple(x.shape)}"
+            )
+        return x[..., : self.dof]
+
+    def chain(self, dtype: torch.dtype, device: torch.device | str) -> Any:
+        """The pytorch-kinematics serial chain converted to ``dtype``/``device`` (cached)."""
+        key = (dtype, torch.device(device))
+        cached = self._chains.get(key)
+        if cached is None:
+            cached = copy.deepcopy(self._chain).to(dtype=dtype, device=key[1])
+            self._chains[key] = cached
+        return cached
+
+    def _transforms(self, x: Tensor) -> tuple[Tensor, tuple[int, ...]]:
+        """World transforms of every frame ``[F, B, 4, 4]`` and the batch shape of ``x``."""
+        q = self.joint_positions(x)
+        if not q.is_floating_point():
+            raise TypeError(f"q must be a floating tensor, got {q.dtype}")
+        batch = tuple(q.shape[:-1])
+        flat = q.reshape(-1, self.dof)
+        # analytical_grad=False: pytorch-kinematics' analytical backward is first-order only;
+        # plain autograd keeps Hessians and nested Lie derivatives (rectify) exact.
+        T = self.chain(q.dtype, q.device).forward_kinematics_tensor(flat, analytical_grad=False)
+        return T, batch
+
+    def _check_links(self, links: Sequence[str]) -> list[str]:
+        if isinstance(links, str):
+            links = [links]
+        links = list(links)
+        if not links:
+            raise ValueError("links must name at least one link")
+        unknown = [name for name in links if name not in self._frame_index]
+        if unknown:
+            raise ValueError(f"unknown links {unknown}; the chain has {self.link_names}")
+        return links
+
+    def link_poses(self, x: Tensor, links: Sequence[str] | None = None) -> Tensor:
+        """Homogeneous world poses of links: ``x [..., dof or n] -> [..., L, 4, 4]``."""
+        names = self.links if links is None else self._check_links(links)
+        T, batch = self._transforms(x)
+        sel = torch.stack([T[self._frame_index[name]] for name in names], 1)  # [B, L, 4, 4]
+        return sel.reshape(*batch, len(names), 4, 4)
+
+    def fk(
+        self,
+        x: Tensor,
+        links: Sequence[str] | None = None,
+        offsets: Tensor | None = None,
+    ) -> Tensor:
+        """World positions of link points: ``x [..., dof or n] -> [..., L, 3]``.
+
+        Args:
+            x: joint angles ``[..., dof]`` or a full state ``[..., n]``.
+            links: ``L`` link names (default ``self.links``); a name may repeat.
+            offsets: points in the link frames ``[L, 3]`` (default: the frame origins).
+        """
+        names = self.links if links is None else self._check_links(links)
+        poses = self.link_poses(x, names)
+        p = poses[..., :3, 3]
+        if offsets is not None:
+            off = as_tensor("offsets", offsets, dtype=x.dtype, device=x.device)
+            if off.shape != (len(names), 3):
+                raise ValueError(
+                    f"offsets must have shape [{len(names)}, 3] (one point per link), "
+                    f"got {tuple(off.shape)}"
+                )
+            p = p + (poses[..., :3, :3] @ off.unsqueeze(-1)).squeeze(-1)
+        return p
+
+    def end_effector(self, x: Tensor) -> Tensor:
+        """End-effector position: ``x [..., dof or n] -> [..., 3]``."""
+        return self.fk(x, [self.end_link])[..., 0, :]
+
+    def jacobian(self, x: Tensor) -> Tensor:
+        """Positional end-effector Jacobian ``d ee / d q``: ``x [..., dof or n] -> [..., 3, dof]``.
+
+        The geometric Jacobian of pytorch-kinematics (closed form from the joint axes,
+        independent of autograd), differentiable w.r.t. ``q``.
+        """
+        T, batch = self._transforms(x)
+        q = self.joint_positions(x)
+        chain = self.chain(q.dtype, q.device)
+        J = chain.jacobian_tensor(q.reshape(-1, self.dof), all_transforms=T)
+        return J[:, :3, :].reshape(*batch, 3, self.dof)
+
+    def extra_repr(self) -> str:
+        return (
+            f"dof={self.dof}, control={self.control!r}, end_link={self.end_link!r}, "
+            f"links={self.links}"
+        )
+
+
+def _leaf_link(chain: Any) -> str:
+    """The only leaf link of a pytorch-kinematics chain (raise if the tree branches)."""
+    leaves: list[str] = []
+    stack = [chain._root]
+    while stack:
+        frame = stack.pop()
+        if frame.children:
+            stack.extend(frame.children)
+        else:
+            leaves.append(frame.link.name)
+    if len(leaves) != 1:
+        raise ValueError(f"the URDF has several leaf links {sorted(leaves)}: pass end_link=")
+    return leaves[0]
