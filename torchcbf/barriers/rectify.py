@@ -61,7 +61,8 @@ def _gain_tensor(
             )
         module.register_parameter(name, value)
     else:
-        value = as_tensor(name, gains).detach().clone()
+        device, dtype = float_spec(module)
+        value = as_tensor(name, gains, dtype=dtype, device=device).detach().clone()
         if value.dim() == 0:
             value = value.expand(count).clone()
         if value.shape != (count,):
@@ -161,6 +162,9 @@ class ExponentialBarrier(Barrier):
         self.barrier = barrier
         self.dynamics = dynamics
         self.relative_degree = int(relative_degree)
+        if not isinstance(coefficients, nn.Parameter):
+            device, dtype = float_spec(self)
+            coefficients = as_tensor("coefficients", coefficients, dtype=dtype, device=device)
         k = register(self, "coefficients", coefficients, False)
         if k.shape != (relative_degree - 1,):
             raise ValueError(

@@ -1,0 +1,170 @@
+"""Shape values, composition, neural barriers, Lyapunov functions and input validation."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch import nn
+
+from torchcbf.barriers import (
+    Ball,
+    BarrierStack,
+    Box,
+    Ellipse,
+    HalfSpace,
+    Intersection,
+    LieTerms,
+    NeuralBarrier,
+    QuadraticLyapunov,
+    Union,
+)
+from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, SingleIntegrator
+
+
+def _x(rows: int, n: int, dtype: torch.dtype, seed: int = 0) -> torch.Tensor:
+    return 2 * torch.randn(rows, n, generator=torch.Generator().manual_seed(seed), dtype=dtype)
+
+
+def test_shape_values(dtype):
+    x = _x(100, 4, dtype)
+    ball = Ball([1.0, 2.0], 0.5, index=(2, 3)).to(dtype)
+    ref = (x[:, 2] - 1) ** 2 + (x[:, 3] - 2) ** 2 - ball.radius**2
+    torch.testing.assert_close(ball(x), ref)
+    torch.testing.assert_close(Ball([1.0, 2.0], 0.5, index=(2, 3), keep_in=True).to(dtype)(x), -ref)
+    hs = HalfSpace([1.0, -2.0, 0.0, 0.5], 0.3).to(dtype)
+    torch.testing.assert_close(hs(x), 0.3 - (x[:, 0] - 2 * x[:, 1] + 0.5 * x[:, 3]))
+    box = Box([-1.0, -2.0], [1.0, 3.0], index=(0, 1)).to(dtype)
+    faces = torch.stack([x[:, 0] + 1, x[:, 1] + 2, 1 - x[:, 0], 3 - x[:, 1]], -1)
+    torch.testing.assert_close(box(x), faces.min(-1).values)
+    smooth = Box([-1.0, -2.0], [1.0, 3.0], index=(0, 1), smooth=True, temperature=0.05).to(dtype)
+    assert bool((smooth(x) <= box(x) + 1e-6).all())
+    assert bool((smooth(x) >= box(x) - 0.05 * math.log(4) - 1e-6).all())
+    # batched balls: [k, d] centres -> h [..., k]
+    many = Ball([[0.0, 0.0], [1.0, 1.0]], [1.0, 2.0]).to(dtype)
+    torch.testing.assert_close(many(x)[:, 1], (x[:, 0] - 1) ** 2 + (x[:, 1] - 1) ** 2 - 4)
+    # polytope as a stack of half-spaces [k, d]
+    poly = HalfSpace([[1.0, 0.0], [0.0, 1.0]], [1.0, 2.0], index=(0, 1)).to(dtype)
+    torch.testing.assert_close(poly(x), torch.stack([1 - x[:, 0], 2 - x[:, 1]], -1))
+
+
+def test_ellipse_scenario_b_form(dtype):
+    x = _x(50, 4, dtype, seed=1)
+    ell = Ellipse([3.0, 2.0], [0.75, 2.0]).to(dtype)
+    torch.testing.assert_close(ell(x), ((x[:, 0] - 3) / 0.75) ** 2 + ((x[:, 1] - 2) / 2.0) ** 2 - 1)
+    # a rotation by 90 degrees swaps the axes
+    rot = Ellipse([3.0, 2.0], [2.0, 0.75], angle=math.pi / 2).to(dtype)
+    torch.testing.assert_close(
+        rot(x), ell(x), atol=1e-5 if dtype == torch.float32 else 1e-12, rtol=1e-5
+    )
+
+
+@pytest.mark.parametrize("smooth", [False, True])
+@pytest.mark.parametrize("kind", [Intersection, Union])
+def test_composition_values_and_analytic(dtype, kind, smooth):
+    parts = [
+        Ball([0.0, 0.0], 1.0),
+        Ellipse([1.0, 2.0], [0.5, 1.5]),
+        Ball([[2.0, 0.0], [0.0, 3.0]], [0.5, 0.7]),
+    ]
+    comp = kind(*parts, smooth=smooth, temperature=0.3).to(dtype)
+    dyn = AccelUnicycle(sigma=torch.tensor([0.28, 0.1, 0.2, 0.3])).to(dtype)
+    x = _x(300, 4, dtype, seed=2)
+    stacked = BarrierStack(*parts).to(dtype)(x)
+    if smooth:
+        sign = -1.0 if kind is Intersection else 1.0
+        ref = sign * 0.3 * torch.logsumexp(sign * stacked / 0.3, -1)
+    else:
+        ref = stacked.min(-1).values if kind is Intersection else stacked.max(-1).values
+    torch.testing.assert_close(comp(x), ref)
+    a = comp.lie(x, dyn, method="analytic")
+    b = comp.lie(x, dyn)
+    tol = {"atol": 1e-9, "rtol": 1e-9} if dtype == torch.float64 else {"atol": 1e-3, "rtol": 1e-4}
+    for name in LieTerms._fields:
+        torch.testing.assert_close(getattr(a, name), getattr(b, name).detach(), **tol, msg=name)
+
+
+@pytest.mark.parametrize("smooth", [False, True])
+def test_box_analytic_matches_autograd(dtype, smooth):
+    box = Box([-1.0, -2.0], [1.0, 3.0], index=(0, 1), smooth=smooth, temperature=0.2).to(dtype)
+    dyn = DoubleIntegrator(sigma=0.3).to(dtype)
+    x = _x(200, 4, dtype, seed=3)
+    a, b = box.lie(x, dyn, method="analytic"), box.lie(x, dyn)
+    for name in LieTerms._fields:
+        torch.testing.assert_close(getattr(a, name), getattr(b, name).detach(), msg=name)
+
+
+def test_neural_barrier_offset_and_outputs(dtype):
+    torch.manual_seed(0)  # noqa: NPY002 - test network weights only
+    net = nn.Sequential(nn.Linear(2, 8), nn.Tanh(), nn.Linear(8, 1)).to(dtype)
+    ball = Ball([0.0, 1.0], 0.5).to(dtype)
+    nb = NeuralBarrier(net, offset=ball, scale=0.5)
+    x = _x(20, 2, dtype, seed=4)
+    torch.testing.assert_close(nb(x), 0.5 * net(x).squeeze(-1) + ball(x))
+    multi = NeuralBarrier(nn.Linear(2, 3).to(dtype))
+    assert multi(x).shape == (20, 3)
+    terms = multi.lie(x, SingleIntegrator().to(dtype))
+    torch.testing.assert_close(
+        terms.lgh, multi.net.weight.expand(20, 3, 2).detach(), check_stride=False
+    )
+    timed = NeuralBarrier(nn.Linear(3, 1).to(dtype), time_input=True)
+    assert timed.time_varying
+    torch.testing.assert_close(
+        timed.lie(x, SingleIntegrator().to(dtype), 2.0).dhdt,
+        timed.net.weight[0, 2].expand(20).detach(),
+    )
+    with pytest.raises(ValueError, match="offset"):
+        NeuralBarrier(nn.Linear(2, 3).to(dtype), offset=ball)(x)
+
+
+def test_quadratic_lyapunov(dtype):
+    P = torch.tensor([[2.0, 0.5], [0.5, 1.0]], dtype=dtype)
+    V = QuadraticLyapunov([1.0, -1.0], P, index=(0, 1)).to(dtype)
+    x = _x(30, 4, dtype, seed=5)
+    e = x[:, :2] - V.goal
+    torch.testing.assert_close(V(x), torch.einsum("bi,ij,bj->b", e, P, e))
+    terms = V.lie(x, DoubleIntegrator().to(dtype))
+    torch.testing.assert_close(terms.lfh, (2 * e @ P * x[:, 2:]).sum(-1))
+    assert float(V(torch.tensor([1.0, -1.0, 3.0, 3.0], dtype=dtype))) == 0.0
+    with pytest.raises(ValueError, match="positive definite"):
+        QuadraticLyapunov([0.0, 0.0], torch.tensor([[1.0, 0.0], [0.0, -1.0]]))
+
+
+def test_learnable_and_to(dtype):
+    ball = Ball([1.0, 2.0], 0.5, learnable=True)
+    assert {n for n, _ in ball.named_parameters()} == {"center", "radius"}
+    given = nn.Parameter(torch.tensor([0.0, 1.0]))
+    assert Ball(given, 0.3).center is given
+    assert [n for n, _ in Ball([1.0, 2.0], 0.5).named_buffers()][:2] == ["center", "radius"]
+    ball = ball.to(dtype)
+    assert ball.center.dtype == dtype
+
+
+def test_bad_input_raises():
+    dyn = SingleIntegrator()
+    ball = Ball([0.0, 0.0], 1.0, index=(0, 3))
+    with pytest.raises(ValueError, match="index"):
+        ball(torch.zeros(5, 2))
+    with pytest.raises(ValueError, match="index"):
+        Ball([0.0, 0.0], 1.0, index=(0, 3), state_dim=2)
+    with pytest.raises(ValueError, match="radius"):
+        Ball([0.0, 0.0], -1.0)
+    with pytest.raises(ValueError, match="axes"):
+        Ellipse([0.0, 0.0], [1.0, 0.0])
+    with pytest.raises(ValueError, match=r"x must have shape \[\.\.\., 2\]"):
+        Ball([0.0, 0.0], 1.0).lie(torch.zeros(5, 3), dyn)
+    with pytest.raises(ValueError, match="x must have shape"):
+        HalfSpace([1.0, 0.0], 1.0)(torch.zeros(5, 3))
+    with pytest.raises(ValueError, match="low"):
+        Box([1.0, 0.0], [0.0, 1.0])
+    with pytest.raises(ValueError, match="center"):
+        Ball(torch.zeros(2, 2, 2), 1.0)
+    with pytest.raises(ValueError, match="velocity"):
+        Ball([0.0, 0.0], 1.0, velocity=[1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="t must broadcast"):
+        Ball([0.0, 0.0], 1.0, velocity=[1.0, 0.0]).lie(torch.zeros(5, 2), dyn, torch.zeros(3))
+    with pytest.raises(ValueError, match="method"):
+        Ball([0.0, 0.0], 1.0).lie(torch.zeros(5, 2), dyn, method="fd")
+    with pytest.raises(ValueError, match="closed-form"):
+        NeuralBarrier(nn.Linear(2, 1)).lie(torch.zeros(5, 2), dyn, method="analytic")
