@@ -1,0 +1,27 @@
+"""CBF/CLF-QP safety filters: vanilla, robust, stochastic and risk-aware, batched and
+differentiable (one :func:`torchcbf.qp.solve_qp` call per batch of states)."""
+
+from torchcbf.filters.class_k import (
+    CubicClassK,
+    LinearClassK,
+    PowerClassK,
+    as_class_k,
+)
+from torchcbf.filters.conditions import Condition, cbf_condition, clf_condition
+from torchcbf.filters.risk import noise_bound, risk_margin
+from torchcbf.filters.safety_filter import FilterOutput, FilterStatus, SafetyFilter
+
+__all__ = [
+    "Condition",
+    "CubicClassK",
+    "FilterOutput",
+    "FilterStatus",
+    "LinearClassK",
+    "PowerClassK",
+    "SafetyFilter",
+    "as_class_k",
+    "cbf_condition",
+    "clf_condition",
+    "noise_bound",
+    "risk_margin",
+]

@@ -1,0 +1,74 @@
+"""Quantities of the risk-aware CBF (Black et al., ICRA 2023): noise bound and margin.
+
+For ``dx = (f + g u) dt + sigma dW`` and a barrier with ``|dh/dx sigma| <= eta`` on the safe
+set, the condition ``L_f h + L_g h u + 1/2 tr(sigma' d2h/dx2 sigma) >= -(h - Delta) / T``
+with ``Delta = sqrt(2 T) eta erfinv(1 - rho)`` bounds the probability of leaving
+``{h >= 0}`` within ``T`` by ``rho`` (from a start with ``h >= Delta``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchcbf._checks import check_last_dim
+from torchcbf.barriers.lie import LieFunction
+from torchcbf.dynamics.base import ControlAffine
+
+
+def noise_bound(
+    barrier: LieFunction,
+    dynamics: ControlAffine,
+    states: Tensor,
+    t: Tensor | float | None = None,
+    *,
+    safe_only: bool = True,
+) -> Tensor:
+    """``eta = max |dh/dx sigma|_2`` over sample states, per barrier output.
+
+    Args:
+        barrier: ``h(x) -> [...]`` or ``[..., k]`` (a Lyapunov function works too).
+        dynamics: an SDE model (``dynamics.sigma(x)`` not ``None``).
+        states: sample states ``[N, n]`` (or ``[..., n]``), e.g. a grid over the region of
+            interest; the bound is only as good as their coverage.
+        t: time for time-varying barriers.
+        safe_only: keep only the states where ``h >= 0`` (per output); ``False`` takes all
+            (used for Lyapunov functions).
+
+    Returns:
+        ``eta`` of shape ``[]`` (scalar barrier) or ``[k]``, detached.
+
+    Raises:
+        ValueError: the dynamics has no diffusion, or no sample state is safe for an output.
+    """
+    check_last_dim("states", states, dynamics.state_dim)
+    if not dynamics.has_diffusion:
+        raise ValueError(f"noise_bound needs an SDE model; {type(dynamics).__name__} has no sigma")
+    with torch.no_grad():
+        terms = barrier.lie(states, dynamics, t, hessian=False)
+        sigma = dynamics.sigma(states)  # [..., n, q]
+        h = terms.h
+        multi = h.shape != states.shape[:-1]
+        dhdx = terms.dhdx if multi else terms.dhdx.unsqueeze(-2)  # [..., k, n]
+        hk = h if multi else h.unsqueeze(-1)  # [..., k]
+        norm = torch.linalg.vector_norm(dhdx @ sigma, dim=-1)  # [..., k]
+        keep = hk >= 0 if safe_only else torch.isfinite(norm)
+        keep = keep & torch.isfinite(norm)
+        masked = torch.where(keep, norm, torch.full_like(norm, -math.inf))
+        eta = masked.reshape(-1, norm.shape[-1]).amax(0)
+    if not bool(torch.isfinite(eta).all()):
+        bad = [i for i, v in enumerate(eta.tolist()) if not math.isfinite(v)]
+        raise ValueError(
+            f"states holds no {'safe (h >= 0) ' if safe_only else ''}sample with a finite "
+            f"gradient for barrier output(s) {bad}"
+        )
+    return eta if multi else eta.squeeze(-1)
+
+
+def risk_margin(eta: Tensor, rho: float | Tensor, horizon: float | Tensor) -> Tensor:
+    """``Delta = sqrt(2 T) eta erfinv(1 - rho)`` (shapes broadcast)."""
+    rho_t = torch.as_tensor(rho, dtype=eta.dtype, device=eta.device)
+    T = torch.as_tensor(horizon, dtype=eta.dtype, device=eta.device)
+    return torch.sqrt(2 * T) * eta * torch.erfinv(1 - rho_t)
