@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from torchcbf._checks import as_tensor, check_tensor
 from torchcbf.dynamics.base import ControlAffine, LimitSpec, SigmaSpec
@@ -312,11 +312,106 @@ class Manipulator(ControlAffine):
         J = chain.jacobian_tensor(q.reshape(-1, self.dof), all_transforms=T)
         return J[:, :3, :].reshape(*batch, 3, self.dof)
 
+    def random_configurations(
+        self,
+        num: int,
+        *,
+        generator: torch.Generator | None = None,
+        margin: float = 0.0,
+        dtype: torch.dtype | None = None,
+        device: torch.device | str | None = None,
+    ) -> Tensor:
+        """Joint angles uniform within the position limits shrunk by ``margin``: ``[num, dof]``.
+
+        Joints without a finite limit are drawn in ``[-pi, pi]``. Deterministic given the
+        ``generator`` (which must live on ``device``).
+        """
+        dtype = dtype or self.q_min.dtype
+        device = torch.device(device) if device is not None else self.q_min.device
+        lo = torch.where(torch.isfinite(self.q_min), self.q_min, -math.pi).to(device, dtype)
+        hi = torch.where(torch.isfinite(self.q_max), self.q_max, math.pi).to(device, dtype)
+        r = torch.rand(num, self.dof, generator=generator, dtype=dtype, device=device)
+        return lo + margin + r * (hi - lo - 2 * margin)
+
     def extra_repr(self) -> str:
         return (
             f"dof={self.dof}, control={self.control!r}, end_link={self.end_link!r}, "
             f"links={self.links}"
         )
+
+
+class ResolvedRateController(nn.Module):
+    """Resolved-rate (damped least-squares) end-effector controller, a CLF-based nominal.
+
+    With ``e = target - ee(q)`` and ``J`` the positional Jacobian, the joint velocity
+    ``qdot* = J' (J J' + lambda^2 I)^{-1} k e`` decreases ``V = |e|^2`` (``dV/dt =
+    -2 k e' J J' (J J' + lambda^2 I)^{-1} e <= 0``) away from singularities. Under
+    acceleration control the output is ``qddot = k_v (qdot* - qdot)``. With
+    ``saturate=True`` the velocity ``qdot*`` is scaled down uniformly (keeping its
+    direction) to fit the arm's velocity limits.
+
+    Args:
+        arm: the :class:`Manipulator`.
+        target: end-effector target ``[3]`` or one per scenario ``[B, 3]`` (broadcast against
+            the batch of states).
+        gain: ``k > 0`` (1/s).
+        damping: ``lambda >= 0`` (m), regularises singular configurations.
+        velocity_gain: ``k_v > 0`` for acceleration control (1/s).
+        saturate: respect the velocity limits by uniform scaling.
+
+    ``forward(x [..., n], t=None) -> u [..., dof]``; ``target`` is a buffer that may be
+    reassigned between runs.
+    """
+
+    def __init__(
+        self,
+        arm: Manipulator,
+        target: Tensor | Sequence[float],
+        *,
+        gain: float = 1.0,
+        damping: float = 0.05,
+        velocity_gain: float = 5.0,
+        saturate: bool = True,
+    ) -> None:
+        super().__init__()
+        if not isinstance(arm, Manipulator):
+            raise TypeError(f"arm must be a Manipulator, got {type(arm).__name__}")
+        if not gain > 0 or not velocity_gain > 0 or not damping >= 0:
+            raise ValueError(
+                f"gain and velocity_gain must be > 0 and damping >= 0, got {gain}, "
+                f"{velocity_gain}, {damping}"
+            )
+        self.arm = arm
+        t = as_tensor("target", target).detach().clone()
+        if t.dim() == 0 or t.shape[-1] != 3:
+            raise ValueError(f"target must have shape [3] or [B, 3], got {tuple(t.shape)}")
+        self.register_buffer("target", t)
+        self.gain = float(gain)
+        self.damping = float(damping)
+        self.velocity_gain = float(velocity_gain)
+        self.saturate = bool(saturate)
+
+    def joint_velocity(self, x: Tensor) -> Tensor:
+        """The resolved-rate joint velocity ``qdot* [..., dof]`` at ``x [..., n]``."""
+        self.arm.check_inputs(x)
+        J = self.arm.jacobian(x)  # [..., 3, dof]
+        e = self.target.to(x) - self.arm.end_effector(x)
+        eye = torch.eye(3, dtype=x.dtype, device=x.device)
+        JJt = J @ J.mT + (self.damping**2) * eye
+        w = torch.linalg.solve(JJt, (self.gain * e).unsqueeze(-1))
+        qd = (J.mT @ w).squeeze(-1)
+        if self.saturate:
+            vmax = self.arm.velocity_limit.to(x)
+            ratio = (qd.abs() / vmax).amax(-1, keepdim=True)
+            qd = qd / ratio.clamp_min(1.0)
+        return qd
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """Nominal control ``u [..., dof]`` at ``x [..., n]``."""
+        qd = self.joint_velocity(x)
+        if self.arm.control == "velocity":
+            return qd
+        return self.velocity_gain * (qd - x[..., self.arm.dof :])
 
 
 def _leaf_link(chain: Any) -> str:

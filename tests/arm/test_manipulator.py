@@ -1,0 +1,268 @@
+"""Manipulator: URDF parsing, limits, FK against hand-written planar kinematics, Jacobians
+against finite differences, batching, dtype/device, and the optional-dependency error."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+pytest.importorskip("pytorch_kinematics")
+
+from torchcbf.dynamics.manipulator import (  # noqa: E402
+    Manipulator,
+    ResolvedRateController,
+    asset_path,
+)
+
+LENGTHS = (0.5, 0.4, 0.3)
+
+
+def _tol(dtype: torch.dtype) -> float:
+    # pytorch-kinematics parses URDF origins in float32: ~1e-8 m even in float64.
+    return 1e-6 if dtype == torch.float64 else 2e-5
+
+
+def planar_fk(q: torch.Tensor) -> torch.Tensor:
+    """Hand-written planar FK: origins of link1, link2, link3 and ee, ``[..., 4, 3]``."""
+    angles = torch.cumsum(q, -1)
+    pts = [torch.zeros_like(q[..., :2])]
+    for i, length in enumerate(LENGTHS):
+        step = torch.stack([torch.cos(angles[..., i]), torch.sin(angles[..., i])], -1)
+        pts.append(pts[-1] + length * step)
+    xy = torch.stack(pts, -2)
+    return torch.cat([xy, torch.zeros_like(xy[..., :1])], -1)
+
+
+def planar_jacobian(q: torch.Tensor) -> torch.Tensor:
+    """Hand-written planar end-effector Jacobian ``[..., 3, 3]``."""
+    angles = torch.cumsum(q, -1)
+    cols = []
+    for j in range(3):
+        dx = sum(-LENGTHS[i] * torch.sin(angles[..., i]) for i in range(j, 3))
+        dy = sum(LENGTHS[i] * torch.cos(angles[..., i]) for i in range(j, 3))
+        cols.append(torch.stack([dx, dy, torch.zeros_like(dx)], -1))
+    return torch.stack(cols, -1)
+
+
+def fd_jacobian(fn, q: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """Central differences of ``fn: [B, d] -> [B, k]``: ``[B, k, d]``."""
+    cols = []
+    for j in range(q.shape[-1]):
+        dq = torch.zeros_like(q)
+        dq[..., j] = eps
+        cols.append((fn(q + dq) - fn(q - dq)) / (2 * eps))
+    return torch.stack(cols, -1)
+
+
+@pytest.fixture(scope="module")
+def planar() -> Manipulator:
+    return Manipulator.from_urdf("planar3")
+
+
+@pytest.fixture(scope="module")
+def arm7() -> Manipulator:
+    return Manipulator.from_urdf(asset_path("arm7"), "ee")
+
+
+def test_assets_and_limits(planar: Manipulator, arm7: Manipulator) -> None:
+    assert asset_path("planar3").is_file() and asset_path("arm7.urdf").is_file()
+    with pytest.raises(ValueError, match="planar3"):
+        asset_path("nope")
+    assert planar.dof == 3 and planar.state_dim == 3 and planar.control_dim == 3
+    assert planar.joint_names == ["joint1", "joint2", "joint3"]
+    assert planar.links == ["link1", "link2", "link3", "ee"]
+    torch.testing.assert_close(planar.q_min, torch.tensor([-3.0, -2.6, -2.6], dtype=torch.float64))
+    torch.testing.assert_close(planar.q_max, torch.tensor([3.0, 2.6, 2.6], dtype=torch.float64))
+    torch.testing.assert_close(planar.u_max, torch.tensor([1.5, 2.0, 2.5], dtype=torch.float64))
+    torch.testing.assert_close(planar.u_min, -planar.u_max)
+    torch.testing.assert_close(planar.effort_limit, torch.tensor([20.0, 12.0, 6.0]).double())
+    assert arm7.dof == 7 and len(arm7.links) == 8
+    acc = Manipulator("arm7", control="acceleration", accel_limit=4.0)
+    assert acc.state_dim == 14 and acc.control_dim == 7
+    torch.testing.assert_close(acc.u_max, torch.full((7,), 4.0, dtype=torch.float64))
+    torch.testing.assert_close(acc.velocity_limit, arm7.velocity_limit)
+    assert Manipulator("arm7", control="acceleration").u_max is None
+    # user limits override the URDF's
+    assert float(Manipulator("planar3", u_min=-0.5, u_max=0.5).u_max[0]) == 0.5
+
+
+def test_sources_and_errors(tmp_path: Path) -> None:
+    text = asset_path("planar3").read_text()
+    for src in (text, text.encode(), asset_path("planar3"), str(asset_path("planar3"))):
+        assert Manipulator(src).dof == 3
+    with pytest.raises(ValueError, match="control"):
+        Manipulator("planar3", control="torque")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="neither"):
+        Manipulator(str(tmp_path / "missing.urdf"))
+    with pytest.raises(TypeError, match="urdf"):
+        Manipulator(3)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="unknown links"):
+        Manipulator("planar3", links=["link9"])
+    # a branching tree needs end_link
+    branched = text.replace(
+        "</robot>",
+        '<link name="tool"/><joint name="tj" type="fixed"><parent link="link2"/>'
+        '<child link="tool"/></joint></robot>',
+    )
+    with pytest.raises(ValueError, match="end_link"):
+        Manipulator(branched)
+    assert Manipulator(branched, end_link="tool").dof == 2
+    arm = Manipulator("planar3")
+    with pytest.raises(ValueError, match=r"\[\.\.\., 3\]"):
+        arm.fk(torch.zeros(4, 5))
+    with pytest.raises(ValueError, match="offsets"):
+        arm.fk(torch.zeros(3), ["ee"], torch.zeros(2, 3))
+
+
+def test_planar_fk_matches_hand_written(
+    planar: Manipulator, dtype: torch.dtype, device: torch.device
+) -> None:
+    gen = torch.Generator(device=device).manual_seed(0)
+    q = planar.random_configurations(64, generator=gen, dtype=dtype, device=device)
+    p = planar.fk(q)
+    assert p.shape == (64, 4, 3) and p.dtype == dtype and p.device.type == device.type
+    torch.testing.assert_close(p, planar_fk(q), atol=_tol(dtype), rtol=0)
+    torch.testing.assert_close(
+        planar.end_effector(q), planar_fk(q)[:, -1], atol=_tol(dtype), rtol=0
+    )
+    torch.testing.assert_close(planar.jacobian(q), planar_jacobian(q), atol=_tol(dtype), rtol=0)
+    # a point offset in the link frame: 0.2 m along link2 is 0.2/0.4 of the way to link3
+    mid = planar.fk(q, ["link2"], torch.tensor([[0.2, 0.0, 0.0]], dtype=dtype, device=device))
+    ref = planar_fk(q)
+    torch.testing.assert_close(mid[:, 0], 0.5 * (ref[:, 1] + ref[:, 2]), atol=_tol(dtype), rtol=0)
+
+
+@pytest.mark.parametrize("name", ["planar3", "arm7"])
+def test_jacobian_matches_finite_differences(name: str) -> None:
+    arm = Manipulator(name)
+    gen = torch.Generator().manual_seed(1)
+    q = arm.random_configurations(16, generator=gen, dtype=torch.float64)
+    J = arm.jacobian(q)
+    J_fd = fd_jacobian(arm.end_effector, q)
+    torch.testing.assert_close(J, J_fd, atol=1e-7, rtol=0)
+    # autograd through pytorch-kinematics agrees too (every link, batched): rows are
+    # independent, so the gradient of a column sum is every row's gradient.
+    qr = q.clone().requires_grad_()
+    p = arm.fk(qr).flatten(-2)  # [B, 3L]
+    Ja = torch.stack(
+        [torch.autograd.grad(p[:, c].sum(), qr, retain_graph=True)[0] for c in range(p.shape[1])], 1
+    )
+    Jfd_all = fd_jacobian(lambda qq: arm.fk(qq).flatten(-2), q)
+    torch.testing.assert_close(Ja, Jfd_all, atol=1e-7, rtol=0)
+
+
+@pytest.mark.parametrize("name", ["planar3", "arm7"])
+def test_batch_equals_loop(name: str, dtype: torch.dtype) -> None:
+    arm = Manipulator(name)
+    gen = torch.Generator().manual_seed(2)
+    q = arm.random_configurations(12, generator=gen, dtype=dtype).reshape(3, 4, arm.dof)
+    batched = arm.fk(q)
+    assert batched.shape == (3, 4, len(arm.links), 3)
+    loop = torch.stack([torch.stack([arm.fk(q[i, j]) for j in range(4)]) for i in range(3)])
+    assert arm.fk(q[0, 0]).shape == (len(arm.links), 3)
+    torch.testing.assert_close(
+        batched, loop, atol=1e-12 if dtype == torch.float64 else 1e-6, rtol=0
+    )
+    J = arm.jacobian(q)
+    assert J.shape == (3, 4, 3, arm.dof)
+    torch.testing.assert_close(J[1, 2], arm.jacobian(q[1, 2]))
+
+
+def test_dtype_device_and_module_to(planar: Manipulator) -> None:
+    arm = Manipulator("planar3")
+    q32 = torch.tensor([0.3, -0.2, 0.5])
+    q64 = q32.double()
+    assert arm.fk(q32).dtype == torch.float32 and arm.fk(q64).dtype == torch.float64
+    assert set(arm._chains) == {
+        (torch.float32, torch.device("cpu")),
+        (torch.float64, torch.device("cpu")),
+    }
+    arm.to(torch.float32)
+    assert arm.u_max.dtype == torch.float32 and arm.q_min.dtype == torch.float32
+    torch.testing.assert_close(arm.fk(q64), planar_fk(q64), atol=1e-6, rtol=0)
+    # the chain cache is per instance: another arm is unaffected
+    assert (torch.float32, torch.device("cpu")) not in Manipulator("planar3")._chains
+    if torch.cuda.is_available():
+        arm.cuda()
+        out = arm.fk(q64.cuda())
+        assert out.device.type == "cuda"
+        torch.testing.assert_close(out.cpu(), planar_fk(q64), atol=1e-6, rtol=0)
+
+
+def test_control_affine_structure(dtype: torch.dtype) -> None:
+    gen = torch.Generator().manual_seed(3)
+    vel = Manipulator("arm7")
+    x = torch.randn(5, 7, generator=gen, dtype=dtype)
+    u = torch.randn(5, 7, generator=gen, dtype=dtype)
+    torch.testing.assert_close(vel(x, u), u)
+    torch.testing.assert_close(vel.f(x) + (vel.g(x) @ u[..., None])[..., 0], u)
+    acc = Manipulator("arm7", control="acceleration")
+    xa = torch.randn(2, 5, 14, generator=gen, dtype=dtype)
+    ua = torch.randn(2, 5, 7, generator=gen, dtype=dtype)
+    xdot = acc(xa, ua)
+    torch.testing.assert_close(xdot, torch.cat([xa[..., 7:], ua], -1))
+    torch.testing.assert_close(xdot, acc.f(xa) + (acc.g(xa) @ ua[..., None])[..., 0])
+    assert acc.g(xa).shape == (2, 5, 14, 7)
+    # fk accepts the full state
+    torch.testing.assert_close(acc.fk(xa), vel.fk(xa[..., :7]))
+    with pytest.raises(ValueError, match=r"\[\.\.\., 14\]"):
+        acc(xa[..., :7], ua)
+
+
+def test_random_configurations_within_limits() -> None:
+    arm = Manipulator("arm7")
+    q = arm.random_configurations(500, generator=torch.Generator().manual_seed(0), margin=0.1)
+    assert bool(
+        (q >= arm.q_min.float() + 0.1 - 1e-6).all() and (q <= arm.q_max.float() - 0.1 + 1e-6).all()
+    )
+    q2 = arm.random_configurations(500, generator=torch.Generator().manual_seed(0), margin=0.1)
+    torch.testing.assert_close(q, q2)
+
+
+def test_resolved_rate_decreases_distance(planar: Manipulator) -> None:
+    gen = torch.Generator().manual_seed(4)
+    q = planar.random_configurations(32, generator=gen, dtype=torch.float64)
+    target = torch.tensor([0.6, 0.5, 0.0], dtype=torch.float64)
+    ctrl = ResolvedRateController(planar, target, gain=2.0, damping=0.05)
+    u = ctrl(q)
+    assert u.shape == (32, 3)
+    vmax = planar.velocity_limit
+    assert bool((u.abs() <= vmax + 1e-12).all())
+    # dV/dt = -2 e' J u < 0 wherever the error is not in the Jacobian's null space
+    e = target - planar.end_effector(q)
+    vdot = -2 * (e * (planar.jacobian(q) @ u[..., None])[..., 0]).sum(-1)
+    assert bool((vdot < 0).all())
+    # acceleration control: qddot = k_v (qdot* - qdot)
+    acc = Manipulator("planar3", control="acceleration")
+    ctrl_a = ResolvedRateController(acc, target, gain=2.0, velocity_gain=3.0)
+    x = torch.cat([q, torch.zeros_like(q)], -1)
+    torch.testing.assert_close(ctrl_a(x), 3.0 * u)
+    with pytest.raises(ValueError, match="target"):
+        ResolvedRateController(planar, [1.0, 2.0])
+
+
+def test_missing_pytorch_kinematics_raises_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "pytorch_kinematics", None)
+    with pytest.raises(ImportError, match=r'pip install "torchcbf\[arm\]"'):
+        Manipulator("planar3")
+
+
+def test_import_without_pytorch_kinematics() -> None:
+    code = (
+        "import sys; sys.modules['pytorch_kinematics'] = None\n"
+        "import torchcbf, torchcbf.dynamics, torchcbf.barriers\n"
+        "import torchcbf.dynamics.manipulator as m, torchcbf.barriers.workspace as w\n"
+        "assert m.asset_path('arm7').is_file()\n"
+        "try:\n"
+        "    m.Manipulator('arm7')\n"
+        "except ImportError as e:\n"
+        "    assert 'torchcbf[arm]' in str(e), e\n"
+        "    print('ok')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "ok"
