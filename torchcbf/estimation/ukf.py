@@ -59,13 +59,18 @@ class UKF(_KalmanFilter):
         self.alpha, self.beta, self.kappa = float(alpha), float(beta), float(kappa)
         c = alpha**2 * (n + kappa)  # n + lam
         lam = c - n
-        wm = torch.full((2 * n + 1,), 0.5 / c, dtype=torch.float64)
-        wc = wm.clone()
-        wm[0] = lam / c
-        wc[0] = lam / c + 1.0 - alpha**2 + beta
-        self.register_buffer("Wm", wm.to(torch.get_default_dtype()))
-        self.register_buffer("Wc", wc.to(torch.get_default_dtype()))
+        # Python floats, cast to the state's dtype at use (no float32 buffer rounding)
+        self._w0_mean = lam / c
+        self._w0_cov = lam / c + 1.0 - alpha**2 + beta
+        self._w = 0.5 / c
         self._spread = math.sqrt(c)
+
+    def _weights(self, like: Tensor) -> tuple[Tensor, Tensor]:
+        """Mean and covariance weights ``[2n+1]`` in the dtype/device of ``like``."""
+        wm = torch.full((2 * self.state_dim + 1,), self._w, dtype=like.dtype, device=like.device)
+        wc = wm.clone()
+        wm[0], wc[0] = self._w0_mean, self._w0_cov
+        return wm, wc
 
     def _sigma_points(self, m: Tensor, P: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Sigma points ``[B, 2n+1, n]``, their deviations from ``m`` and a regularized flag."""
@@ -85,7 +90,7 @@ class UKF(_KalmanFilter):
         bs, m, P, u, dt = self._flat_predict(state, u, dt)
         m0, P0 = m, P
         B, n = m.shape
-        Wm, Wc = self.Wm.to(m), self.Wc.to(m)
+        Wm, Wc = self._weights(m)
         h = dt / self.substeps
         status = torch.zeros(B, dtype=torch.int64, device=m.device)
         u_rep = u.unsqueeze(1).expand(B, 2 * n + 1, u.shape[-1]).reshape(-1, u.shape[-1])
@@ -106,7 +111,7 @@ class UKF(_KalmanFilter):
     def update(self, state: EstimatorState, y: Tensor) -> EstimatorState:
         """Correct ``state`` with ``y [..., p]`` (a non-finite ``y`` row is skipped and flagged)."""
         bs, m, P, status, y = self._flat_update(state, y)
-        Wm, Wc = self.Wm.to(m), self.Wc.to(m)
+        Wm, Wc = self._weights(m)
         X, dX, reg_p = self._sigma_points(m, P)
         Yp = self.sensor.expected(X)
         y_pred, dY = self._mean(Yp, Wm, self.sensor.residual)

@@ -1,0 +1,87 @@
+"""UKF: Monte Carlo consistency, angle-aware unscented update, sigma-point parameters.
+
+(Equality with the exact Kalman filter on linear systems is in test_ekf.py, for all filters.)
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from estimation_reference import (
+    LinearSystem,
+    check_consistency,
+    exact_kalman,
+    linear_case,
+    monte_carlo,
+    run_filter,
+)
+
+from torchcbf.dynamics import Unicycle
+from torchcbf.estimation import EKF, UKF, EstimatorState, GaussianSensor, RangeBearing
+
+
+@pytest.mark.parametrize("model", ["unicycle", "accel_unicycle"])
+def test_ukf_monte_carlo_consistent_and_beats_sensor(model, dtype):
+    result = monte_carlo(UKF, dtype, model)
+    mean_nees, lo, hi, inside = check_consistency(result)
+    assert lo <= mean_nees <= hi, (mean_nees, lo, hi)
+    assert inside >= 0.85, inside
+    assert bool((result["status"] == 0).all())
+    if model == "unicycle":
+        assert result["rms_est"] < 0.5 * result["rms_meas"], result
+    else:
+        assert result["rms_est"] < 0.1, result
+
+
+@pytest.mark.parametrize("alpha,kappa", [(1e-3, 0.0), (0.5, 1.0), (1.0, 3.0 - 3.0)])
+def test_sigma_point_parameters_keep_linear_exactness(alpha, kappa):
+    """Any admissible (alpha, beta, kappa) is exact on a linear system (float64)."""
+    case = linear_case(rows=3, steps=10)
+    t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
+    dyn = LinearSystem(t(case["A"]), t(case["Bu"]))
+    sensor = GaussianSensor(C=t(case["C"]), R=t(case["R"]))
+    ukf = UKF(dyn, sensor, Q=t(case["Qc"]), alpha=alpha, beta=2.0, kappa=kappa)
+    means, covs, _ = run_filter(
+        ukf, t(case["x0"]), t(case["P0"]), t(case["us"]), t(case["ys"]), case["dt"]
+    )
+    ref_m, ref_p = exact_kalman(
+        case["A"], case["Bu"], case["Qc"], case["C"], case["R"], case["x0"][1], case["P0"][1],
+        case["us"][:, 1], case["ys"][:, 1], case["dt"],
+    )  # fmt: skip
+    # tiny alpha weights the points by 1/alpha^2: cancellation costs ~2*log10(1/alpha) digits
+    tol = 1e-5 if alpha < 1e-2 else 1e-9
+    assert np.abs(means[:, 1].numpy() - ref_m).max() < tol
+    assert np.abs(covs[:, 1].numpy() - ref_p).max() < tol
+
+
+def test_bearing_wrap_in_unscented_update(dtype):
+    """A landmark straight behind the robot: the predicted bearings straddle +-pi. With the
+    residual wrapping the UKF update agrees with the EKF (nearly linear for a small P);
+    a naive average of the bearings would put the mean near 0 and throw the estimate off."""
+    dyn = Unicycle(sigma=0.01)
+    sensor = RangeBearing(torch.tensor([[-5.0, 0.0], [0.0, 5.0]], dtype=dtype), 0.05, 0.01)
+    mean = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.002]], dtype=dtype)
+    P = torch.diag(torch.tensor([1e-3, 1e-3, 1e-3], dtype=dtype)).expand(2, 3, 3)
+    state = EstimatorState(mean, P, torch.zeros(2, dtype=torch.long))
+    x_true = torch.tensor([0.01, -0.01, 0.003], dtype=dtype)
+    y = sensor.expected(x_true).expand(2, 4)
+    assert bool((y[:, 1].abs() > 3.1).all())  # bearing near +-pi
+    ekf_state = EKF(dyn, sensor).update(state, y)
+    ukf_state = UKF(dyn, sensor).update(state, y)
+    assert torch.allclose(ukf_state.mean, ekf_state.mean, atol=2e-3)
+    assert float((ukf_state.mean - x_true).abs().max()) < 0.02
+    assert torch.allclose(ukf_state.cov, ekf_state.cov, rtol=0.05, atol=1e-6)
+
+
+def test_invalid_sigma_parameters():
+    dyn = Unicycle(sigma=0.1)
+    sensor = GaussianSensor(C=torch.eye(3)[:2], std=0.1)
+    with pytest.raises(ValueError, match="kappa"):
+        UKF(dyn, sensor, kappa=-3.0)
+    with pytest.raises(ValueError, match="alpha"):
+        UKF(dyn, sensor, alpha=0.0)
+    with pytest.raises(ValueError, match="alpha"):
+        UKF(dyn, sensor, alpha=math.inf)
