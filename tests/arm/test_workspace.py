@@ -180,6 +180,9 @@ def test_acceleration_control_rectified_barrier(name: str) -> None:
     torch.testing.assert_close(vb(x), torch.cat([qd + vmax, vmax - qd], -1))
     eye = torch.eye(arm.dof, dtype=torch.float64)
     torch.testing.assert_close(vb.lie(x, arm).lgh, torch.cat([eye, -eye]).expand(10, -1, -1))
+    exact = vb.lie(x, arm, method="analytic")
+    torch.testing.assert_close(exact.lgh, vb.lie(x, arm).lgh)
+    torch.testing.assert_close(exact.lfh, torch.zeros_like(exact.h))
 
 
 def test_joint_limits_and_ee_box_values(planar: Manipulator) -> None:
@@ -189,6 +192,9 @@ def test_joint_limits_and_ee_box_values(planar: Manipulator) -> None:
     hi = planar.q_max - 0.1
     torch.testing.assert_close(jl(x), torch.cat([x - lo, hi - x], -1))
     assert jl.lower_joints == [0, 1, 2] and jl.upper_joints == [0, 1, 2]
+    auto, exact = jl.lie(x, planar), jl.lie(x, planar, method="analytic")
+    for name in ("h", "lfh", "lgh", "dhdt", "dhdx"):
+        torch.testing.assert_close(getattr(auto, name), getattr(exact, name))
     box = EndEffectorBoxBarrier(planar, [-0.5, -0.6, -0.1], [0.7, 0.8, 0.1], margin=0.02).double()
     ee = planar_points(x)[:, -1]
     lo = torch.tensor([-0.48, -0.58, -0.08], dtype=torch.float64)

@@ -22,7 +22,7 @@ from torch import Tensor
 
 from torchcbf.barriers._params import register
 from torchcbf.barriers.base import Barrier
-from torchcbf.barriers.lie import LieFunction
+from torchcbf.barriers.lie import AnalyticDerivatives, LieFunction
 
 if TYPE_CHECKING:
     from torchcbf.dynamics.manipulator import Manipulator
@@ -341,6 +341,16 @@ class JointLimitBarrier(Barrier):
         hi = self.arm.q_max.to(x)[self.upper_joints] - self.margin
         return torch.cat([q[..., self.lower_joints] - lo, hi - q[..., self.upper_joints]], -1)
 
+    @property
+    def has_analytic(self) -> bool:
+        return True
+
+    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        h = self(x)
+        eye = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)
+        rows = torch.cat([eye[self.lower_joints], -eye[self.upper_joints]], 0)  # [k, n]
+        return _linear_derivatives(h, rows)
+
 
 class JointVelocityBarrier(Barrier):
     """URDF velocity limits as a barrier on the state of an acceleration-controlled arm.
@@ -376,3 +386,23 @@ class JointVelocityBarrier(Barrier):
         qd = x[..., self.arm.dof :][..., self.joints]
         v = self.arm.velocity_limit.to(x)[self.joints] * self.scale
         return torch.cat([qd + v, v - qd], -1)
+
+    @property
+    def has_analytic(self) -> bool:
+        return True
+
+    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        h = self(x)
+        eye = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)[self.arm.dof :]
+        rows = torch.cat([eye[self.joints], -eye[self.joints]], 0)  # [k, n]
+        return _linear_derivatives(h, rows)
+
+
+def _linear_derivatives(h: Tensor, rows: Tensor) -> AnalyticDerivatives:
+    """Derivatives of ``h = rows x + const`` (``h [..., k]``, ``rows [k, n]``)."""
+
+    def quad(s: Tensor) -> Tensor:
+        return torch.zeros_like(h)
+
+    dhdx = rows.expand(*h.shape, rows.shape[-1])
+    return AnalyticDerivatives(h, dhdx, torch.zeros_like(h), quad)
