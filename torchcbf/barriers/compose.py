@@ -38,6 +38,9 @@ class BarrierStack(Barrier):
         """``x [..., n] -> h [..., k]``."""
         return torch.cat([_as_columns(b(x, t), x) for b in self.barriers], -1)
 
+    def _parts(self) -> list[LieFunction] | None:
+        return list(self.barriers)
+
     @property
     def has_analytic(self) -> bool:
         return all(b.has_analytic for b in self.barriers)

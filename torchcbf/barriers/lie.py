@@ -6,7 +6,10 @@ function ``h(x, t)`` and dynamics ``dx = (f + g u) dt + sigma dW`` it returns
 ``tr(sigma' d2h/dx2 sigma)`` and ``dh/dx``.
 
 Batching: rows of a batch are independent, so ``d/dx sum_rows h`` gives every row's gradient
-in one backward pass. A k-output function (``h [..., k]``) needs one pass per output.
+in one backward pass. A k-output function (``h [..., k]``) needs one pass per output; a
+function that splits into independent parts (:meth:`LieFunction._parts`: the members of a
+:class:`~torchcbf.barriers.BarrierStack`, the ``k`` shapes of a batched shape) runs each pass
+through its own part's graph only.
 The Hessian trace is ``sum_j s_j' H s_j`` over the ``q`` columns ``s_j`` of ``sigma``:
 one batched Hessian-vector product per column.
 """
@@ -73,6 +76,12 @@ class LieFunction(nn.Module):
     def has_analytic(self) -> bool:
         """Whether ``lie(..., method="analytic")`` is available."""
         return False
+
+    def _parts(self) -> list[LieFunction] | None:
+        """Independent parts whose outputs, concatenated, are this function's ``[..., k]``
+        (``None``: one part). The autograd path differentiates each part separately, so a
+        backward pass for one output only runs through the graph of its own part."""
+        return None
 
     def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         raise ValueError(
@@ -177,6 +186,41 @@ def _autograd_terms(
     control: bool,
     grad_mode: bool,
 ) -> LieTerms:
+    create = grad_mode or diffusion
+    sigma_cols = dynamics.sigma(x).unbind(-1) if diffusion else None
+    parts = flat_parts(fn)
+    if parts[0] is fn:
+        h, dhdx, dhdt, hess, multi = _part_terms(fn, x, t, sigma_cols, create)
+        if not multi:
+            h, dhdx, dhdt = h.squeeze(-1), dhdx.squeeze(-2), dhdt.squeeze(-1)
+            hess = None if hess is None else hess.squeeze(-1)
+    else:
+        cols = [_part_terms(p, x, t, sigma_cols, create) for p in parts]
+        h = torch.cat([c[0] for c in cols], -1)  # a split function is always [..., k]
+        dhdx = torch.cat([c[1] for c in cols], -2)
+        dhdt = torch.cat([c[2] for c in cols], -1)
+        hess = None if sigma_cols is None else torch.cat([c[3] for c in cols], -1)
+        multi = True
+    return _assemble(h, dhdx, dhdt, hess, x, dynamics, multi, control)
+
+
+def flat_parts(fn: LieFunction) -> list[LieFunction]:
+    """``fn`` split into independently differentiable parts (see :meth:`LieFunction._parts`)."""
+    parts = fn._parts()
+    if parts is None:
+        return [fn]
+    return [q for p in parts for q in flat_parts(p)]
+
+
+def _part_terms(
+    fn: LieFunction,
+    x: Tensor,
+    t: Tensor | float | None,
+    sigma_cols: tuple[Tensor, ...] | None,
+    create: bool,
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None, bool]:
+    """``h, dhdt, hess [..., k]``, ``dhdx [..., k, n]`` of one part (k = 1 if scalar), and
+    whether the part returned ``[..., k]`` (rather than ``[...]``)."""
     # ``xr`` is the variable we differentiate w.r.t.: a clone when ``x`` is itself part of a
     # graph (nested Lie derivatives, learning), so that f, g and sigma evaluated at ``x``
     # are constants for these gradients yet keep their own path to ``x``.
@@ -188,7 +232,6 @@ def _autograd_terms(
     else:
         tr = tt
         inputs = (xr,)
-    create = grad_mode or diffusion
     h = fn(xr, tr)
     multi = _check_output(fn, h, x)
     outs = h.unbind(-1) if multi else (h,)
@@ -199,29 +242,35 @@ def _autograd_terms(
         for gr, hj in zip(grads, outs, strict=True)
     ]
     hess = None
-    if diffusion:
-        sigma = dynamics.sigma(x)
-        cols = sigma.unbind(-1)
+    if sigma_cols is not None:
         hess = []
         for dj in dhdx:
             acc = torch.zeros_like(dj[..., 0])
-            for s in cols:
+            for s in sigma_cols:
                 # sigma is computed at ``x``, not ``xr``: a constant direction in this HVP.
                 (hv,) = _grad((dj * s).sum(-1), (xr,), create)
                 acc = acc + (hv * s).sum(-1)
             hess.append(acc)
-    stack = (lambda v: torch.stack(v, -2)) if multi else (lambda v: v[0])
-    stack1 = (lambda v: torch.stack(v, -1)) if multi else (lambda v: v[0])
-    return _assemble(
-        h,
-        stack(dhdx),
-        stack1(dhdt),
-        None if hess is None else stack1(hess),
-        x,
-        dynamics,
+    return (
+        h if multi else h.unsqueeze(-1),
+        torch.stack(dhdx, -2),
+        torch.stack(dhdt, -1),
+        None if hess is None else torch.stack(hess, -1),
         multi,
-        control,
     )
+
+
+class FunctionPart(LieFunction):
+    """A callable ``(x, t) -> [...]`` (or ``[..., k]``) as a :class:`LieFunction` (no tensors
+    of its own: it reads its owner's parameters when called)."""
+
+    def __init__(self, fn: Callable[[Tensor, Tensor | None], Tensor], time_varying: bool) -> None:
+        super().__init__()
+        object.__setattr__(self, "_fn", fn)  # a bound method or closure of the owner
+        self.time_varying = time_varying
+
+    def forward(self, x: Tensor, t: Tensor | None = None) -> Tensor:
+        return self._fn(x, t)
 
 
 def _analytic_terms(

@@ -10,6 +10,7 @@ barrier's parameters.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from typing import Literal
 
@@ -20,7 +21,7 @@ from torch import Tensor, nn
 from torchcbf._checks import as_tensor
 from torchcbf.barriers._params import float_spec, register
 from torchcbf.barriers.base import Barrier
-from torchcbf.barriers.lie import LieFunction, lie_derivatives
+from torchcbf.barriers.lie import FunctionPart, LieFunction, flat_parts, lie_derivatives
 from torchcbf.dynamics.base import ControlAffine
 
 Form = Literal["high_order", "exponential"]
@@ -45,6 +46,11 @@ class LieDerivative(Barrier):
         """``x [..., n] -> D h [...]`` (or ``[..., k]``)."""
         terms = lie_derivatives(self.barrier, x, self.dynamics, t, hessian=False, control=False)
         return terms.lfh + terms.dhdt
+
+    def _parts(self) -> list[LieFunction] | None:
+        if self.barrier._parts() is None:
+            return None
+        return [LieDerivative(p, self.dynamics) for p in flat_parts(self.barrier)]
 
 
 def _gain_tensor(
@@ -108,11 +114,14 @@ class HighOrderBarrier(Barrier):
             raise ValueError(f"gains must be positive, got {g.detach().tolist()}")
         self.time_varying = barrier.time_varying
 
-    def psi(self, x: Tensor, t: Tensor | float | None, order: int) -> Tensor:
-        """``psi_order(x, t)`` for ``0 <= order <= r - 1``."""
+    def psi(
+        self, x: Tensor, t: Tensor | float | None, order: int, base: LieFunction | None = None
+    ) -> Tensor:
+        """``psi_order(x, t)`` for ``0 <= order <= r - 1`` (of ``base``, default the barrier)."""
+        base = self.barrier if base is None else base
         if order == 0:
-            return self.barrier(x, t)
-        step = _Psi(self, order - 1)
+            return base(x, t)
+        step = _Psi(self, order - 1, base)
         terms = lie_derivatives(step, x, self.dynamics, t, hessian=False, control=False)
         return terms.lfh + terms.dhdt + self.gains[order - 1].to(x) * terms.h
 
@@ -120,18 +129,28 @@ class HighOrderBarrier(Barrier):
         """``x [..., n] -> psi_{r-1} [...]`` (or ``[..., k]``)."""
         return self.psi(x, t, self.relative_degree - 1)
 
+    def _parts(self) -> list[LieFunction] | None:
+        if self.barrier._parts() is None:
+            return None
+        r = self.relative_degree
+        return [
+            FunctionPart(functools.partial(self.psi, order=r - 1, base=p), self.time_varying)
+            for p in flat_parts(self.barrier)
+        ]
+
 
 class _Psi(LieFunction):
     """``psi_order`` of a :class:`HighOrderBarrier` as a function (a view, not a copy)."""
 
-    def __init__(self, parent: HighOrderBarrier, order: int) -> None:
+    def __init__(self, parent: HighOrderBarrier, order: int, base: LieFunction) -> None:
         super().__init__()
         object.__setattr__(self, "_parent", parent)  # not a submodule: no cycle
+        object.__setattr__(self, "_base", base)
         self.order = order
         self.time_varying = parent.time_varying
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
-        return self._parent.psi(x, t, self.order)
+        return self._parent.psi(x, t, self.order, self._base)
 
 
 class ExponentialBarrier(Barrier):
@@ -172,22 +191,32 @@ class ExponentialBarrier(Barrier):
                 f"got shape {tuple(k.shape)}"
             )
         _check_hurwitz(k.detach())
-        chain: list[LieFunction] = [barrier]
-        for _ in range(relative_degree - 2):
-            chain.append(LieDerivative(chain[-1], dynamics))
-        self.chain = nn.ModuleList(chain[1:])
         self.time_varying = barrier.time_varying
 
-    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
-        """``x [..., n] -> h_e [...]`` (or ``[..., k]``)."""
+    def value(self, x: Tensor, t: Tensor | float | None, base: LieFunction | None = None) -> Tensor:
+        """``h_e(x, t)`` of ``base`` (default the barrier)."""
         r = self.relative_degree
-        chain = [self.barrier, *self.chain]  # D^0 h .. D^{r-2} h
+        chain = [self.barrier if base is None else base]  # D^0 h .. D^{r-2} h
+        for _ in range(r - 2):
+            chain.append(LieDerivative(chain[-1], self.dynamics))
         terms = lie_derivatives(chain[-1], x, self.dynamics, t, hessian=False, control=False)
         k = self.coefficients.to(x)
         out = terms.lfh + terms.dhdt + k[r - 2] * terms.h  # D^{r-1} h + k_{r-2} D^{r-2} h
         for i in range(r - 2):
             out = out + k[i] * chain[i](x, t)
         return out
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """``x [..., n] -> h_e [...]`` (or ``[..., k]``)."""
+        return self.value(x, t)
+
+    def _parts(self) -> list[LieFunction] | None:
+        if self.barrier._parts() is None:
+            return None
+        return [
+            FunctionPart(functools.partial(self.value, base=p), self.time_varying)
+            for p in flat_parts(self.barrier)
+        ]
 
 
 def _check_hurwitz(coefficients: Tensor) -> None:

@@ -11,6 +11,7 @@ against the state when one is seen, or at construction when ``state_dim`` is giv
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 
 import torch
@@ -19,7 +20,7 @@ from torch import Tensor
 from torchcbf.barriers._minmax import combine, reduce
 from torchcbf.barriers._params import StateIndex, register
 from torchcbf.barriers.base import Barrier
-from torchcbf.barriers.lie import AnalyticDerivatives, time_tensor
+from torchcbf.barriers.lie import AnalyticDerivatives, FunctionPart, LieFunction, time_tensor
 
 
 def _check_positive_tensor(name: str, value: Tensor) -> None:
@@ -32,6 +33,20 @@ def _check_centers(name: str, center: Tensor) -> int | None:
     if center.dim() not in (1, 2) or center.shape[-1] == 0:
         raise ValueError(f"{name} must have shape [d] or [k, d], got {tuple(center.shape)}")
     return center.shape[0] if center.dim() == 2 else None
+
+
+def _row(value: Tensor, j: int) -> Tensor:
+    """Entry ``j`` of a per-shape constant (``[]`` shared by all shapes, or ``[k, ...]``)."""
+    return value[j] if value.dim() > 0 else value
+
+
+def _split(module: LieFunction, num: int | None) -> list[LieFunction] | None:
+    """The ``k`` shapes of a batched shape as parts (one backward pass each)."""
+    if num is None:
+        return None
+    return [
+        FunctionPart(functools.partial(module._one, j), module.time_varying) for j in range(num)
+    ]
 
 
 def _check_per_shape(name: str, value: Tensor, k: int | None) -> None:
@@ -103,6 +118,17 @@ class Ball(Barrier):
         """``x [..., n] -> h [...]`` (or ``[..., k]``)."""
         diff = self._diff(x, t)
         return self._sign() * ((diff**2).sum(-1) - self.radius.to(x) ** 2)
+
+    def _one(self, j: int, x: Tensor, t: Tensor | float | None) -> Tensor:
+        """Ball ``j`` of a batched ball: ``[...]``."""
+        c = self.center[j].to(x)
+        if self.velocity is not None:
+            c = c + self.velocity[j].to(x) * time_tensor(t, x)[..., None]
+        r = _row(self.radius, j).to(x)
+        return self._sign() * (((self._sel(x) - c) ** 2).sum(-1) - r**2)
+
+    def _parts(self) -> list[LieFunction] | None:
+        return _split(self, self.num)
 
     @property
     def has_analytic(self) -> bool:
@@ -248,6 +274,20 @@ class Ellipse(Barrier):
         q = self._q(x) / self.axes.to(x)
         return self._sign() * ((q**2).sum(-1) - 1)
 
+    def _one(self, j: int, x: Tensor, t: Tensor | float | None) -> Tensor:
+        """Ellipse ``j`` of a batched ellipse: ``[...]``."""
+        d = self._sel(x) - self.center[j].to(x)
+        if self.angle is not None:
+            ang = _row(self.angle, j).to(x)
+            cos, sin = torch.cos(ang), torch.sin(ang)
+            d = torch.stack(
+                [cos * d[..., 0] + sin * d[..., 1], -sin * d[..., 0] + cos * d[..., 1]], -1
+            )
+        return self._sign() * (((d / self.axes[j].to(x)) ** 2).sum(-1) - 1)
+
+    def _parts(self) -> list[LieFunction] | None:
+        return _split(self, self.num)
+
     @property
     def has_analytic(self) -> bool:
         return True
@@ -321,6 +361,13 @@ class HalfSpace(Barrier):
         if self.num is not None:
             return self.b.to(x) - p @ a.mT
         return self.b.to(x) - (p * a).sum(-1)
+
+    def _one(self, j: int, x: Tensor, t: Tensor | float | None) -> Tensor:
+        """Half-space ``j`` of a stack: ``[...]``."""
+        return _row(self.b, j).to(x) - (self._sel(x) * self.a[j].to(x)).sum(-1)
+
+    def _parts(self) -> list[LieFunction] | None:
+        return _split(self, self.num)
 
     @property
     def has_analytic(self) -> bool:
