@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
+import torch
 from torch import Tensor, nn
 
 from torchcbf._checks import as_tensor, check_index
@@ -36,8 +37,17 @@ def _as_index(index: Sequence[int]) -> tuple[int, ...] | slice:
     return idx
 
 
+def _const(name: str, value: object) -> Tensor:
+    """A constant vector: tensors keep their dtype, Python numbers become float64 (cast to the
+    rollout's dtype at use, so float64 rollouts see exact constants)."""
+    if isinstance(value, Tensor):
+        return as_tensor(name, value).reshape(-1)
+    return as_tensor(name, value, dtype=torch.float64).reshape(-1)
+
+
 def _sq_dist(p: Tensor, c: Tensor) -> Tensor:
-    return (p - c).square().sum(-1)
+    diff = p - c.to(device=p.device, dtype=p.dtype)
+    return diff.square_().sum(-1)
 
 
 class RolloutCost(nn.Module):
@@ -100,7 +110,7 @@ class QuadraticGoal(RolloutCost):
         terminal_weight: float = 0.0,
     ) -> None:
         super().__init__()
-        goal_t = as_tensor("goal", goal).reshape(-1)
+        goal_t = _const("goal", goal)
         self.index = _as_index(range(goal_t.numel()) if index is None else index)
         d = self.index.stop - self.index.start if isinstance(self.index, slice) else len(self.index)
         if d != goal_t.numel():
@@ -119,7 +129,7 @@ class QuadraticGoal(RolloutCost):
 
 
 class ObstacleCost(RolloutCost):
-    """``k_o / max(|p - center| - radius, eps)`` per step (SCENARIOS.md A), ``p = x[..., index]``."""
+    """``k_o / max(|p - center| - radius, eps)`` per step, ``p = x[..., index]`` (SCENARIOS A)."""
 
     def __init__(
         self,
@@ -130,7 +140,7 @@ class ObstacleCost(RolloutCost):
         index: Sequence[int] = (0, 1),
     ) -> None:
         super().__init__()
-        center_t = as_tensor("center", center).reshape(-1)
+        center_t = _const("center", center)
         self.index = _as_index(index)
         if radius < 0 or eps <= 0:
             raise ValueError(f"radius must be >= 0 and eps > 0, got radius={radius}, eps={eps}")

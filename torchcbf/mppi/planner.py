@@ -25,9 +25,11 @@ exactly the plans of a one-environment planner built with ``seed + b``. The glob
 never used. ``reset()`` re-seeds the generators.
 
 Compilation: ``MPPI(..., compile=True)`` (or a dict of ``torch.compile`` keyword arguments)
-compiles the rollout + cost evaluation; noise sampling, weights and the plan update stay
-eager. The first call compiles (tens of seconds on a CPU for long horizons); later calls with
-the same ``B`` reuse the compiled code.
+compiles one integration step (written in place into the state buffer) and the cost
+evaluation (cost + control cost); the loop over the horizon, noise sampling, weights and the
+plan update stay eager. (Compiling the unrolled horizon loop as one graph makes inductor
+recompute the state chain for every stacked state, which is far slower.) The first call
+compiles (about 10-30 s on a CPU); later calls with the same ``B`` reuse the code.
 """
 
 from __future__ import annotations
@@ -203,12 +205,12 @@ class MPPI(nn.Module):
         self.register_buffer("u_max", None if hi is None else hi.clone())
 
         self._needs_history = bool(getattr(cost, "needs_history", False))
-        evaluate = self._evaluate
+        self._step_fn: Callable[[Tensor, Tensor, Tensor], None] | None = None
+        self._score_fn = self._score
         if compile:
             kwargs = compile if isinstance(compile, dict) else {}
-            evaluate = torch.compile(self._evaluate, **kwargs)
-        self._evaluate_fn = evaluate
-        self._compiled = bool(compile)
+            self._step_fn = torch.compile(self._step_into, **kwargs)
+            self._score_fn = torch.compile(self._score, **kwargs)
         self._key: tuple[Any, ...] | None = None
         self._fresh = True
 
@@ -276,12 +278,8 @@ class MPPI(nn.Module):
 
         eps = self._sample_noise()
         history = self._history.view() if self._needs_history else None
-        if self._compiled:
-            cost, states, eps = self._evaluate_fn(xb, eps, plan, t0, history, None)
-        else:
-            bufs = (self._controls, self._states)
-            cost, states, eps = self._evaluate_fn(xb, eps, plan, t0, history, bufs)
-        return self._update(cost, states, eps, unbatched)
+        cost = self._evaluate(xb, eps, plan, t0, history)
+        return self._update(cost, self._states, eps, unbatched)
 
     def _sample_noise(self) -> Tensor:
         eps = self._eps
@@ -310,49 +308,52 @@ class MPPI(nn.Module):
         incr = k1 + 2.0 * (k2 + k3) + k4
         return x + (dt / 6.0) * incr if out is None else torch.add(x, incr, alpha=dt / 6.0, out=out)
 
-    def _evaluate(
+    def _step_into(self, x: Tensor, u: Tensor, out: Tensor) -> None:
+        out.copy_(self._step(x, u, None))
+
+    def _score(
         self,
-        x: Tensor,
+        states: Tensor,
+        controls: Tensor,
         eps: Tensor,
         plan: Tensor,
         t0: Tensor,
         history: History | None,
-        bufs: tuple[Tensor, Tensor] | None,
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """Clamp the samples, roll them out and score them. Returns cost ``[B, K]``, states
-        ``[B, K, H+1, n]`` and the recomputed noise ``[B, K, H, m]``. With ``bufs`` the
-        controls and states are written into preallocated buffers (and ``eps`` in place)."""
-        lo = None if self.u_min is None else self.u_min.to(x)
-        hi = None if self.u_max is None else self.u_max.to(x)
-        nominal = plan.unsqueeze(1)
-        B, K, H = eps.shape[0], eps.shape[1], self.horizon
-        if bufs is None:
-            controls = nominal + eps
-            if lo is not None or hi is not None:
-                controls = controls.clamp(lo, hi)
-                eps = controls - nominal
-            xs = [x.unsqueeze(1).expand(B, K, x.shape[-1])]
-            for j in range(H):
-                xs.append(self._step(xs[-1], controls[:, :, j], None))
-            states = torch.stack(xs, dim=2)
-        else:
-            controls, states = bufs
-            torch.add(eps, nominal, out=controls)
-            if lo is not None or hi is not None:
-                controls.clamp_(lo, hi)
-                torch.sub(controls, nominal, out=eps)
-            states[:, :, 0] = x.unsqueeze(1)
-            for j in range(H):
-                self._step(states[:, :, j], controls[:, :, j], states[:, :, j + 1])
+    ) -> Tensor:
+        """Cost ``[B, K]`` of the rollouts plus the control cost."""
         if self._needs_history:
             cost = self.cost(states, controls, t0, dt=self.dt, history=history)
         else:
             cost = self.cost(states, controls, t0)
         if self.control_cost_weight > 0.0:
+            B, K = eps.shape[:2]
             weighted = plan @ self.noise_cov_inv.to(plan)  # [B, H, m]
             ctrl = torch.bmm(eps.reshape(B, K, -1), weighted.reshape(B, -1, 1)).squeeze(-1)
             cost = cost + self.control_cost_weight * ctrl
-        return cost, states, eps
+        return cost
+
+    def _evaluate(
+        self, x: Tensor, eps: Tensor, plan: Tensor, t0: Tensor, history: History | None
+    ) -> Tensor:
+        """Clamp the samples (recomputing ``eps`` in place), roll them out into the state
+        buffer and score them: cost ``[B, K]``."""
+        controls, states = self._controls, self._states
+        nominal = plan.unsqueeze(1)
+        torch.add(eps, nominal, out=controls)
+        if self.u_min is not None or self.u_max is not None:
+            lo = None if self.u_min is None else self.u_min.to(x)
+            hi = None if self.u_max is None else self.u_max.to(x)
+            controls.clamp_(lo, hi)
+            torch.sub(controls, nominal, out=eps)
+        states[:, :, 0] = x.unsqueeze(1)
+        step = self._step_fn
+        if step is None:
+            for j in range(self.horizon):
+                self._step(states[:, :, j], controls[:, :, j], states[:, :, j + 1])
+        else:
+            for j in range(self.horizon):
+                step(states[:, :, j], controls[:, :, j], states[:, :, j + 1])
+        return self._score_fn(states, controls, eps, plan, t0, history)
 
     def _update(self, cost: Tensor, states: Tensor, eps: Tensor, unbatched: bool) -> MPPIOutput:
         B, K = cost.shape

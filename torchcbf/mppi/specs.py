@@ -47,11 +47,16 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor, check_positive
-from torchcbf.mppi.costs import _as_index, _select
+from torchcbf._checks import check_positive
+from torchcbf.mppi.costs import _as_index, _const, _select
 from torchcbf.mppi.history import History
 
 Predicate = Callable[[Tensor], Tensor]
+
+
+def _sq_dist(states: Tensor, index: tuple[int, ...] | slice, center: Tensor) -> Tensor:
+    diff = _select(states, index) - center.to(device=states.device, dtype=states.dtype)
+    return diff.square_().sum(-1)
 
 
 class Spec(nn.Module):
@@ -160,18 +165,24 @@ class Eventually(_Temporal):
         mask = self.in_window(times.to(rho.dtype)).expand(rho.shape)
         return rho.masked_fill(~mask, -math.inf).amax(-1)
 
-    def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
+    def rollout_min_cost(self, states: Tensor, window: Tensor) -> tuple[Tensor, Tensor]:
+        """Minimum of ``c`` over the rollout states inside ``window [B, T]`` (``+inf`` when
+        none is) and ``c`` of the last state: two ``[B, K]`` tensors."""
         c = self.pointwise_cost(states)  # [B, K, T]
+        last = c[..., -1].clone()
+        return c.masked_fill_(~window.unsqueeze(1), math.inf).amin(-1), last
+
+    def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
         window = self.in_window(times)  # [B, T]
-        roll_min = c.masked_fill(~window.unsqueeze(1), math.inf).amin(-1)
-        roll = torch.where(window.any(-1, keepdim=True), roll_min, c[..., -1])
-        passed = times[:, 0] > self.interval[1] + self.time_tol
+        roll_min, last = self.rollout_min_cost(states, window)
+        roll = torch.where(window.any(-1, keepdim=True), roll_min, last)
+        passed = times[:, :1] > self.interval[1] + self.time_tol
         if history is None:
-            return torch.where(passed.unsqueeze(-1), torch.zeros_like(roll), roll)
+            return torch.where(passed, torch.zeros_like(roll), roll)
         h_window = history.valid & self.in_window(history.times)  # [B, N]
         h_min = self.pointwise_cost(history.states).masked_fill(~h_window, math.inf).amin(-1)
         reached = (h_window & (self.predicate(history.states) >= 0)).any(-1)
-        frozen = (reached | passed).unsqueeze(-1)
+        frozen = reached.unsqueeze(-1) | passed
         h_min = h_min.unsqueeze(-1)
         constant = torch.where(torch.isfinite(h_min), h_min, torch.zeros_like(h_min))
         return torch.where(frozen, constant, torch.minimum(roll, h_min))
@@ -199,11 +210,16 @@ class Always(_Temporal):
         mask = self.in_window(times.to(rho.dtype)).expand(rho.shape)
         return rho.masked_fill(~mask, math.inf).amin(-1)
 
-    def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
+    def rollout_max_cost(self, states: Tensor, window: Tensor) -> Tensor:
+        """Maximum of ``c`` over the rollout states inside ``window [B, T]``: ``[B, K]``
+        (``-inf`` when none is)."""
         c = self.pointwise_cost(states)  # [B, K, T]
-        window = self.in_window(times).unsqueeze(1)  # [B, 1, T]
-        worst = c.masked_fill(~window, -math.inf).amax(-1)
-        return torch.where(window.any(-1), worst, torch.zeros_like(worst))
+        return c.masked_fill_(~window.unsqueeze(1), -math.inf).amax(-1)
+
+    def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
+        window = self.in_window(times)  # [B, T]
+        worst = self.rollout_max_cost(states, window)
+        return torch.where(window.any(-1, keepdim=True), worst, torch.zeros_like(worst))
 
 
 class Reach(Eventually):
@@ -222,7 +238,7 @@ class Reach(Eventually):
         index: Sequence[int] = (0, 1),
     ) -> None:
         super().__init__(None, interval, None)
-        center_t = as_tensor("center", center).reshape(-1)
+        center_t = _const("center", center)
         self.index = _as_index(index)
         d = self.index.stop - self.index.start if isinstance(self.index, slice) else len(self.index)
         if d != center_t.numel():
@@ -231,14 +247,18 @@ class Reach(Eventually):
         self.radius = check_positive("radius", radius)
         self.weight = check_positive("weight", weight)
 
-    def _sq_dist(self, states: Tensor) -> Tensor:
-        return (_select(states, self.index) - self.center).square().sum(-1)
-
     def predicate(self, states: Tensor) -> Tensor:
-        return self.radius - self._sq_dist(states).sqrt()
+        return self.radius - _sq_dist(states, self.index, self.center).sqrt()
 
     def pointwise_cost(self, states: Tensor) -> Tensor:
-        return self.weight * (self._sq_dist(states) - self.radius**2)
+        return self.weight * (_sq_dist(states, self.index, self.center) - self.radius**2)
+
+    def rollout_min_cost(self, states: Tensor, window: Tensor) -> tuple[Tensor, Tensor]:
+        # c is increasing in |p - g|^2: reduce the squared distance, transform [B, K] only
+        d2 = _sq_dist(states, self.index, self.center)
+        last = self.weight * (d2[..., -1] - self.radius**2)
+        d2_min = d2.masked_fill_(~window.unsqueeze(1), math.inf).amin(-1)
+        return self.weight * (d2_min - self.radius**2), last
 
     def extra_repr(self) -> str:
         return f"center={self.center.tolist()}, radius={self.radius}, interval={self.interval}"
@@ -275,7 +295,7 @@ class Avoid(Always):
         else:
             if radius is None or radius < 0:
                 raise ValueError(f"Avoid with a center needs radius >= 0, got {radius}")
-            self.center = as_tensor("center", center).reshape(-1)
+            self.center = _const("center", center)
             self.index = _as_index(index)
         self.radius = None if radius is None else float(radius)
         self.weight = check_positive("weight", weight)
@@ -284,11 +304,20 @@ class Avoid(Always):
     def predicate(self, states: Tensor) -> Tensor:
         if self.barrier is not None:
             return self.barrier(states)
-        p = _select(states, self.index)
-        return (p - self.center).square().sum(-1).sqrt() - self.radius
+        return _sq_dist(states, self.index, self.center).sqrt() - self.radius
 
     def pointwise_cost(self, states: Tensor) -> Tensor:
         return self.weight / self.predicate(states).clamp_min(self.eps)
+
+    def rollout_max_cost(self, states: Tensor, window: Tensor) -> Tensor:
+        # c is decreasing in rho: reduce rho (or |p - o|^2), transform [B, K] only
+        outside = ~window.unsqueeze(1)
+        if self.barrier is not None:
+            rho_min = self.barrier(states).masked_fill(outside, math.inf).amin(-1)
+        else:
+            d2 = _sq_dist(states, self.index, self.center)
+            rho_min = d2.masked_fill_(outside, math.inf).amin(-1).sqrt() - self.radius
+        return self.weight / rho_min.clamp_min(self.eps)
 
 
 class _Combination(Spec):

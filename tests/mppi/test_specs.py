@@ -1,0 +1,225 @@
+"""Timed reach-avoid specifications: robustness against the boolean success check and a
+Python loop; planning costs against a per-sample reference implementation."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchcbf.mppi import Always, And, Avoid, Eventually, History, Or, Reach
+
+G1, G2, OBST = (4.0, 4.0), (6.0, 9.0), (3.0, 3.0)
+
+
+def _tol(dtype: torch.dtype) -> float:
+    return 1e-10 if dtype == torch.float64 else 1e-4
+
+
+def _spec_a() -> And:
+    return And(
+        Avoid(OBST, 0.6, weight=0.3, eps=0.01),
+        Reach(G1, 0.5, (0.0, 3.5), weight=10.0),
+        Reach(G2, 0.5, (3.6, 5.0), weight=2.0),
+        Reach((4.0, 1.0), 0.5, (5.1, 10.0), weight=1.0),
+    )
+
+
+def _success_loop(traj: torch.Tensor, times: torch.Tensor) -> tuple[bool, float]:
+    """SCENARIOS.md A success and the robustness value, one trajectory, plain Python."""
+    goals = [(G1, 0.0, 3.5), (G2, 3.6, 5.0), ((4.0, 1.0), 5.1, 10.0)]
+    ok, rob = True, math.inf
+    for g, t1, t2 in goals:
+        best = -math.inf
+        for x, t in zip(traj.tolist(), times.tolist(), strict=True):
+            if t1 - 1e-5 <= t <= t2 + 1e-5:
+                best = max(best, 0.5 - math.dist(x, g))
+        ok = ok and best >= 0
+        rob = min(rob, best)
+    worst = min(math.dist(x, OBST) - 0.6 for x in traj.tolist())
+    return ok and worst >= 0, min(rob, worst)
+
+
+def test_robustness_equals_success_check(dtype):
+    gen = torch.Generator().manual_seed(1)
+    spec = _spec_a()
+    times = torch.arange(101, dtype=dtype) * 0.1
+    # trajectories through g1 -> g2 -> g3 with noise: some succeed, some do not
+    knots = torch.tensor([[0, 0], [4, 4], [6, 9], [4, 1], [4, 1]], dtype=torch.float64)
+    base = torch.nn.functional.interpolate(knots.T[None], size=101, mode="linear")[0].T
+    trajs = base + 0.6 * torch.randn(64, 101, 2, generator=gen, dtype=torch.float64)
+    trajs[:8] = base + 0.05 * torch.randn(8, 101, 2, generator=gen, dtype=torch.float64)
+    trajs = trajs.to(dtype)
+    rob = spec.robustness(trajs, times)
+    assert rob.shape == (64,)
+    outcomes = []
+    for i in range(64):
+        ok, value = _success_loop(trajs[i], times)
+        outcomes.append(ok)
+        assert bool(rob[i] >= 0) == ok
+        assert abs(float(rob[i]) - value) < 10 * _tol(dtype)
+    assert any(outcomes) and not all(outcomes)
+    # unbatched trajectory, times with the same batch shape
+    one = spec.robustness(trajs[3], times)
+    assert one.shape == () and float(one) == pytest.approx(float(rob[3]))
+    two = spec.robustness(trajs[:2], times.expand(2, 101))
+    torch.testing.assert_close(two, rob[:2])
+
+
+def test_or_and_generic_operators(dtype):
+    gen = torch.Generator().manual_seed(2)
+    states = torch.randn(5, 7, 2, generator=gen, dtype=torch.float64).to(dtype)
+    times = torch.linspace(0, 1, 7, dtype=dtype)
+    pred = lambda x: 1.0 - x[..., 0] ** 2  # noqa: E731
+    ev = Eventually(pred, (0.2, 0.6))
+    al = Always(pred, (0.5, 1.0))
+    window_e = (times >= 0.2 - 1e-5) & (times <= 0.6 + 1e-5)
+    window_a = (times >= 0.5 - 1e-5) & (times <= 1.0 + 1e-5)
+    r_e = pred(states)[:, window_e].amax(-1)
+    r_a = pred(states)[:, window_a].amin(-1)
+    torch.testing.assert_close(ev.robustness(states, times), r_e)
+    torch.testing.assert_close(al.robustness(states, times), r_a)
+    torch.testing.assert_close((ev | al).robustness(states, times), torch.maximum(r_e, r_a))
+    torch.testing.assert_close((ev & al).robustness(states, times), torch.minimum(r_e, r_a))
+    # empty window: Eventually is false, Always is vacuously true
+    assert Eventually(pred, (5.0, 6.0)).robustness(states, times)[0] == -math.inf
+    assert Always(pred, (5.0, 6.0)).robustness(states, times)[0] == math.inf
+
+
+def _rollouts(dtype, B=2, K=6, T=11, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    return (3.0 * torch.rand(B, K, T, 2, generator=gen, dtype=torch.float64) + 2.5).to(dtype)
+
+
+def test_default_cost_is_negated_robustness(dtype):
+    states = _rollouts(dtype)
+    pred = lambda x: 1.0 - (x[..., 0] - 4.0) ** 2  # noqa: E731
+    t0 = torch.tensor([0.0, 0.3], dtype=dtype)
+    dt = 0.1
+    times = t0[:, None] + dt * torch.arange(11, dtype=dtype)
+    for spec in (Eventually(pred, (0.2, 0.7)), Always(pred, (0.2, 0.7))):
+        cost = spec(states, None, t0, dt=dt)
+        want = torch.stack([-spec.robustness(states[b], times[b]) for b in range(2)])
+        torch.testing.assert_close(cost, want, atol=_tol(dtype), rtol=_tol(dtype))
+
+
+def _reach_cost_reference(states, times, hist_x, hist_t, hist_n, g, r, w, t1, t2):
+    """Eventually/Reach planning cost, one sample at a time, plain Python."""
+    B, K, T, _ = states.shape
+    out = torch.zeros(B, K, dtype=torch.float64)
+    c = lambda x: w * ((x[0] - g[0]) ** 2 + (x[1] - g[1]) ** 2 - r**2)  # noqa: E731
+    inside = lambda t: t1 - 1e-5 <= t <= t2 + 1e-5  # noqa: E731
+    for b in range(B):
+        hist = [
+            (hist_x[b, i].tolist(), float(hist_t[b, i]))
+            for i in range(hist_n)
+            if inside(float(hist_t[b, i]))
+        ]
+        h_min = min((c(x) for x, _ in hist), default=math.inf)
+        reached = any(math.dist(x, g) <= r for x, _ in hist)
+        passed = float(times[b, 0]) > t2 + 1e-5
+        for k in range(K):
+            if reached or passed:
+                out[b, k] = h_min if math.isfinite(h_min) else 0.0
+                continue
+            roll = [c(states[b, k, j].tolist()) for j in range(T) if inside(float(times[b, j]))]
+            roll_min = min(roll) if roll else c(states[b, k, -1].tolist())
+            out[b, k] = min(roll_min, h_min)
+    return out
+
+
+@pytest.mark.parametrize(
+    "t0, hist_pts",
+    [
+        ((0.0, 0.0), None),  # window inside the horizon, no history
+        ((0.0, 0.2), [(4.0, 4.3), (2.0, 2.0)]),  # env 0 not yet reached, env 1 ...
+        ((0.35, 0.35), [(4.1, 4.1), (3.0, 3.0)]),  # env 0 reached inside its window
+        ((1.5, 0.9), [(4.0, 5.0), (4.0, 5.0)]),  # window passed (env 0) / not yet passed
+        ((-2.0, -1.5), [(0.0, 0.0), (0.0, 0.0)]),  # window beyond the horizon: last state
+    ],
+)
+def test_reach_cost_semantics(dtype, t0, hist_pts):
+    states = _rollouts(dtype)
+    B, K, T, _ = states.shape
+    g, r, w, t1, t2 = (4.0, 4.0), 0.5, 3.0, 0.3, 0.8
+    spec = Reach(g, r, (t1, t2), weight=w)
+    dt = 0.1
+    t0_t = torch.tensor(t0, dtype=dtype)
+    times = t0_t[:, None] + dt * torch.arange(T, dtype=dtype)
+    N = 8
+    hist_x = torch.zeros(B, N, 2, dtype=dtype)
+    hist_t = torch.zeros(B, N, dtype=dtype)
+    n_rec = 0
+    history = None
+    if hist_pts is not None:
+        n_rec = 3  # three recorded states per env: two before t0 and the current one
+        for b in range(B):
+            hist_x[b, 0] = torch.tensor(hist_pts[b], dtype=dtype)
+            hist_x[b, 1] = torch.tensor(hist_pts[b], dtype=dtype) + 1.0
+            hist_x[b, 2] = states[b, 0, 0]
+            hist_t[b, :3] = t0_t[b] - torch.tensor([0.1, 0.05, 0.0], dtype=dtype)
+        states[:, :, 0] = hist_x[:, 2:3]
+        valid = (torch.arange(N) < n_rec).expand(B, N)
+        history = History(hist_x, hist_t, valid)
+    got = spec(states, None, t0_t, dt=dt, history=history)
+    want = _reach_cost_reference(
+        states.double(), times.double(), hist_x.double(), hist_t.double(), n_rec, g, r, w, t1, t2
+    )
+    torch.testing.assert_close(got.double(), want, atol=1e-4, rtol=1e-4)
+
+
+def test_reached_or_passed_goal_no_longer_pulls(dtype):
+    states = _rollouts(dtype)
+    spec = Reach((4.0, 4.0), 0.5, (0.3, 0.8), weight=3.0)
+    N = 4
+    hist_x = torch.zeros(2, N, 2, dtype=dtype)
+    hist_x[0, 0] = torch.tensor([4.1, 3.9], dtype=dtype)  # env 0 inside the goal at t = 0.5
+    hist_t = torch.full((2, N), 0.5, dtype=dtype)
+    valid = torch.zeros(2, N, dtype=torch.bool)
+    valid[0, 0] = True
+    history = History(hist_x, hist_t, valid)
+    cost = spec(states, None, torch.tensor([0.6, 0.9], dtype=dtype), dt=0.1, history=history)
+    # env 0: reached -> frozen at its history minimum; env 1: window passed -> constant 0
+    want0 = 3.0 * (0.1**2 + 0.1**2 - 0.25)
+    torch.testing.assert_close(cost[0], torch.full((6,), want0, dtype=dtype), atol=1e-5, rtol=0)
+    assert torch.equal(cost[1], torch.zeros(6, dtype=dtype))
+
+
+def test_avoid_and_combinations_cost(dtype):
+    states = _rollouts(dtype)
+    t0 = torch.zeros(2, dtype=dtype)
+    avoid = Avoid(OBST, 0.6, weight=0.3, eps=0.01)
+    dist = ((states - torch.tensor(OBST, dtype=dtype)) ** 2).sum(-1).sqrt()
+    want = (0.3 / (dist - 0.6).clamp_min(0.01)).amax(-1)
+    got = avoid(states, None, t0, dt=0.1)
+    torch.testing.assert_close(got, want, atol=_tol(dtype), rtol=_tol(dtype))
+    # barrier form: the same disc as a callable
+    disc = lambda x: ((x - torch.tensor(OBST, dtype=x.dtype)) ** 2).sum(-1).sqrt() - 0.6  # noqa: E731
+    got_b = Avoid(barrier=disc, weight=0.3, eps=0.01)(states, None, t0, dt=0.1)
+    torch.testing.assert_close(got_b, want, atol=_tol(dtype), rtol=_tol(dtype))
+    # windowed: only states with time in [0.5, 0.7] count
+    got_w = Avoid(OBST, 0.6, weight=0.3, interval=(0.5, 0.7))(states, None, t0, dt=0.1)
+    want_w = (0.3 / (dist[..., 5:8] - 0.6).clamp_min(0.01)).amax(-1)
+    torch.testing.assert_close(got_w, want_w, atol=_tol(dtype), rtol=_tol(dtype))
+    reach = Reach(G1, 0.5, (0.0, 0.5), weight=2.0)
+    r_cost = reach(states, None, t0, dt=0.1)
+    torch.testing.assert_close(And(avoid, reach)(states, None, t0, dt=0.1), got + r_cost)
+    torch.testing.assert_close(
+        Or(avoid, reach)(states, None, t0, dt=0.1), torch.minimum(got, r_cost)
+    )
+
+
+def test_bad_specs():
+    with pytest.raises(ValueError, match="interval"):
+        Reach(G1, 0.5, (3.0, 1.0))
+    with pytest.raises(ValueError, match="either"):
+        Avoid(OBST, 0.6, barrier=lambda x: x[..., 0])
+    with pytest.raises(ValueError, match="either"):
+        Avoid()
+    with pytest.raises(ValueError, match="radius"):
+        Reach(G1, -1.0)
+    with pytest.raises(TypeError, match="Spec"):
+        And(Reach(G1, 0.5), lambda s, u, t: s)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="dt"):
+        Reach(G1, 0.5)(torch.zeros(1, 2, 3, 2))
