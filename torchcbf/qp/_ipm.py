@@ -103,6 +103,47 @@ def _max_step(v: Tensor, dv: Tensor) -> Tensor:
     return ratio.amin(-1).clamp(max=1.0)
 
 
+class _StepData(NamedTuple):
+    inv_tau: Tensor
+    c: Tensor
+    h: Tensor
+    b: Tensor
+    den: Tensor
+    x2: Tensor
+    z2: Tensor
+    y2: Tensor
+    s: Tensor
+    z: Tensor
+    kappa: Tensor
+
+
+def _direction(
+    sd: _StepData, x1: Tensor, z1: Tensor, y1: Tensor, d_t: Tensor, d_s: Tensor, d_k: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Recover the full step from the reduced solves (eliminating tau, s and kappa)."""
+    num = -d_t + d_k * sd.inv_tau - (sd.c * x1).sum(-1) - (sd.h * z1).sum(-1) - (sd.b * y1).sum(-1)
+    dtau = num / sd.den
+    dx = x1 + dtau.unsqueeze(-1) * sd.x2
+    dz = z1 + dtau.unsqueeze(-1) * sd.z2
+    dy = y1 + dtau.unsqueeze(-1) * sd.y2
+    dsv = -d_s / sd.z - (sd.s / sd.z) * dz
+    dkappa = -(d_k + sd.kappa * dtau) * sd.inv_tau
+    return dx, dz, dy, dsv, dtau, dkappa
+
+
+def _step_length(
+    s: Tensor, ds: Tensor, z: Tensor, dz: Tensor, tau: Tensor, dt: Tensor, kappa: Tensor, dk: Tensor
+) -> Tensor:
+    """Largest step in ``(0, 1]`` keeping ``s, z, tau, kappa`` nonnegative, per row."""
+    return torch.minimum(
+        torch.minimum(_max_step(s, ds), _max_step(z, dz)),
+        torch.minimum(
+            _max_step(tau.unsqueeze(-1), dt.unsqueeze(-1)),
+            _max_step(kappa.unsqueeze(-1), dk.unsqueeze(-1)),
+        ),
+    )
+
+
 def solve_ipm(
     P: Tensor,
     q: Tensor,
@@ -121,11 +162,13 @@ def solve_ipm(
     G [B,M,n], h [B,M], A [B,me,n], b [B,me]``; ``x0 [B,n]`` optionally seeds the primal
     iterate. Inputs must be finite; no gradient flows through this function."""
     B, n = q.shape
-    M, me = h.shape[-1], b.shape[-1]
+    M = h.shape[-1]
     dtype, device = q.dtype, q.device
     reg_rel = 1e-12 if dtype == torch.float64 else 1e-6
     d_reg = 1e-13 if dtype == torch.float64 else 1e-6
-    data_scale = torch.maximum(P.abs().amax((-2, -1)), G.abs().amax((-2, -1)) if M > 0 else P.new_zeros(B))
+    data_scale = torch.maximum(
+        P.abs().amax((-2, -1)), G.abs().amax((-2, -1)) if M > 0 else P.new_zeros(B)
+    )
     reg = (reg_rel * data_scale.clamp_min(1.0)).unsqueeze(-1)
 
     # Initial point: the solution of the regularised KKT system with unit scaling.
@@ -227,34 +270,13 @@ def solve_ipm(
         sx, sz, sy = kkt.solve(rhs_x, rhs_z, rhs_y)
         x2, z2, y2 = sx[..., 0], sz[..., 0], sy[..., 0]
         xd = x2 - xi
-        den = -(
-            kappa * inv_tau
-            + (xd * _bmv(P, xd)).sum(-1)
-            + (z2 * z2 * s / z).sum(-1)
-        )
+        den = -(kappa * inv_tau + (xd * _bmv(P, xd)).sum(-1) + (z2 * z2 * s / z).sum(-1))
 
-        def _direction(
-            x1: Tensor, z1: Tensor, y1: Tensor, d_t: Tensor, d_s: Tensor, d_k: Tensor
-        ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-            num = -d_t + d_k * inv_tau - (c * x1).sum(-1) - (h * z1).sum(-1) - (b * y1).sum(-1)
-            dtau = num / den
-            dx = x1 + dtau.unsqueeze(-1) * x2
-            dz = z1 + dtau.unsqueeze(-1) * z2
-            dy = y1 + dtau.unsqueeze(-1) * y2
-            dsv = -d_s / z - (s / z) * dz
-            dkappa = -(d_k + kappa * dtau) * inv_tau
-            return dx, dz, dy, dsv, dtau, dkappa
-
+        sd = _StepData(inv_tau, c, h, b, den, x2, z2, y2, s, z, kappa)
         dxa, dza, dya, dsa, dta, dka = _direction(
-            sx[..., 1], sz[..., 1], sy[..., 1], rt, s * z, tau * kappa
+            sd, sx[..., 1], sz[..., 1], sy[..., 1], rt, s * z, tau * kappa
         )
-        alpha_aff = torch.minimum(
-            torch.minimum(_max_step(s, dsa), _max_step(z, dza)),
-            torch.minimum(
-                _max_step(tau.unsqueeze(-1), dta.unsqueeze(-1)),
-                _max_step(kappa.unsqueeze(-1), dka.unsqueeze(-1)),
-            ),
-        )
+        alpha_aff = _step_length(s, dsa, z, dza, tau, dta, kappa, dka)
         sigma = (1.0 - alpha_aff).pow(3)
         sm = (sigma * mu).unsqueeze(-1)
         one_m = (1.0 - sigma).unsqueeze(-1)
@@ -266,15 +288,9 @@ def solve_ipm(
             (-one_m * ry).unsqueeze(-1),
         )
         dx, dz, dy, dsv, dt, dk = _direction(
-            cx.squeeze(-1), cz.squeeze(-1), cy.squeeze(-1), (1.0 - sigma) * rt, d_s, d_k
+            sd, cx.squeeze(-1), cz.squeeze(-1), cy.squeeze(-1), (1.0 - sigma) * rt, d_s, d_k
         )
-        alpha = torch.minimum(
-            torch.minimum(_max_step(s, dsv), _max_step(z, dz)),
-            torch.minimum(
-                _max_step(tau.unsqueeze(-1), dt.unsqueeze(-1)),
-                _max_step(kappa.unsqueeze(-1), dk.unsqueeze(-1)),
-            ),
-        )
+        alpha = _step_length(s, dsv, z, dz, tau, dt, kappa, dk)
         # a 0.9 step fraction keeps the iterates centred (0.99 made Mehrotra zig-zag on some
         # rows); near the end, where the affine step is nearly full, step further.
         frac = torch.where(alpha_aff > 0.9, 0.99, 0.9)
@@ -303,8 +319,10 @@ def solve_ipm(
         kappa = kappa + a * torch.nan_to_num(dk)
 
     inv = (1.0 / tau).unsqueeze(-1)
-    solved_like = (status == int(Status.SOLVED)) | (status == int(Status.MAX_ITER)) | (
-        status == int(Status.NUMERICAL_ERROR)
+    solved_like = (
+        (status == int(Status.SOLVED))
+        | (status == int(Status.MAX_ITER))
+        | (status == int(Status.NUMERICAL_ERROR))
     )
     keep = solved_like.unsqueeze(-1)
     x = torch.where(keep, x * inv, torch.zeros_like(x))

@@ -1,0 +1,200 @@
+"""CPU backends: proxsuite's dense solver (batched by its own ``solve_in_parallel``) and
+qpsolvers (one problem at a time). Both take the standard form ``Gx <= h, Ax = b`` in float64
+and return ``(x, s, z, y, status, iterations)`` as float64 CPU tensors."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchcbf.qp.status import Status
+
+_BIG = 1e20
+
+
+def _verify(
+    x: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, status: Tensor, eps: float
+) -> Tensor:
+    """Demote rows reported solved whose answer violates the constraints (to ``MAX_ITER``)."""
+    viol = torch.cat(
+        (
+            (torch.einsum("bmn,bn->bm", G, x) - h).clamp_min(0.0),
+            (torch.einsum("bmn,bn->bm", A, x) - b).abs(),
+        ),
+        -1,
+    )
+    if viol.shape[-1] == 0:
+        bad = ~torch.isfinite(x).all(-1)
+    else:
+        scale = 1.0 + torch.cat((h.abs(), b.abs()), -1).amax(-1)
+        bad = ~(viol.amax(-1) <= 10.0 * eps * scale) | ~torch.isfinite(x).all(-1)
+    return torch.where((status == int(Status.SOLVED)) & bad, int(Status.MAX_ITER), status)
+
+
+def solve_proxsuite(
+    P: Tensor,
+    q: Tensor,
+    G: Tensor,
+    h: Tensor,
+    A: Tensor,
+    b: Tensor,
+    *,
+    eps: float,
+    max_iter: int,
+    x0: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Solve every row with ``proxsuite.proxqp.dense`` in parallel (OpenMP threads)."""
+    from proxsuite import proxqp
+
+    B, n = q.shape
+    M, me = h.shape[-1], b.shape[-1]
+    Pn, qn, Gn, hn, An, bn = (t.detach().cpu().double().numpy() for t in (P, q, G, h, A, b))
+    x0n = None if x0 is None else x0.detach().cpu().double().numpy()
+    lower = np.full(M, -_BIG)
+    qps = proxqp.dense.BatchQP()
+    for i in range(B):
+        qp = qps.init_qp_in_place(n, me, M)
+        qp.settings.eps_abs = eps
+        qp.settings.eps_rel = 0.0
+        qp.settings.max_iter = max_iter
+        qp.settings.verbose = False
+        if x0n is not None:
+            qp.settings.initial_guess = proxqp.InitialGuess.WARM_START
+        qp.init(
+            Pn[i],
+            qn[i],
+            An[i] if me > 0 else None,
+            bn[i] if me > 0 else None,
+            Gn[i] if M > 0 else None,
+            lower if M > 0 else None,
+            hn[i] if M > 0 else None,
+        )
+        if x0n is not None:
+            qp.solve(x0n[i], None, None)
+    if x0n is None:
+        proxqp.dense.solve_in_parallel(qps, torch.get_num_threads())
+    codes = {
+        proxqp.PROXQP_SOLVED: Status.SOLVED,
+        proxqp.PROXQP_PRIMAL_INFEASIBLE: Status.PRIMAL_INFEASIBLE,
+        proxqp.PROXQP_DUAL_INFEASIBLE: Status.DUAL_INFEASIBLE,
+        proxqp.PROXQP_MAX_ITER_REACHED: Status.MAX_ITER,
+        proxqp.PROXQP_SOLVED_CLOSEST_PRIMAL_FEASIBLE: Status.PRIMAL_INFEASIBLE,
+    }
+    x = np.zeros((B, n))
+    z = np.zeros((B, M))
+    y = np.zeros((B, me))
+    st = np.zeros(B, dtype=np.int64)
+    it = np.zeros(B, dtype=np.int64)
+    for i in range(B):
+        res = qps.get(i).results
+        x[i] = res.x
+        if M > 0:
+            z[i] = np.maximum(res.z, 0.0)
+        if me > 0:
+            y[i] = res.y
+        st[i] = int(codes.get(res.info.status, Status.MAX_ITER))
+        it[i] = res.info.iter
+    return _finish(x, z, y, st, it, G, h, A, b, eps)
+
+
+def _finish(
+    x: np.ndarray,
+    z: np.ndarray,
+    y: np.ndarray,
+    st: np.ndarray,
+    it: np.ndarray,
+    G: Tensor,
+    h: Tensor,
+    A: Tensor,
+    b: Tensor,
+    eps: float,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    Gc, hc, Ac, bc = (t.detach().cpu().double() for t in (G, h, A, b))
+    xt = torch.from_numpy(np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0))
+    zt = torch.from_numpy(np.nan_to_num(z, nan=0.0, posinf=0.0, neginf=0.0))
+    yt = torch.from_numpy(np.nan_to_num(y, nan=0.0, posinf=0.0, neginf=0.0))
+    status = torch.from_numpy(st)
+    status = _verify(torch.from_numpy(x), Gc, hc, Ac, bc, status, eps)
+    infeasible = (status == int(Status.PRIMAL_INFEASIBLE)) | (status == int(Status.DUAL_INFEASIBLE))
+    keep = (~infeasible).unsqueeze(-1)
+    xt = torch.where(keep, xt, torch.zeros_like(xt))
+    zt = torch.where(keep, zt, torch.zeros_like(zt))
+    yt = torch.where(keep, yt, torch.zeros_like(yt))
+    s = (hc - torch.einsum("bmn,bn->bm", Gc, xt)).clamp_min(0.0)
+    return xt, s, zt, yt, status, torch.from_numpy(it)
+
+
+def solve_qpsolvers(
+    solver: str,
+    P: Tensor,
+    q: Tensor,
+    G: Tensor,
+    h: Tensor,
+    A: Tensor,
+    b: Tensor,
+    *,
+    eps: float,
+    max_iter: int,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Solve each row with ``qpsolvers.solve_problem(..., solver=solver)`` (a Python loop).
+
+    Infeasibility is read from the solver's own status string where it exposes one
+    (Clarabel, OSQP, proxqp, HiGHS, SCS report 'primal/dual infeasible'); any other failure is
+    ``MAX_ITER``. ``max_iter`` is not forwarded (option names differ between solvers)."""
+    import qpsolvers
+
+    if solver not in qpsolvers.available_solvers:
+        raise ValueError(
+            f"backend 'qpsolvers:{solver}': solver not installed; available: "
+            f"{sorted(qpsolvers.available_solvers)}"
+        )
+    del max_iter
+    B, n = q.shape
+    M, me = h.shape[-1], b.shape[-1]
+    Pn, qn, Gn, hn, An, bn = (t.detach().cpu().double().numpy() for t in (P, q, G, h, A, b))
+    x = np.zeros((B, n))
+    z = np.zeros((B, M))
+    y = np.zeros((B, me))
+    st = np.zeros(B, dtype=np.int64)
+    it = np.zeros(B, dtype=np.int64)
+    for i in range(B):
+        prob = qpsolvers.Problem(
+            Pn[i],
+            qn[i],
+            Gn[i] if M > 0 else None,
+            hn[i] if M > 0 else None,
+            An[i] if me > 0 else None,
+            bn[i] if me > 0 else None,
+        )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            sol = qpsolvers.solve_problem(prob, solver=solver)
+        if sol.found and sol.x is not None:
+            x[i] = sol.x
+            if M > 0 and sol.z is not None:
+                z[i] = np.maximum(sol.z, 0.0)
+            if me > 0 and sol.y is not None:
+                y[i] = sol.y
+            st[i] = int(Status.SOLVED)
+        else:
+            st[i] = int(_infeasibility_from_extras(sol.extras))
+    return _finish(x, z, y, st, it, G, h, A, b, eps)
+
+
+def _infeasibility_from_extras(extras: dict | None) -> Status:
+    text = ""
+    if extras:
+        for key in ("status", "info"):
+            if key in extras:
+                val = extras[key]
+                text += " " + str(getattr(val, "status", val))
+    text = text.lower().replace("_", " ").replace("primalinfeasible", "primal infeasible")
+    text = text.replace("dualinfeasible", "dual infeasible")
+    if "primal infeasible" in text:
+        return Status.PRIMAL_INFEASIBLE
+    if "dual infeasible" in text:
+        return Status.DUAL_INFEASIBLE
+    return Status.MAX_ITER

@@ -1,0 +1,141 @@
+"""The differentiable QP map ``(P, q, G, h, A, b) -> (x, z, y)`` as a ``torch.autograd.Function``.
+
+The forward dispatches to a backend, always works in float64 internally (the barrier's
+normal equations lose every digit in float32 close to the solution) and returns outputs in the
+input dtype. The backward is the implicit differentiation of the active-set KKT conditions
+(:mod:`torchcbf.qp._kkt`), shared by every differentiable backend.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchcbf.qp import _kkt
+from torchcbf.qp._ipm import solve_ipm
+from torchcbf.qp.status import Status
+
+
+@dataclass(frozen=True)
+class SolverConfig:
+    """Options forwarded from ``solve_qp`` to the forward pass."""
+
+    backend: str
+    eps: float
+    eps_inf: float
+    max_iter: int
+    check_every: int
+    closed_form: bool
+    polish: bool
+
+
+def _closed_form(
+    P: Tensor, q: Tensor, G: Tensor, h: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None:
+    """Exact solution for one inequality and ``P`` positive definite (projection formula).
+
+    ``x = x_u - lam P^{-1} g`` with ``x_u = -P^{-1} q`` and
+    ``lam = max(0, (g'x_u - h) / g'P^{-1}g)``.
+    Returns ``None`` when some row's ``P`` is not positive definite (one host sync)."""
+    L, info = torch.linalg.cholesky_ex(P)
+    if bool((info != 0).any()):
+        return None
+    g = G[:, 0, :]
+    rhs = torch.stack((-q, g), -1)
+    sol = torch.cholesky_solve(rhs, L)
+    xu, Pg = sol[..., 0], sol[..., 1]
+    gPg = (g * Pg).sum(-1)
+    viol = (g * xu).sum(-1) - h[:, 0]
+    degenerate = gPg <= 0
+    lam = torch.where(
+        (viol > 0) & ~degenerate, viol / torch.where(degenerate, 1.0, gPg), torch.zeros_like(viol)
+    )
+    x = xu - lam.unsqueeze(-1) * Pg
+    status = torch.where(
+        degenerate & (viol > 0),
+        int(Status.PRIMAL_INFEASIBLE),
+        torch.full_like(lam, int(Status.SOLVED), dtype=torch.int64),
+    )
+    x = torch.where((status == int(Status.SOLVED)).unsqueeze(-1), x, torch.zeros_like(x))
+    z = lam.unsqueeze(-1)
+    s = (h - torch.einsum("bmn,bn->bm", G, x)).clamp_min(0.0)
+    return x, s, z, status, torch.zeros_like(status)
+
+
+def _forward(
+    P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, _kkt.KKTFactor]:
+    """Solve in float64; return ``(x, z, y, status, iterations, kkt_factor)``."""
+    me = b.shape[-1]
+    if cfg.backend == "torch":
+        res = _closed_form(P, q, G, h) if cfg.closed_form else None
+        if res is not None:
+            x, s, z, status, iters = res
+            y = q.new_zeros(q.shape[0], me)
+            fac = _kkt.factor_kkt(P, G, A, z > s)
+            return x, z, y, status, iters, fac
+        out = solve_ipm(
+            P,
+            q,
+            G,
+            h,
+            A,
+            b,
+            eps=cfg.eps,
+            eps_inf=cfg.eps_inf,
+            max_iter=cfg.max_iter,
+            check_every=cfg.check_every,
+            x0=x0,
+        )
+        x, s, z, y, status, iters = out
+    else:
+        from torchcbf.qp import _backends
+
+        if cfg.backend == "proxsuite":
+            out = _backends.solve_proxsuite(
+                P, q, G, h, A, b, eps=cfg.eps, max_iter=cfg.max_iter, x0=x0
+            )
+        else:
+            out = _backends.solve_qpsolvers(
+                cfg.backend.split(":", 1)[1], P, q, G, h, A, b, eps=cfg.eps, max_iter=cfg.max_iter
+            )
+        x, s, z, y, status, iters = (t.to(q.device) for t in out)
+    if cfg.polish:
+        x, z, y, status, fac = _kkt.polish(P, q, G, h, A, b, x, s, z, y, status, eps=cfg.eps)
+    else:
+        candidate = (status == int(Status.SOLVED)).unsqueeze(-1)
+        fac = _kkt.factor_kkt(P, G, A, _kkt.active_set(z, s) & candidate)
+    return x, z, y, status, iters, fac
+
+
+class QPFunction(torch.autograd.Function):
+    """``(P, q, G, h, A, b) -> (x, z, y, status, iterations)``, batched ``[B, ...]``."""
+
+    @staticmethod
+    def forward(ctx, P, q, G, h, A, b, cfg: SolverConfig, x0):  # noqa: D102
+        dtype = q.dtype
+        f64 = [t.detach().to(torch.float64) for t in (P, q, G, h, A, b)]
+        x0d = None if x0 is None else x0.detach().to(torch.float64)
+        x, z, y, status, iters, fac = _forward(*f64, cfg, x0d)
+        ctx.fac = fac
+        ctx.save_for_backward(x, z, y, status)
+        ctx.dtype = dtype
+        ctx.mark_non_differentiable(status, iters)
+        return x.to(dtype), z.to(dtype), y.to(dtype), status, iters
+
+    @staticmethod
+    def backward(ctx, gx, gz, gy, _gs, _gi):  # noqa: D102
+        x, z, y, status = ctx.saved_tensors
+        grads = _kkt.kkt_backward(
+            ctx.fac,
+            x,
+            z,
+            y,
+            status,
+            gx.to(torch.float64),
+            gz.to(torch.float64),
+            gy.to(torch.float64),
+        )
+        return (*(g.to(ctx.dtype) for g in grads), None, None)

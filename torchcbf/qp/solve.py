@@ -1,0 +1,369 @@
+"""``solve_qp``: the batched, differentiable QP layer (public entry point)."""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchcbf.qp._function import QPFunction, SolverConfig
+from torchcbf.qp._ipm import default_tolerances
+from torchcbf.qp.status import Status
+
+
+class QPSolution(NamedTuple):
+    """Result of :func:`solve_qp`; every field has the batch shape ``[...]`` of the inputs.
+
+    - ``x [..., n]``: the minimiser (zeros on rows whose status is infeasible or non-finite).
+    - ``status [...]`` int64: a :class:`Status` code per row (0 = ``SOLVED``).
+    - ``lam [..., m]``: multipliers of ``Gx <= h`` (>= 0).
+    - ``nu [..., k]``: multipliers of ``Ax = b`` (stationarity ``Qx + p + G'lam + A'nu + ... = 0``).
+    - ``iterations [...]`` int64: interior point iterations (0 for the closed form).
+    - ``lam_lb, lam_ub [..., n]``: multipliers of ``x >= lb`` and ``x <= ub`` (>= 0; zero where
+      the bound is infinite or absent), so that ``Qx + p + G'lam + A'nu - lam_lb + lam_ub = 0``.
+    - ``slack [..., m]``: elastic violation ``t >= 0`` of each softened row (``Gx <= h + t``);
+      zero for hard rows and when ``soft`` is not given.
+    """
+
+    x: Tensor
+    status: Tensor
+    lam: Tensor
+    nu: Tensor
+    iterations: Tensor
+    lam_lb: Tensor
+    lam_ub: Tensor
+    slack: Tensor
+
+
+_FLOAT = (torch.float32, torch.float64)
+
+
+def _tensor(name: str, value: object, dtype: torch.dtype, device: torch.device) -> Tensor:
+    if not isinstance(value, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    if value.dtype not in _FLOAT:
+        raise TypeError(f"{name} must be float32 or float64, got {value.dtype}")
+    if value.dtype != dtype:
+        raise TypeError(f"{name} has dtype {value.dtype} but Q has dtype {dtype}")
+    if value.device != device:
+        raise ValueError(f"{name} is on {value.device} but Q is on {device}")
+    return value
+
+
+def _bound(name: str, value: object, n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return torch.full((n,), float(value), dtype=dtype, device=device)
+    value = _tensor(name, value, dtype, device)
+    if value.dim() == 0:
+        return value.expand(n)
+    if value.shape[-1] != n:
+        raise ValueError(f"{name} must have shape [..., {n}], got {tuple(value.shape)}")
+    return value
+
+
+def _check_trailing(name: str, t: Tensor, trailing: tuple[int, ...], spec: str) -> None:
+    k = len(trailing)
+    if t.dim() < k or tuple(t.shape[t.dim() - k :]) != trailing:
+        raise ValueError(f"{name} must have shape [..., {spec}], got {tuple(t.shape)}")
+
+
+def _row_nonfinite(t: Tensor | None, trailing: int, batch: int) -> Tensor | None:
+    if t is None:
+        return None
+    flat = t.reshape(batch, -1) if trailing > 0 else t.reshape(batch, 1)
+    return ~torch.isfinite(flat).all(-1)
+
+
+def solve_qp(
+    Q: Tensor,
+    p: Tensor,
+    G: Tensor | None = None,
+    h: Tensor | None = None,
+    A: Tensor | None = None,
+    b: Tensor | None = None,
+    lb: Tensor | float | None = None,
+    ub: Tensor | float | None = None,
+    *,
+    backend: str = "torch",
+    eps: float | None = None,
+    max_iter: int = 50,
+    warm_start: Tensor | QPSolution | None = None,
+    soft: Tensor | None = None,
+    check_every: int = 5,
+    polish: bool | None = None,
+) -> QPSolution:
+    """Solve ``min 1/2 x'Qx + p'x  s.t.  Gx <= h, Ax = b, lb <= x <= ub`` for a batch.
+
+    Shapes: ``Q [..., n, n]``, ``p [..., n]``, ``G [..., m, n]``, ``h [..., m]``,
+    ``A [..., k, n]``, ``b [..., k]``, ``lb, ub [..., n]`` (or a number; entries may be
+    ``-inf``/``+inf``), ``soft [..., m]``. Leading batch dimensions broadcast (an input without
+    them is shared by every row); with none at all the outputs have no batch dimension.
+    ``Q`` is symmetrised as ``(Q + Q')/2``. float32 and float64, any device.
+
+    Backends:
+
+    - ``"torch"`` (default): batched homogeneous interior point method on the device, with
+      Farkas/unboundedness certificates for infeasible rows, followed by an active-set
+      polishing step (:mod:`torchcbf.qp._ipm`, :mod:`torchcbf.qp._kkt`). With one inequality
+      and nothing else (no ``A``, bounds or ``soft``) and ``Q`` positive definite, the exact
+      projection formula is used instead. Convergence is tested on the device every
+      iteration; the host checks whether every row is done every ``check_every`` iterations.
+    - ``"proxsuite"``: proxsuite's dense solver, rows solved in parallel by its
+      ``solve_in_parallel`` (CPU); its statuses are mapped to :class:`Status` and a row it
+      calls solved whose answer violates the constraints is reported ``MAX_ITER``.
+    - ``"qpsolvers:<solver>"`` (e.g. ``"qpsolvers:clarabel"``): one ``qpsolvers`` call per
+      row, **forward only**: it raises ``ValueError`` if gradients are required (call it under
+      ``torch.no_grad()`` or detach the inputs).
+
+    Differentiation (torch and proxsuite backends): implicit differentiation of the KKT
+    conditions on the active set ``{i : lam_i > slack_i}``, exact where the active set is
+    nondegenerate; rows not ``SOLVED`` get zero gradients. Every tensor input (including
+    ``lb``, ``ub`` and ``soft``) receives gradients.
+
+    Elastic mode: ``soft[..., i] > 0`` (finite) turns row ``i`` of ``G`` into
+    ``G_i x <= h_i + t_i`` with ``t_i >= 0`` and penalty ``soft_i * (t_i + t_i**2 / 2)`` added
+    to the objective; ``soft_i <= 0`` or ``inf`` keeps it hard. The linear part makes the
+    penalty exact (``t = 0`` whenever the hard problem is feasible and ``soft_i`` exceeds the
+    row's multiplier); the quadratic part keeps the solution unique. ``QPSolution.slack``
+    reports ``t``.
+
+    Statuses: see :class:`Status`. A row with NaN/inf in its data (infinite bounds excepted)
+    is ``NON_FINITE`` with ``x = 0``; ``lb = +inf`` or ``ub = -inf`` is ``PRIMAL_INFEASIBLE``.
+    ``eps`` (default ``1e-8`` in float64, ``2e-6`` in float32) is the relative tolerance on
+    residuals and duality gap; ``warm_start`` (``x [..., n]`` or a previous solution) seeds
+    the primal iterate. ``polish`` (default: on for the torch backend) toggles the active-set
+    polishing.
+
+    Raises ``TypeError``/``ValueError`` naming the argument on bad types or shapes.
+    """
+    if not isinstance(Q, Tensor):
+        raise TypeError(f"Q must be a torch.Tensor, got {type(Q).__name__}")
+    if Q.dtype not in _FLOAT:
+        raise TypeError(f"Q must be float32 or float64, got {Q.dtype}")
+    if Q.dim() < 2 or Q.shape[-1] != Q.shape[-2]:
+        raise ValueError(f"Q must have shape [..., n, n], got {tuple(Q.shape)}")
+    dtype, device = Q.dtype, Q.device
+    n = Q.shape[-1]
+    p = _tensor("p", p, dtype, device)
+    _check_trailing("p", p, (n,), str(n))
+    if (G is None) != (h is None):
+        raise ValueError("G and h must be given together")
+    if (A is None) != (b is None):
+        raise ValueError("A and b must be given together")
+    if G is not None:
+        G = _tensor("G", G, dtype, device)
+        if G.dim() < 2 or G.shape[-1] != n:
+            raise ValueError(f"G must have shape [..., m, {n}], got {tuple(G.shape)}")
+        m = G.shape[-2]
+        h = _tensor("h", h, dtype, device)
+        _check_trailing("h", h, (m,), str(m))
+    else:
+        m = 0
+    if A is not None:
+        A = _tensor("A", A, dtype, device)
+        if A.dim() < 2 or A.shape[-1] != n:
+            raise ValueError(f"A must have shape [..., k, {n}], got {tuple(A.shape)}")
+        me = A.shape[-2]
+        b = _tensor("b", b, dtype, device)
+        _check_trailing("b", b, (me,), str(me))
+    else:
+        me = 0
+    lb = None if lb is None else _bound("lb", lb, n, dtype, device)
+    ub = None if ub is None else _bound("ub", ub, n, dtype, device)
+    if soft is not None:
+        if G is None:
+            raise ValueError("soft requires inequality constraints G, h")
+        soft = _tensor("soft", soft, dtype, device)
+        _check_trailing("soft", soft, (m,), str(m))
+    if not isinstance(backend, str) or not (
+        backend in ("torch", "proxsuite") or backend.startswith("qpsolvers:")
+    ):
+        raise ValueError(
+            f"backend must be 'torch', 'proxsuite' or 'qpsolvers:<solver>', got {backend!r}"
+        )
+    if not isinstance(max_iter, int) or isinstance(max_iter, bool) or max_iter < 1:
+        raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
+    if not isinstance(check_every, int) or check_every < 1:
+        raise ValueError(f"check_every must be a positive integer, got {check_every!r}")
+    eps_default, eps_inf = default_tolerances(dtype)
+    if eps is None:
+        eps = eps_default
+    elif not isinstance(eps, (int, float)) or not (0 < eps < 1):
+        raise ValueError(f"eps must be a number in (0, 1), got {eps!r}")
+    eps = float(eps)
+    x0 = warm_start.x if isinstance(warm_start, QPSolution) else warm_start
+    if x0 is not None:
+        x0 = _tensor("warm_start", x0, dtype, device)
+        _check_trailing("warm_start", x0, (n,), str(n))
+
+    # ---- broadcast every input to one flat batch [B, ...] ----
+    parts: list[tuple[str, Tensor | None, int]] = [
+        ("Q", Q, 2),
+        ("p", p, 1),
+        ("G", G, 2),
+        ("h", h, 1),
+        ("A", A, 2),
+        ("b", b, 1),
+        ("lb", lb, 1),
+        ("ub", ub, 1),
+        ("soft", soft, 1),
+        ("warm_start", x0, 1),
+    ]
+    shapes = []
+    for name, t, k in parts:
+        if t is not None:
+            shapes.append((name, tuple(t.shape[: t.dim() - k])))
+    try:
+        batch_shape = torch.broadcast_shapes(*[s for _, s in shapes])
+    except RuntimeError:
+        desc = ", ".join(f"{nm} {s}" for nm, s in shapes)
+        raise ValueError(f"batch dimensions do not broadcast: {desc}") from None
+    B = math.prod(batch_shape) if len(batch_shape) > 0 else 1
+
+    def flat(t: Tensor | None, trailing: tuple[int, ...]) -> Tensor | None:
+        if t is None:
+            return None
+        return t.expand(*batch_shape, *trailing).reshape(B, *trailing)
+
+    Qf = flat(Q, (n, n))
+    pf = flat(p, (n,))
+    Gf = flat(G, (m, n)) if G is not None else Q.new_zeros(B, 0, n)
+    hf = flat(h, (m,)) if h is not None else Q.new_zeros(B, 0)
+    Af = flat(A, (me, n)) if A is not None else Q.new_zeros(B, 0, n)
+    bf = flat(b, (me,)) if b is not None else Q.new_zeros(B, 0)
+    lbf, ubf, softf, x0f = flat(lb, (n,)), flat(ub, (n,)), flat(soft, (m,)), flat(x0, (n,))
+
+    # ---- rows with non-finite data: flagged, replaced by a harmless problem ----
+    bad = torch.zeros(B, dtype=torch.bool, device=device)
+    for t, k in ((Qf, 2), (pf, 1), (Gf, 2), (hf, 1), (Af, 2), (bf, 1)):
+        r = _row_nonfinite(t, k, B)
+        if r is not None and t.numel() > 0:
+            bad = bad | r
+    infeasible_bound = torch.zeros_like(bad)
+    if lbf is not None:
+        bad = bad | torch.isnan(lbf).any(-1)
+        infeasible_bound = infeasible_bound | (lbf == math.inf).any(-1)
+    if ubf is not None:
+        bad = bad | torch.isnan(ubf).any(-1)
+        infeasible_bound = infeasible_bound | (ubf == -math.inf).any(-1)
+    if softf is not None:
+        bad = bad | torch.isnan(softf).any(-1)
+    infeasible_bound = infeasible_bound & ~bad
+    skip = bad | infeasible_bound
+    sk1, sk2 = skip.view(B, 1), skip.view(B, 1, 1)
+    eye = torch.eye(n, dtype=dtype, device=device)
+    Qf = torch.where(sk2, eye, Qf)
+    pf = torch.where(sk1, 0.0, pf)
+    Gf = torch.where(sk2, 0.0, Gf)
+    hf = torch.where(sk1, 1.0, hf)
+    Af = torch.where(sk2, 0.0, Af)
+    bf = torch.where(sk1, 0.0, bf)
+    if lbf is not None:
+        lbf = torch.where(sk1, -math.inf, lbf)
+    if ubf is not None:
+        ubf = torch.where(sk1, math.inf, ubf)
+    if softf is not None:
+        softf = torch.where(sk1, 0.0, softf)
+    if x0f is not None:
+        x0f = torch.where(sk1 | ~torch.isfinite(x0f), 0.0, x0f)
+
+    # ---- standard form: symmetrise, soften, box rows -> inequality rows ----
+    P = 0.5 * (Qf + Qf.mT)
+    q = pf
+    Gs, hs, As = Gf, hf, Af
+    N = n
+    if softf is not None:
+        is_soft = (softf > 0) & torch.isfinite(softf)
+        w = torch.where(is_soft, softf, torch.ones_like(softf))
+        zeros_nm = P.new_zeros(B, n, m)
+        P = torch.cat(
+            (torch.cat((P, zeros_nm), -1), torch.cat((zeros_nm.mT, torch.diag_embed(w)), -1)), -2
+        )
+        q = torch.cat((q, w), -1)
+        eye_m = torch.eye(m, dtype=dtype, device=device).expand(B, m, m)
+        Gs = torch.cat(
+            (
+                torch.cat((Gf, -torch.diag_embed(is_soft.to(dtype))), -1),
+                torch.cat((P.new_zeros(B, m, n), -eye_m), -1),
+            ),
+            -2,
+        )
+        hs = torch.cat((hf, P.new_zeros(B, m)), -1)
+        As = torch.cat((Af, P.new_zeros(B, me, m)), -1)
+        N = n + m
+        if x0f is not None:
+            t0 = (torch.einsum("bmn,bn->bm", Gf, x0f) - hf).clamp_min(0.0) * is_soft
+            x0f = torch.cat((x0f, t0), -1)
+    box_rows = []
+    box_h = []
+    for bound, sign in ((ubf, 1.0), (lbf, -1.0)):
+        if bound is None:
+            continue
+        finite = torch.isfinite(bound)
+        rows = sign * torch.diag_embed(finite.to(dtype))
+        if N > n:
+            rows = torch.cat((rows, P.new_zeros(B, n, N - n)), -1)
+        box_rows.append(rows)
+        box_h.append(torch.where(finite, sign * bound, torch.ones_like(bound)))
+    if box_rows:
+        Gs = torch.cat((Gs, *box_rows), -2)
+        hs = torch.cat((hs, *box_h), -1)
+
+    closed_form = (
+        backend == "torch" and m == 1 and me == 0 and lb is None and ub is None and soft is None
+    )
+    if polish is None:
+        polish = backend == "torch"
+    cfg = SolverConfig(
+        backend=backend,
+        eps=eps,
+        eps_inf=eps_inf,
+        max_iter=max_iter,
+        check_every=check_every,
+        closed_form=closed_form,
+        polish=bool(polish),
+    )
+    if backend.startswith("qpsolvers:") and torch.is_grad_enabled():
+        needs = [nm for nm, t, _ in parts if t is not None and t.requires_grad]
+        if needs:
+            raise ValueError(
+                f"backend {backend!r} is forward-only but {', '.join(needs)} require grad; "
+                "use backend='torch' or 'proxsuite', or call under torch.no_grad()"
+            )
+    xs, z, y, status, iters = QPFunction.apply(P, q, Gs, hs, As, bf, cfg, x0f)
+
+    # ---- unpack ----
+    status = torch.where(bad, int(Status.NON_FINITE), status)
+    status = torch.where(infeasible_bound, int(Status.PRIMAL_INFEASIBLE), status)
+    ok1 = ~skip.view(B, 1)
+    x = torch.where(ok1, xs[:, :n], 0.0)
+    lam = torch.where(ok1, z[:, :m], 0.0)
+    off = m
+    slack = P.new_zeros(B, m)
+    if softf is not None:
+        slack = torch.where(ok1, xs[:, n:].clamp_min(0.0) * is_soft, 0.0)
+        off += m
+    zero_n = P.new_zeros(B, n)
+    lam_ub = lam_lb = zero_n
+    if ubf is not None:
+        lam_ub = torch.where(ok1, z[:, off : off + n], 0.0)
+        off += n
+    if lbf is not None:
+        lam_lb = torch.where(ok1, z[:, off : off + n], 0.0)
+    nu = torch.where(ok1, y, 0.0)
+
+    def unflat(t: Tensor) -> Tensor:
+        return t.reshape((*batch_shape, *t.shape[1:]))
+
+    return QPSolution(
+        unflat(x),
+        unflat(status),
+        unflat(lam),
+        unflat(nu),
+        unflat(iters),
+        unflat(lam_lb),
+        unflat(lam_ub),
+        unflat(slack),
+    )
