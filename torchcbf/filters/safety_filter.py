@@ -11,15 +11,19 @@ with the conditions ``a . u + b`` of :mod:`torchcbf.filters.conditions` for the 
 mode, ``n_i = max(|a_i|_2, 1e-6)`` (row normalisation: ``s`` is a violation in control
 units), and ``rbar = tr(R) / m``.
 
-CBF slacks. Hard constraints (default) use an exact penalty ``P_cbf(s) = w rbar (sum s +
-1/2 |s|^2)`` with ``w = cbf_slack_weight`` (1e6; the quadratic term has the same weight so
-that the QP stays well scaled for the solver's certificates): whenever the hard QP is
-feasible and its multipliers (in control units) are below ``w``, the elastic QP has the
-same solution and ``s = 0`` (exact-penalty theorem); when it is infeasible it returns the
-least-violating control (minimum total normalised violation) and the row is flagged
-``RELAXED``. The filter is thus one always-feasible QP, with no host sync; the tests check
-the equality with a hard-constrained cvxpy solve. ``relax_cbf=True`` makes the CBF
-constraints soft: ``P_cbf(s) = 1/2 w rbar |s|^2`` (``w`` default 1e2).
+CBF slacks. Hard constraints (default): the rows are stacked ``[2B]`` into ONE
+:func:`~torchcbf.qp.solve_qp` call, the first ``B`` as the elastic QP with the penalty
+``P_cbf(s) = w rbar (sum s + 1/2 |s|^2)``, the last ``B`` as the hard QP (slack columns
+zeroed). A row takes the hard solution where that one is ``SOLVED`` (status ``SOLVED``),
+else the elastic one: the least-violating control (minimum total normalised violation;
+status ``RELAXED`` when a slack exceeds ``slack_tol``). All on the device, no host sync.
+``w = cbf_slack_weight * (1 + v)`` (default 1e3) where ``v`` (detached, capped at 1e3)
+estimates the hard multipliers from how far ``u_nom`` is from the box and the CBF
+half-spaces. ``exact=False`` solves the elastic QP alone (half the work): by the
+exact-penalty theorem it equals the hard QP wherever the hard multipliers stay below ``w``,
+which holds for CBF-only filters in practice but not when a CLF pulls hard against a CBF
+(the tests compare both against cvxpy). ``relax_cbf=True`` makes the CBF constraints
+soft instead: ``P_cbf(s) = 1/2 w rbar |s|^2`` (``w`` default 1e2), one QP.
 
 Statuses (:class:`FilterStatus`) per row: ``SOLVED`` (every hard constraint met),
 ``RELAXED`` (some CBF slack above ``slack_tol``), ``FALLBACK`` (the QP did not return
@@ -169,7 +173,7 @@ class SafetyFilter(nn.Module):
         R: control weight: scalar, ``[m]`` (diagonal) or ``[m, m]`` SPD (default identity).
         u_min, u_max: override the dynamics' control limits (scalar or ``[m]``).
         relax_cbf: soft CBF constraints (quadratic slack penalty) instead of hard ones.
-        cbf_slack_weight: CBF slack weight (default 1e6 for hard, 1e2 for soft constraints).
+        cbf_slack_weight: CBF slack weight (default 1e3 for hard, 1e2 for soft constraints).
         clf_slack_weight: weight of the CLF relaxation ``delta`` (default 1e2).
         beta: stochastic-mode margin, scalar or ``[k]`` (default 0; scenario B uses 1).
         rho: risk-aware: probability bound of leaving the safe set within ``horizon``.
@@ -186,6 +190,8 @@ class SafetyFilter(nn.Module):
             itself non-finite, zero clipped to the limits is used.
         slack_tol: normalised CBF slack above which a row is ``RELAXED`` (default 1e-6 in
             float64, 1e-3 in float32).
+        exact: with hard CBF constraints, also solve the hard QP (stacked in the same call)
+            and prefer its solution (default); ``False``: the elastic QP only.
         lie_method: ``"auto"`` (closed forms when a barrier has them, else autograd),
             ``"autograd"`` or ``"analytic"``.
         qp_options: keyword arguments for :func:`torchcbf.qp.solve_qp` (``backend``,
@@ -217,6 +223,7 @@ class SafetyFilter(nn.Module):
         clf_gamma: float = 0.0,
         fallback: FallbackSpec = "clip",
         slack_tol: float | None = None,
+        exact: bool = True,
         lie_method: Literal["auto", "autograd", "analytic"] = "auto",
         qp_options: dict[str, Any] | None = None,
     ) -> None:
@@ -251,7 +258,7 @@ class SafetyFilter(nn.Module):
         self.register_buffer("u_max", _limit("u_max", u_max, m))
         self.relax_cbf = bool(relax_cbf)
         if cbf_slack_weight is None:
-            cbf_slack_weight = 1e2 if relax_cbf else 1e6
+            cbf_slack_weight = 1e2 if relax_cbf else 1e3
         self.cbf_slack_weight = _positive("cbf_slack_weight", cbf_slack_weight)
         self.clf_slack_weight = _positive("clf_slack_weight", clf_slack_weight)
         self.register_buffer("beta", as_tensor("beta", beta, dtype=torch.float64))
@@ -279,6 +286,7 @@ class SafetyFilter(nn.Module):
         if slack_tol is not None:
             slack_tol = _positive("slack_tol", slack_tol)
         self.slack_tol = slack_tol
+        self.exact = bool(exact)
         self.qp_options = dict(qp_options or {})
 
     # -- construction helpers ------------------------------------------------------------
@@ -362,7 +370,7 @@ class SafetyFilter(nn.Module):
         return concat_terms(parts), [p.h.shape[1] for p in parts]
 
     @staticmethod
-    def _apply(fns: nn.ModuleList, values: Tensor, sizes: list[int]) -> Tensor:
+    def _class_k(fns: nn.ModuleList, values: Tensor, sizes: list[int]) -> Tensor:
         if len(fns) == 1:
             return fns[0](values)
         return torch.cat([fn(v) for fn, v in zip(fns, values.split(sizes, -1), strict=True)], -1)
@@ -439,7 +447,7 @@ class SafetyFilter(nn.Module):
         c = 0 if clf is None else clf.h.shape[1]
         rows_a, rows_b, norms = [], [], None
         if cbf is not None:
-            alpha = lambda h: self._apply(self.alpha, h, cbf_sizes)  # noqa: E731
+            alpha = lambda h: self._class_k(self.alpha, h, cbf_sizes)  # noqa: E731
             cond = cbf_condition(
                 cbf,
                 self.mode,
@@ -456,7 +464,7 @@ class SafetyFilter(nn.Module):
             rows_a.append(cond.a)
             rows_b.append(cond.b)
         if clf is not None:
-            rate = lambda v: self._apply(self.clf_rate, v, clf_sizes)  # noqa: E731
+            rate = lambda v: self._class_k(self.clf_rate, v, clf_sizes)  # noqa: E731
             cond_v = clf_condition(
                 clf,
                 self.mode,
@@ -476,9 +484,31 @@ class SafetyFilter(nn.Module):
         data_ok = torch.isfinite(G).flatten(1).all(-1) & torch.isfinite(hq).all(-1) & finite
         G = torch.where(data_ok[:, None, None], G, torch.zeros_like(G))
         hq = torch.where(data_ok[:, None], hq, torch.ones_like(hq))
-        sol = solve_qp(Q, p, G, hq, lb=lb, ub=ubd, **self.qp_options)
-        z = sol.x
-        qp_ok = data_ok & (sol.status == Status.SOLVED) & torch.isfinite(z).all(-1)
+        two_pass = bool(k) and self.exact and not self.relax_cbf
+        if two_pass:
+            # rows [B:2B]: the hard QP (the slack columns of the CBF rows zeroed; s then
+            # decouples and sits at its bound 0), solved in the same call as the elastic one
+            G_hard = G.clone()
+            G_hard[:, :k, m : m + k] = 0
+            cat = lambda v: torch.cat([v, v], 0)  # noqa: E731
+            sol = solve_qp(
+                cat(Q),
+                cat(p),
+                torch.cat([G, G_hard], 0),
+                cat(hq),
+                lb=cat(lb),
+                ub=cat(ubd),
+                **self.qp_options,
+            )
+            good = (sol.status == Status.SOLVED) & torch.isfinite(sol.x).all(-1) & cat(data_ok)
+            el_ok, hard_ok = good[:B], good[B:]
+            z = torch.where(hard_ok.unsqueeze(-1), sol.x[B:], sol.x[:B])
+            qp_status = torch.where(hard_ok, sol.status[B:], sol.status[:B])
+            qp_ok = hard_ok | el_ok
+        else:
+            sol = solve_qp(Q, p, G, hq, lb=lb, ub=ubd, **self.qp_options)
+            z, qp_status = sol.x, sol.status
+            qp_ok = data_ok & (qp_status == Status.SOLVED) & torch.isfinite(z).all(-1)
         u_qp = z[:, :m]
         s = z[:, m : m + k]
         delta = z[:, m + k :]
@@ -489,7 +519,7 @@ class SafetyFilter(nn.Module):
         if tol is None:
             tol = 1e-6 if xs.dtype == torch.float64 else 1e-3
         relaxed = (s > tol).any(-1) if k else torch.zeros_like(finite)
-        status = torch.full_like(sol.status, FilterStatus.SOLVED)
+        status = torch.full_like(qp_status, FilterStatus.SOLVED)
         status = torch.where(relaxed, torch.full_like(status, FilterStatus.RELAXED), status)
         status = torch.where(qp_ok, status, torch.full_like(status, FilterStatus.FALLBACK))
         status = torch.where(finite, status, torch.full_like(status, FilterStatus.NON_FINITE))
@@ -517,7 +547,7 @@ class SafetyFilter(nn.Module):
             h=h.reshape(*batch, k),
             slack=slack.reshape(*batch, k + c),
             clf_value=V.reshape(*batch, c),
-            qp_status=sol.status.reshape(batch),
+            qp_status=qp_status.reshape(batch),
             constraint_value=cval.reshape(*batch, k + c),
         )
 
@@ -529,6 +559,20 @@ class SafetyFilter(nn.Module):
                 f"{name} must be a scalar or have one entry per barrier output ({k}), "
                 f"got shape {tuple(value.shape)}"
             )
+
+    @staticmethod
+    def _penalty_scale(
+        a: Tensor, b: Tensor, norms: Tensor, u_nom: Tensor, lo: Tensor, hi: Tensor
+    ) -> Tensor:
+        """``1 + v`` per row ``[B, 1]``, detached: ``v`` estimates the hard QP's multipliers
+        (in units of ``rbar``) by how far ``u_nom`` is from the box and the CBF half-spaces
+        (normalised violation), capped at 1e3."""
+        with torch.no_grad():
+            viol = (-((a @ u_nom.unsqueeze(-1)).squeeze(-1) + b) / norms).clamp_min(0)
+            box = (u_nom - torch.clamp(u_nom, lo, hi)).abs()
+            v = viol.amax(-1, keepdim=True) + box.amax(-1, keepdim=True)
+            v = torch.nan_to_num(v, nan=0.0, posinf=1e3).clamp_max(1e3)
+        return 1.0 + v
 
     def _qp(
         self,
@@ -546,20 +590,22 @@ class SafetyFilter(nn.Module):
         nz = m + k + c
         R = self.R.to(u_nom)
         rbar = torch.diagonal(R).mean()
-        w = self.cbf_slack_weight
-        quad_s = w
-        lin_s = 0.0 if self.relax_cbf else w
-        diag = torch.cat(
-            [
-                u_nom.new_zeros(m),
-                u_nom.new_full((k,), quad_s),
-                u_nom.new_full((c,), self.clf_slack_weight),
-            ]
+        w = u_nom.new_full((B, 1), self.cbf_slack_weight) * rbar
+        if k and not self.relax_cbf:
+            w = w * self._penalty_scale(rows_a[0], rows_b[0], norms, u_nom, lo, hi)
+        lin_s = torch.zeros_like(w) if self.relax_cbf else w
+        Q = torch.diag_embed(
+            torch.cat(
+                [
+                    u_nom.new_zeros(B, m),
+                    w.expand(B, k),
+                    (self.clf_slack_weight * rbar).expand(B, c),
+                ],
+                -1,
+            )
         )
-        Q = torch.diag_embed(diag * rbar)
-        Q[:m, :m] = R
-        Q = Q.expand(B, nz, nz)
-        p = torch.cat([-(u_nom @ R.mT), (lin_s * rbar).expand(B, k), u_nom.new_zeros(B, c)], -1)
+        Q[:, :m, :m] = R
+        p = torch.cat([-(u_nom @ R.mT), lin_s.expand(B, k), u_nom.new_zeros(B, c)], -1)
         G_parts, h_parts = [], []
         if k:
             a, b = rows_a[0], rows_b[0]

@@ -1,0 +1,289 @@
+"""SafetyFilter: agreement with cvxpy in every mode, statuses, fallbacks, shapes, errors."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from _filter_reference import (
+    BETA,
+    CENTERS,
+    CLF_ETA,
+    CLF_GAMMA,
+    CLF_RATE,
+    CLF_W,
+    ETA,
+    GAINS,
+    GOAL,
+    HORIZON,
+    RADII,
+    RHO,
+    SIGMA,
+    U_MAX,
+    U_MIN,
+    W_MAX,
+    WALL_A,
+    WALL_B,
+    R,
+    least_violation,
+    rows,
+    solve_reference,
+)
+
+from torchcbf.barriers import Ball, HalfSpace, QuadraticLyapunov
+from torchcbf.dynamics import SingleIntegrator, Unicycle
+from torchcbf.filters import FilterStatus, LinearClassK, SafetyFilter
+
+MODES = ["vanilla", "robust", "stochastic", "risk_aware"]
+
+
+def _tol(dtype: torch.dtype) -> float:
+    return 1e-6 if dtype == torch.float64 else 1e-3
+
+
+def scene(mode: str, dtype: torch.dtype = torch.float64, **overrides) -> SafetyFilter:
+    kw: dict = {}
+    if mode == "robust":
+        kw["disturbance_bound"] = W_MAX.tolist()  # a tensor trips ControlAffine (`or 0.0`)
+    if mode in ("stochastic", "risk_aware"):
+        kw["sigma"] = SIGMA
+    dyn = Unicycle(u_min=torch.tensor(U_MIN), u_max=torch.tensor(U_MAX), **kw)
+    barriers = [
+        Ball(torch.tensor(CENTERS), torch.tensor(RADII)),
+        HalfSpace(WALL_A, WALL_B, index=(0, 1)),
+    ]
+    options = dict(
+        mode=mode,
+        alpha=torch.tensor(GAINS),
+        clf_rate=CLF_RATE,
+        R=torch.tensor(R),
+        clf_slack_weight=CLF_W,
+        beta=BETA,
+        rho=RHO,
+        horizon=HORIZON,
+        eta=torch.tensor(ETA),
+        clf_eta=CLF_ETA,
+        clf_gamma=CLF_GAMMA,
+    )
+    options.update(overrides)
+    lyap = QuadraticLyapunov(GOAL)
+    return SafetyFilter(dyn, barriers, lyap, **options).to(dtype)
+
+
+def random_states(count: int, seed: int, margin: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    out = []
+    while len(out) < count:
+        x = np.array([rng.uniform(-2.5, 3.0), rng.uniform(-1.0, 2.4), rng.uniform(-np.pi, np.pi)])
+        if rows(x, "vanilla")[4].min() > margin:
+            out.append(x)
+    return np.stack(out), 2.0 * rng.standard_normal((count, 2))
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_matches_cvxpy_hard_qp(mode: str, dtype: torch.dtype) -> None:
+    xs, us = random_states(24, seed=MODES.index(mode))
+    filt = scene(mode, dtype)
+    out = filt(torch.tensor(xs, dtype=dtype), torch.tensor(us, dtype=dtype))
+    feasible = infeasible = 0
+    for i in range(len(xs)):
+        ref = solve_reference(xs[i], us[i], mode)
+        if ref is None:  # the hard QP is infeasible: the least-violating control
+            infeasible += 1
+            assert out.status[i] == FilterStatus.RELAXED
+            norms = np.maximum(np.linalg.norm(rows(xs[i], mode)[0], axis=1), 1e-6)
+            total = (out.slack[i, :3].double().numpy() / norms).sum()
+            best = least_violation(xs[i], mode)
+            assert best > 0 and abs(total - best) <= 1e-3 * (1 + best), (total, best)
+            continue
+        feasible += 1
+        assert out.status[i] == FilterStatus.SOLVED, (i, out.slack[i])
+        got = out.u[i].double().numpy()
+        assert np.allclose(got, ref, atol=_tol(dtype), rtol=0), (i, got, ref)
+    assert feasible >= 12
+    # the constraints were active somewhere (the filter did change u_nom)
+    assert (out.u - torch.tensor(us, dtype=dtype)).abs().amax() > 0.1
+
+
+def test_constraint_values_and_outputs() -> None:
+    xs, us = random_states(16, seed=7)
+    filt = scene("vanilla")
+    out = filt(torch.tensor(xs), torch.tensor(us))
+    for i in range(len(xs)):
+        a, b, aV, bV, h = rows(xs[i], "vanilla")
+        u = out.u[i].numpy()
+        assert np.allclose(out.h[i].numpy(), h, atol=1e-12)
+        assert np.allclose(out.constraint_value[i, :3].numpy(), a @ u + b, atol=1e-9)
+        assert np.allclose(out.constraint_value[i, 3:].numpy(), -(aV @ u + bV), atol=1e-9)
+        assert np.allclose(out.clf_value[i, 0].item(), ((xs[i, :2] - GOAL) ** 2).sum())
+    solved = out.status == FilterStatus.SOLVED
+    assert bool((out.constraint_value[solved, :3] >= -1e-8).all())
+    # the CLF slack makes the relaxed CLF row hold exactly: a.u + b <= delta
+    assert torch.allclose((-out.constraint_value[:, 3]).clamp_min(0), out.slack[:, 3], atol=1e-7)
+    assert out.slack.shape == (16, 4) and out.qp_status.dtype == torch.int64
+
+
+def test_infeasible_rows_are_relaxed_least_violating(dtype: torch.dtype) -> None:
+    # two walls that leave no room: x <= -1 and x >= 1
+    dyn = SingleIntegrator(1, u_min=-1.0, u_max=1.0)
+    walls = HalfSpace(torch.tensor([[1.0], [-1.0]]), torch.tensor([-1.0, -1.0]))
+    filt = SafetyFilter(dyn, walls, alpha=1.0).to(dtype)
+    x = torch.tensor([[0.0], [0.5]], dtype=dtype)
+    out = filt(x, torch.zeros(2, 1, dtype=dtype))
+    # rows 0 and 1: h = (-1 - x, -1 + x): u >= 1 + x and u <= x - 1 cannot both hold
+    assert out.status[:2].tolist() == [FilterStatus.RELAXED] * 2
+    # least violation: total normalised violation 2 for any u in [-1 - x, 1 - x], the
+    # quadratic part of the penalty splits it evenly: u ~ -x (pulled slightly toward u_nom)
+    assert torch.allclose(out.u[:2, 0], -x[:2, 0], atol=1e-2)
+    total = out.slack[:2].sum(-1)
+    assert torch.allclose(total, torch.full_like(total, 2.0), atol=_tol(dtype))
+    assert bool((out.slack[:2] > 0.5).all())
+
+    assert torch.isfinite(out.u).all()
+
+
+def test_nonfinite_rows_fallback_and_others_untouched(dtype: torch.dtype) -> None:
+    xs, us = random_states(6, seed=3)
+    filt = scene("vanilla", dtype)
+    x = torch.tensor(xs, dtype=dtype)
+    u = torch.tensor(us, dtype=dtype)
+    clean = filt(x, u)
+    x_bad, u_bad = x.clone(), u.clone()
+    x_bad[1, 0] = math.nan
+    u_bad[3, 1] = math.nan
+    out = filt(x_bad, u_bad)
+    assert out.status[1] == FilterStatus.NON_FINITE and out.status[3] == FilterStatus.NON_FINITE
+    assert torch.isfinite(out.u).all()
+    lo, hi = torch.tensor(U_MIN, dtype=dtype), torch.tensor(U_MAX, dtype=dtype)
+    assert torch.equal(out.u[1], torch.clamp(u[1], lo, hi))  # fallback "clip"
+    assert torch.equal(out.u[3], torch.clamp(torch.zeros(2, dtype=dtype), lo, hi))  # NaN u_nom
+    keep = [0, 2, 4, 5]
+    assert torch.allclose(out.u[keep], clean.u[keep], atol=_tol(dtype) * 1e-2)
+    assert torch.equal(out.status[keep], clean.status[keep])
+    assert torch.isnan(out.h[1]).all() and torch.isfinite(out.h[keep]).all()
+
+
+@pytest.mark.parametrize("fallback", ["clip", "brake", "tensor", "callable"])
+def test_fallback_on_qp_failure(fallback: str) -> None:
+    xs, us = random_states(4, seed=5)
+    spec = {
+        "clip": "clip",
+        "brake": "brake",
+        "tensor": torch.tensor([0.5, -0.5]),
+        "callable": lambda x, u: -u,
+    }[fallback]
+    # one interior point iteration cannot solve these QPs: every row falls back
+    filt = scene("vanilla", fallback=spec, qp_options={"max_iter": 1})
+    x, u = torch.tensor(xs), torch.tensor(us)
+    out = filt(x, u)
+    assert (out.status == FilterStatus.FALLBACK).all()
+    lo, hi = torch.tensor(U_MIN), torch.tensor(U_MAX)
+    expected = {
+        "clip": torch.clamp(u, lo, hi),
+        "brake": torch.zeros_like(u),
+        "tensor": torch.tensor([0.5, -0.5]).expand_as(u),
+        "callable": -u,
+    }[fallback]
+    assert torch.equal(out.u, expected)
+    assert (out.slack == 0).all()
+
+
+def test_batch_equals_loop_and_shapes() -> None:
+    xs, us = random_states(12, seed=11)
+    filt = scene("stochastic")
+    x, u = torch.tensor(xs), torch.tensor(us)
+    out = filt(x, u)
+    for i in range(len(xs)):
+        one = filt(x[i], u[i])  # unbatched
+        assert one.u.shape == (2,) and one.status.shape == () and one.h.shape == (3,)
+        assert torch.allclose(one.u, out.u[i], atol=1e-8)
+        assert one.status == out.status[i]
+        b1 = filt(x[i : i + 1], u[i : i + 1])  # batch of one
+        assert b1.u.shape == (1, 2) and torch.allclose(b1.u[0], out.u[i], atol=1e-8)
+    grid = filt(x.reshape(3, 4, 3), u.reshape(3, 4, 2), t=0.0)
+    assert grid.u.shape == (3, 4, 2) and grid.h.shape == (3, 4, 3) and grid.slack.shape == (3, 4, 4)
+    assert torch.allclose(grid.u.reshape(12, 2), out.u, atol=1e-8)
+    # u_nom broadcast against a batch of states, t as a tensor
+    shared = filt(x, u[0], t=torch.zeros(12, dtype=torch.float64))
+    assert shared.u.shape == (12, 2)
+
+
+def test_time_varying_barrier_uses_t() -> None:
+    dyn = SingleIntegrator(2)
+    moving = Ball(torch.tensor([0.0, 0.0]), 1.0, velocity=torch.tensor([1.0, 0.0]))
+    filt = SafetyFilter(dyn, moving, alpha=1.0).double()
+    x = torch.tensor([[3.0, 0.0]], dtype=torch.float64)
+    u = torch.zeros(1, 2, dtype=torch.float64)
+    for t in (0.0, 1.0, torch.tensor(1.5, dtype=torch.float64)):
+        tv = float(t)
+        d = 3.0 - tv  # centre at (t, 0): h = d^2 - 1, dh/dt = -2 d, lgh = (2 d, 0)
+        out = filt(x, u, t=t)
+        u_min = (2 * d - (d**2 - 1)) / (2 * d)  # 2 d u + dh/dt + h >= 0
+        assert torch.allclose(out.u[0, 0], torch.tensor(max(u_min, 0.0), dtype=torch.float64))
+
+
+def test_soft_cbf_and_per_barrier_class_k() -> None:
+    dyn = SingleIntegrator(1)
+    wall = HalfSpace([1.0], 1.0)  # h = 1 - x
+    x = torch.tensor([[0.0]], dtype=torch.float64)
+    u = torch.tensor([[3.0]], dtype=torch.float64)
+    hard = SafetyFilter(dyn, wall, alpha=2.0).double()(x, u)
+    assert torch.allclose(hard.u, torch.tensor([[2.0]], dtype=torch.float64))
+    # soft: min 1/2 (u-3)^2 + 1/2 w s^2, u - s <= 2  ->  u = 2 + (1/(1+w))
+    soft = SafetyFilter(dyn, wall, alpha=2.0, relax_cbf=True, cbf_slack_weight=4.0).double()
+    out = soft(x, u)
+    assert torch.allclose(out.u, torch.tensor([[2.2]], dtype=torch.float64), atol=1e-8)
+    assert out.status[0] == FilterStatus.RELAXED
+    assert torch.allclose(out.slack, torch.tensor([[0.2]], dtype=torch.float64), atol=1e-8)
+    # one class-K function per barrier module: cubic on the second wall
+    walls = [HalfSpace([1.0], 1.0), HalfSpace([-1.0], 1.0)]
+    per = SafetyFilter(dyn, walls, alpha=[LinearClassK(2.0), lambda h: h**3]).double()
+    out = per(torch.tensor([[-0.5]], dtype=torch.float64), torch.tensor([[-9.0]]).double())
+    # second wall: h = 1 + x = 0.5, -u >= -h^3 -> u >= -0.125
+    assert torch.allclose(out.u, torch.tensor([[-0.125]], dtype=torch.float64))
+
+
+def test_errors_name_the_argument() -> None:
+    dyn = Unicycle()
+    ball = Ball([0.0, 0.0], 1.0)
+    with pytest.raises(ValueError, match="mode"):
+        SafetyFilter(dyn, ball, mode="magic")
+    with pytest.raises(ValueError, match="eta"):
+        SafetyFilter(Unicycle(sigma=0.1), ball, mode="risk_aware", rho=0.1, horizon=1.0)
+    with pytest.raises(ValueError, match="rho"):
+        SafetyFilter(Unicycle(sigma=0.1), ball, mode="risk_aware", horizon=1.0, eta=1.0)
+    with pytest.raises(ValueError, match="clf_eta"):
+        SafetyFilter(
+            Unicycle(sigma=0.1),
+            lyapunovs=QuadraticLyapunov([0.0, 0.0]),
+            mode="risk_aware",
+            rho=0.1,
+            horizon=1.0,
+        )
+    with pytest.raises(ValueError, match="disturbance_bound"):
+        SafetyFilter(dyn, ball, mode="robust")
+    with pytest.raises(ValueError, match="sigma"):
+        SafetyFilter(dyn, ball, mode="stochastic")
+    with pytest.raises(ValueError, match="both empty"):
+        SafetyFilter(dyn)
+    with pytest.raises(ValueError, match="R"):
+        SafetyFilter(dyn, ball, R=torch.tensor([1.0, -1.0]))
+    with pytest.raises(ValueError, match="fallback"):
+        SafetyFilter(dyn, ball, fallback="explode")
+    with pytest.raises(TypeError, match="barriers"):
+        SafetyFilter(dyn, [ball, "wall"])
+    with pytest.raises(ValueError, match="alpha"):
+        SafetyFilter(dyn, [ball, ball], alpha=[lambda h: h])
+    filt = SafetyFilter(dyn, ball)
+    with pytest.raises(ValueError, match=r"x must have shape \[\.\.\., 3\]"):
+        filt(torch.zeros(4, 2), torch.zeros(4, 2))
+    with pytest.raises(ValueError, match="u_nom"):
+        filt(torch.zeros(4, 3), torch.zeros(4, 3))
+    with pytest.raises(ValueError, match="do not broadcast"):
+        filt(torch.zeros(4, 3), torch.zeros(5, 2))
+    with pytest.raises(ValueError, match="t must broadcast"):
+        filt(torch.zeros(4, 3), torch.zeros(4, 2), t=torch.zeros(3))
+    with pytest.raises(ValueError, match="alpha"):
+        SafetyFilter(dyn, ball, alpha=[1.0, 2.0])(torch.zeros(4, 3), torch.zeros(4, 2))
