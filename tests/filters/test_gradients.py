@@ -1,0 +1,70 @@
+"""Gradients of the filtered control: gradcheck through an active CBF constraint."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from torchcbf.barriers import Ball, QuadraticLyapunov
+from torchcbf.dynamics import SingleIntegrator, Unicycle
+from torchcbf.filters import FilterStatus, LinearClassK, SafetyFilter
+
+F64 = torch.float64
+
+
+def test_gradcheck_barrier_params_class_k_and_u_nom() -> None:
+    dyn = SingleIntegrator(2, u_min=-3.0, u_max=3.0)
+    ball = Ball(
+        nn.Parameter(torch.tensor([0.0, 0.1], dtype=F64)),
+        nn.Parameter(torch.tensor(1.0, dtype=F64)),
+    )
+    alpha = LinearClassK(0.8, learnable=True)
+    filt = SafetyFilter(dyn, ball, alpha=alpha).double()
+    x = torch.tensor([[-2.0, 0.3], [1.5, -1.0], [0.2, 2.0]], dtype=F64)
+    u_nom = torch.tensor([[2.0, 0.2], [-2.0, 1.0], [0.1, -2.5]], dtype=F64, requires_grad=True)
+    out = filt(x, u_nom)
+    # every row is active (the filter changed u_nom) and solved
+    assert (out.status == FilterStatus.SOLVED).all()
+    assert ((out.u - u_nom).abs().amax(-1) > 0.1).all()
+
+    names = ("barriers.0.center", "barriers.0.radius", "alpha.0.log_gain")
+    assert set(names) == {n for n, _ in filt.named_parameters()}
+
+    def fn(center: torch.Tensor, radius: torch.Tensor, log_gain: torch.Tensor, un: torch.Tensor):
+        params = dict(zip(names, (center, radius, log_gain), strict=True))
+        return torch.func.functional_call(filt, params, (x, un)).u
+
+    inputs = tuple(
+        dict(filt.named_parameters())[n].detach().clone().requires_grad_() for n in names
+    )
+    assert torch.autograd.gradcheck(fn, (*inputs, u_nom), eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_gradcheck_state_through_lie_terms() -> None:
+    # a unicycle (g depends on the state) with a CLF and a CBF: d u / d x
+    dyn = Unicycle(u_min=torch.tensor([-1.0, -2.0]), u_max=torch.tensor([1.5, 2.0]))
+    filt = SafetyFilter(
+        dyn, Ball([1.0, 0.0], 0.5), QuadraticLyapunov([3.0, 0.5]), alpha=1.0
+    ).double()
+    x = torch.tensor([[0.0, 0.1, 0.2], [0.4, -0.6, 0.9]], dtype=F64, requires_grad=True)
+    u_nom = torch.tensor([[1.4, 0.0], [1.0, -0.3]], dtype=F64)
+    out = filt(x, u_nom)
+    assert (out.status == FilterStatus.SOLVED).all()
+    assert torch.autograd.gradcheck(
+        lambda xx: filt(xx, u_nom).u, (x,), eps=1e-6, atol=1e-6, rtol=1e-4
+    )
+
+
+def test_gradient_is_zero_where_constraint_inactive_and_flows_to_parameters() -> None:
+    dyn = SingleIntegrator(2)
+    ball = Ball([0.0, 0.0], 1.0, learnable=True)
+    filt = SafetyFilter(dyn, ball, alpha=LinearClassK([1.0], learnable=True)).double()
+    x = torch.tensor([[-3.0, 0.0], [-2.0, 0.0]], dtype=F64)
+    u_nom = torch.tensor([[-1.0, 0.0], [5.0, 0.0]], dtype=F64, requires_grad=True)
+    out = filt(x, u_nom)  # row 0 moves away (inactive), row 1 is clipped by the CBF
+    (g,) = torch.autograd.grad(out.u[:, 0].sum(), u_nom, retain_graph=True)
+    assert torch.allclose(g[0], torch.tensor([1.0, 0.0], dtype=F64))
+    assert torch.allclose(g[1], torch.tensor([0.0, 0.0], dtype=F64), atol=1e-9)
+    # row 1: u_x = alpha h / (2 |x|) = (4 - r^2) / 4 with r = 1: d u_x / d r = -r / 2
+    grads = torch.autograd.grad(out.u[1, 0], [ball.radius])
+    assert torch.allclose(grads[0], torch.tensor(-0.5, dtype=F64), atol=1e-8)
