@@ -133,6 +133,7 @@ def main() -> None:
         b = barrier.lie(sub, dyn, method="analytic")
         lfh, lgh, hess = _func_terms(barrier, dyn, sub, True)
     err = max(
+        float((a.lfh - lfh).abs().max()),
         float((a.lgh - lgh).abs().max()),
         float((a.hess_trace - hess).abs().max()),
         float((a.lfh - b.lfh).abs().max()),
