@@ -54,3 +54,14 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "slow" in item.keywords and str(item.fspath).startswith(here):
             item.add_marker(skip)
+
+
+@pytest.fixture(autouse=True)
+def _single_thread():
+    """Tiny batched kernels are slower with an OpenMP team on a shared 2-core machine."""
+    import torch
+
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)

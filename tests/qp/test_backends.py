@@ -1,0 +1,109 @@
+"""proxsuite and qpsolvers backends, elastic (soft) rows."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchcbf.qp import Status, solve_qp
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _problems import make_batch  # noqa: E402
+
+F64 = torch.float64
+
+
+@pytest.mark.parametrize("backend", ["proxsuite", "qpsolvers:clarabel", "qpsolvers:osqp"])
+def test_backend_statuses_and_solutions_match_torch(backend):
+    if backend == "proxsuite":
+        pytest.importorskip("proxsuite")
+    else:
+        qpsolvers = pytest.importorskip("qpsolvers")
+        if backend.split(":")[1] not in qpsolvers.available_solvers:
+            pytest.skip(f"{backend} not installed")
+    batch = make_batch(24, 4, 6, 1, True, seed=21)
+    args = (batch.Q, batch.p, batch.G, batch.h, batch.A, batch.b, batch.lb, batch.ub)
+    ref = solve_qp(*args)
+    eps = 1e-9 if backend != "qpsolvers:osqp" else 1e-5
+    with torch.no_grad():
+        sol = solve_qp(*args, backend=backend, eps=eps)
+    infeasible = torch.tensor([k == "infeasible" for k in batch.kind])
+    assert (sol.status[infeasible] != Status.SOLVED).all()
+    if backend != "qpsolvers:osqp":  # OSQP may stop at max-iter instead of certifying
+        assert (sol.status[infeasible] == Status.PRIMAL_INFEASIBLE).all()
+    solved = sol.status == Status.SOLVED
+    assert solved[~infeasible].float().mean() >= (0.9 if backend != "qpsolvers:osqp" else 0.5)
+    tol = 1e-6 if backend != "qpsolvers:osqp" else 1e-2
+    torch.testing.assert_close(sol.x[solved], ref.x[solved], atol=tol, rtol=0)
+    assert (sol.x[infeasible] == 0).all()
+
+
+def test_qpsolvers_backend_refuses_gradients():
+    Q = torch.eye(2, dtype=F64)
+    p = torch.ones(2, dtype=F64, requires_grad=True)
+    with pytest.raises(ValueError, match="forward-only"):
+        solve_qp(Q, p, backend="qpsolvers:clarabel")
+    with pytest.raises(ValueError, match="not installed"), torch.no_grad():
+        solve_qp(Q, p, backend="qpsolvers:nonexistent")
+
+
+def test_proxsuite_backend_gradients_match_torch():
+    batch = make_batch(6, 3, 4, 0, True, seed=10, frac_infeasible=0.0)
+    grads = []
+    for backend in ("torch", "proxsuite"):
+        p = batch.p.clone().requires_grad_(True)
+        G = batch.G.clone().requires_grad_(True)
+        sol = solve_qp(batch.Q, p, G, batch.h, lb=batch.lb, ub=batch.ub, backend=backend)
+        assert (sol.status == Status.SOLVED).all()
+        grads.append(torch.autograd.grad((sol.x**2).sum(), (p, G)))
+    for a, b in zip(*grads, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-5)
+
+
+def test_soft_rows_make_infeasible_problems_feasible(cvx):
+    # hard box |u| <= 1 and a CBF-like row u1 + u2 >= 3 that cannot hold in the box
+    B = 5
+    Q = torch.eye(2, dtype=F64).expand(B, 2, 2)
+    u_nom = torch.linspace(-1, 1, B, dtype=F64).unsqueeze(-1).expand(B, 2)
+    p = -u_nom
+    G = torch.tensor([[-1.0, -1.0], [1.0, -1.0]], dtype=F64).expand(B, 2, 2)
+    h = torch.tensor([-3.0, 5.0], dtype=F64).expand(B, 2)
+    hard = solve_qp(Q, p, G, h, lb=-1.0, ub=1.0)
+    assert (hard.status == Status.PRIMAL_INFEASIBLE).all()
+    w = torch.tensor([10.0, 0.0], dtype=F64)  # row 0 soft, row 1 hard
+    sol = solve_qp(Q, p, G, h, lb=-1.0, ub=1.0, soft=w)
+    assert (sol.status == Status.SOLVED).all()
+    torch.testing.assert_close(sol.x, torch.ones(B, 2, dtype=F64), atol=1e-8, rtol=0)
+    torch.testing.assert_close(sol.slack[:, 0], torch.ones(B, dtype=F64), atol=1e-8, rtol=0)
+    assert (sol.slack[:, 1] == 0).all()
+    # reference: the elastic problem written out explicitly for cvxpy
+    import numpy as np
+
+    Qa = np.diag([1.0, 1.0, 10.0])
+    for i in range(B):
+        pa = np.concatenate([p[i].numpy(), [10.0]])
+        Ga = np.array([[-1.0, -1.0, -1.0], [1.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+        ha = np.array([-3.0, 5.0, 0.0])
+        lb = np.array([-1.0, -1.0, -np.inf])
+        ub = np.array([1.0, 1.0, np.inf])
+        xr, _, st = cvx(Qa, pa, Ga, ha, None, None, lb, ub)
+        assert st == "optimal"
+        np.testing.assert_allclose(sol.x[i].numpy(), xr[:2], atol=1e-6)
+        np.testing.assert_allclose(float(sol.slack[i, 0]), xr[2], atol=1e-6)
+
+
+def test_soft_exact_penalty_when_feasible():
+    batch = make_batch(16, 3, 4, 0, False, seed=30, frac_infeasible=0.0)
+    hard = solve_qp(batch.Q, batch.p, batch.G, batch.h)
+    soft = torch.full((4,), 100.0, dtype=F64)  # above every multiplier: penalty is exact
+    sol = solve_qp(batch.Q, batch.p, batch.G, batch.h, soft=soft)
+    torch.testing.assert_close(sol.x, hard.x, atol=1e-7, rtol=0)
+    assert sol.slack.abs().max() < 1e-7
+    torch.testing.assert_close(sol.lam, hard.lam, atol=1e-6, rtol=0)
+    inf_w = solve_qp(
+        batch.Q, batch.p, batch.G, batch.h, soft=torch.full((4,), float("inf"), dtype=F64)
+    )
+    torch.testing.assert_close(inf_w.x, hard.x, atol=1e-7, rtol=0)

@@ -1,0 +1,132 @@
+"""Gradients of solve_qp: gradcheck in float64 for every input, closed-form agreement."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchcbf.qp import Status, solve_qp
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _problems import make_batch  # noqa: E402
+
+F64 = torch.float64
+
+
+def _problem(seed: int, B: int = 3, n: int = 3, m: int = 4, me: int = 1):
+    batch = make_batch(B, n, m, me, True, seed=seed, frac_infeasible=0.0, frac_inactive=0.34)
+    return batch
+
+
+def _loss_weights(B: int, n: int, m: int, seed: int):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.randn(B, n, generator=g, dtype=F64), torch.randn(B, m, generator=g, dtype=F64))
+
+
+@pytest.mark.parametrize("backend", ["torch", "proxsuite"])
+def test_gradcheck_every_input(backend):
+    batch = _problem(10)
+    kinds = set(batch.kind)
+    assert kinds == {"active", "inactive"}
+    inputs = [
+        t.clone().requires_grad_(True)
+        for t in (batch.Q, batch.p, batch.G, batch.h, batch.A, batch.b, batch.lb, batch.ub)
+    ]
+    wx, wl = _loss_weights(3, 3, 4, 0)
+
+    def f(Q, p, G, h, A, b, lb, ub):
+        sol = solve_qp(Q, p, G, h, A, b, lb, ub, backend=backend)
+        assert (sol.status == Status.SOLVED).all()
+        return (sol.x * wx).sum() + (sol.lam * wl).sum() + sol.nu.sum() + sol.lam_ub.sum()
+
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_gradcheck_box_active_and_soft_weights():
+    # box-active problem: unconstrained optimum outside the box
+    Q = torch.tensor([[2.0, 0.3], [0.3, 1.0]], dtype=F64)
+    p = torch.tensor([-4.0, 1.5], dtype=F64, requires_grad=True)
+    lb = torch.tensor([-1.0, -0.5], dtype=F64, requires_grad=True)
+    ub = torch.tensor([1.0, 0.5], dtype=F64, requires_grad=True)
+    G = torch.tensor([[1.0, 1.0], [-1.0, 2.0]], dtype=F64, requires_grad=True)
+    h = torch.tensor([-0.2, 5.0], dtype=F64, requires_grad=True)
+    soft = torch.tensor([0.7, 2.0], dtype=F64, requires_grad=True)
+
+    def f(p, lb, ub, G, h, soft):
+        sol = solve_qp(Q, p, G, h, lb=lb, ub=ub, soft=soft)
+        return torch.cat((sol.x, sol.slack, sol.lam_lb, sol.lam_ub))
+
+    sol = solve_qp(Q, p, G, h, lb=lb, ub=ub, soft=soft)
+    assert int(sol.status) == Status.SOLVED
+    assert float(sol.slack[0].detach()) > 0.05  # the soft row is violated: its slack is active
+    assert float(sol.lam_ub[0].detach()) > 0.05  # and the box is active
+    assert torch.autograd.gradcheck(f, (p, lb, ub, G, h, soft), eps=1e-6, atol=1e-5)
+
+
+def test_closed_form_gradient_matches_formula():
+    g = torch.Generator().manual_seed(1)
+    L = torch.randn(20, 3, 3, generator=g, dtype=F64)
+    Q = (L @ L.mT + torch.eye(3, dtype=F64)).requires_grad_(True)
+    p = torch.randn(20, 3, generator=g, dtype=F64, requires_grad=True)
+    G = torch.randn(20, 1, 3, generator=g, dtype=F64, requires_grad=True)
+    h = torch.randn(20, 1, generator=g, dtype=F64, requires_grad=True)
+    w = torch.randn(20, 3, generator=g, dtype=F64)
+
+    sol = solve_qp(Q, p, G, h)
+    assert (sol.iterations == 0).all()
+    grads = torch.autograd.grad((sol.x * w).sum(), (Q, p, G, h))
+
+    # the projection formula written out in torch, differentiated by autograd
+    Qs = 0.5 * (Q + Q.mT)
+    xu = -torch.linalg.solve(Qs, p)
+    gv = G[:, 0]
+    Qg = torch.linalg.solve(Qs, gv)
+    lam = ((gv * xu).sum(-1) - h[:, 0]).clamp_min(0.0) / (gv * Qg).sum(-1)
+    x_ref = xu - lam.unsqueeze(-1) * Qg
+    torch.testing.assert_close(sol.x, x_ref)
+    ref = torch.autograd.grad((x_ref * w).sum(), (Q, p, G, h))
+    active = lam > 0
+    assert active.any() and (~active).any()
+    for a, r in zip(grads, ref, strict=True):
+        torch.testing.assert_close(a, r, atol=1e-9, rtol=1e-7)
+
+
+def test_gradient_matches_finite_differences_through_ipm():
+    batch = _problem(8, B=4, n=4, m=6, me=0)
+    h = batch.h.clone().requires_grad_(True)
+    sol = solve_qp(batch.Q, batch.p, batch.G, h, lb=batch.lb, ub=batch.ub)
+    (gh,) = torch.autograd.grad(sol.x.sum(), h)
+    step = 1e-6
+    fd = torch.zeros_like(h)
+    for j in range(h.shape[1]):
+        hp, hm = batch.h.clone(), batch.h.clone()
+        hp[:, j] += step
+        hm[:, j] -= step
+        xp = solve_qp(batch.Q, batch.p, batch.G, hp, lb=batch.lb, ub=batch.ub).x.sum(-1)
+        xm = solve_qp(batch.Q, batch.p, batch.G, hm, lb=batch.lb, ub=batch.ub).x.sum(-1)
+        fd[:, j] = (xp - xm) / (2 * step)
+    torch.testing.assert_close(gh, fd, atol=1e-6, rtol=1e-5)
+
+
+def test_unsolved_rows_get_zero_gradient_and_float32():
+    batch = make_batch(8, 3, 4, 0, False, seed=12, frac_infeasible=0.5, dtype=torch.float32)
+    p = batch.p.clone().requires_grad_(True)
+    h = batch.h.clone()
+    h[0, 0] = float("nan")
+    h = h.requires_grad_(True)
+    sol = solve_qp(batch.Q, p, batch.G, h)
+    assert int(sol.status[0]) == Status.NON_FINITE
+    (gp, gh) = torch.autograd.grad(sol.x.sum(), (p, h))
+    assert torch.isfinite(gp).all() and torch.isfinite(gh).all()
+    bad = sol.status != Status.SOLVED
+    assert bad.sum() >= 2
+    assert (gp[bad] == 0).all() and (gh[bad] == 0).all()
+    assert (gp[~bad] != 0).any()
+    # float32 gradients agree with the float64 ones
+    p64 = batch.p.double().requires_grad_(True)
+    sol64 = solve_qp(batch.Q.double(), p64, batch.G.double(), h.detach().double())
+    (g64,) = torch.autograd.grad(sol64.x.sum(), p64)
+    torch.testing.assert_close(gp.double(), g64, atol=1e-3, rtol=1e-3)
