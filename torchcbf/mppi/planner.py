@@ -25,7 +25,7 @@ exactly the plans of a one-environment planner built with ``seed + b``. The glob
 never used. ``reset()`` re-seeds the generators.
 
 Compilation: ``MPPI(..., compile=True)`` (or a dict of ``torch.compile`` keyword arguments)
-compiles one integration step (written in place into the state buffer) and the cost
+compiles one integration step (its result copied into the state buffer) and the cost
 evaluation (cost + control cost); the loop over the horizon, noise sampling, weights and the
 plan update stay eager. (Compiling the unrolled horizon loop as one graph makes inductor
 recompute the state chain for every stacked state, which is far slower.) The first call
@@ -205,11 +205,11 @@ class MPPI(nn.Module):
         self.register_buffer("u_max", None if hi is None else hi.clone())
 
         self._needs_history = bool(getattr(cost, "needs_history", False))
-        self._step_fn: Callable[[Tensor, Tensor, Tensor], None] | None = None
+        self._step_fn: Callable[[Tensor, Tensor], Tensor] | None = None
         self._score_fn = self._score
         if compile:
             kwargs = compile if isinstance(compile, dict) else {}
-            self._step_fn = torch.compile(self._step_into, **kwargs)
+            self._step_fn = torch.compile(self._step_new, **kwargs)
             self._score_fn = torch.compile(self._score, **kwargs)
         self._key: tuple[Any, ...] | None = None
         self._fresh = True
@@ -308,8 +308,8 @@ class MPPI(nn.Module):
         incr = k1 + 2.0 * (k2 + k3) + k4
         return x + (dt / 6.0) * incr if out is None else torch.add(x, incr, alpha=dt / 6.0, out=out)
 
-    def _step_into(self, x: Tensor, u: Tensor, out: Tensor) -> None:
-        out.copy_(self._step(x, u, None))
+    def _step_new(self, x: Tensor, u: Tensor) -> Tensor:
+        return self._step(x, u, None)
 
     def _score(
         self,
@@ -351,13 +351,15 @@ class MPPI(nn.Module):
             for j in range(self.horizon):
                 self._step(states[:, :, j], controls[:, :, j], states[:, :, j + 1])
         else:
+            # the compiled step returns a new tensor: writing into an aliased view of the
+            # same buffer from inside a compiled graph gave wrong results (torch 2.13)
             for j in range(self.horizon):
-                step(states[:, :, j], controls[:, :, j], states[:, :, j + 1])
+                states[:, :, j + 1] = step(states[:, :, j], controls[:, :, j])
         return self._score_fn(states, controls, eps, plan, t0, history)
 
     def _update(self, cost: Tensor, states: Tensor, eps: Tensor, unbatched: bool) -> MPPIOutput:
-        B, K = cost.shape
-        if cost.shape != (B, K) or B != self._plan.shape[0] or K != self.num_samples:
+        B, K = self._plan.shape[0], self.num_samples
+        if cost.shape != (B, K):
             raise ValueError(
                 f"cost must return shape [{self._plan.shape[0]}, {self.num_samples}], "
                 f"got {tuple(cost.shape)}"

@@ -1,0 +1,291 @@
+"""MPPI planner: LQR limit, batch = loop, RNG discipline, algorithm pieces, bad input."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, SingleIntegrator
+from torchcbf.integrators import rk4
+from torchcbf.mppi import MPPI, QuadraticGoal, Reach, StageCost
+
+
+def _lqr_problem(dtype=torch.float64):
+    dt, H = 0.1, 10
+    A = torch.tensor([[1.0, dt], [0.0, 1.0]], dtype=dtype)
+    Bm = torch.tensor([[0.0], [dt]], dtype=dtype)
+    Q = torch.diag(torch.tensor([1.0, 0.1], dtype=dtype))
+    R = 0.1 * torch.eye(1, dtype=dtype)
+    Qf = 10.0 * Q
+    return dt, H, A, Bm, Q, R, Qf
+
+
+def _lqr_plan(x0, dt, H, A, Bm, Q, R, Qf):
+    """Finite-horizon discrete LQR by Riccati recursion (cost on x_1..x_H, Qf on x_H)."""
+    P = Q + Qf
+    gains = []
+    for k in reversed(range(H)):
+        Kk = torch.linalg.solve(R + Bm.T @ P @ Bm, Bm.T @ P @ A)
+        gains.append(Kk)
+        P_next = A.T @ P @ A - A.T @ P @ Bm @ Kk
+        P = P_next + (Q if k > 0 else 0.0)
+    gains.reverse()
+    x, us = x0, []
+    for Kk in gains:
+        u = -Kk @ x
+        us.append(u)
+        x = A @ x + Bm @ u
+    return torch.stack(us)
+
+
+def test_riccati_reference_is_the_least_squares_optimum():
+    # the reference itself, checked against a dense solve of the same quadratic program
+    dt, H, A, Bm, Q, R, Qf = _lqr_problem()
+    x0 = torch.tensor([1.0, 0.0], dtype=torch.float64)
+    U = _lqr_plan(x0, dt, H, A, Bm, Q, R, Qf).reshape(-1)
+    G = torch.zeros(2 * H, H, dtype=torch.float64)
+    Phi = torch.zeros(2 * H, 2, dtype=torch.float64)
+    for k in range(1, H + 1):
+        Phi[2 * (k - 1) : 2 * k] = torch.linalg.matrix_power(A, k)
+        for j in range(k):
+            G[2 * (k - 1) : 2 * k, j : j + 1] = torch.linalg.matrix_power(A, k - 1 - j) @ Bm
+    Qbar = torch.block_diag(*([Q] * (H - 1) + [Q + Qf]))
+    U_ls = -torch.linalg.solve(
+        G.T @ Qbar @ G + 0.1 * torch.eye(H, dtype=torch.float64), G.T @ Qbar @ Phi @ x0
+    )
+    torch.testing.assert_close(U, U_ls)
+
+
+def test_plan_approaches_lqr_as_samples_grow():
+    dt, H, A, Bm, Q, R, Qf = _lqr_problem()
+    x0 = torch.tensor([1.0, 0.0], dtype=torch.float64)
+    u_star = _lqr_plan(x0, dt, H, A, Bm, Q, R, Qf)
+    cost = StageCost(
+        lambda x, u: (x @ Q * x).sum(-1) + (u @ R * u).sum(-1), lambda x: (x @ Qf * x).sum(-1)
+    )
+    errors = []
+    for K in (30, 300, 3000):
+        err = 0.0
+        for seed in range(3):
+            planner = MPPI(DoubleIntegrator(1), cost, H, K, dt, 0.5, 0.05, seed=seed)
+            for _ in range(25):  # iterate at the same state: converges to the optimum
+                out = planner(x0, shift=False)
+            err += float((out.u - u_star[0]).abs()) / 3
+        errors.append(err)
+    assert errors[0] > errors[1] > errors[2]
+    assert errors[2] < 0.05 * float(u_star[0].abs())
+
+
+def _planner(seed=0, K=64, H=8, **kw):
+    dyn = AccelUnicycle(u_min=-2.0, u_max=2.0)
+    cost = QuadraticGoal((2.0, 4.0), 2.0, (0, 1), 10.0)
+    sigma = torch.tensor([[1.0, 0.3], [0.3, 0.5]])
+    return MPPI(dyn, cost, H, K, 0.02, sigma, 0.5, 0.1, seed=seed, **kw)
+
+
+def _x0(B, dtype=torch.float64, device="cpu"):
+    x = torch.zeros(B, 4, dtype=dtype, device=device)
+    x[:, 0] = torch.arange(B, dtype=dtype, device=device) * 0.3
+    x[:, 3] = math.pi / 4
+    return x
+
+
+def test_batch_equals_loop(device, dtype):
+    B = 3
+    x = _x0(B, dtype, device)
+    batched = _planner(seed=7).to(device)
+    singles = [_planner(seed=7 + b).to(device) for b in range(B)]
+    for step in range(3):
+        out = batched(x, t=0.1 * step)
+        for b in range(B):
+            one = singles[b](x[b], t=0.1 * step)
+            tol = 1e-12 if dtype == torch.float64 else 1e-5
+            torch.testing.assert_close(out.plan[b], one.plan, atol=tol, rtol=tol)
+            torch.testing.assert_close(out.cost_min[b], one.cost_min, atol=tol, rtol=tol)
+        assert out.plan.shape == (B, 8, 2) and out.u.shape == (B, 2)
+
+
+def test_seeds_and_global_rng():
+    x = _x0(1)[0]
+    state = torch.random.get_rng_state()
+    a, b, c = _planner(seed=1), _planner(seed=1), _planner(seed=2)
+    pa, pb, pc = a(x).plan, b(x).plan, c(x).plan
+    assert torch.equal(pa, pb)
+    assert not torch.allclose(pa, pc)
+    # reset re-seeds and forgets the plan: the same sequence of plans again
+    a(x)
+    a.reset()
+    assert torch.equal(a(x).plan, pa)
+    assert torch.equal(torch.random.get_rng_state(), state)
+
+
+def test_noise_covariance_and_clamping():
+    """The sampled noise has covariance Sigma; clamped samples have their noise recomputed."""
+    sigma = torch.tensor([[1.0, 0.6], [0.6, 2.0]], dtype=torch.float64)
+    K, H = 20000, 2
+    seen = {}
+
+    def cost(states, controls, t0):
+        seen["controls"] = controls.clone()
+        return torch.zeros(states.shape[:2], dtype=states.dtype)
+
+    planner = MPPI(SingleIntegrator(2), cost, H, K, 0.1, sigma, 1.0, seed=3)
+    planner(torch.zeros(2, dtype=torch.float64))
+    eps = seen["controls"].reshape(-1, 2)  # the plan is zero on the first call
+    torch.testing.assert_close(eps.T.cov(), sigma, atol=0.05, rtol=0.05)
+    # with limits: controls inside the box, and the plan moves by the weighted clamped noise
+    lim = MPPI(SingleIntegrator(2), cost, H, K, 0.1, sigma, 1.0, u_min=-0.5, u_max=0.5, seed=3)
+    out = lim(torch.zeros(2, dtype=torch.float64))
+    v = seen["controls"]
+    assert float(v.abs().max()) <= 0.5
+    torch.testing.assert_close(out.plan, v[0].mean(0))  # equal costs: uniform weights
+    # limits default to the dynamics'
+    dyn_lim = MPPI(SingleIntegrator(2, u_min=-0.2, u_max=0.3), cost, H, 100, 0.1, 1.0, 1.0)
+    dyn_lim(torch.zeros(2))
+    assert float(seen["controls"].min()) >= -0.2 - 1e-6
+    assert float(seen["controls"].max()) <= 0.3 + 1e-6
+
+
+def test_weights_control_cost_and_update_reference():
+    """One call against a direct implementation of the MPPI update."""
+    K, H, lam, gamma = 50, 4, 0.7, 0.3
+    sigma = torch.tensor([[0.5, 0.1], [0.1, 0.3]], dtype=torch.float64)
+    seen = {}
+    goal = torch.tensor([1.0, -1.0], dtype=torch.float64)
+
+    def cost(states, controls, t0):
+        seen["states"], seen["controls"] = states.clone(), controls.clone()
+        return ((states[..., 1:, :] - goal) ** 2).sum((-1, -2))
+
+    planner = MPPI(
+        SingleIntegrator(2),
+        cost,
+        H,
+        K,
+        0.1,
+        sigma,
+        lam,
+        gamma,
+        u_min=-1.0,
+        u_max=1.0,
+        seed=0,
+        keep_rollouts=5,
+    )
+    x = torch.tensor([0.2, 0.1], dtype=torch.float64)
+    planner(x)  # first call: plan = weighted noise
+    plan0 = planner(x, shift=False).plan  # refine once more at the same state
+    out = planner(x)  # shift, then plan
+    shifted = torch.cat([plan0[1:], torch.zeros(1, 2, dtype=torch.float64)])
+    v = seen["controls"][0]
+    eps = v - shifted
+    # rollouts: single-integrator Euler from x
+    states = x + 0.1 * torch.cumsum(torch.cat([torch.zeros(K, 1, 2, dtype=v.dtype), v], 1), 1)
+    torch.testing.assert_close(seen["states"][0], states)
+    S = ((states[:, 1:] - goal) ** 2).sum((-1, -2))
+    S = S + gamma * torch.einsum("hm,mn,khn->k", shifted, torch.linalg.inv(sigma), eps)
+    w = torch.softmax(-S / lam, 0)
+    torch.testing.assert_close(out.plan, (shifted + torch.einsum("k,khm->hm", w, eps)).clamp(-1, 1))
+    torch.testing.assert_close(out.u, out.plan[0])
+    torch.testing.assert_close(out.cost_min, S.min())
+    torch.testing.assert_close(out.cost_mean, S.mean())
+    torch.testing.assert_close(out.ess, 1.0 / (w**2).sum())
+    torch.testing.assert_close(out.best_states, states[S.argmin()])
+    assert out.rollouts.shape == (5, H + 1, 2)
+    torch.testing.assert_close(out.rollout_weights, w[:5])
+    assert int(out.status) == 0
+
+
+def test_large_and_nonfinite_costs_are_safe():
+    def cost(states, controls, t0):
+        c = 1e30 + 1e28 * states[..., -1, 0]
+        c[0, :3] = float("nan")
+        c[1] = float("inf")  # env 1: no usable sample
+        return c
+
+    planner = MPPI(SingleIntegrator(2), cost, 5, 32, 0.1, 1.0, 1e-6, 0.1)
+    out = planner(torch.zeros(2, 2))
+    assert torch.isfinite(out.plan).all() and torch.isfinite(out.ess).all()
+    assert out.status.tolist() == [0, 1]
+    assert torch.equal(out.plan[1], torch.zeros(5, 2))  # env 1: plan kept (zero)
+    assert float(out.ess[0]) >= 1.0
+
+
+def test_rk4_rollouts_match_integrator():
+    seen = {}
+
+    def cost(states, controls, t0):
+        seen["s"], seen["u"] = states.clone(), controls.clone()
+        return torch.zeros(states.shape[:2], dtype=states.dtype)
+
+    dyn = AccelUnicycle()
+    planner = MPPI(dyn, cost, 6, 4, 0.05, 1.0, 1.0, integrator="rk4", seed=0)
+    x = torch.tensor([0.0, 0.0, 1.0, 0.3], dtype=torch.float64)
+    planner(x)
+    s, u = seen["s"][0], seen["u"][0]
+    ref = [x.expand(4, 4)]
+    for j in range(6):
+        ref.append(rk4(dyn, ref[-1], u[:, j], 0.05))
+    torch.testing.assert_close(s, torch.stack(ref, 1))
+
+
+def test_history_and_spec_cost():
+    spec = Reach((1.0, 0.0), 0.2, (0.0, 0.5), weight=1.0)
+    planner = MPPI(SingleIntegrator(2), spec, 5, 16, 0.1, 1.0, 1.0, history_size=4)
+    assert planner.history is None
+    for k in range(6):
+        planner(torch.tensor([0.1 * k, 0.0]), t=0.1 * k)
+    hist = planner.history
+    assert hist.valid.all() and hist.states.shape == (1, 4, 2)
+    assert sorted(hist.times[0].tolist()) == pytest.approx([0.2, 0.3, 0.4, 0.5])
+    planner.reset()
+    planner(torch.zeros(2), t=0.0)
+    assert int(planner.history.valid.sum()) == 1
+
+
+def test_shift_fill_last():
+    p = _planner(shift_fill="last")
+    x = _x0(1)[0]
+    first = p(x).plan
+    p.zero_noise_samples = 64  # no noise: identical samples, the update keeps the shifted plan
+    second = p(x).plan
+    torch.testing.assert_close(second[:-1], first[1:])
+    torch.testing.assert_close(second[-1], first[-1])
+
+
+def test_bad_input():
+    dyn = SingleIntegrator(2)
+    cost = QuadraticGoal((0.0, 0.0))
+    with pytest.raises(ValueError, match="horizon"):
+        MPPI(dyn, cost, 0, 10, 0.1, 1.0, 1.0)
+    with pytest.raises(ValueError, match="temperature"):
+        MPPI(dyn, cost, 5, 10, 0.1, 1.0, 0.0)
+    with pytest.raises(ValueError, match="noise_sigma"):
+        MPPI(dyn, cost, 5, 10, 0.1, torch.tensor([[1.0, 2.0], [2.0, 1.0]]), 1.0)
+    with pytest.raises(ValueError, match="noise_sigma"):
+        MPPI(dyn, cost, 5, 10, 0.1, torch.tensor([1.0, 2.0, 3.0]), 1.0)
+    with pytest.raises(ValueError, match="num_samples"):
+        MPPI(dyn, cost, 5, 0, 0.1, 1.0, 1.0)
+    with pytest.raises(ValueError, match="dt"):
+        MPPI(dyn, cost, 5, 10, -0.1, 1.0, 1.0)
+    with pytest.raises(ValueError, match="integrator"):
+        MPPI(dyn, cost, 5, 10, 0.1, 1.0, 1.0, integrator="midpoint")
+    planner = MPPI(dyn, cost, 5, 10, 0.1, 1.0, 1.0)
+    with pytest.raises(ValueError, match="x"):
+        planner(torch.zeros(3))
+    with pytest.raises(ValueError, match="x"):
+        planner(torch.zeros(2, 2, 2))
+    with pytest.raises(ValueError, match="cost"):
+        MPPI(dyn, lambda s, u, t: s[..., 0, 0, 0], 5, 10, 0.1, 1.0, 1.0)(torch.zeros(2))
+
+
+def test_compiled_matches_eager():
+    pytest.importorskip("torch._dynamo")
+    eager = _planner(seed=4, K=32, H=4)
+    compiled = _planner(seed=4, K=32, H=4, compile=True)
+    x = _x0(2)
+    for step in range(2):
+        a, b = eager(x, 0.1 * step), compiled(x, 0.1 * step)
+        torch.testing.assert_close(a.plan, b.plan, atol=1e-10, rtol=1e-10)
+        torch.testing.assert_close(a.cost_min, b.cost_min, atol=1e-10, rtol=1e-10)
