@@ -106,7 +106,7 @@ def chi2_band(n: int, runs: int, level: float = 0.95) -> tuple[float, float]:
 # -- shared scenarios -------------------------------------------------------------------------
 
 
-def linear_case(seed: int = 0, rows: int = 5, steps: int = 25) -> dict:
+def linear_case(seed: int = 0, rows: int = 4, steps: int = 15) -> dict:
     """A 3-state linear system (oscillator + lag, non-nilpotent A), a 2-output sensor with
     correlated noise, per-row priors, and arbitrary controls and measurements (the Kalman
     recursion is defined for any measurement sequence)."""
@@ -135,7 +135,7 @@ def run_filter(estimator, x0: Tensor, P0: Tensor, us: Tensor, ys: Tensor, dt: fl
     return torch.stack(means), torch.stack(covs), state
 
 
-def monte_carlo(cls, dtype: torch.dtype, model: str, runs: int = 500, steps: int = 50) -> dict:
+def monte_carlo(cls, dtype: torch.dtype, model: str, runs: int = 500, steps: int = 40) -> dict:
     """``runs`` Monte Carlo scenarios in one batch: the truth by Euler-Maruyama (10 substeps
     per filter step), the filter's Q equal to the true diffusion ``sigma sigma^T`` (default
     from the dynamics), the prior drawn from ``N(x0_hat, P0)``.
