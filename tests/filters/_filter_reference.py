@@ -103,10 +103,15 @@ def _problems() -> _Problems:
     return _PROBLEMS[0]
 
 
-def solve_reference(x: np.ndarray, u_nom: np.ndarray, mode: str) -> np.ndarray | None:
-    """The hard-constrained CBF / relaxed CLF QP in cvxpy (Clarabel); ``None`` if infeasible."""
+def solve_reference(
+    x: np.ndarray, u_nom: np.ndarray, mode: str, clf: bool = True
+) -> np.ndarray | None:
+    """The hard-constrained CBF / relaxed CLF QP in cvxpy (Clarabel); ``None`` if infeasible.
+
+    ``clf=False`` drops the CLF (its row becomes ``0 <= delta``)."""
     P = _problems()
-    P.a.value, P.b.value, P.aV.value, P.bV.value, _ = rows(x, mode)
+    P.a.value, P.b.value, aV, bV, _ = rows(x, mode)
+    P.aV.value, P.bV.value = (aV, bV) if clf else (0 * aV, 0 * bV)
     P.u_nom.value = u_nom
     P.qp.solve(solver=cp.CLARABEL, tol_gap_abs=1e-11, tol_gap_rel=1e-11, tol_feas=1e-11)
     if P.qp.status == cp.INFEASIBLE:

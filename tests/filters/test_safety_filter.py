@@ -43,7 +43,9 @@ def _tol(dtype: torch.dtype) -> float:
     return 1e-6 if dtype == torch.float64 else 1e-3
 
 
-def scene(mode: str, dtype: torch.dtype = torch.float64, **overrides) -> SafetyFilter:
+def scene(
+    mode: str, dtype: torch.dtype = torch.float64, clf: bool = True, **overrides
+) -> SafetyFilter:
     kw: dict = {}
     if mode == "robust":
         kw["disturbance_bound"] = W_MAX.tolist()  # a tensor trips ControlAffine (`or 0.0`)
@@ -68,7 +70,7 @@ def scene(mode: str, dtype: torch.dtype = torch.float64, **overrides) -> SafetyF
         clf_gamma=CLF_GAMMA,
     )
     options.update(overrides)
-    lyap = QuadraticLyapunov(GOAL)
+    lyap = [QuadraticLyapunov(GOAL)] if clf else []
     return SafetyFilter(dyn, barriers, lyap, **options).to(dtype)
 
 
@@ -82,14 +84,17 @@ def random_states(count: int, seed: int, margin: float = 0.05) -> tuple[np.ndarr
     return np.stack(out), 2.0 * rng.standard_normal((count, 2))
 
 
+@pytest.mark.parametrize("clf", [True, False], ids=["cbf+clf", "cbf"])
 @pytest.mark.parametrize("mode", MODES)
-def test_matches_cvxpy_hard_qp(mode: str, dtype: torch.dtype) -> None:
+def test_matches_cvxpy_hard_qp(mode: str, clf: bool, dtype: torch.dtype) -> None:
     xs, us = random_states(24, seed=MODES.index(mode))
-    filt = scene(mode, dtype)
+    filt = scene(mode, dtype, clf=clf)
+    # with a CLF the hard and elastic QPs are solved together, without one the elastic alone
+    assert filt.exact == clf
     out = filt(torch.tensor(xs, dtype=dtype), torch.tensor(us, dtype=dtype))
     feasible = infeasible = 0
     for i in range(len(xs)):
-        ref = solve_reference(xs[i], us[i], mode)
+        ref = solve_reference(xs[i], us[i], mode, clf=clf)
         if ref is None:  # the hard QP is infeasible: the least-violating control
             infeasible += 1
             assert out.status[i] == FilterStatus.RELAXED

@@ -19,10 +19,11 @@ else the elastic one: the least-violating control (minimum total normalised viol
 status ``RELAXED`` when a slack exceeds ``slack_tol``). All on the device, no host sync.
 ``w = cbf_slack_weight * (1 + v)`` (default 1e3) where ``v`` (detached, capped at 1e3)
 estimates the hard multipliers from how far ``u_nom`` is from the box and the CBF
-half-spaces. ``exact=False`` solves the elastic QP alone (half the work): by the
-exact-penalty theorem it equals the hard QP wherever the hard multipliers stay below ``w``,
-which holds for CBF-only filters in practice but not when a CLF pulls hard against a CBF
-(the tests compare both against cvxpy). ``relax_cbf=True`` makes the CBF constraints
+half-spaces. ``exact=False`` (the default without Lyapunov functions) solves the elastic QP
+alone (half the work): by the exact-penalty theorem it equals the hard QP wherever the hard
+multipliers stay below ``w``, which holds for CBF-only filters in practice but not when a
+CLF pulls hard against a CBF (the tests compare both against cvxpy); a row where it does
+not hold is reported ``RELAXED``, never silently. ``relax_cbf=True`` makes the CBF constraints
 soft instead: ``P_cbf(s) = 1/2 w rbar |s|^2`` (``w`` default 1e2), one QP.
 
 Statuses (:class:`FilterStatus`) per row: ``SOLVED`` (every hard constraint met),
@@ -191,7 +192,9 @@ class SafetyFilter(nn.Module):
         slack_tol: normalised CBF slack above which a row is ``RELAXED`` (default 1e-6 in
             float64, 1e-3 in float32).
         exact: with hard CBF constraints, also solve the hard QP (stacked in the same call)
-            and prefer its solution (default); ``False``: the elastic QP only.
+            and prefer its solution; ``False``: the elastic QP only. Default: ``True`` when
+            there are Lyapunov functions (a CLF can pull against a CBF with a multiplier
+            beyond the penalty), else ``False``.
         lie_method: ``"auto"`` (closed forms when a barrier has them, else autograd),
             ``"autograd"`` or ``"analytic"``.
         qp_options: keyword arguments for :func:`torchcbf.qp.solve_qp` (``backend``,
@@ -223,7 +226,7 @@ class SafetyFilter(nn.Module):
         clf_gamma: float = 0.0,
         fallback: FallbackSpec = "clip",
         slack_tol: float | None = None,
-        exact: bool = True,
+        exact: bool | None = None,
         lie_method: Literal["auto", "autograd", "analytic"] = "auto",
         qp_options: dict[str, Any] | None = None,
     ) -> None:
@@ -286,7 +289,7 @@ class SafetyFilter(nn.Module):
         if slack_tol is not None:
             slack_tol = _positive("slack_tol", slack_tol)
         self.slack_tol = slack_tol
-        self.exact = bool(exact)
+        self.exact = bool(self.lyapunovs) if exact is None else bool(exact)
         self.qp_options = dict(qp_options or {})
 
     # -- construction helpers ------------------------------------------------------------

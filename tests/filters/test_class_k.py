@@ -1,0 +1,50 @@
+"""Class-K functions: values, per-output gains, learnable positive gains, specifications."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from torchcbf.filters import CubicClassK, LinearClassK, PowerClassK, as_class_k
+
+
+def test_values(dtype: torch.dtype) -> None:
+    h = torch.tensor([[-2.0, 0.5, 3.0]], dtype=dtype)
+    assert torch.allclose(LinearClassK(2.0).to(dtype)(h), 2 * h)
+    assert torch.allclose(CubicClassK(0.5).to(dtype)(h), 0.5 * h**3)
+    expected = torch.tensor([[-(2.0**0.5), 0.5**0.5, 3.0**0.5]], dtype=dtype)
+    assert torch.allclose(PowerClassK(1.0, power=0.5).to(dtype)(h), expected)
+    gains = LinearClassK([1.0, 2.0, 3.0]).to(dtype)
+    assert torch.allclose(gains(h), h * torch.tensor([1.0, 2.0, 3.0], dtype=dtype))
+    assert gains(h).dtype == dtype
+
+
+def test_learnable_gain_stays_positive_and_trains() -> None:
+    k = LinearClassK(torch.tensor([0.5, 2.0]), learnable=True).double()
+    assert [n for n, _ in k.named_parameters()] == ["log_gain"]
+    h = torch.tensor([1.0, -1.0], dtype=torch.float64)
+    (grad,) = torch.autograd.grad(k(h).sum(), k.log_gain)
+    # d (g h) / d log g = g h
+    assert torch.allclose(grad, torch.tensor([0.5, -2.0], dtype=torch.float64))
+    with torch.no_grad():
+        k.log_gain -= 100.0
+    assert bool((k.gain > 0).all())
+
+
+def test_as_class_k_specifications() -> None:
+    h = torch.tensor([1.0, 2.0])
+    assert torch.allclose(as_class_k(3.0)(h), 3 * h)
+    assert torch.allclose(as_class_k([1.0, 0.5])(h), torch.tensor([1.0, 1.0]))
+    assert torch.allclose(as_class_k(torch.tensor([2.0, 2.0]))(h), 2 * h)
+    assert torch.allclose(as_class_k(lambda v: v**3)(h), h**3)
+    module = nn.Identity()
+    assert as_class_k(module) is module
+    with pytest.raises(ValueError, match="alpha"):
+        as_class_k(-1.0)
+    with pytest.raises(ValueError, match="gain"):
+        LinearClassK(0.0)
+    with pytest.raises(TypeError, match="alpha"):
+        as_class_k("fast")
+    with pytest.raises(ValueError, match="power"):
+        PowerClassK(1.0, power=-1.0)

@@ -1,0 +1,113 @@
+"""Risk-aware and stochastic filters: noise bound, margin, and Monte Carlo exit rates."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from scipy.special import erfinv
+
+from torchcbf.barriers import Ball, HalfSpace, QuadraticLyapunov
+from torchcbf.dynamics import SingleIntegrator
+from torchcbf.filters import SafetyFilter, noise_bound, risk_margin
+from torchcbf.integrators import step
+
+F64 = torch.float64
+
+
+def test_noise_bound_analytic(dtype: torch.dtype) -> None:
+    dyn = SingleIntegrator(2, sigma=0.3).to(dtype)
+    states = torch.tensor([[0.0, 0.0], [2.0, 0.0], [0.0, -3.0], [0.5, 0.0]], dtype=dtype)
+    ball = Ball([0.0, 0.0], 1.0).to(dtype)  # safe outside: |dh/dx sigma| = 2 |p| 0.3
+    eta = noise_bound(ball, dyn, states)
+    assert eta.shape == () and torch.allclose(eta, torch.tensor(1.8, dtype=dtype))
+    # unsafe samples are ignored, a multi-output barrier gives one bound per output
+    wall = HalfSpace(torch.tensor([[1.0, 0.0], [0.0, 2.0]]), torch.tensor([1.0, 1.0])).to(dtype)
+    eta = noise_bound(wall, dyn, states)
+    assert torch.allclose(eta, torch.tensor([0.3, 0.6], dtype=dtype))
+    lyap = QuadraticLyapunov([0.0, 0.0]).to(dtype)
+    assert torch.allclose(noise_bound(lyap, dyn, states, safe_only=False), eta.new_tensor(1.8))
+    with pytest.raises(ValueError, match="safe"):
+        noise_bound(ball, dyn, states[[0, 3]])
+    with pytest.raises(ValueError, match="SDE"):
+        noise_bound(ball, SingleIntegrator(2), states)
+
+
+def test_risk_margin_formula() -> None:
+    eta = torch.tensor([0.5, 1.0], dtype=F64)
+    got = risk_margin(eta, 0.05, 2.0)
+    ref = math.sqrt(4.0) * eta * erfinv(0.95)
+    assert torch.allclose(got, ref)
+
+
+def test_safe_states_give_the_same_filter_as_eta() -> None:
+    dyn = SingleIntegrator(1, sigma=0.4)
+    wall = HalfSpace([1.0], 1.0)
+    states = torch.linspace(-3, 1, 50).unsqueeze(-1)
+    a = SafetyFilter(dyn, wall, mode="risk_aware", rho=0.1, horizon=1.0, eta=0.4)
+    b = SafetyFilter(dyn, wall, mode="risk_aware", rho=0.1, horizon=1.0, safe_states=states)
+    assert torch.allclose(a.cbf_margin.float(), b.cbf_margin.float())
+    x, u = torch.tensor([[0.2]]), torch.tensor([[3.0]])
+    assert torch.allclose(a(x, u).u, b(x, u).u)
+
+
+def _exit_rate(
+    filt: SafetyFilter, h0: float, seed: int, dt: float = 0.02, rows: int = 2000
+) -> float:
+    """Fraction of Euler-Maruyama paths of ``dx = u dt + sigma dW`` (wall at x = 1, nominal
+    control pushing into it) with ``h = 1 - x < 0`` at some step within ``T``."""
+    dyn = filt.dynamics
+    gen = torch.Generator().manual_seed(seed)
+    x = torch.full((rows, 1), 1.0 - h0, dtype=F64)
+    u_nom = torch.full((rows, 1), 2.0, dtype=F64)
+    left = torch.zeros(rows, dtype=torch.bool)
+    with torch.no_grad():
+        for _ in range(round(T / dt)):
+            u = filt(x, u_nom).u
+            x = step(dyn, x, u, dt, "euler_maruyama", generator=gen)
+            left |= x[:, 0] > 1.0
+    return left.double().mean().item()
+
+
+SIGMA, T = 0.5, 1.0
+
+
+def _filters(mode: str, **kw) -> SafetyFilter:
+    dyn = SingleIntegrator(1, sigma=SIGMA)
+    wall = HalfSpace([1.0], 1.0)  # |dh/dx sigma| = sigma exactly
+    # a single CBF without CLF: the elastic QP alone is exact (checked against cvxpy)
+    return SafetyFilter(dyn, wall, mode=mode, exact=False, **kw).double()
+
+
+H0 = float(risk_margin(torch.tensor(SIGMA, dtype=F64), 0.1, T))  # ~0.82
+
+
+@pytest.fixture(scope="module")
+def vanilla_rate() -> float:
+    return _exit_rate(_filters("vanilla", alpha=1.0), H0, seed=1)
+
+
+def test_risk_aware_exit_probability_below_rho(vanilla_rate: float) -> None:
+    filt = _filters("risk_aware", rho=0.1, horizon=T, eta=SIGMA)
+    assert torch.allclose(filt.cbf_margin, torch.tensor(H0, dtype=F64))
+    rate = _exit_rate(filt, H0, seed=1)  # start on the margin Delta: the tightest start
+    # binomial standard error is below 0.007 at 2000 samples
+    assert rate <= 0.1, rate
+    assert vanilla_rate > rate + 0.1, (vanilla_rate, rate)
+
+
+def test_stochastic_filter_exits_less_than_vanilla(vanilla_rate: float) -> None:
+    rate = _exit_rate(_filters("stochastic", alpha=1.0, beta=1.0), H0, seed=1)
+    assert rate < 0.5 * vanilla_rate and vanilla_rate > 0.2, (rate, vanilla_rate)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rho", [0.02, 0.05, 0.2, 0.5])
+def test_risk_aware_exit_probability_several_rho(rho: float) -> None:
+    filt = _filters("risk_aware", rho=rho, horizon=T, eta=SIGMA)
+    h0 = float(filt.cbf_margin)
+    rate = _exit_rate(filt, h0, seed=3, dt=0.01)
+    vanilla = _exit_rate(_filters("vanilla", alpha=1.0), h0, seed=3, dt=0.01)
+    assert rate <= rho, (rho, rate)
+    assert vanilla > 2 * rate, (vanilla, rate)
