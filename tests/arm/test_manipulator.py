@@ -143,6 +143,9 @@ def test_jacobian_matches_finite_differences(name: str) -> None:
     q = arm.random_configurations(16, generator=gen, dtype=torch.float64)
     J = arm.jacobian(q)
     J_fd = fd_jacobian(arm.end_effector, q)
+    ee, J2 = arm.end_effector_and_jacobian(q)
+    torch.testing.assert_close(ee, arm.end_effector(q))
+    torch.testing.assert_close(J2, J)
     torch.testing.assert_close(J, J_fd, atol=1e-7, rtol=0)
     # autograd through pytorch-kinematics agrees too (every link, batched): rows are
     # independent, so the gradient of a column sum is every row's gradient.

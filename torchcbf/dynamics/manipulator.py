@@ -306,11 +306,16 @@ class Manipulator(ControlAffine):
         The geometric Jacobian of pytorch-kinematics (closed form from the joint axes,
         independent of autograd), differentiable w.r.t. ``q``.
         """
+        return self.end_effector_and_jacobian(x)[1]
+
+    def end_effector_and_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """End-effector position ``[..., 3]`` and Jacobian ``[..., 3, dof]`` from one FK pass."""
         T, batch = self._transforms(x)
         q = self.joint_positions(x)
         chain = self.chain(q.dtype, q.device)
         J = chain.jacobian_tensor(q.reshape(-1, self.dof), all_transforms=T)
-        return J[:, :3, :].reshape(*batch, 3, self.dof)
+        ee = T[self._frame_index[self.end_link], :, :3, 3]
+        return ee.reshape(*batch, 3), J[:, :3, :].reshape(*batch, 3, self.dof)
 
     def random_configurations(
         self,
@@ -346,9 +351,11 @@ class ResolvedRateController(nn.Module):
     With ``e = target - ee(q)`` and ``J`` the positional Jacobian, the joint velocity
     ``qdot* = J' (J J' + lambda^2 I)^{-1} k e`` decreases ``V = |e|^2`` (``dV/dt =
     -2 k e' J J' (J J' + lambda^2 I)^{-1} e <= 0``) away from singularities. Under
-    acceleration control the output is ``qddot = k_v (qdot* - qdot)``. With
-    ``saturate=True`` the velocity ``qdot*`` is scaled down uniformly (keeping its
-    direction) to fit the arm's velocity limits.
+    acceleration control the output is ``qddot = k_v (qdot* - qdot)``. A redundant arm
+    may add a secondary task in the null space of ``J``: ``k_0 (I - J^+ J)(q_mid - q)``
+    pulls the joints toward the middle of their ranges (away from the limits) without
+    moving the end effector (to first order). With ``saturate=True`` the velocity ``qdot*``
+    is scaled down uniformly (keeping its direction) to fit the arm's velocity limits.
 
     Args:
         arm: the :class:`Manipulator`.
@@ -357,6 +364,8 @@ class ResolvedRateController(nn.Module):
         gain: ``k > 0`` (1/s).
         damping: ``lambda >= 0`` (m), regularises singular configurations.
         velocity_gain: ``k_v > 0`` for acceleration control (1/s).
+        null_space_gain: ``k_0 >= 0`` of the joint-centring secondary task (1/s; joints
+            without finite limits are not centred).
         saturate: respect the velocity limits by uniform scaling.
 
     ``forward(x [..., n], t=None) -> u [..., dof]``; ``target`` is a buffer that may be
@@ -371,15 +380,16 @@ class ResolvedRateController(nn.Module):
         gain: float = 1.0,
         damping: float = 0.05,
         velocity_gain: float = 5.0,
+        null_space_gain: float = 0.0,
         saturate: bool = True,
     ) -> None:
         super().__init__()
         if not isinstance(arm, Manipulator):
             raise TypeError(f"arm must be a Manipulator, got {type(arm).__name__}")
-        if not gain > 0 or not velocity_gain > 0 or not damping >= 0:
+        if not gain > 0 or not velocity_gain > 0 or not damping >= 0 or not null_space_gain >= 0:
             raise ValueError(
-                f"gain and velocity_gain must be > 0 and damping >= 0, got {gain}, "
-                f"{velocity_gain}, {damping}"
+                "gain and velocity_gain must be > 0, damping and null_space_gain >= 0, got "
+                f"{gain}, {velocity_gain}, {damping}, {null_space_gain}"
             )
         self.arm = arm
         t = as_tensor("target", target).detach().clone()
@@ -389,17 +399,26 @@ class ResolvedRateController(nn.Module):
         self.gain = float(gain)
         self.damping = float(damping)
         self.velocity_gain = float(velocity_gain)
+        self.null_space_gain = float(null_space_gain)
         self.saturate = bool(saturate)
 
     def joint_velocity(self, x: Tensor) -> Tensor:
         """The resolved-rate joint velocity ``qdot* [..., dof]`` at ``x [..., n]``."""
         self.arm.check_inputs(x)
-        J = self.arm.jacobian(x)  # [..., 3, dof]
-        e = self.target.to(x) - self.arm.end_effector(x)
+        ee, J = self.arm.end_effector_and_jacobian(x)  # [..., 3], [..., 3, dof]
+        e = self.target.to(x) - ee
         eye = torch.eye(3, dtype=x.dtype, device=x.device)
         JJt = J @ J.mT + (self.damping**2) * eye
         w = torch.linalg.solve(JJt, (self.gain * e).unsqueeze(-1))
         qd = (J.mT @ w).squeeze(-1)
+        if self.null_space_gain > 0:
+            q = self.arm.joint_positions(x)
+            lo, hi = self.arm.q_min.to(x), self.arm.q_max.to(x)
+            finite = torch.isfinite(lo) & torch.isfinite(hi)
+            mid = torch.where(finite, 0.5 * (lo + hi), q)
+            z = (self.null_space_gain * (mid - q)).unsqueeze(-1)
+            # (I - J^+ J) z with the damped pseudo-inverse J^+ = J' (J J' + lambda^2 I)^-1
+            qd = qd + (z - J.mT @ torch.linalg.solve(JJt, J @ z)).squeeze(-1)
         if self.saturate:
             vmax = self.arm.velocity_limit.to(x)
             ratio = (qd.abs() / vmax).amax(-1, keepdim=True)
