@@ -48,7 +48,7 @@ class IPMResult(NamedTuple):
 def default_tolerances(dtype: torch.dtype) -> tuple[float, float]:
     """Return ``(eps, eps_inf)``: optimality and infeasibility-certificate tolerances."""
     if dtype == torch.float64:
-        return 1e-8, 1e-6
+        return 1e-7, 1e-6
     return 2e-6, 1e-5
 
 

@@ -131,7 +131,7 @@ def solve_qp(
 
     Statuses: see :class:`Status`. A row with NaN/inf in its data (infinite bounds excepted)
     is ``NON_FINITE`` with ``x = 0``; ``lb = +inf`` or ``ub = -inf`` is ``PRIMAL_INFEASIBLE``.
-    ``eps`` (default ``1e-8`` in float64, ``2e-6`` in float32) is the relative tolerance on
+    ``eps`` (default ``1e-7`` in float64, ``2e-6`` in float32) is the relative tolerance on
     residuals and duality gap; ``warm_start`` (``x [..., n]`` or a previous solution) seeds
     the primal iterate. ``polish`` (default: on for the torch backend) toggles the active-set
     polishing.
