@@ -1,0 +1,265 @@
+"""Benchmark torchcbf.qp.solve_qp against peer differentiable QP layers.
+
+Times forward and forward+backward per QP on random feasible dense QPs
+(``min 1/2 x'Qx + p'x  s.t.  Gx <= h``, Q positive definite, some constraints active) for
+torchcbf (torch and proxsuite backends), proxsuite's torch ``QPFunction``, qpth's
+``QPFunction`` and cvxpylayers (small batches; skipped if not installed). Also prints the
+goal lines: fwd+bwd at B=4096, n=4, m=8; forward latency at B=1, n=2, m=6 (vs proxsuite's
+dense solver called directly); and forward throughput at B=1,000,000, n=2, m=6 on --device.
+
+    python scripts/bench_qp.py --quick
+    python scripts/bench_qp.py --device cuda
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from torchcbf.qp import Status, solve_qp
+
+
+def make_problems(B: int, n: int, m: int, device: str, seed: int = 0):
+    """Random feasible QPs: the origin is strictly feasible, the unconstrained optimum is not."""
+    g = torch.Generator().manual_seed(seed)
+    f64 = torch.float64
+    L = torch.randn(B, n, n, generator=g, dtype=f64)
+    Q = L @ L.mT / n + 0.5 * torch.eye(n, dtype=f64)
+    p = 3.0 * torch.randn(B, n, generator=g, dtype=f64)
+    G = torch.randn(B, m, n, generator=g, dtype=f64)
+    h = 0.2 + torch.rand(B, m, generator=g, dtype=f64)
+    return [t.to(device) for t in (Q, p, G, h)]
+
+
+def timeit(fn: Callable[[], None], min_time: float = 0.3, max_reps: int = 50) -> float:
+    """Median wall time of ``fn`` (one warm-up call, then repeats until ``min_time``)."""
+    fn()
+    times = []
+    start = time.perf_counter()
+    while len(times) < max_reps and (time.perf_counter() - start < min_time or len(times) < 3):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def _sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def run_torchcbf(backend: str, device: str):
+    def fwd(Q, p, G, h):
+        with torch.no_grad():
+            solve_qp(Q, p, G, h, backend=backend)
+        _sync(device)
+
+    def fwdbwd(Q, p, G, h):
+        p = p.detach().requires_grad_(True)
+        h = h.detach().requires_grad_(True)
+        sol = solve_qp(Q, p, G, h, backend=backend)
+        sol.x.sum().backward()
+        _sync(device)
+
+    return fwd, fwdbwd
+
+
+def run_proxsuite_qpfunction():
+    from proxsuite.torch.qplayer import QPFunction
+
+    def call(Q, p, G, h, grad):
+        B, n = p.shape
+        A = torch.empty(B, 0, n, dtype=p.dtype)
+        b = torch.empty(B, 0, dtype=p.dtype)
+        lower = torch.full_like(h, -1e20)
+        if grad:
+            p = p.detach().requires_grad_(True)
+        x = QPFunction(maxIter=1000)(Q, p, A, b, G, lower, h)[0]
+        if grad:
+            x.sum().backward()
+
+    return (lambda *a: call(*a, False)), (lambda *a: call(*a, True))
+
+
+def run_qpth():
+    from qpth.qp import QPFunction
+
+    def call(Q, p, G, h, grad):
+        e = torch.empty(0, dtype=p.dtype)
+        if grad:
+            p = p.detach().requires_grad_(True)
+            x = QPFunction(verbose=-1)(Q, p, G, h, e, e)
+            x.sum().backward()
+        else:
+            with torch.no_grad():
+                QPFunction(verbose=-1)(Q, p, G, h, e, e)
+
+    return (lambda *a: call(*a, False)), (lambda *a: call(*a, True))
+
+
+def run_cvxpylayers(n: int, m: int):
+    import cvxpy as cp
+    from cvxpylayers.torch import CvxpyLayer
+
+    x = cp.Variable(n)
+    Lp = cp.Parameter((n, n))
+    pp = cp.Parameter(n)
+    Gp = cp.Parameter((m, n))
+    hp = cp.Parameter(m)
+    prob = cp.Problem(cp.Minimize(0.5 * cp.sum_squares(Lp.T @ x) + pp @ x), [Gp @ x <= hp])
+    layer = CvxpyLayer(prob, parameters=[Lp, pp, Gp, hp], variables=[x])
+
+    def call(Q, p, G, h, grad):
+        L = torch.linalg.cholesky(Q)
+        if grad:
+            p = p.detach().requires_grad_(True)
+        (sol,) = layer(L, p, G, h)
+        if grad:
+            sol.sum().backward()
+
+    return (lambda *a: call(*a, False)), (lambda *a: call(*a, True))
+
+
+def proxsuite_dense_direct(Q, p, G, h) -> Callable[[], None]:
+    """Forward of one QP through proxsuite's dense solver, no torch in the loop."""
+    from proxsuite import proxqp
+
+    Qn, pn, Gn, hn = (t[0].cpu().numpy() for t in (Q, p, G, h))
+    n, m = pn.shape[0], hn.shape[0]
+    lower = np.full(m, -1e20)
+
+    def solve() -> None:
+        qp = proxqp.dense.QP(n, 0, m)
+        qp.settings.eps_abs = 1e-9
+        qp.init(Qn, pn, None, None, Gn, lower, hn)
+        qp.solve()
+
+    return solve
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="small subset of the grid")
+    parser.add_argument("--device", default="cpu", help="device for torchcbf (peers: CPU)")
+    parser.add_argument("--peer-max-batch", type=int, default=1024, help="largest peer batch")
+    parser.add_argument("--no-grid", action="store_true", help="only print the goal lines")
+    parser.add_argument("--big", type=int, default=1_000_000, help="batch of the throughput line")
+    args = parser.parse_args()
+    dev = args.device
+
+    peers: dict[str, Callable | None] = {}
+    notes = []
+    try:
+        import proxsuite.torch.qplayer  # noqa: F401
+
+        peers["proxsuite.QPFunction"] = run_proxsuite_qpfunction
+    except ImportError:
+        notes.append("proxsuite.torch not installed: skipped")
+    try:
+        import qpth.qp  # noqa: F401
+
+        peers["qpth"] = run_qpth
+    except ImportError:
+        notes.append("qpth not installed: skipped")
+    try:
+        import cvxpylayers.torch  # noqa: F401
+
+        peers["cvxpylayers"] = None
+    except ImportError:
+        notes.append("cvxpylayers not installed: skipped")
+    for note in notes:
+        print(f"# {note}")
+    print(f"# torch {torch.__version__}, threads {torch.get_num_threads()}, device {dev}")
+
+    if args.quick:
+        grid = [(B, n, m) for B in (1, 64, 1024) for n, m in ((2, 5), (4, 10))]
+    else:
+        grid = [(B, n, m) for B in (1, 64, 1024, 8192) for n in (2, 4, 8) for m in (1, 5, 10, 20)]
+
+    if not args.no_grid:
+        hdr = f"{'B':>6} {'n':>2} {'m':>3} {'solver':<22} {'fwd us/QP':>10} {'fwd+bwd us/QP':>14}"
+        print(hdr + f" {'x vs torchcbf (fwd+bwd)':>24}")
+        for B, n, m in grid:
+            Q, p, G, h = make_problems(B, n, m, dev)
+            Qc, pc, Gc, hc = (t.cpu() for t in (Q, p, G, h))
+            fwd, fb = run_torchcbf("torch", dev)
+            data = (Q, p, G, h)
+            t_f = timeit(lambda fwd=fwd, data=data: fwd(*data)) / B
+            t_fb = timeit(lambda fb=fb, data=data: fb(*data)) / B
+            print(
+                f"{B:>6} {n:>2} {m:>3} {'torchcbf[torch]':<22} {t_f * 1e6:>10.2f} "
+                f"{t_fb * 1e6:>14.2f} {'1.0':>24}"
+            )
+            rows = [("torchcbf[proxsuite]", lambda: run_torchcbf("proxsuite", "cpu"), 8192)]
+            for name, maker in peers.items():
+                cap = 64 if name == "cvxpylayers" else args.peer_max_batch
+                if name == "cvxpylayers":
+                    rows.append((name, lambda n=n, m=m: run_cvxpylayers(n, m), cap))
+                else:
+                    rows.append((name, maker, cap))
+            for name, maker, cap in rows:
+                Bp = min(B, cap)
+                f2, fb2 = maker()
+                sl = (Qc[:Bp], pc[:Bp], Gc[:Bp], hc[:Bp])
+                try:
+                    pf = timeit(lambda f2=f2, sl=sl: f2(*sl), min_time=0.2, max_reps=5) / Bp
+                    pfb = timeit(lambda fb2=fb2, sl=sl: fb2(*sl), min_time=0.2, max_reps=5) / Bp
+                except Exception as err:  # a peer failing must not stop the benchmark
+                    print(f"{B:>6} {n:>2} {m:>3} {name:<22} failed: {type(err).__name__}: {err}")
+                    continue
+                tag = f" (B={Bp})" if Bp != B else ""
+                print(
+                    f"{B:>6} {n:>2} {m:>3} {name + tag:<22} {pf * 1e6:>10.2f} "
+                    f"{pfb * 1e6:>14.2f} {pfb / t_fb:>24.1f}"
+                )
+
+    print("\n# goal lines")
+    # 1) fwd+bwd at B=4096, n=4, m=8 (CPU goal: >= 30x faster per QP than the peers)
+    B, n, m = 4096, 4, 8
+    Q, p, G, h = make_problems(B, n, m, dev, seed=1)
+    _, fb = run_torchcbf("torch", dev)
+    t_ours = timeit(lambda: fb(Q, p, G, h), min_time=1.0) / B
+    sol = solve_qp(Q, p, G, h)
+    solved = float((sol.status == Status.SOLVED).float().mean())
+    print(f"B=4096 n=4 m=8 fwd+bwd torchcbf[torch]: {t_ours * 1e6:.2f} us/QP (solved {solved:.3f})")
+    Qc, pc, Gc, hc = (t.cpu() for t in (Q, p, G, h))
+    for name, maker in peers.items():
+        if maker is None:
+            continue
+        Bp = min(B, args.peer_max_batch)
+        _, fb2 = maker()
+        sl = (Qc[:Bp], pc[:Bp], Gc[:Bp], hc[:Bp])
+        t_peer = timeit(lambda fb2=fb2, sl=sl: fb2(*sl), min_time=0.5, max_reps=3) / Bp
+        print(
+            f"  {name} (B={Bp}): {t_peer * 1e6:.2f} us/QP -> torchcbf is "
+            f"{t_peer / t_ours:.1f}x faster (goal 30x)"
+        )
+
+    # 2) latency at B=1, n=2, m=6 (goal: forward < 1 ms)
+    Q, p, G, h = make_problems(1, 2, 6, "cpu", seed=2)
+    fwd, _ = run_torchcbf("torch", "cpu")
+    t1 = timeit(lambda: fwd(Q, p, G, h), min_time=1.0, max_reps=200)
+    direct = proxsuite_dense_direct(Q, p, G, h)
+    t_direct = timeit(direct, min_time=0.5, max_reps=2000)
+    print(
+        f"B=1 n=2 m=6 forward torchcbf[torch] (CPU): {t1 * 1e3:.3f} ms (goal < 1 ms); "
+        f"proxsuite dense direct: {t_direct * 1e3:.3f} ms; ratio {t1 / t_direct:.1f}x"
+    )
+
+    # 3) throughput at B=big, n=2, m=6 on --device
+    B = args.big
+    Q, p, G, h = make_problems(B, 2, 6, dev, seed=3)
+    fwd, _ = run_torchcbf("torch", dev)
+    tb = timeit(lambda: fwd(Q, p, G, h), min_time=0.5, max_reps=3)
+    print(
+        f"B={B} n=2 m=6 forward on {dev}: {tb:.3f} s, {B / tb / 1e6:.2f} M QPs/s "
+        "(GPU goal 10 M QPs/s)"
+    )
+
+
+if __name__ == "__main__":
+    main()
