@@ -289,3 +289,23 @@ def test_compiled_matches_eager():
         a, b = eager(x, 0.1 * step), compiled(x, 0.1 * step)
         torch.testing.assert_close(a.plan, b.plan, atol=1e-10, rtol=1e-10)
         torch.testing.assert_close(a.cost_min, b.cost_min, atol=1e-10, rtol=1e-10)
+
+
+@pytest.mark.parametrize("mode", ["range", "std"])
+def test_normalized_weights(mode):
+    K, lam = 40, 0.2
+    seen = {}
+
+    def cost(states, controls, t0):
+        seen["controls"] = controls.clone()
+        return 100.0 * (states[..., -1, :] ** 2).sum(-1)
+
+    planner = MPPI(SingleIntegrator(2), cost, 3, K, 0.1, 1.0, lam, cost_normalization=mode)
+    x = torch.tensor([1.0, -1.0], dtype=torch.float64)
+    out = planner(x)
+    v = seen["controls"][0]
+    S = 100.0 * ((x + 0.1 * v.sum(1)) ** 2).sum(-1)
+    scale = S.max() - S.min() if mode == "range" else S.std(correction=0)
+    w = torch.softmax(-(S - S.min()) / scale / lam, 0)
+    torch.testing.assert_close(out.plan, torch.einsum("k,khm->hm", w, v))
+    torch.testing.assert_close(out.ess, 1.0 / (w**2).sum())

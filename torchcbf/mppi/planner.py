@@ -16,7 +16,9 @@ Algorithm (per environment, as pytorch-mppi / Williams et al. 2017):
 5. ``S_k = cost(rollout_k) + gamma * sum_j U_j' Sigma^-1 eps_{k,j}`` (the pytorch-mppi form
    of the control cost, ``gamma = control_cost_weight``);
 6. ``w_k = exp(-(S_k - min S) / lambda) / sum(...)`` (``lambda = temperature``, floored at
-   the dtype's smallest normal number; non-finite costs get weight zero);
+   the dtype's smallest normal number; non-finite costs get weight zero); with
+   ``cost_normalization="range"`` (``"std"``) the exponent is divided by the range (the
+   standard deviation) of the sample costs;
 7. ``U <- U + sum_k w_k eps_k``; the first control ``U_0`` is returned.
 
 Randomness: environment ``b`` draws its noise from its own ``torch.Generator`` on the
@@ -47,6 +49,7 @@ from torchcbf.mppi.history import History, HistoryBuffer
 
 INTEGRATORS = ("euler", "rk4")
 SHIFT_FILLS = ("zero", "last")
+NORMALIZATIONS = ("none", "range", "std")
 
 
 class MPPIOutput(NamedTuple):
@@ -128,6 +131,13 @@ class MPPI(nn.Module):
         shift_fill: ``"zero"`` (default) or ``"last"``: control appended by the warm start.
         zero_noise_samples: the first samples of each environment get no noise (they
             evaluate the shifted previous plan itself).
+        cost_normalization: ``"none"`` (default, as pytorch-mppi), ``"range"`` or
+            ``"std"``: divide ``S - min S`` by the range (as CBFkit does) or by the standard
+            deviation of the finite sample costs of the environment before the temperature,
+            which makes ``temperature`` relative to the spread of the costs. On SCENARIOS.md
+            A (temperature 0.03) ``"none"`` is nearly greedy (effective sample size ~1, the
+            control-cost noise decides), ``"range"`` averages so much that the hairpin at
+            g2 is cut, and ``"std"`` succeeds (see tests/mppi/test_scenario_a.py).
         compile: ``True`` or a dict of ``torch.compile`` kwargs to compile rollout + cost.
     """
 
@@ -150,6 +160,7 @@ class MPPI(nn.Module):
         history_size: int = 1024,
         shift_fill: str = "zero",
         zero_noise_samples: int = 0,
+        cost_normalization: str = "none",
         compile: bool | dict[str, Any] = False,
     ) -> None:
         super().__init__()
@@ -175,6 +186,10 @@ class MPPI(nn.Module):
             )
         if integrator not in INTEGRATORS:
             raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
+        if cost_normalization not in NORMALIZATIONS:
+            raise ValueError(
+                f"cost_normalization must be one of {NORMALIZATIONS}, got {cost_normalization!r}"
+            )
         if shift_fill not in SHIFT_FILLS:
             raise ValueError(f"shift_fill must be one of {SHIFT_FILLS}, got {shift_fill!r}")
         if not isinstance(control_cost_weight, (int, float)) or not control_cost_weight >= 0:
@@ -191,6 +206,7 @@ class MPPI(nn.Module):
         self.integrator, self.seed, self.shift_fill = integrator, seed, shift_fill
         self.keep_rollouts, self.history_size = keep_rollouts, history_size
         self.zero_noise_samples = zero_noise_samples
+        self.cost_normalization = cost_normalization
 
         cov = _covariance(noise_sigma, m)
         self.register_buffer("noise_cov", cov)
@@ -370,6 +386,16 @@ class MPPI(nn.Module):
         ok = torch.isfinite(cost_min)
         lam = max(self.temperature, torch.finfo(cost.dtype).tiny)
         shifted = torch.where(ok.unsqueeze(-1), clean - cost_min.unsqueeze(-1), clean)
+        if self.cost_normalization != "none":
+            kept = torch.where(finite, shifted, torch.zeros_like(shifted))
+            if self.cost_normalization == "range":
+                span = kept.amax(-1, keepdim=True)
+            else:  # "std": standard deviation of the finite costs
+                n_fin = finite.sum(-1, keepdim=True).clamp_min(1)
+                mean = kept.sum(-1, keepdim=True) / n_fin
+                dev = torch.where(finite, kept - mean, torch.zeros_like(kept))
+                span = (dev.square().sum(-1, keepdim=True) / n_fin).sqrt()
+            shifted = shifted / span.clamp_min(torch.finfo(cost.dtype).tiny)
         w = torch.exp(shifted.mul_(-1.0 / lam))
         w = w / w.sum(-1, keepdim=True).clamp_min(1.0)  # the best sample has weight 1 before
         plan = self._plan

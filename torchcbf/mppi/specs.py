@@ -150,6 +150,11 @@ class Eventually(_Temporal):
         predicate: ``rho: [..., n] -> [...]``, ``>= 0`` where it holds.
         interval: ``(t1, t2)`` in global time, ``None`` for all times.
         cost: pointwise planning cost ``c: [..., n] -> [...]`` (default ``-rho``).
+        urgency: ``rho_u >= 0``; the planning cost of rollout state ``j`` becomes
+            ``c(x_j) + rho_u (t_j - t0)`` (history states unchanged). The pure minimum (0,
+            the default) is indifferent to *when* in the window the goal is reached, and the
+            MPPI control cost (an effort penalty) then favours reaching it late, at the edge
+            of the window; a small urgency breaks that tie in favour of reaching early.
     """
 
     def __init__(
@@ -157,24 +162,38 @@ class Eventually(_Temporal):
         predicate: Predicate | None = None,
         interval: tuple[float, float] | None = None,
         cost: Predicate | None = None,
+        urgency: float = 0.0,
     ) -> None:
         super().__init__(predicate, interval, cost)
+        if not isinstance(urgency, (int, float)) or not urgency >= 0:
+            raise ValueError(f"urgency must be >= 0, got {urgency!r}")
+        self.urgency = float(urgency)
 
     def robustness(self, states: Tensor, times: Tensor) -> Tensor:
         rho = self.predicate(states)
         mask = self.in_window(times.to(rho.dtype)).expand(rho.shape)
         return rho.masked_fill(~mask, -math.inf).amax(-1)
 
-    def rollout_min_cost(self, states: Tensor, window: Tensor) -> tuple[Tensor, Tensor]:
-        """Minimum of ``c`` over the rollout states inside ``window [B, T]`` (``+inf`` when
-        none is) and ``c`` of the last state: two ``[B, K]`` tensors."""
+    def _ramp(self, times: Tensor) -> Tensor | None:
+        """``urgency (t_j - t0)``: ``[B, 1, T]``, or None without urgency."""
+        if self.urgency == 0.0:
+            return None
+        return (self.urgency * (times - times[:, :1])).unsqueeze(1)
+
+    def rollout_min_cost(
+        self, states: Tensor, window: Tensor, ramp: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """Minimum of ``c (+ ramp)`` over the rollout states inside ``window [B, T]``
+        (``+inf`` when none is) and the same at the last state: two ``[B, K]`` tensors."""
         c = self.pointwise_cost(states)  # [B, K, T]
+        if ramp is not None:
+            c = c + ramp
         last = c[..., -1].clone()
         return c.masked_fill_(~window.unsqueeze(1), math.inf).amin(-1), last
 
     def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
         window = self.in_window(times)  # [B, T]
-        roll_min, last = self.rollout_min_cost(states, window)
+        roll_min, last = self.rollout_min_cost(states, window, self._ramp(times))
         roll = torch.where(window.any(-1, keepdim=True), roll_min, last)
         passed = times[:, :1] > self.interval[1] + self.time_tol
         if history is None:
@@ -226,7 +245,8 @@ class Reach(Eventually):
     """Reach the disc ``|p - center| <= radius`` at some time in ``interval``.
 
     ``rho = radius - |p - center|``; planning cost ``weight (|p - center|^2 - radius^2)``
-    (SCENARIOS.md A: ``c_g``, ``weight = k_g``). ``p = x[..., index]``.
+    (SCENARIOS.md A: ``c_g``, ``weight = k_g``). ``p = x[..., index]``. ``urgency``: see
+    :class:`Eventually`.
     """
 
     def __init__(
@@ -236,8 +256,9 @@ class Reach(Eventually):
         interval: tuple[float, float] | None = None,
         weight: float = 1.0,
         index: Sequence[int] = (0, 1),
+        urgency: float = 0.0,
     ) -> None:
-        super().__init__(None, interval, None)
+        super().__init__(None, interval, None, urgency)
         center_t = _const("center", center)
         self.index = _as_index(index)
         d = self.index.stop - self.index.start if isinstance(self.index, slice) else len(self.index)
@@ -253,9 +274,15 @@ class Reach(Eventually):
     def pointwise_cost(self, states: Tensor) -> Tensor:
         return self.weight * (_sq_dist(states, self.index, self.center) - self.radius**2)
 
-    def rollout_min_cost(self, states: Tensor, window: Tensor) -> tuple[Tensor, Tensor]:
-        # c is increasing in |p - g|^2: reduce the squared distance, transform [B, K] only
+    def rollout_min_cost(
+        self, states: Tensor, window: Tensor, ramp: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
         d2 = _sq_dist(states, self.index, self.center)
+        if ramp is not None:
+            c = d2.mul_(self.weight).add_(ramp - self.weight * self.radius**2)
+            last = c[..., -1].clone()
+            return c.masked_fill_(~window.unsqueeze(1), math.inf).amin(-1), last
+        # c is increasing in |p - g|^2: reduce the squared distance, transform [B, K] only
         last = self.weight * (d2[..., -1] - self.radius**2)
         d2_min = d2.masked_fill_(~window.unsqueeze(1), math.inf).amin(-1)
         return self.weight * (d2_min - self.radius**2), last
