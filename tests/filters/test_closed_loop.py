@@ -152,11 +152,11 @@ def test_cbf_clf_reaches_goal_around_obstacle() -> None:
         [[-3.0, 0.0, 0.0, 0.0], [-3.0, -0.4, 0.0, 0.0], [-2.5, 0.5, 0.5, 0.0]], dtype=F64
     )
     zero = lambda x, t: torch.zeros_like(x[:, :2])  # noqa: E731
-    run = simulate(dyn, x0, 600, 0.02, nominal=zero, safety_filter=filt, progress=False)
+    run = simulate(dyn, x0, 400, 0.03, nominal=zero, safety_filter=filt, progress=False)
     assert _min_h(ball, run.x).min() >= -1e-6
     err = (run.x[:, -1, :2] - torch.tensor(goal, dtype=F64)).norm(dim=-1)
     assert err.max() < 0.1, err
     # the straight line is blocked: the plain CLF alone goes through the obstacle
     clf_only = SafetyFilter(dyn, lyapunovs=_double_integrator_clf(goal), clf_rate=1.0).double()
-    free = simulate(dyn, x0, 150, 0.02, nominal=zero, safety_filter=clf_only, progress=False)
+    free = simulate(dyn, x0, 100, 0.03, nominal=zero, safety_filter=clf_only, progress=False)
     assert (_min_h(ball, free.x) < 0).any()

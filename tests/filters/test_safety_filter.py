@@ -292,3 +292,24 @@ def test_errors_name_the_argument() -> None:
         filt(torch.zeros(4, 3), torch.zeros(4, 2), t=torch.zeros(3))
     with pytest.raises(ValueError, match="alpha"):
         SafetyFilter(dyn, ball, alpha=[1.0, 2.0])(torch.zeros(4, 3), torch.zeros(4, 2))
+
+
+@pytest.mark.parametrize("mode", ["vanilla", "robust"])
+def test_hard_only_qp_matches_cvxpy_and_falls_back_when_infeasible(mode: str) -> None:
+    xs, us = random_states(24, seed=1)
+    filt = scene(mode, elastic=False)
+    out = filt(torch.tensor(xs), torch.tensor(us))
+    lo, hi = torch.tensor(U_MIN), torch.tensor(U_MAX)
+    for i in range(len(xs)):
+        ref = solve_reference(xs[i], us[i], mode)
+        if ref is None:
+            assert out.status[i] == FilterStatus.FALLBACK
+            assert torch.equal(out.u[i], torch.clamp(torch.tensor(us[i]), lo, hi))
+        else:
+            assert out.status[i] == FilterStatus.SOLVED
+            assert np.allclose(out.u[i].numpy(), ref, atol=1e-6, rtol=0)
+    # an infeasible row (two walls leaving no room) takes the fallback, never a NaN
+    walls = HalfSpace(torch.tensor([[1.0], [-1.0]]), torch.tensor([-1.0, -1.0]))
+    hard = SafetyFilter(SingleIntegrator(1), walls, elastic=False, fallback="brake").double()
+    out = hard(torch.zeros(1, 1, dtype=torch.float64), torch.ones(1, 1, dtype=torch.float64))
+    assert out.status[0] == FilterStatus.FALLBACK and out.u[0, 0] == 0.0

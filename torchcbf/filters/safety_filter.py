@@ -195,6 +195,9 @@ class SafetyFilter(nn.Module):
             and prefer its solution; ``False``: the elastic QP only. Default: ``True`` when
             there are Lyapunov functions (a CLF can pull against a CBF with a multiplier
             beyond the penalty), else ``False``.
+        elastic: ``False`` drops the CBF slack variables: one hard QP of ``m + c``
+            variables (the fastest form); an infeasible row then gets the fallback
+            (status ``FALLBACK``) instead of the least-violating control.
         lie_method: ``"auto"`` (closed forms when a barrier has them, else autograd),
             ``"autograd"`` or ``"analytic"``.
         qp_options: keyword arguments for :func:`torchcbf.qp.solve_qp` (``backend``,
@@ -227,6 +230,7 @@ class SafetyFilter(nn.Module):
         fallback: FallbackSpec = "clip",
         slack_tol: float | None = None,
         exact: bool | None = None,
+        elastic: bool = True,
         lie_method: Literal["auto", "autograd", "analytic"] = "auto",
         qp_options: dict[str, Any] | None = None,
     ) -> None:
@@ -290,6 +294,9 @@ class SafetyFilter(nn.Module):
             slack_tol = _positive("slack_tol", slack_tol)
         self.slack_tol = slack_tol
         self.exact = bool(self.lyapunovs) if exact is None else bool(exact)
+        self.elastic = bool(elastic)
+        if relax_cbf and not elastic:
+            raise ValueError("relax_cbf=True needs elastic=True (the slack variables)")
         self.qp_options = dict(qp_options or {})
 
     # -- construction helpers ------------------------------------------------------------
@@ -483,11 +490,12 @@ class SafetyFilter(nn.Module):
             rows_b.append(cond_v.b)
 
         lo, hi = self._limits(xs)
-        Q, p, G, hq, lb, ubd = self._qp(rows_a, rows_b, norms, us, k, c, lo, hi)
+        ks = k if self.elastic else 0  # slack columns of the CBF rows
+        Q, p, G, hq, lb, ubd = self._qp(rows_a, rows_b, norms, us, k, c, lo, hi, ks)
         data_ok = torch.isfinite(G).flatten(1).all(-1) & torch.isfinite(hq).all(-1) & finite
         G = torch.where(data_ok[:, None, None], G, torch.zeros_like(G))
         hq = torch.where(data_ok[:, None], hq, torch.ones_like(hq))
-        two_pass = bool(k) and self.exact and not self.relax_cbf
+        two_pass = bool(ks) and self.exact and not self.relax_cbf
         if two_pass:
             # rows [B:2B]: the hard QP (the slack columns of the CBF rows zeroed; s then
             # decouples and sits at its bound 0), solved in the same call as the elastic one
@@ -513,8 +521,8 @@ class SafetyFilter(nn.Module):
             z, qp_status = sol.x, sol.status
             qp_ok = data_ok & (qp_status == Status.SOLVED) & torch.isfinite(z).all(-1)
         u_qp = z[:, :m]
-        s = z[:, m : m + k]
-        delta = z[:, m + k :]
+        s = z[:, m : m + ks] if ks else z.new_zeros(B, k)
+        delta = z[:, m + ks :]
         fb = self._fallback(xb, ub, lo, hi)
         u = torch.where(qp_ok.unsqueeze(-1), u_qp, fb)
 
@@ -587,10 +595,11 @@ class SafetyFilter(nn.Module):
         c: int,
         lo: Tensor,
         hi: Tensor,
+        ks: int,
     ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
         """QP data ``min 1/2 z'Qz + p'z, Gz <= h, lb <= z <= ub`` for ``z = [u; s; delta]``."""
         B, m = u_nom.shape
-        nz = m + k + c
+        nz = m + ks + c
         R = self.R.to(u_nom)
         rbar = torch.diagonal(R).mean()
         w = u_nom.new_full((B, 1), self.cbf_slack_weight) * rbar
@@ -601,18 +610,18 @@ class SafetyFilter(nn.Module):
             torch.cat(
                 [
                     u_nom.new_zeros(B, m),
-                    w.expand(B, k),
+                    w.expand(B, ks),
                     (self.clf_slack_weight * rbar).expand(B, c),
                 ],
                 -1,
             )
         )
         Q[:, :m, :m] = R
-        p = torch.cat([-(u_nom @ R.mT), lin_s.expand(B, k), u_nom.new_zeros(B, c)], -1)
+        p = torch.cat([-(u_nom @ R.mT), lin_s.expand(B, ks), u_nom.new_zeros(B, c)], -1)
         G_parts, h_parts = [], []
         if k:
             a, b = rows_a[0], rows_b[0]
-            eye = torch.eye(k, dtype=u_nom.dtype, device=u_nom.device).expand(B, k, k)
+            eye = torch.eye(k, ks, dtype=u_nom.dtype, device=u_nom.device).expand(B, k, ks)
             G_parts.append(
                 torch.cat([-a / norms.unsqueeze(-1), -eye, u_nom.new_zeros(B, k, c)], -1)
             )
@@ -620,11 +629,11 @@ class SafetyFilter(nn.Module):
         if c:
             a, b = rows_a[-1], rows_b[-1]
             eye = torch.eye(c, dtype=u_nom.dtype, device=u_nom.device).expand(B, c, c)
-            G_parts.append(torch.cat([a, u_nom.new_zeros(B, c, k), -eye], -1))
+            G_parts.append(torch.cat([a, u_nom.new_zeros(B, c, ks), -eye], -1))
             h_parts.append(-b)
         G = torch.cat(G_parts, 1)
         hq = torch.cat(h_parts, 1)
-        inf = u_nom.new_full((k + c,), math.inf)
+        inf = u_nom.new_full((ks + c,), math.inf)
         lb = torch.cat([lo, torch.zeros_like(inf)]).expand(B, nz)
         ub = torch.cat([hi, inf]).expand(B, nz)
         return Q, p, G, hq, lb, ub

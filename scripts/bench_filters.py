@@ -1,0 +1,181 @@
+"""Benchmark the CBF-QP safety filter: one batched call vs a per-state loop vs proxsuite.
+
+Scene: a 2-D single integrator with box limits, 8 ball obstacles (one batched ``Ball``),
+B states outside the obstacles, a nominal control pushing through them. Reported per state:
+
+- ``filter (batched)``: ``SafetyFilter.forward`` on the whole batch (Lie terms + QP).
+- ``filter (loop, B=1)``: the same filter called state by state on a subset, extrapolated.
+- ``qp only``: our ``solve_qp`` on the filter's QP data (captured from the batched call).
+- ``proxsuite qp only``: ``proxsuite.torch.qplayer.QPFunction`` on the same hard QPs
+  (``u`` only, CBF rows and the box as ``l <= G u <= u``), and ``proxsuite whole``: Lie
+  terms computed once with the barrier's closed forms, rows built, then QPFunction.
+
+Run: ``python scripts/bench_filters.py`` (``--quick`` for a short run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from collections.abc import Callable
+
+import torch
+
+import torchcbf.qp as qp_module
+from torchcbf.barriers import Ball
+from torchcbf.dynamics import SingleIntegrator
+from torchcbf.filters import SafetyFilter
+
+
+def _timeit(fn: Callable[[], object], repeat: int) -> float:
+    fn()  # warm up
+    best = math.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def _scene(batch: int, k: int, dtype: torch.dtype, seed: int):
+    gen = torch.Generator().manual_seed(seed)
+    centers = 8 * torch.rand(k, 2, generator=gen, dtype=dtype) - 4
+    radii = 0.3 + 0.4 * torch.rand(k, generator=gen, dtype=dtype)
+    ball = Ball(centers, radii)
+    dyn = SingleIntegrator(2, u_min=-2.0, u_max=2.0)
+    filt = SafetyFilter(dyn, ball, alpha=1.0).to(dtype)
+    xs = []
+    while sum(len(v) for v in xs) < batch:
+        cand = 10 * torch.rand(4 * batch, 2, generator=gen, dtype=dtype) - 5
+        keep = (ball(cand) > 0.05).all(-1)
+        xs.append(cand[keep])
+    x = torch.cat(xs)[:batch]
+    goal = torch.zeros(2, dtype=dtype)
+    u_nom = (2.0 * (goal - x)).clamp(-2.0, 2.0)
+    return dyn, ball, filt, x, u_nom
+
+
+def _capture_qp(filt: SafetyFilter, x: torch.Tensor, u_nom: torch.Tensor) -> tuple:
+    captured: list = []
+    original = qp_module.solve_qp
+
+    def spy(*args, **kwargs):
+        captured.append((args, kwargs))
+        return original(*args, **kwargs)
+
+    qp_module.solve_qp = spy
+    try:
+        filt(x, u_nom)
+    finally:
+        qp_module.solve_qp = original
+    return captured[0]
+
+
+def _proxsuite_whole(ball: Ball, dyn: SingleIntegrator, x: torch.Tensor, u_nom: torch.Tensor):
+    from proxsuite.torch.qplayer import QPFunction
+
+    terms = ball.lie(x, dyn, method="analytic", hessian=False)
+    B, m = u_nom.shape
+    b = terms.lfh + terms.dhdt + terms.h  # alpha = 1: lgh u >= -b
+    eye = torch.eye(m, dtype=x.dtype).expand(B, m, m)
+    G = torch.cat([terms.lgh, eye], 1)
+    inf = torch.full_like(b, 1e20)
+    lo = torch.cat([-b, dyn.u_min.to(x).expand(B, m)], 1)
+    hi = torch.cat([inf, dyn.u_max.to(x).expand(B, m)], 1)
+    Q = torch.eye(m, dtype=x.dtype).expand(B, m, m)
+    A = torch.empty(B, 0, m, dtype=x.dtype)
+    bb = torch.empty(B, 0, dtype=x.dtype)
+    return QPFunction(eps=1e-9, maxIter=1000)(Q, -u_nom, A, bb, G, lo, hi)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--batch", type=int, default=4096)
+    parser.add_argument("--barriers", type=int, default=8)
+    parser.add_argument("--loop-subset", type=int, default=64)
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--dtype", choices=["float64", "float32"], default="float64")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: leave)")
+    parser.add_argument("--quick", action="store_true", help="batch 512, subset 16, repeat 1")
+    args = parser.parse_args()
+    if args.quick:
+        args.batch, args.loop_subset, args.repeat = 512, 16, 1
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    dtype = getattr(torch, args.dtype)
+    dyn, ball, filt, x, u_nom = _scene(args.batch, args.barriers, dtype, seed=0)
+    B = args.batch
+    rows: list[tuple[str, float]] = []
+    with torch.no_grad():
+        out = filt(x, u_nom)
+        t_batch = _timeit(lambda: filt(x, u_nom), args.repeat)
+        rows.append(("filter (batched)", t_batch / B))
+        sub = args.loop_subset
+
+        def loop() -> None:
+            for i in range(sub):
+                filt(x[i : i + 1], u_nom[i : i + 1])
+
+        rows.append(("filter (loop, B=1, extrapolated)", _timeit(loop, 1) / sub))
+        hard = SafetyFilter(dyn, ball, alpha=1.0, elastic=False).to(dtype)
+        rows.append(
+            (
+                "filter (batched, elastic=False: hard QP only)",
+                _timeit(lambda: hard(x, u_nom), args.repeat) / B,
+            )
+        )
+        qargs, qkw = _capture_qp(filt, x, u_nom)
+        rows.append(
+            (
+                "qp only (torchcbf solve_qp)",
+                _timeit(lambda: qp_module.solve_qp(*qargs, **qkw), args.repeat) / B,
+            )
+        )
+        try:
+            import proxsuite.torch.qplayer  # noqa: F401
+
+            have_prox = True
+        except ImportError:
+            have_prox = False
+        if have_prox:
+            from proxsuite.torch.qplayer import QPFunction
+
+            terms = ball.lie(x, dyn, method="analytic", hessian=False)
+            b = terms.lfh + terms.dhdt + terms.h
+            m = 2
+            eye = torch.eye(m, dtype=dtype).expand(B, m, m)
+            G = torch.cat([terms.lgh, eye], 1)
+            lo = torch.cat([-b, dyn.u_min.to(x).expand(B, m)], 1)
+            hi = torch.cat([torch.full_like(b, 1e20), dyn.u_max.to(x).expand(B, m)], 1)
+            Q = eye
+            A = torch.empty(B, 0, m, dtype=dtype)
+            bb = torch.empty(B, 0, dtype=dtype)
+            fn = QPFunction(eps=1e-9, maxIter=1000)
+            z = fn(Q, -u_nom, A, bb, G, lo, hi)[0]
+            t_qp = _timeit(lambda: fn(Q, -u_nom, A, bb, G, lo, hi), args.repeat)
+            rows.append(("proxsuite QPFunction, qp only", t_qp / B))
+            t_whole = _timeit(lambda: _proxsuite_whole(ball, dyn, x, u_nom), args.repeat)
+            rows.append(("proxsuite whole (lie + rows + QPFunction)", t_whole / B))
+            solved = out.status == 0
+            diff = (z - out.u)[solved].abs().amax().item()
+        else:
+            diff = float("nan")
+    print(
+        f"B={B} states, k={args.barriers} barriers, m=2, {args.dtype}, "
+        f"torch threads={torch.get_num_threads()}; statuses: "
+        f"{torch.bincount(out.status, minlength=4).tolist()} "
+        "(SOLVED, RELAXED, FALLBACK, NON_FINITE)"
+    )
+    base = rows[0][1]
+    print(f"{'method':45s} {'us/state':>10s} {'x batched filter':>17s}")
+    for name, t in rows:
+        print(f"{name:45s} {1e6 * t:10.2f} {t / base:17.2f}")
+    if not have_prox:
+        print("proxsuite not installed: its rows are skipped")
+    else:
+        print(f"max |u_proxsuite - u_filter| over SOLVED rows: {diff:.2e}")
+
+
+if __name__ == "__main__":
+    main()
