@@ -21,8 +21,24 @@ from torchcbf.barriers.rectify import (
     rectify,
 )
 from torchcbf.barriers.shapes import Ball, Box, Ellipse, HalfSpace, MovingBall
+from torchcbf.barriers.workspace import (
+    EndEffectorBoxBarrier,
+    JointLimitBarrier,
+    JointVelocityBarrier,
+    LinkBoxBarrier,
+    LinkSphereBarrier,
+    PointBarrier,
+    box_signed_distance,
+)
 
 __all__ = [
+    "EndEffectorBoxBarrier",
+    "JointLimitBarrier",
+    "JointVelocityBarrier",
+    "LinkBoxBarrier",
+    "LinkSphereBarrier",
+    "PointBarrier",
+    "box_signed_distance",
     "AnalyticDerivatives",
     "Ball",
     "Barrier",

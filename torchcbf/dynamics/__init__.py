@@ -1,6 +1,7 @@
 """Control-affine dynamics: the :class:`ControlAffine` base and standard models."""
 
 from torchcbf.dynamics.base import ControlAffine
+from torchcbf.dynamics.manipulator import Manipulator, ResolvedRateController, asset_path
 from torchcbf.dynamics.models import (
     AccelUnicycle,
     Bicycle,
@@ -18,8 +19,11 @@ __all__ = [
     "ControlAffine",
     "DoubleIntegrator",
     "FixedWing",
+    "Manipulator",
     "Quadrotor",
+    "ResolvedRateController",
     "SingleIntegrator",
     "Unicycle",
     "VanDerPol",
+    "asset_path",
 ]
