@@ -1,0 +1,182 @@
+"""A plain torch training loop with a progress bar and checkpoints.
+
+:func:`train` is the loop below, with a switchable tqdm bar, optional gradient clipping and
+periodic checkpoints; copy it if you need something else::
+
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    for step in range(steps):
+        loss = loss_fn(step)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+import warnings
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor, nn
+from tqdm.auto import tqdm
+
+log = logging.getLogger(__name__)
+
+LossOutput = Tensor | tuple[Tensor, Mapping[str, Tensor | float]]
+
+
+class TrainResult(NamedTuple):
+    """What :func:`train` did.
+
+    Fields: ``losses`` (the loss after every step, floats), ``metrics`` (the last metrics
+    returned by ``loss_fn``, floats), ``seconds_per_step`` (mean wall time of a step,
+    the first one excluded when there are several: it includes warm-up), ``skipped``
+    (steps skipped because the loss or a gradient was not finite), ``step`` (the index of
+    the next step, for resuming).
+    """
+
+    losses: list[float]
+    metrics: dict[str, float]
+    seconds_per_step: float
+    skipped: int
+    step: int
+
+
+def save_checkpoint(
+    path: str | Path,
+    module: nn.Module,
+    optimizer: torch.optim.Optimizer | None = None,
+    *,
+    step: int = 0,
+    **extra: Any,
+) -> None:
+    """Save ``module.state_dict()`` (and the optimizer's, the step and ``extra``) to ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {
+        "model": module.state_dict(),
+        "optimizer": None if optimizer is None else optimizer.state_dict(),
+        "step": int(step),
+        "extra": extra,
+    }
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(state, tmp)
+    tmp.replace(path)  # atomic: an interrupted save never leaves a truncated checkpoint
+
+
+def load_checkpoint(
+    path: str | Path,
+    module: nn.Module,
+    optimizer: torch.optim.Optimizer | None = None,
+    *,
+    map_location: str | torch.device | None = None,
+    strict: bool = True,
+) -> dict[str, Any]:
+    """Load a checkpoint written by :func:`save_checkpoint` into ``module`` (and
+    ``optimizer``); returns ``{"step": int, "extra": dict}``."""
+    state = torch.load(Path(path), map_location=map_location, weights_only=True)
+    if not isinstance(state, dict) or "model" not in state:
+        raise ValueError(f"{path} is not a checkpoint written by save_checkpoint")
+    module.load_state_dict(state["model"], strict=strict)
+    if optimizer is not None:
+        if state.get("optimizer") is None:
+            raise ValueError(f"{path} holds no optimizer state")
+        optimizer.load_state_dict(state["optimizer"])
+    return {"step": int(state.get("step", 0)), "extra": dict(state.get("extra") or {})}
+
+
+def _params(optimizer: torch.optim.Optimizer) -> list[Tensor]:
+    return [p for group in optimizer.param_groups for p in group["params"]]
+
+
+def train(
+    loss_fn: Callable[[int], LossOutput],
+    optimizer: torch.optim.Optimizer,
+    steps: int,
+    *,
+    start_step: int = 0,
+    scheduler: Any | None = None,
+    grad_clip: float | None = None,
+    progress: bool = True,
+    desc: str = "train",
+    checkpoint: str | Path | None = None,
+    checkpoint_every: int = 0,
+    module: nn.Module | None = None,
+    callback: Callable[[int, float, dict[str, float]], None] | None = None,
+) -> TrainResult:
+    """Minimise ``loss_fn(step)`` with ``optimizer`` for ``steps`` steps.
+
+    Args:
+        loss_fn: ``step -> loss`` (a scalar tensor) or ``(loss, metrics)`` with a mapping of
+            scalars shown on the progress bar and passed to ``callback``.
+        optimizer: any ``torch.optim`` optimizer over the parameters to train.
+        steps: number of steps; they are numbered ``start_step .. start_step + steps - 1``.
+        scheduler: optional learning-rate scheduler, stepped after every optimizer step.
+        grad_clip: clip the global gradient norm to this value.
+        progress: show a tqdm bar.
+        checkpoint, checkpoint_every, module: save ``module`` (and the optimizer) to
+            ``checkpoint`` every ``checkpoint_every`` steps (0: only at the end) with
+            :func:`save_checkpoint`; resume with :func:`load_checkpoint` and ``start_step``.
+        callback: ``(step, loss, metrics)`` after every step.
+
+    A step whose loss or gradient is not finite is skipped (no parameter update) and counted
+    in ``TrainResult.skipped``, with a warning. One host sync per step reads the loss.
+    """
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
+        raise ValueError(f"steps must be a non-negative int, got {steps!r}")
+    if not isinstance(optimizer, torch.optim.Optimizer):
+        raise TypeError(
+            f"optimizer must be a torch.optim.Optimizer, got {type(optimizer).__name__}"
+        )
+    if checkpoint is not None and module is None:
+        raise ValueError("checkpoint needs module= (the model whose state_dict is saved)")
+    params = _params(optimizer)
+    losses: list[float] = []
+    metrics: dict[str, float] = {}
+    skipped = 0
+    times: list[float] = []
+    bar = tqdm(range(start_step, start_step + steps), desc=desc, disable=not progress, leave=False)
+    step = start_step
+    for step in bar:
+        t0 = time.perf_counter()
+        out = loss_fn(step)
+        loss, raw = (out, {}) if isinstance(out, Tensor) else out
+        if not isinstance(loss, Tensor) or loss.dim() != 0:
+            raise ValueError("loss_fn must return a scalar tensor (or (loss, metrics))")
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        grads = [p.grad for p in params if p.grad is not None]
+        if grad_clip is not None:
+            norm = torch.nn.utils.clip_grad_norm_(params, grad_clip)
+        else:
+            norm = torch.stack([g.norm() for g in grads]).norm() if grads else loss
+        value = float(loss.detach())
+        if math.isfinite(value) and bool(torch.isfinite(norm)):
+            optimizer.step()
+            if scheduler is not None:
+                scheduler.step()
+        else:
+            skipped += 1
+            optimizer.zero_grad(set_to_none=True)
+            warnings.warn(f"step {step}: non-finite loss or gradient, step skipped", stacklevel=2)
+        times.append(time.perf_counter() - t0)
+        losses.append(value)
+        metrics = {k: float(v.detach() if isinstance(v, Tensor) else v) for k, v in raw.items()}
+        if progress:
+            bar.set_postfix(loss=f"{value:.4g}", **{k: f"{v:.4g}" for k, v in metrics.items()})
+        if callback is not None:
+            callback(step, value, metrics)
+        if checkpoint is not None and checkpoint_every > 0 and (step + 1) % checkpoint_every == 0:
+            save_checkpoint(checkpoint, module, optimizer, step=step + 1)
+    next_step = start_step + steps
+    if checkpoint is not None:
+        save_checkpoint(checkpoint, module, optimizer, step=next_step)
+    timed = times[1:] if len(times) > 1 else times
+    per_step = sum(timed) / len(timed) if timed else math.nan
+    log.debug("trained %d steps, %.4f s/step, %d skipped", steps, per_step, skipped)
+    return TrainResult(losses, metrics, per_step, skipped, next_step)
