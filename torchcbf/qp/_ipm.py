@@ -103,6 +103,16 @@ def _max_step(v: Tensor, dv: Tensor) -> Tensor:
     return ratio.amin(-1).clamp(max=1.0)
 
 
+_COMPACT_FRACTION = 0.5
+
+
+def _write_back(full: list[Tensor] | None, idx: Tensor, state: tuple[Tensor, ...]) -> list[Tensor]:
+    """Scatter the working rows ``idx`` of ``state`` into the full-batch tensors."""
+    if full is None:
+        return [t.clone() for t in state]
+    return [f.index_copy(0, idx, t) for f, t in zip(full, state, strict=True)]
+
+
 class _StepData(NamedTuple):
     inv_tau: Tensor
     c: Tensor
@@ -201,6 +211,8 @@ def solve_ipm(
     qn = _inf_norm(q)
     hn = torch.maximum(_inf_norm(h), _inf_norm(b))
     Gt, At = G.mT, A.mT
+    idx = torch.arange(B, device=device)
+    full: list[Tensor] | None = None
 
     for it in range(max_iter + 1):
         Px = _bmv(P, x)
@@ -248,8 +260,21 @@ def solve_ipm(
         active = active & ~(converged | pinf | dinf)
         if it == max_iter:
             break
-        if it % check_every == 0 and not bool(active.any()):
-            break
+        if it % check_every == 0:
+            n_active = int(active.sum())  # the only host synchronisation of the loop
+            if n_active == 0:
+                break
+            if n_active <= _COMPACT_FRACTION * active.shape[0] and active.shape[0] >= 64:
+                # drop finished rows from the working set so the tail of slow rows is cheap
+                state = (x, s, z, y, tau, kappa, status, iterations)
+                full = _write_back(full, idx, state)
+                keep = active.nonzero().squeeze(-1)
+                idx = idx[keep]
+                P, q, G, h, A, b, reg, qn, hn = (t[keep] for t in (P, q, G, h, A, b, reg, qn, hn))
+                Gt, At = G.mT, A.mT
+                x, s, z, y, tau, kappa, status, iterations = (t[keep] for t in state)
+                inv_tau, rx, rz, ry, rt = (t[keep] for t in (inv_tau, rx, rz, ry, rt))
+                active = active[keep]
         iterations = iterations + active.to(torch.int64)
 
         # ---- Newton step (predictor-corrector) ----
@@ -318,6 +343,10 @@ def solve_ipm(
         tau = tau + a * torch.nan_to_num(dt)
         kappa = kappa + a * torch.nan_to_num(dk)
 
+    if full is not None:
+        x, s, z, y, tau, kappa, status, iterations = _write_back(
+            full, idx, (x, s, z, y, tau, kappa, status, iterations)
+        )
     inv = (1.0 / tau).unsqueeze(-1)
     solved_like = (
         (status == int(Status.SOLVED))
