@@ -90,7 +90,7 @@ class _Problems:
         self.an, self.bn = cp.Parameter((3, 2)), cp.Parameter(3)
         v = cp.Variable(2)
         self.lp = cp.Problem(
-            cp.Minimize(cp.sum(cp.pos(-(self.an @ v + self.bn)))), [v >= U_MIN, v <= U_MAX]
+            cp.Minimize(cp.max(cp.pos(-(self.an @ v + self.bn)))), [v >= U_MIN, v <= U_MAX]
         )
 
 
@@ -121,7 +121,7 @@ def solve_reference(
 
 
 def least_violation(x: np.ndarray, mode: str) -> float:
-    """``min_u sum_i max(0, -(a_i u + b_i) / |a_i|)`` over the control box (an LP)."""
+    """``min_u max_i max(0, -(a_i u + b_i) / |a_i|)`` over the control box (an LP)."""
     a, b, *_ = rows(x, mode)
     n = np.maximum(np.linalg.norm(a, axis=1), 1e-6)
     P = _problems()

@@ -11,20 +11,22 @@ with the conditions ``a . u + b`` of :mod:`torchcbf.filters.conditions` for the 
 mode, ``n_i = max(|a_i|_2, 1e-6)`` (row normalisation: ``s`` is a violation in control
 units), and ``rbar = tr(R) / m``.
 
-CBF slacks. Hard constraints (default): the rows are stacked ``[2B]`` into ONE
-:func:`~torchcbf.qp.solve_qp` call, the first ``B`` as the elastic QP with the penalty
-``P_cbf(s) = w rbar (sum s + 1/2 |s|^2)``, the last ``B`` as the hard QP (slack columns
-zeroed). A row takes the hard solution where that one is ``SOLVED`` (status ``SOLVED``),
-else the elastic one: the least-violating control (minimum total normalised violation;
-status ``RELAXED`` when a slack exceeds ``slack_tol``). All on the device, no host sync.
-``w = cbf_slack_weight * (1 + v)`` (default 1e3) where ``v`` (detached, capped at 1e3)
-estimates the hard multipliers from how far ``u_nom`` is from the box and the CBF
-half-spaces. ``exact=False`` (the default without Lyapunov functions) solves the elastic QP
-alone (half the work): by the exact-penalty theorem it equals the hard QP wherever the hard
-multipliers stay below ``w``, which holds for CBF-only filters in practice but not when a
-CLF pulls hard against a CBF (the tests compare both against cvxpy); a row where it does
-not hold is reported ``RELAXED``, never silently. ``relax_cbf=True`` makes the CBF constraints
-soft instead: ``P_cbf(s) = 1/2 w rbar |s|^2`` (``w`` default 1e2), one QP.
+CBF slacks. Hard constraints (default) share ONE slack ``s = s_i`` for all barrier rows
+(so ``z = [u; s; delta]`` has ``m + 1 + c`` entries) with the exact penalty ``P_cbf(s) =
+w rbar (s + 1/2 s^2)``: where the hard QP is infeasible, the elastic QP returns the
+least-violating control, the one (in the box) minimising the largest normalised violation
+``max_i (-(a_i . u + b_i) / n_i)_+`` (then the distance to ``u_nom``), with status
+``RELAXED`` (``s > slack_tol``). ``w = cbf_slack_weight * (1 + v)`` (default 1e3), with
+``v`` (detached, capped at 1e3) an estimate of the hard multipliers from how far ``u_nom``
+is from the box and the CBF half-spaces. Where the hard QP is feasible and its multipliers
+stay below ``w``, the exact-penalty theorem makes the two solutions equal (``s = 0``). A
+CLF can pull against a CBF harder than that, so with Lyapunov functions (``exact=None``
+default, or ``exact=True``) the rows are stacked ``[2B]`` into the SAME
+:func:`~torchcbf.qp.solve_qp` call, the last ``B`` as the hard QP (slack column zeroed),
+and a row takes the hard solution wherever that one is ``SOLVED``. No host sync either
+way; the tests compare both against cvxpy. ``elastic=False`` drops the slack (hard QP
+only, infeasible rows fall back). ``relax_cbf=True`` makes the CBF constraints soft
+instead: one slack per row, ``P_cbf(s) = 1/2 w rbar |s|^2`` (``w`` default 1e2).
 
 Statuses (:class:`FilterStatus`) per row: ``SOLVED`` (every hard constraint met),
 ``RELAXED`` (some CBF slack above ``slack_tol``), ``FALLBACK`` (the QP did not return
@@ -77,8 +79,9 @@ class FilterOutput(NamedTuple):
         status: :class:`FilterStatus` codes ``[...]`` (int64).
         h: barrier values ``[..., k]`` (all barriers' outputs concatenated; NaN in rows with
             a non-finite state).
-        slack: ``[..., k + c]``: CBF violations ``n_i s_i`` (in the units of the condition
-            ``a . u + b``) then CLF relaxations ``delta_j``, from the QP (zero in fallback rows).
+        slack: ``[..., k + c]``: CBF violations ``max(0, -(a . u + b))`` at the returned
+            ``u`` (in the units of the condition), then the CLF relaxations ``delta_j``
+            (zero in fallback rows).
         clf_value: Lyapunov values ``[..., c]``.
         qp_status: the QP's :class:`torchcbf.qp.Status` codes ``[...]`` (int64).
         constraint_value: ``[..., k + c]`` at the returned ``u``: ``a . u + b`` for CBF rows
@@ -189,8 +192,8 @@ class SafetyFilter(nn.Module):
             limits, default), ``"brake"`` (zero clipped to the limits), a tensor ``[m]``,
             or a callable ``(x [B, n], u_nom [B, m]) -> [B, m]``. Wherever the fallback is
             itself non-finite, zero clipped to the limits is used.
-        slack_tol: normalised CBF slack above which a row is ``RELAXED`` (default 1e-6 in
-            float64, 1e-3 in float32).
+        slack_tol: normalised CBF slack ``s`` (control units) above which a row is
+            ``RELAXED`` (default 1e-6 in float64, 1e-3 in float32).
         exact: with hard CBF constraints, also solve the hard QP (stacked in the same call)
             and prefer its solution; ``False``: the elastic QP only. Default: ``True`` when
             there are Lyapunov functions (a CLF can pull against a CBF with a multiplier
@@ -490,7 +493,9 @@ class SafetyFilter(nn.Module):
             rows_b.append(cond_v.b)
 
         lo, hi = self._limits(xs)
-        ks = k if self.elastic else 0  # slack columns of the CBF rows
+        # slack columns of the CBF rows: one shared (the largest violation) for hard rows,
+        # one per row for soft ones, none without elastic rows
+        ks = 0 if not (k and self.elastic) else (k if self.relax_cbf else 1)
         Q, p, G, hq, lb, ubd = self._qp(rows_a, rows_b, norms, us, k, c, lo, hi, ks)
         data_ok = torch.isfinite(G).flatten(1).all(-1) & torch.isfinite(hq).all(-1) & finite
         G = torch.where(data_ok[:, None, None], G, torch.zeros_like(G))
@@ -500,7 +505,7 @@ class SafetyFilter(nn.Module):
             # rows [B:2B]: the hard QP (the slack columns of the CBF rows zeroed; s then
             # decouples and sits at its bound 0), solved in the same call as the elastic one
             G_hard = G.clone()
-            G_hard[:, :k, m : m + k] = 0
+            G_hard[:, :k, m : m + ks] = 0
             cat = lambda v: torch.cat([v, v], 0)  # noqa: E731
             sol = solve_qp(
                 cat(Q),
@@ -521,7 +526,7 @@ class SafetyFilter(nn.Module):
             z, qp_status = sol.x, sol.status
             qp_ok = data_ok & (qp_status == Status.SOLVED) & torch.isfinite(z).all(-1)
         u_qp = z[:, :m]
-        s = z[:, m : m + ks] if ks else z.new_zeros(B, k)
+        s = z[:, m : m + ks]
         delta = z[:, m + ks :]
         fb = self._fallback(xb, ub, lo, hi)
         u = torch.where(qp_ok.unsqueeze(-1), u_qp, fb)
@@ -529,7 +534,7 @@ class SafetyFilter(nn.Module):
         tol = self.slack_tol
         if tol is None:
             tol = 1e-6 if xs.dtype == torch.float64 else 1e-3
-        relaxed = (s > tol).any(-1) if k else torch.zeros_like(finite)
+        relaxed = (s > tol).any(-1) if ks else torch.zeros_like(finite)
         status = torch.full_like(qp_status, FilterStatus.SOLVED)
         status = torch.where(relaxed, torch.full_like(status, FilterStatus.RELAXED), status)
         status = torch.where(qp_ok, status, torch.full_like(status, FilterStatus.FALLBACK))
@@ -538,8 +543,8 @@ class SafetyFilter(nn.Module):
         okc = qp_ok.unsqueeze(-1)
         slack_parts, value_parts = [], []
         if k:
-            slack_parts.append(s.clamp_min(0) * norms)
             value_parts.append((rows_a[0] @ u.unsqueeze(-1)).squeeze(-1) + rows_b[0])
+            slack_parts.append((-value_parts[0]).clamp_min(0))
         if c:
             slack_parts.append(delta.clamp_min(0))
             value_parts.append(-((rows_a[-1] @ u.unsqueeze(-1)).squeeze(-1) + rows_b[-1]))
@@ -621,7 +626,10 @@ class SafetyFilter(nn.Module):
         G_parts, h_parts = [], []
         if k:
             a, b = rows_a[0], rows_b[0]
-            eye = torch.eye(k, ks, dtype=u_nom.dtype, device=u_nom.device).expand(B, k, ks)
+            if ks == k:
+                eye = torch.eye(k, dtype=u_nom.dtype, device=u_nom.device).expand(B, k, k)
+            else:  # one shared slack (ks = 1) or none (ks = 0)
+                eye = u_nom.new_ones(B, k, ks)
             G_parts.append(
                 torch.cat([-a / norms.unsqueeze(-1), -eye, u_nom.new_zeros(B, k, c)], -1)
             )
