@@ -13,7 +13,7 @@ def _tol(dtype: torch.dtype) -> float:
 
 
 def _close(a: torch.Tensor, b: torch.Tensor, dtype: torch.dtype) -> None:
-    _close(a, b, dtype)
+    torch.testing.assert_close(a, b, atol=_tol(dtype), rtol=_tol(dtype))
 
 
 def _rollouts(device, dtype, B=2, K=3, H=4, n=3, m=2):
