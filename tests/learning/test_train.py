@@ -1,0 +1,113 @@
+"""The training loop: it minimises, checkpoints round-trip, resuming equals one run,
+non-finite steps are skipped; the MLP's input normalisation."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from torchcbf.learning import MLP, load_checkpoint, save_checkpoint, train
+
+
+def _problem() -> tuple[nn.Module, torch.Tensor, torch.Tensor]:
+    torch.manual_seed(0)
+    model = nn.Linear(3, 1).double()
+    gen = torch.Generator().manual_seed(1)
+    x = torch.randn(64, 3, generator=gen, dtype=torch.float64)
+    y = x @ torch.tensor([[1.0], [-2.0], [0.5]], dtype=torch.float64) + 0.3
+    return model, x, y
+
+
+def test_train_fits_a_linear_model() -> None:
+    model, x, y = _problem()
+    opt = torch.optim.Adam(model.parameters(), lr=0.05)
+    seen: list[int] = []
+
+    def loss_fn(step: int):
+        loss = ((model(x) - y) ** 2).mean()
+        return loss, {"rmse": loss.sqrt()}
+
+    res = train(
+        loss_fn, opt, 300, progress=False, callback=lambda s, v, m: seen.append(s), grad_clip=10.0
+    )
+    assert len(res.losses) == 300 and seen == list(range(300)) and res.step == 300
+    assert res.losses[-1] < 1e-4 * res.losses[0]
+    assert set(res.metrics) == {"rmse"} and res.skipped == 0 and res.seconds_per_step > 0
+    w = model.weight.detach().reshape(-1)
+    assert torch.allclose(w, torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64), atol=1e-3)
+
+
+def test_checkpoint_round_trip_and_resume_equals_one_run(tmp_path) -> None:
+    def run(model: nn.Module, opt: torch.optim.Optimizer, steps: int, start: int = 0, **kw):
+        _, x, y = _problem()
+        return train(
+            lambda s: ((model(x) - y) ** 2).mean(), opt, steps, start_step=start, progress=False, **kw
+        )
+
+    ref, _, _ = _problem()
+    run(ref, torch.optim.Adam(ref.parameters(), lr=0.05), 20)
+
+    model, _, _ = _problem()
+    opt = torch.optim.Adam(model.parameters(), lr=0.05)
+    path = tmp_path / "ckpt" / "model.pt"
+    res = run(model, opt, 10, checkpoint=path, checkpoint_every=5, module=model)
+    assert path.exists() and res.step == 10
+    fresh, _, _ = _problem()
+    with torch.no_grad():
+        fresh.weight.zero_()
+    fresh_opt = torch.optim.Adam(fresh.parameters(), lr=0.05)
+    info = load_checkpoint(path, fresh, fresh_opt)
+    assert info["step"] == 10
+    assert torch.equal(fresh.weight, model.weight)
+    run(fresh, fresh_opt, 10, start=info["step"])
+    assert torch.allclose(fresh.weight, ref.weight, atol=1e-12)
+    assert torch.allclose(fresh.bias, ref.bias, atol=1e-12)
+
+    save_checkpoint(tmp_path / "plain.pt", model, step=3, note="x")
+    info = load_checkpoint(tmp_path / "plain.pt", fresh)
+    assert info == {"step": 3, "extra": {"note": "x"}}
+    with pytest.raises(ValueError, match="no optimizer state"):
+        load_checkpoint(tmp_path / "plain.pt", fresh, fresh_opt)
+
+
+def test_non_finite_steps_are_skipped() -> None:
+    model, x, y = _problem()
+    opt = torch.optim.SGD(model.parameters(), lr=0.01)
+    before = model.weight.detach().clone()
+
+    def loss_fn(step: int) -> torch.Tensor:
+        loss = ((model(x) - y) ** 2).mean()
+        return loss * float("nan") if step == 0 else loss
+
+    with pytest.warns(UserWarning, match="non-finite"):
+        res = train(loss_fn, opt, 2, progress=False)
+    assert res.skipped == 1 and torch.isfinite(model.weight).all()
+    assert not torch.equal(model.weight, before)  # step 1 did update
+
+
+def test_train_errors() -> None:
+    model, _, _ = _problem()
+    opt = torch.optim.SGD(model.parameters(), lr=0.1)
+    with pytest.raises(ValueError, match="steps"):
+        train(lambda s: model.weight.sum(), opt, -1)
+    with pytest.raises(TypeError, match="optimizer"):
+        train(lambda s: model.weight.sum(), "adam", 1)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="module="):
+        train(lambda s: model.weight.sum(), opt, 1, checkpoint="x.pt")
+    with pytest.raises(ValueError, match="scalar"):
+        train(lambda s: model.weight, opt, 1, progress=False)
+
+
+def test_mlp_normalises_its_input(dtype) -> None:
+    torch.manual_seed(0)
+    net = MLP(2, (8, 8), low=[-4.0, 0.0], high=[0.0, 10.0], activation="silu").to(dtype)
+    x = torch.tensor([[-2.0, 5.0], [0.0, 10.0]], dtype=dtype)
+    z = torch.tensor([[0.0, 0.0], [1.0, 1.0]], dtype=dtype)
+    assert torch.allclose(net(x), net.layers(z))
+    assert net(x).shape == (2, 1) and net(x[0]).shape == (1,)
+    assert net(torch.zeros(3, 4, 2, dtype=dtype)).shape == (3, 4, 1)
+    with pytest.raises(ValueError, match="activation"):
+        MLP(2, activation="relu6")
+    with pytest.raises(ValueError, match="high must exceed low"):
+        MLP(2, low=[0.0, 0.0], high=[1.0, 0.0])
