@@ -183,3 +183,21 @@ def test_bad_inputs() -> None:
         simulate(dyn, torch.zeros(3, 2), 5, 0.1, seed=[1, 2])
     with pytest.raises(TypeError, match="dynamics must be a ControlAffine"):
         simulate(object(), torch.zeros(3, 2), 5, 0.1)
+
+
+def test_differentiable_rollout_matches_finite_differences() -> None:
+    dyn = SingleIntegrator(2).double()
+    gain = torch.tensor(1.5, dtype=torch.float64, requires_grad=True)
+    x0 = torch.tensor([[1.0, -0.5]], dtype=torch.float64)
+
+    def final_cost(g: torch.Tensor, differentiable: bool) -> torch.Tensor:
+        traj = simulate(dyn, x0, 10, 0.1, nominal=lambda x, t: -g * x, progress=False, differentiable=differentiable)
+        return (traj.x[:, -1] ** 2).sum()
+
+    cost = final_cost(gain, True)
+    (grad,) = torch.autograd.grad(cost, gain)
+    eps = 1e-6
+    with torch.no_grad():
+        fd = (final_cost(gain + eps, False) - final_cost(gain - eps, False)) / (2 * eps)
+    torch.testing.assert_close(grad, fd, atol=1e-7, rtol=1e-6)
+    assert not final_cost(gain, False).requires_grad

@@ -44,7 +44,9 @@ def _seeds(seed: int | Sequence[int] | Tensor, batch: int, device: torch.device)
         return torch.arange(batch, device=device, dtype=torch.int64) + seed
     seeds = torch.as_tensor(seed, dtype=torch.int64, device=device).reshape(-1)
     if seeds.shape != (batch,):
-        raise ValueError(f"seed must be an int or hold one seed per scenario ({batch}), got {tuple(seeds.shape)}")
+        raise ValueError(
+            f"seed must be an int or hold one seed per scenario ({batch}), got {tuple(seeds.shape)}"
+        )
     return seeds
 
 
@@ -72,6 +74,7 @@ def simulate(
     planner_every: int = 1,
     disturbance: Callable[[Tensor, float], Tensor] | None = None,
     snapshot_steps: Sequence[int] = (),
+    differentiable: bool = False,
 ) -> Trajectory:
     """Run B scenarios of the closed loop for ``steps`` steps of ``dt``.
 
@@ -88,11 +91,58 @@ def simulate(
         disturbance: ``w = disturbance(x, t) -> [B, p]`` entering as ``M w``.
         snapshot_steps: steps at which the planner's whole output is kept in
             ``Trajectory.planner``.
+        differentiable: keep the autograd graph through the whole loop (to train through
+            rollouts: gradients of the trajectory with respect to the controllers', filters'
+            and barriers' parameters and ``x0``). Off by default: the loop then runs under
+            ``torch.no_grad()``, faster and with no graph kept.
 
     Returns:
         A :class:`Trajectory`. A scenario whose state or a component's output goes non-finite
         is flagged in ``failed``/``fail_step`` and frozen; the others run on untouched.
     """
+    with torch.set_grad_enabled(differentiable and torch.is_grad_enabled()):
+        return _simulate(
+            dynamics,
+            x0,
+            steps,
+            dt,
+            planner,
+            nominal,
+            safety_filter,
+            sensor,
+            estimator,
+            integrator,
+            seed,
+            progress,
+            x0_hat,
+            P0,
+            t0,
+            planner_every,
+            disturbance,
+            snapshot_steps,
+        )
+
+
+def _simulate(
+    dynamics: ControlAffine,
+    x0: Tensor,
+    steps: int,
+    dt: float,
+    planner: Callable[..., Any] | None,
+    nominal: Callable[..., Tensor] | None,
+    safety_filter: Callable[..., Any] | None,
+    sensor: Any | None,
+    estimator: Any | None,
+    integrator: str,
+    seed: int | Sequence[int] | Tensor,
+    progress: bool,
+    x0_hat: Tensor | None,
+    P0: Tensor | None,
+    t0: float,
+    planner_every: int,
+    disturbance: Callable[[Tensor, float], Tensor] | None,
+    snapshot_steps: Sequence[int],
+) -> Trajectory:
     if not isinstance(dynamics, ControlAffine):
         raise TypeError(f"dynamics must be a ControlAffine module, got {type(dynamics).__name__}")
     check_last_dim("x0", x0, dynamics.state_dim)
@@ -140,7 +190,9 @@ def simulate(
         failed = failed | new
 
     def clean(value: Tensor) -> Tensor:
-        return torch.where(failed.view(-1, *([1] * (value.dim() - 1))), torch.zeros_like(value), value)
+        return torch.where(
+            failed.view(-1, *([1] * (value.dim() - 1))), torch.zeros_like(value), value
+        )
 
     est_state = None
     if estimator is not None:

@@ -174,11 +174,13 @@ def plot_rollouts(
     index: tuple[int, int] = (0, 1),
     ax: Axes | None = None,
     title: str = "MPPI rollouts",
+    plan_label: str = "chosen plan",
     xlim: tuple[float, float] | None = None,
     ylim: tuple[float, float] | None = None,
 ) -> Figure:
     """Sampled rollouts ``[K, H+1, n]`` coloured by their weight ``[K]`` (the paper's third
-    figure), the chosen plan's states ``[H+1, n]`` and the executed path ``[T, n]``."""
+    figure), a plan's states ``[H+1, n]`` (labelled ``plan_label``) and the executed path
+    ``[T, n]``."""
     fig, ax = (ax.figure, ax) if ax is not None else plt.subplots(figsize=(6, 6))
     R = _np(rollouts)[..., list(index)]
     w = _np(weights).astype(float)
@@ -198,7 +200,7 @@ def plot_rollouts(
         ax.plot(E[:, 0], E[:, 1], "k-", lw=2.0, label="executed")
     if plan_states is not None:
         P = _np(plan_states)[..., list(index)]
-        ax.plot(P[:, 0], P[:, 1], color="tab:orange", lw=2.5, label="chosen plan")
+        ax.plot(P[:, 0], P[:, 1], color="tab:orange", lw=2.5, label=plan_label)
     ax.set_xlim(*xlim)
     ax.set_ylim(*ylim)
     ax.set_aspect("equal")
