@@ -12,15 +12,20 @@ Usage::
 
     python scripts/bench_mppi.py            # (K, H) in (1000, 50), (10000, 50), (20000, 80)
     python scripts/bench_mppi.py --quick    # (1000, 50) only, fewer repeats
+    python scripts/bench_mppi.py --threads 1 --device cuda
+
+Each (planner, K, H) runs in its own subprocess so that peak memory is per planner.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import resource
+import subprocess
+import sys
 import time
-import tracemalloc
 from collections.abc import Callable
 
 import torch
@@ -58,22 +63,30 @@ def torchcbf_cost() -> SumCost:
     return SumCost(goal, *(BarrierCost(_Ellipse(c, a), 2.0, 0.01) for c, a in ELLIPSES))
 
 
-def make_torchcbf(K: int, H: int, compile: bool) -> Callable[[torch.Tensor], object]:
+def make_torchcbf(K: int, H: int, compile: bool, device: str) -> Callable[[torch.Tensor], object]:
     planner = MPPI(
-        AccelUnicycle(), torchcbf_cost(), H, K, DT, torch.eye(2), TEMPERATURE, GAMMA,
-        seed=0, compile=compile,
-    )
+        AccelUnicycle(),
+        torchcbf_cost(),
+        H,
+        K,
+        DT,
+        torch.eye(2),
+        TEMPERATURE,
+        GAMMA,
+        seed=0,
+        compile=compile,
+    ).to(device)
     return lambda x: planner(x)
 
 
-def make_pytorch_mppi(K: int, H: int) -> Callable[[torch.Tensor], object] | None:
+def make_pytorch_mppi(K: int, H: int, device: str) -> Callable[[torch.Tensor], object] | None:
     try:
         from pytorch_mppi import MPPI as PMPPI
     except ImportError:
         return None
-    goal = torch.tensor(GOAL)
-    centers = torch.tensor([c for c, _ in ELLIPSES])
-    axes = torch.tensor([a for _, a in ELLIPSES])
+    goal = torch.tensor(GOAL, device=device)
+    centers = torch.tensor([c for c, _ in ELLIPSES], device=device)
+    axes = torch.tensor([a for _, a in ELLIPSES], device=device)
 
     def dynamics(x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         v, th = x[:, 2], x[:, 3]
@@ -89,8 +102,15 @@ def make_pytorch_mppi(K: int, H: int) -> Callable[[torch.Tensor], object] | None
         return 10.0 * ((states[..., -1, :2] - goal) ** 2).sum(-1)
 
     planner = PMPPI(
-        dynamics, running_cost, 4, torch.eye(2), num_samples=K, horizon=H,
-        terminal_state_cost=terminal, lambda_=TEMPERATURE,
+        dynamics,
+        running_cost,
+        4,
+        torch.eye(2, device=device),
+        num_samples=K,
+        horizon=H,
+        terminal_state_cost=terminal,
+        lambda_=TEMPERATURE,
+        device=device,
     )
     return lambda x: planner.command(x)
 
@@ -100,16 +120,31 @@ def timed(step: Callable[[torch.Tensor], object], x: torch.Tensor, warmup: int, 
     for _ in range(warmup):
         step(x)
     first = time.perf_counter() - t
-    tracemalloc.start()
     times = []
     for _ in range(reps):
         t = time.perf_counter()
         step(x)
         times.append(time.perf_counter() - t)
-    _, peak = tracemalloc.get_traced_memory()
-    tracemalloc.stop()
     times.sort()
-    return times[len(times) // 2], first, peak
+    return times[len(times) // 2], first
+
+
+def run_one(name: str, K: int, H: int, reps: int, device: str) -> dict[str, float]:
+    """One planner in this process: median s/step, first calls (incl. compile), peak memory."""
+    x0 = torch.tensor([0.0, 0.0, 0.0, math.pi / 4], device=device)
+    base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    if name == "pytorch-mppi":
+        step = make_pytorch_mppi(K, H, device)
+        if step is None:
+            return {}
+    else:
+        step = make_torchcbf(K, H, name == "compiled", device)
+    med, first = timed(step, x0, 2, reps)
+    if device == "cuda":
+        peak = torch.cuda.max_memory_allocated() / 2**20
+    else:  # growth of the process's peak resident set over the imports
+        peak = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base_rss) / 1024
+    return {"median": med, "first": first, "peak_mib": peak}
 
 
 def main() -> None:
@@ -117,35 +152,45 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="(1000, 50) only, 3 repeats")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--reps", type=int, default=7)
+    parser.add_argument("--device", default="cpu")
     parser.add_argument("--no-compile", action="store_true", help="skip the compiled planner")
+    parser.add_argument("--one", nargs=3, metavar=("NAME", "K", "H"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    sizes = [(1000, 50)] if args.quick else [(1000, 50), (10000, 50), (20000, 80)]
     reps = 3 if args.quick else args.reps
-    x0 = torch.tensor([0.0, 0.0, 0.0, math.pi / 4])
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, float32, CPU")
-    print("time per planning step (median), first call incl. compile, tracemalloc peak (Python")
-    print("allocations; torch tensors are not tracked) and process max RSS")
-    header = f"{'K':>6} {'H':>3}  {'planner':<18} {'s/step':>9} {'first s':>8} {'ratio':>7}"
-    print(header + f" {'RSS MiB':>8}")
+    if args.one:
+        name, K, H = args.one[0], int(args.one[1]), int(args.one[2])
+        print(json.dumps(run_one(name, K, H, reps, args.device)))
+        return
+    sizes = [(1000, 50)] if args.quick else [(1000, 50), (10000, 50), (20000, 80)]
+    names = ["pytorch-mppi", "eager"] + ([] if args.no_compile else ["compiled"])
+    print(f"torch {torch.__version__}, {args.threads} threads, float32, {args.device}")
+    print("median time per planning step; first = the 2 warm-up calls (incl. compile);")
+    print("peak = growth of peak RSS in a fresh process (CPU) or max_memory_allocated (CUDA)")
+    print(
+        f"{'K':>6} {'H':>3}  {'planner':<18} {'s/step':>9} {'first s':>8} {'ratio':>7}"
+        f" {'peak MiB':>9}"
+    )
     for K, H in sizes:
-        rows: list[tuple[str, float, float]] = []
-        peer = make_pytorch_mppi(K, H)
-        if peer is None:
-            print("pytorch-mppi not installed: peer skipped")
-        else:
-            med, first, _ = timed(peer, x0, 2, reps)
-            rows.append(("pytorch-mppi 0.9.1", med, first))
-        med, first, _ = timed(make_torchcbf(K, H, False), x0, 2, reps)
-        rows.append(("torchcbf eager", med, first))
-        if not args.no_compile:
-            med, first, _ = timed(make_torchcbf(K, H, True), x0, 2, reps)
-            rows.append(("torchcbf compiled", med, first))
-        ref = rows[0][1] if peer is not None else None
-        for name, med, first in rows:
-            ratio = f"{med / ref:7.2f}" if ref else "    n/a"
-            rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-            print(f"{K:>6} {H:>3}  {name:<18} {med:9.4f} {first:8.2f} {ratio} {rss:8.0f}")
+        ref = None
+        for name in names:
+            cmd = [sys.executable, __file__, "--one", name, str(K), str(H)]
+            cmd += ["--threads", str(args.threads), "--reps", str(reps), "--device", args.device]
+            out = subprocess.run(cmd, capture_output=True, text=True, check=True)
+            res = json.loads(out.stdout.strip().splitlines()[-1])
+            label = {"pytorch-mppi": "pytorch-mppi 0.9.1", "eager": "torchcbf eager"}.get(
+                name, "torchcbf compiled"
+            )
+            if not res:
+                print(f"{K:>6} {H:>3}  {label:<18} not installed, skipped")
+                continue
+            if name == "pytorch-mppi":
+                ref = res["median"]
+            ratio = f"{res['median'] / ref:7.2f}" if ref else "    n/a"
+            print(
+                f"{K:>6} {H:>3}  {label:<18} {res['median']:9.4f} {res['first']:8.2f} {ratio}"
+                f" {res['peak_mib']:9.0f}"
+            )
 
 
 if __name__ == "__main__":
