@@ -8,8 +8,8 @@ one. The loss is
 
     classification (smooth hinge with margins, labels from the occupancy dilated by
     --dilate, on minibatches of a precomputed labelled set)
-    + CBF condition at the filter's solution u* (relu(-(L_g h u* + alpha h))) on freshly
-    sampled states with the nominal control,
+    + CBF condition at the filter's solution u* (relu(-(L_g h u* + alpha h))) on the
+    minibatch's states labelled safe, with the nominal control,
 
 the second back-propagated through the batched QP of the safety filter. Then a goal-seeking
 nominal controller is filtered by the learned barrier from held-out starts sampled in free
@@ -44,7 +44,6 @@ from torchcbf.learning import (
     sample_free,
     sample_labelled,
     train,
-    uniform_box,
 )
 from torchcbf.scenarios.mppi_cbf import obstacles
 from torchcbf.sim import simulate
@@ -129,7 +128,9 @@ def main() -> None:
         x, safe = data.x[idx], data.safe[idx]
         h = barrier(x)
         l_cls = classification_loss(h, safe, margin=args.hinge, temperature=args.temperature)
-        xc = uniform_box(lo, hi, args.cbf_batch, generator=gen)
+        # the CBF condition must hold on the safe set; imposed inside the obstacles too it
+        # fights the classification (raising h there satisfies it trivially)
+        xc = x[safe][: args.cbf_batch]
         l_cbf = cbf_condition_loss(filt, xc, nominal(xc, 0.0))
         acc = classification_accuracy(h, safe)
         return l_cls + args.cbf_weight * l_cbf, {"cls": l_cls, "cbf": l_cbf, "acc": acc}

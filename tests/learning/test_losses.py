@@ -173,6 +173,7 @@ def test_closed_loop_loss_gradient_through_simulate_matches_finite_differences()
             nominal=lambda x, t: (goal - x).clamp(-2, 2),
             safety_filter=filt,
             progress=False,
+            differentiable=True,
         )
         return closed_loop_loss(traj, ball, goal=goal, goal_weight=1.0).total
 

@@ -41,9 +41,8 @@ def test_train_fits_a_linear_model() -> None:
 def test_checkpoint_round_trip_and_resume_equals_one_run(tmp_path) -> None:
     def run(model: nn.Module, opt: torch.optim.Optimizer, steps: int, start: int = 0, **kw):
         _, x, y = _problem()
-        return train(
-            lambda s: ((model(x) - y) ** 2).mean(), opt, steps, start_step=start, progress=False, **kw
-        )
+        loss_fn = lambda s: ((model(x) - y) ** 2).mean()  # noqa: E731
+        return train(loss_fn, opt, steps, start_step=start, progress=False, **kw)
 
     ref, _, _ = _problem()
     run(ref, torch.optim.Adam(ref.parameters(), lr=0.05), 20)

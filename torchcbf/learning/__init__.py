@@ -3,8 +3,8 @@
 The whole loop is differentiable: a :class:`~torchcbf.barriers.NeuralBarrier`'s Lie
 derivatives (autograd with ``create_graph``), the batched QP of
 :class:`~torchcbf.filters.SafetyFilter` (implicit differentiation of its KKT conditions) and
-closed-loop rollouts (:func:`torchcbf.sim.simulate` keeps the graph). This package adds the
-data (:mod:`~torchcbf.learning.sampling`), losses (:mod:`~torchcbf.learning.losses`), a
+closed-loop rollouts (:func:`torchcbf.sim.simulate` with ``differentiable=True``). This
+package adds the data (:mod:`~torchcbf.learning.sampling`), losses (:mod:`~torchcbf.learning.losses`), a
 small smooth network (:class:`MLP`) and a training loop with checkpoints (:func:`train`).
 
 Example (classification plus the CBF condition at the filter's solution)::
@@ -20,7 +20,8 @@ Example (classification plus the CBF condition at the filter's solution)::
     def loss_fn(step):
         data = sample_labelled(train_occ, lo, hi, 4096, generator=gen)
         l_cls = classification_loss(barrier(data.x), data.safe, margin=0.05)
-        l_cbf = cbf_condition_loss(filt, data.x, nominal(data.x, 0.0), margin=0.05)
+        xs = data.x[data.safe]                         # the condition holds on the safe set
+        l_cbf = cbf_condition_loss(filt, xs, nominal(xs, 0.0))
         return l_cls + l_cbf, {"cls": l_cls, "cbf": l_cbf}
 
     train(loss_fn, opt, steps=500, checkpoint="barrier.pt", module=barrier)

@@ -9,7 +9,7 @@ Three families, all differentiable end to end (autograd Lie derivatives with
    mode), so the loss sees the control input, its limits, and the QP.
 3. :func:`closed_loop_loss`: intervention size, collisions with the true obstacles and
    progress to a goal over a batch of differentiable rollouts
-   (:func:`torchcbf.sim.simulate` keeps the autograd graph).
+   (:func:`torchcbf.sim.simulate` with ``differentiable=True`` keeps the autograd graph).
 """
 
 from __future__ import annotations
