@@ -4,8 +4,9 @@ The whole loop is differentiable: a :class:`~torchcbf.barriers.NeuralBarrier`'s 
 derivatives (autograd with ``create_graph``), the batched QP of
 :class:`~torchcbf.filters.SafetyFilter` (implicit differentiation of its KKT conditions) and
 closed-loop rollouts (:func:`torchcbf.sim.simulate` with ``differentiable=True``). This
-package adds the data (:mod:`~torchcbf.learning.sampling`), losses (:mod:`~torchcbf.learning.losses`), a
-small smooth network (:class:`MLP`) and a training loop with checkpoints (:func:`train`).
+package adds the data (:mod:`~torchcbf.learning.sampling`), losses
+(:mod:`~torchcbf.learning.losses`), a small smooth network (:class:`MLP`) and a training
+loop with checkpoints (:func:`train`).
 
 Example (classification plus the CBF condition at the filter's solution)::
 
