@@ -111,8 +111,8 @@ def test_robust_filter_against_worst_case_disturbance() -> None:
         runs[mode] = simulate(
             dyn,
             x0,
-            300,
-            0.01,
+            80,
+            0.02,
             nominal=nominal,
             safety_filter=filt,
             disturbance=adversary,
