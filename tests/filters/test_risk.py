@@ -110,4 +110,4 @@ def test_risk_aware_exit_probability_several_rho(rho: float) -> None:
     rate = _exit_rate(filt, h0, seed=3, dt=0.01)
     vanilla = _exit_rate(_filters("vanilla", alpha=1.0), h0, seed=3, dt=0.01)
     assert rate <= rho, (rho, rate)
-    assert vanilla > 2 * rate, (vanilla, rate)
+    assert vanilla > rate + 0.1, (vanilla, rate)
