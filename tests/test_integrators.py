@@ -77,7 +77,9 @@ def test_batched_equals_loop(method: str, batch: tuple[int, ...]) -> None:
     out = step(model, x, u, 0.05, method=method)
     flat_x, flat_u, flat_out = x.reshape(-1, 2), u.reshape(-1, 1), out.reshape(-1, 2)
     for i in range(flat_x.shape[0]):
-        torch.testing.assert_close(flat_out[i], step(model, flat_x[i], flat_u[i], 0.05, method=method))
+        torch.testing.assert_close(
+            flat_out[i], step(model, flat_x[i], flat_u[i], 0.05, method=method)
+        )
 
 
 def test_euler_maruyama_variance_and_seeding() -> None:
@@ -106,7 +108,9 @@ def test_euler_maruyama_given_noise_and_no_diffusion() -> None:
     model = DoubleIntegrator(1, sigma=torch.tensor([0.0, 2.0])).double()
     x = torch.zeros(2, dtype=torch.float64)
     z = torch.tensor([0.3, -1.0], dtype=torch.float64)
-    out = step(model, x, torch.zeros(1, dtype=torch.float64), 0.04, method="euler_maruyama", noise=z)
+    out = step(
+        model, x, torch.zeros(1, dtype=torch.float64), 0.04, method="euler_maruyama", noise=z
+    )
     torch.testing.assert_close(out, torch.tensor([0.0, 0.2 * 2.0 * -1.0], dtype=torch.float64))
     ode = DoubleIntegrator(1)
     torch.testing.assert_close(

@@ -104,7 +104,10 @@ def _reach_avoid(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     from torchcbf.scenarios import reach_avoid
 
     scenario = reach_avoid(
-        num_seeds=args.seeds, num_samples=args.samples or 10_000, horizon=args.horizon or 50, seed=args.seed,
+        num_seeds=args.seeds,
+        num_samples=args.samples or 10_000,
+        horizon=args.horizon or 50,
+        seed=args.seed,
         device=args.device,
     )
     return {"reach-avoid": _run(scenario, out, "reach_avoid", args.progress, not args.no_gif)}
@@ -116,34 +119,53 @@ def _mppi_cbf(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     results = {}
     for method in args.methods.split(","):
         scenario = mppi_cbf(
-            method.strip(), num_seeds=args.seeds, num_samples=args.samples or 20_000, horizon=args.horizon or 80,
-            seed=args.seed, device=args.device,
+            method.strip(),
+            num_seeds=args.seeds,
+            num_samples=args.samples or 20_000,
+            horizon=args.horizon or 80,
+            seed=args.seed,
+            device=args.device,
         )
-        results[f"mppi-cbf/{method}"] = _run(scenario, out, f"mppi_cbf_{method}", args.progress, not args.no_gif)
+        results[f"mppi-cbf/{method}"] = _run(
+            scenario, out, f"mppi_cbf_{method}", args.progress, not args.no_gif
+        )
     return results
 
 
 def _bench(args: argparse.Namespace) -> int:
     scripts = Path(__file__).resolve().parent.parent / "scripts"
     if not scripts.is_dir():
-        print("torchcbf bench runs the scripts/bench_*.py of a source checkout; none found", file=sys.stderr)
+        print(
+            "torchcbf bench runs the scripts/bench_*.py of a source checkout; none found",
+            file=sys.stderr,
+        )
         return 2
     code = 0
     for name in BENCHES:
         path = scripts / name
         if path.exists():
-            cmd = [sys.executable, str(path), *(["--quick"] if args.quick else []), "--device", args.device]
+            cmd = [
+                sys.executable,
+                str(path),
+                *(["--quick"] if args.quick else []),
+                "--device",
+                args.device,
+            ]
             print(f"$ {' '.join(cmd)}", flush=True)
             code |= subprocess.call(cmd)
     return code
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="torchcbf", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="torchcbf", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     for name, seeds in (("reach-avoid", 10), ("mppi-cbf", 32), ("demo", 0)):
         p = sub.add_parser(name)
-        p.add_argument("--seeds", type=int, default=seeds or None, help="noise/planner seeds, run as one batch")
+        p.add_argument(
+            "--seeds", type=int, default=seeds or None, help="noise/planner seeds, run as one batch"
+        )
         p.add_argument("--samples", type=int, default=None, help="MPPI samples K")
         p.add_argument("--horizon", type=int, default=None, help="MPPI horizon H")
         p.add_argument("--seed", type=int, default=0, help="first seed")
@@ -171,10 +193,23 @@ def main(argv: list[str] | None = None) -> int:
     else:
         # Sizes that finish in a few minutes on 2 CPU cores; the paper's sizes are the defaults
         # of the two scenario commands.
-        demo_a = argparse.Namespace(**{**vars(args), "seeds": args.seeds or 4, "samples": args.samples or 10_000,
-                                       "horizon": args.horizon or 50})
-        demo_b = argparse.Namespace(**{**vars(args), "seeds": args.seeds or 8, "samples": args.samples or 2_000,
-                                       "horizon": args.horizon or 60, "methods": "scbf,mppi,mppi_scbf"})
+        demo_a = argparse.Namespace(
+            **{
+                **vars(args),
+                "seeds": args.seeds or 4,
+                "samples": args.samples or 10_000,
+                "horizon": args.horizon or 50,
+            }
+        )
+        demo_b = argparse.Namespace(
+            **{
+                **vars(args),
+                "seeds": args.seeds or 8,
+                "samples": args.samples or 2_000,
+                "horizon": args.horizon or 60,
+                "methods": "scbf,mppi,mppi_scbf",
+            }
+        )
         results = {**_reach_avoid(demo_a, out), **_mppi_cbf(demo_b, out)}
     (out / "metrics.json").write_text(json.dumps(results, indent=2))
     print(f"metrics: {out / 'metrics.json'}; figures: {out}/*.png, {out}/*.gif")

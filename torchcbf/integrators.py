@@ -18,12 +18,16 @@ Method = Literal["euler", "rk4", "euler_maruyama"]
 METHODS: tuple[str, ...] = ("euler", "rk4", "euler_maruyama")
 
 
-def euler(dynamics: ControlAffine, x: Tensor, u: Tensor, dt: float, w: Tensor | None = None) -> Tensor:
+def euler(
+    dynamics: ControlAffine, x: Tensor, u: Tensor, dt: float, w: Tensor | None = None
+) -> Tensor:
     """Explicit Euler: ``x + dt * xdot(x, u)``."""
     return x + dt * dynamics(x, u, w)
 
 
-def rk4(dynamics: ControlAffine, x: Tensor, u: Tensor, dt: float, w: Tensor | None = None) -> Tensor:
+def rk4(
+    dynamics: ControlAffine, x: Tensor, u: Tensor, dt: float, w: Tensor | None = None
+) -> Tensor:
     """Classical fourth-order Runge-Kutta with ``u`` (and ``w``) held over the step."""
     k1 = dynamics(x, u, w)
     k2 = dynamics(x + 0.5 * dt * k1, u, w)

@@ -129,7 +129,9 @@ def test_sigma_forms() -> None:
     scalar = AccelUnicycle(sigma=0.28).double().sigma(x)
     torch.testing.assert_close(scalar, 0.28 * torch.eye(4, dtype=torch.float64).expand(7, 4, 4))
     vec = AccelUnicycle(sigma=torch.tensor([0.1, 0.2, 0.3, 0.4])).double().sigma(x)
-    torch.testing.assert_close(vec[0], torch.diag(torch.tensor([0.1, 0.2, 0.3, 0.4], dtype=torch.float64)))
+    torch.testing.assert_close(
+        vec[0], torch.diag(torch.tensor([0.1, 0.2, 0.3, 0.4], dtype=torch.float64))
+    )
     mat = AccelUnicycle(sigma=torch.ones(4, 2)).sigma(x.float())
     assert mat.shape == (7, 4, 2)
 
@@ -143,10 +145,14 @@ def test_sigma_forms() -> None:
 
 def test_disturbance_and_clamp() -> None:
     M = torch.tensor([[1.0], [0.0]])
-    model = SingleIntegrator(2, disturbance_bound=0.5, disturbance_matrix=M, u_min=[-1, -2], u_max=[1, 2])
+    model = SingleIntegrator(
+        2, disturbance_bound=0.5, disturbance_matrix=M, u_min=[-1, -2], u_max=[1, 2]
+    )
     x, u, w = torch.zeros(3, 2), torch.ones(3, 2), torch.full((3, 1), 0.25)
     torch.testing.assert_close(model(x, u, w), torch.tensor([[1.25, 1.0]]).expand(3, 2))
-    torch.testing.assert_close(model.clamp_control(torch.tensor([5.0, -5.0])), torch.tensor([1.0, -2.0]))
+    torch.testing.assert_close(
+        model.clamp_control(torch.tensor([5.0, -5.0])), torch.tensor([1.0, -2.0])
+    )
     assert model.disturbance_bound.shape == (1,)
 
 

@@ -76,7 +76,18 @@ def test_mppi_cbf_rejects_unknown_method() -> None:
 
 def test_cli_writes_metrics_and_figures(tmp_path, capsys) -> None:
     code = main(
-        ["reach-avoid", "--seeds", "2", "--samples", "256", "--horizon", "20", "--out", str(tmp_path), "--no-progress"]
+        [
+            "reach-avoid",
+            "--seeds",
+            "2",
+            "--samples",
+            "256",
+            "--horizon",
+            "20",
+            "--out",
+            str(tmp_path),
+            "--no-progress",
+        ]
     )
     assert code == 0
     data = json.loads((tmp_path / "metrics.json").read_text())

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from torchcbf.dynamics import AccelUnicycle, SingleIntegrator
+from torchcbf.estimation import EKF, GaussianSensor
 from torchcbf.integrators import step
 from torchcbf.sim import Goal, Trajectory, metrics, simulate, summarize, wilson_interval
 
@@ -35,15 +36,6 @@ class _TowardsOrigin:
         return _Plan(plan[:, 0], plan)
 
 
-class _NoisySensor(torch.nn.Module):
-    def __init__(self, std: float) -> None:
-        super().__init__()
-        self.register_buffer("R", std**2 * torch.eye(4, dtype=torch.float64))
-
-    def expected(self, x: torch.Tensor) -> torch.Tensor:
-        return x
-
-
 def _heading_controller(x: torch.Tensor, t: float) -> torch.Tensor:
     goal = x.new_tensor([2.0, 4.0])
     d = goal - x[..., :2]
@@ -58,17 +50,30 @@ def test_batch_equals_single_runs_with_same_seeds() -> None:
     x0 = torch.tensor([[0.0, 0.0, 0.0, math.pi / 4]], dtype=torch.float64).repeat(4, 1)
     x0[:, 0] += torch.arange(4, dtype=torch.float64) * 0.1
     seeds = [11, 5, 7, 3]
-    sensor = _NoisySensor(0.05)
-    batch = simulate(dyn, x0, 40, 0.01, nominal=_heading_controller, sensor=sensor, seed=seeds, progress=False)
+    sensor = GaussianSensor(std=0.05, state_dim=4).double()
+    batch = simulate(
+        dyn, x0, 40, 0.01, nominal=_heading_controller, sensor=sensor, seed=seeds, progress=False
+    )
     for b in range(4):
         single = simulate(
-            dyn, x0[b : b + 1], 40, 0.01, nominal=_heading_controller, sensor=sensor, seed=[seeds[b]], progress=False
+            dyn,
+            x0[b : b + 1],
+            40,
+            0.01,
+            nominal=_heading_controller,
+            sensor=sensor,
+            seed=[seeds[b]],
+            progress=False,
         )
         torch.testing.assert_close(batch.x[b], single.x[0], atol=1e-12, rtol=0)
         torch.testing.assert_close(batch.x_hat[b], single.x_hat[0], atol=1e-12, rtol=0)
-    again = simulate(dyn, x0, 40, 0.01, nominal=_heading_controller, sensor=sensor, seed=seeds, progress=False)
+    again = simulate(
+        dyn, x0, 40, 0.01, nominal=_heading_controller, sensor=sensor, seed=seeds, progress=False
+    )
     assert torch.equal(batch.x, again.x)
-    other = simulate(dyn, x0, 40, 0.01, nominal=_heading_controller, sensor=sensor, seed=0, progress=False)
+    other = simulate(
+        dyn, x0, 40, 0.01, nominal=_heading_controller, sensor=sensor, seed=0, progress=False
+    )
     assert not torch.equal(batch.x, other.x)
 
 
@@ -111,7 +116,9 @@ def test_planner_at_lower_rate_follows_its_plan() -> None:
     dyn = SingleIntegrator(2).double()
     planner = _TowardsOrigin()
     x0 = torch.ones(2, 2, dtype=torch.float64)
-    traj = simulate(dyn, x0, 12, 0.1, planner=planner, planner_every=4, snapshot_steps=[0, 8], progress=False)
+    traj = simulate(
+        dyn, x0, 12, 0.1, planner=planner, planner_every=4, snapshot_steps=[0, 8], progress=False
+    )
     assert planner.calls == pytest.approx([0.0, 0.4, 0.8])
     assert set(traj.planner) == {0, 8}
     # steps 0..3 after a replan use plan indices 0, 0, 1, 1 (planner dt 0.2, loop dt 0.1)
@@ -120,17 +127,29 @@ def test_planner_at_lower_rate_follows_its_plan() -> None:
     torch.testing.assert_close(traj.u[:, 2], plan0[:, 1])
     # a nominal controller receives the planner's control
     seen: list[torch.Tensor] = []
-    simulate(dyn, x0, 3, 0.1, planner=_TowardsOrigin(), nominal=lambda x, t, up: seen.append(up) or up, progress=False)
+    simulate(
+        dyn,
+        x0,
+        3,
+        0.1,
+        planner=_TowardsOrigin(),
+        nominal=lambda x, t, up: seen.append(up) or up,
+        progress=False,
+    )
     assert len(seen) == 3
 
 
 def test_trajectory_round_trips(tmp_path) -> None:
     dyn = SingleIntegrator(2)
-    traj = simulate(dyn, torch.randn(3, 2), 5, 0.1, planner=_TowardsOrigin(), snapshot_steps=[0], progress=False)
+    traj = simulate(
+        dyn, torch.randn(3, 2), 5, 0.1, planner=_TowardsOrigin(), snapshot_steps=[0], progress=False
+    )
     path = tmp_path / "traj.pt"
     traj.save(path)
     loaded = Trajectory.load(path)
-    assert torch.equal(loaded.x, traj.x) and torch.equal(loaded.planner[0].plan, traj.planner[0].plan)
+    assert torch.equal(loaded.x, traj.x) and torch.equal(
+        loaded.planner[0].plan, traj.planner[0].plan
+    )
     arrays = traj.numpy()
     assert arrays["x"].shape == (3, 6, 2) and arrays["planner"][0]["plan"].shape == (3, 5, 2)
     assert traj.to("cpu").u.device.type == "cpu"
@@ -141,7 +160,9 @@ def test_trajectory_round_trips(tmp_path) -> None:
 def test_metrics_against_a_loop() -> None:
     dyn = SingleIntegrator(2).double()
     x0 = torch.tensor([[-2.0, 0.05], [-2.0, 1.5], [-2.0, -0.3]], dtype=torch.float64)
-    traj = simulate(dyn, x0, 40, 0.1, nominal=lambda x, t: x.new_tensor([1.0, 0.0]).expand_as(x), progress=False)
+    traj = simulate(
+        dyn, x0, 40, 0.1, nominal=lambda x, t: x.new_tensor([1.0, 0.0]).expand_as(x), progress=False
+    )
 
     def ball(x: torch.Tensor) -> torch.Tensor:
         return (x**2).sum(-1) - 0.5**2
@@ -156,7 +177,12 @@ def test_metrics_against_a_loop() -> None:
             assert float(m["first_collision_time"][b]) == pytest.approx(0.1 * hit[0])
         else:
             assert math.isnan(float(m["first_collision_time"][b]))
-        reached = [k for k in range(41) if float((traj.x[b, k] - traj.x.new_tensor([2.0, 0.0])).norm()) <= 0.5 and k * 0.1 <= 3.9 + 1e-9]
+        reached = [
+            k
+            for k in range(41)
+            if float((traj.x[b, k] - traj.x.new_tensor([2.0, 0.0])).norm()) <= 0.5
+            and k * 0.1 <= 3.9 + 1e-9
+        ]
         assert bool(m["goal0_reached"][b]) == bool(reached)
     assert m["collision"].tolist() == [True, False, True]
     s = summarize(m)
@@ -191,7 +217,15 @@ def test_differentiable_rollout_matches_finite_differences() -> None:
     x0 = torch.tensor([[1.0, -0.5]], dtype=torch.float64)
 
     def final_cost(g: torch.Tensor, differentiable: bool) -> torch.Tensor:
-        traj = simulate(dyn, x0, 10, 0.1, nominal=lambda x, t: -g * x, progress=False, differentiable=differentiable)
+        traj = simulate(
+            dyn,
+            x0,
+            10,
+            0.1,
+            nominal=lambda x, t: -g * x,
+            progress=False,
+            differentiable=differentiable,
+        )
         return (traj.x[:, -1] ** 2).sum()
 
     cost = final_cost(gain, True)
@@ -201,3 +235,27 @@ def test_differentiable_rollout_matches_finite_differences() -> None:
         fd = (final_cost(gain + eps, False) - final_cost(gain - eps, False)) / (2 * eps)
     torch.testing.assert_close(grad, fd, atol=1e-7, rtol=1e-6)
     assert not final_cost(gain, False).requires_grad
+
+
+def test_sensor_and_estimator_close_the_loop() -> None:
+    """With a noisy position sensor, the EKF estimate the controller sees is closer to the
+    truth than the raw measurements are."""
+    dyn = AccelUnicycle(sigma=0.05).double()
+    sensor = GaussianSensor(C=torch.eye(4, dtype=torch.float64)[:2], std=0.2).double()
+    ekf = EKF(dyn, sensor).double()
+    x0 = torch.tensor([0.0, 0.0, 0.5, math.pi / 4], dtype=torch.float64).repeat(64, 1)
+    P0 = 1e-4 * torch.eye(4, dtype=torch.float64)
+    traj = simulate(
+        dyn,
+        x0,
+        200,
+        0.01,
+        nominal=_heading_controller,
+        sensor=sensor,
+        estimator=ekf,
+        P0=P0,
+        progress=False,
+    )
+    est_err = (traj.x_hat[:, 50:, :2] - traj.x[:, 50:, :2]).norm(dim=-1).pow(2).mean().sqrt()
+    assert float(est_err) < 0.5 * 0.2 * math.sqrt(2)
+    assert not bool(traj.failed.any())

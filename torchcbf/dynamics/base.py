@@ -63,7 +63,11 @@ class ControlAffine(nn.Module):
             self.sigma_matrix = _sigma_matrix(sigma, self.state_dim)
         self.register_buffer("u_min", _limit("u_min", u_min, self.control_dim))
         self.register_buffer("u_max", _limit("u_max", u_max, self.control_dim))
-        if self.u_min is not None and self.u_max is not None and bool((self.u_min > self.u_max).any()):
+        if (
+            self.u_min is not None
+            and self.u_max is not None
+            and bool((self.u_min > self.u_max).any())
+        ):
             raise ValueError(f"u_min {self.u_min.tolist()} exceeds u_max {self.u_max.tolist()}")
         self.register_buffer("disturbance_matrix", None)
         self.register_buffer("disturbance_bound", None)
@@ -75,7 +79,8 @@ class ControlAffine(nn.Module):
             )
             if M.dim() != 2 or M.shape[0] != self.state_dim:
                 raise ValueError(
-                    f"disturbance_matrix must have shape [{self.state_dim}, p], got {tuple(M.shape)}"
+                    f"disturbance_matrix must have shape [{self.state_dim}, p], "
+                    f"got {tuple(M.shape)}"
                 )
             w_max = _limit("disturbance_bound", disturbance_bound or 0.0, M.shape[1])
             if bool((w_max < 0).any()):

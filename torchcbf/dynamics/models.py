@@ -82,7 +82,9 @@ class Unicycle(ControlAffine):
     def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
         theta = x[..., 2]
         v, omega = u[..., 0], u[..., 1]
-        return torch.stack(torch.broadcast_tensors(v * torch.cos(theta), v * torch.sin(theta), omega), -1)
+        return torch.stack(
+            torch.broadcast_tensors(v * torch.cos(theta), v * torch.sin(theta), omega), -1
+        )
 
 
 class AccelUnicycle(ControlAffine):
@@ -104,7 +106,9 @@ class AccelUnicycle(ControlAffine):
 
     def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
         v, theta = x[..., 2], x[..., 3]
-        parts = torch.broadcast_tensors(v * torch.cos(theta), v * torch.sin(theta), u[..., 0], u[..., 1])
+        parts = torch.broadcast_tensors(
+            v * torch.cos(theta), v * torch.sin(theta), u[..., 0], u[..., 1]
+        )
         return torch.stack(parts, -1)
 
 
@@ -118,7 +122,9 @@ class Bicycle(ControlAffine):
 
     def __init__(self, wheelbase: float = 1.0, **kwargs: Any) -> None:
         super().__init__(4, 2, **kwargs)
-        self.register_buffer("wheelbase", torch.tensor(check_positive("wheelbase", wheelbase), dtype=torch.float64))
+        self.register_buffer(
+            "wheelbase", torch.tensor(check_positive("wheelbase", wheelbase), dtype=torch.float64)
+        )
 
     def f(self, x: Tensor) -> Tensor:
         return torch.zeros_like(x)
@@ -167,7 +173,9 @@ class Quadrotor(ControlAffine):
         **kwargs: Any,
     ) -> None:
         super().__init__(12, 4, **kwargs)
-        self.register_buffer("mass", torch.tensor(check_positive("mass", mass), dtype=torch.float64))
+        self.register_buffer(
+            "mass", torch.tensor(check_positive("mass", mass), dtype=torch.float64)
+        )
         inertia_t = torch.as_tensor(inertia, dtype=torch.float64)
         if inertia_t.shape != (3,) or bool((inertia_t <= 0).any()):
             raise ValueError(f"inertia must be 3 positive numbers, got {inertia}")
@@ -178,7 +186,12 @@ class Quadrotor(ControlAffine):
         phi, theta = x[..., 3], x[..., 4]
         vel, rates = x[..., 6:9], x[..., 9:12]
         p, q, r = rates.unbind(-1)
-        sphi, cphi, ttheta, ctheta = torch.sin(phi), torch.cos(phi), torch.tan(theta), torch.cos(theta)
+        sphi, cphi, ttheta, ctheta = (
+            torch.sin(phi),
+            torch.cos(phi),
+            torch.tan(theta),
+            torch.cos(theta),
+        )
         angle_rates = torch.stack(
             [
                 p + sphi * ttheta * q + cphi * ttheta * r,

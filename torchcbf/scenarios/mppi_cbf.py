@@ -95,9 +95,9 @@ def mppi_cbf(
     safety_filter = None
     if method in ("scbf", "mppi_scbf"):
         rectified = rectify(ellipses, nominal_model, form="exponential", gains=[rectify_gain])
-        safety_filter = SafetyFilter(plant, barriers=[rectified], mode="stochastic", alpha=1.0, beta=1.0).to(
-            device=device, dtype=dtype
-        )
+        safety_filter = SafetyFilter(
+            plant, barriers=[rectified], mode="stochastic", alpha=1.0, beta=1.0
+        ).to(device=device, dtype=dtype)
 
     x0 = torch.tensor([0.0, 0.0, 0.0, math.pi / 4], device=device, dtype=dtype).repeat(num_seeds, 1)
     goal_region = Goal(GOAL, 0.25, deadline=5.0)

@@ -20,7 +20,11 @@ from torchcbf.dynamics import SingleIntegrator
 from torchcbf.mppi import MPPI, And, Avoid, Reach
 from torchcbf.scenarios.base import Scenario
 
-GOALS = (((4.0, 4.0), (0.0, 3.5), 10.0), ((6.0, 9.0), (3.6, 5.0), 2.0), ((4.0, 1.0), (5.1, 10.0), 1.0))
+GOALS = (
+    ((4.0, 4.0), (0.0, 3.5), 10.0),
+    ((6.0, 9.0), (3.6, 5.0), 2.0),
+    ((4.0, 1.0), (5.1, 10.0), 1.0),
+)
 GOAL_RADIUS = 0.5
 OBSTACLE_CENTER, OBSTACLE_RADIUS = (3.0, 3.0), 0.6
 

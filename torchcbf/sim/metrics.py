@@ -120,7 +120,13 @@ def summarize(per_scenario: dict[str, Tensor]) -> dict[str, dict[str, float | No
         if v.dtype == torch.bool:
             k, total = int(v.sum()), v.numel()
             lo, hi = wilson_interval(k, total)
-            summary[name] = {"rate": k / max(total, 1), "count": k, "n": total, "ci95_low": lo, "ci95_high": hi}
+            summary[name] = {
+                "rate": k / max(total, 1),
+                "count": k,
+                "n": total,
+                "ci95_low": lo,
+                "ci95_high": hi,
+            }
             continue
         v = v.double()
         finite = v[torch.isfinite(v)]

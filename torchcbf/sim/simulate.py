@@ -12,7 +12,8 @@ Component protocols (any callables or modules that follow them):
 - ``safety_filter(x_hat, u_nom, t)`` returns an object with ``u``, ``status`` and ``h``
   (e.g. :class:`torchcbf.filters.SafetyFilter`). Without one, ``u_nom`` is clipped to the
   dynamics' control limits.
-- ``sensor.expected(x) -> y [B, p]`` and ``sensor.R [p, p]`` (measurement noise covariance);
+- ``sensor.measure(x, noise=z) -> y [B, p]`` with ``z`` standard normal ``[B, p]`` (drawn per
+  scenario from its seed) and ``sensor.output_dim`` (or ``sensor.expected(x)`` to size it);
   ``estimator.init(x0, P0)``, ``estimator.predict(state, u, dt)``,
   ``estimator.update(state, y)`` on a state with a ``mean [B, n]`` field (e.g.
   :mod:`torchcbf.estimation`). With a sensor and no estimator the controllers see ``y``
@@ -178,10 +179,9 @@ def _simulate(
     snapshot_set = set(snapshot_steps)
 
     def measure(x: Tensor, k: int) -> Tensor:
-        y = sensor.expected(x)
-        R = sensor.R.to(y)
-        z = counter_normal(seeds, _STREAMS * k + _SENSOR, (y.shape[-1],), dtype=dtype)
-        return y + z @ torch.linalg.cholesky(R).mT
+        p = getattr(sensor, "output_dim", None) or sensor.expected(x).shape[-1]
+        z = counter_normal(seeds, _STREAMS * k + _SENSOR, (p,), dtype=dtype)
+        return sensor.measure(x, noise=z)
 
     def mark(ok: Tensor, k: int) -> None:
         nonlocal failed, fail_step

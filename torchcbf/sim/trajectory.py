@@ -57,7 +57,9 @@ class Trajectory:
                 return {k: apply(v) for k, v in value.items()}
             return value
 
-        return Trajectory(**{f.name: apply(getattr(self, f.name)) for f in dataclasses.fields(self)})
+        return Trajectory(
+            **{f.name: apply(getattr(self, f.name)) for f in dataclasses.fields(self)}
+        )
 
     def to(self, device: torch.device | str) -> Trajectory:
         """A copy with every tensor on ``device``."""

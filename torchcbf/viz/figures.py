@@ -88,7 +88,9 @@ def draw_goals(ax: Axes, goals: Sequence[Any], color: str = "tab:green") -> None
         ax.annotate(text, (c[0] + r, c[1] + r), fontsize=8, color="darkgreen")
 
 
-def _limits(traj_xy: np.ndarray, goals: Sequence[Any], margin: float = 1.0) -> tuple[tuple[float, float], tuple[float, float]]:
+def _limits(
+    traj_xy: np.ndarray, goals: Sequence[Any], margin: float = 1.0
+) -> tuple[tuple[float, float], tuple[float, float]]:
     pts = [traj_xy.reshape(-1, 2)]
     for g in goals:
         pts.append(_np(g.center).reshape(1, -1)[:, :2])
@@ -119,11 +121,24 @@ def plot_trajectories(
     xlim, ylim = xlim or auto_x, ylim or auto_y
     for j, barrier in enumerate(barriers):
         draw_unsafe_set(
-            ax, barrier, xlim, ylim, state_dim=trajectory.x.shape[-1], index=index, label="obstacle" if j == 0 else None
+            ax,
+            barrier,
+            xlim,
+            ylim,
+            state_dim=trajectory.x.shape[-1],
+            index=index,
+            label="obstacle" if j == 0 else None,
         )
     draw_goals(ax, goals)
     for b in range(min(xy.shape[0], max_paths)):
-        ax.plot(xy[b, :, 0], xy[b, :, 1], color=color or "tab:blue", lw=1.0, alpha=0.6, label=label if b == 0 else None)
+        ax.plot(
+            xy[b, :, 0],
+            xy[b, :, 1],
+            color=color or "tab:blue",
+            lw=1.0,
+            alpha=0.6,
+            label=label if b == 0 else None,
+        )
     ax.plot(xy[:, 0, 0], xy[:, 0, 1], "k.", ms=6)
     ax.set_xlim(*xlim)
     ax.set_ylim(*ylim)
@@ -188,7 +203,15 @@ def plot_rollouts(
     auto_x, auto_y = _limits(R, goals)
     xlim, ylim = xlim or auto_x, ylim or auto_y
     for j, barrier in enumerate(barriers):
-        draw_unsafe_set(ax, barrier, xlim, ylim, state_dim=_np(rollouts).shape[-1], index=index, label="obstacle" if j == 0 else None)
+        draw_unsafe_set(
+            ax,
+            barrier,
+            xlim,
+            ylim,
+            state_dim=_np(rollouts).shape[-1],
+            index=index,
+            label="obstacle" if j == 0 else None,
+        )
     draw_goals(ax, goals)
     cmap = plt.get_cmap("viridis")
     for k in np.argsort(w):
@@ -224,7 +247,7 @@ def animate(
     path = Path(path)
     fig = plot_trajectories(trajectory, barriers, goals, index=index, max_paths=0)
     ax = fig.axes[0]
-    xy = _np(trajectory.x)[: max_paths, :, list(index)]
+    xy = _np(trajectory.x)[:max_paths, :, list(index)]
     t = _np(trajectory.t)
     lines = [ax.plot([], [], color="tab:blue", lw=1.2)[0] for _ in range(xy.shape[0])]
     dots = ax.plot([], [], "o", color="tab:blue", ms=4)[0]
