@@ -154,6 +154,8 @@ def test_disturbance_and_clamp() -> None:
         model.clamp_control(torch.tensor([5.0, -5.0])), torch.tensor([1.0, -2.0])
     )
     assert model.disturbance_bound.shape == (1,)
+    tensor_bound = SingleIntegrator(2, disturbance_bound=torch.tensor([0.1, 0.2]))
+    assert tensor_bound.disturbance_bound.tolist() == pytest.approx([0.1, 0.2])
 
 
 def test_user_subclass_only_f_and_g() -> None:

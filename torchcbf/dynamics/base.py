@@ -82,7 +82,8 @@ class ControlAffine(nn.Module):
                     f"disturbance_matrix must have shape [{self.state_dim}, p], "
                     f"got {tuple(M.shape)}"
                 )
-            w_max = _limit("disturbance_bound", disturbance_bound or 0.0, M.shape[1])
+            bound = 0.0 if disturbance_bound is None else disturbance_bound
+            w_max = _limit("disturbance_bound", bound, M.shape[1])
             if bool((w_max < 0).any()):
                 raise ValueError(f"disturbance_bound must be >= 0, got {w_max.tolist()}")
             self.disturbance_matrix = M
