@@ -213,6 +213,9 @@ class MPPI(nn.Module):
         self.register_buffer("noise_chol", torch.linalg.cholesky(cov))
         self.register_buffer("noise_cov_inv", torch.cholesky_inverse(self.noise_chol))
         self._diagonal = bool(torch.equal(cov, torch.diag(torch.diagonal(cov))))
+        diag = torch.diagonal(cov)
+        isotropic = self._diagonal and bool((diag == diag[0]).all())
+        self._isotropic_std = float(diag[0].sqrt()) if isotropic else None
         lo = _limit("u_min", u_min, m) if u_min is not None else dynamics.u_min
         hi = _limit("u_max", u_max, m) if u_max is not None else dynamics.u_max
         if lo is not None and hi is not None and bool((lo > hi).any()):
@@ -243,9 +246,10 @@ class MPPI(nn.Module):
         H, K = self.horizon, self.num_samples
         m, n = self.dynamics.control_dim, self.dynamics.state_dim
         self._plan = torch.zeros(B, H, m, device=device, dtype=dtype)
-        self._eps = torch.empty(B, K, H, m, device=device, dtype=dtype)
-        self._controls = torch.empty(B, K, H, m, device=device, dtype=dtype)
-        self._states = torch.empty(B, K, H + 1, n, device=device, dtype=dtype)
+        # time-major buffers: the slice of one step is contiguous per environment
+        self._eps = torch.empty(B, H, K, m, device=device, dtype=dtype)
+        self._controls = torch.empty(B, H, K, m, device=device, dtype=dtype)
+        self._states = torch.empty(B, H + 1, K, n, device=device, dtype=dtype)
         self._generators = [
             torch.Generator(device=device).manual_seed(self.seed + b) for b in range(B)
         ]
@@ -299,14 +303,18 @@ class MPPI(nn.Module):
 
     def _sample_noise(self) -> Tensor:
         eps = self._eps
+        std = self._isotropic_std
         for b, gen in enumerate(self._generators):
-            torch.randn(eps.shape[1:], generator=gen, out=eps[b])
-        if self._diagonal:
+            if std is None:
+                torch.randn(eps.shape[1:], generator=gen, out=eps[b])
+            else:  # Sigma = s^2 I: one pass, no separate scaling
+                eps[b].normal_(0.0, std, generator=gen)
+        if std is None and self._diagonal:
             eps.mul_(torch.diagonal(self.noise_cov).to(eps).sqrt())
-        else:
+        elif std is None:
             eps.copy_(eps @ self.noise_chol.to(eps).mT)
         if self.zero_noise_samples:
-            eps[:, : self.zero_noise_samples].zero_()
+            eps[:, :, : self.zero_noise_samples].zero_()
         return eps
 
     def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
@@ -336,15 +344,16 @@ class MPPI(nn.Module):
         t0: Tensor,
         history: History | None,
     ) -> Tensor:
-        """Cost ``[B, K]`` of the rollouts plus the control cost."""
+        """Cost ``[B, K]`` of the rollouts (time-major buffers ``[B, H+1, K, n]``,
+        ``[B, H, K, m]``) plus the control cost."""
+        states, controls = states.transpose(1, 2), controls.transpose(1, 2)
         if self._needs_history:
             cost = self.cost(states, controls, t0, dt=self.dt, history=history)
         else:
             cost = self.cost(states, controls, t0)
         if self.control_cost_weight > 0.0:
-            B, K = eps.shape[:2]
             weighted = plan @ self.noise_cov_inv.to(plan)  # [B, H, m]
-            ctrl = torch.bmm(eps.reshape(B, K, -1), weighted.reshape(B, -1, 1)).squeeze(-1)
+            ctrl = (eps @ weighted.unsqueeze(-1)).squeeze(-1).sum(1)  # [B, H, K] -> [B, K]
             cost = cost + self.control_cost_weight * ctrl
         return cost
 
@@ -354,23 +363,23 @@ class MPPI(nn.Module):
         """Clamp the samples (recomputing ``eps`` in place), roll them out into the state
         buffer and score them: cost ``[B, K]``."""
         controls, states = self._controls, self._states
-        nominal = plan.unsqueeze(1)
+        nominal = plan.unsqueeze(2)
         torch.add(eps, nominal, out=controls)
         if self.u_min is not None or self.u_max is not None:
             lo = None if self.u_min is None else self.u_min.to(x)
             hi = None if self.u_max is None else self.u_max.to(x)
             controls.clamp_(lo, hi)
             torch.sub(controls, nominal, out=eps)
-        states[:, :, 0] = x.unsqueeze(1)
+        states[:, 0] = x.unsqueeze(1)
         step = self._step_fn
         if step is None:
             for j in range(self.horizon):
-                self._step(states[:, :, j], controls[:, :, j], states[:, :, j + 1])
+                self._step(states[:, j], controls[:, j], states[:, j + 1])
         else:
             # the compiled step returns a new tensor: writing into an aliased view of the
             # same buffer from inside a compiled graph gave wrong results (torch 2.13)
             for j in range(self.horizon):
-                states[:, :, j + 1] = step(states[:, :, j], controls[:, :, j])
+                states[:, j + 1] = step(states[:, j], controls[:, j])
         return self._score_fn(states, controls, eps, plan, t0, history)
 
     def _update(self, cost: Tensor, states: Tensor, eps: Tensor, unbatched: bool) -> MPPIOutput:
@@ -399,7 +408,7 @@ class MPPI(nn.Module):
         w = torch.exp(shifted.mul_(-1.0 / lam))
         w = w / w.sum(-1, keepdim=True).clamp_min(1.0)  # the best sample has weight 1 before
         plan = self._plan
-        plan.add_(torch.bmm(w.unsqueeze(1), eps.reshape(B, K, -1)).reshape(plan.shape))
+        plan.add_((w[:, None, None, :] @ eps).squeeze(2))  # [B, H, 1, m] -> [B, H, m]
         if self.u_min is not None or self.u_max is not None:
             lo = None if self.u_min is None else self.u_min.to(plan)
             hi = None if self.u_max is None else self.u_max.to(plan)
@@ -408,10 +417,10 @@ class MPPI(nn.Module):
         cost_mean = torch.where(finite, cost, torch.zeros_like(cost)).sum(-1) / count.clamp_min(1)
         ess = torch.where(ok, 1.0 / w.square().sum(-1).clamp_min(1e-30), torch.zeros_like(cost_min))
         status = (~ok).long()
-        best_states = states[self._rows, best]
+        best_states = states[self._rows, :, best]  # [B, H+1, n]
         rollouts = weights = None
         if self.keep_rollouts:
-            rollouts = states[:, : self.keep_rollouts].clone()
+            rollouts = states[:, :, : self.keep_rollouts].transpose(1, 2).clone()
             weights = w[:, : self.keep_rollouts].clone()
         out = MPPIOutput(
             u=plan[:, 0].clone(),
