@@ -258,7 +258,7 @@ def _figures(out, truth, barrier, traj, goal, lo, hi) -> None:
         xlim=xlim,
         ylim=ylim,
         max_paths=100,
-        title="closed loop with the learned barrier (100 of the held-out starts)",
+        title="closed loop, learned barrier (dots: all held-out starts; 100 paths)",
     )
     learned_contour(fig.axes[0])
     fig.savefig(out / "closed_loop.png", dpi=120, bbox_inches="tight")
