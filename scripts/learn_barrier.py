@@ -45,7 +45,7 @@ from torchcbf.learning import (
     sample_labelled,
     train,
 )
-from torchcbf.scenarios.mppi_cbf import obstacles
+from torchcbf.scenarios import obstacles
 from torchcbf.sim import simulate
 
 LOW, HIGH = (-3.0, -2.5), (5.0, 6.5)

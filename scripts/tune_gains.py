@@ -25,7 +25,7 @@ import torch
 from torchcbf.dynamics import SingleIntegrator
 from torchcbf.filters import LinearClassK, SafetyFilter
 from torchcbf.learning import closed_loop_loss, occupancy_from_barrier, sample_free, train
-from torchcbf.scenarios.mppi_cbf import obstacles
+from torchcbf.scenarios import obstacles
 from torchcbf.sim import simulate
 
 LOW, HIGH = (-3.0, -2.5), (5.0, 1.0)  # starts below the field; the goal is inside it
