@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import pytest
 import torch
 
@@ -22,3 +24,15 @@ def dtype(request: pytest.FixtureRequest) -> torch.dtype:
 def tol(dtype: torch.dtype, f64: float = 1e-10, f32: float = 1e-4) -> float:
     """A tolerance chosen by dtype."""
     return f64 if dtype == torch.float64 else f32
+
+
+@pytest.fixture(autouse=True)
+def _one_thread() -> Iterator[None]:
+    """One intra-op thread per test: the batches here are small, and a second OpenMP thread on
+    a 2-core CI machine only adds barrier waits (measured up to 1000x slower under load)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)

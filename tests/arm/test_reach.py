@@ -31,17 +31,6 @@ def arm_reach() -> Iterator[ModuleType]:
         sys.modules.pop("arm_reach", None)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread() -> Iterator[None]:
-    """Small batched ops: one intra-op thread avoids oversubscription on shared CI cores."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
-
-
 def _backend() -> str:
     # proxsuite solves these small QPs fastest on CPU; the default backend otherwise
     return "proxsuite" if importlib.util.find_spec("proxsuite") else "torch"

@@ -48,7 +48,7 @@ def scene(
 ) -> SafetyFilter:
     kw: dict = {}
     if mode == "robust":
-        kw["disturbance_bound"] = W_MAX.tolist()  # a tensor trips ControlAffine (`or 0.0`)
+        kw["disturbance_bound"] = W_MAX
     if mode in ("stochastic", "risk_aware"):
         kw["sigma"] = SIGMA
     dyn = Unicycle(u_min=torch.tensor(U_MIN), u_max=torch.tensor(U_MAX), **kw)
@@ -169,7 +169,16 @@ def test_nonfinite_rows_fallback_and_others_untouched(dtype: torch.dtype) -> Non
 
 
 @pytest.mark.parametrize("fallback", ["clip", "brake", "tensor", "callable"])
-def test_fallback_on_qp_failure(fallback: str) -> None:
+def test_fallback_on_qp_failure(fallback: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    import torchcbf.qp as qp
+
+    real_solve = qp.solve_qp
+
+    def failing_solve(*args, **kwargs):  # a solver that gives up on every row
+        sol = real_solve(*args, **kwargs)
+        return sol._replace(status=torch.full_like(sol.status, int(qp.Status.MAX_ITER)))
+
+    monkeypatch.setattr(qp, "solve_qp", failing_solve)
     xs, us = random_states(4, seed=5)
     spec = {
         "clip": "clip",
@@ -177,8 +186,7 @@ def test_fallback_on_qp_failure(fallback: str) -> None:
         "tensor": torch.tensor([0.5, -0.5]),
         "callable": lambda x, u: -u,
     }[fallback]
-    # one interior point iteration cannot solve these QPs: every row falls back
-    filt = scene("vanilla", fallback=spec, qp_options={"max_iter": 1})
+    filt = scene("vanilla", fallback=spec)
     x, u = torch.tensor(xs), torch.tensor(us)
     out = filt(x, u)
     assert (out.status == FilterStatus.FALLBACK).all()

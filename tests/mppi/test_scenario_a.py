@@ -15,18 +15,14 @@ import pytest
 import torch
 
 from torchcbf.dynamics import SingleIntegrator
-from torchcbf.mppi import MPPI, And, Avoid, Reach
+from torchcbf.mppi import MPPI, And
+from torchcbf.scenarios import reach_avoid_spec
 
 DT, STEPS = 0.1, 100
 
 
 def scenario_a_spec() -> And:
-    return And(
-        Avoid((3.0, 3.0), 0.6, weight=0.3, eps=0.01),
-        Reach((4.0, 4.0), 0.5, (0.0, 3.5), weight=10.0),
-        Reach((6.0, 9.0), 0.5, (3.6, 5.0), weight=2.0),
-        Reach((4.0, 1.0), 0.5, (5.1, 10.0), weight=1.0),
-    )
+    return reach_avoid_spec()
 
 
 def run_scenario_a(num_samples: int, seeds: int, dtype=torch.float32):
@@ -57,21 +53,12 @@ def _check(spec, traj, times, need: int) -> None:
     assert int(ok.sum()) >= need, f"successes {int(ok.sum())}/{len(ok)}; per term:\n{per_term}"
 
 
-@pytest.fixture
-def one_thread():
-    # many small ops: a second OpenMP thread only adds barrier waits on a busy 2-core machine
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-def test_scenario_a_small(one_thread):
+def test_scenario_a_small():
     spec, traj, times = run_scenario_a(num_samples=1000, seeds=3)
     _check(spec, traj, times, need=2)
 
 
 @pytest.mark.slow
-def test_scenario_a_full(one_thread):
+def test_scenario_a_full():
     spec, traj, times = run_scenario_a(num_samples=10_000, seeds=10)
     _check(spec, traj, times, need=9)

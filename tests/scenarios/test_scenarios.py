@@ -12,14 +12,6 @@ from torchcbf.filters import FilterStatus
 from torchcbf.scenarios import METHODS, mppi_cbf, reach_avoid, reach_avoid_spec
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def test_reach_avoid_spec_success_check_matches_the_definition() -> None:
     """Robustness >= 0 exactly when every goal is reached in its window and the obstacle is
     never touched (SCENARIOS.md A's success rule), on hand-made paths."""
