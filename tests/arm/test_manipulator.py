@@ -12,29 +12,18 @@ import torch
 
 pytest.importorskip("pytorch_kinematics")
 
+from _arm_reference import LENGTHS, fd_jacobian, planar_fk  # noqa: E402
+
 from torchcbf.dynamics.manipulator import (  # noqa: E402
     Manipulator,
     ResolvedRateController,
     asset_path,
 )
 
-LENGTHS = (0.5, 0.4, 0.3)
-
 
 def _tol(dtype: torch.dtype) -> float:
     # pytorch-kinematics parses URDF origins in float32: ~1e-8 m even in float64.
     return 1e-6 if dtype == torch.float64 else 2e-5
-
-
-def planar_fk(q: torch.Tensor) -> torch.Tensor:
-    """Hand-written planar FK: origins of link1, link2, link3 and ee, ``[..., 4, 3]``."""
-    angles = torch.cumsum(q, -1)
-    pts = [torch.zeros_like(q[..., :2])]
-    for i, length in enumerate(LENGTHS):
-        step = torch.stack([torch.cos(angles[..., i]), torch.sin(angles[..., i])], -1)
-        pts.append(pts[-1] + length * step)
-    xy = torch.stack(pts, -2)
-    return torch.cat([xy, torch.zeros_like(xy[..., :1])], -1)
 
 
 def planar_jacobian(q: torch.Tensor) -> torch.Tensor:
@@ -45,16 +34,6 @@ def planar_jacobian(q: torch.Tensor) -> torch.Tensor:
         dx = sum(-LENGTHS[i] * torch.sin(angles[..., i]) for i in range(j, 3))
         dy = sum(LENGTHS[i] * torch.cos(angles[..., i]) for i in range(j, 3))
         cols.append(torch.stack([dx, dy, torch.zeros_like(dx)], -1))
-    return torch.stack(cols, -1)
-
-
-def fd_jacobian(fn, q: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
-    """Central differences of ``fn: [B, d] -> [B, k]``: ``[B, k, d]``."""
-    cols = []
-    for j in range(q.shape[-1]):
-        dq = torch.zeros_like(q)
-        dq[..., j] = eps
-        cols.append((fn(q + dq) - fn(q - dq)) / (2 * eps))
     return torch.stack(cols, -1)
 
 

@@ -8,6 +8,8 @@ import torch
 
 pytest.importorskip("pytorch_kinematics")
 
+from _arm_reference import fd_jacobian, planar_fk  # noqa: E402
+
 from torchcbf.barriers import Ball, rectify  # noqa: E402
 from torchcbf.barriers.workspace import (  # noqa: E402
     EndEffectorBoxBarrier,
@@ -20,32 +22,9 @@ from torchcbf.barriers.workspace import (  # noqa: E402
 )
 from torchcbf.dynamics.manipulator import Manipulator  # noqa: E402
 
-LENGTHS = (0.5, 0.4, 0.3)
-
 
 def _tol(dtype: torch.dtype) -> float:
     return 1e-6 if dtype == torch.float64 else 5e-5
-
-
-def planar_points(q: torch.Tensor) -> torch.Tensor:
-    """Origins of link1, link2, link3, ee of the planar arm by hand: ``[..., 4, 3]``."""
-    angles = torch.cumsum(q, -1)
-    pts = [torch.zeros_like(q[..., :2])]
-    for i, length in enumerate(LENGTHS):
-        step = torch.stack([torch.cos(angles[..., i]), torch.sin(angles[..., i])], -1)
-        pts.append(pts[-1] + length * step)
-    xy = torch.stack(pts, -2)
-    return torch.cat([xy, torch.zeros_like(xy[..., :1])], -1)
-
-
-def fd_grad(fn, x: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
-    """Central differences of ``fn: [B, n] -> [B, k]``: ``[B, k, n]``."""
-    cols = []
-    for j in range(x.shape[-1]):
-        dx = torch.zeros_like(x)
-        dx[..., j] = eps
-        cols.append((fn(x + dx) - fn(x - dx)) / (2 * eps))
-    return torch.stack(cols, -1)
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +49,7 @@ def test_link_spheres_match_hand_geometry(planar: Manipulator, dtype: torch.dtyp
         planar, ["link2", "link3", "ee"], radii, centers, [0.15, 0.2], squared=True
     ).to(dtype)
     q = _states(planar, 40, 0, dtype)
-    p = planar_points(q)[:, 1:]  # link2, link3, ee
+    p = planar_fk(q)[:, 1:]  # link2, link3, ee
     c = torch.tensor(centers, dtype=dtype)
     dist = (p[:, :, None] - c).norm(dim=-1)  # [B, 3, 2]
     clear = torch.tensor(radii, dtype=dtype)[:, None] + torch.tensor([0.15, 0.2], dtype=dtype)
@@ -85,7 +64,7 @@ def test_link_sphere_offsets(planar: Manipulator) -> None:
         planar, ["link2"], 0.0, [0.0, 0.0, 0.0], 0.1, offsets=[[0.2, 0.0, 0.0]]
     ).double()
     q = _states(planar, 20, 1)
-    p = planar_points(q)
+    p = planar_fk(q)
     mid = 0.5 * (p[:, 1] + p[:, 2])
     torch.testing.assert_close(b(q)[:, 0], mid.norm(dim=-1) - 0.1, atol=1e-6, rtol=0)
 
@@ -120,7 +99,7 @@ def test_lie_derivatives_match_finite_differences(name: str) -> None:
     for b in barriers:
         b = b.double()
         terms = b.lie(x, arm)
-        dhdx = fd_grad(lambda xx, b=b: b(xx).reshape(xx.shape[0], -1), x)
+        dhdx = fd_jacobian(lambda xx, b=b: b(xx).reshape(xx.shape[0], -1), x)
         k = dhdx.shape[1]
         assert terms.dhdx.reshape(24, k, -1).shape == dhdx.shape
         torch.testing.assert_close(terms.dhdx.reshape(24, k, -1), dhdx, atol=1e-6, rtol=0)
@@ -148,7 +127,7 @@ def test_hessian_trace_with_diffusion() -> None:
     b = LinkSphereBarrier(arm, ["ee"], 0.05, [0.4, 0.3, 0.0], 0.15).double()
     x = _states(arm, 8, 5)
     terms = b.lie(x, arm)
-    H = fd_grad(lambda xx: b.lie(xx, arm).dhdx[:, 0, :], x, eps=1e-5)  # [B, n, n]
+    H = fd_jacobian(lambda xx: b.lie(xx, arm).dhdx[:, 0, :], x, eps=1e-5)  # [B, n, n]
     ref = 0.01 * torch.diagonal(H, dim1=-2, dim2=-1).sum(-1)
     torch.testing.assert_close(terms.hess_trace[:, 0], ref, atol=1e-5, rtol=0)
 
@@ -163,7 +142,7 @@ def test_acceleration_control_rectified_barrier(name: str) -> None:
     x = _states(arm, 10, 6)
     q, qd = x[:, : arm.dof], x[:, arm.dof :]
     # dh/dq by finite differences in q, then h_e = J_h qdot + k h
-    Jh = fd_grad(lambda qq: h(torch.cat([qq, qd], -1)), q)  # [B, k, dof]
+    Jh = fd_jacobian(lambda qq: h(torch.cat([qq, qd], -1)), q)  # [B, k, dof]
     val = he(x)
     ref_k = (val - (Jh @ qd[..., None])[..., 0]) / h(x)
     assert bool((ref_k > 0).all())  # the rectifier adds a positive multiple of h
@@ -196,7 +175,7 @@ def test_joint_limits_and_ee_box_values(planar: Manipulator) -> None:
     for name in ("h", "lfh", "lgh", "dhdt", "dhdx"):
         torch.testing.assert_close(getattr(auto, name), getattr(exact, name))
     box = EndEffectorBoxBarrier(planar, [-0.5, -0.6, -0.1], [0.7, 0.8, 0.1], margin=0.02).double()
-    ee = planar_points(x)[:, -1]
+    ee = planar_fk(x)[:, -1]
     lo = torch.tensor([-0.48, -0.58, -0.08], dtype=torch.float64)
     hi = torch.tensor([0.68, 0.78, 0.08], dtype=torch.float64)
     torch.testing.assert_close(box(x), torch.cat([ee - lo, hi - ee], -1), atol=1e-6, rtol=0)
