@@ -57,7 +57,38 @@ def _check_per_shape(name: str, value: Tensor, k: int | None) -> None:
         raise ValueError(f"{name} must be {want}, got shape {tuple(value.shape)}")
 
 
-class Ball(Barrier):
+def _rotate_t(cos: Tensor, sin: Tensor, u: Tensor, v: Tensor, dim: int = -1) -> Tensor:
+    """Body coordinates ``R(angle)' (u, v)`` stacked along ``dim``."""
+    return torch.stack([cos * u + sin * v, -sin * u + cos * v], dim)
+
+
+class _ShapeStack(Barrier):
+    """A shape whose constants may carry a leading ``k`` axis (``self.num``): the ``k`` shapes
+    are independent Lie parts, all with closed-form derivatives."""
+
+    num: int | None
+
+    def _parts(self) -> list[LieFunction] | None:
+        return _split(self, self.num)
+
+    @property
+    def has_analytic(self) -> bool:
+        return True
+
+
+class _SignedShapeStack(_ShapeStack):
+    """A :class:`_ShapeStack` with a ``keep_in`` flag flipping the sign of ``h``."""
+
+    keep_in: bool
+
+    def _sign(self) -> float:
+        return -1.0 if self.keep_in else 1.0
+
+    def extra_repr(self) -> str:
+        return f"index={self._sel.index}, keep_in={self.keep_in}, k={self.num}"
+
+
+class Ball(_SignedShapeStack):
     """A ball obstacle ``h = |p - c(t)|^2 - r^2`` (keep-out; ``keep_in=True`` flips the sign).
 
     Args:
@@ -99,9 +130,6 @@ class Ball(Barrier):
         self.keep_in = bool(keep_in)
         self._sel = StateIndex(index, c.shape[-1], state_dim)
 
-    def _sign(self) -> float:
-        return -1.0 if self.keep_in else 1.0
-
     def _diff(self, x: Tensor, t: Tensor | float | None) -> Tensor:
         p = self._sel(x)
         c = self.center.to(x)
@@ -127,13 +155,6 @@ class Ball(Barrier):
         r = _row(self.radius, j).to(x)
         return self._sign() * (((self._sel(x) - c) ** 2).sum(-1) - r**2)
 
-    def _parts(self) -> list[LieFunction] | None:
-        return _split(self, self.num)
-
-    @property
-    def has_analytic(self) -> bool:
-        return True
-
     def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         sign = self._sign()
         diff = self._diff(x, t)
@@ -149,9 +170,6 @@ class Ball(Barrier):
             return val.unsqueeze(-1).expand_as(h) if self.num is not None else val
 
         return AnalyticDerivatives(h, dhdx, dhdt, quad)
-
-    def extra_repr(self) -> str:
-        return f"index={self._sel.index}, keep_in={self.keep_in}, k={self.num}"
 
 
 class MovingBall(Barrier):
@@ -200,7 +218,7 @@ class MovingBall(Barrier):
         return -h if self.keep_in else h
 
 
-class Ellipse(Barrier):
+class Ellipse(_SignedShapeStack):
     """An ellipse (ellipsoid) obstacle ``h = sum_i (q_i / a_i)^2 - 1`` with body coordinates
     ``q = R(angle)' (p - c)`` (keep-out; ``keep_in=True`` flips the sign).
 
@@ -244,9 +262,6 @@ class Ellipse(Barrier):
         self.keep_in = bool(keep_in)
         self._sel = StateIndex(index, c.shape[-1], state_dim)
 
-    def _sign(self) -> float:
-        return -1.0 if self.keep_in else 1.0
-
     def _rot(self, x: Tensor) -> tuple[Tensor, Tensor]:
         ang = self.angle.to(x)
         if self.num is not None and ang.dim() == 1:
@@ -260,8 +275,7 @@ class Ellipse(Barrier):
         cos, sin = self._rot(x)
         if self.num is not None:
             cos, sin = cos.squeeze(-1), sin.squeeze(-1)
-        s = sin if transpose else -sin
-        return torch.stack([cos * v[..., 0] + s * v[..., 1], -s * v[..., 0] + cos * v[..., 1]], -1)
+        return _rotate_t(cos, sin if transpose else -sin, v[..., 0], v[..., 1])
 
     def _q(self, x: Tensor) -> Tensor:
         p = self._sel(x)
@@ -280,17 +294,8 @@ class Ellipse(Barrier):
         if self.angle is not None:
             ang = _row(self.angle, j).to(x)
             cos, sin = torch.cos(ang), torch.sin(ang)
-            d = torch.stack(
-                [cos * d[..., 0] + sin * d[..., 1], -sin * d[..., 0] + cos * d[..., 1]], -1
-            )
+            d = _rotate_t(cos, sin, d[..., 0], d[..., 1])
         return self._sign() * (((d / self.axes[j].to(x)) ** 2).sum(-1) - 1)
-
-    def _parts(self) -> list[LieFunction] | None:
-        return _split(self, self.num)
-
-    @property
-    def has_analytic(self) -> bool:
-        return True
 
     def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         sign = self._sign()
@@ -306,22 +311,13 @@ class Ellipse(Barrier):
                 sp = sp.unsqueeze(-3)  # [..., 1, d, q]
             if self.angle is not None:
                 cos, sin = self._rot(x)
-                sp = torch.stack(
-                    [
-                        cos * sp[..., 0, :] + sin * sp[..., 1, :],
-                        -sin * sp[..., 0, :] + cos * sp[..., 1, :],
-                    ],
-                    -2,
-                )
+                sp = _rotate_t(cos, sin, sp[..., 0, :], sp[..., 1, :], dim=-2)
             return 2 * sign * ((sp / a.unsqueeze(-1)) ** 2).sum((-2, -1))
 
         return AnalyticDerivatives(h, dhdx, torch.zeros_like(h), quad)
 
-    def extra_repr(self) -> str:
-        return f"index={self._sel.index}, keep_in={self.keep_in}, k={self.num}"
 
-
-class HalfSpace(Barrier):
+class HalfSpace(_ShapeStack):
     """The half-space ``{a' p <= b}``: ``h = b - a' p`` (safe where ``a' p <= b``).
 
     Args:
@@ -365,13 +361,6 @@ class HalfSpace(Barrier):
     def _one(self, j: int, x: Tensor, t: Tensor | float | None) -> Tensor:
         """Half-space ``j`` of a stack: ``[...]``."""
         return _row(self.b, j).to(x) - (self._sel(x) * self.a[j].to(x)).sum(-1)
-
-    def _parts(self) -> list[LieFunction] | None:
-        return _split(self, self.num)
-
-    @property
-    def has_analytic(self) -> bool:
-        return True
 
     def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         h = self.forward(x)
