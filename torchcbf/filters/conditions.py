@@ -74,6 +74,17 @@ def _trace(terms: LieTerms) -> Tensor:
     return terms.hess_trace
 
 
+def _gain(fn: nn.Module, h: Tensor, name: str, symbol: str, hint: str = "") -> Tensor:
+    """``fn(h)``, checked to keep the shape of ``h [B, k]``."""
+    out = fn(h)
+    if out.shape != h.shape:
+        raise ValueError(
+            f"{name} must map {symbol} {tuple(h.shape)} to the same shape, got "
+            f"{tuple(out.shape)}{hint}"
+        )
+    return out
+
+
 def cbf_condition(
     terms: LieTerms,
     mode: Mode,
@@ -94,13 +105,7 @@ def cbf_condition(
     if mode == "risk_aware":
         b = drift + 0.5 * _trace(terms) + (terms.h - margin) / horizon
     else:
-        ah = alpha(terms.h)
-        if ah.shape != terms.h.shape:
-            raise ValueError(
-                f"alpha must map h {tuple(terms.h.shape)} to the same shape, got "
-                f"{tuple(ah.shape)} (give one gain per barrier output)"
-            )
-        b = drift + ah
+        b = drift + _gain(alpha, terms.h, "alpha", "h", " (give one gain per barrier output)")
         if mode == "robust":
             b = b - disturbance_term(terms, dynamics, x)
         elif mode == "stochastic":
@@ -124,13 +129,7 @@ def clf_condition(
     if mode == "risk_aware":
         b = drift + 0.5 * _trace(terms) + (terms.h - gamma + margin) / horizon
     else:
-        cv = rate(terms.h)
-        if cv.shape != terms.h.shape:
-            raise ValueError(
-                f"clf_rate must map V {tuple(terms.h.shape)} to the same shape, got "
-                f"{tuple(cv.shape)}"
-            )
-        b = drift + cv
+        b = drift + _gain(rate, terms.h, "clf_rate", "V")
         if mode == "robust":
             b = b + disturbance_term(terms, dynamics, x)
         elif mode == "stochastic":
