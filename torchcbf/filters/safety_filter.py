@@ -149,6 +149,11 @@ def _weight_matrix(R: Any, m: int) -> Tensor:
     return t
 
 
+def _like(value: Tensor | None, ref: Tensor) -> Tensor | None:
+    """``value`` on the device and dtype of ``ref`` (``None`` stays ``None``)."""
+    return None if value is None else value.to(ref)
+
+
 def _positive(name: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise TypeError(f"{name} must be a number, got {type(value).__name__}")
@@ -468,8 +473,8 @@ class SafetyFilter(nn.Module):
                 dyn,
                 xs,
                 beta=self.beta.to(xs),
-                margin=None if self.cbf_margin is None else self.cbf_margin.to(xs),
-                horizon=None if self.horizon is None else self.horizon.to(xs),
+                margin=_like(self.cbf_margin, xs),
+                horizon=_like(self.horizon, xs),
             )
             self._check_k("beta", self.beta, k)
             self._check_k("eta", self.cbf_margin, k)
@@ -484,9 +489,9 @@ class SafetyFilter(nn.Module):
                 rate,
                 dyn,
                 xs,
-                margin=None if self.clf_margin is None else self.clf_margin.to(xs),
-                gamma=None if self.clf_gamma is None else self.clf_gamma.to(xs),
-                horizon=None if self.horizon is None else self.horizon.to(xs),
+                margin=_like(self.clf_margin, xs),
+                gamma=_like(self.clf_gamma, xs),
+                horizon=_like(self.horizon, xs),
             )
             self._check_k("clf_eta", self.clf_margin, c)
             rows_a.append(cond_v.a)
