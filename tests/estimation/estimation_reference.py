@@ -206,3 +206,18 @@ def check_consistency(result: dict) -> tuple[float, float, float, float]:
     nees_t = result["nees"]
     inside = float(((nees_t >= lo) & (nees_t <= hi)).double().mean())
     return float(nees_t.mean()), lo, hi, inside
+
+
+def assert_monte_carlo_consistent(cls, dtype: torch.dtype, model: str) -> None:
+    """500 runs of ``cls`` in one batch: run-averaged NEES inside its 95% chi-square band,
+    every update fine, and the estimate beats the raw sensor (unicycle) or is within 0.1 m
+    (accel_unicycle, range-bearing with range noise 0.1 m)."""
+    result = monte_carlo(cls, dtype, model)
+    mean_nees, lo, hi, inside = check_consistency(result)
+    assert lo <= mean_nees <= hi, (mean_nees, lo, hi)
+    assert inside >= 0.8, inside  # expected 0.95; steps are correlated in time
+    assert bool((result["status"] == 0).all())
+    if model == "unicycle":
+        assert result["rms_est"] < 0.5 * result["rms_meas"], result
+    else:
+        assert result["rms_est"] < 0.1, result

@@ -7,10 +7,9 @@ import pytest
 import torch
 from estimation_reference import (
     LinearSystem,
-    check_consistency,
+    assert_monte_carlo_consistent,
     exact_kalman,
     linear_case,
-    monte_carlo,
     run_filter,
 )
 
@@ -98,12 +97,4 @@ def test_ekf_covariance_stays_spd_and_symmetric(dtype):
 @pytest.mark.parametrize("model", ["unicycle", "accel_unicycle"])
 def test_ekf_monte_carlo_consistent_and_beats_sensor(model, dtype):
     """500 runs in one batch: run-averaged NEES inside its 95% chi-square band."""
-    result = monte_carlo(EKF, dtype, model)
-    mean_nees, lo, hi, inside = check_consistency(result)
-    assert lo <= mean_nees <= hi, (mean_nees, lo, hi)
-    assert inside >= 0.8, inside  # expected 0.95; steps are correlated in time
-    assert bool((result["status"] == 0).all())
-    if model == "unicycle":
-        assert result["rms_est"] < 0.5 * result["rms_meas"], result
-    else:  # range-bearing with range noise 0.1 m
-        assert result["rms_est"] < 0.1, result
+    assert_monte_carlo_consistent(EKF, dtype, model)

@@ -12,10 +12,9 @@ import pytest
 import torch
 from estimation_reference import (
     LinearSystem,
-    check_consistency,
+    assert_monte_carlo_consistent,
     exact_kalman,
     linear_case,
-    monte_carlo,
     run_filter,
 )
 
@@ -25,15 +24,7 @@ from torchcbf.estimation import EKF, UKF, EstimatorState, GaussianSensor, RangeB
 
 @pytest.mark.parametrize("model", ["unicycle", "accel_unicycle"])
 def test_ukf_monte_carlo_consistent_and_beats_sensor(model, dtype):
-    result = monte_carlo(UKF, dtype, model)
-    mean_nees, lo, hi, inside = check_consistency(result)
-    assert lo <= mean_nees <= hi, (mean_nees, lo, hi)
-    assert inside >= 0.8, inside  # expected 0.95; steps are correlated in time
-    assert bool((result["status"] == 0).all())
-    if model == "unicycle":
-        assert result["rms_est"] < 0.5 * result["rms_meas"], result
-    else:
-        assert result["rms_est"] < 0.1, result
+    assert_monte_carlo_consistent(UKF, dtype, model)
 
 
 @pytest.mark.parametrize("alpha,kappa", [(1e-3, 0.0), (0.5, 1.0), (1.0, 3.0 - 3.0)])
