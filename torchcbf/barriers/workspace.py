@@ -245,11 +245,7 @@ class EndEffectorBoxBarrier(Barrier):
         if bool((lo + 2 * margin >= hi).any()):
             raise ValueError(f"low {lo.tolist()} + 2 margin must be below high {hi.tolist()}")
         self.margin = float(margin)
-        self.register_buffer("offset", None)
-        if offset is not None:
-            off = register(self, "offset", offset, False)
-            if off.shape != (3,):
-                raise ValueError(f"offset must have shape [3], got {tuple(off.shape)}")
+        _register_offset(self, offset)
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """``x [..., n] -> h [..., 6]``."""
@@ -257,6 +253,15 @@ class EndEffectorBoxBarrier(Barrier):
         lo = self.low.to(x) + self.margin
         hi = self.high.to(x) - self.margin
         return torch.cat([p - lo, hi - p], -1)
+
+
+def _register_offset(module: Barrier, offset: Tensor | Sequence[float] | None) -> None:
+    """The buffer ``module.offset``: a point ``[3]`` in the link frame, or ``None``."""
+    module.register_buffer("offset", None)
+    if offset is not None:
+        off = register(module, "offset", offset, False)
+        if off.shape != (3,):
+            raise ValueError(f"offset must have shape [3], got {tuple(off.shape)}")
 
 
 def _point(arm: Manipulator, x: Tensor, link: str, offset: Tensor | None) -> Tensor:
@@ -294,11 +299,7 @@ class PointBarrier(Barrier):
         self.shape = shape
         self.time_varying = shape.time_varying
         self.link = arm._check_links([link or arm.end_link])[0]
-        self.register_buffer("offset", None)
-        if offset is not None:
-            off = register(self, "offset", offset, False)
-            if off.shape != (3,):
-                raise ValueError(f"offset must have shape [3], got {tuple(off.shape)}")
+        _register_offset(self, offset)
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """``x [..., n] -> h [...]`` (or ``[..., k]``)."""
