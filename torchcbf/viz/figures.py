@@ -100,6 +100,34 @@ def _limits(
     return (float(lo[0]), float(hi[0])), (float(lo[1]), float(hi[1]))
 
 
+def _draw_scene(
+    ax: Axes,
+    points: np.ndarray,
+    barriers: Sequence[BarrierFn],
+    goals: Sequence[Any],
+    state_dim: int,
+    index: tuple[int, int],
+    xlim: tuple[float, float] | None,
+    ylim: tuple[float, float] | None,
+) -> tuple[tuple[float, float], tuple[float, float]]:
+    """Obstacles (the first labelled) and goals behind ``points [..., 2]``; returns the axis
+    limits (those given, else fitted to the points and goals)."""
+    auto_x, auto_y = _limits(points, goals)
+    xlim, ylim = xlim or auto_x, ylim or auto_y
+    for j, barrier in enumerate(barriers):
+        draw_unsafe_set(
+            ax,
+            barrier,
+            xlim,
+            ylim,
+            state_dim=state_dim,
+            index=index,
+            label="obstacle" if j == 0 else None,
+        )
+    draw_goals(ax, goals)
+    return xlim, ylim
+
+
 def plot_trajectories(
     trajectory: Trajectory,
     barriers: Sequence[BarrierFn] = (),
@@ -117,19 +145,7 @@ def plot_trajectories(
     """Paths of (up to ``max_paths``) scenarios over obstacles and goal regions."""
     fig, ax = (ax.figure, ax) if ax is not None else plt.subplots(figsize=(6, 6))
     xy = _np(trajectory.x)[..., list(index)]
-    auto_x, auto_y = _limits(xy, goals)
-    xlim, ylim = xlim or auto_x, ylim or auto_y
-    for j, barrier in enumerate(barriers):
-        draw_unsafe_set(
-            ax,
-            barrier,
-            xlim,
-            ylim,
-            state_dim=trajectory.x.shape[-1],
-            index=index,
-            label="obstacle" if j == 0 else None,
-        )
-    draw_goals(ax, goals)
+    xlim, ylim = _draw_scene(ax, xy, barriers, goals, trajectory.x.shape[-1], index, xlim, ylim)
     for b in range(min(xy.shape[0], max_paths)):
         ax.plot(
             xy[b, :, 0],
@@ -200,19 +216,7 @@ def plot_rollouts(
     R = _np(rollouts)[..., list(index)]
     w = _np(weights).astype(float)
     w = w / max(w.max(), 1e-300)
-    auto_x, auto_y = _limits(R, goals)
-    xlim, ylim = xlim or auto_x, ylim or auto_y
-    for j, barrier in enumerate(barriers):
-        draw_unsafe_set(
-            ax,
-            barrier,
-            xlim,
-            ylim,
-            state_dim=_np(rollouts).shape[-1],
-            index=index,
-            label="obstacle" if j == 0 else None,
-        )
-    draw_goals(ax, goals)
+    xlim, ylim = _draw_scene(ax, R, barriers, goals, _np(rollouts).shape[-1], index, xlim, ylim)
     cmap = plt.get_cmap("viridis")
     for k in np.argsort(w):
         ax.plot(R[k, :, 0], R[k, :, 1], color=cmap(w[k]), lw=0.6, alpha=0.25 + 0.75 * w[k])
