@@ -184,10 +184,14 @@ def test_closed_form_one_constraint():
     h = torch.randn(50, 1, generator=g, dtype=F64)
     closed = solve_qp(Q, p, G, h)
     assert (closed.iterations == 0).all()
-    ipm = solve_qp(Q, p, G, h, lb=-math.inf)  # the bound forces the interior point path
+    ipm = solve_qp(Q, p, G, h, lb=-math.inf, method="ipm")
     assert (ipm.iterations > 0).all()
     torch.testing.assert_close(closed.x, ipm.x, atol=1e-8, rtol=0)
     torch.testing.assert_close(closed.lam, ipm.lam, atol=1e-8, rtol=0)
+    enum = solve_qp(Q, p, G, h, lb=-math.inf)  # the (infinite) bound rows: enumeration
+    assert (enum.iterations == 0).all()
+    torch.testing.assert_close(closed.x, enum.x, atol=1e-10, rtol=0)
+    torch.testing.assert_close(closed.lam, enum.lam, atol=1e-10, rtol=0)
 
 
 def test_warm_start_and_options():
@@ -196,7 +200,7 @@ def test_warm_start_and_options():
     cold = solve_qp(*args)
     warm = solve_qp(*args, warm_start=cold)
     torch.testing.assert_close(warm.x, cold.x, atol=1e-7, rtol=0)
-    few = solve_qp(*args, max_iter=1, polish=False)
+    few = solve_qp(*args, max_iter=1, polish=False, method="ipm")
     assert (few.status == Status.MAX_ITER).any()
     assert torch.isfinite(few.x).all()
 

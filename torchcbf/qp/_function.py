@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from torchcbf.qp import _kkt
+from torchcbf.qp._enum import solve_enum
 from torchcbf.qp._ipm import solve_ipm
 from torchcbf.qp.status import Status
 
@@ -29,6 +30,9 @@ class SolverConfig:
     check_every: int
     closed_form: bool
     polish: bool
+    enumerate: bool = False
+    pairs: tuple[tuple[int, int], ...] = ()
+    need_factor: bool = True
 
 
 def _closed_form(
@@ -74,8 +78,10 @@ def _forward(
         if res is not None:
             x, s, z, status, iters = res
             y = q.new_zeros(q.shape[0], me)
-            fac = _kkt.factor_kkt(P, G, A, z > s)
+            fac = _kkt.factor_kkt(P, G, A, z > s) if cfg.need_factor else None
             return x, z, y, status, iters, fac
+        if cfg.enumerate:
+            return _forward_enum(P, q, G, h, A, b, cfg, x0)
         out = solve_ipm(
             P,
             q,
@@ -102,11 +108,66 @@ def _forward(
                 cfg.backend.split(":", 1)[1], P, q, G, h, A, b, eps=cfg.eps, max_iter=cfg.max_iter
             )
         x, s, z, y, status, iters = (t.to(q.device) for t in out)
+    x, z, y, status, active, fac = _finish(P, q, G, h, A, b, x, s, z, y, status, cfg)
+    if fac is None and cfg.need_factor:
+        fac = _kkt.factor_kkt(P, G, A, active)
+    return x, z, y, status, iters, fac
+
+
+def _finish(
+    P: Tensor,
+    q: Tensor,
+    G: Tensor,
+    h: Tensor,
+    A: Tensor,
+    b: Tensor,
+    x: Tensor,
+    s: Tensor,
+    z: Tensor,
+    y: Tensor,
+    status: Tensor,
+    cfg: SolverConfig,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, _kkt.KKTFactor | None]:
+    """Polish (or not) an iterative answer; returns ``(x, z, y, status, active, factor)``."""
     if cfg.polish:
         x, z, y, status, fac = _kkt.polish(P, q, G, h, A, b, x, s, z, y, status, eps=cfg.eps)
-    else:
-        candidate = (status == int(Status.SOLVED)).unsqueeze(-1)
-        fac = _kkt.factor_kkt(P, G, A, _kkt.active_set(z, s) & candidate)
+        return x, z, y, status, fac.active, fac
+    candidate = (status == int(Status.SOLVED)).unsqueeze(-1)
+    return x, z, y, status, _kkt.active_set(z, s) & candidate, None
+
+
+def _forward_enum(
+    P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, _kkt.KKTFactor | None]:
+    """Active-set enumeration for every row; the rows it cannot certify (infeasible, ``P``
+    not positive definite, too ill-conditioned) go to the interior point method.
+
+    Deciding whether any row needs the interior point method is the one host
+    synchronisation of this path (``bool(fail.any())``)."""
+    B = q.shape[0]
+    en = solve_enum(P, q, G, h, A, b, eps=cfg.eps, pairs=cfg.pairs)
+    x, z, y, active = en.x, en.z, en.y, en.active
+    status = torch.where(en.ok, int(Status.SOLVED), int(Status.MAX_ITER))
+    iters = torch.zeros(B, dtype=torch.int64, device=q.device)
+    fail = ~en.ok
+    if bool(fail.any()):
+        idx = fail.nonzero().squeeze(-1)
+        sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
+        x0s = None if x0 is None else x0.index_select(0, idx)
+        out = solve_ipm(
+            *sub,
+            eps=cfg.eps,
+            eps_inf=cfg.eps_inf,
+            max_iter=cfg.max_iter,
+            check_every=cfg.check_every,
+            x0=x0s,
+        )
+        xs, zs, ys, sts, acts, _ = _finish(*sub, out.x, out.s, out.z, out.y, out.status, cfg)
+        x, z, y = x.index_copy(0, idx, xs), z.index_copy(0, idx, zs), y.index_copy(0, idx, ys)
+        status = status.index_copy(0, idx, sts)
+        active = active.index_copy(0, idx, acts)
+        iters = iters.index_copy(0, idx, out.iterations)
+    fac = _kkt.factor_kkt(P, G, A, active) if cfg.need_factor else None
     return x, z, y, status, iters, fac
 
 

@@ -8,6 +8,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchcbf.qp._enum import MAX_CANDIDATES, num_candidates
 from torchcbf.qp._function import QPFunction, SolverConfig
 from torchcbf.qp._ipm import default_tolerances
 from torchcbf.qp.status import Status
@@ -93,6 +94,7 @@ def solve_qp(
     soft: Tensor | None = None,
     check_every: int = 5,
     polish: bool | None = None,
+    method: str = "auto",
 ) -> QPSolution:
     """Solve ``min 1/2 x'Qx + p'x  s.t.  Gx <= h, Ax = b, lb <= x <= ub`` for a batch.
 
@@ -110,6 +112,19 @@ def solve_qp(
       and nothing else (no ``A``, bounds or ``soft``) and ``Q`` positive definite, the exact
       projection formula is used instead. Convergence is tested on the device every
       iteration; the host checks whether every row is done every ``check_every`` iterations.
+
+      ``method`` (torch backend only) picks the algorithm: ``"auto"`` (default) solves small
+      problems by **active-set enumeration** (:mod:`torchcbf.qp._enum`): every candidate
+      active set of at most ``N - k`` rows (``N`` variables after softening, ``k``
+      equalities; box bounds count as rows) is solved at once as a batched
+      equality-constrained QP and the verified KKT point is kept. It is exact, has a fixed
+      cost and no iterations (``iterations = 0``), and is used when the number of candidate
+      sets is at most ``torchcbf.qp._enum.MAX_CANDIDATES`` (e.g. 2 variables with up to
+      ~30 rows, 3 variables with 2 bounded controls, a slack and up to ~10 barrier rows,
+      4 variables with 8 rows). Rows it cannot certify (infeasible, ``Q`` not positive
+      definite, degenerate beyond repair) are re-solved by the interior point method; the
+      test for that is one host synchronisation per call. ``"ipm"`` always uses the
+      interior point method, ``"enumerate"`` forces enumeration whatever its size.
     - ``"proxsuite"``: proxsuite's dense solver, rows solved in parallel by its
       ``solve_in_parallel`` (CPU); its statuses are mapped to :class:`Status` and a row it
       calls solved whose answer violates the constraints is reported ``MAX_ITER``.
@@ -183,6 +198,8 @@ def solve_qp(
         raise ValueError(
             f"backend must be 'torch', 'proxsuite' or 'qpsolvers:<solver>', got {backend!r}"
         )
+    if method not in ("auto", "ipm", "enumerate"):
+        raise ValueError(f"method must be 'auto', 'ipm' or 'enumerate', got {method!r}")
     if not isinstance(max_iter, int) or isinstance(max_iter, bool) or max_iter < 1:
         raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
     if not isinstance(check_every, int) or check_every < 1:
@@ -298,6 +315,7 @@ def solve_qp(
             x0f = torch.cat((x0f, t0), -1)
     box_rows = []
     box_h = []
+    box_start = Gs.shape[-2]
     for bound, sign in ((ubf, 1.0), (lbf, -1.0)):
         if bound is None:
             continue
@@ -316,14 +334,27 @@ def solve_qp(
     )
     if polish is None:
         polish = backend == "torch"
+    pairs: tuple[tuple[int, int], ...] = ()
+    if lbf is not None and ubf is not None:
+        # both bounds of one variable are never active together (rows linearly dependent)
+        pairs = tuple((box_start + j, box_start + n + j) for j in range(n))
+    M_total = Gs.shape[-2]
+    use_enum = backend == "torch" and not closed_form and method != "ipm" and M_total + me > 0
+    if use_enum and method == "auto":
+        use_enum = me <= N and num_candidates(M_total, me, N, pairs) <= MAX_CANDIDATES
+    tensors = [t for _, t, _ in parts if t is not None]
+    need_factor = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
     cfg = SolverConfig(
         backend=backend,
         eps=eps,
         eps_inf=eps_inf,
         max_iter=max_iter,
         check_every=check_every,
-        closed_form=closed_form,
+        closed_form=closed_form and method != "ipm",
         polish=bool(polish),
+        enumerate=use_enum and me <= N,
+        pairs=pairs,
+        need_factor=need_factor,
     )
     if backend.startswith("qpsolvers:") and torch.is_grad_enabled():
         needs = [nm for nm, t, _ in parts if t is not None and t.requires_grad]
