@@ -1,0 +1,211 @@
+"""Active-set enumeration path of solve_qp: vs cvxpy and the IPM, degenerate problems,
+fallback to the IPM, gradients, batching, non-finite rows, float32."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchcbf.qp import Status, solve_qp
+from torchcbf.qp._enum import MAX_CANDIDATES, _table_cpu, num_candidates
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _problems import make_batch  # noqa: E402
+from test_solve import TOL, check_against_cvxpy  # noqa: E402
+
+F64 = torch.float64
+ELIGIBLE = [  # n, m, equalities, box bounds: all take the enumeration path
+    (2, 6, 0, True),
+    (2, 20, 0, False),
+    (3, 8, 0, True),
+    (3, 4, 1, True),
+    (4, 8, 0, False),
+    (4, 6, 1, False),
+]
+
+
+def _args(batch):
+    return (batch.Q, batch.p, batch.G, batch.h, batch.A, batch.b, batch.lb, batch.ub)
+
+
+def test_candidate_count_and_table():
+    for M, E, N, pairs in [(8, 0, 4, ()), (14, 0, 3, ((8, 11), (9, 12), (10, 13))), (9, 1, 3, ())]:
+        T, valid = _table_cpu(M, E, N, pairs)
+        assert T.shape[0] == num_candidates(M, E, N, pairs)
+        sets = {tuple(t[v].tolist()) for t, v in zip(T, valid, strict=True)}
+        assert len(sets) == T.shape[0]  # no duplicates
+        assert all(list(s[:E]) == list(range(E)) for s in sets)  # equalities always in
+        assert all(not set(p) <= {i - E for i in s} for s in sets for p in pairs)
+    assert num_candidates(8, 0, 4) == 1 + 8 + 28 + 56 + 70
+    for n, m, me, bd in ELIGIBLE:
+        M = m + (2 * n if bd else 0)
+        pairs = tuple((m + j, m + n + j) for j in range(n)) if bd else ()
+        assert num_candidates(M, me, n, pairs) <= MAX_CANDIDATES
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("shape", ELIGIBLE)
+def test_enumeration_matches_cvxpy_and_ipm(cvx, shape, dtype):
+    n, m, me, bounds = shape
+    batch = make_batch(30, n, m, me, bounds, seed=100 + 7 * n + m, dtype=dtype)
+    sol = solve_qp(*_args(batch))
+    feas = torch.tensor([k != "infeasible" for k in batch.kind])
+    assert (sol.iterations[feas] == 0).all()  # the enumeration path solved every feasible row
+    check_against_cvxpy(cvx, batch, sol, dtype, range(30))
+    ipm = solve_qp(*_args(batch), method="ipm")
+    assert torch.equal(ipm.status, sol.status)
+    ok = sol.status == Status.SOLVED
+    tol = TOL[dtype]
+    for f in ("x", "lam", "nu", "lam_lb", "lam_ub"):
+        a, b = getattr(sol, f)[ok], getattr(ipm, f)[ok]
+        torch.testing.assert_close(a, b, atol=10 * tol, rtol=0)
+
+
+def test_degenerate_problems(cvx):
+    """Duplicated rows, more than n rows active at the optimum, ill-conditioned Q."""
+    g = torch.Generator().manual_seed(3)
+    rows = []
+    # (a) five lines through the optimum x* = (1, 1) of a 2-variable problem
+    x_star = torch.tensor([1.0, 1.0], dtype=F64)
+    Ga = torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0], [2.0, 1.0], [1.0, 3.0]], dtype=F64)
+    rows.append((torch.eye(2, dtype=F64), -torch.tensor([3.0, 4.0], dtype=F64), Ga, Ga @ x_star))
+    # (b) duplicated and scaled copies of the active row
+    Gb = torch.tensor([[1.0, 2.0], [1.0, 2.0], [2.0, 4.0], [-1.0, 0.5], [0.0, -1.0]], dtype=F64)
+    hb = torch.tensor([1.0, 1.0, 2.0, 3.0, 5.0], dtype=F64)
+    rows.append((torch.eye(2, dtype=F64), -torch.tensor([2.0, 3.0], dtype=F64), Gb, hb))
+    # (c) Q positive definite with condition number 1e7
+    U, _ = torch.linalg.qr(torch.randn(2, 2, generator=g, dtype=F64))
+    Qc = U @ torch.diag(torch.tensor([1.0, 1e-7], dtype=F64)) @ U.T
+    Gc = torch.randn(5, 2, generator=g, dtype=F64)
+    rows.append(
+        (Qc, torch.randn(2, generator=g, dtype=F64), Gc, torch.rand(5, generator=g).double())
+    )
+    # (d) a constraint satisfied with equality but with zero multiplier (weakly active)
+    Gd = torch.tensor([[1.0, 0.0], [0.0, 1.0], [-1.0, -1.0], [1.0, -1.0], [0.0, -1.0]])
+    rows.append(
+        (
+            torch.eye(2, dtype=F64),
+            -torch.tensor([1.0, 0.5]).double(),
+            Gd.double(),
+            torch.tensor([1.0, 2.0, 5.0, 0.5, 3.0], dtype=F64),
+        )
+    )
+    Q, p, G, h = (torch.stack(t) for t in zip(*rows, strict=True))
+    sol = solve_qp(Q, p, G, h)
+    assert (sol.status == Status.SOLVED).all()
+    assert (sol.iterations == 0).all()
+    for i in range(len(rows)):
+        x_ref, obj_ref, st = cvx(*(t[i].numpy() for t in (Q, p, G, h)))
+        assert st == "optimal"
+        x = sol.x[i].numpy()
+        assert abs(x - x_ref).max() <= 1e-6 * (1 + abs(x_ref).max()), (i, x, x_ref)
+        # the multipliers are a valid KKT certificate
+        stat = Q[i] @ sol.x[i] + p[i] + G[i].T @ sol.lam[i]
+        assert stat.abs().max() <= 1e-7 * (1 + p[i].abs().max() + sol.lam[i].abs().max())
+        assert (sol.lam[i] >= 0).all()
+    torch.testing.assert_close(sol.x[0], x_star)
+
+
+def test_fallback_rows_use_ipm_and_infeasible_flagged():
+    # row 0: Q only positive semidefinite (enumeration needs PD) -> IPM; row 1: infeasible;
+    # row 2: ordinary
+    Q = torch.stack([torch.diag(torch.tensor([1.0, 0.0])), torch.eye(2), torch.eye(2)]).double()
+    p = torch.tensor([[0.0, -1.0], [0.0, 0.0], [1.0, 1.0]], dtype=F64)
+    G = torch.tensor(
+        [[[0.0, 1.0], [1.0, 0.0]], [[1.0, 1.0], [-1.0, -1.0]], [[1.0, 0.0], [0.0, 1.0]]]
+    )
+    h = torch.tensor([[2.0, 3.0], [-1.0, -1.0], [1.0, -2.0]], dtype=F64)
+    sol = solve_qp(Q, p, G.double(), h)
+    assert sol.status.tolist() == [Status.SOLVED, Status.PRIMAL_INFEASIBLE, Status.SOLVED]
+    assert sol.iterations[0] > 0 and sol.iterations[2] == 0  # row 0 went to the IPM
+    assert float(sol.x[0, 1]) == pytest.approx(2.0, abs=1e-7)
+    torch.testing.assert_close(sol.x[2], torch.tensor([-1.0, -2.0], dtype=F64))
+    assert (sol.x[1] == 0).all()
+
+
+def test_forced_enumeration_and_method_errors():
+    batch = make_batch(10, 5, 7, 0, False, seed=4, frac_infeasible=0.0)
+    assert num_candidates(7, 0, 5) > 0
+    forced = solve_qp(*_args(batch), method="enumerate")
+    ipm = solve_qp(*_args(batch), method="ipm")
+    assert (forced.iterations == 0).all() and (ipm.iterations > 0).all()
+    torch.testing.assert_close(forced.x, ipm.x, atol=1e-7, rtol=0)
+    with pytest.raises(ValueError, match="method"):
+        solve_qp(batch.Q, batch.p, method="active")
+
+
+def test_gradcheck_on_enumeration_path():
+    batch = make_batch(3, 3, 4, 1, True, seed=10, frac_infeasible=0.0, frac_inactive=0.34)
+    inputs = [t.clone().requires_grad_(True) for t in _args(batch)]
+    g = torch.Generator().manual_seed(0)
+    wx = torch.randn(3, 3, generator=g, dtype=F64)
+    wl = torch.randn(3, 4, generator=g, dtype=F64)
+
+    def f(Q, p, G, h, A, b, lb, ub):
+        sol = solve_qp(Q, p, G, h, A, b, lb, ub)
+        assert (sol.status == Status.SOLVED).all() and (sol.iterations == 0).all()
+        return (sol.x * wx).sum() + (sol.lam * wl).sum() + sol.nu.sum() + sol.lam_ub.sum()
+
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_gradients_equal_ipm_gradients():
+    batch = make_batch(16, 4, 8, 0, False, seed=21, frac_infeasible=0.0)
+    grads = []
+    for method in ("auto", "ipm"):
+        p = batch.p.clone().requires_grad_(True)
+        G = batch.G.clone().requires_grad_(True)
+        sol = solve_qp(batch.Q, p, G, batch.h, method=method)
+        grads.append(torch.autograd.grad((sol.x**2).sum() + sol.lam.sum(), (p, G)))
+    for a, b in zip(*grads, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-6)
+
+
+def test_batch_equals_loop_and_chunks():
+    batch = make_batch(12, 3, 5, 1, True, seed=11)
+    full = solve_qp(*_args(batch))
+    for i in range(12):
+        one = solve_qp(*(t[i] for t in _args(batch)))
+        assert int(one.status) == int(full.status[i])
+        torch.testing.assert_close(one.x, full.x[i], atol=1e-12, rtol=0)
+        torch.testing.assert_close(one.lam, full.lam[i], atol=1e-12, rtol=0)
+    # a batch large enough to be processed in several chunks gives the same rows
+    big = make_batch(600, 4, 8, 0, False, seed=12, frac_infeasible=0.0)
+    sol = solve_qp(big.Q, big.p, big.G, big.h)
+    part = solve_qp(big.Q[:7], big.p[:7], big.G[:7], big.h[:7])
+    assert (sol.status == Status.SOLVED).all()
+    torch.testing.assert_close(sol.x[:7], part.x, atol=1e-12, rtol=0)
+    torch.testing.assert_close(sol.x, big.x_star, atol=1e-7, rtol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_nonfinite_rows_and_soft_rows(dtype):
+    batch = make_batch(6, 2, 4, 0, True, seed=5, frac_infeasible=0.0, dtype=dtype)
+    args = list(_args(batch))
+    ref = solve_qp(*args)
+    args[3] = batch.h.clone()
+    args[3][1, 2] = math.nan
+    args[0] = batch.Q.clone()
+    args[0][4, 0, 1] = math.inf
+    sol = solve_qp(*args)
+    assert sol.status.tolist() == [0, Status.NON_FINITE, 0, 0, Status.NON_FINITE, 0]
+    assert torch.isfinite(sol.x).all() and (sol.x[[1, 4]] == 0).all()
+    keep = [0, 2, 3, 5]
+    torch.testing.assert_close(sol.x[keep], ref.x[keep])
+    # soft rows (2 + 4 variables, 4 + 4 + 4 rows) take the enumeration path too
+    soft = torch.full((6, 4), 3.0, dtype=dtype)
+    h = batch.h - 1.0
+    s_enum = solve_qp(
+        batch.Q, batch.p, batch.G, h, lb=batch.lb, ub=batch.ub, soft=soft, method="enumerate"
+    )
+    s_ipm = solve_qp(
+        batch.Q, batch.p, batch.G, h, lb=batch.lb, ub=batch.ub, soft=soft, method="ipm"
+    )
+    assert (s_enum.status == 0).all() and (s_enum.iterations == 0).all()
+    tol = TOL[dtype]
+    torch.testing.assert_close(s_enum.x, s_ipm.x, atol=10 * tol, rtol=0)
+    torch.testing.assert_close(s_enum.slack, s_ipm.slack, atol=10 * tol, rtol=0)
