@@ -19,9 +19,7 @@ def check_last_dim(name: str, value: object, size: int) -> Tensor:
     """Check ``value`` is a tensor of shape ``[..., size]``."""
     value = check_tensor(name, value)
     if value.dim() == 0 or value.shape[-1] != size:
-        raise ValueError(
-            f"{name} must have shape [..., {size}], got {tuple(value.shape)}"
-        )
+        raise ValueError(f"{name} must have shape [..., {size}], got {tuple(value.shape)}")
     return value
 
 
@@ -62,9 +60,7 @@ def check_index(name: str, index: Sequence[int], state_dim: int | None) -> tuple
     return index
 
 
-def as_tensor(
-    name: str, value: object, *, dtype: torch.dtype | None = None, device=None
-) -> Tensor:
+def as_tensor(name: str, value: object, *, dtype: torch.dtype | None = None, device=None) -> Tensor:
     """Convert a number, sequence or tensor to a floating tensor (default dtype if not a tensor)."""
     if isinstance(value, Tensor):
         out = value
@@ -74,9 +70,7 @@ def as_tensor(
             out = out.to(device=device, dtype=dtype)
         return out
     try:
-        return torch.as_tensor(
-            value, dtype=dtype or torch.get_default_dtype(), device=device
-        )
+        return torch.as_tensor(value, dtype=dtype or torch.get_default_dtype(), device=device)
     except (TypeError, ValueError, RuntimeError) as err:
         raise TypeError(f"{name} must be a number, sequence or tensor, got {value!r}") from err
 

@@ -1,8 +1,13 @@
 """The reference scenarios of SCENARIOS.md as builders (used by the CLI, scripts and tests)."""
 
 from torchcbf.scenarios.base import Scenario
-from torchcbf.scenarios.unicycle_mppi_cbf import METHODS, mppi_cbf, obstacles, proportional_controller
 from torchcbf.scenarios.single_integrator_reach_avoid import reach_avoid, reach_avoid_spec
+from torchcbf.scenarios.unicycle_mppi_cbf import (
+    METHODS,
+    mppi_cbf,
+    obstacles,
+    proportional_controller,
+)
 
 __all__ = [
     "METHODS",

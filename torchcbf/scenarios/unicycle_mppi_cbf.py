@@ -62,6 +62,8 @@ def mppi_cbf(
     seed: int = 0,
     planner_every: int = 2,
     rectify_gain: float = 2.0,
+    noise_sigma: float = 4.0,
+    control_limit: float | None = None,
     device: str | torch.device = "cpu",
     dtype: torch.dtype = torch.float32,
 ) -> Scenario:
@@ -69,8 +71,11 @@ def mppi_cbf(
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     dt, steps = 0.01, 500
-    plant = AccelUnicycle(sigma=SIGMA).to(device=device, dtype=dtype)
-    nominal_model = AccelUnicycle().to(device=device, dtype=dtype)
+    limits = {}
+    if control_limit is not None:
+        limits = {"u_min": [-control_limit] * 2, "u_max": [control_limit] * 2}
+    plant = AccelUnicycle(sigma=SIGMA, **limits).to(device=device, dtype=dtype)
+    nominal_model = AccelUnicycle(**limits).to(device=device, dtype=dtype)
     ellipses = obstacles().to(device=device, dtype=dtype)
 
     planner = None
@@ -85,7 +90,7 @@ def mppi_cbf(
             horizon=horizon,
             num_samples=num_samples,
             dt=0.02,
-            noise_sigma=torch.diag(torch.tensor([4.0, 4.0])),
+            noise_sigma=noise_sigma * torch.eye(2),
             temperature=0.03,
             control_cost_weight=0.1,
             seed=seed,
