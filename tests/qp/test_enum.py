@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from torchcbf.qp import Status, solve_qp
-from torchcbf.qp._enum import MAX_CANDIDATES, _table_cpu, num_candidates
+from torchcbf.qp._enum import MAX_CANDIDATES_SMALL_BATCH, _table_cpu, num_candidates
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _problems import make_batch  # noqa: E402
@@ -44,7 +44,7 @@ def test_candidate_count_and_table():
     for n, m, me, bd in ELIGIBLE:
         M = m + (2 * n if bd else 0)
         pairs = tuple((m + j, m + n + j) for j in range(n)) if bd else ()
-        assert num_candidates(M, me, n, pairs) <= MAX_CANDIDATES
+        assert num_candidates(M, me, n, pairs) <= MAX_CANDIDATES_SMALL_BATCH  # batches of 30
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])

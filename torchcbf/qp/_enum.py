@@ -36,10 +36,14 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-#: largest candidate count for which ``method="auto"`` uses enumeration (set by measurement
-#: on CPU in scripts/bench_qp.py: enumeration beats the interior point method up to several
-#: hundred candidates at every batch size measured)
-MAX_CANDIDATES = 600
+#: ``method="auto"`` enumerates when the candidate count is at most ``MAX_CANDIDATES``, or at
+#: most ``MAX_CANDIDATES_SMALL_BATCH`` for batches of at most ``SMALL_BATCH`` rows (measured on
+#: a 2-core CPU, scripts/bench_qp.py --crossover: at B=1024 enumeration is ~1.6x faster than
+#: the interior point method at 163 candidates and ~2.5x slower at 431; at B<=64 it is faster
+#: up to 600+, where the interior point method's fixed per-iteration overhead dominates)
+MAX_CANDIDATES = 256
+MAX_CANDIDATES_SMALL_BATCH = 800
+SMALL_BATCH = 64
 #: rows x candidates per chunk: keeps the scalar planes of the elimination in cache
 _CHUNK_ELEMENTS = 1 << 15
 
@@ -188,8 +192,9 @@ def _solve_chunk(
     # residuals of every row for every candidate: res = R x_S - [b; h] = r - W[:, S] mu,
     # with a spare zero column that padding entries point to
     mu_full = q.new_zeros(B, C, Rn + 1).scatter_(-1, tab.T.expand(B, C, K), mu.permute(2, 1, 0))
-    W_ext = torch.nn.functional.pad(W, (0, 1, 0, 1))
-    r_ext = torch.nn.functional.pad(r, (0, 1))
+    W_ext = W.new_zeros(B, Rn + 1, Rn + 1)
+    W_ext[:, :Rn, :Rn] = W
+    r_ext = torch.cat((r, r.new_zeros(B, 1)), -1)
     res = torch.baddbmm(r_ext.unsqueeze(1), mu_full, W_ext, alpha=-1.0)  # [B, C, Rn + 1]
     # max(res, 0) over every row (the spare column is 0), and |res| on the rows of S
     pviol = torch.maximum(res.amax(-1), res.gather(-1, tab.T.expand(B, C, K)).amin(-1).neg())

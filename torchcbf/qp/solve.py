@@ -8,7 +8,12 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchcbf.qp._enum import MAX_CANDIDATES, num_candidates
+from torchcbf.qp._enum import (
+    MAX_CANDIDATES,
+    MAX_CANDIDATES_SMALL_BATCH,
+    SMALL_BATCH,
+    num_candidates,
+)
 from torchcbf.qp._function import QPFunction, SolverConfig
 from torchcbf.qp._ipm import default_tolerances
 from torchcbf.qp.status import Status
@@ -119,9 +124,10 @@ def solve_qp(
       equalities; box bounds count as rows) is solved at once as a batched
       equality-constrained QP and the verified KKT point is kept. It is exact, has a fixed
       cost and no iterations (``iterations = 0``), and is used when the number of candidate
-      sets is at most ``torchcbf.qp._enum.MAX_CANDIDATES`` (e.g. 2 variables with up to
-      ~30 rows, 3 variables with 2 bounded controls, a slack and up to ~10 barrier rows,
-      4 variables with 8 rows). Rows it cannot certify (infeasible, ``Q`` not positive
+      sets is at most 256, or 800 for batches of at most 64 rows (constants in
+      :mod:`torchcbf.qp._enum`; e.g. 2 variables with up to ~20 rows, 4 variables with 8
+      rows, and for small batches 3 variables (2 bounded controls and a slack) with up to
+      8 barrier rows). Rows it cannot certify (infeasible, ``Q`` not positive
       definite, degenerate beyond repair) are re-solved by the interior point method; the
       test for that is one host synchronisation per call. ``"ipm"`` always uses the
       interior point method, ``"enumerate"`` forces enumeration whatever its size.
@@ -341,7 +347,9 @@ def solve_qp(
     M_total = Gs.shape[-2]
     use_enum = backend == "torch" and not closed_form and method != "ipm" and M_total + me > 0
     if use_enum and method == "auto":
-        use_enum = me <= N and num_candidates(M_total, me, N, pairs) <= MAX_CANDIDATES
+        C = num_candidates(M_total, me, N, pairs) if me <= N else 0
+        limit = MAX_CANDIDATES_SMALL_BATCH if B <= SMALL_BATCH else MAX_CANDIDATES
+        use_enum = 0 < C <= limit
     tensors = [t for _, t, _ in parts if t is not None]
     need_factor = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
     cfg = SolverConfig(
