@@ -1,5 +1,7 @@
 """Benchmark torchcbf.qp.solve_qp against peer differentiable QP layers.
 
+torchcbf's torch backend picks active-set enumeration for small problems (``method="auto"``)
+and the interior point method otherwise; the goal lines also time ``method="ipm"``.
 Times forward and forward+backward per QP on random feasible dense QPs
 (``min 1/2 x'Qx + p'x  s.t.  Gx <= h``, Q positive definite, some constraints active) for
 torchcbf (torch and proxsuite backends), proxsuite's torch ``QPFunction``, qpth's
@@ -14,6 +16,7 @@ dense solver called directly); and forward throughput at B=1,000,000, n=2, m=6 o
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from collections.abc import Callable
 
@@ -52,16 +55,16 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def run_torchcbf(backend: str, device: str):
+def run_torchcbf(backend: str, device: str, method: str = "auto"):
     def fwd(Q, p, G, h):
         with torch.no_grad():
-            solve_qp(Q, p, G, h, backend=backend)
+            solve_qp(Q, p, G, h, backend=backend, method=method)
         _sync(device)
 
     def fwdbwd(Q, p, G, h):
         p = p.detach().requires_grad_(True)
         h = h.detach().requires_grad_(True)
-        sol = solve_qp(Q, p, G, h, backend=backend)
+        sol = solve_qp(Q, p, G, h, backend=backend, method=method)
         sol.x.sum().backward()
         _sync(device)
 
@@ -148,8 +151,11 @@ def main() -> None:
     parser.add_argument("--peer-max-batch", type=int, default=1024, help="largest peer batch")
     parser.add_argument("--no-grid", action="store_true", help="only print the goal lines")
     parser.add_argument("--big", type=int, default=1_000_000, help="batch of the throughput line")
+    parser.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
     args = parser.parse_args()
     dev = args.device
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
 
     peers: dict[str, Callable | None] = {}
     notes = []
@@ -173,7 +179,11 @@ def main() -> None:
         notes.append("cvxpylayers not installed: skipped")
     for note in notes:
         print(f"# {note}")
-    print(f"# torch {torch.__version__}, threads {torch.get_num_threads()}, device {dev}")
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    print(
+        f"# torch {torch.__version__}, threads {torch.get_num_threads()}, device {dev}, "
+        f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}"
+    )
 
     if args.quick:
         grid = [(B, n, m) for B in (1, 64, 1024) for n, m in ((2, 5), (4, 10))]
@@ -225,7 +235,13 @@ def main() -> None:
     t_ours = timeit(lambda: fb(Q, p, G, h), min_time=1.0) / B
     sol = solve_qp(Q, p, G, h)
     solved = float((sol.status == Status.SOLVED).float().mean())
-    print(f"B=4096 n=4 m=8 fwd+bwd torchcbf[torch]: {t_ours * 1e6:.2f} us/QP (solved {solved:.3f})")
+    path = "enumeration" if bool((sol.iterations == 0).all()) else "interior point"
+    _, fb_ipm = run_torchcbf("torch", dev, method="ipm")
+    t_ipm = timeit(lambda: fb_ipm(Q, p, G, h), min_time=1.0) / B
+    print(
+        f"B=4096 n=4 m=8 fwd+bwd torchcbf[torch] ({path}): {t_ours * 1e6:.2f} us/QP "
+        f"(solved {solved:.3f}); method='ipm': {t_ipm * 1e6:.2f} us/QP"
+    )
     Qc, pc, Gc, hc = (t.cpu() for t in (Q, p, G, h))
     for name, maker in peers.items():
         if maker is None:
@@ -243,11 +259,29 @@ def main() -> None:
     Q, p, G, h = make_problems(1, 2, 6, "cpu", seed=2)
     fwd, _ = run_torchcbf("torch", "cpu")
     t1 = timeit(lambda: fwd(Q, p, G, h), min_time=1.0, max_reps=200)
+    fwd_ipm, _ = run_torchcbf("torch", "cpu", method="ipm")
+    t1_ipm = timeit(lambda: fwd_ipm(Q, p, G, h), min_time=1.0, max_reps=200)
     direct = proxsuite_dense_direct(Q, p, G, h)
     t_direct = timeit(direct, min_time=0.5, max_reps=2000)
     print(
-        f"B=1 n=2 m=6 forward torchcbf[torch] (CPU): {t1 * 1e3:.3f} ms (goal < 1 ms); "
+        f"B=1 n=2 m=6 forward torchcbf[torch] (CPU, enumeration): {t1 * 1e3:.3f} ms "
+        f"(goal < 1 ms); method='ipm': {t1_ipm * 1e3:.3f} ms; "
         f"proxsuite dense direct: {t_direct * 1e3:.3f} ms; ratio {t1 / t_direct:.1f}x"
+    )
+    # a safety-filter-shaped problem: 2 bounded controls + 1 bounded slack, 8 barrier rows
+    Q, p, G, h = make_problems(1, 3, 8, "cpu", seed=4)
+    lb = torch.full((3,), -2.0, dtype=Q.dtype)
+    ub = torch.full((3,), 2.0, dtype=Q.dtype)
+
+    def filt(method: str) -> None:
+        with torch.no_grad():
+            solve_qp(Q, p, G, h, lb=lb, ub=ub, method=method)
+
+    t_f = timeit(lambda: filt("auto"), min_time=0.5, max_reps=200)
+    t_fi = timeit(lambda: filt("ipm"), min_time=0.5, max_reps=200)
+    print(
+        f"B=1 n=3 m=8 + box forward (filter shape, 431 candidates): enumeration "
+        f"{t_f * 1e3:.3f} ms, method='ipm' {t_fi * 1e3:.3f} ms"
     )
 
     # 3) throughput at B=big, n=2, m=6 on --device
