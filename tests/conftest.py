@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 
 import pytest
@@ -36,3 +37,17 @@ def _one_thread() -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(threads)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """``slow`` reproductions run only when selected (``-m slow``) or with ``TORCHCBF_SLOW=1``,
+    so a plain ``pytest`` stays fast."""
+    markexpr = config.getoption("-m") or ""
+    if os.environ.get("TORCHCBF_SLOW") == "1" or (
+        "slow" in markexpr and "not slow" not in markexpr
+    ):
+        return
+    skip = pytest.mark.skip(reason="slow: run with -m slow or TORCHCBF_SLOW=1")
+    for item in items:
+        if "slow" in item.keywords:
+            item.add_marker(skip)

@@ -37,31 +37,3 @@ def cvxpy_solve(Q, p, G=None, h=None, A=None, b=None, lb=None, ub=None):
 def cvx():
     pytest.importorskip("cvxpy")
     return cvxpy_solve
-
-
-def pytest_collection_modifyitems(config, items):
-    """Skip this package's ``slow`` tests unless selected with ``-m slow`` (or env
-    ``TORCHCBF_SLOW=1``), so the default run stays fast."""
-    import os
-
-    markexpr = config.getoption("-m") or ""
-    if os.environ.get("TORCHCBF_SLOW") == "1" or (
-        "slow" in markexpr and "not slow" not in markexpr
-    ):
-        return
-    skip = pytest.mark.skip(reason="slow: run with -m slow or TORCHCBF_SLOW=1")
-    here = os.path.dirname(__file__)
-    for item in items:
-        if "slow" in item.keywords and str(item.fspath).startswith(here):
-            item.add_marker(skip)
-
-
-@pytest.fixture(autouse=True)
-def _single_thread():
-    """Tiny batched kernels are slower with an OpenMP team on a shared 2-core machine."""
-    import torch
-
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
