@@ -15,6 +15,7 @@ pytest.importorskip("pytorch_kinematics")
 from _arm_reference import LENGTHS, fd_jacobian, planar_fk  # noqa: E402
 
 from torchcbf.dynamics.manipulator import (  # noqa: E402
+    JointSpaceController,
     Manipulator,
     ResolvedRateController,
     asset_path,
@@ -225,6 +226,39 @@ def test_resolved_rate_decreases_distance(planar: Manipulator) -> None:
     torch.testing.assert_close(ctrl_a(x), 3.0 * u)
     with pytest.raises(ValueError, match="target"):
         ResolvedRateController(planar, [1.0, 2.0])
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_joint_space_controller(planar: Manipulator, dtype: torch.dtype) -> None:
+    gen = torch.Generator().manual_seed(5)
+    q = planar.random_configurations(16, generator=gen, dtype=dtype)
+    qt = planar.random_configurations(16, generator=gen, dtype=dtype)
+    ctrl = JointSpaceController(planar, qt, gain=2.0)
+    u = ctrl(q)
+    assert u.shape == (16, 3) and u.dtype == dtype
+    vmax = planar.velocity_limit.to(dtype)
+    # reference, row by row: -k e, scaled down uniformly when a joint exceeds its limit
+    for b in range(16):
+        ref = -2.0 * (q[b] - qt[b])
+        ref = ref / max(1.0, float((ref.abs() / vmax).max()))
+        torch.testing.assert_close(u[b], ref)
+    assert bool((u.abs() <= vmax * (1 + 1e-6)).all())
+    # V = |q - q*|^2 decreases: dV/dt = 2 (q - q*)' u < 0
+    assert bool((((q - qt) * u).sum(-1) < 0).all())
+    # an unsaturated near-target row equals the plain law; one target broadcasts
+    single = JointSpaceController(planar, qt[0], gain=2.0)
+    torch.testing.assert_close(single(qt[0] + 0.01), torch.full((3,), -0.02, dtype=dtype))
+    # acceleration control: qddot = k_v (qdot* - qdot)
+    acc = Manipulator("planar3", control="acceleration")
+    ctrl_a = JointSpaceController(acc, qt, gain=2.0, velocity_gain=3.0)
+    x = torch.cat([q, 0.1 * torch.ones_like(q)], -1)
+    torch.testing.assert_close(ctrl_a(x), 3.0 * (u - 0.1))
+    with pytest.raises(ValueError, match="target"):
+        JointSpaceController(planar, [1.0, 2.0])
+    with pytest.raises(ValueError, match="gain"):
+        JointSpaceController(planar, qt, gain=0.0)
+    with pytest.raises(TypeError, match="arm"):
+        JointSpaceController("planar3", qt)  # type: ignore[arg-type]
 
 
 def test_missing_pytorch_kinematics_raises_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -433,6 +433,71 @@ class ResolvedRateController(nn.Module):
         return self.velocity_gain * (qd - x[..., self.arm.dof :])
 
 
+class JointSpaceController(nn.Module):
+    """Joint-space CLF nominal toward a target configuration: ``qdot* = -k (q - q*)``.
+
+    It decreases ``V = |q - q*|^2`` (``dV/dt = -2 k V``), also after the uniform scaling
+    of ``saturate=True`` (which keeps the direction, so ``dV/dt < 0`` away from ``q*``).
+    The straight joint-space path stays inside the joint-limit box when ``q`` and ``q*``
+    are inside it (the box is convex), so unlike a Cartesian resolved-rate law it never
+    stalls at a joint limit; it does not avoid obstacles (leave that to a safety filter).
+    Under acceleration control the output is ``qddot = k_v (qdot* - qdot)``.
+
+    Args:
+        arm: the :class:`Manipulator`.
+        target: target configuration ``[dof]`` or one per scenario ``[B, dof]``.
+        gain: ``k > 0`` (1/s).
+        velocity_gain: ``k_v > 0`` for acceleration control (1/s).
+        saturate: respect the velocity limits by uniform scaling.
+
+    ``forward(x [..., n], t=None) -> u [..., dof]``; ``target`` is a buffer that may be
+    reassigned between runs.
+    """
+
+    def __init__(
+        self,
+        arm: Manipulator,
+        target: Tensor | Sequence[float],
+        *,
+        gain: float = 1.0,
+        velocity_gain: float = 5.0,
+        saturate: bool = True,
+    ) -> None:
+        super().__init__()
+        if not isinstance(arm, Manipulator):
+            raise TypeError(f"arm must be a Manipulator, got {type(arm).__name__}")
+        if not gain > 0 or not velocity_gain > 0:
+            raise ValueError(f"gain and velocity_gain must be > 0, got {gain}, {velocity_gain}")
+        self.arm = arm
+        t = as_tensor("target", target).detach().clone()
+        if t.dim() == 0 or t.shape[-1] != arm.dof:
+            raise ValueError(
+                f"target must have shape [{arm.dof}] or [B, {arm.dof}], got {tuple(t.shape)}"
+            )
+        self.register_buffer("target", t)
+        self.gain = float(gain)
+        self.velocity_gain = float(velocity_gain)
+        self.saturate = bool(saturate)
+
+    def joint_velocity(self, x: Tensor) -> Tensor:
+        """The joint velocity ``qdot* [..., dof]`` at ``x [..., n]``."""
+        self.arm.check_inputs(x)
+        q = self.arm.joint_positions(x)
+        qd = -self.gain * (q - self.target.to(x))
+        if self.saturate:
+            vmax = self.arm.velocity_limit.to(x)
+            ratio = (qd.abs() / vmax).amax(-1, keepdim=True)
+            qd = qd / ratio.clamp_min(1.0)
+        return qd
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """Nominal control ``u [..., dof]`` at ``x [..., n]``."""
+        qd = self.joint_velocity(x)
+        if self.arm.control == "velocity":
+            return qd
+        return self.velocity_gain * (qd - x[..., self.arm.dof :])
+
+
 def _leaf_link(chain: Any) -> str:
     """The only leaf link of a pytorch-kinematics chain (raise if the tree branches)."""
     leaves: list[str] = []
