@@ -1,7 +1,12 @@
 """Control-affine dynamics: the :class:`ControlAffine` base and standard models."""
 
 from torchcbf.dynamics.base import ControlAffine
-from torchcbf.dynamics.manipulator import Manipulator, ResolvedRateController, asset_path
+from torchcbf.dynamics.manipulator import (
+    JointSpaceController,
+    Manipulator,
+    ResolvedRateController,
+    asset_path,
+)
 from torchcbf.dynamics.models import (
     AccelUnicycle,
     Bicycle,
@@ -19,6 +24,7 @@ __all__ = [
     "ControlAffine",
     "DoubleIntegrator",
     "FixedWing",
+    "JointSpaceController",
     "Manipulator",
     "Quadrotor",
     "ResolvedRateController",
