@@ -61,6 +61,30 @@ def test_mppi_cbf_builders_run(method: str) -> None:
     assert m["collision"].shape == (3,) and m["goal0_reached"].shape == (3,)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_mppi_cbf_barrier_scale_and_rectify_gain(dtype: torch.dtype) -> None:
+    """At rest (v = 0) h_e = c_i (L_f b_i + k b_i) = c_i k b_i(x0), b_i by hand."""
+    scales, k = [0.5, 1.0, 0.01, 2.0, 0.25], 3.0
+    scenario = mppi_cbf("scbf", num_seeds=2, rectify_gain=k, barrier_scale=scales, dtype=dtype)
+    scenario.steps = 1
+    traj, _ = scenario.run(progress=False)
+    centers = [(1, 2), (3, 2), (2, 5), (-1, 1), (0.5, -1)]
+    axes = [(0.5, 1.5), (0.75, 2.0), (2.0, 0.25), (1.0, 0.75), (0.75, 0.5)]
+    b0 = [
+        (cx / a1) ** 2 + (cy / a2) ** 2 - 1
+        for (cx, cy), (a1, a2) in zip(centers, axes, strict=True)
+    ]
+    expected = torch.tensor([c * k * b for c, b in zip(scales, b0, strict=True)], dtype=dtype)
+    rtol = 1e-10 if dtype == torch.float64 else 1e-5
+    torch.testing.assert_close(traj.h[:, 0], expected.expand(2, 5), rtol=rtol, atol=0.0)
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0, [1.0, 1.0], [1.0, 1.0, 1.0, 1.0, float("nan")]])
+def test_mppi_cbf_rejects_bad_barrier_scale(bad) -> None:
+    with pytest.raises(ValueError, match="barrier_scale"):
+        mppi_cbf("scbf", num_seeds=1, barrier_scale=bad)
+
+
 def test_mppi_cbf_rejects_unknown_method() -> None:
     with pytest.raises(ValueError, match="method must be one of"):
         mppi_cbf("cbf")

@@ -5,24 +5,38 @@ Methods: ``"scbf"`` (stochastic CBF-QP on the proportional controller), ``"mppi"
 alone) and ``"mppi_scbf"`` (MPPI's first control filtered by the stochastic CBF-QP).
 
 Choices left open by the paper, made here:
-- MPPI's control noise covariance is ``diag(4, 4)`` (as scenario A); its plan starts at zero.
+- MPPI's control noise covariance is ``diag(4, 4)`` (as scenario A); its plan starts at zero;
+  ``cost_normalization="none"``, ``shift_fill="zero"``, no zero-noise sample (all arguments).
 - The planner replans every ``planner_every`` loop steps (default 2: once per rollout step
   of 0.02 s); between replans the loop follows the plan.
 - No control limits (the paper gives none), so the CBF-QP is feasible wherever the
   barriers' ``L_g h`` rows are.
-- Each ellipse is rectified in exponential form ``h_e = L_f b + k b`` with ``k = 2``
-  (pole at -2); the stochastic condition uses alpha = 1, beta = 1 on ``h_e``.
+- Each ellipse ``b_i`` (optionally scaled by ``barrier_scale`` ``c_i > 0``, default 1: the
+  paper's ``b_i``) is rectified in exponential form ``h_e = c_i (L_f b_i + k b_i)`` with
+  ``k = rectify_gain = 2`` (pole at -2); the stochastic condition uses alpha = 1, beta = 1
+  on ``h_e``.
 - Scenario ``b`` uses noise seed ``seed + b`` and MPPI seed ``seed + b``.
+
+Known limitation (measured, see the scenario-B report in the project notes): with the
+paper's fixed ``sigma = 0.28 I`` on all four states and ``alpha = 1``, the stochastic CBF
+cannot keep every seed collision-free. Where the condition is active, ``h_e`` is an
+Ornstein-Uhlenbeck process with rate ``alpha``; position noise reaches ``h_e`` at relative
+degree zero, so the distance to an ellipse fluctuates around the filter's equilibrium with a
+standard deviation of at least ``0.28 / sqrt(2 alpha) ~ 0.2 m`` whatever ``k`` and ``c_i``
+(which only move the equilibrium margin ``beta / (c_i k |grad b_i|)``). The start lies within
+0.5 m of two ellipses and the passages are 0.6-0.75 m wide, so a margin of three such
+deviations does not fit.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
 
-from torchcbf.barriers import Ellipse, rectify
+from torchcbf.barriers import Barrier, Ellipse, rectify
 from torchcbf.dynamics import AccelUnicycle
 from torchcbf.filters import FilterStatus, SafetyFilter
 from torchcbf.mppi import MPPI, QuadraticGoal, RolloutCost, SumCost
@@ -64,6 +78,10 @@ def mppi_cbf(
     rectify_gain: float = 2.0,
     noise_sigma: float = 4.0,
     control_limit: float | None = None,
+    barrier_scale: float | Sequence[float] = 1.0,
+    cost_normalization: str = "none",
+    zero_noise_samples: int = 0,
+    shift_fill: str = "zero",
     device: str | torch.device = "cpu",
     dtype: torch.dtype = torch.float32,
 ) -> Scenario:
@@ -95,13 +113,25 @@ def mppi_cbf(
             control_cost_weight=0.1,
             seed=seed,
             keep_rollouts=min(512, num_samples),
+            cost_normalization=cost_normalization,
+            zero_noise_samples=zero_noise_samples,
+            shift_fill=shift_fill,
         ).to(device=device, dtype=dtype)
 
     safety_filter = None
     if method in ("scbf", "mppi_scbf"):
-        rectified = rectify(ellipses, nominal_model, form="exponential", gains=[rectify_gain])
+        scales = _scales(barrier_scale)
+        rectified = [
+            rectify(
+                _ScaledBarrier(Ellipse(c, a, index=(0, 1)), s),
+                nominal_model,
+                form="exponential",
+                gains=[rectify_gain],
+            ).to(device=device, dtype=dtype)
+            for c, a, s in zip(CENTERS, AXES, scales, strict=True)
+        ]
         safety_filter = SafetyFilter(
-            plant, barriers=[rectified], mode="stochastic", alpha=1.0, beta=1.0
+            plant, barriers=rectified, mode="stochastic", alpha=1.0, beta=1.0
         ).to(device=device, dtype=dtype)
 
     x0 = torch.tensor([0.0, 0.0, 0.0, math.pi / 4], device=device, dtype=dtype).repeat(num_seeds, 1)
@@ -135,3 +165,27 @@ class _InverseBarriers(RolloutCost):
 
     def stage(self, states: Tensor, controls: Tensor | None) -> Tensor:
         return (self.weight / self.barrier(states).clamp_min(self.eps)).sum(-1)
+
+
+def _scales(barrier_scale: float | Sequence[float]) -> list[float]:
+    if isinstance(barrier_scale, (int, float)):
+        scales = [float(barrier_scale)] * len(CENTERS)
+    else:
+        scales = [float(v) for v in barrier_scale]
+    if len(scales) != len(CENTERS) or not all(v > 0 and math.isfinite(v) for v in scales):
+        raise ValueError(
+            f"barrier_scale must be a positive number or {len(CENTERS)} positive numbers, "
+            f"got {barrier_scale!r}"
+        )
+    return scales
+
+
+class _ScaledBarrier(Barrier):
+    """``scale * b(x)``: the same safe set, a rescaled CBF condition."""
+
+    def __init__(self, barrier: Barrier, scale: float) -> None:
+        super().__init__()
+        self.barrier, self.scale = barrier, scale
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        return self.scale * self.barrier(x)
