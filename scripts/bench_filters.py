@@ -28,12 +28,19 @@ from torchcbf.dynamics import SingleIntegrator
 from torchcbf.filters import SafetyFilter
 
 
+def _sync() -> None:
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+
+
 def _timeit(fn: Callable[[], object], repeat: int) -> float:
     fn()  # warm up
+    _sync()
     best = math.inf
     for _ in range(repeat):
         t0 = time.perf_counter()
         fn()
+        _sync()
         best = min(best, time.perf_counter() - t0)
     return best
 
@@ -98,13 +105,17 @@ def main() -> None:
     parser.add_argument("--dtype", choices=["float64", "float32"], default="float64")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: leave)")
     parser.add_argument("--quick", action="store_true", help="batch 512, subset 16, repeat 1")
+    parser.add_argument("--device", default="cpu", help="device of torchcbf (proxsuite: CPU)")
     args = parser.parse_args()
     if args.quick:
         args.batch, args.loop_subset, args.repeat = 512, 16, 1
     if args.threads:
         torch.set_num_threads(args.threads)
     dtype = getattr(torch, args.dtype)
-    dyn, ball, filt, x, u_nom = _scene(args.batch, args.barriers, dtype, seed=0)
+    dyn, ball, filt, x_cpu, u_nom_cpu = _scene(args.batch, args.barriers, dtype, seed=0)
+    device = torch.device(args.device)
+    dyn, ball, filt = dyn.to(device), ball.to(device), filt.to(device)
+    x, u_nom = x_cpu.to(device), u_nom_cpu.to(device)
     B = args.batch
     rows: list[tuple[str, float]] = []
     with torch.no_grad():
@@ -118,7 +129,7 @@ def main() -> None:
                 filt(x[i : i + 1], u_nom[i : i + 1])
 
         rows.append(("filter (loop, B=1, extrapolated)", _timeit(loop, 1) / sub))
-        hard = SafetyFilter(dyn, ball, alpha=1.0, elastic=False).to(dtype)
+        hard = SafetyFilter(dyn, ball, alpha=1.0, elastic=False).to(device=device, dtype=dtype)
         rows.append(
             (
                 "filter (batched, elastic=False: hard QP only)",
@@ -141,6 +152,8 @@ def main() -> None:
         if have_prox:
             from proxsuite.torch.qplayer import QPFunction
 
+            x, u_nom = x_cpu, u_nom_cpu
+            dyn, ball = dyn.cpu(), ball.cpu()
             terms = ball.lie(x, dyn, method="analytic", hessian=False)
             b = terms.lfh + terms.dhdt + terms.h
             m = 2
@@ -158,7 +171,7 @@ def main() -> None:
             t_whole = _timeit(lambda: _proxsuite_whole(ball, dyn, x, u_nom), args.repeat)
             rows.append(("proxsuite whole (lie + rows + QPFunction)", t_whole / B))
             solved = out.status == 0
-            diff = (z - out.u)[solved].abs().amax().item()
+            diff = (z - out.u.cpu())[solved.cpu()].abs().amax().item()
         else:
             diff = float("nan")
     print(
