@@ -215,13 +215,15 @@ def plot_rollouts(
     fig, ax = (ax.figure, ax) if ax is not None else plt.subplots(figsize=(6, 6))
     R = _np(rollouts)[..., list(index)]
     w = _np(weights).astype(float)
-    w = w / max(w.max(), 1e-300)
+    # MPPI weights span many orders of magnitude: colour by log10 of the weight relative to
+    # the largest, over six decades.
+    w = np.log10(np.clip(w / max(w.max(), 1e-300), 1e-6, 1.0)) / 6.0 + 1.0
     xlim, ylim = _draw_scene(ax, R, barriers, goals, _np(rollouts).shape[-1], index, xlim, ylim)
     cmap = plt.get_cmap("viridis")
     for k in np.argsort(w):
         ax.plot(R[k, :, 0], R[k, :, 1], color=cmap(w[k]), lw=0.6, alpha=0.25 + 0.75 * w[k])
     sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, 1))
-    fig.colorbar(sm, ax=ax, label="normalised weight")
+    fig.colorbar(sm, ax=ax, label="weight relative to the largest (log10 / 6 + 1)")
     if executed is not None:
         E = _np(executed)[..., list(index)]
         ax.plot(E[:, 0], E[:, 1], "k-", lw=2.0, label="executed")
