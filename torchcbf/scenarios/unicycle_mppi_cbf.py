@@ -17,7 +17,7 @@ Choices left open by the paper, made here:
   on ``h_e``.
 - Scenario ``b`` uses noise seed ``seed + b`` and MPPI seed ``seed + b``.
 
-Known limitation (measured, see the scenario-B report in the project notes): with the
+Known limitation (measured; the figures are in the README): with the
 paper's fixed ``sigma = 0.28 I`` on all four states and ``alpha = 1``, the stochastic CBF
 cannot keep every seed collision-free. Where the condition is active, ``h_e`` is an
 Ornstein-Uhlenbeck process with rate ``alpha``; position noise reaches ``h_e`` at relative
