@@ -345,7 +345,53 @@ class Manipulator(ControlAffine):
         )
 
 
-class ResolvedRateController(nn.Module):
+class _JointVelocityNominal(nn.Module):
+    """Shared part of the arm's nominal controllers: a target buffer, a joint velocity
+    ``qdot*`` (written by subclasses in :meth:`joint_velocity`), its uniform scaling into the
+    velocity limits, and ``qddot = k_v (qdot* - qdot)`` under acceleration control."""
+
+    def __init__(
+        self,
+        arm: Manipulator,
+        target: Tensor | Sequence[float],
+        target_dim: int | None,
+        gain: float,
+        velocity_gain: float,
+        saturate: bool,
+    ) -> None:
+        super().__init__()
+        if not isinstance(arm, Manipulator):
+            raise TypeError(f"arm must be a Manipulator, got {type(arm).__name__}")
+        self.arm = arm
+        target_dim = arm.dof if target_dim is None else target_dim  # None: a configuration
+        t = as_tensor("target", target).detach().clone()
+        if t.dim() == 0 or t.shape[-1] != target_dim:
+            raise ValueError(
+                f"target must have shape [{target_dim}] or [B, {target_dim}], got {tuple(t.shape)}"
+            )
+        self.register_buffer("target", t)
+        self.gain = float(gain)
+        self.velocity_gain = float(velocity_gain)
+        self.saturate = bool(saturate)
+
+    def joint_velocity(self, x: Tensor) -> Tensor:
+        raise NotImplementedError
+
+    def _saturated(self, qd: Tensor) -> Tensor:
+        if not self.saturate:
+            return qd
+        ratio = (qd.abs() / self.arm.velocity_limit.to(qd)).amax(-1, keepdim=True)
+        return qd / ratio.clamp_min(1.0)
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """Nominal control ``u [..., dof]`` at ``x [..., n]``."""
+        qd = self.joint_velocity(x)
+        if self.arm.control == "velocity":
+            return qd
+        return self.velocity_gain * (qd - x[..., self.arm.dof :])
+
+
+class ResolvedRateController(_JointVelocityNominal):
     """Resolved-rate (damped least-squares) end-effector controller, a CLF-based nominal.
 
     With ``e = target - ee(q)`` and ``J`` the positional Jacobian, the joint velocity
@@ -383,24 +429,14 @@ class ResolvedRateController(nn.Module):
         null_space_gain: float = 0.0,
         saturate: bool = True,
     ) -> None:
-        super().__init__()
-        if not isinstance(arm, Manipulator):
-            raise TypeError(f"arm must be a Manipulator, got {type(arm).__name__}")
         if not gain > 0 or not velocity_gain > 0 or not damping >= 0 or not null_space_gain >= 0:
             raise ValueError(
                 "gain and velocity_gain must be > 0, damping and null_space_gain >= 0, got "
                 f"{gain}, {velocity_gain}, {damping}, {null_space_gain}"
             )
-        self.arm = arm
-        t = as_tensor("target", target).detach().clone()
-        if t.dim() == 0 or t.shape[-1] != 3:
-            raise ValueError(f"target must have shape [3] or [B, 3], got {tuple(t.shape)}")
-        self.register_buffer("target", t)
-        self.gain = float(gain)
+        super().__init__(arm, target, 3, gain, velocity_gain, saturate)
         self.damping = float(damping)
-        self.velocity_gain = float(velocity_gain)
         self.null_space_gain = float(null_space_gain)
-        self.saturate = bool(saturate)
 
     def joint_velocity(self, x: Tensor) -> Tensor:
         """The resolved-rate joint velocity ``qdot* [..., dof]`` at ``x [..., n]``."""
@@ -419,21 +455,10 @@ class ResolvedRateController(nn.Module):
             z = (self.null_space_gain * (mid - q)).unsqueeze(-1)
             # (I - J^+ J) z with the damped pseudo-inverse J^+ = J' (J J' + lambda^2 I)^-1
             qd = qd + (z - J.mT @ torch.linalg.solve(JJt, J @ z)).squeeze(-1)
-        if self.saturate:
-            vmax = self.arm.velocity_limit.to(x)
-            ratio = (qd.abs() / vmax).amax(-1, keepdim=True)
-            qd = qd / ratio.clamp_min(1.0)
-        return qd
-
-    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
-        """Nominal control ``u [..., dof]`` at ``x [..., n]``."""
-        qd = self.joint_velocity(x)
-        if self.arm.control == "velocity":
-            return qd
-        return self.velocity_gain * (qd - x[..., self.arm.dof :])
+        return self._saturated(qd)
 
 
-class JointSpaceController(nn.Module):
+class JointSpaceController(_JointVelocityNominal):
     """Joint-space CLF nominal toward a target configuration: ``qdot* = -k (q - q*)``.
 
     It decreases ``V = |q - q*|^2`` (``dV/dt = -2 k V``), also after the uniform scaling
@@ -463,39 +488,16 @@ class JointSpaceController(nn.Module):
         velocity_gain: float = 5.0,
         saturate: bool = True,
     ) -> None:
-        super().__init__()
-        if not isinstance(arm, Manipulator):
-            raise TypeError(f"arm must be a Manipulator, got {type(arm).__name__}")
         if not gain > 0 or not velocity_gain > 0:
             raise ValueError(f"gain and velocity_gain must be > 0, got {gain}, {velocity_gain}")
-        self.arm = arm
-        t = as_tensor("target", target).detach().clone()
-        if t.dim() == 0 or t.shape[-1] != arm.dof:
-            raise ValueError(
-                f"target must have shape [{arm.dof}] or [B, {arm.dof}], got {tuple(t.shape)}"
-            )
-        self.register_buffer("target", t)
-        self.gain = float(gain)
-        self.velocity_gain = float(velocity_gain)
-        self.saturate = bool(saturate)
+        super().__init__(arm, target, None, gain, velocity_gain, saturate)
 
     def joint_velocity(self, x: Tensor) -> Tensor:
         """The joint velocity ``qdot* [..., dof]`` at ``x [..., n]``."""
         self.arm.check_inputs(x)
         q = self.arm.joint_positions(x)
         qd = -self.gain * (q - self.target.to(x))
-        if self.saturate:
-            vmax = self.arm.velocity_limit.to(x)
-            ratio = (qd.abs() / vmax).amax(-1, keepdim=True)
-            qd = qd / ratio.clamp_min(1.0)
-        return qd
-
-    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
-        """Nominal control ``u [..., dof]`` at ``x [..., n]``."""
-        qd = self.joint_velocity(x)
-        if self.arm.control == "velocity":
-            return qd
-        return self.velocity_gain * (qd - x[..., self.arm.dof :])
+        return self._saturated(qd)
 
 
 def _leaf_link(chain: Any) -> str:
