@@ -319,3 +319,44 @@ def test_hard_only_qp_matches_cvxpy_and_falls_back_when_infeasible(mode: str) ->
     hard = SafetyFilter(SingleIntegrator(1), walls, elastic=False, fallback="brake").double()
     out = hard(torch.zeros(1, 1, dtype=torch.float64), torch.ones(1, 1, dtype=torch.float64))
     assert out.status[0] == FilterStatus.FALLBACK and out.u[0, 0] == 0.0
+
+
+def _dense_scene() -> tuple[SingleIntegrator, Ball, torch.Tensor, torch.Tensor]:
+    """4,096 states among 8 random balls (the benchmark's scene): it contains near-degenerate
+    rows (nearly parallel active constraints)."""
+    gen = torch.Generator().manual_seed(0)
+    centers = 8 * torch.rand(8, 2, generator=gen, dtype=torch.float64) - 4
+    radii = 0.3 + 0.4 * torch.rand(8, generator=gen, dtype=torch.float64)
+    ball = Ball(centers, radii)
+    dyn = SingleIntegrator(2, u_min=-2.0, u_max=2.0)
+    cand = 10 * torch.rand(4 * 4096, 2, generator=gen, dtype=torch.float64) - 5
+    x = cand[(ball(cand) > 0.05).all(-1)][:4096]
+    return dyn, ball, x, (-2.0 * x).clamp(-2.0, 2.0)
+
+
+def _ipm_vs_enumeration(elastic: bool) -> float:
+    dyn, ball, x, u_nom = _dense_scene()
+    kw = {"alpha": 1.0, "elastic": elastic}
+    ipm = SafetyFilter(dyn, ball, qp_options={"method": "ipm"}, **kw).double()
+    exact = SafetyFilter(dyn, ball, qp_options={"method": "enumerate"}, **kw).double()
+    with torch.no_grad():
+        a, b = ipm(x, u_nom), exact(x, u_nom)
+    assert bool((a.status == FilterStatus.SOLVED).all())
+    assert bool((b.status == FilterStatus.SOLVED).all())
+    return float((a.u - b.u).abs().max())
+
+
+def test_interior_point_hard_qp_matches_exact_enumeration() -> None:
+    """The interior point path verifies near-degenerate rows through its polish instead of
+    returning an answer accurate only to about sqrt(eps)."""
+    assert _ipm_vs_enumeration(elastic=False) < 1e-8
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known defect: on one near-degenerate row of the elastic QP (3 variables) no "
+    "active-set guess of the interior point polish verifies, and the row is reported SOLVED "
+    "with u about 2e-4 from the exact answer (small batches use the exact enumeration)",
+)
+def test_interior_point_elastic_qp_matches_exact_enumeration() -> None:
+    assert _ipm_vs_enumeration(elastic=True) < 1e-8

@@ -110,12 +110,46 @@ def polish(
         | (status == int(Status.MAX_ITER))
         | (status == int(Status.NUMERICAL_ERROR))
     )
-    act = active_set(z, s) & candidate.unsqueeze(-1)
+    # Guesses of the active set, tried in order; a row keeps the first that verifies. The
+    # first (multiplier above slack) is almost always right; near-degenerate rows (a weakly
+    # active constraint, two nearly parallel ones) can need the slack- or multiplier-based
+    # guess, and without a verified polish the interior point answer is only accurate to
+    # about sqrt(eps) in x.
+    tol = eps**0.5
+    guesses = [active_set(z, s)]
+    if M > 0:
+        guesses.append(s <= tol * (1.0 + s.abs().amax(-1, keepdim=True)))
+        guesses.append(z >= tol * (1.0 + z.abs().amax(-1, keepdim=True)))
+    chosen = torch.zeros_like(candidate)
+    act = torch.zeros_like(guesses[0])
+    for guess in guesses:
+        trial = guess & candidate.unsqueeze(-1)
+        ok_g = _verified(P, q, G, h, A, b, trial, eps) & candidate & ~chosen
+        act = torch.where(ok_g.unsqueeze(-1), trial, act)
+        chosen = chosen | ok_g
+    act = torch.where(chosen.unsqueeze(-1), act, guesses[0] & candidate.unsqueeze(-1))
     fac = factor_kkt(P, G, A, act)
     rhs = torch.cat((-q, h * act.to(h.dtype), b), -1)
     sol = solve_kkt(fac, rhs)
     xp, zp, yp = sol[..., :n], sol[..., n : n + M], sol[..., n + M :]
-    zp = zp * act.to(zp.dtype)
+    ok = chosen & fac.ok & torch.isfinite(sol).all(-1)
+    keep = ok.unsqueeze(-1)
+    x = torch.where(keep, xp, x)
+    z = torch.where(keep, (zp * act.to(zp.dtype)).clamp_min(0.0), z)
+    y = torch.where(keep, yp, y)
+    status = torch.where(ok, int(Status.SOLVED), status)
+    return x, z, y, status, fac
+
+
+def _verified(
+    P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, act: Tensor, eps: float
+) -> Tensor:
+    """Rows whose equality-constrained solution on ``act`` is primal and dual feasible."""
+    n, M = q.shape[-1], h.shape[-1]
+    fac = factor_kkt(P, G, A, act)
+    sol = solve_kkt(fac, torch.cat((-q, h * act.to(h.dtype), b), -1))
+    xp, zp = sol[..., :n], sol[..., n : n + M] * act.to(sol.dtype)
+    ok = fac.ok & torch.isfinite(sol).all(-1)
     viol = torch.cat(
         (
             (torch.einsum("bmn,bn->bm", G, xp) - h).clamp_min(0.0),
@@ -123,18 +157,12 @@ def polish(
         ),
         -1,
     )
-    scale = 1.0 + torch.cat((h.abs(), b.abs()), -1).amax(-1) if viol.shape[-1] > 0 else None
-    ok = candidate & fac.ok & torch.isfinite(sol).all(-1)
-    if scale is not None:
+    if viol.shape[-1] > 0:
+        scale = 1.0 + torch.cat((h.abs(), b.abs()), -1).amax(-1)
         ok = ok & (viol.amax(-1) <= eps * scale)
     if M > 0:
         ok = ok & (zp.amin(-1) >= -eps * (1.0 + zp.abs().amax(-1)))
-    keep = ok.unsqueeze(-1)
-    x = torch.where(keep, xp, x)
-    z = torch.where(keep, zp.clamp_min(0.0), z)
-    y = torch.where(keep, yp, y)
-    status = torch.where(ok, int(Status.SOLVED), status)
-    return x, z, y, status, fac
+    return ok
 
 
 def kkt_backward(
