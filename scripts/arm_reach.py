@@ -1,40 +1,48 @@
 """Arm reaching past an obstacle: a CLF nominal + CBF-QP filter on link spheres.
 
-A batch of scenarios, each a random collision-free start configuration ``q0`` and a target,
-run in lockstep with :func:`torchcbf.sim.simulate`. The filter keeps collision spheres on the
-links out of a ball obstacle (and the joints inside their limits). Two nominal controllers
+A batch of scenarios, each a random collision-free start configuration ``q0`` and a target
+POINT, run in lockstep with :func:`torchcbf.sim.simulate`. The filter keeps collision spheres
+on the links out of a ball obstacle (and the joints inside their limits). Nominal controllers
 (``--nominal``):
 
-- ``joint`` (default): the target is given as a CONFIGURATION. Each target point is
-  generated as ``ee(q*)`` of a random configuration ``q*`` and this generating ``q*`` is
-  handed to the controller (no IK is solved): the task is "reach a target configuration".
-  The nominal is the joint-space CLF ``qdot = -k (q - w)`` (``V = |q - w|^2``, velocity-
-  saturated) toward the waypoints ``w`` of a C-space path ``q0 -> ... -> q*`` planned once
-  at setup on a small shared roadmap (:func:`_roadmap_paths`: 128 random collision-free
-  nodes, straight edges checked at 32 points with 3 cm clearance; the direct edge when it
-  passes). The waypoints are the documented escape from CBF deadlocks at the obstacle; the
-  straight joint-space segments stay inside the joint-limit box, so no joint-limit stalls.
-- ``cartesian``: the target is the POINT; the nominal is the damped least-squares resolved
-  rate ``qdot = J^+ k (target - ee)`` with joint centring in the null space (greedy and
-  local: it stalls at joint limits and in front of the obstacle).
+- ``ik`` (default): the point target goes through the batched inverse kinematics
+  (:meth:`Manipulator.inverse_kinematics`: 8 restarts per target in one batch, collision
+  spheres clear of the obstacle by ``path_clearance`` (3 cm), joints 0.06 rad inside their
+  limits, the solution nearest to ``q0``). The resulting configuration ``q_goal`` is
+  driven to by :class:`RoadmapController`: the joint-space CLF ``qdot = -k (q - w)``
+  (``V = |q - w|^2``, velocity-saturated) toward the waypoints ``w`` of a C-space path
+  ``q0 -> ... -> q_goal`` on a small shared roadmap (:func:`_roadmap_paths`: 128 random
+  collision-free nodes, straight edges checked at 32 points with 3 cm clearance; the
+  direct edge when it passes), with a batched deadlock escape: rows that stop moving away
+  from their waypoint (held by the filter in front of the obstacle) re-plan from where they
+  are to a roadmap node whose segment from the current configuration is clear.
+  ``--direct`` starts every row straight toward ``q_goal`` (the roadmap then only serves
+  the escape); ``--no-escape`` switches the escape off.
+- ``joint``: the same controller toward the configuration ``q_target`` that generated the
+  target (the task "reach a target configuration": no IK).
+- ``cartesian``: the damped least-squares resolved rate ``qdot = J^+ k (target - ee)``
+  toward the point, with joint centring in the null space (greedy and local: it stalls at
+  joint limits and in front of the obstacle).
 
-Reachable targets (both variants get the same scenarios): ``q*`` is drawn uniformly within
-the joint limits shrunk by 0.15 rad, every collision sphere at ``q*`` clears the obstacle by
-``clearance`` (5 cm), the target point is at least ``clearance`` from the obstacle surface
-and in the annulus of ``GEOMETRY``. This is what "reachable" means here: the target
-configuration is valid with margin. Whether a collision-free path to it exists is NOT
-decided exactly; ``path_found_rate`` reports how often the roadmap found a checked path
-(discretised check of straight segments), and ``reach_rate_path_found`` the reach rate
-among those. Reached: final end-effector error below 2 cm (both variants).
+Scenarios (every variant gets the same ones): ``q_target`` is drawn uniformly within the
+joint limits shrunk by 0.15 rad, every collision sphere at ``q_target`` clears the obstacle
+by ``clearance`` (5 cm), the target point ``ee(q_target)`` is at least ``clearance`` from the
+obstacle surface and in the annulus of ``GEOMETRY``. Every target is therefore reachable
+by construction. ``reachable_rate`` reports the definition checked independently of the
+generating configuration: the IK (8 restarts) finds a solution within 1e-4 m whose spheres
+clear the obstacle and whose joints are within the URDF limits. Whether a collision-free
+PATH exists is not decided exactly; ``path_found_rate`` reports how often the roadmap found
+a checked one. Reached: final end-effector error below 2 cm (every variant).
 
 Safety is checked on the true geometry: the filter enforces the barrier on spheres inflated
 by ``--margin`` (covering the zero-order hold between filter calls), and the reported
 ``min_clearance`` is the un-inflated barrier ``|p_s - c| - (r_s + R)`` over every sphere and
-step; ``safe`` means ``>= -1e-6``.
+step; ``safe`` means ``>= -1e-6``. ``deadlocks``: rows that missed with a sphere within 2 cm
+of the inflated obstacle at the end.
 
 Usage:
     python scripts/arm_reach.py --num 1000 --out arm_reach.png
-    python scripts/arm_reach.py --num 1000 --nominal cartesian  # target as a point
+    python scripts/arm_reach.py --num 1000 --nominal cartesian  # resolved rate
     python scripts/arm_reach.py --quick                # 64 scenarios, short
     python scripts/arm_reach.py --arm arm7 --num 256   # the 7-joint arm
 """
@@ -95,10 +103,12 @@ class Scenario:
     collision: LinkSphereBarrier  # true geometry
     inflated: LinkSphereBarrier  # what the filter enforces
     safety_filter: SafetyFilter
-    nominal: nn.Module  # ResolvedRateController or ViaPointController
+    nominal: nn.Module  # ResolvedRateController or RoadmapController
     q0: Tensor  # [B, dof]
     target: Tensor  # [B, 3]
     q_target: Tensor  # [B, dof] the configuration that generated each target
+    q_goal: Tensor  # [B, dof] the configuration the nominal drives to (IK or q_target)
+    reachable: Tensor  # [B] bool: IK found a collision-free solution within the joint limits
     path_found: Tensor  # [B] bool: a checked C-space path (direct or one via) exists
     has_via: Tensor  # [B] bool: that path goes through a via-configuration
 
@@ -145,6 +155,24 @@ def _segment_clearance(
     return barrier(q).amin(-1).amin(0)
 
 
+@dataclass
+class Roadmap:
+    """A shared C-space roadmap and, per scenario, its connections to the target.
+
+    ``nodes [N, dof]``; ``dist [N, N]`` shortest path lengths between nodes and ``nxt [N, N]``
+    the next hop from ``i`` toward ``j``; ``to_target [B, N]`` the straight edge length node
+    -> target configuration (``inf`` where not clear); ``exit [B, N]`` the last node of the
+    best path from each node to the target and ``cost_to_go [B, N]`` its length."""
+
+    nodes: Tensor
+    dist: Tensor
+    nxt: Tensor
+    to_target: Tensor
+    exit: Tensor
+    cost_to_go: Tensor
+    first: Tensor  # [B] first waypoint of each planned path: a node, or -1 (the target)
+
+
 def _roadmap_paths(
     arm: Manipulator,
     barrier: LinkSphereBarrier,
@@ -153,7 +181,7 @@ def _roadmap_paths(
     clearance: float,
     gen: torch.Generator,
     nodes: int = 128,
-) -> tuple[Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor, Roadmap]:
     """Waypoint paths in C-space from a small roadmap (setup time, not in the control loop).
 
     Edges are straight joint-space segments whose sphere clearance, checked at 32 points
@@ -162,7 +190,8 @@ def _roadmap_paths(
     v_j -> qt`` through ``nodes`` random configurations (shared by all scenarios, clear by
     ``2 clearance``) connected by such edges (all-pairs shortest paths, Floyd-Warshall).
     Returns ``waypoints [B, W, dof]`` (the path, then ``qt``; ``qt`` only where the direct
-    edge passes or no path was found), ``found [B]`` and ``has_via [B]`` (bool).
+    edge passes or no path was found), ``found [B]``, ``has_via [B]`` (bool) and the
+    :class:`Roadmap` (for re-planning in :class:`RoadmapController`).
     """
     inf = math.inf
     cand = _sample_free(arm, barrier, nodes, 2 * clearance, gen, q0.dtype, q0.device)
@@ -201,42 +230,159 @@ def _roadmap_paths(
         hops.append(torch.where(cur == last, cur, nxt[cur, last]))
     wps = torch.stack([cand[h] for h in hops] + [qt], 1)  # [B, W, dof]
     wps = torch.where(has_via[:, None, None], wps, qt[:, None].expand_as(wps))
-    return wps, direct | has_via, has_via
+    cost_to_go, exit_node = (dist[None] + d1[:, None, :]).min(-1)  # [B, N]
+    first = torch.where(has_via, first, torch.full_like(first, -1))
+    roadmap = Roadmap(cand, dist, nxt, d1, exit_node, cost_to_go, first)
+    return wps, direct | has_via, has_via, roadmap
 
 
-class ViaPointController(nn.Module):
-    """Joint-space CLF nominal along a waypoint path in C-space (the obstacle escape term).
+class RoadmapController(nn.Module):
+    """Joint-space CLF nominal along a roadmap path, with a batched deadlock escape.
 
-    ``qdot = -k (q - w_s)`` (a :class:`JointSpaceController`, velocity-saturated) toward
-    the current waypoint ``w_s`` of ``waypoints [B, W, dof]``; the stage ``s`` advances when
-    ``|q - w_s| < switch`` (rad), and the last waypoint is the target configuration. The
-    stage buffer ``[B]`` is updated inside ``forward`` with ``torch.where``/``gather`` (no
-    host sync). Call :meth:`reset` before a new run.
+    Each row follows straight C-space segments ``p -> w``: from its start (or the node it
+    last passed, or where it last re-planned) to its current waypoint ``w``, a roadmap node
+    (``goal >= 0``) or the target configuration (``goal = -1``). The nominal is the CLF
+    ``qdot = -k (q - c)`` (a :class:`JointSpaceController`, velocity-saturated) toward a
+    carrot ``c`` on the segment ``lookahead`` (rad) ahead of the projection of ``q``, so the
+    arm tracks the segment that the planner checked instead of cutting corners; at the end
+    of the segment ``c = w``. A row advances to the next hop when ``|q - w| < switch``.
+
+    Deadlock escape: every ``window`` calls, a row more than ``0.05`` rad from its waypoint
+    whose distance to it shrank by less than ``progress`` (rad) since the previous check,
+    toward the same waypoint, is stuck (held by the CBF filter in front of the obstacle).
+    Its waypoint is banned for that row, and up to ``replan_rows`` stuck rows (``topk``: a
+    fixed size, no host sync) re-plan from where they are: the new waypoint is the node
+    ``v`` within ``radius`` (rad), neither banned nor the waypoint it was stuck on,
+    minimising ``|q - v| + cost_to_go(v)`` (or the target itself) whose straight segment
+    from ``q`` keeps the clearance (checked at 16 points, ``>= min(clearance, h(q)) -
+    1e-3``). A row whose next hop is banned re-plans too (checked every ``window`` calls).
+    Call :meth:`reset` before a new run.
     """
 
     def __init__(
-        self, arm: Manipulator, waypoints: Tensor, *, gain: float = 3.0, switch: float = 0.15
+        self,
+        arm: Manipulator,
+        roadmap: Roadmap,
+        barrier: LinkSphereBarrier,
+        q_target: Tensor,
+        q_start: Tensor,
+        *,
+        gain: float = 6.0,
+        lookahead: float = 0.3,
+        switch: float = 0.15,
+        escape: bool = True,
+        window: int = 10,
+        progress: float = 0.01,
+        replan_rows: int = 32,
+        radius: float = 1.5,
+        clearance: float = 0.03,
     ) -> None:
         super().__init__()
-        self.register_buffer("waypoints", waypoints.clone())
-        self.register_buffer("stage", torch.zeros_like(waypoints[:, 0, 0], dtype=torch.long))
-        self.ctrl = JointSpaceController(arm, waypoints[:, -1], gain=gain)
+        self.roadmap = roadmap
+        self.barrier = barrier
+        N = roadmap.nodes.shape[0]
+        self.register_buffer("q_target", q_target.clone())
+        self.register_buffer("q_start", q_start.clone())
+        self.register_buffer("goal", roadmap.first.clone())
+        self.register_buffer("prev", q_start.clone())
+        self.register_buffer("mark", torch.full_like(q_target[:, 0], math.inf))
+        self.register_buffer("mark_goal", roadmap.first.clone())
+        self.register_buffer(
+            "banned", torch.zeros_like(q_target[:, :1].expand(-1, N + 1), dtype=torch.bool)
+        )
+        self.register_buffer("replans", torch.zeros_like(roadmap.first))
+        self.ctrl = JointSpaceController(arm, q_target, gain=gain)
+        self.lookahead = float(lookahead)
         self.switch = float(switch)
+        self.escape = bool(escape)
+        self.window = int(window)
+        self.progress = float(progress)
+        self.replan_rows = int(replan_rows)
+        self.radius = float(radius)
+        self.clearance = float(clearance)
+        self.calls = 0
 
     def reset(self) -> None:
-        """Back to the first waypoint."""
-        self.stage = torch.zeros_like(self.stage)
+        """Back to the start of the planned paths."""
+        self.goal = self.roadmap.first.clone()
+        self.prev = self.q_start.clone()
+        self.mark = torch.full_like(self.mark, math.inf)
+        self.mark_goal = self.goal.clone()
+        self.banned = torch.zeros_like(self.banned)
+        self.replans = torch.zeros_like(self.replans)
+        self.calls = 0
 
-    def _current(self) -> Tensor:
-        idx = self.stage[:, None, None].expand(-1, 1, self.waypoints.shape[-1])
-        return self.waypoints.gather(1, idx)[:, 0]
+    def _waypoint(self) -> Tensor:
+        node = self.roadmap.nodes[self.goal.clamp_min(0)]
+        return torch.where((self.goal >= 0)[:, None], node, self.q_target)
+
+    def _slot(self, goal: Tensor) -> Tensor:
+        """Column of ``banned`` for a goal: the node, or ``N`` for the target."""
+        return torch.where(goal >= 0, goal, self.banned.shape[1] - 1)
+
+    def _advance(self, q: Tensor) -> None:
+        """Move to the next hop where the waypoint is reached."""
+        w = self._waypoint()
+        near = ((q - w).norm(dim=-1) < self.switch) & (self.goal >= 0)
+        g = self.goal.clamp_min(0)
+        ex = self.roadmap.exit.gather(1, g[:, None])[:, 0]
+        hop = torch.where(ex == g, torch.full_like(g, -1), self.roadmap.nxt[g, ex])
+        self.prev = torch.where(near[:, None], w, self.prev)
+        self.goal = torch.where(near, hop, self.goal)
+
+    def _replan(self, q: Tensor, stuck: Tensor) -> None:
+        M = min(self.replan_rows, q.shape[0])
+        score = stuck.to(q.dtype) * (1.0 + (q - self.q_target).norm(dim=-1))
+        rows = score.topk(M).indices  # [M], stuck rows first
+        sel = stuck[rows]
+        qs = q[rows]
+        nodes = self.roadmap.nodes
+        N = nodes.shape[0]
+        options = torch.cat([nodes.expand(M, -1, -1), self.q_target[rows, None]], 1)  # [M,N+1,d]
+        s = torch.linspace(0.0, 1.0, 16, dtype=q.dtype, device=q.device)[:, None, None, None]
+        pts = qs[:, None] + s * (options - qs[:, None])  # [16, M, N+1, dof]
+        seg = self.barrier(pts).amin(-1).amin(0)  # [M, N+1]
+        need = torch.clamp(self.barrier(qs).amin(-1) - 1e-3, max=self.clearance)
+        length = (options - qs[:, None]).norm(dim=-1)
+        togo = torch.cat([self.roadmap.cost_to_go[rows], torch.zeros_like(length[:, :1])], 1)
+        ok = (seg >= need[:, None]) & (length < self.radius) & torch.isfinite(togo)
+        current = self._slot(self.goal[rows])
+        ok = ok & ~self.banned[rows] & (torch.arange(N + 1, device=q.device) != current[:, None])
+        cost = torch.where(ok, length + togo, torch.full_like(length, math.inf))
+        best_cost, best = cost.min(-1)
+        new = torch.where(best == N, torch.full_like(best, -1), best)
+        change = sel & torch.isfinite(best_cost)
+        self.goal = self.goal.scatter(0, rows, torch.where(change, new, self.goal[rows]))
+        prev_rows = torch.where(change[:, None], qs, self.prev[rows])
+        self.prev = self.prev.scatter(0, rows[:, None].expand(-1, q.shape[1]), prev_rows)
+        self.replans = self.replans.scatter_add(0, rows, change.to(self.replans.dtype))
+
+    def _carrot(self, q: Tensor) -> Tensor:
+        w = self._waypoint()
+        d = w - self.prev
+        length2 = (d * d).sum(-1, keepdim=True).clamp_min(1e-12)
+        s = ((q - self.prev) * d).sum(-1, keepdim=True) / length2
+        s = (s.clamp(0.0, 1.0) + self.lookahead / length2.sqrt()).clamp_max(1.0)
+        return self.prev + s * d
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """``x [B, dof] -> u [B, dof]``."""
-        near = (x - self._current().to(x)).norm(dim=-1) < self.switch
-        last = self.waypoints.shape[1] - 1
-        self.stage = torch.where(near, (self.stage + 1).clamp_max(last), self.stage)
-        self.ctrl.target = self._current()
+        self._advance(x)
+        self.calls += 1
+        if self.escape and self.calls % self.window == 0:
+            dist = (x - self._waypoint()).norm(dim=-1)
+            stuck = (
+                (dist > 0.05) & (self.goal == self.mark_goal) & (self.mark - dist < self.progress)
+            )
+            # a node a row got stuck on is banned for that row (the target never is)
+            slot = self._slot(self.goal)[:, None]
+            ban = stuck[:, None] & (self.goal >= 0)[:, None]
+            self.banned = self.banned.scatter(1, slot, self.banned.gather(1, slot) | ban)
+            heading_banned = self.banned.gather(1, slot)[:, 0]
+            self._replan(x, stuck | heading_banned)
+            self.mark_goal = self.goal.clone()
+            self.mark = (x - self._waypoint()).norm(dim=-1)
+        self.ctrl.target = self._carrot(x).to(x)
         return self.ctrl(x)
 
 
@@ -251,22 +397,30 @@ def build(
     margin: float = 0.01,
     clearance: float = 0.05,
     qp_backend: str = "torch",
-    nominal: str = "joint",
-    joint_gain: float = 3.0,
+    nominal: str = "ik",
+    joint_gain: float = 6.0,
     path_clearance: float = 0.03,
     plan_paths: bool = True,
+    escape: bool = True,
+    follow_roadmap: bool = True,
+    ik_restarts: int = 8,
     dtype: torch.dtype = torch.float64,
     device: str | torch.device = "cpu",
 ) -> Scenario:
     """Build the arm, the filter and ``num`` scenarios (deterministic given ``seed``).
 
-    ``nominal="cartesian"``: resolved-rate toward the target point (``gain``,
-    ``null_space_gain``); ``"joint"``: :class:`ViaPointController` toward the generating
-    configuration (``joint_gain``), through a via-configuration where the direct C-space
-    segment is not clear. ``plan_paths=False`` skips the roadmap for the Cartesian nominal
-    (then ``path_found`` is all False: not planned)."""
-    if nominal not in ("cartesian", "joint"):
-        raise ValueError(f"nominal must be 'cartesian' or 'joint', got {nominal!r}")
+    ``nominal="ik"``: the target POINT goes through :meth:`Manipulator.inverse_kinematics`
+    (collision spheres clear by ``path_clearance``, joints 0.06 rad inside their limits,
+    nearest to ``q0``), then :class:`RoadmapController` drives to that configuration;
+    ``"joint"``: the same controller toward the generating configuration ``q_target``;
+    ``"cartesian"``: resolved rate toward the target point (``gain``,
+    ``null_space_gain``). ``escape`` switches the deadlock escape of
+    :class:`RoadmapController`; ``follow_roadmap=False`` starts every row straight toward its
+    target configuration (the roadmap is then used only by the escape). ``plan_paths=False``
+    skips the roadmap and the IK for the Cartesian nominal (then ``path_found`` and
+    ``reachable`` are all False: not computed)."""
+    if nominal not in ("cartesian", "joint", "ik"):
+        raise ValueError(f"nominal must be 'ik', 'joint' or 'cartesian', got {nominal!r}")
     device = torch.device(device)
     arm = Manipulator(name).to(device=device, dtype=dtype)
     collision = _spheres(arm, name, 0.0, dtype).to(device)
@@ -289,20 +443,41 @@ def build(
     if target.shape[0] < num:
         raise RuntimeError("too few reachable targets: lower the clearance")
     target, qt = target[:num], qt[:num]
-    # the path search runs for both nominals (same generator use, same scenarios)
-    if plan_paths or nominal == "joint":
-        waypoints, found, has_via = _roadmap_paths(arm, collision, q0, qt, path_clearance, gen)
+    no = torch.zeros_like(qt[:, 0], dtype=torch.bool)
+    reachable, q_goal = no, qt
+    if plan_paths or nominal != "cartesian":
+        # reachable by definition: a collision-free IK solution within the joint limits
+        strict = arm.inverse_kinematics(
+            target, q0, restarts=ik_restarts, barriers=[collision], seed=seed
+        )
+        reachable = strict.converged
+    if nominal == "ik":
+        # the configuration to drive to, with margins for the filter (inflated spheres,
+        # joint-limit barrier margin 0.05); a target without one keeps the strict solution
+        ik = arm.inverse_kinematics(
+            target, q0, restarts=ik_restarts, barriers=[collision], clearance=path_clearance,
+            limit_margin=0.06, seed=seed + 1,
+        )  # fmt: skip
+        q_goal = torch.where(ik.converged[:, None], ik.q, strict.q)
+    # the path search runs for every nominal (same generator use, same scenarios)
+    if plan_paths or nominal != "cartesian":
+        _, found, has_via, roadmap = _roadmap_paths(arm, collision, q0, q_goal, path_clearance, gen)
     else:  # not planned (filter timing): no path known
-        found = has_via = torch.zeros_like(qt[:, 0], dtype=torch.bool)
+        found = has_via = no
     if nominal == "cartesian":
         ctrl: nn.Module = ResolvedRateController(
             arm, target, gain=gain, damping=0.05, null_space_gain=null_space_gain
         )
     else:
-        ctrl = ViaPointController(arm, waypoints, gain=joint_gain)
+        if not follow_roadmap:
+            roadmap.first = torch.full_like(roadmap.first, -1)
+        ctrl = RoadmapController(
+            arm, roadmap, collision, q_goal, q0, gain=joint_gain, escape=escape
+        )
     return Scenario(
-        name, arm, collision, inflated, safety_filter, ctrl, q0, target, qt, found, has_via
-    )
+        name, arm, collision, inflated, safety_filter, ctrl, q0, target, qt, q_goal,
+        reachable, found, has_via,
+    )  # fmt: skip
 
 
 def run(
@@ -310,7 +485,7 @@ def run(
 ) -> dict[str, float | Tensor]:
     """Simulate every scenario; return metrics (and per-scenario tensors for the figure)."""
     sc = scenario
-    if isinstance(sc.nominal, ViaPointController):
+    if isinstance(sc.nominal, RoadmapController):
         sc.nominal.reset()
     start = time.perf_counter()
     with torch.no_grad():
@@ -350,6 +525,13 @@ def run(
         "path_found_rate": float(sc.path_found.double().mean()),
         "via_rate": float(sc.has_via.double().mean()),
         "reach_rate_path_found": float(reached[sc.path_found].double().mean()),
+        "reachable_rate": float(sc.reachable.double().mean()),
+        "reach_rate_reachable": float(reached[sc.reachable].double().mean()),
+        "deadlocks": int((missed & blocked).sum()),
+        "replans": int(sc.nominal.replans.sum()) if hasattr(sc.nominal, "replans") else 0,
+        "rows_replanned": (
+            int((sc.nominal.replans > 0).sum()) if hasattr(sc.nominal, "replans") else 0
+        ),
         "non_solved_steps": float((status != 0).double().mean()) if status is not None else 0.0,
         "failed": int(traj.failed.sum()),
         "sim_seconds": wall,
@@ -449,12 +631,19 @@ def main() -> None:
     parser.add_argument("--dtype", choices=["float32", "float64"], default="float64")
     parser.add_argument("--qp-backend", default="torch", help="torch, proxsuite, ...")
     parser.add_argument(
-        "--nominal", choices=["joint", "cartesian"], default="joint",
-        help="joint: CLF toward the target configuration (+ via); cartesian: resolved rate",
+        "--nominal", choices=["ik", "joint", "cartesian"], default="ik",
+        help="ik: point target -> IK -> roadmap CLF; joint: CLF toward the generating "
+        "configuration; cartesian: resolved rate",
+    )  # fmt: skip
+    parser.add_argument("--no-escape", action="store_true", help="no deadlock re-planning")
+    parser.add_argument(
+        "--direct", action="store_true",
+        help="start straight toward the target configuration (roadmap only for the escape)",
     )  # fmt: skip
     parser.add_argument("--no-timing", action="store_true", help="skip the filter timing")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
     parser.add_argument("--timing-batch", type=int, default=1024)
+    parser.add_argument("--timing-only", action="store_true", help="only the filter timing")
     parser.add_argument("--out", default="arm_reach.png", help="figure path ('' for none)")
     parser.add_argument("--quick", action="store_true", help="64 scenarios, 250 steps")
     args = parser.parse_args()
@@ -462,11 +651,17 @@ def main() -> None:
         args.num, args.steps = 64, 250
     if args.threads > 0:
         torch.set_num_threads(args.threads)
+    if args.timing_only:
+        _print_timing(args)
+        return
     dtype = getattr(torch, args.dtype)
+    setup_start = time.perf_counter()
     sc = build(
         args.arm, args.num, seed=args.seed, alpha=args.alpha, margin=args.margin,
-        qp_backend=args.qp_backend, nominal=args.nominal, dtype=dtype, device=args.device,
+        qp_backend=args.qp_backend, nominal=args.nominal, escape=not args.no_escape,
+        follow_roadmap=not args.direct, dtype=dtype, device=args.device,
     )  # fmt: skip
+    setup = time.perf_counter() - setup_start
     result = run(sc, args.steps, args.dt)
     print(
         f"arm={args.arm} device={args.device} dtype={args.dtype} dt={args.dt} "
@@ -477,10 +672,12 @@ def main() -> None:
         "scenarios", "steps", "safe_rate", "min_clearance", "min_filter_barrier",
         "reach_rate", "median_final_error", "missed_at_obstacle", "missed_at_joint_limit",
         "missed_other", "path_found_rate", "via_rate", "reach_rate_path_found",
+        "reachable_rate", "reach_rate_reachable", "deadlocks", "replans", "rows_replanned",
         "non_solved_steps", "failed", "sim_seconds",
     ):  # fmt: skip
         value = result[key]
         print(f"  {key:20s} {value:.6g}" if isinstance(value, float) else f"  {key:20s} {value}")
+    print(f"  {'setup_seconds':20s} {setup:.4g}  (scenarios, IK, roadmap)")
     per_step = result["sim_seconds"] / args.steps
     print(f"  {'seconds_per_step':20s} {per_step:.4g}  (B={args.num}, filter + FK + rk4)")
     if args.no_timing:
