@@ -150,6 +150,9 @@ def main() -> None:
     parser.add_argument("--device", default="cpu", help="device for torchcbf (peers: CPU)")
     parser.add_argument("--peer-max-batch", type=int, default=1024, help="largest peer batch")
     parser.add_argument("--no-grid", action="store_true", help="only print the goal lines")
+    parser.add_argument(
+        "--goal-peer-batch", type=int, default=4096, help="peer batch of the B=4096 goal line"
+    )
     parser.add_argument("--big", type=int, default=1_000_000, help="batch of the throughput line")
     parser.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
     args = parser.parse_args()
@@ -235,18 +238,20 @@ def main() -> None:
     t_ours = timeit(lambda: fb(Q, p, G, h), min_time=1.0) / B
     sol = solve_qp(Q, p, G, h)
     solved = float((sol.status == Status.SOLVED).float().mean())
-    path = "enumeration" if bool((sol.iterations == 0).all()) else "interior point"
-    _, fb_ipm = run_torchcbf("torch", dev, method="ipm")
-    t_ipm = timeit(lambda: fb_ipm(Q, p, G, h), min_time=1.0) / B
+    others = []
+    for method in ("enumerate", "ipm"):
+        _, fb_m = run_torchcbf("torch", dev, method=method)
+        t_m = timeit(lambda fb_m=fb_m: fb_m(Q, p, G, h), min_time=1.0) / B
+        others.append(f"method={method!r}: {t_m * 1e6:.2f} us/QP")
     print(
-        f"B=4096 n=4 m=8 fwd+bwd torchcbf[torch] ({path}): {t_ours * 1e6:.2f} us/QP "
-        f"(solved {solved:.3f}); method='ipm': {t_ipm * 1e6:.2f} us/QP"
+        f"B=4096 n=4 m=8 fwd+bwd torchcbf[torch] (auto: dual active set): "
+        f"{t_ours * 1e6:.2f} us/QP (solved {solved:.3f}); " + "; ".join(others)
     )
     Qc, pc, Gc, hc = (t.cpu() for t in (Q, p, G, h))
     for name, maker in peers.items():
         if maker is None:
             continue
-        Bp = min(B, args.peer_max_batch)
+        Bp = min(B, args.goal_peer_batch)
         _, fb2 = maker()
         sl = (Qc[:Bp], pc[:Bp], Gc[:Bp], hc[:Bp])
         t_peer = timeit(lambda fb2=fb2, sl=sl: fb2(*sl), min_time=0.5, max_reps=3) / Bp
@@ -254,6 +259,21 @@ def main() -> None:
             f"  {name} (B={Bp}): {t_peer * 1e6:.2f} us/QP -> torchcbf is "
             f"{t_peer / t_ours:.1f}x faster (goal 30x)"
         )
+
+    # the safety filter's shape at scale: 2 controls + 1 slack, 8 barrier rows, box bounds
+    Q, p, G, h = make_problems(B, 3, 8, dev, seed=5)
+    lb = torch.full((3,), -2.0, dtype=Q.dtype, device=dev)
+    ub = torch.full((3,), 2.0, dtype=Q.dtype, device=dev)
+    line = []
+    for method in ("auto", "ipm"):
+
+        def filt_b(method: str = method) -> None:
+            pp = p.detach().requires_grad_(True)
+            solve_qp(Q, pp, G, h, lb=lb, ub=ub, method=method).x.sum().backward()
+            _sync(dev)
+
+        line.append(f"{method}: {timeit(filt_b, min_time=1.0) / B * 1e6:.2f} us/QP")
+    print("B=4096 n=3 m=8 + box fwd+bwd (filter shape): " + ", ".join(line))
 
     # 2) latency at B=1, n=2, m=6 (goal: forward < 1 ms)
     Q, p, G, h = make_problems(1, 2, 6, "cpu", seed=2)

@@ -352,11 +352,6 @@ def test_interior_point_hard_qp_matches_exact_enumeration() -> None:
     assert _ipm_vs_enumeration(elastic=False) < 1e-8
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known defect: on one near-degenerate row of the elastic QP (3 variables) no "
-    "active-set guess of the interior point polish verifies, and the row is reported SOLVED "
-    "with u about 2e-4 from the exact answer (small batches use the exact enumeration)",
-)
 def test_interior_point_elastic_qp_matches_exact_enumeration() -> None:
+    """Unverified interior point rows of the elastic QP are re-solved exactly."""
     assert _ipm_vs_enumeration(elastic=True) < 1e-8

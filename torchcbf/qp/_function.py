@@ -14,9 +14,13 @@ import torch
 from torch import Tensor
 
 from torchcbf.qp import _kkt
-from torchcbf.qp._enum import solve_enum
+from torchcbf.qp._dual import DualFactor, dual_backward, solve_dual
+from torchcbf.qp._enum import MAX_CANDIDATES_SMALL_BATCH, num_candidates, solve_enum
 from torchcbf.qp._ipm import solve_ipm
 from torchcbf.qp.status import Status
+
+#: largest number of variables (after softening) the dual active-set method is used for
+MAX_ACTIVE_SET_VARS = 8
 
 
 @dataclass(frozen=True)
@@ -31,6 +35,7 @@ class SolverConfig:
     closed_form: bool
     polish: bool
     enumerate: bool = False
+    active_set: bool = False
     pairs: tuple[tuple[int, int], ...] = ()
     need_factor: bool = True
 
@@ -80,6 +85,8 @@ def _forward(
             y = q.new_zeros(q.shape[0], me)
             fac = _kkt.factor_kkt(P, G, A, z > s) if cfg.need_factor else None
             return x, z, y, status, iters, fac
+        if cfg.active_set:
+            return _forward_dual(P, q, G, h, A, b, cfg, x0)
         if cfg.enumerate:
             return _forward_enum(P, q, G, h, A, b, cfg, x0)
         out = solve_ipm(
@@ -128,47 +135,136 @@ def _finish(
     status: Tensor,
     cfg: SolverConfig,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, _kkt.KKTFactor | None]:
-    """Polish (or not) an iterative answer; returns ``(x, z, y, status, active, factor)``."""
-    if cfg.polish:
-        x, z, y, status, fac = _kkt.polish(P, q, G, h, A, b, x, s, z, y, status, eps=cfg.eps)
+    """Polish (or not) an iterative answer; returns ``(x, z, y, status, active, factor)``.
+
+    Nearly parallel active rows leave the interior point accurate only to about
+    ``sqrt(eps)`` in ``x``, and an active-set guess missing one of them can still pass the
+    polish's ``eps`` checks. So a row the solver calls solved whose polish finds no verified
+    active set, or whose polished point violates a row or has a negative multiplier beyond
+    rounding, is re-solved
+    exactly by the dual active-set method (no equality rows) or by enumeration (few
+    candidate sets) where one applies. An unverified row that no exact method certifies is
+    reported ``NUMERICAL_ERROR``. Testing whether any row needs this is one host
+    synchronisation."""
+    if not cfg.polish:
+        candidate = (status == int(Status.SOLVED)).unsqueeze(-1)
+        return x, z, y, status, _kkt.active_set(z, s) & candidate, None
+    x, z, y, status, fac, verified, dual_viol = _kkt.polish(
+        P, q, G, h, A, b, x, s, z, y, status, eps=cfg.eps
+    )
+    solved = status == int(Status.SOLVED)
+    unverified = solved & ~verified
+    viol = torch.cat(
+        (
+            (torch.einsum("bmn,bn->bm", G, x) - h).clamp_min(0.0),
+            (torch.einsum("bmn,bn->bm", A, x) - b).abs(),
+            x.new_zeros(x.shape[0], 1),
+        ),
+        -1,
+    ).amax(-1)
+    data = torch.cat((h, b, h.new_zeros(h.shape[0], 1)), -1)
+    rounding = 1e4 * torch.finfo(x.dtype).eps * (1.0 + data.abs().amax(-1))
+    eps64 = 1e4 * torch.finfo(x.dtype).eps
+    suspect = unverified | (solved & ((viol > rounding) | (dual_viol > eps64)))
+    if not bool(suspect.any()):
         return x, z, y, status, fac.active, fac
-    candidate = (status == int(Status.SOLVED)).unsqueeze(-1)
-    return x, z, y, status, _kkt.active_set(z, s) & candidate, None
+    idx = suspect.nonzero().squeeze(-1)
+    sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
+    M, E, N = G.shape[-2], A.shape[-2], q.shape[-1]
+    ok = torch.zeros_like(idx, dtype=torch.bool)
+    if E == 0 and M > 0 and N <= MAX_ACTIVE_SET_VARS:
+        res = solve_dual(*sub[:4], eps=cfg.eps, max_iter=max(cfg.max_iter, 4 * (M + N)))
+        xs, zs, ys, acts, ok = res.x, res.z, sub[1].new_zeros(len(idx), 0), res.active, res.ok
+    elif num_candidates(M, E, N, cfg.pairs) <= MAX_CANDIDATES_SMALL_BATCH:
+        en = solve_enum(*sub, eps=cfg.eps, pairs=cfg.pairs)
+        xs, zs, ys, acts, ok = en.x, en.z, en.y, en.active, en.ok
+    active = fac.active
+    if bool(ok.any()):
+        keep = ok.unsqueeze(-1)
+        x = x.index_copy(0, idx, torch.where(keep, xs, x.index_select(0, idx)))
+        z = z.index_copy(0, idx, torch.where(keep, zs, z.index_select(0, idx)))
+        y = y.index_copy(0, idx, torch.where(keep, ys, y.index_select(0, idx)))
+        active = active.index_copy(0, idx, torch.where(keep, acts, active.index_select(0, idx)))
+    failed = ~ok & unverified.index_select(0, idx)
+    status = status.index_copy(
+        0, idx, torch.where(failed, int(Status.NUMERICAL_ERROR), status.index_select(0, idx))
+    )
+    return x, z, y, status, active, _kkt.factor_kkt(P, G, A, active)
 
 
 def _forward_enum(
     P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, _kkt.KKTFactor | None]:
     """Active-set enumeration for every row; the rows it cannot certify (infeasible, ``P``
-    not positive definite, too ill-conditioned) go to the interior point method.
-
-    Deciding whether any row needs the interior point method is the one host
-    synchronisation of this path (``bool(fail.any())``)."""
-    B = q.shape[0]
+    not positive definite, too ill-conditioned) go to the interior point method."""
     en = solve_enum(P, q, G, h, A, b, eps=cfg.eps, pairs=cfg.pairs)
-    x, z, y, active = en.x, en.z, en.y, en.active
-    status = torch.where(en.ok, int(Status.SOLVED), int(Status.MAX_ITER))
-    iters = torch.zeros(B, dtype=torch.int64, device=q.device)
-    fail = ~en.ok
-    if bool(fail.any()):
-        idx = fail.nonzero().squeeze(-1)
-        sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
-        x0s = None if x0 is None else x0.index_select(0, idx)
-        out = solve_ipm(
-            *sub,
-            eps=cfg.eps,
-            eps_inf=cfg.eps_inf,
-            max_iter=cfg.max_iter,
-            check_every=cfg.check_every,
-            x0=x0s,
-        )
-        xs, zs, ys, sts, acts, _ = _finish(*sub, out.x, out.s, out.z, out.y, out.status, cfg)
-        x, z, y = x.index_copy(0, idx, xs), z.index_copy(0, idx, zs), y.index_copy(0, idx, ys)
-        status = status.index_copy(0, idx, sts)
-        active = active.index_copy(0, idx, acts)
-        iters = iters.index_copy(0, idx, out.iterations)
+    iters = torch.zeros(q.shape[0], dtype=torch.int64, device=q.device)
+    x, z, y, status, iters, active, _ = _ipm_fallback(
+        P, q, G, h, A, b, cfg, x0, en.x, en.z, en.y, en.active, en.ok, iters
+    )
     fac = _kkt.factor_kkt(P, G, A, active) if cfg.need_factor else None
     return x, z, y, status, iters, fac
+
+
+def _forward_dual(
+    P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, _kkt.KKTFactor | DualFactor | None]:
+    """Dual active-set method for every row (no equality rows); the rows it cannot certify go
+    to the interior point method. The backward uses the dual method's own factors when every
+    row was solved by it, else the active-set KKT factorisation of the whole batch."""
+    y = q.new_zeros(q.shape[0], 0)
+    res = solve_dual(P, q, G, h, eps=cfg.eps, max_iter=cfg.max_iter, check_every=cfg.check_every)
+    x, z, y, status, iters, active, any_fallback = _ipm_fallback(
+        P, q, G, h, A, b, cfg, x0, res.x, res.z, y, res.active, res.ok, res.iterations
+    )
+    if not cfg.need_factor:
+        return x, z, y, status, iters, None
+    if any_fallback:
+        return x, z, y, status, iters, _kkt.factor_kkt(P, G, A, active)
+    return x, z, y, status, iters, res.factor
+
+
+def _ipm_fallback(
+    P: Tensor,
+    q: Tensor,
+    G: Tensor,
+    h: Tensor,
+    A: Tensor,
+    b: Tensor,
+    cfg: SolverConfig,
+    x0,
+    x: Tensor,
+    z: Tensor,
+    y: Tensor,
+    active: Tensor,
+    ok: Tensor,
+    iters: Tensor,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, bool]:
+    """Re-solve the rows with ``ok = False`` by the interior point method (with polish).
+
+    Deciding whether any row needs it is the one host synchronisation of the exact paths
+    (``bool(fail.any())``). Returns ``(x, z, y, status, iterations, active, any_fallback)``."""
+    status = torch.where(ok, int(Status.SOLVED), int(Status.MAX_ITER))
+    fail = ~ok
+    if not bool(fail.any()):
+        return x, z, y, status, iters, active, False
+    idx = fail.nonzero().squeeze(-1)
+    sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
+    x0s = None if x0 is None else x0.index_select(0, idx)
+    out = solve_ipm(
+        *sub,
+        eps=cfg.eps,
+        eps_inf=cfg.eps_inf,
+        max_iter=cfg.max_iter,
+        check_every=cfg.check_every,
+        x0=x0s,
+    )
+    xs, zs, ys, sts, acts, _ = _finish(*sub, out.x, out.s, out.z, out.y, out.status, cfg)
+    x, z, y = x.index_copy(0, idx, xs), z.index_copy(0, idx, zs), y.index_copy(0, idx, ys)
+    status = status.index_copy(0, idx, sts)
+    active = active.index_copy(0, idx, acts)
+    iters = iters.index_copy(0, idx, out.iterations)
+    return x, z, y, status, iters, active, True
 
 
 class QPFunction(torch.autograd.Function):
@@ -189,6 +285,12 @@ class QPFunction(torch.autograd.Function):
     @staticmethod
     def backward(ctx, gx, gz, gy, _gs, _gi):  # noqa: D102
         x, z, y, status = ctx.saved_tensors
+        if isinstance(ctx.fac, DualFactor):
+            dP, dq, dG, dh = dual_backward(
+                ctx.fac, x, z, gx.to(torch.float64), gz.to(torch.float64)
+            )
+            dA, db = x.new_zeros(x.shape[0], 0, x.shape[-1]), x.new_zeros(x.shape[0], 0)
+            return (*(g.to(ctx.dtype) for g in (dP, dq, dG, dh, dA, db)), None, None)
         grads = _kkt.kkt_backward(
             ctx.fac,
             x,

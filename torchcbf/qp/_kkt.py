@@ -100,10 +100,12 @@ def polish(
     status: Tensor,
     *,
     eps: float,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, KKTFactor]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor, KKTFactor, Tensor]:
     """Solve the active-set KKT system and keep verified answers. Returns
-    ``(x, z, y, status, factor)``; rows whose polished point passes the checks become
-    ``SOLVED`` (also rescuing ``MAX_ITER``/``NUMERICAL_ERROR`` rows whose guess is right)."""
+    ``(x, z, y, status, factor, verified, dual_violation)``; rows whose polished point passes
+    the checks become ``SOLVED`` (also rescuing ``MAX_ITER``/``NUMERICAL_ERROR`` rows whose
+    guess is right); ``verified [B]`` marks them, and ``dual_violation [B]`` is the most
+    negative polished multiplier (relative, before clipping at zero)."""
     n, M = q.shape[-1], h.shape[-1]
     candidate = (
         (status == int(Status.SOLVED))
@@ -138,7 +140,9 @@ def polish(
     z = torch.where(keep, (zp * act.to(zp.dtype)).clamp_min(0.0), z)
     y = torch.where(keep, yp, y)
     status = torch.where(ok, int(Status.SOLVED), status)
-    return x, z, y, status, fac
+    za = torch.cat((zp * act.to(zp.dtype), zp.new_zeros(zp.shape[0], 1)), -1)
+    dual_viol = torch.where(ok, za.neg().amax(-1) / (1.0 + za.abs().amax(-1)), 0.0)
+    return x, z, y, status, fac, ok, dual_viol
 
 
 def _verified(

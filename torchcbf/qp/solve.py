@@ -14,7 +14,7 @@ from torchcbf.qp._enum import (
     SMALL_BATCH,
     num_candidates,
 )
-from torchcbf.qp._function import QPFunction, SolverConfig
+from torchcbf.qp._function import MAX_ACTIVE_SET_VARS, QPFunction, SolverConfig
 from torchcbf.qp._ipm import default_tolerances
 from torchcbf.qp.status import Status
 
@@ -44,6 +44,7 @@ class QPSolution(NamedTuple):
 
 
 _FLOAT = (torch.float32, torch.float64)
+METHODS = ("auto", "active_set", "enumerate", "ipm")
 
 
 def _tensor(name: str, value: object, dtype: torch.dtype, device: torch.device) -> Tensor:
@@ -204,8 +205,8 @@ def solve_qp(
         raise ValueError(
             f"backend must be 'torch', 'proxsuite' or 'qpsolvers:<solver>', got {backend!r}"
         )
-    if method not in ("auto", "ipm", "enumerate"):
-        raise ValueError(f"method must be 'auto', 'ipm' or 'enumerate', got {method!r}")
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if not isinstance(max_iter, int) or isinstance(max_iter, bool) or max_iter < 1:
         raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
     if not isinstance(check_every, int) or check_every < 1:
@@ -345,11 +346,17 @@ def solve_qp(
         # both bounds of one variable are never active together (rows linearly dependent)
         pairs = tuple((box_start + j, box_start + n + j) for j in range(n))
     M_total = Gs.shape[-2]
-    use_enum = backend == "torch" and not closed_form and method != "ipm" and M_total + me > 0
-    if use_enum and method == "auto":
+    exact = backend == "torch" and not closed_form and M_total + me > 0
+    use_dual = exact and method == "active_set" and me == 0
+    use_enum = exact and method == "enumerate"
+    if exact and method == "auto":
         C = num_candidates(M_total, me, N, pairs) if me <= N else 0
-        limit = MAX_CANDIDATES_SMALL_BATCH if B <= SMALL_BATCH else MAX_CANDIDATES
-        use_enum = 0 < C <= limit
+        if B <= SMALL_BATCH and 0 < C <= MAX_CANDIDATES_SMALL_BATCH:
+            use_enum = True
+        elif me == 0 and N <= MAX_ACTIVE_SET_VARS:
+            use_dual = True
+        else:
+            use_enum = 0 < C <= MAX_CANDIDATES
     tensors = [t for _, t, _ in parts if t is not None]
     need_factor = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
     cfg = SolverConfig(
@@ -361,6 +368,7 @@ def solve_qp(
         closed_form=closed_form and method != "ipm",
         polish=bool(polish),
         enumerate=use_enum and me <= N,
+        active_set=use_dual,
         pairs=pairs,
         need_factor=need_factor,
     )

@@ -15,8 +15,9 @@ class Status(IntEnum):
       p'd < 0``) was found; ``x`` is zero-filled.
     - ``MAX_ITER``: the iteration budget ran out first; ``x`` is the last iterate (finite).
     - ``NON_FINITE``: the row's data held NaN/inf (other than infinite box bounds); ``x`` is zero.
-    - ``NUMERICAL_ERROR``: a factorisation broke down (e.g. an indefinite ``Q``); ``x`` is the
-      last finite iterate.
+    - ``NUMERICAL_ERROR``: a factorisation broke down (e.g. an indefinite ``Q``), or the
+      interior point's answer could not be verified as a KKT point to tolerance by any exact
+      re-solve; ``x`` is the last finite iterate.
     """
 
     SOLVED = 0

@@ -1,0 +1,340 @@
+"""Batched dual active-set method (Goldfarb-Idnani) for small strictly convex QPs.
+
+Solves ``min 1/2 x'Px + q'x  s.t.  Rx <= r`` (``N`` variables, ``M`` rows, ``P`` positive
+definite) for a large batch of small problems, e.g. ``N = 4``, ``M = 8`` at ``B = 4096``.
+
+The method starts at the unconstrained minimiser ``x = -P^{-1} q`` (dual feasible with every
+multiplier zero) and repeats, for every row of the batch at once: pick the most violated
+constraint ``p``; move ``x`` along the direction that reduces ``p``'s violation while keeping
+the active rows ``S`` tight, raising ``lam_p`` and adjusting ``lam_S``; either ``p`` becomes
+tight (full step: ``p`` joins ``S``) or an active multiplier reaches zero first (partial step:
+that row leaves ``S``, ``p`` stays pending). The dual objective increases at every step, so
+no active set repeats and the method ends in finitely many steps at the exact solution. The
+active rows stay linearly independent, hence at most ``N`` of them: ``S`` is held in ``N``
+slots (an empty slot holds the spare index ``M``).
+
+Each step solves ``W_SS d = W_Sp`` with ``W = R P^{-1} R'`` restricted to the slots (an
+``N x N`` system, empty slots padded with the identity) by the unrolled elimination of
+:mod:`torchcbf.qp._enum`. Data are stored batch-last ("planes": every scalar entry of every
+problem is one contiguous ``[B]`` vector), so each step of the small linear algebra is one
+elementwise tensor operation over the whole batch and the cost per step does not depend on
+per-matrix kernel launches.
+
+A row finishes when nothing is pending and no constraint is violated beyond tolerance. Rows
+that end infeasible (no step restores ``p``), run out of steps, have ``P`` not positive
+definite or fail the final KKT check are reported in ``ok`` and left to the caller's fallback.
+On a CPU the test "is every row done" runs every step (it costs no device synchronisation);
+on other devices every ``check_every`` steps.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchcbf.qp._enum import _eliminate
+
+
+class DualFactor(NamedTuple):
+    """What the backward pass needs: planes of the Cholesky factor, the active slots and the
+    gathered columns of ``R'`` and ``P^{-1} R'`` on them."""
+
+    L: Tensor  # [N, N, B] lower Cholesky factor of P
+    slots: Tensor  # [N, B] int64 row index per slot (M: empty)
+    R_S: Tensor  # [N(component), N(slot), B]
+    U_S: Tensor  # [N(component), N(slot), B] = P^{-1} R_S'
+    ok: Tensor  # [B] rows solved by this method
+
+
+class DualResult(NamedTuple):
+    """``x [B,N]``, ``z [B,M]``, ``active [B,M]`` bool, ``ok [B]``, ``iterations [B]``."""
+
+    x: Tensor
+    z: Tensor
+    active: Tensor
+    ok: Tensor
+    iterations: Tensor
+    factor: DualFactor
+
+
+def _cholesky(P: Tensor) -> tuple[Tensor, Tensor]:
+    """Lower Cholesky factor of ``P [N, N, B]`` column by column; ``(L, positive_definite)``.
+
+    A pivot below ``1e-13`` times its diagonal entry marks the row not positive definite (the
+    factor is then kept finite, not meaningful)."""
+    N = P.shape[0]
+    L = torch.zeros_like(P)
+    pd = torch.ones(P.shape[-1], dtype=torch.bool, device=P.device)
+    for j in range(N):
+        col = P[j:, j]
+        for k in range(j):
+            col = torch.addcmul(col, L[j:, k], L[j, k], value=-1.0)
+        piv = col[0]
+        pd = pd & (piv > 1e-13 * P[j, j].abs())
+        d = torch.sqrt(torch.where(pd, piv, 1.0))
+        L[j:, j] = col / d
+    return L, pd
+
+
+def _cho_solve(L: Tensor, rhs: Tensor) -> Tensor:
+    """Solve ``L L' y = rhs`` for ``L [N, N, B]`` and ``rhs [N, *cols, B]``."""
+    N = L.shape[0]
+    extra = rhs.dim() - 2
+    Lv = L.view(N, N, *([1] * extra), L.shape[-1])
+    y: list[Tensor] = []
+    for i in range(N):
+        acc = rhs[i]
+        for k in range(i):
+            acc = torch.addcmul(acc, Lv[i, k], y[k], value=-1.0)
+        y.append(acc / Lv[i, i])
+    out: list[Tensor] = [y[0]] * N
+    for i in range(N - 1, -1, -1):
+        acc = y[i]
+        for k in range(i + 1, N):
+            acc = torch.addcmul(acc, Lv[k, i], out[k], value=-1.0)
+        out[i] = acc / Lv[i, i]
+    return torch.stack(out, 0)
+
+
+def _slot_system(R_S: Tensor, U_S: Tensor, empty: Tensor) -> Tensor:
+    """``W_SS [N, N, B]`` with the identity on empty slots."""
+    W = _contract(R_S.unsqueeze(2), U_S.unsqueeze(1))  # [k, l]: R_{S_k} P^{-1} R_{S_l}'
+    W.diagonal(dim1=0, dim2=1).add_(empty.T.to(W.dtype))
+    return W
+
+
+class _Data(NamedTuple):
+    """Per-problem constants, batch last."""
+
+    Rc: Tensor  # [N, M, B] R' by components
+    hr: Tensor  # [M, B]
+    UR: Tensor  # [2N, M + 1, B] P^{-1} R' stacked on R' (column M: zero spare)
+    tol: Tensor  # [B] violation beyond which a row joins the active set
+    slots: Tensor  # [N, 1] slot indices
+    rank: Tensor  # [N, 1] N - slot index: the first empty slot scores highest
+
+
+class _State(NamedTuple):
+    """Iterate of the dual active-set method, batch last."""
+
+    x: Tensor  # [N, B]
+    lam_S: Tensor  # [N, B] multipliers of the slots
+    lam_p: Tensor  # [B] multiplier of the pending row
+    S: Tensor  # [N, B] int64 row per slot (M: empty)
+    free: Tensor  # [N, B] 1.0 on empty slots, else 0.0
+    U_S: Tensor  # [N, N, B] P^{-1} R_S' by (component, slot); zero on empty slots
+    Hs: Tensor  # [N, N, B] W_SS^{-1}, identity on empty slots
+    p: Tensor  # [B] int64 pending (or next) row
+    pending: Tensor  # [B] bool
+    done: Tensor  # [B] bool
+    fail: Tensor  # [B] bool
+    iters: Tensor  # [B] int64
+
+
+def _contract(a: Tensor, b: Tensor) -> Tensor:
+    """``sum_c a[c] b[c]`` over the leading dimension (broadcasting the rest)."""
+    return (a * b).sum(0)
+
+
+def _step(data: _Data, st: _State) -> _State:
+    """One add-or-drop step for every row that is not done.
+
+    Empty slots have zero columns in ``U_S`` (so ``W_Sp`` is zero there) and ``d`` is masked
+    to zero on them, so no update below moves an empty slot."""
+    N, B = st.x.shape
+    M = data.hr.shape[0]
+    x, lam_S, lam_p, S, free, U_S, Hs, p, pending, done, fail, iters = st
+    v = _contract(data.Rc, x.unsqueeze(1)) - data.hr  # [M, B] violation R x - r
+    vmax, pnew = v.max(0)
+    done = done | ~(pending | (vmax > data.tol))
+    p = torch.where(pending, p, pnew)
+    v_p = v.gather(0, p.unsqueeze(0)).squeeze(0)
+    UR_p = data.UR.gather(1, p.view(1, 1, B).expand(2 * N, 1, B)).squeeze(1)
+    U_p, R_p = UR_p[:N], UR_p[N:]
+
+    W_Sp = _contract(U_S, R_p.unsqueeze(1))  # [N, B]
+    W_pp = _contract(U_p, R_p)
+    # W_SS^{-1} W_Sp, exactly zero on empty slots (the drop update leaves rounding there)
+    d = _contract(Hs, W_Sp.unsqueeze(1)) * (1.0 - free)
+    z = W_pp - _contract(W_Sp, d)  # Schur complement: 0 when p depends on the active rows
+    dx = _contract(U_S.transpose(0, 1), d.unsqueeze(1)) - U_p  # R_p dx = -z, R_S dx = 0
+
+    # full step (p becomes tight) unless p depends on the active rows or no slot is free;
+    # partial step: the first active multiplier to reach zero leaves
+    room, first_free = (free * data.rank).max(0)
+    t_full = torch.where((z <= 1e-10 * W_pp) | (room == 0), math.inf, v_p / z)
+    ratio = torch.where(d > 0, lam_S / d, math.inf)
+    t_part, k_drop = ratio.min(0)
+    t = torch.minimum(t_full, t_part)
+    bad = ~done & ~torch.isfinite(t)
+    fail = fail | bad
+    done = done | bad
+    full = ~done & (t_full <= t_part)
+    part = ~done & (t_full > t_part)
+    t = torch.where(done, 0.0, t)
+
+    x = torch.addcmul(x, dx, t)
+    lam_S = torch.addcmul(lam_S, d, t, value=-1.0)
+    lam_p = lam_p + t
+    e_drop = part & (data.slots == k_drop)
+    e_add = full & (data.slots == first_free)
+    f_drop, f_add = e_drop.to(x.dtype), e_add.to(x.dtype)
+    # inverse updates of W_SS: bordering (add) and its reverse (drop)
+    Hk = Hs.gather(0, k_drop.view(1, 1, B).expand(1, N, B)).squeeze(0)
+    a_coef = torch.where(full, 1.0 / z, 0.0)
+    b_coef = torch.where(part, 1.0 / Hk.gather(0, k_drop.unsqueeze(0)).squeeze(0), 0.0)
+    u = d - f_add
+    Hs = torch.addcmul(Hs, (u * a_coef).unsqueeze(1), u.unsqueeze(0))
+    Hs = torch.addcmul(Hs, (Hk * b_coef).unsqueeze(1), Hk.unsqueeze(0), value=-1.0)
+    Hs.diagonal(dim1=0, dim2=1).add_((f_drop - f_add).T)
+    keep = 1.0 - f_drop - f_add
+    U_S = torch.addcmul(U_S * keep.unsqueeze(0), U_p.unsqueeze(1), f_add)
+    lam_S = torch.addcmul(lam_S * keep, lam_p, f_add)
+    lam_p = torch.where(full, 0.0, lam_p)
+    S = torch.where(e_drop, M, torch.where(e_add, p, S))
+    free = free + f_drop - f_add
+    return _State(x, lam_S, lam_p, S, free, U_S, Hs, p, part, done, fail, iters + ~done)
+
+
+def solve_dual(
+    P: Tensor,
+    q: Tensor,
+    G: Tensor,
+    h: Tensor,
+    *,
+    eps: float,
+    max_iter: int,
+    check_every: int = 5,
+) -> DualResult:
+    """Solve ``min 1/2 x'Px + q'x s.t. Gx <= h`` for ``P [B,N,N], q [B,N], G [B,M,N],
+    h [B,M]`` (finite, ``M >= 1``, float64 recommended). See the module docstring; rows with
+    ``ok = False`` hold zeros and must be solved by another method.
+
+    When the host checks progress (every step on a CPU, every ``check_every`` steps
+    elsewhere) and at most a quarter of the rows still run, the iteration continues on those rows
+    only (finished rows are written back first), so the long tail of a few hard rows costs
+    little."""
+    B, N = q.shape
+    M = h.shape[-1]
+    dtype, device = q.dtype, q.device
+    Pp = P.permute(1, 2, 0).contiguous()
+    L, pd = _cholesky(Pp)
+    Rc = G.permute(2, 1, 0).contiguous()  # [N, M, B]: R' by components
+    rhs = torch.cat((Rc, q.new_zeros(N, 1, B), -q.T.unsqueeze(1)), 1)
+    sol = _cho_solve(L, rhs)  # [P^{-1} R', 0, x_u]
+    xu = sol[:, M + 1]
+    UR = torch.cat((sol[:, : M + 1], rhs[:, : M + 1]), 0)
+    hr = h.T.contiguous()
+    # a row joins while violated beyond rounding, not beyond eps: near a nearly parallel
+    # active row a violation of eps can hide an error of sqrt(eps) in x
+    add_tol = 1e4 * torch.finfo(dtype).eps * (1.0 + hr.abs().amax(0))
+    slots = torch.arange(N, device=device).unsqueeze(-1)
+    data = _Data(Rc, hr, UR, add_tol, slots, (N - slots).to(dtype))
+    st = _State(
+        x=xu.clone(),
+        lam_S=q.new_zeros(N, B),
+        lam_p=q.new_zeros(B),
+        S=torch.full((N, B), M, dtype=torch.int64, device=device),
+        free=q.new_ones(N, B),
+        U_S=q.new_zeros(N, N, B),
+        Hs=torch.eye(N, dtype=dtype, device=device).unsqueeze(-1).repeat(1, 1, B),
+        p=torch.zeros(B, dtype=torch.int64, device=device),
+        pending=torch.zeros(B, dtype=torch.bool, device=device),
+        done=~pd,
+        fail=~pd,
+        iters=torch.zeros(B, dtype=torch.int64, device=device),
+    )
+    final = _Outcome(st.S, st.lam_S, st.pending, st.fail, st.iters)  # full batch
+    rows: Tensor | None = None  # global indices of the rows being iterated (None: all)
+    sync_each = device.type == "cpu"
+    for it in range(max_iter):
+        st = _step(data, st)
+        if not (sync_each or (it + 1) % check_every == 0):
+            continue
+        running = int((~st.done).sum())
+        width = st.done.shape[0]
+        if running == 0 or (running <= width // 4 and width >= 64):
+            final = _write_back(final, st, rows)
+            if running == 0:
+                break
+            keep = (~st.done).nonzero().squeeze(-1)
+            rows = keep if rows is None else rows.index_select(0, keep)
+            data = data._replace(
+                **{k: getattr(data, k).index_select(-1, keep) for k in ("Rc", "hr", "UR", "tol")}
+            )
+            st = _State(*(t.index_select(-1, keep) for t in st))
+    else:
+        final = _write_back(final, st, rows)
+    S, lam_S, pending, fail, iters = final
+
+    # clean primal point from the multipliers, then the KKT check
+    tol = eps * (1.0 + hr.abs().amax(0))
+    UR_S = UR.gather(1, S.unsqueeze(0).expand(2 * N, N, B))
+    U_S, R_S = UR_S[:N], UR_S[N:]
+    x = xu - _contract(U_S.transpose(0, 1), lam_S.unsqueeze(1))
+    v = _contract(Rc, x.unsqueeze(1)) - hr
+    v_S = torch.cat((v, v.new_zeros(1, B)), 0).gather(0, S)
+    pviol = torch.maximum(v.amax(0), v_S.abs().amax(0))
+    stat = _contract(Pp, x.unsqueeze(1)) + q.T + _contract(R_S.transpose(0, 1), lam_S.unsqueeze(1))
+    dscale = 1.0 + q.abs().amax(-1) + (R_S.abs().amax(0) * lam_S.abs()).amax(0)
+    ok = (
+        ~fail
+        & ~pending
+        & (pviol <= tol)
+        & (lam_S.amin(0) >= -eps * (1.0 + lam_S.abs().amax(0)))
+        & (stat.abs().amax(0) <= eps * dscale)
+        & torch.isfinite(x).all(0)
+    )
+    okc = ok.unsqueeze(-1)
+    lam = q.new_zeros(M + 1, B).scatter_(0, S, lam_S)
+    x_out = torch.where(okc, x.T, 0.0)
+    z_out = torch.where(okc, lam[:M].T.clamp_min(0.0), 0.0)
+    active = torch.zeros(M + 1, B, dtype=torch.bool, device=device).scatter_(0, S, True)
+    active = active[:M].T & okc
+    return DualResult(x_out, z_out, active, ok, iters, DualFactor(L, S, R_S, U_S, ok))
+
+
+class _Outcome(NamedTuple):
+    """The fields of :class:`_State` read after the iteration, for the whole batch."""
+
+    S: Tensor
+    lam_S: Tensor
+    pending: Tensor
+    fail: Tensor
+    iters: Tensor
+
+
+def _write_back(final: _Outcome, st: _State, rows: Tensor | None) -> _Outcome:
+    """Copy the iterated rows ``rows`` (all when ``None``) of ``st`` into ``final``."""
+    new = _Outcome(st.S, st.lam_S, st.pending, st.fail, st.iters)
+    if rows is None:
+        return new
+    return _Outcome(*(f.index_copy(-1, rows, s) for f, s in zip(final, new, strict=True)))
+
+
+def dual_backward(
+    fac: DualFactor, x: Tensor, z: Tensor, gx: Tensor, gz: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Gradients ``(dP, dq, dG, dh)`` from ``gx [B,N]``, ``gz [B,M]`` (implicit differentiation
+    of the KKT conditions on the active slots; rows not ``ok`` get zeros)."""
+    B, N = x.shape
+    M = z.shape[-1]
+    S = fac.slots
+    empty = S == M
+    gz_ext = torch.cat((gz.T, gz.new_zeros(1, B)), 0)
+    a = _cho_solve(fac.L, gx.T)  # P^{-1} gx  [N, B]
+    rhs = _contract(fac.R_S, a.unsqueeze(1)) - gz_ext.gather(0, S)
+    piv_tol = 1e-12 if x.dtype == torch.float64 else 1e-6
+    w_lam, _ = _eliminate(_slot_system(fac.R_S, fac.U_S, empty), rhs, piv_tol)
+    w_lam = torch.where(empty, 0.0, w_lam)
+    w_x = a - _contract(fac.U_S.transpose(0, 1), w_lam.unsqueeze(1))
+    good = fac.ok & torch.isfinite(w_x).all(0) & torch.isfinite(w_lam).all(0)
+    w_x = torch.where(good, w_x, 0.0).T  # [B, N]
+    w_lam = torch.where(good, w_lam, 0.0)
+    wz = x.new_zeros(M + 1, B).scatter_(0, S, w_lam)[:M].T  # [B, M]
+    dP = -0.5 * (w_x.unsqueeze(-1) * x.unsqueeze(-2) + x.unsqueeze(-1) * w_x.unsqueeze(-2))
+    dG = -(z.unsqueeze(-1) * w_x.unsqueeze(-2) + wz.unsqueeze(-1) * x.unsqueeze(-2))
+    return dP, -w_x, dG, wz
