@@ -111,6 +111,7 @@ class Scenario:
     reachable: Tensor  # [B] bool: IK found a collision-free solution within the joint limits
     path_found: Tensor  # [B] bool: a checked C-space path (direct or one via) exists
     has_via: Tensor  # [B] bool: that path goes through a via-configuration
+    waypoints: Tensor | None  # [B, W, dof] the planned path (None: not planned)
 
 
 def _spheres(arm: Manipulator, name: str, inflate: float, dtype: torch.dtype) -> LinkSphereBarrier:
@@ -461,9 +462,12 @@ def build(
         q_goal = torch.where(ik.converged[:, None], ik.q, strict.q)
     # the path search runs for every nominal (same generator use, same scenarios)
     if plan_paths or nominal != "cartesian":
-        _, found, has_via, roadmap = _roadmap_paths(arm, collision, q0, q_goal, path_clearance, gen)
+        waypoints, found, has_via, roadmap = _roadmap_paths(
+            arm, collision, q0, q_goal, path_clearance, gen
+        )
     else:  # not planned (filter timing): no path known
         found = has_via = no
+        waypoints = None
     if nominal == "cartesian":
         ctrl: nn.Module = ResolvedRateController(
             arm, target, gain=gain, damping=0.05, null_space_gain=null_space_gain
@@ -476,7 +480,7 @@ def build(
         )
     return Scenario(
         name, arm, collision, inflated, safety_filter, ctrl, q0, target, qt, q_goal,
-        reachable, found, has_via,
+        reachable, found, has_via, waypoints,
     )  # fmt: skip
 
 
