@@ -104,16 +104,12 @@ def test_mppi_cbf_default_scales_put_the_margin_on_the_flat_sides(dtype: torch.d
 
 def test_mppi_cbf_control_weight_and_limits() -> None:
     scenario = mppi_cbf("mppi_scbf", num_seeds=1, num_samples=8, horizon=4, control_limit=(3, 7))
-    torch.testing.assert_close(
-        scenario.safety_filter.R, torch.diag(torch.tensor([1.0, 1e-3]))
-    )
+    torch.testing.assert_close(scenario.safety_filter.R, torch.diag(torch.tensor([1.0, 1e-3])))
     assert scenario.dynamics.u_max.tolist() == [3.0, 7.0]
     assert scenario.dynamics.u_min.tolist() == [-3.0, -7.0]
     assert scenario.planner.u_max.tolist() == [3.0, 7.0]
     scenario = mppi_cbf("scbf", num_seeds=1, control_weight=2.0)
-    torch.testing.assert_close(
-        scenario.safety_filter.R, torch.diag(torch.tensor([2.0, 2.0]))
-    )
+    torch.testing.assert_close(scenario.safety_filter.R, torch.diag(torch.tensor([2.0, 2.0])))
     for name in ("control_weight", "control_limit"):
         for bad in (0.0, (1.0, -1.0), (1.0, 2.0, 3.0), float("inf")):
             with pytest.raises(ValueError, match=name):
