@@ -115,6 +115,7 @@ class _Data(NamedTuple):
     tol: Tensor  # [B] violation beyond which a row joins the active set
     slots: Tensor  # [N, 1] slot indices
     rank: Tensor  # [N, 1] N - slot index: the first empty slot scores highest
+    inv_norm: Tensor  # [M, B] 1 / sqrt(R_i P^{-1} R_i'), to pick the farthest violated row
 
 
 class _State(NamedTuple):
@@ -148,7 +149,8 @@ def _step(data: _Data, st: _State) -> _State:
     M = data.hr.shape[0]
     x, lam_S, lam_p, S, free, U_S, Hs, p, pending, done, fail, iters = st
     v = _contract(data.Rc, x.unsqueeze(1)) - data.hr  # [M, B] violation R x - r
-    vmax, pnew = v.max(0)
+    vmax = v.amax(0)
+    pnew = (v * data.inv_norm).max(0).indices
     done = done | ~(pending | (vmax > data.tol))
     p = torch.where(pending, p, pnew)
     v_p = v.gather(0, p.unsqueeze(0)).squeeze(0)
@@ -214,7 +216,7 @@ def solve_dual(
     ``ok = False`` hold zeros and must be solved by another method.
 
     When the host checks progress (every step on a CPU, every ``check_every`` steps
-    elsewhere) and at most a quarter of the rows still run, the iteration continues on those rows
+    elsewhere) and at most a third of the rows still run, the iteration continues on those rows
     only (finished rows are written back first), so the long tail of a few hard rows costs
     little."""
     B, N = q.shape
@@ -232,7 +234,9 @@ def solve_dual(
     # active row a violation of eps can hide an error of sqrt(eps) in x
     add_tol = 1e4 * torch.finfo(dtype).eps * (1.0 + hr.abs().amax(0))
     slots = torch.arange(N, device=device).unsqueeze(-1)
-    data = _Data(Rc, hr, UR, add_tol, slots, (N - slots).to(dtype))
+    w_diag = _contract(sol[:, :M], Rc)
+    inv_norm = torch.where(w_diag > 0, w_diag.clamp_min(1e-300).rsqrt(), 0.0)
+    data = _Data(Rc, hr, UR, add_tol, slots, (N - slots).to(dtype), inv_norm)
     st = _State(
         x=xu.clone(),
         lam_S=q.new_zeros(N, B),
@@ -256,14 +260,17 @@ def solve_dual(
             continue
         running = int((~st.done).sum())
         width = st.done.shape[0]
-        if running == 0 or (running <= width // 4 and width >= 64):
+        if running == 0 or (3 * running <= width and width >= 64):
             final = _write_back(final, st, rows)
             if running == 0:
                 break
             keep = (~st.done).nonzero().squeeze(-1)
             rows = keep if rows is None else rows.index_select(0, keep)
             data = data._replace(
-                **{k: getattr(data, k).index_select(-1, keep) for k in ("Rc", "hr", "UR", "tol")}
+                **{
+                    k: getattr(data, k).index_select(-1, keep)
+                    for k in ("Rc", "hr", "UR", "tol", "inv_norm")
+                }
             )
             st = _State(*(t.index_select(-1, keep) for t in st))
     else:
