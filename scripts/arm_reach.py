@@ -579,6 +579,30 @@ def time_filter(
     return total, lie
 
 
+def time_ik(
+    name: str = "planar3",
+    batch: int = 1024,
+    dtype: torch.dtype = torch.float32,
+    device: str | torch.device = "cpu",
+) -> tuple[float, float]:
+    """Seconds for one batched IK of ``batch`` point targets (8 restarts, 100 iterations,
+    the collision-sphere clearance penalty, as in :func:`build`) and its success rate."""
+    device = torch.device(device)
+    arm = Manipulator(name).to(device=device, dtype=dtype)
+    collision = _spheres(arm, name, 0.0, dtype).to(device)
+    gen = torch.Generator(device=device).manual_seed(0)
+    q0 = _sample_free(arm, collision, batch, 0.05, gen, dtype, device)
+    target = arm.end_effector(_sample_free(arm, collision, batch, 0.05, gen, dtype, device))
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    sync()
+    start = time.perf_counter()
+    res = arm.inverse_kinematics(
+        target, q0, restarts=8, barriers=[collision], clearance=0.03, limit_margin=0.06
+    )
+    sync()
+    return time.perf_counter() - start, float(res.converged.double().mean())
+
+
 def plot(sc: Scenario, result: dict, path: str, shown: int = 12) -> None:
     """Top view (x-y) of end-effector paths, arm poses at start and end, obstacle, targets."""
     import matplotlib
@@ -695,14 +719,21 @@ def main() -> None:
 
 def _print_timing(args: argparse.Namespace) -> None:
     print(f"filter step, batch {args.timing_batch} ({args.device}, {args.qp_backend}):")
-    print(f"  {'arm':8s} {'dtype':8s} {'filter ms':>10s} {'lie ms':>10s}")
+    print(
+        f"  {'arm':8s} {'dtype':8s} {'filter ms':>10s} {'lie ms':>10s} {'ik ms':>10s} {'ik ok':>6s}"
+    )
     for name in sorted(GEOMETRY):
         for dt_name in ("float32", "float64"):
+            dtype = getattr(torch, dt_name)
             sec, lie = time_filter(
-                name, args.timing_batch, dtype=getattr(torch, dt_name), device=args.device,
+                name, args.timing_batch, dtype=dtype, device=args.device,
                 qp_backend=args.qp_backend,
             )  # fmt: skip
-            print(f"  {name:8s} {dt_name:8s} {1e3 * sec:10.2f} {1e3 * lie:10.2f}")
+            ik, ok = time_ik(name, args.timing_batch, dtype=dtype, device=args.device)
+            print(
+                f"  {name:8s} {dt_name:8s} {1e3 * sec:10.2f} {1e3 * lie:10.2f} "
+                f"{1e3 * ik:10.1f} {ok:6.3f}"
+            )
 
 
 if __name__ == "__main__":

@@ -18,6 +18,10 @@ control, two under acceleration control: wrap it in :func:`~torchcbf.barriers.re
 Effort limits are stored (``effort_limit``) for reference only: these are kinematic models
 without an inertia matrix, so torques are not modelled.
 
+Point targets become configurations with :meth:`Manipulator.inverse_kinematics`: batched
+damped least squares (Levenberg-Marquardt) inside the joint limits, with random restarts
+solved in one batch and an optional clearance penalty from workspace barriers.
+
 Small arm descriptions ship with torchcbf: ``asset_path("planar3")`` (three revolute joints
 about ``z``, links 0.5, 0.4, 0.3 m) and ``asset_path("arm7")`` (seven joints, axes ``z y z y
 z y z``).
