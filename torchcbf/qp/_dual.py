@@ -136,8 +136,14 @@ class _State(NamedTuple):
 
 
 def _contract(a: Tensor, b: Tensor) -> Tensor:
-    """``sum_c a[c] b[c]`` over the leading dimension (broadcasting the rest)."""
-    return (a * b).sum(0)
+    """``sum_c a[c] b[c]`` over the leading dimension (broadcasting the rest).
+
+    Accumulated in place, so the only new tensor has the size of the result (fewer and
+    smaller allocations than ``(a * b).sum(0)``: the step is allocator-bound on a CPU)."""
+    out = a[0] * b[0]
+    for c in range(1, a.shape[0]):
+        out.addcmul_(a[c], b[c])
+    return out
 
 
 def _step(data: _Data, st: _State) -> _State:
@@ -189,11 +195,12 @@ def _step(data: _Data, st: _State) -> _State:
     a_coef = torch.where(full, 1.0 / z, 0.0)
     b_coef = torch.where(part, 1.0 / Hk.gather(0, k_drop.unsqueeze(0)).squeeze(0), 0.0)
     u = d - f_add
-    Hs = torch.addcmul(Hs, (u * a_coef).unsqueeze(1), u.unsqueeze(0))
-    Hs = torch.addcmul(Hs, (Hk * b_coef).unsqueeze(1), Hk.unsqueeze(0), value=-1.0)
+    # in place: Hs and U_S belong to the iteration (fresh at the start and after compaction)
+    Hs.addcmul_((u * a_coef).unsqueeze(1), u.unsqueeze(0))
+    Hs.addcmul_((Hk * b_coef).unsqueeze(1), Hk.unsqueeze(0), value=-1.0)
     Hs.diagonal(dim1=0, dim2=1).add_((f_drop - f_add).T)
     keep = 1.0 - f_drop - f_add
-    U_S = torch.addcmul(U_S * keep.unsqueeze(0), U_p.unsqueeze(1), f_add)
+    U_S.mul_(keep.unsqueeze(0)).addcmul_(U_p.unsqueeze(1), f_add)
     lam_S = torch.addcmul(lam_S * keep, lam_p, f_add)
     lam_p = torch.where(full, 0.0, lam_p)
     S = torch.where(e_drop, M, torch.where(e_add, p, S))
