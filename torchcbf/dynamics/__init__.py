@@ -1,5 +1,6 @@
 """Control-affine dynamics: the :class:`ControlAffine` base and standard models."""
 
+from torchcbf.dynamics._ik import IKResult
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.dynamics.manipulator import (
     JointSpaceController,
@@ -24,6 +25,7 @@ __all__ = [
     "ControlAffine",
     "DoubleIntegrator",
     "FixedWing",
+    "IKResult",
     "JointSpaceController",
     "Manipulator",
     "Quadrotor",
