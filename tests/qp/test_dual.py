@@ -163,3 +163,11 @@ def test_plane_cholesky_and_solve_against_torch():
     torch.testing.assert_close(sol.permute(2, 0, 1), torch.linalg.solve(P, rhs))
     P[0, 2, 2] = -1.0
     assert not _cholesky(P.permute(1, 2, 0).contiguous())[1][0]
+
+
+@pytest.mark.parametrize("method", ["auto", "active_set", "enumerate", "ipm"])
+def test_empty_batch_gives_empty_answers(method):
+    Q = torch.eye(3, dtype=F64).expand(0, 2, 3, 3)
+    sol = solve_qp(Q, torch.zeros(0, 2, 3, dtype=F64), torch.zeros(4, 3, dtype=F64),
+                   torch.ones(4, dtype=F64), method=method)  # fmt: skip
+    assert sol.x.shape == (0, 2, 3) and sol.status.shape == (0, 2) and sol.lam.shape == (0, 2, 4)

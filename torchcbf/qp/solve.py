@@ -79,7 +79,7 @@ def _check_trailing(name: str, t: Tensor, trailing: tuple[int, ...], spec: str) 
 def _row_nonfinite(t: Tensor | None, trailing: int, batch: int) -> Tensor | None:
     if t is None:
         return None
-    flat = t.reshape(batch, -1) if trailing > 0 else t.reshape(batch, 1)
+    flat = t.reshape(batch, math.prod(t.shape[t.dim() - trailing :]))
     if flat.shape[-1] == 0:
         return torch.zeros(batch, dtype=torch.bool, device=t.device)
     # the largest magnitude is NaN or inf exactly when some entry is (and is much faster
@@ -260,6 +260,13 @@ def solve_qp(
         desc = ", ".join(f"{nm} {s}" for nm, s in shapes)
         raise ValueError(f"batch dimensions do not broadcast: {desc}") from None
     B = math.prod(batch_shape) if len(batch_shape) > 0 else 1
+    if B == 0:  # an empty batch: empty answers of the right shapes
+
+        def empty(*trailing: int, dt: torch.dtype = dtype) -> Tensor:
+            return torch.zeros(*batch_shape, *trailing, dtype=dt, device=device)
+
+        none = empty(dt=torch.int64)
+        return QPSolution(empty(n), none, empty(m), empty(me), none, empty(n), empty(n), empty(m))
 
     def flat(t: Tensor | None, trailing: tuple[int, ...]) -> Tensor | None:
         if t is None:
