@@ -171,3 +171,68 @@ def test_empty_batch_gives_empty_answers(method):
     sol = solve_qp(Q, torch.zeros(0, 2, 3, dtype=F64), torch.zeros(4, 3, dtype=F64),
                    torch.ones(4, dtype=F64), method=method)  # fmt: skip
     assert sol.x.shape == (0, 2, 3) and sol.status.shape == (0, 2) and sol.lam.shape == (0, 2, 4)
+
+
+def _row_and_grads(method, Q, p, G, h):
+    leaves = [t.clone().requires_grad_(True) for t in (Q, p, G, h)]
+    sol = solve_qp(*leaves, method=method)
+    sol.x.sum().backward()
+    return sol, [t.grad for t in leaves]
+
+
+@pytest.mark.parametrize(
+    "Q, p, G, h",
+    [  # review cases: a large R P^-1 R' (a row used to enter two slots) and a wide Q spectrum
+        ([[1.0, 0.0], [0.0, 1.0]], [9.0, -7.0], [[-6000.0, 8000.0], [7000.0, 8000.0]], [1.0, 0]),
+        ([[1e-8, 0.0], [0.0, 1e4]], [1.0, 1.0], [[-1.0, 0.0], [1.0, 1.0]], [1.0, 0.0]),
+    ],
+)
+def test_badly_scaled_rows_match_enumeration_with_gradients(Q, p, G, h):
+    data = [torch.tensor(t, dtype=F64) for t in (Q, p, G, h)]
+    sol, grads = _row_and_grads("active_set", *data)
+    ref, ref_grads = _row_and_grads("enumerate", *data)
+    assert int(sol.status) == Status.SOLVED == int(ref.status)
+    torch.testing.assert_close(sol.x, ref.x, atol=1e-9, rtol=1e-9)
+    torch.testing.assert_close(sol.lam, ref.lam, atol=1e-9, rtol=1e-7)
+    for a, b in zip(grads, ref_grads, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-8, rtol=1e-7)
+
+
+@pytest.mark.parametrize("method", ["active_set", "ipm", "enumerate"])
+def test_tiny_row_is_judged_on_its_own_scale(method):
+    """A row of norm 1e-6 next to one of norm 1e6: its violation of 1e-7 still counts."""
+    Q = torch.eye(2, dtype=F64).expand(100, 2, 2)
+    G = torch.tensor([[1e6, 0.0], [0.0, 1e-6]], dtype=F64)
+    h = torch.tensor([1e6, -1e-7], dtype=F64)
+    sol = solve_qp(Q, torch.zeros(100, 2, dtype=F64), G, h, method=method)
+    assert (sol.status == Status.SOLVED).all()
+    torch.testing.assert_close(sol.x, torch.tensor([0.0, -0.1], dtype=F64).expand(100, 2))
+
+
+def test_rescaled_rows_give_the_same_solution():
+    batch = make_batch(1000, 4, 8, 0, False, seed=12, frac_infeasible=0.0)
+    sol = solve_qp(batch.Q, batch.p, 100.0 * batch.G, 100.0 * batch.h, method="active_set")
+    assert (sol.status == Status.SOLVED).all()
+    torch.testing.assert_close(sol.x, batch.x_star, atol=1e-9, rtol=1e-9)
+
+
+def test_unfinished_rows_are_not_accepted():
+    Q = torch.eye(2, dtype=F64).unsqueeze(0)
+    G = torch.tensor([[[1.0, 0.0], [1.0, 1e-3]]], dtype=F64)
+    h = torch.tensor([[-1.0, -1.0 - 5e-8]], dtype=F64)
+    p = torch.zeros(1, 2, dtype=F64)
+    assert not solve_dual(Q, p, G, h, eps=1e-7, max_iter=1).ok.any()
+    full = solve_dual(Q, p, G, h, eps=1e-7, max_iter=50)
+    assert full.ok.all()
+    torch.testing.assert_close(full.z, torch.tensor([[0.95, 0.05]], dtype=F64))
+
+
+def test_empty_batch_backward_and_equalities_rejected():
+    p = torch.zeros(0, 3, dtype=F64, requires_grad=True)
+    sol = solve_qp(torch.eye(3, dtype=F64).expand(0, 3, 3), p, torch.zeros(0, 2, 3, dtype=F64),
+                   torch.zeros(0, 2, dtype=F64))  # fmt: skip
+    sol.x.sum().backward()
+    assert p.grad is not None and p.grad.shape == (0, 3)
+    A, b = torch.ones(1, 2, dtype=F64), torch.ones(1, dtype=F64)
+    with pytest.raises(ValueError, match="active_set"):
+        solve_qp(torch.eye(2, dtype=F64), torch.zeros(2, dtype=F64), A=A, b=b, method="active_set")

@@ -20,9 +20,12 @@ problem is one contiguous ``[B]`` vector), so each step of the small linear alge
 elementwise tensor operation over the whole batch and the cost per step does not depend on
 per-matrix kernel launches.
 
-A row finishes when nothing is pending and no constraint is violated beyond tolerance. Rows
+A row finishes when nothing is pending and no inactive row is violated beyond rounding
+(judged on each row's own scale; a row already active is never picked again). The
+multipliers are then re-solved exactly on the final active set, which removes the rounding
+the rank-one updates accumulate, and the point is checked as a KKT point. Rows
 that end infeasible (no step restores ``p``), run out of steps, have ``P`` not positive
-definite or fail the final KKT check are reported in ``ok`` and left to the caller's fallback.
+definite or fail the final check are reported in ``ok`` and left to the caller's fallback.
 On a CPU the test "is every row done" runs every step (it costs no device synchronisation);
 on other devices every ``check_every`` steps.
 """
@@ -112,7 +115,7 @@ class _Data(NamedTuple):
     Rc: Tensor  # [N, M, B] R' by components
     hr: Tensor  # [M, B]
     UR: Tensor  # [2N, M + 1, B] P^{-1} R' stacked on R' (column M: zero spare)
-    tol: Tensor  # [B] violation beyond which a row joins the active set
+    tol: Tensor  # [M, B] violation beyond which a row joins the active set
     slots: Tensor  # [N, 1] slot indices
     rank: Tensor  # [N, 1] N - slot index: the first empty slot scores highest
     inv_norm: Tensor  # [M, B] 1 / sqrt(R_i P^{-1} R_i'), to pick the farthest violated row
@@ -155,9 +158,12 @@ def _step(data: _Data, st: _State) -> _State:
     M = data.hr.shape[0]
     x, lam_S, lam_p, S, free, U_S, Hs, p, pending, done, fail, iters = st
     v = _contract(data.Rc, x.unsqueeze(1)) - data.hr  # [M, B] violation R x - r
-    vmax = v.amax(0)
-    pnew = (v * data.inv_norm).max(0).indices
-    done = done | ~(pending | (vmax > data.tol))
+    # candidates: violated beyond rounding (per row) and not already active; rounding on an
+    # active row must never bring it in a second time
+    member = x.new_zeros(M + 1, B).scatter_(0, S, 1.0)[:M]
+    score = torch.where((v > data.tol) & (member == 0), v * data.inv_norm, -math.inf)
+    best, pnew = score.max(0)
+    done = done | ~(pending | (best > -math.inf))
     p = torch.where(pending, p, pnew)
     v_p = v.gather(0, p.unsqueeze(0)).squeeze(0)
     UR_p = data.UR.gather(1, p.view(1, 1, B).expand(2 * N, 1, B)).squeeze(1)
@@ -195,10 +201,15 @@ def _step(data: _Data, st: _State) -> _State:
     a_coef = torch.where(full, 1.0 / z, 0.0)
     b_coef = torch.where(part, 1.0 / Hk.gather(0, k_drop.unsqueeze(0)).squeeze(0), 0.0)
     u = d - f_add
-    # in place: Hs and U_S belong to the iteration (fresh at the start and after compaction)
+    # in place: Hs and U_S belong to the iteration (fresh at the start and after compaction).
+    # The slot being filled has its identity entry removed first (so its new diagonal is 1/z,
+    # not 1 + 1/z - 1), and the slot being emptied is reset to exact identity afterwards.
+    Hs.diagonal(dim1=0, dim2=1).sub_(f_add.T)
     Hs.addcmul_((u * a_coef).unsqueeze(1), u.unsqueeze(0))
     Hs.addcmul_((Hk * b_coef).unsqueeze(1), Hk.unsqueeze(0), value=-1.0)
-    Hs.diagonal(dim1=0, dim2=1).add_((f_drop - f_add).T)
+    kept = 1.0 - f_drop
+    Hs.mul_(kept.unsqueeze(1) * kept.unsqueeze(0))
+    Hs.diagonal(dim1=0, dim2=1).add_(f_drop.T)
     keep = 1.0 - f_drop - f_add
     U_S.mul_(keep.unsqueeze(0)).addcmul_(U_p.unsqueeze(1), f_add)
     lam_S = torch.addcmul(lam_S * keep, lam_p, f_add)
@@ -237,9 +248,11 @@ def solve_dual(
     xu = sol[:, M + 1]
     UR = torch.cat((sol[:, : M + 1], rhs[:, : M + 1]), 0)
     hr = h.T.contiguous()
+    # scale of each row's residual, so tiny and huge rows are judged alike
+    row_scale = hr.abs() + Rc.abs().amax(0) * (1.0 + xu.abs().amax(0))
     # a row joins while violated beyond rounding, not beyond eps: near a nearly parallel
     # active row a violation of eps can hide an error of sqrt(eps) in x
-    add_tol = 1e4 * torch.finfo(dtype).eps * (1.0 + hr.abs().amax(0))
+    add_tol = 1e4 * torch.finfo(dtype).eps * row_scale
     slots = torch.arange(N, device=device).unsqueeze(-1)
     w_diag = _contract(sol[:, :M], Rc)
     inv_norm = torch.where(w_diag > 0, w_diag.clamp_min(1e-300).rsqrt(), 0.0)
@@ -258,7 +271,7 @@ def solve_dual(
         fail=~pd,
         iters=torch.zeros(B, dtype=torch.int64, device=device),
     )
-    final = _Outcome(st.S, st.lam_S, st.pending, st.fail, st.iters)  # full batch
+    final = _Outcome(st.S, st.pending, st.fail, st.done, st.iters)  # full batch
     rows: Tensor | None = None  # global indices of the rows being iterated (None: all)
     sync_each = device.type == "cpu"
     for it in range(max_iter):
@@ -282,14 +295,20 @@ def solve_dual(
             st = _State(*(t.index_select(-1, keep) for t in st))
     else:
         final = _write_back(final, st, rows)
-    S, lam_S, pending, fail, iters = final
+    S, pending, fail, done, iters = final
 
-    # clean primal point from the multipliers, then the KKT check
-    tol = eps * (1.0 + hr.abs().amax(0))
+    # exact multipliers and primal point on the final active set (the iterates accumulate
+    # rounding), then the KKT check with per-row tolerances
     UR_S = UR.gather(1, S.unsqueeze(0).expand(2 * N, N, B))
     U_S, R_S = UR_S[:N], UR_S[N:]
+    empty = S == M
+    hr_ext = torch.cat((hr, hr.new_zeros(1, B)), 0)
+    rhs_S = _contract(R_S, xu.unsqueeze(1)) - hr_ext.gather(0, S)  # R_S x_u - r_S
+    piv_tol = 1e-12 if dtype == torch.float64 else 1e-6
+    lam_S, nonsing = _eliminate(_slot_system(R_S, U_S, empty), rhs_S, piv_tol)
+    lam_S = torch.where(empty, 0.0, lam_S)
     x = xu - _contract(U_S.transpose(0, 1), lam_S.unsqueeze(1))
-    v = _contract(Rc, x.unsqueeze(1)) - hr
+    v = (_contract(Rc, x.unsqueeze(1)) - hr) / row_scale.clamp_min(torch.finfo(dtype).tiny)
     v_S = torch.cat((v, v.new_zeros(1, B)), 0).gather(0, S)
     pviol = torch.maximum(v.amax(0), v_S.abs().amax(0))
     stat = _contract(Pp, x.unsqueeze(1)) + q.T + _contract(R_S.transpose(0, 1), lam_S.unsqueeze(1))
@@ -297,7 +316,9 @@ def solve_dual(
     ok = (
         ~fail
         & ~pending
-        & (pviol <= tol)
+        & done
+        & nonsing
+        & (pviol <= eps)
         & (lam_S.amin(0) >= -eps * (1.0 + lam_S.abs().amax(0)))
         & (stat.abs().amax(0) <= eps * dscale)
         & torch.isfinite(x).all(0)
@@ -315,15 +336,15 @@ class _Outcome(NamedTuple):
     """The fields of :class:`_State` read after the iteration, for the whole batch."""
 
     S: Tensor
-    lam_S: Tensor
     pending: Tensor
     fail: Tensor
+    done: Tensor
     iters: Tensor
 
 
 def _write_back(final: _Outcome, st: _State, rows: Tensor | None) -> _Outcome:
     """Copy the iterated rows ``rows`` (all when ``None``) of ``st`` into ``final``."""
-    new = _Outcome(st.S, st.lam_S, st.pending, st.fail, st.iters)
+    new = _Outcome(st.S, st.pending, st.fail, st.done, st.iters)
     if rows is None:
         return new
     return _Outcome(*(f.index_copy(-1, rows, s) for f, s in zip(final, new, strict=True)))

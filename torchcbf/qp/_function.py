@@ -154,18 +154,16 @@ def _finish(
     )
     solved = status == int(Status.SOLVED)
     unverified = solved & ~verified
-    viol = torch.cat(
-        (
-            (torch.einsum("bmn,bn->bm", G, x) - h).clamp_min(0.0),
-            (torch.einsum("bmn,bn->bm", A, x) - b).abs(),
-            x.new_zeros(x.shape[0], 1),
-        ),
-        -1,
-    ).amax(-1)
-    data = torch.cat((h, b, h.new_zeros(h.shape[0], 1)), -1)
-    rounding = 1e4 * torch.finfo(x.dtype).eps * (1.0 + data.abs().amax(-1))
+    # violations relative to each row's own scale, so a tiny row is judged like a large one
+    R = torch.cat((G, A), -2)
+    r = torch.cat((h, b), -1)
+    res = torch.einsum("bmn,bn->bm", R, x) - r
+    res = torch.cat((res[..., : h.shape[-1]].clamp_min(0.0), res[..., h.shape[-1] :].abs()), -1)
+    scale = r.abs() + R.abs().amax(-1) * (1.0 + x.abs().amax(-1, keepdim=True))
+    rel = res / scale.clamp_min(torch.finfo(x.dtype).tiny)
+    viol = torch.cat((rel, rel.new_zeros(rel.shape[0], 1)), -1).amax(-1)
     eps64 = 1e4 * torch.finfo(x.dtype).eps
-    suspect = unverified | (solved & ((viol > rounding) | (dual_viol > eps64)))
+    suspect = unverified | (solved & ((viol > eps64) | (dual_viol > eps64)))
     if not bool(suspect.any()):
         return x, z, y, status, fac.active, fac
     idx = suspect.nonzero().squeeze(-1)

@@ -132,11 +132,12 @@ def solve_qp(
       certificates then set the status; testing for such rows is one host synchronisation.
 
       - ``"active_set"``: a batched **dual active-set method** (Goldfarb-Idnani,
-        :mod:`torchcbf.qp._dual`) for problems without equality rows and at most 8
-        variables after softening (box bounds count as rows). Exact, typically 2-5 steps
-        per row; ``iterations`` counts its steps. On a CPU the "all rows done" test runs
-        every step (it costs no device synchronisation) and finished rows are dropped
-        from the iteration; elsewhere every ``check_every`` steps.
+        :mod:`torchcbf.qp._dual`) for problems without equality rows (``A`` raises
+        ``ValueError``); box bounds count as rows. Exact (the multipliers are re-solved on
+        the final active set and every row's residual is judged on that row's own scale),
+        typically 2-5 steps per row; ``iterations`` counts its steps. On a CPU the "all
+        rows done" test runs every step (it costs no device synchronisation) and finished
+        rows are dropped from the iteration; elsewhere every ``check_every`` steps.
       - ``"enumerate"``: **active-set enumeration** (:mod:`torchcbf.qp._enum`): every
         candidate active set of at most ``N - k`` rows (``N`` variables after softening,
         ``k`` equalities) is solved at once and the verified KKT point is kept. Exact, a
@@ -145,8 +146,9 @@ def solve_qp(
       - ``"ipm"``: the interior point method for every row.
       - ``"auto"`` (default): enumeration for batches of at most 64 rows with at most 800
         candidate sets (lowest latency, e.g. 0.6 ms for one 2-variable, 6-row QP on a
-        CPU); otherwise the dual active-set method where it applies, else enumeration up
-        to 256 candidate sets, else the interior point method.
+        CPU); otherwise the dual active-set method where it applies (no equality rows, at
+        most 8 variables after softening), else enumeration up to 256 candidate sets, else
+        the interior point method.
     - ``"proxsuite"``: proxsuite's dense solver, rows solved in parallel by its
       ``solve_in_parallel`` (CPU); its statuses are mapped to :class:`Status` and a row it
       calls solved whose answer violates the constraints is reported ``MAX_ITER``.
@@ -222,6 +224,8 @@ def solve_qp(
         )
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if method == "active_set" and A is not None and A.shape[-2] > 0:
+        raise ValueError("method='active_set' does not take equality constraints A, b")
     if not isinstance(max_iter, int) or isinstance(max_iter, bool) or max_iter < 1:
         raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
     if not isinstance(check_every, int) or check_every < 1:
@@ -266,7 +270,11 @@ def solve_qp(
             return torch.zeros(*batch_shape, *trailing, dtype=dt, device=device)
 
         none = empty(dt=torch.int64)
-        return QPSolution(empty(n), none, empty(m), empty(me), none, empty(n), empty(n), empty(m))
+        # zero-size outputs stay connected to the inputs, so backward() works on them
+        given = [t for t in (Q, p, G, h, A, b, lb, ub, soft) if isinstance(t, Tensor)]
+        link = sum((t.sum() for t in given if t.requires_grad), Q.new_zeros(())) * 0.0
+        x, lam, nu, slack = (link + empty(k) for k in (n, m, me, m))
+        return QPSolution(x, none, lam, nu, none, link + empty(n), link + empty(n), slack)
 
     def flat(t: Tensor | None, trailing: tuple[int, ...]) -> Tensor | None:
         if t is None:
