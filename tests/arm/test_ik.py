@@ -12,7 +12,7 @@ pytest.importorskip("pytorch_kinematics")
 from _arm_reference import planar_fk  # noqa: E402
 
 from torchcbf.barriers.workspace import LinkSphereBarrier  # noqa: E402
-from torchcbf.dynamics.manipulator import IKResult, Manipulator  # noqa: E402
+from torchcbf.dynamics import IKResult, Manipulator  # noqa: E402
 
 TOL = 1e-4  # the IK's default position tolerance (m)
 # planar3 collision spheres and the ball obstacle of scripts/arm_reach.py

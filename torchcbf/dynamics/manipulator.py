@@ -36,18 +36,14 @@ import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import torch
 from torch import Tensor, nn
 
 from torchcbf._checks import as_tensor, check_tensor
-from torchcbf.dynamics._ik import IKResult
 from torchcbf.dynamics._ik import inverse_kinematics as _inverse_kinematics
 from torchcbf.dynamics.base import ControlAffine, LimitSpec, SigmaSpec
-
-if TYPE_CHECKING:
-    from torchcbf.barriers.base import Barrier
 
 ControlMode = Literal["velocity", "acceleration"]
 ASSETS = ("planar3", "arm7")
@@ -347,45 +343,11 @@ class Manipulator(ControlAffine):
         r = torch.rand(num, self.dof, generator=generator, dtype=dtype, device=device)
         return lo + margin + r * (hi - lo - 2 * margin)
 
-    def inverse_kinematics(
-        self,
-        target: Tensor,
-        q_init: Tensor | None = None,
-        *,
-        restarts: int = 8,
-        iters: int = 100,
-        tol: float = 1e-4,
-        damping: float = 1e-2,
-        barriers: Sequence[Barrier] = (),
-        clearance: float = 0.0,
-        penalty_weight: float = 1.0,
-        penalty_buffer: float = 1e-3,
-        limit_margin: float = 0.0,
-        prefer: Literal["nearest", "error"] = "nearest",
-        check_every: int = 10,
-        reseed_every: int = 25,
-        generator: torch.Generator | None = None,
-        seed: int = 0,
-    ) -> IKResult:
-        """Joint angles whose end effector reaches point targets, batched with restarts.
-
-        ``target [..., 3]`` (or ``[..., 2]`` for a planar arm: ``x, y`` only) ``->``
-        :class:`IKResult` ``(q [..., dof], converged [...] bool, error [...] m)``.
-        Projected Levenberg-Marquardt on ``|target - ee(q)|^2`` inside the joint limits,
-        plus a penalty keeping the ``barriers`` (e.g. link collision spheres) above
-        ``clearance``; ``restarts`` starts per target (the first at ``q_init`` when given)
-        run as one batch, and per target the valid solution (error ``<= tol``, every barrier
-        ``>= clearance``) nearest to ``q_init`` (``prefer="nearest"``) or with the smallest
-        error (``prefer="error"``) is returned. ``converged`` is False where no restart
-        found a valid one (the target may be out of reach). See
-        :func:`torchcbf.dynamics._ik.inverse_kinematics` for every argument.
-        """
-        return _inverse_kinematics(
-            self, target, q_init, restarts=restarts, iters=iters, tol=tol, damping=damping,
-            barriers=barriers, clearance=clearance, penalty_weight=penalty_weight,
-            penalty_buffer=penalty_buffer, limit_margin=limit_margin, prefer=prefer,
-            check_every=check_every, reseed_every=reseed_every, generator=generator, seed=seed,
-        )  # fmt: skip
+    #: ``arm.inverse_kinematics(target, q_init=None, *, restarts=8, ...) -> IKResult``: joint
+    #: angles whose end effector reaches point targets (projected Levenberg-Marquardt inside
+    #: the joint limits, restarts in one batch, optional barrier clearance); one definition,
+    #: :func:`torchcbf.dynamics._ik.inverse_kinematics`, documents every argument.
+    inverse_kinematics = _inverse_kinematics
 
     def extra_repr(self) -> str:
         return (
