@@ -100,12 +100,15 @@ def polish(
     status: Tensor,
     *,
     eps: float,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, KKTFactor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor, KKTFactor, Tensor, Tensor]:
     """Solve the active-set KKT system and keep verified answers. Returns
-    ``(x, z, y, status, factor, verified, dual_violation)``; rows whose polished point passes
-    the checks become ``SOLVED`` (also rescuing ``MAX_ITER``/``NUMERICAL_ERROR`` rows whose
-    guess is right); ``verified [B]`` marks them, and ``dual_violation [B]`` is the most
-    negative polished multiplier (relative, before clipping at zero)."""
+    ``(x, z, y, status, factor, verified, exact)``; rows whose polished point passes the
+    ``eps`` checks become ``SOLVED`` (also rescuing ``MAX_ITER``/``NUMERICAL_ERROR`` rows whose
+    guess is right) and are marked in ``verified [B]``. ``exact [B]`` marks the verified rows
+    whose polished point is a KKT point to rounding: no row violated and no multiplier
+    negative beyond ``1e4`` machine epsilons, each row judged on its own scale
+    ``|r_i| + max|R_i| (1 + max|x|)``. Near nearly parallel active rows a wrong active set
+    can pass the ``eps`` checks but not these."""
     n, M = q.shape[-1], h.shape[-1]
     candidate = (
         (status == int(Status.SOLVED))
@@ -140,9 +143,21 @@ def polish(
     z = torch.where(keep, (zp * act.to(zp.dtype)).clamp_min(0.0), z)
     y = torch.where(keep, yp, y)
     status = torch.where(ok, int(Status.SOLVED), status)
+    rounding = 1e4 * torch.finfo(x.dtype).eps
+    R, r = torch.cat((G, A), -2), torch.cat((h, b), -1)
+    res = torch.einsum("bmn,bn->bm", R, xp) - r
+    res = torch.cat(
+        (res[..., :M].clamp_min(0.0), res[..., M:].abs(), res.new_zeros(len(res), 1)), -1
+    )
+    row_scale = r.abs() + R.abs().amax(-1) * (1.0 + xp.abs().amax(-1, keepdim=True))
+    scale = torch.cat((row_scale, r.new_ones(len(r), 1)), -1)
     za = torch.cat((zp * act.to(zp.dtype), zp.new_zeros(zp.shape[0], 1)), -1)
-    dual_viol = torch.where(ok, za.neg().amax(-1) / (1.0 + za.abs().amax(-1)), 0.0)
-    return x, z, y, status, fac, ok, dual_viol
+    exact = (
+        ok
+        & ((res / scale.clamp_min(torch.finfo(x.dtype).tiny)).amax(-1) <= rounding)
+        & (za.neg().amax(-1) <= rounding * (1.0 + za.abs().amax(-1)))
+    )
+    return x, z, y, status, fac, ok, exact
 
 
 def _verified(
