@@ -128,7 +128,6 @@ class _State(NamedTuple):
     lam_S: Tensor  # [N, B] multipliers of the slots
     lam_p: Tensor  # [B] multiplier of the pending row
     S: Tensor  # [N, B] int64 row per slot (M: empty)
-    free: Tensor  # [N, B] 1.0 on empty slots, else 0.0
     U_S: Tensor  # [N, N, B] P^{-1} R_S' by (component, slot); zero on empty slots
     Hs: Tensor  # [N, N, B] W_SS^{-1}, identity on empty slots
     p: Tensor  # [B] int64 pending (or next) row
@@ -156,7 +155,8 @@ def _step(data: _Data, st: _State) -> _State:
     to zero on them, so no update below moves an empty slot."""
     N, B = st.x.shape
     M = data.hr.shape[0]
-    x, lam_S, lam_p, S, free, U_S, Hs, p, pending, done, fail, iters = st
+    x, lam_S, lam_p, S, U_S, Hs, p, pending, done, fail, iters = st
+    free = (S == M).to(x.dtype)  # 1.0 on empty slots
     v = _contract(data.Rc, x.unsqueeze(1)) - data.hr  # [M, B] violation R x - r
     # candidates: violated beyond rounding (per row) and not already active; rounding on an
     # active row must never bring it in a second time
@@ -215,8 +215,7 @@ def _step(data: _Data, st: _State) -> _State:
     lam_S = torch.addcmul(lam_S * keep, lam_p, f_add)
     lam_p = torch.where(full, 0.0, lam_p)
     S = torch.where(e_drop, M, torch.where(e_add, p, S))
-    free = free + f_drop - f_add
-    return _State(x, lam_S, lam_p, S, free, U_S, Hs, p, part, done, fail, iters + ~done)
+    return _State(x, lam_S, lam_p, S, U_S, Hs, p, part, done, fail, iters + ~done)
 
 
 def solve_dual(
@@ -262,7 +261,6 @@ def solve_dual(
         lam_S=q.new_zeros(N, B),
         lam_p=q.new_zeros(B),
         S=torch.full((N, B), M, dtype=torch.int64, device=device),
-        free=q.new_ones(N, B),
         U_S=q.new_zeros(N, N, B),
         Hs=torch.eye(N, dtype=dtype, device=device).unsqueeze(-1).repeat(1, 1, B),
         p=torch.zeros(B, dtype=torch.int64, device=device),
