@@ -89,20 +89,7 @@ def _forward(
             return _forward_dual(P, q, G, h, A, b, cfg, x0)
         if cfg.enumerate:
             return _forward_enum(P, q, G, h, A, b, cfg, x0)
-        out = solve_ipm(
-            P,
-            q,
-            G,
-            h,
-            A,
-            b,
-            eps=cfg.eps,
-            eps_inf=cfg.eps_inf,
-            max_iter=cfg.max_iter,
-            check_every=cfg.check_every,
-            x0=x0,
-        )
-        x, s, z, y, status, iters = out
+        x, z, y, status, iters, active, fac = _ipm(P, q, G, h, A, b, cfg, x0)
     else:
         from torchcbf.qp import _backends
 
@@ -115,10 +102,32 @@ def _forward(
                 cfg.backend.split(":", 1)[1], P, q, G, h, A, b, eps=cfg.eps, max_iter=cfg.max_iter
             )
         x, s, z, y, status, iters = (t.to(q.device) for t in out)
-    x, z, y, status, active, fac = _finish(P, q, G, h, A, b, x, s, z, y, status, cfg)
+        x, z, y, status, active, fac = _finish(P, q, G, h, A, b, x, s, z, y, status, cfg)
     if fac is None and cfg.need_factor:
         fac = _kkt.factor_kkt(P, G, A, active)
     return x, z, y, status, iters, fac
+
+
+def _ipm(
+    P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, _kkt.KKTFactor | None]:
+    """The interior point method and its polish: ``(x, z, y, status, iterations, active,
+    factor)``."""
+    out = solve_ipm(
+        P,
+        q,
+        G,
+        h,
+        A,
+        b,
+        eps=cfg.eps,
+        eps_inf=cfg.eps_inf,
+        max_iter=cfg.max_iter,
+        check_every=cfg.check_every,
+        x0=x0,
+    )
+    x, z, y, status, active, fac = _finish(P, q, G, h, A, b, *out[:5], cfg)
+    return x, z, y, status, out.iterations, active, fac
 
 
 def _finish(
@@ -238,19 +247,11 @@ def _ipm_fallback(
     idx = fail.nonzero().squeeze(-1)
     sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
     x0s = None if x0 is None else x0.index_select(0, idx)
-    out = solve_ipm(
-        *sub,
-        eps=cfg.eps,
-        eps_inf=cfg.eps_inf,
-        max_iter=cfg.max_iter,
-        check_every=cfg.check_every,
-        x0=x0s,
-    )
-    xs, zs, ys, sts, acts, _ = _finish(*sub, out.x, out.s, out.z, out.y, out.status, cfg)
+    xs, zs, ys, sts, its, acts, _ = _ipm(*sub, cfg, x0s)
     x, z, y = x.index_copy(0, idx, xs), z.index_copy(0, idx, zs), y.index_copy(0, idx, ys)
     status = status.index_copy(0, idx, sts)
     active = active.index_copy(0, idx, acts)
-    iters = iters.index_copy(0, idx, out.iterations)
+    iters = iters.index_copy(0, idx, its)
     return x, z, y, status, iters, active, True
 
 
