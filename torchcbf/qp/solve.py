@@ -76,6 +76,33 @@ def _check_trailing(name: str, t: Tensor, trailing: tuple[int, ...], spec: str) 
         raise ValueError(f"{name} must have shape [..., {spec}], got {tuple(t.shape)}")
 
 
+def _row_block(
+    mat_name: str,
+    vec_name: str,
+    rows_name: str,
+    mat: object,
+    vec: object,
+    n: int,
+    dtype: torch.dtype,
+    device: torch.device,
+) -> tuple[Tensor | None, Tensor | None, int]:
+    """Check a block of rows ``mat [..., rows, n]`` with its right-hand side
+    ``vec [..., rows]`` (both or neither); returns ``(mat, vec, rows)``."""
+    if (mat is None) != (vec is None):
+        raise ValueError(f"{mat_name} and {vec_name} must be given together")
+    if mat is None:
+        return None, None, 0
+    mat = _tensor(mat_name, mat, dtype, device)
+    if mat.dim() < 2 or mat.shape[-1] != n:
+        raise ValueError(
+            f"{mat_name} must have shape [..., {rows_name}, {n}], got {tuple(mat.shape)}"
+        )
+    rows = mat.shape[-2]
+    vec = _tensor(vec_name, vec, dtype, device)
+    _check_trailing(vec_name, vec, (rows,), str(rows))
+    return mat, vec, rows
+
+
 def _row_nonfinite(t: Tensor | None, trailing: int, batch: int) -> Tensor | None:
     if t is None:
         return None
@@ -187,28 +214,8 @@ def solve_qp(
     n = Q.shape[-1]
     p = _tensor("p", p, dtype, device)
     _check_trailing("p", p, (n,), str(n))
-    if (G is None) != (h is None):
-        raise ValueError("G and h must be given together")
-    if (A is None) != (b is None):
-        raise ValueError("A and b must be given together")
-    if G is not None:
-        G = _tensor("G", G, dtype, device)
-        if G.dim() < 2 or G.shape[-1] != n:
-            raise ValueError(f"G must have shape [..., m, {n}], got {tuple(G.shape)}")
-        m = G.shape[-2]
-        h = _tensor("h", h, dtype, device)
-        _check_trailing("h", h, (m,), str(m))
-    else:
-        m = 0
-    if A is not None:
-        A = _tensor("A", A, dtype, device)
-        if A.dim() < 2 or A.shape[-1] != n:
-            raise ValueError(f"A must have shape [..., k, {n}], got {tuple(A.shape)}")
-        me = A.shape[-2]
-        b = _tensor("b", b, dtype, device)
-        _check_trailing("b", b, (me,), str(me))
-    else:
-        me = 0
+    G, h, m = _row_block("G", "h", "m", G, h, n, dtype, device)
+    A, b, me = _row_block("A", "b", "k", A, b, n, dtype, device)
     lb = None if lb is None else _bound("lb", lb, n, dtype, device)
     ub = None if ub is None else _bound("ub", ub, n, dtype, device)
     if soft is not None:
