@@ -18,17 +18,10 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "qp"))
-from _problems import make_batch  # noqa: E402
+from _problems import TEN_THOUSAND_SHAPES, make_batch  # noqa: E402
 from conftest import cvxpy_solve  # noqa: E402
 
 from torchcbf.qp import Status, solve_qp  # noqa: E402
-
-SHAPES = [
-    (n, m, me, bounds)
-    for (n, m) in [(2, 1), (2, 6), (3, 4), (4, 8), (6, 12), (8, 20), (10, 32), (12, 64)]
-    for me, bounds in [(0, False), (0, True), (1, False), (2, True)]
-    if me < n
-]
 
 
 def main() -> None:
@@ -36,11 +29,11 @@ def main() -> None:
     parser.add_argument("--total", type=int, default=10_000, help="number of QPs per dtype")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    per = args.total // len(SHAPES) + 1
+    per = args.total // len(TEN_THOUSAND_SHAPES) + 1
     for dtype in (torch.float64, torch.float32):
         x_err = obj_err = 0.0
         feasible = infeasible = flagged = wrongly_solved = 0
-        for k, (n, m, me, bounds) in enumerate(SHAPES):
+        for k, (n, m, me, bounds) in enumerate(TEN_THOUSAND_SHAPES):
             batch = make_batch(per, n, m, me, bounds, seed=1000 + k, dtype=dtype)
             data = (batch.Q, batch.p, batch.G, batch.h, batch.A, batch.b, batch.lb, batch.ub)
             sol = solve_qp(*data)

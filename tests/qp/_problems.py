@@ -115,3 +115,13 @@ def make_batch(
     if me == 0:
         A = b = None
     return Batch(Q, p, G, h, A, b, lb, ub, x, kinds)
+
+
+#: shapes ``(n, m, equalities, box bounds)`` of the 10,000-QP comparison with cvxpy (the slow
+#: test and ``scripts/qp_accuracy.py``); problem ``k`` of the list uses seed ``1000 + k``
+TEN_THOUSAND_SHAPES = [
+    (n, m, me, bounds)
+    for (n, m) in [(2, 1), (2, 6), (3, 4), (4, 8), (6, 12), (8, 20), (10, 32), (12, 64)]
+    for me, bounds in [(0, False), (0, True), (1, False), (2, True)]
+    if me < n
+]

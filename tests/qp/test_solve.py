@@ -13,7 +13,7 @@ import torch
 from torchcbf.qp import QPSolution, Status, solve_qp
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _problems import make_batch  # noqa: E402
+from _problems import TEN_THOUSAND_SHAPES, make_batch  # noqa: E402
 
 F64 = torch.float64
 TOL = {torch.float64: 1e-6, torch.float32: 1e-3}
@@ -258,12 +258,7 @@ def test_cuda_matches_cpu(dtype):
 @pytest.mark.slow
 def test_ten_thousand_vs_cvxpy(cvx):
     """10,000 random QPs over n in 2..12, m in 1..64 (reported figures in the issue note)."""
-    shapes = [
-        (n, m, me, bd)
-        for (n, m) in [(2, 1), (2, 6), (3, 4), (4, 8), (6, 12), (8, 20), (10, 32), (12, 64)]
-        for me, bd in [(0, False), (0, True), (1, False), (2, True)]
-        if me < n
-    ]
+    shapes = TEN_THOUSAND_SHAPES
     per = 10_000 // len(shapes) + 1
     total = 0
     for k, (n, m, me, bd) in enumerate(shapes):
