@@ -1,6 +1,7 @@
 """Dual active-set path of solve_qp (``method="active_set"``, the ``auto`` choice for large
 batches): vs cvxpy, vs enumeration, gradients (gradcheck and vs the KKT-factor backward),
-batch equals loop, degenerate rows, fallback of infeasible rows, float32."""
+batch equals loop, degenerate rows, fallback of infeasible rows, float32. Every test runs
+twice: on the torch implementation and on the C kernel (skipped where it was not built)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchcbf.qp import Status, solve_qp
+from torchcbf.qp import Status, _dual_native, solve_qp
 from torchcbf.qp._dual import _cho_solve, _cholesky, solve_dual
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -25,6 +26,16 @@ SHAPES = [  # n, m, box bounds (no equalities: the dual path does not take them)
     (6, 20, True),
     (8, 30, False),
 ]
+
+
+@pytest.fixture(autouse=True, params=["torch", "native"])
+def implementation(request, monkeypatch):
+    """Every test runs the torch implementation and the C kernel (where it is built)."""
+    if request.param == "torch":
+        monkeypatch.setattr(_dual_native, "applies", lambda q: False)
+    elif not _dual_native.available():
+        pytest.skip("the C kernel of the dual method was not built")
+    return request.param
 
 
 def _args(batch):

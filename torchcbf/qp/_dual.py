@@ -38,6 +38,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchcbf.qp import _dual_native
 from torchcbf.qp._enum import _eliminate
 
 
@@ -52,6 +53,15 @@ class DualFactor(NamedTuple):
     ok: Tensor  # [B] rows solved by this method
 
 
+class NativeFactor(NamedTuple):
+    """What the backward pass needs from the C kernel's forward, batch first."""
+
+    G: Tensor  # [B, M, N]
+    L: Tensor  # [B, N, N] lower Cholesky factor of P
+    slots: Tensor  # [B, N] int64 row index per slot (M: empty)
+    ok: Tensor  # [B] rows solved by this method
+
+
 class DualResult(NamedTuple):
     """``x [B,N]``, ``z [B,M]``, ``active [B,M]`` bool, ``ok [B]``, ``iterations [B]``."""
 
@@ -60,7 +70,7 @@ class DualResult(NamedTuple):
     active: Tensor
     ok: Tensor
     iterations: Tensor
-    factor: DualFactor
+    factor: DualFactor | NativeFactor
 
 
 def _cholesky(P: Tensor) -> tuple[Tensor, Tensor]:
@@ -227,15 +237,24 @@ def solve_dual(
     eps: float,
     max_iter: int,
     check_every: int = 5,
+    native: bool | None = None,
 ) -> DualResult:
     """Solve ``min 1/2 x'Px + q'x s.t. Gx <= h`` for ``P [B,N,N], q [B,N], G [B,M,N],
     h [B,M]`` (finite, ``M >= 1``, float64 recommended). See the module docstring; rows with
     ``ok = False`` hold zeros and must be solved by another method.
 
+    ``native`` picks the C kernel of :mod:`torchcbf.qp._dual_native` (same algorithm, one
+    problem at a time); ``None`` uses it wherever it applies (float64 on the CPU, when built).
+
     When the host checks progress (every step on a CPU, every ``check_every`` steps
     elsewhere) and at most a third of the rows still run, the iteration continues on those rows
     only (finished rows are written back first), so the long tail of a few hard rows costs
     little."""
+    if native is None:
+        native = _dual_native.applies(q)
+    if native:
+        x, z, active, slots, L, ok, iters = _dual_native.forward(P, q, G, h, eps, max_iter)
+        return DualResult(x, z, active, ok, iters, NativeFactor(G, L, slots, ok))
     B, N = q.shape
     M = h.shape[-1]
     dtype, device = q.dtype, q.device
@@ -348,13 +367,16 @@ def _write_back(final: _Outcome, st: _State, rows: Tensor | None) -> _Outcome:
     return _Outcome(*(f.index_copy(-1, rows, s) for f, s in zip(final, new, strict=True)))
 
 
-def dual_backward(
-    fac: DualFactor, x: Tensor, z: Tensor, gx: Tensor, gz: Tensor
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Gradients ``(dP, dq, dG, dh)`` from ``gx [B,N]``, ``gz [B,M]`` (implicit differentiation
-    of the KKT conditions on the active slots; rows not ``ok`` get zeros)."""
+def dual_adjoints(
+    fac: DualFactor | NativeFactor, x: Tensor, gx: Tensor, gz: Tensor
+) -> tuple[Tensor, Tensor]:
+    """KKT adjoints ``(w_x [B,N], wz [B,M])`` for output gradients ``gx [B,N]``, ``gz [B,M]``
+    (implicit differentiation of the KKT conditions on the active slots; rows not ``ok`` get
+    zeros); :func:`torchcbf.qp._kkt.input_gradients` turns them into gradients."""
+    if isinstance(fac, NativeFactor):
+        return _dual_native.backward(fac.G, fac.L, fac.slots, fac.ok, gx, gz)
     B, N = x.shape
-    M = z.shape[-1]
+    M = gz.shape[-1]
     S = fac.slots
     empty = S == M
     gz_ext = torch.cat((gz.T, gz.new_zeros(1, B)), 0)
@@ -368,6 +390,4 @@ def dual_backward(
     w_x = torch.where(good, w_x, 0.0).T  # [B, N]
     w_lam = torch.where(good, w_lam, 0.0)
     wz = x.new_zeros(M + 1, B).scatter_(0, S, w_lam)[:M].T  # [B, M]
-    dP = -0.5 * (w_x.unsqueeze(-1) * x.unsqueeze(-2) + x.unsqueeze(-1) * w_x.unsqueeze(-2))
-    dG = -(z.unsqueeze(-1) * w_x.unsqueeze(-2) + wz.unsqueeze(-1) * x.unsqueeze(-2))
-    return dP, -w_x, dG, wz
+    return w_x, wz

@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from torchcbf.qp import _kkt
-from torchcbf.qp._dual import DualFactor, dual_backward, solve_dual
+from torchcbf.qp._dual import DualFactor, NativeFactor, dual_adjoints, solve_dual
 from torchcbf.qp._enum import MAX_CANDIDATES_SMALL_BATCH, num_candidates, solve_enum
 from torchcbf.qp._ipm import solve_ipm
 from torchcbf.qp.status import Status
@@ -204,7 +204,9 @@ def _forward_enum(
 
 def _forward_dual(
     P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, _kkt.KKTFactor | DualFactor | None]:
+) -> tuple[
+    Tensor, Tensor, Tensor, Tensor, Tensor, _kkt.KKTFactor | DualFactor | NativeFactor | None
+]:
     """Dual active-set method for every row (no equality rows); the rows it cannot certify go
     to the interior point method. The backward uses the dual method's own factors when every
     row was solved by it, else the active-set KKT factorisation of the whole batch."""
@@ -273,20 +275,11 @@ class QPFunction(torch.autograd.Function):
     @staticmethod
     def backward(ctx, gx, gz, gy, _gs, _gi):  # noqa: D102
         x, z, y, status = ctx.saved_tensors
-        if isinstance(ctx.fac, DualFactor):
-            dP, dq, dG, dh = dual_backward(
-                ctx.fac, x, z, gx.to(torch.float64), gz.to(torch.float64)
-            )
-            dA, db = x.new_zeros(x.shape[0], 0, x.shape[-1]), x.new_zeros(x.shape[0], 0)
-            return (*(g.to(ctx.dtype) for g in (dP, dq, dG, dh, dA, db)), None, None)
-        grads = _kkt.kkt_backward(
-            ctx.fac,
-            x,
-            z,
-            y,
-            status,
-            gx.to(torch.float64),
-            gz.to(torch.float64),
-            gy.to(torch.float64),
-        )
-        return (*(g.to(ctx.dtype) for g in grads), None, None)
+        gx, gz, gy = (g.to(torch.float64) for g in (gx, gz, gy))
+        if isinstance(ctx.fac, (DualFactor, NativeFactor)):
+            wx, wz = dual_adjoints(ctx.fac, x, gx, gz)
+            wy, lam = y, z  # y: [B, 0], no equality rows; z is zero off the active set
+        else:
+            wx, wz, wy, lam = _kkt.kkt_adjoints(ctx.fac, x, z, y, status, gx, gz, gy)
+        grads = _kkt.input_gradients(x, lam, y, wx, wz, wy, ctx.needs_input_grad[:6])
+        return (*(None if g is None else g.to(ctx.dtype) for g in grads), None, None)

@@ -184,7 +184,7 @@ def _verified(
     return ok
 
 
-def kkt_backward(
+def kkt_adjoints(
     fac: KKTFactor,
     x: Tensor,
     z: Tensor,
@@ -193,21 +193,35 @@ def kkt_backward(
     gx: Tensor,
     gz: Tensor,
     gy: Tensor,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Gradients ``(dP, dq, dG, dh, dA, db)`` of a loss with output gradients ``gx, gz, gy``.
-
-    Rows that are not ``SOLVED`` get zero gradients."""
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Adjoints ``(wx [B,n], wz [B,M], wy [B,E], lam [B,M])`` of the active-set KKT system for
+    output gradients ``gx, gz, gy`` (``lam``: the multipliers on the active set); see
+    :func:`input_gradients`. Rows that are not ``SOLVED`` get zeros."""
     n, M = x.shape[-1], z.shape[-1]
     af = fac.active.to(x.dtype)
     w = solve_kkt(fac, torch.cat((gx, gz * af, gy), -1))
     good = (status == int(Status.SOLVED)) & fac.ok & torch.isfinite(w).all(-1)
     w = torch.where(good.unsqueeze(-1), w, torch.zeros_like(w))
-    wx, wz, wy = w[..., :n], w[..., n : n + M] * af, w[..., n + M :]
-    lam = z * af
-    dP = -0.5 * (wx.unsqueeze(-1) * x.unsqueeze(-2) + x.unsqueeze(-1) * wx.unsqueeze(-2))
-    dq = -wx
-    dG = -(lam.unsqueeze(-1) * wx.unsqueeze(-2) + wz.unsqueeze(-1) * x.unsqueeze(-2))
-    dh = wz
-    dA = -(y.unsqueeze(-1) * wx.unsqueeze(-2) + wy.unsqueeze(-1) * x.unsqueeze(-2))
-    db = wy
-    return dP, dq, dG, dh, dA, db
+    return w[..., :n], w[..., n : n + M] * af, w[..., n + M :], z * af
+
+
+def input_gradients(
+    x: Tensor,
+    lam: Tensor,
+    y: Tensor,
+    wx: Tensor,
+    wz: Tensor,
+    wy: Tensor,
+    need: tuple[bool, ...] = (True,) * 6,
+) -> tuple[Tensor | None, ...]:
+    """Gradients ``(dP, dq, dG, dh, dA, db)`` from the KKT adjoints (``None`` where ``need``
+    says an input needs none): ``dP = -(wx x' + x wx')/2``, ``dq = -wx``,
+    ``dG = -(lam wx' + wz x')``, ``dh = wz``, ``dA = -(y wx' + wy x')``, ``db = wy``."""
+
+    def outer(a: Tensor, b: Tensor) -> Tensor:
+        return a.unsqueeze(-1) * b.unsqueeze(-2)
+
+    dP = -0.5 * (outer(wx, x) + outer(x, wx)) if need[0] else None
+    dG = -(outer(lam, wx) + outer(wz, x)) if need[2] else None
+    dA = -(outer(y, wx) + outer(wy, x)) if need[4] else None
+    return dP, -wx if need[1] else None, dG, wz if need[3] else None, dA, wy if need[5] else None

@@ -1,0 +1,105 @@
+"""The C kernel of the dual active-set method against its torch implementation (the
+reference), directly: the same solutions, multipliers, active sets, certificates and
+iteration counts, the same KKT adjoints, identical answers when the batch is split over
+threads, and the cases it must not take."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchcbf.qp import _dual_native
+from torchcbf.qp._dual import dual_adjoints, solve_dual
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _problems import make_batch  # noqa: E402
+
+F64 = torch.float64
+
+pytestmark = pytest.mark.skipif(
+    not _dual_native.available(), reason="the C kernel of the dual method was not built"
+)
+
+
+def _problems(B: int, n: int, m: int, seed: int, frac_infeasible: float = 0.25):
+    """Random QPs with box rows folded into G (some infeasible), and degenerate rows."""
+    batch = make_batch(B, n, m, 0, True, seed=seed, frac_infeasible=frac_infeasible)
+    eye = torch.eye(n, dtype=F64).expand(B, n, n)
+    G = torch.cat((batch.G, eye, -eye), -2)
+    h = torch.cat((batch.h, batch.ub, -batch.lb), -1)
+    G[:, -1] = G[:, 0]  # a duplicated row
+    h[:, -1] = h[:, 0]
+    G[::7, 1] = 0.0  # all-zero rows, some infeasible (0 <= h < 0)
+    return 0.5 * (batch.Q + batch.Q.mT), batch.p, G, h
+
+
+def _both(P, q, G, h, **kw):
+    ref = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, native=False, **kw)
+    out = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, native=True, **kw)
+    return ref, out
+
+
+@pytest.mark.parametrize("shape", [(1, 3), (2, 6), (3, 8), (4, 8), (6, 20), (8, 30)])
+def test_kernel_matches_torch_implementation(shape):
+    n, m = shape
+    P, q, G, h = _problems(400, n, m, seed=70 + n)
+    ref, out = _both(P, q, G, h)
+    assert ref.ok.any() and not ref.ok.all()  # both outcomes are exercised
+    assert torch.equal(out.ok, ref.ok)
+    assert torch.equal(out.active, ref.active)
+    # on rows that end infeasible, rounding may pick another blocking row a step earlier
+    assert torch.equal(out.iterations[ref.ok], ref.iterations[ref.ok])
+    torch.testing.assert_close(out.x, ref.x, atol=1e-10, rtol=1e-10)
+    torch.testing.assert_close(out.z, ref.z, atol=1e-9, rtol=1e-9)
+
+
+def test_not_positive_definite_rows_are_not_ok():
+    P, q, G, h = _problems(50, 3, 6, seed=5, frac_infeasible=0.0)
+    P = P.clone()
+    P[4] = torch.diag(torch.tensor([1.0, 0.0, 1.0], dtype=F64))
+    P[9, 0, 0] = -1.0
+    ref, out = _both(P, q, G, h)
+    assert not out.ok[4] and not out.ok[9]
+    assert torch.equal(out.ok, ref.ok)
+    assert (out.x[[4, 9]] == 0).all() and (out.z[[4, 9]] == 0).all()
+
+
+def test_adjoints_match_torch_implementation():
+    P, q, G, h = _problems(300, 4, 8, seed=21)
+    ref, out = _both(P, q, G, h)
+    g = torch.Generator().manual_seed(2)
+    gx = torch.randn(300, 4, generator=g, dtype=F64)
+    gz = torch.randn(300, G.shape[1], generator=g, dtype=F64)
+    w_ref = dual_adjoints(ref.factor, ref.x, gx, gz)
+    w_out = dual_adjoints(out.factor, out.x, gx, gz)
+    for a, b in zip(w_out, w_ref, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-8, rtol=1e-8)
+    assert (w_out[0][~out.ok] == 0).all()
+
+
+def test_batch_split_over_threads_gives_identical_answers():
+    P, q, G, h = _problems(3 * _dual_native.MIN_ROWS_PER_THREAD, 3, 5, seed=8)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, native=True)
+        torch.set_num_threads(3)
+        three = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, native=True)
+    finally:
+        torch.set_num_threads(threads)
+    for a, b in zip(one[:5], three[:5], strict=True):
+        assert torch.equal(a, b)
+
+
+def test_applies_only_to_float64_on_the_cpu_with_at_most_eight_variables():
+    assert _dual_native.applies(torch.zeros(2, 8, dtype=F64))
+    assert not _dual_native.applies(torch.zeros(2, 9, dtype=F64))
+    assert not _dual_native.applies(torch.zeros(2, 4, dtype=torch.float32))
+    with pytest.raises(ValueError, match="N=9"):
+        _dual_native.forward(
+            torch.eye(9, dtype=F64).expand(1, 9, 9), torch.zeros(1, 9, dtype=F64),
+            torch.zeros(1, 2, 9, dtype=F64), torch.zeros(1, 2, dtype=F64), 1e-9, 10,
+        )  # fmt: skip

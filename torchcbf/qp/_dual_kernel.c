@@ -1,0 +1,459 @@
+/*
+ * CPU kernel of the dual active-set method of torchcbf/qp/_dual.py, one problem at a time
+ * (loaded through ctypes by torchcbf/qp/_dual_native.py).
+ *
+ * The torch implementation in _dual.py is the reference: this file runs the same algorithm
+ * (same pivots, candidate choice, tolerances, exact multiplier re-solve and KKT check) but
+ * keeps each small problem in registers and cache instead of streaming ~200 tensor
+ * operations over the batch per step. It is built as an optional extension at install
+ * time (setup.py); the functions below take raw float64 pointers, batch first,
+ * C-contiguous. Without it, _dual.py's torch code runs on every device.
+ *
+ * Problem: min 1/2 x'Px + q'x  s.t.  Gx <= h,  P [N,N] positive definite, G [M,N], N <= 8.
+ */
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+#define NMAX 8
+
+/* Every helper is inlined into one copy of the row solver per N (1..NMAX), so that N is a
+ * compile-time constant and the small loops unroll. */
+#if defined(__GNUC__)
+#define INLINE static inline __attribute__((always_inline))
+#define RESTRICT __restrict__
+#else
+#define INLINE static __forceinline
+#define RESTRICT __restrict
+#endif
+
+/* max/min of non-NaN values without a libm call (NaN rows are caught by explicit checks) */
+INLINE double dmax(double a, double b) { return a > b ? a : b; }
+INLINE double dmin(double a, double b) { return a < b ? a : b; }
+
+/* Lower Cholesky factor L [N,N] of P and the reciprocals of its diagonal, dinv [N]; 0 when
+ * a pivot is below 1e-13 of its diagonal. */
+INLINE int cholesky(int n, const double *P, double *L, double *dinv) {
+    memset(L, 0, sizeof(double) * n * n);
+    for (int j = 0; j < n; ++j) {
+        double piv = P[j * n + j];
+        for (int k = 0; k < j; ++k) piv -= L[j * n + k] * L[j * n + k];
+        if (!(piv > 1e-13 * fabs(P[j * n + j]))) return 0;
+        double d = sqrt(piv);
+        L[j * n + j] = d;
+        dinv[j] = 1.0 / d;
+        for (int i = j + 1; i < n; ++i) {
+            double s = P[i * n + j];
+            for (int k = 0; k < j; ++k) s -= L[i * n + k] * L[j * n + k];
+            L[i * n + j] = s * dinv[j];
+        }
+    }
+    return 1;
+}
+
+/* y = (L L')^{-1} b, in place; dinv [N] holds 1 / diag(L) (no division on the chain). */
+INLINE void cho_solve(int n, const double *L, const double *dinv, double *y) {
+    for (int i = 0; i < n; ++i) {
+        double s = y[i];
+        for (int k = 0; k < i; ++k) s -= L[i * n + k] * y[k];
+        y[i] = s * dinv[i];
+    }
+    for (int i = n - 1; i >= 0; --i) {
+        double s = y[i];
+        for (int k = i + 1; k < n; ++k) s -= L[k * n + i] * y[k];
+        y[i] = s * dinv[i];
+    }
+}
+
+INLINE double dot(int n, const double *a, const double *b) {
+    double s = 0.0;
+    for (int c = 0; c < n; ++c) s += a[c] * b[c];
+    return s;
+}
+
+/* Solve W mu = r for symmetric W [K,K] (upper triangle read) by symmetric Gaussian
+ * elimination without pivoting, as _enum._eliminate; returns 0 when a pivot is below
+ * piv_tol times its diagonal entry. W and r are overwritten. */
+INLINE int eliminate(int K, double *W, double *r, double piv_tol, double *mu) {
+    double piv[NMAX];
+    int nonsing = 1;
+    for (int j = 0; j < K; ++j) {
+        piv[j] = W[j * K + j];
+        if (!(piv[j] > piv_tol * W[j * K + j])) nonsing = 0;
+        double inv = 1.0 / piv[j];
+        for (int i = j + 1; i < K; ++i) {
+            double f = W[j * K + i] * inv;
+            for (int k = i; k < K; ++k) W[i * K + k] -= f * W[j * K + k];
+            r[i] -= f * r[j];
+        }
+    }
+    for (int j = K - 1; j >= 0; --j) {
+        double s = r[j];
+        for (int i = j + 1; i < K; ++i) s -= W[j * K + i] * mu[i];
+        mu[j] = s / piv[j];
+    }
+    return nonsing;
+}
+
+/* Build W_SS = R_S P^{-1} R_S' on the N slots (identity on empty ones) and solve
+ * W_SS mu = rhs; US[c*N + k] is component c of P^{-1} R_{S_k}' (zero on empty slots). */
+INLINE int slot_solve(int N, int M, const double *G, const double *US, const int64_t *S,
+                      const double *rhs, double piv_tol, double *mu) {
+    double W[NMAX * NMAX], r[NMAX];
+    for (int k = 0; k < N; ++k) {
+        r[k] = rhs[k];
+        for (int l = 0; l < N; ++l) {
+            if (S[k] == M || S[l] == M) {
+                W[k * N + l] = (k == l) ? 1.0 : 0.0;
+                continue;
+            }
+            double w = 0.0;
+            for (int c = 0; c < N; ++c) w += G[S[k] * N + c] * US[c * N + l];
+            W[k * N + l] = w;
+        }
+    }
+    int nonsing = eliminate(N, W, r, piv_tol, mu);
+    for (int k = 0; k < N; ++k)
+        if (S[k] == M) mu[k] = 0.0;
+    return nonsing;
+}
+
+/* Doubles of workspace one problem needs. */
+#define WORKSPACE(N, M) ((size_t)(M) * (2 * (N) + 5))
+
+/* One problem. The workspace holds, component-major so that loops over the M rows run in
+ * SIMD: Ut [N][M] = P^{-1} G', Y [N][M] (scratch, then violations), and per row the scale,
+ * add tolerance, 1/||row||_{P^{-1}}, membership of the active set. Outputs as in
+ * solve_dual: x [N], z [M], active [M], slots [N] (M: empty), L [N*N]; returns ok. */
+INLINE int solve_one(int N, int M, const double *RESTRICT P, const double *RESTRICT q,
+                     const double *RESTRICT G, const double *RESTRICT h, double eps,
+                     int max_iter, double *RESTRICT work, double *RESTRICT x_out,
+                     double *RESTRICT z_out, uint8_t *RESTRICT active, int64_t *RESTRICT S_out,
+                     double *RESTRICT L_out, int64_t *RESTRICT iters) {
+    const double mach = 2.220446049250313e-16;
+    double *RESTRICT Ut = work;
+    double *RESTRICT Y = work + (size_t)N * M;
+    double *RESTRICT row_scale = Y + (size_t)N * M;
+    double *RESTRICT tol = row_scale + M;
+    double *RESTRICT inv_norm = tol + M;
+    double *RESTRICT v = inv_norm + M;
+    double *RESTRICT member = v + M;
+    double dinv[NMAX], xu[NMAX], x[NMAX], lam[NMAX], dx[NMAX], d[NMAX], Wsp[NMAX], Hk[NMAX];
+    double US[NMAX * NMAX]; /* US[c*N + k]: component c of P^{-1} R_{S_k}' */
+    double H[NMAX * NMAX];  /* inverse of W_SS, identity on empty slots */
+    double L[NMAX * NMAX];  /* local copies: the compiler may keep them in registers */
+    int64_t S[NMAX];
+    int pending = 0, done = 0, fail = 0;
+    int64_t p = 0, it = 0;
+
+    memset(x_out, 0, sizeof(double) * N);
+    memset(z_out, 0, sizeof(double) * M);
+    memset(active, 0, M);
+    for (int k = 0; k < N; ++k) S[k] = S_out[k] = M;
+    *iters = 0;
+    int pd = cholesky(N, P, L, dinv);
+    memcpy(L_out, L, sizeof(double) * N * N);
+    if (!pd) return 0;
+
+    for (int c = 0; c < N; ++c) xu[c] = -q[c];
+    cho_solve(N, L, dinv, xu);
+    double xu_max = 0.0;
+    for (int c = 0; c < N; ++c) xu_max = dmax(xu_max, fabs(xu[c]));
+    /* Ut = L^{-T} L^{-1} G', every substitution step over all M rows at once */
+    for (int c = 0; c < N; ++c) {
+        double *RESTRICT y = Y + (size_t)c * M;
+        for (int i = 0; i < M; ++i) y[i] = G[i * N + c];
+        for (int k = 0; k < c; ++k) {
+            const double *RESTRICT yk = Y + (size_t)k * M;
+            const double l = L[c * N + k];
+            for (int i = 0; i < M; ++i) y[i] -= l * yk[i];
+        }
+        for (int i = 0; i < M; ++i) y[i] *= dinv[c];
+    }
+    for (int c = N - 1; c >= 0; --c) {
+        double *RESTRICT u = Ut + (size_t)c * M;
+        const double *RESTRICT y = Y + (size_t)c * M;
+        for (int i = 0; i < M; ++i) u[i] = y[i];
+        for (int k = c + 1; k < N; ++k) {
+            const double *RESTRICT uk = Ut + (size_t)k * M;
+            const double l = L[k * N + c];
+            for (int i = 0; i < M; ++i) u[i] -= l * uk[i];
+        }
+        for (int i = 0; i < M; ++i) u[i] *= dinv[c];
+    }
+    for (int i = 0; i < M; ++i) {
+        double gmax = 0.0, w = 0.0;
+        for (int c = 0; c < N; ++c) {
+            gmax = dmax(gmax, fabs(G[i * N + c]));
+            w += G[i * N + c] * Ut[(size_t)c * M + i];
+        }
+        row_scale[i] = fabs(h[i]) + gmax * (1.0 + xu_max);
+        tol[i] = 1e4 * mach * row_scale[i];
+        inv_norm[i] = w > 0 ? 1.0 / sqrt(dmax(w, 1e-300)) : 0.0;
+        member[i] = 0.0;
+    }
+
+    memcpy(x, xu, sizeof(double) * N);
+    memset(lam, 0, sizeof(double) * N);
+    memset(US, 0, sizeof(double) * N * N);
+    for (int k = 0; k < N; ++k)
+        for (int l = 0; l < N; ++l) H[k * N + l] = (k == l) ? 1.0 : 0.0;
+    double lam_p = 0.0;
+
+    for (int step = 0; step < max_iter; ++step) {
+        if (!pending) { /* the farthest violated row that is not active joins */
+            for (int i = 0; i < M; ++i) v[i] = -h[i];
+            for (int c = 0; c < N; ++c)
+                for (int i = 0; i < M; ++i) v[i] += G[i * N + c] * x[c];
+            double best = -INFINITY;
+            int64_t pnew = -1;
+            for (int i = 0; i < M; ++i) {
+                if (member[i] != 0.0 || !(v[i] > tol[i])) continue;
+                double score = v[i] * inv_norm[i];
+                if (score > best) {
+                    best = score;
+                    pnew = i;
+                }
+            }
+            if (pnew < 0) {
+                done = 1;
+                break;
+            }
+            p = pnew;
+        }
+        const double *Rp = G + p * N;
+        double Up[NMAX];
+        for (int c = 0; c < N; ++c) Up[c] = Ut[(size_t)c * M + p];
+        double v_p = dot(N, Rp, x) - h[p];
+        double W_pp = dot(N, Up, Rp);
+        for (int k = 0; k < N; ++k) {
+            double s = 0.0;
+            for (int c = 0; c < N; ++c) s += US[c * N + k] * Rp[c];
+            Wsp[k] = s;
+        }
+        int first_free = -1;
+        for (int k = 0; k < N; ++k) {
+            if (S[k] == M) {
+                if (first_free < 0) first_free = k;
+                d[k] = 0.0;
+            } else {
+                d[k] = dot(N, H + k * N, Wsp);
+            }
+        }
+        double zs = W_pp - dot(N, Wsp, d);
+        for (int c = 0; c < N; ++c) {
+            double s = -Up[c];
+            for (int k = 0; k < N; ++k) s += US[c * N + k] * d[k];
+            dx[c] = s;
+        }
+        double t_full = (zs <= 1e-10 * W_pp || first_free < 0) ? INFINITY : v_p / zs;
+        double t_part = INFINITY;
+        int k_drop = 0;
+        for (int k = 0; k < N; ++k) {
+            double ratio = d[k] > 0 ? lam[k] / d[k] : INFINITY;
+            if (ratio < t_part) {
+                t_part = ratio;
+                k_drop = k;
+            }
+        }
+        double t = dmin(t_full, t_part);
+        if (!isfinite(t)) {
+            fail = done = 1;
+            break;
+        }
+        it += 1;
+        for (int c = 0; c < N; ++c) x[c] += t * dx[c];
+        for (int k = 0; k < N; ++k) lam[k] -= t * d[k];
+        lam_p += t;
+        if (t_full <= t_part) { /* p becomes tight: bordering update of H, p fills a slot */
+            int f = first_free;
+            d[f] -= 1.0;
+            H[f * N + f] -= 1.0;
+            double a = 1.0 / zs;
+            for (int k = 0; k < N; ++k)
+                for (int l = 0; l < N; ++l) H[k * N + l] += a * d[k] * d[l];
+            for (int c = 0; c < N; ++c) US[c * N + f] = Up[c];
+            lam[f] = lam_p;
+            lam_p = 0.0;
+            S[f] = p;
+            member[p] = 1.0;
+            pending = 0;
+        } else { /* an active multiplier reached zero first: its row leaves */
+            int k = k_drop;
+            for (int l = 0; l < N; ++l) Hk[l] = H[k * N + l];
+            double b = 1.0 / Hk[k];
+            for (int i = 0; i < N; ++i)
+                for (int l = 0; l < N; ++l) H[i * N + l] -= b * Hk[i] * Hk[l];
+            for (int l = 0; l < N; ++l) H[k * N + l] = H[l * N + k] = 0.0;
+            H[k * N + k] = 1.0;
+            for (int c = 0; c < N; ++c) US[c * N + k] = 0.0;
+            lam[k] = 0.0;
+            member[S[k]] = 0.0;
+            S[k] = M;
+            pending = 1;
+        }
+    }
+    *iters = it;
+    memcpy(S_out, S, sizeof(int64_t) * N);
+
+    /* exact multipliers and point on the final active set, then the KKT check */
+    double rhs[NMAX], mu[NMAX];
+    for (int k = 0; k < N; ++k) {
+        rhs[k] = S[k] == M ? 0.0 : dot(N, G + S[k] * N, xu) - h[S[k]];
+        for (int c = 0; c < N; ++c) US[c * N + k] = S[k] == M ? 0.0 : Ut[(size_t)c * M + S[k]];
+    }
+    int nonsing = slot_solve(N, M, G, US, S, rhs, 1e-12, mu);
+    for (int c = 0; c < N; ++c) x[c] = xu[c] - dot(N, US + c * N, mu);
+    double pviol = 0.0;
+    for (int i = 0; i < M; ++i) {
+        double vi = (dot(N, G + i * N, x) - h[i]) / dmax(row_scale[i], 2.2250738585072014e-308);
+        pviol = dmax(pviol, member[i] != 0.0 ? fabs(vi) : vi);
+    }
+    double lam_min = INFINITY, lam_abs = 0.0, qmax = 0.0, rl = 0.0, stat = 0.0;
+    int finite = 1;
+    for (int k = 0; k < N; ++k) {
+        lam_min = dmin(lam_min, mu[k]);
+        lam_abs = dmax(lam_abs, fabs(mu[k]));
+        finite &= isfinite(mu[k]) != 0;
+    }
+    for (int c = 0; c < N; ++c) qmax = dmax(qmax, fabs(q[c]));
+    for (int k = 0; k < N; ++k) {
+        if (S[k] == M) continue;
+        double gmax = 0.0;
+        for (int c = 0; c < N; ++c) gmax = dmax(gmax, fabs(G[S[k] * N + c]));
+        rl = dmax(rl, gmax * fabs(mu[k]));
+    }
+    for (int c = 0; c < N; ++c) {
+        double s = dot(N, P + c * N, x) + q[c];
+        for (int k = 0; k < N; ++k)
+            if (S[k] != M) s += G[S[k] * N + c] * mu[k];
+        stat = dmax(stat, fabs(s));
+        finite &= isfinite(x[c]) != 0;
+    }
+    int ok = !fail && !pending && done && nonsing && finite && pviol <= eps &&
+             lam_min >= -eps * (1.0 + lam_abs) && stat <= eps * (1.0 + qmax + rl);
+    if (!ok) return 0;
+    memcpy(x_out, x, sizeof(double) * N);
+    for (int k = 0; k < N; ++k) {
+        if (S[k] == M) continue;
+        z_out[S[k]] = dmax(mu[k], 0.0);
+        active[S[k]] = 1;
+    }
+    return 1;
+}
+
+/* Rows [0, B) of a batch, with a workspace of WORKSPACE(N, M) doubles. */
+#define FORWARD_ROWS(NN)                                                                   \
+    static void forward_rows_##NN(int64_t B, int M, const double *P, const double *q,      \
+                                  const double *G, const double *h, double eps,            \
+                                  int max_iter, double *work, double *x, double *z,        \
+                                  uint8_t *active, int64_t *slots, double *L, uint8_t *ok, \
+                                  int64_t *iters) {                                        \
+        const int N = NN;                                                                  \
+        for (int64_t b = 0; b < B; ++b)                                                    \
+            ok[b] = (uint8_t)solve_one(N, M, P + b * N * N, q + b * N, G + b * M * N,      \
+                                       h + b * M, eps, max_iter, work, x + b * N,          \
+                                       z + b * M, active + b * M,                          \
+                                       slots + b * N, L + b * N * N, iters + b);           \
+    }
+FORWARD_ROWS(1)
+FORWARD_ROWS(2)
+FORWARD_ROWS(3)
+FORWARD_ROWS(4)
+FORWARD_ROWS(5)
+FORWARD_ROWS(6)
+FORWARD_ROWS(7)
+FORWARD_ROWS(8)
+
+typedef void (*forward_rows_fn)(int64_t, int, const double *, const double *, const double *,
+                                const double *, double, int, double *, double *, double *,
+                                uint8_t *, int64_t *, double *, uint8_t *, int64_t *);
+static const forward_rows_fn FORWARD_ROWS_N[NMAX + 1] = {
+    NULL,           forward_rows_1, forward_rows_2, forward_rows_3, forward_rows_4,
+    forward_rows_5, forward_rows_6, forward_rows_7, forward_rows_8};
+
+/* Rows [0, B) of a batch; returns -1 for N outside 1..NMAX, M < 1, or no workspace. */
+int torchcbf_dual_forward(int64_t B, int N, int M, const double *P, const double *q,
+                          const double *G, const double *h, double eps, int max_iter,
+                          double *x, double *z, uint8_t *active, int64_t *slots, double *L,
+                          uint8_t *ok, int64_t *iters) {
+    if (N < 1 || N > NMAX || M < 1) return -1;
+    double *work = malloc(sizeof(double) * WORKSPACE(N, M));
+    if (!work) return -1;
+    FORWARD_ROWS_N[N](B, M, P, q, G, h, eps, max_iter, work, x, z, active, slots, L, ok, iters);
+    free(work);
+    return 0;
+}
+
+/* One problem of the backward: w_x [N] and wz [M] (zeros unless ok and finite). */
+INLINE void adjoint_one(int N, int M, const double *RESTRICT G, const double *RESTRICT L,
+                        const int64_t *RESTRICT S, int ok, const double *RESTRICT gx,
+                        const double *RESTRICT gz, double *RESTRICT wx, double *RESTRICT wz) {
+    memset(wx, 0, sizeof(double) * N);
+    memset(wz, 0, sizeof(double) * M);
+    if (!ok) return;
+    double dinv[NMAX], a[NMAX], rhs[NMAX], mu[NMAX], out[NMAX], u[NMAX];
+    double US[NMAX * NMAX]; /* US[c*N + k]: component c of P^{-1} R_{S_k}' */
+    for (int c = 0; c < N; ++c) {
+        dinv[c] = 1.0 / L[c * N + c];
+        a[c] = gx[c];
+    }
+    cho_solve(N, L, dinv, a);
+    for (int k = 0; k < N; ++k) {
+        if (S[k] != M) memcpy(u, G + S[k] * N, sizeof(double) * N);
+        else memset(u, 0, sizeof(double) * N);
+        cho_solve(N, L, dinv, u);
+        for (int c = 0; c < N; ++c) US[c * N + k] = u[c];
+        rhs[k] = S[k] == M ? 0.0 : dot(N, G + S[k] * N, a) - gz[S[k]];
+    }
+    slot_solve(N, M, G, US, S, rhs, 1e-12, mu); /* nonsingular: the forward checked it */
+    int finite = 1;
+    for (int c = 0; c < N; ++c) {
+        out[c] = a[c] - dot(N, US + c * N, mu);
+        finite &= isfinite(out[c]) != 0;
+    }
+    for (int k = 0; k < N; ++k) finite &= isfinite(mu[k]) != 0;
+    if (!finite) return;
+    memcpy(wx, out, sizeof(double) * N);
+    for (int k = 0; k < N; ++k)
+        if (S[k] != M) wz[S[k]] = mu[k];
+}
+
+#define BACKWARD_ROWS(NN)                                                                  \
+    static void backward_rows_##NN(int64_t B, int M, const double *G, const double *L,     \
+                                   const int64_t *slots, const uint8_t *ok,                \
+                                   const double *gx, const double *gz, double *w_x,        \
+                                   double *wz) {                                           \
+        const int N = NN;                                                                  \
+        for (int64_t b = 0; b < B; ++b)                                                    \
+            adjoint_one(N, M, G + b * M * N, L + b * N * N, slots + b * N, ok[b],          \
+                        gx + b * N, gz + b * M, w_x + b * N, wz + b * M);                  \
+    }
+BACKWARD_ROWS(1)
+BACKWARD_ROWS(2)
+BACKWARD_ROWS(3)
+BACKWARD_ROWS(4)
+BACKWARD_ROWS(5)
+BACKWARD_ROWS(6)
+BACKWARD_ROWS(7)
+BACKWARD_ROWS(8)
+
+typedef void (*backward_rows_fn)(int64_t, int, const double *, const double *, const int64_t *,
+                                 const uint8_t *, const double *, const double *, double *,
+                                 double *);
+static const backward_rows_fn BACKWARD_ROWS_N[NMAX + 1] = {
+    NULL,            backward_rows_1, backward_rows_2, backward_rows_3, backward_rows_4,
+    backward_rows_5, backward_rows_6, backward_rows_7, backward_rows_8};
+
+/* Adjoint of the KKT system on the final active slots, rows [0, B): w_x [B,N] and the
+ * multiplier adjoint scattered to rows wz [B,M] (zeros on rows not ok or where the result
+ * is not finite). Gradients are then, in torch,
+ * dP = -(w_x x' + x w_x')/2, dq = -w_x, dG = -(z w_x' + wz x'), dh = wz. */
+int torchcbf_dual_backward(int64_t B, int N, int M, const double *G, const double *L,
+                           const int64_t *slots, const uint8_t *ok, const double *gx,
+                           const double *gz, double *w_x, double *wz) {
+    if (N < 1 || N > NMAX || M < 1) return -1;
+    BACKWARD_ROWS_N[N](B, M, G, L, slots, ok, gx, gz, w_x, wz);
+    return 0;
+}

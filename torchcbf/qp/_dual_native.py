@@ -1,0 +1,145 @@
+"""CPU fast path of the dual active-set method: the C kernel ``_dual_kernel.c``.
+
+The kernel is built at install time when a C compiler is present (``setup.py``) and is
+called through :mod:`ctypes` (which releases the GIL, so a large batch is split over
+``torch.get_num_threads()`` threads). It runs the algorithm of :mod:`torchcbf.qp._dual`
+problem by problem, float64 on the CPU only; :func:`available` says whether it was built.
+Without it, and on every other device, the torch implementation runs.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import importlib.machinery
+import logging
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+logger = logging.getLogger(__name__)
+
+#: fewest rows a thread is given when a batch is split over threads
+MIN_ROWS_PER_THREAD = 1024
+#: most variables the kernel handles (``NMAX`` in the C source)
+MAX_VARS = 8
+
+_P = ctypes.c_void_p
+_I64 = ctypes.c_int64
+_INT = ctypes.c_int
+_FWD_ARGS = [_I64, _INT, _INT, _P, _P, _P, _P, ctypes.c_double, _INT] + [_P] * 7
+_BWD_ARGS = [_I64, _INT, _INT] + [_P] * 8
+
+
+@functools.lru_cache(maxsize=1)
+def _library() -> ctypes.CDLL | None:
+    here = Path(__file__).parent
+    for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+        path = here / f"_dual_kernel{suffix}"
+        if not path.exists():
+            continue
+        try:
+            lib = ctypes.CDLL(str(path))
+        except OSError as err:
+            logger.warning("torchcbf: cannot load %s (%s); using the torch solver", path, err)
+            return None
+        lib.torchcbf_dual_forward.argtypes = _FWD_ARGS
+        lib.torchcbf_dual_backward.argtypes = _BWD_ARGS
+        lib.torchcbf_dual_forward.restype = lib.torchcbf_dual_backward.restype = _INT
+        return lib
+    return None
+
+
+def available() -> bool:
+    """Whether the C kernel was built and loads."""
+    return _library() is not None
+
+
+def applies(q: Tensor) -> bool:
+    """Whether the kernel serves a problem batch with linear term ``q [B, N]``."""
+    return (
+        q.device.type == "cpu"
+        and q.dtype == torch.float64
+        and q.shape[-1] <= MAX_VARS
+        and (available())
+    )
+
+
+@functools.lru_cache(maxsize=8)
+def _pool(threads: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(threads, thread_name_prefix="torchcbf-qp")
+
+
+def _kernel() -> ctypes.CDLL:
+    lib = _library()
+    if lib is None:
+        raise RuntimeError("torchcbf: the QP kernel was not built (no C compiler at install)")
+    return lib
+
+
+def _run(fn, B: int, per_row: list[tuple[Tensor, int]]) -> None:
+    """Call ``fn(rows, *pointers)`` on chunks of the batch, in parallel for a large batch.
+
+    ``per_row`` lists ``(tensor, elements per row)`` in argument order; each chunk gets
+    pointers offset to its first row."""
+    threads = max(1, min(torch.get_num_threads(), B // MIN_ROWS_PER_THREAD))
+    bounds = [B * k // threads for k in range(threads + 1)]
+
+    def call(lo: int, hi: int) -> int:
+        ptrs = [t.data_ptr() + lo * n * t.element_size() for t, n in per_row]
+        return fn(hi - lo, *ptrs)
+
+    if threads == 1:
+        codes = [call(0, B)]
+    else:
+        codes = list(_pool(threads).map(call, bounds[:-1], bounds[1:]))
+    if any(c != 0 for c in codes):
+        raise MemoryError("torchcbf: the QP kernel could not allocate its workspace")
+
+
+def _check_sizes(N: int, M: int) -> None:
+    if not 1 <= N <= MAX_VARS or M < 1:
+        raise ValueError(
+            f"the QP kernel takes 1 to {MAX_VARS} variables and at least one row, got N={N}, M={M}"
+        )
+
+
+def forward(
+    P: Tensor, q: Tensor, G: Tensor, h: Tensor, eps: float, max_iter: int
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """``(x [B,N], z [B,M], active [B,M], slots [B,N], L [B,N,N], ok [B], iterations [B])``
+    for ``P [B,N,N], q [B,N], G [B,M,N], h [B,M]`` float64 on the CPU (see ``solve_dual``)."""
+    B, N = q.shape
+    M = h.shape[-1]
+    _check_sizes(N, M)
+    P, q, G, h = (t.contiguous() for t in (P, q, G, h))
+    x = q.new_empty(B, N)
+    z = q.new_empty(B, M)
+    active = torch.empty(B, M, dtype=torch.bool)
+    slots = torch.empty(B, N, dtype=torch.int64)
+    L = q.new_empty(B, N, N)
+    ok = torch.empty(B, dtype=torch.bool)
+    iters = torch.empty(B, dtype=torch.int64)
+    rows = [(P, N * N), (q, N), (G, M * N), (h, M)]
+    outs = [(x, N), (z, M), (active, M), (slots, N), (L, N * N), (ok, 1), (iters, 1)]
+    fn = _kernel().torchcbf_dual_forward
+    _run(lambda n, *a: fn(n, N, M, *a[:4], eps, max_iter, *a[4:]), B, rows + outs)
+    return x, z, active, slots, L, ok, iters
+
+
+def backward(
+    G: Tensor, L: Tensor, slots: Tensor, ok: Tensor, gx: Tensor, gz: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Adjoints ``(w_x [B,N], wz [B,M])`` of the KKT system on the active slots (zeros on rows
+    not ``ok``); the gradients follow by :func:`torchcbf.qp._kkt.input_gradients`."""
+    B, M, N = G.shape
+    _check_sizes(N, M)
+    gx, gz = gx.contiguous(), gz.contiguous()
+    w_x = gx.new_empty(B, N)
+    wz = gz.new_empty(B, M)
+    fn = _kernel().torchcbf_dual_backward
+    args = [(G, M * N), (L, N * N), (slots, N), (ok, 1), (gx, N), (gz, M), (w_x, N), (wz, M)]
+    _run(lambda n, *a: fn(n, N, M, *a), B, args)
+    return w_x, wz
