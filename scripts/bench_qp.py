@@ -1,7 +1,9 @@
 """Benchmark torchcbf.qp.solve_qp against peer differentiable QP layers.
 
-torchcbf's torch backend picks active-set enumeration for small problems (``method="auto"``)
-and the interior point method otherwise; the goal lines also time ``method="ipm"``.
+torchcbf's torch backend (``method="auto"``) runs the dual active-set method, on the CPU
+through its C kernel when that was built (the goal line also times the same method in torch,
+with the kernel switched off), and enumeration or the interior point method where the dual
+method does not apply; the goal lines also time ``method="enumerate"`` and ``"ipm"``.
 Times forward and forward+backward per QP on random feasible dense QPs
 (``min 1/2 x'Qx + p'x  s.t.  Gx <= h``, Q positive definite, some constraints active) for
 torchcbf (torch and proxsuite backends), proxsuite's torch ``QPFunction``, qpth's
@@ -19,11 +21,12 @@ import argparse
 import os
 import time
 from collections.abc import Callable
+from unittest import mock
 
 import numpy as np
 import torch
 
-from torchcbf.qp import Status, solve_qp
+from torchcbf.qp import Status, _dual_native, solve_qp
 
 
 def make_problems(B: int, n: int, m: int, device: str, seed: int = 0):
@@ -48,6 +51,13 @@ def timeit(fn: Callable[[], None], min_time: float = 0.3, max_reps: int = 50) ->
         fn()
         times.append(time.perf_counter() - t0)
     return float(np.median(times))
+
+
+def dual_path(device: str) -> str:
+    """Which implementation ``method="auto"`` runs the dual active-set method with."""
+    if device == "cpu" and _dual_native.available():
+        return "dual active set, C kernel"
+    return "dual active set, torch"
 
 
 def _sync(device: str) -> None:
@@ -199,12 +209,16 @@ def main() -> None:
     sol = solve_qp(Q, p, G, h)
     solved = float((sol.status == Status.SOLVED).float().mean())
     others = []
+    if dual_path(dev).endswith("C kernel"):
+        with mock.patch.object(_dual_native, "applies", lambda q: False):
+            t_m = timeit(lambda: fb(Q, p, G, h), min_time=1.0) / B
+        others.append(f"the same in torch (kernel off): {t_m * 1e6:.2f} us/QP")
     for method in ("enumerate", "ipm"):
         _, fb_m = run_torchcbf("torch", dev, method=method)
         t_m = timeit(lambda fb_m=fb_m: fb_m(Q, p, G, h), min_time=1.0) / B
         others.append(f"method={method!r}: {t_m * 1e6:.2f} us/QP")
     print(
-        f"B=4096 n=4 m=8 fwd+bwd torchcbf[torch] (auto: dual active set): "
+        f"B=4096 n=4 m=8 fwd+bwd torchcbf[torch] (auto: {dual_path(dev)}): "
         f"{t_ours * 1e6:.2f} us/QP (solved {solved:.3f}); " + "; ".join(others)
     )
     Qc, pc, Gc, hc = (t.cpu() for t in (Q, p, G, h))
@@ -239,13 +253,16 @@ def main() -> None:
     Q, p, G, h = make_problems(1, 2, 6, "cpu", seed=2)
     fwd, _ = run_torchcbf("torch", "cpu")
     t1 = timeit(lambda: fwd(Q, p, G, h), min_time=1.0, max_reps=200)
-    fwd_ipm, _ = run_torchcbf("torch", "cpu", method="ipm")
-    t1_ipm = timeit(lambda: fwd_ipm(Q, p, G, h), min_time=1.0, max_reps=200)
+    single = []
+    for method in ("enumerate", "ipm"):
+        fwd_m, _ = run_torchcbf("torch", "cpu", method=method)
+        t_m = timeit(lambda fwd_m=fwd_m: fwd_m(Q, p, G, h), min_time=1.0, max_reps=200)
+        single.append(f"method={method!r}: {t_m * 1e3:.3f} ms")
     direct = proxsuite_dense_direct(Q, p, G, h)
     t_direct = timeit(direct, min_time=0.5, max_reps=2000)
     print(
-        f"B=1 n=2 m=6 forward torchcbf[torch] (CPU, enumeration): {t1 * 1e3:.3f} ms "
-        f"(goal < 1 ms); method='ipm': {t1_ipm * 1e3:.3f} ms; "
+        f"B=1 n=2 m=6 forward torchcbf[torch] (CPU, auto: {dual_path('cpu')}): "
+        f"{t1 * 1e3:.3f} ms (goal < 1 ms); " + "; ".join(single) + "; "
         f"proxsuite dense direct: {t_direct * 1e3:.3f} ms; ratio {t1 / t_direct:.1f}x"
     )
     # a safety-filter-shaped problem: 2 bounded controls + 1 bounded slack, 8 barrier rows
@@ -257,12 +274,9 @@ def main() -> None:
         with torch.no_grad():
             solve_qp(Q, p, G, h, lb=lb, ub=ub, method=method)
 
-    t_f = timeit(lambda: filt("auto"), min_time=0.5, max_reps=200)
-    t_fi = timeit(lambda: filt("ipm"), min_time=0.5, max_reps=200)
-    print(
-        f"B=1 n=3 m=8 + box forward (filter shape, 431 candidates): enumeration "
-        f"{t_f * 1e3:.3f} ms, method='ipm' {t_fi * 1e3:.3f} ms"
-    )
+    line = [f"{m}: {timeit(lambda m=m: filt(m), min_time=0.5, max_reps=200) * 1e3:.3f} ms"
+            for m in ("auto", "enumerate", "ipm")]  # fmt: skip
+    print("B=1 n=3 m=8 + box forward (filter shape, 431 candidates): " + ", ".join(line))
 
     # 3) throughput at B=big, n=2, m=6 on --device
     B = args.big

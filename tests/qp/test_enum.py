@@ -52,7 +52,7 @@ def test_candidate_count_and_table():
 def test_enumeration_matches_cvxpy_and_ipm(cvx, shape, dtype):
     n, m, me, bounds = shape
     batch = make_batch(30, n, m, me, bounds, seed=100 + 7 * n + m, dtype=dtype)
-    sol = solve_qp(*_args(batch))
+    sol = solve_qp(*_args(batch), method="enumerate")
     feas = torch.tensor([k != "infeasible" for k in batch.kind])
     assert (sol.iterations[feas] == 0).all()  # the enumeration path solved every feasible row
     check_against_cvxpy(cvx, batch, sol, dtype, range(30))
@@ -95,7 +95,7 @@ def test_degenerate_problems(cvx):
         )
     )
     Q, p, G, h = (torch.stack(t) for t in zip(*rows, strict=True))
-    sol = solve_qp(Q, p, G, h)
+    sol = solve_qp(Q, p, G, h, method="enumerate")
     assert (sol.status == Status.SOLVED).all()
     assert (sol.iterations == 0).all()
     for i in range(len(rows)):
@@ -119,7 +119,7 @@ def test_fallback_rows_use_ipm_and_infeasible_flagged():
         [[[0.0, 1.0], [1.0, 0.0]], [[1.0, 1.0], [-1.0, -1.0]], [[1.0, 0.0], [0.0, 1.0]]]
     )
     h = torch.tensor([[2.0, 3.0], [-1.0, -1.0], [1.0, -2.0]], dtype=F64)
-    sol = solve_qp(Q, p, G.double(), h)
+    sol = solve_qp(Q, p, G.double(), h, method="enumerate")
     assert sol.status.tolist() == [Status.SOLVED, Status.PRIMAL_INFEASIBLE, Status.SOLVED]
     assert sol.iterations[0] > 0 and sol.iterations[2] == 0  # row 0 went to the IPM
     assert float(sol.x[0, 1]) == pytest.approx(2.0, abs=1e-7)
@@ -146,7 +146,7 @@ def test_gradcheck_on_enumeration_path():
     wl = torch.randn(3, 4, generator=g, dtype=F64)
 
     def f(Q, p, G, h, A, b, lb, ub):
-        sol = solve_qp(Q, p, G, h, A, b, lb, ub)
+        sol = solve_qp(Q, p, G, h, A, b, lb, ub, method="enumerate")
         assert (sol.status == Status.SOLVED).all() and (sol.iterations == 0).all()
         return (sol.x * wx).sum() + (sol.lam * wl).sum() + sol.nu.sum() + sol.lam_ub.sum()
 
@@ -156,7 +156,7 @@ def test_gradcheck_on_enumeration_path():
 def test_gradients_equal_ipm_gradients():
     batch = make_batch(16, 4, 8, 0, False, seed=21, frac_infeasible=0.0)
     grads = []
-    for method in ("auto", "ipm"):
+    for method in ("enumerate", "ipm"):
         p = batch.p.clone().requires_grad_(True)
         G = batch.G.clone().requires_grad_(True)
         sol = solve_qp(batch.Q, p, G, batch.h, method=method)
@@ -167,9 +167,9 @@ def test_gradients_equal_ipm_gradients():
 
 def test_batch_equals_loop_and_chunks():
     batch = make_batch(12, 3, 5, 1, True, seed=11)
-    full = solve_qp(*_args(batch))
+    full = solve_qp(*_args(batch), method="enumerate")
     for i in range(12):
-        one = solve_qp(*(t[i] for t in _args(batch)))
+        one = solve_qp(*(t[i] for t in _args(batch)), method="enumerate")
         assert int(one.status) == int(full.status[i])
         torch.testing.assert_close(one.x, full.x[i], atol=1e-12, rtol=0)
         torch.testing.assert_close(one.lam, full.lam[i], atol=1e-12, rtol=0)

@@ -188,7 +188,7 @@ def test_closed_form_one_constraint():
     assert (ipm.iterations > 0).all()
     torch.testing.assert_close(closed.x, ipm.x, atol=1e-8, rtol=0)
     torch.testing.assert_close(closed.lam, ipm.lam, atol=1e-8, rtol=0)
-    enum = solve_qp(Q, p, G, h, lb=-math.inf)  # the (infinite) bound rows: enumeration
+    enum = solve_qp(Q, p, G, h, lb=-math.inf, method="enumerate")  # (infinite) bound rows
     assert (enum.iterations == 0).all()
     torch.testing.assert_close(closed.x, enum.x, atol=1e-10, rtol=0)
     torch.testing.assert_close(closed.lam, enum.lam, atol=1e-10, rtol=0)
