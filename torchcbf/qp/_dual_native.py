@@ -13,6 +13,8 @@ import ctypes
 import functools
 import importlib.machinery
 import logging
+import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -59,16 +61,13 @@ def available() -> bool:
 
 def applies(q: Tensor) -> bool:
     """Whether the kernel serves a problem batch with linear term ``q [B, N]``."""
-    return (
-        q.device.type == "cpu"
-        and q.dtype == torch.float64
-        and q.shape[-1] <= MAX_VARS
-        and (available())
-    )
+    cpu64 = q.device.type == "cpu" and q.dtype == torch.float64
+    return cpu64 and q.shape[-1] <= MAX_VARS and available()
 
 
 @functools.lru_cache(maxsize=8)
-def _pool(threads: int) -> ThreadPoolExecutor:
+def _pool(threads: int, pid: int) -> ThreadPoolExecutor:
+    # keyed by process id: a forked child inherits the pool object but not its threads
     return ThreadPoolExecutor(threads, thread_name_prefix="torchcbf-qp")
 
 
@@ -79,7 +78,7 @@ def _kernel() -> ctypes.CDLL:
     return lib
 
 
-def _run(fn, B: int, per_row: list[tuple[Tensor, int]]) -> None:
+def _run(fn: Callable[..., int], B: int, per_row: list[tuple[Tensor, int]]) -> None:
     """Call ``fn(rows, *pointers)`` on chunks of the batch, in parallel for a large batch.
 
     ``per_row`` lists ``(tensor, elements per row)`` in argument order; each chunk gets
@@ -94,7 +93,7 @@ def _run(fn, B: int, per_row: list[tuple[Tensor, int]]) -> None:
     if threads == 1:
         codes = [call(0, B)]
     else:
-        codes = list(_pool(threads).map(call, bounds[:-1], bounds[1:]))
+        codes = list(_pool(threads, os.getpid()).map(call, bounds[:-1], bounds[1:]))
     if any(c != 0 for c in codes):
         raise MemoryError("torchcbf: the QP kernel could not allocate its workspace")
 
