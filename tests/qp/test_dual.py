@@ -5,7 +5,9 @@ twice: on the torch implementation and on the C kernel (skipped where it was not
 
 from __future__ import annotations
 
+import shutil
 import sys
+import sysconfig
 from pathlib import Path
 
 import pytest
@@ -247,3 +249,15 @@ def test_empty_batch_backward_and_equalities_rejected():
     A, b = torch.ones(1, 2, dtype=F64), torch.ones(1, dtype=F64)
     with pytest.raises(ValueError, match="active_set"):
         solve_qp(torch.eye(2, dtype=F64), torch.zeros(2, dtype=F64), A=A, b=b, method="active_set")
+
+
+def _c_compiler() -> str | None:
+    cc = (sysconfig.get_config_var("CC") or "cc").split()[0]
+    return shutil.which(cc)
+
+
+@pytest.mark.skipif(_c_compiler() is None, reason="no C compiler: the kernel is optional")
+def test_kernel_is_built_where_a_c_compiler_is_present():
+    """``pip install`` compiles the kernel; its build is optional, so a broken build would
+    otherwise only show as skipped kernel tests."""
+    assert _dual_native.available(), "reinstall (pip install -e .) to build _dual_kernel.c"
