@@ -11,7 +11,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from torchcbf._checks import check_positive
+from torchcbf._checks import broadcast_shapes, check_positive
 from torchcbf.dynamics.base import ControlAffine
 
 Method = Literal["euler", "rk4", "euler_maruyama"]
@@ -62,7 +62,7 @@ def euler_maruyama(
                 "euler_maruyama on a model with a diffusion needs generator= or noise= "
                 "(torchcbf never draws from the global random state)"
             )
-        shape = torch.broadcast_shapes(drift.shape[:-1], sigma.shape[:-2]) + (q,)
+        shape = broadcast_shapes(drift.shape[:-1], sigma.shape[:-2]) + (q,)
         noise = torch.randn(shape, generator=generator, device=x.device, dtype=x.dtype)
     elif noise.shape[-1] != q:
         raise ValueError(f"noise must have shape [..., {q}], got {tuple(noise.shape)}")

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Literal, NamedTuple
 import torch
 from torch import Tensor
 
-from torchcbf._checks import check_positive, check_tensor
+from torchcbf._checks import broadcast_shapes, check_positive, check_tensor
 
 if TYPE_CHECKING:
     from torchcbf.barriers.base import Barrier
@@ -197,7 +197,7 @@ def inverse_kinematics(
         if q_init.dim() == 0 or q_init.shape[-1] != dof:
             raise ValueError(f"q_init must have shape [..., {dof}], got {tuple(q_init.shape)}")
         try:
-            shape = torch.broadcast_shapes(batch, tuple(q_init.shape[:-1]))
+            shape = broadcast_shapes(batch, tuple(q_init.shape[:-1]))
         except RuntimeError:
             raise ValueError(
                 f"batch dimensions of target {tuple(target.shape)} and q_init "

@@ -41,7 +41,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor, check_tensor
+from torchcbf._checks import as_tensor, broadcast_shapes, check_tensor
 from torchcbf.dynamics._ik import inverse_kinematics as _inverse_kinematics
 from torchcbf.dynamics.base import ControlAffine, LimitSpec, SigmaSpec
 
@@ -220,9 +220,9 @@ class Manipulator(ControlAffine):
 
     def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
         if self.control == "velocity":
-            return u.expand(torch.broadcast_shapes(x.shape, u.shape))
+            return u.expand(broadcast_shapes(x.shape, u.shape))
         qd = x[..., self.dof :]
-        shape = torch.broadcast_shapes(qd.shape, u.shape)
+        shape = broadcast_shapes(qd.shape, u.shape)
         return torch.cat([qd.expand(shape), u.expand(shape)], -1)
 
     # -- kinematics ------------------------------------------------------------------------

@@ -11,7 +11,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcbf._checks import check_positive
+from torchcbf._checks import broadcast_shapes, check_positive
 from torchcbf.dynamics.base import ControlAffine
 
 
@@ -39,7 +39,7 @@ class SingleIntegrator(ControlAffine):
         return _eye_g(x, self.state_dim, self.control_dim, 0)
 
     def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
-        return u.expand(torch.broadcast_shapes(x.shape, u.shape))
+        return u.expand(broadcast_shapes(x.shape, u.shape))
 
 
 class DoubleIntegrator(ControlAffine):

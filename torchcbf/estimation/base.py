@@ -10,6 +10,7 @@ from torch import Tensor, nn
 
 from torchcbf._checks import (
     as_tensor,
+    broadcast_shapes,
     check_batch_match,
     check_last_dim,
     check_positive,
@@ -113,7 +114,7 @@ class PassThrough(Estimator):
         n = mean.shape[-1]
         check_last_dim("y", y, n)
         check_batch_match("state.mean", mean, "y", y)
-        bs = torch.broadcast_shapes(mean.shape[:-1], y.shape[:-1])
+        bs = broadcast_shapes(mean.shape[:-1], y.shape[:-1])
         y = y.to(mean).expand(*bs, n)
         return EstimatorState(y, y.new_zeros(*bs, n, n), _zero_status(y))
 
@@ -143,7 +144,7 @@ def _check_cov(name: str, P: object, mean: Tensor, *, spd: bool = True) -> Tenso
     if P.dim() < 2 or P.shape[-2:] != (n, n):
         raise ValueError(f"{name} must have shape [..., {n}, {n}], got {tuple(P.shape)}")
     try:
-        bs = torch.broadcast_shapes(mean.shape[:-1], P.shape[:-2])
+        bs = broadcast_shapes(mean.shape[:-1], P.shape[:-2])
     except RuntimeError:
         bs = None
     if bs != mean.shape[:-1]:
@@ -271,7 +272,7 @@ class _KalmanFilter(Estimator):
         dt = check_positive("dt", dt)
         check_last_dim("u", u, self.dynamics.control_dim)
         check_batch_match("state.mean", mean, "u", u)
-        bs = torch.broadcast_shapes(mean.shape[:-1], u.shape[:-1])
+        bs = broadcast_shapes(mean.shape[:-1], u.shape[:-1])
         n, m = self.state_dim, self.dynamics.control_dim
         return (
             bs,
@@ -286,7 +287,7 @@ class _KalmanFilter(Estimator):
         p = self._R(mean).shape[-1]
         check_last_dim("y", y, p)
         check_batch_match("state.mean", mean, "y", y)
-        bs = torch.broadcast_shapes(mean.shape[:-1], y.shape[:-1])
+        bs = broadcast_shapes(mean.shape[:-1], y.shape[:-1])
         n = self.state_dim
         return (
             bs,

@@ -8,6 +8,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchcbf._checks import broadcast_shapes
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.estimation._linalg import robust_cholesky, symmetrize
 from torchcbf.estimation.base import Estimator, EstimatorState, EstimatorStatus
@@ -91,7 +92,7 @@ class HybridEKFUKF(Estimator):
         return self._fuse(self.ekf.update(state.ekf, y), self.ukf.update(state.ukf, y))
 
     def _fuse(self, e: EstimatorState, u: EstimatorState) -> HybridState:
-        bs = torch.broadcast_shapes(e.mean.shape[:-1], u.mean.shape[:-1])
+        bs = broadcast_shapes(e.mean.shape[:-1], u.mean.shape[:-1])
         n = e.mean.shape[-1]
         me, mu = e.mean.expand(*bs, n).reshape(-1, n), u.mean.expand(*bs, n).reshape(-1, n)
         Pe = e.cov.expand(*bs, n, n).reshape(-1, n, n)

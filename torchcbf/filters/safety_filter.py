@@ -45,7 +45,7 @@ from typing import Any, Literal, NamedTuple
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor, check_last_dim
+from torchcbf._checks import as_tensor, broadcast_shapes, check_last_dim
 from torchcbf.barriers.lie import LieFunction, LieTerms
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.filters.class_k import ClassKSpec, as_class_k
@@ -430,7 +430,7 @@ class SafetyFilter(nn.Module):
         check_last_dim("x", x, n)
         check_last_dim("u_nom", u_nom, m)
         try:
-            batch = torch.broadcast_shapes(x.shape[:-1], u_nom.shape[:-1])
+            batch = broadcast_shapes(x.shape[:-1], u_nom.shape[:-1])
         except RuntimeError:
             raise ValueError(
                 f"batch dimensions of x {tuple(x.shape)} and u_nom {tuple(u_nom.shape)} "

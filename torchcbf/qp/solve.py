@@ -8,6 +8,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchcbf._checks import broadcast_shapes
 from torchcbf.qp import _dual_native
 from torchcbf.qp._enum import (
     MAX_CANDIDATES,
@@ -274,7 +275,7 @@ def solve_qp(
         if t is not None:
             shapes.append((name, tuple(t.shape[: t.dim() - k])))
     try:
-        batch_shape = torch.broadcast_shapes(*[s for _, s in shapes])
+        batch_shape = broadcast_shapes(*[s for _, s in shapes])
     except RuntimeError:
         desc = ", ".join(f"{nm} {s}" for nm, s in shapes)
         raise ValueError(f"batch dimensions do not broadcast: {desc}") from None
