@@ -153,7 +153,8 @@ def solve_qp(
       active rows), is re-solved by an exact method below. Convergence is tested on the
       device every iteration; the host checks whether every row is done every
       ``check_every`` iterations. With one inequality and nothing else (no ``A``, bounds
-      or ``soft``) and ``Q`` positive definite, the exact projection formula is used.
+      or ``soft``) and ``Q`` positive definite, the exact projection formula is used
+      (except on the CPU with the C kernel below, whose dual method is then faster).
 
       ``method`` (torch backend only) picks the algorithm; every exact path verifies its
       answer as a KKT point and hands the rows it cannot certify (infeasible, ``Q`` not
@@ -382,9 +383,11 @@ def solve_qp(
         Gs = torch.cat((Gs, *box_rows), -2)
         hs = torch.cat((hs, *box_h), -1)
 
-    closed_form = (
-        backend == "torch" and m == 1 and me == 0 and lb is None and ub is None and soft is None
-    )
+    # the dual method's C kernel (CPU) beats enumeration at every batch size, and the closed
+    # form too (it is the same single step, and its backward needs no KKT factorisation)
+    kernel = device.type == "cpu" and _dual_native.available()
+    one_row = m == 1 and me == 0 and lb is None and ub is None and soft is None
+    closed_form = backend == "torch" and one_row and not kernel
     if polish is None:
         polish = backend == "torch"
     pairs: tuple[tuple[int, int], ...] = ()
@@ -398,8 +401,7 @@ def solve_qp(
     if exact and method == "auto":
         C = num_candidates(M_total, me, N, pairs) if me <= N else 0
         dual_applies = me == 0 and N <= MAX_ACTIVE_SET_VARS
-        # the C kernel of the dual method beats enumeration at every batch size
-        if dual_applies and device.type == "cpu" and _dual_native.available():
+        if dual_applies and kernel:
             use_dual = True
         elif B <= SMALL_BATCH and 0 < C <= MAX_CANDIDATES_SMALL_BATCH:
             use_enum = True
