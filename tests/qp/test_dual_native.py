@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchcbf.qp import _dual_native
+from torchcbf.qp import Status, _dual_native, solve_qp
 from torchcbf.qp._dual import dual_adjoints, solve_dual
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -103,3 +103,54 @@ def test_applies_only_to_float64_on_the_cpu_with_at_most_eight_variables():
             torch.eye(9, dtype=F64).expand(1, 9, 9), torch.zeros(1, 9, dtype=F64),
             torch.zeros(1, 2, 9, dtype=F64), torch.zeros(1, 2, dtype=F64), 1e-9, 10,
         )  # fmt: skip
+
+
+def test_transposed_and_expanded_g_give_the_right_gradients():
+    """Review case: the backward read a transposed (or expanded) G as if contiguous."""
+    Q = torch.eye(2, dtype=F64)
+    h = torch.tensor([1.0, 5.0, 5.0], dtype=F64)
+    G_t = torch.tensor([[1.0, 2.0, 1.0], [0.0, 1.0, 3.0]], dtype=F64).T
+    grads = []
+    for G in (G_t, G_t.contiguous()):
+        p = torch.tensor([-2.0, -1.0], dtype=F64, requires_grad=True)
+        solve_qp(Q, p, G, h).x.sum().backward()
+        grads.append(p.grad)
+    torch.testing.assert_close(grads[0], grads[1])
+    torch.testing.assert_close(grads[1], torch.tensor([0.0, -1.0], dtype=F64))
+    P, q, G, h = _problems(6, 3, 5, seed=3, frac_infeasible=0.0)
+    G1, h1 = G[:1].expand(6, -1, -1), h[:1].expand(6, -1)
+    out = solve_dual(P, q, G1, h1, eps=1e-9, max_iter=100, native=True)
+    ref = solve_dual(P, q, G1.contiguous(), h1.contiguous(), eps=1e-9, max_iter=100, native=True)
+    gx = torch.ones(6, 3, dtype=F64)
+    gz = torch.zeros(6, G.shape[1], dtype=F64)
+    for a, b in zip(
+        dual_adjoints(out.factor, out.x, gx, gz),
+        dual_adjoints(ref.factor, ref.x, gx, gz),
+        strict=True,
+    ):
+        assert torch.equal(a, b)
+
+
+def test_nearly_dependent_final_active_set_is_not_accepted():
+    """Review case: rows 0 and 2 at cosine -(1 - 1.6e-13); the C pivot test compared each
+    pivot with itself, so the kernel accepted a point 2e-3 off."""
+    Q = torch.tensor([[5.9529149525052345, 4.477149544721193], [4.477149544721193,
+                      5.047085047494767]], dtype=F64)  # fmt: skip
+    p = torch.tensor([-1.1989579878000285, 0.3467384696737627], dtype=F64)
+    G = torch.tensor([[-3.5452702798252393, -1.1690657557300168],
+                      [0.1694659500381488, 0.05588624647478687],
+                      [2.3011671170180787, 0.7588196834095134]], dtype=F64)  # fmt: skip
+    h = torch.tensor([6.326328822707258, -0.3024061454617175, -4.106300765045831], dtype=F64)
+    args = [t.unsqueeze(0) for t in (Q, p, G, h)]
+    ref, out = _both(*args)
+    assert not ref.ok.any() and not out.ok.any()
+    sol = solve_qp(Q, p, G, h)
+    exact = torch.tensor([-1.3907593159, -1.1938688193], dtype=F64)  # 60-digit enumeration
+    assert int(sol.status) != Status.SOLVED or (sol.x - exact).abs().max() < 1e-6
+
+
+def test_max_iter_beyond_a_c_int_is_clamped():
+    P, q, G, h = _problems(20, 3, 5, seed=4, frac_infeasible=0.0)
+    big = solve_dual(P, q, G, h, eps=1e-9, max_iter=2**32 + 3, native=True)
+    ref = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, native=True)
+    assert big.ok.all() and torch.equal(big.iterations, ref.iterations)

@@ -76,11 +76,12 @@ INLINE double dot(int n, const double *a, const double *b) {
  * elimination without pivoting, as _enum._eliminate; returns 0 when a pivot is below
  * piv_tol times its diagonal entry. W and r are overwritten. */
 INLINE int eliminate(int K, double *W, double *r, double piv_tol, double *mu) {
-    double piv[NMAX];
+    double piv[NMAX], diag[NMAX]; /* the pivots are judged against the original diagonal */
     int nonsing = 1;
+    for (int j = 0; j < K; ++j) diag[j] = W[j * K + j];
     for (int j = 0; j < K; ++j) {
         piv[j] = W[j * K + j];
-        if (!(piv[j] > piv_tol * W[j * K + j])) nonsing = 0;
+        if (!(piv[j] > piv_tol * diag[j])) nonsing = 0;
         double inv = 1.0 / piv[j];
         for (int i = j + 1; i < K; ++i) {
             double f = W[j * K + i] * inv;

@@ -124,7 +124,8 @@ def forward(
     rows = [(P, N * N), (q, N), (G, M * N), (h, M)]
     outs = [(x, N), (z, M), (active, M), (slots, N), (L, N * N), (ok, 1), (iters, 1)]
     fn = _kernel().torchcbf_dual_forward
-    _run(lambda n, *a: fn(n, N, M, *a[:4], eps, max_iter, *a[4:]), B, rows + outs)
+    steps = min(max_iter, 2**31 - 1)  # a C int
+    _run(lambda n, *a: fn(n, N, M, *a[:4], eps, steps, *a[4:]), B, rows + outs)
     return x, z, active, slots, L, ok, iters
 
 
@@ -135,7 +136,7 @@ def backward(
     not ``ok``); the gradients follow by :func:`torchcbf.qp._kkt.input_gradients`."""
     B, M, N = G.shape
     _check_sizes(N, M)
-    gx, gz = gx.contiguous(), gz.contiguous()
+    G, L, slots, ok, gx, gz = (t.contiguous() for t in (G, L, slots, ok, gx, gz))
     w_x = gx.new_empty(B, N)
     wz = gz.new_empty(B, M)
     fn = _kernel().torchcbf_dual_backward
