@@ -209,3 +209,20 @@ def test_nonfinite_rows_and_soft_rows(dtype):
     tol = TOL[dtype]
     torch.testing.assert_close(s_enum.x, s_ipm.x, atol=10 * tol, rtol=0)
     torch.testing.assert_close(s_enum.slack, s_ipm.slack, atol=10 * tol, rtol=0)
+
+
+def test_rows_of_very_different_scales_are_each_judged_on_their_own():
+    """Review case: the primal check divided by 1 + max|h| over all rows, so a point
+    violating the small row 1 by 0.85 of its norm was reported solved."""
+    Q = torch.tensor([[114882.83952500708, 10420.946323314654],
+                      [10420.946323314654, 946.2853707984577]], dtype=F64)  # fmt: skip
+    p = torch.tensor([-2.4512854745807955, -1.574333298559233], dtype=F64)
+    G = torch.tensor([[-8.193461267432959, 0.44462893090782063],
+                      [9.302038310982304e-08, 1.6775708989503506e-07],
+                      [2367165.5074630063, -1289992.5954979705]], dtype=F64)  # fmt: skip
+    h = torch.tensor([3.6782018825344354, 5.0435662841192424e-08, -1230044.5251119188], dtype=F64)
+    sol = solve_qp(Q, p, G, h, method="enumerate")
+    ref = solve_qp(Q, p, G, h, method="ipm")
+    assert int(sol.status) == Status.SOLVED == int(ref.status)
+    assert ((G @ sol.x - h) / G.norm(dim=-1)).max() < 1e-9
+    torch.testing.assert_close(sol.x, ref.x, atol=1e-9, rtol=1e-9)

@@ -196,12 +196,15 @@ def _solve_chunk(
     W_ext[:, :Rn, :Rn] = W
     r_ext = torch.cat((r, r.new_zeros(B, 1)), -1)
     res = torch.baddbmm(r_ext.unsqueeze(1), mu_full, W_ext, alpha=-1.0)  # [B, C, Rn + 1]
+    # each row's residual on that row's own scale (as in the dual method), so a tiny row next
+    # to a huge one still counts
+    row_scale = hr.abs() + R.abs().amax(-1) * (1.0 + xu.abs().amax(-1, keepdim=True))
+    row_scale = torch.cat((row_scale.clamp_min(torch.finfo(dtype).tiny), hr.new_ones(B, 1)), -1)
+    res = res / row_scale.unsqueeze(1)
     # max(res, 0) over every row (the spare column is 0), and |res| on the rows of S
     pviol = torch.maximum(res.amax(-1), res.gather(-1, tab.T.expand(B, C, K)).amin(-1).neg())
     if E > 0:
         pviol = torch.maximum(pviol, res[..., :E].abs().amax(-1))
-    pscale = 1.0 + hr.abs().amax(-1, keepdim=True) if Rn > 0 else q.new_ones(B, 1)
-    pviol = pviol / pscale
     neg = (mu * tab.ineq.to(dtype)).amin(0).neg().clamp_min(0.0)
     dviol = neg / (1.0 + mu.abs().amax(0))  # [C, B]
     score = torch.maximum(pviol, dviol.T).nan_to_num_(nan=math.inf)
