@@ -106,6 +106,17 @@ def test_dual_infeasible_detected():
     assert (sol.x[0] == 0).all()
 
 
+@pytest.mark.parametrize("method", ["ipm", "auto"])
+def test_strictly_convex_problem_with_a_large_q_is_not_called_unbounded(method):
+    """Review case: the interior point's certificate compared ||Px|| with q'x, so q = -1e8
+    made a bounded problem (P = 1, -10 <= x <= 1) look dual infeasible."""
+    G = torch.tensor([[1.0], [-1.0]], dtype=F64)
+    h = torch.tensor([1.0, 10.0], dtype=F64)
+    sol = solve_qp(torch.eye(1, dtype=F64), torch.tensor([-1e8], dtype=F64), G, h, method=method)
+    assert int(sol.status) == Status.SOLVED
+    assert float(sol.x[0]) == pytest.approx(1.0, abs=1e-9)
+
+
 def test_infeasible_box_and_equality_flagged():
     Q = torch.eye(3, dtype=F64).expand(4, 3, 3)
     p = torch.zeros(4, 3, dtype=F64)

@@ -210,6 +210,12 @@ def solve_ipm(
 
     qn = _inf_norm(q)
     hn = torch.maximum(_inf_norm(h), _inf_norm(b))
+    # a strictly convex QP is never dual infeasible: only rows whose P is not positive
+    # definite may take the certificate (with a large q it fires falsely, e.g. P = 1,
+    # q = -1e8, -10 <= x <= 1)
+    L, info = torch.linalg.cholesky_ex(P)
+    pivots_ok = L.diagonal(dim1=-2, dim2=-1).square() > 1e-13 * P.diagonal(dim1=-2, dim2=-1).abs()
+    may_be_unbounded = (info != 0) | ~pivots_ok.all(-1)
     Gt, At = G.mT, A.mT
     idx = torch.arange(B, device=device)
     full: list[Tensor] | None = None
@@ -247,7 +253,8 @@ def solve_ipm(
         pinf = (hz < 0) & (_inf_norm(Gtz) <= -eps_inf * hz)
         dinf_thr = -eps_inf * qx
         dinf = (
-            (qx < 0)
+            may_be_unbounded
+            & (qx < 0)
             & (_inf_norm(Px) <= dinf_thr)
             & (_inf_norm(Ax) <= dinf_thr)
             & ((Gx.amax(-1) if M > 0 else qx.new_zeros(B)) <= dinf_thr)
@@ -270,7 +277,9 @@ def solve_ipm(
                 full = _write_back(full, idx, state)
                 keep = active.nonzero().squeeze(-1)
                 idx = idx[keep]
-                P, q, G, h, A, b, reg, qn, hn = (t[keep] for t in (P, q, G, h, A, b, reg, qn, hn))
+                P, q, G, h, A, b, reg, qn, hn, may_be_unbounded = (
+                    t[keep] for t in (P, q, G, h, A, b, reg, qn, hn, may_be_unbounded)
+                )
                 Gt, At = G.mT, A.mT
                 x, s, z, y, tau, kappa, status, iterations = (t[keep] for t in state)
                 inv_tau, rx, rz, ry, rt = (t[keep] for t in (inv_tau, rx, rz, ry, rt))
