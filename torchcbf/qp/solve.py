@@ -176,7 +176,7 @@ def solve_qp(
       - ``"ipm"``: the interior point method for every row.
       - ``"auto"`` (default): the dual active-set method where it applies (no equality
         rows, at most 8 variables after softening) when the data are on the CPU and its C
-        kernel is built (see below; e.g. 0.2 ms for one 2-variable, 6-row QP, about 1 us
+        kernel is built (see below; e.g. 0.2 ms for one 2-variable, 6-row QP, about 1.3 us
         per QP in a batch of 4096 4-variable, 8-row QPs, forward and backward). Otherwise
         enumeration for batches of at most 64 rows with at most 800 candidate sets (0.6 ms
         for the same single QP), then the dual method where it applies, else enumeration up
