@@ -1,9 +1,12 @@
-"""Fixtures for the QP tests: a cvxpy (Clarabel) reference solver."""
+"""Fixtures for the QP tests: a cvxpy (Clarabel) reference solver, and a switch that runs a
+test without and with the C kernel of the dual active-set method."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+
+from torchcbf.qp import _dual_native
 
 
 def cvxpy_solve(Q, p, G=None, h=None, A=None, b=None, lb=None, ub=None):
@@ -37,3 +40,14 @@ def cvxpy_solve(Q, p, G=None, h=None, A=None, b=None, lb=None, ub=None):
 def cvx():
     pytest.importorskip("cvxpy")
     return cvxpy_solve
+
+
+@pytest.fixture(params=[False, True], ids=["torch", "kernel"])
+def kernel(request, monkeypatch) -> bool:
+    """``False``: the C kernel is switched off (the torch implementation, and the closed
+    form, run on the CPU); ``True``: it runs (skipped where it was not built)."""
+    if not request.param:
+        monkeypatch.setattr(_dual_native, "available", lambda: False)
+    elif not _dual_native.available():
+        pytest.skip("the C kernel of the dual method was not built")
+    return request.param

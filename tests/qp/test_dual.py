@@ -5,15 +5,13 @@ twice: on the torch implementation and on the C kernel (skipped where it was not
 
 from __future__ import annotations
 
-import shutil
 import sys
-import sysconfig
 from pathlib import Path
 
 import pytest
 import torch
 
-from torchcbf.qp import Status, _dual_native, solve_qp
+from torchcbf.qp import Status, solve_qp
 from torchcbf.qp._dual import _cho_solve, _cholesky, solve_dual
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -30,14 +28,10 @@ SHAPES = [  # n, m, box bounds (no equalities: the dual path does not take them)
 ]
 
 
-@pytest.fixture(autouse=True, params=["torch", "native"])
-def implementation(request, monkeypatch):
+@pytest.fixture(autouse=True)
+def implementation(kernel):
     """Every test runs the torch implementation and the C kernel (where it is built)."""
-    if request.param == "torch":
-        monkeypatch.setattr(_dual_native, "applies", lambda q: False)
-    elif not _dual_native.available():
-        pytest.skip("the C kernel of the dual method was not built")
-    return request.param
+    return kernel
 
 
 def _args(batch):
@@ -249,15 +243,3 @@ def test_empty_batch_backward_and_equalities_rejected():
     A, b = torch.ones(1, 2, dtype=F64), torch.ones(1, dtype=F64)
     with pytest.raises(ValueError, match="active_set"):
         solve_qp(torch.eye(2, dtype=F64), torch.zeros(2, dtype=F64), A=A, b=b, method="active_set")
-
-
-def _c_compiler() -> str | None:
-    cc = (sysconfig.get_config_var("CC") or "cc").split()[0]
-    return shutil.which(cc)
-
-
-@pytest.mark.skipif(_c_compiler() is None, reason="no C compiler: the kernel is optional")
-def test_kernel_is_built_where_a_c_compiler_is_present():
-    """``pip install`` compiles the kernel; its build is optional, so a broken build would
-    otherwise only show as skipped kernel tests."""
-    assert _dual_native.available(), "reinstall (pip install -e .) to build _dual_kernel.c"

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchcbf.qp import Status, _dual_native, solve_qp
+from torchcbf.qp import Status, solve_qp
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _problems import make_batch  # noqa: E402
@@ -66,13 +66,8 @@ def test_gradcheck_box_active_and_soft_weights():
     assert torch.autograd.gradcheck(f, (p, lb, ub, G, h, soft), eps=1e-6, atol=1e-5)
 
 
-@pytest.mark.parametrize("kernel", [False, True])
-def test_closed_form_gradient_matches_formula(kernel, monkeypatch):
+def test_closed_form_gradient_matches_formula(kernel):
     """Without the C kernel the closed form runs; with it (CPU) the dual method does."""
-    if not kernel:
-        monkeypatch.setattr(_dual_native, "available", lambda: False)
-    elif not _dual_native.available():
-        pytest.skip("the C kernel of the dual method was not built")
     g = torch.Generator().manual_seed(1)
     L = torch.randn(20, 3, 3, generator=g, dtype=F64)
     Q = (L @ L.mT + torch.eye(3, dtype=F64)).requires_grad_(True)
