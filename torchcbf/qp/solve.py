@@ -323,22 +323,26 @@ def solve_qp(
         bad = bad | torch.isnan(softf).any(-1)
     infeasible_bound = infeasible_bound & ~bad
     skip = bad | infeasible_bound
-    sk1, sk2 = skip.view(B, 1), skip.view(B, 1, 1)
-    eye = torch.eye(n, dtype=dtype, device=device)
-    Qf = torch.where(sk2, eye, Qf)
-    pf = torch.where(sk1, 0.0, pf)
-    Gf = torch.where(sk2, 0.0, Gf)
-    hf = torch.where(sk1, 1.0, hf)
-    Af = torch.where(sk2, 0.0, Af)
-    bf = torch.where(sk1, 0.0, bf)
-    if lbf is not None:
-        lbf = torch.where(sk1, -math.inf, lbf)
-    if ubf is not None:
-        ubf = torch.where(sk1, math.inf, ubf)
-    if softf is not None:
-        softf = torch.where(sk1, 0.0, softf)
+    # on a CPU, asking whether any row is skipped costs no device synchronisation and spares
+    # the masks below, which are a large part of a small solve; elsewhere they always run
+    masked = device.type != "cpu" or bool(skip.any())
+    if masked:
+        sk1, sk2 = skip.view(B, 1), skip.view(B, 1, 1)
+        eye = torch.eye(n, dtype=dtype, device=device)
+        Qf = torch.where(sk2, eye, Qf)
+        pf = torch.where(sk1, 0.0, pf)
+        Gf = torch.where(sk2, 0.0, Gf)
+        hf = torch.where(sk1, 1.0, hf)
+        Af = torch.where(sk2, 0.0, Af)
+        bf = torch.where(sk1, 0.0, bf)
+        if lbf is not None:
+            lbf = torch.where(sk1, -math.inf, lbf)
+        if ubf is not None:
+            ubf = torch.where(sk1, math.inf, ubf)
+        if softf is not None:
+            softf = torch.where(sk1, 0.0, softf)
     if x0f is not None:
-        x0f = torch.where(sk1 | ~torch.isfinite(x0f), 0.0, x0f)
+        x0f = torch.where(skip.view(B, 1) | ~torch.isfinite(x0f), 0.0, x0f)
 
     # ---- standard form: symmetrise, soften, box rows -> inequality rows ----
     P = 0.5 * (Qf + Qf.mT)
@@ -434,24 +438,29 @@ def solve_qp(
     xs, z, y, status, iters = QPFunction.apply(P, q, Gs, hs, As, bf, cfg, x0f)
 
     # ---- unpack ----
-    status = torch.where(bad, int(Status.NON_FINITE), status)
-    status = torch.where(infeasible_bound, int(Status.PRIMAL_INFEASIBLE), status)
+    if masked:
+        status = torch.where(bad, int(Status.NON_FINITE), status)
+        status = torch.where(infeasible_bound, int(Status.PRIMAL_INFEASIBLE), status)
     ok1 = ~skip.view(B, 1)
-    x = torch.where(ok1, xs[:, :n], 0.0)
-    lam = torch.where(ok1, z[:, :m], 0.0)
+
+    def kept(t: Tensor) -> Tensor:
+        return torch.where(ok1, t, 0.0) if masked else t
+
+    x = kept(xs[:, :n])
+    lam = kept(z[:, :m])
     off = m
     slack = P.new_zeros(B, m)
     if softf is not None:
-        slack = torch.where(ok1, xs[:, n:].clamp_min(0.0) * is_soft, 0.0)
+        slack = kept(xs[:, n:].clamp_min(0.0) * is_soft)
         off += m
     zero_n = P.new_zeros(B, n)
     lam_ub = lam_lb = zero_n
     if ubf is not None:
-        lam_ub = torch.where(ok1, z[:, off : off + n], 0.0)
+        lam_ub = kept(z[:, off : off + n])
         off += n
     if lbf is not None:
-        lam_lb = torch.where(ok1, z[:, off : off + n], 0.0)
-    nu = torch.where(ok1, y, 0.0)
+        lam_lb = kept(z[:, off : off + n])
+    nu = kept(y)
 
     def unflat(t: Tensor) -> Tensor:
         return t.reshape((*batch_shape, *t.shape[1:]))
