@@ -154,3 +154,16 @@ def test_max_iter_beyond_a_c_int_is_clamped():
     big = solve_dual(P, q, G, h, eps=1e-9, max_iter=2**32 + 3, native=True)
     ref = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, native=True)
     assert big.ok.all() and torch.equal(big.iterations, ref.iterations)
+
+
+def test_a_library_built_from_another_version_is_refused(monkeypatch, caplog):
+    """An editable install not rebuilt after an edit of the C source must not be called."""
+    monkeypatch.setattr(_dual_native, "KERNEL_VERSION", _dual_native.KERNEL_VERSION + 1)
+    _dual_native._library.cache_clear()
+    try:
+        assert not _dual_native.available()
+        assert "another version" in caplog.text
+    finally:
+        monkeypatch.undo()
+        _dual_native._library.cache_clear()
+    assert _dual_native.available()

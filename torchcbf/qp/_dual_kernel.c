@@ -18,6 +18,12 @@
 
 #define NMAX 8
 
+/* Bumped whenever an exported signature or its meaning changes; _dual_native.py refuses a
+ * built library of another version (e.g. an editable install not rebuilt after an edit). */
+#define KERNEL_VERSION 1
+
+int torchcbf_dual_version(void) { return KERNEL_VERSION; }
+
 /* Every helper is inlined into one copy of the row solver per N (1..NMAX), so that N is a
  * compile-time constant and the small loops unroll. */
 #if defined(__GNUC__)

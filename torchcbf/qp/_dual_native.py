@@ -27,6 +27,8 @@ logger = logging.getLogger(__name__)
 MIN_ROWS_PER_THREAD = 1024
 #: most variables the kernel handles (``NMAX`` in the C source)
 MAX_VARS = 8
+#: ``KERNEL_VERSION`` of the C source this module calls
+KERNEL_VERSION = 1
 
 _P = ctypes.c_void_p
 _I64 = ctypes.c_int64
@@ -46,6 +48,14 @@ def _library() -> ctypes.CDLL | None:
             lib = ctypes.CDLL(str(path))
         except OSError as err:
             logger.warning("torchcbf: cannot load %s (%s); using the torch solver", path, err)
+            return None
+        version = getattr(lib, "torchcbf_dual_version", None)
+        if version is None or version() != KERNEL_VERSION:
+            logger.warning(
+                "torchcbf: %s was built from another version of _dual_kernel.c; using the "
+                "torch solver (reinstall to rebuild it)",
+                path,
+            )
             return None
         lib.torchcbf_dual_forward.argtypes = _FWD_ARGS
         lib.torchcbf_dual_backward.argtypes = _BWD_ARGS
