@@ -81,7 +81,7 @@ def test_learned_ellipse_barrier_classifies_and_keeps_the_loop_safe() -> None:
 @pytest.mark.slow
 def test_learn_barrier_script_five_ellipses(tmp_path) -> None:
     """The full reproduction: >= 99% held-out accuracy, zero collisions over 1,000 starts."""
-    out = subprocess.run(
+    run = subprocess.run(
         [
             sys.executable,
             str(ROOT / "scripts" / "learn_barrier.py"),
@@ -91,9 +91,10 @@ def test_learn_barrier_script_five_ellipses(tmp_path) -> None:
         ],
         capture_output=True,
         text=True,
-        check=True,
         timeout=3600,
-    ).stdout
+    )
+    assert run.returncode == 0, f"exit {run.returncode}\n{run.stdout}\n{run.stderr}"
+    out = run.stdout
     acc = float(re.search(r"held-out accuracy .*?: ([\d.]+)%", out).group(1))
     collisions = int(re.search(r"closed loop: (\d+) collisions over 1000", out).group(1))
     assert acc >= 99.0, out
