@@ -130,8 +130,9 @@ INLINE int slot_solve(int N, int M, const double *G, const double *US, const int
 #define WORKSPACE(N, M) ((size_t)(M) * (2 * (N) + 5))
 
 /* One problem. The workspace holds, component-major so that loops over the M rows run in
- * SIMD: Ut [N][M] = P^{-1} G', Y [N][M] (scratch, then violations), and per row the scale,
- * add tolerance, 1/||row||_{P^{-1}}, membership of the active set. Outputs as in
+ * SIMD: Ut [N][M] = P^{-1} G', Y [N][M] (scratch of the substitutions), and per row the
+ * scale, add tolerance, 1/||row||_{P^{-1}}, violation and membership of the active set
+ * (WORKSPACE doubles in all). Outputs as in
  * solve_dual: x [N], z [M], active [M], slots [N] (M: empty), L [N*N]; returns ok. */
 INLINE int solve_one(int N, int M, const double *RESTRICT P, const double *RESTRICT q,
                      const double *RESTRICT G, const double *RESTRICT h, double eps,
