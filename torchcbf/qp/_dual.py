@@ -38,7 +38,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchcbf.qp import _dual_native
+from torchcbf.qp import _dual_native, _kkt
 from torchcbf.qp._enum import _eliminate
 
 
@@ -266,8 +266,7 @@ def solve_dual(
     xu = sol[:, M + 1]
     UR = torch.cat((sol[:, : M + 1], rhs[:, : M + 1]), 0)
     hr = h.T.contiguous()
-    # scale of each row's residual, so tiny and huge rows are judged alike
-    row_scale = hr.abs() + Rc.abs().amax(0) * (1.0 + xu.abs().amax(0))
+    row_scale = _kkt.row_scale(G, h, xu.T).T  # [M, B]
     # a row joins while violated beyond rounding, not beyond eps: near a nearly parallel
     # active row a violation of eps can hide an error of sqrt(eps) in x
     add_tol = 1e4 * torch.finfo(dtype).eps * row_scale

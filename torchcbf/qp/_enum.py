@@ -36,6 +36,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchcbf.qp._kkt import row_scale
+
 #: ``method="auto"`` enumerates when the candidate count is at most ``MAX_CANDIDATES``, or at
 #: most ``MAX_CANDIDATES_SMALL_BATCH`` for batches of at most ``SMALL_BATCH`` rows (measured on
 #: a 2-core CPU, scripts/bench_qp.py --crossover: at B=1024 enumeration is ~1.6x faster than
@@ -198,9 +200,8 @@ def _solve_chunk(
     res = torch.baddbmm(r_ext.unsqueeze(1), mu_full, W_ext, alpha=-1.0)  # [B, C, Rn + 1]
     # each row's residual on that row's own scale (as in the dual method), so a tiny row next
     # to a huge one still counts
-    row_scale = hr.abs() + R.abs().amax(-1) * (1.0 + xu.abs().amax(-1, keepdim=True))
-    row_scale = torch.cat((row_scale.clamp_min(torch.finfo(dtype).tiny), hr.new_ones(B, 1)), -1)
-    res = res / row_scale.unsqueeze(1)
+    scale = row_scale(R, hr, xu).clamp_min(torch.finfo(dtype).tiny)
+    res = res / torch.cat((scale, hr.new_ones(B, 1)), -1).unsqueeze(1)
     # max(res, 0) over every row (the spare column is 0), and |res| on the rows of S
     pviol = torch.maximum(res.amax(-1), res.gather(-1, tab.T.expand(B, C, K)).amin(-1).neg())
     if E > 0:

@@ -86,6 +86,13 @@ def active_set(z: Tensor, s: Tensor) -> Tensor:
     return z > s
 
 
+def row_scale(R: Tensor, r: Tensor, x: Tensor) -> Tensor:
+    """Scale ``|r_i| + max|R_i| (1 + max|x|)`` of each row's residual ``R_i x - r_i`` for
+    ``R [B, K, N], r [B, K], x [B, N]`` -> ``[B, K]``. Every exact path judges a row's
+    violation on it, so a tiny row next to a huge one still counts."""
+    return r.abs() + R.abs().amax(-1) * (1.0 + x.abs().amax(-1, keepdim=True))
+
+
 def polish(
     P: Tensor,
     q: Tensor,
@@ -149,8 +156,7 @@ def polish(
     res = torch.cat(
         (res[..., :M].clamp_min(0.0), res[..., M:].abs(), res.new_zeros(len(res), 1)), -1
     )
-    row_scale = r.abs() + R.abs().amax(-1) * (1.0 + xp.abs().amax(-1, keepdim=True))
-    scale = torch.cat((row_scale, r.new_ones(len(r), 1)), -1)
+    scale = torch.cat((row_scale(R, r, xp), r.new_ones(len(r), 1)), -1)
     za = torch.cat((zp * act.to(zp.dtype), zp.new_zeros(zp.shape[0], 1)), -1)
     exact = (
         ok
