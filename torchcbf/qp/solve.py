@@ -438,13 +438,13 @@ def solve_qp(
     xs, z, y, status, iters = QPFunction.apply(P, q, Gs, hs, As, bf, cfg, x0f)
 
     # ---- unpack ----
+    ok1 = ~skip.view(B, 1) if masked else None
     if masked:
         status = torch.where(bad, int(Status.NON_FINITE), status)
         status = torch.where(infeasible_bound, int(Status.PRIMAL_INFEASIBLE), status)
-    ok1 = ~skip.view(B, 1)
 
     def kept(t: Tensor) -> Tensor:
-        return torch.where(ok1, t, 0.0) if masked else t
+        return t if ok1 is None else torch.where(ok1, t, 0.0)
 
     x = kept(xs[:, :n])
     lam = kept(z[:, :m])
