@@ -2,6 +2,7 @@
 
 from torchcbf.mppi.costs import (
     BarrierCost,
+    DiscreteBarrierCost,
     ObstacleCost,
     QuadraticGoal,
     RolloutCost,
@@ -18,6 +19,7 @@ __all__ = [
     "And",
     "Avoid",
     "BarrierCost",
+    "DiscreteBarrierCost",
     "Eventually",
     "History",
     "HistoryBuffer",
