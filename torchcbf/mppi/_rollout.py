@@ -326,6 +326,13 @@ def run(
     if wsum is None:
         threads = max(1, min(torch.get_num_threads(), count // MIN_SAMPLES_PER_THREAD))
     bounds = [count * i // threads for i in range(threads + 1)]
+    if wsum is not None and inputs[0] is not None and threads > 1:
+        # each environment's weighted sum is accumulated by one thread, in sample order, so
+        # the result does not depend on the number of threads
+        envs = inputs[0][:, 0]
+        envs = envs.contiguous()
+        cut = torch.searchsorted(envs, envs[torch.tensor(bounds[1:-1])], side="left").tolist()
+        bounds = [0, *cut, count]
     common = [_ptr(t) for t in inputs]
     outs = [_ptr(cost), _ptr(states), _ptr(controls), _ptr(eps), _ptr(weights)]
     cfg_ptr = cfg.data_ptr()
