@@ -16,11 +16,11 @@ Algorithm (per environment, as pytorch-mppi / Williams et al. 2017):
 5. ``S_k = cost(rollout_k) + gamma * sum_j U_j' Sigma^-1 eps_{k,j}`` (the pytorch-mppi form
    of the control cost, ``gamma = control_cost_weight``);
 6. ``w_k = exp(-(S_k - min S) / lambda) / sum(...)`` (``lambda = temperature``, floored at
-   the dtype's smallest normal number); a sample whose cost is not finite (NaN, +inf or
-   -inf: a cost is a penalty, -inf is taken as an error of the cost, not as a perfect
-   sample) gets weight zero and is counted in ``MPPIOutput.nonfinite``; with
-   ``cost_normalization="range"`` (``"std"``) the exponent is divided by the range (the
-   standard deviation) of the sample costs;
+   the dtype's smallest normal number; a weight below that number is zero); a sample whose
+   cost is not finite (NaN, +inf or -inf: a cost is a penalty, so -inf is taken as an error
+   of the cost, not as a perfect sample) gets weight zero and is counted in
+   ``MPPIOutput.nonfinite``; with ``cost_normalization="range"`` (``"std"``) the exponent is
+   divided by the range (the standard deviation) of the sample costs;
 7. ``U <- U + sum_k w_k eps_k``; the first control ``U_0`` is returned.
 
 Randomness: environment ``b`` draws its noise from its own ``torch.Generator`` on the
@@ -580,7 +580,11 @@ class MPPI(nn.Module):
                 dev = torch.where(finite, kept - mean, torch.zeros_like(kept))
                 span = (dev.square().sum(-1, keepdim=True) / n_fin).sqrt()
             shifted = shifted / span.clamp_min(torch.finfo(cost.dtype).tiny)
-        w = torch.exp(shifted.mul_(-1.0 / lam))
+        # exponents below log(tiny) give weight 0 (their exp would be subnormal: no
+        # difference to the weights, and subnormal results make exp several times slower)
+        expo = shifted.mul_(-1.0 / lam)
+        floor = math.log(torch.finfo(cost.dtype).tiny)
+        w = torch.where(expo >= floor, torch.exp(expo.clamp_min_(floor)), 0.0)
         w = w / w.sum(-1, keepdim=True).clamp_min(1.0)  # the best sample has weight 1 before
         return _Weights(w, cost_min, best, ok, finite)
 
