@@ -152,9 +152,16 @@ class ObstacleCost(RolloutCost):
         return self.k_o / dist.clamp_min(self.eps)
 
 
+def _barrier_values(barrier: Terminal, states: Tensor) -> Tensor:
+    """``b(states) -> [..., k]``: a one-output barrier gets a trailing dimension of 1."""
+    value = barrier(states)
+    return value if value.dim() == states.dim() else value.unsqueeze(-1)
+
+
 class BarrierCost(RolloutCost):
-    """``weight / max(b(x), eps)`` per step for a barrier ``b: [..., n] -> [...]`` (``b >= 0``
-    safe; any callable or module, e.g. an ellipse). SCENARIOS.md B uses weight 2, eps 0.01."""
+    """``weight sum_i 1 / max(b_i(x), eps)`` per step for a barrier ``b: [..., n] -> [...]``
+    or ``[..., k]`` (``b >= 0`` safe; any callable or module, e.g. the five ellipses of
+    scenario B with weight 2, eps 0.01)."""
 
     def __init__(self, barrier: Terminal, weight: float = 1.0, eps: float = 0.01) -> None:
         super().__init__()
@@ -166,7 +173,40 @@ class BarrierCost(RolloutCost):
         self.weight, self.eps = float(weight), float(eps)
 
     def stage(self, states: Tensor, controls: Tensor | None) -> Tensor:
-        return self.weight / self.barrier(states).clamp_min(self.eps)
+        return (self.weight / _barrier_values(self.barrier, states).clamp_min(self.eps)).sum(-1)
+
+
+class DiscreteBarrierCost(nn.Module):
+    """A steep penalty on the discrete-time CBF condition ``b(x_{k+1}) >= (1 - gamma) b(x_k)``
+    along the rollout: ``weight sum_k sum_i relu((1 - gamma) b_i(x_k) - b_i(x_{k+1}))``.
+
+    With ``gamma = k dt`` it is the one-step form of ``L_f b + k b >= 0`` (the safe set of an
+    exponentially rectified barrier), so rollouts that a CBF filter would correct cost more.
+
+    It reads consecutive states, so it is a whole-rollout cost: ``forward(states [B, K, H+1,
+    n], controls, t0=None) -> [B, K]``.
+
+    Args:
+        barrier: ``b: [..., n] -> [...]`` or ``[..., k]`` (``b >= 0`` safe).
+        gamma: decay per step, ``0 < gamma <= 1``.
+        weight: penalty weight (``>= 0``).
+    """
+
+    def __init__(self, barrier: Terminal, *, gamma: float, weight: float = 1e3) -> None:
+        super().__init__()
+        if not callable(barrier):
+            raise TypeError(f"barrier must be callable, got {type(barrier).__name__}")
+        if not 0.0 < gamma <= 1.0:
+            raise ValueError(f"gamma must be in (0, 1], got {gamma}")
+        if not weight >= 0.0:
+            raise ValueError(f"weight must be >= 0, got {weight}")
+        self.barrier = barrier
+        self.gamma, self.weight = float(gamma), float(weight)
+
+    def forward(self, states: Tensor, controls: Tensor, t0: Tensor | None = None) -> Tensor:
+        b = _barrier_values(self.barrier, states)  # [..., H+1, k]
+        violation = ((1.0 - self.gamma) * b[..., :-1, :] - b[..., 1:, :]).clamp_min(0.0)
+        return self.weight * violation.sum((-2, -1))
 
 
 class SumCost(RolloutCost):
@@ -227,6 +267,7 @@ class SumCost(RolloutCost):
 
 __all__ = [
     "BarrierCost",
+    "DiscreteBarrierCost",
     "ObstacleCost",
     "QuadraticGoal",
     "RolloutCost",

@@ -258,6 +258,18 @@ class MPPI(nn.Module):
         self._key = key
         self._fresh = True
 
+    def correct(self, u: Tensor) -> None:
+        """Replace the first control of the current plan by ``u [B, m]`` (or ``[m]``), e.g. the
+        control a safety filter actually applied, so the next warm start continues from it."""
+        if self._key is None:
+            raise RuntimeError("correct() needs a plan: call the planner first")
+        m = self.dynamics.control_dim
+        check_last_dim("u", u, m)
+        B = self._plan.shape[0]
+        if u.shape not in ((B, m), (m,)):
+            raise ValueError(f"u must have shape [{B}, {m}] or [{m}], got {tuple(u.shape)}")
+        self._plan[:, 0] = u.to(self._plan)
+
     @property
     def history(self) -> History | None:
         """The recorded executed states and times (``None`` before the first call)."""
