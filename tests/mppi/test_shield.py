@@ -75,7 +75,7 @@ def _planner(seed: int = 0) -> MPPI:
 
 def test_correct_replaces_the_first_control_of_the_plan() -> None:
     planner = _planner()
-    with pytest.raises(RuntimeError, match="call the planner first"):
+    with pytest.raises(ValueError, match="call the planner first"):
         planner.correct(torch.zeros(2, dtype=torch.float64))
     x = torch.zeros(3, 2, dtype=torch.float64)
     out = planner(x)
