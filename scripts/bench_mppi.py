@@ -195,7 +195,7 @@ def run_one(name: str, reps: int, device: str) -> dict:
     with torch.no_grad():
         res = timed(step, x, reps)
     res["state_steps"] = B * K * H
-    res["path"] = getattr(step, "path", None) or "pytorch-mppi"
+    res["path"] = "pytorch-mppi" if who == "pytorch-mppi" else getattr(step, "path", "torch")
     return res
 
 

@@ -329,7 +329,7 @@ class MPPI(nn.Module):
         """Replace the first control of the current plan by the control actually applied.
 
         ``u``: ``[m]`` or ``[B, m]`` (e.g. a safety filter's output for the control this
-        planner returned), clamped to the planner's limits. The next call's warm start then
+        planner returned), stored as given. The next call's warm start then
         continues from the executed control: with ``shift=False`` it refines the plan from
         it, and with the shifting warm start it replaces it by ``plan[1]`` as usual (the
         rest of the plan is kept either way).
@@ -343,12 +343,6 @@ class MPPI(nn.Module):
         if u.shape not in ((m,), (B, m)):
             raise ValueError(f"u must have shape [{m}] or [{B}, {m}], got {tuple(u.shape)}")
         value = u.detach().to(plan).expand(B, m)
-        if self.u_min is not None or self.u_max is not None:
-            value = torch.clamp(
-                value,
-                None if self.u_min is None else self.u_min.to(plan),
-                None if self.u_max is None else self.u_max.to(plan),
-            )
         plan[:, 0] = value
 
     # -- one planning call -------------------------------------------------------------------
