@@ -77,6 +77,8 @@ INTEGRATORS = ("euler", "rk4")
 SHIFT_FILLS = ("zero", "last")
 NORMALIZATIONS = ("none", "range", "std")
 BACKENDS = ("auto", "torch")
+#: state elements (``B x slice x (H+1) x n``) per cost call when ``cost_chunk`` is automatic
+AUTO_CHUNK_ELEMENTS = 2**18
 
 
 class MPPIOutput(NamedTuple):
@@ -151,8 +153,10 @@ class MPPI(nn.Module):
     Args:
         dynamics: a :class:`~torchcbf.dynamics.ControlAffine` model (nominal dynamics).
         cost: ``cost(states [B, K, H+1, n], controls [B, K, H, m], t0 [B]) -> [B, K]``; a
-            callable or module. Costs with ``needs_history = True`` (the specifications of
-            :mod:`torchcbf.mppi.specs`) are also given ``dt=`` and ``history=``.
+            callable or module. The cost of a sample must depend on its own rollout only
+            (the planner may call it on slices of the samples, see ``cost_chunk``). Costs
+            with ``needs_history = True`` (the specifications of :mod:`torchcbf.mppi.specs`)
+            are also given ``dt=`` and ``history=``.
         horizon: ``H >= 1`` steps.
         num_samples: ``K >= 1`` samples per environment.
         dt: rollout time step.
@@ -183,6 +187,11 @@ class MPPI(nn.Module):
             (torch path only).
         backend: ``"auto"`` (default: the C kernel where it applies, see the module
             docstring) or ``"torch"`` (always the torch path).
+        cost_chunk: samples per call of a torch cost: ``None`` (default) slices the samples
+            on the CPU so that one slice holds about ``AUTO_CHUNK_ELEMENTS`` state values (the
+            cost's intermediates then stay in cache, 2-3x faster for a cost written on whole
+            rollouts) and calls it once on other devices or when compiled; ``0`` calls it
+            once on all samples; ``c`` on slices of ``c`` samples.
     """
 
     def __init__(
@@ -207,6 +216,7 @@ class MPPI(nn.Module):
         cost_normalization: str = "none",
         compile: bool | dict[str, Any] = False,
         backend: str = "auto",
+        cost_chunk: int | None = None,
     ) -> None:
         super().__init__()
         if not isinstance(dynamics, ControlAffine):
@@ -237,6 +247,10 @@ class MPPI(nn.Module):
             )
         if shift_fill not in SHIFT_FILLS:
             raise ValueError(f"shift_fill must be one of {SHIFT_FILLS}, got {shift_fill!r}")
+        if cost_chunk is not None and (
+            not isinstance(cost_chunk, int) or isinstance(cost_chunk, bool) or cost_chunk < 0
+        ):
+            raise ValueError(f"cost_chunk must be None or an integer >= 0, got {cost_chunk!r}")
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         if not isinstance(control_cost_weight, (int, float)) or not control_cost_weight >= 0:
@@ -255,6 +269,7 @@ class MPPI(nn.Module):
         self.zero_noise_samples = zero_noise_samples
         self.cost_normalization = cost_normalization
         self.backend = backend
+        self.cost_chunk = cost_chunk
         #: the path of the last call: ``"fused"``, ``"rollout"`` or ``"torch"``
         self.path: str | None = None
 
@@ -458,16 +473,41 @@ class MPPI(nn.Module):
     ) -> Tensor:
         """Cost ``[B, K]`` of the rollouts (``[B, K, H+1, n]``, ``[B, K, H, m]``) plus the
         control cost."""
-        if self._needs_history:
-            cost = self.cost(states, controls, t0, dt=self.dt, history=history)
-        else:
-            cost = self.cost(states, controls, t0)
+        chunk = self._chunk(states)
+        K = states.shape[1]
+        if chunk >= K:
+            cost = self._rollout_cost(states, controls, t0, history)
+        else:  # slices small enough for the cost's intermediates to stay in cache
+            cost = states.new_empty(states.shape[:2])
+            for k in range(0, K, chunk):
+                part = self._rollout_cost(
+                    states[:, k : k + chunk], controls[:, k : k + chunk], t0, history
+                )
+                self._check_cost(part, min(chunk, K - k))
+                cost[:, k : k + chunk] = part
         if self.control_cost_weight > 0.0:
             B, K, H, m = eps.shape
             weighted = plan @ self.noise_cov_inv.to(plan)  # [B, H, m]
             ctrl = (eps.reshape(B, K, H * m) @ weighted.reshape(B, H * m, 1)).squeeze(-1)
             cost = cost + self.control_cost_weight * ctrl
         return cost
+
+    def _rollout_cost(
+        self, states: Tensor, controls: Tensor, t0: Tensor, history: History | None
+    ) -> Tensor:
+        if self._needs_history:
+            return self.cost(states, controls, t0, dt=self.dt, history=history)
+        return self.cost(states, controls, t0)
+
+    def _chunk(self, states: Tensor) -> int:
+        """Samples per cost call."""
+        K = states.shape[1]
+        if self.cost_chunk is not None:
+            return self.cost_chunk or K
+        if self._compiled or states.device.type != "cpu":
+            return K
+        per_sample = states.shape[0] * states.shape[2] * states.shape[3]
+        return max(64, AUTO_CHUNK_ELEMENTS // per_sample)
 
     # -- kernel paths --------------------------------------------------------------------------
     def _kernel_plan(
@@ -551,8 +591,8 @@ class MPPI(nn.Module):
         return self._output(cost, weights, delta, rolled[:B], rollouts, unbatched)
 
     # -- weights and update --------------------------------------------------------------------
-    def _check_cost(self, cost: Tensor) -> None:
-        B, K = self._plan.shape[0], self.num_samples
+    def _check_cost(self, cost: Tensor, count: int | None = None) -> None:
+        B, K = self._plan.shape[0], self.num_samples if count is None else count
         if not isinstance(cost, Tensor) or cost.shape != (B, K):
             shape = tuple(cost.shape) if isinstance(cost, Tensor) else type(cost).__name__
             raise ValueError(f"cost must return shape [{B}, {K}], got {shape}")
