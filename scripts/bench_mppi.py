@@ -154,8 +154,10 @@ def timed(step: Callable[[torch.Tensor], object], x: torch.Tensor, reps: int) ->
         cpus.append(time.process_time() - c)
     load = max(load, os.getloadavg()[0])
     walls.sort()
+    cpus.sort()
     return {
         "median": walls[len(walls) // 2],
+        "cpu": cpus[len(cpus) // 2],
         "min": walls[0],
         "max": walls[-1],
         "first": first,
@@ -255,8 +257,8 @@ def fmt(res: dict) -> str:
         flags.append("NOISY")
     rate = res["state_steps"] / res["median"] / 1e6
     return (
-        f"{res['median']:9.4f} [{res['min']:.4f}-{res['max']:.4f}] {rate:8.1f} "
-        f"{res['first']:7.2f} {res['cpu_share']:5.2f} {res['load']:5.1f}  {' '.join(flags)}"
+        f"{res['median']:9.4f} [{res['min']:.4f}-{res['max']:.4f}] {res['cpu']:8.4f} {rate:7.1f} "
+        f"{res['first']:7.2f} {res['cpu_share']:5.2f} {res['load']:5.1f}  {' '.join(flags):<12}"
     )
 
 
@@ -304,12 +306,16 @@ def main() -> None:
         f"{os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f}"
     )
     print(
-        "s/call: median [range] of the timed calls; M/s: million state-steps per second "
-        "(B K H / median); first: the 2 warm-up calls; cpu: CPU time / (wall x threads); "
-        "load: 1-min load average"
+        "s/call: median [range] of the timed calls (wall); cpu s: median process CPU time per "
+        "call (the steadier figure on a loaded machine); M/s: million state-steps per second "
+        "(B K H / median wall); first: the 2 warm-up calls; cpu: CPU time / (wall x threads); "
+        "load: 1-min load average; ratio: wall (CPU time)"
     )
-    head = f"{'line':<9} {'planner':<27} {'path':<12} {'s/call':>9} {'[range]':<15} {'M/s':>8}"
-    print(head + f" {'first s':>7} {'cpu':>5} {'load':>5}  flags  ratio")
+    head = f"{'line':<9} {'planner':<27} {'path':<12} {'s/call':>9} {'[range]':<15}"
+    print(
+        head
+        + f" {'cpu s':>8} {'M/s':>7} {'first s':>7} {'cpu':>5} {'load':>5}  {'flags':<12} ratio"
+    )
     for line in lines:
         ref: dict | None = None
         for name, label in plan[line]:
@@ -334,19 +340,19 @@ def main() -> None:
             if res["path"] == "pytorch-mppi":
                 ref = res
             elif ref is not None:
-                rate = res["state_steps"] / res["median"]
-                ref_rate = ref["state_steps"] / ref["median"]
+                wall = (res["state_steps"] / res["median"]) / (ref["state_steps"] / ref["median"])
+                cpu = (res["state_steps"] / res["cpu"]) / (ref["state_steps"] / ref["cpu"])
                 if line == "batched":
-                    ratio = f"throughput {rate / ref_rate:.2f}x pytorch-mppi's"
+                    ratio = f"throughput {wall:.2f}x ({cpu:.2f}x) pytorch-mppi's"
                 else:
-                    ratio = f"time {res['median'] / ref['median']:.3f}x pytorch-mppi's"
+                    ratio = f"time {1 / wall:.3f}x ({1 / cpu:.3f}x) pytorch-mppi's"
             print(f"{line:<9} {label:<27} {res['path']:<12} {fmt(res)}  {ratio}")
             if line == "paper":
                 total = res["median"] * PAPER_CALLS
                 print(
                     f"{'':<9} projection: {PAPER_CALLS} calls x {res['median']:.3f} s = "
                     f"{total:.0f} s ({total / 60:.1f} min) per MPPI method of the paper-size "
-                    "scenario B run (planner only)"
+                    f"scenario B run (planner only; {res['cpu'] * PAPER_CALLS:.0f} s CPU time)"
                 )
 
 
