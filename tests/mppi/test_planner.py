@@ -132,12 +132,24 @@ def test_noise_covariance_and_clamping():
         seen["controls"] = controls.clone()
         return torch.zeros(states.shape[:2], dtype=states.dtype)
 
-    planner = MPPI(SingleIntegrator(2), cost, H, K, 0.1, sigma, 1.0, seed=3)
+    planner = MPPI(SingleIntegrator(2), cost, H, K, 0.1, sigma, 1.0, seed=3, cost_chunk=0)
     planner(torch.zeros(2, dtype=torch.float64))
     eps = seen["controls"].reshape(-1, 2)  # the plan is zero on the first call
     torch.testing.assert_close(eps.T.cov(), sigma, atol=0.05, rtol=0.05)
     # with limits: controls inside the box, and the plan moves by the weighted clamped noise
-    lim = MPPI(SingleIntegrator(2), cost, H, K, 0.1, sigma, 1.0, u_min=-0.5, u_max=0.5, seed=3)
+    lim = MPPI(
+        SingleIntegrator(2),
+        cost,
+        H,
+        K,
+        0.1,
+        sigma,
+        1.0,
+        u_min=-0.5,
+        u_max=0.5,
+        seed=3,
+        cost_chunk=0,
+    )
     out = lim(torch.zeros(2, dtype=torch.float64))
     v = seen["controls"]
     assert float(v.abs().max()) <= 0.5

@@ -78,7 +78,7 @@ SHIFT_FILLS = ("zero", "last")
 NORMALIZATIONS = ("none", "range", "std")
 BACKENDS = ("auto", "torch")
 #: state elements (``B x slice x (H+1) x n``) per cost call when ``cost_chunk`` is automatic
-AUTO_CHUNK_ELEMENTS = 2**18
+AUTO_CHUNK_ELEMENTS = 2**17
 
 
 class MPPIOutput(NamedTuple):
@@ -507,7 +507,7 @@ class MPPI(nn.Module):
         if self._compiled or states.device.type != "cpu":
             return K
         per_sample = states.shape[0] * states.shape[2] * states.shape[3]
-        return max(64, AUTO_CHUNK_ELEMENTS // per_sample)
+        return max(1, AUTO_CHUNK_ELEMENTS // per_sample)
 
     # -- kernel paths --------------------------------------------------------------------------
     def _kernel_plan(
