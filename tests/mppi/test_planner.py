@@ -299,7 +299,7 @@ def test_bad_input():
 def test_compiled_matches_eager():
     pytest.importorskip("torch._dynamo")
     eager = _planner(seed=4, K=32, H=4, backend="torch")
-    compiled = _planner(seed=4, K=32, H=4, compile=True)
+    compiled = _planner(seed=4, K=32, H=4, compile=True, backend="torch")
     x = _x0(2)
     for step in range(2):
         a, b = eager(x, 0.1 * step), compiled(x, 0.1 * step)

@@ -44,18 +44,19 @@ Paths (``MPPI.path`` says which one the last call took):
 - ``"rollout"``: a built-in model with any other cost: the kernel draws the noise and rolls
   out into the ``[B, K, H+1, n]`` buffer, torch evaluates the cost.
 - ``"torch"``: everything else (any :class:`~torchcbf.dynamics.ControlAffine`, CUDA, a
-  planner built with ``backend="torch"`` or ``compile``, or gradients requested through
-  the planner's parameters): noise from ``torch.Generator``, rollouts with
-  :mod:`torchcbf.integrators`, buffers allocated once and reused.
+  planner built with ``backend="torch"``, or gradients requested through the planner's
+  parameters): noise from ``torch.Generator``, rollouts with :mod:`torchcbf.integrators`,
+  buffers allocated once and reused.
 
 Every path hands the cost contiguous sample-major buffers ``states [B, K, H+1, n]`` and
 ``controls [B, K, H, m]``.
 
 Compilation: ``MPPI(..., compile=True)`` (or a dict of ``torch.compile`` keyword arguments)
-compiles one integration step and the cost evaluation (cost + control cost) of the torch
-path; the loop over the horizon, noise sampling, weights and the plan update stay eager.
-The first call compiles (about 10-30 s on a CPU); later calls with the same ``B`` reuse the
-code.
+compiles the evaluation of a torch cost (cost + control cost, called once on all samples)
+and, on the torch path, one integration step; the loop over the horizon, noise sampling,
+weights and the plan update stay eager, and a fused cost is not affected. The first call
+compiles (10-30 s on a CPU with a cold compile cache); later calls with the same ``B``
+reuse the code.
 """
 
 from __future__ import annotations
@@ -183,8 +184,8 @@ class MPPI(nn.Module):
             sample size ~1, the control-cost noise decides), ``"range"`` averages so much
             that the hairpin at g2 is cut, and ``"std"`` succeeds (see
             tests/mppi/test_scenario_a.py).
-        compile: ``True`` or a dict of ``torch.compile`` kwargs to compile rollout + cost
-            (torch path only).
+        compile: ``True`` or a dict of ``torch.compile`` kwargs: compile a torch cost (and the
+            torch path's integration step).
         backend: ``"auto"`` (default: the C kernel where it applies, see the module
             docstring) or ``"torch"`` (always the torch path).
         cost_chunk: samples per call of a torch cost: ``None`` (default) slices the samples
@@ -516,7 +517,6 @@ class MPPI(nn.Module):
         """``(model, cost)`` encodings for the kernel, each ``None`` where torch runs."""
         usable = (
             self.backend == "auto"
-            and not self._compiled
             and x.device.type == "cpu"
             and x.dtype in (torch.float32, torch.float64)
             and _rollout.available()
