@@ -281,3 +281,20 @@ def test_risk_failures_matches_a_loop() -> None:
         got["risk_failure_rate"],
         got["risk_window_failures"].double() / got["risk_windows"].double(),
     )
+
+
+@pytest.mark.slow
+def test_mppi_cbf_default_configuration_targets() -> None:
+    """Default configuration on a block of 16 seeds that neither the tuning (10,000 and up)
+    nor the README's evaluation (0-31) used, at K = 1,000: MPPI + SCBF and the shield MPPI
+    never collide and reach the goal in at least 15 of 16 seeds; the risk-aware filter's
+    empirical failure rate within its horizon stays below rho."""
+    for method in ("mppi_scbf", "shield_mppi", "mppi_rascbf"):
+        scenario = mppi_cbf(method, num_seeds=16, seed=500, num_samples=1000, horizon=80)
+        _, m = scenario.run(progress=False)
+        if method == "mppi_rascbf":
+            rate = m["risk_window_failures"].sum() / m["risk_windows"].sum()
+            assert float(rate) <= scenario.params["rho"]
+            continue
+        assert int(m["collision"].sum()) == 0, method
+        assert int(m["goal_reached"].sum()) >= 15, method

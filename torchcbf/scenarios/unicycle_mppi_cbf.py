@@ -90,7 +90,7 @@ class FilterParams:
     """
 
     form: str = "exponential"
-    alpha: float = 20.0
+    alpha: float = 50.0
     beta: float = 1.0
     rectify_gain: float = 20.0
     margin: float = 0.25
