@@ -94,9 +94,7 @@ class ControlAffine(nn.Module):
             assert w_max is not None
             check_finite("disturbance_bound", w_max)
             if bool((w_max.detach() < 0).any()):
-                raise ValueError(
-                    f"disturbance_bound must be >= 0, got {w_max.detach().tolist()}"
-                )
+                raise ValueError(f"disturbance_bound must be >= 0, got {w_max.detach().tolist()}")
             self.disturbance_matrix = M
             self.disturbance_bound = w_max
 

@@ -182,9 +182,9 @@ def _check_state(state: object, n: int | None) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def _noise_spec(module: nn.Module, buffer: str, name: str, value: object, n: int) -> Tensor:
-    """Register as ``buffer`` the covariance argument ``name`` given as a scalar (``v I``), a vector (diagonal) or
-    ``[n, n]`` (symmetric positive definite), exact under ``.double()`` when given as numbers;
-    a tensor keeps its dtype (and its gradient when it requires grad)."""
+    """Register as ``buffer`` the covariance argument ``name``: a scalar (``v I``), a vector
+    (diagonal) or ``[n, n]`` (symmetric positive definite), exact under ``.double()`` when
+    given as numbers; a tensor keeps its dtype (and its gradient when it requires grad)."""
     if isinstance(value, Tensor):
         module.register_buffer(buffer, as_matrix(name, value, n))
         return getattr(module, buffer)
