@@ -208,3 +208,26 @@ def sq_dist(p: Tensor, c: Tensor) -> Tensor:
     """Squared Euclidean distance ``|p - c|^2`` over the last axis (``c`` cast to ``p``)."""
     diff = p - c.to(device=p.device, dtype=p.dtype)
     return diff.square_().sum(-1)
+
+
+def check_number(
+    name: str, value: object, *, low: float | None = None, strict: bool = False
+) -> float:
+    """A finite Python number (``>= low``, or ``> low`` when ``strict``) as a float.
+
+    A tensor raises ``TypeError``: these options are plain numbers, and converting a tensor
+    that requires grad would cut its gradient silently.
+    """
+    if isinstance(value, Tensor):
+        raise TypeError(
+            f"{name} must be a Python number, got a tensor (it would be cut from the autograd "
+            "graph: pass float(...) explicitly)"
+        )
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TypeError(f"{name} must be a number, got {type(value).__name__}")
+    v = float(value)
+    if v != v or v in (float("inf"), float("-inf")):
+        raise ValueError(f"{name} must be finite, got {v}")
+    if low is not None and (v <= low if strict else v < low):
+        raise ValueError(f"{name} must be {'>' if strict else '>='} {low}, got {v}")
+    return v

@@ -173,3 +173,26 @@ def test_workspace_numbers_are_exact_after_double():
     barrier = LinkSphereBarrier(arm, ["link2"], 0.1, [0.3, 0.7, 0.0], 0.2).double()
     assert barrier.radii[0].item() == 0.1 and barrier.obstacle_radius[0].item() == 0.2
     assert barrier.obstacle_center[0, 0].item() == 0.3
+
+
+def test_neural_barrier_scale_tensor_keeps_its_gradient():
+    from torchcbf import NeuralBarrier
+
+    scale = torch.tensor(2.0, dtype=F64, requires_grad=True)
+    net = nn.Linear(2, 1).double()
+    barrier = NeuralBarrier(net, scale=scale)
+    x = torch.tensor([[0.3, -0.1]], dtype=F64)
+    barrier(x).sum().backward()
+    assert torch.allclose(scale.grad, net(x).sum().detach())
+    with pytest.raises(ValueError, match="scale must be finite"):
+        NeuralBarrier(net, scale=float("nan"))
+
+
+def test_number_options_refuse_tensors_instead_of_cutting_them():
+    from torchcbf import UKF
+
+    with pytest.raises(TypeError, match="alpha must be a Python number"):
+        UKF(SingleIntegrator(2), GaussianSensor(std=0.1, state_dim=2), Q=0.1,
+            alpha=torch.tensor(0.5, requires_grad=True))  # fmt: skip
+    with pytest.raises(TypeError, match="temperature must be a Python number"):
+        Box([0.0, 0.0], [1.0, 1.0], smooth=True, temperature=torch.tensor(0.1, requires_grad=True))

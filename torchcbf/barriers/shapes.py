@@ -12,12 +12,12 @@ against the state when one is seen, or at construction when ``state_dim`` is giv
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
 
+from torchcbf._checks import check_number
 from torchcbf.barriers._minmax import combine, reduce
 from torchcbf.barriers._params import ExactConstants, StateIndex, register
 from torchcbf.barriers.base import Barrier
@@ -415,10 +415,8 @@ class Box(ExactConstants, Barrier):
             raise ValueError(
                 f"low {lo.detach().tolist()} must be below high {hi.detach().tolist()} everywhere"
             )
-        if not (temperature > 0 and math.isfinite(temperature)):
-            raise ValueError(f"temperature must be a finite positive number, got {temperature}")
         self.smooth = bool(smooth)
-        self.temperature = float(temperature)
+        self.temperature = check_number("temperature", temperature, low=0.0, strict=True)
         d = lo.shape[0]
         if index is None and state_dim is None:
             state_dim = d

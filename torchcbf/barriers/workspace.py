@@ -14,13 +14,13 @@ axis-aligned boxes.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
+from torchcbf._checks import check_number
 from torchcbf._constants import reshape
 from torchcbf.barriers._params import ExactConstants, register
 from torchcbf.barriers.base import Barrier
@@ -246,8 +246,7 @@ class EndEffectorBoxBarrier(ExactConstants, Barrier):
             raise ValueError(
                 f"low and high must have shape [3], got {tuple(lo.shape)}, {tuple(hi.shape)}"
             )
-        if not (margin >= 0 and math.isfinite(margin)):
-            raise ValueError(f"margin must be a finite number >= 0, got {margin}")
+        margin = check_number("margin", margin, low=0.0)
         if bool((lo.detach() + 2 * margin >= hi.detach()).any()):
             raise ValueError(
                 f"low {lo.detach().tolist()} + 2 margin must be below high {hi.detach().tolist()}"
@@ -330,8 +329,7 @@ class JointLimitBarrier(Barrier):
     def __init__(self, arm: Manipulator, margin: float = 0.0) -> None:
         super().__init__()
         _check_arm(arm)
-        if not (margin >= 0 and math.isfinite(margin)):
-            raise ValueError(f"margin must be a finite number >= 0, got {margin}")
+        margin = check_number("margin", margin, low=0.0)
         self.arm = arm
         self.margin = float(margin)
         lo_ok = torch.isfinite(arm.q_min)
@@ -380,8 +378,7 @@ class JointVelocityBarrier(Barrier):
                 "JointVelocityBarrier needs control='acceleration' (under velocity control the "
                 "limits are u_min/u_max)"
             )
-        if not (scale > 0 and math.isfinite(scale)):
-            raise ValueError(f"scale must be a finite number > 0, got {scale}")
+        scale = check_number("scale", scale, low=0.0, strict=True)
         self.arm = arm
         self.scale = float(scale)
         ok = torch.isfinite(arm.velocity_limit)
