@@ -138,3 +138,15 @@ def test_control_dtype_mismatch_names_both(cls):
         est.init(torch.zeros(3, 2, dtype=torch.float64), torch.eye(2))
     with pytest.raises(ValueError, match=r"u is on device meta but state.mean is on device cpu"):
         est.predict(state, torch.zeros(3, 2, dtype=torch.float64, device="meta"), 0.1)
+
+
+@pytest.mark.parametrize("cls", [EKF, UKF])
+def test_prediction_is_differentiable_in_u_for_a_model_constant_in_x(cls):
+    """xdot = u: the mean moves by dt u, so d(mean)/du = dt I, even though F = 0."""
+    dt = 0.1
+    est = cls(SingleIntegrator(2), GaussianSensor(std=0.1, state_dim=2), Q=0.01).double()
+    u = torch.tensor([[1.0, -2.0]], dtype=torch.float64, requires_grad=True)
+    state = est.init(torch.zeros(1, 2, dtype=torch.float64), torch.eye(2, dtype=torch.float64))
+    out = est.predict(state, u, dt)
+    (grad,) = torch.autograd.grad(out.mean[0, 0], u)
+    assert torch.allclose(grad, torch.tensor([[dt, 0.0]], dtype=torch.float64))

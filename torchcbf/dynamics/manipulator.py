@@ -36,6 +36,7 @@ import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
+from types import ModuleType
 from typing import Any, Literal
 
 import torch
@@ -50,7 +51,7 @@ ASSETS = ("planar3", "arm7")
 _INSTALL_HINT = 'the arm models need pytorch-kinematics: pip install "torchcbf[arm]"'
 
 
-def _pk() -> Any:
+def _pk() -> ModuleType:
     """Import :mod:`pytorch_kinematics` lazily, with an install hint when it is missing."""
     try:
         return importlib.import_module("pytorch_kinematics")
