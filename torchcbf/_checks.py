@@ -161,7 +161,11 @@ def as_limit(name: str, value: object, size: int) -> Tensor | None:
 
 
 def check_bounds(name_lo: str, lo: Tensor | None, name_hi: str, hi: Tensor | None) -> None:
-    """Raise ``ValueError`` naming both bounds where ``lo > hi`` in some entry."""
+    """Raise ``ValueError`` naming both bounds where ``lo > hi`` in some entry, or naming one
+    that admits nothing (a lower bound of ``+inf``, an upper bound of ``-inf``)."""
+    for name, bound, empty in ((name_lo, lo, float("inf")), (name_hi, hi, float("-inf"))):
+        if bound is not None and bound.device.type != "meta" and bool((bound == empty).any()):
+            raise ValueError(f"{name} must not be {empty}, got {bound.detach().tolist()}")
     if lo is None or hi is None or lo.device.type == "meta":
         return
     bad = lo.detach() > hi.detach()

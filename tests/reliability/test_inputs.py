@@ -271,3 +271,20 @@ def test_simulate_bad_inputs_and_batches():
             nominal=lambda x, t: torch.zeros(3, 2, dtype=F64),
         )  # fmt: skip
     assert simulate(dyn, torch.zeros(0, 2), 5, 0.1, progress=False).x.shape == (0, 6, 2)
+
+
+def test_generators_on_another_device_are_named():
+    gen = torch.Generator(device="cpu")
+    x = torch.zeros(3, 2, device="meta")
+    with pytest.raises(ValueError, match="generator is on device cpu but x is on device meta"):
+        GaussianSensor(std=0.1, state_dim=2).measure(x, gen)
+    dyn = SingleIntegrator(2, sigma=0.1)
+    with pytest.raises(ValueError, match="generator is on device cpu but x is on device meta"):
+        step(dyn, x, torch.zeros(3, 2, device="meta"), 0.1, "euler_maruyama", gen)
+
+
+def test_limits_that_admit_nothing_are_named():
+    with pytest.raises(ValueError, match="u_min must not be inf"):
+        SingleIntegrator(2, u_min=math.inf)
+    with pytest.raises(ValueError, match="u_max must not be -inf"):
+        SingleIntegrator(2, u_max=[1.0, -math.inf])

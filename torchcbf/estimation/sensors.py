@@ -113,6 +113,10 @@ class Sensor(ExactConstants, nn.Module):
                     f"{type(self).__name__}.measure needs generator= or noise= (torchcbf never "
                     "draws from the global random state); expected(x) is the noise-free output"
                 )
+            if generator.device != y.device:
+                raise ValueError(
+                    f"generator is on device {generator.device} but x is on device {y.device}"
+                )
             noise = torch.randn(y.shape, generator=generator, device=y.device, dtype=y.dtype)
         else:
             check_last_dim("noise", noise, p)
