@@ -196,3 +196,16 @@ def test_number_options_refuse_tensors_instead_of_cutting_them():
             alpha=torch.tensor(0.5, requires_grad=True))  # fmt: skip
     with pytest.raises(TypeError, match="temperature must be a Python number"):
         Box([0.0, 0.0], [1.0, 1.0], smooth=True, temperature=torch.tensor(0.1, requires_grad=True))
+
+
+def test_mlp_box_is_exact_and_checked():
+    from torchcbf.learning import MLP
+
+    net = MLP(2, (4,), low=[-0.1, -0.3], high=[0.7, 0.9]).double()
+    assert net.center[0].item() == (0.7 - 0.1) / 2 and net.half_width[1].item() == (0.9 + 0.3) / 2
+    with pytest.raises(ValueError, match="low must not contain NaN"):
+        MLP(2, (4,), low=[float("nan"), 0.0], high=[1.0, 1.0])
+    with pytest.raises(TypeError, match="hidden must be a sequence"):
+        MLP(2, 4)
+    with pytest.raises(TypeError, match="low is a fixed input normalisation"):
+        MLP(2, (4,), low=torch.zeros(2, requires_grad=True), high=[1.0, 1.0])
