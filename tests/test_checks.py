@@ -93,11 +93,10 @@ def test_as_matrix_forms_and_errors():
     assert torch.equal(as_matrix("M", -1.0, 2, spd=False), -torch.eye(2))
 
 
-def test_sq_dist_check_same_and_check_number():
-    from torchcbf._checks import check_finite, check_number, check_same, sq_dist
+def test_check_same_and_check_number():
+    from torchcbf._checks import check_finite, check_number, check_same
 
     p = torch.tensor([[1.0, 2.0], [0.0, 0.0]], dtype=torch.float64)
-    assert sq_dist(p, torch.tensor([1.0, 0.0])).tolist() == [4.0, 1.0]
     with pytest.raises(TypeError, match="b has dtype torch.float32 but a has dtype torch.float64"):
         check_same("a", p, "b", p.float())
     with pytest.raises(ValueError, match="b is on device meta but a is on device cpu"):

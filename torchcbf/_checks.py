@@ -208,12 +208,6 @@ def as_matrix(
     return t
 
 
-def sq_dist(p: Tensor, c: Tensor) -> Tensor:
-    """Squared Euclidean distance ``|p - c|^2`` over the last axis (``c`` cast to ``p``)."""
-    diff = p - c.to(device=p.device, dtype=p.dtype)
-    return diff.square_().sum(-1)
-
-
 def check_number(
     name: str, value: object, *, low: float | None = None, strict: bool = False
 ) -> float:
