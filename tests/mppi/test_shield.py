@@ -91,7 +91,9 @@ def test_shield_mppi_filters_and_feeds_back() -> None:
     dyn = SingleIntegrator(2).double()
     ball = Ball([1.0, 0.0], 0.5).double()
     filt = SafetyFilter(dyn, [ball], alpha=1.0).double()
-    cost = SumCost(QuadraticGoal([2.0, 0.0], weight=1.0), DiscreteBarrierCost(ball, gamma=0.2, weight=1e3))
+    cost = SumCost(
+        QuadraticGoal([2.0, 0.0], weight=1.0), DiscreteBarrierCost(ball, gamma=0.2, weight=1e3)
+    )
     planner = MPPI(
         dyn, cost, horizon=6, num_samples=64, dt=0.1, noise_sigma=1.0, temperature=0.1, seed=0
     ).double()

@@ -298,3 +298,11 @@ def test_mppi_cbf_default_configuration_targets() -> None:
             continue
         assert int(m["collision"].sum()) == 0, method
         assert int(m["goal_reached"].sum()) >= 15, method
+
+
+@pytest.mark.parametrize("bad", [["--seeds", "0"], ["--samples", "-3"], ["--horizon", "x"]])
+def test_cli_rejects_non_positive_sizes(bad, capsys) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["reach-avoid", *bad])
+    assert exit_info.value.code == 2
+    assert bad[0] in capsys.readouterr().err
