@@ -296,11 +296,20 @@ def _bench(args: argparse.Namespace) -> int:
 
 
 # -- command line --------------------------------------------------------------------------
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return value
+
+
 def _scenario_options(p: argparse.ArgumentParser, seeds: int, samples: int, horizon: int) -> None:
-    p.add_argument("--seeds", type=int, default=seeds, help="noise/planner seeds, run as one batch")
+    p.add_argument(
+        "--seeds", type=_positive_int, default=seeds, help="noise/planner seeds, run as one batch"
+    )
     p.add_argument("--seed", type=int, default=0, help="first seed")
-    p.add_argument("--samples", type=int, default=samples, help="MPPI samples K")
-    p.add_argument("--horizon", type=int, default=horizon, help="MPPI horizon H (steps)")
+    p.add_argument("--samples", type=_positive_int, default=samples, help="MPPI samples K")
+    p.add_argument("--horizon", type=_positive_int, default=horizon, help="MPPI horizon H (steps)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     p.add_argument("--out", default="out", help="directory for metrics.json and the figures")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")

@@ -39,11 +39,11 @@ def test_discrete_barrier_cost_one_output_barrier_and_errors() -> None:
     torch.testing.assert_close(cost, torch.tensor([[2.0 * (1.5 - 1.25)]]))
     for bad in (0.0, 1.5, -0.1):
         with pytest.raises(ValueError, match="gamma"):
-            DiscreteBarrierCost(ball, gamma=bad)
+            DiscreteBarrierCost(ball, gamma=bad, weight=1.0)
     with pytest.raises(ValueError, match="weight"):
         DiscreteBarrierCost(ball, gamma=0.5, weight=-1.0)
     with pytest.raises(TypeError, match="barrier"):
-        DiscreteBarrierCost(3.0, gamma=0.5)  # type: ignore[arg-type]
+        DiscreteBarrierCost(3.0, gamma=0.5, weight=1.0)  # type: ignore[arg-type]
 
 
 def test_barrier_cost_sums_the_outputs_of_a_multi_output_barrier() -> None:
@@ -91,7 +91,9 @@ def test_shield_mppi_filters_and_feeds_back() -> None:
     dyn = SingleIntegrator(2).double()
     ball = Ball([1.0, 0.0], 0.5).double()
     filt = SafetyFilter(dyn, [ball], alpha=1.0).double()
-    cost = SumCost(QuadraticGoal([2.0, 0.0], weight=1.0), DiscreteBarrierCost(ball, gamma=0.2))
+    cost = SumCost(
+        QuadraticGoal([2.0, 0.0], weight=1.0), DiscreteBarrierCost(ball, gamma=0.2, weight=1e3)
+    )
     planner = MPPI(
         dyn, cost, horizon=6, num_samples=64, dt=0.1, noise_sigma=1.0, temperature=0.1, seed=0
     ).double()

@@ -83,6 +83,10 @@ def simulate(
     Args:
         dynamics: the plant (its diffusion, if any, is simulated with Euler-Maruyama
             whatever ``integrator`` says).
+        integrator: ``"rk4"`` (default), ``"euler"`` or ``"euler_maruyama"``. The plant stands
+            for the real system, so it is integrated accurately; a planner's rollouts are a
+            model of it and trade accuracy for samples (:class:`~torchcbf.mppi.MPPI` rolls out
+            with ``"euler"``), which is why the two defaults differ.
         x0: initial true states ``[B, n]`` (or ``[n]`` for one scenario).
         seed: an int (scenario b uses ``seed + b``) or one seed per scenario ``[B]``; every
             random draw of scenario b depends only on its seed, so a batch equals its rows
