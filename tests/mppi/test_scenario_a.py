@@ -1,4 +1,4 @@
-"""SCENARIOS.md A closed loop: timed reach-avoid with MPPI on a single integrator.
+"""Scenario A (docs/scenarios.md) closed loop: timed reach-avoid with MPPI on a single integrator.
 
 Ten seeds run as ten environments of one planner (environment b uses seed b, see the MPPI
 RNG scheme). The scenario leaves the weight normalization open: with temperature 0.03 the

@@ -27,7 +27,7 @@ def _spec_a() -> And:
 
 
 def _success_loop(traj: torch.Tensor, times: torch.Tensor) -> tuple[bool, float]:
-    """SCENARIOS.md A success and the robustness value, one trajectory, plain Python."""
+    """Scenario A's success and the robustness value, one trajectory, plain Python."""
     goals = [(G1, 0.0, 3.5), (G2, 3.6, 5.0), ((4.0, 1.0), 5.1, 10.0)]
     ok, rob = True, math.inf
     for g, t1, t2 in goals:

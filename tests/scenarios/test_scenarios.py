@@ -17,7 +17,7 @@ from torchcbf.sim import strict
 
 def test_reach_avoid_spec_success_check_matches_the_definition() -> None:
     """Robustness >= 0 exactly when every goal is reached in its window and the obstacle is
-    never touched (SCENARIOS.md A's success rule), on hand-made paths."""
+    never touched (scenario A's success rule), on hand-made paths."""
     spec = reach_avoid_spec().double()
     t = torch.arange(101, dtype=torch.float64) * 0.1
     good = torch.zeros(101, 2, dtype=torch.float64)
@@ -45,7 +45,7 @@ def test_reach_avoid_small_closed_loop() -> None:
 
 @pytest.mark.slow
 def test_reach_avoid_paper_sizes() -> None:
-    """SCENARIOS.md A at the paper's sizes: at least 9 of 10 seeds satisfy the specification."""
+    """Scenario A at the paper's sizes: at least 9 of 10 seeds satisfy the specification."""
     scenario = reach_avoid(num_seeds=10, num_samples=10_000, horizon=50)
     _, m = scenario.run(progress=False)
     assert int(m["spec_satisfied"].sum()) >= 9

@@ -131,7 +131,7 @@ class QuadraticGoal(RolloutCost):
 
 
 class ObstacleCost(RolloutCost):
-    """``k_o / max(|p - center| - radius, eps)`` per step, ``p = x[..., index]`` (SCENARIOS A)."""
+    """``k_o / max(|p - center| - radius, eps)`` per step, ``p = x[..., index]`` (scenario A)."""
 
     def __init__(
         self,
@@ -157,7 +157,8 @@ class ObstacleCost(RolloutCost):
 class BarrierCost(RolloutCost):
     """``weight / max(b(x), eps)`` per step for a barrier ``b: [..., n] -> [...]`` or
     ``[..., k]`` (``b >= 0`` safe; any callable or module), summed over a multi-output
-    barrier's ``k`` outputs. SCENARIOS.md B uses the five ellipses, weight 2, eps 0.01.
+    barrier's ``k`` outputs. Scenario B (docs/scenarios.md) uses the five ellipses,
+    weight 2, eps 0.01.
 
     A barrier whose output has as many dimensions as its input is taken as multi-output.
     """

@@ -166,7 +166,7 @@ class MPPI(nn.Module):
         temperature: ``lambda > 0``.
         control_cost_weight: ``gamma >= 0`` of ``gamma sum_j U_j' Sigma^-1 eps_j``.
         u_min, u_max: control limits (scalar or ``[m]``); default: the dynamics' limits.
-        integrator: ``"euler"`` (default: the rollouts of SCENARIOS.md A and B, and exact for
+        integrator: ``"euler"`` (default: the rollouts of scenarios A and B, and exact for
             the integrators) or ``"rk4"``.
         seed: environment ``b`` uses a generator seeded with ``seed + b``.
         keep_rollouts: return the first ``R`` sampled rollouts and weights (0: none).
@@ -179,7 +179,7 @@ class MPPI(nn.Module):
             ``S - min S`` by the range (as CBFkit does) or by the standard deviation of the
             finite sample costs of the environment before the temperature, which makes
             ``temperature`` relative to the spread of the costs. No one choice serves both
-            reference scenarios, so each builder states its own: SCENARIOS.md B's planner
+            reference scenarios, so each builder states its own: scenario B's planner
             uses ``"none"``; on A (temperature 0.03) ``"none"`` is nearly greedy (effective
             sample size ~1, the control-cost noise decides), ``"range"`` averages so much
             that the hairpin at g2 is cut, and ``"std"`` succeeds (see

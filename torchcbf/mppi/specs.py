@@ -5,7 +5,7 @@ The fragment: Boolean combinations (:class:`And`, :class:`Or`) of timed :class:`
 predicate holds). Intervals are in global time (the time of the simulation, not relative to
 the evaluation time), closed, with a tolerance ``time_tol`` (1e-5 s) so that sampled times
 like ``35 * 0.1`` fall inside ``[0, 3.5]`` in float32. :class:`Reach` and :class:`Avoid` are
-the two predicates of SCENARIOS.md A.
+the two predicates of scenario A (docs/scenarios.md).
 
 **Robustness** (``robustness(states [..., T, n], times [T] or [..., T]) -> [...]``, positive
 = satisfied) is the usual max/min semantics over the sampled times:
@@ -240,8 +240,10 @@ class Reach(Eventually):
     """Reach the disc ``|p - center| <= radius`` at some time in ``interval``.
 
     ``rho = radius - |p - center|``; planning cost ``weight (|p - center|^2 - radius^2)``
-    (SCENARIOS.md A: ``c_g``, ``weight = k_g``). ``p = x[..., index]``. ``urgency``: see
-    :class:`Eventually`.
+    (scenario A of docs/scenarios.md: ``c_g``, ``weight = k_g``). ``p = x[..., index]``.
+    ``urgency``: see :class:`Eventually`. ``Reach`` is :class:`Eventually` over the disc with
+    this quadratic planning cost: use it for goal regions, and ``Eventually`` with a
+    predicate of your own (and ``cost=``) for any other set.
     """
 
     def __init__(
@@ -291,7 +293,7 @@ class Avoid(Always):
     ``interval`` (all times by default).
 
     ``rho = |p - center| - radius`` (or ``barrier(x)`` for any callable/module
-    ``[..., n] -> [...]``); planning cost ``weight / max(rho, eps)`` (SCENARIOS.md A: ``c_o``
+    ``[..., n] -> [...]``); planning cost ``weight / max(rho, eps)`` (scenario A: ``c_o``
     with ``weight = k_o = 0.3``, ``eps = 0.01``).
     """
 
