@@ -1,11 +1,12 @@
 """Benchmark: MPPI planning calls, torchcbf vs pytorch-mppi 0.9.1 in the same run.
 
 Problem (scenario B of docs/scenarios.md): AccelUnicycle (x, y, v, theta; a, omega), Euler
-rollouts with dt = 0.02, float32; stage cost ``2 |p - goal|^2 + sum_i 2 / max(b_i, 0.01)`` over the five
-ellipses, terminal ``10 |p - goal|^2``; temperature 0.03; noise covariance 4 I; control-cost
-weight 0.1 (pytorch-mppi has no separate control-cost weight: its ``lambda_`` = 0.03 plays
-both roles); no control limits. Every timed call is a full planning call (sampling,
-rollouts, costs, weights, update) from x0 = (0, 0, 0, pi/4) with a warm-started plan.
+rollouts with dt = 0.02, float32; stage cost ``2 |p - goal|^2 + sum_i 2 / max(b_i, 0.01)``
+over the five ellipses, terminal ``10 |p - goal|^2``; temperature 0.03; noise covariance
+4 I; control-cost weight 0.1 (pytorch-mppi has no separate control-cost weight: its
+``lambda_`` = 0.03 plays both roles); no control limits. Every timed call is a full planning
+call (sampling, rollouts, costs, weights, update) from x0 = (0, 0, 0, pi/4) with a
+warm-started plan.
 
 Lines (each planner runs in its own subprocess, so that memory and thread pools are its own):
 
