@@ -50,6 +50,29 @@ def _num(value: float | None, fmt: str = "{:.3f}") -> str:
     return "-" if value is None else fmt.format(value)
 
 
+def _rollout_figures(traj: Any, scenario: Any, stem: Path, label: str, **view: Any) -> list[Path]:
+    """The MPPI rollouts of the first seed at each snapshot step: ``{stem}_rollouts_t{k}.png``."""
+    from torchcbf.viz import plot_rollouts
+
+    paths = []
+    for step, snap in traj.planner.items():
+        if getattr(snap, "rollouts", None) is None:
+            continue
+        fig = plot_rollouts(
+            snap.rollouts[0],
+            snap.rollout_weights[0],
+            snap.best_states[0],
+            barriers=scenario.barriers,
+            goals=scenario.goals,
+            executed=traj.x[0, : step + 1],
+            title=f"{label}: MPPI rollouts at t = {float(traj.t[step]):.2f} s",
+            plan_label="lowest-cost rollout",
+            **view,
+        )
+        paths.append(_save(fig, stem.parent / f"{stem.name}_rollouts_t{step}.png"))
+    return paths
+
+
 # -- scenario A ----------------------------------------------------------------------------
 A_HEADER = (
     f"{'scenario':<14} {'spec met [95% CI]':>20} {'collisions [95% CI]':>20} "
@@ -59,7 +82,7 @@ A_HEADER = (
 
 def _reach_avoid(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     from torchcbf.scenarios import reach_avoid
-    from torchcbf.viz import animate, plot_rollouts, plot_trajectories
+    from torchcbf.viz import animate, plot_trajectories
 
     scenario = reach_avoid(
         num_seeds=args.seeds,
@@ -90,20 +113,9 @@ def _reach_avoid(args: argparse.Namespace, out: Path) -> dict[str, Any]:
             out / "reach_avoid_trajectories.png",
         )
     ]
-    for step, snap in cpu.planner.items():
-        if getattr(snap, "rollouts", None) is not None:
-            fig = plot_rollouts(
-                snap.rollouts[0],
-                snap.rollout_weights[0],
-                snap.best_states[0],
-                barriers=scenario.barriers,
-                goals=scenario.goals,
-                executed=cpu.x[0, : step + 1],
-                title=f"reach-avoid, seed {args.seed}: MPPI rollouts at "
-                f"t = {float(cpu.t[step]):.1f} s",
-                plan_label="lowest-cost rollout",
-            )
-            figures.append(_save(fig, out / f"reach_avoid_rollouts_t{step}.png"))
+    figures += _rollout_figures(
+        cpu, scenario, out / "reach_avoid", f"reach-avoid, seed {args.seed}"
+    )
     if not args.no_gif:
         figures.append(animate(cpu, out / "reach_avoid.gif", scenario.barriers, scenario.goals))
     return {
@@ -214,7 +226,7 @@ def _mppi_cbf(args: argparse.Namespace, out: Path) -> dict[str, Any]:
 def _b_figures(
     trajectories: dict[str, Any], scenario: Any, out: Path, args: argparse.Namespace
 ) -> list[Path]:
-    from torchcbf.viz import animate_methods, plot_barrier_bands, plot_methods, plot_rollouts
+    from torchcbf.viz import animate_methods, plot_barrier_bands, plot_methods
 
     view = {"xlim": (-2.5, 5.0), "ylim": (-2.0, 6.5)}
     stem = f"mppi_cbf_{args.config}"
@@ -240,22 +252,8 @@ def _b_figures(
         ),
     ]
     for method, traj in trajectories.items():
-        for step, snap in traj.planner.items():
-            if getattr(snap, "rollouts", None) is None:
-                continue
-            fig = plot_rollouts(
-                snap.rollouts[0],
-                snap.rollout_weights[0],
-                snap.best_states[0],
-                barriers=scenario.barriers,
-                goals=scenario.goals,
-                executed=traj.x[0, : step + 1],
-                title=f"{method}, seed {args.seed}: MPPI rollouts at "
-                f"t = {float(traj.t[step]):.2f} s",
-                plan_label="lowest-cost rollout",
-                **view,
-            )
-            figures.append(_save(fig, out / f"{stem}_{method}_rollouts_t{step}.png"))
+        label = f"{method}, seed {args.seed}"
+        figures += _rollout_figures(traj, scenario, out / f"{stem}_{method}", label, **view)
     if not args.no_gif:
         figures.append(
             animate_methods(
