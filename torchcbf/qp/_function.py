@@ -13,14 +13,15 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchcbf.qp import _kkt
+from torchcbf.qp import _dual_native, _kkt
 from torchcbf.qp._dual import DualFactor, NativeFactor, dual_adjoints, solve_dual
 from torchcbf.qp._enum import MAX_CANDIDATES_SMALL_BATCH, num_candidates, solve_enum
 from torchcbf.qp._ipm import solve_ipm
 from torchcbf.qp.status import Status
 
-#: largest number of variables (after softening) the dual active-set method is used for
-MAX_ACTIVE_SET_VARS = 8
+#: largest number of variables (after softening) the dual active-set method is used for: the
+#: C kernel's bound, so the torch implementation and the kernel serve the same problems
+MAX_ACTIVE_SET_VARS = _dual_native.MAX_VARS
 
 
 @dataclass(frozen=True)
