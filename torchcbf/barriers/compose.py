@@ -65,6 +65,41 @@ def _stack_analytic(barriers: nn.ModuleList, x: Tensor, t: Tensor) -> AnalyticDe
     return AnalyticDerivatives(h, dhdx, dhdt, quad)
 
 
+class Scaled(Barrier):
+    """``scale * h(x, t)`` for a constant ``scale > 0``: the same safe set, a rescaled CBF
+    condition. Closed-form derivatives when ``barrier`` has them."""
+
+    def __init__(self, barrier: LieFunction, scale: float) -> None:
+        super().__init__()
+        if not isinstance(barrier, LieFunction):
+            raise TypeError(f"barrier must be a Barrier, got {type(barrier).__name__}")
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not scale > 0:
+            raise ValueError(f"scale must be a positive number, got {scale!r}")
+        self.barrier = barrier
+        self.scale = float(scale)
+        self.time_varying = barrier.time_varying
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """``x [..., n] -> scale * h [...]`` (or ``[..., k]``)."""
+        return self.scale * self.barrier(x, t)
+
+    @property
+    def has_analytic(self) -> bool:
+        return self.barrier.has_analytic
+
+    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        d = self.barrier._analytic(x, t)
+        c = self.scale
+
+        def quad(s: Tensor) -> Tensor:
+            return c * d.hess_quad(s)
+
+        return AnalyticDerivatives(c * d.h, c * d.dhdx, c * d.dhdt, quad)
+
+    def extra_repr(self) -> str:
+        return f"scale={self.scale}"
+
+
 class _Reduction(Barrier):
     mode: Mode
 

@@ -160,6 +160,38 @@ def lie_derivatives(
     dynamics.check_inputs(x)
     if method not in ("autograd", "analytic"):
         raise ValueError(f"method must be 'autograd' or 'analytic', got {method!r}")
+    diffusion = hessian and dynamics.has_diffusion
+    if method == "analytic":
+        # closed forms are plain tensor expressions: differentiable in grad mode, no graph
+        # otherwise, so they need neither the autograd context nor a detach
+        return _analytic_terms(fn, x, dynamics, t, diffusion, control)
+    grad_mode = torch.is_grad_enabled()
+    inference = torch.is_inference_mode_enabled()
+    ctx = torch.inference_mode(False) if inference else contextlib.nullcontext()
+    with ctx, torch.enable_grad():
+        if inference:
+            x = x.clone()
+            t = t.clone() if isinstance(t, Tensor) else t
+        terms = _autograd_terms(fn, x, dynamics, t, diffusion, control, grad_mode)
+    if not grad_mode:
+        terms = LieTerms(*(None if v is None else v.detach() for v in terms))
+    return terms
+
+
+def stacked_lie_derivatives(
+    fns: list[LieFunction],
+    x: Tensor,
+    dynamics: ControlAffine,
+    t: Tensor | float | None = None,
+    *,
+    hessian: bool = True,
+) -> tuple[LieTerms, list[int]]:
+    """Lie derivatives of several functions at once by autograd, their outputs concatenated:
+    ``h, lfh, dhdt, hess_trace [..., K]``, ``lgh [..., K, m]``, ``dhdx [..., K, n]``, and
+    each function's number of outputs. The same terms as one :func:`lie_derivatives` call per
+    function, in two backward passes for all (see :func:`stacked_terms`) instead of two per
+    function. Grad mode, inference mode and graphs as for :func:`lie_derivatives`."""
+    dynamics.check_inputs(x)
     grad_mode = torch.is_grad_enabled()
     inference = torch.is_inference_mode_enabled()
     diffusion = hessian and dynamics.has_diffusion
@@ -168,13 +200,18 @@ def lie_derivatives(
         if inference:
             x = x.clone()
             t = t.clone() if isinstance(t, Tensor) else t
-        if method == "analytic":
-            terms = _analytic_terms(fn, x, dynamics, t, diffusion, control)
-        else:
-            terms = _autograd_terms(fn, x, dynamics, t, diffusion, control, grad_mode)
+        split = [flat_parts(fn) for fn in fns]
+        sigma = dynamics.sigma(x) if diffusion else None
+        parts = [p for ps in split for p in ps]
+        h, dhdx, dhdt, hess, sizes = stacked_terms(parts, x, t, sigma, grad_mode or diffusion)
+        terms = _assemble(h, dhdx, dhdt, hess, x, dynamics, True, True)
     if not grad_mode:
         terms = LieTerms(*(None if v is None else v.detach() for v in terms))
-    return terms
+    per_fn, i = [], 0
+    for ps in split:
+        per_fn.append(sum(sizes[i : i + len(ps)]))
+        i += len(ps)
+    return terms, per_fn
 
 
 def _autograd_terms(
@@ -186,22 +223,84 @@ def _autograd_terms(
     control: bool,
     grad_mode: bool,
 ) -> LieTerms:
-    create = grad_mode or diffusion
-    sigma_cols = dynamics.sigma(x).unbind(-1) if diffusion else None
+    sigma = dynamics.sigma(x) if diffusion else None
     parts = flat_parts(fn)
     if parts[0] is fn:
-        h, dhdx, dhdt, hess, multi = _part_terms(fn, x, t, sigma_cols, create)
+        h, dhdx, dhdt, hess, multi = _part_terms(fn, x, t, sigma, grad_mode or diffusion)
         if not multi:
             h, dhdx, dhdt = h.squeeze(-1), dhdx.squeeze(-2), dhdt.squeeze(-1)
             hess = None if hess is None else hess.squeeze(-1)
     else:
-        cols = [_part_terms(p, x, t, sigma_cols, create) for p in parts]
-        h = torch.cat([c[0] for c in cols], -1)  # a split function is always [..., k]
-        dhdx = torch.cat([c[1] for c in cols], -2)
-        dhdt = torch.cat([c[2] for c in cols], -1)
-        hess = None if sigma_cols is None else torch.cat([c[3] for c in cols], -1)
-        multi = True
+        h, dhdx, dhdt, hess, _ = stacked_terms(parts, x, t, sigma, grad_mode or diffusion)
+        multi = True  # a split function is always [..., k]
     return _assemble(h, dhdx, dhdt, hess, x, dynamics, multi, control)
+
+
+def stacked_terms(
+    parts: list[LieFunction],
+    x: Tensor,
+    t: Tensor | float | None,
+    sigma: Tensor | None,
+    create: bool,
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None, list[int]]:
+    """``h, dhdt, hess [..., K]``, ``dhdx [..., K, n]`` of independent functions ``parts``
+    (their outputs concatenated), and each part's number of outputs.
+
+    Each scalar part is evaluated on its own copy of the state (a ``[..., J, q, n]`` tensor
+    of copies, one per part and per column of ``sigma``), so ONE backward pass gives every
+    part's gradient and a second one every Hessian-vector product ``H_j s_l``, whatever the
+    number of parts. A part with several outputs is differentiated on its own
+    (:func:`_part_terms`). ``create`` keeps the graph of the gradients."""
+    J, n = len(parts), x.shape[-1]
+    Q = 1 if sigma is None else sigma.shape[-1]
+    batch = x.shape[:-1]
+    base = x if x.requires_grad else x.detach()
+    xr = base[..., None, None, :].expand(*batch, J, Q, n).clone()
+    if not xr.requires_grad:
+        xr.requires_grad_()
+    tt = time_tensor(t, x)
+    timed = any(p.time_varying for p in parts)
+    tr = tt[..., None, None].expand(*batch, J, Q).clone() if timed else None
+    if tr is not None and not tr.requires_grad:
+        tr.requires_grad_()
+    outs: list[Tensor | None] = []
+    total = x.new_zeros(())
+    for j, part in enumerate(parts):
+        hj = part(xr[..., j, :, :], tr[..., j, :] if tr is not None else tt[..., None])
+        if hj.shape == (*batch, Q):
+            outs.append(hj)
+            total = total + hj.sum()
+        else:  # several outputs (or a shape to be checked): its own passes
+            outs.append(None)
+    inputs = (xr,) if tr is None else (xr, tr)
+    grads = _grad(total, inputs, create or sigma is not None)
+    g_x = grads[0]  # [..., J, Q, n]: every copy holds its part's gradient
+    hess_all = None
+    if sigma is not None:
+        s_cols = sigma.movedim(-1, -2).unsqueeze(-3)  # [..., 1, Q, n]
+        (hv,) = _grad((g_x * s_cols).sum(), (xr,), create)
+        hess_all = (hv * s_cols).sum((-2, -1))  # [..., J]
+    cols_h, cols_g, cols_t, cols_s, sizes = [], [], [], [], []
+    for j, part in enumerate(parts):
+        hj = outs[j]
+        if hj is None:
+            h1, g1, t1, s1, multi = _part_terms(part, x, t, sigma, create)
+            sizes.append(h1.shape[-1])
+            cols_h.append(h1)
+            cols_g.append(g1)
+            cols_t.append(t1)
+            cols_s.append(s1)
+            continue
+        sizes.append(1)
+        cols_h.append(hj[..., :1])
+        cols_g.append(g_x[..., j, :1, :])
+        if tr is not None and part.time_varying:
+            cols_t.append(grads[1][..., j, :1])
+        else:
+            cols_t.append(torch.zeros_like(hj[..., :1]))
+        cols_s.append(None if hess_all is None else hess_all[..., j : j + 1])
+    hess = None if sigma is None else torch.cat(cols_s, -1)  # type: ignore[arg-type]
+    return torch.cat(cols_h, -1), torch.cat(cols_g, -2), torch.cat(cols_t, -1), hess, sizes
 
 
 def flat_parts(fn: LieFunction) -> list[LieFunction]:
@@ -216,7 +315,7 @@ def _part_terms(
     fn: LieFunction,
     x: Tensor,
     t: Tensor | float | None,
-    sigma_cols: tuple[Tensor, ...] | None,
+    sigma: Tensor | None,
     create: bool,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor | None, bool]:
     """``h, dhdt, hess [..., k]``, ``dhdx [..., k, n]`` of one part (k = 1 if scalar), and
@@ -242,7 +341,8 @@ def _part_terms(
         for gr, hj in zip(grads, outs, strict=True)
     ]
     hess = None
-    if sigma_cols is not None:
+    if sigma is not None:
+        sigma_cols = sigma.unbind(-1)
         hess = []
         for dj in dhdx:
             acc = torch.zeros_like(dj[..., 0])
@@ -315,11 +415,8 @@ def _assemble(
     multi: bool,
     control: bool,
 ) -> LieTerms:
-    f = dynamics.f(x)
-    if multi:
-        lfh = (dhdx * f.unsqueeze(-2)).sum(-1)
-    else:
-        lfh = (dhdx * f).sum(-1)
+    f = dynamics.f(x).unsqueeze(-1)
+    lfh = (dhdx @ f).squeeze(-1) if multi else (dhdx.unsqueeze(-2) @ f)[..., 0, 0]
     if control:
         g = dynamics.g(x)
         lgh = dhdx @ g if multi else (dhdx.unsqueeze(-2) @ g).squeeze(-2)

@@ -62,6 +62,15 @@ def _rotate_t(cos: Tensor, sin: Tensor, u: Tensor, v: Tensor, dim: int = -1) -> 
     return torch.stack([cos * u + sin * v, -sin * u + cos * v], dim)
 
 
+def _embed(sel: StateIndex, grad_p: Tensor, n: int) -> Tensor:
+    """A gradient w.r.t. the selected components ``[..., d]`` as one w.r.t. the state
+    ``[..., n]`` (one padding op when the components are contiguous)."""
+    span = sel._slice
+    if span is None:
+        return sel.scatter(grad_p, n)
+    return torch.nn.functional.pad(grad_p, (span.start, n - span.stop))
+
+
 class _ShapeStack(Barrier):
     """A shape whose constants may carry a leading ``k`` axis (``self.num``): the ``k`` shapes
     are independent Lie parts, all with closed-form derivatives."""
@@ -158,8 +167,12 @@ class Ball(_SignedShapeStack):
     def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         sign = self._sign()
         diff = self._diff(x, t)
-        h = sign * ((diff**2).sum(-1) - self.radius.to(x) ** 2)
-        dhdx = self._sel.scatter(2 * sign * diff, x.shape[-1])
+        r = self.radius.to(x)
+        h = (diff * diff).sum(-1) - r * r
+        grad_p = diff * 2.0
+        if sign < 0:
+            h, grad_p = -h, -grad_p
+        dhdx = _embed(self._sel, grad_p, x.shape[-1])
         if self.velocity is None:
             dhdt = torch.zeros_like(h)
         else:
@@ -303,7 +316,7 @@ class Ellipse(_SignedShapeStack):
         q = self._q(x)
         h = sign * (((q / a) ** 2).sum(-1) - 1)
         grad_p = self._body(2 * sign * q / a**2, x, transpose=False)
-        dhdx = self._sel.scatter(grad_p, x.shape[-1])
+        dhdx = _embed(self._sel, grad_p, x.shape[-1])
 
         def quad(s: Tensor) -> Tensor:
             sp = self._sel.rows(s)  # [..., d, q]
@@ -366,7 +379,7 @@ class HalfSpace(_ShapeStack):
         h = self.forward(x)
         a = self.a.to(x)
         grad_p = (-a).expand(*h.shape, a.shape[-1])
-        dhdx = self._sel.scatter(grad_p, x.shape[-1])
+        dhdx = _embed(self._sel, grad_p, x.shape[-1])
 
         def quad(s: Tensor) -> Tensor:
             return torch.zeros_like(h)
@@ -438,7 +451,7 @@ class Box(Barrier):
         d = faces.shape[-1] // 2
         eye = torch.eye(d, dtype=x.dtype, device=x.device)
         grad_p = torch.cat([eye, -eye], 0).expand(*faces.shape, d)  # [..., 2d, d]
-        dhdx = self._sel.scatter(grad_p, x.shape[-1])
+        dhdx = _embed(self._sel, grad_p, x.shape[-1])
         zeros = torch.zeros_like(faces)
 
         def quad(s: Tensor) -> Tensor:
