@@ -19,6 +19,13 @@ from torchcbf.qp._enum import MAX_CANDIDATES_SMALL_BATCH, num_candidates, solve_
 from torchcbf.qp._ipm import solve_ipm
 from torchcbf.qp.status import Status
 
+#: largest condition estimate ``max_i P_ii (P^{-1})_ii`` (see :func:`condition_estimate`)
+#: for which the dual active-set method's answer is kept: it starts at the unconstrained
+#: minimiser ``-P^{-1} q``, whose rounding grows with the condition, and its per-row residual
+#: checks scale with ``|x|``; beyond this bound a row is re-solved by the interior point
+#: method (whose answer the polish verifies). The estimate ignores a diagonal scaling of
+#: ``P`` (e.g. control weights of different units), which the method handles
+MAX_DUAL_CONDITION = 1e4
 #: largest number of variables (after softening) the dual active-set method is used for: the
 #: C kernel's bound, so the torch implementation and the kernel serve the same problems
 MAX_ACTIVE_SET_VARS = _dual_native.MAX_VARS
@@ -203,6 +210,19 @@ def _forward_enum(
     return x, z, y, status, iters, fac
 
 
+def condition_estimate(L: Tensor, batch_first: bool = True) -> Tensor:
+    """``max_i P_ii (P^{-1})_ii [B]`` from the Cholesky factor ``L`` of ``P = L L'``
+    (``[B, N, N]``, or ``[N, N, B]``): a lower bound of the condition number of the
+    Jacobi-scaled ``D^{-1/2} P D^{-1/2}`` (``D = diag(P)``), 1 for a diagonal ``P``."""
+    if not batch_first:
+        L = L.permute(2, 0, 1)
+    eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
+    Linv = torch.linalg.solve_triangular(L, eye.expand_as(L), upper=False)
+    p_diag = (L * L).sum(-1)  # P_ii = |row i of L|^2
+    inv_diag = (Linv * Linv).sum(-2)  # (P^{-1})_ii = |column i of L^{-1}|^2
+    return (p_diag * inv_diag).amax(-1)
+
+
 def _forward_dual(
     P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
 ) -> tuple[
@@ -213,8 +233,12 @@ def _forward_dual(
     row was solved by it, else the active-set KKT factorisation of the whole batch."""
     y = q.new_zeros(q.shape[0], 0)
     res = solve_dual(P, q, G, h, eps=cfg.eps, max_iter=cfg.max_iter, check_every=cfg.check_every)
+    ok = res.ok & (
+        condition_estimate(res.factor.L, batch_first=isinstance(res.factor, NativeFactor))
+        <= MAX_DUAL_CONDITION
+    )
     x, z, y, status, iters, active, any_fallback = _ipm_fallback(
-        P, q, G, h, A, b, cfg, x0, res.x, res.z, y, res.active, res.ok, res.iterations
+        P, q, G, h, A, b, cfg, x0, res.x, res.z, y, res.active, ok, res.iterations
     )
     if not cfg.need_factor:
         return x, z, y, status, iters, None

@@ -17,6 +17,7 @@ from typing import NamedTuple
 import numpy as np
 
 from torchcbf.qp import _dual_native
+from torchcbf.qp._function import MAX_DUAL_CONDITION
 
 #: largest batch the numpy path takes (beyond it the general path's threads pay off)
 MAX_BATCH = 16
@@ -99,6 +100,12 @@ def solve_small(
         raise MemoryError("torchcbf: the QP kernel could not allocate its workspace")
     if not bytes_[B * M :].all():
         return None
+    if np.count_nonzero(P) > B * N:  # not diagonal: estimate the scaled condition
+        L = floats[nx + nz : nx + nz + nL].reshape(B, N, N)
+        Linv = np.linalg.inv(L)
+        cond = ((L * L).sum(-1) * (Linv * Linv).sum(-2)).max(-1)
+        if not (cond <= MAX_DUAL_CONDITION).all():
+            return None  # the general path re-solves such rows by the interior point method
     if dtype != np.float64:
         floats = floats.astype(dtype)
     z = floats[nx : nx + nz].reshape(B, M)
