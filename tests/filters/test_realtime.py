@@ -93,13 +93,22 @@ def test_numpy_assembly_equals_torch_assembly(slack: str) -> None:
     hi = torch.tensor([1.0, 2.0], dtype=torch.float64)
     kw = {"slack": slack, "cbf_weight": 7.0, "clf_weight": 3.0}
     qp = assemble((a, b), (av, bv), u, R, lo, hi, **kw)
-    npy = assemble_numpy(
+    Q, p, G, h, ks = assemble_numpy(
         (a.numpy(), b.numpy()), (av.numpy(), bv.numpy()), u.numpy(), R.numpy(), lo.numpy(),
         hi.numpy(), **kw,
     )  # fmt: skip
-    for got, want in zip(npy[:6], qp[:6], strict=True):
-        np.testing.assert_allclose(got, want.numpy(), rtol=1e-14, atol=1e-14)
-    assert npy[6] == qp.ks
+    assert ks == qp.ks
+    np.testing.assert_allclose(Q, qp.Q.numpy(), rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(p, qp.p.numpy(), rtol=1e-14, atol=1e-14)
+    # the general path's rows, then its finite bounds as rows (upper, then lower)
+    nz = qp.Q.shape[-1]
+    eye = torch.eye(nz, dtype=torch.float64)
+    up = torch.isfinite(qp.ub[0]).nonzero().flatten()
+    low = torch.isfinite(qp.lb[0]).nonzero().flatten()
+    G_ref = torch.cat((qp.G, eye[up].expand(B, -1, -1), -eye[low].expand(B, -1, -1)), 1)
+    h_ref = torch.cat((qp.h, qp.ub[:, up], -qp.lb[:, low]), 1)
+    np.testing.assert_allclose(G, G_ref.numpy(), rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(h, h_ref.numpy(), rtol=1e-14, atol=1e-14)
 
 
 def test_non_finite_state_and_infeasible_hard_qp_take_the_general_path() -> None:

@@ -129,46 +129,56 @@ def assemble_numpy(
     slack: SlackMode,
     cbf_weight: float,
     clf_weight: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
-    """:func:`assemble` on float64 numpy arrays: ``(Q, p, G, h, lb, ub, ks)``."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """:func:`assemble` on float64 numpy arrays, with the finite bounds as rows:
+    ``(Q [B,nz,nz], p [B,nz], G [B,k+c+r,nz], h [B,k+c+r], ks)``, the ``r`` bound rows last
+    (``z_j <= ub_j`` for finite ``ub_j``, then ``-z_j <= -lb_j`` for finite ``lb_j``; the
+    slack and relaxation columns have ``lb = 0``)."""
     B, m = u_nom.shape
     k = 0 if cbf is None else cbf[1].shape[1]
     c = 0 if clf is None else clf[1].shape[1]
     ks = slack_columns(k, slack)
     nz = m + ks + c
     rbar = np.trace(R) / m
-    w = np.full(B, cbf_weight * rbar)
+    up = np.flatnonzero(np.isfinite(hi))
+    low = np.flatnonzero(np.isfinite(lo))
+    nr = k + c + len(up) + len(low) + ks + c
+    Q = np.zeros((B, nz, nz))
+    Q[:, :m, :m] = 0.5 * (R + R.T)
+    p = np.zeros((B, nz))
+    p[:, :m] = -(u_nom @ R.T)
+    G = np.zeros((B, nr, nz))
+    h = np.zeros((B, nr))
+    diag = Q.reshape(B, nz * nz)[:, (m * (nz + 1)) :: nz + 1]  # the slack entries
+    diag[:, ks:] = clf_weight * rbar
     if cbf is not None:
         a, b = cbf
         norms = np.maximum(np.sqrt((a * a).sum(-1)), MIN_ROW_NORM)
-        if slack == "shared":
-            viol = np.maximum(-((a @ u_nom[:, :, None])[..., 0] + b) / norms, 0.0)
-            box = np.abs(u_nom - np.clip(u_nom, lo, hi))
-            v = np.minimum(viol.max(-1) + box.max(-1), MAX_PENALTY_SCALE)
-            w = w * (1.0 + v)
-    Q = np.zeros((B, nz, nz))
-    Q[:, :m, :m] = 0.5 * (R + R.T)
-    idx = np.arange(m, nz)
-    Q[:, idx[:ks], idx[:ks]] = w[:, None]
-    Q[:, idx[ks:], idx[ks:]] = clf_weight * rbar
-    p = np.zeros((B, nz))
-    p[:, :m] = -(u_nom @ R.T)
-    if slack == "shared":
-        p[:, m : m + ks] = w[:, None]
-    G = np.zeros((B, k + c, nz))
-    h = np.empty((B, k + c))
-    if cbf is not None:
-        G[:, :k, :m] = -a / norms[..., None]
-        if ks == k:
-            G[:, np.arange(k), m + np.arange(k)] = -1.0
-        else:
-            G[:, :k, m : m + ks] = -1.0
+        G[:, :k, :m] = a / norms[..., None]
+        G[:, :k, :m] *= -1.0
         h[:, :k] = b / norms
+        if ks:
+            w = np.full(B, cbf_weight * rbar)
+            if slack == "shared":
+                viol = np.maximum(-((a @ u_nom[:, :, None])[..., 0] + b) / norms, 0.0)
+                box = np.abs(u_nom - np.clip(u_nom, lo, hi))
+                w *= 1.0 + np.minimum(viol.max(-1) + box.max(-1), MAX_PENALTY_SCALE)
+                p[:, m] = w
+                G[:, :k, m] = -1.0
+            else:
+                G[:, np.arange(k), m + np.arange(k)] = -1.0
+            diag[:, :ks] = w[:, None]
     if clf is not None:
         a, b = clf
-        G[:, k:, :m] = a
+        G[:, k : k + c, :m] = a
         G[:, k + np.arange(c), m + ks + np.arange(c)] = -1.0
-        h[:, k:] = -b
-    lb = np.concatenate((lo, np.zeros(ks + c)))
-    ub = np.concatenate((hi, np.full(ks + c, math.inf)))
-    return Q, p, G, h, np.broadcast_to(lb, (B, nz)), np.broadcast_to(ub, (B, nz)), ks
+        h[:, k : k + c] = -b
+    r = k + c
+    G[:, r + np.arange(len(up)), up] = 1.0
+    h[:, r : r + len(up)] = hi[up]
+    r += len(up)
+    G[:, r + np.arange(len(low)), low] = -1.0
+    h[:, r : r + len(low)] = -lo[low]
+    r += len(low)
+    G[:, r + np.arange(ks + c), m + np.arange(ks + c)] = -1.0  # s >= 0, delta >= 0
+    return Q, p, G, h, ks

@@ -425,6 +425,16 @@ class SafetyFilter(nn.Module):
             V = clf_terms.h
         return cbf, clf, h, V  # type: ignore[return-value]
 
+    def _numpy_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """``lo, hi [m]`` float64 numpy arrays (infinite where there is no limit)."""
+        m = self.dynamics.control_dim
+        out = []
+        for own, dyn, default in ((self.u_min, self.dynamics.u_min, -math.inf),
+                                  (self.u_max, self.dynamics.u_max, math.inf)):  # fmt: skip
+            t = own if own is not None else dyn
+            out.append(np.full(m, default) if t is None else t.numpy().astype(np.float64))
+        return out[0], out[1]
+
     def _limits(self, x: Tensor) -> tuple[Tensor, Tensor]:
         m = self.dynamics.control_dim
         lo = self.u_min if self.u_min is not None else self.dynamics.u_min
@@ -494,15 +504,15 @@ class SafetyFilter(nn.Module):
         if not np.isfinite(xn.sum() + un.sum() + tn.sum()):
             return None
         cbf, clf, h, V = self._conditions(xb, tb)
-        lo, hi = self._limits(xb)
         f64 = np.float64
         cbf_n = None if cbf is None else tuple(v.numpy().astype(f64, copy=False) for v in cbf)
         clf_n = None if clf is None else tuple(v.numpy().astype(f64, copy=False) for v in clf)
         u64 = un.astype(f64, copy=False)
-        Q, p, G, hq, lb, ubd, ks = assemble_numpy(
-            cbf_n, clf_n, u64, self.R.numpy(), lo.numpy().astype(f64, copy=False),
-            hi.numpy().astype(f64, copy=False), slack=self.cbf_slack,
-            cbf_weight=self.cbf_slack_weight, clf_weight=self.clf_slack_weight,
+        lo, hi = self._numpy_limits()
+        Q, p, G, hq, ks = assemble_numpy(
+            cbf_n, clf_n, u64, self.R.numpy().astype(f64, copy=False), lo, hi,
+            slack=self.cbf_slack, cbf_weight=self.cbf_slack_weight,
+            clf_weight=self.clf_slack_weight,
         )  # fmt: skip
         B, m = u64.shape
         k = 0 if cbf is None else cbf[1].shape[1]
@@ -510,19 +520,16 @@ class SafetyFilter(nn.Module):
         if two:
             G_hard = G.copy()
             G_hard[:, :k, m : m + ks] = 0.0
-            Q, p, G = np.concatenate((Q, Q)), np.concatenate((p, p)), np.concatenate((G, G_hard))
-            hq, lb, ubd = (
-                np.concatenate((hq, hq)),
-                np.concatenate((lb, lb)),
-                np.concatenate((ubd, ubd)),
-            )
+            Q, p, hq = np.concatenate((Q, Q)), np.concatenate((p, p)), np.concatenate((hq, hq))
+            G = np.concatenate((G, G_hard))
         opts = self.qp_options
         eps = opts.get("eps") or default_tolerances(xb.dtype)[0]
-        sol = _small.solve_small(Q, p, G, hq, lb, ubd, float(eps), opts.get("max_iter", 50),
-                                 (Q.shape[0],))  # fmt: skip
-        if sol is None:
+        out = _small.solve_rows(Q, p, G, hq, float(eps), opts.get("max_iter", 50))
+        if out is None:
             return None
-        z = sol.x[B:] if two else sol.x
+        nz = Q.shape[-1]
+        z = out[0][: Q.shape[0] * nz].reshape(-1, nz)
+        z = z[B:] if two else z
         u = z[:, :m]
         s = z[:, m : m + ks]
         delta = z[:, m + ks :]

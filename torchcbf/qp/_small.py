@@ -77,40 +77,17 @@ def solve_small(
         return None
     Gs = np.concatenate(rows, 1) if len(rows) > 1 else rows[0]
     hs = np.concatenate(rhs, 1) if len(rhs) > 1 else rhs[0]
+    out = solve_rows(P, q, Gs, hs, eps, max_iter)
+    if out is None:
+        return None
+    floats, ints = out
     M = hs.shape[1]
-    # one input buffer [P | q | G | h] (each batch first), one finiteness test for all
-    data = np.concatenate((P.reshape(-1), q.reshape(-1), Gs.reshape(-1), hs.reshape(-1)))
-    if not np.isfinite(data.sum()):
-        return None
-    # outputs: floats [x | z | L | zeros (slack, absent bounds)], bytes [active | ok],
-    # ints [slots | iterations | status]
-    nx, nz, nL = B * N, B * M, B * N * N
-    floats = np.zeros(nx + nz + nL + B * (m + N))
-    bytes_ = np.empty(B * (M + 1), dtype=np.uint8)
-    ints = np.zeros(B * (N + 2), dtype=np.int64)
-    d, f, b8, i8 = (a.ctypes.data for a in (data, floats, bytes_, ints))
-    oq = 8 * B * N * N
-    oG = oq + 8 * B * N
-    oh = oG + 8 * B * M * N
-    code = _dual_native._kernel().torchcbf_dual_forward(
-        B, N, M, d, d + oq, d + oG, d + oh, ctypes.c_double(eps), min(max_iter, 2**31 - 1),
-        f, f + 8 * nx, b8, i8, f + 8 * (nx + nz), b8 + B * M, i8 + 8 * B * N,
-    )  # fmt: skip
-    if code != 0:
-        raise MemoryError("torchcbf: the QP kernel could not allocate its workspace")
-    if not bytes_[B * M :].all():
-        return None
-    if np.count_nonzero(P) > B * N:  # not diagonal: estimate the scaled condition
-        L = floats[nx + nz : nx + nz + nL].reshape(B, N, N)
-        Linv = np.linalg.inv(L)
-        cond = ((L * L).sum(-1) * (Linv * Linv).sum(-2)).max(-1)
-        if not (cond <= MAX_DUAL_CONDITION).all():
-            return None  # the general path re-solves such rows by the interior point method
+    nx, nz = B * N, B * M
     if dtype != np.float64:
         floats = floats.astype(dtype)
     z = floats[nx : nx + nz].reshape(B, M)
-    zeros = floats[nx + nz + nL :]
-    zero_n = zeros[B * m :].reshape(*shape, N)
+    zeros = floats[nx + nz + B * N * N :]
+    zero_n = zeros[B * m : B * (m + N)].reshape(*shape, N)
     z_ub = z[:, m : m + N].reshape(*shape, N) if ub is not None else zero_n
     z_lb = z[:, M - N :].reshape(*shape, N) if lb is not None else zero_n
     return SmallSolution(
@@ -123,3 +100,45 @@ def solve_small(
         z_ub,
         zeros[: B * m].reshape(*shape, m),
     )
+
+
+def solve_rows(
+    P: np.ndarray, q: np.ndarray, G: np.ndarray, h: np.ndarray, eps: float, max_iter: int
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Solve ``min 1/2 x'Px + q'x  s.t.  Gx <= h`` (bounds already rows) for float64
+    ``P [B,N,N], q [B,N], G [B,M,N], h [B,M]``; returns the kernel's buffers ``(floats,
+    ints)``: ``floats = [x (B N) | z (B M) | L (B N N) | zeros (B (M + N))]``,
+    ``ints = [slots (B N) | iterations (B) | zeros (B)]``. ``None`` when some datum is not finite, the kernel does
+    not certify every row, or a row is too ill-conditioned for the dual method."""
+    B, N = q.shape
+    M = h.shape[1]
+    if N > _dual_native.MAX_VARS or M < 1:
+        return None
+    # one input buffer [P | q | G | h] (each batch first), one finiteness test for all
+    data = np.concatenate((P.reshape(-1), q.reshape(-1), G.reshape(-1), h.reshape(-1)))
+    if not np.isfinite(data.sum()):
+        return None
+    # outputs: floats [x | z | L | zeros], bytes [active | ok], ints [slots | iters | zeros]
+    nx, nz, nL = B * N, B * M, B * N * N
+    floats = np.zeros(nx + nz + nL + B * M + B * N)
+    bytes_ = np.empty(B * (M + 1), dtype=np.uint8)
+    ints = np.zeros(B * (N + 2), dtype=np.int64)
+    d, f, b8, i8 = (a.ctypes.data for a in (data, floats, bytes_, ints))
+    oq = 8 * nL
+    oG = oq + 8 * nx
+    oh = oG + 8 * B * M * N
+    code = _dual_native._kernel().torchcbf_dual_forward(
+        B, N, M, d, d + oq, d + oG, d + oh, ctypes.c_double(eps), min(max_iter, 2**31 - 1),
+        f, f + 8 * nx, b8, i8, f + 8 * (nx + nz), b8 + B * M, i8 + 8 * nx,
+    )  # fmt: skip
+    if code != 0:
+        raise MemoryError("torchcbf: the QP kernel could not allocate its workspace")
+    if not bytes_[B * M :].all():
+        return None
+    if np.count_nonzero(P) > B * N:  # not diagonal: estimate the scaled condition
+        L = floats[nx + nz : nx + nz + nL].reshape(B, N, N)
+        Linv = np.linalg.inv(L)
+        cond = ((L * L).sum(-1) * (Linv * Linv).sum(-2)).max(-1)
+        if not (cond <= MAX_DUAL_CONDITION).all():
+            return None  # the general path re-solves such rows by the interior point method
+    return floats, ints
