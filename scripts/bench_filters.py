@@ -160,7 +160,8 @@ def _single_state(calls: int) -> None:
         print("cbfpy not installed: its line is skipped")
     else:
         print(
-            f"cbfpy first (compiling) call: {first:.2f} s; max |u_torchcbf - u_cbfpy| over 64 states: {agree:.1e}"
+            f"cbfpy first (compiling) call: {first:.2f} s; "
+            f"max |u_torchcbf - u_cbfpy| over 64 states: {agree:.1e}"
         )
 
 
@@ -255,7 +256,7 @@ def main() -> None:
                 filt(x[i : i + 1], u_nom[i : i + 1])
 
         rows.append(("filter (loop, B=1, extrapolated)", _timeit(loop, 1) / sub))
-        hard = SafetyFilter(dyn, ball, alpha=1.0, elastic=False).to(device=device, dtype=dtype)
+        hard = SafetyFilter(dyn, ball, alpha=1.0, cbf_slack="none").to(device=device, dtype=dtype)
         rows.append(
             (
                 "filter (batched, elastic=False: hard QP only)",
@@ -310,6 +311,18 @@ def main() -> None:
     print(f"{'method':45s} {'us/state':>10s} {'x batched filter':>17s}")
     for name, t in rows:
         print(f"{name:45s} {1e6 * t:10.2f} {t / base:17.2f}")
+    peer = _cbfpy_filter(ball.center.cpu().numpy(), ball.radius.cpu().numpy(), 2.0)
+    if peer is not None and dtype == torch.float64:
+        _, batched = peer
+        xj, uj = x_cpu.numpy(), u_nom_cpu.numpy()
+        np.asarray(batched(xj, uj))  # compile
+        t_peer = _timeit(lambda: np.asarray(batched(xj, uj)), args.repeat)
+        print(
+            f"{'cbfpy jit(vmap) (JAX, qpax)':45s} {1e6 * t_peer / B:10.2f} "
+            f"{t_peer / B / base:17.2f}  (torchcbf batched is {t_peer / B / base:.1f}x faster)"
+        )
+    else:
+        print("cbfpy not installed (or not float64): its batched line is skipped")
     if not have_prox:
         print("proxsuite not installed: its rows are skipped")
     else:

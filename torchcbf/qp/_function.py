@@ -213,13 +213,22 @@ def _forward_enum(
 def condition_estimate(L: Tensor, batch_first: bool = True) -> Tensor:
     """``max_i P_ii (P^{-1})_ii [B]`` from the Cholesky factor ``L`` of ``P = L L'``
     (``[B, N, N]``, or ``[N, N, B]``): a lower bound of the condition number of the
-    Jacobi-scaled ``D^{-1/2} P D^{-1/2}`` (``D = diag(P)``), 1 for a diagonal ``P``."""
+    Jacobi-scaled ``D^{-1/2} P D^{-1/2}`` (``D = diag(P)``), 1 for a diagonal ``P``.
+
+    ``(P^{-1})_ii`` is the squared norm of column ``i`` of ``L^{-1}``, whose rows follow by
+    forward substitution, one ``[B, N]`` operation per entry of ``L`` (no per-matrix call)."""
     if not batch_first:
         L = L.permute(2, 0, 1)
-    eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
-    Linv = torch.linalg.solve_triangular(L, eye.expand_as(L), upper=False)
+    N = L.shape[-1]
+    rows: list[Tensor] = []  # rows of L^{-1}, each [B, N]
+    eye = torch.eye(N, dtype=L.dtype, device=L.device)
+    for i in range(N):
+        acc = eye[i].expand(L.shape[0], N)
+        for k in range(i):
+            acc = acc - L[:, i, k : k + 1] * rows[k]
+        rows.append(acc / L[:, i, i : i + 1])
+    inv_diag = sum(r * r for r in rows)  # [B, N]
     p_diag = (L * L).sum(-1)  # P_ii = |row i of L|^2
-    inv_diag = (Linv * Linv).sum(-2)  # (P^{-1})_ii = |column i of L^{-1}|^2
     return (p_diag * inv_diag).amax(-1)
 
 

@@ -108,8 +108,9 @@ def solve_rows(
     """Solve ``min 1/2 x'Px + q'x  s.t.  Gx <= h`` (bounds already rows) for float64
     ``P [B,N,N], q [B,N], G [B,M,N], h [B,M]``; returns the kernel's buffers ``(floats,
     ints)``: ``floats = [x (B N) | z (B M) | L (B N N) | zeros (B (M + N))]``,
-    ``ints = [slots (B N) | iterations (B) | zeros (B)]``. ``None`` when some datum is not finite, the kernel does
-    not certify every row, or a row is too ill-conditioned for the dual method."""
+    ``ints = [slots (B N) | iterations (B) | zeros (B)]``. ``None`` when some datum is not
+    finite, the kernel does not certify every row, or a row is too ill-conditioned for the
+    dual method."""
     B, N = q.shape
     M = h.shape[1]
     if N > _dual_native.MAX_VARS or M < 1:
@@ -137,8 +138,14 @@ def solve_rows(
         return None
     if np.count_nonzero(P) > B * N:  # not diagonal: estimate the scaled condition
         L = floats[nx + nz : nx + nz + nL].reshape(B, N, N)
-        Linv = np.linalg.inv(L)
-        cond = ((L * L).sum(-1) * (Linv * Linv).sum(-2)).max(-1)
+        rows: list[np.ndarray] = []  # rows of L^{-1} by forward substitution
+        eye = np.eye(N)
+        for i in range(N):
+            acc = eye[i]
+            for k in range(i):
+                acc = acc - L[:, i, k : k + 1] * rows[k]
+            rows.append(acc / L[:, i, i : i + 1])
+        cond = ((L * L).sum(-1) * sum(r * r for r in rows)).max(-1)
         if not (cond <= MAX_DUAL_CONDITION).all():
             return None  # the general path re-solves such rows by the interior point method
     return floats, ints
