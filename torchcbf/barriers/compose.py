@@ -38,19 +38,19 @@ class BarrierStack(Barrier):
         """``x [..., n] -> h [..., k]``."""
         return torch.cat([_as_columns(b(x, t), x) for b in self.barriers], -1)
 
-    def _parts(self) -> list[LieFunction] | None:
+    def parts(self) -> list[LieFunction] | None:
         return list(self.barriers)
 
     @property
     def has_analytic(self) -> bool:
         return all(b.has_analytic for b in self.barriers)
 
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         return _stack_analytic(self.barriers, x, t)
 
 
 def _stack_analytic(barriers: nn.ModuleList, x: Tensor, t: Tensor) -> AnalyticDerivatives:
-    parts = [b._analytic(x, t) for b in barriers]
+    parts = [b.derivatives(x, t) for b in barriers]
     batch = x.shape[:-1]
     single = [p.h.shape == batch for p in parts]
     h = torch.cat([_as_columns(p.h, x) for p in parts], -1)
@@ -87,8 +87,8 @@ class Scaled(Barrier):
     def has_analytic(self) -> bool:
         return self.barrier.has_analytic
 
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
-        d = self.barrier._analytic(x, t)
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        d = self.barrier.derivatives(x, t)
         c = self.scale
 
         def quad(s: Tensor) -> Tensor:
@@ -124,8 +124,8 @@ class _Reduction(Barrier):
     def has_analytic(self) -> bool:
         return self.stack.has_analytic
 
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
-        d = self.stack._analytic(x, t)
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        d = self.stack.derivatives(x, t)
         return combine(d.h, d.dhdx, d.dhdt, d.hess_quad, self.mode, self.smooth, self.temperature)
 
     def extra_repr(self) -> str:

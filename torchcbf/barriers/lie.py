@@ -7,7 +7,7 @@ function ``h(x, t)`` and dynamics ``dx = (f + g u) dt + sigma dW`` it returns
 
 Batching: rows of a batch are independent, so ``d/dx sum_rows h`` gives every row's gradient
 in one backward pass. A k-output function (``h [..., k]``) needs one pass per output; a
-function that splits into independent parts (:meth:`LieFunction._parts`: the members of a
+function that splits into independent parts (:meth:`LieFunction.parts`: the members of a
 :class:`~torchcbf.barriers.BarrierStack`, the ``k`` shapes of a batched shape) runs each pass
 through its own part's graph only.
 The Hessian trace is ``sum_j s_j' H s_j`` over the ``q`` columns ``s_j`` of ``sigma``:
@@ -49,7 +49,7 @@ class LieTerms(NamedTuple):
 
 
 class AnalyticDerivatives(NamedTuple):
-    """Closed-form derivatives a shape may provide (see :meth:`LieFunction._analytic`).
+    """Closed-form derivatives a shape may provide (see :meth:`LieFunction.derivatives`).
 
     ``h [...]`` (or ``[..., k]``), ``dhdx [..., n]`` (or ``[..., k, n]``), ``dhdt`` like ``h``,
     and ``hess_quad(S [..., n, q]) -> tr(S' d2h/dx2 S)`` shaped like ``h``.
@@ -67,26 +67,42 @@ class LieFunction(nn.Module):
     Subclasses write ``forward(x [..., n], t=None) -> [...]`` (or ``[..., k]`` for ``k``
     functions evaluated at once). Time-varying subclasses set ``time_varying = True`` and
     receive ``t`` as a tensor broadcastable to the batch shape ``[...]``. Subclasses may add
-    closed-form derivatives by overriding :meth:`_analytic` and :attr:`has_analytic`.
+    closed-form derivatives by overriding :meth:`derivatives` and :attr:`has_analytic`, and
+    declare independent pieces with :meth:`parts`.
     """
 
     time_varying: bool = False
 
     @property
     def has_analytic(self) -> bool:
-        """Whether ``lie(..., method="analytic")`` is available."""
+        """Whether :meth:`derivatives` (``lie(..., method="analytic")``) is available."""
         return False
 
-    def _parts(self) -> list[LieFunction] | None:
+    def parts(self) -> list[LieFunction] | None:
         """Independent parts whose outputs, concatenated, are this function's ``[..., k]``
-        (``None``: one part). The autograd path differentiates each part separately, so a
-        backward pass for one output only runs through the graph of its own part."""
+        (``None``: one part). The autograd path differentiates the parts separately, so a
+        backward pass for one output only runs through the graph of its own part. Override
+        it in a function made of independent pieces (a stack of barriers, ``k`` shapes)."""
+        if type(self)._parts is not LieFunction._parts:  # a subclass of the former name
+            return self._parts()
         return None
 
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        """Closed-form ``h``, ``dh/dx``, ``dh/dt`` and the Hessian quadratic form at
+        ``x [..., n]``, ``t [...]``. Override it together with :attr:`has_analytic`."""
+        if type(self)._analytic is not LieFunction._analytic:  # a subclass of the former name
+            return self._analytic(x, t)
         raise ValueError(
             f"{type(self).__name__} has no closed-form derivatives; use method='autograd'"
         )
+
+    def _parts(self) -> list[LieFunction] | None:
+        """Former name of :meth:`parts` (kept as an alias)."""
+        return self.parts()
+
+    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        """Former name of :meth:`derivatives` (kept as an alias)."""
+        return self.derivatives(x, t)
 
     def lie(
         self,
@@ -304,8 +320,8 @@ def stacked_terms(
 
 
 def flat_parts(fn: LieFunction) -> list[LieFunction]:
-    """``fn`` split into independently differentiable parts (see :meth:`LieFunction._parts`)."""
-    parts = fn._parts()
+    """``fn`` split into independently differentiable parts (see :meth:`LieFunction.parts`)."""
+    parts = fn.parts()
     if parts is None:
         return [fn]
     return [q for p in parts for q in flat_parts(p)]
@@ -385,7 +401,7 @@ def _analytic_terms(
         raise ValueError(
             f"{type(fn).__name__} has no closed-form derivatives; use method='autograd'"
         )
-    d = fn._analytic(x, time_tensor(t, x))
+    d = fn.derivatives(x, time_tensor(t, x))
     multi = _check_output(fn, d.h, x)
     hess = d.hess_quad(dynamics.sigma(x)) if diffusion else None
     return _assemble(d.h, d.dhdx, d.dhdt, hess, x, dynamics, multi, control)

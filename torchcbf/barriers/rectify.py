@@ -62,8 +62,8 @@ class LieDerivative(Barrier):
         )  # fmt: skip
         return terms.lfh + terms.dhdt
 
-    def _parts(self) -> list[LieFunction] | None:
-        if self.barrier._parts() is None:
+    def parts(self) -> list[LieFunction] | None:
+        if self.barrier.parts() is None:
             return None
         return [LieDerivative(p, self.dynamics) for p in flat_parts(self.barrier)]
 
@@ -144,8 +144,8 @@ class HighOrderBarrier(Barrier):
         """``x [..., n] -> psi_{r-1} [...]`` (or ``[..., k]``)."""
         return self.psi(x, t, self.relative_degree - 1)
 
-    def _parts(self) -> list[LieFunction] | None:
-        if self.barrier._parts() is None:
+    def parts(self) -> list[LieFunction] | None:
+        if self.barrier.parts() is None:
             return None
         r = self.relative_degree
         return [
@@ -228,8 +228,8 @@ class ExponentialBarrier(Barrier):
         """``x [..., n] -> h_e [...]`` (or ``[..., k]``)."""
         return self.value(x, t)
 
-    def _parts(self) -> list[LieFunction] | None:
-        if self.barrier._parts() is None:
+    def parts(self) -> list[LieFunction] | None:
+        if self.barrier.parts() is None:
             return None
         return [
             FunctionPart(functools.partial(self.value, base=p), self.time_varying)

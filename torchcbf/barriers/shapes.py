@@ -77,7 +77,7 @@ class _ShapeStack(Barrier):
 
     num: int | None
 
-    def _parts(self) -> list[LieFunction] | None:
+    def parts(self) -> list[LieFunction] | None:
         return _split(self, self.num)
 
     @property
@@ -164,7 +164,7 @@ class Ball(_SignedShapeStack):
         r = _row(self.radius, j).to(x)
         return self._sign() * (((self._sel(x) - c) ** 2).sum(-1) - r**2)
 
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         sign = self._sign()
         diff = self._diff(x, t)
         r = self.radius.to(x)
@@ -310,7 +310,7 @@ class Ellipse(_SignedShapeStack):
             d = _rotate_t(cos, sin, d[..., 0], d[..., 1])
         return self._sign() * (((d / self.axes[j].to(x)) ** 2).sum(-1) - 1)
 
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         sign = self._sign()
         a = self.axes.to(x)
         q = self._q(x)
@@ -375,7 +375,7 @@ class HalfSpace(_ShapeStack):
         """Half-space ``j`` of a stack: ``[...]``."""
         return _row(self.b, j).to(x) - (self._sel(x) * self.a[j].to(x)).sum(-1)
 
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         h = self.forward(x)
         a = self.a.to(x)
         grad_p = (-a).expand(*h.shape, a.shape[-1])
@@ -446,7 +446,7 @@ class Box(Barrier):
     def has_analytic(self) -> bool:
         return True
 
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         faces = self._faces(x)
         d = faces.shape[-1] // 2
         eye = torch.eye(d, dtype=x.dtype, device=x.device)
