@@ -149,3 +149,27 @@ def test_extension_points_public_names_and_former_aliases():
     assert Ball([0.0, 0.0], 0.5).parts() is None
     with pytest.raises(ValueError, match="no closed-form derivatives"):
         _Opaque(stack, 1.0).derivatives(x, x[..., 0])
+
+
+@pytest.mark.parametrize("form", ["exponential", "high_order"])
+def test_rectified_k_shape_equals_separate_rectified_shapes(form):
+    dyn = AccelUnicycle(sigma=0.28).double()
+    centers = torch.tensor([[1.0, 2.0], [3.0, 2.0], [0.0, -1.0]], dtype=torch.float64)
+    axes = torch.tensor([[0.5, 1.5], [0.75, 2.0], [1.0, 0.4]], dtype=torch.float64)
+    scales = [0.5, 2.0, 1.0]
+    whole = rectify(
+        Scaled(Ellipse(centers, axes), scales), dyn, form, gains=[1.5], relative_degree=2
+    )
+    apart = [rectify(Scaled(Ellipse(c, a), s), dyn, form, gains=[1.5], relative_degree=2)
+             for c, a, s in zip(centers, axes, scales, strict=True)]  # fmt: skip
+    assert whole.parts() is None  # one evaluation for the three outputs
+    x = 2 * torch.randn(5, 4, generator=torch.Generator().manual_seed(7), dtype=torch.float64)
+    a = lie_derivatives(whole, x, dyn)
+    b, sizes = stacked_lie_derivatives(apart, x, dyn)
+    assert sizes == [1, 1, 1] and a.h.shape == (5, 3)
+    for name in a._fields:
+        torch.testing.assert_close(getattr(a, name), getattr(b, name))
+    xg = x[:2].clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda z: lie_derivatives(whole, z, dyn).hess_trace, (xg,))
+    with pytest.raises(ValueError, match="scale"):
+        Scaled(Ellipse(centers, axes), [1.0, -1.0, 1.0])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from torch import Tensor, nn
 
@@ -66,22 +68,26 @@ def _stack_analytic(barriers: nn.ModuleList, x: Tensor, t: Tensor) -> AnalyticDe
 
 
 class Scaled(Barrier):
-    """``scale * h(x, t)`` for a constant ``scale > 0``: the same safe set, a rescaled CBF
-    condition. Closed-form derivatives when ``barrier`` has them."""
+    """``scale * h(x, t)`` for constant scales ``> 0`` (a number, or ``[k]`` for a barrier
+    with ``k`` outputs): the same safe set, a rescaled CBF condition. Closed-form
+    derivatives when ``barrier`` has them."""
 
-    def __init__(self, barrier: LieFunction, scale: float) -> None:
+    def __init__(self, barrier: LieFunction, scale: float | Sequence[float] | Tensor) -> None:
         super().__init__()
         if not isinstance(barrier, LieFunction):
             raise TypeError(f"barrier must be a Barrier, got {type(barrier).__name__}")
-        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not scale > 0:
-            raise ValueError(f"scale must be a positive number, got {scale!r}")
+        if isinstance(scale, bool):
+            raise TypeError("scale must be a number or a sequence/tensor of numbers")
+        value = torch.as_tensor(scale, dtype=torch.float64).detach().clone()
+        if value.dim() > 1 or value.numel() == 0 or not bool((value > 0).all()):
+            raise ValueError(f"scale must be positive numbers (scalar or [k]), got {scale!r}")
         self.barrier = barrier
-        self.scale = float(scale)
+        self.register_buffer("scale", value)
         self.time_varying = barrier.time_varying
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """``x [..., n] -> scale * h [...]`` (or ``[..., k]``)."""
-        return self.scale * self.barrier(x, t)
+        return self.scale.to(x) * self.barrier(x, t)
 
     @property
     def has_analytic(self) -> bool:
@@ -89,15 +95,15 @@ class Scaled(Barrier):
 
     def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         d = self.barrier.derivatives(x, t)
-        c = self.scale
+        c = self.scale.to(x)
 
         def quad(s: Tensor) -> Tensor:
             return c * d.hess_quad(s)
 
-        return AnalyticDerivatives(c * d.h, c * d.dhdx, c * d.dhdt, quad)
+        return AnalyticDerivatives(c * d.h, c.unsqueeze(-1) * d.dhdx, c * d.dhdt, quad)
 
     def extra_repr(self) -> str:
-        return f"scale={self.scale}"
+        return f"scale={self.scale.tolist()}"
 
 
 class _Reduction(Barrier):

@@ -219,7 +219,7 @@ def stacked_lie_derivatives(
         split = [flat_parts(fn) for fn in fns]
         sigma = dynamics.sigma(x) if diffusion else None
         parts = [p for ps in split for p in ps]
-        h, dhdx, dhdt, hess, sizes = stacked_terms(parts, x, t, sigma, grad_mode or diffusion)
+        h, dhdx, dhdt, hess, sizes, _ = stacked_terms(parts, x, t, sigma, grad_mode or diffusion)
         terms = _assemble(h, dhdx, dhdt, hess, x, dynamics, True, True)
     if not grad_mode:
         terms = LieTerms(*(None if v is None else v.detach() for v in terms))
@@ -241,14 +241,12 @@ def _autograd_terms(
 ) -> LieTerms:
     sigma = dynamics.sigma(x) if diffusion else None
     parts = flat_parts(fn)
-    if parts[0] is fn:
-        h, dhdx, dhdt, hess, multi = _part_terms(fn, x, t, sigma, grad_mode or diffusion)
-        if not multi:
-            h, dhdx, dhdt = h.squeeze(-1), dhdx.squeeze(-2), dhdt.squeeze(-1)
-            hess = None if hess is None else hess.squeeze(-1)
-    else:
-        h, dhdx, dhdt, hess, _ = stacked_terms(parts, x, t, sigma, grad_mode or diffusion)
-        multi = True  # a split function is always [..., k]
+    h, dhdx, dhdt, hess, _, flags = stacked_terms(parts, x, t, sigma, grad_mode or diffusion)
+    # one scalar function keeps the shape [...]; a split or k-output one is [..., k]
+    multi = parts[0] is not fn or flags[0]
+    if not multi:
+        h, dhdx, dhdt = h.squeeze(-1), dhdx.squeeze(-2), dhdt.squeeze(-1)
+        hess = None if hess is None else hess.squeeze(-1)
     return _assemble(h, dhdx, dhdt, hess, x, dynamics, multi, control)
 
 
@@ -258,65 +256,78 @@ def stacked_terms(
     t: Tensor | float | None,
     sigma: Tensor | None,
     create: bool,
-) -> tuple[Tensor, Tensor, Tensor, Tensor | None, list[int]]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None, list[int], list[bool]]:
     """``h, dhdt, hess [..., K]``, ``dhdx [..., K, n]`` of independent functions ``parts``
-    (their outputs concatenated), and each part's number of outputs.
+    (their outputs concatenated), each part's number of outputs, and whether it returned
+    ``[..., k]`` (rather than ``[...]``).
 
-    Each scalar part is evaluated on its own copy of the state (a ``[..., J, q, n]`` tensor
-    of copies, one per part and per column of ``sigma``), so ONE backward pass gives every
-    part's gradient and a second one every Hessian-vector product ``H_j s_l``, whatever the
-    number of parts. A part with several outputs is differentiated on its own
-    (:func:`_part_terms`). ``create`` keeps the graph of the gradients."""
-    J, n = len(parts), x.shape[-1]
+    Every output of every part is evaluated on its own copy of the state (one copy per
+    output and per column of ``sigma``; a part with ``k`` outputs runs once on ``k`` copies
+    and its diagonal is kept), so ONE backward pass gives every gradient and a second one
+    every Hessian-vector product ``H_j s_l``, whatever the number of parts and outputs.
+    ``create`` keeps the graph of the gradients."""
+    n = x.shape[-1]
     Q = 1 if sigma is None else sigma.shape[-1]
     batch = x.shape[:-1]
+    nb = len(batch)
     base = x if x.requires_grad else x.detach()
-    xr = base[..., None, None, :].expand(*batch, J, Q, n).clone()
-    if not xr.requires_grad:
-        xr.requires_grad_()
     tt = time_tensor(t, x)
-    timed = any(p.time_varying for p in parts)
-    tr = tt[..., None, None].expand(*batch, J, Q).clone() if timed else None
-    if tr is not None and not tr.requires_grad:
-        tr.requires_grad_()
-    outs: list[Tensor | None] = []
+
+    def copies(v: Tensor, k: int, trailing: tuple[int, ...]) -> Tensor:
+        out = v[(..., None, None, *([slice(None)] * len(trailing)))]
+        out = out.expand(*batch, k, Q, *trailing).clone()
+        return out if out.requires_grad else out.requires_grad_()
+
+    def run(part: LieFunction, k: int) -> tuple[Tensor, Tensor, Tensor | None]:
+        xk = copies(base, k, (n,))
+        tk = copies(tt, k, ()) if part.time_varying else tt[..., None, None]
+        return part(xk, tk), xk, tk if part.time_varying else None
+
+    leaves: list[Tensor] = []
+    multi: list[bool] = []
+    t_leaves: list[Tensor | None] = []
+    values: list[Tensor] = []  # [..., k, Q] per part
     total = x.new_zeros(())
-    for j, part in enumerate(parts):
-        hj = part(xr[..., j, :, :], tr[..., j, :] if tr is not None else tt[..., None])
-        if hj.shape == (*batch, Q):
-            outs.append(hj)
-            total = total + hj.sum()
-        else:  # several outputs (or a shape to be checked): its own passes
-            outs.append(None)
-    inputs = (xr,) if tr is None else (xr, tr)
-    grads = _grad(total, inputs, create or sigma is not None)
-    g_x = grads[0]  # [..., J, Q, n]: every copy holds its part's gradient
-    hess_all = None
+    for part in parts:
+        h, xk, tk = run(part, 1)
+        multi.append(h.shape != (*batch, 1, Q))
+        if not multi[-1]:
+            hd = h
+        elif h.dim() == nb + 3 and h.shape[:-1] == (*batch, 1, Q):
+            k = h.shape[-1]
+            h, xk, tk = run(part, k)  # [..., k(copies), Q, k(outputs)]: keep the diagonal
+            hd = torch.diagonal(h, dim1=nb, dim2=-1).movedim(-1, nb)
+        else:
+            raise ValueError(
+                f"{type(part).__name__} must return [...] or [..., k] for a state of shape "
+                f"{tuple(xk.shape)}, got {tuple(h.shape)}"
+            )
+        check_tensor(f"{type(part).__name__} output", hd)
+        leaves.append(xk)
+        t_leaves.append(tk)
+        values.append(hd)
+        total = total + hd.sum()
+    timed = [tl for tl in t_leaves if tl is not None]
+    grads = _grad(total, (*leaves, *timed), create or sigma is not None)
+    g_x, g_t = grads[: len(leaves)], list(grads[len(leaves) :])
+    hess: list[Tensor] | None = None
     if sigma is not None:
         s_cols = sigma.movedim(-1, -2).unsqueeze(-3)  # [..., 1, Q, n]
-        (hv,) = _grad((g_x * s_cols).sum(), (xr,), create)
-        hess_all = (hv * s_cols).sum((-2, -1))  # [..., J]
-    cols_h, cols_g, cols_t, cols_s, sizes = [], [], [], [], []
-    for j, part in enumerate(parts):
-        hj = outs[j]
-        if hj is None:
-            h1, g1, t1, s1, multi = _part_terms(part, x, t, sigma, create)
-            sizes.append(h1.shape[-1])
-            cols_h.append(h1)
-            cols_g.append(g1)
-            cols_t.append(t1)
-            cols_s.append(s1)
-            continue
-        sizes.append(1)
-        cols_h.append(hj[..., :1])
-        cols_g.append(g_x[..., j, :1, :])
-        if tr is not None and part.time_varying:
-            cols_t.append(grads[1][..., j, :1])
-        else:
-            cols_t.append(torch.zeros_like(hj[..., :1]))
-        cols_s.append(None if hess_all is None else hess_all[..., j : j + 1])
-    hess = None if sigma is None else torch.cat(cols_s, -1)  # type: ignore[arg-type]
-    return torch.cat(cols_h, -1), torch.cat(cols_g, -2), torch.cat(cols_t, -1), hess, sizes
+        inner = sum((g * s_cols).sum() for g in g_x)
+        hv = _grad(inner, tuple(leaves), create)  # type: ignore[arg-type]
+        hess = [(v * s_cols).sum((-2, -1)) for v in hv]  # [..., k]
+    dhdt = []
+    for hd, tl in zip(values, t_leaves, strict=True):
+        dhdt.append(g_t.pop(0)[..., 0] if tl is not None else torch.zeros_like(hd[..., 0]))
+    sizes = [hd.shape[-2] for hd in values]
+    return (
+        torch.cat([hd[..., 0] for hd in values], -1),
+        torch.cat([g[..., 0, :] for g in g_x], -2),
+        torch.cat(dhdt, -1),
+        None if hess is None else torch.cat(hess, -1),
+        sizes,
+        multi,
+    )
 
 
 def flat_parts(fn: LieFunction) -> list[LieFunction]:
@@ -325,55 +336,6 @@ def flat_parts(fn: LieFunction) -> list[LieFunction]:
     if parts is None:
         return [fn]
     return [q for p in parts for q in flat_parts(p)]
-
-
-def _part_terms(
-    fn: LieFunction,
-    x: Tensor,
-    t: Tensor | float | None,
-    sigma: Tensor | None,
-    create: bool,
-) -> tuple[Tensor, Tensor, Tensor, Tensor | None, bool]:
-    """``h, dhdt, hess [..., k]``, ``dhdx [..., k, n]`` of one part (k = 1 if scalar), and
-    whether the part returned ``[..., k]`` (rather than ``[...]``)."""
-    # ``xr`` is the variable we differentiate w.r.t.: a clone when ``x`` is itself part of a
-    # graph (nested Lie derivatives, learning), so that f, g and sigma evaluated at ``x``
-    # are constants for these gradients yet keep their own path to ``x``.
-    xr = x.clone() if x.requires_grad else x.detach().requires_grad_()
-    tt = time_tensor(t, x)
-    if fn.time_varying:
-        tr = tt.clone() if tt.requires_grad else tt.detach().requires_grad_()
-        inputs: tuple[Tensor, ...] = (xr, tr)
-    else:
-        tr = tt
-        inputs = (xr,)
-    h = fn(xr, tr)
-    multi = _check_output(fn, h, x)
-    outs = h.unbind(-1) if multi else (h,)
-    grads = [_grad(hj, inputs, create) for hj in outs]
-    dhdx = [gr[0] for gr in grads]
-    dhdt = [
-        gr[1] if fn.time_varying else torch.zeros_like(hj)
-        for gr, hj in zip(grads, outs, strict=True)
-    ]
-    hess = None
-    if sigma is not None:
-        sigma_cols = sigma.unbind(-1)
-        hess = []
-        for dj in dhdx:
-            acc = torch.zeros_like(dj[..., 0])
-            for s in sigma_cols:
-                # sigma is computed at ``x``, not ``xr``: a constant direction in this HVP.
-                (hv,) = _grad((dj * s).sum(-1), (xr,), create)
-                acc = acc + (hv * s).sum(-1)
-            hess.append(acc)
-    return (
-        h if multi else h.unsqueeze(-1),
-        torch.stack(dhdx, -2),
-        torch.stack(dhdt, -1),
-        None if hess is None else torch.stack(hess, -1),
-        multi,
-    )
 
 
 class FunctionPart(LieFunction):

@@ -63,8 +63,8 @@ class LieDerivative(Barrier):
         return terms.lfh + terms.dhdt
 
     def parts(self) -> list[LieFunction] | None:
-        if self.barrier.parts() is None:
-            return None
+        if self.barrier.parts() is None or self.barrier.has_analytic:
+            return None  # evaluated whole: its k outputs share one evaluation per call
         return [LieDerivative(p, self.dynamics) for p in flat_parts(self.barrier)]
 
 
@@ -145,8 +145,8 @@ class HighOrderBarrier(Barrier):
         return self.psi(x, t, self.relative_degree - 1)
 
     def parts(self) -> list[LieFunction] | None:
-        if self.barrier.parts() is None:
-            return None
+        if self.barrier.parts() is None or self.barrier.has_analytic:
+            return None  # evaluated whole: its k outputs share one evaluation per call
         r = self.relative_degree
         return [
             FunctionPart(functools.partial(self.psi, order=r - 1, base=p), self.time_varying)
@@ -229,8 +229,8 @@ class ExponentialBarrier(Barrier):
         return self.value(x, t)
 
     def parts(self) -> list[LieFunction] | None:
-        if self.barrier.parts() is None:
-            return None
+        if self.barrier.parts() is None or self.barrier.has_analytic:
+            return None  # evaluated whole: its k outputs share one evaluation per call
         return [
             FunctionPart(functools.partial(self.value, base=p), self.time_varying)
             for p in flat_parts(self.barrier)
