@@ -27,6 +27,9 @@ from torchcbf._checks import as_tensor, check_tensor
 from torchcbf.dynamics.base import ControlAffine
 
 LieMethod = Literal["autograd", "analytic"]
+#: states x components up to which L_f h and L_g h are formed by broadcasting (fewer ops on a
+#: few states) rather than by batched matmuls (faster on large batches)
+SMALL_BATCH_ELEMENTS = 256
 HessQuad = Callable[[Tensor], Tensor]
 
 
@@ -122,6 +125,8 @@ def time_tensor(t: Tensor | float | None, x: Tensor) -> Tensor:
     batch = x.shape[:-1]
     if t is None:
         return x.new_zeros(batch)
+    if isinstance(t, Tensor) and t.shape == batch and t.dtype == x.dtype and t.device == x.device:
+        return t
     t = as_tensor("t", t, dtype=x.dtype, device=x.device)
     try:
         return torch.broadcast_to(t, batch)
@@ -393,12 +398,18 @@ def _assemble(
     multi: bool,
     control: bool,
 ) -> LieTerms:
-    f = dynamics.f(x).unsqueeze(-1)
-    lfh = (dhdx @ f).squeeze(-1) if multi else (dhdx.unsqueeze(-2) @ f)[..., 0, 0]
-    if control:
-        g = dynamics.g(x)
-        lgh = dhdx @ g if multi else (dhdx.unsqueeze(-2) @ g).squeeze(-2)
+    f = dynamics.f(x)
+    g = dynamics.g(x) if control else None
+    if x.numel() <= SMALL_BATCH_ELEMENTS:
+        # a few states: broadcast multiply-and-sum, fewer dispatched ops than a batched matmul
+        lfh = (dhdx * f.unsqueeze(-2)).sum(-1) if multi else (dhdx * f).sum(-1)
+        if g is not None:
+            lgh = (dhdx.unsqueeze(-1) * (g.unsqueeze(-3) if multi else g)).sum(-2)
     else:
-        lead = (*h.shape, dynamics.control_dim)
-        lgh = h.new_zeros(lead)
+        f = f.unsqueeze(-1)
+        lfh = (dhdx @ f).squeeze(-1) if multi else (dhdx.unsqueeze(-2) @ f)[..., 0, 0]
+        if g is not None:
+            lgh = dhdx @ g if multi else (dhdx.unsqueeze(-2) @ g).squeeze(-2)
+    if g is None:
+        lgh = h.new_zeros((*h.shape, dynamics.control_dim))
     return LieTerms(h, lfh, lgh, dhdt, hess, dhdx)
