@@ -55,3 +55,32 @@ def test_condition_estimate_ignores_diagonal_scaling():
     torch.testing.assert_close(est, torch.ones(1, dtype=torch.float64))
     Q, *_ = _ill_conditioned(8, 4, 1, 1e10, seed=0)
     assert bool((condition_estimate(torch.linalg.cholesky(Q)) > MAX_DUAL_CONDITION).all())
+
+
+def _tight_family(B: int, n: int, m: int, seed: int):
+    """Feasible QPs with about half the rows exactly tight at a known feasible point."""
+    g = torch.Generator().manual_seed(seed)
+    L = torch.randn(B, n, n, generator=g, dtype=torch.float64)
+    Q = L @ L.mT / n + 0.1 * torch.eye(n, dtype=torch.float64)
+    p = 3 * torch.randn(B, n, generator=g, dtype=torch.float64)
+    G = torch.randn(B, m, n, generator=g, dtype=torch.float64)
+    x0 = torch.randn(B, n, generator=g, dtype=torch.float64)
+    slack = torch.rand(B, m, generator=g, dtype=torch.float64)
+    slack = torch.where(torch.rand(B, m, generator=g, dtype=torch.float64) < 0.5, 0.0, slack)
+    return Q, p, G, (G @ x0.unsqueeze(-1)).squeeze(-1) + slack
+
+
+def test_rows_tight_at_a_feasible_point_are_all_solved_and_right(cvx, kernel):
+    from torchcbf.qp._dual import solve_dual
+
+    Q, p, G, h = _tight_family(4096, 4, 8, seed=11)
+    sol = solve_qp(Q, p, G, h)
+    assert bool((sol.status == Status.SOLVED).all())
+    # the rows the dual active-set method alone does not certify, and a sample of the others
+    alone = solve_dual(0.5 * (Q + Q.mT), p, G, h, eps=1e-7, max_iter=50)
+    hard = (~alone.ok).nonzero().flatten().tolist()
+    assert hard  # the family does hold such rows
+    for i in hard[:20] + list(range(0, 4096, 256)):
+        ref, _, st = cvx(*(t[i].numpy() for t in (Q, p, G, h)))
+        assert st == "optimal"
+        assert np.abs(sol.x[i].numpy() - ref).max() <= 1e-6 * (1.0 + np.abs(ref).max())

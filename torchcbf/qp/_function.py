@@ -15,7 +15,12 @@ from torch import Tensor
 
 from torchcbf.qp import _dual_native, _kkt
 from torchcbf.qp._dual import DualFactor, NativeFactor, dual_adjoints, solve_dual
-from torchcbf.qp._enum import MAX_CANDIDATES_SMALL_BATCH, num_candidates, solve_enum
+from torchcbf.qp._enum import (
+    MAX_CANDIDATES_SMALL_BATCH,
+    SMALL_BATCH,
+    num_candidates,
+    solve_enum,
+)
 from torchcbf.qp._ipm import solve_ipm
 from torchcbf.qp.status import Status
 
@@ -281,6 +286,38 @@ def _ipm_fallback(
     if not bool(fail.any()):
         return x, z, y, status, iters, active, False
     idx = fail.nonzero().squeeze(-1)
+    M, E, N = G.shape[-2], A.shape[-2], q.shape[-1]
+    if (
+        not cfg.enumerate
+        and len(idx) <= SMALL_BATCH
+        and num_candidates(M, E, N, cfg.pairs) <= MAX_CANDIDATES_SMALL_BATCH
+    ):
+        # a few rows the exact method could not certify (degenerate vertices, ties):
+        # enumeration's fixed cost is far below the interior point method's iterations
+        sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
+        en = solve_enum(*sub, eps=cfg.eps, pairs=cfg.pairs)
+        # kept only where the polish finds a KKT point to rounding on the same active set
+        # (nearly dependent rows can pass enumeration's eps checks with x far off)
+        slack = (sub[3] - torch.einsum("bmn,bn->bm", sub[2], en.x)).clamp_min(0.0)
+        solved = torch.where(en.ok, int(Status.SOLVED), int(Status.MAX_ITER))
+        xe, ze, ye, _, fac_e, _, exact = _kkt.polish(
+            *sub, en.x, slack, en.z, en.y, solved, eps=cfg.eps
+        )
+        en = en._replace(x=xe, z=ze, y=ye, active=fac_e.active, ok=en.ok & exact)
+        if bool(en.ok.any()):
+            keep = en.ok.unsqueeze(-1)
+            x = x.index_copy(0, idx, torch.where(keep, en.x, x.index_select(0, idx)))
+            z = z.index_copy(0, idx, torch.where(keep, en.z, z.index_select(0, idx)))
+            y = y.index_copy(0, idx, torch.where(keep, en.y, y.index_select(0, idx)))
+            active = active.index_copy(
+                0, idx, torch.where(keep, en.active, active.index_select(0, idx))
+            )
+            status = status.index_copy(
+                0, idx, torch.where(en.ok, int(Status.SOLVED), status.index_select(0, idx))
+            )
+            idx = idx[~en.ok]
+            if len(idx) == 0:
+                return x, z, y, status, iters, active, True
     sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
     x0s = None if x0 is None else x0.index_select(0, idx)
     xs, zs, ys, sts, its, acts, _ = _ipm(*sub, cfg, x0s)
