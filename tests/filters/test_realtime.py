@@ -11,7 +11,7 @@ from test_safety_filter import MODES, random_states, scene
 
 from torchcbf.filters import FilterStatus, SafetyFilter
 from torchcbf.filters.qp_data import assemble, assemble_numpy
-from torchcbf.qp import _dual_native, _small
+from torchcbf.qp import _dual_native, realtime
 
 pytestmark = pytest.mark.skipif(not _dual_native.available(), reason="C kernel not built")
 
@@ -37,7 +37,7 @@ def _same(a, b, tol: float) -> None:
 @pytest.mark.parametrize("clf", [False, True])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_realtime_path_matches_general_path(mode: str, clf: bool, dtype: torch.dtype) -> None:
-    xs, us = random_states(_small.MAX_BATCH, seed=20 + MODES.index(mode))
+    xs, us = random_states(realtime.MAX_BATCH, seed=20 + MODES.index(mode))
     filt = scene(mode, dtype, clf=clf)
     x, u = torch.tensor(xs, dtype=dtype), torch.tensor(us, dtype=dtype)
     tol = 1e-9 if dtype == torch.float64 else 1e-4

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from tests.qp._problems import make_batch
-from torchcbf.qp import Status, _dual_native, _small, solve_qp
+from torchcbf.qp import Status, _dual_native, realtime, solve_qp
 
 pytestmark = pytest.mark.skipif(not _dual_native.available(), reason="C kernel not built")
 
@@ -98,7 +98,7 @@ def test_solve_small_returns_none_where_it_does_not_apply():
     q = np.ones((1, 9))
     G = np.ones((1, 1, 9))
     h = np.ones((1, 1))
-    assert _small.solve_small(P, q, G, h, None, None, 1e-7, 50, (1,)) is None  # 9 variables
+    assert realtime.solve_small(P, q, G, h, None, None, 1e-7, 50, (1,)) is None  # 9 variables
     assert (
-        _small.solve_small(P[:, :2, :2], q[:, :2], None, None, None, None, 1e-7, 50, (1,)) is None
+        realtime.solve_small(P[:, :2, :2], q[:, :2], None, None, None, None, 1e-7, 50, (1,)) is None
     )

@@ -24,10 +24,11 @@ Statuses (:class:`FilterStatus`) per row: ``SOLVED`` (every hard constraint met)
 (non-finite ``x``, ``u_nom`` or ``t`` in the row: fallback used; the row is sanitised
 before any computation so the other rows and the gradients are untouched).
 
-Real-time path: a few states on the CPU (at most ``torchcbf.qp._small.MAX_BATCH``) in grad mode
-off (``torch.no_grad()``) and the default QP backend assemble the QP in numpy and go straight into
-the C kernel of the dual active-set method; a batch the kernel does not certify completely
-(or with non-finite data) takes the general path, so both return the same answers.
+Real-time path: a few states on the CPU (at most ``torchcbf.qp.realtime.MAX_BATCH``) with
+grad mode off (``torch.no_grad()``) and the default QP backend assemble the QP in numpy and
+go straight into the C kernel of the dual active-set method; a batch the kernel does not
+certify completely (or with non-finite data) takes the general path, so both return the same
+answers.
 """
 
 from __future__ import annotations
@@ -51,8 +52,7 @@ from torchcbf.filters.conditions import as_columns, concat_terms
 from torchcbf.filters.fallback import Fallback, FallbackSpec
 from torchcbf.filters.modes import MODE_OPTIONS, FilterMode, make_mode
 from torchcbf.filters.qp_data import SLACK_MODES, SlackMode, assemble, assemble_numpy
-from torchcbf.qp import Status, _dual_native, _small
-from torchcbf.qp._ipm import default_tolerances
+from torchcbf.qp import Status, realtime
 
 __all__ = ["FallbackSpec", "FilterOutput", "FilterStatus", "SafetyFilter"]
 
@@ -485,12 +485,12 @@ class SafetyFilter(nn.Module):
         kernel built."""
         opts = self.qp_options
         if (
-            xb.shape[0] > _small.MAX_BATCH
+            xb.shape[0] > realtime.MAX_BATCH
             or xb.device.type != "cpu"
             or (opts and not (opts.keys() <= _REALTIME_QP_OPTIONS))
             or opts.get("backend", "torch") != "torch"
             or opts.get("method", "auto") not in ("auto", "active_set")
-            or not _dual_native.available()
+            or not realtime.available()
         ):
             return False
         return not torch.is_grad_enabled()
@@ -523,8 +523,8 @@ class SafetyFilter(nn.Module):
             Q, p, hq = np.concatenate((Q, Q)), np.concatenate((p, p)), np.concatenate((hq, hq))
             G = np.concatenate((G, G_hard))
         opts = self.qp_options
-        eps = opts.get("eps") or default_tolerances(xb.dtype)[0]
-        out = _small.solve_rows(Q, p, G, hq, float(eps), opts.get("max_iter", 50))
+        eps = opts.get("eps") or realtime.default_eps(xb.dtype)
+        out = realtime.solve_rows(Q, p, G, hq, float(eps), opts.get("max_iter", 50))
         if out is None:
             return None
         nz = Q.shape[-1]

@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from torchcbf._checks import broadcast_shapes
-from torchcbf.qp import _dual_native, _small
+from torchcbf.qp import _dual_native, realtime
 from torchcbf.qp._enum import (
     MAX_CANDIDATES,
     MAX_CANDIDATES_SMALL_BATCH,
@@ -188,9 +188,9 @@ def solve_qp(
       On the CPU the dual method runs a C kernel (:mod:`torchcbf.qp._dual_native`, the
       same algorithm problem by problem, built at install when a C compiler is present;
       a large batch is split over ``torch.get_num_threads()`` threads). Without it, and on
-      other devices, it runs in torch. A few small QPs (at most ``_small.MAX_BATCH`` rows)
+      other devices, it runs in torch. A few small QPs (at most ``realtime.MAX_BATCH`` rows)
       that need no gradient go straight from numpy arrays into the kernel
-      (:mod:`torchcbf.qp._small`); a batch the kernel does not certify completely takes
+      (:mod:`torchcbf.qp.realtime`); a batch the kernel does not certify completely takes
       the general path. ``method="enumerate"`` asked for explicitly refuses problems with
       more than ``MAX_CANDIDATES_EXPLICIT`` candidate sets (``ValueError`` naming the sizes).
       See docs/qp.md for the statuses and fallbacks.
@@ -391,11 +391,11 @@ def _numpy_rows(t: Tensor | None, inp: _Inputs, trailing: tuple[int, ...]) -> np
 
 
 def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
-    """The real-time path (:mod:`torchcbf.qp._small`) for a few small QPs without gradients on
+    """The real-time path (:mod:`torchcbf.qp.realtime`) for a few small QPs without gradients on
     the CPU; ``None`` where it does not apply or the kernel does not certify every row."""
     n, m = inp.n, inp.m
     if (
-        inp.B > _small.MAX_BATCH
+        inp.B > realtime.MAX_BATCH
         or n > MAX_ACTIVE_SET_VARS
         or inp.me > 0
         or inp.soft is not None
@@ -409,7 +409,7 @@ def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
         ub is not None and not (ub > -math.inf).all()
     ):
         return None  # NaN, lb = +inf or ub = -inf
-    sol = _small.solve_small(
+    sol = realtime.solve_small(
         0.5 * (Q + Q.transpose(0, 2, 1)),
         _numpy_rows(inp.p, inp, (n,)),
         _numpy_rows(inp.G, inp, (m, n)),

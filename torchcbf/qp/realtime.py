@@ -1,5 +1,8 @@
 """Real-time path for a few small QPs on the CPU: numpy arrays straight into the C kernel.
 
+Public for the layers above (the safety filter's real-time path): :func:`available`,
+:func:`default_eps`, :func:`solve_rows`, :func:`solve_small` and :data:`MAX_BATCH`.
+
 A control loop solves ONE small QP per tick; there the cost of a solve is the number of
 tensor operations around the kernel, not the kernel. :func:`solve_small` takes the data as
 float64 numpy arrays (batch first), turns finite box bounds into rows, calls the dual
@@ -15,12 +18,24 @@ import ctypes
 from typing import NamedTuple
 
 import numpy as np
+import torch
 
 from torchcbf.qp import _dual_native
 from torchcbf.qp._function import MAX_DUAL_CONDITION
+from torchcbf.qp._ipm import default_tolerances
 
 #: largest batch the numpy path takes (beyond it the general path's threads pay off)
 MAX_BATCH = 16
+
+
+def available() -> bool:
+    """Whether the C kernel was built and loads (the real-time path needs it)."""
+    return _dual_native.available()
+
+
+def default_eps(dtype: torch.dtype) -> float:
+    """``solve_qp``'s default tolerance for inputs of ``dtype``."""
+    return default_tolerances(dtype)[0]
 
 
 class SmallSolution(NamedTuple):
