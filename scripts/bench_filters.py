@@ -1,7 +1,14 @@
-"""Benchmark the CBF-QP safety filter: one batched call vs a per-state loop vs proxsuite.
+"""Benchmark the CBF-QP safety filter: one state, a batch, peers in the same run.
 
 Scene: a 2-D single integrator with box limits, 8 ball obstacles (one batched ``Ball``),
-B states outside the obstacles, a nominal control pushing through them. Reported per state:
+B states outside the obstacles, a nominal control pushing through them.
+
+One state (the real-time path, float64): ``SafetyFilter`` on one state under
+``torch.no_grad()`` and with grad enabled, the stochastic filter of scenario B (5 rectified
+ellipses, Hessian traces) on one and two states, and cbfpy's jitted filter (JAX, qpax) on
+the same scene; the control agreement with cbfpy is printed too (cbfpy solves to 1e-6).
+
+Batched, reported per state:
 
 - ``filter (batched)``: ``SafetyFilter.forward`` on the whole batch (Lie terms + QP).
 - ``filter (loop, B=1)``: the same filter called state by state on a subset, extrapolated.
@@ -10,16 +17,21 @@ B states outside the obstacles, a nominal control pushing through them. Reported
   (``u`` only, CBF rows and the box as ``l <= G u <= u``), and ``proxsuite whole``: Lie
   terms computed once with the barrier's closed forms, rows built, then QPFunction.
 
-Run: ``python scripts/bench_filters.py`` (``--quick`` for a short run).
+Run: ``python scripts/bench_filters.py`` (``--quick`` for a short run). Figures taken while
+the machine is loaded (the load average is printed) vary between runs; compare ratios
+within one run.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
+import statistics
 import time
 from collections.abc import Callable
 
+import numpy as np
 import torch
 
 import torchcbf.qp as qp_module
@@ -43,6 +55,135 @@ def _timeit(fn: Callable[[], object], repeat: int) -> float:
         _sync()
         best = min(best, time.perf_counter() - t0)
     return best
+
+
+def _percentiles(fn: Callable[[], object], calls: int) -> tuple[float, float]:
+    """(10th percentile, median) of the wall time of ``fn`` in microseconds."""
+    for _ in range(10):
+        fn()
+    times = []
+    for _ in range(calls):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    times.sort()
+    return 1e6 * times[len(times) // 10], 1e6 * statistics.median(times)
+
+
+def _cbfpy_filter(centers: np.ndarray, radii: np.ndarray, u_lim: float):
+    """cbfpy's filter on the same scene: ``(single, batched)``, both jitted (float64), or
+    ``None`` when cbfpy is not installed."""
+    os.environ.setdefault("JAX_ENABLE_X64", "True")
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    try:
+        import jax
+        import jax.numpy as jnp
+        from cbfpy import CBF, CBFConfig
+    except ImportError:
+        return None
+    jax.config.update("jax_enable_x64", True)
+    c = jnp.asarray(centers)
+    r2 = jnp.asarray(radii) ** 2
+
+    class Config(CBFConfig):
+        def __init__(self) -> None:
+            lim = u_lim * np.ones(2)
+            super().__init__(n=2, m=2, u_min=-lim, u_max=lim, relax_qp=True, solver_tol=1e-6)
+
+        def f(self, z, *args, **kwargs):
+            return jnp.zeros(2)
+
+        def g(self, z, *args, **kwargs):
+            return jnp.eye(2)
+
+        def h_1(self, z, *args, **kwargs):
+            d = z[None, :] - c
+            return (d * d).sum(-1) - r2
+
+    cbf = CBF.from_config(Config())
+    return jax.jit(cbf.safety_filter), jax.jit(jax.vmap(cbf.safety_filter))
+
+
+def _single_state(calls: int) -> None:
+    """The one-state lines: torchcbf's real-time path against cbfpy's jitted filter."""
+    dtype = torch.float64
+    dyn, ball, filt, x, u_nom = _scene(64, 8, dtype, seed=0)
+    x1, u1 = x[0], u_nom[0]
+    rows = []
+    with torch.no_grad():
+        rows.append(("torchcbf vanilla, no_grad", _percentiles(lambda: filt(x1, u1), calls)))
+    rows.append(("torchcbf vanilla, grad enabled", _percentiles(lambda: filt(x1, u1), calls)))
+    from torchcbf.scenarios.unicycle_mppi_cbf import mppi_cbf
+
+    sc = mppi_cbf(method="scbf", num_seeds=2, dtype=torch.float64)
+    xs = sc.x0 + torch.tensor([0.3, 0.2, 0.5, 0.0], dtype=torch.float64)
+    us = torch.tensor([[1.0, 0.5], [0.5, -0.2]], dtype=torch.float64)
+    with torch.no_grad():
+        rows.append(
+            (
+                "torchcbf stochastic (scenario B), 1 state",
+                _percentiles(lambda: sc.safety_filter(xs[0], us[0]), calls // 4),
+            )
+        )
+        rows.append(
+            (
+                "torchcbf stochastic (scenario B), 2 states",
+                _percentiles(lambda: sc.safety_filter(xs, us), calls // 4),
+            )
+        )
+    # scenario B's five rectified, scaled ellipses as ONE module (one evaluation per call)
+    from torchcbf.barriers import Ellipse, Scaled, rectify
+    from torchcbf.filters import Stochastic
+    from torchcbf.scenarios import unicycle_mppi_cbf as scenario_b
+
+    f = sc.safety_filter
+    one = rectify(
+        Scaled(Ellipse(torch.tensor(scenario_b.CENTERS), torch.tensor(scenario_b.AXES)),
+               [b.barrier.scale for b in f.barriers]),
+        f.barriers[0].dynamics, form="exponential", gains=[float(f.barriers[0].coefficients[0])],
+    ).double()  # fmt: skip
+    f1 = SafetyFilter(f.dynamics, one, mode=Stochastic(beta=1.0), alpha=1.0, R=f.R).double()
+    with torch.no_grad():
+        du = float((f1(xs, us).u - f(xs, us).u).abs().max())
+        rows.append(
+            (
+                "  same, ellipses as one rectified k=5 module",
+                _percentiles(lambda: f1(xs, us), calls // 4),
+            )
+        )
+    peer = _cbfpy_filter(ball.center.numpy(), ball.radius.numpy(), 2.0)
+    agree = None
+    if peer is not None:
+        single, _ = peer
+        xj, uj = x1.numpy(), u1.numpy()
+        t0 = time.perf_counter()
+        np.asarray(single(xj, uj))
+        first = time.perf_counter() - t0
+        rows.append(
+            ("cbfpy (jit, qpax), 1 state", _percentiles(lambda: np.asarray(single(xj, uj)), calls))
+        )
+        with torch.no_grad():
+            u_ours = filt(x[:64], u_nom[:64]).u.numpy()
+        u_peer = np.stack(
+            [
+                np.asarray(single(a, b))
+                for a, b in zip(x[:64].numpy(), u_nom[:64].numpy(), strict=True)
+            ]
+        )
+        agree = float(np.abs(u_ours - u_peer).max())
+    print("\n# one state, float64 (p10 / median us per call)")
+    base = rows[-1][1][1] if peer is not None else None
+    for name, (p10, med) in rows:
+        ratio = f"{med / base:8.2f}x cbfpy" if base else ""
+        print(f"{name:45s} {p10:9.1f} {med:9.1f}  {ratio}")
+    print(f"max |u(one k=5 module) - u(scenario B as built)|: {du:.1e}")
+    if peer is None:
+        print("cbfpy not installed: its line is skipped")
+    else:
+        print(
+            f"cbfpy first (compiling) call: {first:.2f} s; "
+            f"max |u_torchcbf - u_cbfpy| over 64 states: {agree:.1e}"
+        )
 
 
 def _scene(batch: int, k: int, dtype: torch.dtype, seed: int):
@@ -106,11 +247,18 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: leave)")
     parser.add_argument("--quick", action="store_true", help="batch 512, subset 16, repeat 1")
     parser.add_argument("--device", default="cpu", help="device of torchcbf (proxsuite: CPU)")
+    parser.add_argument("--calls", type=int, default=2000, help="calls per one-state line")
     args = parser.parse_args()
     if args.quick:
         args.batch, args.loop_subset, args.repeat = 512, 16, 1
     if args.threads:
         torch.set_num_threads(args.threads)
+    load = os.getloadavg()
+    print(
+        f"# torch {torch.__version__}, threads {torch.get_num_threads()}, load average "
+        f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} cores"
+    )
+    _single_state(args.calls if not args.quick else 300)
     dtype = getattr(torch, args.dtype)
     dyn, ball, filt, x_cpu, u_nom_cpu = _scene(args.batch, args.barriers, dtype, seed=0)
     device = torch.device(args.device)
@@ -129,7 +277,7 @@ def main() -> None:
                 filt(x[i : i + 1], u_nom[i : i + 1])
 
         rows.append(("filter (loop, B=1, extrapolated)", _timeit(loop, 1) / sub))
-        hard = SafetyFilter(dyn, ball, alpha=1.0, elastic=False).to(device=device, dtype=dtype)
+        hard = SafetyFilter(dyn, ball, alpha=1.0, cbf_slack="none").to(device=device, dtype=dtype)
         rows.append(
             (
                 "filter (batched, elastic=False: hard QP only)",
@@ -184,6 +332,18 @@ def main() -> None:
     print(f"{'method':45s} {'us/state':>10s} {'x batched filter':>17s}")
     for name, t in rows:
         print(f"{name:45s} {1e6 * t:10.2f} {t / base:17.2f}")
+    peer = _cbfpy_filter(ball.center.cpu().numpy(), ball.radius.cpu().numpy(), 2.0)
+    if peer is not None and dtype == torch.float64:
+        _, batched = peer
+        xj, uj = x_cpu.numpy(), u_nom_cpu.numpy()
+        np.asarray(batched(xj, uj))  # compile
+        t_peer = _timeit(lambda: np.asarray(batched(xj, uj)), args.repeat)
+        print(
+            f"{'cbfpy jit(vmap) (JAX, qpax)':45s} {1e6 * t_peer / B:10.2f} "
+            f"{t_peer / B / base:17.2f}  (torchcbf batched is {t_peer / B / base:.1f}x faster)"
+        )
+    else:
+        print("cbfpy not installed (or not float64): its batched line is skipped")
     if not have_prox:
         print("proxsuite not installed: its rows are skipped")
     else:

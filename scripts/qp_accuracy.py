@@ -5,13 +5,21 @@ n in 2..12, m in 1..64, with and without box bounds and equalities, a quarter in
 Prints, per dtype, the largest relative errors in ``x`` and in the objective over the feasible
 rows, and how many infeasible rows were flagged (and reported solved: must be 0).
 
-    python scripts/qp_accuracy.py
+Then a table of hard families (float64, ``method="auto"``), each against cvxpy/Clarabel:
+rotated ill-conditioned ``Q``, rows tight at a known feasible point, duplicated rows, row
+scales mixed from 1e-6 to 1e6, linear programs in a box (``Q = 0``) and mid-size problems.
+Per family: rows, solved, max scaled error in ``x`` (``|x - x_ref| / (1 + |x_ref|)``, over
+rows both solve), false failures (Clarabel solves, we do not), wrong SOLVED (error above
+1e-6) and the time per QP of the batch solve (on a loaded machine it varies).
+
+    python scripts/qp_accuracy.py [--families-only] [--rows 64]
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -24,11 +32,103 @@ from conftest import cvxpy_solve  # noqa: E402
 from torchcbf.qp import Status, solve_qp  # noqa: E402
 
 
+def _family(name: str, B: int, g: torch.Generator) -> tuple:
+    """``(Q, p, G, h, lb, ub)`` of one hard family, float64."""
+    f64 = torch.float64
+
+    def rnd(*shape: int) -> torch.Tensor:
+        return torch.randn(*shape, generator=g, dtype=f64)
+
+    n, m = 4, 8
+    lb = ub = None
+    if name.startswith("cond"):
+        cond = float(name.split("=")[1])
+        U, _ = torch.linalg.qr(rnd(B, n, n))
+        d = torch.logspace(0, -np.log10(cond), n, dtype=f64)
+        Q = U @ torch.diag_embed(d.expand(B, n)) @ U.mT
+        return Q, rnd(B, n), rnd(B, m, n), torch.rand(B, m, generator=g, dtype=f64), lb, ub
+    if name == "mid-size n=25 m=100":
+        n, m = 25, 100
+    L = rnd(B, n, n)
+    Q = L @ L.mT / n + 0.1 * torch.eye(n, dtype=f64)
+    p = 3 * rnd(B, n)
+    G = rnd(B, m, n)
+    x0 = rnd(B, n)
+    slack = torch.rand(B, m, generator=g, dtype=f64)
+    if name == "half the rows tight at x0":
+        slack = torch.where(torch.rand(B, m, generator=g, dtype=f64) < 0.5, 0.0, slack)
+    if name == "duplicated rows":
+        G = torch.cat((G[:, : m // 2], G[:, : m // 2]), 1)
+        slack = torch.cat((slack[:, : m // 2], slack[:, : m // 2]), 1)
+    if name == "row scales 1e-6..1e6":
+        scale = 10 ** (12 * torch.rand(B, m, 1, generator=g, dtype=f64) - 6)
+        G = G * scale
+        slack = slack * scale[..., 0]
+    h = (G @ x0.unsqueeze(-1)).squeeze(-1) + slack
+    if name == "LP in a box (Q = 0)":
+        Q = torch.zeros(B, n, n, dtype=f64)
+        lb, ub = -2 * torch.ones(B, n, dtype=f64), 2 * torch.ones(B, n, dtype=f64)
+        h = h.abs() + 1.0  # the box is the bounded part
+    return Q, p, G, h, lb, ub
+
+
+FAMILIES = (
+    "cond=1e6",
+    "cond=1e8",
+    "half the rows tight at x0",
+    "duplicated rows",
+    "row scales 1e-6..1e6",
+    "LP in a box (Q = 0)",
+    "mid-size n=25 m=100",
+)
+
+
+def families(rows: int) -> None:
+    """Print the hard-family table."""
+    print(
+        f"\n{'family':28s} {'rows':>5s} {'solved':>6s} {'max err':>9s} {'false fail':>10s} "
+        f"{'wrong SOLVED':>12s} {'us/QP':>8s}"
+    )
+    for k, name in enumerate(FAMILIES):
+        g = torch.Generator().manual_seed(500 + k)
+        Q, p, G, h, lb, ub = _family(name, rows, g)
+        solve_qp(Q, p, G, h, lb=lb, ub=ub)  # warm up
+        t0 = time.perf_counter()
+        sol = solve_qp(Q, p, G, h, lb=lb, ub=ub)
+        per_qp = (time.perf_counter() - t0) / rows
+        err = 0.0
+        false_fail = wrong = 0
+        for i in range(rows):
+            row = [t[i].numpy() if t is not None else None for t in (Q, p, G, h)]
+            bnd = [t[i].numpy() if t is not None else None for t in (lb, ub)]
+            x_ref, _, st = cvxpy_solve(*row, lb=bnd[0], ub=bnd[1])
+            solved = int(sol.status[i]) == Status.SOLVED
+            if st != "optimal":
+                wrong += solved
+                continue
+            if not solved:
+                false_fail += 1
+                continue
+            e = np.abs(sol.x[i].numpy() - x_ref).max() / (1.0 + np.abs(x_ref).max())
+            err = max(err, e)
+            wrong += e > 1e-6
+        n_solved = int((sol.status == Status.SOLVED).sum())
+        print(
+            f"{name:28s} {rows:5d} {n_solved:6d} {err:9.1e} {false_fail:10d} {wrong:12d} "
+            f"{per_qp * 1e6:8.1f}"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--total", type=int, default=10_000, help="number of QPs per dtype")
+    parser.add_argument("--rows", type=int, default=64, help="rows per hard family")
+    parser.add_argument("--families-only", action="store_true", help="only the hard families")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    if args.families_only:
+        families(args.rows)
+        return
     per = args.total // len(TEN_THOUSAND_SHAPES) + 1
     for dtype in (torch.float64, torch.float32):
         x_err = obj_err = 0.0
@@ -56,6 +156,7 @@ def main() -> None:
             f"objective {obj_err:.2e}; infeasible {infeasible}: flagged {flagged}, "
             f"reported solved {wrongly_solved}"
         )
+    families(args.rows)
 
 
 if __name__ == "__main__":

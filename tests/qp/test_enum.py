@@ -226,3 +226,14 @@ def test_rows_of_very_different_scales_are_each_judged_on_their_own():
     assert int(sol.status) == Status.SOLVED == int(ref.status)
     assert ((G @ sol.x - h) / G.norm(dim=-1)).max() < 1e-9
     torch.testing.assert_close(sol.x, ref.x, atol=1e-9, rtol=1e-9)
+
+
+def test_explicit_enumeration_refuses_too_many_candidate_sets():
+    Q = torch.eye(10, dtype=torch.float64)
+    p = torch.ones(10, dtype=torch.float64)
+    G = torch.ones(50, 10, dtype=torch.float64)
+    h = torch.ones(50, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"candidate active sets \(N=10 variables, M=50"):
+        solve_qp(Q, p, G, h, method="enumerate")
+    # the default method solves the same problem
+    assert int(solve_qp(Q, p, G, h).status) == Status.SOLVED

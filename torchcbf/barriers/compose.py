@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from torch import Tensor, nn
 
@@ -38,19 +40,19 @@ class BarrierStack(Barrier):
         """``x [..., n] -> h [..., k]``."""
         return torch.cat([_as_columns(b(x, t), x) for b in self.barriers], -1)
 
-    def _parts(self) -> list[LieFunction] | None:
+    def parts(self) -> list[LieFunction] | None:
         return list(self.barriers)
 
     @property
     def has_analytic(self) -> bool:
         return all(b.has_analytic for b in self.barriers)
 
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         return _stack_analytic(self.barriers, x, t)
 
 
 def _stack_analytic(barriers: nn.ModuleList, x: Tensor, t: Tensor) -> AnalyticDerivatives:
-    parts = [b._analytic(x, t) for b in barriers]
+    parts = [b.derivatives(x, t) for b in barriers]
     batch = x.shape[:-1]
     single = [p.h.shape == batch for p in parts]
     h = torch.cat([_as_columns(p.h, x) for p in parts], -1)
@@ -63,6 +65,45 @@ def _stack_analytic(barriers: nn.ModuleList, x: Tensor, t: Tensor) -> AnalyticDe
         return torch.cat([_as_columns(p.hess_quad(s), x) for p in parts], -1)
 
     return AnalyticDerivatives(h, dhdx, dhdt, quad)
+
+
+class Scaled(Barrier):
+    """``scale * h(x, t)`` for constant scales ``> 0`` (a number, or ``[k]`` for a barrier
+    with ``k`` outputs): the same safe set, a rescaled CBF condition. Closed-form
+    derivatives when ``barrier`` has them."""
+
+    def __init__(self, barrier: LieFunction, scale: float | Sequence[float] | Tensor) -> None:
+        super().__init__()
+        if not isinstance(barrier, LieFunction):
+            raise TypeError(f"barrier must be a Barrier, got {type(barrier).__name__}")
+        if isinstance(scale, bool):
+            raise TypeError("scale must be a number or a sequence/tensor of numbers")
+        value = torch.as_tensor(scale, dtype=torch.float64).detach().clone()
+        if value.dim() > 1 or value.numel() == 0 or not bool((value > 0).all()):
+            raise ValueError(f"scale must be positive numbers (scalar or [k]), got {scale!r}")
+        self.barrier = barrier
+        self.register_buffer("scale", value)
+        self.time_varying = barrier.time_varying
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """``x [..., n] -> scale * h [...]`` (or ``[..., k]``)."""
+        return self.scale.to(x) * self.barrier(x, t)
+
+    @property
+    def has_analytic(self) -> bool:
+        return self.barrier.has_analytic
+
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        d = self.barrier.derivatives(x, t)
+        c = self.scale.to(x)
+
+        def quad(s: Tensor) -> Tensor:
+            return c * d.hess_quad(s)
+
+        return AnalyticDerivatives(c * d.h, c.unsqueeze(-1) * d.dhdx, c * d.dhdt, quad)
+
+    def extra_repr(self) -> str:
+        return f"scale={self.scale.tolist()}"
 
 
 class _Reduction(Barrier):
@@ -89,8 +130,8 @@ class _Reduction(Barrier):
     def has_analytic(self) -> bool:
         return self.stack.has_analytic
 
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
-        d = self.stack._analytic(x, t)
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        d = self.stack.derivatives(x, t)
         return combine(d.h, d.dhdx, d.dhdt, d.hess_quad, self.mode, self.smooth, self.temperature)
 
     def extra_repr(self) -> str:

@@ -7,7 +7,7 @@ function ``h(x, t)`` and dynamics ``dx = (f + g u) dt + sigma dW`` it returns
 
 Batching: rows of a batch are independent, so ``d/dx sum_rows h`` gives every row's gradient
 in one backward pass. A k-output function (``h [..., k]``) needs one pass per output; a
-function that splits into independent parts (:meth:`LieFunction._parts`: the members of a
+function that splits into independent parts (:meth:`LieFunction.parts`: the members of a
 :class:`~torchcbf.barriers.BarrierStack`, the ``k`` shapes of a batched shape) runs each pass
 through its own part's graph only.
 The Hessian trace is ``sum_j s_j' H s_j`` over the ``q`` columns ``s_j`` of ``sigma``:
@@ -27,6 +27,9 @@ from torchcbf._checks import as_tensor, check_tensor
 from torchcbf.dynamics.base import ControlAffine
 
 LieMethod = Literal["autograd", "analytic"]
+#: states x components up to which L_f h and L_g h are formed by broadcasting (fewer ops on a
+#: few states) rather than by batched matmuls (faster on large batches)
+SMALL_BATCH_ELEMENTS = 256
 HessQuad = Callable[[Tensor], Tensor]
 
 
@@ -49,7 +52,7 @@ class LieTerms(NamedTuple):
 
 
 class AnalyticDerivatives(NamedTuple):
-    """Closed-form derivatives a shape may provide (see :meth:`LieFunction._analytic`).
+    """Closed-form derivatives a shape may provide (see :meth:`LieFunction.derivatives`).
 
     ``h [...]`` (or ``[..., k]``), ``dhdx [..., n]`` (or ``[..., k, n]``), ``dhdt`` like ``h``,
     and ``hess_quad(S [..., n, q]) -> tr(S' d2h/dx2 S)`` shaped like ``h``.
@@ -67,26 +70,42 @@ class LieFunction(nn.Module):
     Subclasses write ``forward(x [..., n], t=None) -> [...]`` (or ``[..., k]`` for ``k``
     functions evaluated at once). Time-varying subclasses set ``time_varying = True`` and
     receive ``t`` as a tensor broadcastable to the batch shape ``[...]``. Subclasses may add
-    closed-form derivatives by overriding :meth:`_analytic` and :attr:`has_analytic`.
+    closed-form derivatives by overriding :meth:`derivatives` and :attr:`has_analytic`, and
+    declare independent pieces with :meth:`parts`.
     """
 
     time_varying: bool = False
 
     @property
     def has_analytic(self) -> bool:
-        """Whether ``lie(..., method="analytic")`` is available."""
+        """Whether :meth:`derivatives` (``lie(..., method="analytic")``) is available."""
         return False
 
-    def _parts(self) -> list[LieFunction] | None:
+    def parts(self) -> list[LieFunction] | None:
         """Independent parts whose outputs, concatenated, are this function's ``[..., k]``
-        (``None``: one part). The autograd path differentiates each part separately, so a
-        backward pass for one output only runs through the graph of its own part."""
+        (``None``: one part). The autograd path differentiates the parts separately, so a
+        backward pass for one output only runs through the graph of its own part. Override
+        it in a function made of independent pieces (a stack of barriers, ``k`` shapes)."""
+        if type(self)._parts is not LieFunction._parts:  # a subclass of the former name
+            return self._parts()
         return None
 
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        """Closed-form ``h``, ``dh/dx``, ``dh/dt`` and the Hessian quadratic form at
+        ``x [..., n]``, ``t [...]``. Override it together with :attr:`has_analytic`."""
+        if type(self)._analytic is not LieFunction._analytic:  # a subclass of the former name
+            return self._analytic(x, t)
         raise ValueError(
             f"{type(self).__name__} has no closed-form derivatives; use method='autograd'"
         )
+
+    def _parts(self) -> list[LieFunction] | None:
+        """Former name of :meth:`parts` (kept as an alias)."""
+        return self.parts()
+
+    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        """Former name of :meth:`derivatives` (kept as an alias)."""
+        return self.derivatives(x, t)
 
     def lie(
         self,
@@ -106,6 +125,8 @@ def time_tensor(t: Tensor | float | None, x: Tensor) -> Tensor:
     batch = x.shape[:-1]
     if t is None:
         return x.new_zeros(batch)
+    if isinstance(t, Tensor) and t.shape == batch and t.dtype == x.dtype and t.device == x.device:
+        return t
     t = as_tensor("t", t, dtype=x.dtype, device=x.device)
     try:
         return torch.broadcast_to(t, batch)
@@ -160,6 +181,38 @@ def lie_derivatives(
     dynamics.check_inputs(x)
     if method not in ("autograd", "analytic"):
         raise ValueError(f"method must be 'autograd' or 'analytic', got {method!r}")
+    diffusion = hessian and dynamics.has_diffusion
+    if method == "analytic":
+        # closed forms are plain tensor expressions: differentiable in grad mode, no graph
+        # otherwise, so they need neither the autograd context nor a detach
+        return _analytic_terms(fn, x, dynamics, t, diffusion, control)
+    grad_mode = torch.is_grad_enabled()
+    inference = torch.is_inference_mode_enabled()
+    ctx = torch.inference_mode(False) if inference else contextlib.nullcontext()
+    with ctx, torch.enable_grad():
+        if inference:
+            x = x.clone()
+            t = t.clone() if isinstance(t, Tensor) else t
+        terms = _autograd_terms(fn, x, dynamics, t, diffusion, control, grad_mode)
+    if not grad_mode:
+        terms = LieTerms(*(None if v is None else v.detach() for v in terms))
+    return terms
+
+
+def stacked_lie_derivatives(
+    fns: list[LieFunction],
+    x: Tensor,
+    dynamics: ControlAffine,
+    t: Tensor | float | None = None,
+    *,
+    hessian: bool = True,
+) -> tuple[LieTerms, list[int]]:
+    """Lie derivatives of several functions at once by autograd, their outputs concatenated:
+    ``h, lfh, dhdt, hess_trace [..., K]``, ``lgh [..., K, m]``, ``dhdx [..., K, n]``, and
+    each function's number of outputs. The same terms as one :func:`lie_derivatives` call per
+    function, in two backward passes for all (see :func:`stacked_terms`) instead of two per
+    function. Grad mode, inference mode and graphs as for :func:`lie_derivatives`."""
+    dynamics.check_inputs(x)
     grad_mode = torch.is_grad_enabled()
     inference = torch.is_inference_mode_enabled()
     diffusion = hessian and dynamics.has_diffusion
@@ -168,13 +221,18 @@ def lie_derivatives(
         if inference:
             x = x.clone()
             t = t.clone() if isinstance(t, Tensor) else t
-        if method == "analytic":
-            terms = _analytic_terms(fn, x, dynamics, t, diffusion, control)
-        else:
-            terms = _autograd_terms(fn, x, dynamics, t, diffusion, control, grad_mode)
+        split = [flat_parts(fn) for fn in fns]
+        sigma = dynamics.sigma(x) if diffusion else None
+        parts = [p for ps in split for p in ps]
+        h, dhdx, dhdt, hess, sizes, _ = stacked_terms(parts, x, t, sigma, grad_mode or diffusion)
+        terms = _assemble(h, dhdx, dhdt, hess, x, dynamics, True, True)
     if not grad_mode:
         terms = LieTerms(*(None if v is None else v.detach() for v in terms))
-    return terms
+    per_fn, i = [], 0
+    for ps in split:
+        per_fn.append(sum(sizes[i : i + len(ps)]))
+        i += len(ps)
+    return terms, per_fn
 
 
 def _autograd_terms(
@@ -186,78 +244,103 @@ def _autograd_terms(
     control: bool,
     grad_mode: bool,
 ) -> LieTerms:
-    create = grad_mode or diffusion
-    sigma_cols = dynamics.sigma(x).unbind(-1) if diffusion else None
+    sigma = dynamics.sigma(x) if diffusion else None
     parts = flat_parts(fn)
-    if parts[0] is fn:
-        h, dhdx, dhdt, hess, multi = _part_terms(fn, x, t, sigma_cols, create)
-        if not multi:
-            h, dhdx, dhdt = h.squeeze(-1), dhdx.squeeze(-2), dhdt.squeeze(-1)
-            hess = None if hess is None else hess.squeeze(-1)
-    else:
-        cols = [_part_terms(p, x, t, sigma_cols, create) for p in parts]
-        h = torch.cat([c[0] for c in cols], -1)  # a split function is always [..., k]
-        dhdx = torch.cat([c[1] for c in cols], -2)
-        dhdt = torch.cat([c[2] for c in cols], -1)
-        hess = None if sigma_cols is None else torch.cat([c[3] for c in cols], -1)
-        multi = True
+    h, dhdx, dhdt, hess, _, flags = stacked_terms(parts, x, t, sigma, grad_mode or diffusion)
+    # one scalar function keeps the shape [...]; a split or k-output one is [..., k]
+    multi = parts[0] is not fn or flags[0]
+    if not multi:
+        h, dhdx, dhdt = h.squeeze(-1), dhdx.squeeze(-2), dhdt.squeeze(-1)
+        hess = None if hess is None else hess.squeeze(-1)
     return _assemble(h, dhdx, dhdt, hess, x, dynamics, multi, control)
 
 
+def stacked_terms(
+    parts: list[LieFunction],
+    x: Tensor,
+    t: Tensor | float | None,
+    sigma: Tensor | None,
+    create: bool,
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None, list[int], list[bool]]:
+    """``h, dhdt, hess [..., K]``, ``dhdx [..., K, n]`` of independent functions ``parts``
+    (their outputs concatenated), each part's number of outputs, and whether it returned
+    ``[..., k]`` (rather than ``[...]``).
+
+    Every output of every part is evaluated on its own copy of the state (one copy per
+    output and per column of ``sigma``; a part with ``k`` outputs runs once on ``k`` copies
+    and its diagonal is kept), so ONE backward pass gives every gradient and a second one
+    every Hessian-vector product ``H_j s_l``, whatever the number of parts and outputs.
+    ``create`` keeps the graph of the gradients."""
+    n = x.shape[-1]
+    Q = 1 if sigma is None else sigma.shape[-1]
+    batch = x.shape[:-1]
+    nb = len(batch)
+    base = x if x.requires_grad else x.detach()
+    tt = time_tensor(t, x)
+
+    def copies(v: Tensor, k: int, trailing: tuple[int, ...]) -> Tensor:
+        out = v[(..., None, None, *([slice(None)] * len(trailing)))]
+        out = out.expand(*batch, k, Q, *trailing).clone()
+        return out if out.requires_grad else out.requires_grad_()
+
+    def run(part: LieFunction, k: int) -> tuple[Tensor, Tensor, Tensor | None]:
+        xk = copies(base, k, (n,))
+        tk = copies(tt, k, ()) if part.time_varying else tt[..., None, None]
+        return part(xk, tk), xk, tk if part.time_varying else None
+
+    leaves: list[Tensor] = []
+    multi: list[bool] = []
+    t_leaves: list[Tensor | None] = []
+    values: list[Tensor] = []  # [..., k, Q] per part
+    total = x.new_zeros(())
+    for part in parts:
+        h, xk, tk = run(part, 1)
+        multi.append(h.shape != (*batch, 1, Q))
+        if not multi[-1]:
+            hd = h
+        elif h.dim() == nb + 3 and h.shape[:-1] == (*batch, 1, Q):
+            k = h.shape[-1]
+            h, xk, tk = run(part, k)  # [..., k(copies), Q, k(outputs)]: keep the diagonal
+            hd = torch.diagonal(h, dim1=nb, dim2=-1).movedim(-1, nb)
+        else:
+            raise ValueError(
+                f"{type(part).__name__} must return [...] or [..., k] for a state of shape "
+                f"{tuple(xk.shape)}, got {tuple(h.shape)}"
+            )
+        check_tensor(f"{type(part).__name__} output", hd)
+        leaves.append(xk)
+        t_leaves.append(tk)
+        values.append(hd)
+        total = total + hd.sum()
+    timed = [tl for tl in t_leaves if tl is not None]
+    grads = _grad(total, (*leaves, *timed), create or sigma is not None)
+    g_x, g_t = grads[: len(leaves)], list(grads[len(leaves) :])
+    hess: list[Tensor] | None = None
+    if sigma is not None:
+        s_cols = sigma.movedim(-1, -2).unsqueeze(-3)  # [..., 1, Q, n]
+        inner = sum((g * s_cols).sum() for g in g_x)
+        hv = _grad(inner, tuple(leaves), create)  # type: ignore[arg-type]
+        hess = [(v * s_cols).sum((-2, -1)) for v in hv]  # [..., k]
+    dhdt = []
+    for hd, tl in zip(values, t_leaves, strict=True):
+        dhdt.append(g_t.pop(0)[..., 0] if tl is not None else torch.zeros_like(hd[..., 0]))
+    sizes = [hd.shape[-2] for hd in values]
+    return (
+        torch.cat([hd[..., 0] for hd in values], -1),
+        torch.cat([g[..., 0, :] for g in g_x], -2),
+        torch.cat(dhdt, -1),
+        None if hess is None else torch.cat(hess, -1),
+        sizes,
+        multi,
+    )
+
+
 def flat_parts(fn: LieFunction) -> list[LieFunction]:
-    """``fn`` split into independently differentiable parts (see :meth:`LieFunction._parts`)."""
-    parts = fn._parts()
+    """``fn`` split into independently differentiable parts (see :meth:`LieFunction.parts`)."""
+    parts = fn.parts()
     if parts is None:
         return [fn]
     return [q for p in parts for q in flat_parts(p)]
-
-
-def _part_terms(
-    fn: LieFunction,
-    x: Tensor,
-    t: Tensor | float | None,
-    sigma_cols: tuple[Tensor, ...] | None,
-    create: bool,
-) -> tuple[Tensor, Tensor, Tensor, Tensor | None, bool]:
-    """``h, dhdt, hess [..., k]``, ``dhdx [..., k, n]`` of one part (k = 1 if scalar), and
-    whether the part returned ``[..., k]`` (rather than ``[...]``)."""
-    # ``xr`` is the variable we differentiate w.r.t.: a clone when ``x`` is itself part of a
-    # graph (nested Lie derivatives, learning), so that f, g and sigma evaluated at ``x``
-    # are constants for these gradients yet keep their own path to ``x``.
-    xr = x.clone() if x.requires_grad else x.detach().requires_grad_()
-    tt = time_tensor(t, x)
-    if fn.time_varying:
-        tr = tt.clone() if tt.requires_grad else tt.detach().requires_grad_()
-        inputs: tuple[Tensor, ...] = (xr, tr)
-    else:
-        tr = tt
-        inputs = (xr,)
-    h = fn(xr, tr)
-    multi = _check_output(fn, h, x)
-    outs = h.unbind(-1) if multi else (h,)
-    grads = [_grad(hj, inputs, create) for hj in outs]
-    dhdx = [gr[0] for gr in grads]
-    dhdt = [
-        gr[1] if fn.time_varying else torch.zeros_like(hj)
-        for gr, hj in zip(grads, outs, strict=True)
-    ]
-    hess = None
-    if sigma_cols is not None:
-        hess = []
-        for dj in dhdx:
-            acc = torch.zeros_like(dj[..., 0])
-            for s in sigma_cols:
-                # sigma is computed at ``x``, not ``xr``: a constant direction in this HVP.
-                (hv,) = _grad((dj * s).sum(-1), (xr,), create)
-                acc = acc + (hv * s).sum(-1)
-            hess.append(acc)
-    return (
-        h if multi else h.unsqueeze(-1),
-        torch.stack(dhdx, -2),
-        torch.stack(dhdt, -1),
-        None if hess is None else torch.stack(hess, -1),
-        multi,
-    )
 
 
 class FunctionPart(LieFunction):
@@ -285,7 +368,7 @@ def _analytic_terms(
         raise ValueError(
             f"{type(fn).__name__} has no closed-form derivatives; use method='autograd'"
         )
-    d = fn._analytic(x, time_tensor(t, x))
+    d = fn.derivatives(x, time_tensor(t, x))
     multi = _check_output(fn, d.h, x)
     hess = d.hess_quad(dynamics.sigma(x)) if diffusion else None
     return _assemble(d.h, d.dhdx, d.dhdt, hess, x, dynamics, multi, control)
@@ -316,14 +399,17 @@ def _assemble(
     control: bool,
 ) -> LieTerms:
     f = dynamics.f(x)
-    if multi:
-        lfh = (dhdx * f.unsqueeze(-2)).sum(-1)
+    g = dynamics.g(x) if control else None
+    if x.numel() <= SMALL_BATCH_ELEMENTS:
+        # a few states: broadcast multiply-and-sum, fewer dispatched ops than a batched matmul
+        lfh = (dhdx * f.unsqueeze(-2)).sum(-1) if multi else (dhdx * f).sum(-1)
+        if g is not None:
+            lgh = (dhdx.unsqueeze(-1) * (g.unsqueeze(-3) if multi else g)).sum(-2)
     else:
-        lfh = (dhdx * f).sum(-1)
-    if control:
-        g = dynamics.g(x)
-        lgh = dhdx @ g if multi else (dhdx.unsqueeze(-2) @ g).squeeze(-2)
-    else:
-        lead = (*h.shape, dynamics.control_dim)
-        lgh = h.new_zeros(lead)
+        f = f.unsqueeze(-1)
+        lfh = (dhdx @ f).squeeze(-1) if multi else (dhdx.unsqueeze(-2) @ f)[..., 0, 0]
+        if g is not None:
+            lgh = dhdx @ g if multi else (dhdx.unsqueeze(-2) @ g).squeeze(-2)
+    if g is None:
+        lgh = h.new_zeros((*h.shape, dynamics.control_dim))
     return LieTerms(h, lfh, lgh, dhdt, hess, dhdx)

@@ -21,11 +21,23 @@ from torch import Tensor, nn
 from torchcbf._checks import as_tensor
 from torchcbf.barriers._params import float_spec, register
 from torchcbf.barriers.base import Barrier
-from torchcbf.barriers.lie import FunctionPart, LieFunction, flat_parts, lie_derivatives
+from torchcbf.barriers.lie import (
+    FunctionPart,
+    LieFunction,
+    LieMethod,
+    flat_parts,
+    lie_derivatives,
+)
 from torchcbf.dynamics.base import ControlAffine
 
 Form = Literal["high_order", "exponential"]
 GainSpec = float | Sequence[float] | Tensor | None
+
+
+def _method(fn: LieFunction) -> LieMethod:
+    """Closed forms where ``fn`` has them (a plain, differentiable tensor expression, so the
+    outer derivatives of the rectified barrier need no nested backward pass through it)."""
+    return "analytic" if fn.has_analytic else "autograd"
 
 
 class LieDerivative(Barrier):
@@ -44,12 +56,15 @@ class LieDerivative(Barrier):
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """``x [..., n] -> D h [...]`` (or ``[..., k]``)."""
-        terms = lie_derivatives(self.barrier, x, self.dynamics, t, hessian=False, control=False)
+        terms = lie_derivatives(
+            self.barrier, x, self.dynamics, t, method=_method(self.barrier), hessian=False,
+            control=False,
+        )  # fmt: skip
         return terms.lfh + terms.dhdt
 
-    def _parts(self) -> list[LieFunction] | None:
-        if self.barrier._parts() is None:
-            return None
+    def parts(self) -> list[LieFunction] | None:
+        if self.barrier.parts() is None or self.barrier.has_analytic:
+            return None  # evaluated whole: its k outputs share one evaluation per call
         return [LieDerivative(p, self.dynamics) for p in flat_parts(self.barrier)]
 
 
@@ -129,9 +144,9 @@ class HighOrderBarrier(Barrier):
         """``x [..., n] -> psi_{r-1} [...]`` (or ``[..., k]``)."""
         return self.psi(x, t, self.relative_degree - 1)
 
-    def _parts(self) -> list[LieFunction] | None:
-        if self.barrier._parts() is None:
-            return None
+    def parts(self) -> list[LieFunction] | None:
+        if self.barrier.parts() is None or self.barrier.has_analytic:
+            return None  # evaluated whole: its k outputs share one evaluation per call
         r = self.relative_degree
         return [
             FunctionPart(functools.partial(self.psi, order=r - 1, base=p), self.time_varying)
@@ -199,7 +214,10 @@ class ExponentialBarrier(Barrier):
         chain = [self.barrier if base is None else base]  # D^0 h .. D^{r-2} h
         for _ in range(r - 2):
             chain.append(LieDerivative(chain[-1], self.dynamics))
-        terms = lie_derivatives(chain[-1], x, self.dynamics, t, hessian=False, control=False)
+        terms = lie_derivatives(
+            chain[-1], x, self.dynamics, t, method=_method(chain[-1]), hessian=False,
+            control=False,
+        )  # fmt: skip
         k = self.coefficients.to(x)
         out = terms.lfh + terms.dhdt + k[r - 2] * terms.h  # D^{r-1} h + k_{r-2} D^{r-2} h
         for i in range(r - 2):
@@ -210,9 +228,9 @@ class ExponentialBarrier(Barrier):
         """``x [..., n] -> h_e [...]`` (or ``[..., k]``)."""
         return self.value(x, t)
 
-    def _parts(self) -> list[LieFunction] | None:
-        if self.barrier._parts() is None:
-            return None
+    def parts(self) -> list[LieFunction] | None:
+        if self.barrier.parts() is None or self.barrier.has_analytic:
+            return None  # evaluated whole: its k outputs share one evaluation per call
         return [
             FunctionPart(functools.partial(self.value, base=p), self.time_varying)
             for p in flat_parts(self.barrier)

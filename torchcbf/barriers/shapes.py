@@ -63,13 +63,22 @@ def _rotate_t(cos: Tensor, sin: Tensor, u: Tensor, v: Tensor, dim: int = -1) -> 
     return torch.stack([cos * u + sin * v, -sin * u + cos * v], dim)
 
 
+def _embed(sel: StateIndex, grad_p: Tensor, n: int) -> Tensor:
+    """A gradient w.r.t. the selected components ``[..., d]`` as one w.r.t. the state
+    ``[..., n]`` (one padding op when the components are contiguous)."""
+    span = sel._slice
+    if span is None:
+        return sel.scatter(grad_p, n)
+    return torch.nn.functional.pad(grad_p, (span.start, n - span.stop))
+
+
 class _ShapeStack(ExactConstants, Barrier):
     """A shape whose constants may carry a leading ``k`` axis (``self.num``): the ``k`` shapes
     are independent Lie parts, all with closed-form derivatives."""
 
     num: int | None
 
-    def _parts(self) -> list[LieFunction] | None:
+    def parts(self) -> list[LieFunction] | None:
         return _split(self, self.num)
 
     @property
@@ -156,11 +165,15 @@ class Ball(_SignedShapeStack):
         r = _row(self.radius, j).to(x)
         return self._sign() * (((self._sel(x) - c) ** 2).sum(-1) - r**2)
 
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         sign = self._sign()
         diff = self._diff(x, t)
-        h = sign * ((diff**2).sum(-1) - self.radius.to(x) ** 2)
-        dhdx = self._sel.scatter(2 * sign * diff, x.shape[-1])
+        r = self.radius.to(x)
+        h = (diff * diff).sum(-1) - r * r
+        grad_p = diff * 2.0
+        if sign < 0:
+            h, grad_p = -h, -grad_p
+        dhdx = _embed(self._sel, grad_p, x.shape[-1])
         if self.velocity is None:
             dhdt = torch.zeros_like(h)
         else:
@@ -298,13 +311,13 @@ class Ellipse(_SignedShapeStack):
             d = _rotate_t(cos, sin, d[..., 0], d[..., 1])
         return self._sign() * (((d / self.axes[j].to(x)) ** 2).sum(-1) - 1)
 
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         sign = self._sign()
         a = self.axes.to(x)
         q = self._q(x)
         h = sign * (((q / a) ** 2).sum(-1) - 1)
         grad_p = self._body(2 * sign * q / a**2, x, transpose=False)
-        dhdx = self._sel.scatter(grad_p, x.shape[-1])
+        dhdx = _embed(self._sel, grad_p, x.shape[-1])
 
         def quad(s: Tensor) -> Tensor:
             sp = self._sel.rows(s)  # [..., d, q]
@@ -363,11 +376,11 @@ class HalfSpace(_ShapeStack):
         """Half-space ``j`` of a stack: ``[...]``."""
         return _row(self.b, j).to(x) - (self._sel(x) * self.a[j].to(x)).sum(-1)
 
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         h = self.forward(x)
         a = self.a.to(x)
         grad_p = (-a).expand(*h.shape, a.shape[-1])
-        dhdx = self._sel.scatter(grad_p, x.shape[-1])
+        dhdx = _embed(self._sel, grad_p, x.shape[-1])
 
         def quad(s: Tensor) -> Tensor:
             return torch.zeros_like(h)
@@ -434,12 +447,12 @@ class Box(ExactConstants, Barrier):
     def has_analytic(self) -> bool:
         return True
 
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         faces = self._faces(x)
         d = faces.shape[-1] // 2
         eye = torch.eye(d, dtype=x.dtype, device=x.device)
         grad_p = torch.cat([eye, -eye], 0).expand(*faces.shape, d)  # [..., 2d, d]
-        dhdx = self._sel.scatter(grad_p, x.shape[-1])
+        dhdx = _embed(self._sel, grad_p, x.shape[-1])
         zeros = torch.zeros_like(faces)
 
         def quad(s: Tensor) -> Tensor:

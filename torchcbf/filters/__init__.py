@@ -8,17 +8,25 @@ from torchcbf.filters.class_k import (
     as_class_k,
 )
 from torchcbf.filters.conditions import Condition, cbf_condition, clf_condition
+from torchcbf.filters.fallback import Fallback
+from torchcbf.filters.modes import FilterMode, RiskAware, Robust, Stochastic, Vanilla
 from torchcbf.filters.risk import noise_bound, risk_margin
 from torchcbf.filters.safety_filter import FilterOutput, FilterStatus, SafetyFilter
 
 __all__ = [
     "Condition",
     "CubicClassK",
+    "Fallback",
+    "FilterMode",
     "FilterOutput",
     "FilterStatus",
     "LinearClassK",
     "PowerClassK",
+    "RiskAware",
+    "Robust",
     "SafetyFilter",
+    "Stochastic",
+    "Vanilla",
     "as_class_k",
     "cbf_condition",
     "clf_condition",

@@ -13,14 +13,27 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchcbf.qp import _kkt
+from torchcbf.qp import _dual_native, _kkt
 from torchcbf.qp._dual import DualFactor, NativeFactor, dual_adjoints, solve_dual
-from torchcbf.qp._enum import MAX_CANDIDATES_SMALL_BATCH, num_candidates, solve_enum
+from torchcbf.qp._enum import (
+    MAX_CANDIDATES_SMALL_BATCH,
+    SMALL_BATCH,
+    num_candidates,
+    solve_enum,
+)
 from torchcbf.qp._ipm import solve_ipm
 from torchcbf.qp.status import Status
 
-#: largest number of variables (after softening) the dual active-set method is used for
-MAX_ACTIVE_SET_VARS = 8
+#: largest condition estimate ``max_i P_ii (P^{-1})_ii`` (see :func:`condition_estimate`)
+#: for which the dual active-set method's answer is kept: it starts at the unconstrained
+#: minimiser ``-P^{-1} q``, whose rounding grows with the condition, and its per-row residual
+#: checks scale with ``|x|``; beyond this bound a row is re-solved by the interior point
+#: method (whose answer the polish verifies). The estimate ignores a diagonal scaling of
+#: ``P`` (e.g. control weights of different units), which the method handles
+MAX_DUAL_CONDITION = 1e4
+#: largest number of variables (after softening) the dual active-set method is used for: the
+#: C kernel's bound, so the torch implementation and the kernel serve the same problems
+MAX_ACTIVE_SET_VARS = _dual_native.MAX_VARS
 
 
 @dataclass(frozen=True)
@@ -202,6 +215,28 @@ def _forward_enum(
     return x, z, y, status, iters, fac
 
 
+def condition_estimate(L: Tensor, batch_first: bool = True) -> Tensor:
+    """``max_i P_ii (P^{-1})_ii [B]`` from the Cholesky factor ``L`` of ``P = L L'``
+    (``[B, N, N]``, or ``[N, N, B]``): a lower bound of the condition number of the
+    Jacobi-scaled ``D^{-1/2} P D^{-1/2}`` (``D = diag(P)``), 1 for a diagonal ``P``.
+
+    ``(P^{-1})_ii`` is the squared norm of column ``i`` of ``L^{-1}``, whose rows follow by
+    forward substitution, one ``[B, N]`` operation per entry of ``L`` (no per-matrix call)."""
+    if not batch_first:
+        L = L.permute(2, 0, 1)
+    N = L.shape[-1]
+    rows: list[Tensor] = []  # rows of L^{-1}, each [B, N]
+    eye = torch.eye(N, dtype=L.dtype, device=L.device)
+    for i in range(N):
+        acc = eye[i].expand(L.shape[0], N)
+        for k in range(i):
+            acc = acc - L[:, i, k : k + 1] * rows[k]
+        rows.append(acc / L[:, i, i : i + 1])
+    inv_diag = sum(r * r for r in rows)  # [B, N]
+    p_diag = (L * L).sum(-1)  # P_ii = |row i of L|^2
+    return (p_diag * inv_diag).amax(-1)
+
+
 def _forward_dual(
     P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
 ) -> tuple[
@@ -212,8 +247,12 @@ def _forward_dual(
     row was solved by it, else the active-set KKT factorisation of the whole batch."""
     y = q.new_zeros(q.shape[0], 0)
     res = solve_dual(P, q, G, h, eps=cfg.eps, max_iter=cfg.max_iter, check_every=cfg.check_every)
+    ok = res.ok & (
+        condition_estimate(res.factor.L, batch_first=isinstance(res.factor, NativeFactor))
+        <= MAX_DUAL_CONDITION
+    )
     x, z, y, status, iters, active, any_fallback = _ipm_fallback(
-        P, q, G, h, A, b, cfg, x0, res.x, res.z, y, res.active, res.ok, res.iterations
+        P, q, G, h, A, b, cfg, x0, res.x, res.z, y, res.active, ok, res.iterations
     )
     if not cfg.need_factor:
         return x, z, y, status, iters, None
@@ -247,6 +286,38 @@ def _ipm_fallback(
     if not bool(fail.any()):
         return x, z, y, status, iters, active, False
     idx = fail.nonzero().squeeze(-1)
+    M, E, N = G.shape[-2], A.shape[-2], q.shape[-1]
+    if (
+        not cfg.enumerate
+        and len(idx) <= SMALL_BATCH
+        and num_candidates(M, E, N, cfg.pairs) <= MAX_CANDIDATES_SMALL_BATCH
+    ):
+        # a few rows the exact method could not certify (degenerate vertices, ties):
+        # enumeration's fixed cost is far below the interior point method's iterations
+        sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
+        en = solve_enum(*sub, eps=cfg.eps, pairs=cfg.pairs)
+        # kept only where the polish finds a KKT point to rounding on the same active set
+        # (nearly dependent rows can pass enumeration's eps checks with x far off)
+        slack = (sub[3] - torch.einsum("bmn,bn->bm", sub[2], en.x)).clamp_min(0.0)
+        solved = torch.where(en.ok, int(Status.SOLVED), int(Status.MAX_ITER))
+        xe, ze, ye, _, fac_e, _, exact = _kkt.polish(
+            *sub, en.x, slack, en.z, en.y, solved, eps=cfg.eps
+        )
+        en = en._replace(x=xe, z=ze, y=ye, active=fac_e.active, ok=en.ok & exact)
+        if bool(en.ok.any()):
+            keep = en.ok.unsqueeze(-1)
+            x = x.index_copy(0, idx, torch.where(keep, en.x, x.index_select(0, idx)))
+            z = z.index_copy(0, idx, torch.where(keep, en.z, z.index_select(0, idx)))
+            y = y.index_copy(0, idx, torch.where(keep, en.y, y.index_select(0, idx)))
+            active = active.index_copy(
+                0, idx, torch.where(keep, en.active, active.index_select(0, idx))
+            )
+            status = status.index_copy(
+                0, idx, torch.where(en.ok, int(Status.SOLVED), status.index_select(0, idx))
+            )
+            idx = idx[~en.ok]
+            if len(idx) == 0:
+                return x, z, y, status, iters, active, True
     sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
     x0s = None if x0 is None else x0.index_select(0, idx)
     xs, zs, ys, sts, its, acts, _ = _ipm(*sub, cfg, x0s)

@@ -5,11 +5,12 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from torchcbf._checks import broadcast_shapes
-from torchcbf.qp import _dual_native
+from torchcbf.qp import _dual_native, realtime
 from torchcbf.qp._enum import (
     MAX_CANDIDATES,
     MAX_CANDIDATES_SMALL_BATCH,
@@ -47,6 +48,9 @@ class QPSolution(NamedTuple):
 
 _FLOAT = (torch.float32, torch.float64)
 METHODS = ("auto", "active_set", "enumerate", "ipm")
+#: most candidate active sets ``method="enumerate"`` accepts when asked for explicitly (its
+#: table and work grow with this count; beyond it the call raises ``ValueError``)
+MAX_CANDIDATES_EXPLICIT = 200_000
 
 
 def _tensor(name: str, value: object, dtype: torch.dtype, device: torch.device) -> Tensor:
@@ -175,17 +179,21 @@ def solve_qp(
         of candidate sets.
       - ``"ipm"``: the interior point method for every row.
       - ``"auto"`` (default): the dual active-set method where it applies (no equality
-        rows, at most 8 variables after softening) when the data are on the CPU and its C
-        kernel is built (see below; e.g. 0.2 ms for one 2-variable, 6-row QP, about 1.3 us
-        per QP in a batch of 4096 4-variable, 8-row QPs, forward and backward). Otherwise
-        enumeration for batches of at most 64 rows with at most 800 candidate sets (0.6 ms
-        for the same single QP), then the dual method where it applies, else enumeration up
-        to 256 candidate sets, else the interior point method.
+        rows, at most ``MAX_ACTIVE_SET_VARS`` = 8 variables after softening) when the data are
+        on the CPU and its C kernel is built (see below). Otherwise enumeration for batches of
+        at most ``SMALL_BATCH`` rows with at most ``MAX_CANDIDATES_SMALL_BATCH`` candidate
+        sets, then the dual method where it applies, else enumeration up to
+        ``MAX_CANDIDATES`` candidate sets, else the interior point method.
 
       On the CPU the dual method runs a C kernel (:mod:`torchcbf.qp._dual_native`, the
       same algorithm problem by problem, built at install when a C compiler is present;
       a large batch is split over ``torch.get_num_threads()`` threads). Without it, and on
-      other devices, it runs in torch.
+      other devices, it runs in torch. A few small QPs (at most ``realtime.MAX_BATCH`` rows)
+      that need no gradient go straight from numpy arrays into the kernel
+      (:mod:`torchcbf.qp.realtime`); a batch the kernel does not certify completely takes
+      the general path. ``method="enumerate"`` asked for explicitly refuses problems with
+      more than ``MAX_CANDIDATES_EXPLICIT`` candidate sets (``ValueError`` naming the sizes).
+      See docs/qp.md for the statuses and fallbacks.
     - ``"proxsuite"``: proxsuite's dense solver, rows solved in parallel by its
       ``solve_in_parallel`` (CPU); its statuses are mapped to :class:`Status` and a row it
       calls solved whose answer violates the constraints is reported ``MAX_ITER``.
@@ -214,6 +222,89 @@ def solve_qp(
 
     Raises ``TypeError``/``ValueError`` naming the argument on bad types or shapes.
     """
+    inp = _validate(Q, p, G, h, A, b, lb, ub, soft, warm_start, backend, method, max_iter,
+                    check_every, eps)  # fmt: skip
+    if inp.B == 0:
+        return _empty_solution(inp)
+    tensors = [t for t in inp.given() if t is not None]
+    need_grad = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+    if backend.startswith("qpsolvers:") and need_grad:
+        pairs = zip(_NAMES, inp.given(), strict=True)
+        needs = [nm for nm, t in pairs if t is not None and t.requires_grad]
+        raise ValueError(
+            f"backend {backend!r} is forward-only but {', '.join(needs)} require grad; "
+            "use backend='torch' or 'proxsuite', or call under torch.no_grad()"
+        )
+    if not need_grad and backend == "torch" and method in ("auto", "active_set"):
+        small = _solve_small(inp, max_iter)
+        if small is not None:
+            return small
+    flat = _flatten(inp)
+    std = _standard_form(flat, inp)
+    cfg = _config(inp, std, backend, method, polish, max_iter, check_every, need_grad)
+    xs, z, y, status, iters = QPFunction.apply(
+        std.P, std.q, std.G, std.h, std.A, flat.b, cfg, std.x0
+    )
+    return _unpack(inp, flat, std, xs, z, y, status, iters)
+
+
+_NAMES = ("Q", "p", "G", "h", "A", "b", "lb", "ub", "soft", "warm_start")
+
+
+class _Inputs(NamedTuple):
+    """Checked inputs of :func:`solve_qp` with their sizes and the broadcast batch shape."""
+
+    Q: Tensor
+    p: Tensor
+    G: Tensor | None
+    h: Tensor | None
+    A: Tensor | None
+    b: Tensor | None
+    lb: Tensor | None
+    ub: Tensor | None
+    soft: Tensor | None
+    x0: Tensor | None
+    n: int
+    m: int
+    me: int
+    eps: float
+    eps_inf: float
+    batch_shape: tuple[int, ...]
+    B: int
+
+    def given(self) -> tuple[Tensor | None, ...]:
+        return (
+            self.Q,
+            self.p,
+            self.G,
+            self.h,
+            self.A,
+            self.b,
+            self.lb,
+            self.ub,
+            self.soft,
+            self.x0,
+        )
+
+
+def _validate(
+    Q: object,
+    p: object,
+    G: object,
+    h: object,
+    A: object,
+    b: object,
+    lb: object,
+    ub: object,
+    soft: object,
+    warm_start: object,
+    backend: object,
+    method: object,
+    max_iter: object,
+    check_every: object,
+    eps: object,
+) -> _Inputs:
+    """Check types, shapes, dtypes, devices and options; broadcast the batch shapes."""
     if not isinstance(Q, Tensor):
         raise TypeError(f"Q must be a torch.Tensor, got {type(Q).__name__}")
     if Q.dtype not in _FLOAT:
@@ -252,66 +343,130 @@ def solve_qp(
         eps = eps_default
     elif not isinstance(eps, (int, float)) or not (0 < eps < 1):
         raise ValueError(f"eps must be a number in (0, 1), got {eps!r}")
-    eps = float(eps)
     x0 = warm_start.x if isinstance(warm_start, QPSolution) else warm_start
     if x0 is not None:
         x0 = _tensor("warm_start", x0, dtype, device)
         _check_trailing("warm_start", x0, (n,), str(n))
-
-    # ---- broadcast every input to one flat batch [B, ...] ----
-    parts: list[tuple[str, Tensor | None, int]] = [
-        ("Q", Q, 2),
-        ("p", p, 1),
-        ("G", G, 2),
-        ("h", h, 1),
-        ("A", A, 2),
-        ("b", b, 1),
-        ("lb", lb, 1),
-        ("ub", ub, 1),
-        ("soft", soft, 1),
-        ("warm_start", x0, 1),
+    trailing = (2, 1, 2, 1, 2, 1, 1, 1, 1, 1)
+    values = (Q, p, G, h, A, b, lb, ub, soft, x0)
+    shapes = [
+        (name, tuple(t.shape[: t.dim() - k]))
+        for name, t, k in zip(_NAMES, values, trailing, strict=True)
+        if t is not None
     ]
-    shapes = []
-    for name, t, k in parts:
-        if t is not None:
-            shapes.append((name, tuple(t.shape[: t.dim() - k])))
     try:
-        batch_shape = broadcast_shapes(*[s for _, s in shapes])
+        batch_shape = tuple(broadcast_shapes(*[s for _, s in shapes]))
     except RuntimeError:
         desc = ", ".join(f"{nm} {s}" for nm, s in shapes)
         raise ValueError(f"batch dimensions do not broadcast: {desc}") from None
-    B = math.prod(batch_shape) if len(batch_shape) > 0 else 1
-    if B == 0:  # an empty batch: empty answers of the right shapes
+    B = math.prod(batch_shape)
+    return _Inputs(Q, p, G, h, A, b, lb, ub, soft, x0, n, m, me, float(eps), eps_inf,
+                   batch_shape, B)  # fmt: skip
 
-        def empty(*trailing: int, dt: torch.dtype = dtype) -> Tensor:
-            return torch.zeros(*batch_shape, *trailing, dtype=dt, device=device)
 
-        none = empty(dt=torch.int64)
-        # zero-size outputs stay connected to the inputs, so backward() works on them
-        given = [t for t in (Q, p, G, h, A, b, lb, ub, soft) if isinstance(t, Tensor)]
-        link = sum((t.sum() for t in given if t.requires_grad), Q.new_zeros(())) * 0.0
-        x, lam, nu, slack = (link + empty(k) for k in (n, m, me, m))
-        return QPSolution(x, none, lam, nu, none, link + empty(n), link + empty(n), slack)
+def _empty_solution(inp: _Inputs) -> QPSolution:
+    """Empty answers of the right shapes, still connected to the inputs (``backward()`` works)."""
+    Q, n, m, me = inp.Q, inp.n, inp.m, inp.me
+
+    def empty(*trailing: int, dt: torch.dtype = Q.dtype) -> Tensor:
+        return torch.zeros(*inp.batch_shape, *trailing, dtype=dt, device=Q.device)
+
+    none = empty(dt=torch.int64)
+    given = [t for t in inp.given()[:9] if t is not None]
+    link = sum((t.sum() for t in given if t.requires_grad), Q.new_zeros(())) * 0.0
+    x, lam, nu, slack = (link + empty(k) for k in (n, m, me, m))
+    return QPSolution(x, none, lam, nu, none, link + empty(n), link + empty(n), slack)
+
+
+def _numpy_rows(t: Tensor | None, inp: _Inputs, trailing: tuple[int, ...]) -> np.ndarray | None:
+    """``t`` as a float64 numpy array ``[B, *trailing]`` (a view where possible)."""
+    if t is None:
+        return None
+    a = t.detach().numpy()
+    if a.dtype != np.float64:
+        a = a.astype(np.float64)
+    if a.shape[: a.ndim - len(trailing)] != inp.batch_shape:
+        a = np.broadcast_to(a, (*inp.batch_shape, *trailing))
+    return a.reshape(inp.B, *trailing)
+
+
+def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
+    """The real-time path (:mod:`torchcbf.qp.realtime`) for a few small QPs without gradients on
+    the CPU; ``None`` where it does not apply or the kernel does not certify every row."""
+    n, m = inp.n, inp.m
+    if (
+        inp.B > realtime.MAX_BATCH
+        or n > MAX_ACTIVE_SET_VARS
+        or inp.me > 0
+        or inp.soft is not None
+        or inp.Q.device.type != "cpu"
+        or not _dual_native.available()
+    ):
+        return None
+    Q = _numpy_rows(inp.Q, inp, (n, n))
+    lb, ub = _numpy_rows(inp.lb, inp, (n,)), _numpy_rows(inp.ub, inp, (n,))
+    if (lb is not None and not (lb < math.inf).all()) or (
+        ub is not None and not (ub > -math.inf).all()
+    ):
+        return None  # NaN, lb = +inf or ub = -inf
+    sol = realtime.solve_small(
+        0.5 * (Q + Q.transpose(0, 2, 1)),
+        _numpy_rows(inp.p, inp, (n,)),
+        _numpy_rows(inp.G, inp, (m, n)),
+        _numpy_rows(inp.h, inp, (m,)),
+        lb,
+        ub,
+        inp.eps,
+        max_iter,
+        inp.batch_shape,
+        np.float64 if inp.Q.dtype == torch.float64 else np.float32,
+    )
+    if sol is None:
+        return None
+    return QPSolution(*(torch.from_numpy(a) for a in sol))
+
+
+class _Flat(NamedTuple):
+    """Inputs flattened to one batch ``[B, ...]``, rows with bad data replaced by a harmless
+    problem (``skip``), and the masks that say which."""
+
+    Q: Tensor
+    p: Tensor
+    G: Tensor
+    h: Tensor
+    A: Tensor
+    b: Tensor
+    lb: Tensor | None
+    ub: Tensor | None
+    soft: Tensor | None
+    x0: Tensor | None
+    bad: Tensor  # [B] non-finite data
+    infeasible_bound: Tensor  # [B] lb = +inf or ub = -inf
+    masked: bool  # whether some row may be skipped (always off the CPU)
+
+
+def _flatten(inp: _Inputs) -> _Flat:
+    """Broadcast every input to ``[B, ...]`` and neutralise rows with non-finite data."""
+    Q, n, m, me, B = inp.Q, inp.n, inp.m, inp.me, inp.B
+    dtype, device = Q.dtype, Q.device
 
     def flat(t: Tensor | None, trailing: tuple[int, ...]) -> Tensor | None:
         if t is None:
             return None
-        return t.expand(*batch_shape, *trailing).reshape(B, *trailing)
+        return t.expand(*inp.batch_shape, *trailing).reshape(B, *trailing)
 
-    Qf = flat(Q, (n, n))
-    pf = flat(p, (n,))
-    Gf = flat(G, (m, n)) if G is not None else Q.new_zeros(B, 0, n)
-    hf = flat(h, (m,)) if h is not None else Q.new_zeros(B, 0)
-    Af = flat(A, (me, n)) if A is not None else Q.new_zeros(B, 0, n)
-    bf = flat(b, (me,)) if b is not None else Q.new_zeros(B, 0)
-    lbf, ubf, softf, x0f = flat(lb, (n,)), flat(ub, (n,)), flat(soft, (m,)), flat(x0, (n,))
+    Qf, pf = flat(Q, (n, n)), flat(inp.p, (n,))
+    Gf = flat(inp.G, (m, n)) if inp.G is not None else Q.new_zeros(B, 0, n)
+    hf = flat(inp.h, (m,)) if inp.h is not None else Q.new_zeros(B, 0)
+    Af = flat(inp.A, (me, n)) if inp.A is not None else Q.new_zeros(B, 0, n)
+    bf = flat(inp.b, (me,)) if inp.b is not None else Q.new_zeros(B, 0)
+    lbf, ubf = flat(inp.lb, (n,)), flat(inp.ub, (n,))
+    softf, x0f = flat(inp.soft, (m,)), flat(inp.x0, (n,))
 
-    # ---- rows with non-finite data: flagged, replaced by a harmless problem ----
     bad = torch.zeros(B, dtype=torch.bool, device=device)
     for t, k in ((Qf, 2), (pf, 1), (Gf, 2), (hf, 1), (Af, 2), (bf, 1)):
-        r = _row_nonfinite(t, k, B)
-        if r is not None and t.numel() > 0:
-            bad = bad | r
+        if t.numel() > 0:
+            bad = bad | _row_nonfinite(t, k, B)
     infeasible_bound = torch.zeros_like(bad)
     if lbf is not None:
         bad = bad | torch.isnan(lbf).any(-1)
@@ -328,8 +483,7 @@ def solve_qp(
     masked = device.type != "cpu" or bool(skip.any())
     if masked:
         sk1, sk2 = skip.view(B, 1), skip.view(B, 1, 1)
-        eye = torch.eye(n, dtype=dtype, device=device)
-        Qf = torch.where(sk2, eye, Qf)
+        Qf = torch.where(sk2, torch.eye(n, dtype=dtype, device=device), Qf)
         pf = torch.where(sk1, 0.0, pf)
         Gf = torch.where(sk2, 0.0, Gf)
         hf = torch.where(sk1, 1.0, hf)
@@ -343,15 +497,35 @@ def solve_qp(
             softf = torch.where(sk1, 0.0, softf)
     if x0f is not None:
         x0f = torch.where(skip.view(B, 1) | ~torch.isfinite(x0f), 0.0, x0f)
+    return _Flat(Qf, pf, Gf, hf, Af, bf, lbf, ubf, softf, x0f, bad, infeasible_bound, masked)
 
-    # ---- standard form: symmetrise, soften, box rows -> inequality rows ----
-    P = 0.5 * (Qf + Qf.mT)
-    q = pf
-    Gs, hs, As = Gf, hf, Af
+
+class _Standard(NamedTuple):
+    """The problem in the solvers' form ``min 1/2 x'Px + q'x, Gx <= h, Ax = b`` over
+    ``N`` variables (``n`` plus one slack per row when softened); box bounds are rows."""
+
+    P: Tensor
+    q: Tensor
+    G: Tensor
+    h: Tensor
+    A: Tensor
+    x0: Tensor | None
+    is_soft: Tensor | None
+    N: int
+    pairs: tuple[tuple[int, int], ...]  # box rows of one variable, never active together
+
+
+def _standard_form(f: _Flat, inp: _Inputs) -> _Standard:
+    """Symmetrise ``Q``, add the elastic slacks, turn box bounds into inequality rows."""
+    n, m, me, B = inp.n, inp.m, inp.me, inp.B
+    dtype, device = f.Q.dtype, f.Q.device
+    P = 0.5 * (f.Q + f.Q.mT)
+    q, Gs, hs, As, x0 = f.p, f.G, f.h, f.A, f.x0
     N = n
-    if softf is not None:
-        is_soft = (softf > 0) & torch.isfinite(softf)
-        w = torch.where(is_soft, softf, torch.ones_like(softf))
+    is_soft = None
+    if f.soft is not None:
+        is_soft = (f.soft > 0) & torch.isfinite(f.soft)
+        w = torch.where(is_soft, f.soft, torch.ones_like(f.soft))
         zeros_nm = P.new_zeros(B, n, m)
         P = torch.cat(
             (torch.cat((P, zeros_nm), -1), torch.cat((zeros_nm.mT, torch.diag_embed(w)), -1)), -2
@@ -360,21 +534,20 @@ def solve_qp(
         eye_m = torch.eye(m, dtype=dtype, device=device).expand(B, m, m)
         Gs = torch.cat(
             (
-                torch.cat((Gf, -torch.diag_embed(is_soft.to(dtype))), -1),
+                torch.cat((f.G, -torch.diag_embed(is_soft.to(dtype))), -1),
                 torch.cat((P.new_zeros(B, m, n), -eye_m), -1),
             ),
             -2,
         )
-        hs = torch.cat((hf, P.new_zeros(B, m)), -1)
-        As = torch.cat((Af, P.new_zeros(B, me, m)), -1)
+        hs = torch.cat((f.h, P.new_zeros(B, m)), -1)
+        As = torch.cat((f.A, P.new_zeros(B, me, m)), -1)
         N = n + m
-        if x0f is not None:
-            t0 = (torch.einsum("bmn,bn->bm", Gf, x0f) - hf).clamp_min(0.0) * is_soft
-            x0f = torch.cat((x0f, t0), -1)
-    box_rows = []
-    box_h = []
+        if x0 is not None:
+            t0 = (torch.einsum("bmn,bn->bm", f.G, x0) - f.h).clamp_min(0.0) * is_soft
+            x0 = torch.cat((x0, t0), -1)
+    box_rows, box_h = [], []
     box_start = Gs.shape[-2]
-    for bound, sign in ((ubf, 1.0), (lbf, -1.0)):
+    for bound, sign in ((f.ub, 1.0), (f.lb, -1.0)):
         if bound is None:
             continue
         finite = torch.isfinite(bound)
@@ -386,24 +559,39 @@ def solve_qp(
     if box_rows:
         Gs = torch.cat((Gs, *box_rows), -2)
         hs = torch.cat((hs, *box_h), -1)
-
-    # the dual method's C kernel (CPU) beats enumeration at every batch size, and the closed
-    # form too (it is the same single step, and its backward needs no KKT factorisation)
-    kernel = device.type == "cpu" and _dual_native.available()
-    one_row = m == 1 and me == 0 and lb is None and ub is None and soft is None
-    closed_form = backend == "torch" and one_row and not kernel
-    if polish is None:
-        polish = backend == "torch"
     pairs: tuple[tuple[int, int], ...] = ()
-    if lbf is not None and ubf is not None:
-        # both bounds of one variable are never active together (rows linearly dependent)
+    if f.lb is not None and f.ub is not None:
         pairs = tuple((box_start + j, box_start + n + j) for j in range(n))
-    M_total = Gs.shape[-2]
-    exact = backend == "torch" and not closed_form and M_total + me > 0
+    return _Standard(P, q, Gs, hs, As, x0, is_soft, N, pairs)
+
+
+def _config(
+    inp: _Inputs,
+    std: _Standard,
+    backend: str,
+    method: str,
+    polish: bool | None,
+    max_iter: int,
+    check_every: int,
+    need_grad: bool,
+) -> SolverConfig:
+    """Pick the algorithm (see :func:`solve_qp`, ``method``) and collect the options."""
+    me, N, B = inp.me, std.N, inp.B
+    M = std.G.shape[-2]
+    kernel = inp.Q.device.type == "cpu" and _dual_native.available()
+    one_row = inp.m == 1 and me == 0 and inp.lb is None and inp.ub is None and inp.soft is None
+    closed_form = backend == "torch" and one_row and not kernel
+    exact = backend == "torch" and not closed_form and M + me > 0
     use_dual = exact and method == "active_set" and me == 0
     use_enum = exact and method == "enumerate"
+    C = num_candidates(M, me, N, std.pairs) if me <= N else 0
+    if use_enum and C > MAX_CANDIDATES_EXPLICIT:
+        raise ValueError(
+            f"method='enumerate' would try {C} candidate active sets (N={N} variables, "
+            f"M={M} inequality rows incl. bounds, k={me} equalities), more than "
+            f"{MAX_CANDIDATES_EXPLICIT}; use method='auto', 'active_set' or 'ipm'"
+        )
     if exact and method == "auto":
-        C = num_candidates(M_total, me, N, pairs) if me <= N else 0
         dual_applies = me == 0 and N <= MAX_ACTIVE_SET_VARS
         if dual_applies and kernel:
             use_dual = True
@@ -413,35 +601,38 @@ def solve_qp(
             use_dual = True
         else:
             use_enum = 0 < C <= MAX_CANDIDATES
-    tensors = [t for _, t, _ in parts if t is not None]
-    need_factor = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
-    cfg = SolverConfig(
+    return SolverConfig(
         backend=backend,
-        eps=eps,
-        eps_inf=eps_inf,
+        eps=inp.eps,
+        eps_inf=inp.eps_inf,
         max_iter=max_iter,
         check_every=check_every,
         closed_form=closed_form and method != "ipm",
-        polish=bool(polish),
+        polish=backend == "torch" if polish is None else bool(polish),
         enumerate=use_enum and me <= N,
         active_set=use_dual,
-        pairs=pairs,
-        need_factor=need_factor,
+        pairs=std.pairs,
+        need_factor=need_grad,
     )
-    if backend.startswith("qpsolvers:") and torch.is_grad_enabled():
-        needs = [nm for nm, t, _ in parts if t is not None and t.requires_grad]
-        if needs:
-            raise ValueError(
-                f"backend {backend!r} is forward-only but {', '.join(needs)} require grad; "
-                "use backend='torch' or 'proxsuite', or call under torch.no_grad()"
-            )
-    xs, z, y, status, iters = QPFunction.apply(P, q, Gs, hs, As, bf, cfg, x0f)
 
-    # ---- unpack ----
-    ok1 = ~skip.view(B, 1) if masked else None
-    if masked:
-        status = torch.where(bad, int(Status.NON_FINITE), status)
-        status = torch.where(infeasible_bound, int(Status.PRIMAL_INFEASIBLE), status)
+
+def _unpack(
+    inp: _Inputs,
+    f: _Flat,
+    std: _Standard,
+    xs: Tensor,
+    z: Tensor,
+    y: Tensor,
+    status: Tensor,
+    iters: Tensor,
+) -> QPSolution:
+    """Split the solvers' ``x`` and multipliers back into :class:`QPSolution` fields."""
+    n, m, B = inp.n, inp.m, inp.B
+    ok1 = None
+    if f.masked:
+        ok1 = ~(f.bad | f.infeasible_bound).view(B, 1)
+        status = torch.where(f.bad, int(Status.NON_FINITE), status)
+        status = torch.where(f.infeasible_bound, int(Status.PRIMAL_INFEASIBLE), status)
 
     def kept(t: Tensor) -> Tensor:
         return t if ok1 is None else torch.where(ok1, t, 0.0)
@@ -449,29 +640,19 @@ def solve_qp(
     x = kept(xs[:, :n])
     lam = kept(z[:, :m])
     off = m
-    slack = P.new_zeros(B, m)
-    if softf is not None:
-        slack = kept(xs[:, n:].clamp_min(0.0) * is_soft)
+    slack = xs.new_zeros(B, m)
+    if std.is_soft is not None:
+        slack = kept(xs[:, n:].clamp_min(0.0) * std.is_soft)
         off += m
-    zero_n = P.new_zeros(B, n)
-    lam_ub = lam_lb = zero_n
-    if ubf is not None:
+    lam_ub = lam_lb = xs.new_zeros(B, n)
+    if f.ub is not None:
         lam_ub = kept(z[:, off : off + n])
         off += n
-    if lbf is not None:
+    if f.lb is not None:
         lam_lb = kept(z[:, off : off + n])
     nu = kept(y)
 
     def unflat(t: Tensor) -> Tensor:
-        return t.reshape((*batch_shape, *t.shape[1:]))
+        return t.reshape((*inp.batch_shape, *t.shape[1:]))
 
-    return QPSolution(
-        unflat(x),
-        unflat(status),
-        unflat(lam),
-        unflat(nu),
-        unflat(iters),
-        unflat(lam_lb),
-        unflat(lam_ub),
-        unflat(slack),
-    )
+    return QPSolution(*(unflat(t) for t in (x, status, lam, nu, iters, lam_lb, lam_ub, slack)))

@@ -1,0 +1,70 @@
+"""Fallback policy of :class:`~torchcbf.filters.SafetyFilter`: the control of rows whose QP
+failed (not ``SOLVED``) or whose data were non-finite."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Literal
+
+import torch
+from torch import Tensor, nn
+
+from torchcbf._checks import check_last_dim
+
+FallbackSpec = Literal["clip", "brake"] | Tensor | Callable[[Tensor, Tensor], Tensor]
+
+
+class Fallback(nn.Module):
+    """A fallback control ``[B, m]``, always finite and within the limits where it can be.
+
+    Args:
+        spec: ``"clip"`` (``u_nom`` clipped to the limits, default), ``"brake"`` (zero
+            clipped to the limits), a tensor ``[m]``, or a callable
+            ``(x [B, n], u_nom [B, m]) -> [B, m]``. Wherever the result is non-finite, zero
+            clipped to the limits is used.
+        control_dim: ``m``.
+    """
+
+    def __init__(self, spec: FallbackSpec, control_dim: int) -> None:
+        super().__init__()
+        self.register_buffer("control", None)
+        self.function: Callable[[Tensor, Tensor], Tensor] | None = None
+        if isinstance(spec, str):
+            if spec not in ("clip", "brake"):
+                raise ValueError(
+                    f"fallback must be 'clip', 'brake', a tensor [m] or a callable, got {spec!r}"
+                )
+            self.kind = spec
+        elif isinstance(spec, Tensor):
+            if spec.shape != (control_dim,):
+                raise ValueError(
+                    f"fallback as a tensor must have shape [{control_dim}], got {tuple(spec.shape)}"
+                )
+            self.kind = "tensor"
+            self.control = spec.detach().clone()
+        elif callable(spec):
+            self.kind = "callable"
+            self.function = spec
+        else:
+            raise TypeError(f"fallback must be a string, tensor or callable, got {spec!r}")
+
+    def forward(self, x: Tensor, u_nom: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+        """Fallback controls ``[B, m]`` at ``x [B, n]`` for ``u_nom [B, m]`` within
+        ``lo, hi [m]``."""
+        zero = torch.clamp(torch.zeros_like(u_nom), lo, hi)
+        if self.kind == "clip":
+            fb = torch.clamp(u_nom, lo, hi)
+        elif self.kind == "brake":
+            fb = zero
+        elif self.kind == "tensor":
+            fb = self.control.to(u_nom).expand_as(u_nom)
+        else:
+            assert self.function is not None
+            fb = self.function(x, u_nom)
+            check_last_dim("fallback(x, u_nom)", fb, u_nom.shape[-1])
+            fb = fb.expand_as(u_nom)
+        ok = torch.isfinite(fb).all(-1, keepdim=True)
+        return torch.where(ok, fb, zero)
+
+    def extra_repr(self) -> str:
+        return self.kind

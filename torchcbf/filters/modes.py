@@ -1,0 +1,304 @@
+"""Condition modes of :class:`~torchcbf.filters.SafetyFilter`: one small object per mode.
+
+A mode turns the Lie terms of the barriers and Lyapunov functions into affine conditions
+``a . u + b`` (see :mod:`torchcbf.filters.conditions` for the formulas) and holds the
+mode's own parameters. The four built-in modes are :class:`Vanilla`, :class:`Robust`,
+:class:`Stochastic` (``beta``) and :class:`RiskAware` (``rho``, ``horizon``, ``eta``, ...).
+
+A new mode subclasses :class:`FilterMode` and writes :meth:`~FilterMode.cbf` (and
+:meth:`~FilterMode.clf` if it supports Lyapunov functions); docs/filters.md shows one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from torchcbf._checks import as_tensor, check_last_dim
+from torchcbf.barriers.lie import LieFunction, LieTerms
+from torchcbf.dynamics.base import ControlAffine
+from torchcbf.filters.conditions import Condition, cbf_condition, clf_condition
+from torchcbf.filters.risk import noise_bound, risk_margin
+
+Gain = Callable[[Tensor], Tensor]
+
+
+def _check_k(name: str, value: Tensor | None, k: int) -> None:
+    if value is not None and value.dim() == 1 and value.shape[0] != k:
+        raise ValueError(
+            f"{name} must be a scalar or have one entry per barrier output ({k}), "
+            f"got shape {tuple(value.shape)}"
+        )
+
+
+def _like(value: Tensor | None, ref: Tensor) -> Tensor | None:
+    return None if value is None else value.to(ref)
+
+
+class FilterMode(nn.Module):
+    """Base of the condition modes. Subclasses set :attr:`name` and write :meth:`cbf`;
+    :attr:`needs_hessian` asks the filter for ``hess_trace`` in the Lie terms."""
+
+    name: str = ""
+    needs_hessian: bool = False
+
+    def bind(
+        self,
+        dynamics: ControlAffine,
+        barriers: Sequence[LieFunction],
+        lyapunovs: Sequence[LieFunction],
+    ) -> None:
+        """Check the mode against the filter's model and functions (called once, at the
+        filter's construction); raise ``ValueError`` if it does not apply."""
+
+    def cbf(self, terms: LieTerms, alpha: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
+        """CBF condition ``a . u + b >= 0`` for ``k``-output terms (``h [B, k]``) at ``x [B, n]``;
+        ``alpha`` maps ``h [B, k]`` to ``[B, k]``."""
+        raise NotImplementedError
+
+    def clf(self, terms: LieTerms, rate: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
+        """CLF condition ``a . u + b <= 0`` for ``V [B, c]`` (relaxed by the filter)."""
+        raise NotImplementedError(f"mode {self.name!r} does not take Lyapunov functions")
+
+    def extra_repr(self) -> str:
+        return self.name
+
+
+class Vanilla(FilterMode):
+    """``L_f h + dh/dt + L_g h u + alpha(h) >= 0``; CLF ``LV + L_g V u + c(V) <= delta``."""
+
+    name = "vanilla"
+
+    def cbf(self, terms: LieTerms, alpha: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
+        return cbf_condition(terms, "vanilla", alpha, dynamics, x)
+
+    def clf(self, terms: LieTerms, rate: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
+        return clf_condition(terms, "vanilla", rate, dynamics, x)
+
+
+class Robust(FilterMode):
+    """Vanilla minus the worst case of the bounded disturbance ``M w`` (needs dynamics built
+    with ``disturbance_bound=``)."""
+
+    name = "robust"
+
+    def bind(
+        self,
+        dynamics: ControlAffine,
+        barriers: Sequence[LieFunction],
+        lyapunovs: Sequence[LieFunction],
+    ) -> None:
+        if dynamics.disturbance_bound is None:
+            raise ValueError(
+                "mode='robust' needs dynamics built with disturbance_bound= (and optionally "
+                "disturbance_matrix=)"
+            )
+
+    def cbf(self, terms: LieTerms, alpha: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
+        return cbf_condition(terms, "robust", alpha, dynamics, x)
+
+    def clf(self, terms: LieTerms, rate: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
+        return clf_condition(terms, "robust", rate, dynamics, x)
+
+
+def _needs_diffusion(name: str, dynamics: ControlAffine) -> None:
+    if not dynamics.has_diffusion:
+        raise ValueError(f"mode={name!r} needs dynamics with a diffusion (sigma=)")
+
+
+class Stochastic(FilterMode):
+    """Adds ``tr(sigma' d2h/dx2 sigma) / 2`` and subtracts the margin ``beta`` (scalar or
+    ``[k]``, default 0) from the CBF condition (needs dynamics with ``sigma``)."""
+
+    name = "stochastic"
+    needs_hessian = True
+
+    def __init__(self, beta: float | Sequence[float] | Tensor = 0.0) -> None:
+        super().__init__()
+        self.register_buffer("beta", as_tensor("beta", beta, dtype=torch.float64))
+        if self.beta.dim() > 1:
+            raise ValueError(f"beta must be a scalar or [k], got shape {tuple(self.beta.shape)}")
+
+    def bind(
+        self,
+        dynamics: ControlAffine,
+        barriers: Sequence[LieFunction],
+        lyapunovs: Sequence[LieFunction],
+    ) -> None:
+        _needs_diffusion(self.name, dynamics)
+
+    def cbf(self, terms: LieTerms, alpha: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
+        _check_k("beta", self.beta, terms.h.shape[-1])
+        return cbf_condition(terms, "stochastic", alpha, dynamics, x, beta=self.beta.to(x))
+
+    def clf(self, terms: LieTerms, rate: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
+        return clf_condition(terms, "stochastic", rate, dynamics, x)
+
+
+def _positive(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TypeError(f"{name} must be a number, got {type(value).__name__}")
+    if not (value > 0 and value < float("inf")):
+        raise ValueError(f"{name} must be finite and positive, got {value}")
+    return float(value)
+
+
+class RiskAware(FilterMode):
+    """Risk-aware conditions: leave the safe set within ``horizon`` with probability at most
+    ``rho`` (needs dynamics with ``sigma``); ``alpha`` is unused.
+
+    Args:
+        rho: probability bound in ``(0, 1)``.
+        horizon: ``T > 0``.
+        eta: noise bound ``|dh/dx sigma| <= eta`` on the safe set, scalar or ``[k]``; or
+        safe_states: ``[N, n]`` sample states to compute it with :func:`noise_bound` (when
+            the filter binds the mode; one of the two is required with barriers).
+        clf_rho, clf_eta, clf_gamma: risk-aware CLF: risk (default ``rho``), noise bound of
+            ``V`` (default: :func:`noise_bound` over ``safe_states``), goal level ``gamma``
+            of ``{V <= gamma}`` (default 0).
+    """
+
+    name = "risk_aware"
+    needs_hessian = True
+
+    def __init__(
+        self,
+        rho: float,
+        horizon: float,
+        eta: float | Sequence[float] | Tensor | None = None,
+        *,
+        safe_states: Tensor | None = None,
+        clf_rho: float | None = None,
+        clf_eta: float | Sequence[float] | Tensor | None = None,
+        clf_gamma: float = 0.0,
+    ) -> None:
+        super().__init__()
+        if rho is None or not (0 < float(rho) < 1):
+            raise ValueError(f"rho must be in (0, 1) for mode='risk_aware', got {rho!r}")
+        if horizon is None:
+            raise ValueError("horizon (T > 0) is required for mode='risk_aware'")
+        self.rho = float(rho)
+        T = _positive("horizon", horizon)
+        self.register_buffer("horizon", torch.tensor(T, dtype=torch.float64))
+        self.eta = eta
+        self.safe_states = safe_states
+        self.clf_rho = self.rho if clf_rho is None else float(clf_rho)
+        if not 0 < self.clf_rho < 1:
+            raise ValueError(f"clf_rho must be in (0, 1), got {clf_rho!r}")
+        self.clf_eta = clf_eta
+        self.register_buffer("clf_gamma", torch.tensor(float(clf_gamma), dtype=torch.float64))
+        self.register_buffer("cbf_margin", None)
+        self.register_buffer("clf_margin", None)
+
+    def bind(
+        self,
+        dynamics: ControlAffine,
+        barriers: Sequence[LieFunction],
+        lyapunovs: Sequence[LieFunction],
+    ) -> None:
+        _needs_diffusion(self.name, dynamics)
+        f64 = torch.float64
+        states = self.safe_states
+        if states is not None:
+            check_last_dim("safe_states", states, dynamics.state_dim)
+        T = self.horizon
+        if barriers:
+            if self.eta is None and states is None:
+                raise ValueError(
+                    "mode='risk_aware' needs eta= (noise bound |dh/dx sigma| on the safe set) "
+                    "or safe_states= (sample states to compute it from)"
+                )
+            if self.eta is None:
+                parts = [noise_bound(b, dynamics, states).reshape(-1) for b in barriers]
+                eta_t = torch.cat(parts).to(f64)
+            else:
+                eta_t = as_tensor("eta", self.eta, dtype=f64)
+                if eta_t.dim() > 1 or bool((eta_t < 0).any()):
+                    raise ValueError(
+                        f"eta must be a non-negative scalar or [k], got {eta_t.tolist()}"
+                    )
+            self.cbf_margin = risk_margin(eta_t, self.rho, T)
+        if lyapunovs:
+            if self.clf_eta is None and states is None:
+                raise ValueError(
+                    "mode='risk_aware' with lyapunovs needs clf_eta= (bound on |dV/dx sigma|) "
+                    "or safe_states="
+                )
+            if self.clf_eta is None:
+                parts = [
+                    noise_bound(v, dynamics, states, safe_only=False).reshape(-1) for v in lyapunovs
+                ]
+                eta_v = torch.cat(parts).to(f64)
+            else:
+                eta_v = as_tensor("clf_eta", self.clf_eta, dtype=f64)
+                if eta_v.dim() > 1 or bool((eta_v < 0).any()):
+                    raise ValueError(f"clf_eta must be non-negative, got {eta_v.tolist()}")
+            self.clf_margin = risk_margin(eta_v, self.clf_rho, T)
+
+    def cbf(self, terms: LieTerms, alpha: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
+        _check_k("eta", self.cbf_margin, terms.h.shape[-1])
+        return cbf_condition(
+            terms,
+            "risk_aware",
+            alpha,
+            dynamics,
+            x,
+            margin=_like(self.cbf_margin, x),
+            horizon=_like(self.horizon, x),
+        )
+
+    def clf(self, terms: LieTerms, rate: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
+        _check_k("clf_eta", self.clf_margin, terms.h.shape[-1])
+        return clf_condition(
+            terms,
+            "risk_aware",
+            rate,
+            dynamics,
+            x,
+            margin=_like(self.clf_margin, x),
+            gamma=_like(self.clf_gamma, x),
+            horizon=_like(self.horizon, x),
+        )
+
+    def extra_repr(self) -> str:
+        return f"rho={self.rho}, horizon={float(self.horizon)}"
+
+
+#: the mode options :class:`SafetyFilter` still accepts as keywords (with ``mode`` a string)
+MODE_OPTIONS: dict[str, tuple[str, ...]] = {
+    "vanilla": (),
+    "robust": (),
+    "stochastic": ("beta",),
+    "risk_aware": ("rho", "horizon", "eta", "safe_states", "clf_rho", "clf_eta", "clf_gamma"),
+}
+
+
+def make_mode(mode: str | FilterMode, options: dict[str, Any]) -> FilterMode:
+    """A :class:`FilterMode` from its name and keyword options (or the object itself)."""
+    if isinstance(mode, FilterMode):
+        if options:
+            raise ValueError(
+                f"{', '.join(sorted(options))} belong to the mode object; pass them to "
+                f"{type(mode).__name__}(...)"
+            )
+        return mode
+    if mode not in MODE_OPTIONS:
+        raise ValueError(f"mode must be one of {tuple(MODE_OPTIONS)} or a FilterMode, got {mode!r}")
+    if mode == "vanilla":
+        return Vanilla()
+    if mode == "robust":
+        return Robust()
+    if mode == "stochastic":
+        return Stochastic(options.get("beta", 0.0))
+    return RiskAware(
+        options.get("rho"),  # type: ignore[arg-type]
+        options.get("horizon"),  # type: ignore[arg-type]
+        options.get("eta"),
+        safe_states=options.get("safe_states"),
+        clf_rho=options.get("clf_rho"),
+        clf_eta=options.get("clf_eta"),
+        clf_gamma=options.get("clf_gamma", 0.0),
+    )
