@@ -109,7 +109,7 @@ def test_mppi_cbf_scales_put_the_margin_on_the_flat_sides(
         torch.testing.assert_close(
             _h_at_start(scenario)[0], torch.tensor(expected, dtype=dtype), rtol=rtol, atol=0.0
         )
-        assert scenario.safety_filter.beta.tolist() == pytest.approx(beta)
+        assert scenario.safety_filter.condition.beta.tolist() == pytest.approx(beta)
 
 
 def test_mppi_cbf_cbfkit_reading() -> None:
@@ -118,7 +118,7 @@ def test_mppi_cbf_cbfkit_reading() -> None:
     scenario = mppi_cbf("scbf", config="cbfkit", num_seeds=1, dtype=torch.float64)
     expected = torch.tensor([1.0 - math.exp(-0.1 * b) for b in B0], dtype=torch.float64)
     torch.testing.assert_close(_h_at_start(scenario)[0], expected, rtol=1e-12, atol=0.0)
-    assert scenario.safety_filter.beta.tolist() == pytest.approx(0.0)
+    assert scenario.safety_filter.condition.beta.tolist() == pytest.approx(0.0)
     x = torch.tensor([[0.3, 0.2, 1.2, 0.4]], dtype=torch.float64)
     v, th = 1.2, 0.4
     q = [

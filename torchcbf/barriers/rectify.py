@@ -19,6 +19,7 @@ import torch
 from torch import Tensor, nn
 
 from torchcbf._checks import as_tensor
+from torchcbf._constants import ExactConstants, store
 from torchcbf.barriers._params import float_spec, register
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.lie import (
@@ -168,7 +169,7 @@ class _Psi(LieFunction):
         return self._parent.psi(x, t, self.order, self._base)
 
 
-class ExponentialBarrier(Barrier):
+class ExponentialBarrier(ExactConstants, Barrier):
     """Exponential CBF (Nguyen & Sreenath) in relative-degree-one form.
 
     ``h_e = D^{r-1} h + k_{r-2} D^{r-2} h + ... + k_0 h`` (``D = L_f + d/dt``): the polynomial
@@ -196,10 +197,13 @@ class ExponentialBarrier(Barrier):
         self.barrier = barrier
         self.dynamics = dynamics
         self.relative_degree = int(relative_degree)
-        if not isinstance(coefficients, nn.Parameter):
+        if isinstance(coefficients, nn.Parameter):
+            k = register(self, "coefficients", coefficients, False)
+        elif isinstance(coefficients, Tensor):
             device, dtype = float_spec(self)
-            coefficients = as_tensor("coefficients", coefficients, dtype=dtype, device=device)
-        k = register(self, "coefficients", coefficients, False)
+            k = register(self, "coefficients", coefficients.to(device, dtype), False)
+        else:  # Python numbers stay exact under .double()
+            k = store(self, "coefficients", [float(c) for c in coefficients])
         if k.shape != (relative_degree - 1,):
             raise ValueError(
                 f"coefficients must have {relative_degree - 1} entries [k_0, ..., k_(r-2)], "
@@ -382,5 +386,5 @@ def rectify(
     elif isinstance(gains, Tensor):
         coefficients = gains
     else:
-        coefficients = torch.as_tensor(gains, dtype=torch.get_default_dtype()).reshape(-1)
+        coefficients = [float(g) for g in np.asarray(gains, dtype=np.float64).reshape(-1)]
     return ExponentialBarrier(barrier, dynamics, r, coefficients)

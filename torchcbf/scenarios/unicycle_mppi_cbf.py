@@ -48,9 +48,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcbf.barriers import Barrier, Ellipse, rectify
+from torchcbf.barriers import Barrier, Ellipse, Scaled, rectify
 from torchcbf.dynamics import AccelUnicycle
-from torchcbf.filters import FilterStatus, SafetyFilter
+from torchcbf.filters import FilterStatus, RiskAware, SafetyFilter, Stochastic
 from torchcbf.filters.risk import noise_bound
 from torchcbf.mppi import MPPI, DiscreteBarrierCost, QuadraticGoal, ShieldMPPI, SumCost
 from torchcbf.mppi.costs import BarrierCost
@@ -261,9 +261,8 @@ def mppi_cbf(
             safety_filter = SafetyFilter(
                 plant,
                 barriers=barriers,
-                mode="stochastic",
+                mode=Stochastic(beta=beta_),
                 alpha=alpha_,
-                beta=beta_,
                 R=torch.diag(torch.tensor(params.control_weight, dtype=torch.float64)),
             )
         safety_filter = safety_filter.to(device=device, dtype=dtype)
@@ -295,17 +294,6 @@ def mppi_cbf(
     )
 
 
-class _ScaledBarrier(Barrier):
-    """``scale * b(x)``: the same safe set, a rescaled CBF condition."""
-
-    def __init__(self, barrier: Barrier, scale: float) -> None:
-        super().__init__()
-        self.barrier, self.scale = barrier, scale
-
-    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
-        return self.scale * self.barrier(x)
-
-
 class _ExpBarrier(Barrier):
     """``1 - exp(-rate b(x))``: CBFkit's ``B = exp(-rate b) <= 1`` as ``h >= 0``."""
 
@@ -332,22 +320,18 @@ class _EllipseRadius(Barrier):
 def _rectified(
     model: AccelUnicycle, params: FilterParams, barrier_scale: Any
 ) -> tuple[list[Barrier], list[float]]:
-    """One relative-degree-one barrier per ellipse and the scales ``c_i`` used."""
+    """The relative-degree-one barriers (five outputs in all) and the scales ``c_i`` used."""
     k = params.rectify_gain
     if params.form == "cbfkit":
         scales = [0.3] * len(CENTERS)  # B + 0.3 L_f B = 0.3 (L_f B + B / 0.3)
-        shapes = [
-            _ExpBarrier(Ellipse(c, a, index=(0, 1)), 0.1)
+        barriers = [
+            rectify(Scaled(_ExpBarrier(Ellipse(c, a), 0.1), 0.3), model, "exponential", [k])
             for c, a in zip(CENTERS, AXES, strict=True)
         ]
-    else:
-        scales = _scales(barrier_scale, params)
-        shapes = [Ellipse(c, a, index=(0, 1)) for c, a in zip(CENTERS, AXES, strict=True)]
-    barriers = [
-        rectify(_ScaledBarrier(shape, s), model, form="exponential", gains=[k])
-        for shape, s in zip(shapes, scales, strict=True)
-    ]
-    return barriers, scales
+        return barriers, scales
+    # one module for the five ellipses: closed-form derivatives, one pass per call
+    scales = _scales(barrier_scale, params)
+    return [rectify(Scaled(obstacles(), scales), model, form="exponential", gains=[k])], scales
 
 
 def _scales(barrier_scale: float | Sequence[float] | None, params: FilterParams) -> list[float]:
@@ -445,10 +429,7 @@ def _risk_aware_filter(
     safety_filter = SafetyFilter(
         plant,
         barriers=barriers,
-        mode="risk_aware",
-        rho=params.rho,
-        horizon=T,
-        eta=eta,
+        mode=RiskAware(rho=params.rho, horizon=T, eta=eta),
         R=torch.diag(torch.tensor(params.control_weight, dtype=torch.float64)),
     )
     margins = safety_filter.cbf_margin.tolist()
