@@ -295,7 +295,10 @@ def _bench(args: argparse.Namespace) -> int:
 
 # -- command line --------------------------------------------------------------------------
 def _positive_int(text: str) -> int:
-    value = int(text)
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
     return value

@@ -44,7 +44,14 @@ import torch
 from torch import Tensor, nn
 
 import torchcbf.qp as qp_layer
-from torchcbf._checks import as_tensor, broadcast_shapes, check_last_dim
+from torchcbf._checks import (
+    as_limit,
+    as_matrix,
+    as_tensor,
+    broadcast_shapes,
+    check_bounds,
+    check_last_dim,
+)
 from torchcbf.barriers.lie import LieFunction, LieTerms, stacked_lie_derivatives
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.filters.class_k import ClassKSpec, as_class_k
@@ -119,32 +126,40 @@ def _alphas(name: str, spec: ClassKSpec | Sequence[ClassKSpec], count: int) -> n
     return nn.ModuleList([as_class_k(spec, name)])  # type: ignore[arg-type]
 
 
-def _limit(name: str, value: Any, m: int) -> Tensor | None:
-    if value is None:
-        return None
-    t = as_tensor(name, value, dtype=torch.float64)
-    if t.dim() == 0:
-        t = t.expand(m).clone()
-    if t.shape != (m,):
-        raise ValueError(f"{name} must be a scalar or have shape [{m}], got {tuple(t.shape)}")
-    return t
-
-
-def _weight_matrix(R: Any, m: int) -> Tensor:
-    if R is None:
-        return torch.eye(m, dtype=torch.float64)
-    t = as_tensor("R", R, dtype=torch.float64)
-    if t.dim() == 0:
-        t = t * torch.eye(m, dtype=torch.float64)
-    elif t.dim() == 1:
-        if t.shape != (m,):
-            raise ValueError(f"R as a vector must have shape [{m}], got {tuple(t.shape)}")
-        t = torch.diag(t)
-    if t.shape != (m, m):
-        raise ValueError(f"R must be a scalar, [{m}] or [{m}, {m}], got {tuple(t.shape)}")
-    if not torch.allclose(t, t.mT) or bool((torch.linalg.eigvalsh(t) <= 0).any()):
-        raise ValueError("R must be symmetric positive definite")
-    return t
+def _require_control_authority(
+    barriers: list[LieFunction], dynamics: ControlAffine, samples: int = 16
+) -> None:
+    """Raise if some barrier output has ``L_g h = 0`` at every sample state (see the
+    ``check_relative_degree`` argument of :class:`SafetyFilter`)."""
+    for i, barrier in enumerate(barriers):
+        ref = next((t for t in barrier.state_dict().values() if t.is_floating_point()), None)
+        dtype = torch.get_default_dtype() if ref is None else ref.dtype
+        device = torch.device("cpu") if ref is None else ref.device
+        if device.type == "meta":
+            continue
+        gen = torch.Generator(device=device).manual_seed(0)
+        x = 2.0 * torch.randn(
+            samples, dynamics.state_dim, generator=gen, dtype=dtype, device=device
+        )
+        t = torch.zeros(samples, dtype=dtype, device=device)
+        terms = barrier.lie(x, dynamics, t, hessian=False)
+        lgh = terms.lgh.detach().nan_to_num(0.0, 0.0, 0.0).abs()  # [N, m] or [N, k, m]
+        grad = terms.dhdx.detach().nan_to_num(0.0, 0.0, 0.0).abs()
+        if lgh.dim() == 2:
+            lgh, grad = lgh.unsqueeze(1), grad.unsqueeze(1)
+        g_max = float(dynamics.g(x).detach().abs().amax().clamp_min(1.0))
+        reach = lgh.amax(dim=(0, 2))  # [k]
+        scale = (grad.amax(dim=(0, 2)) * g_max).clamp_min(1.0)
+        dead = (reach <= 1e-9 * scale).nonzero().flatten().tolist()
+        if dead:
+            raise ValueError(
+                f"barriers[{i}] ({type(barrier).__name__}, outputs {dead}) has L_g h = 0 on "
+                f"every sample state of {type(dynamics).__name__}: its relative degree is two "
+                "or more, so the filter could never change the control. Rectify it, e.g. "
+                "rectify(barrier, dynamics, form='exponential'), or pass "
+                "check_relative_degree=False if the barrier acts only in a region the samples "
+                "miss."
+            )
 
 
 def _positive(name: str, value: Any) -> float:
@@ -208,6 +223,11 @@ class SafetyFilter(nn.Module):
         lie_method: ``"auto"`` (closed forms when a function has them, else autograd),
             ``"autograd"`` or ``"analytic"``.
         qp_options: keyword arguments for :func:`torchcbf.qp.solve_qp`.
+        check_relative_degree: at construction, evaluate ``L_g h`` of every barrier output on
+            16 sample states (``N(0, 4 I)``, seeded) and raise ``ValueError`` if it vanishes
+            on all of them: a barrier of relative degree two or more (a position barrier on
+            an acceleration-controlled model) gives the QP nothing to act on, and the filter
+            would return ``u_nom`` unchanged. ``False`` skips the check.
         **legacy: the mode options ``beta``, ``rho``, ``horizon``, ``eta``, ``safe_states``,
             ``clf_rho``, ``clf_eta``, ``clf_gamma`` (with ``mode`` a name) and the booleans
             ``relax_cbf``, ``elastic``: deprecated aliases, still honoured.
@@ -233,6 +253,7 @@ class SafetyFilter(nn.Module):
         exact: bool | None = None,
         lie_method: Literal["auto", "autograd", "analytic"] = "auto",
         qp_options: dict[str, Any] | None = None,
+        check_relative_degree: bool = True,
         **legacy: Any,
     ) -> None:
         super().__init__()
@@ -257,6 +278,8 @@ class SafetyFilter(nn.Module):
         self.lyapunovs = _modules("lyapunovs", lyapunovs)
         if not self.barriers and not self.lyapunovs:
             raise ValueError("barriers and lyapunovs are both empty: nothing to filter")
+        if check_relative_degree:
+            _require_control_authority(list(self.barriers), dynamics)
         self.condition = make_mode(mode, legacy)
         self.condition.bind(dynamics, list(self.barriers), list(self.lyapunovs))
         if lie_method not in ("auto", "autograd", "analytic"):
@@ -267,9 +290,16 @@ class SafetyFilter(nn.Module):
         m = dynamics.control_dim
         self.alpha = _alphas("alpha", alpha, len(self.barriers))
         self.clf_rate = _alphas("clf_rate", clf_rate, len(self.lyapunovs))
-        self.register_buffer("R", _weight_matrix(R, m))
-        self.register_buffer("u_min", _limit("u_min", u_min, m))
-        self.register_buffer("u_max", _limit("u_max", u_max, m))
+        weight = torch.eye(m, dtype=torch.float64) if R is None else R
+        self.register_buffer("R", as_matrix("R", weight, m, dtype=torch.float64))
+        self.register_buffer("u_min", as_limit("u_min", u_min, m))
+        self.register_buffer("u_max", as_limit("u_max", u_max, m))
+        check_bounds(
+            "u_min",
+            self.u_min if self.u_min is not None else dynamics.u_min,
+            "u_max",
+            self.u_max if self.u_max is not None else dynamics.u_max,
+        )
         self.cbf_slack = _slack_mode(cbf_slack, relax_cbf, elastic)
         if cbf_slack_weight is None:
             cbf_slack_weight = 1e2 if self.cbf_slack == "per_row" else 1e3
