@@ -4,12 +4,15 @@ benchmarks.
     torchcbf reach-avoid [--seeds N --samples K --horizon H --device cpu|cuda --out DIR]
     torchcbf mppi-cbf    [--methods scbf,mppi,mppi_scbf --seeds N ...]
     torchcbf demo        both scenarios at sizes that finish in a few minutes on 2 CPU cores
-    torchcbf bench       the benchmark scripts (from a source checkout)
+    torchcbf sweep       a grid over a scenario builder's keyword arguments (local or Ray)
+    torchcbf tune        Optuna search over a scenario's declared search space (local or Ray)
+    torchcbf bench       the benchmark scripts shipped with the package
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import subprocess
 import sys
@@ -21,6 +24,7 @@ import torch
 
 from torchcbf.sim import summarize
 
+# Benchmarks in the order ``torchcbf bench`` runs them (each a script of scripts/).
 BENCHES = ("bench_qp.py", "bench_barriers.py", "bench_filters.py", "bench_mppi.py")
 
 
@@ -132,34 +136,11 @@ def _mppi_cbf(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     return results
 
 
-def _bench(args: argparse.Namespace) -> int:
-    scripts = Path(__file__).resolve().parent.parent / "scripts"
-    if not scripts.is_dir():
-        print(
-            "torchcbf bench runs the scripts/bench_*.py of a source checkout; none found",
-            file=sys.stderr,
-        )
-        return 2
-    code = 0
-    for name in BENCHES:
-        path = scripts / name
-        if path.exists():
-            cmd = [
-                sys.executable,
-                str(path),
-                *(["--quick"] if args.quick else []),
-                "--device",
-                args.device,
-            ]
-            print(f"$ {' '.join(cmd)}", flush=True)
-            code |= subprocess.call(cmd)
-    return code
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="torchcbf", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
+    _add_version(parser)
     sub = parser.add_subparsers(dest="command", required=True)
     for name, seeds in (("reach-avoid", 10), ("mppi-cbf", 32), ("demo", 0)):
         p = sub.add_parser(name)
@@ -175,12 +156,11 @@ def main(argv: list[str] | None = None) -> int:
         p.add_argument("--no-gif", action="store_true", help="skip the GIF animation")
         if name == "mppi-cbf":
             p.add_argument("--methods", default="scbf,mppi,mppi_scbf")
-    b = sub.add_parser("bench")
-    b.add_argument("--quick", action="store_true")
-    b.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    _add_ecosystem_commands(sub)
+    _describe_commands(sub)
     args = parser.parse_args(argv)
-    if args.command == "bench":
-        return _bench(args)
+    if args.command in ECOSYSTEM_COMMANDS:
+        return ECOSYSTEM_COMMANDS[args.command](args)
     if args.device == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda but CUDA is not available")
     out = Path(args.out)
@@ -214,6 +194,162 @@ def main(argv: list[str] | None = None) -> int:
     (out / "metrics.json").write_text(json.dumps(results, indent=2))
     print(f"metrics: {out / 'metrics.json'}; figures: {out}/*.png, {out}/*.gif")
     return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# sweep, tune, bench, --version and the help texts of every subcommand
+# ---------------------------------------------------------------------------------------------
+
+
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows each option's default, except for flags and ``None`` defaults (the help text
+    says what happens then)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.default is None or action.nargs == 0:
+            return action.help
+        return super()._get_help_string(action)
+
+
+# One paragraph per subcommand, shown by ``torchcbf <command> --help``.
+DESCRIPTIONS = {
+    "reach-avoid": (
+        "Scenario A (docs/scenarios: timed reach-avoid with MPPI on a single integrator) over "
+        "a batch of seeds planned as one batch; writes metrics.json and figures to --out. "
+        "Without --samples/--horizon: K = 10,000 samples, H = 50 steps."
+    ),
+    "mppi-cbf": (
+        "Scenario B (noisy unicycle among five ellipses: stochastic CBF, MPPI, MPPI + "
+        "stochastic CBF) over a batch of noise seeds; writes metrics.json and figures to "
+        "--out. Without --samples/--horizon: K = 20,000 samples, H = 80 steps."
+    ),
+    "demo": (
+        "Both scenarios at sizes that finish in a few minutes on 2 CPU cores: scenario A with "
+        "4 seeds, K = 10,000, H = 50; scenario B's three methods with 8 seeds, K = 2,000, "
+        "H = 60 (--seeds/--samples/--horizon override both)."
+    ),
+    "sweep": (
+        "Run a scenario builder once per point of a grid over its keyword arguments, each "
+        "configuration as one batch of --seeds seeds, and write sweep.csv, sweep.json and "
+        "sweep.png (rates against the first varied parameter). Values are converted to the "
+        "type of the builder's default; 'none', 'true'/'false' and pairs 'a:b' are understood. "
+        "Example: torchcbf sweep mppi-cbf --grid method=scbf --grid rectify_gain=5,20 "
+        "--seeds 8"
+    ),
+    "tune": (
+        "Optuna search over a scenario's declared search space. Objective: the success rate "
+        "over a batch of tuning seeds (from --seed, default 10,000: disjoint from the "
+        "evaluation seeds 0, 1, ...) minus a tie-break below one success in mean time to "
+        "goal. Writes best.json (best parameters, its objective and the default "
+        "configuration's on the same seeds, both re-evaluated on the evaluation seeds), "
+        "study.csv and study.png."
+    ),
+    "bench": (
+        "Run the benchmark scripts shipped with the package (scripts/bench_*.py of the source "
+        "tree, installed as torchcbf.scripts) one after the other. Peers that are not "
+        "installed are skipped by each script with a message. Exits non-zero when no script "
+        "is found or one fails."
+    ),
+}
+
+# Help of options the scenario commands define without one.
+OPTION_HELP = {
+    "--methods": "comma-separated methods of scenario B to run (each one batch of seeds)",
+    "--device": "torch device of the run",
+    "--no-progress": "no progress bar",
+}
+
+
+def _add_version(parser: argparse.ArgumentParser) -> None:
+    from torchcbf import __version__
+
+    parser.add_argument(
+        "--version",
+        action="version",
+        version=f"torchcbf {__version__} (torch {torch.__version__})",
+    )
+
+
+def _describe_commands(sub: Any) -> None:
+    """Give every subcommand its description, the defaults in its help and missing option help."""
+    for name, command in sub.choices.items():
+        command.formatter_class = _HelpFormatter
+        if command.description is None and name in DESCRIPTIONS:
+            command.description = DESCRIPTIONS[name]
+        for action in command._actions:
+            for option in action.option_strings:
+                if action.help is None and option in OPTION_HELP:
+                    action.help = OPTION_HELP[option]
+
+
+def _add_ecosystem_commands(sub: Any) -> None:
+    b = sub.add_parser("bench")
+    b.add_argument("--quick", action="store_true", help="each script's short run (--quick)")
+    b.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="torch device")
+    b.add_argument(
+        "--only",
+        default=None,
+        help="comma-separated benchmarks to run, by name (qp, barriers, filters, mppi)",
+    )
+    b.add_argument("--list", action="store_true", help="list the benchmark scripts found and exit")
+
+
+def _bench_scripts() -> list[Path]:
+    """The benchmark scripts of the installed package (``torchcbf.scripts``), in run order."""
+    folders = []
+    spec = importlib.util.find_spec("torchcbf.scripts")
+    if spec is not None and spec.submodule_search_locations:
+        folders = [Path(p) for p in spec.submodule_search_locations]
+    checkout = Path(__file__).resolve().parent.parent / "scripts"
+    if not folders and checkout.is_dir():  # a source tree used without installing
+        folders = [checkout]
+    found = {}
+    for folder in folders:
+        for path in sorted(folder.glob("bench_*.py")):
+            found.setdefault(path.name, path)
+    order = {name: i for i, name in enumerate(BENCHES)}
+    return sorted(found.values(), key=lambda p: (order.get(p.name, len(order)), p.name))
+
+
+def _bench(args: argparse.Namespace) -> int:
+    scripts = _bench_scripts()
+    if args.only is not None:
+        wanted = {
+            f"bench_{w.strip().removeprefix('bench_').removesuffix('.py')}.py"
+            for w in args.only.split(",")
+            if w.strip()
+        }
+        unknown = wanted - {p.name for p in scripts}
+        if unknown:
+            names = ", ".join(p.stem.removeprefix("bench_") for p in scripts) or "none"
+            print(f"--only: no benchmark {sorted(unknown)}; found: {names}", file=sys.stderr)
+            return 2
+        scripts = [p for p in scripts if p.name in wanted]
+    if not scripts:
+        print(
+            "torchcbf bench: no benchmark scripts found (they install with the package as "
+            "torchcbf.scripts; reinstall torchcbf)",
+            file=sys.stderr,
+        )
+        return 2
+    if args.list:
+        for path in scripts:
+            print(f"{path.stem.removeprefix('bench_'):<10} {path}")
+        return 0
+    failed = []
+    for path in scripts:
+        cmd = [sys.executable, str(path), *(["--quick"] if args.quick else [])]
+        cmd += ["--device", args.device]
+        print(f"$ {' '.join(cmd)}", flush=True)
+        if subprocess.call(cmd) != 0:
+            failed.append(path.name)
+    if failed:
+        print(f"torchcbf bench: failed: {', '.join(failed)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+ECOSYSTEM_COMMANDS = {"bench": _bench}
 
 
 if __name__ == "__main__":
