@@ -202,11 +202,11 @@ def main(argv: list[str] | None = None) -> int:
 
 
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
-    """Shows each option's default, except for flags and ``None`` defaults (the help text
-    says what happens then)."""
+    """Shows each option's default, except for flags and ``None`` or empty defaults (the
+    help text says what happens then)."""
 
     def _get_help_string(self, action: argparse.Action) -> str | None:
-        if action.default is None or action.nargs == 0:
+        if action.default is None or action.default == [] or action.nargs == 0:
             return action.help
         return super()._get_help_string(action)
 
@@ -282,7 +282,51 @@ def _describe_commands(sub: Any) -> None:
                     action.help = OPTION_HELP[option]
 
 
+def _add_engine_options(p: argparse.ArgumentParser, seeds: int, seed: int) -> None:
+    p.add_argument("scenario", choices=["reach-avoid", "mppi-cbf"], help="scenario builder")
+    p.add_argument("--seeds", type=int, default=seeds, help="seeds per configuration (one batch)")
+    p.add_argument("--seed", type=int, default=seed, help="first seed")
+    p.add_argument("--engine", default="local", choices=["local", "ray"], help="where to run")
+    p.add_argument(
+        "--address",
+        default=None,
+        help="Ray cluster to join (default: start a local one for the run)",
+    )
+    p.add_argument(
+        "--num-cpus", type=int, default=None, help="CPUs of the local Ray cluster (default: all)"
+    )
+    p.add_argument("--threads", type=int, default=1, help="torch threads per configuration")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="torch device")
+    p.add_argument("--out", default="out", help="output directory")
+    p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
+
+
 def _add_ecosystem_commands(sub: Any) -> None:
+    s = sub.add_parser("sweep")
+    _add_engine_options(s, seeds=8, seed=0)
+    s.add_argument(
+        "--grid",
+        action="append",
+        default=[],
+        metavar="KEY=V1,V2",
+        help="values of one builder keyword (repeat for a product grid; none: the defaults)",
+    )
+    t = sub.add_parser("tune")
+    _add_engine_options(t, seeds=8, seed=10_000)
+    t.add_argument("--trials", type=int, default=20, help="Optuna trials")
+    t.add_argument("--eval-seed", type=int, default=0, help="first evaluation seed")
+    t.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=V",
+        help="a builder keyword held fixed (repeatable), e.g. method=scbf",
+    )
+    t.add_argument(
+        "--params", default=None, help="comma-separated dimensions to search (default: all)"
+    )
+    t.add_argument("--sampler-seed", type=int, default=0, help="seed of the TPE sampler")
+    t.add_argument("--batch", type=int, default=2, help="trials asked at once (parallel Ray tasks)")
     b = sub.add_parser("bench")
     b.add_argument("--quick", action="store_true", help="each script's short run (--quick)")
     b.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="torch device")
@@ -349,7 +393,121 @@ def _bench(args: argparse.Namespace) -> int:
     return 0
 
 
-ECOSYSTEM_COMMANDS = {"bench": _bench}
+def _print_rows(rows: list[dict[str, Any]], keys: list[str]) -> None:
+    def pct(row: dict[str, Any], name: str) -> str:
+        if f"{name}_rate" not in row:
+            return "-"
+        lo, hi = row[f"{name}_ci95_low"], row[f"{name}_ci95_high"]
+        return f"{100 * row[f'{name}_rate']:.0f}% ({100 * lo:.0f}-{100 * hi:.0f})"
+
+    def num(value: Any, fmt: str) -> str:
+        return "-" if value is None else fmt.format(value)
+
+    from torchcbf.sweep.params import describe
+
+    print(
+        f"{'configuration':<36} {'success (95% CI)':>17} {'collision (95% CI)':>19} "
+        f"{'t_goal [s]':>10} {'min barrier':>11} {'wall [s]':>8}"
+    )
+    for row in rows:
+        name = describe({k: row[k] for k in keys}) or "defaults"
+        print(
+            f"{name:<36} {pct(row, 'success'):>17} {pct(row, 'collision'):>19} "
+            f"{num(row.get('time_to_goal_s'), '{:.2f}'):>10} "
+            f"{num(row.get('min_h'), '{:.3f}'):>11} {row['wall_s']:>8.1f}"
+        )
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    from torchcbf.sweep import parse_grid, run_sweep, write_sweep
+
+    try:
+        grid = parse_grid(args.scenario, args.grid)
+        rows = run_sweep(
+            args.scenario,
+            grid,
+            num_seeds=args.seeds,
+            seed=args.seed,
+            device=args.device,
+            engine=args.engine,
+            address=args.address,
+            num_cpus=args.num_cpus,
+            threads=args.threads,
+            progress=args.progress,
+        )
+    except (ValueError, ImportError) as error:
+        print(f"torchcbf sweep: {error}", file=sys.stderr)
+        return 2
+    _print_rows(rows, list(grid))
+    paths = write_sweep(
+        rows,
+        grid,
+        args.out,
+        scenario=args.scenario,
+        num_seeds=args.seeds,
+        first_seed=args.seed,
+        engine=args.engine,
+        device=args.device,
+        threads=args.threads,
+    )
+    print("wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
+def _tune(args: argparse.Namespace) -> int:
+    from torchcbf.sweep import parse_value, tune, write_tune
+
+    try:
+        import optuna
+
+        optuna.logging.set_verbosity(optuna.logging.WARNING)
+    except ImportError:
+        print('torchcbf tune needs Optuna: pip install "torchcbf[tune]"', file=sys.stderr)
+        return 2
+    try:
+        fixed = {}
+        for item in args.set:
+            key, sep, value = item.partition("=")
+            if not sep:
+                raise ValueError(f"--set takes KEY=VALUE, got {item!r}")
+            fixed[key.strip()] = parse_value(args.scenario, key.strip(), value)
+        result = tune(
+            args.scenario,
+            trials=args.trials,
+            num_seeds=args.seeds,
+            seed=args.seed,
+            eval_seed=args.eval_seed,
+            fixed=fixed,
+            params=None if args.params is None else [p.strip() for p in args.params.split(",")],
+            sampler_seed=args.sampler_seed,
+            batch=args.batch,
+            device=args.device,
+            engine=args.engine,
+            address=args.address,
+            num_cpus=args.num_cpus,
+            threads=args.threads,
+            progress=args.progress,
+        )
+    except (ValueError, ImportError) as error:
+        print(f"torchcbf tune: {error}", file=sys.stderr)
+        return 2
+    best, default = result["best"], result["default"]
+    print(f"best trial {best['trial']}: {best['arguments']}")
+    print(
+        f"objective on the tuning seeds {args.seed}..{args.seed + args.seeds - 1}: "
+        f"best {best['objective']:.4f}, default configuration {default['objective']:.4f}"
+    )
+    print(f"on the evaluation seeds {args.eval_seed}..{args.eval_seed + args.seeds - 1}:")
+    evaluation = result["evaluation"]
+    for row, label in ((evaluation["best"], "best"), (evaluation["default"], "default")):
+        row["configuration"] = label
+    _print_rows([evaluation["best"], evaluation["default"]], ["configuration"])
+    paths = write_tune(result, args.out, engine=args.engine, device=args.device)
+    print("wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
+ECOSYSTEM_COMMANDS = {"bench": _bench, "sweep": _sweep, "tune": _tune}
 
 
 if __name__ == "__main__":
