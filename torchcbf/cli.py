@@ -214,7 +214,7 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 # One paragraph per subcommand, shown by ``torchcbf <command> --help``.
 DESCRIPTIONS = {
     "reach-avoid": (
-        "Scenario A (docs/scenarios: timed reach-avoid with MPPI on a single integrator) over "
+        "Scenario A (timed reach-avoid with MPPI on a single integrator) over "
         "a batch of seeds planned as one batch; writes metrics.json and figures to --out. "
         "Without --samples/--horizon: K = 10,000 samples, H = 50 steps."
     ),

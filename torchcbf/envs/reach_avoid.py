@@ -1,4 +1,5 @@
-"""``torchcbf/ReachAvoid-v0``: scenario A (docs/scenarios) as a Gymnasium environment.
+"""``torchcbf/ReachAvoid-v0``: scenario A as a Gymnasium environment (the scenario is
+:mod:`torchcbf.scenarios.single_integrator_reach_avoid`).
 
 A single integrator ``p' = u`` in the plane (``|u_i| <= 5`` m/s, exact zero-order-hold step
 of ``dt = 0.1`` s) must visit three goal discs of radius 0.5 m in their time windows,

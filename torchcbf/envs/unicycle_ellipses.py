@@ -1,4 +1,5 @@
-"""``torchcbf/UnicycleEllipses-v0``: scenario B (docs/scenarios) as a Gymnasium environment.
+"""``torchcbf/UnicycleEllipses-v0``: scenario B as a Gymnasium environment (the scenario is
+:mod:`torchcbf.scenarios.unicycle_mppi_cbf`).
 
 A unicycle with acceleration input, state ``(x, y, v, theta)``, control ``(a, omega)``,
 driven by the SDE ``dx = (f + g u) dt + sigma dW`` with ``sigma = 0.28 I`` on all four
