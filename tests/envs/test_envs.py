@@ -230,3 +230,16 @@ def test_bad_input_names_the_argument() -> None:
         env.step(np.full((2, 2), np.nan))
     with pytest.raises(ValueError, match="seed"):
         env.reset(seed=[1, 2, 3])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("env_id", IDS)
+def test_cuda_vector_env_matches_cpu(env_id: str) -> None:
+    kw = {"num_envs": 6, "vectorization_mode": "vector_entry_point", "start_noise": 0.2}
+    cpu = gym.make_vec(env_id, **kw)
+    cuda = gym.make_vec(env_id, device="cuda", **kw)
+    assert cuda.unwrapped.dynamics.f(torch.zeros(1, cuda.unwrapped.dynamics.state_dim,
+                                                 device="cuda")).is_cuda  # fmt: skip
+    actions = np.random.default_rng(0).uniform(-3, 3, size=(40, 6, 2)).astype(np.float32)
+    for a, b in zip(_rollout(cpu, actions, 2), _rollout(cuda, actions, 2), strict=True):
+        np.testing.assert_allclose(a[0], b[0], atol=1e-4)
