@@ -195,8 +195,11 @@ def test_return_tensors_and_float64_match_numpy() -> None:
     np.testing.assert_array_equal(ra[0], rb[0].numpy())
     np.testing.assert_allclose(ra[1], rb[1].numpy(), rtol=1e-6)
     c = gym.make_vec("torchcbf/UnicycleEllipses-v0", dtype=torch.float64, **kw)
+    assert c.single_observation_space.dtype == np.float64
     c.reset(seed=1)
-    np.testing.assert_allclose(c.step(act)[0], ra[0], atol=1e-5)
+    oc = c.step(act)[0]
+    assert oc.dtype == np.float64 and c.observation_space.contains(oc)
+    np.testing.assert_allclose(oc, ra[0], atol=1e-5)
 
 
 def test_reset_mask_resets_only_those_rows() -> None:

@@ -44,7 +44,8 @@ def check_nonnegative(name: str, value: float) -> float:
 class TorchVectorEnv(gymnasium.vector.VectorEnv):
     """Base of the batched environments: ``num_envs`` rows stepped as one tensor batch.
 
-    Subclasses set ``dynamics``, ``barriers``, the single spaces and ``dt``, and implement
+    Subclasses set ``dynamics``, ``barriers``, the single spaces (of ``np_dtype``, the
+    NumPy twin of ``dtype``) and ``dt``, and implement
     :meth:`_start` (first state of some rows), :meth:`_advance` (one step of every row) and
     :meth:`_observe`. Observations, rewards and flags come back as NumPy arrays, or as
     tensors on the env's device with ``return_tensors=True`` (then actions may be tensors
@@ -81,6 +82,7 @@ class TorchVectorEnv(gymnasium.vector.VectorEnv):
         self.max_episode_steps = max_episode_steps
         self.device = torch.device(device)
         self.dtype = dtype
+        self.np_dtype = np.float32 if dtype == torch.float32 else np.float64
         self.return_tensors = bool(return_tensors)
         rows = torch.zeros(num_envs, dtype=torch.int64, device=self.device)
         self._seeds = rows.clone()

@@ -89,11 +89,11 @@ class ReachAvoidVectorEnv(TorchVectorEnv):
         self._visited = torch.zeros(num_envs, len(GOALS), dtype=torch.bool, device=self.device)
         inf = np.inf
         observation = spaces.Box(
-            low=np.array([-inf, -inf, 0.0, 0.0, 0.0, 0.0], dtype=np.float32),
-            high=np.array([inf, inf, inf, 1.0, 1.0, 1.0], dtype=np.float32),
-            dtype=np.float32,
+            low=np.array([-inf, -inf, 0.0, 0.0, 0.0, 0.0], dtype=self.np_dtype),
+            high=np.array([inf, inf, inf, 1.0, 1.0, 1.0], dtype=self.np_dtype),
+            dtype=self.np_dtype,
         )
-        action = spaces.Box(-SPEED_LIMIT, SPEED_LIMIT, shape=(2,), dtype=np.float32)
+        action = spaces.Box(-SPEED_LIMIT, SPEED_LIMIT, shape=(2,), dtype=self.np_dtype)
         self._set_spaces(observation, action)
 
     def _start(self, rows: Tensor, z: Tensor) -> None:

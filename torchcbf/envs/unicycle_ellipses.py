@@ -98,14 +98,14 @@ class UnicycleEllipsesVectorEnv(TorchVectorEnv):
         self._x = self._start_state.repeat(num_envs, 1)
         inf = np.inf
         observation = spaces.Box(
-            low=np.array([-inf, -inf, -inf, -np.pi], dtype=np.float32),
-            high=np.array([inf, inf, inf, np.pi], dtype=np.float32),
-            dtype=np.float32,
+            low=np.array([-inf, -inf, -inf, -np.pi], dtype=self.np_dtype),
+            high=np.array([inf, inf, inf, np.pi], dtype=self.np_dtype),
+            dtype=self.np_dtype,
         )
         action = spaces.Box(
-            low=-np.array(limit, dtype=np.float32),
-            high=np.array(limit, dtype=np.float32),
-            dtype=np.float32,
+            low=-np.array(limit, dtype=self.np_dtype),
+            high=np.array(limit, dtype=self.np_dtype),
+            dtype=self.np_dtype,
         )
         self._set_spaces(observation, action)
 
