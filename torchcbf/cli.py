@@ -410,7 +410,7 @@ def _print_rows(rows: list[dict[str, Any]], keys: list[str]) -> None:
         f"{'t_goal [s]':>10} {'min barrier':>11} {'wall [s]':>8}"
     )
     for row in rows:
-        name = describe({k: row[k] for k in keys}) or "defaults"
+        name = row.get("label") or describe({k: row[k] for k in keys}) or "defaults"
         print(
             f"{name:<36} {pct(row, 'success'):>17} {pct(row, 'collision'):>19} "
             f"{num(row.get('time_to_goal_s'), '{:.2f}'):>10} "
@@ -499,9 +499,8 @@ def _tune(args: argparse.Namespace) -> int:
     )
     print(f"on the evaluation seeds {args.eval_seed}..{args.eval_seed + args.seeds - 1}:")
     evaluation = result["evaluation"]
-    for row, label in ((evaluation["best"], "best"), (evaluation["default"], "default")):
-        row["configuration"] = label
-    _print_rows([evaluation["best"], evaluation["default"]], ["configuration"])
+    labelled = [{**evaluation["best"], "label": "best"}, {**evaluation["default"], "label": "default"}]
+    _print_rows(labelled, [])
     paths = write_tune(result, args.out, engine=args.engine, device=args.device)
     print("wrote " + ", ".join(str(p) for p in paths.values()))
     return 0

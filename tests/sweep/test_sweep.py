@@ -94,8 +94,10 @@ def test_objective_counts_successes_first_then_the_tie_break() -> None:
         "goal0_time": t([1.0, 2.0, float("nan"), float("nan")]),
     }
     slow = {**fast, "goal0_time": t([4.0, 2.0, float("nan"), float("nan")])}
+    crashed = {**fast, "collision": t([True, True, False, False])}
+    assert tie_break(crashed, 5.0) == 0.0  # reaching the goal through an obstacle earns nothing
     assert success(fast).tolist() == [True, False, False, False]
-    assert tie_break(fast, 5.0) == pytest.approx(1 - 1.5 / 5)
+    assert tie_break(fast, 5.0) == pytest.approx(1 - 1.0 / 5)  # seed 1 collided: not counted
     assert objective(fast, 5.0) > objective(slow, 5.0) > 0.25
     one_more = {**slow, "goal_reached": t([True, True, True, False]), "goal0_time": t([4.9] * 4)}
     assert objective(one_more, 5.0) > objective(fast, 5.0)  # a success beats any tie-break

@@ -25,7 +25,11 @@ def test_search_spaces_name_builder_keywords() -> None:
             assert d.optional or d.keyword in accepted, (scenario, d.name)
         assert search_space(scenario)  # something to search today
     names = [d.name for d in search_space("mppi-cbf", fixed={"rectify_gain": 5.0})]
-    assert "rectify_gain" not in names and "control_weight_omega" in names
+    assert "rectify_gain" not in names and {"control_weight_omega", "noise_sigma"} <= set(names)
+    filter_only = [d.name for d in search_space("mppi-cbf", fixed={"method": "scbf"})]
+    assert "noise_sigma" not in filter_only and "rectify_gain" in filter_only
+    planner_only = [d.name for d in search_space("mppi-cbf", fixed={"method": "mppi"})]
+    assert "rectify_gain" not in planner_only and "noise_sigma" in planner_only
     with pytest.raises(ValueError, match="unknown parameter"):
         search_space("reach-avoid", ["nope"])
     with pytest.raises(ValueError, match="every dimension is fixed"):

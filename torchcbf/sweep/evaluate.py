@@ -6,9 +6,9 @@ collision (scenario B: within 0.25 m of the goal by 5 s, no ellipse ever entered
 
 The objective of :mod:`torchcbf.sweep.tune` is ``success_rate + tie_break / (2 N)`` for
 ``N`` seeds, so one more success always counts more than any tie-break; the tie-break in
-[0, 1) prefers an earlier mean time to goal (``1 - t_goal / T`` over the seeds that reached
-it, ``T`` the run's duration) or, for a specification without goal times, a larger mean
-robustness (``1/2 + atan(robustness) / pi``).
+[0, 1) prefers an earlier mean time to goal (``1 - t_goal / T`` over the successful seeds,
+``T`` the run's duration; 0 without any) or, for a specification without goal times, a
+larger mean robustness (``1/2 + atan(robustness) / pi``).
 """
 
 from __future__ import annotations
@@ -39,11 +39,12 @@ def success(per_seed: Mapping[str, Tensor]) -> Tensor:
 
 
 def tie_break(per_seed: Mapping[str, Tensor], duration: float) -> float:
-    """A number in [0, 1): higher for an earlier time to goal (or a larger robustness)."""
+    """A number in [0, 1): higher for an earlier time to goal of the successful seeds (or a
+    larger mean robustness)."""
     times = [v for k, v in per_seed.items() if k.startswith("goal") and k.endswith("_time")]
     if times:
         t = torch.stack([v.double() for v in times], -1).amax(-1)  # all goals reached
-        t = t[torch.isfinite(t)]
+        t = t[torch.isfinite(t) & success(per_seed)]
         if t.numel() == 0:
             return 0.0
         return float((1.0 - t.mean() / duration).clamp(0.0, 1.0 - 1e-9))

@@ -36,7 +36,9 @@ class Dimension:
 
     ``kind``: ``"float"``, ``"int"`` or ``"categorical"`` (``choices``); ``argument``: the
     builder keyword it sets (default: ``name``); ``to_argument`` maps the sampled value to
-    the keyword's value; ``optional``: skipped when the builder has no such keyword.
+    the keyword's value; ``optional``: skipped when the builder has no such keyword;
+    ``skip_methods``: values of the builder's ``method`` for which the dimension has no
+    effect (an MPPI parameter for the filter alone, a filter parameter for MPPI alone).
     """
 
     name: str
@@ -48,6 +50,7 @@ class Dimension:
     argument: str | None = None
     to_argument: Callable[[Any], Any] | None = field(default=None, compare=False)
     optional: bool = False
+    skip_methods: tuple[str, ...] = ()
 
     @property
     def keyword(self) -> str:
@@ -81,6 +84,9 @@ def _omega_weight(w: float) -> tuple[float, float]:
     return (1.0, float(w))
 
 
+_NO_PLANNER = ("scbf",)
+_NO_FILTER = ("mppi",)
+
 SEARCH_SPACES: dict[str, tuple[Dimension, ...]] = {
     # Scenario A: MPPI's sampling and its temperature / control cost where the builder
     # exposes them.
@@ -95,8 +101,8 @@ SEARCH_SPACES: dict[str, tuple[Dimension, ...]] = {
     # the QP's weight on omega, and alpha/beta/margin where the builder takes them) and
     # MPPI's noise and temperature.
     "mppi-cbf": (
-        Dimension("rectify_gain", "float", 1.0, 100.0, log=True),
-        Dimension("barrier_scale", "float", 1e-3, 1.0, log=True),
+        Dimension("rectify_gain", "float", 1.0, 100.0, log=True, skip_methods=_NO_FILTER),
+        Dimension("barrier_scale", "float", 1e-3, 1.0, log=True, skip_methods=_NO_FILTER),
         Dimension(
             "control_weight_omega",
             "float",
@@ -105,12 +111,15 @@ SEARCH_SPACES: dict[str, tuple[Dimension, ...]] = {
             log=True,
             argument="control_weight",
             to_argument=_omega_weight,
+            skip_methods=_NO_FILTER,
         ),
-        Dimension("noise_sigma", "float", 1.0, 16.0, log=True),
-        Dimension("alpha", "float", 0.5, 100.0, log=True, optional=True),
-        Dimension("beta", "float", 0.0, 2.0, optional=True),
-        Dimension("margin", "float", 0.0, 0.5, optional=True),
-        Dimension("temperature", "float", 1e-3, 1.0, log=True, optional=True),
+        Dimension("noise_sigma", "float", 1.0, 16.0, log=True, skip_methods=_NO_PLANNER),
+        Dimension("alpha", "float", 0.5, 100.0, log=True, optional=True, skip_methods=_NO_FILTER),
+        Dimension("beta", "float", 0.0, 2.0, optional=True, skip_methods=_NO_FILTER),
+        Dimension("margin", "float", 0.0, 0.5, optional=True, skip_methods=_NO_FILTER),
+        Dimension(
+            "temperature", "float", 1e-3, 1.0, log=True, optional=True, skip_methods=_NO_PLANNER
+        ),
     ),
 }
 
@@ -118,12 +127,18 @@ SEARCH_SPACES: dict[str, tuple[Dimension, ...]] = {
 def search_space(
     scenario: str, names: Sequence[str] | None = None, fixed: Mapping[str, Any] | None = None
 ) -> list[Dimension]:
-    """The dimensions of ``scenario`` the builder accepts, restricted to ``names`` if given,
-    without those whose keyword is in ``fixed``."""
+    """The dimensions of ``scenario`` the builder accepts and its ``method`` (from ``fixed``
+    or the builder's default) uses, restricted to ``names`` if given, without those whose
+    keyword is in ``fixed``."""
     if scenario not in SEARCH_SPACES:
         raise ValueError(f"scenario must be one of {sorted(SEARCH_SPACES)}, got {scenario!r}")
     accepted = builder_defaults(scenario)
-    dims = [d for d in SEARCH_SPACES[scenario] if d.keyword in accepted or not d.optional]
+    method = {**accepted, **(fixed or {})}.get("method")
+    dims = [
+        d
+        for d in SEARCH_SPACES[scenario]
+        if (d.keyword in accepted or not d.optional) and method not in d.skip_methods
+    ]
     if names is not None:
         known = {d.name for d in dims}
         unknown = [n for n in names if n not in known]
