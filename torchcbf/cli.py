@@ -499,7 +499,7 @@ def _tune(args: argparse.Namespace) -> int:
     )
     print(f"on the evaluation seeds {args.eval_seed}..{args.eval_seed + args.seeds - 1}:")
     evaluation = result["evaluation"]
-    labelled = [{**evaluation["best"], "label": "best"}, {**evaluation["default"], "label": "default"}]
+    labelled = [{**evaluation[k], "label": k} for k in ("best", "default")]
     _print_rows(labelled, [])
     paths = write_tune(result, args.out, engine=args.engine, device=args.device)
     print("wrote " + ", ".join(str(p) for p in paths.values()))
