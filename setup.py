@@ -1,8 +1,14 @@
-"""Build of the optional C kernel of the QP solver's CPU fast path (everything else is in
-pyproject.toml). If no C compiler is found the build goes on without it, and the solver
-runs its torch implementation on the CPU too."""
+"""Build of the optional C kernels (everything else is in pyproject.toml): the QP solver's
+CPU fast path and MPPI's fused rollouts. If no C compiler is found the build goes on without
+them, and the solver and the planner run their torch implementations on the CPU too."""
+
+import platform
+import sys
 
 from setuptools import Extension, setup
+
+# glibc's vector math library (libmvec) lets the rollout kernel's sin/cos/log vectorise
+_mvec = sys.platform.startswith("linux") and platform.machine() in ("x86_64", "AMD64")
 
 setup(
     ext_modules=[
@@ -11,6 +17,14 @@ setup(
             ["torchcbf/qp/_dual_kernel.c"],
             extra_compile_args=["-O3", "-std=c99"],
             optional=True,
-        )
+        ),
+        Extension(
+            "torchcbf.mppi._rollout_kernel",
+            ["torchcbf/mppi/_rollout_kernel.c"],
+            depends=["torchcbf/mppi/_rollout_kernel.h"],
+            extra_compile_args=["-O3", "-std=c99", "-fno-math-errno"],
+            libraries=(["mvec", "m"] if _mvec else ["m"]),
+            optional=True,
+        ),
     ]
 )

@@ -41,3 +41,72 @@ def test_check_batch_match_names_both_arguments():
     with pytest.raises(ValueError, match=r"x \(2, 3\) and u \(4, 3\)"):
         check_batch_match("x", torch.zeros(2, 3), "u", torch.zeros(4, 3))
     check_batch_match("x", torch.zeros(2, 3), "u", torch.zeros(1, 3))
+
+
+def test_as_limit_and_check_bounds():
+    from torchcbf._checks import as_limit, check_bounds
+
+    assert as_limit("u_min", None, 3) is None
+    lim = as_limit("u_min", 0.1, 3)
+    assert lim.dtype == torch.float64 and lim.tolist() == [0.1, 0.1, 0.1]
+    assert as_limit("u_max", [1.0, float("inf")], 2).tolist() == [1.0, float("inf")]
+    with pytest.raises(ValueError, match=r"u_min must be a scalar or have shape \[3\]"):
+        as_limit("u_min", [1.0, 2.0], 3)
+    with pytest.raises(ValueError, match="u_min must not contain NaN"):
+        as_limit("u_min", [1.0, float("nan")], 2)
+    check_bounds("lo", torch.zeros(2), "hi", torch.ones(2))
+    with pytest.raises(
+        ValueError, match=r"lo \[0.0, 2.0\] exceeds hi \[1.0, 1.0\] at entries \[1\]"
+    ):
+        check_bounds("lo", torch.tensor([0.0, 2.0]), "hi", torch.ones(2))
+
+
+def test_clamp_control_matches_a_loop():
+    from torchcbf._checks import clamp_control
+
+    u = torch.randn(50, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    lo = torch.tensor([-0.5, -1.0, -float("inf")])
+    hi = torch.tensor([0.5, 0.2, 0.1])
+    out = clamp_control(u, lo, hi)
+    assert out.dtype == torch.float64
+    for b in range(u.shape[0]):
+        for j in range(3):
+            assert out[b, j].item() == min(max(u[b, j].item(), lo[j].item()), hi[j].item())
+    assert clamp_control(u, None, None) is u
+    assert torch.equal(clamp_control(u, None, hi), torch.minimum(u, hi.double()))
+
+
+def test_as_matrix_forms_and_errors():
+    from torchcbf._checks import as_matrix
+
+    assert torch.equal(as_matrix("R", 2.0, 2), 2.0 * torch.eye(2))
+    assert torch.equal(as_matrix("R", [1.0, 3.0], 2), torch.diag(torch.tensor([1.0, 3.0])))
+    assert as_matrix("R", 0.1, 2, dtype=torch.float64)[0, 0].item() == 0.1
+    with pytest.raises(ValueError, match=r"R as a vector must have shape \[2\]"):
+        as_matrix("R", [1.0, 2.0, 3.0], 2)
+    with pytest.raises(ValueError, match=r"R must be a scalar, \[2\] or \[2, 2\]"):
+        as_matrix("R", torch.ones(3, 3), 2)
+    with pytest.raises(ValueError, match="R must not contain NaN"):
+        as_matrix("R", float("nan"), 2)
+    with pytest.raises(ValueError, match="R must be positive definite"):
+        as_matrix("R", -1.0, 2)
+    assert torch.equal(as_matrix("M", -1.0, 2, spd=False), -torch.eye(2))
+
+
+def test_check_same_and_check_number():
+    from torchcbf._checks import check_finite, check_number, check_same
+
+    p = torch.tensor([[1.0, 2.0], [0.0, 0.0]], dtype=torch.float64)
+    with pytest.raises(TypeError, match="b has dtype torch.float32 but a has dtype torch.float64"):
+        check_same("a", p, "b", p.float())
+    with pytest.raises(ValueError, match="b is on device meta but a is on device cpu"):
+        check_same("a", p, "b", p.to("meta"))
+    assert check_number("k", 2) == 2.0
+    for bad, err in ((float("nan"), ValueError), (True, TypeError), (torch.tensor(1.0), TypeError)):
+        with pytest.raises(err, match="k"):
+            check_number("k", bad)
+    with pytest.raises(ValueError, match="k must be > 0.0"):
+        check_number("k", 0.0, low=0.0, strict=True)
+    assert check_finite("v", torch.tensor([float("inf")]), allow_inf=True) is not None
+    with pytest.raises(ValueError, match="v must not contain NaN or inf"):
+        check_finite("v", torch.tensor([float("inf")]))

@@ -5,6 +5,7 @@ scenarios (:mod:`torchcbf.scenarios`) and training helpers (:mod:`torchcbf.learn
 imported from their own modules.
 """
 
+from torchcbf._version import __version__
 from torchcbf.barriers import (
     Ball,
     Barrier,
@@ -40,9 +41,8 @@ from torchcbf.mppi import MPPI, Always, And, Avoid, Eventually, MPPIOutput, Or, 
 from torchcbf.qp import QPSolution, Status, solve_qp
 from torchcbf.sim import Trajectory, metrics, simulate, summarize
 
-__version__ = "0.1.0"
-
 __all__ = [
+    "__version__",
     "EKF",
     "MPPI",
     "UKF",

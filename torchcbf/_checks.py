@@ -102,3 +102,130 @@ def check_spd(name: str, matrix: Tensor) -> Tensor:
     if bool((info != 0).any()):
         raise ValueError(f"{name} must be positive definite")
     return matrix
+
+
+def check_finite(name: str, value: Tensor, *, allow_inf: bool = False) -> Tensor:
+    """Raise ``ValueError`` naming ``name`` if ``value`` holds NaN (or ``inf``, unless allowed).
+
+    A constructor-time check (one host sync); never call it inside a hot loop.
+    """
+    if value.device.type == "meta" or not value.is_floating_point():
+        return value
+    data = value.detach()
+    bad = torch.isnan(data) if allow_inf else ~torch.isfinite(data)
+    if bool(bad.any()):
+        what = "NaN" if allow_inf else "NaN or inf"
+        raise ValueError(f"{name} must not contain {what}, got {data.tolist()}")
+    return value
+
+
+def check_same(name_a: str, a: Tensor, name_b: str, b: Tensor) -> None:
+    """Raise ``TypeError`` (dtype) or ``ValueError`` (device) unless ``a`` and ``b`` agree,
+    naming both arguments and both dtypes or devices."""
+    if a.dtype != b.dtype:
+        raise TypeError(
+            f"{name_b} has dtype {b.dtype} but {name_a} has dtype {a.dtype}: "
+            f"convert one of them (e.g. {name_b}.to({name_a}.dtype))"
+        )
+    if a.device != b.device:
+        raise ValueError(
+            f"{name_b} is on device {b.device} but {name_a} is on device {a.device}: "
+            "move them to one device"
+        )
+
+
+def check_module_device(name: str, value: Tensor, module: torch.nn.Module) -> None:
+    """Raise ``ValueError`` if ``value`` is not on the device of ``module``'s tensors (modules
+    without tensors accept any device)."""
+    for tensor in list(module.parameters()) + list(module.buffers()):
+        if tensor.device != value.device:
+            raise ValueError(
+                f"{name} is on device {value.device} but {type(module).__name__} is on device "
+                f"{tensor.device}: move the module with .to({name}.device)"
+            )
+        return
+
+
+def as_limit(name: str, value: object, size: int) -> Tensor | None:
+    """A bound given as a scalar or ``[size]`` vector, as a float64 ``[size]`` tensor (``None``
+    stays ``None``). ``+-inf`` means unbounded; NaN raises. A tensor that requires grad keeps
+    its graph (the cast is differentiable)."""
+    if value is None:
+        return None
+    t = as_tensor(name, value, dtype=torch.float64)
+    if t.dim() == 0:
+        t = t.expand(size).clone()
+    if t.shape != (size,):
+        raise ValueError(f"{name} must be a scalar or have shape [{size}], got {tuple(t.shape)}")
+    return check_finite(name, t, allow_inf=True)
+
+
+def check_bounds(name_lo: str, lo: Tensor | None, name_hi: str, hi: Tensor | None) -> None:
+    """Raise ``ValueError`` naming both bounds where ``lo > hi`` in some entry, or naming one
+    that admits nothing (a lower bound of ``+inf``, an upper bound of ``-inf``)."""
+    for name, bound, empty in ((name_lo, lo, float("inf")), (name_hi, hi, float("-inf"))):
+        if bound is not None and bound.device.type != "meta" and bool((bound == empty).any()):
+            raise ValueError(f"{name} must not be {empty}, got {bound.detach().tolist()}")
+    if lo is None or hi is None or lo.device.type == "meta":
+        return
+    bad = lo.detach() > hi.detach()
+    if bool(bad.any()):
+        idx = bad.nonzero().flatten().tolist()
+        raise ValueError(
+            f"{name_lo} {lo.detach().tolist()} exceeds {name_hi} {hi.detach().tolist()} "
+            f"at entries {idx}"
+        )
+
+
+def clamp_control(u: Tensor, lo: Tensor | None, hi: Tensor | None) -> Tensor:
+    """Clip ``u [..., m]`` to ``[lo, hi]`` (``[m]`` each, cast to ``u``; ``None``: unbounded)."""
+    lo = None if lo is None else lo.to(u)
+    hi = None if hi is None else hi.to(u)
+    if lo is None and hi is None:
+        return u
+    return torch.clamp(u, lo, hi)
+
+
+def as_matrix(
+    name: str, value: object, size: int, *, dtype: torch.dtype | None = None, spd: bool = True
+) -> Tensor:
+    """A square ``[size, size]`` matrix given as a scalar (``v I``), a vector ``[size]`` (its
+    diagonal) or the matrix itself; finite, and symmetric positive definite when ``spd``."""
+    t = as_tensor(name, value, dtype=dtype)
+    if t.dim() == 0:
+        t = t * torch.eye(size, dtype=t.dtype, device=t.device)
+    elif t.dim() == 1:
+        if t.shape[0] != size:
+            raise ValueError(f"{name} as a vector must have shape [{size}], got {tuple(t.shape)}")
+        t = torch.diag(t)
+    if t.shape != (size, size):
+        raise ValueError(
+            f"{name} must be a scalar, [{size}] or [{size}, {size}], got {tuple(t.shape)}"
+        )
+    check_finite(name, t)
+    if spd and t.device.type != "meta":
+        check_spd(name, t)
+    return t
+
+
+def check_number(
+    name: str, value: object, *, low: float | None = None, strict: bool = False
+) -> float:
+    """A finite Python number (``>= low``, or ``> low`` when ``strict``) as a float.
+
+    A tensor raises ``TypeError``: these options are plain numbers, and converting a tensor
+    that requires grad would cut its gradient silently.
+    """
+    if isinstance(value, Tensor):
+        raise TypeError(
+            f"{name} must be a Python number, got a tensor (it would be cut from the autograd "
+            "graph: pass float(...) explicitly)"
+        )
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TypeError(f"{name} must be a number, got {type(value).__name__}")
+    v = float(value)
+    if v != v or v in (float("inf"), float("-inf")):
+        raise ValueError(f"{name} must be finite, got {v}")
+    if low is not None and (v <= low if strict else v < low):
+        raise ValueError(f"{name} must be {'>' if strict else '>='} {low}, got {v}")
+    return v

@@ -2,11 +2,16 @@
 benchmarks.
 
     torchcbf reach-avoid [--seeds N --samples K --horizon H --device cpu|cuda --out DIR]
-    torchcbf mppi-cbf    [--methods scbf,mppi,mppi_scbf --seeds N ...]
-    torchcbf demo        both scenarios at sizes that finish in a few minutes on 2 CPU cores
+    torchcbf mppi-cbf    [--config default|paper|cbfkit --methods all|scbf,mppi,... --seeds N ...]
+    torchcbf demo        both scenarios (B in its default configuration) at sizes that finish
+                         in a few minutes on 2 CPU cores
     torchcbf sweep       a grid over a scenario builder's keyword arguments (local or Ray)
     torchcbf tune        Optuna search over a scenario's declared search space (local or Ray)
     torchcbf bench       the benchmark scripts shipped with the package
+
+Every run prints its settings and a table, and writes ``metrics.json`` (strict JSON: ``null``
+where a value is undefined, e.g. the time of a goal never reached) with the settings, the
+software versions and the git commit, and the figures (PNG, GIF) to ``--out``.
 """
 
 from __future__ import annotations
@@ -17,147 +22,334 @@ import json
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from torchcbf.sim import summarize
+from torchcbf.sim import run_info, strict, summarize
 
 # Benchmarks in the order ``torchcbf bench`` runs them (each a script of scripts/).
 BENCHES = ("bench_qp.py", "bench_barriers.py", "bench_filters.py", "bench_mppi.py")
+PAPER_SIZE_B = "torchcbf mppi-cbf --config default --seeds 32 --samples 20000 --horizon 80"
 
 
-def _figures(scenario: Any, traj: Any, out: Path, stem: str, gif: bool) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
+def _save(fig: Any, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
-    from torchcbf.viz import animate, plot_barrier_values, plot_rollouts, plot_trajectories
-
-    paths = []
-    cpu = traj.to("cpu")
-    fig = plot_trajectories(cpu, scenario.barriers, scenario.goals, title=scenario.name)
-    paths.append(out / f"{stem}_trajectories.png")
-    fig.savefig(paths[-1], dpi=120, bbox_inches="tight")
+    fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
-    with torch.no_grad():
-        h = torch.cat([b(cpu.x).reshape(*cpu.x.shape[:2], -1) for b in scenario.barriers], -1)
-    fig = plot_barrier_values(cpu.t, h, title=f"{scenario.name}: min barrier value")
-    paths.append(out / f"{stem}_barriers.png")
-    fig.savefig(paths[-1], dpi=120, bbox_inches="tight")
-    plt.close(fig)
-    for step, snap in cpu.planner.items():
-        if getattr(snap, "rollouts", None) is None:
-            continue
-        fig = plot_rollouts(
-            snap.rollouts[0],
-            snap.rollout_weights[0],
-            snap.best_states[0],
-            barriers=scenario.barriers,
-            goals=scenario.goals,
-            executed=cpu.x[0, : step + 1],
-            title=f"{scenario.name}: MPPI rollouts at t = {float(cpu.t[step]):.2f} s",
-            plan_label="lowest-cost rollout",
-        )
-        paths.append(out / f"{stem}_rollouts_t{step}.png")
-        fig.savefig(paths[-1], dpi=120, bbox_inches="tight")
-        plt.close(fig)
-    if gif:
-        paths.append(animate(cpu, out / f"{stem}.gif", scenario.barriers, scenario.goals))
-    return paths
+    return path
 
 
-def _row(name: str, summary: dict[str, Any], seconds: float) -> str:
-    def rate(key: str) -> str:
-        s = summary.get(key)
-        return "-" if s is None else f"{100 * s['rate']:.0f}%"
-
-    def mean(key: str, fmt: str = "{:.3f}") -> str:
-        s = summary.get(key)
-        return "-" if s is None or s["mean"] is None else fmt.format(s["mean"])
-
-    min_h = summary.get("min_h", {}).get("min")
-    return (
-        f"{name:<22} {rate('collision'):>9} {'-' if min_h is None else f'{min_h:.3f}':>8} "
-        f"{rate('goal_reached') if 'goal_reached' in summary else rate('spec_satisfied'):>8} "
-        f"{mean('goal0_time', '{:.2f}s'):>9} {seconds:>8.1f}s"
-    )
+def _rate(summary: dict[str, Any], key: str) -> str:
+    s = summary.get(key)
+    if s is None:
+        return "-"
+    return f"{s['count']}/{s['n']} [{100 * s['ci95_low']:.0f}-{100 * s['ci95_high']:.0f}%]"
 
 
-HEADER = f"{'scenario':<22} {'collision':>9} {'min h':>8} {'success':>8} {'t_goal':>9} {'wall':>9}"
+def _num(value: float | None, fmt: str = "{:.3f}") -> str:
+    return "-" if value is None else fmt.format(value)
 
 
-def _run(scenario: Any, out: Path, stem: str, progress: bool, gif: bool) -> dict[str, Any]:
-    start = time.perf_counter()
-    traj, per_seed = scenario.run(progress=progress)
-    seconds = time.perf_counter() - start
-    summary = summarize(per_seed)
-    figures = _figures(scenario, traj, out, stem, gif)
-    print(_row(scenario.name, summary, seconds), flush=True)
-    return {
-        "summary": summary,
-        "per_seed": {k: v.detach().cpu().tolist() for k, v in per_seed.items()},
-        "seconds": seconds,
-        "figures": [str(p) for p in figures],
-    }
+# -- scenario A ----------------------------------------------------------------------------
+A_HEADER = (
+    f"{'scenario':<14} {'spec met [95% CI]':>20} {'collisions [95% CI]':>20} "
+    f"{'min clearance [m]':>18} {'wall [s]':>9}"
+)
 
 
 def _reach_avoid(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     from torchcbf.scenarios import reach_avoid
+    from torchcbf.viz import animate, plot_rollouts, plot_trajectories
 
     scenario = reach_avoid(
         num_seeds=args.seeds,
-        num_samples=args.samples or 10_000,
-        horizon=args.horizon or 50,
+        num_samples=args.samples,
+        horizon=args.horizon,
         seed=args.seed,
         device=args.device,
     )
-    return {"reach-avoid": _run(scenario, out, "reach_avoid", args.progress, not args.no_gif)}
+    print(
+        f"\nScenario A (reach-avoid, single integrator): {args.seeds} seeds from {args.seed}, "
+        f"MPPI K = {args.samples}, H = {args.horizon}, device {args.device}"
+    )
+    start = time.perf_counter()
+    traj, per_seed = scenario.run(progress=args.progress)
+    seconds = time.perf_counter() - start
+    summary = summarize(per_seed)
+    print(A_HEADER)
+    print(
+        f"{'reach-avoid':<14} {_rate(summary, 'spec_satisfied'):>20} "
+        f"{_rate(summary, 'collision'):>20} {_num(summary['min_h']['min']):>18} "
+        f"{seconds:>9.1f}",
+        flush=True,
+    )
+    cpu = traj.to("cpu")
+    figures = [
+        _save(
+            plot_trajectories(cpu, scenario.barriers, scenario.goals, title="reach-avoid"),
+            out / "reach_avoid_trajectories.png",
+        )
+    ]
+    for step, snap in cpu.planner.items():
+        if getattr(snap, "rollouts", None) is not None:
+            fig = plot_rollouts(
+                snap.rollouts[0],
+                snap.rollout_weights[0],
+                snap.best_states[0],
+                barriers=scenario.barriers,
+                goals=scenario.goals,
+                executed=cpu.x[0, : step + 1],
+                title=f"reach-avoid, seed {args.seed}: MPPI rollouts at "
+                f"t = {float(cpu.t[step]):.1f} s",
+                plan_label="lowest-cost rollout",
+            )
+            figures.append(_save(fig, out / f"reach_avoid_rollouts_t{step}.png"))
+    if not args.no_gif:
+        figures.append(animate(cpu, out / "reach_avoid.gif", scenario.barriers, scenario.goals))
+    return {
+        "reach-avoid": {
+            "settings": {
+                "seeds": args.seeds,
+                "first_seed": args.seed,
+                "num_samples": args.samples,
+                "horizon": args.horizon,
+            },
+            "units": {"min_h": "m (clearance |p - o| - r_o)", "seconds": "s"},
+            "summary": summary,
+            "per_seed": per_seed,
+            "seconds": seconds,
+            "figures": [str(p) for p in figures],
+        }
+    }
+
+
+# -- scenario B ----------------------------------------------------------------------------
+B_HEADER = (
+    f"{'method':<12} {'collisions [95% CI]':>20} {'goal by 5 s [95% CI]':>21} "
+    f"{'t_goal [s]':>10} {'min b':>7} {'relaxed [%]':>11} {'fallback [%]':>12} {'wall [s]':>9}"
+)
+CONFIG_NOTES = {
+    "default": "filter parameters chosen by scripts/tune_scenario_b.py on seeds >= 10,000",
+    "paper": "the paper's alpha = beta = 1: the noise band (about 0.2 m) fills the passages",
+    "cbfkit": "CBFkit's sublevel barrier exp(-0.1 b) with alpha = beta = 1",
+}
+
+
+def _steps_pct(summary: dict[str, Any], name: str, steps: int) -> str:
+    s = summary.get(f"steps_{name}")
+    return "-" if s is None or s["mean"] is None else f"{100 * s['mean'] / steps:.1f}"
+
+
+def _b_row(method: str, summary: dict[str, Any], steps: int, seconds: float) -> str:
+    return (
+        f"{method:<12} {_rate(summary, 'collision'):>20} {_rate(summary, 'goal_reached'):>21} "
+        f"{_num(summary['goal0_time']['mean'], '{:.2f}'):>10} "
+        f"{_num(summary['min_h']['min'], '{:.2f}'):>7} {_steps_pct(summary, 'relaxed', steps):>11} "
+        f"{_steps_pct(summary, 'fallback', steps):>12} {seconds:>9.1f}"
+    )
+
+
+def _methods(text: str) -> list[str]:
+    from torchcbf.scenarios.unicycle_mppi_cbf import METHODS
+
+    names = list(METHODS) if text == "all" else [m.strip() for m in text.split(",") if m.strip()]
+    unknown = [m for m in names if m not in METHODS]
+    if unknown or not names:
+        raise SystemExit(
+            f"torchcbf: --methods must be 'all' or a list from {METHODS}, got {text!r}"
+        )
+    return names
 
 
 def _mppi_cbf(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     from torchcbf.scenarios import mppi_cbf
+    from torchcbf.scenarios.unicycle_mppi_cbf import DT, STEPS
 
-    results = {}
-    for method in args.methods.split(","):
+    methods = _methods(args.methods)
+    print(
+        f"\nScenario B (MPPI and stochastic CBFs, unicycle), configuration '{args.config}' "
+        f"({CONFIG_NOTES[args.config]}): {args.seeds} seeds from {args.seed}, MPPI K = "
+        f"{args.samples}, H = {args.horizon}, {STEPS} steps of {DT} s, device {args.device}"
+    )
+    print("min b: closest approach to an ellipse, b_i = |(p - c_i) / a_i|^2 - 1 (contact at 0)")
+    print(B_HEADER, flush=True)
+    results: dict[str, Any] = {}
+    trajectories: dict[str, Any] = {}
+    scenario = None
+    for method in methods:
         scenario = mppi_cbf(
-            method.strip(),
+            method,
+            config=args.config,
             num_seeds=args.seeds,
-            num_samples=args.samples or 20_000,
-            horizon=args.horizon or 80,
+            num_samples=args.samples,
+            horizon=args.horizon,
             seed=args.seed,
             device=args.device,
         )
-        results[f"mppi-cbf/{method}"] = _run(
-            scenario, out, f"mppi_cbf_{method}", args.progress, not args.no_gif
-        )
+        start = time.perf_counter()
+        traj, per_seed = scenario.run(progress=args.progress)
+        seconds = time.perf_counter() - start
+        summary = summarize(per_seed)
+        print(_b_row(method, summary, scenario.steps, seconds), flush=True)
+        trajectories[method] = traj.to("cpu")
+        results[f"mppi-cbf/{args.config}/{method}"] = {
+            "params": scenario.params,
+            "units": {
+                "min_h": "ellipse value b_i (dimensionless; < 0 inside)",
+                "goal0_time": "s",
+                "goal0_final_distance": "m",
+                "seconds": "s",
+            },
+            "summary": summary,
+            "per_seed": per_seed,
+            "seconds": seconds,
+        }
+    assert scenario is not None
+    figures = _b_figures(trajectories, scenario, out, args)
+    for entry in results.values():
+        entry["figures"] = [str(p) for p in figures]
     return results
 
 
-def main(argv: list[str] | None = None) -> int:
+def _b_figures(
+    trajectories: dict[str, Any], scenario: Any, out: Path, args: argparse.Namespace
+) -> list[Path]:
+    from torchcbf.viz import animate_methods, plot_barrier_bands, plot_methods, plot_rollouts
+
+    view = {"xlim": (-2.5, 5.0), "ylim": (-2.0, 6.5)}
+    stem = f"mppi_cbf_{args.config}"
+    n = args.seeds
+    figures = [
+        _save(
+            plot_methods(
+                trajectories,
+                scenario.barriers,
+                scenario.goals,
+                title=f"scenario B, '{args.config}': {n} seeds per method",
+                **view,
+            ),
+            out / f"{stem}_trajectories.png",
+        ),
+        _save(
+            plot_barrier_bands(
+                trajectories,
+                scenario.barriers,
+                title=f"scenario B, '{args.config}': closest ellipse over time ({n} seeds)",
+            ),
+            out / f"{stem}_barriers.png",
+        ),
+    ]
+    for method, traj in trajectories.items():
+        for step, snap in traj.planner.items():
+            if getattr(snap, "rollouts", None) is None:
+                continue
+            fig = plot_rollouts(
+                snap.rollouts[0],
+                snap.rollout_weights[0],
+                snap.best_states[0],
+                barriers=scenario.barriers,
+                goals=scenario.goals,
+                executed=traj.x[0, : step + 1],
+                title=f"{method}, seed {args.seed}: MPPI rollouts at "
+                f"t = {float(traj.t[step]):.2f} s",
+                plan_label="lowest-cost rollout",
+                **view,
+            )
+            figures.append(_save(fig, out / f"{stem}_{method}_rollouts_t{step}.png"))
+    if not args.no_gif:
+        figures.append(
+            animate_methods(
+                trajectories,
+                out / f"{stem}.gif",
+                scenario.barriers,
+                scenario.goals,
+                title=f"scenario B, '{args.config}', seed {args.seed}",
+                **view,
+            )
+        )
+    return figures
+
+
+# -- command line --------------------------------------------------------------------------
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return value
+
+
+def _scenario_options(p: argparse.ArgumentParser, seeds: int, samples: int, horizon: int) -> None:
+    p.add_argument(
+        "--seeds", type=_positive_int, default=seeds, help="noise/planner seeds, run as one batch"
+    )
+    p.add_argument("--seed", type=int, default=0, help="first seed")
+    p.add_argument("--samples", type=_positive_int, default=samples, help="MPPI samples K")
+    p.add_argument("--horizon", type=_positive_int, default=horizon, help="MPPI horizon H (steps)")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--out", default="out", help="directory for metrics.json and the figures")
+    p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
+    p.add_argument("--no-gif", action="store_true", help="skip the GIF animations")
+
+
+def _config_options(p: argparse.ArgumentParser, methods: str) -> None:
+    p.add_argument(
+        "--config",
+        default="default",
+        choices=["default", "paper", "cbfkit"],
+        help="scenario B's filter parameters (see docs/scenarios.md)",
+    )
+    p.add_argument(
+        "--methods",
+        default=methods,
+        help="'all' or a comma-separated list of scbf, mppi, mppi_scbf, mppi_rascbf, shield_mppi",
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``torchcbf`` argument parser."""
     parser = argparse.ArgumentParser(
         prog="torchcbf", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     _add_version(parser)
     sub = parser.add_subparsers(dest="command", required=True)
-    for name, seeds in (("reach-avoid", 10), ("mppi-cbf", 32), ("demo", 0)):
-        p = sub.add_parser(name)
-        p.add_argument(
-            "--seeds", type=int, default=seeds or None, help="noise/planner seeds, run as one batch"
-        )
-        p.add_argument("--samples", type=int, default=None, help="MPPI samples K")
-        p.add_argument("--horizon", type=int, default=None, help="MPPI horizon H")
-        p.add_argument("--seed", type=int, default=0, help="first seed")
-        p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-        p.add_argument("--out", default="out", help="directory for metrics.json and figures")
-        p.add_argument("--no-progress", dest="progress", action="store_false")
-        p.add_argument("--no-gif", action="store_true", help="skip the GIF animation")
-        if name == "mppi-cbf":
-            p.add_argument("--methods", default="scbf,mppi,mppi_scbf")
+    fmt = argparse.ArgumentDefaultsHelpFormatter
+    a = sub.add_parser(
+        "reach-avoid",
+        help="scenario A at the paper's sizes",
+        description="Scenario A: timed reach-avoid with MPPI on a single integrator.",
+        formatter_class=fmt,
+    )
+    _scenario_options(a, 10, 10_000, 50)
+    b = sub.add_parser(
+        "mppi-cbf",
+        help="scenario B at the paper's sizes",
+        description="Scenario B: MPPI, stochastic CBFs and their combinations on a noisy "
+        "unicycle among five ellipses, every method over one batch of seeds.",
+        formatter_class=fmt,
+    )
+    _scenario_options(b, 32, 20_000, 80)
+    _config_options(b, "all")
+    d = sub.add_parser(
+        "demo",
+        help="both scenarios at sizes that finish in a few minutes",
+        description="Scenario A (4 seeds, K = 10,000, H = 50) and scenario B in its default "
+        f"configuration, every method (8 seeds, K = 1,000, H = 80). The paper's size of B: "
+        f"{PAPER_SIZE_B}.",
+        formatter_class=fmt,
+    )
+    _scenario_options(d, 8, 1000, 80)
+    _config_options(d, "all")
     _add_ecosystem_commands(sub)
     _describe_commands(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.command in ECOSYSTEM_COMMANDS:
         return ECOSYSTEM_COMMANDS[args.command](args)
@@ -165,33 +357,20 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--device cuda but CUDA is not available")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    print(HEADER)
     if args.command == "reach-avoid":
         results = _reach_avoid(args, out)
     elif args.command == "mppi-cbf":
         results = _mppi_cbf(args, out)
     else:
-        # Sizes that finish in a few minutes on 2 CPU cores; the paper's sizes are the defaults
-        # of the two scenario commands.
-        demo_a = argparse.Namespace(
-            **{
-                **vars(args),
-                "seeds": args.seeds or 4,
-                "samples": args.samples or 10_000,
-                "horizon": args.horizon or 50,
-            }
-        )
-        demo_b = argparse.Namespace(
-            **{
-                **vars(args),
-                "seeds": args.seeds or 8,
-                "samples": args.samples or 2_000,
-                "horizon": args.horizon or 60,
-                "methods": "scbf,mppi,mppi_scbf",
-            }
-        )
-        results = {**_reach_avoid(demo_a, out), **_mppi_cbf(demo_b, out)}
-    (out / "metrics.json").write_text(json.dumps(results, indent=2))
+        demo_a = argparse.Namespace(**{**vars(args), "seeds": 4, "samples": 10_000, "horizon": 50})
+        results = {**_reach_avoid(demo_a, out), **_mppi_cbf(args, out)}
+        print(f"\nThe paper's size of scenario B (32 seeds, K = 20,000): {PAPER_SIZE_B}")
+    record = {
+        "command": " ".join(sys.argv[1:] if argv is None else argv),
+        "run": run_info(args.device),
+    }
+    text = json.dumps(strict({**record, "results": results}), indent=2, allow_nan=False)
+    (out / "metrics.json").write_text(text)
     print(f"metrics: {out / 'metrics.json'}; figures: {out}/*.png, {out}/*.gif")
     return 0
 
@@ -211,23 +390,8 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
-# One paragraph per subcommand, shown by ``torchcbf <command> --help``.
+# One paragraph per subcommand of this section, shown by ``torchcbf <command> --help``.
 DESCRIPTIONS = {
-    "reach-avoid": (
-        "Scenario A (timed reach-avoid with MPPI on a single integrator) over "
-        "a batch of seeds planned as one batch; writes metrics.json and figures to --out. "
-        "Without --samples/--horizon: K = 10,000 samples, H = 50 steps."
-    ),
-    "mppi-cbf": (
-        "Scenario B (noisy unicycle among five ellipses: stochastic CBF, MPPI, MPPI + "
-        "stochastic CBF) over a batch of noise seeds; writes metrics.json and figures to "
-        "--out. Without --samples/--horizon: K = 20,000 samples, H = 80 steps."
-    ),
-    "demo": (
-        "Both scenarios at sizes that finish in a few minutes on 2 CPU cores: scenario A with "
-        "4 seeds, K = 10,000, H = 50; scenario B's three methods with 8 seeds, K = 2,000, "
-        "H = 60 (--seeds/--samples/--horizon override both)."
-    ),
     "sweep": (
         "Run a scenario builder once per point of a grid over its keyword arguments, each "
         "configuration as one batch of --seeds seeds, and write sweep.csv, sweep.json and "
@@ -252,12 +416,8 @@ DESCRIPTIONS = {
     ),
 }
 
-# Help of options the scenario commands define without one.
-OPTION_HELP = {
-    "--methods": "comma-separated methods of scenario B to run (each one batch of seeds)",
-    "--device": "torch device of the run",
-    "--no-progress": "no progress bar",
-}
+# Help of options the other subcommands define without one.
+OPTION_HELP = {"--device": "torch device of the run"}
 
 
 def _add_version(parser: argparse.ArgumentParser) -> None:
@@ -302,7 +462,7 @@ def _add_engine_options(p: argparse.ArgumentParser, seeds: int, seed: int) -> No
 
 
 def _add_ecosystem_commands(sub: Any) -> None:
-    s = sub.add_parser("sweep")
+    s = sub.add_parser("sweep", help="a grid over a scenario's keyword arguments")
     _add_engine_options(s, seeds=8, seed=0)
     s.add_argument(
         "--grid",
@@ -311,7 +471,7 @@ def _add_ecosystem_commands(sub: Any) -> None:
         metavar="KEY=V1,V2",
         help="values of one builder keyword (repeat for a product grid; none: the defaults)",
     )
-    t = sub.add_parser("tune")
+    t = sub.add_parser("tune", help="Optuna search over a scenario's parameters")
     _add_engine_options(t, seeds=8, seed=10_000)
     t.add_argument("--trials", type=int, default=20, help="Optuna trials")
     t.add_argument("--eval-seed", type=int, default=0, help="first evaluation seed")
@@ -327,7 +487,7 @@ def _add_ecosystem_commands(sub: Any) -> None:
     )
     t.add_argument("--sampler-seed", type=int, default=0, help="seed of the TPE sampler")
     t.add_argument("--batch", type=int, default=2, help="trials asked at once (parallel Ray tasks)")
-    b = sub.add_parser("bench")
+    b = sub.add_parser("bench", help="run the benchmark scripts")
     b.add_argument("--quick", action="store_true", help="each script's short run (--quick)")
     b.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="torch device")
     b.add_argument(

@@ -11,7 +11,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from torchcbf._checks import broadcast_shapes, check_positive
+from torchcbf._checks import broadcast_shapes, check_last_dim, check_positive, check_same
 from torchcbf.dynamics.base import ControlAffine
 
 Method = Literal["euler", "rk4", "euler_maruyama"]
@@ -62,10 +62,15 @@ def euler_maruyama(
                 "euler_maruyama on a model with a diffusion needs generator= or noise= "
                 "(torchcbf never draws from the global random state)"
             )
+        if generator.device != x.device:
+            raise ValueError(
+                f"generator is on device {generator.device} but x is on device {x.device}"
+            )
         shape = broadcast_shapes(drift.shape[:-1], sigma.shape[:-2]) + (q,)
         noise = torch.randn(shape, generator=generator, device=x.device, dtype=x.dtype)
-    elif noise.shape[-1] != q:
-        raise ValueError(f"noise must have shape [..., {q}], got {tuple(noise.shape)}")
+    else:
+        check_last_dim("noise", noise, q)
+        check_same("x", x, "noise", noise)
     return drift + math.sqrt(dt) * (sigma @ noise.unsqueeze(-1)).squeeze(-1)
 
 
@@ -90,10 +95,15 @@ def step(
 
     Returns:
         The next state ``[..., n]`` (batch dimensions broadcast between ``x`` and ``u``).
+
+    Raises ``TypeError`` when ``u``, ``w`` or ``noise`` has another dtype than ``x`` and
+    ``ValueError`` when it is on another device (both named), as for a bad shape or ``dt``.
     """
     if not isinstance(dynamics, ControlAffine):
         raise TypeError(f"dynamics must be a ControlAffine module, got {type(dynamics).__name__}")
     dynamics.check_inputs(x, u)
+    if w is not None:
+        check_same("x", x, "w", w)
     dt = check_positive("dt", dt)
     if method == "euler":
         return euler(dynamics, x, u, dt, w)

@@ -15,7 +15,7 @@ from torchcbf.barriers.workspace import LinkSphereBarrier  # noqa: E402
 from torchcbf.dynamics import IKResult, Manipulator  # noqa: E402
 
 TOL = 1e-4  # the IK's default position tolerance (m)
-# planar3 collision spheres and the ball obstacle of scripts/arm_reach.py
+# planar3 collision spheres and the ball obstacle of torchcbf.scenarios.arm_reach
 SPHERES = (["link1", "link2", "link3", "ee"], [0.05, 0.05, 0.05, 0.04])
 OBSTACLE = ((0.6, 0.45, 0.0), 0.15)
 

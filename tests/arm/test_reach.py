@@ -1,44 +1,29 @@
-"""Closed loop (scripts/arm_reach.py): the filtered planar arm reaches targets past a ball
-obstacle without a collision sphere ever entering it: point targets through IK, roadmap
-and deadlock escape; target configurations; and the Cartesian resolved-rate baseline."""
+"""Closed loop (torchcbf.scenarios.arm_reach): the filtered planar arm reaches targets past
+a ball obstacle without a collision sphere ever entering it: point targets through IK,
+roadmap and deadlock escape; target configurations; and the Cartesian resolved-rate
+baseline."""
 
 from __future__ import annotations
 
 import dataclasses
 import importlib.util
-import sys
-from collections.abc import Iterator
-from pathlib import Path
-from types import ModuleType
 
 import pytest
 import torch
 
 pytest.importorskip("pytorch_kinematics")
 
+from torchcbf.roadmap import Roadmap, RoadmapController  # noqa: E402
+from torchcbf.scenarios import arm_reach  # noqa: E402
+
 # 1,000 scenarios (seed 0, 300 steps), see the slow tests for the measured figures
 JOINT_MIN_REACH = 0.99
-IK_MIN_REACH = 0.99  # of the reachable targets (the acceptance of issue #10)
+IK_MIN_REACH = 0.99  # of the reachable targets
 IK_MIN_REACH_FAST = 1.0  # 40 scenarios, seed 1
 ARM7_MIN_REACH = 0.99
 ESCAPE_MIN_DEADLOCKS_WITHOUT = 8  # measured 14 of 16
 ESCAPE_MAX_DEADLOCKS_WITH = 0
 ESCAPE_MIN_GAIN = 0.3  # measured 0.125 -> 0.625
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "arm_reach.py"
-
-
-@pytest.fixture(scope="module")
-def arm_reach() -> Iterator[ModuleType]:
-    """The example script as a module (its dataclass needs it in ``sys.modules``)."""
-    spec = importlib.util.spec_from_file_location("arm_reach", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["arm_reach"] = module
-    try:
-        spec.loader.exec_module(module)
-        yield module
-    finally:
-        sys.modules.pop("arm_reach", None)
 
 
 def _backend() -> str:
@@ -61,12 +46,12 @@ def _check(result: dict, min_reach: float, max_non_solved: float = 0.0) -> None:
 
 
 @pytest.fixture(scope="module")
-def ik_scenario(arm_reach: ModuleType):  # noqa: ANN201 (the script's Scenario)
+def ik_scenario() -> arm_reach.ArmReachScenario:
     """Point targets through the IK pipeline, 40 scenarios (seed 1), built once."""
     return arm_reach.build("planar3", 40, seed=1, qp_backend=_backend(), nominal="ik")
 
 
-def test_reach_past_obstacle_is_safe(arm_reach: ModuleType) -> None:
+def test_reach_past_obstacle_is_safe() -> None:
     """Cartesian resolved-rate nominal (target as a point)."""
     sc = arm_reach.build(
         "planar3", 40, seed=1, qp_backend=_backend(), nominal="cartesian", plan_paths=False
@@ -80,7 +65,7 @@ def test_reach_past_obstacle_is_safe(arm_reach: ModuleType) -> None:
     assert bool((err[result["reached"]] < 0.02).all())
 
 
-def test_joint_nominal_reaches_target_configurations(arm_reach: ModuleType) -> None:
+def test_joint_nominal_reaches_target_configurations() -> None:
     """Joint-space CLF nominal along roadmap paths toward the generating configurations:
     safe, and reaches every target (measured 24/24)."""
     sc = arm_reach.build("planar3", 24, seed=1, qp_backend=_backend(), nominal="joint")
@@ -94,7 +79,7 @@ def test_joint_nominal_reaches_target_configurations(arm_reach: ModuleType) -> N
     assert bool((q_err[result["reached"]] < 0.02).all())
 
 
-def test_roadmap_paths_are_clear(ik_scenario) -> None:  # noqa: ANN001
+def test_roadmap_paths_are_clear(ik_scenario: arm_reach.ArmReachScenario) -> None:
     """Every planned waypoint path ends at the goal configuration and keeps its segments
     clear on a finer check (128 points per segment) than the planner's; the controller's
     first waypoint is the path's."""
@@ -118,7 +103,7 @@ def test_roadmap_paths_are_clear(ik_scenario) -> None:  # noqa: ANN001
     assert float(worst.min()) > 0.0
 
 
-def test_ik_goals_solve_the_point_targets(ik_scenario) -> None:  # noqa: ANN001
+def test_ik_goals_solve_the_point_targets(ik_scenario: arm_reach.ArmReachScenario) -> None:
     """The IK pipeline's goal configurations put the end effector on the target point,
     clear the obstacle by the path clearance and stay inside the joint limits."""
     sc = ik_scenario
@@ -133,7 +118,7 @@ def test_ik_goals_solve_the_point_targets(ik_scenario) -> None:  # noqa: ANN001
     assert float(near) < float((sc.q_target - sc.q0).norm(dim=-1).median())
 
 
-def test_ik_pipeline_reaches_point_targets(arm_reach: ModuleType, ik_scenario) -> None:  # noqa: ANN001
+def test_ik_pipeline_reaches_point_targets(ik_scenario: arm_reach.ArmReachScenario) -> None:
     """Point targets through IK, roadmap and filter: safe, and every reachable target is
     reached (measured 40/40)."""
     result = arm_reach.run(ik_scenario, steps=300, dt=0.02)
@@ -143,7 +128,9 @@ def test_ik_pipeline_reaches_point_targets(arm_reach: ModuleType, ik_scenario) -
     assert result["missed_at_joint_limit"] == 0.0
 
 
-def _via_rows(sc):  # noqa: ANN001, ANN202 (the script's Scenario)
+def _via_rows(
+    sc: arm_reach.ArmReachScenario,
+) -> tuple[arm_reach.ArmReachScenario, Roadmap]:
     """The scenarios whose direct C-space segment is blocked, sent straight toward their
     goal configuration (no roadmap path: the first waypoint is the goal)."""
     rows = sc.has_via.nonzero()[:, 0]
@@ -157,7 +144,7 @@ def _via_rows(sc):  # noqa: ANN001, ANN202 (the script's Scenario)
     return sub, roadmap
 
 
-def test_escape_resolves_deadlocks(arm_reach: ModuleType, ik_scenario) -> None:  # noqa: ANN001
+def test_escape_resolves_deadlocks(ik_scenario: arm_reach.ArmReachScenario) -> None:
     """Rows sent straight toward their goal configuration where the straight C-space
     segment is blocked: without the escape the filter holds some of them in front of the
     obstacle (measured: 14 of 16 deadlocked, 2 reached); the re-planning escape frees every
@@ -165,9 +152,7 @@ def test_escape_resolves_deadlocks(arm_reach: ModuleType, ik_scenario) -> None: 
     sub, roadmap = _via_rows(ik_scenario)
     out = {}
     for escape in (False, True):
-        ctrl = arm_reach.RoadmapController(
-            sub.arm, roadmap, sub.collision, sub.q_goal, sub.q0, escape=escape
-        )
+        ctrl = RoadmapController(sub.arm, roadmap, sub.collision, sub.q_goal, sub.q0, escape=escape)
         out[escape] = arm_reach.run(dataclasses.replace(sub, nominal=ctrl), steps=300)
         _check(out[escape], min_reach=0.0)
     stuck, freed = out[False], out[True]
@@ -177,7 +162,7 @@ def test_escape_resolves_deadlocks(arm_reach: ModuleType, ik_scenario) -> None: 
     assert freed["rows_replanned"] > 0 and stuck["rows_replanned"] == 0
 
 
-def test_unfiltered_baseline_collides(arm_reach: ModuleType) -> None:
+def test_unfiltered_baseline_collides() -> None:
     """Without the filter the Cartesian nominal drives spheres into the obstacle (the test
     can fail): the safety comes from the filter."""
     sc = arm_reach.build(
@@ -191,8 +176,8 @@ def test_unfiltered_baseline_collides(arm_reach: ModuleType) -> None:
 
 
 @pytest.mark.slow
-def test_reach_1000_scenarios_ik(arm_reach: ModuleType) -> None:
-    """The acceptance of issue #10 for point targets: 1,000 random targets and starts."""
+def test_reach_1000_scenarios_ik() -> None:
+    """Point targets: 1,000 random targets and starts."""
     sc = arm_reach.build("planar3", 1000, seed=0, qp_backend=_backend(), nominal="ik")
     result = arm_reach.run(sc, steps=300, dt=0.02)
     _check(result, min_reach=IK_MIN_REACH, max_non_solved=1e-5)
@@ -201,7 +186,7 @@ def test_reach_1000_scenarios_ik(arm_reach: ModuleType) -> None:
 
 
 @pytest.mark.slow
-def test_reach_200_scenarios_ik_arm7(arm_reach: ModuleType) -> None:
+def test_reach_200_scenarios_ik_arm7() -> None:
     sc = arm_reach.build("arm7", 200, seed=0, qp_backend=_backend(), nominal="ik")
     result = arm_reach.run(sc, steps=300, dt=0.02)
     _check(result, min_reach=ARM7_MIN_REACH, max_non_solved=1e-4)
@@ -209,14 +194,14 @@ def test_reach_200_scenarios_ik_arm7(arm_reach: ModuleType) -> None:
 
 
 @pytest.mark.slow
-def test_reach_1000_scenarios_joint(arm_reach: ModuleType) -> None:
+def test_reach_1000_scenarios_joint() -> None:
     sc = arm_reach.build("planar3", 1000, seed=0, qp_backend=_backend(), nominal="joint")
     result = arm_reach.run(sc, steps=300, dt=0.02)
     _check(result, min_reach=JOINT_MIN_REACH, max_non_solved=1e-5)
 
 
 @pytest.mark.slow
-def test_reach_1000_scenarios_cartesian(arm_reach: ModuleType) -> None:
+def test_reach_1000_scenarios_cartesian() -> None:
     sc = arm_reach.build(
         "planar3", 1000, seed=0, qp_backend=_backend(), nominal="cartesian", plan_paths=False
     )

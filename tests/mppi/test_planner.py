@@ -282,7 +282,7 @@ def test_bad_input():
 
 def test_compiled_matches_eager():
     pytest.importorskip("torch._dynamo")
-    eager = _planner(seed=4, K=32, H=4)
+    eager = _planner(seed=4, K=32, H=4, backend="torch")
     compiled = _planner(seed=4, K=32, H=4, compile=True)
     x = _x0(2)
     for step in range(2):

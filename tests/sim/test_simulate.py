@@ -259,3 +259,8 @@ def test_sensor_and_estimator_close_the_loop() -> None:
     est_err = (traj.x_hat[:, 50:, :2] - traj.x[:, 50:, :2]).norm(dim=-1).pow(2).mean().sqrt()
     assert float(est_err) < 0.5 * 0.2 * math.sqrt(2)
     assert not bool(traj.failed.any())
+
+
+def test_metrics_rejects_what_is_not_a_trajectory() -> None:
+    with pytest.raises(TypeError, match="trajectory must be a Trajectory"):
+        metrics("traj")  # type: ignore[arg-type]

@@ -24,14 +24,19 @@ def test_keywords_come_from_the_builder_signature() -> None:
     assert b["method"] == "mppi_scbf" and "rectify_gain" in b and "num_seeds" not in b
 
 
-def test_values_take_the_type_of_the_default() -> None:
+def test_values_take_a_type_the_builder_admits() -> None:
     assert parse_value("reach-avoid", "num_samples", "256") == 256
     assert parse_value("reach-avoid", "num_samples", "1e3") == 1000
     assert parse_value("mppi-cbf", "rectify_gain", "5") == 5.0
     assert isinstance(parse_value("mppi-cbf", "rectify_gain", "5"), float)
     assert parse_value("mppi-cbf", "method", "scbf") == "scbf"
     assert parse_value("mppi-cbf", "control_limit", "none") is None
-    assert parse_value("mppi-cbf", "control_limit", "2:4") == (2, 4)
+    assert parse_value("mppi-cbf", "control_limit", "2:4") == (2.0, 4.0)
+    assert parse_value("mppi-cbf", "config", "paper") == "paper"
+    with pytest.raises(ValueError, match="rectify_gain does not take text"):
+        parse_value("mppi-cbf", "rectify_gain", "fast")
+    with pytest.raises(ValueError, match="noise_sigma does not take none"):
+        parse_value("mppi-cbf", "noise_sigma", "none")
     assert parse_value("mppi-cbf", "control_weight", "1:0.01") == (1.0, 0.01)
     grid = parse_grid("mppi-cbf", ["method=scbf,mppi", "rectify_gain=5,20"])
     assert grid == {"method": ["scbf", "mppi"], "rectify_gain": [5.0, 20.0]}

@@ -7,19 +7,20 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor, check_index, check_tensor
+from torchcbf._checks import check_index, check_tensor
+from torchcbf._constants import ExactConstants, store
+
+__all__ = ["ExactConstants", "StateIndex", "check_state", "float_spec", "register"]
 
 
-def register(module: nn.Module, name: str, value: object, learnable: bool) -> Tensor:
+def register(
+    module: nn.Module, name: str, value: object, learnable: bool, *, allow_inf: bool = False
+) -> Tensor:
     """Store ``value`` on ``module`` as an ``nn.Parameter`` (given one, or ``learnable``) or a
-    buffer; return the stored tensor."""
-    if isinstance(value, nn.Parameter):
-        module.register_parameter(name, value)
-    elif learnable:
-        module.register_parameter(name, nn.Parameter(as_tensor(name, value).detach().clone()))
-    else:
-        module.register_buffer(name, as_tensor(name, value).detach().clone())
-    return getattr(module, name)
+    buffer; return the stored tensor. A tensor that requires grad keeps its gradient, Python
+    numbers stay exact under ``.double()`` (see :mod:`torchcbf._constants`); NaN (and ``inf``
+    unless ``allow_inf``) raises ``ValueError`` naming ``name``."""
+    return store(module, name, value, learnable=learnable, allow_inf=allow_inf)
 
 
 def check_state(name: str, x: object, index: tuple[int, ...], state_dim: int | None) -> Tensor:

@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from torchcbf._checks import as_tensor, check_spd
-from torchcbf.barriers._params import StateIndex, register
+from torchcbf.barriers._params import ExactConstants, StateIndex, register
 from torchcbf.barriers.lie import AnalyticDerivatives, LieFunction
 
 
@@ -20,7 +20,7 @@ class Lyapunov(LieFunction):
     """
 
 
-class QuadraticLyapunov(Lyapunov):
+class QuadraticLyapunov(ExactConstants, Lyapunov):
     """``V = (p - goal)' P (p - goal)`` with ``p = x[..., index]``.
 
     Args:

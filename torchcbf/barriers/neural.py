@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from torchcbf._checks import check_number
+from torchcbf.barriers._params import register
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.lie import LieFunction, time_tensor
 
@@ -18,7 +20,8 @@ class NeuralBarrier(Barrier):
         offset: an optional known barrier added to the network's output (for instance a
             :class:`~torchcbf.barriers.Ball` around the obstacle, so the network only learns a
             correction); its outputs must match the network's.
-        scale: a constant multiplying the network's output.
+        scale: a constant multiplying the network's output: a number, or a tensor (an
+            ``nn.Parameter`` trains; a tensor that requires grad keeps its gradient).
         time_input: feed ``cat(x, t)`` (``[..., n + 1]``) to the network: a time-varying
             barrier.
     """
@@ -28,7 +31,7 @@ class NeuralBarrier(Barrier):
         net: nn.Module,
         offset: LieFunction | None = None,
         *,
-        scale: float = 1.0,
+        scale: float | Tensor = 1.0,
         time_input: bool = False,
     ) -> None:
         super().__init__()
@@ -38,7 +41,13 @@ class NeuralBarrier(Barrier):
             raise TypeError(f"offset must be a Barrier, got {type(offset).__name__}")
         self.net = net
         self.offset = offset
-        self.scale = float(scale)
+        self.scale: float | Tensor
+        if isinstance(scale, Tensor):
+            register(self, "scale", scale, False)
+            if self.scale.dim() != 0:
+                raise ValueError(f"scale must be a scalar, got shape {tuple(self.scale.shape)}")
+        else:
+            self.scale = check_number("scale", scale)
         self.time_input = bool(time_input)
         self.time_varying = self.time_input or (offset is not None and offset.time_varying)
 
@@ -56,7 +65,7 @@ class NeuralBarrier(Barrier):
                 f"net must map a state {tuple(x.shape)} to [..., 1], [...] or [..., k], "
                 f"got {tuple(h.shape)}"
             )
-        h = self.scale * h
+        h = (self.scale if isinstance(self.scale, float) else self.scale.to(h)) * h
         if self.offset is not None:
             off = self.offset(x, t)
             if off.shape != h.shape:

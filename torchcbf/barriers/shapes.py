@@ -17,8 +17,9 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from torchcbf._checks import check_number
 from torchcbf.barriers._minmax import combine, reduce
-from torchcbf.barriers._params import StateIndex, register
+from torchcbf.barriers._params import ExactConstants, StateIndex, register
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.lie import AnalyticDerivatives, FunctionPart, LieFunction, time_tensor
 
@@ -62,7 +63,7 @@ def _rotate_t(cos: Tensor, sin: Tensor, u: Tensor, v: Tensor, dim: int = -1) -> 
     return torch.stack([cos * u + sin * v, -sin * u + cos * v], dim)
 
 
-class _ShapeStack(Barrier):
+class _ShapeStack(ExactConstants, Barrier):
     """A shape whose constants may carry a leading ``k`` axis (``self.num``): the ``k`` shapes
     are independent Lie parts, all with closed-form derivatives."""
 
@@ -172,7 +173,7 @@ class Ball(_SignedShapeStack):
         return AnalyticDerivatives(h, dhdx, dhdt, quad)
 
 
-class MovingBall(Barrier):
+class MovingBall(ExactConstants, Barrier):
     """A ball whose centre follows a trajectory: ``h = |p - c(t)|^2 - r^2``.
 
     Args:
@@ -377,7 +378,7 @@ class HalfSpace(_ShapeStack):
         return f"index={self._sel.index}, k={self.num}"
 
 
-class Box(Barrier):
+class Box(ExactConstants, Barrier):
     """Keep-in box ``low <= p <= high``: ``h = min_i min(p_i - low_i, high_i - p_i)``.
 
     The hard minimum over the ``2 d`` faces (default) is exact but only piecewise smooth (its
@@ -403,19 +404,19 @@ class Box(Barrier):
         state_dim: int | None = None,
     ) -> None:
         super().__init__()
-        lo = register(self, "low", low, learnable)
-        hi = register(self, "high", high, learnable)
+        lo = register(self, "low", low, learnable, allow_inf=True)
+        hi = register(self, "high", high, learnable, allow_inf=True)
         if lo.dim() != 1 or hi.shape != lo.shape:
             raise ValueError(
                 "low and high must both have shape [d], got "
                 f"{tuple(lo.shape)} and {tuple(hi.shape)}"
             )
         if bool((lo.detach() >= hi.detach()).any()):
-            raise ValueError(f"low {lo.tolist()} must be below high {hi.tolist()} everywhere")
-        if not temperature > 0:
-            raise ValueError(f"temperature must be positive, got {temperature}")
+            raise ValueError(
+                f"low {lo.detach().tolist()} must be below high {hi.detach().tolist()} everywhere"
+            )
         self.smooth = bool(smooth)
-        self.temperature = float(temperature)
+        self.temperature = check_number("temperature", temperature, low=0.0, strict=True)
         d = lo.shape[0]
         if index is None and state_dim is None:
             state_dim = d

@@ -20,7 +20,9 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from torchcbf.barriers._params import register
+from torchcbf._checks import check_number
+from torchcbf._constants import reshape
+from torchcbf.barriers._params import ExactConstants, register
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.lie import AnalyticDerivatives, LieFunction
 
@@ -44,7 +46,7 @@ def _norm(v: Tensor) -> Tensor:
     return torch.sqrt((v * v).sum(-1) + _EPS**2)
 
 
-class _LinkSpheres(Barrier):
+class _LinkSpheres(ExactConstants, Barrier):
     """Shared part of the sphere barriers: ``S`` spheres on links of ``arm``."""
 
     def __init__(
@@ -57,17 +59,17 @@ class _LinkSpheres(Barrier):
         super().__init__()
         _check_arm(arm)
         self.arm = arm
-        self.links = arm._check_links(links)
+        self.links = arm.check_links(links)
         s = len(self.links)
         r = register(self, "radii", radii, False)
         if r.dim() == 0:
-            self.radii = r.expand(s).clone()
+            reshape(self, "radii", lambda t: t.expand(s).clone())
         elif r.shape != (s,):
             raise ValueError(
                 f"radii must be a scalar or [{s}] (one per link), got {tuple(r.shape)}"
             )
-        if bool((self.radii < 0).any()):
-            raise ValueError(f"radii must be >= 0, got {self.radii.tolist()}")
+        if bool((self.radii.detach() < 0).any()):
+            raise ValueError(f"radii must be >= 0, got {self.radii.detach().tolist()}")
         self.register_buffer("offsets", None)
         if offsets is not None:
             off = register(self, "offsets", offsets, False)
@@ -89,7 +91,7 @@ def _obstacles(module: Barrier, center: object) -> int:
     """Register obstacle centres ``obstacle_center [O, 3]``; return ``O``."""
     c = register(module, "obstacle_center", center, False)
     if c.dim() == 1:
-        module.obstacle_center = c.unsqueeze(0)
+        reshape(module, "obstacle_center", lambda t: t.unsqueeze(0))
     if module.obstacle_center.dim() != 2 or module.obstacle_center.shape[-1] != 3:
         raise ValueError(f"obstacle_center must have shape [3] or [O, 3], got {tuple(c.shape)}")
     return module.obstacle_center.shape[0]
@@ -126,11 +128,13 @@ class LinkSphereBarrier(_LinkSpheres):
         o = _obstacles(self, obstacle_center)
         rad = register(self, "obstacle_radius", obstacle_radius, False)
         if rad.dim() == 0:
-            self.obstacle_radius = rad.expand(o).clone()
+            reshape(self, "obstacle_radius", lambda t: t.expand(o).clone())
         elif rad.shape != (o,):
             raise ValueError(f"obstacle_radius must be a scalar or [{o}], got {tuple(rad.shape)}")
-        if bool((self.obstacle_radius <= 0).any()):
-            raise ValueError(f"obstacle_radius must be > 0, got {self.obstacle_radius.tolist()}")
+        if bool((self.obstacle_radius.detach() <= 0).any()):
+            raise ValueError(
+                f"obstacle_radius must be > 0, got {self.obstacle_radius.detach().tolist()}"
+            )
         self.squared = bool(squared)
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
@@ -189,13 +193,15 @@ class LinkBoxBarrier(_LinkSpheres):
         o = _obstacles(self, box_center)
         e = register(self, "half_extents", box_half_extents, False)
         if e.dim() == 1:
-            self.half_extents = e.unsqueeze(0)
+            reshape(self, "half_extents", lambda t: t.unsqueeze(0))
         if self.half_extents.shape != (o, 3):
             raise ValueError(
                 f"box_half_extents must have shape [3] or [{o}, 3], got {tuple(e.shape)}"
             )
-        if bool((self.half_extents <= 0).any()):
-            raise ValueError(f"box_half_extents must be > 0, got {self.half_extents.tolist()}")
+        if bool((self.half_extents.detach() <= 0).any()):
+            raise ValueError(
+                f"box_half_extents must be > 0, got {self.half_extents.detach().tolist()}"
+            )
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """``x [..., n] -> h [..., S * O]``."""
@@ -207,7 +213,7 @@ class LinkBoxBarrier(_LinkSpheres):
         return f"links={self.links}, boxes={self.obstacle_center.shape[0]}"
 
 
-class EndEffectorBoxBarrier(Barrier):
+class EndEffectorBoxBarrier(ExactConstants, Barrier):
     """Keep a link point (the end effector by default) inside a box: ``h [..., 6]``.
 
     ``h = (p - low - r, high - r - p)``: one smooth constraint per face (better for a
@@ -233,17 +239,18 @@ class EndEffectorBoxBarrier(Barrier):
         super().__init__()
         _check_arm(arm)
         self.arm = arm
-        self.link = arm._check_links([link or arm.end_link])[0]
+        self.link = arm.check_links([link or arm.end_link])[0]
         lo = register(self, "low", low, False)
         hi = register(self, "high", high, False)
         if lo.shape != (3,) or hi.shape != (3,):
             raise ValueError(
                 f"low and high must have shape [3], got {tuple(lo.shape)}, {tuple(hi.shape)}"
             )
-        if not margin >= 0:
-            raise ValueError(f"margin must be >= 0, got {margin}")
-        if bool((lo + 2 * margin >= hi).any()):
-            raise ValueError(f"low {lo.tolist()} + 2 margin must be below high {hi.tolist()}")
+        margin = check_number("margin", margin, low=0.0)
+        if bool((lo.detach() + 2 * margin >= hi.detach()).any()):
+            raise ValueError(
+                f"low {lo.detach().tolist()} + 2 margin must be below high {hi.detach().tolist()}"
+            )
         self.margin = float(margin)
         _register_offset(self, offset)
 
@@ -269,7 +276,7 @@ def _point(arm: Manipulator, x: Tensor, link: str, offset: Tensor | None) -> Ten
     return arm.fk(x, [link], off)[..., 0, :]
 
 
-class PointBarrier(Barrier):
+class PointBarrier(ExactConstants, Barrier):
     """Any position-space barrier applied to a link point: ``h(x) = shape(p(x))``.
 
     ``shape`` is a barrier on a 3-vector "state" ``p [..., 3]`` (e.g.
@@ -298,7 +305,7 @@ class PointBarrier(Barrier):
         self.arm = arm
         self.shape = shape
         self.time_varying = shape.time_varying
-        self.link = arm._check_links([link or arm.end_link])[0]
+        self.link = arm.check_links([link or arm.end_link])[0]
         _register_offset(self, offset)
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
@@ -322,8 +329,7 @@ class JointLimitBarrier(Barrier):
     def __init__(self, arm: Manipulator, margin: float = 0.0) -> None:
         super().__init__()
         _check_arm(arm)
-        if not margin >= 0:
-            raise ValueError(f"margin must be >= 0, got {margin}")
+        margin = check_number("margin", margin, low=0.0)
         self.arm = arm
         self.margin = float(margin)
         lo_ok = torch.isfinite(arm.q_min)
@@ -372,8 +378,7 @@ class JointVelocityBarrier(Barrier):
                 "JointVelocityBarrier needs control='acceleration' (under velocity control the "
                 "limits are u_min/u_max)"
             )
-        if not scale > 0:
-            raise ValueError(f"scale must be > 0, got {scale}")
+        scale = check_number("scale", scale, low=0.0, strict=True)
         self.arm = arm
         self.scale = float(scale)
         ok = torch.isfinite(arm.velocity_limit)

@@ -16,16 +16,34 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Literal, NamedTuple
+from typing import Literal, NamedTuple, Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
 
 from torchcbf._checks import broadcast_shapes, check_positive, check_tensor
 
-if TYPE_CHECKING:
-    from torchcbf.barriers.base import Barrier
-    from torchcbf.dynamics.manipulator import Manipulator
+
+@runtime_checkable
+class Barrier(Protocol):
+    """A workspace barrier as the solver sees it (a :class:`~torchcbf.barriers.Barrier` is
+    one): ``x [N, n] -> h [N]`` or ``[N, k]``, with Lie derivatives."""
+
+    def __call__(self, x: Tensor) -> Tensor: ...
+
+    def lie(self, *args: object, **kwargs: object) -> object: ...
+
+
+class Manipulator(Protocol):
+    """What the solver needs of an arm (a :class:`~torchcbf.dynamics.Manipulator` has it)."""
+
+    dof: int
+    control: str
+    q_min: Tensor
+    q_max: Tensor
+
+    def end_effector_and_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor]: ...
+
 
 _LAMBDA_MIN = 1e-3  # lambda^2 = 1e-6 keeps J J' + lambda^2 I invertible in float32
 _LAMBDA_MAX = 1e4
@@ -185,11 +203,9 @@ def inverse_kinematics(
             f"penalty_buffer and limit_margin must be >= 0, got {penalty_buffer}, {limit_margin}"
         )
     barriers = list(barriers)
-    from torchcbf.barriers.base import Barrier
-
     for i, b in enumerate(barriers):
         if not isinstance(b, Barrier):
-            raise TypeError(f"barriers[{i}] must be a Barrier, got {type(b).__name__}")
+            raise TypeError(f"barriers[{i}] must be a Barrier (x -> h), got {type(b).__name__}")
     dof, dtype, device = arm.dof, target.dtype, target.device
     batch = tuple(target.shape[:-1])
     if q_init is not None:

@@ -11,7 +11,16 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor, check_batch_match, check_last_dim
+from torchcbf._checks import (
+    as_limit,
+    as_tensor,
+    check_batch_match,
+    check_bounds,
+    check_finite,
+    check_last_dim,
+    check_same,
+    clamp_control,
+)
 
 SigmaSpec = float | Tensor | Callable[[Tensor], Tensor] | None
 LimitSpec = float | Tensor | list[float] | tuple[float, ...] | None
@@ -21,11 +30,13 @@ class ControlAffine(nn.Module):
     """Control-affine system ``xdot = f(x) + g(x) u (+ M w)``, optionally an SDE.
 
     Subclasses set ``state_dim`` and ``control_dim`` (through ``super().__init__``) and write
-    ``f(x) -> [..., n]`` and ``g(x) -> [..., n, m]``. They may override ``_xdot`` with a
-    faster closed form of ``f + g u`` (used by ``forward`` and the integrators).
+    ``f(x) -> [..., n]`` and ``g(x) -> [..., n, m]``. They may override :meth:`xdot` with a
+    faster closed form of ``f + g u`` (used by ``forward``, the integrators and MPPI).
 
     Constants given as numbers are stored as float64 buffers (exact under ``.double()``);
-    ``.to(dtype)`` casts them and every method casts them to the input's dtype on use.
+    ``.to(dtype)`` casts them and every method casts them to the input's dtype on use. A
+    tensor constant that requires grad keeps its gradient (an ``nn.Parameter`` is trained
+    with the module). NaN constants, NaN limits and ``u_min > u_max`` raise ``ValueError``.
 
     Args:
         state_dim: ``n``.
@@ -61,14 +72,9 @@ class ControlAffine(nn.Module):
             self._sigma_fn = sigma
         elif sigma is not None:
             self.sigma_matrix = _sigma_matrix(sigma, self.state_dim)
-        self.register_buffer("u_min", _limit("u_min", u_min, self.control_dim))
-        self.register_buffer("u_max", _limit("u_max", u_max, self.control_dim))
-        if (
-            self.u_min is not None
-            and self.u_max is not None
-            and bool((self.u_min > self.u_max).any())
-        ):
-            raise ValueError(f"u_min {self.u_min.tolist()} exceeds u_max {self.u_max.tolist()}")
+        self.register_buffer("u_min", as_limit("u_min", u_min, self.control_dim))
+        self.register_buffer("u_max", as_limit("u_max", u_max, self.control_dim))
+        check_bounds("u_min", self.u_min, "u_max", self.u_max)
         self.register_buffer("disturbance_matrix", None)
         self.register_buffer("disturbance_bound", None)
         if disturbance_bound is not None or disturbance_matrix is not None:
@@ -82,10 +88,13 @@ class ControlAffine(nn.Module):
                     f"disturbance_matrix must have shape [{self.state_dim}, p], "
                     f"got {tuple(M.shape)}"
                 )
+            check_finite("disturbance_matrix", M)
             bound = 0.0 if disturbance_bound is None else disturbance_bound
-            w_max = _limit("disturbance_bound", bound, M.shape[1])
-            if bool((w_max < 0).any()):
-                raise ValueError(f"disturbance_bound must be >= 0, got {w_max.tolist()}")
+            w_max = as_limit("disturbance_bound", bound, M.shape[1])
+            assert w_max is not None
+            check_finite("disturbance_bound", w_max)
+            if bool((w_max.detach() < 0).any()):
+                raise ValueError(f"disturbance_bound must be >= 0, got {w_max.detach().tolist()}")
             self.disturbance_matrix = M
             self.disturbance_bound = w_max
 
@@ -98,8 +107,14 @@ class ControlAffine(nn.Module):
         """Control matrix ``g(x)``: ``[..., n] -> [..., n, m]``."""
         raise NotImplementedError(f"{type(self).__name__} must define g(x)")
 
-    def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
+    def xdot(self, x: Tensor, u: Tensor) -> Tensor:
+        """``f(x) + g(x) u`` for ``x [..., n]``, ``u [..., m]`` (batch dimensions broadcast),
+        without input checks: the extension point for a faster closed form."""
         return self.f(x) + (self.g(x) @ u.unsqueeze(-1)).squeeze(-1)
+
+    def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
+        """Former name of :meth:`xdot` (a subclass overriding it still takes effect)."""
+        return self.xdot(x, u)
 
     # -- derived ---------------------------------------------------------------------------
     def forward(self, x: Tensor, u: Tensor, w: Tensor | None = None) -> Tensor:
@@ -111,11 +126,15 @@ class ControlAffine(nn.Module):
         return xdot
 
     def check_inputs(self, x: object, u: object | None = None) -> None:
-        """Raise ``TypeError``/``ValueError`` for a state or control of the wrong type or shape."""
-        check_last_dim("x", x, self.state_dim)
+        """Raise ``TypeError``/``ValueError`` for a state or control of the wrong type, shape,
+        dtype (not floating, or ``u``'s differing from ``x``'s) or device (naming both)."""
+        x = check_last_dim("x", x, self.state_dim)
+        if not x.is_floating_point():
+            raise TypeError(f"x must be a floating-point tensor, got {x.dtype}")
         if u is not None:
-            check_last_dim("u", u, self.control_dim)
-            check_batch_match("x", x, "u", u)  # type: ignore[arg-type]
+            u = check_last_dim("u", u, self.control_dim)
+            check_same("x", x, "u", u)
+            check_batch_match("x", x, "u", u)
 
     def disturbance(self, x: Tensor, w: Tensor) -> Tensor:
         """Disturbance term ``M w``: ``w [..., p] -> [..., n]``."""
@@ -123,6 +142,7 @@ class ControlAffine(nn.Module):
             raise ValueError(f"{type(self).__name__} was built without a disturbance_bound")
         M = self.disturbance_matrix.to(x)
         check_last_dim("w", w, M.shape[1])
+        check_same("x", x, "w", w)
         return w @ M.mT
 
     @property
@@ -141,29 +161,35 @@ class ControlAffine(nn.Module):
 
     def clamp_control(self, u: Tensor) -> Tensor:
         """Clip ``u [..., m]`` to ``[u_min, u_max]`` (unchanged where a limit is ``None``)."""
-        lo = None if self.u_min is None else self.u_min.to(u)
-        hi = None if self.u_max is None else self.u_max.to(u)
-        if lo is None and hi is None:
-            return u
-        return torch.clamp(u, lo, hi)
+        return clamp_control(u, self.u_min, self.u_max)
 
     def extra_repr(self) -> str:
         return f"state_dim={self.state_dim}, control_dim={self.control_dim}"
 
 
-def _limit(name: str, value: LimitSpec, size: int) -> Tensor | None:
-    if value is None:
-        return None
-    t = as_tensor(name, value, dtype=torch.float64)
-    if t.dim() == 0:
-        t = t.expand(size).clone()
-    if t.shape != (size,):
-        raise ValueError(f"{name} must be a scalar or have shape [{size}], got {tuple(t.shape)}")
+def register_constant(
+    module: nn.Module, name: str, value: float | Tensor, *, positive: bool = False
+) -> Tensor:
+    """Store a model constant (scalar or tensor) on ``module``: a number becomes a float64
+    buffer (exact under ``.double()``), an ``nn.Parameter`` is registered as given (trained
+    with the model), a tensor that requires grad keeps its gradient. NaN or inf (and, with
+    ``positive``, a value ``<= 0``) raises ``ValueError`` naming ``name``."""
+    if isinstance(value, bool):
+        raise TypeError(f"{name} must be a number or a tensor, got bool")
+    if isinstance(value, nn.Parameter):
+        module.register_parameter(name, value)
+    else:
+        t = as_tensor(name, value, dtype=torch.float64)
+        module.register_buffer(name, t if t.requires_grad else t.detach().clone())
+    t = getattr(module, name)
+    check_finite(name, t)
+    if positive and t.device.type != "meta" and bool((t.detach() <= 0).any()):
+        raise ValueError(f"{name} must be positive, got {t.detach().tolist()}")
     return t
 
 
 def _sigma_matrix(sigma: float | Tensor, n: int) -> Tensor:
-    s = as_tensor("sigma", sigma, dtype=torch.float64)
+    s = check_finite("sigma", as_tensor("sigma", sigma, dtype=torch.float64))
     if s.dim() == 0:
         return s * torch.eye(n, dtype=s.dtype)
     if s.dim() == 1:

@@ -36,6 +36,7 @@ import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
+from types import ModuleType
 from typing import Any, Literal
 
 import torch
@@ -50,7 +51,7 @@ ASSETS = ("planar3", "arm7")
 _INSTALL_HINT = 'the arm models need pytorch-kinematics: pip install "torchcbf[arm]"'
 
 
-def _pk() -> Any:
+def _pk() -> ModuleType:
     """Import :mod:`pytorch_kinematics` lazily, with an install hint when it is missing."""
     try:
         return importlib.import_module("pytorch_kinematics")
@@ -183,7 +184,7 @@ class Manipulator(ControlAffine):
         moving = [f.link.name for f in chain._serial_frames if f.joint.joint_type != "fixed"]
         if moving[-1] != end_link:
             moving.append(end_link)
-        self.links: list[str] = self._check_links(moving if links is None else links)
+        self.links: list[str] = self.check_links(moving if links is None else links)
         f64 = torch.float64
         self.register_buffer("q_min", torch.tensor(_limits(lo, -math.inf), dtype=f64))
         self.register_buffer("q_max", torch.tensor(_limits(hi, math.inf), dtype=f64))
@@ -218,7 +219,8 @@ class Manipulator(ControlAffine):
             eye = torch.cat([torch.zeros_like(eye), eye], 0)
         return eye.expand(*x.shape[:-1], *eye.shape)
 
-    def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
+    def xdot(self, x: Tensor, u: Tensor) -> Tensor:
+        """``f(x) + g(x) u`` in closed form: ``u`` or ``(qdot, u)``."""
         if self.control == "velocity":
             return u.expand(broadcast_shapes(x.shape, u.shape))
         qd = x[..., self.dof :]
@@ -257,7 +259,9 @@ class Manipulator(ControlAffine):
         T = self.chain(q.dtype, q.device).forward_kinematics_tensor(flat, analytical_grad=False)
         return T, batch
 
-    def _check_links(self, links: Sequence[str]) -> list[str]:
+    def check_links(self, links: Sequence[str] | str) -> list[str]:
+        """The link names ``links`` as a list, checked against the chain (``ValueError``
+        naming the unknown ones); a single name is a list of one."""
         if isinstance(links, str):
             links = [links]
         links = list(links)
@@ -268,9 +272,11 @@ class Manipulator(ControlAffine):
             raise ValueError(f"unknown links {unknown}; the chain has {self.link_names}")
         return links
 
+    _check_links = check_links  # former name, kept as an alias
+
     def link_poses(self, x: Tensor, links: Sequence[str] | None = None) -> Tensor:
         """Homogeneous world poses of links: ``x [..., dof or n] -> [..., L, 4, 4]``."""
-        names = self.links if links is None else self._check_links(links)
+        names = self.links if links is None else self.check_links(links)
         T, batch = self._transforms(x)
         sel = torch.stack([T[self._frame_index[name]] for name in names], 1)  # [B, L, 4, 4]
         return sel.reshape(*batch, len(names), 4, 4)
@@ -288,7 +294,7 @@ class Manipulator(ControlAffine):
             links: ``L`` link names (default ``self.links``); a name may repeat.
             offsets: points in the link frames ``[L, 3]`` (default: the frame origins).
         """
-        names = self.links if links is None else self._check_links(links)
+        names = self.links if links is None else self.check_links(links)
         poses = self.link_poses(x, names)
         p = poses[..., :3, 3]
         if offsets is not None:

@@ -11,8 +11,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcbf._checks import broadcast_shapes, check_positive
-from torchcbf.dynamics.base import ControlAffine
+from torchcbf._checks import broadcast_shapes
+from torchcbf.dynamics.base import ControlAffine, register_constant
 
 
 def _zeros(x: Tensor, *shape: int) -> Tensor:
@@ -38,7 +38,7 @@ class SingleIntegrator(ControlAffine):
     def g(self, x: Tensor) -> Tensor:
         return _eye_g(x, self.state_dim, self.control_dim, 0)
 
-    def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
+    def xdot(self, x: Tensor, u: Tensor) -> Tensor:
         return u.expand(broadcast_shapes(x.shape, u.shape))
 
 
@@ -55,7 +55,7 @@ class DoubleIntegrator(ControlAffine):
     def g(self, x: Tensor) -> Tensor:
         return _eye_g(x, self.state_dim, self.control_dim, self.dim)
 
-    def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
+    def xdot(self, x: Tensor, u: Tensor) -> Tensor:
         v, u = torch.broadcast_tensors(x[..., self.dim :], u)
         return torch.cat([v, u], dim=-1)
 
@@ -79,7 +79,7 @@ class Unicycle(ControlAffine):
         ]
         return torch.stack(rows, -2)
 
-    def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
+    def xdot(self, x: Tensor, u: Tensor) -> Tensor:
         theta = x[..., 2]
         v, omega = u[..., 0], u[..., 1]
         return torch.stack(
@@ -104,7 +104,7 @@ class AccelUnicycle(ControlAffine):
     def g(self, x: Tensor) -> Tensor:
         return _eye_g(x, 4, 2, 2)
 
-    def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
+    def xdot(self, x: Tensor, u: Tensor) -> Tensor:
         v, theta = x[..., 2], x[..., 3]
         parts = torch.broadcast_tensors(
             v * torch.cos(theta), v * torch.sin(theta), u[..., 0], u[..., 1]
@@ -120,11 +120,11 @@ class Bicycle(ControlAffine):
     delta' = steering_rate``. Speed enters linearly, which makes the model control-affine.
     """
 
-    def __init__(self, wheelbase: float = 1.0, **kwargs: Any) -> None:
+    def __init__(self, wheelbase: float | Tensor = 1.0, **kwargs: Any) -> None:
         super().__init__(4, 2, **kwargs)
-        self.register_buffer(
-            "wheelbase", torch.tensor(check_positive("wheelbase", wheelbase), dtype=torch.float64)
-        )
+        register_constant(self, "wheelbase", wheelbase, positive=True)
+        if self.wheelbase.dim() != 0:
+            raise ValueError(f"wheelbase must be a scalar, got shape {tuple(self.wheelbase.shape)}")
 
     def f(self, x: Tensor) -> Tensor:
         return torch.zeros_like(x)
@@ -145,9 +145,11 @@ class VanDerPol(ControlAffine):
     """Van der Pol oscillator with a force input: ``x1' = x2``,
     ``x2' = mu (1 - x1^2) x2 - x1 + u``."""
 
-    def __init__(self, mu: float = 1.0, **kwargs: Any) -> None:
+    def __init__(self, mu: float | Tensor = 1.0, **kwargs: Any) -> None:
         super().__init__(2, 1, **kwargs)
-        self.register_buffer("mu", torch.tensor(float(mu), dtype=torch.float64))
+        register_constant(self, "mu", mu)
+        if self.mu.dim() != 0:
+            raise ValueError(f"mu must be a scalar, got shape {tuple(self.mu.shape)}")
 
     def f(self, x: Tensor) -> Tensor:
         x1, x2 = x[..., 0], x[..., 1]
@@ -167,20 +169,19 @@ class Quadrotor(ControlAffine):
 
     def __init__(
         self,
-        mass: float = 1.0,
-        inertia: tuple[float, float, float] = (0.01, 0.01, 0.02),
-        gravity: float = 9.81,
+        mass: float | Tensor = 1.0,
+        inertia: tuple[float, float, float] | Tensor = (0.01, 0.01, 0.02),
+        gravity: float | Tensor = 9.81,
         **kwargs: Any,
     ) -> None:
         super().__init__(12, 4, **kwargs)
-        self.register_buffer(
-            "mass", torch.tensor(check_positive("mass", mass), dtype=torch.float64)
-        )
-        inertia_t = torch.as_tensor(inertia, dtype=torch.float64)
-        if inertia_t.shape != (3,) or bool((inertia_t <= 0).any()):
-            raise ValueError(f"inertia must be 3 positive numbers, got {inertia}")
-        self.register_buffer("inertia", inertia_t)
-        self.register_buffer("gravity", torch.tensor(float(gravity), dtype=torch.float64))
+        register_constant(self, "mass", mass, positive=True)
+        register_constant(self, "inertia", inertia, positive=True)
+        register_constant(self, "gravity", gravity)
+        for name, shape in (("mass", ()), ("inertia", (3,)), ("gravity", ())):
+            got = tuple(getattr(self, name).shape)
+            if got != shape:
+                raise ValueError(f"{name} must have shape {shape or 'scalar'}, got {got}")
 
     def f(self, x: Tensor) -> Tensor:
         phi, theta = x[..., 3], x[..., 4]

@@ -35,6 +35,11 @@ def jacobian(
         else:
             xr = x.detach().requires_grad_(True)
         out = fn(xr)
+        if not out.requires_grad:
+            # the map does not depend on x (nor on anything that requires grad): its
+            # Jacobian is zero, and autograd has no graph to differentiate
+            J = out.new_zeros(*out.shape, xr.shape[-1])
+            return (out.detach(), J) if not create_graph else (out, J)
         rows = []
         for i in range(out.shape[-1]):
             (grad,) = torch.autograd.grad(

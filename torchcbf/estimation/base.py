@@ -9,14 +9,17 @@ import torch
 from torch import Tensor, nn
 
 from torchcbf._checks import (
+    as_matrix,
     as_tensor,
     broadcast_shapes,
     check_batch_match,
     check_last_dim,
     check_positive,
+    check_same,
     check_spd,
     check_tensor,
 )
+from torchcbf._constants import ExactConstants, remember
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.estimation._linalg import symmetrize
 from torchcbf.estimation.sensors import Perfect, Sensor
@@ -67,7 +70,10 @@ class Estimator(nn.Module):
     state_dim: int | None
 
     def init(self, x0: Tensor, P0: Tensor | None = None) -> EstimatorState:
-        """Initial state from the prior mean ``x0 [..., n]`` and covariance ``P0 [..., n, n]``."""
+        """Initial state from the prior mean ``x0 [..., n]`` and covariance ``P0``: ``[n, n]``
+        or ``[..., n, n]`` whose batch broadcasts to that of ``x0``, in ``x0``'s dtype and
+        device. The Kalman filters need ``P0`` (symmetric positive definite); ``PassThrough``
+        takes ``None`` as zeros."""
         raise NotImplementedError(f"{type(self).__name__} must define init")
 
     def predict(self, state: EstimatorState, u: Tensor, dt: float) -> EstimatorState:
@@ -96,7 +102,8 @@ class PassThrough(Estimator):
         self.state_dim = state_dim
 
     def init(self, x0: Tensor, P0: Tensor | None = None) -> EstimatorState:
-        """``mean = x0 [..., n]``, ``cov = P0`` (zeros when ``None``), status OK."""
+        """``mean = x0 [..., n]``, ``cov = P0`` (``[n, n]`` or ``[..., n, n]``, broadcast to
+        the batch of ``x0``; zeros when ``None``), status OK."""
         x0 = _check_vector("x0", x0, self.state_dim)
         n = x0.shape[-1]
         cov = x0.new_zeros(*x0.shape, n) if P0 is None else _check_cov("P0", P0, x0, spd=False)
@@ -113,9 +120,10 @@ class PassThrough(Estimator):
         mean, _, _ = _check_state(state, self.state_dim)
         n = mean.shape[-1]
         check_last_dim("y", y, n)
+        check_same("state.mean", mean, "y", y)
         check_batch_match("state.mean", mean, "y", y)
         bs = broadcast_shapes(mean.shape[:-1], y.shape[:-1])
-        y = y.to(mean).expand(*bs, n)
+        y = y.expand(*bs, n)
         return EstimatorState(y, y.new_zeros(*bs, n, n), _zero_status(y))
 
 
@@ -151,9 +159,10 @@ def _check_cov(name: str, P: object, mean: Tensor, *, spd: bool = True) -> Tenso
         raise ValueError(
             f"the batch of {name} {tuple(P.shape)} must broadcast to that of x0 {tuple(mean.shape)}"
         )
+    check_same("x0", mean, name, P)
     if spd:
         check_spd(name, P)
-    return P.to(mean).expand(*bs, n, n)
+    return P.expand(*bs, n, n)
 
 
 def _check_state(state: object, n: int | None) -> tuple[Tensor, Tensor, Tensor]:
@@ -172,19 +181,17 @@ def _check_state(state: object, n: int | None) -> tuple[Tensor, Tensor, Tensor]:
     return mean, cov, status
 
 
-def _noise_spec(name: str, value: object, n: int) -> Tensor:
-    """A covariance given as a scalar (``v I``), a vector (diagonal) or ``[n, n]``; must be SPD."""
-    t = as_tensor(name, value)
-    if t.dim() == 0:
-        t = t * torch.eye(n, dtype=t.dtype)
-    elif t.dim() == 1 and t.shape[0] == n:
-        t = torch.diag(t)
-    if t.shape != (n, n):
-        raise ValueError(f"{name} must be a scalar, [{n}] or [{n}, {n}], got {tuple(t.shape)}")
-    return check_spd(name, t)
+def _noise_spec(module: nn.Module, buffer: str, name: str, value: object, n: int) -> Tensor:
+    """Register as ``buffer`` the covariance argument ``name``: a scalar (``v I``), a vector
+    (diagonal) or ``[n, n]`` (symmetric positive definite), exact under ``.double()`` when
+    given as numbers; a tensor keeps its dtype (and its gradient when it requires grad)."""
+    if isinstance(value, Tensor):
+        module.register_buffer(buffer, as_matrix(name, value, n))
+        return getattr(module, buffer)
+    return remember(module, buffer, as_matrix(name, value, n, dtype=torch.float64))
 
 
-class _KalmanFilter(Estimator):
+class _KalmanFilter(ExactConstants, Estimator):
     """Shared construction, validation and batching of the Kalman-type filters.
 
     Process noise: ``Q`` is the continuous-time intensity ``Q_c [n, n]`` of the white noise
@@ -227,15 +234,16 @@ class _KalmanFilter(Estimator):
             raise ValueError(
                 f"Q is required: {type(dynamics).__name__} has no diffusion sigma to derive it from"
             )
-        self.register_buffer("Q", None if Q is None else _noise_spec("Q", Q, n))
+        self.register_buffer("Q", None)
+        if Q is not None:
+            _noise_spec(self, "Q", "Q", Q, n)
+        self.register_buffer("R_override", None)
         if R is None:
             if sensor.R is None:
                 raise ValueError(f"R is required: {type(sensor).__name__} has no noise covariance")
-            R_t = None
         else:
             p = sensor.output_dim if sensor.output_dim is not None else as_tensor("R", R).shape[-1]
-            R_t = _noise_spec("R", R, p)
-        self.register_buffer("R_override", R_t)
+            _noise_spec(self, "R_override", "R", R, p)
 
     # -- pieces used by the subclasses ------------------------------------------------------
     def _R(self, like: Tensor) -> Tensor:
@@ -257,7 +265,9 @@ class _KalmanFilter(Estimator):
         )
 
     def init(self, x0: Tensor, P0: Tensor | None = None) -> EstimatorState:
-        """Prior ``x0 [..., n]``, ``P0 [n, n]`` or ``[..., n, n]`` (symmetric positive definite).
+        """Prior mean ``x0 [..., n]`` and covariance ``P0`` (required): ``[n, n]`` or
+        ``[..., n, n]`` whose batch broadcasts to that of ``x0``, symmetric positive definite,
+        in ``x0``'s dtype and device.
 
         Returns an :class:`EstimatorState` with the batch of ``x0``.
         """
@@ -271,6 +281,7 @@ class _KalmanFilter(Estimator):
         mean, cov, status = _check_state(state, self.state_dim)
         dt = check_positive("dt", dt)
         check_last_dim("u", u, self.dynamics.control_dim)
+        check_same("state.mean", mean, "u", u)
         check_batch_match("state.mean", mean, "u", u)
         bs = broadcast_shapes(mean.shape[:-1], u.shape[:-1])
         n, m = self.state_dim, self.dynamics.control_dim
@@ -278,7 +289,7 @@ class _KalmanFilter(Estimator):
             bs,
             mean.expand(*bs, n).reshape(-1, n),
             cov.expand(*bs, n, n).reshape(-1, n, n),
-            u.to(mean).expand(*bs, m).reshape(-1, m),
+            u.expand(*bs, m).reshape(-1, m),
             dt,
         )
 
@@ -286,6 +297,7 @@ class _KalmanFilter(Estimator):
         mean, cov, status = _check_state(state, self.state_dim)
         p = self._R(mean).shape[-1]
         check_last_dim("y", y, p)
+        check_same("state.mean", mean, "y", y)
         check_batch_match("state.mean", mean, "y", y)
         bs = broadcast_shapes(mean.shape[:-1], y.shape[:-1])
         n = self.state_dim
@@ -294,7 +306,7 @@ class _KalmanFilter(Estimator):
             mean.expand(*bs, n).reshape(-1, n),
             cov.expand(*bs, n, n).reshape(-1, n, n),
             status.expand(bs).reshape(-1),
-            y.to(mean).expand(*bs, p).reshape(-1, p),
+            y.expand(*bs, p).reshape(-1, p),
         )
 
     @staticmethod

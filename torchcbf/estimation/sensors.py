@@ -19,14 +19,26 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor, check_last_dim, check_positive, check_spd, check_tensor
+from torchcbf._checks import (
+    as_tensor,
+    check_finite,
+    check_last_dim,
+    check_positive,
+    check_same,
+    check_spd,
+    check_tensor,
+)
+from torchcbf._constants import ExactConstants, remember, store
 from torchcbf.estimation._linalg import wrap_angle
 
 __all__ = ["FunctionSensor", "GaussianSensor", "Perfect", "RangeBearing", "Sensor", "wrap_angle"]
 
 
-class Sensor(nn.Module):
-    """Base class: subclasses implement :meth:`expected` and call ``_set_noise``."""
+class Sensor(ExactConstants, nn.Module):
+    """Base class: subclasses implement :meth:`expected` and call ``_set_noise``.
+
+    Noise given as Python numbers is exact under ``.double()``; a tensor that requires grad
+    keeps its gradient (see :mod:`torchcbf._constants`)."""
 
     output_dim: int | None
     state_dim: int | None
@@ -53,15 +65,22 @@ class Sensor(nn.Module):
             mask[list(self.angle_index)] = True
         self.register_buffer("angle_mask", mask)
 
-    def _set_noise(self, R: Tensor) -> None:
+    def _set_noise(self, R: Tensor, *, exact: bool = False) -> None:
+        """Register ``R [p, p]`` and its Cholesky factor; ``exact``: ``R`` is the float64 value
+        of Python numbers (stored in the default dtype, re-derived by ``.double()``)."""
         p = R.shape[-1]
         if R.shape != (p, p) or (self.output_dim is not None and p != self.output_dim):
             raise ValueError(
                 f"R must have shape [{self.output_dim}, {self.output_dim}], got {tuple(R.shape)}"
             )
+        check_finite("R", R)
         check_spd("R", R)
-        self.R = R
-        self.R_sqrt = torch.linalg.cholesky(R)
+        if exact:
+            remember(self, "R", R)
+            remember(self, "R_sqrt", torch.linalg.cholesky(R))
+        else:
+            self.R = R
+            self.R_sqrt = torch.linalg.cholesky(R)
 
     def expected(self, x: Tensor) -> Tensor:
         """Noise-free measurement ``h(x)``: ``[..., n] -> [..., p]``."""
@@ -94,9 +113,14 @@ class Sensor(nn.Module):
                     f"{type(self).__name__}.measure needs generator= or noise= (torchcbf never "
                     "draws from the global random state); expected(x) is the noise-free output"
                 )
+            if generator.device != y.device:
+                raise ValueError(
+                    f"generator is on device {generator.device} but x is on device {y.device}"
+                )
             noise = torch.randn(y.shape, generator=generator, device=y.device, dtype=y.dtype)
         else:
             check_last_dim("noise", noise, p)
+            check_same("x", y, "noise", noise)
         y = y + noise @ self.R_sqrt.to(y).mT
         return self._wrap(y)
 
@@ -107,25 +131,37 @@ class Sensor(nn.Module):
         return self.measure(x, generator, noise=noise)
 
 
+def _from_numbers(value: object) -> bool:
+    return value is not None and not isinstance(value, Tensor)
+
+
 def _noise_matrix(std: object, R: object, p: int | None) -> Tensor:
-    """``R`` from exactly one of ``std`` (scalar or ``[p]``) and ``R`` (``[p, p]``)."""
+    """``R`` from exactly one of ``std`` (scalar or ``[p]``) and ``R`` (``[p, p]``), in float64
+    when given as Python numbers."""
     if (std is None) == (R is None):
         raise ValueError("give exactly one of std= (standard deviations) and R= (covariance)")
     if R is not None:
-        R_t = as_tensor("R", R)
+        R_t = _number_or_tensor("R", R)
         if R_t.dim() != 2:
             raise ValueError(f"R must be a matrix [p, p], got {tuple(R_t.shape)}")
         return R_t
-    s = as_tensor("std", std)
+    s = check_finite("std", _number_or_tensor("std", std))
     if s.dim() == 0:
         if p is None:
             raise ValueError("a scalar std needs the output size (output_dim/state_dim or C)")
         s = s.expand(p)
     if s.dim() != 1 or (p is not None and s.shape[0] != p):
         raise ValueError(f"std must be a scalar or have shape [{p}], got {tuple(s.shape)}")
-    if not bool((s > 0).all()):
-        raise ValueError(f"std must be positive, got {s.tolist()}")
+    if not bool((s.detach() > 0).all()):
+        raise ValueError(f"std must be positive, got {s.detach().tolist()}")
     return torch.diag(s**2)
+
+
+def _number_or_tensor(name: str, value: object) -> Tensor:
+    """A tensor as given (floating), Python numbers as exact float64."""
+    if isinstance(value, Tensor):
+        return as_tensor(name, value)
+    return as_tensor(name, value, dtype=torch.float64)
 
 
 class Perfect(Sensor):
@@ -160,7 +196,7 @@ class GaussianSensor(Sensor):
         state_dim: int | None = None,
     ) -> None:
         if C is not None:
-            C_t = as_tensor("C", C)
+            C_t = check_finite("C", _number_or_tensor("C", C))
             if C_t.dim() != 2:
                 raise ValueError(f"C must be a matrix [p, n], got {tuple(C_t.shape)}")
             if state_dim is not None and C_t.shape[1] != state_dim:
@@ -175,11 +211,14 @@ class GaussianSensor(Sensor):
                     p = ref_t.shape[0]
             if p is None:
                 raise ValueError("GaussianSensor without C needs state_dim=, a vector std or R")
-            C_t = torch.eye(p, dtype=torch.get_default_dtype())
+            C_t = torch.eye(p, dtype=torch.float64)
         R_t = _noise_matrix(std, R, p)
         super().__init__(output_dim=C_t.shape[0], state_dim=C_t.shape[1])
-        self.register_buffer("C", C_t)
-        self._set_noise(R_t)
+        if C is None or _from_numbers(C):
+            remember(self, "C", C_t)
+        else:
+            store(self, "C", C_t)
+        self._set_noise(R_t, exact=_from_numbers(std) or _from_numbers(R))
 
     def expected(self, x: Tensor) -> Tensor:
         """``C x``: ``[..., n] -> [..., p]``."""
@@ -222,7 +261,7 @@ class FunctionSensor(Sensor):
             )
         super().__init__(output_dim=p, state_dim=state_dim, angle_index=angle_index)
         self.fn = fn
-        self._set_noise(R_t)
+        self._set_noise(R_t, exact=_from_numbers(std) or _from_numbers(R))
 
     def expected(self, x: Tensor) -> Tensor:
         """``fn(x)``: ``[..., n] -> [..., p]``, angle components wrapped."""
@@ -260,20 +299,23 @@ class RangeBearing(Sensor):
         position_index: tuple[int, int] = (0, 1),
         heading_index: int | None = 2,
     ) -> None:
-        lm = as_tensor("landmarks", landmarks)
+        lm = check_finite("landmarks", _number_or_tensor("landmarks", landmarks))
         if lm.dim() != 2 or lm.shape[1] != 2 or lm.shape[0] < 1:
             raise ValueError(f"landmarks must have shape [L, 2], got {tuple(lm.shape)}")
         check_positive("std_range", std_range)
         check_positive("std_bearing", std_bearing)
         L = lm.shape[0]
         super().__init__(output_dim=2 * L, angle_index=range(1, 2 * L, 2))
-        self.register_buffer("landmarks", lm)
+        if _from_numbers(landmarks):
+            remember(self, "landmarks", lm)
+        else:
+            store(self, "landmarks", lm)
         self.position_index = tuple(int(i) for i in position_index)
         if len(self.position_index) != 2:
             raise ValueError(f"position_index must name 2 components, got {position_index}")
         self.heading_index = None if heading_index is None else int(heading_index)
-        var = torch.tensor([std_range**2, std_bearing**2], dtype=lm.dtype).repeat(L)
-        self._set_noise(torch.diag(var))
+        var = torch.tensor([std_range**2, std_bearing**2], dtype=torch.float64).repeat(L)
+        self._set_noise(torch.diag(var), exact=True)
 
     def expected(self, x: Tensor) -> Tensor:
         """``[r_1, b_1, ..., r_L, b_L]``: ``[..., n] -> [..., 2L]``."""

@@ -7,6 +7,7 @@ import math
 import torch
 from torch import Tensor
 
+from torchcbf._checks import check_number
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.estimation._linalg import discretize, jacobian, robust_cholesky, symmetrize
 from torchcbf.estimation.base import EstimatorState, EstimatorStatus, _KalmanFilter
@@ -52,8 +53,9 @@ class UKF(_KalmanFilter):
     ) -> None:
         super().__init__(dynamics, sensor, Q, R, substeps=substeps)
         n = self.state_dim
-        if not alpha > 0 or not math.isfinite(alpha):
-            raise ValueError(f"alpha must be a finite positive number, got {alpha}")
+        alpha = check_number("alpha", alpha, low=0.0, strict=True)
+        beta = check_number("beta", beta)
+        kappa = check_number("kappa", kappa)
         if not n + kappa > 0:
             raise ValueError(f"n + kappa must be positive, got n={n}, kappa={kappa}")
         self.alpha, self.beta, self.kappa = float(alpha), float(beta), float(kappa)

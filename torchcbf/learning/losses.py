@@ -15,13 +15,37 @@ Three families, all differentiable end to end (autograd Lie derivatives with
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any, NamedTuple
+from typing import NamedTuple, Protocol
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from torchcbf._checks import as_tensor, check_tensor
+
+
+class ConditionOutput(Protocol):
+    """What :func:`condition_violation` reads (a :class:`torchcbf.filters.FilterOutput` has
+    it): ``h [..., k]`` and ``constraint_value [..., k + ...]``."""
+
+    @property
+    def h(self) -> Tensor: ...
+
+    @property
+    def constraint_value(self) -> Tensor: ...
+
+
+class Rollouts(Protocol):
+    """What :func:`closed_loop_loss` reads (a :class:`torchcbf.sim.Trajectory` has it)."""
+
+    @property
+    def x(self) -> Tensor: ...
+
+    @property
+    def u(self) -> Tensor: ...
+
+    @property
+    def u_nom(self) -> Tensor: ...
 
 
 def _check_pair(h: Tensor, safe: Tensor) -> None:
@@ -84,7 +108,7 @@ def classification_accuracy(h: Tensor, safe: Tensor) -> Tensor:
     return ((h.detach() >= 0) == safe).to(h.dtype).mean()
 
 
-def condition_violation(output: Any, margin: float | Tensor = 0.0) -> Tensor:
+def condition_violation(output: ConditionOutput, margin: float | Tensor = 0.0) -> Tensor:
     """``relu(margin - (a . u* + b))`` per row and barrier output, ``[..., k]``.
 
     ``output`` is a :class:`torchcbf.filters.FilterOutput`: its ``constraint_value`` holds
@@ -98,7 +122,7 @@ def condition_violation(output: Any, margin: float | Tensor = 0.0) -> Tensor:
 
 
 def cbf_condition_loss(
-    safety_filter: Callable[..., Any],
+    safety_filter: Callable[..., ConditionOutput],
     x: Tensor,
     u_nom: Tensor,
     t: Tensor | float | None = None,
@@ -131,7 +155,7 @@ class ClosedLoopLoss(NamedTuple):
 
 
 def closed_loop_loss(
-    trajectory: Any,
+    trajectory: Rollouts,
     true_barrier: Callable[[Tensor], Tensor] | None = None,
     *,
     intervention_weight: float = 1.0,

@@ -7,7 +7,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor
+from torchcbf._checks import as_tensor, check_finite
+from torchcbf._constants import ExactConstants, remember
 
 _ACTIVATIONS: dict[str, type[nn.Module]] = {
     "tanh": nn.Tanh,
@@ -17,7 +18,7 @@ _ACTIVATIONS: dict[str, type[nn.Module]] = {
 }
 
 
-class MLP(nn.Module):
+class MLP(ExactConstants, nn.Module):
     """A multilayer perceptron ``[..., in_dim] -> [..., out_dim]`` with smooth activations.
 
     The input is first mapped affinely from the box ``[low, high]`` (buffers) to
@@ -44,6 +45,8 @@ class MLP(nn.Module):
         high: Tensor | Sequence[float] | None = None,
     ) -> None:
         super().__init__()
+        if isinstance(hidden, int) or not isinstance(hidden, Sequence):
+            raise TypeError(f"hidden must be a sequence of layer widths, got {hidden!r}")
         for name, v in (("in_dim", in_dim), ("out_dim", out_dim), *(("hidden", w) for w in hidden)):
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name} must hold positive ints, got {v!r}")
@@ -51,13 +54,24 @@ class MLP(nn.Module):
             raise ValueError(
                 f"activation must be one of {sorted(_ACTIVATIONS)}, got {activation!r}"
             )
-        lo = as_tensor("low", -1.0 if low is None else low, dtype=torch.float32)
-        hi = as_tensor("high", 1.0 if high is None else high, dtype=torch.float32)
-        lo, hi = lo.expand(in_dim).clone(), hi.expand(in_dim).clone()
+        for name, v in (("low", low), ("high", high)):
+            if isinstance(v, Tensor) and v.requires_grad:
+                raise TypeError(
+                    f"{name} is a fixed input normalisation and takes no gradient: pass "
+                    f"{name}.detach()"
+                )
+        # the box is a constant: Python numbers are kept exact (float64) for .double()
+        lo = check_finite(
+            "low", as_tensor("low", -1.0 if low is None else low, dtype=torch.float64)
+        )
+        hi = check_finite(
+            "high", as_tensor("high", 1.0 if high is None else high, dtype=torch.float64)
+        )
+        lo, hi = lo.expand(in_dim).detach().clone(), hi.expand(in_dim).detach().clone()
         if not bool((hi > lo).all()):
             raise ValueError(f"high must exceed low, got low={lo.tolist()}, high={hi.tolist()}")
-        self.register_buffer("center", (lo + hi) / 2)
-        self.register_buffer("half_width", (hi - lo) / 2)
+        remember(self, "center", (lo + hi) / 2)
+        remember(self, "half_width", (hi - lo) / 2)
         layers: list[nn.Module] = []
         width = in_dim
         for w in hidden:

@@ -15,7 +15,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchcbf._checks import as_tensor, check_index, check_positive, check_tensor
+from torchcbf._checks import as_tensor, check_finite, check_index, check_positive, check_tensor
 
 Occupancy = Callable[[Tensor], Tensor]
 
@@ -56,6 +56,8 @@ def _box(
         device = low.device
     lo = as_tensor("low", low, dtype=dtype, device=device)
     hi = as_tensor("high", high, dtype=lo.dtype, device=lo.device)
+    check_finite("low", lo)
+    check_finite("high", hi)
     if lo.dim() != 1 or hi.shape != lo.shape:
         raise ValueError(
             f"low and high must be vectors [n] of the same shape, got {tuple(lo.shape)} and "

@@ -100,7 +100,7 @@ def train(
     steps: int,
     *,
     start_step: int = 0,
-    scheduler: Any | None = None,
+    scheduler: torch.optim.lr_scheduler.LRScheduler | None = None,
     grad_clip: float | None = None,
     progress: bool = True,
     desc: str = "train",

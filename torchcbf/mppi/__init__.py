@@ -2,6 +2,7 @@
 
 from torchcbf.mppi.costs import (
     BarrierCost,
+    DiscreteBarrierCost,
     ObstacleCost,
     QuadraticGoal,
     RolloutCost,
@@ -10,6 +11,7 @@ from torchcbf.mppi.costs import (
 )
 from torchcbf.mppi.history import History, HistoryBuffer
 from torchcbf.mppi.planner import MPPI, MPPIOutput
+from torchcbf.mppi.shield import ShieldMPPI
 from torchcbf.mppi.specs import Always, And, Avoid, Eventually, Or, Reach, Spec
 
 __all__ = [
@@ -18,6 +20,7 @@ __all__ = [
     "And",
     "Avoid",
     "BarrierCost",
+    "DiscreteBarrierCost",
     "Eventually",
     "History",
     "HistoryBuffer",
@@ -26,6 +29,7 @@ __all__ = [
     "Or",
     "QuadraticGoal",
     "Reach",
+    "ShieldMPPI",
     "RolloutCost",
     "Spec",
     "StageCost",

@@ -25,19 +25,20 @@ Stage = Callable[[Tensor, Tensor], Tensor]
 Terminal = Callable[[Tensor], Tensor]
 
 
-def _select(x: Tensor, index: tuple[int, ...] | slice) -> Tensor:
+def select(x: Tensor, index: tuple[int, ...] | slice) -> Tensor:
+    """``x[..., index]`` for an index made by :func:`state_index` (a view for a slice)."""
     return x[..., index] if isinstance(index, slice) else x[..., list(index)]
 
 
-def _as_index(index: Sequence[int]) -> tuple[int, ...] | slice:
-    """A contiguous index becomes a slice (a view, no gather)."""
-    idx = check_index("index", index, None)
+def state_index(index: Sequence[int], name: str = "index") -> tuple[int, ...] | slice:
+    """Checked state components; a contiguous index becomes a slice (a view, no gather)."""
+    idx = check_index(name, index, None)
     if idx == tuple(range(idx[0], idx[0] + len(idx))):
         return slice(idx[0], idx[0] + len(idx))
     return idx
 
 
-def _const(name: str, value: object) -> Tensor:
+def constant(name: str, value: object) -> Tensor:
     """A constant vector: tensors keep their dtype, Python numbers become float64 (cast to the
     rollout's dtype at use, so float64 rollouts see exact constants)."""
     if isinstance(value, Tensor):
@@ -45,8 +46,9 @@ def _const(name: str, value: object) -> Tensor:
     return as_tensor(name, value, dtype=torch.float64).reshape(-1)
 
 
-def _sq_dist(p: Tensor, c: Tensor) -> Tensor:
-    diff = p - c.to(device=p.device, dtype=p.dtype)
+def squared_distance(x: Tensor, index: tuple[int, ...] | slice, center: Tensor) -> Tensor:
+    """``|x[..., index] - center|^2``: ``[..., n] -> [...]`` (``center`` cast to ``x``)."""
+    diff = select(x, index) - center.to(device=x.device, dtype=x.dtype)
     return diff.square_().sum(-1)
 
 
@@ -110,8 +112,8 @@ class QuadraticGoal(RolloutCost):
         terminal_weight: float = 0.0,
     ) -> None:
         super().__init__()
-        goal_t = _const("goal", goal)
-        self.index = _as_index(range(goal_t.numel()) if index is None else index)
+        goal_t = constant("goal", goal)
+        self.index = state_index(range(goal_t.numel()) if index is None else index)
         d = self.index.stop - self.index.start if isinstance(self.index, slice) else len(self.index)
         if d != goal_t.numel():
             raise ValueError(f"goal has {goal_t.numel()} entries but index names {d}")
@@ -120,12 +122,12 @@ class QuadraticGoal(RolloutCost):
         self.terminal_weight = float(terminal_weight)
 
     def stage(self, states: Tensor, controls: Tensor | None) -> Tensor:
-        return self.weight * _sq_dist(_select(states, self.index), self.goal)
+        return self.weight * squared_distance(states, self.index, self.goal)
 
     def terminal(self, states: Tensor) -> Tensor | None:
         if self.terminal_weight == 0.0:
             return None
-        return self.terminal_weight * _sq_dist(_select(states, self.index), self.goal)
+        return self.terminal_weight * squared_distance(states, self.index, self.goal)
 
 
 class ObstacleCost(RolloutCost):
@@ -140,33 +142,95 @@ class ObstacleCost(RolloutCost):
         index: Sequence[int] = (0, 1),
     ) -> None:
         super().__init__()
-        center_t = _const("center", center)
-        self.index = _as_index(index)
+        center_t = constant("center", center)
+        self.index = state_index(index)
         if radius < 0 or eps <= 0:
             raise ValueError(f"radius must be >= 0 and eps > 0, got radius={radius}, eps={eps}")
         self.register_buffer("center", center_t)
         self.radius, self.k_o, self.eps = float(radius), float(k_o), float(eps)
 
     def stage(self, states: Tensor, controls: Tensor | None) -> Tensor:
-        dist = _sq_dist(_select(states, self.index), self.center).sqrt() - self.radius
+        dist = squared_distance(states, self.index, self.center).sqrt() - self.radius
         return self.k_o / dist.clamp_min(self.eps)
 
 
 class BarrierCost(RolloutCost):
-    """``weight / max(b(x), eps)`` per step for a barrier ``b: [..., n] -> [...]`` (``b >= 0``
-    safe; any callable or module, e.g. an ellipse). SCENARIOS.md B uses weight 2, eps 0.01."""
+    """``weight / max(b(x), eps)`` per step for a barrier ``b: [..., n] -> [...]`` or
+    ``[..., k]`` (``b >= 0`` safe; any callable or module), summed over a multi-output
+    barrier's ``k`` outputs. SCENARIOS.md B uses the five ellipses, weight 2, eps 0.01.
 
-    def __init__(self, barrier: Terminal, weight: float = 1.0, eps: float = 0.01) -> None:
+    A barrier whose output has as many dimensions as its input is taken as multi-output.
+    """
+
+    def __init__(
+        self,
+        barrier: Terminal,
+        weight: float = 1.0,
+        eps: float = 0.01,
+    ) -> None:
         super().__init__()
         if not callable(barrier):
             raise TypeError(f"barrier must be callable, got {type(barrier).__name__}")
-        if eps <= 0:
+        if not eps > 0:
             raise ValueError(f"eps must be > 0, got {eps}")
         self.barrier = barrier
         self.weight, self.eps = float(weight), float(eps)
 
     def stage(self, states: Tensor, controls: Tensor | None) -> Tensor:
-        return self.weight / self.barrier(states).clamp_min(self.eps)
+        h = self.barrier(states)
+        cost = self.weight / h.clamp_min(self.eps)
+        return cost.sum(-1) if h.dim() == states.dim() else cost
+
+
+class DiscreteBarrierCost(nn.Module):
+    """Penalty on the discrete-time CBF condition ``b(x_{k+1}) >= (1 - gamma) b(x_k)``.
+
+    ``weight * sum_k sum_i relu((1 - gamma) b_i(x_k) - b_i(x_{k+1}))`` over the steps
+    ``k = 0..H-1`` of each rollout (``x_0`` the current state) and the outputs ``i`` of a
+    multi-output barrier: zero for a rollout that keeps the condition, growing linearly with
+    each violation (use a large ``weight`` for a steep penalty). With ``0 < gamma <= 1`` the
+    condition lets ``b`` decay at most geometrically towards the boundary, so rollouts that
+    rush at an obstacle are penalised before they reach it, which makes it a planner-side
+    counterpart of a CBF safety filter.
+
+    ``forward(states [B, K, H+1, n], controls [B, K, H, m], t0=None) -> [B, K]``.
+
+    Args:
+        barrier: ``b: [..., n] -> [...]`` or ``[..., k]`` (``b >= 0`` safe).
+        gamma: ``0 < gamma <= 1``.
+        weight: ``>= 0``.
+
+    A barrier whose output has as many dimensions as its input is taken as multi-output.
+    """
+
+    def __init__(
+        self,
+        barrier: Terminal,
+        *,
+        gamma: float,
+        weight: float,
+    ) -> None:
+        super().__init__()
+        if not callable(barrier):
+            raise TypeError(f"barrier must be callable, got {type(barrier).__name__}")
+        if not isinstance(gamma, (int, float)) or not 0.0 < gamma <= 1.0:
+            raise ValueError(f"gamma must be in (0, 1], got {gamma!r}")
+        if not isinstance(weight, (int, float)) or not weight >= 0.0:
+            raise ValueError(f"weight must be >= 0, got {weight!r}")
+        self.barrier = barrier
+        self.gamma, self.weight = float(gamma), float(weight)
+
+    def forward(self, states: Tensor, controls: Tensor, t0: Tensor | None = None) -> Tensor:
+        h = self.barrier(states)
+        if h.dim() < states.dim():
+            h = h.unsqueeze(-1)
+        viol = torch.relu((1.0 - self.gamma) * h[..., :-1, :] - h[..., 1:, :])
+        return self.weight * viol.sum((-2, -1))
+
+    def __add__(self, other: object) -> SumCost:
+        if not callable(other):
+            return NotImplemented
+        return SumCost(self, other)
 
 
 class SumCost(RolloutCost):
@@ -202,6 +266,16 @@ class SumCost(RolloutCost):
         return total
 
     @property
+    def stepwise_terms(self) -> list[RolloutCost]:
+        """The :class:`RolloutCost` terms (stage and terminal parts added pointwise)."""
+        return list(self._stepwise)
+
+    @property
+    def whole_terms(self) -> list[Callable[..., Tensor]]:
+        """The other terms, each called on the whole rollout and added after."""
+        return list(self._whole)
+
+    @property
     def needs_history(self) -> bool:
         """Whether a term is a specification that reads the planner's history."""
         return any(getattr(c, "needs_history", False) for c in self._whole)
@@ -227,9 +301,14 @@ class SumCost(RolloutCost):
 
 __all__ = [
     "BarrierCost",
+    "DiscreteBarrierCost",
     "ObstacleCost",
     "QuadraticGoal",
     "RolloutCost",
     "StageCost",
     "SumCost",
+    "constant",
+    "select",
+    "squared_distance",
+    "state_index",
 ]

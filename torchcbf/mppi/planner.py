@@ -16,7 +16,9 @@ Algorithm (per environment, as pytorch-mppi / Williams et al. 2017):
 5. ``S_k = cost(rollout_k) + gamma * sum_j U_j' Sigma^-1 eps_{k,j}`` (the pytorch-mppi form
    of the control cost, ``gamma = control_cost_weight``);
 6. ``w_k = exp(-(S_k - min S) / lambda) / sum(...)`` (``lambda = temperature``, floored at
-   the dtype's smallest normal number; non-finite costs get weight zero); with
+   the dtype's smallest normal number); a sample whose cost is not finite (NaN, +inf or
+   -inf: a cost is a penalty, -inf is taken as an error of the cost, not as a perfect
+   sample) gets weight zero and is counted in ``MPPIOutput.nonfinite``; with
    ``cost_normalization="range"`` (``"std"``) the exponent is divided by the range (the
    standard deviation) of the sample costs;
 7. ``U <- U + sum_k w_k eps_k``; the first control ``U_0`` is returned.
@@ -26,12 +28,34 @@ device, seeded with ``seed + b``. Environment ``b`` of a batched planner therefo
 exactly the plans of a one-environment planner built with ``seed + b``. The global RNG is
 never used. ``reset()`` re-seeds the generators.
 
+Paths (``MPPI.path`` says which one the last call took):
+
+- ``"fused"``: on the CPU, in float32 or float64, for a built-in model (``SingleIntegrator``,
+  ``DoubleIntegrator``, ``Unicycle``, ``AccelUnicycle``) and a cost made of the built-in terms
+  (:class:`~torchcbf.mppi.QuadraticGoal`, :class:`~torchcbf.mppi.ObstacleCost`,
+  :class:`~torchcbf.mppi.BarrierCost` and :class:`~torchcbf.mppi.DiscreteBarrierCost` over
+  :class:`~torchcbf.barriers.Ellipse`/:class:`~torchcbf.barriers.Ball` barriers, and their
+  :class:`~torchcbf.mppi.SumCost`), the C kernel of :mod:`torchcbf.mppi._rollout` draws the
+  noise, rolls out and scores every sample without storing the rollouts, and regenerates the
+  noise of the samples with a non-zero weight for the update. Its noise is counter-based:
+  the generator of environment ``b`` gives one key per call, hashed with the sample, step
+  and component indices (so seeds stay reproducible and batch = loop still holds, but the
+  samples differ from the torch path's for the same seed).
+- ``"rollout"``: a built-in model with any other cost: the kernel draws the noise and rolls
+  out into the ``[B, K, H+1, n]`` buffer, torch evaluates the cost.
+- ``"torch"``: everything else (any :class:`~torchcbf.dynamics.ControlAffine`, CUDA, a
+  planner built with ``backend="torch"`` or ``compile``, or gradients requested through
+  the planner's parameters): noise from ``torch.Generator``, rollouts with
+  :mod:`torchcbf.integrators`, buffers allocated once and reused.
+
+Every path hands the cost contiguous sample-major buffers ``states [B, K, H+1, n]`` and
+``controls [B, K, H, m]``.
+
 Compilation: ``MPPI(..., compile=True)`` (or a dict of ``torch.compile`` keyword arguments)
-compiles one integration step (its result copied into the state buffer) and the cost
-evaluation (cost + control cost); the loop over the horizon, noise sampling, weights and the
-plan update stay eager. (Compiling the unrolled horizon loop as one graph makes inductor
-recompute the state chain for every stacked state, which is far slower.) The first call
-compiles (about 10-30 s on a CPU); later calls with the same ``B`` reuse the code.
+compiles one integration step and the cost evaluation (cost + control cost) of the torch
+path; the loop over the horizon, noise sampling, weights and the plan update stay eager.
+The first call compiles (about 10-30 s on a CPU); later calls with the same ``B`` reuse the
+code.
 """
 
 from __future__ import annotations
@@ -43,13 +67,16 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor, nn
 
+from torchcbf import integrators
 from torchcbf._checks import as_tensor, check_last_dim, check_positive, check_spd
 from torchcbf.dynamics.base import ControlAffine
+from torchcbf.mppi import _rollout
 from torchcbf.mppi.history import History, HistoryBuffer
 
 INTEGRATORS = ("euler", "rk4")
 SHIFT_FILLS = ("zero", "last")
 NORMALIZATIONS = ("none", "range", "std")
+BACKENDS = ("auto", "torch")
 
 
 class MPPIOutput(NamedTuple):
@@ -65,6 +92,7 @@ class MPPIOutput(NamedTuple):
         best_states: ``[B, H+1, n]`` rollout of the lowest-cost sample.
         rollouts: ``[B, R, H+1, n]`` the first ``R = keep_rollouts`` sampled rollouts, or None.
         rollout_weights: ``[B, R]`` their weights, or None.
+        nonfinite: ``[B]`` int64, samples whose cost was NaN or infinite (weight zero).
     """
 
     u: Tensor
@@ -76,6 +104,7 @@ class MPPIOutput(NamedTuple):
     best_states: Tensor
     rollouts: Tensor | None
     rollout_weights: Tensor | None
+    nonfinite: Tensor | None = None
 
 
 def _covariance(noise_sigma: object, m: int) -> Tensor:
@@ -108,8 +137,16 @@ def _limit(name: str, value: object, m: int) -> Tensor | None:
     return t
 
 
+class _Weights(NamedTuple):
+    w: Tensor  # [B, K] normalised weights (0 for non-finite costs)
+    cost_min: Tensor
+    best: Tensor
+    ok: Tensor
+    finite: Tensor
+
+
 class MPPI(nn.Module):
-    """MPPI planner (see the module docstring for the algorithm and the RNG scheme).
+    """MPPI planner (see the module docstring for the algorithm, the paths and the RNG).
 
     Args:
         dynamics: a :class:`~torchcbf.dynamics.ControlAffine` model (nominal dynamics).
@@ -124,21 +161,28 @@ class MPPI(nn.Module):
         temperature: ``lambda > 0``.
         control_cost_weight: ``gamma >= 0`` of ``gamma sum_j U_j' Sigma^-1 eps_j``.
         u_min, u_max: control limits (scalar or ``[m]``); default: the dynamics' limits.
-        integrator: ``"euler"`` (default) or ``"rk4"``.
+        integrator: ``"euler"`` (default: the rollouts of SCENARIOS.md A and B, and exact for
+            the integrators) or ``"rk4"``.
         seed: environment ``b`` uses a generator seeded with ``seed + b``.
         keep_rollouts: return the first ``R`` sampled rollouts and weights (0: none).
         history_size: slots of the executed-state history read by specifications.
         shift_fill: ``"zero"`` (default) or ``"last"``: control appended by the warm start.
         zero_noise_samples: the first samples of each environment get no noise (they
             evaluate the shifted previous plan itself).
-        cost_normalization: ``"none"`` (default, as pytorch-mppi), ``"range"`` or
-            ``"std"``: divide ``S - min S`` by the range (as CBFkit does) or by the standard
-            deviation of the finite sample costs of the environment before the temperature,
-            which makes ``temperature`` relative to the spread of the costs. On SCENARIOS.md
-            A (temperature 0.03) ``"none"`` is nearly greedy (effective sample size ~1, the
-            control-cost noise decides), ``"range"`` averages so much that the hairpin at
-            g2 is cut, and ``"std"`` succeeds (see tests/mppi/test_scenario_a.py).
-        compile: ``True`` or a dict of ``torch.compile`` kwargs to compile rollout + cost.
+        cost_normalization: ``"none"`` (default, as pytorch-mppi and Williams et al., so a
+            temperature carries over from them), ``"range"`` or ``"std"``: divide
+            ``S - min S`` by the range (as CBFkit does) or by the standard deviation of the
+            finite sample costs of the environment before the temperature, which makes
+            ``temperature`` relative to the spread of the costs. No one choice serves both
+            reference scenarios, so each builder states its own: SCENARIOS.md B's planner
+            uses ``"none"``; on A (temperature 0.03) ``"none"`` is nearly greedy (effective
+            sample size ~1, the control-cost noise decides), ``"range"`` averages so much
+            that the hairpin at g2 is cut, and ``"std"`` succeeds (see
+            tests/mppi/test_scenario_a.py).
+        compile: ``True`` or a dict of ``torch.compile`` kwargs to compile rollout + cost
+            (torch path only).
+        backend: ``"auto"`` (default: the C kernel where it applies, see the module
+            docstring) or ``"torch"`` (always the torch path).
     """
 
     def __init__(
@@ -162,6 +206,7 @@ class MPPI(nn.Module):
         zero_noise_samples: int = 0,
         cost_normalization: str = "none",
         compile: bool | dict[str, Any] = False,
+        backend: str = "auto",
     ) -> None:
         super().__init__()
         if not isinstance(dynamics, ControlAffine):
@@ -192,6 +237,8 @@ class MPPI(nn.Module):
             )
         if shift_fill not in SHIFT_FILLS:
             raise ValueError(f"shift_fill must be one of {SHIFT_FILLS}, got {shift_fill!r}")
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         if not isinstance(control_cost_weight, (int, float)) or not control_cost_weight >= 0:
             raise ValueError(f"control_cost_weight must be >= 0, got {control_cost_weight!r}")
         if not isinstance(seed, int):
@@ -207,6 +254,9 @@ class MPPI(nn.Module):
         self.keep_rollouts, self.history_size = keep_rollouts, history_size
         self.zero_noise_samples = zero_noise_samples
         self.cost_normalization = cost_normalization
+        self.backend = backend
+        #: the path of the last call: ``"fused"``, ``"rollout"`` or ``"torch"``
+        self.path: str | None = None
 
         cov = _covariance(noise_sigma, m)
         self.register_buffer("noise_cov", cov)
@@ -224,11 +274,13 @@ class MPPI(nn.Module):
         self.register_buffer("u_max", None if hi is None else hi.clone())
 
         self._needs_history = bool(getattr(cost, "needs_history", False))
-        self._step_fn: Callable[[Tensor, Tensor], Tensor] | None = None
+        self._integrate = integrators.euler if integrator == "euler" else integrators.rk4
+        self._compiled = bool(compile)
+        self._step_fn: Callable[[Tensor, Tensor], Tensor] = self._step
         self._score_fn = self._score
         if compile:
             kwargs = compile if isinstance(compile, dict) else {}
-            self._step_fn = torch.compile(self._step_new, **kwargs)
+            self._step_fn = torch.compile(self._step, **kwargs)
             self._score_fn = torch.compile(self._score, **kwargs)
         self._key: tuple[Any, ...] | None = None
         self._fresh = True
@@ -243,13 +295,9 @@ class MPPI(nn.Module):
         key = (B, device, dtype)
         if self._key == key:
             return
-        H, K = self.horizon, self.num_samples
-        m, n = self.dynamics.control_dim, self.dynamics.state_dim
+        H, m, n = self.horizon, self.dynamics.control_dim, self.dynamics.state_dim
         self._plan = torch.zeros(B, H, m, device=device, dtype=dtype)
-        # time-major buffers: the slice of one step is contiguous per environment
-        self._eps = torch.empty(B, H, K, m, device=device, dtype=dtype)
-        self._controls = torch.empty(B, H, K, m, device=device, dtype=dtype)
-        self._states = torch.empty(B, H + 1, K, n, device=device, dtype=dtype)
+        self._work: tuple[Tensor, Tensor, Tensor] | None = None
         self._generators = [
             torch.Generator(device=device).manual_seed(self.seed + b) for b in range(B)
         ]
@@ -258,10 +306,50 @@ class MPPI(nn.Module):
         self._key = key
         self._fresh = True
 
+    def _rollout_buffers(self) -> tuple[Tensor, Tensor, Tensor]:
+        """Sample-major ``eps [B, K, H, m]``, ``controls [B, K, H, m]``, ``states
+        [B, K, H+1, n]``, allocated on first use (the fused path never needs them)."""
+        if self._work is None:
+            B, H, m = self._plan.shape
+            K, n = self.num_samples, self.dynamics.state_dim
+            like = self._plan
+            self._work = (
+                like.new_empty(B, K, H, m),
+                like.new_empty(B, K, H, m),
+                like.new_empty(B, K, H + 1, n),
+            )
+        return self._work
+
     @property
     def history(self) -> History | None:
         """The recorded executed states and times (``None`` before the first call)."""
         return None if self._key is None else self._history.view()
+
+    def correct(self, u: Tensor) -> None:
+        """Replace the first control of the current plan by the control actually applied.
+
+        ``u``: ``[m]`` or ``[B, m]`` (e.g. a safety filter's output for the control this
+        planner returned), clamped to the planner's limits. The next call's warm start then
+        continues from the executed control: with ``shift=False`` it refines the plan from
+        it, and with the shifting warm start it replaces it by ``plan[1]`` as usual (the
+        rest of the plan is kept either way).
+        """
+        if self._key is None:
+            raise ValueError("correct() needs a plan: call the planner first")
+        plan = self._plan
+        B, _, m = plan.shape
+        if not isinstance(u, Tensor):
+            raise TypeError(f"u must be a tensor, got {type(u).__name__}")
+        if u.shape not in ((m,), (B, m)):
+            raise ValueError(f"u must have shape [{m}] or [{B}, {m}], got {tuple(u.shape)}")
+        value = u.detach().to(plan).expand(B, m)
+        if self.u_min is not None or self.u_max is not None:
+            value = torch.clamp(
+                value,
+                None if self.u_min is None else self.u_min.to(plan),
+                None if self.u_max is None else self.u_max.to(plan),
+            )
+        plan[:, 0] = value
 
     # -- one planning call -------------------------------------------------------------------
     def forward(self, x: Tensor, t: float | Tensor = 0.0, shift: bool = True) -> MPPIOutput:
@@ -296,13 +384,43 @@ class MPPI(nn.Module):
                 plan[:, -1:] = fill
         self._fresh = False
 
-        eps = self._sample_noise()
+        model, cost_code = self._kernel_plan(xb)
+        if model is not None and cost_code is not None:
+            self.path = "fused"
+            return self._fused(xb, model, cost_code, unbatched)
+        eps, controls, states = self._rollout_buffers()
+        if model is not None:
+            self.path = "rollout"
+            cfg = self._configuration(model, None)
+            keys = _rollout.draw_keys(self._generators)
+            _rollout.run(
+                cfg,
+                B * self.num_samples,
+                xb.contiguous(),
+                plan,
+                keys,
+                states=states,
+                controls=controls,
+                eps=eps,
+            )
+        else:
+            self.path = "torch"
+            self._sample_noise(eps)
+            self._rollout(xb, eps, controls, states)
         history = self._history.view() if self._needs_history else None
-        cost = self._evaluate(xb, eps, plan, t0, history)
-        return self._update(cost, self._states, eps, unbatched)
+        cost = self._score_fn(states, controls, eps, plan, t0, history)
+        self._check_cost(cost)
+        weights = self._weights(cost)
+        K, H, m = self.num_samples, self.horizon, self.dynamics.control_dim
+        delta = (weights.w.unsqueeze(1) @ eps.view(B, K, H * m)).view(B, H, m)
+        best_states = states[self._rows, weights.best]  # [B, H+1, n]
+        rollouts = None
+        if self.keep_rollouts:
+            rollouts = states[:, : self.keep_rollouts].clone()
+        return self._output(cost, weights, delta, best_states, rollouts, unbatched)
 
-    def _sample_noise(self) -> Tensor:
-        eps = self._eps
+    # -- torch path ----------------------------------------------------------------------------
+    def _sample_noise(self, eps: Tensor) -> None:
         std = self._isotropic_std
         for b, gen in enumerate(self._generators):
             if std is None:
@@ -314,26 +432,26 @@ class MPPI(nn.Module):
         elif std is None:
             eps.copy_(eps @ self.noise_chol.to(eps).mT)
         if self.zero_noise_samples:
-            eps[:, :, : self.zero_noise_samples].zero_()
-        return eps
+            eps[:, : self.zero_noise_samples].zero_()
 
-    def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
-        return self.dynamics._xdot(x, u)
+    def _step(self, x: Tensor, u: Tensor) -> Tensor:
+        return self._integrate(self.dynamics, x, u, self.dt)
 
-    def _step(self, x: Tensor, u: Tensor, out: Tensor | None) -> Tensor:
-        dt = self.dt
-        if self.integrator == "euler":
-            k = self._xdot(x, u)
-            return torch.add(x, k, alpha=dt) if out is None else torch.add(x, k, alpha=dt, out=out)
-        k1 = self._xdot(x, u)
-        k2 = self._xdot(x + (0.5 * dt) * k1, u)
-        k3 = self._xdot(x + (0.5 * dt) * k2, u)
-        k4 = self._xdot(x + dt * k3, u)
-        incr = k1 + 2.0 * (k2 + k3) + k4
-        return x + (dt / 6.0) * incr if out is None else torch.add(x, incr, alpha=dt / 6.0, out=out)
-
-    def _step_new(self, x: Tensor, u: Tensor) -> Tensor:
-        return self._step(x, u, None)
+    def _rollout(self, x: Tensor, eps: Tensor, controls: Tensor, states: Tensor) -> None:
+        """Clamp the samples (recomputing ``eps`` in place) and roll them out into the
+        sample-major state buffer."""
+        nominal = self._plan.unsqueeze(1)
+        torch.add(eps, nominal, out=controls)
+        if self.u_min is not None or self.u_max is not None:
+            lo = None if self.u_min is None else self.u_min.to(x)
+            hi = None if self.u_max is None else self.u_max.to(x)
+            controls.clamp_(lo, hi)
+            torch.sub(controls, nominal, out=eps)
+        states[:, :, 0] = x.unsqueeze(1)
+        state = states[:, :, 0]
+        for j in range(self.horizon):
+            state = self._step_fn(state, controls[:, :, j])
+            states[:, :, j + 1] = state
 
     def _score(
         self,
@@ -344,51 +462,108 @@ class MPPI(nn.Module):
         t0: Tensor,
         history: History | None,
     ) -> Tensor:
-        """Cost ``[B, K]`` of the rollouts (time-major buffers ``[B, H+1, K, n]``,
-        ``[B, H, K, m]``) plus the control cost."""
-        states, controls = states.transpose(1, 2), controls.transpose(1, 2)
+        """Cost ``[B, K]`` of the rollouts (``[B, K, H+1, n]``, ``[B, K, H, m]``) plus the
+        control cost."""
         if self._needs_history:
             cost = self.cost(states, controls, t0, dt=self.dt, history=history)
         else:
             cost = self.cost(states, controls, t0)
         if self.control_cost_weight > 0.0:
+            B, K, H, m = eps.shape
             weighted = plan @ self.noise_cov_inv.to(plan)  # [B, H, m]
-            ctrl = (eps @ weighted.unsqueeze(-1)).squeeze(-1).sum(1)  # [B, H, K] -> [B, K]
+            ctrl = (eps.reshape(B, K, H * m) @ weighted.reshape(B, H * m, 1)).squeeze(-1)
             cost = cost + self.control_cost_weight * ctrl
         return cost
 
-    def _evaluate(
-        self, x: Tensor, eps: Tensor, plan: Tensor, t0: Tensor, history: History | None
-    ) -> Tensor:
-        """Clamp the samples (recomputing ``eps`` in place), roll them out into the state
-        buffer and score them: cost ``[B, K]``."""
-        controls, states = self._controls, self._states
-        nominal = plan.unsqueeze(2)
-        torch.add(eps, nominal, out=controls)
-        if self.u_min is not None or self.u_max is not None:
-            lo = None if self.u_min is None else self.u_min.to(x)
-            hi = None if self.u_max is None else self.u_max.to(x)
-            controls.clamp_(lo, hi)
-            torch.sub(controls, nominal, out=eps)
-        states[:, 0] = x.unsqueeze(1)
-        step = self._step_fn
-        if step is None:
-            for j in range(self.horizon):
-                self._step(states[:, j], controls[:, j], states[:, j + 1])
-        else:
-            # the compiled step returns a new tensor: writing into an aliased view of the
-            # same buffer from inside a compiled graph gave wrong results (torch 2.13)
-            for j in range(self.horizon):
-                states[:, j + 1] = step(states[:, j], controls[:, j])
-        return self._score_fn(states, controls, eps, plan, t0, history)
+    # -- kernel paths --------------------------------------------------------------------------
+    def _kernel_plan(
+        self, x: Tensor
+    ) -> tuple[tuple[int, int] | None, tuple[list[list[float]], list[list[float]]] | None]:
+        """``(model, cost)`` encodings for the kernel, each ``None`` where torch runs."""
+        usable = (
+            self.backend == "auto"
+            and not self._compiled
+            and x.device.type == "cpu"
+            and x.dtype in (torch.float32, torch.float64)
+            and _rollout.available()
+        )
+        if usable and torch.is_grad_enabled():
+            usable = not x.requires_grad and not any(p.requires_grad for p in self.parameters())
+        if not usable:
+            return None, None
+        model = _rollout.encode_model(self.dynamics)
+        if model is None or self._needs_history:
+            return model, None
+        return model, _rollout.encode_cost(self.cost, self.dynamics.state_dim)
 
-    def _update(self, cost: Tensor, states: Tensor, eps: Tensor, unbatched: bool) -> MPPIOutput:
+    def _configuration(
+        self,
+        model: tuple[int, int],
+        cost: tuple[list[list[float]], list[list[float]]] | None,
+    ) -> Tensor:
+        return _rollout.configuration(
+            model,
+            self.integrator,
+            self.dynamics.state_dim,
+            self.dynamics.control_dim,
+            self.horizon,
+            self.num_samples,
+            self.zero_noise_samples,
+            self.u_min,
+            self.u_max,
+            self.noise_chol,
+            self.dt,
+            self.control_cost_weight,
+            cost,
+        )
+
+    def _fused(
+        self,
+        x: Tensor,
+        model: tuple[int, int],
+        cost_code: tuple[list[list[float]], list[list[float]]],
+        unbatched: bool,
+    ) -> MPPIOutput:
+        B, H, m = self._plan.shape
+        K, n = self.num_samples, self.dynamics.state_dim
+        plan, x = self._plan, x.contiguous()
+        cfg = self._configuration(model, cost_code)
+        keys = _rollout.draw_keys(self._generators)
+        wctrl = None
+        if self.control_cost_weight > 0.0:
+            wctrl = (plan @ self.noise_cov_inv.to(plan)).contiguous()
+        cost = plan.new_empty(B, K)
+        _rollout.run(cfg, B * K, x, plan, keys, wctrl=wctrl, cost=cost)
+        weights = self._weights(cost)
+        # update: regenerate the noise of the samples with a non-zero weight
+        pairs = (weights.w > 0).nonzero()
+        count = pairs.shape[0]
+        threads = _rollout.update_threads(count)
+        wsum = torch.zeros(threads, B, H, m, dtype=torch.float64)
+        if count:
+            w_sel = weights.w[pairs[:, 0], pairs[:, 1]].contiguous()
+            _rollout.run(cfg, count, x, plan, keys, pairs=pairs, weights=w_sel, wsum=wsum)
+        delta = wsum.sum(0).to(plan.dtype)
+        # re-roll the best sample and the kept samples
+        R = self.keep_rollouts
+        picks = [torch.stack([self._rows, weights.best], -1)]
+        if R:
+            ks = torch.arange(R, device=x.device)
+            picks.append(torch.cartesian_prod(self._rows, ks))
+        pairs = torch.cat(picks).contiguous()
+        rolled = plan.new_empty(pairs.shape[0], H + 1, n)
+        _rollout.run(cfg, pairs.shape[0], x, plan, keys, pairs=pairs, states=rolled)
+        rollouts = rolled[B:].view(B, R, H + 1, n) if R else None
+        return self._output(cost, weights, delta, rolled[:B], rollouts, unbatched)
+
+    # -- weights and update --------------------------------------------------------------------
+    def _check_cost(self, cost: Tensor) -> None:
         B, K = self._plan.shape[0], self.num_samples
-        if cost.shape != (B, K):
-            raise ValueError(
-                f"cost must return shape [{self._plan.shape[0]}, {self.num_samples}], "
-                f"got {tuple(cost.shape)}"
-            )
+        if not isinstance(cost, Tensor) or cost.shape != (B, K):
+            shape = tuple(cost.shape) if isinstance(cost, Tensor) else type(cost).__name__
+            raise ValueError(f"cost must return shape [{B}, {K}], got {shape}")
+
+    def _weights(self, cost: Tensor) -> _Weights:
         finite = torch.isfinite(cost)
         clean = torch.where(finite, cost, torch.full_like(cost, math.inf))
         cost_min, best = clean.min(-1)
@@ -407,31 +582,40 @@ class MPPI(nn.Module):
             shifted = shifted / span.clamp_min(torch.finfo(cost.dtype).tiny)
         w = torch.exp(shifted.mul_(-1.0 / lam))
         w = w / w.sum(-1, keepdim=True).clamp_min(1.0)  # the best sample has weight 1 before
+        return _Weights(w, cost_min, best, ok, finite)
+
+    def _output(
+        self,
+        cost: Tensor,
+        weights: _Weights,
+        delta: Tensor,
+        best_states: Tensor,
+        rollouts: Tensor | None,
+        unbatched: bool,
+    ) -> MPPIOutput:
         plan = self._plan
-        plan.add_((w[:, None, None, :] @ eps).squeeze(2))  # [B, H, 1, m] -> [B, H, m]
+        plan.add_(delta)
         if self.u_min is not None or self.u_max is not None:
             lo = None if self.u_min is None else self.u_min.to(plan)
             hi = None if self.u_max is None else self.u_max.to(plan)
             plan.clamp_(lo, hi)
+        finite, ok, w = weights.finite, weights.ok, weights.w
         count = finite.sum(-1)
         cost_mean = torch.where(finite, cost, torch.zeros_like(cost)).sum(-1) / count.clamp_min(1)
-        ess = torch.where(ok, 1.0 / w.square().sum(-1).clamp_min(1e-30), torch.zeros_like(cost_min))
-        status = (~ok).long()
-        best_states = states[self._rows, :, best]  # [B, H+1, n]
-        rollouts = weights = None
-        if self.keep_rollouts:
-            rollouts = states[:, :, : self.keep_rollouts].transpose(1, 2).clone()
-            weights = w[:, : self.keep_rollouts].clone()
+        ess = torch.where(
+            ok, 1.0 / w.square().sum(-1).clamp_min(1e-30), torch.zeros_like(weights.cost_min)
+        )
         out = MPPIOutput(
             u=plan[:, 0].clone(),
             plan=plan.clone(),
-            cost_min=cost_min,
+            cost_min=weights.cost_min,
             cost_mean=cost_mean,
             ess=ess,
-            status=status,
+            status=(~ok).long(),
             best_states=best_states,
             rollouts=rollouts,
-            rollout_weights=weights,
+            rollout_weights=w[:, : self.keep_rollouts].clone() if self.keep_rollouts else None,
+            nonfinite=self.num_samples - count,
         )
         if unbatched:
             out = MPPIOutput(*(None if v is None else v.squeeze(0) for v in out))
@@ -441,5 +625,5 @@ class MPPI(nn.Module):
         return (
             f"horizon={self.horizon}, num_samples={self.num_samples}, dt={self.dt}, "
             f"temperature={self.temperature}, control_cost_weight={self.control_cost_weight}, "
-            f"integrator={self.integrator!r}, seed={self.seed}"
+            f"integrator={self.integrator!r}, seed={self.seed}, backend={self.backend!r}"
         )

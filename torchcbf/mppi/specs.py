@@ -48,15 +48,10 @@ import torch
 from torch import Tensor, nn
 
 from torchcbf._checks import check_positive
-from torchcbf.mppi.costs import _as_index, _const, _select
+from torchcbf.mppi.costs import constant, squared_distance, state_index
 from torchcbf.mppi.history import History
 
 Predicate = Callable[[Tensor], Tensor]
-
-
-def _sq_dist(states: Tensor, index: tuple[int, ...] | slice, center: Tensor) -> Tensor:
-    diff = _select(states, index) - center.to(device=states.device, dtype=states.dtype)
-    return diff.square_().sum(-1)
 
 
 class Spec(nn.Module):
@@ -259,8 +254,8 @@ class Reach(Eventually):
         urgency: float = 0.0,
     ) -> None:
         super().__init__(None, interval, None, urgency)
-        center_t = _const("center", center)
-        self.index = _as_index(index)
+        center_t = constant("center", center)
+        self.index = state_index(index)
         d = self.index.stop - self.index.start if isinstance(self.index, slice) else len(self.index)
         if d != center_t.numel():
             raise ValueError(f"center has {center_t.numel()} entries but index names {d}")
@@ -269,15 +264,15 @@ class Reach(Eventually):
         self.weight = check_positive("weight", weight)
 
     def predicate(self, states: Tensor) -> Tensor:
-        return self.radius - _sq_dist(states, self.index, self.center).sqrt()
+        return self.radius - squared_distance(states, self.index, self.center).sqrt()
 
     def pointwise_cost(self, states: Tensor) -> Tensor:
-        return self.weight * (_sq_dist(states, self.index, self.center) - self.radius**2)
+        return self.weight * (squared_distance(states, self.index, self.center) - self.radius**2)
 
     def rollout_min_cost(
         self, states: Tensor, window: Tensor, ramp: Tensor | None = None
     ) -> tuple[Tensor, Tensor]:
-        d2 = _sq_dist(states, self.index, self.center)
+        d2 = squared_distance(states, self.index, self.center)
         if ramp is not None:
             c = d2.mul_(self.weight).add_(ramp - self.weight * self.radius**2)
             last = c[..., -1].clone()
@@ -322,8 +317,8 @@ class Avoid(Always):
         else:
             if radius is None or radius < 0:
                 raise ValueError(f"Avoid with a center needs radius >= 0, got {radius}")
-            self.center = _const("center", center)
-            self.index = _as_index(index)
+            self.center = constant("center", center)
+            self.index = state_index(index)
         self.radius = None if radius is None else float(radius)
         self.weight = check_positive("weight", weight)
         self.eps = check_positive("eps", eps)
@@ -331,7 +326,7 @@ class Avoid(Always):
     def predicate(self, states: Tensor) -> Tensor:
         if self.barrier is not None:
             return self.barrier(states)
-        return _sq_dist(states, self.index, self.center).sqrt() - self.radius
+        return squared_distance(states, self.index, self.center).sqrt() - self.radius
 
     def pointwise_cost(self, states: Tensor) -> Tensor:
         return self.weight / self.predicate(states).clamp_min(self.eps)
@@ -342,7 +337,7 @@ class Avoid(Always):
         if self.barrier is not None:
             rho_min = self.barrier(states).masked_fill(outside, math.inf).amin(-1)
         else:
-            d2 = _sq_dist(states, self.index, self.center)
+            d2 = squared_distance(states, self.index, self.center)
             rho_min = d2.masked_fill_(outside, math.inf).amin(-1).sqrt() - self.radius
         return self.weight / rho_min.clamp_min(self.eps)
 

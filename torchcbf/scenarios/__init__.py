@@ -1,4 +1,4 @@
-"""The reference scenarios of SCENARIOS.md as builders (used by the CLI, scripts and tests)."""
+"""The reference scenarios (docs/scenarios.md) as builders, used by the CLI, scripts and tests."""
 
 from torchcbf.scenarios.base import Scenario
 from torchcbf.scenarios.single_integrator_reach_avoid import reach_avoid, reach_avoid_spec

@@ -19,7 +19,9 @@ class Scenario:
     """One experiment over a batch of seeds.
 
     ``barriers`` are the true obstacles (metrics and plots); ``goals`` the goal regions;
-    ``spec`` a specification whose robustness decides success (optional).
+    ``spec`` a specification whose robustness decides success (optional); ``params`` every
+    parameter the builder used (recorded with the results); ``extra_metrics(trajectory)``
+    per-seed metrics of the scenario's own, added to the standard ones.
     """
 
     name: str
@@ -39,6 +41,8 @@ class Scenario:
     spec: Any | None = None
     status_names: dict[int, str] = field(default_factory=dict)
     snapshot_steps: Sequence[int] = ()
+    params: dict[str, Any] = field(default_factory=dict)
+    extra_metrics: Callable[[Trajectory], dict[str, Tensor]] | None = None
 
     def run(self, progress: bool = True) -> tuple[Trajectory, dict[str, Tensor]]:
         """Simulate every seed in one batch; returns the trajectory and per-seed metrics."""
@@ -53,6 +57,7 @@ class Scenario:
             integrator=self.integrator,
             seed=self.seeds,
             progress=progress,
+            progress_label=self.name,
             planner_every=self.planner_every,
             snapshot_steps=self.snapshot_steps,
         )
@@ -64,4 +69,6 @@ class Scenario:
                 spec=self.spec,
                 status_names=self.status_names,
             )
+            if self.extra_metrics is not None:
+                per_seed.update(self.extra_metrics(traj))
         return traj, per_seed

@@ -1,4 +1,4 @@
-"""Scenario A of SCENARIOS.md: timed reach-avoid with MPPI on a single integrator.
+"""Scenario A (docs/scenarios.md): timed reach-avoid with MPPI on a single integrator.
 
 "Reach g1 between 0 and 3.5 s, g2 between 3.6 and 5 s, and g3 between 5.1 and 10 s, while
 avoiding the obstacle." The planner's cost is the specification itself (negated robustness

@@ -1,63 +1,49 @@
-"""Scenario B of SCENARIOS.md: MPPI vs stochastic CBF vs MPPI + stochastic CBF on a noisy
-unicycle with acceleration input, among five elliptical obstacles.
+"""Scenario B (docs/scenarios.md): MPPI and stochastic CBFs on a noisy unicycle with
+acceleration input among five elliptical obstacles.
 
-Methods: ``"scbf"`` (stochastic CBF-QP on the proportional controller), ``"mppi"`` (MPPI
-alone) and ``"mppi_scbf"`` (MPPI's first control filtered by the stochastic CBF-QP).
+Methods (:data:`METHODS`), each run over a batch of noise seeds:
 
-Choices left open by the paper, made here:
-- MPPI's control noise covariance is ``diag(4, 4)`` (CBFkit's ``control_cov``); its plan
-  starts at zero; ``cost_normalization="none"``, ``shift_fill="zero"``, no zero-noise
-  sample (all arguments).
-- The planner replans every ``planner_every`` loop steps (default 2: once per rollout step
-  of 0.02 s); between replans the loop follows the plan.
-- No control limits by default (``control_limit``: one bound for ``(a, omega)`` or a pair).
-- Each ellipse ``b_i`` is scaled by ``c_i > 0`` (``barrier_scale``; same safe set) and
-  rectified in exponential form ``h_e = c_i (L_f b_i + k b_i)``, ``k = rectify_gain = 20``;
-  the stochastic condition uses alpha = 1, beta = 1 on ``h_e``. Its resting equilibrium
-  is ``b_i = beta / (alpha k c_i)``, a distance margin ``beta / (alpha k c_i |grad b_i|)``;
-  the default ``c_i = min(axes_i) / (2 k m)`` puts it at ``m = FLAT_MARGIN = 2/3 m`` on the
-  flat sides of every ellipse (``|grad b_i| = 2 / min(axes_i)``; larger on the pointed
-  ends). A large ``k`` lets the robot pass an ellipse at speed (``h_e >= 0`` allows an
-  approach speed up to ``k`` times the distance) while the small ``c_i`` keeps the margin.
-- The QP weight on the controls is ``R = diag(1, 1e-3)`` (``control_weight``): the filter
-  turns rather than brakes, so the robot keeps the speed that gives it lateral authority.
-- Scenario ``b`` uses noise seed ``seed + b`` and MPPI seed ``seed + b``.
+- ``"scbf"``: the stochastic CBF-QP on the proportional controller;
+- ``"mppi"``: MPPI alone;
+- ``"mppi_scbf"``: MPPI whose control is filtered by the stochastic CBF-QP;
+- ``"mppi_rascbf"``: MPPI filtered by the risk-aware stochastic CBF (probability ``rho`` of
+  leaving the rectified safe set within the horizon ``T``);
+- ``"shield_mppi"``: a barrier-aware MPPI (:class:`~torchcbf.mppi.ShieldMPPI`): its rollouts
+  pay a steep penalty for breaking the discrete-time CBF condition of the obstacles, and
+  the control the filter actually applies is written back into the plan, so planner and
+  filter stop pulling apart.
 
-Known limitation (measured; the figures are in the README): the issue's acceptance (SCBF
-never collides; MPPI + SCBF reaches the goal in 90% of 32 seeds without collision) is not
-met with the fixed ``sigma = 0.28 I`` on all four states and ``alpha = 1``. Where the
-condition is active, ``z = h_e / (c_i |grad b_i|)`` is an Ornstein-Uhlenbeck process with
-rate ``alpha`` and the distance to the ellipse follows it through the fast pole ``k``:
-position noise reaches the distance with a standard deviation of at least
-``0.28 / sqrt(2 alpha) ~ 0.2 m`` whatever ``k``, ``c_i`` and ``R`` (they only move the
-equilibrium margin). A unicycle at rest has no lateral authority either (``L_g h_e`` has
-no ``omega`` part at ``v = 0``), so noise pushes a stalled robot sideways freely. The start
-lies about 0.55 m from two ellipses and the passages are 0.6-0.75 m wide, so a margin of
-three such deviations does not fit through them: the robot that is kept safe stalls near
-the start (as the paper's figure shows for the SCBF alone), and one whose margin fits the
-passages collides in some seeds. Measured, 32 seeds (``torchcbf mppi-cbf --seeds 32
---samples 4000 --horizon 80``): SCBF alone collides in 6 (the old defaults ``k = 2``,
-``c_i = 1``, ``R = I``: 30), MPPI + SCBF in 5 (old: 19) and never reaches the goal: MPPI's
-plan never sees the filtered control, so it keeps asking for accelerations the filter turns
-away, and the robot leaves the obstacle field (mean final distance 12 m); MPPI alone: 2
-collisions, goal 32/32.
+Configurations (:data:`CONFIGS`) fix the filter's free parameters (the plant, noise,
+obstacles, goal, MPPI and its costs are the same in all three):
 
-CBFkit's own experiment (examples/unicycle/reach_goal/mppi_stochastic_cbf.py and the
-tutorial it came from) differs from SCENARIOS.md's reading in ways that matter: its
-"stochastic CBF" is ``B_i = exp(-0.1 b_i)`` with the sublevel convention (safe where
-``B_i <= 1``) and the condition ``L B + tr / 2 <= -alpha B + beta``, a supermartingale-type
-bound that lets ``E[B]`` rise to ``beta / alpha = 1``, the boundary itself; its exponential
-rectification with the default roots (-0.1, -0.2) evaluates ``B + 0.3 L_f B``; its MPPI
-clips the sampled noise to [-3, 3], normalises the costs to [0, 1] before the temperature,
-skips the terminal cost, starts from the plan ``(a, omega) = (1, 0)`` and runs 3 s on one
-noise seed. The plant noise is applied (``sigma dW`` by forward Euler, i.e.
-Euler-Maruyama). Those are one-seed demonstrations, not a 32-seed guarantee.
+- ``"paper"``: the paper's numbers (alpha = 1, beta = 1) on the exponential form
+  ``h_e = c_i (L_f b_i + k b_i)``, with the choices the paper leaves open made as
+  documented in docs/scenarios.md (k = 20, a 2/3 m equilibrium margin, R = diag(1, 1e-3));
+- ``"cbfkit"``: CBFkit's own reading, the sublevel barrier ``B_i = exp(-0.1 b_i)`` with
+  ``L B + tr / 2 <= -alpha B + beta`` (alpha = beta = 1) on its exponential rectification
+  ``B + 0.3 L_f B``;
+- ``"default"``: the project's choice of the free parameters (alpha, the equilibrium margin,
+  the shield's penalty), made by ``scripts/tune_scenario_b.py`` on tuning seeds 10,000 and
+  up, never on the evaluation seeds; the table is in docs/scenarios.md.
+
+The equilibrium margin ``m``: where the condition is active and the robot at rest,
+``h_e = beta / alpha``, i.e. ``b_i = beta / (alpha k c_i)``; with ``c_i = beta min(axes_i) /
+(2 alpha k m)`` that is the distance ``m`` from the flat sides of every ellipse (where
+``|grad b_i| = 2 / min(axes_i)``). The noise moves the robot around that equilibrium by
+about ``sigma / sqrt(2 alpha)`` (an Ornstein-Uhlenbeck process of rate alpha), so a useful
+margin needs a large alpha: with alpha = 1 the band (0.2 m) is as wide as the passages'
+slack, and the robot either stalls or collides in some seeds (docs/scenarios.md).
+
+Scenario ``b`` uses noise seed ``seed + b`` and MPPI seed ``seed + b``.
 """
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Sequence
+from dataclasses import asdict, dataclass, replace
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -65,16 +51,61 @@ from torch import Tensor
 from torchcbf.barriers import Barrier, Ellipse, rectify
 from torchcbf.dynamics import AccelUnicycle
 from torchcbf.filters import FilterStatus, SafetyFilter
-from torchcbf.mppi import MPPI, QuadraticGoal, RolloutCost, SumCost
+from torchcbf.filters.risk import noise_bound
+from torchcbf.mppi import MPPI, DiscreteBarrierCost, QuadraticGoal, ShieldMPPI, SumCost
+from torchcbf.mppi.costs import BarrierCost
 from torchcbf.scenarios.base import Scenario
-from torchcbf.sim import Goal
+from torchcbf.sim import Goal, Trajectory
 
-METHODS = ("scbf", "mppi", "mppi_scbf")
+METHODS = ("scbf", "mppi", "mppi_scbf", "mppi_rascbf", "shield_mppi")
+PAPER_METHODS = ("scbf", "mppi", "mppi_scbf")
+CONFIGS = ("default", "paper", "cbfkit")
 GOAL = (2.0, 4.0)
 CENTERS = ((1.0, 2.0), (3.0, 2.0), (2.0, 5.0), (-1.0, 1.0), (0.5, -1.0))
 AXES = ((0.5, 1.5), (0.75, 2.0), (2.0, 0.25), (1.0, 0.75), (0.75, 0.5))
 SIGMA = 0.28
+X0 = (0.0, 0.0, 0.0, math.pi / 4)
+DT, STEPS, ROLLOUT_DT = 0.01, 500, 0.02
 FLAT_MARGIN = 2.0 / 3.0
+"""Equilibrium margin (m) of the ``paper`` configuration."""
+
+
+@dataclass(frozen=True)
+class FilterParams:
+    """The free parameters of scenario B's safety filters (one configuration).
+
+    Attributes:
+        form: ``"exponential"`` (``h_e = c_i (L_f b_i + k b_i)`` on the ellipses) or
+            ``"cbfkit"`` (``h = 1 - exp(-0.1 b_i)``, rectified as ``h + 0.3 L_f h``).
+        alpha, beta: the stochastic condition ``L h + tr / 2 >= -alpha h + beta`` (for
+            ``"cbfkit"``: CBFkit's sublevel ``L B + tr / 2 <= -alpha B + beta``).
+        rectify_gain: ``k`` of the exponential form.
+        margin: equilibrium distance (m) from the flat sides; sets ``c_i``.
+        control_weight: diagonal of the QP weight ``R`` on ``(a, omega)``.
+        control_limit: bound on ``|a|`` and ``|omega|`` (``None``: unbounded).
+        rho: risk-aware methods: probability of leaving the safe set within ``T``.
+        risk_horizon: ``T`` (s) of the risk-aware condition; ``None`` chooses it (see
+            :func:`risk_horizon`).
+        shield_weight: weight of the shield's discrete-time CBF penalty.
+    """
+
+    form: str = "exponential"
+    alpha: float = 50.0
+    beta: float = 1.0
+    rectify_gain: float = 20.0
+    margin: float = 0.25
+    control_weight: tuple[float, float] = (1.0, 1e-3)
+    control_limit: tuple[float, float] | None = None
+    rho: float = 0.05
+    risk_horizon: float | None = None
+    shield_weight: float = 1e3
+
+
+CONFIG_PARAMS: dict[str, FilterParams] = {
+    "default": FilterParams(),
+    "paper": FilterParams(alpha=1.0, beta=1.0, margin=FLAT_MARGIN),
+    "cbfkit": FilterParams(form="cbfkit", alpha=1.0, beta=1.0, rectify_gain=1.0 / 0.3),
+}
 
 
 def obstacles() -> Ellipse:
@@ -97,47 +128,97 @@ def proportional_controller(goal: tuple[float, float] = GOAL):
 
 def mppi_cbf(
     method: str = "mppi_scbf",
+    *,
+    config: str = "default",
     num_seeds: int = 32,
     num_samples: int = 20_000,
     horizon: int = 80,
     seed: int = 0,
     planner_every: int = 2,
-    rectify_gain: float = 20.0,
-    noise_sigma: float = 4.0,
-    control_limit: float | tuple[float, float] | None = None,
+    alpha: float | None = None,
+    beta: float | None = None,
+    rectify_gain: float | None = None,
+    margin: float | None = None,
     barrier_scale: float | Sequence[float] | None = None,
-    control_weight: float | tuple[float, float] = (1.0, 1e-3),
+    control_weight: float | tuple[float, float] | None = None,
+    control_limit: float | tuple[float, float] | None = None,
+    rho: float | None = None,
+    risk_horizon: float | None = None,
+    shield_weight: float | None = None,
+    noise_sigma: float = 4.0,
     cost_normalization: str = "none",
     zero_noise_samples: int = 0,
     shift_fill: str = "zero",
     device: str | torch.device = "cpu",
     dtype: torch.dtype = torch.float32,
 ) -> Scenario:
-    """Build scenario B with one of :data:`METHODS` for ``num_seeds`` noise seeds."""
+    """Build scenario B with one of :data:`METHODS` for ``num_seeds`` noise seeds.
+
+    Args:
+        method: one of :data:`METHODS`.
+        config: one of :data:`CONFIGS`: the filter's parameters (:data:`CONFIG_PARAMS`).
+        num_samples, horizon: MPPI's ``K`` and ``H`` (the paper: 20,000 and 80).
+        planner_every: replan every this many loop steps (2: once per rollout step of
+            0.02 s); between replans the loop follows the plan.
+        alpha, beta, rectify_gain, margin, control_weight, control_limit, rho,
+            risk_horizon, shield_weight: override the configuration's value
+            (:class:`FilterParams`).
+        barrier_scale: the scales ``c_i`` of the exponential form (one number or five),
+            overriding the ones ``margin`` sets.
+        noise_sigma, cost_normalization, zero_noise_samples, shift_fill: MPPI's (the noise
+            covariance is ``noise_sigma * I``, CBFkit's ``control_cov``).
+
+    Returns:
+        A :class:`Scenario` whose ``params`` record every parameter used.
+    """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    dt, steps = 0.01, 500
-    limits = {}
+    if config not in CONFIGS:
+        raise ValueError(f"config must be one of {CONFIGS}, got {config!r}")
+    overrides = {
+        "alpha": alpha,
+        "beta": beta,
+        "rectify_gain": rectify_gain,
+        "margin": margin,
+        "rho": rho,
+        "risk_horizon": risk_horizon,
+        "shield_weight": shield_weight,
+    }
+    params = CONFIG_PARAMS[config]
+    for name, value in overrides.items():
+        if value is not None:
+            params = replace(params, **{name: _positive(name, value)})
+    if control_weight is not None:
+        params = replace(params, control_weight=_pair("control_weight", control_weight))
     if control_limit is not None:
-        lim = _pair("control_limit", control_limit)
-        limits = {"u_min": [-v for v in lim], "u_max": lim}
-    weight = _pair("control_weight", control_weight)
+        params = replace(params, control_limit=_pair("control_limit", control_limit))
+    if not 0.0 < params.rho < 1.0:
+        raise ValueError(f"rho must be in (0, 1), got {params.rho}")
+    limits: dict[str, list[float]] = {}
+    if params.control_limit is not None:
+        limits = {"u_min": [-v for v in params.control_limit], "u_max": list(params.control_limit)}
     plant = AccelUnicycle(sigma=SIGMA, **limits).to(device=device, dtype=dtype)
     nominal_model = AccelUnicycle(**limits).to(device=device, dtype=dtype)
     ellipses = obstacles().to(device=device, dtype=dtype)
+    record: dict[str, Any] = {"method": method, "config": config, **asdict(params)}
 
     planner = None
-    if method in ("mppi", "mppi_scbf"):
-        cost = SumCost(
+    if method != "scbf":
+        terms = [
             QuadraticGoal(GOAL, weight=2.0, index=(0, 1), terminal_weight=10.0),
-            _InverseBarriers(ellipses, weight=2.0, eps=0.01),
-        )
+            BarrierCost(ellipses, weight=2.0, eps=0.01),
+        ]
+        if method == "shield_mppi":
+            # the discrete-time form of h_e >= 0 (b' >= -k b) over one rollout step
+            gamma = min(params.rectify_gain * ROLLOUT_DT, 1.0)
+            terms.append(DiscreteBarrierCost(ellipses, gamma=gamma, weight=params.shield_weight))
+            record["shield_gamma"] = gamma
         planner = MPPI(
             nominal_model,
-            cost,
+            SumCost(*terms),
             horizon=horizon,
             num_samples=num_samples,
-            dt=0.02,
+            dt=ROLLOUT_DT,
             noise_sigma=noise_sigma * torch.eye(2),
             temperature=0.03,
             control_cost_weight=0.1,
@@ -147,36 +228,55 @@ def mppi_cbf(
             zero_noise_samples=zero_noise_samples,
             shift_fill=shift_fill,
         ).to(device=device, dtype=dtype)
+        record.update(
+            num_samples=num_samples,
+            horizon=horizon,
+            rollout_dt=ROLLOUT_DT,
+            temperature=0.03,
+            control_cost_weight=0.1,
+            noise_sigma=noise_sigma,
+            cost_normalization=cost_normalization,
+            planner_every=planner_every,
+        )
 
     safety_filter = None
-    if method in ("scbf", "mppi_scbf"):
-        scales = _scales(barrier_scale, rectify_gain)
-        rectified = [
-            rectify(
-                _ScaledBarrier(Ellipse(c, a, index=(0, 1)), s),
-                nominal_model,
-                form="exponential",
-                gains=[rectify_gain],
-            ).to(device=device, dtype=dtype)
-            for c, a, s in zip(CENTERS, AXES, scales, strict=True)
-        ]
-        safety_filter = SafetyFilter(
-            plant,
-            barriers=rectified,
-            mode="stochastic",
-            alpha=1.0,
-            beta=1.0,
-            R=torch.tensor(weight, dtype=torch.float64),
-        ).to(device=device, dtype=dtype)
+    extra = None
+    if method != "mppi":
+        if method == "mppi_rascbf":
+            safety_filter, risk = _risk_aware_filter(plant, nominal_model, params)
+            record.update(risk)
+            delta, window = torch.tensor(risk["delta"]), round(risk["risk_horizon"] / DT)
 
-    x0 = torch.tensor([0.0, 0.0, 0.0, math.pi / 4], device=device, dtype=dtype).repeat(num_seeds, 1)
-    goal_region = Goal(GOAL, 0.25, deadline=5.0)
+            def extra(traj: Trajectory) -> dict[str, Tensor]:
+                return risk_failures(traj.h, delta.to(traj.h), window)
+
+        else:
+            barriers, scales = _rectified(nominal_model, params, barrier_scale)
+            record["barrier_scale"] = scales
+            alpha_, beta_ = params.alpha, params.beta
+            if params.form == "cbfkit":  # L B + tr/2 <= -a B + b  <=>  L h + tr/2 >= -a h + (a - b)
+                beta_ = params.alpha - params.beta
+            safety_filter = SafetyFilter(
+                plant,
+                barriers=barriers,
+                mode="stochastic",
+                alpha=alpha_,
+                beta=beta_,
+                R=torch.diag(torch.tensor(params.control_weight, dtype=torch.float64)),
+            )
+        safety_filter = safety_filter.to(device=device, dtype=dtype)
+        if method == "shield_mppi":
+            planner = ShieldMPPI(planner, safety_filter)
+
+    x0 = torch.tensor(X0, device=device, dtype=dtype).repeat(num_seeds, 1)
+    goal_region = Goal(GOAL, 0.25, deadline=STEPS * DT)
+    record.update(num_seeds=num_seeds, seed=seed, dt=DT, steps=STEPS, sigma=SIGMA)
     return Scenario(
-        name=f"mppi-cbf/{method}",
+        name=f"mppi-cbf/{config}/{method}",
         dynamics=plant,
         x0=x0,
-        steps=steps,
-        dt=dt,
+        steps=STEPS,
+        dt=DT,
         seeds=torch.arange(seed, seed + num_seeds),
         planner=planner,
         nominal=proportional_controller() if method == "scbf" else None,
@@ -188,32 +288,71 @@ def mppi_cbf(
         metric_goals=[goal_region],
         status_names={int(s): s.name.lower() for s in FilterStatus},
         snapshot_steps=(100,) if planner is not None else (),
+        params=record,
+        extra_metrics=extra,
     )
 
 
-class _InverseBarriers(RolloutCost):
-    """``sum_i weight / max(b_i(x), eps)`` per step over the outputs of one barrier."""
+class _ScaledBarrier(Barrier):
+    """``scale * b(x)``: the same safe set, a rescaled CBF condition."""
 
-    def __init__(self, barrier: torch.nn.Module, weight: float, eps: float) -> None:
+    def __init__(self, barrier: Barrier, scale: float) -> None:
         super().__init__()
-        self.barrier, self.weight, self.eps = barrier, weight, eps
+        self.barrier, self.scale = barrier, scale
 
-    def stage(self, states: Tensor, controls: Tensor | None) -> Tensor:
-        return (self.weight / self.barrier(states).clamp_min(self.eps)).sum(-1)
-
-
-def _pair(name: str, value: float | Sequence[float]) -> list[float]:
-    """A positive number for both controls ``(a, omega)``, or one per control."""
-    pair = [float(value)] * 2 if isinstance(value, (int, float)) else [float(v) for v in value]
-    if len(pair) != 2 or not all(v > 0 and math.isfinite(v) for v in pair):
-        raise ValueError(f"{name} must be a positive number or two positive numbers, got {value!r}")
-    return pair
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        return self.scale * self.barrier(x)
 
 
-def _scales(barrier_scale: float | Sequence[float] | None, gain: float) -> list[float]:
+class _ExpBarrier(Barrier):
+    """``1 - exp(-rate b(x))``: CBFkit's ``B = exp(-rate b) <= 1`` as ``h >= 0``."""
+
+    def __init__(self, barrier: Barrier, rate: float) -> None:
+        super().__init__()
+        self.barrier, self.rate = barrier, rate
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        return -torch.expm1(-self.rate * self.barrier(x))
+
+
+class _EllipseRadius(Barrier):
+    """``sqrt(b(x) + 1) - 1`` for an ellipse ``b = |(p - c) / a|^2 - 1``: the same safe set,
+    a gradient bounded by ``1 / min(a)`` (the risk-aware bound needs a bounded ``eta``)."""
+
+    def __init__(self, ellipse: Ellipse) -> None:
+        super().__init__()
+        self.ellipse = ellipse
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        return torch.sqrt(self.ellipse(x) + 1.0) - 1.0
+
+
+def _rectified(
+    model: AccelUnicycle, params: FilterParams, barrier_scale: Any
+) -> tuple[list[Barrier], list[float]]:
+    """One relative-degree-one barrier per ellipse and the scales ``c_i`` used."""
+    k = params.rectify_gain
+    if params.form == "cbfkit":
+        scales = [0.3] * len(CENTERS)  # B + 0.3 L_f B = 0.3 (L_f B + B / 0.3)
+        shapes = [
+            _ExpBarrier(Ellipse(c, a, index=(0, 1)), 0.1)
+            for c, a in zip(CENTERS, AXES, strict=True)
+        ]
+    else:
+        scales = _scales(barrier_scale, params)
+        shapes = [Ellipse(c, a, index=(0, 1)) for c, a in zip(CENTERS, AXES, strict=True)]
+    barriers = [
+        rectify(_ScaledBarrier(shape, s), model, form="exponential", gains=[k])
+        for shape, s in zip(shapes, scales, strict=True)
+    ]
+    return barriers, scales
+
+
+def _scales(barrier_scale: float | Sequence[float] | None, params: FilterParams) -> list[float]:
     if barrier_scale is None:
-        # c_i |grad b_i| k = 1 / FLAT_MARGIN on the flat sides (|grad b_i| = 2 / min(axes_i))
-        return [min(a) / (2.0 * gain * FLAT_MARGIN) for a in AXES]
+        # c_i |grad b_i| k alpha / beta = 1 / margin on the flat sides, |grad b_i| = 2 / min(a_i)
+        k, m = params.rectify_gain, params.margin
+        return [params.beta * min(a) / (2.0 * params.alpha * k * m) for a in AXES]
     if isinstance(barrier_scale, (int, float)):
         scales = [float(barrier_scale)] * len(CENTERS)
     else:
@@ -226,12 +365,105 @@ def _scales(barrier_scale: float | Sequence[float] | None, gain: float) -> list[
     return scales
 
 
-class _ScaledBarrier(Barrier):
-    """``scale * b(x)``: the same safe set, a rescaled CBF condition."""
+def operating_states(dtype: torch.dtype = torch.float64) -> Tensor:
+    """A grid ``[N, 4]`` over where the robot operates: positions in the obstacle field
+    ``[-2.5, 5] x [-2, 6.5]`` m, speeds ``[-0.5, 3]`` m/s, every heading. The risk-aware
+    noise bound ``eta`` is taken over its safe points."""
+    axes = (
+        torch.linspace(-2.5, 5.0, 31, dtype=dtype),
+        torch.linspace(-2.0, 6.5, 35, dtype=dtype),
+        torch.linspace(-0.5, 3.0, 8, dtype=dtype),
+        torch.linspace(-math.pi, math.pi, 12, dtype=dtype)[:-1],
+    )
+    return torch.cartesian_prod(*axes)
 
-    def __init__(self, barrier: Barrier, scale: float) -> None:
-        super().__init__()
-        self.barrier, self.scale = barrier, scale
 
-    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
-        return self.scale * self.barrier(x)
+def risk_horizon(h0: Tensor, eta: Tensor, rho: float, margin: float) -> float:
+    """The risk-aware horizon ``T``: the largest ``T`` for which the start satisfies
+    ``h_i(x0) >= Delta_i = sqrt(2 T) eta_i erfinv(1 - rho)`` for every barrier (the bound
+    holds only from there), capped where the noise band ``sqrt(2 T) sigma erfinv(1 - rho)``
+    reaches the distance ``margin`` (a longer ``T`` asks for a wider berth than the
+    passages allow)."""
+    z = float(torch.erfinv(torch.tensor(1.0 - rho, dtype=torch.float64)))
+    t_start = float(((h0 / (eta * z)) ** 2 / 2).min())
+    t_band = (margin / (SIGMA * z)) ** 2 / 2
+    return min(t_start, t_band)
+
+
+def risk_failures(h: Tensor, delta: Tensor, window: int) -> dict[str, Tensor]:
+    """Empirical check of the risk-aware bound on the filter's barrier values ``h [B, S, k]``.
+
+    A window starts at every step where ``h_i >= delta_i`` for all ``i`` and spans the next
+    ``window`` steps (the horizon ``T``); it fails if some ``h_i < 0`` inside it. Windows that
+    run past the end are left out.
+
+    Returns (per seed):
+        ``risk_failure_from_start`` (bool): the window from step 0 fails;
+        ``risk_windows``: the number of windows; ``risk_window_failures``: how many fail;
+        ``risk_failure_rate``: their ratio (nan without windows).
+    """
+    B, S, _ = h.shape
+    unsafe = (h < 0).any(-1).to(torch.int64)  # [B, S]
+    eligible = (h >= delta).all(-1)
+    csum = torch.cat([unsafe.new_zeros(B, 1), unsafe.cumsum(-1)], -1)  # [B, S+1]
+    starts = torch.arange(max(S - window, 0), device=h.device)
+    hits = (csum[:, starts + window + 1] - csum[:, starts]) > 0  # unsafe in [j, j + window]
+    valid = eligible[:, : starts.numel()]
+    windows = valid.sum(-1)
+    failures = (hits & valid).sum(-1)
+    first = (csum[:, min(window + 1, S)] > 0) & eligible[:, 0]
+    rate = failures.to(h.dtype) / windows.to(h.dtype)
+    return {
+        "risk_failure_from_start": first,
+        "risk_windows": windows,
+        "risk_window_failures": failures,
+        "risk_failure_rate": torch.where(windows > 0, rate, torch.full_like(rate, math.nan)),
+    }
+
+
+def _risk_aware_filter(
+    plant: AccelUnicycle, model: AccelUnicycle, params: FilterParams
+) -> tuple[SafetyFilter, dict[str, Any]]:
+    """The risk-aware filter on ``h_i = L_f r_i + k r_i`` with ``r_i`` the ellipse radius
+    form (bounded gradient); ``eta_i`` over :func:`operating_states`, ``T`` by
+    :func:`risk_horizon`."""
+    k = params.rectify_gain
+    f64 = copy.deepcopy(plant).double()
+    barriers = [
+        rectify(_EllipseRadius(Ellipse(c, a, index=(0, 1))), model, form="exponential", gains=[k])
+        for c, a in zip(CENTERS, AXES, strict=True)
+    ]
+    barriers64 = [b.to(torch.float64) for b in barriers]
+    grid = operating_states()
+    x0 = torch.tensor(X0, dtype=torch.float64)
+    with torch.enable_grad():
+        eta = torch.stack([noise_bound(b, f64, grid) for b in barriers64])
+    h0 = torch.stack([b(x0) for b in barriers64]).detach()
+    T = params.risk_horizon or risk_horizon(h0, eta, params.rho, params.margin)
+    safety_filter = SafetyFilter(
+        plant,
+        barriers=barriers,
+        mode="risk_aware",
+        rho=params.rho,
+        horizon=T,
+        eta=eta,
+        R=torch.diag(torch.tensor(params.control_weight, dtype=torch.float64)),
+    )
+    margins = safety_filter.cbf_margin.tolist()
+    info = {"risk_horizon": T, "eta": eta.tolist(), "h0": h0.tolist(), "delta": margins}
+    return safety_filter, info
+
+
+def _positive(name: str, value: float) -> float:
+    value = float(value)
+    if not (value > 0 and math.isfinite(value)):
+        raise ValueError(f"{name} must be a positive number, got {value!r}")
+    return value
+
+
+def _pair(name: str, value: float | Sequence[float]) -> tuple[float, float]:
+    """A positive number for both controls ``(a, omega)``, or one per control."""
+    pair = [float(value)] * 2 if isinstance(value, (int, float)) else [float(v) for v in value]
+    if len(pair) != 2 or not all(v > 0 and math.isfinite(v) for v in pair):
+        raise ValueError(f"{name} must be a positive number or two positive numbers, got {value!r}")
+    return (pair[0], pair[1])

@@ -66,6 +66,8 @@ def metrics(
         ``spec_robustness``/``spec_satisfied``, ``steps_{name}`` per status, ``effort``
         (``sum |u|^2 dt``) and ``failed``.
     """
+    if not isinstance(trajectory, Trajectory):
+        raise TypeError(f"trajectory must be a Trajectory, got {type(trajectory).__name__}")
     traj = trajectory
     t = traj.t
     out: dict[str, Tensor] = {"failed": traj.failed}

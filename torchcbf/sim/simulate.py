@@ -60,6 +60,7 @@ def simulate(
     x0: Tensor,
     steps: int,
     dt: float,
+    *,
     planner: Callable[..., Any] | None = None,
     nominal: Callable[..., Tensor] | None = None,
     safety_filter: Callable[..., Any] | None = None,
@@ -68,7 +69,7 @@ def simulate(
     integrator: str = "rk4",
     seed: int | Sequence[int] | Tensor = 0,
     progress: bool = True,
-    *,
+    progress_label: str = "simulate",
     x0_hat: Tensor | None = None,
     P0: Tensor | None = None,
     t0: float = 0.0,
@@ -82,6 +83,10 @@ def simulate(
     Args:
         dynamics: the plant (its diffusion, if any, is simulated with Euler-Maruyama
             whatever ``integrator`` says).
+        integrator: ``"rk4"`` (default), ``"euler"`` or ``"euler_maruyama"``. The plant stands
+            for the real system, so it is integrated accurately; a planner's rollouts are a
+            model of it and trade accuracy for samples (:class:`~torchcbf.mppi.MPPI` rolls out
+            with ``"euler"``), which is why the two defaults differ.
         x0: initial true states ``[B, n]`` (or ``[n]`` for one scenario).
         seed: an int (scenario b uses ``seed + b``) or one seed per scenario ``[B]``; every
             random draw of scenario b depends only on its seed, so a batch equals its rows
@@ -90,6 +95,8 @@ def simulate(
             ``[B, n, n]`` or ``[n, n]`` (default: the sensor's noise level, else ``1e-2 I``).
         planner_every: run the planner every this many steps.
         disturbance: ``w = disturbance(x, t) -> [B, p]`` entering as ``M w``.
+        progress: show a progress bar (steps per second included), labelled
+            ``progress_label``.
         snapshot_steps: steps at which the planner's whole output is kept in
             ``Trajectory.planner``.
         differentiable: keep the autograd graph through the whole loop (to train through
@@ -107,20 +114,21 @@ def simulate(
             x0,
             steps,
             dt,
-            planner,
-            nominal,
-            safety_filter,
-            sensor,
-            estimator,
-            integrator,
-            seed,
-            progress,
-            x0_hat,
-            P0,
-            t0,
-            planner_every,
-            disturbance,
-            snapshot_steps,
+            planner=planner,
+            nominal=nominal,
+            safety_filter=safety_filter,
+            sensor=sensor,
+            estimator=estimator,
+            integrator=integrator,
+            seed=seed,
+            progress=progress,
+            progress_label=progress_label,
+            x0_hat=x0_hat,
+            P0=P0,
+            t0=t0,
+            planner_every=planner_every,
+            disturbance=disturbance,
+            snapshot_steps=snapshot_steps,
         )
 
 
@@ -129,6 +137,7 @@ def _simulate(
     x0: Tensor,
     steps: int,
     dt: float,
+    *,
     planner: Callable[..., Any] | None,
     nominal: Callable[..., Tensor] | None,
     safety_filter: Callable[..., Any] | None,
@@ -137,6 +146,7 @@ def _simulate(
     integrator: str,
     seed: int | Sequence[int] | Tensor,
     progress: bool,
+    progress_label: str,
     x0_hat: Tensor | None,
     P0: Tensor | None,
     t0: float,
@@ -209,7 +219,8 @@ def _simulate(
     plan_out = None
     plan_step = 0
     plan_dt = float(getattr(planner, "dt", dt))
-    for k in tqdm(range(steps), disable=not progress, desc="simulate", leave=False):
+    bar = tqdm(range(steps), disable=not progress, desc=progress_label, unit="step", leave=False)
+    for k in bar:
         tk = t0 + k * dt
         xs[:, k] = x
         if est_state is not None:

@@ -1,15 +1,17 @@
 """Scenario builders by name, and their keyword arguments read from the command line.
 
 A builder's keyword arguments are read from its signature, so a sweep or a search covers
-whatever the builder accepts. A value given as text is converted to the type of the
-argument's default: ``int``, ``float``, ``bool`` (``true``/``false``), ``str``, a tuple
-(``a:b``, e.g. ``control_limit=2:4``) and ``none``.
+whatever the builder accepts. A value given as text is converted to a type the argument's
+annotation admits (or, without one, the type of its default): ``int``, ``float``, ``bool``
+(``true``/``false``), ``str``, a tuple (``a:b``, e.g. ``control_limit=2:4``) and ``none``.
 """
 
 from __future__ import annotations
 
 import inspect
 import math
+import types
+import typing
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -72,32 +74,55 @@ def _literal(text: str) -> Any:
     return text
 
 
-def _coerce(key: str, value: Any, default: Any) -> Any:
-    """``value`` as the type of ``default`` (numbers widen int -> float; None is kept)."""
-    if value is None or default is None:
+def _hint_types(scenario: str, key: str) -> tuple[Any, ...]:
+    """The types the builder's annotation of ``key`` admits (empty without an annotation)."""
+    try:
+        hint = typing.get_type_hints(builder(scenario)).get(key)
+    except (NameError, TypeError):
+        return ()
+    if hint is None:
+        return ()
+    return typing.get_args(hint) if isinstance(hint, types.UnionType) else (hint,)
+
+
+def _is_sequence(kind: Any) -> bool:
+    origin = typing.get_origin(kind) or kind
+    return isinstance(origin, type) and issubclass(origin, (tuple, list, Sequence))
+
+
+def _coerce(key: str, value: Any, default: Any, admitted: tuple[Any, ...]) -> Any:
+    """``value`` as a type the builder admits for ``key``: from its annotation when it has
+    one (``admitted``), else from the type of its default (int widens to float)."""
+    kinds = admitted or ((type(None),) if default is None else (type(default),))
+    if value is None:
+        if type(None) in kinds or default is None:
+            return None
+        raise ValueError(f"{key} does not take none")
+    if isinstance(value, bool):
+        if bool in kinds:
+            return value
+        raise ValueError(f"{key} does not take {value!r}")
+    if isinstance(value, tuple):
+        sequences = [k for k in kinds if _is_sequence(k) and k is not str]
+        if not sequences and not (default is None and not admitted):
+            raise ValueError(f"{key} takes a single value, got {_text(value)!r}")
+        items = typing.get_args(sequences[0]) if sequences else ()
+        if float in items:
+            return tuple(float(v) if isinstance(v, int) else v for v in value)
         return value
-    if isinstance(default, bool):
-        if not isinstance(value, bool):
-            raise ValueError(f"{key} takes true or false, got {value!r}")
+    if isinstance(value, (int, float)):
+        if float in kinds:
+            return float(value)
+        if int in kinds:
+            if isinstance(value, float) and not value.is_integer():
+                raise ValueError(f"{key} takes an integer, got {value!r}")
+            return int(value)
+        if default is None and not admitted:
+            return value
+        raise ValueError(f"{key} does not take a number, got {value!r}")
+    if str in kinds or (default is None and not admitted):
         return value
-    if isinstance(default, int):
-        if isinstance(value, float) and value.is_integer():
-            value = int(value)
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ValueError(f"{key} takes an integer, got {value!r}")
-        return value
-    if isinstance(default, float):
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ValueError(f"{key} takes a number, got {value!r}")
-        return float(value)
-    if isinstance(default, str):
-        return value if isinstance(value, str) else _text(value)
-    if isinstance(default, (tuple, list)):
-        items = value if isinstance(value, tuple) else (value,)
-        if all(isinstance(d, float) for d in default):
-            items = tuple(float(v) if isinstance(v, int) else v for v in items)
-        return items[0] if len(items) == 1 and not isinstance(value, tuple) else tuple(items)
-    return value
+    raise ValueError(f"{key} does not take text, got {value!r}")
 
 
 def _text(value: Any) -> str:
@@ -109,11 +134,11 @@ def _text(value: Any) -> str:
 def parse_value(scenario: str, key: str, text: str) -> Any:
     """The value of ``key`` for the builder of ``scenario``, read from ``text``."""
     check_keys(scenario, [key])
-    value = _literal(text)
     default = builder_defaults(scenario)[key]
-    if isinstance(default, str):
-        return text.strip()
-    return _coerce(key, value, default)
+    admitted = _hint_types(scenario, key)
+    if str in admitted and not ({int, float, bool, type(None)} & set(admitted)):
+        return text.strip()  # a text argument takes the text as it is
+    return _coerce(key, _literal(text), default, admitted)
 
 
 def parse_grid(scenario: str, items: Sequence[str]) -> dict[str, list[Any]]:

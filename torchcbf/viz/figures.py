@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from matplotlib.animation import FuncAnimation, PillowWriter
 from matplotlib.axes import Axes
+from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
@@ -88,6 +89,16 @@ def draw_goals(ax: Axes, goals: Sequence[Any], color: str = "tab:green") -> None
         ax.annotate(text, (c[0] + r, c[1] + r), fontsize=8, color="darkgreen")
 
 
+def axis_labels(index: tuple[int, int], labels: tuple[str, str] | None = None) -> tuple[str, str]:
+    """Axis labels: ``labels`` if given, ``x [m]``/``y [m]`` for the position ``(0, 1)`` (the
+    models' convention), else the state components ``x[i]``."""
+    if labels is not None:
+        return labels
+    if tuple(index) == (0, 1):
+        return ("x [m]", "y [m]")
+    return (f"x[{index[0]}]", f"x[{index[1]}]")
+
+
 def _limits(
     traj_xy: np.ndarray, goals: Sequence[Any], margin: float = 1.0
 ) -> tuple[tuple[float, float], tuple[float, float]]:
@@ -141,8 +152,10 @@ def plot_trajectories(
     color: str | None = None,
     label: str | None = None,
     max_paths: int = 64,
+    labels: tuple[str, str] | None = None,
 ) -> Figure:
-    """Paths of (up to ``max_paths``) scenarios over obstacles and goal regions."""
+    """Paths of (up to ``max_paths``) scenarios over obstacles and goal regions (axis
+    ``labels`` as :func:`axis_labels`)."""
     fig, ax = (ax.figure, ax) if ax is not None else plt.subplots(figsize=(6, 6))
     xy = _np(trajectory.x)[..., list(index)]
     xlim, ylim = _draw_scene(ax, xy, barriers, goals, trajectory.x.shape[-1], index, xlim, ylim)
@@ -159,8 +172,9 @@ def plot_trajectories(
     ax.set_xlim(*xlim)
     ax.set_ylim(*ylim)
     ax.set_aspect("equal")
-    ax.set_xlabel(f"x[{index[0]}]")
-    ax.set_ylabel(f"x[{index[1]}]")
+    xlabel, ylabel = axis_labels(index, labels)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
     if title:
         ax.set_title(title)
     if ax.get_legend_handles_labels()[0]:
@@ -174,7 +188,7 @@ def plot_barrier_values(
     *,
     ax: Axes | None = None,
     title: str = "barrier values",
-    labels: Sequence[str] | None = None,
+    ylabel: str = "min_i h_i(x)",
 ) -> Figure:
     """``h [B, T, k]`` (or ``[B, T]``) over time: the minimum over barriers for each scenario,
     with the batch's minimum in bold and the safety boundary ``h = 0`` dashed."""
@@ -184,11 +198,12 @@ def plot_barrier_values(
         h = h.min(-1)
     t = t[: h.shape[1]]
     for b in range(h.shape[0]):
-        ax.plot(t, h[b], color="tab:blue", alpha=0.3, lw=0.8)
+        label = f"one line per scenario ({h.shape[0]})" if b == 0 else None
+        ax.plot(t, h[b], color="tab:blue", alpha=0.3, lw=0.8, label=label)
     ax.plot(t, h.min(0), color="tab:blue", lw=2.0, label="minimum over scenarios")
-    ax.axhline(0.0, color="tab:red", ls="--", lw=1.0, label="h = 0")
+    ax.axhline(0.0, color="tab:red", ls="--", lw=1.0, label="h = 0 (boundary)")
     ax.set_xlabel("t [s]")
-    ax.set_ylabel("min_i h_i(x)")
+    ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.legend(loc="best", fontsize=8)
     return fig
@@ -222,8 +237,8 @@ def plot_rollouts(
     cmap = plt.get_cmap("viridis")
     for k in np.argsort(w):
         ax.plot(R[k, :, 0], R[k, :, 1], color=cmap(w[k]), lw=0.6, alpha=0.25 + 0.75 * w[k])
-    sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, 1))
-    fig.colorbar(sm, ax=ax, label="weight relative to the largest (log10 / 6 + 1)")
+    sm = plt.cm.ScalarMappable(cmap=cmap, norm=LogNorm(1e-6, 1.0))
+    fig.colorbar(sm, ax=ax, label="sample weight / largest weight")
     if executed is not None:
         E = _np(executed)[..., list(index)]
         ax.plot(E[:, 0], E[:, 1], "k-", lw=2.0, label="executed")
@@ -233,6 +248,9 @@ def plot_rollouts(
     ax.set_xlim(*xlim)
     ax.set_ylim(*ylim)
     ax.set_aspect("equal")
+    xlabel, ylabel = axis_labels(index)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.legend(loc="best", fontsize=8)
     return fig

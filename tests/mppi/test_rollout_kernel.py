@@ -1,0 +1,284 @@
+"""The C kernel of MPPI against the torch implementation: rollouts, every built-in cost term,
+the planner update, batch = loop, seeds, noise statistics and the fallback rule."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchcbf.barriers import Ball, Ellipse
+from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, SingleIntegrator, Unicycle
+from torchcbf.integrators import euler, rk4
+from torchcbf.mppi import (
+    MPPI,
+    BarrierCost,
+    DiscreteBarrierCost,
+    ObstacleCost,
+    QuadraticGoal,
+    Reach,
+    SumCost,
+    _rollout,
+)
+
+pytestmark = pytest.mark.skipif(not _rollout.available(), reason="the C kernel was not built")
+
+SIGMA = torch.tensor([[0.8, 0.3], [0.3, 0.5]], dtype=torch.float64)
+
+
+class Capture(torch.nn.Module):
+    """A torch cost wrapping another: the kernel cannot see through it, and it records the
+    rollouts it is given."""
+
+    def __init__(self, cost):
+        super().__init__()
+        self.inner = cost
+        self.seen = {}
+
+    def forward(self, states, controls, t0):
+        self.seen = {"states": states.clone(), "controls": controls.clone()}
+        return self.inner(states, controls, t0)
+
+
+def _ellipses():
+    centers = torch.tensor([[1.0, 2.0], [3.0, 2.0], [-1.0, 1.0]])
+    axes = torch.tensor([[0.5, 1.5], [0.75, 2.0], [1.0, 0.75]])
+    return Ellipse(centers, axes, index=(0, 1))
+
+
+def _costs(n: int) -> dict[str, object]:
+    goal = QuadraticGoal((2.0, 4.0), weight=2.0, index=(0, 1), terminal_weight=10.0)
+    rotated = Ellipse(
+        torch.tensor([[1.0, 1.0], [0.0, 2.0]]),
+        torch.tensor([[0.6, 0.3], [0.4, 0.9]]),
+        index=(1, 0),
+        angle=torch.tensor([0.4, -1.1]),
+    )
+    balls = Ball(torch.tensor([[1.0, 1.0], [2.5, 3.0]]), torch.tensor([0.5, 0.8]))
+    keep_in = Ball((1.0, 2.0), 6.0, keep_in=True)
+    costs = {
+        "goal": goal,
+        "obstacle": ObstacleCost((1.0, 1.5), 0.4, k_o=0.3, eps=0.01, index=(1, 0)),
+        "ellipses": BarrierCost(_ellipses(), 2.0, 0.01),
+        "rotated+balls": SumCost(BarrierCost(rotated, 1.5, 0.05), BarrierCost(balls, 0.7, 0.02)),
+        "discrete": DiscreteBarrierCost(_ellipses(), gamma=0.3, weight=50.0),
+        "all": SumCost(
+            goal,
+            BarrierCost(_ellipses(), 2.0, 0.01),
+            DiscreteBarrierCost(balls, gamma=0.5, weight=20.0),
+            BarrierCost(keep_in, 0.1, 0.01),
+        ),
+    }
+    if n >= 3:
+        ball3 = Ball((1.0, 0.5, 2.0), 0.7, index=(0, 1, 2))
+        costs["ball3d"] = goal + BarrierCost(ball3, 1.0, 0.01)
+    return costs
+
+
+MODELS = {
+    "single": lambda: SingleIntegrator(2),
+    "double3": lambda: DoubleIntegrator(3),
+    "unicycle": lambda: Unicycle(),
+    "accel": lambda: AccelUnicycle(),
+}
+
+
+def _x0(dyn, B, dtype):
+    x = torch.zeros(B, dyn.state_dim, dtype=dtype)
+    x[:, 0] = 0.2 * torch.arange(B, dtype=dtype) - 0.3
+    x[:, 1] = 0.1
+    if isinstance(dyn, AccelUnicycle):
+        x[:, 2], x[:, 3] = 0.5, math.pi / 4
+    if isinstance(dyn, Unicycle):
+        x[:, 2] = 0.7
+    return x
+
+
+def _pair(dyn, cost, dtype, *, limits=True, integrator="euler", B=2, K=96, H=7, **kw):
+    opts = dict(integrator=integrator, keep_rollouts=5, seed=11, **kw)
+    if limits:
+        opts.update(u_min=torch.tensor([-1.5, -2.0]), u_max=torch.tensor([2.0, 1.0]))
+        if dyn.control_dim == 3:
+            opts.update(u_min=-1.5, u_max=1.0)
+    m = dyn.control_dim
+    cov = SIGMA if m == 2 else 0.6 * torch.eye(m, dtype=torch.float64) + 0.1
+    temp = 50.0 if dtype == torch.float32 else 2.0
+    fused = MPPI(dyn, cost, H, K, 0.05, cov, temp, 0.2, **opts).to(dtype)
+    capture = Capture(cost)
+    reference = MPPI(dyn, capture, H, K, 0.05, cov, temp, 0.2, **opts).to(dtype)
+    return fused, reference, capture, _x0(dyn, B, dtype)
+
+
+@pytest.mark.parametrize("model", sorted(MODELS))
+@pytest.mark.parametrize("integrator", ["euler", "rk4"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_fused_equals_torch_cost(model, integrator, dtype):
+    """Every cost term, fused in the kernel, against its torch implementation on the same
+    samples; the kernel's rollouts against torchcbf.integrators."""
+    dyn = MODELS[model]()
+    tol = dict(rtol=1e-12, atol=1e-12) if dtype == torch.float64 else dict(rtol=1e-5, atol=1e-5)
+    for name, cost in _costs(dyn.state_dim).items():
+        fused, reference, capture, x = _pair(dyn, cost, dtype, integrator=integrator)
+        for shift in (True, False):  # the second call has a non-zero plan (control cost)
+            a, b = fused(x, shift=shift), reference(x, shift=shift)
+            assert fused.path == "fused" and reference.path == "rollout", name
+            for field in ("plan", "cost_min", "cost_mean", "ess", "best_states", "rollouts"):
+                torch.testing.assert_close(
+                    getattr(a, field), getattr(b, field), **tol, msg=f"{name}: {field}"
+                )
+            assert torch.equal(a.nonfinite, b.nonfinite)
+        # the kernel's rollout of the recorded controls equals torchcbf.integrators'
+        states, controls = capture.seen["states"], capture.seen["controls"]
+        step = euler if integrator == "euler" else rk4
+        ref = [states[:, :, 0]]
+        for j in range(controls.shape[2]):
+            ref.append(step(dyn, ref[-1], controls[:, :, j], 0.05))
+        torch.testing.assert_close(states, torch.stack(ref, 2), **tol)
+
+
+def test_update_matches_direct_formula():
+    """The fused update against the MPPI formulas on the kernel's own noise (float64)."""
+    dyn = AccelUnicycle()
+    cost = SumCost(
+        QuadraticGoal((2.0, 4.0), 2.0, (0, 1), 10.0), BarrierCost(_ellipses(), 2.0, 0.01)
+    )
+    fused, reference, capture, x = _pair(dyn, cost, torch.float64, B=1, K=200)
+    fused(x)
+    reference(x)
+    plan0 = fused(x, shift=False).plan
+    reference(x, shift=False)
+    out = fused(x)
+    reference(x)
+    states, v = capture.seen["states"][0], capture.seen["controls"][0]
+    shifted = torch.cat([plan0[0, 1:], torch.zeros(1, 2, dtype=torch.float64)])
+    eps = v - shifted
+    S = cost(states[None], v[None], None)[0]
+    S = S + 0.2 * torch.einsum("hm,mn,khn->k", shifted, torch.linalg.inv(SIGMA), eps)
+    w = torch.softmax(-S / 2.0, 0)
+    lo, hi = torch.tensor([-1.5, -2.0]), torch.tensor([2.0, 1.0])
+    plan = (shifted + torch.einsum("k,khm->hm", w, eps)).clamp(lo.double(), hi.double())
+    torch.testing.assert_close(out.plan[0], plan, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(out.cost_min[0], S.min(), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(out.best_states[0], states[S.argmin()], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(out.rollouts[0], states[:5], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(out.rollout_weights[0], w[:5], rtol=1e-10, atol=1e-14)
+
+
+def test_batch_equals_loop_and_seeds_repeat():
+    dyn = AccelUnicycle(u_min=-3.0, u_max=3.0)
+    cost = QuadraticGoal((2.0, 4.0), 2.0, (0, 1), 10.0) + BarrierCost(_ellipses(), 2.0, 0.01)
+    x = _x0(dyn, 3, torch.float32)
+    batched = MPPI(dyn, cost, 10, 300, 0.02, 4.0, 0.03, 0.1, seed=5)
+    singles = [MPPI(dyn, cost, 10, 300, 0.02, 4.0, 0.03, 0.1, seed=5 + b) for b in range(3)]
+    again = MPPI(dyn, cost, 10, 300, 0.02, 4.0, 0.03, 0.1, seed=5)
+    first = None
+    for _ in range(3):
+        out = batched(x)
+        assert batched.path == "fused"
+        assert torch.equal(again(x).plan, out.plan)  # a seed repeats exactly
+        first = out.plan if first is None else first
+        for b in range(3):
+            one = singles[b](x[b])
+            assert torch.equal(out.plan[b], one.plan)
+            assert torch.equal(out.best_states[b], one.best_states)
+    batched.reset()
+    assert torch.equal(batched(x).plan, first)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_kernel_noise_statistics(dtype):
+    """Zero-mean noise with covariance Sigma, independent over steps; zero-noise samples."""
+    K, H = 20000, 3
+    cost = Capture(QuadraticGoal((0.0, 0.0)))
+    planner = MPPI(SingleIntegrator(2), cost, H, K, 0.1, SIGMA, 1.0, zero_noise_samples=4)
+    planner(torch.zeros(2, dtype=dtype))
+    assert planner.path == "rollout"
+    eps = cost.seen["controls"][0].double()  # the first plan is zero
+    assert torch.equal(eps[:4], torch.zeros_like(eps[:4]))
+    eps = eps[4:]
+    flat = eps.reshape(-1, 2)
+    torch.testing.assert_close(flat.mean(0), torch.zeros(2, dtype=torch.float64), atol=0.02, rtol=0)
+    torch.testing.assert_close(flat.T.cov(), SIGMA, atol=0.03, rtol=0)
+    # steps are uncorrelated, and so are neighbouring samples
+    corr = torch.corrcoef(torch.stack([eps[:-1, 0, 0], eps[:-1, 1, 0], eps[1:, 0, 0]]))
+    assert float(corr[0, 1].abs()) < 0.03 and float(corr[0, 2].abs()) < 0.03
+    z = eps[:, :, 0] / SIGMA[0, 0].sqrt()  # standard normal: tail mass as expected
+    assert abs(float((z.abs() > 2).double().mean()) - 0.0455) < 0.005
+
+
+def test_fallback_rule():
+    x = torch.tensor([0.0, 0.0, 0.0, 0.3])
+    goal = QuadraticGoal((2.0, 4.0), 2.0, (0, 1))
+
+    class MyUnicycle(AccelUnicycle):
+        def _xdot(self, x, u):
+            return 0.5 * super()._xdot(x, u)
+
+    def user_cost(states, controls, t0):
+        return ((states[..., :2] - 1.0) ** 2).sum((-1, -2))
+
+    cases = [
+        (MPPI(AccelUnicycle(), goal, 5, 32, 0.1, 1.0, 1.0), "fused"),
+        (MPPI(MyUnicycle(), goal, 5, 32, 0.1, 1.0, 1.0), "torch"),
+        (MPPI(AccelUnicycle(), user_cost, 5, 32, 0.1, 1.0, 1.0), "rollout"),
+        (MPPI(AccelUnicycle(), goal + user_cost, 5, 32, 0.1, 1.0, 1.0), "rollout"),
+        (MPPI(AccelUnicycle(), goal, 5, 32, 0.1, 1.0, 1.0, backend="torch"), "torch"),
+        (
+            MPPI(SingleIntegrator(2), Reach((1.0, 0.0), 0.2, (0.0, 0.5)), 5, 16, 0.1, 1.0, 1.0),
+            "rollout",
+        ),
+        (
+            MPPI(AccelUnicycle(), BarrierCost(lambda s: s[..., 0] + 2.0), 5, 32, 0.1, 1.0, 1.0),
+            "rollout",
+        ),
+    ]
+    for planner, path in cases:
+        xs = x[:2] if isinstance(planner.dynamics, SingleIntegrator) else x
+        out = planner(xs)
+        assert planner.path == path
+        assert torch.isfinite(out.plan).all()
+    # a learnable barrier with gradients enabled runs in torch; without gradients it fuses
+    learn = Ellipse((1.0, 2.0), (0.5, 1.5), learnable=True)
+    planner = MPPI(AccelUnicycle(), BarrierCost(learn), 5, 32, 0.1, 1.0, 1.0)
+    planner(x)
+    assert planner.path == "torch"
+    with torch.no_grad():
+        planner(x)
+    assert planner.path == "fused"
+
+
+def test_nonfinite_samples_are_counted():
+    """-inf, +inf and NaN costs get weight zero and are counted."""
+    dyn = SingleIntegrator(2)
+
+    def cost(states, controls, t0):
+        c = states[..., -1, 0].clone()
+        c[..., :3] = -math.inf
+        c[..., 3] = math.nan
+        c[..., 4] = math.inf
+        return c
+
+    planner = MPPI(dyn, cost, 4, 16, 0.1, 1.0, 1.0)
+    out = planner(torch.zeros(2))
+    assert int(out.nonfinite) == 5 and int(out.status) == 0
+    assert torch.isfinite(out.plan).all()
+
+
+def test_threads_do_not_change_results():
+    dyn = AccelUnicycle()
+    cost = QuadraticGoal((2.0, 4.0), 2.0, (0, 1), 10.0) + BarrierCost(_ellipses(), 2.0, 0.01)
+    x = _x0(dyn, 3, torch.float32)
+    threads = torch.get_num_threads()
+    plans = []
+    try:
+        for n in (1, 3):
+            torch.set_num_threads(n)
+            planner = MPPI(dyn, cost, 8, 1500, 0.02, 4.0, 1.0, 0.1, cost_normalization="std")
+            planner(x)
+            out = planner(x)
+            assert int((out.ess > 100).sum()) == 3  # many samples in the update pass
+            plans.append(out.plan)
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(plans[0], plans[1])

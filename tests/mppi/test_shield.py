@@ -1,0 +1,114 @@
+"""ShieldMPPI, MPPI.correct and DiscreteBarrierCost against hand-written references."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchcbf.barriers import Ball, Ellipse
+from torchcbf.dynamics import SingleIntegrator
+from torchcbf.filters import SafetyFilter
+from torchcbf.mppi import MPPI, BarrierCost, DiscreteBarrierCost, QuadraticGoal, ShieldMPPI, SumCost
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_discrete_barrier_cost_matches_a_loop(dtype: torch.dtype) -> None:
+    gen = torch.Generator().manual_seed(0)
+    ellipses = Ellipse(
+        torch.tensor([[1.0, 0.0], [0.0, 2.0]]), torch.tensor([[0.5, 1.0], [1.0, 0.3]])
+    )
+    ellipses = ellipses.to(dtype)
+    states = torch.randn(2, 3, 6, 2, generator=gen, dtype=dtype) * 2
+    cost = DiscreteBarrierCost(ellipses, gamma=0.3, weight=7.0)(states, states[..., :5, :])
+    expected = torch.zeros(2, 3, dtype=dtype)
+    for b in range(2):
+        for k in range(3):
+            for j in range(5):
+                for i in range(2):
+                    now = ellipses(states[b, k, j])[i]
+                    nxt = ellipses(states[b, k, j + 1])[i]
+                    expected[b, k] += 7.0 * max(0.7 * float(now) - float(nxt), 0.0)
+    tol = 1e-12 if dtype == torch.float64 else 1e-4
+    torch.testing.assert_close(cost, expected, rtol=tol, atol=tol)
+
+
+def test_discrete_barrier_cost_one_output_barrier_and_errors() -> None:
+    ball = Ball([0.0, 0.0], 1.0)
+    states = torch.tensor([[[[2.0, 0.0], [1.5, 0.0], [1.5, 0.0]]]])  # b: 3, 1.25, 1.25
+    cost = DiscreteBarrierCost(ball, gamma=0.5, weight=2.0)(states, states[..., :2, :])
+    torch.testing.assert_close(cost, torch.tensor([[2.0 * (1.5 - 1.25)]]))
+    for bad in (0.0, 1.5, -0.1):
+        with pytest.raises(ValueError, match="gamma"):
+            DiscreteBarrierCost(ball, gamma=bad, weight=1.0)
+    with pytest.raises(ValueError, match="weight"):
+        DiscreteBarrierCost(ball, gamma=0.5, weight=-1.0)
+    with pytest.raises(TypeError, match="barrier"):
+        DiscreteBarrierCost(3.0, gamma=0.5, weight=1.0)  # type: ignore[arg-type]
+
+
+def test_barrier_cost_sums_the_outputs_of_a_multi_output_barrier() -> None:
+    centers, radii = torch.tensor([[1.0, 0.0], [0.0, 2.0]]), torch.tensor([0.5, 0.3])
+    stacked = BarrierCost(Ball(centers, radii), weight=2.0, eps=0.01)
+    singles = [
+        BarrierCost(Ball(c, r), weight=2.0, eps=0.01) for c, r in zip(centers, radii, strict=True)
+    ]
+    states = torch.randn(2, 4, 7, 2, generator=torch.Generator().manual_seed(1))
+    controls = torch.zeros(2, 4, 6, 2)
+    torch.testing.assert_close(
+        stacked(states, controls), singles[0](states, controls) + singles[1](states, controls)
+    )
+
+
+def _planner(seed: int = 0) -> MPPI:
+    cost = QuadraticGoal([2.0, 0.0], weight=1.0, terminal_weight=5.0)
+    return MPPI(
+        SingleIntegrator(2),
+        cost,
+        horizon=6,
+        num_samples=64,
+        dt=0.1,
+        noise_sigma=1.0,
+        temperature=0.1,
+        seed=seed,
+    ).double()
+
+
+def test_correct_replaces_the_first_control_of_the_plan() -> None:
+    planner = _planner()
+    with pytest.raises(ValueError, match="call the planner first"):
+        planner.correct(torch.zeros(2, dtype=torch.float64))
+    x = torch.zeros(3, 2, dtype=torch.float64)
+    out = planner(x)
+    u = torch.tensor([[0.1, -0.2], [0.3, 0.4], [0.0, 0.0]], dtype=torch.float64)
+    planner.correct(u)
+    torch.testing.assert_close(planner._plan[:, 0], u)
+    torch.testing.assert_close(planner._plan[:, 1:], out.plan[:, 1:])
+    with pytest.raises(ValueError, match="u must have shape"):
+        planner.correct(torch.zeros(2, 2, dtype=torch.float64))
+
+
+def test_shield_mppi_filters_and_feeds_back() -> None:
+    dyn = SingleIntegrator(2).double()
+    ball = Ball([1.0, 0.0], 0.5).double()
+    filt = SafetyFilter(dyn, [ball], alpha=1.0).double()
+    cost = SumCost(
+        QuadraticGoal([2.0, 0.0], weight=1.0), DiscreteBarrierCost(ball, gamma=0.2, weight=1e3)
+    )
+    planner = MPPI(
+        dyn, cost, horizon=6, num_samples=64, dt=0.1, noise_sigma=1.0, temperature=0.1, seed=0
+    ).double()
+    reference = MPPI(
+        dyn, cost, horizon=6, num_samples=64, dt=0.1, noise_sigma=1.0, temperature=0.1, seed=0
+    ).double()
+    shield = ShieldMPPI(planner, filt)
+    x = torch.tensor([[0.45, 0.0], [-1.0, 0.5]], dtype=torch.float64)
+    out = shield(x, 0.0)
+    raw = reference(x, 0.0)
+    expected = filt(x, raw.u, 0.0).u
+    torch.testing.assert_close(out.u, expected)
+    torch.testing.assert_close(out.plan[:, 0], expected)
+    torch.testing.assert_close(out.plan[:, 1:], raw.plan[:, 1:])
+    torch.testing.assert_close(planner._plan[:, 0], expected)
+    assert shield.dt == planner.dt
+    with pytest.raises(TypeError, match="planner"):
+        ShieldMPPI(filt, filt)  # type: ignore[arg-type]

@@ -1,0 +1,377 @@
+"""CPU fast path of MPPI: the C kernel ``_rollout_kernel.c`` (noise, rollout, built-in costs).
+
+The kernel is built at install time when a C compiler is present (``setup.py``) and called
+through :mod:`ctypes` (which releases the GIL, so the samples are split over
+``torch.get_num_threads()`` threads). :func:`encode_model` and :func:`encode_cost` translate
+a built-in model and cost into the kernel's configuration, or return ``None`` when the kernel
+cannot evaluate them (the planner then uses torch for that part).
+
+Noise: sample ``k``, step ``j`` and component pair ``q`` of environment ``b`` get the
+standard normals of one Box-Muller pair computed from ``mix64(key_b + (c + 1) * golden)``
+with the counter ``c = (k * H + j) * ceil(m / 2) + q``; ``key_b`` is drawn from environment
+``b``'s ``torch.Generator`` once per planning call. The noise of any sample can therefore be
+regenerated (the update pass and the re-rolled best sample do) without storing it.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import importlib.machinery
+import logging
+import os
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+from torchcbf.barriers import Ball, Ellipse
+from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, SingleIntegrator, Unicycle
+
+logger = logging.getLogger(__name__)
+
+#: ``KERNEL_VERSION`` of the C source this module calls
+KERNEL_VERSION = 1
+#: limits of the kernel (``NMAX``, ``MMAX``, ``DMAX``, ``TMAX``, ``SMAX`` in the C source)
+MAX_STATE, MAX_CONTROL, MAX_DIM, MAX_TERMS, MAX_SHAPES = 8, 4, 4, 16, 32
+_HDR, _TREC, _SREC = 16, 16, 20
+#: fewest samples a thread is given
+MIN_SAMPLES_PER_THREAD = 256
+
+MODEL_SINGLE, MODEL_DOUBLE, MODEL_UNICYCLE, MODEL_ACCEL_UNICYCLE = 0, 1, 2, 3
+TERM_GOAL, TERM_OBSTACLE, TERM_BARRIER, TERM_DISCRETE_BARRIER = 0, 1, 2, 3
+SHAPE_ELLIPSE, SHAPE_BALL = 0, 1
+INTEGRATOR_CODES = {"euler": 0, "rk4": 1}
+
+_P = ctypes.c_void_p
+_I64 = ctypes.c_int64
+_RUN_ARGS = [_P, _I64, _I64] + [_P] * 11
+
+
+@functools.lru_cache(maxsize=1)
+def _library() -> ctypes.CDLL | None:
+    here = Path(__file__).parent
+    for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+        path = here / f"_rollout_kernel{suffix}"
+        if not path.exists():
+            continue
+        try:
+            lib = ctypes.CDLL(str(path))
+        except OSError as err:
+            logger.warning("torchcbf: cannot load %s (%s); MPPI runs in torch", path, err)
+            return None
+        version = getattr(lib, "torchcbf_mppi_version", None)
+        if version is None or version() != KERNEL_VERSION:
+            logger.warning(
+                "torchcbf: %s was built from another version of _rollout_kernel.c; MPPI runs "
+                "in torch (reinstall to rebuild it)",
+                path,
+            )
+            return None
+        for name in ("torchcbf_mppi_run_f32", "torchcbf_mppi_run_f64"):
+            fn = getattr(lib, name)
+            fn.argtypes = _RUN_ARGS
+            fn.restype = ctypes.c_int
+        return lib
+    return None
+
+
+def available() -> bool:
+    """Whether the C kernel was built and loads."""
+    return _library() is not None
+
+
+def lanes() -> int:
+    """Samples per block of the kernel."""
+    lib = _library()
+    return 64 if lib is None else int(lib.torchcbf_mppi_lanes())
+
+
+# -- configuration ---------------------------------------------------------------------------
+def encode_model(dynamics: nn.Module) -> tuple[int, int] | None:
+    """``(model code, dim)`` of a built-in model (exact class, so an override of its
+    dynamics in a subclass is honoured by the torch path), or ``None``."""
+    kind = type(dynamics)
+    if kind is SingleIntegrator:
+        code, dim = MODEL_SINGLE, dynamics.state_dim
+    elif kind is DoubleIntegrator:
+        code, dim = MODEL_DOUBLE, dynamics.control_dim
+    elif kind is Unicycle:
+        code, dim = MODEL_UNICYCLE, 0
+    elif kind is AccelUnicycle:
+        code, dim = MODEL_ACCEL_UNICYCLE, 0
+    else:
+        return None
+    if dynamics.state_dim > MAX_STATE or dynamics.control_dim > MAX_CONTROL:
+        return None
+    return code, dim
+
+
+def _values(t: Tensor) -> list[float]:
+    return [float(v) for v in t.detach().reshape(-1).tolist()]
+
+
+def _shape_records(barrier: object) -> list[list[float]] | None:
+    """Kernel records of an :class:`Ellipse` or :class:`Ball` barrier (one per output)."""
+    kind = type(barrier)
+    if kind not in (Ellipse, Ball) or getattr(barrier, "time_varying", False):
+        return None
+    # the shapes expose no public accessor for their state components
+    index = tuple(barrier._sel.index)
+    center = barrier.center.detach()
+    d = center.shape[-1]
+    if d > MAX_DIM or len(index) != d:
+        return None
+    centers = center.reshape(-1, d)
+    k = centers.shape[0]
+    sign = -1.0 if barrier.keep_in else 1.0
+    if kind is Ellipse:
+        axes = barrier.axes.detach().reshape(-1, d)
+        angle = barrier.angle
+        angles = None if angle is None else _values(angle.expand(k) if angle.dim() == 0 else angle)
+        radius = [0.0] * k
+        code = SHAPE_ELLIPSE
+    else:
+        axes = torch.ones_like(centers)
+        r = barrier.radius.detach()
+        radius = _values(r.expand(k) if r.dim() == 0 else r)
+        angles = None
+        code = SHAPE_BALL
+    records = []
+    for j in range(k):
+        rec = [0.0] * _SREC
+        rec[0], rec[1] = code, d
+        c, a = _values(centers[j]), _values(axes[j])
+        for i in range(d):
+            rec[2 + i], rec[6 + i], rec[10 + i] = index[i], c[i], a[i]
+        rec[14], rec[15] = radius[j], sign
+        if angles is not None:
+            rec[16], rec[17] = 1.0, angles[j]
+        records.append(rec)
+    return records
+
+
+def _term(kind: int, weight: float, extra: float, eps: float) -> list[float]:
+    rec = [0.0] * _TREC
+    rec[0], rec[1], rec[2], rec[3] = kind, weight, extra, eps
+    return rec
+
+
+def _point_term(rec: list[float], index: object, point: Tensor) -> list[float] | None:
+    idx = list(range(index.start, index.stop)) if isinstance(index, slice) else list(index)
+    if len(idx) > MAX_DIM:
+        return None
+    rec[4] = len(idx)
+    for i, (at, c) in enumerate(zip(idx, _values(point), strict=True)):
+        rec[5 + i], rec[9 + i] = at, c
+    return rec
+
+
+def encode_cost(cost: object, state_dim: int) -> tuple[list[list[float]], list[list[float]]] | None:
+    """``(term records, shape records)`` of a cost built from the built-in terms
+    (:class:`QuadraticGoal`, :class:`ObstacleCost`, :class:`BarrierCost` and
+    :class:`DiscreteBarrierCost` over :class:`Ellipse`/:class:`Ball` barriers, and
+    :class:`SumCost` of them), or ``None``."""
+    from torchcbf.mppi.costs import (
+        BarrierCost,
+        DiscreteBarrierCost,
+        ObstacleCost,
+        QuadraticGoal,
+        SumCost,
+    )
+
+    if type(cost) is SumCost:
+        parts = cost.stepwise_terms + cost.whole_terms
+        if not parts or len(parts) != len(cost.stepwise_terms) + len(cost.whole_terms):
+            return None
+    else:
+        parts = [cost]
+    terms: list[list[float]] = []
+    shapes: list[list[float]] = []
+    for part in parts:
+        kind = type(part)
+        if kind is QuadraticGoal:
+            rec = _point_term(
+                _term(TERM_GOAL, part.weight, part.terminal_weight, 0.0), part.index, part.goal
+            )
+        elif kind is ObstacleCost:
+            rec = _point_term(
+                _term(TERM_OBSTACLE, 0.0, part.k_o, part.eps), part.index, part.center
+            )
+            if rec is not None:
+                rec[13] = part.radius
+        elif kind in (BarrierCost, DiscreteBarrierCost):
+            recs = _shape_records(part.barrier)
+            if recs is None:
+                return None
+            if kind is BarrierCost:
+                rec = _term(TERM_BARRIER, part.weight, 0.0, part.eps)
+            else:
+                rec = _term(TERM_DISCRETE_BARRIER, part.weight, part.gamma, 0.0)
+            rec[14], rec[15] = len(shapes), len(recs)
+            shapes.extend(recs)
+        else:
+            return None
+        if rec is None:
+            return None
+        terms.append(rec)
+    for rec in shapes:
+        if any(int(rec[2 + i]) >= state_dim for i in range(int(rec[1]))):
+            return None
+    if len(terms) > MAX_TERMS or len(shapes) > MAX_SHAPES:
+        return None
+    return terms, shapes
+
+
+def configuration(
+    model: tuple[int, int],
+    integrator: str,
+    n: int,
+    m: int,
+    horizon: int,
+    num_samples: int,
+    zero_noise: int,
+    u_min: Tensor | None,
+    u_max: Tensor | None,
+    chol: Tensor,
+    dt: float,
+    gamma: float,
+    cost: tuple[list[list[float]], list[list[float]]] | None,
+) -> Tensor:
+    """The kernel's float64 configuration vector (layout in ``_rollout_kernel.c``)."""
+    terms, shapes = cost if cost is not None else ([], [])
+    head = [0.0] * _HDR
+    head[:15] = [
+        KERNEL_VERSION,
+        model[0],
+        INTEGRATOR_CODES[integrator],
+        n,
+        m,
+        horizon,
+        num_samples,
+        model[1],
+        zero_noise,
+        float(u_min is not None),
+        float(u_max is not None),
+        len(terms),
+        len(shapes),
+        dt,
+        gamma,
+    ]
+    lo = [0.0] * MAX_CONTROL
+    hi = [0.0] * MAX_CONTROL
+    if u_min is not None:
+        lo[:m] = _values(u_min)
+    if u_max is not None:
+        hi[:m] = _values(u_max)
+    L = [0.0] * (MAX_CONTROL * MAX_CONTROL)
+    c = _values(chol)
+    for i in range(m):
+        for j in range(m):
+            L[i * MAX_CONTROL + j] = c[i * m + j]
+    flat = head + lo + hi + L
+    for rec in terms + shapes:
+        flat.extend(rec)
+    return torch.tensor(flat, dtype=torch.float64)
+
+
+# -- calls -----------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=8)
+def _pool(threads: int, pid: int) -> ThreadPoolExecutor:
+    # keyed by process id: a forked child inherits the pool object but not its threads
+    return ThreadPoolExecutor(threads, thread_name_prefix="torchcbf-mppi")
+
+
+def _ptr(t: Tensor | None) -> int | None:
+    return None if t is None else t.data_ptr()
+
+
+def run(
+    cfg: Tensor,
+    count: int,
+    x0: Tensor,
+    plan: Tensor,
+    keys: Tensor,
+    *,
+    pairs: Tensor | None = None,
+    wctrl: Tensor | None = None,
+    cost: Tensor | None = None,
+    states: Tensor | None = None,
+    controls: Tensor | None = None,
+    eps: Tensor | None = None,
+    weights: Tensor | None = None,
+    wsum: Tensor | None = None,
+) -> None:
+    """Run the kernel on samples ``0..count`` (``pairs [count, 2]`` of ``(b, k)``, or every
+    ``(b, k)`` in order when ``None``), writing the requested outputs (see the C source).
+
+    All tensors are C-contiguous CPU tensors of the rollout dtype (``keys``, ``pairs``:
+    int64; ``wsum``: ``[T, B, H, m]`` float64 with one slice per thread, summed by the
+    caller). ``x0 [B, n]``, ``plan`` and ``wctrl [B, H, m]``, ``cost`` and ``weights
+    [count]``, ``states [count, H+1, n]``, ``controls`` and ``eps [count, H, m]``.
+    """
+    lib = _library()
+    if lib is None:
+        raise RuntimeError("torchcbf: the MPPI kernel was not built (no C compiler at install)")
+    fn = lib.torchcbf_mppi_run_f64 if x0.dtype == torch.float64 else lib.torchcbf_mppi_run_f32
+    inputs = [None if t is None else t.contiguous() for t in (pairs, x0, plan, wctrl, keys)]
+    weights = None if weights is None else weights.contiguous()
+    for name, t in (("cost", cost), ("states", states), ("controls", controls), ("eps", eps)):
+        if t is not None and not t.is_contiguous():
+            raise ValueError(f"{name} must be contiguous")
+    if wsum is not None and not (wsum.is_contiguous() and wsum.dtype == torch.float64):
+        raise ValueError("wsum must be a contiguous float64 tensor")
+    threads = 1 if wsum is None else wsum.shape[0]
+    if wsum is None:
+        threads = max(1, min(torch.get_num_threads(), count // MIN_SAMPLES_PER_THREAD))
+    bounds = [count * i // threads for i in range(threads + 1)]
+    if wsum is not None and inputs[0] is not None and threads > 1:
+        # each environment's weighted sum is accumulated by one thread, in sample order, so
+        # the result does not depend on the number of threads
+        envs = inputs[0][:, 0]
+        envs = envs.contiguous()
+        cut = torch.searchsorted(envs, envs[torch.tensor(bounds[1:-1])], side="left").tolist()
+        bounds = [0, *cut, count]
+    common = [_ptr(t) for t in inputs]
+    outs = [_ptr(cost), _ptr(states), _ptr(controls), _ptr(eps), _ptr(weights)]
+    cfg_ptr = cfg.data_ptr()
+
+    def call(i: int) -> int:
+        part = None if wsum is None else wsum[i].data_ptr()
+        return fn(cfg_ptr, bounds[i], bounds[i + 1], *common, *outs, part)
+
+    if threads == 1:
+        codes = [call(0)]
+    else:
+        codes = list(_pool(threads, os.getpid()).map(call, range(threads)))
+    bad = [c for c in codes if c != 0]
+    if bad:
+        raise RuntimeError(f"torchcbf: the MPPI kernel refused its configuration (code {bad[0]})")
+
+
+def update_threads(count: int) -> int:
+    """Threads of an update pass over ``count`` samples."""
+    return max(1, min(torch.get_num_threads(), count // MIN_SAMPLES_PER_THREAD))
+
+
+def draw_keys(generators: list[torch.Generator]) -> Tensor:
+    """One 63-bit noise key per environment ``[B]`` (int64, CPU) from its generator."""
+    high = 2**63 - 1
+    return torch.cat([torch.randint(0, high, (1,), generator=g) for g in generators])
+
+
+def noise(
+    cfg: Tensor,
+    x0: Tensor,
+    plan: Tensor,
+    keys: Tensor,
+    num_samples: int,
+) -> tuple[Tensor, Tensor]:
+    """``(eps, controls)`` ``[B, K, H, m]`` of the samples as the kernel draws them (clamped
+    noise and controls), for tests and for a torch cost."""
+    B, H, m = plan.shape
+    eps = plan.new_empty(B * num_samples, H, m)
+    controls = plan.new_empty(B * num_samples, H, m)
+    run(cfg, B * num_samples, x0, plan, keys, controls=controls, eps=eps)
+    return eps.view(B, num_samples, H, m), controls.view(B, num_samples, H, m)

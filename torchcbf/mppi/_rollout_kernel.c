@@ -1,0 +1,184 @@
+/*
+ * Fused MPPI rollouts on the CPU (loaded through ctypes by torchcbf/mppi/_rollout.py).
+ *
+ * For a block of up to LANES samples of one environment the kernel generates the Gaussian
+ * control noise (counter-based: a hash of the environment's key and the sample, step and
+ * component indices, then Box-Muller), applies the Cholesky factor of the noise covariance,
+ * clamps the controls to the limits, integrates a built-in model (euler or rk4) and
+ * accumulates the built-in cost terms and the control cost, without storing the rollout.
+ * State, control and noise rows are optional outputs (the planner asks for them when a
+ * torch cost scores the rollouts, and to re-roll the best sample); a weighted sum of the
+ * noise is the output of the update pass. The torch implementation in planner.py and
+ * costs.py is the reference for every formula here.
+ *
+ * Lanes are stored component-major (x[i][lane]) so that every inner loop runs over the
+ * lanes and vectorises; on glibc/x86-64 the transcendental functions are declared with
+ * their libmvec vector variants and the hot function is compiled for AVX-512, AVX2 and the
+ * baseline (target_clones), picked at load time.
+ *
+ * The body is written once in _rollout_kernel.h and included for float and for double.
+ */
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* Bumped whenever an exported signature or the meaning of the configuration changes;
+ * _rollout.py refuses a built library of another version. */
+#define KERNEL_VERSION 1
+
+#define LANES 64
+#define NMAX 8
+#define MMAX 4
+#define DMAX 4
+#define TMAX 16
+#define SMAX 32
+
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__GLIBC__) && \
+    !defined(__FAST_MATH__)
+/* glibc ships vector variants of these in libmvec; declaring them lets gcc vectorise the
+ * lane loops that call them (math.h declares them only under -ffast-math). */
+extern float sinf(float) __attribute__((simd("notinbranch")));
+extern float cosf(float) __attribute__((simd("notinbranch")));
+extern float logf(float) __attribute__((simd("notinbranch")));
+extern double sin(double) __attribute__((simd("notinbranch")));
+extern double cos(double) __attribute__((simd("notinbranch")));
+extern double log(double) __attribute__((simd("notinbranch")));
+#define CLONES __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
+#else
+#define CLONES
+#endif
+
+int torchcbf_mppi_version(void) { return KERNEL_VERSION; }
+int torchcbf_mppi_lanes(void) { return LANES; }
+
+/* models and integrators (codes shared with _rollout.py) */
+enum { M_SINGLE = 0, M_DOUBLE = 1, M_UNICYCLE = 2, M_ACCEL_UNICYCLE = 3 };
+enum { I_EULER = 0, I_RK4 = 1 };
+/* cost terms */
+enum { T_GOAL = 0, T_OBSTACLE = 1, T_BARRIER = 2, T_DISCRETE_BARRIER = 3 };
+/* shapes */
+enum { S_ELLIPSE = 0, S_BALL = 1 };
+
+/* Configuration layout (float64 array, see _rollout.py):
+ *   header  [0..HDR): version, model, integrator, n, m, H, K, dim, zero_noise, has_lo,
+ *                     has_hi, nterms, nshapes, dt, gamma, (pad)
+ *   then lo[MMAX], hi[MMAX], chol[MMAX*MMAX], ctrl-cost on/off is gamma > 0
+ *   then nterms records of TREC doubles and nshapes records of SREC doubles. */
+#define HDR 16
+#define TREC 16
+#define SREC 20
+
+typedef struct {
+    int type, d, idx[DMAX], shape0, nshape;
+    double weight, extra, eps, radius, center[DMAX];
+} term_t;
+
+typedef struct {
+    int kind, d, idx[DMAX], rotated;
+    double sign, radius, angle, center[DMAX], axes[DMAX];
+} shape_t;
+
+typedef struct {
+    int model, integrator, n, m, H, dim, has_lo, has_hi, nterms, nshapes;
+    int64_t K, zero_noise;
+    double dt, gamma;
+    double lo[MMAX], hi[MMAX], chol[MMAX * MMAX];
+    term_t terms[TMAX];
+    shape_t shapes[SMAX];
+} problem_t;
+
+/* 0 on success, else a negative code (bad configuration). */
+static int parse(const double *cfg, problem_t *pr) {
+    memset(pr, 0, sizeof(*pr));
+    if ((int)cfg[0] != KERNEL_VERSION) return -1;
+    pr->model = (int)cfg[1];
+    pr->integrator = (int)cfg[2];
+    pr->n = (int)cfg[3];
+    pr->m = (int)cfg[4];
+    pr->H = (int)cfg[5];
+    pr->K = (int64_t)cfg[6];
+    pr->dim = (int)cfg[7];
+    pr->zero_noise = (int64_t)cfg[8];
+    pr->has_lo = (int)cfg[9];
+    pr->has_hi = (int)cfg[10];
+    pr->nterms = (int)cfg[11];
+    pr->nshapes = (int)cfg[12];
+    pr->dt = cfg[13];
+    pr->gamma = cfg[14];
+    if (pr->n < 1 || pr->n > NMAX || pr->m < 1 || pr->m > MMAX || pr->H < 1 || pr->K < 1)
+        return -2;
+    if (pr->nterms < 0 || pr->nterms > TMAX || pr->nshapes < 0 || pr->nshapes > SMAX) return -3;
+    const double *p = cfg + HDR;
+    for (int i = 0; i < MMAX; ++i) pr->lo[i] = p[i];
+    for (int i = 0; i < MMAX; ++i) pr->hi[i] = p[MMAX + i];
+    for (int i = 0; i < MMAX * MMAX; ++i) pr->chol[i] = p[2 * MMAX + i];
+    p += 2 * MMAX + MMAX * MMAX;
+    for (int t = 0; t < pr->nterms; ++t, p += TREC) {
+        term_t *T = &pr->terms[t];
+        T->type = (int)p[0];
+        T->weight = p[1];
+        T->extra = p[2];
+        T->eps = p[3];
+        T->d = (int)p[4];
+        if (T->d < 0 || T->d > DMAX) return -4;
+        for (int i = 0; i < DMAX; ++i) {
+            T->idx[i] = (int)p[5 + i];
+            T->center[i] = p[9 + i];
+            if (i < T->d && (T->idx[i] < 0 || T->idx[i] >= pr->n)) return -4;
+        }
+        T->radius = p[13];
+        T->shape0 = (int)p[14];
+        T->nshape = (int)p[15];
+        if (T->shape0 < 0 || T->nshape < 0 || T->shape0 + T->nshape > pr->nshapes) return -5;
+    }
+    for (int s = 0; s < pr->nshapes; ++s, p += SREC) {
+        shape_t *S = &pr->shapes[s];
+        S->kind = (int)p[0];
+        S->d = (int)p[1];
+        if (S->d < 1 || S->d > DMAX) return -6;
+        for (int i = 0; i < DMAX; ++i) {
+            S->idx[i] = (int)p[2 + i];
+            S->center[i] = p[6 + i];
+            S->axes[i] = p[10 + i];
+            if (i < S->d && (S->idx[i] < 0 || S->idx[i] >= pr->n)) return -6;
+        }
+        S->radius = p[14];
+        S->sign = p[15];
+        S->rotated = (int)p[16];
+        S->angle = p[17];
+        if (S->rotated && S->d != 2) return -6;
+    }
+    return 0;
+}
+
+/* Stafford's 64-bit finaliser ("mix13") of key + (counter + 1) * golden ratio: a
+ * counter-based generator, every (sample, step, component) has its own counter. */
+static inline uint64_t mix64(uint64_t z) {
+    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+    z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+    return z ^ (z >> 31);
+}
+#define GOLDEN 0x9E3779B97F4A7C15ull
+
+#define REAL float
+#define SUFFIX(name) name##_f32
+#define SIN sinf
+#define COS cosf
+#define LOG logf
+#define SQRT sqrtf
+#include "_rollout_kernel.h"
+#undef REAL
+#undef SUFFIX
+#undef SIN
+#undef COS
+#undef LOG
+#undef SQRT
+
+#define REAL double
+#define SUFFIX(name) name##_f64
+#define SIN sin
+#define COS cos
+#define LOG log
+#define SQRT sqrt
+#include "_rollout_kernel.h"

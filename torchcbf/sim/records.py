@@ -1,0 +1,66 @@
+"""What a run records besides its metrics: the software it ran on, and strict JSON.
+
+Metrics hold ``nan`` for events that never happened (e.g. the time of a goal never
+reached). JSON has no NaN: :func:`strict` writes them as ``null``, so every JSON parser
+reads the file, and ``null`` always means "did not happen" or "undefined".
+"""
+
+from __future__ import annotations
+
+import math
+import platform
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import torch
+
+
+def strict(value: Any) -> Any:
+    """``value`` with every non-finite float (nan, inf) replaced by ``None``, tensors as
+    lists and tuples as lists, ready for ``json.dumps(..., allow_nan=False)``."""
+    if isinstance(value, torch.Tensor):
+        value = value.detach().cpu().tolist()
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): strict(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [strict(v) for v in value]
+    if isinstance(value, torch.dtype):
+        return str(value).removeprefix("torch.")
+    return value
+
+
+def git_commit(path: str | Path | None = None) -> str | None:
+    """The commit of the source checkout holding ``path`` (this package by default), or
+    ``None`` outside a git checkout."""
+    where = Path(path) if path is not None else Path(__file__).resolve().parent
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=where, capture_output=True, text=True, timeout=5
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if out.returncode != 0:
+        return None
+    return out.stdout.strip() or None
+
+
+def run_info(device: str | torch.device = "cpu") -> dict[str, Any]:
+    """Versions and machine of a run: torchcbf, torch, Python, git commit, device, threads."""
+    from torchcbf import __version__
+
+    dev = torch.device(device)
+    info: dict[str, Any] = {
+        "torchcbf": __version__,
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "git_commit": git_commit(),
+        "device": str(dev),
+        "torch_threads": torch.get_num_threads(),
+    }
+    if dev.type == "cuda" and torch.cuda.is_available():
+        info["gpu"] = torch.cuda.get_device_name(dev)
+    return info
