@@ -24,7 +24,7 @@ from tqdm.auto import tqdm
 
 from torchcbf.sweep.engines import check_engine, ray_session, run_all
 from torchcbf.sweep.evaluate import evaluate
-from torchcbf.sweep.params import builder_defaults, check_keys
+from torchcbf.sweep.params import builder, builder_defaults, check_keys
 from torchcbf.sweep.sweep import _check_count, jsonable_tree, run_info, write_json, write_table
 
 TUNING_SEED = 10_000
@@ -245,6 +245,14 @@ def tune(
         )
         bar.update(2)
     defaults = {**builder_defaults(scenario), **fixed}
+    make = builder(scenario)
+
+    def resolved(arguments: Mapping[str, Any]) -> dict[str, Any]:
+        """Every parameter the scenario used (``Scenario.params``), where it records them."""
+        built = make(**arguments, num_seeds=1, seed=seed, device=device)
+        params = getattr(built, "params", None) or {}
+        return {k: v for k, v in params.items() if k not in ("num_seeds", "seed")}
+
     return {
         "scenario": scenario,
         "fixed": fixed,
@@ -257,9 +265,14 @@ def tune(
             "trial": best.number,
             "params": best.params,
             "arguments": {**fixed, **best_arguments},
+            "resolved": resolved({**fixed, **best_arguments}),
             "objective": best.value,
         },
-        "default": {"arguments": defaults, "objective": default_row["objective"]},
+        "default": {
+            "arguments": defaults,
+            "resolved": resolved(fixed),
+            "objective": default_row["objective"],
+        },
         "evaluation": {"best": evaluation[0], "default": evaluation[1]},
         "trials": rows,
     }
