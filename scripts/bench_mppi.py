@@ -1,20 +1,44 @@
-"""Benchmark: time per MPPI planning step, torchcbf (eager, compiled) vs pytorch-mppi 0.9.1.
+"""Benchmark: MPPI planning calls, torchcbf vs pytorch-mppi 0.9.1 in the same run.
 
 Problem (SCENARIOS.md B): AccelUnicycle (x, y, v, theta; a, omega), Euler rollouts with
 dt = 0.02, float32; stage cost ``2 |p - goal|^2 + sum_i 2 / max(b_i, 0.01)`` over the five
-ellipses, terminal ``10 |p - goal|^2``; temperature 0.03; control-cost weight 0.1
-(pytorch-mppi has no separate control-cost weight: its ``lambda_`` = 0.03 plays both roles).
-The scenario leaves the sampling covariance open: both planners use ``noise_sigma = I`` and
-no control limits. The planning state is x0 = (0, 0, 0, pi/4) with the plan warm-started
-(each timed step is a full planning call: sampling, rollouts, costs, weights, update).
+ellipses, terminal ``10 |p - goal|^2``; temperature 0.03; noise covariance 4 I; control-cost
+weight 0.1 (pytorch-mppi has no separate control-cost weight: its ``lambda_`` = 0.03 plays
+both roles); no control limits. Every timed call is a full planning call (sampling,
+rollouts, costs, weights, update) from x0 = (0, 0, 0, pi/4) with a warm-started plan.
+
+Lines (each planner runs in its own subprocess, so that memory and thread pools are its own):
+
+- ``batched``: B = 32 environments x K = 2,000 samples, H = 80, the cost written in Python
+  as a user would (torchcbf: kernel rollouts + this torch cost), against pytorch-mppi's
+  throughput at K = 20,000 on one environment (state-steps per second, B K H / time); and
+  the same batch with the cost built from torchcbf's terms (fused).
+- ``user``: one environment, K = 20,000, H = 80, the same Python cost: torchcbf's default
+  path (kernel rollouts + torch cost) and its all-torch path (``backend="torch"``).
+- ``fused``: one environment, K = 20,000, H = 80, the cost built from torchcbf's cost terms
+  (everything in the C kernel).
+- ``realtime``: single integrator, K = 1,000, H = 50, goal + ellipse cost (fused) against
+  pytorch-mppi with the same cost in Python.
+- ``paper``: B = 32, K = 20,000, H = 80, the fused planner of scenario B: time per planning
+  call and the projection to the 250 calls of one paper-size run (500 steps, replanning
+  every 2).
+- ``compiled`` (only with ``--compile``): one environment, K = 20,000, H = 80, the Python
+  cost under ``torch.compile`` (kernel rollouts), with a cold compile cache; left out of the
+  default run because its first call compiles for longer than 3 s on a CPU.
+
+Timing: median of ``--reps`` calls after 2 warm-up calls, with the range. Load is flagged
+per line: ``LOADED`` when the process got less than 80% of the CPU time its threads could
+use (CPU time / (wall time x threads)), ``NOISY`` when the slowest repeat is more than 1.5x
+the fastest; such figures should be re-measured on a quiet machine. Use ``--threads 1``
+(the default) for steady figures on a shared machine: with several intra-op threads on a
+loaded machine, every torch op waits for the slowest descheduled thread.
 
 Usage::
 
-    python scripts/bench_mppi.py            # (K, H) in (1000, 50), (10000, 50), (20000, 80)
-    python scripts/bench_mppi.py --quick    # (1000, 50) only, fewer repeats
-    python scripts/bench_mppi.py --threads 1 --device cuda
-
-Each (planner, K, H) runs in its own subprocess so that peak memory is per planner.
+    python scripts/bench_mppi.py                       # every line, 1 thread
+    python scripts/bench_mppi.py --only fused realtime --reps 9
+    python scripts/bench_mppi.py --threads 2 --compile
+    python scripts/bench_mppi.py --profile             # where the time goes, per path
 """
 
 from __future__ import annotations
@@ -22,76 +46,66 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import resource
+import os
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 
 import torch
 
-from torchcbf.dynamics import AccelUnicycle
+from torchcbf.barriers import Ellipse
+from torchcbf.dynamics import AccelUnicycle, SingleIntegrator
 from torchcbf.mppi import MPPI, BarrierCost, QuadraticGoal, SumCost
 
 GOAL = (2.0, 4.0)
-ELLIPSES = (  # centre, semi-axes (SCENARIOS.md B)
-    ((1.0, 2.0), (0.5, 1.5)),
-    ((3.0, 2.0), (0.75, 2.0)),
-    ((2.0, 5.0), (2.0, 0.25)),
-    ((-1.0, 1.0), (1.0, 0.75)),
-    ((0.5, -1.0), (0.75, 0.5)),
-)
-DT, TEMPERATURE, GAMMA = 0.02, 0.03, 0.1
+CENTERS = ((1.0, 2.0), (3.0, 2.0), (2.0, 5.0), (-1.0, 1.0), (0.5, -1.0))
+AXES = ((0.5, 1.5), (0.75, 2.0), (2.0, 0.25), (1.0, 0.75), (0.75, 0.5))
+DT, TEMPERATURE, GAMMA, SIGMA = 0.02, 0.03, 0.1, 4.0
+PAPER_CALLS = 250
+LINES = ("batched", "user", "fused", "realtime", "paper", "compiled")
 
 
-class _Ellipse(torch.nn.Module):
-    """``((x - xo)/a1)^2 + ((y - yo)/a2)^2 - 1`` (local helper, not the barriers package)."""
+def user_cost(device: str) -> Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]:
+    """Scenario B's cost written in torch on whole rollouts, as a user would."""
+    goal = torch.tensor(GOAL, device=device)
+    centers = torch.tensor(CENTERS, device=device)
+    axes = torch.tensor(AXES, device=device)
 
-    def __init__(self, center: tuple[float, float], axes: tuple[float, float]) -> None:
-        super().__init__()
-        self.cx, self.cy = center
-        self.ix, self.iy = 1.0 / axes[0], 1.0 / axes[1]
+    def cost(states: torch.Tensor, controls: torch.Tensor, t0: torch.Tensor) -> torch.Tensor:
+        p = states[..., 1:, :2]
+        b = (((p.unsqueeze(-2) - centers) / axes) ** 2).sum(-1) - 1.0
+        stage = 2.0 * ((p - goal) ** 2).sum(-1) + (2.0 / b.clamp_min(0.01)).sum(-1)
+        terminal = 10.0 * ((states[..., -1, :2] - goal) ** 2).sum(-1)
+        return stage.sum(-1) + terminal
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        dx = (x[..., 0] - self.cx) * self.ix
-        dy = (x[..., 1] - self.cy) * self.iy
-        return dx * dx + dy * dy - 1.0
+    return cost
 
 
-def torchcbf_cost() -> SumCost:
+def builtin_cost() -> SumCost:
+    """The same cost from torchcbf's terms (fused into the C kernel)."""
     goal = QuadraticGoal(GOAL, weight=2.0, index=(0, 1), terminal_weight=10.0)
-    return SumCost(goal, *(BarrierCost(_Ellipse(c, a), 2.0, 0.01) for c, a in ELLIPSES))
+    ellipses = Ellipse(torch.tensor(CENTERS), torch.tensor(AXES), index=(0, 1))
+    return SumCost(goal, BarrierCost(ellipses, 2.0, 0.01))
 
 
-def make_torchcbf(K: int, H: int, compile: bool, device: str) -> Callable[[torch.Tensor], object]:
-    planner = MPPI(
-        AccelUnicycle(),
-        torchcbf_cost(),
-        H,
-        K,
-        DT,
-        torch.eye(2),
-        TEMPERATURE,
-        GAMMA,
-        seed=0,
-        compile=compile,
-    ).to(device)
-    return lambda x: planner(x)
-
-
-def make_pytorch_mppi(K: int, H: int, device: str) -> Callable[[torch.Tensor], object] | None:
+def pytorch_mppi(K: int, H: int, nx: int, device: str) -> Callable[[torch.Tensor], object] | None:
     try:
         from pytorch_mppi import MPPI as PMPPI
     except ImportError:
         return None
     goal = torch.tensor(GOAL, device=device)
-    centers = torch.tensor([c for c, _ in ELLIPSES], device=device)
-    axes = torch.tensor([a for _, a in ELLIPSES], device=device)
+    centers = torch.tensor(CENTERS, device=device)
+    axes = torch.tensor(AXES, device=device)
 
-    def dynamics(x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    def unicycle(x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         v, th = x[:, 2], x[:, 3]
         xdot = torch.stack([v * torch.cos(th), v * torch.sin(th), u[:, 0], u[:, 1]], -1)
         return x + DT * xdot
+
+    def integrator(x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        return x + DT * u
 
     def running_cost(x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         p = x[:, :2]
@@ -102,10 +116,10 @@ def make_pytorch_mppi(K: int, H: int, device: str) -> Callable[[torch.Tensor], o
         return 10.0 * ((states[..., -1, :2] - goal) ** 2).sum(-1)
 
     planner = PMPPI(
-        dynamics,
+        unicycle if nx == 4 else integrator,
         running_cost,
-        4,
-        torch.eye(2, device=device),
+        nx,
+        SIGMA * torch.eye(2, device=device),
         num_samples=K,
         horizon=H,
         terminal_state_cost=terminal,
@@ -115,82 +129,239 @@ def make_pytorch_mppi(K: int, H: int, device: str) -> Callable[[torch.Tensor], o
     return lambda x: planner.command(x)
 
 
-def timed(step: Callable[[torch.Tensor], object], x: torch.Tensor, warmup: int, reps: int):
+def torchcbf(
+    B: int, K: int, H: int, cost: str, device: str, *, model: str = "accel", **kw: object
+) -> Callable[[torch.Tensor], object]:
+    dyn = AccelUnicycle() if model == "accel" else SingleIntegrator(2)
+    fn = builtin_cost() if cost == "builtin" else user_cost(device)
+    planner = MPPI(dyn, fn, H, K, DT, SIGMA, TEMPERATURE, GAMMA, seed=0, **kw).to(device)
+    return planner
+
+
+def x0(B: int, nx: int, device: str) -> torch.Tensor:
+    x = torch.tensor([0.0, 0.0, 0.0, math.pi / 4], device=device)[:nx]
+    return x if B == 0 else x.repeat(B, 1)
+
+
+def timed(step: Callable[[torch.Tensor], object], x: torch.Tensor, reps: int) -> dict:
     t = time.perf_counter()
-    for _ in range(warmup):
+    for _ in range(2):
         step(x)
     first = time.perf_counter() - t
-    times = []
+    walls, cpus = [], []
+    load = os.getloadavg()[0]
     for _ in range(reps):
-        t = time.perf_counter()
+        c, t = time.process_time(), time.perf_counter()
         step(x)
-        times.append(time.perf_counter() - t)
-    times.sort()
-    return times[len(times) // 2], first
+        walls.append(time.perf_counter() - t)
+        cpus.append(time.process_time() - c)
+    load = max(load, os.getloadavg()[0])
+    walls.sort()
+    cpus.sort()
+    return {
+        "median": walls[len(walls) // 2],
+        "cpu": cpus[len(cpus) // 2],
+        "min": walls[0],
+        "max": walls[-1],
+        "first": first,
+        "cpu_share": sum(cpus) / sum(walls) / torch.get_num_threads(),
+        "load": load,
+    }
 
 
-def run_one(name: str, K: int, H: int, reps: int, device: str) -> dict[str, float]:
-    """One planner in this process: median s/step, first calls (incl. compile), peak memory."""
-    x0 = torch.tensor([0.0, 0.0, 0.0, math.pi / 4], device=device)
-    base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    if name == "pytorch-mppi":
-        step = make_pytorch_mppi(K, H, device)
+def run_one(name: str, reps: int, device: str) -> dict:
+    """One planner of one line in this process."""
+    which, _, who = name.partition(":")
+    if which == "batched":
+        B, K, H, nx = (1, 20000, 80, 4) if who == "pytorch-mppi" else (32, 2000, 80, 4)
+    elif which in ("user", "fused", "compiled"):
+        B, K, H, nx = 1, 20000, 80, 4
+    elif which == "realtime":
+        B, K, H, nx = 1, 1000, 50, 2
+    else:
+        B, K, H, nx = 32, 20000, 80, 4
+    if who == "pytorch-mppi":
+        step = pytorch_mppi(K, H, nx, device)
         if step is None:
             return {}
+        x = x0(0, nx, device)
     else:
-        step = make_torchcbf(K, H, name == "compiled", device)
-    med, first = timed(step, x0, 2, reps)
-    if device == "cuda":
-        peak = torch.cuda.max_memory_allocated() / 2**20
-    else:  # growth of the process's peak resident set over the imports
-        peak = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base_rss) / 1024
-    return {"median": med, "first": first, "peak_mib": peak}
+        model = "accel" if nx == 4 else "single"
+        kw: dict[str, object] = {}
+        if which == "paper":
+            kw["keep_rollouts"] = 512
+        if who == "torch":
+            kw["backend"] = "torch"
+        if which == "compiled":
+            kw["compile"] = True
+        builtin = which in ("fused", "realtime", "paper") or who == "fused"
+        cost = "builtin" if builtin else "user"
+        step = torchcbf(B, K, H, cost, device, model=model, **kw)
+        x = x0(B if which in ("batched", "paper") else 0, nx, device)
+    with torch.no_grad():
+        res = timed(step, x, reps)
+    res["state_steps"] = B * K * H
+    res["path"] = "pytorch-mppi" if who == "pytorch-mppi" else getattr(step, "path", "torch")
+    return res
+
+
+def profile(device: str) -> None:
+    """Where the time of one call goes, per path (torch.profiler's top operators, and the
+    phases of the fused path)."""
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as torch_profile
+
+    from torchcbf.mppi import _rollout
+
+    cases = [
+        ("all-torch path, user cost, B=1 K=20000 H=80", 1, 20000, "user", "torch"),
+        ("kernel rollout + user cost, B=1 K=20000 H=80", 1, 20000, "user", "auto"),
+        ("fused, B=32 K=20000 H=80", 32, 20000, "builtin", "auto"),
+    ]
+    for title, B, K, cost, backend in cases:
+        planner = torchcbf(B, K, 80, cost, device, backend=backend, keep_rollouts=512)
+        x = x0(B if B > 1 else 0, 4, device)
+        with torch.no_grad():
+            planner(x)
+            phases: dict[str, float] = {}
+            original = _rollout.run
+
+            def timed_run(*args: object, _run=original, _phases=phases, **kw: object) -> None:
+                t = time.perf_counter()
+                _run(*args, **kw)
+                if kw.get("cost") is not None:
+                    label = "kernel: noise + rollout + cost"
+                elif kw.get("wsum") is not None:
+                    label = "kernel: update (noise of weighted samples)"
+                elif kw.get("pairs") is not None:
+                    label = "kernel: re-roll best + kept"
+                else:
+                    label = "kernel: noise + rollout into buffers"
+                _phases[label] = _phases.get(label, 0.0) + time.perf_counter() - t
+
+            _rollout.run = timed_run
+            try:
+                with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
+                    t = time.perf_counter()
+                    planner(x)
+                    total = time.perf_counter() - t
+            finally:
+                _rollout.run = original
+        print(f"\n== {title}: {total:.4f} s (path {planner.path})")
+        for label, s in phases.items():
+            print(f"   {label:<45} {s:8.4f} s")
+        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12))
+
+
+def fmt(res: dict) -> str:
+    flags = []
+    if res["cpu_share"] < 0.8:
+        flags.append("LOADED")
+    if res["max"] > 1.5 * res["min"]:
+        flags.append("NOISY")
+    rate = res["state_steps"] / res["median"] / 1e6
+    return (
+        f"{res['median']:9.4f} [{res['min']:.4f}-{res['max']:.4f}] {res['cpu']:8.4f} {rate:7.1f} "
+        f"{res['first']:7.2f} {res['cpu_share']:5.2f} {res['load']:5.1f}  {' '.join(flags):<12}"
+    )
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="(1000, 50) only, 3 repeats")
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--reps", type=int, default=7)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--reps", type=int, default=5)
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--no-compile", action="store_true", help="skip the compiled planner")
-    parser.add_argument("--one", nargs=3, metavar=("NAME", "K", "H"), help=argparse.SUPPRESS)
+    parser.add_argument("--only", nargs="+", choices=LINES, help="lines to run")
+    parser.add_argument("--compile", action="store_true", help="add the compiled line")
+    parser.add_argument("--profile", action="store_true", help="profile one call per path")
+    parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    reps = 3 if args.quick else args.reps
     if args.one:
-        name, K, H = args.one[0], int(args.one[1]), int(args.one[2])
-        print(json.dumps(run_one(name, K, H, reps, args.device)))
+        print(json.dumps(run_one(args.one, args.reps, args.device)))
         return
-    sizes = [(1000, 50)] if args.quick else [(1000, 50), (10000, 50), (20000, 80)]
-    names = ["pytorch-mppi", "eager"] + ([] if args.no_compile else ["compiled"])
-    print(f"torch {torch.__version__}, {args.threads} threads, float32, {args.device}")
-    print("median time per planning step; first = the 2 warm-up calls (incl. compile);")
-    print("peak = growth of peak RSS in a fresh process (CPU) or max_memory_allocated (CUDA)")
+    if args.profile:
+        profile(args.device)
+        return
+    lines = list(args.only or [n for n in LINES if n != "compiled" or args.compile])
+    plan = {
+        "batched": [
+            ("batched:pytorch-mppi", "pytorch-mppi K=20000 (B=1)"),
+            ("batched:auto", "torchcbf B=32 x K=2000"),
+            ("batched:fused", "torchcbf B=32 x K=2000 terms"),
+        ],
+        "user": [
+            ("user:pytorch-mppi", "pytorch-mppi"),
+            ("user:auto", "torchcbf default"),
+            ("user:torch", "torchcbf all-torch"),
+        ],
+        "fused": [("fused:pytorch-mppi", "pytorch-mppi"), ("fused:auto", "torchcbf fused")],
+        "realtime": [
+            ("realtime:pytorch-mppi", "pytorch-mppi"),
+            ("realtime:auto", "torchcbf fused"),
+        ],
+        "paper": [("paper:auto", "torchcbf fused B=32")],
+        "compiled": [
+            ("user:pytorch-mppi", "pytorch-mppi"),
+            ("compiled:auto", "torchcbf compiled cost"),
+        ],
+    }
     print(
-        f"{'K':>6} {'H':>3}  {'planner':<18} {'s/step':>9} {'first s':>8} {'ratio':>7}"
-        f" {'peak MiB':>9}"
+        f"torch {torch.__version__}, {args.threads} thread(s), float32, {args.device}, "
+        f"{os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f}"
     )
-    for K, H in sizes:
-        ref = None
-        for name in names:
-            cmd = [sys.executable, __file__, "--one", name, str(K), str(H)]
-            cmd += ["--threads", str(args.threads), "--reps", str(reps), "--device", args.device]
-            out = subprocess.run(cmd, capture_output=True, text=True, check=True)
+    print(
+        "s/call: median [range] of the timed calls (wall); cpu s: median process CPU time per "
+        "call (the steadier figure on a loaded machine); M/s: million state-steps per second "
+        "(B K H / median wall); first: the 2 warm-up calls; cpu: CPU time / (wall x threads); "
+        "load: 1-min load average; ratio: wall (CPU time)"
+    )
+    head = f"{'line':<9} {'planner':<27} {'path':<12} {'s/call':>9} {'[range]':<15}"
+    print(
+        head
+        + f" {'cpu s':>8} {'M/s':>7} {'first s':>7} {'cpu':>5} {'load':>5}  {'flags':<12} ratio"
+    )
+    for line in lines:
+        ref: dict | None = None
+        for name, label in plan[line]:
+            cmd = [
+                sys.executable,
+                __file__,
+                "--one",
+                name,
+                "--threads",
+                str(args.threads),
+                "--reps",
+                str(args.reps),
+                "--device",
+                args.device,
+            ]
+            env = dict(os.environ)
+            if line == "compiled":  # a cold compile cache: the first call as a user sees it
+                env["TORCHINDUCTOR_CACHE_DIR"] = tempfile.mkdtemp(prefix="bench-mppi-inductor-")
+            out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
             res = json.loads(out.stdout.strip().splitlines()[-1])
-            label = {"pytorch-mppi": "pytorch-mppi 0.9.1", "eager": "torchcbf eager"}.get(
-                name, "torchcbf compiled"
-            )
             if not res:
-                print(f"{K:>6} {H:>3}  {label:<18} not installed, skipped")
+                print(f"{line:<9} {label:<27} not installed, skipped")
                 continue
-            if name == "pytorch-mppi":
-                ref = res["median"]
-            ratio = f"{res['median'] / ref:7.2f}" if ref else "    n/a"
-            print(
-                f"{K:>6} {H:>3}  {label:<18} {res['median']:9.4f} {res['first']:8.2f} {ratio}"
-                f" {res['peak_mib']:9.0f}"
-            )
+            ratio = ""
+            if res["path"] == "pytorch-mppi":
+                ref = res
+            elif ref is not None:
+                wall = (res["state_steps"] / res["median"]) / (ref["state_steps"] / ref["median"])
+                cpu = (res["state_steps"] / res["cpu"]) / (ref["state_steps"] / ref["cpu"])
+                if line == "batched":
+                    ratio = f"throughput {wall:.2f}x ({cpu:.2f}x) pytorch-mppi's"
+                else:
+                    ratio = f"time {1 / wall:.3f}x ({1 / cpu:.3f}x) pytorch-mppi's"
+            print(f"{line:<9} {label:<27} {res['path']:<12} {fmt(res)}  {ratio}")
+            if line == "paper":
+                total = res["median"] * PAPER_CALLS
+                print(
+                    f"{'':<9} projection: {PAPER_CALLS} calls x {res['median']:.3f} s = "
+                    f"{total:.0f} s ({total / 60:.1f} min) per MPPI method of the paper-size "
+                    f"scenario B run (planner only; {res['cpu'] * PAPER_CALLS:.0f} s CPU time)"
+                )
 
 
 if __name__ == "__main__":

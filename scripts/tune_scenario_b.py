@@ -40,9 +40,13 @@ def _floats(text: str) -> list[float]:
     return [float(v) for v in text.split(",") if v.strip()]
 
 
-def run_point(job: tuple[str, float, float, int, int, int, int]) -> dict[str, object]:
-    """One (method, alpha, margin) over the tuning seeds: counts and wall time."""
-    method, alpha, margin, seeds, first, samples, horizon = job
+def _limits(text: str) -> list[float | None]:
+    return [None if v.strip() == "none" else float(v) for v in text.split(",") if v.strip()]
+
+
+def run_point(job: tuple[str, float, float, float | None, int, int, int, int]) -> dict[str, object]:
+    """One (method, alpha, margin, control limit) over the tuning seeds: counts, wall time."""
+    method, alpha, margin, limit, seeds, first, samples, horizon = job
     torch.set_num_threads(1)
     start = time.perf_counter()
     scenario = mppi_cbf(
@@ -53,6 +57,7 @@ def run_point(job: tuple[str, float, float, int, int, int, int]) -> dict[str, ob
         horizon=horizon,
         alpha=alpha,
         margin=margin,
+        control_limit=limit,
     )
     _, per_seed = scenario.run(progress=False)
     s = summarize(per_seed)
@@ -60,6 +65,7 @@ def run_point(job: tuple[str, float, float, int, int, int, int]) -> dict[str, ob
         "method": method,
         "alpha": alpha,
         "margin": margin,
+        "control_limit": "none" if limit is None else limit,
         "seeds": seeds,
         "collisions": s["collision"]["count"],
         "goals": s["goal_reached"]["count"],
@@ -70,13 +76,14 @@ def run_point(job: tuple[str, float, float, int, int, int, int]) -> dict[str, ob
     }
 
 
-def choose(rows: list[dict[str, object]]) -> tuple[float, float] | None:
+def choose(rows: list[dict[str, object]]) -> tuple[float, float, str] | None:
     """The grid point picked by the module docstring's rule (``None`` if none is safe)."""
-    points: dict[tuple[float, float], list[dict[str, object]]] = {}
+    points: dict[tuple[float, float, str], list[dict[str, object]]] = {}
     for r in rows:
-        points.setdefault((float(r["alpha"]), float(r["margin"])), []).append(r)
+        key = (float(r["alpha"]), float(r["margin"]), str(r.get("control_limit", "none")))
+        points.setdefault(key, []).append(r)
 
-    def count(point: tuple[float, float], key: str, planners: bool) -> int:
+    def count(point: tuple[float, float, str], key: str, planners: bool) -> int:
         return sum(int(r[key]) for r in points[point] if (r["method"] != "scbf") == planners)
 
     safe = [p for p in points if count(p, "collisions", True) == 0]
@@ -95,14 +102,16 @@ def write_table(rows: list[dict[str, object]], out: Path) -> str:
         writer.writeheader()
         writer.writerows(rows)
     lines = [
-        "| alpha | margin [m] | method | collisions | goal by 5 s | min b | mean t_goal [s] |",
-        "|---|---|---|---|---|---|---|",
+        "| alpha | margin [m] | control limit | method | collisions | goal by 5 s | min b "
+        "| mean t_goal [s] |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         t_goal = r["t_goal_mean"]
         t_goal = "-" if t_goal in (None, "") else f"{float(t_goal):.2f}"
         lines.append(
-            f"| {float(r['alpha']):g} | {float(r['margin']):g} | {r['method']} "
+            f"| {float(r['alpha']):g} | {float(r['margin']):g} | {r.get('control_limit', 'none')} "
+            f"| {r['method']} "
             f"| {r['collisions']}/{r['seeds']} | {r['goals']}/{r['seeds']} "
             f"| {float(r['min_b']):.3f} | {t_goal} |"
         )
@@ -110,7 +119,7 @@ def write_table(rows: list[dict[str, object]], out: Path) -> str:
     verdict = (
         "chosen: no grid point keeps the planner-based methods collision-free"
         if choice is None
-        else f"chosen: alpha = {choice[0]:g}, margin = {choice[1]:g} m"
+        else f"chosen: alpha = {choice[0]:g}, margin = {choice[1]:g} m, control limit {choice[2]}"
     )
     (out / "tuning.md").write_text("\n".join([*lines, "", verdict]) + "\n")
     return verdict
@@ -120,6 +129,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--alpha", default="20,50", help="alpha values")
     parser.add_argument("--margin", default="0.2,0.25,0.3", help="equilibrium margins (m)")
+    parser.add_argument(
+        "--limit", default="none", help="bounds on |a| and |omega| ('none': unbounded)"
+    )
     parser.add_argument("--methods", default=",".join(FILTERED))
     parser.add_argument("--seeds", type=int, default=16, help="tuning seeds per grid point")
     parser.add_argument("--first-seed", type=int, default=10_000)
@@ -140,9 +152,9 @@ def main() -> None:
     if args.first_seed < 10_000:
         parser.error("tuning seeds start at 10,000 (0-31 are the evaluation seeds)")
     jobs = [
-        (m, a, g, args.seeds, args.first_seed, args.samples, args.horizon)
-        for a, g, m in itertools.product(
-            _floats(args.alpha), _floats(args.margin), args.methods.split(",")
+        (m, a, g, lim, args.seeds, args.first_seed, args.samples, args.horizon)
+        for a, g, lim, m in itertools.product(
+            _floats(args.alpha), _floats(args.margin), _limits(args.limit), args.methods.split(",")
         )
     ]
     with ProcessPoolExecutor(args.workers) as pool:

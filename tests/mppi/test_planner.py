@@ -92,11 +92,12 @@ def _x0(B, dtype=torch.float64, device="cpu"):
     return x
 
 
-def test_batch_equals_loop(device, dtype):
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+def test_batch_equals_loop(device, dtype, backend):
     B = 3
     x = _x0(B, dtype, device)
-    batched = _planner(seed=7).to(device)
-    singles = [_planner(seed=7 + b).to(device) for b in range(B)]
+    batched = _planner(seed=7, backend=backend).to(device)
+    singles = [_planner(seed=7 + b, backend=backend).to(device) for b in range(B)]
     for step in range(3):
         out = batched(x, t=0.1 * step)
         for b in range(B):
@@ -131,12 +132,24 @@ def test_noise_covariance_and_clamping():
         seen["controls"] = controls.clone()
         return torch.zeros(states.shape[:2], dtype=states.dtype)
 
-    planner = MPPI(SingleIntegrator(2), cost, H, K, 0.1, sigma, 1.0, seed=3)
+    planner = MPPI(SingleIntegrator(2), cost, H, K, 0.1, sigma, 1.0, seed=3, cost_chunk=0)
     planner(torch.zeros(2, dtype=torch.float64))
     eps = seen["controls"].reshape(-1, 2)  # the plan is zero on the first call
     torch.testing.assert_close(eps.T.cov(), sigma, atol=0.05, rtol=0.05)
     # with limits: controls inside the box, and the plan moves by the weighted clamped noise
-    lim = MPPI(SingleIntegrator(2), cost, H, K, 0.1, sigma, 1.0, u_min=-0.5, u_max=0.5, seed=3)
+    lim = MPPI(
+        SingleIntegrator(2),
+        cost,
+        H,
+        K,
+        0.1,
+        sigma,
+        1.0,
+        u_min=-0.5,
+        u_max=0.5,
+        seed=3,
+        cost_chunk=0,
+    )
     out = lim(torch.zeros(2, dtype=torch.float64))
     v = seen["controls"]
     assert float(v.abs().max()) <= 0.5
@@ -148,7 +161,8 @@ def test_noise_covariance_and_clamping():
     assert float(seen["controls"].max()) <= 0.3 + 1e-6
 
 
-def test_weights_control_cost_and_update_reference():
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+def test_weights_control_cost_and_update_reference(backend):
     """One call against a direct implementation of the MPPI update."""
     K, H, lam, gamma = 50, 4, 0.7, 0.3
     sigma = torch.tensor([[0.5, 0.1], [0.1, 0.3]], dtype=torch.float64)
@@ -172,6 +186,7 @@ def test_weights_control_cost_and_update_reference():
         u_max=1.0,
         seed=0,
         keep_rollouts=5,
+        backend=backend,
     )
     x = torch.tensor([0.2, 0.1], dtype=torch.float64)
     planner(x)  # first call: plan = weighted noise
@@ -212,7 +227,8 @@ def test_large_and_nonfinite_costs_are_safe():
     assert float(out.ess[0]) >= 1.0
 
 
-def test_rk4_rollouts_match_integrator():
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+def test_rk4_rollouts_match_integrator(backend):
     seen = {}
 
     def cost(states, controls, t0):
@@ -220,7 +236,7 @@ def test_rk4_rollouts_match_integrator():
         return torch.zeros(states.shape[:2], dtype=states.dtype)
 
     dyn = AccelUnicycle()
-    planner = MPPI(dyn, cost, 6, 4, 0.05, 1.0, 1.0, integrator="rk4", seed=0)
+    planner = MPPI(dyn, cost, 6, 4, 0.05, 1.0, 1.0, integrator="rk4", seed=0, backend=backend)
     x = torch.tensor([0.0, 0.0, 1.0, 0.3], dtype=torch.float64)
     planner(x)
     s, u = seen["s"][0], seen["u"][0]
@@ -283,7 +299,7 @@ def test_bad_input():
 def test_compiled_matches_eager():
     pytest.importorskip("torch._dynamo")
     eager = _planner(seed=4, K=32, H=4, backend="torch")
-    compiled = _planner(seed=4, K=32, H=4, compile=True)
+    compiled = _planner(seed=4, K=32, H=4, compile=True, backend="torch")
     x = _x0(2)
     for step in range(2):
         a, b = eager(x, 0.1 * step), compiled(x, 0.1 * step)
@@ -309,3 +325,30 @@ def test_normalized_weights(mode):
     w = torch.softmax(-(S - S.min()) / scale / lam, 0)
     torch.testing.assert_close(out.plan, torch.einsum("k,khm->hm", w, v))
     torch.testing.assert_close(out.ess, 1.0 / (w**2).sum())
+
+
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+def test_cost_slices_equal_one_call(backend):
+    calls = []
+
+    def cost(states, controls, t0):
+        calls.append(states.shape[1])
+        return ((states[..., 1:, :2] - 1.0) ** 2).sum((-1, -2)) + controls.square().sum((-1, -2))
+
+    x = _x0(2)
+    whole = MPPI(AccelUnicycle(), cost, 6, 50, 0.05, 1.0, 0.5, 0.1, cost_chunk=0, backend=backend)
+    sliced = MPPI(AccelUnicycle(), cost, 6, 50, 0.05, 1.0, 0.5, 0.1, cost_chunk=7, backend=backend)
+    a = whole(x)
+    calls.clear()
+    b = sliced(x)
+    assert calls == [7] * 7 + [1]
+    assert torch.equal(a.plan, b.plan) and torch.equal(a.cost_min, b.cost_min)
+    with pytest.raises(ValueError, match="cost_chunk"):
+        MPPI(AccelUnicycle(), cost, 6, 50, 0.05, 1.0, 0.5, cost_chunk=-1)
+    bad = MPPI(AccelUnicycle(), lambda s, u, t: s[..., 0, 0], 6, 50, 0.05, 1.0, 0.5, cost_chunk=7)
+    bad(x)  # the right shape per slice
+    worse = MPPI(
+        AccelUnicycle(), lambda s, u, t: s[:, :3, 0, 0], 6, 50, 0.05, 1.0, 0.5, cost_chunk=7
+    )
+    with pytest.raises(ValueError, match="cost must return shape"):
+        worse(x)

@@ -106,7 +106,7 @@ def _pair(dyn, cost, dtype, *, limits=True, integrator="euler", B=2, K=96, H=7, 
     temp = 50.0 if dtype == torch.float32 else 2.0
     fused = MPPI(dyn, cost, H, K, 0.05, cov, temp, 0.2, **opts).to(dtype)
     capture = Capture(cost)
-    reference = MPPI(dyn, capture, H, K, 0.05, cov, temp, 0.2, **opts).to(dtype)
+    reference = MPPI(dyn, capture, H, K, 0.05, cov, temp, 0.2, cost_chunk=0, **opts).to(dtype)
     return fused, reference, capture, _x0(dyn, B, dtype)
 
 
@@ -191,7 +191,9 @@ def test_kernel_noise_statistics(dtype):
     """Zero-mean noise with covariance Sigma, independent over steps; zero-noise samples."""
     K, H = 20000, 3
     cost = Capture(QuadraticGoal((0.0, 0.0)))
-    planner = MPPI(SingleIntegrator(2), cost, H, K, 0.1, SIGMA, 1.0, zero_noise_samples=4)
+    planner = MPPI(
+        SingleIntegrator(2), cost, H, K, 0.1, SIGMA, 1.0, zero_noise_samples=4, cost_chunk=0
+    )
     planner(torch.zeros(2, dtype=dtype))
     assert planner.path == "rollout"
     eps = cost.seen["controls"][0].double()  # the first plan is zero

@@ -183,8 +183,6 @@ def encode_cost(cost: object, state_dim: int) -> tuple[list[list[float]], list[l
 
     if type(cost) is SumCost:
         parts = cost.stepwise_terms + cost.whole_terms
-        if not parts or len(parts) != len(cost.stepwise_terms) + len(cost.whole_terms):
-            return None
     else:
         parts = [cost]
     terms: list[list[float]] = []
@@ -216,8 +214,12 @@ def encode_cost(cost: object, state_dim: int) -> tuple[list[list[float]], list[l
         if rec is None:
             return None
         terms.append(rec)
+    # an index outside the state is left to torch, which raises the usual error
+    for rec in terms:
+        if any(not 0 <= int(rec[5 + i]) < state_dim for i in range(int(rec[4]))):
+            return None
     for rec in shapes:
-        if any(int(rec[2 + i]) >= state_dim for i in range(int(rec[1]))):
+        if any(not 0 <= int(rec[2 + i]) < state_dim for i in range(int(rec[1]))):
             return None
     if len(terms) > MAX_TERMS or len(shapes) > MAX_SHAPES:
         return None

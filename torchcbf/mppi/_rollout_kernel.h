@@ -190,7 +190,7 @@ CLONES static void SUFFIX(block)(const problem_t *pr, const REAL *x0, const REAL
     REAL X[NMAX][LANES], U[MMAX][LANES], E[MMAX][LANES], Z[MMAX][LANES];
     REAL K1[NMAX][LANES], K2[NMAX][LANES], K3[NMAX][LANES], K4[NMAX][LANES], XT[NMAX][LANES];
     REAL hprev[SMAX][LANES], w[LANES], R[LANES], A[LANES];
-    REAL stage[LANES], terminal[LANES], whole[LANES], ctrl[LANES], keep[LANES];
+    REAL stage[LANES], terminal[LANES], whole[LANES], ctrl[LANES], keep[LANES], tmp[LANES];
     uint64_t ks[LANES];
     REAL lo[MMAX], hi[MMAX], L[MMAX * MMAX];
     for (int i = 0; i < MMAX; ++i) {
@@ -256,16 +256,24 @@ CLONES static void SUFFIX(block)(const problem_t *pr, const REAL *x0, const REAL
             }
         }
         if (wctrl != NULL) {
-            LOOP {
-                REAL c = 0;
-                for (int i = 0; i < m; ++i) c += E[i][l] * wctrl[j * m + i];
-                ctrl[l] += c;
+            /* sum_i eps_i W_i of this step, then added over the steps (the torch order) */
+            const REAL w0 = wctrl[j * m];
+            LOOP tmp[l] = E[0][l] * w0;
+            for (int i = 1; i < m; ++i) {
+                const REAL wi = wctrl[j * m + i];
+                LOOP tmp[l] += E[i][l] * wi;
             }
+            LOOP ctrl[l] += tmp[l];
         }
         if (wsum != NULL) {
+            /* padded lanes have weight 0; eight partial sums in a fixed order vectorise
+             * and keep the result independent of the machine */
             for (int i = 0; i < m; ++i) {
+                double part[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+                for (int l = 0; l < LANES; l += 8)
+                    for (int r = 0; r < 8; ++r) part[r] += (double)(w[l + r] * E[i][l + r]);
                 double acc = 0;
-                for (int l = 0; l < count; ++l) acc += (double)(w[l] * E[i][l]);
+                for (int r = 0; r < 8; ++r) acc += part[r];
                 wsum[j * m + i] += acc;
             }
         }

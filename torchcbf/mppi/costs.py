@@ -188,28 +188,24 @@ class DiscreteBarrierCost(nn.Module):
     ``weight * sum_k sum_i relu((1 - gamma) b_i(x_k) - b_i(x_{k+1}))`` over the steps
     ``k = 0..H-1`` of each rollout (``x_0`` the current state) and the outputs ``i`` of a
     multi-output barrier: zero for a rollout that keeps the condition, growing linearly with
-    each violation (use a large ``weight`` for a steep penalty). With ``0 < gamma <= 1`` the
-    condition lets ``b`` decay at most geometrically towards the boundary, so rollouts that
-    rush at an obstacle are penalised before they reach it, which makes it a planner-side
-    counterpart of a CBF safety filter.
+    each violation (the default weight makes it steep). The condition lets ``b`` decay at most
+    geometrically towards the boundary; with ``gamma = k dt`` it is the one-step form of
+    ``L_f b + k b >= 0`` (the safe set of an exponentially rectified barrier), so rollouts
+    that a CBF filter would correct cost more: a planner-side counterpart of the filter.
 
-    ``forward(states [B, K, H+1, n], controls [B, K, H, m], t0=None) -> [B, K]``.
+    It reads consecutive states, so it is a whole-rollout cost: ``forward(states [B, K, H+1,
+    n], controls [B, K, H, m], t0=None) -> [B, K]``. With an
+    :class:`~torchcbf.barriers.Ellipse` or :class:`~torchcbf.barriers.Ball` barrier the
+    planner evaluates it in its C kernel.
 
     Args:
-        barrier: ``b: [..., n] -> [...]`` or ``[..., k]`` (``b >= 0`` safe).
-        gamma: ``0 < gamma <= 1``.
-        weight: ``>= 0``.
-
-    A barrier whose output has as many dimensions as its input is taken as multi-output.
+        barrier: ``b: [..., n] -> [...]`` or ``[..., k]`` (``b >= 0`` safe; an output with as
+            many dimensions as the input is taken as ``k`` outputs).
+        gamma: decay per step, ``0 < gamma <= 1``.
+        weight: penalty weight, ``>= 0``.
     """
 
-    def __init__(
-        self,
-        barrier: Terminal,
-        *,
-        gamma: float,
-        weight: float,
-    ) -> None:
+    def __init__(self, barrier: Terminal, *, gamma: float, weight: float = 1e3) -> None:
         super().__init__()
         if not callable(barrier):
             raise TypeError(f"barrier must be callable, got {type(barrier).__name__}")

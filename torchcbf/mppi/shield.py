@@ -2,8 +2,9 @@
 
 :class:`ShieldMPPI` wraps an :class:`~torchcbf.mppi.MPPI` and a safety filter. Each call
 plans, filters the plan's first control at the current state and writes the filtered control
-back into the plan (:meth:`MPPI.correct`), so the warm start of the next call continues from
-what was applied instead of from a control the filter turned away. Give the planner a cost
+back into the plan (:meth:`MPPI.correct`), so the plan the loop follows until the next replan
+(and a refinement without the warm-start shift) starts from what was applied instead of from
+a control the filter turned away. Give the planner a cost
 that knows the barriers as well, e.g. :class:`~torchcbf.mppi.DiscreteBarrierCost` (the
 discrete-time CBF condition as a steep rollout penalty), and its rollouts stay where the
 filter has little to correct: planner and filter stop pulling apart.

@@ -95,7 +95,7 @@ class FilterParams:
     rectify_gain: float = 20.0
     margin: float = 0.25
     control_weight: tuple[float, float] = (1.0, 1e-3)
-    control_limit: tuple[float, float] | None = None
+    control_limit: tuple[float, float] | None = (40.0, 40.0)
     rho: float = 0.05
     risk_horizon: float | None = None
     shield_weight: float = 1e3
@@ -103,8 +103,10 @@ class FilterParams:
 
 CONFIG_PARAMS: dict[str, FilterParams] = {
     "default": FilterParams(),
-    "paper": FilterParams(alpha=1.0, beta=1.0, margin=FLAT_MARGIN),
-    "cbfkit": FilterParams(form="cbfkit", alpha=1.0, beta=1.0, rectify_gain=1.0 / 0.3),
+    "paper": FilterParams(alpha=1.0, beta=1.0, margin=FLAT_MARGIN, control_limit=None),
+    "cbfkit": FilterParams(
+        form="cbfkit", alpha=1.0, beta=1.0, rectify_gain=1.0 / 0.3, control_limit=None
+    ),
 }
 
 
