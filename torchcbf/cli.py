@@ -5,7 +5,9 @@ benchmarks.
     torchcbf mppi-cbf    [--config default|paper|cbfkit --methods all|scbf,mppi,... --seeds N ...]
     torchcbf demo        both scenarios (B in its default configuration) at sizes that finish
                          in a few minutes on 2 CPU cores
-    torchcbf bench       the benchmark scripts (from a source checkout)
+    torchcbf sweep       a grid over a scenario builder's keyword arguments (local or Ray)
+    torchcbf tune        Optuna search over a scenario's declared search space (local or Ray)
+    torchcbf bench       the benchmark scripts shipped with the package
 
 Every run prints its settings and a table, and writes ``metrics.json`` (strict JSON: ``null``
 where a value is undefined, e.g. the time of a goal never reached) with the settings, the
@@ -15,6 +17,7 @@ software versions and the git commit, and the figures (PNG, GIF) to ``--out``.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import subprocess
 import sys
@@ -27,6 +30,7 @@ import torch
 
 from torchcbf.sim import run_info, strict, summarize
 
+# Benchmarks in the order ``torchcbf bench`` runs them (each a script of scripts/).
 BENCHES = ("bench_qp.py", "bench_barriers.py", "bench_filters.py", "bench_mppi.py")
 PAPER_SIZE_B = "torchcbf mppi-cbf --config default --seeds 32 --samples 20000 --horizon 80"
 
@@ -268,31 +272,6 @@ def _b_figures(
     return figures
 
 
-# -- benchmarks ----------------------------------------------------------------------------
-def _bench(args: argparse.Namespace) -> int:
-    scripts = Path(__file__).resolve().parent.parent / "scripts"
-    if not scripts.is_dir():
-        print(
-            "torchcbf bench runs the scripts/bench_*.py of a source checkout; none found",
-            file=sys.stderr,
-        )
-        return 2
-    code = 0
-    for name in BENCHES:
-        path = scripts / name
-        if path.exists():
-            cmd = [
-                sys.executable,
-                str(path),
-                *(["--quick"] if args.quick else []),
-                "--device",
-                args.device,
-            ]
-            print(f"$ {' '.join(cmd)}", flush=True)
-            code |= subprocess.call(cmd)
-    return code
-
-
 # -- command line --------------------------------------------------------------------------
 def _positive_int(text: str) -> int:
     try:
@@ -336,6 +315,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="torchcbf", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
+    _add_version(parser)
     sub = parser.add_subparsers(dest="command", required=True)
     fmt = argparse.ArgumentDefaultsHelpFormatter
     a = sub.add_parser(
@@ -364,17 +344,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _scenario_options(d, 8, 1000, 80)
     _config_options(d, "all")
-    bench = sub.add_parser("bench", help="run the benchmark scripts", formatter_class=fmt)
-    bench.add_argument("--quick", action="store_true", help="smaller sizes, fewer repeats")
-    bench.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    _add_ecosystem_commands(sub)
+    _describe_commands(sub)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.command == "bench":
-        return _bench(args)
+    if args.command in ECOSYSTEM_COMMANDS:
+        return ECOSYSTEM_COMMANDS[args.command](args)
     if args.device == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda but CUDA is not available")
     out = Path(args.out)
@@ -395,6 +374,300 @@ def main(argv: Sequence[str] | None = None) -> int:
     (out / "metrics.json").write_text(text)
     print(f"metrics: {out / 'metrics.json'}; figures: {out}/*.png, {out}/*.gif")
     return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# sweep, tune, bench, --version and the help texts of every subcommand
+# ---------------------------------------------------------------------------------------------
+
+
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows each option's default, except for flags and ``None`` or empty defaults (the
+    help text says what happens then)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.default is None or action.default == [] or action.nargs == 0:
+            return action.help
+        return super()._get_help_string(action)
+
+
+# One paragraph per subcommand of this section, shown by ``torchcbf <command> --help``.
+DESCRIPTIONS = {
+    "sweep": (
+        "Run a scenario builder once per point of a grid over its keyword arguments, each "
+        "configuration as one batch of --seeds seeds, and write sweep.csv, sweep.json and "
+        "sweep.png (rates against the first varied parameter). Values are converted to the "
+        "type of the builder's default; 'none', 'true'/'false' and pairs 'a:b' are understood. "
+        "Example: torchcbf sweep mppi-cbf --grid method=scbf --grid rectify_gain=5,20 "
+        "--seeds 8"
+    ),
+    "tune": (
+        "Optuna search over a scenario's declared search space. Objective: the success rate "
+        "over a batch of tuning seeds (from --seed, default 10,000: disjoint from the "
+        "evaluation seeds 0, 1, ...) minus a tie-break below one success in mean time to "
+        "goal. Writes best.json (best parameters, its objective and the default "
+        "configuration's on the same seeds, both re-evaluated on the evaluation seeds), "
+        "study.csv and study.png."
+    ),
+    "bench": (
+        "Run the benchmark scripts shipped with the package (scripts/bench_*.py of the source "
+        "tree, installed as torchcbf.scripts) one after the other. Peers that are not "
+        "installed are skipped by each script with a message. Exits non-zero when no script "
+        "is found or one fails."
+    ),
+}
+
+# Help of options the other subcommands define without one.
+OPTION_HELP = {"--device": "torch device of the run"}
+
+
+def _add_version(parser: argparse.ArgumentParser) -> None:
+    from torchcbf import __version__
+
+    parser.add_argument(
+        "--version",
+        action="version",
+        version=f"torchcbf {__version__} (torch {torch.__version__})",
+    )
+
+
+def _describe_commands(sub: Any) -> None:
+    """Give every subcommand its description, the defaults in its help and missing option help."""
+    for name, command in sub.choices.items():
+        command.formatter_class = _HelpFormatter
+        if command.description is None and name in DESCRIPTIONS:
+            command.description = DESCRIPTIONS[name]
+        for action in command._actions:
+            for option in action.option_strings:
+                if action.help is None and option in OPTION_HELP:
+                    action.help = OPTION_HELP[option]
+
+
+def _add_engine_options(p: argparse.ArgumentParser, seeds: int, seed: int) -> None:
+    p.add_argument("scenario", choices=["reach-avoid", "mppi-cbf"], help="scenario builder")
+    p.add_argument("--seeds", type=int, default=seeds, help="seeds per configuration (one batch)")
+    p.add_argument("--seed", type=int, default=seed, help="first seed")
+    p.add_argument("--engine", default="local", choices=["local", "ray"], help="where to run")
+    p.add_argument(
+        "--address",
+        default=None,
+        help="Ray cluster to join (default: start a local one for the run)",
+    )
+    p.add_argument(
+        "--num-cpus", type=int, default=None, help="CPUs of the local Ray cluster (default: all)"
+    )
+    p.add_argument("--threads", type=int, default=1, help="torch threads per configuration")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="torch device")
+    p.add_argument("--out", default="out", help="output directory")
+    p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
+
+
+def _add_ecosystem_commands(sub: Any) -> None:
+    s = sub.add_parser("sweep", help="a grid over a scenario's keyword arguments")
+    _add_engine_options(s, seeds=8, seed=0)
+    s.add_argument(
+        "--grid",
+        action="append",
+        default=[],
+        metavar="KEY=V1,V2",
+        help="values of one builder keyword (repeat for a product grid; none: the defaults)",
+    )
+    t = sub.add_parser("tune", help="Optuna search over a scenario's parameters")
+    _add_engine_options(t, seeds=8, seed=10_000)
+    t.add_argument("--trials", type=int, default=20, help="Optuna trials")
+    t.add_argument("--eval-seed", type=int, default=0, help="first evaluation seed")
+    t.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=V",
+        help="a builder keyword held fixed (repeatable), e.g. method=scbf",
+    )
+    t.add_argument(
+        "--params", default=None, help="comma-separated dimensions to search (default: all)"
+    )
+    t.add_argument("--sampler-seed", type=int, default=0, help="seed of the TPE sampler")
+    t.add_argument("--batch", type=int, default=2, help="trials asked at once (parallel Ray tasks)")
+    b = sub.add_parser("bench", help="run the benchmark scripts")
+    b.add_argument("--quick", action="store_true", help="each script's short run (--quick)")
+    b.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="torch device")
+    b.add_argument(
+        "--only",
+        default=None,
+        help="comma-separated benchmarks to run, by name (qp, barriers, filters, mppi)",
+    )
+    b.add_argument("--list", action="store_true", help="list the benchmark scripts found and exit")
+
+
+def _bench_scripts() -> list[Path]:
+    """The benchmark scripts of the installed package (``torchcbf.scripts``), in run order."""
+    folders = []
+    spec = importlib.util.find_spec("torchcbf.scripts")
+    if spec is not None and spec.submodule_search_locations:
+        folders = [Path(p) for p in spec.submodule_search_locations]
+    checkout = Path(__file__).resolve().parent.parent / "scripts"
+    if not folders and checkout.is_dir():  # a source tree used without installing
+        folders = [checkout]
+    found = {}
+    for folder in folders:
+        for path in sorted(folder.glob("bench_*.py")):
+            found.setdefault(path.name, path)
+    order = {name: i for i, name in enumerate(BENCHES)}
+    return sorted(found.values(), key=lambda p: (order.get(p.name, len(order)), p.name))
+
+
+def _bench(args: argparse.Namespace) -> int:
+    scripts = _bench_scripts()
+    if args.only is not None:
+        wanted = {
+            f"bench_{w.strip().removeprefix('bench_').removesuffix('.py')}.py"
+            for w in args.only.split(",")
+            if w.strip()
+        }
+        unknown = wanted - {p.name for p in scripts}
+        if unknown:
+            names = ", ".join(p.stem.removeprefix("bench_") for p in scripts) or "none"
+            print(f"--only: no benchmark {sorted(unknown)}; found: {names}", file=sys.stderr)
+            return 2
+        scripts = [p for p in scripts if p.name in wanted]
+    if not scripts:
+        print(
+            "torchcbf bench: no benchmark scripts found (they install with the package as "
+            "torchcbf.scripts; reinstall torchcbf)",
+            file=sys.stderr,
+        )
+        return 2
+    if args.list:
+        for path in scripts:
+            print(f"{path.stem.removeprefix('bench_'):<10} {path}")
+        return 0
+    failed = []
+    for path in scripts:
+        cmd = [sys.executable, str(path), *(["--quick"] if args.quick else [])]
+        cmd += ["--device", args.device]
+        print(f"$ {' '.join(cmd)}", flush=True)
+        if subprocess.call(cmd) != 0:
+            failed.append(path.name)
+    if failed:
+        print(f"torchcbf bench: failed: {', '.join(failed)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _print_rows(rows: list[dict[str, Any]], keys: list[str]) -> None:
+    def pct(row: dict[str, Any], name: str) -> str:
+        if f"{name}_rate" not in row:
+            return "-"
+        lo, hi = row[f"{name}_ci95_low"], row[f"{name}_ci95_high"]
+        return f"{100 * row[f'{name}_rate']:.0f}% ({100 * lo:.0f}-{100 * hi:.0f})"
+
+    def num(value: Any, fmt: str) -> str:
+        return "-" if value is None else fmt.format(value)
+
+    from torchcbf.sweep.params import describe
+
+    print(
+        f"{'configuration':<36} {'success (95% CI)':>17} {'collision (95% CI)':>19} "
+        f"{'t_goal [s]':>10} {'min barrier':>11} {'wall [s]':>8}"
+    )
+    for row in rows:
+        name = row.get("label") or describe({k: row[k] for k in keys}) or "defaults"
+        print(
+            f"{name:<36} {pct(row, 'success'):>17} {pct(row, 'collision'):>19} "
+            f"{num(row.get('time_to_goal_s'), '{:.2f}'):>10} "
+            f"{num(row.get('min_h'), '{:.3f}'):>11} {row['wall_s']:>8.1f}"
+        )
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    from torchcbf.sweep import parse_grid, run_sweep, write_sweep
+
+    try:
+        grid = parse_grid(args.scenario, args.grid)
+        rows = run_sweep(
+            args.scenario,
+            grid,
+            num_seeds=args.seeds,
+            seed=args.seed,
+            device=args.device,
+            engine=args.engine,
+            address=args.address,
+            num_cpus=args.num_cpus,
+            threads=args.threads,
+            progress=args.progress,
+        )
+    except (ValueError, ImportError) as error:
+        print(f"torchcbf sweep: {error}", file=sys.stderr)
+        return 2
+    _print_rows(rows, list(grid))
+    paths = write_sweep(
+        rows,
+        grid,
+        args.out,
+        scenario=args.scenario,
+        num_seeds=args.seeds,
+        first_seed=args.seed,
+        engine=args.engine,
+        device=args.device,
+        threads=args.threads,
+    )
+    print("wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
+def _tune(args: argparse.Namespace) -> int:
+    from torchcbf.sweep import parse_value, tune, write_tune
+
+    try:
+        import optuna
+
+        optuna.logging.set_verbosity(optuna.logging.WARNING)
+    except ImportError:
+        print('torchcbf tune needs Optuna: pip install "torchcbf[tune]"', file=sys.stderr)
+        return 2
+    try:
+        fixed = {}
+        for item in args.set:
+            key, sep, value = item.partition("=")
+            if not sep:
+                raise ValueError(f"--set takes KEY=VALUE, got {item!r}")
+            fixed[key.strip()] = parse_value(args.scenario, key.strip(), value)
+        result = tune(
+            args.scenario,
+            trials=args.trials,
+            num_seeds=args.seeds,
+            seed=args.seed,
+            eval_seed=args.eval_seed,
+            fixed=fixed,
+            params=None if args.params is None else [p.strip() for p in args.params.split(",")],
+            sampler_seed=args.sampler_seed,
+            batch=args.batch,
+            device=args.device,
+            engine=args.engine,
+            address=args.address,
+            num_cpus=args.num_cpus,
+            threads=args.threads,
+            progress=args.progress,
+        )
+    except (ValueError, ImportError) as error:
+        print(f"torchcbf tune: {error}", file=sys.stderr)
+        return 2
+    best, default = result["best"], result["default"]
+    print(f"best trial {best['trial']}: {best['arguments']}")
+    print(
+        f"objective on the tuning seeds {args.seed}..{args.seed + args.seeds - 1}: "
+        f"best {best['objective']:.4f}, default configuration {default['objective']:.4f}"
+    )
+    print(f"on the evaluation seeds {args.eval_seed}..{args.eval_seed + args.seeds - 1}:")
+    evaluation = result["evaluation"]
+    labelled = [{**evaluation[k], "label": k} for k in ("best", "default")]
+    _print_rows(labelled, [])
+    paths = write_tune(result, args.out, engine=args.engine, device=args.device)
+    print("wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
+ECOSYSTEM_COMMANDS = {"bench": _bench, "sweep": _sweep, "tune": _tune}
 
 
 if __name__ == "__main__":

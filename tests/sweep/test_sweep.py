@@ -1,0 +1,135 @@
+"""Sweeps: keyword arguments read from the builders, one batch of seeds per configuration,
+the rows against direct runs of the scenario, strict JSON, and the CLI."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import pytest
+import torch
+
+from torchcbf.cli import main
+from torchcbf.scenarios import reach_avoid
+from torchcbf.sim import summarize
+from torchcbf.sweep import builder_defaults, configurations, parse_grid, parse_value, run_sweep
+from torchcbf.sweep.evaluate import objective, success, tie_break
+
+
+def test_keywords_come_from_the_builder_signature() -> None:
+    a = builder_defaults("reach-avoid")
+    assert a == {"num_samples": 10_000, "horizon": 50}  # num_seeds, seed, device, dtype: reserved
+    b = builder_defaults("mppi-cbf")
+    assert b["method"] == "mppi_scbf" and "rectify_gain" in b and "num_seeds" not in b
+
+
+def test_values_take_a_type_the_builder_admits() -> None:
+    assert parse_value("reach-avoid", "num_samples", "256") == 256
+    assert parse_value("reach-avoid", "num_samples", "1e3") == 1000
+    assert parse_value("mppi-cbf", "rectify_gain", "5") == 5.0
+    assert isinstance(parse_value("mppi-cbf", "rectify_gain", "5"), float)
+    assert parse_value("mppi-cbf", "method", "scbf") == "scbf"
+    assert parse_value("mppi-cbf", "control_limit", "none") is None
+    assert parse_value("mppi-cbf", "control_limit", "2:4") == (2.0, 4.0)
+    assert parse_value("mppi-cbf", "config", "paper") == "paper"
+    with pytest.raises(ValueError, match="rectify_gain does not take text"):
+        parse_value("mppi-cbf", "rectify_gain", "fast")
+    with pytest.raises(ValueError, match="noise_sigma does not take none"):
+        parse_value("mppi-cbf", "noise_sigma", "none")
+    assert parse_value("mppi-cbf", "control_weight", "1:0.01") == (1.0, 0.01)
+    grid = parse_grid("mppi-cbf", ["method=scbf,mppi", "rectify_gain=5,20"])
+    assert grid == {"method": ["scbf", "mppi"], "rectify_gain": [5.0, 20.0]}
+    assert len(configurations(grid)) == 4
+    assert configurations({}) == [{}]
+
+
+@pytest.mark.parametrize(
+    ("items", "match"),
+    [
+        (["temperature=1"], "unknown key 'temperature'.*horizon, num_samples"),
+        (["num_seeds=3"], "num_seeds"),
+        (["num_samples=1.5"], "num_samples takes an integer"),
+        (["num_samples"], "KEY=V1,V2"),
+        (["horizon=10", "horizon=20"], "twice"),
+    ],
+)
+def test_bad_grid_items_name_the_problem(items, match) -> None:
+    with pytest.raises(ValueError, match=match):
+        parse_grid("reach-avoid", items)
+
+
+def test_bad_values_fail_before_anything_runs() -> None:
+    with pytest.raises(ValueError, match="method"):
+        run_sweep("mppi-cbf", {"method": ["nope"]}, num_seeds=1, progress=False)
+    with pytest.raises(ValueError, match="engine"):
+        run_sweep("reach-avoid", {}, engine="spark", progress=False)
+    with pytest.raises(ValueError, match="scenario"):
+        run_sweep("pendulum", {}, progress=False)
+
+
+def test_rows_equal_direct_runs_of_the_scenario() -> None:
+    rows = run_sweep(
+        "reach-avoid", {"num_samples": [32, 64], "horizon": [8]}, num_seeds=3, seed=5,
+        progress=False,
+    )  # fmt: skip
+    assert [(r["num_samples"], r["horizon"]) for r in rows] == [(32, 8), (64, 8)]
+    previous = torch.get_num_threads()
+    for row in rows:
+        scenario = reach_avoid(num_samples=row["num_samples"], horizon=8, num_seeds=3, seed=5)
+        torch.set_num_threads(1)  # as the sweep runs it
+        try:
+            _, per_seed = scenario.run(progress=False)
+        finally:
+            torch.set_num_threads(previous)
+        summary = summarize(per_seed)
+        ok = per_seed["spec_satisfied"] & ~per_seed["collision"]
+        assert row["success_count"] == int(ok.sum()) and row["num_seeds"] == 3
+        assert row["collision_count"] == summary["collision"]["count"]
+        assert row["min_h"] == summary["min_h"]["min"]
+        assert row["spec_robustness_mean"] == pytest.approx(summary["spec_robustness"]["mean"])
+        assert row["objective"] == pytest.approx(objective(per_seed, 10.0))
+
+
+def test_objective_counts_successes_first_then_the_tie_break() -> None:
+    t = torch.tensor
+    fast = {
+        "goal_reached": t([True, True, False, False]),
+        "collision": t([False, True, False, False]),
+        "goal0_time": t([1.0, 2.0, float("nan"), float("nan")]),
+    }
+    slow = {**fast, "goal0_time": t([4.0, 2.0, float("nan"), float("nan")])}
+    crashed = {**fast, "collision": t([True, True, False, False])}
+    assert tie_break(crashed, 5.0) == 0.0  # reaching the goal through an obstacle earns nothing
+    assert success(fast).tolist() == [True, False, False, False]
+    assert tie_break(fast, 5.0) == pytest.approx(1 - 1.0 / 5)  # seed 1 collided: not counted
+    assert objective(fast, 5.0) > objective(slow, 5.0) > 0.25
+    one_more = {**slow, "goal_reached": t([True, True, True, False]), "goal0_time": t([4.9] * 4)}
+    assert objective(one_more, 5.0) > objective(fast, 5.0)  # a success beats any tie-break
+    assert objective(fast, 5.0) < 0.25 + 1 / 8
+
+
+def test_cli_sweep_writes_csv_strict_json_and_figure(tmp_path, capsys) -> None:
+    code = main(
+        ["sweep", "reach-avoid", "--grid", "num_samples=32,64", "--grid", "horizon=8",
+         "--seeds", "2", "--out", str(tmp_path), "--no-progress"]
+    )  # fmt: skip
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "num_samples=32 horizon=8" in out and "success (95% CI)" in out
+    data = json.loads(
+        (tmp_path / "sweep.json").read_text(),
+        parse_constant=lambda c: pytest.fail(f"non-strict JSON constant {c}"),
+    )
+    assert data["grid"] == {"num_samples": [32, 64], "horizon": [8]}
+    assert data["run"]["scenario"] == "reach-avoid" and "torch" in data["run"]
+    assert len(data["rows"]) == 2 and all(math.isfinite(r["objective"]) for r in data["rows"])
+    with (tmp_path / "sweep.csv").open() as f:
+        table = list(csv.DictReader(f))
+    assert [int(r["num_samples"]) for r in table] == [32, 64]
+    assert (tmp_path / "sweep.png").stat().st_size > 1000
+
+
+def test_cli_sweep_unknown_key_exits_2(tmp_path, capsys) -> None:
+    assert main(["sweep", "reach-avoid", "--grid", "alpha=1", "--out", str(tmp_path)]) == 2
+    assert "unknown key 'alpha'" in capsys.readouterr().err

@@ -1,0 +1,118 @@
+"""Optuna tuning and the Ray engine: reproducible studies, disjoint seeds, and Ray giving
+exactly the local numbers."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import pytest
+
+from torchcbf.cli import main
+from torchcbf.sweep import SEARCH_SPACES, builder_defaults, run_sweep, search_space
+
+SMALL = {"num_samples": 32}
+
+
+def _without_wall(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    return [{k: v for k, v in row.items() if k != "wall_s"} for row in rows]
+
+
+def test_search_spaces_name_builder_keywords() -> None:
+    for scenario, dims in SEARCH_SPACES.items():
+        accepted = builder_defaults(scenario)
+        for d in dims:
+            assert d.optional or d.keyword in accepted, (scenario, d.name)
+        assert search_space(scenario)  # something to search today
+    names = [d.name for d in search_space("mppi-cbf", fixed={"rectify_gain": 5.0})]
+    assert "rectify_gain" not in names and {"control_weight_omega", "noise_sigma"} <= set(names)
+    filter_only = [d.name for d in search_space("mppi-cbf", fixed={"method": "scbf"})]
+    assert "noise_sigma" not in filter_only and "rectify_gain" in filter_only
+    planner_only = [d.name for d in search_space("mppi-cbf", fixed={"method": "mppi"})]
+    assert "rectify_gain" not in planner_only and "noise_sigma" in planner_only
+    with pytest.raises(ValueError, match="unknown parameter"):
+        search_space("reach-avoid", ["nope"])
+    with pytest.raises(ValueError, match="every dimension is fixed"):
+        search_space("reach-avoid", ["horizon"], fixed={"horizon": 8})
+
+
+def _tune(**kwargs: Any) -> dict[str, Any]:
+    optuna = pytest.importorskip("optuna")
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    from torchcbf.sweep import tune
+
+    options = {"trials": 4, "num_seeds": 2, "fixed": SMALL, "params": ["horizon"], "batch": 2}
+    return tune("reach-avoid", progress=False, **{**options, **kwargs})
+
+
+@pytest.fixture(scope="module")
+def study() -> dict[str, Any]:
+    return _tune()
+
+
+def test_tune_is_reproducible_and_reports_best_and_default(study) -> None:
+    a, b = study, _tune()
+    assert _without_wall(a["trials"]) == _without_wall(b["trials"])
+    assert len(a["trials"]) == 4
+    objectives = [r["objective"] for r in a["trials"]]
+    assert a["best"]["objective"] == max(objectives)
+    best_row = a["trials"][a["best"]["trial"]]
+    assert a["best"]["arguments"] == {"num_samples": 32, "horizon": best_row["horizon"]}
+    assert all(r["first_seed"] == 10_000 for r in a["trials"])  # tuning seeds
+    assert a["evaluation"]["best"]["first_seed"] == 0  # evaluation seeds
+    assert a["default"]["arguments"] == {"num_samples": 32, "horizon": 50}
+    assert a["evaluation"]["default"]["num_samples"] == 32
+    assert "horizon" not in a["evaluation"]["default"]  # the builder's own default
+    c = _tune(sampler_seed=1, trials=2)
+    assert [r["horizon"] for r in c["trials"]] != [r["horizon"] for r in a["trials"][:2]]
+
+
+def test_tune_rejects_overlapping_seeds() -> None:
+    with pytest.raises(ValueError, match="overlap"):
+        _tune(seed=0, eval_seed=1)
+
+
+def test_cli_tune_writes_best_json_and_study(tmp_path, capsys) -> None:
+    pytest.importorskip("optuna")
+    code = main(
+        ["tune", "reach-avoid", "--trials", "2", "--seeds", "2", "--set", "num_samples=32",
+         "--params", "horizon", "--out", str(tmp_path), "--no-progress"]
+    )  # fmt: skip
+    assert code == 0
+    best = json.loads((tmp_path / "best.json").read_text())
+    assert set(best) >= {"best", "default", "evaluation", "space", "run", "tuning_seeds"}
+    assert best["tuning_seeds"] == {"first": 10_000, "count": 2}
+    assert (tmp_path / "study.csv").read_text().count("\n") == 3  # header + 2 trials
+    assert (tmp_path / "study.png").exists()
+    assert "default configuration" in capsys.readouterr().out
+
+
+@pytest.fixture(scope="module")
+def ray_cluster():
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+def test_ray_sweep_equals_local(ray_cluster) -> None:
+    grid = {"num_samples": [32, 64], "horizon": [8]}
+    local = run_sweep("reach-avoid", grid, num_seeds=2, seed=3, progress=False)
+    remote = run_sweep("reach-avoid", grid, num_seeds=2, seed=3, engine="ray", progress=False)
+    assert _without_wall(remote) == _without_wall(local)
+
+
+def test_ray_tune_equals_local(ray_cluster, study) -> None:
+    local = study
+    remote = _tune(engine="ray")
+    assert _without_wall(remote["trials"]) == _without_wall(local["trials"])
+    assert remote["best"] == local["best"]
+
+
+def test_cli_sweep_on_ray(ray_cluster, tmp_path) -> None:
+    args = ["sweep", "reach-avoid", "--grid", "num_samples=32", "--grid", "horizon=8",
+            "--seeds", "2", "--no-progress"]  # fmt: skip
+    assert main([*args, "--engine", "ray", "--out", str(tmp_path / "ray")]) == 0
+    assert main([*args, "--out", str(tmp_path / "local")]) == 0
+    rows = [json.loads((tmp_path / d / "sweep.json").read_text())["rows"] for d in ("ray", "local")]
+    assert _without_wall(rows[0]) == _without_wall(rows[1])

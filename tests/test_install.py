@@ -1,0 +1,112 @@
+"""The installed package: its package list, the benchmark scripts shipped as
+``torchcbf.scripts`` and found by ``torchcbf bench`` outside any checkout, and the CLI's
+help, version and exit codes."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+import torchcbf
+from torchcbf.cli import BENCHES, DESCRIPTIONS, main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_package_list_covers_the_source_tree() -> None:
+    tomllib = pytest.importorskip("tomllib")
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    found = {
+        ".".join(p.parent.relative_to(ROOT).parts) for p in (ROOT / "torchcbf").rglob("__init__.py")
+    }
+    assert set(config["packages"]) == found | {"torchcbf.scripts"}
+    assert config["package-dir"] == {"torchcbf.scripts": "scripts"}
+
+
+def test_wheel_ships_the_benchmarks_and_bench_finds_them_outside_a_checkout(tmp_path) -> None:
+    src = tmp_path / "src"
+    ignore = shutil.ignore_patterns("__pycache__", "*.so", "*.egg-info", "build")
+    for name in ("torchcbf", "scripts"):
+        shutil.copytree(ROOT / name, src / name, ignore=ignore)
+    for name in ("pyproject.toml", "setup.py", "README.md"):
+        shutil.copy(ROOT / name, src / name)
+    built = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation",
+         "-w", str(tmp_path / "dist"), str(src)],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert built.returncode == 0, built.stderr[-2000:]
+    (wheel,) = (tmp_path / "dist").glob("torchcbf-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    for bench in BENCHES:
+        assert f"torchcbf/scripts/{bench}" in names
+    assert "torchcbf/envs/__init__.py" in names and "torchcbf/sweep/tune.py" in names
+    site = tmp_path / "site"
+    installed = subprocess.run(
+        [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", str(site),
+         str(wheel)],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert installed.returncode == 0, installed.stderr[-2000:]
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    env = {**os.environ, "PYTHONPATH": str(site)}
+    listed = subprocess.run(
+        [sys.executable, "-c",
+         "import sys, torchcbf; from torchcbf.cli import main; print(torchcbf.__file__); "
+         "sys.exit(main(['bench', '--list']))"],
+        capture_output=True, text=True, cwd=elsewhere, env=env,
+    )  # fmt: skip
+    assert listed.returncode == 0, listed.stderr[-2000:]
+    lines = listed.stdout.splitlines()
+    assert lines[0].startswith(str(site))  # the installed copy, not the checkout
+    paths = [line.split()[-1] for line in lines[1:]]
+    assert [Path(p).name for p in paths] == list(BENCHES)
+    assert all(p.startswith(str(site / "torchcbf" / "scripts")) for p in paths)
+
+
+def test_bench_lists_and_filters(capsys) -> None:
+    assert main(["bench", "--list"]) == 0
+    out = capsys.readouterr().out
+    assert [line.split()[0] for line in out.splitlines()] == ["qp", "barriers", "filters", "mppi"]
+    assert main(["bench", "--list", "--only", "mppi,qp"]) == 0
+    assert [line.split()[0] for line in capsys.readouterr().out.splitlines()] == ["qp", "mppi"]
+
+
+def test_bench_exits_non_zero_when_nothing_runs(capsys, monkeypatch) -> None:
+    assert main(["bench", "--only", "nothing"]) == 2
+    assert "no benchmark" in capsys.readouterr().err
+    monkeypatch.setattr("torchcbf.cli._bench_scripts", lambda: [])
+    assert main(["bench", "--quick"]) == 2
+    assert "no benchmark scripts found" in capsys.readouterr().err
+
+
+def test_bench_reports_a_failing_script(tmp_path, capsys, monkeypatch) -> None:
+    script = tmp_path / "bench_broken.py"
+    script.write_text("import sys\nsys.exit(3)\n")
+    monkeypatch.setattr("torchcbf.cli._bench_scripts", lambda: [script])
+    assert main(["bench"]) == 1
+    assert "failed: bench_broken.py" in capsys.readouterr().err
+
+
+def test_version(capsys) -> None:
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0
+    assert capsys.readouterr().out.strip().startswith(f"torchcbf {torchcbf.__version__}")
+
+
+@pytest.mark.parametrize("command", sorted(DESCRIPTIONS))
+def test_every_subcommand_has_a_description_and_shows_defaults(command, capsys) -> None:
+    with pytest.raises(SystemExit) as stop:
+        main([command, "--help"])
+    assert stop.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert " ".join(DESCRIPTIONS[command].split())[:60] in text
+    assert "(default: cpu)" in text
