@@ -202,8 +202,13 @@ class ExponentialBarrier(ExactConstants, Barrier):
         elif isinstance(coefficients, Tensor):
             device, dtype = float_spec(self)
             k = register(self, "coefficients", coefficients.to(device, dtype), False)
-        else:  # Python numbers stay exact under .double()
-            k = store(self, "coefficients", [float(c) for c in coefficients])
+        else:  # Python numbers: in the barrier's dtype, and exact under .double()
+            values = [float(c) for c in coefficients]
+            device, dtype = float_spec(self)  # the barrier's, before the new buffer counts
+            store(self, "coefficients", values)
+            exact = torch.tensor(values, dtype=torch.float64)
+            self._buffers["coefficients"] = exact.to(device=device, dtype=dtype)
+            k = self.coefficients
         if k.shape != (relative_degree - 1,):
             raise ValueError(
                 f"coefficients must have {relative_degree - 1} entries [k_0, ..., k_(r-2)], "

@@ -77,6 +77,12 @@ class _ShapeStack(ExactConstants, Barrier):
     are independent Lie parts, all with closed-form derivatives."""
 
     num: int | None
+    _sel: StateIndex
+
+    @property
+    def index(self) -> tuple[int, ...]:
+        """The state components the shape is drawn in (the position)."""
+        return self._sel.index
 
     def parts(self) -> list[LieFunction] | None:
         return _split(self, self.num)

@@ -17,15 +17,13 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import importlib.machinery
 import logging
-import os
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import torch
 from torch import Tensor, nn
 
+from torchcbf._native import load_kernel, thread_pool
 from torchcbf.barriers import Ball, Ellipse
 from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, SingleIntegrator, Unicycle
 
@@ -51,30 +49,19 @@ _RUN_ARGS = [_P, _I64, _I64] + [_P] * 11
 
 @functools.lru_cache(maxsize=1)
 def _library() -> ctypes.CDLL | None:
-    here = Path(__file__).parent
-    for suffix in importlib.machinery.EXTENSION_SUFFIXES:
-        path = here / f"_rollout_kernel{suffix}"
-        if not path.exists():
-            continue
-        try:
-            lib = ctypes.CDLL(str(path))
-        except OSError as err:
-            logger.warning("torchcbf: cannot load %s (%s); MPPI runs in torch", path, err)
-            return None
-        version = getattr(lib, "torchcbf_mppi_version", None)
-        if version is None or version() != KERNEL_VERSION:
-            logger.warning(
-                "torchcbf: %s was built from another version of _rollout_kernel.c; MPPI runs "
-                "in torch (reinstall to rebuild it)",
-                path,
-            )
-            return None
+    lib = load_kernel(
+        Path(__file__).parent,
+        "_rollout_kernel",
+        "torchcbf_mppi_version",
+        KERNEL_VERSION,
+        "MPPI runs in torch",
+    )
+    if lib is not None:
         for name in ("torchcbf_mppi_run_f32", "torchcbf_mppi_run_f64"):
             fn = getattr(lib, name)
             fn.argtypes = _RUN_ARGS
             fn.restype = ctypes.c_int
-        return lib
-    return None
+    return lib
 
 
 def available() -> bool:
@@ -118,7 +105,7 @@ def _shape_records(barrier: object) -> list[list[float]] | None:
     if kind not in (Ellipse, Ball) or getattr(barrier, "time_varying", False):
         return None
     # the shapes expose no public accessor for their state components
-    index = tuple(barrier._sel.index)
+    index = tuple(barrier.index)
     center = barrier.center.detach()
     d = center.shape[-1]
     if d > MAX_DIM or len(index) != d:
@@ -279,12 +266,6 @@ def configuration(
 
 
 # -- calls -----------------------------------------------------------------------------------
-@functools.lru_cache(maxsize=8)
-def _pool(threads: int, pid: int) -> ThreadPoolExecutor:
-    # keyed by process id: a forked child inherits the pool object but not its threads
-    return ThreadPoolExecutor(threads, thread_name_prefix="torchcbf-mppi")
-
-
 def _ptr(t: Tensor | None) -> int | None:
     return None if t is None else t.data_ptr()
 
@@ -346,7 +327,7 @@ def run(
     if threads == 1:
         codes = [call(0)]
     else:
-        codes = list(_pool(threads, os.getpid()).map(call, range(threads)))
+        codes = list(thread_pool(threads, "torchcbf-mppi").map(call, range(threads)))
     bad = [c for c in codes if c != 0]
     if bad:
         raise RuntimeError(f"torchcbf: the MPPI kernel refused its configuration (code {bad[0]})")

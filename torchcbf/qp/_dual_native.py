@@ -11,15 +11,14 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import importlib.machinery
 import logging
-import os
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import torch
 from torch import Tensor
+
+from torchcbf._native import load_kernel, thread_pool
 
 logger = logging.getLogger(__name__)
 
@@ -39,29 +38,18 @@ _BWD_ARGS = [_I64, _INT, _INT] + [_P] * 8
 
 @functools.lru_cache(maxsize=1)
 def _library() -> ctypes.CDLL | None:
-    here = Path(__file__).parent
-    for suffix in importlib.machinery.EXTENSION_SUFFIXES:
-        path = here / f"_dual_kernel{suffix}"
-        if not path.exists():
-            continue
-        try:
-            lib = ctypes.CDLL(str(path))
-        except OSError as err:
-            logger.warning("torchcbf: cannot load %s (%s); using the torch solver", path, err)
-            return None
-        version = getattr(lib, "torchcbf_dual_version", None)
-        if version is None or version() != KERNEL_VERSION:
-            logger.warning(
-                "torchcbf: %s was built from another version of _dual_kernel.c; using the "
-                "torch solver (reinstall to rebuild it)",
-                path,
-            )
-            return None
+    lib = load_kernel(
+        Path(__file__).parent,
+        "_dual_kernel",
+        "torchcbf_dual_version",
+        KERNEL_VERSION,
+        "using the torch solver",
+    )
+    if lib is not None:
         lib.torchcbf_dual_forward.argtypes = _FWD_ARGS
         lib.torchcbf_dual_backward.argtypes = _BWD_ARGS
         lib.torchcbf_dual_forward.restype = lib.torchcbf_dual_backward.restype = _INT
-        return lib
-    return None
+    return lib
 
 
 def available() -> bool:
@@ -73,12 +61,6 @@ def applies(q: Tensor) -> bool:
     """Whether the kernel serves a problem batch with linear term ``q [B, N]``."""
     cpu64 = q.device.type == "cpu" and q.dtype == torch.float64
     return cpu64 and q.shape[-1] <= MAX_VARS and available()
-
-
-@functools.lru_cache(maxsize=8)
-def _pool(threads: int, pid: int) -> ThreadPoolExecutor:
-    # keyed by process id: a forked child inherits the pool object but not its threads
-    return ThreadPoolExecutor(threads, thread_name_prefix="torchcbf-qp")
 
 
 def _kernel() -> ctypes.CDLL:
@@ -103,7 +85,7 @@ def _run(fn: Callable[..., int], B: int, per_row: list[tuple[Tensor, int]]) -> N
     if threads == 1:
         codes = [call(0, B)]
     else:
-        codes = list(_pool(threads, os.getpid()).map(call, bounds[:-1], bounds[1:]))
+        codes = list(thread_pool(threads, "torchcbf-qp").map(call, bounds[:-1], bounds[1:]))
     if any(c != 0 for c in codes):
         raise MemoryError("torchcbf: the QP kernel could not allocate its workspace")
 
