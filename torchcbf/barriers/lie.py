@@ -178,6 +178,8 @@ def lie_derivatives(
         ``dynamics``. Under ``torch.no_grad()``/``torch.inference_mode()`` the terms are
         computed all the same and returned detached.
     """
+    if not isinstance(dynamics, ControlAffine):
+        raise TypeError(f"dynamics must be a ControlAffine model, got {type(dynamics).__name__}")
     dynamics.check_inputs(x)
     if method not in ("autograd", "analytic"):
         raise ValueError(f"method must be 'autograd' or 'analytic', got {method!r}")

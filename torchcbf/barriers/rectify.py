@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor
+from torchcbf._checks import as_tensor, check_finite
 from torchcbf._constants import ExactConstants, store
 from torchcbf.barriers._params import float_spec, register
 from torchcbf.barriers.base import Barrier
@@ -85,6 +85,7 @@ def _gain_tensor(
     else:
         device, dtype = float_spec(module)
         value = as_tensor(name, gains, dtype=dtype, device=device).detach().clone()
+        check_finite(name, value)
         if value.dim() == 0:
             value = value.expand(count).clone()
         if value.shape != (count,):
@@ -247,6 +248,8 @@ class ExponentialBarrier(ExactConstants, Barrier):
 
 
 def _check_hurwitz(coefficients: Tensor) -> None:
+    if not bool(torch.isfinite(coefficients).all()):
+        raise ValueError(f"gains must be finite, got {coefficients.tolist()}")
     poly = np.concatenate([[1.0], coefficients.flip(0).cpu().double().numpy()])
     roots = np.roots(poly)
     if not bool(np.all(roots.real < 0)):

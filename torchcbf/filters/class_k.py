@@ -21,10 +21,13 @@ ClassKSpec = float | Sequence[float] | Tensor | Callable[[Tensor], Tensor] | nn.
 
 
 def _gain(name: str, gain: float | Sequence[float] | Tensor) -> Tensor:
-    value = as_tensor(name, gain).detach().clone()
+    """The gain as a tensor; one that requires grad keeps its graph (no silent cut)."""
+    value = as_tensor(name, gain)
+    value = value if value.requires_grad else value.detach().clone()
     if value.dim() > 1:
         raise ValueError(f"{name} must be a scalar or a vector [k], got shape {tuple(value.shape)}")
-    if value.numel() == 0 or not bool(torch.isfinite(value).all()) or bool((value <= 0).any()):
+    check = value.detach()
+    if check.numel() == 0 or not bool(torch.isfinite(check).all()) or bool((check <= 0).any()):
         raise ValueError(f"{name} must be finite and positive, got {value.tolist()}")
     return value
 
@@ -37,7 +40,7 @@ class _GainClassK(nn.Module):
         value = _gain("gain", gain)
         self.learnable = bool(learnable)
         if learnable:
-            self.log_gain = nn.Parameter(value.log())
+            self.log_gain = nn.Parameter(value.detach().log())
         else:
             self.register_buffer("_gain", value)
 

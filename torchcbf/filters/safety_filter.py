@@ -367,6 +367,8 @@ class SafetyFilter(nn.Module):
         status = torch.where(relaxed, torch.full_like(status, FilterStatus.RELAXED), status)
         status = torch.where(qp_ok, status, torch.full_like(status, FilterStatus.FALLBACK))
         status = torch.where(finite, status, torch.full_like(status, FilterStatus.NON_FINITE))
+        # the QP of a non-finite row was a zero stand-in: report the input's trouble
+        qp_status = torch.where(finite, qp_status, torch.full_like(qp_status, Status.NON_FINITE))
         slack, cval = _residuals(cbf, clf, u, delta)
         slack = torch.where(qp_ok.unsqueeze(-1), slack, torch.zeros_like(slack))
         cval = torch.where(fin, cval, torch.full_like(cval, math.nan))

@@ -18,7 +18,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor, check_index
+from torchcbf._checks import as_tensor, check_finite, check_index
 from torchcbf.mppi.history import History
 
 Stage = Callable[[Tensor, Tensor], Tensor]
@@ -42,8 +42,8 @@ def constant(name: str, value: object) -> Tensor:
     """A constant vector: tensors keep their dtype, Python numbers become float64 (cast to the
     rollout's dtype at use, so float64 rollouts see exact constants)."""
     if isinstance(value, Tensor):
-        return as_tensor(name, value).reshape(-1)
-    return as_tensor(name, value, dtype=torch.float64).reshape(-1)
+        return check_finite(name, as_tensor(name, value)).reshape(-1)
+    return check_finite(name, as_tensor(name, value, dtype=torch.float64)).reshape(-1)
 
 
 def squared_distance(x: Tensor, index: tuple[int, ...] | slice, center: Tensor) -> Tensor:

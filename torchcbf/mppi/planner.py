@@ -374,6 +374,11 @@ class MPPI(nn.Module):
             raise ValueError(f"x must have shape [{n}] or [B, {n}], got {tuple(x.shape)}")
         if not x.is_floating_point():
             raise TypeError(f"x must be a floating tensor, got {x.dtype}")
+        if x.device != self.noise_cov.device:
+            raise ValueError(
+                f"x is on device {x.device} but the planner is on device "
+                f"{self.noise_cov.device}: move one of them (planner.to(x.device))"
+            )
         unbatched = x.dim() == 1
         xb = x.unsqueeze(0) if unbatched else x
         B = xb.shape[0]
