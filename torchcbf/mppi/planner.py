@@ -69,7 +69,13 @@ import torch
 from torch import Tensor, nn
 
 from torchcbf import integrators
-from torchcbf._checks import as_tensor, check_last_dim, check_positive, check_spd
+from torchcbf._checks import (
+    as_limit,
+    as_matrix,
+    check_bounds,
+    check_last_dim,
+    check_positive,
+)
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.mppi import _rollout
 from torchcbf.mppi.history import History, HistoryBuffer
@@ -110,34 +116,13 @@ class MPPIOutput(NamedTuple):
     nonfinite: Tensor | None = None
 
 
-def _covariance(noise_sigma: object, m: int) -> Tensor:
-    cov = as_tensor("noise_sigma", noise_sigma)
-    if cov.dim() == 0:
-        cov = cov * torch.eye(m, dtype=cov.dtype)
-    elif cov.dim() == 1:
-        if cov.shape[0] != m:
-            raise ValueError(
-                f"noise_sigma as a vector must have shape [{m}], got {tuple(cov.shape)}"
-            )
-        cov = torch.diag(cov)
-    if cov.shape != (m, m):
-        raise ValueError(
-            f"noise_sigma must be a scalar, [{m}] or [{m}, {m}] covariance, got {tuple(cov.shape)}"
-        )
-    if not bool(torch.isfinite(cov).all()):
-        raise ValueError("noise_sigma must be finite")
-    return check_spd("noise_sigma", cov)
-
-
 def _limit(name: str, value: object, m: int) -> Tensor | None:
-    if value is None:
+    """A control bound (scalar or ``[m]``; NaN refused) in the dtype of a given tensor, else
+    the default dtype."""
+    t = as_limit(name, value, m)
+    if t is None:
         return None
-    t = as_tensor(name, value)
-    if t.dim() == 0:
-        t = t.expand(m).clone()
-    if t.shape != (m,):
-        raise ValueError(f"{name} must be a scalar or have shape [{m}], got {tuple(t.shape)}")
-    return t
+    return t.to(value.dtype if isinstance(value, Tensor) else torch.get_default_dtype())
 
 
 class _Weights(NamedTuple):
@@ -274,7 +259,7 @@ class MPPI(nn.Module):
         #: the path of the last call: ``"fused"``, ``"rollout"`` or ``"torch"``
         self.path: str | None = None
 
-        cov = _covariance(noise_sigma, m)
+        cov = as_matrix("noise_sigma", noise_sigma, m)
         self.register_buffer("noise_cov", cov)
         self.register_buffer("noise_chol", torch.linalg.cholesky(cov))
         self.register_buffer("noise_cov_inv", torch.cholesky_inverse(self.noise_chol))
@@ -284,8 +269,7 @@ class MPPI(nn.Module):
         self._isotropic_std = float(diag[0].sqrt()) if isotropic else None
         lo = _limit("u_min", u_min, m) if u_min is not None else dynamics.u_min
         hi = _limit("u_max", u_max, m) if u_max is not None else dynamics.u_max
-        if lo is not None and hi is not None and bool((lo > hi).any()):
-            raise ValueError(f"u_min {lo.tolist()} exceeds u_max {hi.tolist()}")
+        check_bounds("u_min", lo, "u_max", hi)
         self.register_buffer("u_min", None if lo is None else lo.clone())
         self.register_buffer("u_max", None if hi is None else hi.clone())
 

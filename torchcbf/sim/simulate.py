@@ -32,6 +32,7 @@ from tqdm.auto import tqdm
 from torchcbf._checks import check_last_dim, check_positive
 from torchcbf._random import counter_normal
 from torchcbf.dynamics.base import ControlAffine
+from torchcbf.estimation import Estimator, Sensor
 from torchcbf.integrators import METHODS
 from torchcbf.integrators import step as integrate
 from torchcbf.sim.trajectory import Trajectory
@@ -64,8 +65,8 @@ def simulate(
     planner: Callable[..., Any] | None = None,
     nominal: Callable[..., Tensor] | None = None,
     safety_filter: Callable[..., Any] | None = None,
-    sensor: Any | None = None,
-    estimator: Any | None = None,
+    sensor: Sensor | None = None,
+    estimator: Estimator | None = None,
     integrator: str = "rk4",
     seed: int | Sequence[int] | Tensor = 0,
     progress: bool = True,
@@ -141,8 +142,8 @@ def _simulate(
     planner: Callable[..., Any] | None,
     nominal: Callable[..., Tensor] | None,
     safety_filter: Callable[..., Any] | None,
-    sensor: Any | None,
-    estimator: Any | None,
+    sensor: Sensor | None,
+    estimator: Estimator | None,
     integrator: str,
     seed: int | Sequence[int] | Tensor,
     progress: bool,
