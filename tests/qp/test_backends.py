@@ -2,16 +2,11 @@
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import pytest
 import torch
+from _problems import make_batch
 
 from torchcbf.qp import Status, solve_qp
-
-sys.path.insert(0, str(Path(__file__).parent))
-from _problems import make_batch  # noqa: E402
 
 F64 = torch.float64
 

@@ -5,18 +5,13 @@ twice: on the torch implementation and on the C kernel (skipped where it was not
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import pytest
 import torch
+from _problems import make_batch
+from test_solve import check_against_cvxpy  # noqa: E402
 
 from torchcbf.qp import Status, solve_qp
 from torchcbf.qp._dual import _cho_solve, _cholesky, solve_dual
-
-sys.path.insert(0, str(Path(__file__).parent))
-from _problems import make_batch  # noqa: E402
-from test_solve import check_against_cvxpy  # noqa: E402
 
 F64 = torch.float64
 SHAPES = [  # n, m, box bounds (no equalities: the dual path does not take them)
@@ -189,7 +184,7 @@ def _row_and_grads(method, Q, p, G, h):
 
 @pytest.mark.parametrize(
     "Q, p, G, h",
-    [  # review cases: a large R P^-1 R' (a row used to enter two slots) and a wide Q spectrum
+    [  # a large R P^-1 R' (no row may enter two slots) and a wide Q spectrum
         ([[1.0, 0.0], [0.0, 1.0]], [9.0, -7.0], [[-6000.0, 8000.0], [7000.0, 8000.0]], [1.0, 0]),
         ([[1e-8, 0.0], [0.0, 1e4]], [1.0, 1.0], [[-1.0, 0.0], [1.0, 1.0]], [1.0, 0.0]),
     ],

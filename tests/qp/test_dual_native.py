@@ -5,17 +5,12 @@ threads, and the cases it must not take."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import pytest
 import torch
+from _problems import make_batch
 
 from torchcbf.qp import Status, _dual_native, solve_qp
 from torchcbf.qp._dual import dual_adjoints, solve_dual
-
-sys.path.insert(0, str(Path(__file__).parent))
-from _problems import make_batch  # noqa: E402
 
 F64 = torch.float64
 
@@ -106,7 +101,7 @@ def test_applies_only_to_float64_on_the_cpu_with_at_most_eight_variables():
 
 
 def test_transposed_and_expanded_g_give_the_right_gradients():
-    """Review case: the backward read a transposed (or expanded) G as if contiguous."""
+    """A transposed (or expanded) G gives the gradients of a contiguous one."""
     Q = torch.eye(2, dtype=F64)
     h = torch.tensor([1.0, 5.0, 5.0], dtype=F64)
     G_t = torch.tensor([[1.0, 2.0, 1.0], [0.0, 1.0, 3.0]], dtype=F64).T
@@ -132,8 +127,8 @@ def test_transposed_and_expanded_g_give_the_right_gradients():
 
 
 def test_nearly_dependent_final_active_set_is_not_accepted():
-    """Review case: rows 0 and 2 at cosine -(1 - 1.6e-13); the C pivot test compared each
-    pivot with itself, so the kernel accepted a point 2e-3 off."""
+    """Rows 0 and 2 at cosine -(1 - 1.6e-13): pivots are judged against the original
+    diagonal, so a nearly dependent active set (a point 2e-3 off) is not accepted."""
     Q = torch.tensor([[5.9529149525052345, 4.477149544721193], [4.477149544721193,
                       5.047085047494767]], dtype=F64)  # fmt: skip
     p = torch.tensor([-1.1989579878000285, 0.3467384696737627], dtype=F64)

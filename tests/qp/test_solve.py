@@ -4,18 +4,14 @@ from __future__ import annotations
 
 import math
 import shutil
-import sys
 import sysconfig
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from _problems import TEN_THOUSAND_SHAPES, make_batch
 
 from torchcbf.qp import QPSolution, Status, _dual_native, solve_qp
-
-sys.path.insert(0, str(Path(__file__).parent))
-from _problems import TEN_THOUSAND_SHAPES, make_batch  # noqa: E402
 
 F64 = torch.float64
 TOL = {torch.float64: 1e-6, torch.float32: 1e-3}
@@ -110,8 +106,8 @@ def test_dual_infeasible_detected():
 
 @pytest.mark.parametrize("method", ["ipm", "auto"])
 def test_strictly_convex_problem_with_a_large_q_is_not_called_unbounded(method):
-    """Review case: the interior point's certificate compared ||Px|| with q'x, so q = -1e8
-    made a bounded problem (P = 1, -10 <= x <= 1) look dual infeasible."""
+    """A bounded problem (P = 1, -10 <= x <= 1, q = -1e8) is not certified dual infeasible:
+    that certificate is only for rows whose P is not positive definite."""
     G = torch.tensor([[1.0], [-1.0]], dtype=F64)
     h = torch.tensor([1.0, 10.0], dtype=F64)
     sol = solve_qp(torch.eye(1, dtype=F64), torch.tensor([-1e8], dtype=F64), G, h, method=method)

@@ -96,3 +96,9 @@ def test_planner_names_mismatched_devices() -> None:
 def test_specs_and_costs_reject_non_finite_centres(make) -> None:
     with pytest.raises(ValueError, match="must not contain"):
         make()
+
+
+def test_filter_names_mismatched_devices() -> None:
+    filt = _filter()
+    with pytest.raises(ValueError, match="x is on device meta, u_nom on cpu and the filter on cpu"):
+        filt(torch.zeros(1, 2, device="meta"), torch.zeros(1, 2))

@@ -396,6 +396,11 @@ class SafetyFilter(nn.Module):
             raise TypeError(
                 f"x and u_nom must share a floating dtype, got {x.dtype} and {u_nom.dtype}"
             )
+        if u_nom.device != x.device or x.device != self.R.device:
+            raise ValueError(
+                f"x is on device {x.device}, u_nom on {u_nom.device} and the filter on "
+                f"{self.R.device}: move them to one device (safety_filter.to(x.device))"
+            )
         B = math.prod(batch)
         if t is None or isinstance(t, (int, float)):
             tb = x.new_full((B,), 0.0 if t is None else float(t))
