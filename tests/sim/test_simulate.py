@@ -264,3 +264,10 @@ def test_sensor_and_estimator_close_the_loop() -> None:
 def test_metrics_rejects_what_is_not_a_trajectory() -> None:
     with pytest.raises(TypeError, match="trajectory must be a Trajectory"):
         metrics("traj")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("total", [1, 7, 16, 32, 128, 1000])
+def test_wilson_interval_contains_the_rate(total: int) -> None:
+    for k in range(total + 1):
+        lo, hi = wilson_interval(k, total)
+        assert 0.0 <= lo <= k / total <= hi <= 1.0

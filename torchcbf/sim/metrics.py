@@ -38,7 +38,8 @@ def wilson_interval(successes: int, total: int, z: float = 1.96) -> tuple[float,
     denom = 1 + z * z / total
     centre = (p + z * z / (2 * total)) / denom
     half = z * math.sqrt(p * (1 - p) / total + z * z / (4 * total * total)) / denom
-    return (max(0.0, centre - half), min(1.0, centre + half))
+    # rounding can put a bound a hair past the rate itself when it is 0 or 1
+    return (min(max(0.0, centre - half), p), max(min(1.0, centre + half), p))
 
 
 def metrics(
