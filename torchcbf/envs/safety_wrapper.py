@@ -92,6 +92,12 @@ class _Filtering:
             }
         return u, extra
 
+    def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
+        """Reset the environment(s) and remember the observation the filter reads."""
+        obs, info = self.env.reset(**kwargs)
+        self._last_obs = obs
+        return obs, info
+
 
 class SafetyFilterWrapper(_Filtering, gymnasium.Wrapper):
     """Filter every action of ``env`` through ``safety_filter`` (a
@@ -132,12 +138,6 @@ class SafetyFilterWrapper(_Filtering, gymnasium.Wrapper):
         gymnasium.Wrapper.__init__(self, env)
         self._setup(env, safety_filter, state_fn, time_fn, device, dtype)
 
-    def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
-        """Reset the environment and remember its observation."""
-        obs, info = self.env.reset(**kwargs)
-        self._last_obs = obs
-        return obs, info
-
     def step(self, action: Any) -> tuple[Any, Any, bool, bool, dict[str, Any]]:
         """Filter ``action``, step the environment with the result."""
         u, extra = self._filter(action)
@@ -166,12 +166,6 @@ class VectorSafetyFilterWrapper(_Filtering, VectorWrapper):
             raise TypeError(f"env must be a gymnasium VectorEnv, got {type(env).__name__}")
         VectorWrapper.__init__(self, env)
         self._setup(env, safety_filter, state_fn, time_fn, device, dtype)
-
-    def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
-        """Reset the environments and remember their observations."""
-        obs, info = self.env.reset(**kwargs)
-        self._last_obs = obs
-        return obs, info
 
     def step(self, actions: Any) -> tuple[Any, Any, Any, Any, dict[str, Any]]:
         """Filter ``actions [N, m]`` in one call, step the environments with the result."""

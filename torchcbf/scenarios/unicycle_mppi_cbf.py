@@ -58,7 +58,6 @@ from torchcbf.scenarios.base import Scenario
 from torchcbf.sim import Goal, Trajectory
 
 METHODS = ("scbf", "mppi", "mppi_scbf", "mppi_rascbf", "shield_mppi")
-PAPER_METHODS = ("scbf", "mppi", "mppi_scbf")
 CONFIGS = ("default", "paper", "cbfkit")
 GOAL = (2.0, 4.0)
 CENTERS = ((1.0, 2.0), (3.0, 2.0), (2.0, 5.0), (-1.0, 1.0), (0.5, -1.0))
