@@ -133,7 +133,7 @@ def test_mppi_cbf_cbfkit_reading() -> None:
         (1 - math.exp(-0.1 * b)) + 0.3 * 0.1 * math.exp(-0.1 * b) * d
         for b, d in zip(q, lfb, strict=True)
     ]
-    got = torch.cat([h(x) for h in scenario.safety_filter.barriers])
+    got = torch.cat([h(x) for h in scenario.safety_filter.barriers], -1)[0]
     torch.testing.assert_close(got, torch.tensor(rect, dtype=torch.float64), rtol=1e-10, atol=1e-12)
 
 
@@ -160,10 +160,11 @@ def test_mppi_cbf_risk_aware_horizon_starts_inside_the_margin() -> None:
     x = (lo + (hi - lo) * torch.rand(4000, 4, generator=gen, dtype=torch.float64)).requires_grad_(
         True
     )
-    for i, barrier in enumerate(scenario.safety_filter.barriers):
-        h = barrier(x)
-        (grad,) = torch.autograd.grad(h.sum(), x)
-        norm = (grad * SIGMA).norm(dim=-1)[h.detach() >= 0]
+    (barrier,) = scenario.safety_filter.barriers  # five outputs
+    h = barrier(x)
+    for i in range(h.shape[-1]):
+        (grad,) = torch.autograd.grad(h[:, i].sum(), x, retain_graph=True)
+        norm = (grad * SIGMA).norm(dim=-1)[h[:, i].detach() >= 0]
         assert float(norm.max()) <= float(eta[i]) * 1.15  # the grid's maximum, up to its spacing
     for bad in (0.0, 1.0):
         with pytest.raises(ValueError, match="rho"):

@@ -8,7 +8,7 @@ a relative-degree-one barrier (HOCBF or exponential CBF).
 """
 
 from torchcbf.barriers.base import Barrier
-from torchcbf.barriers.compose import BarrierStack, Intersection, Scaled, Union
+from torchcbf.barriers.compose import BarrierStack, Intersection, Scaled, Transformed, Union
 from torchcbf.barriers.lie import AnalyticDerivatives, LieFunction, LieTerms, lie_derivatives
 from torchcbf.barriers.lyapunov import Lyapunov, QuadraticLyapunov
 from torchcbf.barriers.neural import NeuralBarrier
@@ -57,6 +57,7 @@ __all__ = [
     "NeuralBarrier",
     "QuadraticLyapunov",
     "Scaled",
+    "Transformed",
     "Union",
     "coefficients_from_poles",
     "find_relative_degree",

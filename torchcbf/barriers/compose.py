@@ -1,8 +1,10 @@
-"""Composition of barriers: stacks (``k`` barriers at once), intersections and unions."""
+"""Composition of barriers: stacks (``k`` barriers at once), rescaled and reshaped barriers,
+intersections and unions."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Literal
 
 import torch
 from torch import Tensor, nn
@@ -104,6 +106,73 @@ class Scaled(Barrier):
 
     def extra_repr(self) -> str:
         return f"scale={self.scale.tolist()}"
+
+
+TransformForm = Literal["radius", "exp"]
+
+
+class Transformed(Barrier):
+    """``phi(h(x, t))`` for an increasing ``phi`` with ``phi(0) = 0``: the same safe set, a
+    reshaped CBF condition. Closed-form derivatives when ``barrier`` has them.
+
+    Forms:
+
+    - ``"radius"``: ``phi(h) = sqrt(h + 1) - 1``. On a quadratic shape ``h = |q|^2 - 1``
+      (an :class:`~torchcbf.barriers.Ellipse`) this is ``|q| - 1``, whose gradient stays
+      bounded far from the shape (the risk-aware condition needs a bound on it). Needs
+      ``h > -1`` (the shape's centre is the one excluded point).
+    - ``"exp"``: ``phi(h) = 1 - exp(-rate h)``, bounded above by 1 (CBFkit's sublevel
+      barrier ``B = exp(-rate h) <= 1``, read as ``1 - B >= 0``).
+
+    Shapes follow ``barrier`` (``[...]`` or ``[..., k]``).
+    """
+
+    FORMS = ("radius", "exp")
+
+    def __init__(self, barrier: LieFunction, form: TransformForm, *, rate: float = 1.0) -> None:
+        super().__init__()
+        if not isinstance(barrier, LieFunction):
+            raise TypeError(f"barrier must be a Barrier, got {type(barrier).__name__}")
+        if form not in self.FORMS:
+            raise ValueError(f"form must be one of {self.FORMS}, got {form!r}")
+        if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not rate > 0:
+            raise ValueError(f"rate must be a positive number, got {rate!r}")
+        self.barrier = barrier
+        self.form = form
+        self.rate = float(rate)
+        self.time_varying = barrier.time_varying
+
+    def _phi(self, h: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``phi(h)``, ``phi'(h)``, ``phi''(h)``."""
+        if self.form == "radius":
+            r = torch.sqrt(h + 1.0)
+            return r - 1.0, 0.5 / r, -0.25 / (r * r * r)
+        e = torch.exp(-self.rate * h)
+        return -torch.expm1(-self.rate * h), self.rate * e, -self.rate * self.rate * e
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """``x [..., n] -> phi(h) [...]`` (or ``[..., k]``)."""
+        return self._phi(self.barrier(x, t))[0]
+
+    @property
+    def has_analytic(self) -> bool:
+        return self.barrier.has_analytic
+
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        d = self.barrier.derivatives(x, t)
+        phi, d1, d2 = self._phi(d.h)
+        single = d.h.shape == x.shape[:-1]
+        grad = d.dhdx.unsqueeze(-2) if single else d.dhdx  # [..., k, n]
+
+        def quad(s: Tensor) -> Tensor:
+            # tr(S' (phi'' grad grad' + phi' H) S) = phi'' |S' grad|^2 + phi' tr(S' H S)
+            g2 = (grad @ s).square().sum(-1)  # [..., k]
+            return d1 * d.hess_quad(s) + d2 * (g2.squeeze(-1) if single else g2)
+
+        return AnalyticDerivatives(phi, d1.unsqueeze(-1) * d.dhdx, d1 * d.dhdt, quad)
+
+    def extra_repr(self) -> str:
+        return f"form={self.form!r}" + (f", rate={self.rate}" if self.form == "exp" else "")
 
 
 class _Reduction(Barrier):

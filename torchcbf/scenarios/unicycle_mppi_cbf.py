@@ -48,7 +48,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcbf.barriers import Barrier, Ellipse, Scaled, rectify
+from torchcbf.barriers import Barrier, Ellipse, Scaled, Transformed, rectify
 from torchcbf.dynamics import AccelUnicycle
 from torchcbf.filters import FilterStatus, RiskAware, SafetyFilter, Stochastic
 from torchcbf.filters.risk import noise_bound
@@ -293,29 +293,6 @@ def mppi_cbf(
     )
 
 
-class _ExpBarrier(Barrier):
-    """``1 - exp(-rate b(x))``: CBFkit's ``B = exp(-rate b) <= 1`` as ``h >= 0``."""
-
-    def __init__(self, barrier: Barrier, rate: float) -> None:
-        super().__init__()
-        self.barrier, self.rate = barrier, rate
-
-    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
-        return -torch.expm1(-self.rate * self.barrier(x))
-
-
-class _EllipseRadius(Barrier):
-    """``sqrt(b(x) + 1) - 1`` for an ellipse ``b = |(p - c) / a|^2 - 1``: the same safe set,
-    a gradient bounded by ``1 / min(a)`` (the risk-aware bound needs a bounded ``eta``)."""
-
-    def __init__(self, ellipse: Ellipse) -> None:
-        super().__init__()
-        self.ellipse = ellipse
-
-    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
-        return torch.sqrt(self.ellipse(x) + 1.0) - 1.0
-
-
 def _rectified(
     model: AccelUnicycle, params: FilterParams, barrier_scale: Any
 ) -> tuple[list[Barrier], list[float]]:
@@ -323,11 +300,8 @@ def _rectified(
     k = params.rectify_gain
     if params.form == "cbfkit":
         scales = [0.3] * len(CENTERS)  # B + 0.3 L_f B = 0.3 (L_f B + B / 0.3)
-        barriers = [
-            rectify(Scaled(_ExpBarrier(Ellipse(c, a), 0.1), 0.3), model, "exponential", [k])
-            for c, a in zip(CENTERS, AXES, strict=True)
-        ]
-        return barriers, scales
+        saturated = Transformed(obstacles(), "exp", rate=0.1)  # 1 - B = 1 - exp(-0.1 b)
+        return [rectify(Scaled(saturated, 0.3), model, "exponential", [k])], scales
     # one module for the five ellipses: closed-form derivatives, one pass per call
     scales = _scales(barrier_scale, params)
     return [rectify(Scaled(obstacles(), scales), model, form="exponential", gains=[k])], scales
@@ -414,20 +388,17 @@ def _risk_aware_filter(
     :func:`risk_horizon`."""
     k = params.rectify_gain
     f64 = copy.deepcopy(plant).double()
-    barriers = [
-        rectify(_EllipseRadius(Ellipse(c, a, index=(0, 1))), model, form="exponential", gains=[k])
-        for c, a in zip(CENTERS, AXES, strict=True)
-    ]
-    barriers64 = [b.to(torch.float64) for b in barriers]
-    grid = operating_states()
+    radius = Transformed(obstacles(), "radius")  # |q| - 1: a bounded gradient
+    barrier = rectify(radius, model, form="exponential", gains=[k])
+    barrier64 = copy.deepcopy(barrier).double()
     x0 = torch.tensor(X0, dtype=torch.float64)
     with torch.enable_grad():
-        eta = torch.stack([noise_bound(b, f64, grid) for b in barriers64])
-    h0 = torch.stack([b(x0) for b in barriers64]).detach()
+        eta = noise_bound(barrier64, f64, operating_states())
+    h0 = barrier64(x0).detach()
     T = params.risk_horizon or risk_horizon(h0, eta, params.rho, params.margin)
     safety_filter = SafetyFilter(
         plant,
-        barriers=barriers,
+        barriers=barrier,
         mode=RiskAware(rho=params.rho, horizon=T, eta=eta),
         R=torch.diag(torch.tensor(params.control_weight, dtype=torch.float64)),
     )
