@@ -126,3 +126,69 @@ def test_unsolved_rows_get_zero_gradient_and_float32():
     sol64 = solve_qp(batch.Q.double(), p64, batch.G.double(), h.detach().double())
     (g64,) = torch.autograd.grad(sol64.x.sum(), p64)
     torch.testing.assert_close(gp.double(), g64, atol=1e-3, rtol=1e-3)
+
+
+def _degenerate_faces(B: int, n: int, seed: int):
+    """QPs whose solution lies on a face cut by k = 2 independent rows a1, a2 that are tight
+    with positive multipliers, plus the tight redundant row a1 + a2; the objective's gradient
+    at the solution is carried by the redundant row alone, so a method may support its
+    multipliers on that row only. Two inactive rows. The solution moves smoothly with p (it
+    stays on the face), so dx/dp is the projection onto the face. Every datum is exact in
+    float32 (rows and the point on a grid of quarters), so both dtypes pose the same problem."""
+    g = torch.Generator().manual_seed(seed)
+
+    def quarters(*shape):
+        return torch.randint(-8, 9, shape, generator=g).to(F64) / 4
+
+    L = torch.randn(B, n, n, generator=g, dtype=F64)
+    Q = (L @ L.mT / n + 0.2 * torch.eye(n, dtype=F64)).float().double()
+    x_face = quarters(B, n)
+    a = quarters(B, 2, n)
+    a[:, :, 0] = torch.tensor([1.0, -1.0], dtype=F64)  # independent rows
+    a[:, 1, 1] = a[:, 0, 1] + 1.0
+    G = torch.cat([a, a.sum(1, keepdim=True), quarters(B, 2, n)], 1)  # [B, 5, n]
+    h = (G @ x_face.unsqueeze(-1)).squeeze(-1)
+    h[:, 3:] += 2.0 + G[:, 3:].abs().sum(-1) * 4  # inactive near the face point
+    p = -(Q @ x_face.unsqueeze(-1)).squeeze(-1) - 0.75 * G[:, 2]
+    return Q, p.float().double(), G, h
+
+
+@pytest.mark.parametrize("method", ["auto", "active_set", "enumerate", "ipm"])
+@pytest.mark.parametrize("n", [2, 3, 4])
+def test_gradient_at_a_degenerate_face_matches_finite_differences(kernel, method, n):
+    B = 6
+    Q, p, G, h = _degenerate_faces(B, n, seed=n)
+    with torch.no_grad():
+        sol = solve_qp(Q, p, G, h, method=method)
+    assert bool((sol.status == Status.SOLVED).all())
+    slack = h - (G @ sol.x.unsqueeze(-1)).squeeze(-1)
+    assert slack[:, :3].abs().max() <= 1e-9 and slack[:, 3:].min() >= 1.0  # on the face
+    fd = torch.zeros(B, n, n, dtype=F64)
+    step = 1e-6
+    with torch.no_grad():
+        for j in range(n):
+            dp = torch.zeros(n, dtype=F64)
+            dp[j] = step
+            up = solve_qp(Q, p + dp, G, h, method=method).x
+            down = solve_qp(Q, p - dp, G, h, method=method).x
+            fd[:, :, j] = (up - down) / (2 * step)
+    for dtype in (F64, torch.float32):
+        pg = p.to(dtype).requires_grad_()
+        out = solve_qp(Q.to(dtype), pg, G.to(dtype), h.to(dtype), method=method)
+        jac = torch.stack(
+            [torch.autograd.grad(out.x[:, i].sum(), pg, retain_graph=True)[0] for i in range(n)], 1
+        )  # [B, n (x), n (p)]
+        tol = 1e-6 if dtype == F64 else 1e-4
+        torch.testing.assert_close(jac.to(F64), fd, atol=tol, rtol=tol)
+
+
+def test_gradient_at_a_degenerate_vertex_is_zero(kernel):
+    """x1 <= 1, x2 <= 1, x1 + x2 <= 2 all tight at x* = (1, 1) with p = (-3, -3): x* stays
+    put under any small change of p, whatever multipliers a method picks."""
+    for method in ("auto", "active_set", "enumerate", "ipm"):
+        p = torch.tensor([-3.0, -3.0], dtype=F64, requires_grad=True)
+        G = torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]], dtype=F64)
+        h = torch.tensor([1.0, 1.0, 2.0], dtype=F64)
+        sol = solve_qp(torch.eye(2, dtype=F64), p, G, h, method=method)
+        (grad,) = torch.autograd.grad(sol.x @ torch.tensor([1.0, -2.0], dtype=F64), p)
+        assert grad.abs().max() <= 1e-12, method

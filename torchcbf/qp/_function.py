@@ -9,6 +9,7 @@ input dtype. The backward is the implicit differentiation of the active-set KKT 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -34,6 +35,20 @@ MAX_DUAL_CONDITION = 1e4
 #: largest number of variables (after softening) the dual active-set method is used for: the
 #: C kernel's bound, so the torch implementation and the kernel serve the same problems
 MAX_ACTIVE_SET_VARS = _dual_native.MAX_VARS
+
+
+class MixedFactor(NamedTuple):
+    """The backward's factors of a batch solved by the dual method where some rows need the
+    KKT system: the dual method's factors (``ok`` false on those rows) and the active-set KKT
+    factor of the rows ``rows [R]``."""
+
+    dual: DualFactor | NativeFactor
+    rows: Tensor
+    kkt: _kkt.KKTFactor
+
+
+#: what the forward leaves for the backward
+BackwardFactor = _kkt.KKTFactor | DualFactor | NativeFactor | MixedFactor
 
 
 @dataclass(frozen=True)
@@ -96,7 +111,7 @@ def _forward(
         if res is not None:
             x, s, z, status, iters = res
             y = q.new_zeros(q.shape[0], me)
-            fac = _kkt.factor_kkt(P, G, A, z > s) if cfg.need_factor else None
+            fac = _factor(P, G, h, A, x, z > s, status) if cfg.need_factor else None
             return x, z, y, status, iters, fac
         if cfg.active_set:
             return _forward_dual(P, q, G, h, A, b, cfg, x0)
@@ -116,9 +131,16 @@ def _forward(
             )
         x, s, z, y, status, iters = (t.to(q.device) for t in out)
         x, z, y, status, active, fac = _finish(P, q, G, h, A, b, x, s, z, y, status, cfg)
-    if fac is None and cfg.need_factor:
-        fac = _kkt.factor_kkt(P, G, A, active)
+    if cfg.need_factor:
+        fac = _factor(P, G, h, A, x, active, status)
     return x, z, y, status, iters, fac
+
+
+def _factor(
+    P: Tensor, G: Tensor, h: Tensor, A: Tensor, x: Tensor, active: Tensor, status: Tensor
+) -> _kkt.KKTFactor:
+    """The backward's KKT factor: on ``active`` plus every row tight at ``x``."""
+    return _kkt.factor_kkt(P, G, A, _kkt.with_tight_rows(G, h, x, active, status))
 
 
 def _ipm(
@@ -211,7 +233,7 @@ def _forward_enum(
     x, z, y, status, iters, active, _ = _ipm_fallback(
         P, q, G, h, A, b, cfg, x0, en.x, en.z, en.y, en.active, en.ok, iters
     )
-    fac = _kkt.factor_kkt(P, G, A, active) if cfg.need_factor else None
+    fac = _factor(P, G, h, A, x, active, status) if cfg.need_factor else None
     return x, z, y, status, iters, fac
 
 
@@ -239,12 +261,13 @@ def condition_estimate(L: Tensor, batch_first: bool = True) -> Tensor:
 
 def _forward_dual(
     P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
-) -> tuple[
-    Tensor, Tensor, Tensor, Tensor, Tensor, _kkt.KKTFactor | DualFactor | NativeFactor | None
-]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, BackwardFactor | None]:
     """Dual active-set method for every row (no equality rows); the rows it cannot certify go
     to the interior point method. The backward uses the dual method's own factors when every
-    row was solved by it, else the active-set KKT factorisation of the whole batch."""
+    row was solved by it and no row has a tight row outside its active set (a degenerate
+    vertex, where the method's multipliers may leave out a row that must stay tight); the
+    other rows get the active-set KKT factorisation, row by row (:class:`MixedFactor`).
+    Finding them is a second host synchronisation, with gradients only."""
     y = q.new_zeros(q.shape[0], 0)
     res = solve_dual(P, q, G, h, eps=cfg.eps, max_iter=cfg.max_iter, check_every=cfg.check_every)
     ok = res.ok & (
@@ -256,9 +279,15 @@ def _forward_dual(
     )
     if not cfg.need_factor:
         return x, z, y, status, iters, None
-    if any_fallback:
-        return x, z, y, status, iters, _kkt.factor_kkt(P, G, A, active)
-    return x, z, y, status, iters, res.factor
+    backward_set = _kkt.with_tight_rows(G, h, x, active, status)
+    redo = ~ok | (backward_set != active).any(-1)
+    rows = redo.nonzero().squeeze(-1)
+    if len(rows) == 0:
+        return x, z, y, status, iters, res.factor
+    # the other rows keep the dual method's factors: hard rows do not slow the whole batch
+    sub = [t.index_select(0, rows) for t in (P, G, A, backward_set)]
+    fac = MixedFactor(res.factor._replace(ok=res.factor.ok & ~redo), rows, _kkt.factor_kkt(*sub))
+    return x, z, y, status, iters, fac
 
 
 def _ipm_fallback(
@@ -350,6 +379,13 @@ class QPFunction(torch.autograd.Function):
         if isinstance(ctx.fac, (DualFactor, NativeFactor)):
             wx, wz = dual_adjoints(ctx.fac, x, gx, gz)
             wy, lam = y, z  # y: [B, 0], no equality rows; z is zero off the active set
+        elif isinstance(ctx.fac, MixedFactor):
+            wx, wz = dual_adjoints(ctx.fac.dual, x, gx, gz)
+            wy, lam = y, z
+            r = ctx.fac.rows
+            sub = [t.index_select(0, r) for t in (x, z, y, status, gx, gz, gy)]
+            wx_r, wz_r, _, _ = _kkt.kkt_adjoints(ctx.fac.kkt, *sub)
+            wx, wz = wx.index_copy(0, r, wx_r), wz.index_copy(0, r, wz_r)
         else:
             wx, wz, wy, lam = _kkt.kkt_adjoints(ctx.fac, x, z, y, status, gx, gz, gy)
         grads = _kkt.input_gradients(x, lam, y, wx, wz, wy, ctx.needs_input_grad[:6])

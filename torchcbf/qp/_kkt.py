@@ -11,8 +11,14 @@ Polishing solves ``K [x; z; y] = [-q; a h; b]`` and keeps the result only where 
 verified KKT point (primal feasible, ``z >= 0``): this recovers the digits an interior point
 method leaves behind. The backward pass solves ``K w = [dl/dx; a dl/dz; dl/dy]`` with the
 same factorisation (OptNet-style implicit differentiation, exact for a nondegenerate active
-set). A weakly active constraint (zero multiplier and zero slack) falls on either side of the
-test ``z_i > s_i``; either way the derivative returned is a valid one-sided derivative.
+set). For the backward the active set also holds every row that is tight at ``x`` (slack
+zero to rounding, :func:`with_tight_rows`), whatever its multiplier: where ``x`` is
+differentiable every tight row stays tight under a small perturbation, so the derivative
+lies in the null space of all of them, not only of the rows a method's multipliers happen to
+support (at a degenerate vertex several multiplier vectors are valid). Where ``x`` has a kink
+(a weakly active row that leaves under some perturbation) this is the one-sided derivative
+for perturbations that keep every tight row tight. Dependent tight rows are handled by the
+regularised factorisation.
 """
 
 from __future__ import annotations
@@ -84,6 +90,21 @@ def solve_kkt(fac: KKTFactor, rhs: Tensor) -> Tensor:
 def active_set(z: Tensor, s: Tensor) -> Tensor:
     """Constraints whose multiplier exceeds their slack, ``[B, M]`` bool."""
     return z > s
+
+
+#: slack, relative to :func:`row_scale`, below which a row counts as tight at ``x``: the
+#: rounding every exact path leaves in a tight row's residual
+TIGHT = 1e4 * torch.finfo(torch.float64).eps
+
+
+def with_tight_rows(G: Tensor, h: Tensor, x: Tensor, active: Tensor, status: Tensor) -> Tensor:
+    """``active [B, M]`` plus the rows tight at ``x`` in ``SOLVED`` rows (see the module
+    docstring): the active set of the backward."""
+    if G.shape[-2] == 0:
+        return active
+    slack = h - torch.einsum("bmn,bn->bm", G, x)
+    tight = slack <= TIGHT * row_scale(G, h, x)
+    return active | (tight & (status == int(Status.SOLVED)).unsqueeze(-1))
 
 
 def row_scale(R: Tensor, r: Tensor, x: Tensor) -> Tensor:
