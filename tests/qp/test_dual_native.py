@@ -162,3 +162,21 @@ def test_a_library_built_from_another_version_is_refused(monkeypatch, caplog):
         monkeypatch.undo()
         _dual_native._library.cache_clear()
     assert _dual_native.available()
+
+
+@pytest.mark.parametrize("shape", [(2, 6), (4, 8), (8, 30)])
+def test_infeasible_rows_are_proved_by_a_farkas_certificate(shape):
+    """The kernel proves infeasibility only where the interior point method finds it too, for
+    most infeasible rows; solve_qp then reports them without re-solving them."""
+    n, m = shape
+    P, q, G, h = _problems(400, n, m, seed=90 + n, frac_infeasible=0.3)
+    out = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, native=True)
+    ref = solve_qp(P, q, G, h, method="ipm")
+    truly = ref.status == Status.PRIMAL_INFEASIBLE
+    assert not bool((out.ok & out.infeasible).any())
+    assert bool(truly[out.infeasible].all())  # never a feasible row
+    assert int(out.infeasible.sum()) >= 0.8 * int(truly.sum()) > 0
+    assert bool((out.x[out.infeasible] == 0).all())
+    default = solve_qp(P, q, G, h)
+    assert torch.equal(default.status == Status.PRIMAL_INFEASIBLE, truly)
+    assert bool((default.x[truly] == 0).all())

@@ -63,7 +63,9 @@ class NativeFactor(NamedTuple):
 
 
 class DualResult(NamedTuple):
-    """``x [B,N]``, ``z [B,M]``, ``active [B,M]`` bool, ``ok [B]``, ``iterations [B]``."""
+    """``x [B,N]``, ``z [B,M]``, ``active [B,M]`` bool, ``ok [B]``, ``iterations [B]``, the
+    backward's factor and ``infeasible [B]``: rows proved infeasible by a Farkas certificate
+    (the C kernel only; the torch implementation leaves them to the caller's fallback)."""
 
     x: Tensor
     z: Tensor
@@ -71,6 +73,7 @@ class DualResult(NamedTuple):
     ok: Tensor
     iterations: Tensor
     factor: DualFactor | NativeFactor
+    infeasible: Tensor
 
 
 def _cholesky(P: Tensor) -> tuple[Tensor, Tensor]:
@@ -253,8 +256,10 @@ def solve_dual(
     if native is None:
         native = _dual_native.applies(q)
     if native:
-        x, z, active, slots, L, ok, iters = _dual_native.forward(P, q, G, h, eps, max_iter)
-        return DualResult(x, z, active, ok, iters, NativeFactor(G, L, slots, ok))
+        x, z, active, slots, L, ok, iters, infeasible = _dual_native.forward(
+            P, q, G, h, eps, max_iter
+        )
+        return DualResult(x, z, active, ok, iters, NativeFactor(G, L, slots, ok), infeasible)
     B, N = q.shape
     M = h.shape[-1]
     dtype, device = q.dtype, q.device
@@ -345,7 +350,8 @@ def solve_dual(
     z_out = torch.where(okc, lam[:M].T.clamp_min(0.0), 0.0)
     active = torch.zeros(M + 1, B, dtype=torch.bool, device=device).scatter_(0, S, True)
     active = active[:M].T & okc
-    return DualResult(x_out, z_out, active, ok, iters, DualFactor(L, S, R_S, U_S, ok))
+    factor = DualFactor(L, S, R_S, U_S, ok)
+    return DualResult(x_out, z_out, active, ok, iters, factor, torch.zeros_like(ok))
 
 
 class _Outcome(NamedTuple):

@@ -10,6 +10,12 @@
  * C-contiguous. Without it, _dual.py's torch code runs on every device.
  *
  * Problem: min 1/2 x'Px + q'x  s.t.  Gx <= h,  P [N,N] positive definite, G [M,N], N <= 8.
+ *
+ * Beyond the torch implementation, the kernel certifies infeasibility: when no step can
+ * restore the violated row p (it depends on the active rows, all of whose multipliers would
+ * grow), y = (1 on p, -d on the active rows) >= 0 combines the rows into 0 <= h'y < 0, a
+ * Farkas certificate. It is checked in floating point (see farkas()) and the row reported
+ * infeasible; otherwise the row is left to the caller's fallback as before.
  */
 #include <math.h>
 #include <stdint.h>
@@ -20,7 +26,7 @@
 
 /* Bumped whenever an exported signature or its meaning changes; _dual_native.py refuses a
  * built library of another version (e.g. an editable install not rebuilt after an edit). */
-#define KERNEL_VERSION 1
+#define KERNEL_VERSION 2
 
 int torchcbf_dual_version(void) { return KERNEL_VERSION; }
 
@@ -126,6 +132,27 @@ INLINE int slot_solve(int N, int M, const double *G, const double *US, const int
     return nonsing;
 }
 
+/* Whether y = (1 on row p, -d[k] on the active slots) proves Gx <= h infeasible: y >= 0,
+ * h'y < 0 beyond rounding, and G'y so small that any feasible point would need
+ * |x|_inf > 1e6 (1 + |x_u|_inf), i.e. none exists at the scale of the problem. */
+INLINE int farkas(int N, int M, const double *G, const double *h, const int64_t *S,
+                  const double *d, int64_t p, const double *row_scale, double xu_max) {
+    const double mach = 2.220446049250313e-16;
+    double r[NMAX];
+    double gap = h[p], noise = row_scale[p];
+    for (int c = 0; c < N; ++c) r[c] = G[p * N + c];
+    for (int k = 0; k < N; ++k) {
+        if (S[k] == M || d[k] == 0.0) continue;
+        if (d[k] > 0.0) return 0;
+        gap -= d[k] * h[S[k]];
+        noise -= d[k] * row_scale[S[k]];
+        for (int c = 0; c < N; ++c) r[c] -= d[k] * G[S[k] * N + c];
+    }
+    double r1 = 0.0;
+    for (int c = 0; c < N; ++c) r1 += fabs(r[c]);
+    return isfinite(gap) && -gap > 1e4 * mach * noise && r1 * 1e6 * (1.0 + xu_max) < -gap;
+}
+
 /* Doubles of workspace one problem needs. */
 #define WORKSPACE(N, M) ((size_t)(M) * (2 * (N) + 5))
 
@@ -138,7 +165,8 @@ INLINE int solve_one(int N, int M, const double *RESTRICT P, const double *RESTR
                      const double *RESTRICT G, const double *RESTRICT h, double eps,
                      int max_iter, double *RESTRICT work, double *RESTRICT x_out,
                      double *RESTRICT z_out, uint8_t *RESTRICT active, int64_t *RESTRICT S_out,
-                     double *RESTRICT L_out, int64_t *RESTRICT iters) {
+                     double *RESTRICT L_out, int64_t *RESTRICT iters,
+                     uint8_t *RESTRICT infeasible) {
     const double mach = 2.220446049250313e-16;
     double *RESTRICT Ut = work;
     double *RESTRICT Y = work + (size_t)N * M;
@@ -160,6 +188,7 @@ INLINE int solve_one(int N, int M, const double *RESTRICT P, const double *RESTR
     memset(active, 0, M);
     for (int k = 0; k < N; ++k) S[k] = S_out[k] = M;
     *iters = 0;
+    *infeasible = 0;
     int pd = cholesky(N, P, L, dinv);
     memcpy(L_out, L, sizeof(double) * N * N);
     if (!pd) return 0;
@@ -267,6 +296,7 @@ INLINE int solve_one(int N, int M, const double *RESTRICT P, const double *RESTR
         }
         double t = dmin(t_full, t_part);
         if (!isfinite(t)) {
+            *infeasible = (uint8_t)farkas(N, M, G, h, S, d, p, row_scale, xu_max);
             fail = done = 1;
             break;
         }
@@ -357,13 +387,13 @@ INLINE int solve_one(int N, int M, const double *RESTRICT P, const double *RESTR
                                   const double *G, const double *h, double eps,            \
                                   int max_iter, double *work, double *x, double *z,        \
                                   uint8_t *active, int64_t *slots, double *L, uint8_t *ok, \
-                                  int64_t *iters) {                                        \
+                                  int64_t *iters, uint8_t *infeasible) {                   \
         const int N = NN;                                                                  \
         for (int64_t b = 0; b < B; ++b)                                                    \
             ok[b] = (uint8_t)solve_one(N, M, P + b * N * N, q + b * N, G + b * M * N,      \
                                        h + b * M, eps, max_iter, work, x + b * N,          \
-                                       z + b * M, active + b * M,                          \
-                                       slots + b * N, L + b * N * N, iters + b);           \
+                                       z + b * M, active + b * M, slots + b * N,           \
+                                       L + b * N * N, iters + b, infeasible + b);          \
     }
 FORWARD_ROWS(1)
 FORWARD_ROWS(2)
@@ -376,20 +406,23 @@ FORWARD_ROWS(8)
 
 typedef void (*forward_rows_fn)(int64_t, int, const double *, const double *, const double *,
                                 const double *, double, int, double *, double *, double *,
-                                uint8_t *, int64_t *, double *, uint8_t *, int64_t *);
+                                uint8_t *, int64_t *, double *, uint8_t *, int64_t *,
+                                uint8_t *);
 static const forward_rows_fn FORWARD_ROWS_N[NMAX + 1] = {
     NULL,           forward_rows_1, forward_rows_2, forward_rows_3, forward_rows_4,
     forward_rows_5, forward_rows_6, forward_rows_7, forward_rows_8};
 
-/* Rows [0, B) of a batch; returns -1 for N outside 1..NMAX, M < 1, or no workspace. */
+/* Rows [0, B) of a batch; returns -1 for N outside 1..NMAX, M < 1, or no workspace.
+ * infeasible [B]: rows proved infeasible by a Farkas certificate (ok is 0 there). */
 int torchcbf_dual_forward(int64_t B, int N, int M, const double *P, const double *q,
                           const double *G, const double *h, double eps, int max_iter,
                           double *x, double *z, uint8_t *active, int64_t *slots, double *L,
-                          uint8_t *ok, int64_t *iters) {
+                          uint8_t *ok, int64_t *iters, uint8_t *infeasible) {
     if (N < 1 || N > NMAX || M < 1) return -1;
     double *work = malloc(sizeof(double) * WORKSPACE(N, M));
     if (!work) return -1;
-    FORWARD_ROWS_N[N](B, M, P, q, G, h, eps, max_iter, work, x, z, active, slots, L, ok, iters);
+    FORWARD_ROWS_N[N](B, M, P, q, G, h, eps, max_iter, work, x, z, active, slots, L, ok, iters,
+                      infeasible);
     free(work);
     return 0;
 }

@@ -27,12 +27,12 @@ MIN_ROWS_PER_THREAD = 1024
 #: most variables the kernel handles (``NMAX`` in the C source)
 MAX_VARS = 8
 #: ``KERNEL_VERSION`` of the C source this module calls
-KERNEL_VERSION = 1
+KERNEL_VERSION = 2
 
 _P = ctypes.c_void_p
 _I64 = ctypes.c_int64
 _INT = ctypes.c_int
-_FWD_ARGS = [_I64, _INT, _INT, _P, _P, _P, _P, ctypes.c_double, _INT] + [_P] * 7
+_FWD_ARGS = [_I64, _INT, _INT, _P, _P, _P, _P, ctypes.c_double, _INT] + [_P] * 8
 _BWD_ARGS = [_I64, _INT, _INT] + [_P] * 8
 
 
@@ -99,9 +99,10 @@ def _check_sizes(N: int, M: int) -> None:
 
 def forward(
     P: Tensor, q: Tensor, G: Tensor, h: Tensor, eps: float, max_iter: int
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """``(x [B,N], z [B,M], active [B,M], slots [B,N], L [B,N,N], ok [B], iterations [B])``
-    for ``P [B,N,N], q [B,N], G [B,M,N], h [B,M]`` float64 on the CPU (see ``solve_dual``)."""
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """``(x [B,N], z [B,M], active [B,M], slots [B,N], L [B,N,N], ok [B], iterations [B],
+    infeasible [B])`` for ``P [B,N,N], q [B,N], G [B,M,N], h [B,M]`` float64 on the CPU (see
+    ``solve_dual``); ``infeasible`` marks rows proved infeasible by a Farkas certificate."""
     B, N = q.shape
     M = h.shape[-1]
     _check_sizes(N, M)
@@ -113,12 +114,14 @@ def forward(
     L = q.new_empty(B, N, N)
     ok = torch.empty(B, dtype=torch.bool)
     iters = torch.empty(B, dtype=torch.int64)
+    infeasible = torch.empty(B, dtype=torch.bool)
     rows = [(P, N * N), (q, N), (G, M * N), (h, M)]
     outs = [(x, N), (z, M), (active, M), (slots, N), (L, N * N), (ok, 1), (iters, 1)]
+    outs.append((infeasible, 1))
     fn = _kernel().torchcbf_dual_forward
     steps = min(max_iter, 2**31 - 1)  # a C int
     _run(lambda n, *a: fn(n, N, M, *a[:4], eps, steps, *a[4:]), B, rows + outs)
-    return x, z, active, slots, L, ok, iters
+    return x, z, active, slots, L, ok, iters, infeasible
 
 
 def backward(

@@ -275,12 +275,15 @@ def _forward_dual(
         <= MAX_DUAL_CONDITION
     )
     x, z, y, status, iters, active, any_fallback = _ipm_fallback(
-        P, q, G, h, A, b, cfg, x0, res.x, res.z, y, res.active, ok, res.iterations
-    )
+        P, q, G, h, A, b, cfg, x0, res.x, res.z, y, res.active, ok, res.iterations,
+        infeasible=res.infeasible,
+    )  # fmt: skip
     if not cfg.need_factor:
         return x, z, y, status, iters, None
     backward_set = _kkt.with_tight_rows(G, h, x, active, status)
-    redo = ~ok | (backward_set != active).any(-1)
+    # rows another method solved, and rows with tight rows outside the dual active set;
+    # rows not SOLVED get zero gradients from either factor
+    redo = (~ok & (status == int(Status.SOLVED))) | (backward_set != active).any(-1)
     rows = redo.nonzero().squeeze(-1)
     if len(rows) == 0:
         return x, z, y, status, iters, res.factor
@@ -305,13 +308,18 @@ def _ipm_fallback(
     active: Tensor,
     ok: Tensor,
     iters: Tensor,
+    infeasible: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, bool]:
-    """Re-solve the rows with ``ok = False`` by the interior point method (with polish).
+    """Re-solve the rows with ``ok = False`` by the interior point method (with polish); rows
+    marked ``infeasible`` (proved so by the first solver) are reported ``PRIMAL_INFEASIBLE``.
 
     Deciding whether any row needs it is the one host synchronisation of the exact paths
     (``bool(fail.any())``). Returns ``(x, z, y, status, iterations, active, any_fallback)``."""
     status = torch.where(ok, int(Status.SOLVED), int(Status.MAX_ITER))
     fail = ~ok
+    if infeasible is not None:  # proved by the solver: PRIMAL_INFEASIBLE, x = 0, no re-solve
+        status = torch.where(infeasible, int(Status.PRIMAL_INFEASIBLE), status)
+        fail = fail & ~infeasible
     if not bool(fail.any()):
         return x, z, y, status, iters, active, False
     idx = fail.nonzero().squeeze(-1)

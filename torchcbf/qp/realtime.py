@@ -143,10 +143,11 @@ def solve_rows(
     data = np.concatenate((P.reshape(-1), q.reshape(-1), G.reshape(-1), h.reshape(-1)))
     if not np.isfinite(data.sum()):
         return None
-    # outputs: floats [x | z | L | zeros], bytes [active | ok], ints [slots | iters | zeros]
+    # outputs: floats [x | z | L | zeros], bytes [active | ok | infeasible],
+    # ints [slots | iters | zeros]
     nx, nz, nL = B * N, B * M, B * N * N
     floats = np.zeros(nx + nz + nL + B * M + B * N)
-    bytes_ = np.empty(B * (M + 1), dtype=np.uint8)
+    bytes_ = np.empty(B * (M + 2), dtype=np.uint8)
     ints = np.zeros(B * (N + 2), dtype=np.int64)
     d, f, b8, i8 = (a.ctypes.data for a in (data, floats, bytes_, ints))
     oq = 8 * nL
@@ -154,11 +155,11 @@ def solve_rows(
     oh = oG + 8 * B * M * N
     code = _dual_native._kernel().torchcbf_dual_forward(
         B, N, M, d, d + oq, d + oG, d + oh, ctypes.c_double(eps), min(max_iter, 2**31 - 1),
-        f, f + 8 * nx, b8, i8, f + 8 * (nx + nz), b8 + B * M, i8 + 8 * nx,
+        f, f + 8 * nx, b8, i8, f + 8 * (nx + nz), b8 + B * M, i8 + 8 * nx, b8 + B * (M + 1),
     )  # fmt: skip
     if code != 0:
         raise MemoryError("torchcbf: the QP kernel could not allocate its workspace")
-    if not bytes_[B * M :].all():
+    if not bytes_[B * M : B * (M + 1)].all():
         return None
     if np.count_nonzero(P) > B * N and not _diagonally_dominant(P):
         L = floats[nx + nz : nx + nz + nL].reshape(B, N, N)
