@@ -69,6 +69,12 @@ def _costs(n: int) -> dict[str, object]:
             DiscreteBarrierCost(balls, gamma=0.5, weight=20.0),
             BarrierCost(keep_in, 0.1, 0.01),
         ),
+        # one barrier under three terms: its shapes are evaluated once per step and shared
+        "shared": SumCost(
+            BarrierCost(balls, 0.7, 0.02),
+            DiscreteBarrierCost(balls, gamma=0.5, weight=20.0),
+            DiscreteBarrierCost(balls, gamma=0.1, weight=3.0),
+        ),
     }
     if n >= 3:
         ball3 = Ball((1.0, 0.5, 2.0), 0.7, index=(0, 1, 2))

@@ -30,7 +30,7 @@ from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, SingleIntegrator,
 logger = logging.getLogger(__name__)
 
 #: ``KERNEL_VERSION`` of the C source this module calls
-KERNEL_VERSION = 1
+KERNEL_VERSION = 2
 #: limits of the kernel (``NMAX``, ``MMAX``, ``DMAX``, ``TMAX``, ``SMAX`` in the C source)
 MAX_STATE, MAX_CONTROL, MAX_DIM, MAX_TERMS, MAX_SHAPES = 8, 4, 4, 16, 32
 _HDR, _TREC, _SREC = 16, 16, 20
@@ -174,6 +174,7 @@ def encode_cost(cost: object, state_dim: int) -> tuple[list[list[float]], list[l
         parts = [cost]
     terms: list[list[float]] = []
     shapes: list[list[float]] = []
+    shared: dict[int, tuple[int, int]] = {}  # id(barrier) -> its shape records (evaluated once)
     for part in parts:
         kind = type(part)
         if kind is QuadraticGoal:
@@ -187,15 +188,17 @@ def encode_cost(cost: object, state_dim: int) -> tuple[list[list[float]], list[l
             if rec is not None:
                 rec[13] = part.radius
         elif kind in (BarrierCost, DiscreteBarrierCost):
-            recs = _shape_records(part.barrier)
-            if recs is None:
-                return None
+            if id(part.barrier) not in shared:
+                recs = _shape_records(part.barrier)
+                if recs is None:
+                    return None
+                shared[id(part.barrier)] = (len(shapes), len(recs))
+                shapes.extend(recs)
             if kind is BarrierCost:
                 rec = _term(TERM_BARRIER, part.weight, 0.0, part.eps)
             else:
                 rec = _term(TERM_DISCRETE_BARRIER, part.weight, part.gamma, 0.0)
-            rec[14], rec[15] = len(shapes), len(recs)
-            shapes.extend(recs)
+            rec[14], rec[15] = shared[id(part.barrier)]
         else:
             return None
         if rec is None:

@@ -123,23 +123,31 @@ INL void SUFFIX(sq_dist)(const term_t *T, REAL (*x)[LANES], REAL *s) {
 }
 
 /* Stage (and, on the last step, terminal) terms at the state x after step j. stage,
- * terminal and whole accumulate the three parts of the total in the order of SumCost. */
+ * terminal and whole accumulate the three parts of the total in the order of SumCost. Each
+ * shape is evaluated once per step (terms over the same barrier share its records), and the
+ * discrete-time barrier terms' previous values are updated after every term has read them. */
 INL void SUFFIX(costs)(const problem_t *pr, REAL (*x)[LANES], int last, REAL *stage,
                        REAL *terminal, REAL *whole, REAL (*hprev)[LANES]) {
     REAL st[LANES], tmp[LANES], h[LANES];
+    REAL hcur[SMAX][LANES];
+    unsigned char have[SMAX] = {0}, discrete[SMAX] = {0};
     int first = 1;
     for (int t = 0; t < pr->nterms; ++t) {
         const term_t *T = &pr->terms[t];
+        if (T->type == T_DISCRETE_BARRIER || T->type == T_BARRIER)
+            for (int s = T->shape0; s < T->shape0 + T->nshape; ++s) {
+                if (!have[s]) SUFFIX(shape_h)(&pr->shapes[s], x, hcur[s]);
+                have[s] = 1;
+                discrete[s] |= T->type == T_DISCRETE_BARRIER;
+            }
         if (T->type == T_DISCRETE_BARRIER) {
             const REAL g1 = (REAL)(1.0 - T->extra);
             LOOP tmp[l] = 0;
-            for (int s = 0; s < T->nshape; ++s) {
-                SUFFIX(shape_h)(&pr->shapes[T->shape0 + s], x, h);
-                REAL *hp = hprev[T->shape0 + s];
+            for (int s = T->shape0; s < T->shape0 + T->nshape; ++s) {
+                const REAL *hc = hcur[s], *hp = hprev[s];
                 LOOP {
-                    REAL v = g1 * hp[l] - h[l];
+                    REAL v = g1 * hp[l] - hc[l];
                     tmp[l] += v < 0 ? 0 : v;
-                    hp[l] = h[l];
                 }
             }
             const REAL w = (REAL)T->weight;
@@ -161,11 +169,11 @@ INL void SUFFIX(costs)(const problem_t *pr, REAL (*x)[LANES], int last, REAL *st
         } else { /* T_BARRIER: sum over the barrier's outputs */
             const REAL w = (REAL)T->weight, e = (REAL)T->eps;
             for (int s = 0; s < T->nshape; ++s) {
-                SUFFIX(shape_h)(&pr->shapes[T->shape0 + s], x, h);
+                const REAL *hc = hcur[T->shape0 + s];
                 if (s == 0)
-                    LOOP tmp[l] = w / (h[l] < e ? e : h[l]);
+                    LOOP tmp[l] = w / (hc[l] < e ? e : hc[l]);
                 else
-                    LOOP tmp[l] += w / (h[l] < e ? e : h[l]);
+                    LOOP tmp[l] += w / (hc[l] < e ? e : hc[l]);
             }
         }
         if (first)
@@ -175,6 +183,8 @@ INL void SUFFIX(costs)(const problem_t *pr, REAL (*x)[LANES], int last, REAL *st
         first = 0;
     }
     if (!first) LOOP stage[l] += st[l];
+    for (int s = 0; s < pr->nshapes; ++s)
+        if (discrete[s]) LOOP hprev[s][l] = hcur[s][l];
 }
 
 /* One block: `count` samples kk[0..count) of environment b, outputs at positions
