@@ -37,7 +37,7 @@ def _both(P, q, G, h, **kw):
     return ref, out
 
 
-@pytest.mark.parametrize("shape", [(1, 3), (2, 6), (3, 8), (4, 8), (6, 20), (8, 30)])
+@pytest.mark.parametrize("shape", [(1, 3), (2, 6), (3, 8), (4, 8), (6, 20), (8, 30), (12, 40)])
 def test_kernel_matches_torch_implementation(shape):
     n, m = shape
     P, q, G, h = _problems(400, n, m, seed=70 + n)
@@ -89,14 +89,14 @@ def test_batch_split_over_threads_gives_identical_answers():
         assert torch.equal(a, b)
 
 
-def test_applies_only_to_float64_on_the_cpu_with_at_most_eight_variables():
-    assert _dual_native.applies(torch.zeros(2, 8, dtype=F64))
-    assert not _dual_native.applies(torch.zeros(2, 9, dtype=F64))
+def test_applies_only_to_float64_on_the_cpu_with_at_most_64_variables():
+    assert _dual_native.applies(torch.zeros(2, 64, dtype=F64))
+    assert not _dual_native.applies(torch.zeros(2, 65, dtype=F64))
     assert not _dual_native.applies(torch.zeros(2, 4, dtype=torch.float32))
-    with pytest.raises(ValueError, match="N=9"):
+    with pytest.raises(ValueError, match="N=65"):
         _dual_native.forward(
-            torch.eye(9, dtype=F64).expand(1, 9, 9), torch.zeros(1, 9, dtype=F64),
-            torch.zeros(1, 2, 9, dtype=F64), torch.zeros(1, 2, dtype=F64), 1e-9, 10,
+            torch.eye(65, dtype=F64).expand(1, 65, 65), torch.zeros(1, 65, dtype=F64),
+            torch.zeros(1, 2, 65, dtype=F64), torch.zeros(1, 2, dtype=F64), 1e-9, 10,
         )  # fmt: skip
 
 

@@ -115,3 +115,40 @@ def test_gradients_of_a_batch_with_hard_rows_match_the_kkt_path(kernel, dtype):
     tol = {"atol": 1e-7, "rtol": 1e-6} if dtype == torch.float64 else {"atol": 1e-4, "rtol": 1e-3}
     for a, b in zip(grads["auto"], grads["ipm"], strict=True):
         torch.testing.assert_close(a[keep], b[keep], **tol)
+
+
+@pytest.mark.parametrize("shape", [(12, 40), (25, 100)])
+def test_mid_size_problems_take_the_dual_method_and_are_right(cvx, shape, monkeypatch):
+    """Past 8 variables the C kernel's dual method serves the batch: every row SOLVED and
+    right against Clarabel, gradients equal to the interior point path's."""
+    from torchcbf.qp import _dual_native, _function
+
+    calls = []
+    original = _function.solve_dual
+    monkeypatch.setattr(
+        _function, "solve_dual", lambda *a, **k: calls.append(a[1].shape) or original(*a, **k)
+    )
+
+    if not _dual_native.available():
+        pytest.skip("the C kernel of the dual method was not built")
+    n, m = shape
+    g = torch.Generator().manual_seed(n)
+    B = 32
+    L = torch.randn(B, n, n, generator=g, dtype=torch.float64)
+    Q = L @ L.mT / n + 0.5 * torch.eye(n, dtype=torch.float64)
+    p = 3.0 * torch.randn(B, n, generator=g, dtype=torch.float64)
+    G = torch.randn(B, m, n, generator=g, dtype=torch.float64)
+    h = 0.2 + torch.rand(B, m, generator=g, dtype=torch.float64)
+    pg = p.clone().requires_grad_()
+    sol = solve_qp(Q, pg, G, h)
+    assert bool((sol.status == Status.SOLVED).all())
+    assert calls and calls[0] == (B, n)  # the whole batch went to the dual method
+    for i in range(0, B, 4):
+        ref, _, st = cvx(*(t[i].numpy() for t in (Q, p, G, h)))
+        assert st == "optimal"
+        assert np.abs(sol.x[i].detach().numpy() - ref).max() <= 1e-6 * (1 + np.abs(ref).max())
+    w = torch.randn(B, n, generator=g, dtype=torch.float64)
+    (grad,) = torch.autograd.grad((sol.x * w).sum(), pg)
+    pi = p.clone().requires_grad_()
+    (ref_grad,) = torch.autograd.grad((solve_qp(Q, pi, G, h, method="ipm").x * w).sum(), pi)
+    torch.testing.assert_close(grad, ref_grad, atol=1e-7, rtol=1e-6)

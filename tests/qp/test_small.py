@@ -94,11 +94,11 @@ def test_non_finite_and_empty_bound_rows_take_the_general_path():
 
 
 def test_solve_small_returns_none_where_it_does_not_apply():
-    P = np.eye(9)[None]
-    q = np.ones((1, 9))
-    G = np.ones((1, 1, 9))
+    P = np.eye(65)[None]
+    q = np.ones((1, 65))
+    G = np.ones((1, 1, 65))
     h = np.ones((1, 1))
-    assert realtime.solve_small(P, q, G, h, None, None, 1e-7, 50, (1,)) is None  # 9 variables
+    assert realtime.solve_small(P, q, G, h, None, None, 1e-7, 50, (1,)) is None  # 65 variables
     assert (
         realtime.solve_small(P[:, :2, :2], q[:, :2], None, None, None, None, 1e-7, 50, (1,)) is None
     )

@@ -60,6 +60,7 @@ from torchcbf.filters.fallback import Fallback, FallbackSpec
 from torchcbf.filters.modes import MODE_OPTIONS, FilterMode, make_mode
 from torchcbf.filters.qp_data import SLACK_MODES, SlackMode, assemble, assemble_numpy
 from torchcbf.qp import Status, realtime
+from torchcbf.qp._function import dual_budget
 
 __all__ = ["FallbackSpec", "FilterOutput", "FilterStatus", "SafetyFilter"]
 
@@ -561,7 +562,8 @@ class SafetyFilter(nn.Module):
             G = np.concatenate((G, G_hard))
         opts = self.qp_options
         eps = opts.get("eps") or realtime.default_eps(xb.dtype)
-        out = realtime.solve_rows(Q, p, G, hq, float(eps), opts.get("max_iter", 50))
+        steps = dual_budget(opts.get("max_iter", 50), G.shape[1], Q.shape[-1])
+        out = realtime.solve_rows(Q, p, G, hq, float(eps), steps)
         if out is None:
             return None
         nz = Q.shape[-1]

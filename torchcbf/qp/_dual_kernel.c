@@ -9,7 +9,7 @@
  * time (setup.py); the functions below take raw float64 pointers, batch first,
  * C-contiguous. Without it, _dual.py's torch code runs on every device.
  *
- * Problem: min 1/2 x'Px + q'x  s.t.  Gx <= h,  P [N,N] positive definite, G [M,N], N <= 8.
+ * Problem: min 1/2 x'Px + q'x  s.t.  Gx <= h,  P [N,N] positive definite, G [M,N], N <= 64.
  *
  * Beyond the torch implementation, the kernel certifies infeasibility: when no step can
  * restore the violated row p (it depends on the active rows, all of whose multipliers would
@@ -22,16 +22,18 @@
 #include <stdlib.h>
 #include <string.h>
 
-#define NMAX 8
+/* largest N (local arrays are sized by it); N <= NUNROLL get a copy with N a constant */
+#define NMAX 64
+#define NUNROLL 8
 
 /* Bumped whenever an exported signature or its meaning changes; _dual_native.py refuses a
  * built library of another version (e.g. an editable install not rebuilt after an edit). */
-#define KERNEL_VERSION 2
+#define KERNEL_VERSION 3
 
 int torchcbf_dual_version(void) { return KERNEL_VERSION; }
 
-/* Every helper is inlined into one copy of the row solver per N (1..NMAX), so that N is a
- * compile-time constant and the small loops unroll. */
+/* Every helper is inlined into one copy of the row solver per N (1..NUNROLL), so that N is a
+ * compile-time constant and the small loops unroll; larger N share one copy. */
 #if defined(__GNUC__)
 #define INLINE static inline __attribute__((always_inline))
 #define RESTRICT __restrict__
@@ -404,11 +406,23 @@ FORWARD_ROWS(6)
 FORWARD_ROWS(7)
 FORWARD_ROWS(8)
 
+/* N > NUNROLL: one copy, N read at run time */
+static void forward_rows_any(int N, int64_t B, int M, const double *P, const double *q,
+                             const double *G, const double *h, double eps, int max_iter,
+                             double *work, double *x, double *z, uint8_t *active,
+                             int64_t *slots, double *L, uint8_t *ok, int64_t *iters,
+                             uint8_t *infeasible) {
+    for (int64_t b = 0; b < B; ++b)
+        ok[b] = (uint8_t)solve_one(N, M, P + b * N * N, q + b * N, G + b * M * N, h + b * M,
+                                   eps, max_iter, work, x + b * N, z + b * M, active + b * M,
+                                   slots + b * N, L + b * N * N, iters + b, infeasible + b);
+}
+
 typedef void (*forward_rows_fn)(int64_t, int, const double *, const double *, const double *,
                                 const double *, double, int, double *, double *, double *,
                                 uint8_t *, int64_t *, double *, uint8_t *, int64_t *,
                                 uint8_t *);
-static const forward_rows_fn FORWARD_ROWS_N[NMAX + 1] = {
+static const forward_rows_fn FORWARD_ROWS_N[NUNROLL + 1] = {
     NULL,           forward_rows_1, forward_rows_2, forward_rows_3, forward_rows_4,
     forward_rows_5, forward_rows_6, forward_rows_7, forward_rows_8};
 
@@ -421,8 +435,12 @@ int torchcbf_dual_forward(int64_t B, int N, int M, const double *P, const double
     if (N < 1 || N > NMAX || M < 1) return -1;
     double *work = malloc(sizeof(double) * WORKSPACE(N, M));
     if (!work) return -1;
-    FORWARD_ROWS_N[N](B, M, P, q, G, h, eps, max_iter, work, x, z, active, slots, L, ok, iters,
-                      infeasible);
+    if (N <= NUNROLL)
+        FORWARD_ROWS_N[N](B, M, P, q, G, h, eps, max_iter, work, x, z, active, slots, L, ok,
+                          iters, infeasible);
+    else
+        forward_rows_any(N, B, M, P, q, G, h, eps, max_iter, work, x, z, active, slots, L, ok,
+                         iters, infeasible);
     free(work);
     return 0;
 }
@@ -480,10 +498,18 @@ BACKWARD_ROWS(6)
 BACKWARD_ROWS(7)
 BACKWARD_ROWS(8)
 
+static void backward_rows_any(int N, int64_t B, int M, const double *G, const double *L,
+                              const int64_t *slots, const uint8_t *ok, const double *gx,
+                              const double *gz, double *w_x, double *wz) {
+    for (int64_t b = 0; b < B; ++b)
+        adjoint_one(N, M, G + b * M * N, L + b * N * N, slots + b * N, ok[b], gx + b * N,
+                    gz + b * M, w_x + b * N, wz + b * M);
+}
+
 typedef void (*backward_rows_fn)(int64_t, int, const double *, const double *, const int64_t *,
                                  const uint8_t *, const double *, const double *, double *,
                                  double *);
-static const backward_rows_fn BACKWARD_ROWS_N[NMAX + 1] = {
+static const backward_rows_fn BACKWARD_ROWS_N[NUNROLL + 1] = {
     NULL,            backward_rows_1, backward_rows_2, backward_rows_3, backward_rows_4,
     backward_rows_5, backward_rows_6, backward_rows_7, backward_rows_8};
 
@@ -495,6 +521,9 @@ int torchcbf_dual_backward(int64_t B, int N, int M, const double *G, const doubl
                            const int64_t *slots, const uint8_t *ok, const double *gx,
                            const double *gz, double *w_x, double *wz) {
     if (N < 1 || N > NMAX || M < 1) return -1;
-    BACKWARD_ROWS_N[N](B, M, G, L, slots, ok, gx, gz, w_x, wz);
+    if (N <= NUNROLL)
+        BACKWARD_ROWS_N[N](B, M, G, L, slots, ok, gx, gz, w_x, wz);
+    else
+        backward_rows_any(N, B, M, G, L, slots, ok, gx, gz, w_x, wz);
     return 0;
 }

@@ -25,9 +25,9 @@ logger = logging.getLogger(__name__)
 #: fewest rows a thread is given when a batch is split over threads
 MIN_ROWS_PER_THREAD = 1024
 #: most variables the kernel handles (``NMAX`` in the C source)
-MAX_VARS = 8
+MAX_VARS = 64
 #: ``KERNEL_VERSION`` of the C source this module calls
-KERNEL_VERSION = 2
+KERNEL_VERSION = 3
 
 _P = ctypes.c_void_p
 _I64 = ctypes.c_int64

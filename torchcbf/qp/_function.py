@@ -32,9 +32,24 @@ from torchcbf.qp.status import Status
 #: method (whose answer the polish verifies). The estimate ignores a diagonal scaling of
 #: ``P`` (e.g. control weights of different units), which the method handles
 MAX_DUAL_CONDITION = 1e4
-#: largest number of variables (after softening) the dual active-set method is used for: the
-#: C kernel's bound, so the torch implementation and the kernel serve the same problems
-MAX_ACTIVE_SET_VARS = _dual_native.MAX_VARS
+#: largest number of variables (after softening) the dual active-set method is used for by
+#: its torch implementation (its unrolled eliminations grow as N^3 tensor operations); the C
+#: kernel takes up to ``_dual_native.MAX_VARS`` (see :func:`dual_applies`)
+MAX_ACTIVE_SET_VARS = 8
+
+
+def dual_budget(max_iter: int, rows: int, n: int) -> int:
+    """Steps the dual active-set method may take: ``max_iter``, raised to ``4 (rows + n)``.
+    The method ends in finitely many steps (no active set repeats), about one per row that
+    joins or leaves, so a smaller budget would only hand solvable rows to another method."""
+    return max(max_iter, 4 * (rows + n))
+
+
+def dual_applies(n: int, kernel: bool) -> bool:
+    """Whether the dual active-set method serves ``n`` variables: up to
+    :data:`MAX_ACTIVE_SET_VARS` anywhere, up to ``_dual_native.MAX_VARS`` through the C
+    kernel (float64 data on the CPU with the kernel built)."""
+    return n <= MAX_ACTIVE_SET_VARS or (kernel and n <= _dual_native.MAX_VARS)
 
 
 class MixedFactor(NamedTuple):
@@ -203,8 +218,8 @@ def _finish(
     sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
     M, E, N = G.shape[-2], A.shape[-2], q.shape[-1]
     ok = torch.zeros_like(idx, dtype=torch.bool)
-    if E == 0 and M > 0 and N <= MAX_ACTIVE_SET_VARS:
-        dual = solve_dual(*sub[:4], eps=cfg.eps, max_iter=max(cfg.max_iter, 4 * (M + N)))
+    if E == 0 and M > 0 and dual_applies(N, _dual_native.applies(q)):
+        dual = solve_dual(*sub[:4], eps=cfg.eps, max_iter=dual_budget(cfg.max_iter, M, N))
         xs, zs, ys, acts, ok = dual.x, dual.z, sub[1].new_zeros(len(idx), 0), dual.active, dual.ok
     elif num_candidates(M, E, N, cfg.pairs) <= MAX_CANDIDATES_SMALL_BATCH:
         en = solve_enum(*sub, eps=cfg.eps, pairs=cfg.pairs)
@@ -269,7 +284,8 @@ def _forward_dual(
     other rows get the active-set KKT factorisation, row by row (:class:`MixedFactor`).
     Finding them is a second host synchronisation, with gradients only."""
     y = q.new_zeros(q.shape[0], 0)
-    res = solve_dual(P, q, G, h, eps=cfg.eps, max_iter=cfg.max_iter, check_every=cfg.check_every)
+    steps = dual_budget(cfg.max_iter, G.shape[-2], q.shape[-1])
+    res = solve_dual(P, q, G, h, eps=cfg.eps, max_iter=steps, check_every=cfg.check_every)
     ok = res.ok & (
         condition_estimate(res.factor.L, batch_first=isinstance(res.factor, NativeFactor))
         <= MAX_DUAL_CONDITION

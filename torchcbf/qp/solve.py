@@ -17,7 +17,12 @@ from torchcbf.qp._enum import (
     SMALL_BATCH,
     num_candidates,
 )
-from torchcbf.qp._function import MAX_ACTIVE_SET_VARS, QPFunction, SolverConfig
+from torchcbf.qp._function import (
+    QPFunction,
+    SolverConfig,
+    dual_applies,
+    dual_budget,
+)
 from torchcbf.qp._ipm import default_tolerances
 from torchcbf.qp.status import Status
 
@@ -179,10 +184,11 @@ def solve_qp(
         of candidate sets.
       - ``"ipm"``: the interior point method for every row.
       - ``"auto"`` (default): the dual active-set method where it applies (no equality
-        rows, at most ``MAX_ACTIVE_SET_VARS`` = 8 variables after softening) when the data are
-        on the CPU and its C kernel is built (see below). Otherwise enumeration for batches of
+        rows, at most 64 variables after softening) when the data are on the CPU and its C
+        kernel is built (see below). Otherwise enumeration for batches of
         at most ``SMALL_BATCH`` rows with at most ``MAX_CANDIDATES_SMALL_BATCH`` candidate
-        sets, then the dual method where it applies, else enumeration up to
+        sets, then the dual method in torch (at most ``MAX_ACTIVE_SET_VARS`` = 8
+        variables), else enumeration up to
         ``MAX_CANDIDATES`` candidate sets, else the interior point method.
 
       On the CPU the dual method runs a C kernel (:mod:`torchcbf.qp._dual_native`, the
@@ -396,7 +402,7 @@ def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
     n, m = inp.n, inp.m
     if (
         inp.B > realtime.MAX_BATCH
-        or n > MAX_ACTIVE_SET_VARS
+        or n > _dual_native.MAX_VARS
         or inp.me > 0
         or inp.soft is not None
         or inp.Q.device.type != "cpu"
@@ -417,7 +423,7 @@ def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
         lb,
         ub,
         inp.eps,
-        max_iter,
+        dual_budget(max_iter, m + 2 * n, n),
         inp.batch_shape,
         np.float64 if inp.Q.dtype == torch.float64 else np.float32,
     )
@@ -592,12 +598,12 @@ def _config(
             f"{MAX_CANDIDATES_EXPLICIT}; use method='auto', 'active_set' or 'ipm'"
         )
     if exact and method == "auto":
-        dual_applies = me == 0 and N <= MAX_ACTIVE_SET_VARS
-        if dual_applies and kernel:
+        dual = me == 0 and dual_applies(N, kernel)
+        if dual and kernel:
             use_dual = True
         elif B <= SMALL_BATCH and 0 < C <= MAX_CANDIDATES_SMALL_BATCH:
             use_enum = True
-        elif dual_applies:
+        elif dual:
             use_dual = True
         else:
             use_enum = 0 < C <= MAX_CANDIDATES
