@@ -256,6 +256,40 @@ def main() -> None:
         f"solved {int((st == Status.SOLVED).sum())}/{B}"
     )
 
+    # a few infeasible rows (two contradicting rows each) in the random batch
+    Qi, pi, Gi, hi = make_problems(B, n, m, dev, seed=1)
+    Gi, hi = Gi.clone(), hi.clone()
+    rows = torch.arange(5, B, B // 4)[:4]
+    Gi[rows, 1] = -Gi[rows, 0]
+    hi[rows, 1] = -hi[rows, 0] - 1.0
+    Gr, hr = make_problems(B, n, m, dev, seed=1)[2:]
+    with torch.no_grad():
+        t_inf = timeit(lambda: solve_qp(Qi, pi, Gi, hi), min_time=1.0) / B
+        t_rnd = timeit(lambda: solve_qp(Qi, pi, Gr, hr), min_time=1.0) / B
+    st = solve_qp(Qi, pi, Gi, hi).status
+    print(
+        f"B=4096 n=4 m=8 forward, {len(rows)} infeasible rows: {t_inf * 1e6:.2f} us/QP "
+        f"({t_inf / t_rnd:.2f}x the same batch without them), "
+        f"PRIMAL_INFEASIBLE {int((st == Status.PRIMAL_INFEASIBLE).sum())}/{len(rows)}"
+    )
+
+    # mid-size problems, past the 8 variables of the unrolled kernel copies
+    for n2, m2, B2 in ((12, 40, 1024), (25, 100, 1024)):
+        Q2, p2, G2, h2 = make_problems(B2, n2, m2, dev, seed=n2)
+        mid = (Q2, p2, G2, h2)
+        t_mid = timeit(lambda mid=mid: fb(*mid), min_time=1.0, max_reps=5) / B2
+        st = solve_qp(Q2, p2, G2, h2).status
+        line = (
+            f"B={B2} n={n2} m={m2} fwd+bwd torchcbf[torch]: {t_mid * 1e6:.1f} us/QP "
+            f"(solved {int((st == Status.SOLVED).sum())}/{B2})"
+        )
+        if "proxsuite.QPFunction" in peers:
+            _, fb2 = run_proxsuite_qpfunction()
+            mid_cpu = tuple(t.cpu() for t in mid)
+            t_peer = timeit(lambda fb2=fb2, m=mid_cpu: fb2(*m), min_time=0.5, max_reps=2) / B2
+            line += f"; proxsuite.QPFunction: {t_peer * 1e6:.1f} us/QP -> {t_peer / t_mid:.1f}x"
+        print(line)
+
     # the safety filter's shape at scale: 2 controls + 1 slack, 8 barrier rows, box bounds
     Q, p, G, h = make_problems(B, 3, 8, dev, seed=5)
     lb = torch.full((3,), -2.0, dtype=Q.dtype, device=dev)
