@@ -131,26 +131,6 @@ def _single_state(calls: int) -> None:
                 _percentiles(lambda: sc.safety_filter(xs, us), calls // 4),
             )
         )
-    # scenario B's five rectified, scaled ellipses as ONE module (one evaluation per call)
-    from torchcbf.barriers import Ellipse, Scaled, rectify
-    from torchcbf.filters import Stochastic
-    from torchcbf.scenarios import unicycle_mppi_cbf as scenario_b
-
-    f = sc.safety_filter
-    one = rectify(
-        Scaled(Ellipse(torch.tensor(scenario_b.CENTERS), torch.tensor(scenario_b.AXES)),
-               [b.barrier.scale for b in f.barriers]),
-        f.barriers[0].dynamics, form="exponential", gains=[float(f.barriers[0].coefficients[0])],
-    ).double()  # fmt: skip
-    f1 = SafetyFilter(f.dynamics, one, mode=Stochastic(beta=1.0), alpha=1.0, R=f.R).double()
-    with torch.no_grad():
-        du = float((f1(xs, us).u - f(xs, us).u).abs().max())
-        rows.append(
-            (
-                "  same, ellipses as one rectified k=5 module",
-                _percentiles(lambda: f1(xs, us), calls // 4),
-            )
-        )
     peer = _cbfpy_filter(ball.center.numpy(), ball.radius.numpy(), 2.0)
     agree = None
     if peer is not None:
@@ -176,7 +156,6 @@ def _single_state(calls: int) -> None:
     for name, (p10, med) in rows:
         ratio = f"{med / base:8.2f}x cbfpy" if base else ""
         print(f"{name:45s} {p10:9.1f} {med:9.1f}  {ratio}")
-    print(f"max |u(one k=5 module) - u(scenario B as built)|: {du:.1e}")
     if peer is None:
         print("cbfpy not installed: its line is skipped")
     else:
