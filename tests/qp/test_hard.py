@@ -152,3 +152,21 @@ def test_mid_size_problems_take_the_dual_method_and_are_right(cvx, shape, monkey
     pi = p.clone().requires_grad_()
     (ref_grad,) = torch.autograd.grad((solve_qp(Q, pi, G, h, method="ipm").x * w).sum(), pi)
     torch.testing.assert_close(grad, ref_grad, atol=1e-7, rtol=1e-6)
+
+
+@pytest.mark.parametrize("method", ["auto", "ipm"])
+def test_far_solutions_are_solved_and_far_contradictions_are_infeasible(method):
+    """The Farkas test is judged on the scale of the rows it combines: min x^2/2 s.t.
+    x <= -1e6 is solved (the interior point method called it infeasible), while contradicting
+    rows far from the origin, or tiny ones, are still proved infeasible."""
+    f64 = torch.float64
+    one = torch.eye(1, dtype=f64)
+    for bound in (-1e6, -1e8, 1e-7):
+        sol = solve_qp(one, torch.zeros(1, dtype=f64), one, torch.tensor([bound], dtype=f64),
+                       method=method)  # fmt: skip
+        assert int(sol.status) == Status.SOLVED
+        torch.testing.assert_close(sol.x, torch.tensor([min(bound, 0.0)], dtype=f64))
+    G = torch.tensor([[1.0], [-1.0]], dtype=f64)
+    for h in ([1e6, -(1e6 + 10)], [1e-6, -2e-6], [-1e6, 1e6 - 1]):
+        sol = solve_qp(one, torch.zeros(1, dtype=f64), G, torch.tensor(h, dtype=f64), method=method)
+        assert int(sol.status) == Status.PRIMAL_INFEASIBLE, h
