@@ -156,9 +156,10 @@ def test_mid_size_problems_take_the_dual_method_and_are_right(cvx, shape, monkey
 
 @pytest.mark.parametrize("method", ["auto", "ipm"])
 def test_far_solutions_are_solved_and_far_contradictions_are_infeasible(method):
-    """The Farkas test is judged on the scale of the rows it combines: min x^2/2 s.t.
-    x <= -1e6 is solved (the interior point method called it infeasible), while contradicting
-    rows far from the origin, or tiny ones, are still proved infeasible."""
+    """The Farkas test is judged on the rows it combines: min x^2/2 s.t. x <= -1e6 is
+    solved, while contradicting rows far from the origin, tiny ones, and contradictions next
+    to a loose row with a large right-hand side or large coefficients are proved infeasible
+    (also with an equality row, which sends the default method to the interior point)."""
     f64 = torch.float64
     one = torch.eye(1, dtype=f64)
     for bound in (-1e6, -1e8, 1e-7):
@@ -170,3 +171,43 @@ def test_far_solutions_are_solved_and_far_contradictions_are_infeasible(method):
     for h in ([1e6, -(1e6 + 10)], [1e-6, -2e-6], [-1e6, 1e6 - 1]):
         sol = solve_qp(one, torch.zeros(1, dtype=f64), G, torch.tensor(h, dtype=f64), method=method)
         assert int(sol.status) == Status.PRIMAL_INFEASIBLE, h
+    # x1 <= 1 and x1 >= 2 beside a loose row on x2
+    eye2, zero2 = torch.eye(2, dtype=f64), torch.zeros(2, dtype=f64)
+    for loose in ([0.0, 1.0, 1e7], [0.0, 1e7, 1.0]):
+        G3 = torch.tensor([loose[:2], [1.0, 0.0], [-1.0, 0.0]], dtype=f64)
+        h3 = torch.tensor([loose[2], 1.0, -2.0], dtype=f64)
+        sol = solve_qp(eye2, zero2, G3, h3, method=method)
+        assert int(sol.status) == Status.PRIMAL_INFEASIBLE, loose
+        if method == "auto":
+            A, b = torch.tensor([[0.0, 1.0]], dtype=f64), torch.zeros(1, dtype=f64)
+            sol = solve_qp(eye2, zero2, G3, h3, A, b)
+            assert int(sol.status) == Status.PRIMAL_INFEASIBLE, loose
+
+
+def test_rows_not_solved_get_zero_gradients_when_every_fallback_fails(monkeypatch):
+    """Rows the dual method solved but handed on (here: every row, as for an ill-conditioned
+    Q) whose fallbacks then fail get zero gradients, not the dual method's."""
+    from torchcbf.qp import _function
+
+    monkeypatch.setattr(_function, "MAX_DUAL_CONDITION", 0.0)
+    enum, ipm = _function.solve_enum, _function._ipm
+
+    def enum_fails(*args, **kwargs):
+        out = enum(*args, **kwargs)
+        return out._replace(ok=torch.zeros_like(out.ok))
+
+    def ipm_fails(*args, **kwargs):
+        x, z, y, status, iters, active, fac = ipm(*args, **kwargs)
+        return x, z, y, torch.full_like(status, int(Status.MAX_ITER)), iters, active, fac
+
+    monkeypatch.setattr(_function, "solve_enum", enum_fails)
+    monkeypatch.setattr(_function, "_ipm", ipm_fails)
+    g = torch.Generator().manual_seed(0)
+    Q = torch.eye(3, dtype=torch.float64).expand(4, 3, 3)
+    p = (5 * torch.randn(4, 3, generator=g, dtype=torch.float64)).requires_grad_()
+    G = torch.randn(4, 6, 3, generator=g, dtype=torch.float64)
+    h = torch.rand(4, 6, generator=g, dtype=torch.float64)
+    sol = solve_qp(Q, p, G, h, method="active_set")
+    assert bool((sol.status == Status.MAX_ITER).all())
+    (grad,) = torch.autograd.grad(sol.x.sum(), p)
+    assert bool((grad == 0).all())

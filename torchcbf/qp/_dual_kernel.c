@@ -15,7 +15,7 @@
  * restore the violated row p (it depends on the active rows, all of whose multipliers would
  * grow), y = (1 on p, -d on the active rows) >= 0 combines the rows into 0 <= h'y < 0, a
  * Farkas certificate. It is checked in floating point (see farkas()) and the row reported
- * infeasible; otherwise the row is left to the caller's fallback as before.
+ * infeasible; otherwise the row is left to the caller's fallback.
  */
 #include <math.h>
 #include <stdint.h>

@@ -298,15 +298,16 @@ def _forward_dual(
         return x, z, y, status, iters, None
     backward_set = _kkt.with_tight_rows(G, h, x, active, status)
     # rows another method solved, and rows with tight rows outside the dual active set;
-    # rows not SOLVED get zero gradients from either factor
+    # rows not SOLVED get zero gradients from either factor (the dual method's factor only
+    # serves the rows whose answer was kept)
     redo = (~ok & (status == int(Status.SOLVED))) | (backward_set != active).any(-1)
+    dual_factor = res.factor._replace(ok=ok & ~redo)
     rows = redo.nonzero().squeeze(-1)
     if len(rows) == 0:
-        return x, z, y, status, iters, res.factor
+        return x, z, y, status, iters, dual_factor
     # the other rows keep the dual method's factors: hard rows do not slow the whole batch
     sub = [t.index_select(0, rows) for t in (P, G, A, backward_set)]
-    fac = MixedFactor(res.factor._replace(ok=res.factor.ok & ~redo), rows, _kkt.factor_kkt(*sub))
-    return x, z, y, status, iters, fac
+    return x, z, y, status, iters, MixedFactor(dual_factor, rows, _kkt.factor_kkt(*sub))
 
 
 def _ipm_fallback(

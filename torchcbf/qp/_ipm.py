@@ -210,11 +210,9 @@ def solve_ipm(
 
     qn = _inf_norm(q)
     hn = torch.maximum(_inf_norm(h), _inf_norm(b))
-    # largest row entry, for the Farkas test on the scale of the rows it combines
-    rn = torch.maximum(
-        G.abs().flatten(1).amax(-1) if M > 0 else qn.new_zeros(B),
-        A.abs().flatten(1).amax(-1) if A.shape[-2] > 0 else qn.new_zeros(B),
-    )
+    # largest entry of every row of G and A, to weigh the rows a Farkas certificate combines
+    g_rows = G.abs().amax(-1) if n > 0 else G.new_zeros(B, M)  # [B, M]
+    a_rows = A.abs().amax(-1) if n > 0 else A.new_zeros(B, A.shape[-2])  # [B, E]
     # a strictly convex QP is never dual infeasible: only rows whose P is not positive
     # definite may take the certificate (with a large q it fires falsely, e.g. P = 1,
     # q = -1e8, -10 <= x <= 1)
@@ -255,15 +253,16 @@ def solve_ipm(
             & (dres <= eps * (1.0 + dscale))
             & (gap <= eps * (1.0 + torch.minimum(pobj.abs(), dobj.abs())))
         )
-        # Farkas: w = (z, y) >= 0 combines the rows into G'z + A'y = 0 and h'z + b'y < 0, each
-        # judged against |w| times the size of the rows and right-hand sides (a large h
-        # alone, as in x <= -1e6, must not pass for a certificate)
-        wn = torch.maximum(_inf_norm(z), _inf_norm(y))
+        # Farkas: the multipliers (z >= 0, y) combine the rows into G'z + A'y = 0 and
+        # h'z + b'y < 0, each judged against the rows they weigh: |z_i| max_j |G_ij| and
+        # |z_i h_i| (a large h on its own, as in x <= -1e6, is no contradiction)
+        row_w = torch.maximum(_inf_norm(g_rows * z), _inf_norm(a_rows * y))
+        rhs_w = torch.maximum(_inf_norm(h * z), _inf_norm(b * y))
         pinf = (
             (hz < 0)
             & (_inf_norm(Gtz) <= -eps_inf * hz)
-            & (_inf_norm(Gtz) <= eps_inf * rn * wn)
-            & (hz <= -eps_inf * hn * wn)
+            & (_inf_norm(Gtz) <= eps_inf * row_w)
+            & (hz <= -eps_inf * rhs_w)
         )
         dinf_thr = -eps_inf * qx
         dinf = (
@@ -291,8 +290,9 @@ def solve_ipm(
                 full = _write_back(full, idx, state)
                 keep = active.nonzero().squeeze(-1)
                 idx = idx[keep]
-                P, q, G, h, A, b, reg, qn, hn, rn, may_be_unbounded = (
-                    t[keep] for t in (P, q, G, h, A, b, reg, qn, hn, rn, may_be_unbounded)
+                P, q, G, h, A, b, reg, qn, hn, g_rows, a_rows, may_be_unbounded = (
+                    t[keep]
+                    for t in (P, q, G, h, A, b, reg, qn, hn, g_rows, a_rows, may_be_unbounded)
                 )
                 Gt, At = G.mT, A.mT
                 x, s, z, y, tau, kappa, status, iterations = (t[keep] for t in state)

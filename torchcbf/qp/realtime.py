@@ -72,7 +72,7 @@ def solve_small(
     (bounds may be infinite; ``lb < +inf`` and ``ub > -inf``); the answer has the batch
     shape ``shape`` (``B`` entries) and the float ``dtype``.
 
-    Returns ``None`` when the kernel does not apply (``N > 8``, no rows), when some datum is
+    Returns ``None`` when the kernel does not apply (``N > 64``, no rows), when some datum is
     not finite, or when the kernel does not certify every row; the caller then solves the
     batch by the general path, which also sets those rows' statuses."""
     B, N = q.shape
