@@ -75,8 +75,12 @@ def test_adjoints_match_torch_implementation():
     assert (w_out[0][~out.ok] == 0).all()
 
 
-def test_batch_split_over_threads_gives_identical_answers():
-    P, q, G, h = _problems(3 * _dual_native.MIN_ROWS_PER_THREAD, 3, 5, seed=8)
+@pytest.mark.parametrize("shape", [(3, 5), (12, 40)])
+def test_batch_split_over_threads_gives_identical_answers(shape):
+    n, m = shape
+    M = m + 2 * n  # _problems folds the box into G
+    rows = -(-3 * _dual_native.MIN_WORK_PER_THREAD // (n * n + M * n))  # work for 3 threads
+    P, q, G, h = _problems(rows, n, m, seed=8)
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(1)

@@ -119,8 +119,9 @@ class Transformed(Barrier):
 
     - ``"radius"``: ``phi(h) = sqrt(h + 1) - 1``. On a quadratic shape ``h = |q|^2 - 1``
       (an :class:`~torchcbf.barriers.Ellipse`) this is ``|q| - 1``, whose gradient stays
-      bounded far from the shape (the risk-aware condition needs a bound on it). Needs
-      ``h > -1`` (the shape's centre is the one excluded point).
+      bounded far from the shape (the risk-aware condition needs a bound on it). For
+      barriers with ``h > -1`` (on an ellipse every point but the centre); below, the value
+      is NaN, which a safety filter reports per row (``FALLBACK``).
     - ``"exp"``: ``phi(h) = 1 - exp(-rate h)``, bounded above by 1 (CBFkit's sublevel
       barrier ``B = exp(-rate h) <= 1``, read as ``1 - B >= 0``).
 

@@ -60,7 +60,6 @@ from torchcbf.filters.fallback import Fallback, FallbackSpec
 from torchcbf.filters.modes import MODE_OPTIONS, FilterMode, make_mode
 from torchcbf.filters.qp_data import SLACK_MODES, SlackMode, assemble, assemble_numpy
 from torchcbf.qp import Status, realtime
-from torchcbf.qp._function import dual_budget
 
 __all__ = ["FallbackSpec", "FilterOutput", "FilterStatus", "SafetyFilter"]
 
@@ -562,8 +561,7 @@ class SafetyFilter(nn.Module):
             G = np.concatenate((G, G_hard))
         opts = self.qp_options
         eps = opts.get("eps") or realtime.default_eps(xb.dtype)
-        steps = dual_budget(opts.get("max_iter", 50), G.shape[1], Q.shape[-1])
-        out = realtime.solve_rows(Q, p, G, hq, float(eps), steps)
+        out = realtime.solve_rows(Q, p, G, hq, float(eps), opts.get("max_iter", 50))
         if out is None:
             return None
         nz = Q.shape[-1]

@@ -22,8 +22,9 @@ from torchcbf._native import load_kernel, thread_pool
 
 logger = logging.getLogger(__name__)
 
-#: fewest rows a thread is given when a batch is split over threads
-MIN_ROWS_PER_THREAD = 1024
+#: least work (``N^2 + M N`` per row, summed) a thread is given when a batch is split over
+#: threads: 1,024 rows of N = 4, M = 8
+MIN_WORK_PER_THREAD = 1024 * (4 * 4 + 8 * 4)
 #: most variables the kernel handles (``NMAX`` in the C source)
 MAX_VARS = 64
 #: ``KERNEL_VERSION`` of the C source this module calls
@@ -70,12 +71,14 @@ def _kernel() -> ctypes.CDLL:
     return lib
 
 
-def _run(fn: Callable[..., int], B: int, per_row: list[tuple[Tensor, int]]) -> None:
+def _run(
+    fn: Callable[..., int], B: int, per_row: list[tuple[Tensor, int]], row_work: int
+) -> None:
     """Call ``fn(rows, *pointers)`` on chunks of the batch, in parallel for a large batch.
 
     ``per_row`` lists ``(tensor, elements per row)`` in argument order; each chunk gets
-    pointers offset to its first row."""
-    threads = max(1, min(torch.get_num_threads(), B // MIN_ROWS_PER_THREAD))
+    pointers offset to its first row. ``row_work``: the work of one row (``N^2 + M N``)."""
+    threads = max(1, min(torch.get_num_threads(), B * row_work // MIN_WORK_PER_THREAD))
     bounds = [B * k // threads for k in range(threads + 1)]
 
     def call(lo: int, hi: int) -> int:
@@ -120,7 +123,7 @@ def forward(
     outs.append((infeasible, 1))
     fn = _kernel().torchcbf_dual_forward
     steps = min(max_iter, 2**31 - 1)  # a C int
-    _run(lambda n, *a: fn(n, N, M, *a[:4], eps, steps, *a[4:]), B, rows + outs)
+    _run(lambda n, *a: fn(n, N, M, *a[:4], eps, steps, *a[4:]), B, rows + outs, N * N + M * N)
     return x, z, active, slots, L, ok, iters, infeasible
 
 
@@ -136,5 +139,5 @@ def backward(
     wz = gz.new_empty(B, M)
     fn = _kernel().torchcbf_dual_backward
     args = [(G, M * N), (L, N * N), (slots, N), (ok, 1), (gx, N), (gz, M), (w_x, N), (wz, M)]
-    _run(lambda n, *a: fn(n, N, M, *a), B, args)
+    _run(lambda n, *a: fn(n, N, M, *a), B, args, N * N + M * N)
     return w_x, wz

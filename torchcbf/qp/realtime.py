@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from torchcbf.qp import _dual_native
-from torchcbf.qp._function import MAX_DUAL_CONDITION
+from torchcbf.qp._function import MAX_DUAL_CONDITION, dual_budget
 from torchcbf.qp._ipm import default_tolerances
 
 #: largest batch the numpy path takes (beyond it the general path's threads pay off)
@@ -130,8 +130,9 @@ def solve_rows(
     P: np.ndarray, q: np.ndarray, G: np.ndarray, h: np.ndarray, eps: float, max_iter: int
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Solve ``min 1/2 x'Px + q'x  s.t.  Gx <= h`` (bounds already rows) for float64
-    ``P [B,N,N], q [B,N], G [B,M,N], h [B,M]``; returns the kernel's buffers ``(floats,
-    ints)``: ``floats = [x (B N) | z (B M) | L (B N N) | zeros (B (M + N))]``,
+    ``P [B,N,N], q [B,N], G [B,M,N], h [B,M]`` in at most ``max_iter`` steps, raised to the
+    dual method's budget (:func:`~torchcbf.qp._function.dual_budget`); returns the kernel's
+    buffers ``(floats, ints)``: ``floats = [x (B N) | z (B M) | L (B N N) | zeros (B (M + N))]``,
     ``ints = [slots (B N) | iterations (B) | zeros (B)]``. ``None`` when some datum is not
     finite, the kernel does not certify every row, or a row is too ill-conditioned for the
     dual method."""
@@ -153,8 +154,9 @@ def solve_rows(
     oq = 8 * nL
     oG = oq + 8 * nx
     oh = oG + 8 * B * M * N
+    steps = dual_budget(max_iter, M, N)
     code = _dual_native._kernel().torchcbf_dual_forward(
-        B, N, M, d, d + oq, d + oG, d + oh, ctypes.c_double(eps), min(max_iter, 2**31 - 1),
+        B, N, M, d, d + oq, d + oG, d + oh, ctypes.c_double(eps), min(steps, 2**31 - 1),
         f, f + 8 * nx, b8, i8, f + 8 * (nx + nz), b8 + B * M, i8 + 8 * nx, b8 + B * (M + 1),
     )  # fmt: skip
     if code != 0:

@@ -21,7 +21,6 @@ from torchcbf.qp._function import (
     QPFunction,
     SolverConfig,
     dual_applies,
-    dual_budget,
 )
 from torchcbf.qp._ipm import default_tolerances
 from torchcbf.qp.status import Status
@@ -423,7 +422,7 @@ def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
         lb,
         ub,
         inp.eps,
-        dual_budget(max_iter, m + 2 * n, n),
+        max_iter,
         inp.batch_shape,
         np.float64 if inp.Q.dtype == torch.float64 else np.float32,
     )
