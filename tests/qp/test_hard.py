@@ -197,8 +197,8 @@ def test_rows_not_solved_get_zero_gradients_when_every_fallback_fails(monkeypatc
         return out._replace(ok=torch.zeros_like(out.ok))
 
     def ipm_fails(*args, **kwargs):
-        x, z, y, status, iters, active, fac = ipm(*args, **kwargs)
-        return x, z, y, torch.full_like(status, int(Status.MAX_ITER)), iters, active, fac
+        out = ipm(*args, **kwargs)  # (x, z, y, status, ...)
+        return (*out[:3], torch.full_like(out[3], int(Status.MAX_ITER)), *out[4:])
 
     monkeypatch.setattr(_function, "solve_enum", enum_fails)
     monkeypatch.setattr(_function, "_ipm", ipm_fails)

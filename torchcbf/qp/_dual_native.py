@@ -71,9 +71,7 @@ def _kernel() -> ctypes.CDLL:
     return lib
 
 
-def _run(
-    fn: Callable[..., int], B: int, per_row: list[tuple[Tensor, int]], row_work: int
-) -> None:
+def _run(fn: Callable[..., int], B: int, per_row: list[tuple[Tensor, int]], row_work: int) -> None:
     """Call ``fn(rows, *pointers)`` on chunks of the batch, in parallel for a large batch.
 
     ``per_row`` lists ``(tensor, elements per row)`` in argument order; each chunk gets

@@ -132,7 +132,7 @@ def _forward(
             return _forward_dual(P, q, G, h, A, b, cfg, x0)
         if cfg.enumerate:
             return _forward_enum(P, q, G, h, A, b, cfg, x0)
-        x, z, y, status, iters, active, fac = _ipm(P, q, G, h, A, b, cfg, x0)
+        x, z, y, status, iters, active = _ipm(P, q, G, h, A, b, cfg, x0)
     else:
         from torchcbf.qp import _backends
 
@@ -145,9 +145,8 @@ def _forward(
                 cfg.backend.split(":", 1)[1], P, q, G, h, A, b, eps=cfg.eps, max_iter=cfg.max_iter
             )
         x, s, z, y, status, iters = (t.to(q.device) for t in out)
-        x, z, y, status, active, fac = _finish(P, q, G, h, A, b, x, s, z, y, status, cfg)
-    if cfg.need_factor:
-        fac = _factor(P, G, h, A, x, active, status)
+        x, z, y, status, active = _finish(P, q, G, h, A, b, x, s, z, y, status, cfg)
+    fac = _factor(P, G, h, A, x, active, status) if cfg.need_factor else None
     return x, z, y, status, iters, fac
 
 
@@ -160,9 +159,8 @@ def _factor(
 
 def _ipm(
     P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, _kkt.KKTFactor | None]:
-    """The interior point method and its polish: ``(x, z, y, status, iterations, active,
-    factor)``."""
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The interior point method and its polish: ``(x, z, y, status, iterations, active)``."""
     out = solve_ipm(
         P,
         q,
@@ -176,8 +174,8 @@ def _ipm(
         check_every=cfg.check_every,
         x0=x0,
     )
-    x, z, y, status, active, fac = _finish(P, q, G, h, A, b, *out[:5], cfg)
-    return x, z, y, status, out.iterations, active, fac
+    x, z, y, status, active = _finish(P, q, G, h, A, b, *out[:5], cfg)
+    return x, z, y, status, out.iterations, active
 
 
 def _finish(
@@ -193,8 +191,8 @@ def _finish(
     y: Tensor,
     status: Tensor,
     cfg: SolverConfig,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, _kkt.KKTFactor | None]:
-    """Polish (or not) an iterative answer; returns ``(x, z, y, status, active, factor)``.
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Polish (or not) an iterative answer; returns ``(x, z, y, status, active)``.
 
     Nearly parallel active rows leave the interior point accurate only to about
     ``sqrt(eps)`` in ``x``, and an active-set guess missing one of them can still pass the
@@ -206,14 +204,14 @@ def _finish(
     synchronisation."""
     if not cfg.polish:
         candidate = (status == int(Status.SOLVED)).unsqueeze(-1)
-        return x, z, y, status, _kkt.active_set(z, s) & candidate, None
+        return x, z, y, status, _kkt.active_set(z, s) & candidate
     x, z, y, status, fac, verified, exact = _kkt.polish(
         P, q, G, h, A, b, x, s, z, y, status, eps=cfg.eps
     )
     solved = status == int(Status.SOLVED)
     suspect = solved & ~exact
     if not bool(suspect.any()):
-        return x, z, y, status, fac.active, fac
+        return x, z, y, status, fac.active
     idx = suspect.nonzero().squeeze(-1)
     sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
     M, E, N = G.shape[-2], A.shape[-2], q.shape[-1]
@@ -235,7 +233,7 @@ def _finish(
     status = status.index_copy(
         0, idx, torch.where(failed, int(Status.NUMERICAL_ERROR), status.index_select(0, idx))
     )
-    return x, z, y, status, active, _kkt.factor_kkt(P, G, A, active)
+    return x, z, y, status, active
 
 
 def _forward_enum(
@@ -374,7 +372,7 @@ def _ipm_fallback(
                 return x, z, y, status, iters, active, True
     sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
     x0s = None if x0 is None else x0.index_select(0, idx)
-    xs, zs, ys, sts, its, acts, _ = _ipm(*sub, cfg, x0s)
+    xs, zs, ys, sts, its, acts = _ipm(*sub, cfg, x0s)
     x, z, y = x.index_copy(0, idx, xs), z.index_copy(0, idx, zs), y.index_copy(0, idx, ys)
     status = status.index_copy(0, idx, sts)
     active = active.index_copy(0, idx, acts)
