@@ -111,11 +111,11 @@ INLINE int eliminate(int K, double *W, double *r, double piv_tol, double *mu) {
     return nonsing;
 }
 
-/* Build W_SS = R_S P^{-1} R_S' on the N slots (identity on empty ones) and solve
+/* Build W_SS = R_S P^{-1} R_S' on the N slots (identity on empty ones) in W [N*N] and solve
  * W_SS mu = rhs; US[c*N + k] is component c of P^{-1} R_{S_k}' (zero on empty slots). */
 INLINE int slot_solve(int N, int M, const double *G, const double *US, const int64_t *S,
-                      const double *rhs, double piv_tol, double *mu) {
-    double W[NMAX * NMAX], r[NMAX];
+                      const double *rhs, double piv_tol, double *mu, double *RESTRICT W) {
+    double r[NMAX];
     for (int k = 0; k < N; ++k) {
         r[k] = rhs[k];
         for (int l = 0; l < N; ++l) {
@@ -168,7 +168,8 @@ INLINE int solve_one(int N, int M, const double *RESTRICT P, const double *RESTR
                      int max_iter, double *RESTRICT work, double *RESTRICT x_out,
                      double *RESTRICT z_out, uint8_t *RESTRICT active, int64_t *RESTRICT S_out,
                      double *RESTRICT L_out, int64_t *RESTRICT iters,
-                     uint8_t *RESTRICT infeasible) {
+                     uint8_t *RESTRICT infeasible, double *RESTRICT US, double *RESTRICT H,
+                     double *RESTRICT L, double *RESTRICT W) {
     const double mach = 2.220446049250313e-16;
     double *RESTRICT Ut = work;
     double *RESTRICT Y = work + (size_t)N * M;
@@ -178,9 +179,9 @@ INLINE int solve_one(int N, int M, const double *RESTRICT P, const double *RESTR
     double *RESTRICT v = inv_norm + M;
     double *RESTRICT member = v + M;
     double dinv[NMAX], xu[NMAX], x[NMAX], lam[NMAX], dx[NMAX], d[NMAX], Wsp[NMAX], Hk[NMAX];
-    double US[NMAX * NMAX]; /* US[c*N + k]: component c of P^{-1} R_{S_k}' */
-    double H[NMAX * NMAX];  /* inverse of W_SS, identity on empty slots */
-    double L[NMAX * NMAX];  /* local copies: the compiler may keep them in registers */
+    /* N*N matrices from the caller (locals of the per-N copies, the heap past NUNROLL):
+     * US[c*N + k] is component c of P^{-1} R_{S_k}', H the inverse of W_SS (identity on
+     * empty slots), L the Cholesky factor, W scratch of the final multiplier solve */
     int64_t S[NMAX];
     int pending = 0, done = 0, fail = 0;
     int64_t p = 0, it = 0;
@@ -343,7 +344,7 @@ INLINE int solve_one(int N, int M, const double *RESTRICT P, const double *RESTR
         rhs[k] = S[k] == M ? 0.0 : dot(N, G + S[k] * N, xu) - h[S[k]];
         for (int c = 0; c < N; ++c) US[c * N + k] = S[k] == M ? 0.0 : Ut[(size_t)c * M + S[k]];
     }
-    int nonsing = slot_solve(N, M, G, US, S, rhs, 1e-12, mu);
+    int nonsing = slot_solve(N, M, G, US, S, rhs, 1e-12, mu, W);
     for (int c = 0; c < N; ++c) x[c] = xu[c] - dot(N, US + c * N, mu);
     double pviol = 0.0;
     for (int i = 0; i < M; ++i) {
@@ -391,11 +392,13 @@ INLINE int solve_one(int N, int M, const double *RESTRICT P, const double *RESTR
                                   uint8_t *active, int64_t *slots, double *L, uint8_t *ok, \
                                   int64_t *iters, uint8_t *infeasible) {                   \
         const int N = NN;                                                                  \
+        double US[NN * NN], H[NN * NN], Lw[NN * NN], W[NN * NN];                           \
         for (int64_t b = 0; b < B; ++b)                                                    \
             ok[b] = (uint8_t)solve_one(N, M, P + b * N * N, q + b * N, G + b * M * N,      \
                                        h + b * M, eps, max_iter, work, x + b * N,          \
                                        z + b * M, active + b * M, slots + b * N,           \
-                                       L + b * N * N, iters + b, infeasible + b);          \
+                                       L + b * N * N, iters + b, infeasible + b, US, H,    \
+                                       Lw, W);                                             \
     }
 FORWARD_ROWS(1)
 FORWARD_ROWS(2)
@@ -406,16 +409,18 @@ FORWARD_ROWS(6)
 FORWARD_ROWS(7)
 FORWARD_ROWS(8)
 
-/* N > NUNROLL: one copy, N read at run time */
+/* N > NUNROLL: one copy, N read at run time; its four N*N matrices follow the workspace */
 static void forward_rows_any(int N, int64_t B, int M, const double *P, const double *q,
                              const double *G, const double *h, double eps, int max_iter,
                              double *work, double *x, double *z, uint8_t *active,
                              int64_t *slots, double *L, uint8_t *ok, int64_t *iters,
                              uint8_t *infeasible) {
+    double *US = work + WORKSPACE(N, M), *H = US + N * N, *Lw = H + N * N, *W = Lw + N * N;
     for (int64_t b = 0; b < B; ++b)
         ok[b] = (uint8_t)solve_one(N, M, P + b * N * N, q + b * N, G + b * M * N, h + b * M,
                                    eps, max_iter, work, x + b * N, z + b * M, active + b * M,
-                                   slots + b * N, L + b * N * N, iters + b, infeasible + b);
+                                   slots + b * N, L + b * N * N, iters + b, infeasible + b, US,
+                                   H, Lw, W);
 }
 
 typedef void (*forward_rows_fn)(int64_t, int, const double *, const double *, const double *,
@@ -433,7 +438,8 @@ int torchcbf_dual_forward(int64_t B, int N, int M, const double *P, const double
                           double *x, double *z, uint8_t *active, int64_t *slots, double *L,
                           uint8_t *ok, int64_t *iters, uint8_t *infeasible) {
     if (N < 1 || N > NMAX || M < 1) return -1;
-    double *work = malloc(sizeof(double) * WORKSPACE(N, M));
+    size_t mats = N > NUNROLL ? (size_t)4 * N * N : 0; /* forward_rows_any's matrices */
+    double *work = malloc(sizeof(double) * (WORKSPACE(N, M) + mats));
     if (!work) return -1;
     if (N <= NUNROLL)
         FORWARD_ROWS_N[N](B, M, P, q, G, h, eps, max_iter, work, x, z, active, slots, L, ok,
@@ -448,12 +454,13 @@ int torchcbf_dual_forward(int64_t B, int N, int M, const double *P, const double
 /* One problem of the backward: w_x [N] and wz [M] (zeros unless ok and finite). */
 INLINE void adjoint_one(int N, int M, const double *RESTRICT G, const double *RESTRICT L,
                         const int64_t *RESTRICT S, int ok, const double *RESTRICT gx,
-                        const double *RESTRICT gz, double *RESTRICT wx, double *RESTRICT wz) {
+                        const double *RESTRICT gz, double *RESTRICT wx, double *RESTRICT wz,
+                        double *RESTRICT US, double *RESTRICT W) {
     memset(wx, 0, sizeof(double) * N);
     memset(wz, 0, sizeof(double) * M);
     if (!ok) return;
     double dinv[NMAX], a[NMAX], rhs[NMAX], mu[NMAX], out[NMAX], u[NMAX];
-    double US[NMAX * NMAX]; /* US[c*N + k]: component c of P^{-1} R_{S_k}' */
+    /* US [N*N] (component c of P^{-1} R_{S_k}' at c*N + k) and W [N*N] from the caller */
     for (int c = 0; c < N; ++c) {
         dinv[c] = 1.0 / L[c * N + c];
         a[c] = gx[c];
@@ -466,7 +473,7 @@ INLINE void adjoint_one(int N, int M, const double *RESTRICT G, const double *RE
         for (int c = 0; c < N; ++c) US[c * N + k] = u[c];
         rhs[k] = S[k] == M ? 0.0 : dot(N, G + S[k] * N, a) - gz[S[k]];
     }
-    slot_solve(N, M, G, US, S, rhs, 1e-12, mu); /* nonsingular: the forward checked it */
+    slot_solve(N, M, G, US, S, rhs, 1e-12, mu, W); /* nonsingular: the forward checked it */
     int finite = 1;
     for (int c = 0; c < N; ++c) {
         out[c] = a[c] - dot(N, US + c * N, mu);
@@ -485,9 +492,10 @@ INLINE void adjoint_one(int N, int M, const double *RESTRICT G, const double *RE
                                    const double *gx, const double *gz, double *w_x,        \
                                    double *wz) {                                           \
         const int N = NN;                                                                  \
+        double US[NN * NN], W[NN * NN];                                                    \
         for (int64_t b = 0; b < B; ++b)                                                    \
             adjoint_one(N, M, G + b * M * N, L + b * N * N, slots + b * N, ok[b],          \
-                        gx + b * N, gz + b * M, w_x + b * N, wz + b * M);                  \
+                        gx + b * N, gz + b * M, w_x + b * N, wz + b * M, US, W);           \
     }
 BACKWARD_ROWS(1)
 BACKWARD_ROWS(2)
@@ -500,10 +508,10 @@ BACKWARD_ROWS(8)
 
 static void backward_rows_any(int N, int64_t B, int M, const double *G, const double *L,
                               const int64_t *slots, const uint8_t *ok, const double *gx,
-                              const double *gz, double *w_x, double *wz) {
+                              const double *gz, double *w_x, double *wz, double *mats) {
     for (int64_t b = 0; b < B; ++b)
         adjoint_one(N, M, G + b * M * N, L + b * N * N, slots + b * N, ok[b], gx + b * N,
-                    gz + b * M, w_x + b * N, wz + b * M);
+                    gz + b * M, w_x + b * N, wz + b * M, mats, mats + N * N);
 }
 
 typedef void (*backward_rows_fn)(int64_t, int, const double *, const double *, const int64_t *,
@@ -521,9 +529,13 @@ int torchcbf_dual_backward(int64_t B, int N, int M, const double *G, const doubl
                            const int64_t *slots, const uint8_t *ok, const double *gx,
                            const double *gz, double *w_x, double *wz) {
     if (N < 1 || N > NMAX || M < 1) return -1;
-    if (N <= NUNROLL)
+    if (N <= NUNROLL) {
         BACKWARD_ROWS_N[N](B, M, G, L, slots, ok, gx, gz, w_x, wz);
-    else
-        backward_rows_any(N, B, M, G, L, slots, ok, gx, gz, w_x, wz);
+        return 0;
+    }
+    double *mats = malloc(sizeof(double) * 2 * N * N);
+    if (!mats) return -1;
+    backward_rows_any(N, B, M, G, L, slots, ok, gx, gz, w_x, wz, mats);
+    free(mats);
     return 0;
 }
