@@ -26,61 +26,10 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "qp"))
-from _problems import TEN_THOUSAND_SHAPES, make_batch  # noqa: E402
+from _problems import HARD_FAMILIES, TEN_THOUSAND_SHAPES, hard_family, make_batch  # noqa: E402
 from conftest import cvxpy_solve  # noqa: E402
 
 from torchcbf.qp import Status, solve_qp  # noqa: E402
-
-
-def _family(name: str, B: int, g: torch.Generator) -> tuple:
-    """``(Q, p, G, h, lb, ub)`` of one hard family, float64."""
-    f64 = torch.float64
-
-    def rnd(*shape: int) -> torch.Tensor:
-        return torch.randn(*shape, generator=g, dtype=f64)
-
-    n, m = 4, 8
-    lb = ub = None
-    if name.startswith("cond"):
-        cond = float(name.split("=")[1])
-        U, _ = torch.linalg.qr(rnd(B, n, n))
-        d = torch.logspace(0, -np.log10(cond), n, dtype=f64)
-        Q = U @ torch.diag_embed(d.expand(B, n)) @ U.mT
-        return Q, rnd(B, n), rnd(B, m, n), torch.rand(B, m, generator=g, dtype=f64), lb, ub
-    if name == "mid-size n=25 m=100":
-        n, m = 25, 100
-    L = rnd(B, n, n)
-    Q = L @ L.mT / n + 0.1 * torch.eye(n, dtype=f64)
-    p = 3 * rnd(B, n)
-    G = rnd(B, m, n)
-    x0 = rnd(B, n)
-    slack = torch.rand(B, m, generator=g, dtype=f64)
-    if name == "half the rows tight at x0":
-        slack = torch.where(torch.rand(B, m, generator=g, dtype=f64) < 0.5, 0.0, slack)
-    if name == "duplicated rows":
-        G = torch.cat((G[:, : m // 2], G[:, : m // 2]), 1)
-        slack = torch.cat((slack[:, : m // 2], slack[:, : m // 2]), 1)
-    if name == "row scales 1e-6..1e6":
-        scale = 10 ** (12 * torch.rand(B, m, 1, generator=g, dtype=f64) - 6)
-        G = G * scale
-        slack = slack * scale[..., 0]
-    h = (G @ x0.unsqueeze(-1)).squeeze(-1) + slack
-    if name == "LP in a box (Q = 0)":
-        Q = torch.zeros(B, n, n, dtype=f64)
-        lb, ub = -2 * torch.ones(B, n, dtype=f64), 2 * torch.ones(B, n, dtype=f64)
-        h = h.abs() + 1.0  # the box is the bounded part
-    return Q, p, G, h, lb, ub
-
-
-FAMILIES = (
-    "cond=1e6",
-    "cond=1e8",
-    "half the rows tight at x0",
-    "duplicated rows",
-    "row scales 1e-6..1e6",
-    "LP in a box (Q = 0)",
-    "mid-size n=25 m=100",
-)
 
 
 def families(rows: int) -> None:
@@ -89,9 +38,9 @@ def families(rows: int) -> None:
         f"\n{'family':28s} {'rows':>5s} {'solved':>6s} {'max err':>9s} {'false fail':>10s} "
         f"{'wrong SOLVED':>12s} {'us/QP':>8s}"
     )
-    for k, name in enumerate(FAMILIES):
+    for k, name in enumerate(HARD_FAMILIES):
         g = torch.Generator().manual_seed(500 + k)
-        Q, p, G, h, lb, ub = _family(name, rows, g)
+        Q, p, G, h, lb, ub = hard_family(name, rows, g)
         solve_qp(Q, p, G, h, lb=lb, ub=ub)  # warm up
         t0 = time.perf_counter()
         sol = solve_qp(Q, p, G, h, lb=lb, ub=ub)

@@ -1,7 +1,9 @@
-"""Random QP families with known solutions or known infeasibility (test helpers)."""
+"""Random QP families with known solutions or known infeasibility, and the hard families of
+scripts/qp_accuracy.py (test helpers)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -125,3 +127,55 @@ TEN_THOUSAND_SHAPES = [
     for me, bounds in [(0, False), (0, True), (1, False), (2, True)]
     if me < n
 ]
+
+
+def hard_family(name: str, B: int, g: torch.Generator) -> tuple:
+    """``(Q, p, G, h, lb, ub)`` of one of :data:`HARD_FAMILIES`, ``B`` rows, float64, drawn
+    from ``g``; ``n = 4``, ``m = 8`` but for the mid-size family."""
+    f64 = torch.float64
+
+    def rnd(*shape: int) -> torch.Tensor:
+        return torch.randn(*shape, generator=g, dtype=f64)
+
+    n, m = 4, 8
+    lb = ub = None
+    if name.startswith("cond"):
+        cond = float(name.split("=")[1])
+        U, _ = torch.linalg.qr(rnd(B, n, n))
+        d = torch.logspace(0, -math.log10(cond), n, dtype=f64)
+        Q = U @ torch.diag_embed(d.expand(B, n)) @ U.mT
+        return Q, rnd(B, n), rnd(B, m, n), torch.rand(B, m, generator=g, dtype=f64), lb, ub
+    if name == "mid-size n=25 m=100":
+        n, m = 25, 100
+    L = rnd(B, n, n)
+    Q = L @ L.mT / n + 0.1 * torch.eye(n, dtype=f64)
+    p = 3 * rnd(B, n)
+    G = rnd(B, m, n)
+    x0 = rnd(B, n)
+    slack = torch.rand(B, m, generator=g, dtype=f64)
+    if name == "half the rows tight at x0":
+        slack = torch.where(torch.rand(B, m, generator=g, dtype=f64) < 0.5, 0.0, slack)
+    if name == "duplicated rows":
+        G = torch.cat((G[:, : m // 2], G[:, : m // 2]), 1)
+        slack = torch.cat((slack[:, : m // 2], slack[:, : m // 2]), 1)
+    if name == "row scales 1e-6..1e6":
+        scale = 10 ** (12 * torch.rand(B, m, 1, generator=g, dtype=f64) - 6)
+        G = G * scale
+        slack = slack * scale[..., 0]
+    h = (G @ x0.unsqueeze(-1)).squeeze(-1) + slack
+    if name == "LP in a box (Q = 0)":
+        Q = torch.zeros(B, n, n, dtype=f64)
+        lb, ub = -2 * torch.ones(B, n, dtype=f64), 2 * torch.ones(B, n, dtype=f64)
+        h = h.abs() + 1.0  # the box is the bounded part
+    return Q, p, G, h, lb, ub
+
+
+HARD_FAMILIES = (
+    "cond=1e6",
+    "cond=1e8",
+    "half the rows tight at x0",
+    "duplicated rows",
+    "row scales 1e-6..1e6",
+    "LP in a box (Q = 0)",
+    "mid-size n=25 m=100",
+)

@@ -6,26 +6,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from _problems import hard_family
 
 from torchcbf.qp import Status, solve_qp
 from torchcbf.qp._function import MAX_DUAL_CONDITION, condition_estimate
 
 
-def _ill_conditioned(B: int, n: int, m: int, cond: float, seed: int):
-    g = torch.Generator().manual_seed(seed)
-    U, _ = torch.linalg.qr(torch.randn(B, n, n, generator=g, dtype=torch.float64))
-    d = torch.logspace(0, -float(np.log10(cond)), n, dtype=torch.float64)
-    Q = U @ torch.diag_embed(d.expand(B, n)) @ U.mT
-    p = torch.randn(B, n, generator=g, dtype=torch.float64)
-    G = torch.randn(B, m, n, generator=g, dtype=torch.float64)
-    h = torch.rand(B, m, generator=g, dtype=torch.float64)
-    return Q, p, G, h
+def _ill_conditioned(B: int, cond: float, seed: int):
+    """Rotated ``Q`` of condition ``cond`` (n = 4, m = 8), ``(Q, p, G, h)``."""
+    return hard_family(f"cond={cond:g}", B, torch.Generator().manual_seed(seed))[:4]
 
 
 @pytest.mark.parametrize("cond", [1e6, 1e8])
 @pytest.mark.parametrize("grad", [False, True])
 def test_ill_conditioned_q_solved_rows_are_right(cvx, kernel, cond, grad):
-    Q, p, G, h = _ill_conditioned(24, 4, 8, cond, seed=int(np.log10(cond)))
+    Q, p, G, h = _ill_conditioned(24, cond, seed=int(np.log10(cond)))
     if grad:
         p = p.requires_grad_()
     sol = solve_qp(Q, p, G, h) if grad else solve_qp(Q, p, G, h)
@@ -53,27 +48,19 @@ def test_condition_estimate_ignores_diagonal_scaling():
     P = torch.diag(torch.tensor([1.0, 1e-6, 1e6], dtype=torch.float64)).unsqueeze(0)
     est = condition_estimate(torch.linalg.cholesky(P))
     torch.testing.assert_close(est, torch.ones(1, dtype=torch.float64))
-    Q, *_ = _ill_conditioned(8, 4, 1, 1e10, seed=0)
+    Q, *_ = _ill_conditioned(8, 1e10, seed=0)
     assert bool((condition_estimate(torch.linalg.cholesky(Q)) > MAX_DUAL_CONDITION).all())
 
 
-def _tight_family(B: int, n: int, m: int, seed: int):
-    """Feasible QPs with about half the rows exactly tight at a known feasible point."""
-    g = torch.Generator().manual_seed(seed)
-    L = torch.randn(B, n, n, generator=g, dtype=torch.float64)
-    Q = L @ L.mT / n + 0.1 * torch.eye(n, dtype=torch.float64)
-    p = 3 * torch.randn(B, n, generator=g, dtype=torch.float64)
-    G = torch.randn(B, m, n, generator=g, dtype=torch.float64)
-    x0 = torch.randn(B, n, generator=g, dtype=torch.float64)
-    slack = torch.rand(B, m, generator=g, dtype=torch.float64)
-    slack = torch.where(torch.rand(B, m, generator=g, dtype=torch.float64) < 0.5, 0.0, slack)
-    return Q, p, G, (G @ x0.unsqueeze(-1)).squeeze(-1) + slack
+def _tight_family(B: int, seed: int):
+    """Feasible QPs (n = 4, m = 8) with about half the rows exactly tight at a known point."""
+    return hard_family("half the rows tight at x0", B, torch.Generator().manual_seed(seed))[:4]
 
 
 def test_rows_tight_at_a_feasible_point_are_all_solved_and_right(cvx, kernel):
     from torchcbf.qp._dual import solve_dual
 
-    Q, p, G, h = _tight_family(4096, 4, 8, seed=11)
+    Q, p, G, h = _tight_family(4096, seed=11)
     sol = solve_qp(Q, p, G, h)
     assert bool((sol.status == Status.SOLVED).all())
     # the rows the dual active-set method alone does not certify, and a sample of the others
@@ -94,7 +81,7 @@ def test_gradients_of_a_batch_with_hard_rows_match_the_kkt_path(kernel, dtype):
     from torchcbf.qp._dual import solve_dual
     from torchcbf.qp._kkt import with_tight_rows
 
-    Q, p, G, h = _tight_family(256, 4, 8, seed=5)
+    Q, p, G, h = _tight_family(256, seed=5)
     alone = solve_dual(0.5 * (Q + Q.mT), p, G, h, eps=1e-7, max_iter=50)
     solved = torch.where(alone.ok, int(Status.SOLVED), int(Status.MAX_ITER))
     weak = with_tight_rows(G, h, alone.x, alone.active, solved) != alone.active
