@@ -117,8 +117,8 @@ def forward(
     iters = torch.empty(B, dtype=torch.int64)
     infeasible = torch.empty(B, dtype=torch.bool)
     rows = [(P, N * N), (q, N), (G, M * N), (h, M)]
-    outs = [(x, N), (z, M), (active, M), (slots, N), (L, N * N), (ok, 1), (iters, 1)]
-    outs.append((infeasible, 1))
+    outs = [(x, N), (z, M), (active, M), (slots, N), (L, N * N), (ok, 1), (iters, 1),
+            (infeasible, 1)]  # fmt: skip
     fn = _kernel().torchcbf_dual_forward
     steps = min(max_iter, 2**31 - 1)  # a C int
     _run(lambda n, *a: fn(n, N, M, *a[:4], eps, steps, *a[4:]), B, rows + outs, N * N + M * N)

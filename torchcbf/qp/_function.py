@@ -399,17 +399,16 @@ class QPFunction(torch.autograd.Function):
     def backward(ctx, gx, gz, gy, _gs, _gi):  # noqa: D102
         x, z, y, status = ctx.saved_tensors
         gx, gz, gy = (g.to(torch.float64) for g in (gx, gz, gy))
-        if isinstance(ctx.fac, (DualFactor, NativeFactor)):
-            wx, wz = dual_adjoints(ctx.fac, x, gx, gz)
+        fac = ctx.fac
+        if isinstance(fac, (DualFactor, NativeFactor, MixedFactor)):
+            mixed = isinstance(fac, MixedFactor)
+            wx, wz = dual_adjoints(fac.dual if mixed else fac, x, gx, gz)
             wy, lam = y, z  # y: [B, 0], no equality rows; z is zero off the active set
-        elif isinstance(ctx.fac, MixedFactor):
-            wx, wz = dual_adjoints(ctx.fac.dual, x, gx, gz)
-            wy, lam = y, z
-            r = ctx.fac.rows
-            sub = [t.index_select(0, r) for t in (x, z, y, status, gx, gz, gy)]
-            wx_r, wz_r, _, _ = _kkt.kkt_adjoints(ctx.fac.kkt, *sub)
-            wx, wz = wx.index_copy(0, r, wx_r), wz.index_copy(0, r, wz_r)
+            if mixed:  # the rows of the KKT factor
+                sub = [t.index_select(0, fac.rows) for t in (x, z, y, status, gx, gz, gy)]
+                wx_r, wz_r, _, _ = _kkt.kkt_adjoints(fac.kkt, *sub)
+                wx, wz = wx.index_copy(0, fac.rows, wx_r), wz.index_copy(0, fac.rows, wz_r)
         else:
-            wx, wz, wy, lam = _kkt.kkt_adjoints(ctx.fac, x, z, y, status, gx, gz, gy)
+            wx, wz, wy, lam = _kkt.kkt_adjoints(fac, x, z, y, status, gx, gz, gy)
         grads = _kkt.input_gradients(x, lam, y, wx, wz, wy, ctx.needs_input_grad[:6])
         return (*(None if g is None else g.to(ctx.dtype) for g in grads), None, None)
