@@ -1,6 +1,7 @@
 """Build of the optional C kernels (everything else is in pyproject.toml): the QP solver's
-CPU fast path and MPPI's fused rollouts. If no C compiler is found the build goes on without
-them, and the solver and the planner run their torch implementations on the CPU too."""
+CPU fast path, the safety filter's real-time path and MPPI's fused rollouts. If no C
+compiler is found the build goes on without them, and the solver, the filter and the planner
+run their torch implementations on the CPU too."""
 
 import platform
 import sys
@@ -15,7 +16,16 @@ setup(
         Extension(
             "torchcbf.qp._dual_kernel",
             ["torchcbf/qp/_dual_kernel.c"],
+            depends=["torchcbf/qp/_dual_kernel.h"],
             extra_compile_args=["-O3", "-std=c99"],
+            optional=True,
+        ),
+        Extension(  # the safety filter's real-time path, linked with the QP kernel
+            "torchcbf.filters._filter_kernel",
+            ["torchcbf/filters/_filter_kernel.c", "torchcbf/qp/_dual_kernel.c"],
+            depends=["torchcbf/qp/_dual_kernel.h"],
+            extra_compile_args=["-O3", "-std=c99"],
+            libraries=["m"],
             optional=True,
         ),
         Extension(

@@ -1,5 +1,5 @@
-"""The real-time path of SafetyFilter (a few states, grad mode off, numpy into the QP
-kernel): the same outputs as the general path, and cvxpy's control."""
+"""The real-time path of SafetyFilter (a few states, no gradient to carry, one call of the
+filter kernel): the same outputs as the general path, and cvxpy's control."""
 
 from __future__ import annotations
 
@@ -9,17 +9,15 @@ import torch
 from _filter_reference import solve_reference
 from test_safety_filter import MODES, random_states, scene
 
-from torchcbf.filters import FilterStatus, SafetyFilter
-from torchcbf.filters.qp_data import assemble, assemble_numpy
-from torchcbf.qp import _dual_native, realtime
+from torchcbf.filters import FilterStatus, LinearClassK, SafetyFilter, realtime
 
-pytestmark = pytest.mark.skipif(not _dual_native.available(), reason="C kernel not built")
+pytestmark = pytest.mark.skipif(not realtime.available(), reason="C kernel not built")
 
 
 def _general(filt: SafetyFilter, x: torch.Tensor, u: torch.Tensor):
-    """The general path: grad mode on (the real-time path needs it off)."""
+    """The general path: an input that requires grad (the real-time path carries none)."""
     with torch.enable_grad():
-        out = filt(x, u)
+        out = filt(x.clone().requires_grad_(), u)
     return type(out)(*(v.detach() for v in out))
 
 
@@ -36,9 +34,12 @@ def _same(a, b, tol: float) -> None:
 @pytest.mark.parametrize("mode", MODES)
 @pytest.mark.parametrize("clf", [False, True])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_realtime_path_matches_general_path(mode: str, clf: bool, dtype: torch.dtype) -> None:
+@pytest.mark.parametrize("slack", ["shared", "per_row", "none"])
+def test_realtime_path_matches_general_path(
+    mode: str, clf: bool, dtype: torch.dtype, slack: str
+) -> None:
     xs, us = random_states(realtime.MAX_BATCH, seed=20 + MODES.index(mode))
-    filt = scene(mode, dtype, clf=clf)
+    filt = scene(mode, dtype, clf=clf, cbf_slack=slack, fallback="brake")
     x, u = torch.tensor(xs, dtype=dtype), torch.tensor(us, dtype=dtype)
     tol = 1e-9 if dtype == torch.float64 else 1e-4
     with torch.no_grad():
@@ -79,38 +80,6 @@ def test_realtime_control_matches_cvxpy(mode: str, monkeypatch: pytest.MonkeyPat
     assert solved >= 6
 
 
-@pytest.mark.parametrize("slack", ["shared", "per_row", "none"])
-def test_numpy_assembly_equals_torch_assembly(slack: str) -> None:
-    g = torch.Generator().manual_seed(3)
-    B, k, c, m = 3, 4, 2, 2
-    a = torch.randn(B, k, m, generator=g, dtype=torch.float64)
-    b = torch.randn(B, k, generator=g, dtype=torch.float64)
-    av = torch.randn(B, c, m, generator=g, dtype=torch.float64)
-    bv = torch.randn(B, c, generator=g, dtype=torch.float64)
-    u = 3 * torch.randn(B, m, generator=g, dtype=torch.float64)
-    R = torch.tensor([[2.0, 0.3], [0.3, 1.0]], dtype=torch.float64)
-    lo = torch.tensor([-1.0, -torch.inf], dtype=torch.float64)
-    hi = torch.tensor([1.0, 2.0], dtype=torch.float64)
-    kw = {"slack": slack, "cbf_weight": 7.0, "clf_weight": 3.0}
-    qp = assemble((a, b), (av, bv), u, R, lo, hi, **kw)
-    Q, p, G, h, ks = assemble_numpy(
-        (a.numpy(), b.numpy()), (av.numpy(), bv.numpy()), u.numpy(), R.numpy(), lo.numpy(),
-        hi.numpy(), **kw,
-    )  # fmt: skip
-    assert ks == qp.ks
-    np.testing.assert_allclose(Q, qp.Q.numpy(), rtol=1e-14, atol=1e-14)
-    np.testing.assert_allclose(p, qp.p.numpy(), rtol=1e-14, atol=1e-14)
-    # the general path's rows, then its finite bounds as rows (upper, then lower)
-    nz = qp.Q.shape[-1]
-    eye = torch.eye(nz, dtype=torch.float64)
-    up = torch.isfinite(qp.ub[0]).nonzero().flatten()
-    low = torch.isfinite(qp.lb[0]).nonzero().flatten()
-    G_ref = torch.cat((qp.G, eye[up].expand(B, -1, -1), -eye[low].expand(B, -1, -1)), 1)
-    h_ref = torch.cat((qp.h, qp.ub[:, up], -qp.lb[:, low]), 1)
-    np.testing.assert_allclose(G, G_ref.numpy(), rtol=1e-14, atol=1e-14)
-    np.testing.assert_allclose(h, h_ref.numpy(), rtol=1e-14, atol=1e-14)
-
-
 def test_non_finite_state_and_infeasible_hard_qp_take_the_general_path() -> None:
     xs, us = random_states(3, seed=9)
     filt = scene("vanilla")
@@ -125,3 +94,79 @@ def test_non_finite_state_and_infeasible_hard_qp_take_the_general_path() -> None
     with torch.no_grad():
         out = hard(torch.tensor(xs), torch.tensor(us))
     _same(out, _general(hard, torch.tensor(xs), torch.tensor(us)), 1e-9)
+
+
+def _counting(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Calls of the kernel of the real-time path."""
+    calls: list[int] = []
+    real = realtime.solve
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(realtime, "solve", counted)
+    return calls
+
+
+def test_grad_mode_without_gradients_takes_the_realtime_path(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    calls = _counting(monkeypatch)
+    filt = scene("stochastic")
+    xs, us = random_states(4, seed=5)
+    x, u = torch.tensor(xs), torch.tensor(us)
+    with torch.enable_grad():
+        out = filt(x, u)
+    assert len(calls) == 1 and not out.u.requires_grad
+    _same(out, _general(filt, x, u), 1e-9)
+
+
+@pytest.mark.parametrize("source", ["x", "u_nom", "t", "parameter"])
+def test_a_gradient_to_carry_takes_the_general_path(
+    source: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    calls = _counting(monkeypatch)
+    filt = scene("vanilla", alpha=LinearClassK(2.0, learnable=source == "parameter"))
+    xs, us = random_states(2, seed=6)
+    x, u = torch.tensor(xs), torch.tensor(us)
+    t = torch.zeros(2, dtype=torch.float64)
+    leaf = {"x": x, "u_nom": u, "t": t}.get(source)
+    if leaf is not None:
+        leaf.requires_grad_()
+    out = filt(x, u, t)
+    assert not calls
+    if source != "t":  # the scene's barriers do not depend on t
+        out.u.sum().backward()
+        grads = [leaf.grad] if leaf is not None else [p.grad for p in filt.parameters()]
+        assert all(g is not None and torch.isfinite(g).all() for g in grads)
+    with torch.no_grad():  # no_grad: the real-time path, whatever requires grad
+        filt(x, u, t)
+    assert len(calls) == 1
+
+
+@pytest.mark.parametrize("spread", [1e2, 1e7])
+def test_ill_conditioned_weight_agrees_with_general_path(
+    spread: float, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A rotated R of condition ``spread``: the kernel keeps rows it conditions well and
+    hands the others to the general path; the answers agree either way."""
+    c, s = np.cos(0.7), np.sin(0.7)
+    rot = torch.tensor([[c, -s], [s, c]], dtype=torch.float64)
+    R = rot @ torch.diag(torch.tensor([1.0, 1.0 / spread], dtype=torch.float64)) @ rot.T
+    filt = scene("vanilla", clf=False, R=R)
+    xs, us = random_states(4, seed=8)
+    x, u = torch.tensor(xs), torch.tensor(us)
+    real = realtime.solve
+    answered: list[bool] = []
+
+    def recorded(*args, **kwargs):
+        res = real(*args, **kwargs)
+        answered.append(res is not None)
+        return res
+
+    monkeypatch.setattr(realtime, "solve", recorded)
+    with torch.no_grad():
+        out = filt(x, u)
+    assert answered == [spread < 1e4]
+    _same(out, _general(filt, x, u), 1e-7)

@@ -34,7 +34,7 @@ from _filter_reference import (
 
 from torchcbf.barriers import Ball, HalfSpace, QuadraticLyapunov
 from torchcbf.dynamics import SingleIntegrator, Unicycle
-from torchcbf.filters import FilterStatus, LinearClassK, SafetyFilter
+from torchcbf.filters import FilterStatus, LinearClassK, SafetyFilter, realtime
 
 MODES = ["vanilla", "robust", "stochastic", "risk_aware"]
 
@@ -179,6 +179,7 @@ def test_fallback_on_qp_failure(fallback: str, monkeypatch: pytest.MonkeyPatch) 
         return sol._replace(status=torch.full_like(sol.status, int(qp.Status.MAX_ITER)))
 
     monkeypatch.setattr(qp, "solve_qp", failing_solve)
+    monkeypatch.setattr(realtime, "solve", lambda *args, **kwargs: None)  # general path
     xs, us = random_states(4, seed=5)
     spec = {
         "clip": "clip",

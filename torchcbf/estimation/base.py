@@ -257,13 +257,6 @@ class _KalmanFilter(ExactConstants, Estimator):
         s = self.dynamics.sigma(m)
         return s @ s.mT
 
-    def _needs_graph(self, module: nn.Module, *tensors: Tensor) -> bool:
-        if not torch.is_grad_enabled():
-            return False
-        return any(t.requires_grad for t in tensors) or any(
-            p.requires_grad for p in module.parameters()
-        )
-
     def init(self, x0: Tensor, P0: Tensor | None = None) -> EstimatorState:
         """Prior mean ``x0 [..., n]`` and covariance ``P0`` (required): ``[n, n]`` or
         ``[..., n, n]`` whose batch broadcasts to that of ``x0``, symmetric positive definite,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchcbf._autograd import needs_graph
 from torchcbf.estimation._linalg import discretize, jacobian, robust_cholesky, symmetrize
 from torchcbf.estimation.base import EstimatorState, EstimatorStatus, _KalmanFilter
 
@@ -40,7 +41,7 @@ class EKF(_KalmanFilter):
         bs, m, P, u, dt = self._flat_predict(state, u, dt)
         m0, P0 = m, P
         h = dt / self.substeps
-        graph = self._needs_graph(self.dynamics, m, u)
+        graph = needs_graph(self.dynamics, m, u)
         for _ in range(self.substeps):
             xdot, F = jacobian(lambda z: self.dynamics(z, u), m, graph)
             Phi, dx, Qd = discretize(F, h, xdot, self._Qc(m))
@@ -52,7 +53,7 @@ class EKF(_KalmanFilter):
     def update(self, state: EstimatorState, y: Tensor) -> EstimatorState:
         """Correct ``state`` with ``y [..., p]`` (a non-finite ``y`` row is skipped and flagged)."""
         bs, m, P, status, y = self._flat_update(state, y)
-        graph = self._needs_graph(self.sensor, m)
+        graph = needs_graph(self.sensor, m)
         y_pred, H = jacobian(self.sensor.expected, m, graph)
         R = self._R(m)
         S = symmetrize(H @ P @ H.mT + R)

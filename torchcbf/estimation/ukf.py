@@ -7,6 +7,7 @@ import math
 import torch
 from torch import Tensor
 
+from torchcbf._autograd import needs_graph
 from torchcbf._checks import check_number
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.estimation._linalg import discretize, jacobian, robust_cholesky, symmetrize
@@ -100,7 +101,7 @@ class UKF(_KalmanFilter):
             X, _, regularized = self._sigma_points(m, P)
             status = status | torch.where(regularized, int(EstimatorStatus.REGULARIZED), 0)
             Xf = X.reshape(-1, n)
-            graph = self._needs_graph(self.dynamics, Xf, u_rep)
+            graph = needs_graph(self.dynamics, Xf, u_rep)
             xdot, F = jacobian(lambda z: self.dynamics(z, u_rep), Xf, graph)
             _, dx, _ = discretize(F, h, xdot)
             Y = (Xf + dx).reshape(B, 2 * n + 1, n)

@@ -10,8 +10,9 @@ Over ``z = [u (m); s (ks); delta (c)]`` the filter solves
 with ``n_i = max(|a_i|_2, 1e-6)`` and ``rbar = tr(R) / m``. The CBF slack is ``"shared"``
 (one ``s`` for every row, exact penalty ``w rbar (s + s^2/2)``), ``"per_row"`` (one per row,
 ``1/2 w rbar s_i^2``) or ``"none"`` (hard rows only). :func:`assemble` builds the data in
-torch (any batch, any device, differentiable); :func:`assemble_numpy` builds the same data
-in numpy for the real-time path (tested equal).
+torch (any batch, any device, differentiable); the real-time path's C kernel
+(:mod:`torchcbf.filters.realtime`) builds the same data for a few states, with the finite
+limits and ``s, delta >= 0`` as rows (the tests compare the two paths' answers).
 """
 
 from __future__ import annotations
@@ -19,7 +20,6 @@ from __future__ import annotations
 import math
 from typing import Literal, NamedTuple
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -116,69 +116,3 @@ def assemble(
     lb = torch.cat([lo, torch.zeros_like(inf)]).expand(B, nz)
     ub = torch.cat([hi, inf]).expand(B, nz)
     return FilterQP(Q, p, torch.cat(G_parts, 1), torch.cat(h_parts, 1), lb, ub, ks, norms)
-
-
-def assemble_numpy(
-    cbf: tuple[np.ndarray, np.ndarray] | None,
-    clf: tuple[np.ndarray, np.ndarray] | None,
-    u_nom: np.ndarray,
-    R: np.ndarray,
-    lo: np.ndarray,
-    hi: np.ndarray,
-    *,
-    slack: SlackMode,
-    cbf_weight: float,
-    clf_weight: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
-    """:func:`assemble` on float64 numpy arrays, with the finite bounds as rows:
-    ``(Q [B,nz,nz], p [B,nz], G [B,k+c+r,nz], h [B,k+c+r], ks)``, the ``r`` bound rows last
-    (``z_j <= ub_j`` for finite ``ub_j``, then ``-z_j <= -lb_j`` for finite ``lb_j``; the
-    slack and relaxation columns have ``lb = 0``)."""
-    B, m = u_nom.shape
-    k = 0 if cbf is None else cbf[1].shape[1]
-    c = 0 if clf is None else clf[1].shape[1]
-    ks = slack_columns(k, slack)
-    nz = m + ks + c
-    rbar = np.trace(R) / m
-    up = np.flatnonzero(np.isfinite(hi))
-    low = np.flatnonzero(np.isfinite(lo))
-    nr = k + c + len(up) + len(low) + ks + c
-    Q = np.zeros((B, nz, nz))
-    Q[:, :m, :m] = 0.5 * (R + R.T)
-    p = np.zeros((B, nz))
-    p[:, :m] = -(u_nom @ R.T)
-    G = np.zeros((B, nr, nz))
-    h = np.zeros((B, nr))
-    diag = Q.reshape(B, nz * nz)[:, (m * (nz + 1)) :: nz + 1]  # the slack entries
-    diag[:, ks:] = clf_weight * rbar
-    if cbf is not None:
-        a, b = cbf
-        norms = np.maximum(np.sqrt((a * a).sum(-1)), MIN_ROW_NORM)
-        G[:, :k, :m] = a / norms[..., None]
-        G[:, :k, :m] *= -1.0
-        h[:, :k] = b / norms
-        if ks:
-            w = np.full(B, cbf_weight * rbar)
-            if slack == "shared":
-                viol = np.maximum(-((a @ u_nom[:, :, None])[..., 0] + b) / norms, 0.0)
-                box = np.abs(u_nom - np.clip(u_nom, lo, hi))
-                w *= 1.0 + np.minimum(viol.max(-1) + box.max(-1), MAX_PENALTY_SCALE)
-                p[:, m] = w
-                G[:, :k, m] = -1.0
-            else:
-                G[:, np.arange(k), m + np.arange(k)] = -1.0
-            diag[:, :ks] = w[:, None]
-    if clf is not None:
-        a, b = clf
-        G[:, k : k + c, :m] = a
-        G[:, k + np.arange(c), m + ks + np.arange(c)] = -1.0
-        h[:, k : k + c] = -b
-    r = k + c
-    G[:, r + np.arange(len(up)), up] = 1.0
-    h[:, r : r + len(up)] = hi[up]
-    r += len(up)
-    G[:, r + np.arange(len(low)), low] = -1.0
-    h[:, r : r + len(low)] = -lo[low]
-    r += len(low)
-    G[:, r + np.arange(ks + c), m + np.arange(ks + c)] = -1.0  # s >= 0, delta >= 0
-    return Q, p, G, h, ks

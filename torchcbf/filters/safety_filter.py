@@ -24,11 +24,12 @@ Statuses (:class:`FilterStatus`) per row: ``SOLVED`` (every hard constraint met)
 (non-finite ``x``, ``u_nom`` or ``t`` in the row: fallback used; the row is sanitised
 before any computation so the other rows and the gradients are untouched).
 
-Real-time path: a few states on the CPU (at most ``torchcbf.qp.realtime.MAX_BATCH``) with
-grad mode off (``torch.no_grad()``) and the default QP backend assemble the QP in numpy and
-go straight into the C kernel of the dual active-set method; a batch the kernel does not
-certify completely (or with non-finite data) takes the general path, so both return the same
-answers.
+Real-time path: a few states on the CPU (at most ``torchcbf.filters.realtime.MAX_BATCH``)
+whose outputs cannot carry a gradient (grad mode off, or no input and no parameter of the
+filter requires grad) and the default QP backend: after the conditions, one call of a C
+kernel assembles the QP, solves it by the dual active-set method and computes the outputs
+(:mod:`torchcbf.filters.realtime`). A batch the kernel does not certify completely (or with
+non-finite data) takes the general path, so both return the same answers.
 """
 
 from __future__ import annotations
@@ -39,11 +40,11 @@ from collections.abc import Sequence
 from enum import IntEnum
 from typing import Any, Literal, NamedTuple
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
 import torchcbf.qp as qp_layer
+from torchcbf._autograd import needs_graph
 from torchcbf._checks import (
     as_limit,
     as_matrix,
@@ -54,12 +55,14 @@ from torchcbf._checks import (
 )
 from torchcbf.barriers.lie import LieFunction, LieTerms, stacked_lie_derivatives
 from torchcbf.dynamics.base import ControlAffine
+from torchcbf.filters import realtime
 from torchcbf.filters.class_k import ClassKSpec, as_class_k
 from torchcbf.filters.conditions import as_columns, concat_terms
 from torchcbf.filters.fallback import Fallback, FallbackSpec
 from torchcbf.filters.modes import MODE_OPTIONS, FilterMode, make_mode
-from torchcbf.filters.qp_data import SLACK_MODES, SlackMode, assemble, assemble_numpy
-from torchcbf.qp import Status, realtime
+from torchcbf.filters.qp_data import SLACK_MODES, SlackMode, assemble
+from torchcbf.qp import Status
+from torchcbf.qp import realtime as qp_realtime
 
 __all__ = ["FallbackSpec", "FilterOutput", "FilterStatus", "SafetyFilter"]
 
@@ -344,8 +347,12 @@ class SafetyFilter(nn.Module):
         Returns a :class:`FilterOutput` with the batch shape of ``x`` and ``u_nom``.
         """
         batch, xb, ub, tb = self._inputs(x, u_nom, t)
-        if self._realtime_applies(xb):
-            out = self._realtime(batch, xb, ub, tb)
+        conditions = None
+        if self._realtime_applies(xb, ub, tb):
+            # no output can carry a gradient: the conditions need no graph
+            with torch.no_grad():
+                conditions = self._conditions(xb, tb)
+                out = self._realtime(batch, xb, ub, tb, conditions)
             if out is not None:
                 return out
         finite = torch.isfinite(xb).all(-1) & torch.isfinite(ub).all(-1) & torch.isfinite(tb)
@@ -353,7 +360,9 @@ class SafetyFilter(nn.Module):
         xs = torch.where(fin, xb, torch.zeros_like(xb))
         us = torch.where(fin, ub, torch.zeros_like(ub))
         ts = torch.where(finite, tb, torch.zeros_like(tb))
-        cbf, clf, h, V = self._conditions(xs, ts)
+        if conditions is None or not bool(finite.all()):
+            conditions = self._conditions(xs, ts)
+        cbf, clf, h, V = conditions
         lo, hi = self._limits(xs)
         weights = {"cbf_weight": self.cbf_slack_weight, "clf_weight": self.clf_slack_weight}
         qp = assemble(cbf, clf, us, self.R.to(us), lo, hi, slack=self.cbf_slack, **weights)
@@ -462,16 +471,6 @@ class SafetyFilter(nn.Module):
             V = clf_terms.h
         return cbf, clf, h, V  # type: ignore[return-value]
 
-    def _numpy_limits(self) -> tuple[np.ndarray, np.ndarray]:
-        """``lo, hi [m]`` float64 numpy arrays (infinite where there is no limit)."""
-        m = self.dynamics.control_dim
-        out = []
-        for own, dyn, default in ((self.u_min, self.dynamics.u_min, -math.inf),
-                                  (self.u_max, self.dynamics.u_max, math.inf)):  # fmt: skip
-            t = own if own is not None else dyn
-            out.append(np.full(m, default) if t is None else t.numpy().astype(np.float64))
-        return out[0], out[1]
-
     def _limits(self, x: Tensor) -> tuple[Tensor, Tensor]:
         m = self.dynamics.control_dim
         lo = self.u_min if self.u_min is not None else self.dynamics.u_min
@@ -516,13 +515,13 @@ class SafetyFilter(nn.Module):
         return z, qp_status, hard_ok | el_ok
 
     # -- the real-time path ----------------------------------------------------------------
-    def _realtime_applies(self, xb: Tensor) -> bool:
-        """Whether a call may take the real-time path: few states on the CPU, grad mode off
-        (``torch.no_grad()``, ``torch.inference_mode()``), the default QP backend and the C
-        kernel built."""
+    def _realtime_applies(self, xb: Tensor, ub: Tensor, tb: Tensor) -> bool:
+        """Whether a call may take the real-time path: few states on the CPU, no output that
+        can carry a gradient (grad mode off, or nothing that requires grad: the inputs and
+        the filter's parameters), the default QP backend and the C kernel built."""
         opts = self.qp_options
         if (
-            xb.shape[0] > realtime.MAX_BATCH
+            not 1 <= xb.shape[0] <= realtime.MAX_BATCH
             or xb.device.type != "cpu"
             or (opts and not (opts.keys() <= _REALTIME_QP_OPTIONS))
             or opts.get("backend", "torch") != "torch"
@@ -530,71 +529,38 @@ class SafetyFilter(nn.Module):
             or not realtime.available()
         ):
             return False
-        return not torch.is_grad_enabled()
+        return not needs_graph(self, xb, ub, tb)
 
     def _realtime(
-        self, batch: tuple[int, ...], xb: Tensor, ub: Tensor, tb: Tensor
+        self,
+        batch: tuple[int, ...],
+        xb: Tensor,
+        ub: Tensor,
+        tb: Tensor,
+        conditions: tuple[Any, Any, Tensor, Tensor],
     ) -> FilterOutput | None:
-        """The filter on a few states through numpy and the C kernel; ``None`` where the
-        general path must answer (non-finite data, a row the kernel does not certify)."""
-        xn, un, tn = xb.numpy(), ub.numpy(), tb.numpy()
-        if not np.isfinite(xn.sum() + un.sum() + tn.sum()):
-            return None
-        cbf, clf, h, V = self._conditions(xb, tb)
-        f64 = np.float64
-        cbf_n = None if cbf is None else tuple(v.numpy().astype(f64, copy=False) for v in cbf)
-        clf_n = None if clf is None else tuple(v.numpy().astype(f64, copy=False) for v in clf)
-        u64 = un.astype(f64, copy=False)
-        lo, hi = self._numpy_limits()
-        Q, p, G, hq, ks = assemble_numpy(
-            cbf_n, clf_n, u64, self.R.numpy().astype(f64, copy=False), lo, hi,
-            slack=self.cbf_slack, cbf_weight=self.cbf_slack_weight,
-            clf_weight=self.clf_slack_weight,
-        )  # fmt: skip
-        B, m = u64.shape
-        k = 0 if cbf is None else cbf[1].shape[1]
-        two = self._two_pass(ks)
-        if two:
-            G_hard = G.copy()
-            G_hard[:, :k, m : m + ks] = 0.0
-            Q, p, hq = np.concatenate((Q, Q)), np.concatenate((p, p)), np.concatenate((hq, hq))
-            G = np.concatenate((G, G_hard))
+        """The filter on a few states by one call of the C kernel
+        (:mod:`torchcbf.filters.realtime`); ``None`` where the general path must answer
+        (non-finite data, a row the kernel does not certify)."""
+        cbf, clf, h, V = conditions
+        lo, hi = self._limits(xb)
         opts = self.qp_options
-        eps = opts.get("eps") or realtime.default_eps(xb.dtype)
-        out = realtime.solve_rows(Q, p, G, hq, float(eps), opts.get("max_iter", 50))
-        if out is None:
+        res = realtime.solve(
+            cbf, clf, xb, ub, tb, self.R, lo, hi,
+            slack=self.cbf_slack,
+            two_pass=self.exact and self.cbf_slack == "shared",
+            cbf_weight=self.cbf_slack_weight,
+            clf_weight=self.clf_slack_weight,
+            eps=float(opts.get("eps") or qp_realtime.default_eps(xb.dtype)),
+            max_iter=opts.get("max_iter", 50),
+            slack_tol=self._slack_tol(xb),
+        )  # fmt: skip
+        if res is None:
             return None
-        nz = Q.shape[-1]
-        z = out[0][: Q.shape[0] * nz].reshape(-1, nz)
-        z = z[B:] if two else z
-        u = z[:, :m]
-        s = z[:, m : m + ks]
-        delta = z[:, m + ks :]
-        relaxed = (s > self._slack_tol(xb)).any(-1) if ks else np.zeros(B, dtype=bool)
-        status = np.where(relaxed, int(FilterStatus.RELAXED), int(FilterStatus.SOLVED))
-        parts_s, parts_v = [], []
-        if cbf_n is not None:
-            value = (cbf_n[0] @ u[:, :, None])[..., 0] + cbf_n[1]
-            parts_s.append(np.maximum(-value, 0.0))
-            parts_v.append(value)
-        if clf_n is not None:
-            parts_s.append(np.maximum(delta, 0.0))
-            parts_v.append(-((clf_n[0] @ u[:, :, None])[..., 0] + clf_n[1]))
         dt = xb.dtype
-
-        def tensor(a: np.ndarray) -> Tensor:
-            return torch.from_numpy(np.ascontiguousarray(a)).to(dt)
-
-        return _output(
-            batch,
-            tensor(u),
-            torch.from_numpy(status.astype(np.int64)),
-            h,
-            tensor(np.concatenate(parts_s, -1)),
-            V,
-            torch.zeros(B, dtype=torch.int64),
-            tensor(np.concatenate(parts_v, -1)),
-        )
+        u, slack, value = res.u.to(dt), res.slack.to(dt), res.value.to(dt)
+        qp_status = torch.zeros_like(res.status)
+        return _output(batch, u, res.status, h, slack, V, qp_status, value)
 
 
 def _residuals(

@@ -69,6 +69,7 @@ import torch
 from torch import Tensor, nn
 
 from torchcbf import integrators
+from torchcbf._autograd import needs_graph
 from torchcbf._checks import (
     as_limit,
     as_matrix,
@@ -510,9 +511,7 @@ class MPPI(nn.Module):
             and x.dtype in (torch.float32, torch.float64)
             and _rollout.available()
         )
-        if usable and torch.is_grad_enabled():
-            usable = not x.requires_grad and not any(p.requires_grad for p in self.parameters())
-        if not usable:
+        if not usable or needs_graph(self, x):
             return None, None
         model = _rollout.encode_model(self.dynamics)
         if model is None or self._needs_history:

@@ -22,8 +22,10 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "_dual_kernel.h"
+
 /* largest N (local arrays are sized by it); N <= NUNROLL get a copy with N a constant */
-#define NMAX 64
+#define NMAX TORCHCBF_DUAL_NMAX
 #define NUNROLL 8
 
 /* Bumped whenever an exported signature or its meaning changes; _dual_native.py refuses a

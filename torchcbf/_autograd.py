@@ -1,0 +1,23 @@
+"""Whether a computation must record a graph: the one test behind every fast path that
+carries no gradient (the filter's real-time path, the planner's kernel, the estimators)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+
+def needs_graph(module: nn.Module, *tensors: Tensor | None) -> bool:
+    """Whether an output computed from ``module`` and ``tensors`` can carry a gradient: grad
+    mode is on and one of the tensors, or a parameter or buffer of ``module`` (a buffer may
+    be a tensor given with ``requires_grad``), requires grad."""
+    if not torch.is_grad_enabled():
+        return False
+    if any(t is not None and t.requires_grad for t in tensors):
+        return True
+    for sub in module.modules():
+        for group in (sub._parameters, sub._buffers):
+            for t in group.values():
+                if t is not None and t.requires_grad:
+                    return True
+    return False

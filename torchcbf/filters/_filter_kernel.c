@@ -1,0 +1,247 @@
+/*
+ * The safety filter's QP on a few states, in one call: assembly, solve, residuals (loaded
+ * through ctypes by torchcbf/filters/realtime.py, linked with torchcbf/qp/_dual_kernel.c).
+ *
+ * On one state per control tick, building the filter QP out of tensor or numpy operations
+ * costs several times the solve. This file builds it as torchcbf/filters/qp_data.py's
+ * assemble() documents it (the torch assembly is the reference; the tests compare the two
+ * paths), with the finite control limits and the slack signs as rows, solves it with the
+ * dual active-set kernel and computes the filter's outputs. It answers only when the kernel
+ * certifies every row; the caller then runs the general path, so both give one answer.
+ */
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "../qp/_dual_kernel.h"
+
+/* Bumped whenever an exported signature or its meaning changes (see _native.py). */
+#define FILTER_KERNEL_VERSION 1
+
+int torchcbf_filter_version(void) { return FILTER_KERNEL_VERSION; }
+
+/* slack modes, as SLACK_CODES in realtime.py */
+enum { SLACK_NONE = 0, SLACK_SHARED = 1, SLACK_PER_ROW = 2 };
+
+/* the filter statuses written (FilterStatus in safety_filter.py) */
+enum { STATUS_SOLVED = 0, STATUS_RELAXED = 1 };
+
+static int all_finite(int64_t n, const double *v) {
+    double s = 0.0;
+    for (int64_t i = 0; i < n; ++i) s += v[i] * 0.0;
+    return s == 0.0; /* NaN or an infinity makes the sum NaN */
+}
+
+/* Whether the Jacobi-scaled P [N,N] has off-diagonal row sums at most 1/2 (then its
+ * condition is at most 3: no estimate needed), as realtime._diagonally_dominant. */
+static int diagonally_dominant(int N, const double *P) {
+    for (int i = 0; i < N; ++i) {
+        double s = 0.0;
+        for (int j = 0; j < N; ++j)
+            s += fabs(P[i * N + j]) / sqrt(fabs(P[i * N + i]) * fabs(P[j * N + j]));
+        if (!(s <= 1.5 + 1e-12)) return 0;
+    }
+    return 1;
+}
+
+/* max_i |row i of L|^2 |column i of L^{-1}|^2 for the lower factor L [N,N], the estimate of
+ * torchcbf.qp._function.condition_estimate; inv [N*N] is scratch. */
+static double condition_estimate(int N, const double *L, double *inv) {
+    for (int j = 0; j < N; ++j) { /* column j of L^{-1} by forward substitution */
+        for (int i = 0; i < N; ++i) {
+            double s = (i == j) ? 1.0 : 0.0;
+            for (int k = j; k < i; ++k) s -= L[i * N + k] * inv[k * N + j];
+            inv[i * N + j] = i < j ? 0.0 : s / L[i * N + i];
+        }
+    }
+    double worst = 0.0;
+    for (int i = 0; i < N; ++i) {
+        double row = 0.0, col = 0.0;
+        for (int k = 0; k < N; ++k) {
+            row += L[i * N + k] * L[i * N + k];
+            col += inv[k * N + i] * inv[k * N + i];
+        }
+        double c = row * col;
+        if (!(c <= worst)) worst = c; /* NaN propagates */
+    }
+    return worst;
+}
+
+/* The filter QP of one state over z = [u (m); s (ks); delta (c)]: P [N,N], q [N],
+ * G [M,N], h [M] with N = m + ks + c and M = k + c + (finite limits) + ks + c. */
+static void assemble_one(int m, int k, int c, int ks, int slack, const double *a_cbf,
+                         const double *b_cbf, const double *a_clf, const double *b_clf,
+                         const double *u_nom, const double *R, const double *lo,
+                         const double *hi, double cbf_weight, double clf_weight, int N, int M,
+                         double *P, double *q, double *G, double *h) {
+    double rbar = 0.0;
+    for (int i = 0; i < m; ++i) rbar += R[i * m + i];
+    rbar /= m;
+    memset(P, 0, sizeof(double) * N * N);
+    memset(q, 0, sizeof(double) * N);
+    memset(G, 0, sizeof(double) * M * N);
+    memset(h, 0, sizeof(double) * M);
+    for (int i = 0; i < m; ++i) {
+        double s = 0.0;
+        for (int j = 0; j < m; ++j) {
+            P[i * N + j] = 0.5 * (R[i * m + j] + R[j * m + i]);
+            s += R[i * m + j] * u_nom[j];
+        }
+        q[i] = -s;
+    }
+    for (int j = 0; j < c; ++j) P[(m + ks + j) * (N + 1)] = clf_weight * rbar;
+    /* CBF rows: -(a_i / n_i) u - s <= b_i / n_i */
+    double viol = 0.0;
+    for (int i = 0; i < k; ++i) {
+        const double *a = a_cbf + i * m;
+        double nrm = 0.0, au = 0.0;
+        for (int j = 0; j < m; ++j) {
+            nrm += a[j] * a[j];
+            au += a[j] * u_nom[j];
+        }
+        nrm = sqrt(nrm);
+        if (!(nrm >= 1e-6)) nrm = 1e-6; /* MIN_ROW_NORM */
+        for (int j = 0; j < m; ++j) G[i * N + j] = -a[j] / nrm;
+        h[i] = b_cbf[i] / nrm;
+        double v = -(au + b_cbf[i]) / nrm;
+        if (v > viol) viol = v;
+        if (slack == SLACK_SHARED) G[i * N + m] = -1.0;
+        else if (slack == SLACK_PER_ROW) G[i * N + m + i] = -1.0;
+    }
+    if (ks) {
+        double w = cbf_weight * rbar;
+        if (slack == SLACK_SHARED) { /* w (1 + v): v estimates the hard multipliers */
+            double box = 0.0;
+            for (int j = 0; j < m; ++j) {
+                double u = u_nom[j], clip = u < lo[j] ? lo[j] : (u > hi[j] ? hi[j] : u);
+                if (fabs(u - clip) > box) box = fabs(u - clip);
+            }
+            double scale = viol + box;
+            w *= 1.0 + (scale < 1e3 ? scale : 1e3); /* MAX_PENALTY_SCALE */
+            q[m] = w;
+        }
+        for (int j = 0; j < ks; ++j) P[(m + j) * (N + 1)] = w;
+    }
+    /* CLF rows: a_j u - delta_j <= -b_j */
+    for (int j = 0; j < c; ++j) {
+        double *row = G + (k + j) * N;
+        for (int l = 0; l < m; ++l) row[l] = a_clf[j * m + l];
+        row[m + ks + j] = -1.0;
+        h[k + j] = -b_clf[j];
+    }
+    int r = k + c;
+    for (int j = 0; j < m; ++j)
+        if (isfinite(hi[j])) {
+            G[r * N + j] = 1.0;
+            h[r++] = hi[j];
+        }
+    for (int j = 0; j < m; ++j)
+        if (isfinite(lo[j])) {
+            G[r * N + j] = -1.0;
+            h[r++] = -lo[j];
+        }
+    for (int j = m; j < N; ++j) G[(r++) * N + j] = -1.0; /* s >= 0, delta >= 0 */
+}
+
+/*
+ * The filter on B states. Inputs (float64, C-contiguous, batch first): CBF conditions
+ * a . u + b >= 0 (a_cbf [B,k,m], b_cbf [B,k]), CLF conditions a . u + b <= delta (a_clf
+ * [B,c,m], b_clf [B,c]), u_nom [B,m], R [m,m], limits lo, hi [m] (infinite where absent);
+ * the states x_state [B,n] and times t [B] are only checked to be finite.
+ * two_pass: also solve the hard QP (CBF slack columns zeroed) and prefer its solution; a
+ * row whose hard QP the kernel proves infeasible takes the elastic one.
+ * Outputs: out [B, m + 2 (k + c)] = u | slack (CBF violations, CLF relaxations) | condition
+ * values (a . u + b for CBF rows, -(a . u + b) for CLF rows); status [B] (SOLVED or
+ * RELAXED: a CBF slack above slack_tol).
+ * Returns 0 when every row was certified, 1 when not (outputs then undefined: the caller
+ * takes its general path), -1 when memory ran out or the sizes are invalid. The solver may
+ * take max(max_iter, 4 (rows + variables)) steps (torchcbf.qp._function.dual_budget).
+ */
+int torchcbf_filter_solve(int64_t B, int n, int m, int k, int c, int slack, int two_pass,
+                          const double *a_cbf, const double *b_cbf, const double *a_clf,
+                          const double *b_clf, const double *u_nom, const double *R,
+                          const double *lo, const double *hi, const double *x_state,
+                          const double *t, double cbf_weight,
+                          double clf_weight, double eps, int max_iter, double slack_tol,
+                          double max_condition, double *out, int64_t *status) {
+    if (B < 1 || n < 1 || m < 1 || k < 0 || c < 0 || k + c < 1) return -1;
+    int ks = (k == 0 || slack == SLACK_NONE) ? 0 : (slack == SLACK_PER_ROW ? k : 1);
+    int N = m + ks + c, limits = 0;
+    for (int j = 0; j < m; ++j) limits += isfinite(lo[j]) + isfinite(hi[j]);
+    int M = k + c + limits + ks + c;
+    if (N > TORCHCBF_DUAL_NMAX) return 1;
+    int64_t Bq = two_pass && ks ? 2 * B : B; /* problems: [elastic (B); hard (B)] */
+    if (!all_finite((int64_t)n * B, x_state) || !all_finite(B, t) ||
+        !all_finite((int64_t)k * m * B, a_cbf) || !all_finite((int64_t)k * B, b_cbf) ||
+        !all_finite((int64_t)c * m * B, a_clf) || !all_finite((int64_t)c * B, b_clf) ||
+        !all_finite((int64_t)m * B, u_nom) || !all_finite((int64_t)m * m, R))
+        return 1;
+    size_t per = (size_t)N * N + N + (size_t)M * N + M + N + M + (size_t)N * N;
+    double *buf = malloc(sizeof(double) * per * Bq + sizeof(double) * N * N);
+    int64_t *ints = malloc(sizeof(int64_t) * (N + 1) * Bq);
+    uint8_t *bytes = malloc((size_t)(M + 2) * Bq);
+    if (!buf || !ints || !bytes) {
+        free(buf), free(ints), free(bytes);
+        return -1;
+    }
+    double *P = buf, *q = P + Bq * N * N, *G = q + Bq * N, *h = G + Bq * M * N;
+    double *x = h + Bq * M, *z = x + Bq * N, *L = z + Bq * M, *inv = L + Bq * N * N;
+    int64_t *slots = ints, *iters = slots + Bq * N;
+    uint8_t *active = bytes, *ok = active + Bq * M, *infeasible = ok + Bq;
+    for (int64_t b = 0; b < B; ++b)
+        assemble_one(m, k, c, ks, slack, a_cbf + b * k * m, b_cbf + b * k, a_clf + b * c * m,
+                     b_clf + b * c, u_nom + b * m, R, lo, hi, cbf_weight, clf_weight, N, M,
+                     P + b * N * N, q + b * N, G + b * M * N, h + b * M);
+    if (Bq > B) { /* the hard copies: CBF slack columns zeroed */
+        memcpy(P + B * N * N, P, sizeof(double) * B * N * N);
+        memcpy(q + B * N, q, sizeof(double) * B * N);
+        memcpy(G + B * M * N, G, sizeof(double) * B * M * N);
+        memcpy(h + B * M, h, sizeof(double) * B * M);
+        for (int64_t b = B; b < Bq; ++b)
+            for (int i = 0; i < k; ++i)
+                for (int j = m; j < m + ks; ++j) G[b * M * N + i * N + j] = 0.0;
+    }
+    int budget = max_iter > 4 * (M + N) ? max_iter : 4 * (M + N);
+    int code = all_finite(Bq * (N * N + N + M * N + M), buf) ? 0 : 1;
+    if (code == 0 && torchcbf_dual_forward(Bq, N, M, P, q, G, h, eps, budget, x, z, active,
+                                           slots, L, ok, iters, infeasible) != 0)
+        code = -1;
+    /* the solution each row keeps; the dual method is trusted only on Q it conditions well */
+    int check_condition = !diagonally_dominant(N, P);
+    for (int64_t b = 0; b < B && code == 0; ++b) {
+        int64_t pick = b;
+        if (Bq > B) {
+            if (ok[B + b]) pick = B + b;
+            else if (!infeasible[B + b]) code = 1;
+        }
+        if (code != 0 || !ok[pick]) {
+            code = 1;
+            break;
+        }
+        if (check_condition && !(condition_estimate(N, L + pick * N * N, inv) <= max_condition))
+            code = 1;
+        if (code != 0) break;
+        const double *zb = x + pick * N, *s = zb + m, *delta = zb + m + ks;
+        double *o = out + b * (m + 2 * (k + c));
+        double *slk = o + m, *val = slk + k + c;
+        memcpy(o, zb, sizeof(double) * m);
+        int relaxed = 0;
+        for (int j = 0; j < ks; ++j) relaxed |= s[j] > slack_tol;
+        for (int i = 0; i < k; ++i) {
+            double v = b_cbf[b * k + i];
+            for (int j = 0; j < m; ++j) v += a_cbf[(b * k + i) * m + j] * zb[j];
+            val[i] = v;
+            slk[i] = v < 0.0 ? -v : 0.0;
+        }
+        for (int i = 0; i < c; ++i) {
+            double v = b_clf[b * c + i];
+            for (int j = 0; j < m; ++j) v += a_clf[(b * c + i) * m + j] * zb[j];
+            val[k + i] = -v;
+            slk[k + i] = delta[i] > 0.0 ? delta[i] : 0.0;
+        }
+        status[b] = relaxed ? STATUS_RELAXED : STATUS_SOLVED;
+    }
+    free(buf), free(ints), free(bytes);
+    return code;
+}

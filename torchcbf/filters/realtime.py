@@ -1,0 +1,126 @@
+"""The safety filter's real-time path: a few states on the CPU, the QP in one C call.
+
+A robot calls the filter on one state per control tick; there the time goes into the
+number of operations around the solve, not the solve. Given the conditions (tensors from
+:class:`~torchcbf.filters.SafetyFilter`'s Lie terms), :func:`solve` assembles the filter QP
+(as :func:`torchcbf.filters.qp_data.assemble` documents it), solves it with the dual
+active-set kernel and computes the residuals and statuses in the C kernel
+``_filter_kernel.c``. It answers only when every row is certified; otherwise it returns
+``None`` and the caller runs the general path, which gives the same answers there.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+from pathlib import Path
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchcbf._native import load_kernel
+from torchcbf.qp import realtime as qp_realtime
+from torchcbf.qp._function import MAX_DUAL_CONDITION
+
+#: ``FILTER_KERNEL_VERSION`` of the C source this module calls
+KERNEL_VERSION = 1
+#: most states the path takes (beyond it the general path's batched solve pays off)
+MAX_BATCH = qp_realtime.MAX_BATCH
+#: the kernel's codes of the CBF slack modes
+SLACK_CODES = {"none": 0, "shared": 1, "per_row": 2}
+
+_P = ctypes.c_void_p
+_D = ctypes.c_double
+_INT = ctypes.c_int
+# B, n, m, k, c, slack, two_pass; a_cbf, b_cbf, a_clf, b_clf, u_nom, R, lo, hi, x, t;
+# cbf_weight, clf_weight, eps, max_iter, slack_tol, max_condition; out, status
+_ARGS = [ctypes.c_int64] + [_INT] * 6 + [_P] * 10 + [_D] * 3 + [_INT] + [_D] * 2 + [_P] * 2
+
+
+@functools.lru_cache(maxsize=1)
+def _library() -> ctypes.CDLL | None:
+    lib = load_kernel(
+        Path(__file__).parent,
+        "_filter_kernel",
+        "torchcbf_filter_version",
+        KERNEL_VERSION,
+        "the safety filter takes its general path on every batch",
+    )
+    if lib is not None:
+        lib.torchcbf_filter_solve.argtypes = _ARGS
+        lib.torchcbf_filter_solve.restype = _INT
+    return lib
+
+
+def available() -> bool:
+    """Whether the filter kernel was built and loads."""
+    return _library() is not None
+
+
+class RealtimeOutput(NamedTuple):
+    """The filter's answer on ``B`` states (float64): ``u [B, m]``, ``slack [B, k + c]``,
+    ``value [B, k + c]`` (as in :class:`~torchcbf.filters.FilterOutput`) and int64
+    ``status [B]`` (``SOLVED`` or ``RELAXED``)."""
+
+    u: Tensor
+    slack: Tensor
+    value: Tensor
+    status: Tensor
+
+
+def _f64(v: Tensor) -> Tensor:
+    return v.to(torch.float64).contiguous()
+
+
+def solve(
+    cbf: tuple[Tensor, Tensor] | None,
+    clf: tuple[Tensor, Tensor] | None,
+    x: Tensor,
+    u_nom: Tensor,
+    t: Tensor,
+    R: Tensor,
+    lo: Tensor,
+    hi: Tensor,
+    *,
+    slack: str,
+    two_pass: bool,
+    cbf_weight: float,
+    clf_weight: float,
+    eps: float,
+    max_iter: int,
+    slack_tol: float,
+) -> RealtimeOutput | None:
+    """The filter QP of ``B`` states from the conditions ``cbf = (a [B,k,m], b [B,k])``
+    (``a . u + b >= 0``) and ``clf = (a [B,c,m], b [B,c])`` (``a . u + b <= delta``), with
+    ``u_nom [B, m]``, ``R [m, m]`` and limits ``lo, hi [m]`` (infinite where absent), CPU
+    tensors without grad. ``two_pass``: also solve the hard QP and prefer its answer (see
+    :class:`~torchcbf.filters.SafetyFilter`'s ``exact``). ``x [B, n]`` and ``t [B]`` are only
+    checked to be finite.
+
+    Returns ``None`` when a state, control, time or condition is not finite, or when the
+    kernel does not certify every row (the caller then takes the general path)."""
+    lib = _library()
+    if lib is None:
+        return None
+    B, m = u_nom.shape
+    k = 0 if cbf is None else cbf[1].shape[1]
+    c = 0 if clf is None else clf[1].shape[1]
+    a_cbf, b_cbf = (None, None) if cbf is None else (_f64(cbf[0]), _f64(cbf[1]))
+    a_clf, b_clf = (None, None) if clf is None else (_f64(clf[0]), _f64(clf[1]))
+    inputs = (a_cbf, b_cbf, a_clf, b_clf, _f64(u_nom), _f64(R), _f64(lo), _f64(hi), _f64(x))
+    ptrs = [None if v is None else v.data_ptr() for v in inputs]
+    tt = _f64(t)
+    out = torch.empty(B, m + 2 * (k + c), dtype=torch.float64)
+    status = torch.empty(B, dtype=torch.int64)
+    code = lib.torchcbf_filter_solve(
+        B, x.shape[1], m, k, c, SLACK_CODES[slack], int(two_pass), *ptrs, tt.data_ptr(),
+        cbf_weight, clf_weight, eps, max_iter, slack_tol, MAX_DUAL_CONDITION,
+        out.data_ptr(), status.data_ptr(),
+    )  # fmt: skip
+    if code < 0:
+        raise MemoryError("torchcbf: the safety filter's kernel could not allocate its workspace")
+    if code:
+        return None
+    u, slk, value = out.split((m, k + c, k + c), -1)
+    return RealtimeOutput(u, slk, value, status)

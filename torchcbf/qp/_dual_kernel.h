@@ -1,0 +1,22 @@
+/*
+ * The exported entry points of _dual_kernel.c, for other C sources linked with it (the
+ * safety filter's kernel, torchcbf/filters/_filter_kernel.c). Meanings as documented there.
+ */
+#ifndef TORCHCBF_DUAL_KERNEL_H
+#define TORCHCBF_DUAL_KERNEL_H
+#include <stdint.h>
+
+/* most variables a problem may have */
+#define TORCHCBF_DUAL_NMAX 64
+
+int torchcbf_dual_version(void);
+
+int torchcbf_dual_forward(int64_t B, int N, int M, const double *P, const double *q,
+                          const double *G, const double *h, double eps, int max_iter,
+                          double *x, double *z, uint8_t *active, int64_t *slots, double *L,
+                          uint8_t *ok, int64_t *iters, uint8_t *infeasible);
+
+int torchcbf_dual_backward(int64_t B, int N, int M, const double *G, const double *L,
+                           const int64_t *slots, const uint8_t *ok, const double *gx,
+                           const double *gz, double *w_x, double *wz);
+#endif
