@@ -403,10 +403,11 @@ def _assemble(
     f = dynamics.f(x)
     g = dynamics.g(x) if control else None
     if x.numel() <= SMALL_BATCH_ELEMENTS:
-        # a few states: broadcast multiply-and-sum, fewer dispatched ops than a batched matmul
+        # a few states: broadcast multiply-and-sum, fewer dispatched ops than a batched
+        # matmul (but for lgh of k outputs, where one matmul is cheaper than three ops)
         lfh = (dhdx * f.unsqueeze(-2)).sum(-1) if multi else (dhdx * f).sum(-1)
         if g is not None:
-            lgh = (dhdx.unsqueeze(-1) * (g.unsqueeze(-3) if multi else g)).sum(-2)
+            lgh = dhdx @ g if multi else (dhdx.unsqueeze(-1) * g).sum(-2)
     else:
         f = f.unsqueeze(-1)
         lfh = (dhdx @ f).squeeze(-1) if multi else (dhdx.unsqueeze(-2) @ f)[..., 0, 0]

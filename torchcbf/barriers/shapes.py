@@ -69,6 +69,8 @@ def _embed(sel: StateIndex, grad_p: Tensor, n: int) -> Tensor:
     span = sel._slice
     if span is None:
         return sel.scatter(grad_p, n)
+    if span.start == 0 and span.stop == n:
+        return grad_p
     return torch.nn.functional.pad(grad_p, (span.start, n - span.stop))
 
 

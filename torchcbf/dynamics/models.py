@@ -19,11 +19,18 @@ def _zeros(x: Tensor, *shape: int) -> Tensor:
     return x.new_zeros(*x.shape[:-1], *shape)
 
 
-def _eye_g(x: Tensor, n: int, m: int, row: int) -> Tensor:
-    """``g`` with an identity block ``I_m`` in rows ``row:row+m`` and zeros elsewhere."""
-    g = _zeros(x, n, m)
-    g[..., row : row + m, :] = torch.eye(m, dtype=x.dtype, device=x.device)
-    return g
+def _register_eye_g(model: ControlAffine, row: int) -> None:
+    """Store a constant ``g [n, m]``: an identity block ``I_m`` in rows ``row:row+m``, zeros
+    elsewhere (a buffer outside the state dict, so it follows ``.to()``)."""
+    n, m = model.state_dim, model.control_dim
+    g = torch.zeros(n, m, dtype=torch.float64)
+    g[row : row + m] = torch.eye(m, dtype=torch.float64)
+    model.register_buffer("_g", g, persistent=False)
+
+
+def _expand_g(g: Tensor, x: Tensor) -> Tensor:
+    """The constant ``g [n, m]`` as ``[..., n, m]`` for ``x [..., n]`` (a broadcast view)."""
+    return g.to(x).expand(*x.shape[:-1], *g.shape)
 
 
 class SingleIntegrator(ControlAffine):
@@ -31,12 +38,13 @@ class SingleIntegrator(ControlAffine):
 
     def __init__(self, dim: int = 2, **kwargs: Any) -> None:
         super().__init__(dim, dim, **kwargs)
+        _register_eye_g(self, 0)
 
     def f(self, x: Tensor) -> Tensor:
         return torch.zeros_like(x)
 
     def g(self, x: Tensor) -> Tensor:
-        return _eye_g(x, self.state_dim, self.control_dim, 0)
+        return _expand_g(self._g, x)
 
     def xdot(self, x: Tensor, u: Tensor) -> Tensor:
         return u.expand(broadcast_shapes(x.shape, u.shape))
@@ -48,12 +56,13 @@ class DoubleIntegrator(ControlAffine):
     def __init__(self, dim: int = 2, **kwargs: Any) -> None:
         super().__init__(2 * dim, dim, **kwargs)
         self.dim = dim
+        _register_eye_g(self, dim)
 
     def f(self, x: Tensor) -> Tensor:
         return torch.cat([x[..., self.dim :], torch.zeros_like(x[..., self.dim :])], dim=-1)
 
     def g(self, x: Tensor) -> Tensor:
-        return _eye_g(x, self.state_dim, self.control_dim, self.dim)
+        return _expand_g(self._g, x)
 
     def xdot(self, x: Tensor, u: Tensor) -> Tensor:
         v, u = torch.broadcast_tensors(x[..., self.dim :], u)
@@ -95,6 +104,7 @@ class AccelUnicycle(ControlAffine):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(4, 2, **kwargs)
+        _register_eye_g(self, 2)
 
     def f(self, x: Tensor) -> Tensor:
         v, theta = x[..., 2], x[..., 3]
@@ -102,7 +112,7 @@ class AccelUnicycle(ControlAffine):
         return torch.stack([v * torch.cos(theta), v * torch.sin(theta), zero, zero], -1)
 
     def g(self, x: Tensor) -> Tensor:
-        return _eye_g(x, 4, 2, 2)
+        return _expand_g(self._g, x)
 
     def xdot(self, x: Tensor, u: Tensor) -> Tensor:
         v, theta = x[..., 2], x[..., 3]
@@ -147,6 +157,7 @@ class VanDerPol(ControlAffine):
 
     def __init__(self, mu: float | Tensor = 1.0, **kwargs: Any) -> None:
         super().__init__(2, 1, **kwargs)
+        _register_eye_g(self, 1)
         register_constant(self, "mu", mu)
         if self.mu.dim() != 0:
             raise ValueError(f"mu must be a scalar, got shape {tuple(self.mu.shape)}")
@@ -156,7 +167,7 @@ class VanDerPol(ControlAffine):
         return torch.stack([x2, self.mu.to(x) * (1 - x1**2) * x2 - x1], -1)
 
     def g(self, x: Tensor) -> Tensor:
-        return _eye_g(x, 2, 1, 1)
+        return _expand_g(self._g, x)
 
 
 class Quadrotor(ControlAffine):
@@ -231,6 +242,7 @@ class FixedWing(ControlAffine):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(6, 3, **kwargs)
+        _register_eye_g(self, 3)
 
     def f(self, x: Tensor) -> Tensor:
         v, gamma, psi = x[..., 3], x[..., 4], x[..., 5]
@@ -248,4 +260,4 @@ class FixedWing(ControlAffine):
         )
 
     def g(self, x: Tensor) -> Tensor:
-        return _eye_g(x, 6, 3, 3)
+        return _expand_g(self._g, x)

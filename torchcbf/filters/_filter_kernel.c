@@ -17,7 +17,7 @@
 #include "../qp/_dual_kernel.h"
 
 /* Bumped whenever an exported signature or its meaning changes (see _native.py). */
-#define FILTER_KERNEL_VERSION 1
+#define FILTER_KERNEL_VERSION 2
 
 int torchcbf_filter_version(void) { return FILTER_KERNEL_VERSION; }
 
@@ -147,13 +147,14 @@ static void assemble_one(int m, int k, int c, int ks, int slack, const double *a
 /*
  * The filter on B states. Inputs (float64, C-contiguous, batch first): CBF conditions
  * a . u + b >= 0 (a_cbf [B,k,m], b_cbf [B,k]), CLF conditions a . u + b <= delta (a_clf
- * [B,c,m], b_clf [B,c]), u_nom [B,m], R [m,m], limits lo, hi [m] (infinite where absent);
+ * [B,c,m], b_clf [B,c]), u_nom [B,m], R [m,m], limits lo, hi [m] (NULL, or infinite
+ * entries, where absent);
  * the states x_state [B,n] and times t [B] are only checked to be finite.
  * two_pass: also solve the hard QP (CBF slack columns zeroed) and prefer its solution; a
  * row whose hard QP the kernel proves infeasible takes the elastic one.
- * Outputs: out [B, m + 2 (k + c)] = u | slack (CBF violations, CLF relaxations) | condition
- * values (a . u + b for CBF rows, -(a . u + b) for CLF rows); status [B] (SOLVED or
- * RELAXED: a CBF slack above slack_tol).
+ * Outputs: u_out [B,m]; slack_out [B,k+c] (CBF violations, then CLF relaxations);
+ * value_out [B,k+c] (a . u + b for CBF rows, -(a . u + b) for CLF rows); status [B] (SOLVED
+ * or RELAXED: a CBF slack above slack_tol).
  * Returns 0 when every row was certified, 1 when not (outputs then undefined: the caller
  * takes its general path), -1 when memory ran out or the sizes are invalid. The solver may
  * take max(max_iter, 4 (rows + variables)) steps (torchcbf.qp._function.dual_budget).
@@ -164,13 +165,21 @@ int torchcbf_filter_solve(int64_t B, int n, int m, int k, int c, int slack, int 
                           const double *lo, const double *hi, const double *x_state,
                           const double *t, double cbf_weight,
                           double clf_weight, double eps, int max_iter, double slack_tol,
-                          double max_condition, double *out, int64_t *status) {
+                          double max_condition, double *u_out, double *slack_out,
+                          double *value_out, int64_t *status) {
     if (B < 1 || n < 1 || m < 1 || k < 0 || c < 0 || k + c < 1) return -1;
     int ks = (k == 0 || slack == SLACK_NONE) ? 0 : (slack == SLACK_PER_ROW ? k : 1);
-    int N = m + ks + c, limits = 0;
+    int N = m + ks + c;
+    if (N > TORCHCBF_DUAL_NMAX) return 1;
+    double lo_v[TORCHCBF_DUAL_NMAX], hi_v[TORCHCBF_DUAL_NMAX]; /* NULL limits: none */
+    for (int j = 0; j < m; ++j) {
+        lo_v[j] = lo ? lo[j] : -INFINITY;
+        hi_v[j] = hi ? hi[j] : INFINITY;
+    }
+    lo = lo_v, hi = hi_v;
+    int limits = 0;
     for (int j = 0; j < m; ++j) limits += isfinite(lo[j]) + isfinite(hi[j]);
     int M = k + c + limits + ks + c;
-    if (N > TORCHCBF_DUAL_NMAX) return 1;
     int64_t Bq = two_pass && ks ? 2 * B : B; /* problems: [elastic (B); hard (B)] */
     if (!all_finite((int64_t)n * B, x_state) || !all_finite(B, t) ||
         !all_finite((int64_t)k * m * B, a_cbf) || !all_finite((int64_t)k * B, b_cbf) ||
@@ -223,9 +232,8 @@ int torchcbf_filter_solve(int64_t B, int n, int m, int k, int c, int slack, int 
             code = 1;
         if (code != 0) break;
         const double *zb = x + pick * N, *s = zb + m, *delta = zb + m + ks;
-        double *o = out + b * (m + 2 * (k + c));
-        double *slk = o + m, *val = slk + k + c;
-        memcpy(o, zb, sizeof(double) * m);
+        double *slk = slack_out + b * (k + c), *val = value_out + b * (k + c);
+        memcpy(u_out + b * m, zb, sizeof(double) * m);
         int relaxed = 0;
         for (int j = 0; j < ks; ++j) relaxed |= s[j] > slack_tol;
         for (int i = 0; i < k; ++i) {

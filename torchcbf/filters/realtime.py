@@ -24,7 +24,7 @@ from torchcbf.qp import realtime as qp_realtime
 from torchcbf.qp._function import MAX_DUAL_CONDITION
 
 #: ``FILTER_KERNEL_VERSION`` of the C source this module calls
-KERNEL_VERSION = 1
+KERNEL_VERSION = 2
 #: most states the path takes (beyond it the general path's batched solve pays off)
 MAX_BATCH = qp_realtime.MAX_BATCH
 #: the kernel's codes of the CBF slack modes
@@ -34,8 +34,8 @@ _P = ctypes.c_void_p
 _D = ctypes.c_double
 _INT = ctypes.c_int
 # B, n, m, k, c, slack, two_pass; a_cbf, b_cbf, a_clf, b_clf, u_nom, R, lo, hi, x, t;
-# cbf_weight, clf_weight, eps, max_iter, slack_tol, max_condition; out, status
-_ARGS = [ctypes.c_int64] + [_INT] * 6 + [_P] * 10 + [_D] * 3 + [_INT] + [_D] * 2 + [_P] * 2
+# cbf_weight, clf_weight, eps, max_iter, slack_tol, max_condition; u, slack, value, status
+_ARGS = [ctypes.c_int64] + [_INT] * 6 + [_P] * 10 + [_D] * 3 + [_INT] + [_D] * 2 + [_P] * 4
 
 
 @functools.lru_cache(maxsize=1)
@@ -59,9 +59,10 @@ def available() -> bool:
 
 
 class RealtimeOutput(NamedTuple):
-    """The filter's answer on ``B`` states (float64): ``u [B, m]``, ``slack [B, k + c]``,
-    ``value [B, k + c]`` (as in :class:`~torchcbf.filters.FilterOutput`) and int64
-    ``status [B]`` (``SOLVED`` or ``RELAXED``)."""
+    """The filter's answer (float64) with the batch shape ``[...]`` asked for: ``u [..., m]``,
+    ``slack [..., k + c]``, ``value [..., k + c]`` (as in
+    :class:`~torchcbf.filters.FilterOutput`) and int64 ``status [...]`` (``SOLVED`` or
+    ``RELAXED``)."""
 
     u: Tensor
     slack: Tensor
@@ -70,6 +71,8 @@ class RealtimeOutput(NamedTuple):
 
 
 def _f64(v: Tensor) -> Tensor:
+    if v.dtype == torch.float64 and v.is_contiguous():
+        return v
     return v.to(torch.float64).contiguous()
 
 
@@ -80,8 +83,8 @@ def solve(
     u_nom: Tensor,
     t: Tensor,
     R: Tensor,
-    lo: Tensor,
-    hi: Tensor,
+    lo: Tensor | None,
+    hi: Tensor | None,
     *,
     slack: str,
     two_pass: bool,
@@ -90,13 +93,15 @@ def solve(
     eps: float,
     max_iter: int,
     slack_tol: float,
+    batch: tuple[int, ...] | None = None,
 ) -> RealtimeOutput | None:
     """The filter QP of ``B`` states from the conditions ``cbf = (a [B,k,m], b [B,k])``
     (``a . u + b >= 0``) and ``clf = (a [B,c,m], b [B,c])`` (``a . u + b <= delta``), with
-    ``u_nom [B, m]``, ``R [m, m]`` and limits ``lo, hi [m]`` (infinite where absent), CPU
-    tensors without grad. ``two_pass``: also solve the hard QP and prefer its answer (see
-    :class:`~torchcbf.filters.SafetyFilter`'s ``exact``). ``x [B, n]`` and ``t [B]`` are only
-    checked to be finite.
+    ``u_nom [B, m]``, ``R [m, m]`` and limits ``lo, hi [m]`` (``None`` or infinite where
+    absent), CPU tensors without grad. ``two_pass``: also solve the hard QP and prefer its
+    answer (see :class:`~torchcbf.filters.SafetyFilter`'s ``exact``). ``x [B, n]`` and
+    ``t [B]`` are only checked to be finite. The outputs have the batch shape ``batch``
+    (default ``(B,)``).
 
     Returns ``None`` when a state, control, time or condition is not finite, or when the
     kernel does not certify every row (the caller then takes the general path)."""
@@ -106,21 +111,24 @@ def solve(
     B, m = u_nom.shape
     k = 0 if cbf is None else cbf[1].shape[1]
     c = 0 if clf is None else clf[1].shape[1]
-    a_cbf, b_cbf = (None, None) if cbf is None else (_f64(cbf[0]), _f64(cbf[1]))
-    a_clf, b_clf = (None, None) if clf is None else (_f64(clf[0]), _f64(clf[1]))
-    inputs = (a_cbf, b_cbf, a_clf, b_clf, _f64(u_nom), _f64(R), _f64(lo), _f64(hi), _f64(x))
-    ptrs = [None if v is None else v.data_ptr() for v in inputs]
-    tt = _f64(t)
-    out = torch.empty(B, m + 2 * (k + c), dtype=torch.float64)
-    status = torch.empty(B, dtype=torch.int64)
+    shape = (B,) if batch is None else batch
+    # the tensors must outlive the call: each pointer's tensor is held by `held`
+    held = [None, None] if cbf is None else [_f64(cbf[0]), _f64(cbf[1])]
+    held += [None, None] if clf is None else [_f64(clf[0]), _f64(clf[1])]
+    held += [None if v is None else _f64(v) for v in (u_nom, R, lo, hi, x, t)]
+    f64 = torch.float64
+    u = torch.empty(*shape, m, dtype=f64)
+    slk = torch.empty(*shape, k + c, dtype=f64)
+    value = torch.empty(*shape, k + c, dtype=f64)
+    status = torch.empty(shape, dtype=torch.int64)
     code = lib.torchcbf_filter_solve(
-        B, x.shape[1], m, k, c, SLACK_CODES[slack], int(two_pass), *ptrs, tt.data_ptr(),
+        B, x.shape[1], m, k, c, SLACK_CODES[slack], int(two_pass),
+        *[None if v is None else v.data_ptr() for v in held],
         cbf_weight, clf_weight, eps, max_iter, slack_tol, MAX_DUAL_CONDITION,
-        out.data_ptr(), status.data_ptr(),
+        u.data_ptr(), slk.data_ptr(), value.data_ptr(), status.data_ptr(),
     )  # fmt: skip
     if code < 0:
         raise MemoryError("torchcbf: the safety filter's kernel could not allocate its workspace")
     if code:
         return None
-    u, slk, value = out.split((m, k + c, k + c), -1)
     return RealtimeOutput(u, slk, value, status)

@@ -297,12 +297,7 @@ class SafetyFilter(nn.Module):
         self.register_buffer("R", as_matrix("R", weight, m, dtype=torch.float64))
         self.register_buffer("u_min", as_limit("u_min", u_min, m))
         self.register_buffer("u_max", as_limit("u_max", u_max, m))
-        check_bounds(
-            "u_min",
-            self.u_min if self.u_min is not None else dynamics.u_min,
-            "u_max",
-            self.u_max if self.u_max is not None else dynamics.u_max,
-        )
+        check_bounds("u_min", self._limit_tensors()[0], "u_max", self._limit_tensors()[1])
         self.cbf_slack = _slack_mode(cbf_slack, relax_cbf, elastic)
         if cbf_slack_weight is None:
             cbf_slack_weight = 1e2 if self.cbf_slack == "per_row" else 1e3
@@ -391,7 +386,8 @@ class SafetyFilter(nn.Module):
     ) -> tuple[tuple[int, ...], Tensor, Tensor, Tensor]:
         """Check the inputs; return the batch shape and ``x [B, n]``, ``u_nom [B, m]``,
         ``t [B]``."""
-        n, m = self.dynamics.state_dim, self.dynamics.control_dim
+        dyn = self.dynamics
+        n, m = dyn.state_dim, dyn.control_dim
         check_last_dim("x", x, n)
         check_last_dim("u_nom", u_nom, m)
         try:
@@ -421,8 +417,13 @@ class SafetyFilter(nn.Module):
                 raise ValueError(
                     f"t must broadcast to the batch shape {tuple(batch)}, got {tuple(tt.shape)}"
                 ) from None
-        xb = x.expand(*batch, n).reshape(B, n)
-        ub = u_nom.expand(*batch, m).reshape(B, m)
+        # a view where the batch is already the tensor's own (one op), else a broadcast
+        xb = x.reshape(B, n) if x.shape[:-1] == batch else x.expand(*batch, n).reshape(B, n)
+        ub = (
+            u_nom.reshape(B, m)
+            if u_nom.shape[:-1] == batch
+            else u_nom.expand(*batch, m).reshape(B, m)
+        )
         return tuple(batch), xb, ub, tb
 
     def _lie(self, fns: nn.ModuleList, x: Tensor, t: Tensor) -> tuple[LieTerms | None, list[int]]:
@@ -471,10 +472,14 @@ class SafetyFilter(nn.Module):
             V = clf_terms.h
         return cbf, clf, h, V  # type: ignore[return-value]
 
+    def _limit_tensors(self) -> tuple[Tensor | None, Tensor | None]:
+        """The filter's own limits ``[m]``, else the dynamics' (``None``: no limit)."""
+        lo, hi, dyn = self.u_min, self.u_max, self.dynamics
+        return (lo if lo is not None else dyn.u_min), (hi if hi is not None else dyn.u_max)
+
     def _limits(self, x: Tensor) -> tuple[Tensor, Tensor]:
         m = self.dynamics.control_dim
-        lo = self.u_min if self.u_min is not None else self.dynamics.u_min
-        hi = self.u_max if self.u_max is not None else self.dynamics.u_max
+        lo, hi = self._limit_tensors()
         inf = torch.full((m,), math.inf, dtype=x.dtype, device=x.device)
         lo = -inf if lo is None else lo.to(x)
         hi = inf if hi is None else hi.to(x)
@@ -543,10 +548,9 @@ class SafetyFilter(nn.Module):
         (:mod:`torchcbf.filters.realtime`); ``None`` where the general path must answer
         (non-finite data, a row the kernel does not certify)."""
         cbf, clf, h, V = conditions
-        lo, hi = self._limits(xb)
         opts = self.qp_options
         res = realtime.solve(
-            cbf, clf, xb, ub, tb, self.R, lo, hi,
+            cbf, clf, xb, ub, tb, self.R, *self._limit_tensors(),
             slack=self.cbf_slack,
             two_pass=self.exact and self.cbf_slack == "shared",
             cbf_weight=self.cbf_slack_weight,
@@ -554,13 +558,21 @@ class SafetyFilter(nn.Module):
             eps=float(opts.get("eps") or qp_realtime.default_eps(xb.dtype)),
             max_iter=opts.get("max_iter", 50),
             slack_tol=self._slack_tol(xb),
+            batch=batch,
         )  # fmt: skip
         if res is None:
             return None
         dt = xb.dtype
-        u, slack, value = res.u.to(dt), res.slack.to(dt), res.value.to(dt)
-        qp_status = torch.zeros_like(res.status)
-        return _output(batch, u, res.status, h, slack, V, qp_status, value)
+        flat = len(batch) == 1
+        return FilterOutput(
+            u=res.u.to(dt),
+            status=res.status,
+            h=h if flat else h.reshape(*batch, h.shape[-1]),
+            slack=res.slack.to(dt),
+            clf_value=V if flat else V.reshape(*batch, V.shape[-1]),
+            qp_status=torch.zeros_like(res.status),
+            constraint_value=res.value.to(dt),
+        )
 
 
 def _residuals(
