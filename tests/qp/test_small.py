@@ -1,6 +1,6 @@
-"""The real-time path for a few small QPs without gradients (numpy arrays into the C
-kernel): same answers as the general path and as cvxpy, and the general path wherever it
-does not certify a row."""
+"""The real-time path for a few small QPs without gradients (one call of the C kernel):
+same answers as the general path and as cvxpy, and the general path wherever it does not
+certify a row."""
 
 from __future__ import annotations
 
@@ -94,11 +94,37 @@ def test_non_finite_and_empty_bound_rows_take_the_general_path():
 
 
 def test_solve_small_returns_none_where_it_does_not_apply():
-    P = np.eye(65)[None]
-    q = np.ones((1, 65))
-    G = np.ones((1, 1, 65))
-    h = np.ones((1, 1))
+    P = torch.eye(65, dtype=torch.float64)[None]
+    q = torch.ones(1, 65, dtype=torch.float64)
+    G = torch.ones(1, 1, 65, dtype=torch.float64)
+    h = torch.ones(1, 1, dtype=torch.float64)
     assert realtime.solve_small(P, q, G, h, None, None, 1e-7, 50, (1,)) is None  # 65 variables
     assert (
         realtime.solve_small(P[:, :2, :2], q[:, :2], None, None, None, None, 1e-7, 50, (1,)) is None
     )
+
+
+def test_ill_conditioned_row_takes_the_general_path(cvx, monkeypatch):
+    """One row with a rotated Q of condition 1e9 among well-conditioned ones: the kernel
+    declines the batch, the general path answers it, and every row matches cvxpy."""
+    batch = make_batch(3, 3, 6, seed=11, frac_infeasible=0.0)
+    Q, p, G, h = batch.Q.clone(), batch.p, batch.G, batch.h
+    rot, _ = torch.linalg.qr(torch.randn(3, 3, generator=torch.Generator().manual_seed(2),
+                                         dtype=torch.float64))  # fmt: skip
+    Q[1] = rot @ torch.diag(torch.tensor([1.0, 1e-4, 1e-9], dtype=torch.float64)) @ rot.T
+    answered = []
+    real = realtime.solve_small
+    monkeypatch.setattr(
+        realtime, "solve_small", lambda *a, **k: answered.append(real(*a, **k)) or answered[-1]
+    )
+    with torch.no_grad():
+        sol = solve_qp(Q, p, G, h)
+        well = solve_qp(Q[[0, 2]], p[[0, 2]], G[[0, 2]], h[[0, 2]])
+    assert answered[0] is None and answered[1] is not None
+    _fields_close(sol, _general(Q, p, G, h), 1e-9)
+    for i in range(3):
+        ref, _, st = cvx(*(t[i].numpy() for t in (Q, p, G, h)))
+        assert st == "optimal"
+        scale = 1.0 + np.abs(ref).max()
+        assert np.abs(sol.x[i].numpy() - ref).max() < 1e-6 * scale
+    assert torch.equal(well.status, torch.zeros(2, dtype=torch.int64))

@@ -17,7 +17,7 @@
 #include "../qp/_dual_kernel.h"
 
 /* Bumped whenever an exported signature or its meaning changes (see _native.py). */
-#define FILTER_KERNEL_VERSION 2
+#define FILTER_KERNEL_VERSION 3
 
 int torchcbf_filter_version(void) { return FILTER_KERNEL_VERSION; }
 
@@ -26,47 +26,6 @@ enum { SLACK_NONE = 0, SLACK_SHARED = 1, SLACK_PER_ROW = 2 };
 
 /* the filter statuses written (FilterStatus in safety_filter.py) */
 enum { STATUS_SOLVED = 0, STATUS_RELAXED = 1 };
-
-static int all_finite(int64_t n, const double *v) {
-    double s = 0.0;
-    for (int64_t i = 0; i < n; ++i) s += v[i] * 0.0;
-    return s == 0.0; /* NaN or an infinity makes the sum NaN */
-}
-
-/* Whether the Jacobi-scaled P [N,N] has off-diagonal row sums at most 1/2 (then its
- * condition is at most 3: no estimate needed), as realtime._diagonally_dominant. */
-static int diagonally_dominant(int N, const double *P) {
-    for (int i = 0; i < N; ++i) {
-        double s = 0.0;
-        for (int j = 0; j < N; ++j)
-            s += fabs(P[i * N + j]) / sqrt(fabs(P[i * N + i]) * fabs(P[j * N + j]));
-        if (!(s <= 1.5 + 1e-12)) return 0;
-    }
-    return 1;
-}
-
-/* max_i |row i of L|^2 |column i of L^{-1}|^2 for the lower factor L [N,N], the estimate of
- * torchcbf.qp._function.condition_estimate; inv [N*N] is scratch. */
-static double condition_estimate(int N, const double *L, double *inv) {
-    for (int j = 0; j < N; ++j) { /* column j of L^{-1} by forward substitution */
-        for (int i = 0; i < N; ++i) {
-            double s = (i == j) ? 1.0 : 0.0;
-            for (int k = j; k < i; ++k) s -= L[i * N + k] * inv[k * N + j];
-            inv[i * N + j] = i < j ? 0.0 : s / L[i * N + i];
-        }
-    }
-    double worst = 0.0;
-    for (int i = 0; i < N; ++i) {
-        double row = 0.0, col = 0.0;
-        for (int k = 0; k < N; ++k) {
-            row += L[i * N + k] * L[i * N + k];
-            col += inv[k * N + i] * inv[k * N + i];
-        }
-        double c = row * col;
-        if (!(c <= worst)) worst = c; /* NaN propagates */
-    }
-    return worst;
-}
 
 /* The filter QP of one state over z = [u (m); s (ks); delta (c)]: P [N,N], q [N],
  * G [M,N], h [M] with N = m + ks + c and M = k + c + (finite limits) + ks + c. */
@@ -181,11 +140,11 @@ int torchcbf_filter_solve(int64_t B, int n, int m, int k, int c, int slack, int 
     for (int j = 0; j < m; ++j) limits += isfinite(lo[j]) + isfinite(hi[j]);
     int M = k + c + limits + ks + c;
     int64_t Bq = two_pass && ks ? 2 * B : B; /* problems: [elastic (B); hard (B)] */
-    if (!all_finite((int64_t)n * B, x_state) || !all_finite(B, t) ||
-        !all_finite((int64_t)k * m * B, a_cbf) || !all_finite((int64_t)k * B, b_cbf) ||
-        !all_finite((int64_t)c * m * B, a_clf) || !all_finite((int64_t)c * B, b_clf) ||
-        !all_finite((int64_t)m * B, u_nom) || !all_finite((int64_t)m * m, R))
-        return 1;
+    const double *inputs[] = {x_state, t, a_cbf, b_cbf, a_clf, b_clf, u_nom, R};
+    const int64_t sizes[] = {n * B, B, (int64_t)k * m * B, (int64_t)k * B,
+                             (int64_t)c * m * B, (int64_t)c * B, (int64_t)m * B, m * m};
+    for (int i = 0; i < 8; ++i)
+        if (!torchcbf_dual_all_finite(sizes[i], inputs[i])) return 1;
     size_t per = (size_t)N * N + N + (size_t)M * N + M + N + M + (size_t)N * N;
     double *buf = malloc(sizeof(double) * per * Bq + sizeof(double) * N * N);
     int64_t *ints = malloc(sizeof(int64_t) * (N + 1) * Bq);
@@ -212,12 +171,11 @@ int torchcbf_filter_solve(int64_t B, int n, int m, int k, int c, int slack, int 
                 for (int j = m; j < m + ks; ++j) G[b * M * N + i * N + j] = 0.0;
     }
     int budget = max_iter > 4 * (M + N) ? max_iter : 4 * (M + N);
-    int code = all_finite(Bq * (N * N + N + M * N + M), buf) ? 0 : 1;
+    int code = torchcbf_dual_all_finite(Bq * (N * N + N + M * N + M), buf) ? 0 : 1;
     if (code == 0 && torchcbf_dual_forward(Bq, N, M, P, q, G, h, eps, budget, x, z, active,
                                            slots, L, ok, iters, infeasible) != 0)
         code = -1;
     /* the solution each row keeps; the dual method is trusted only on Q it conditions well */
-    int check_condition = !diagonally_dominant(N, P);
     for (int64_t b = 0; b < B && code == 0; ++b) {
         int64_t pick = b;
         if (Bq > B) {
@@ -228,7 +186,8 @@ int torchcbf_filter_solve(int64_t B, int n, int m, int k, int c, int slack, int 
             code = 1;
             break;
         }
-        if (check_condition && !(condition_estimate(N, L + pick * N * N, inv) <= max_condition))
+        if (!torchcbf_dual_diagonally_dominant(N, P + pick * N * N) &&
+            !(torchcbf_dual_condition_estimate(N, L + pick * N * N, inv) <= max_condition))
             code = 1;
         if (code != 0) break;
         const double *zb = x + pick * N, *s = zb + m, *delta = zb + m + ks;

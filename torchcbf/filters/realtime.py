@@ -24,7 +24,7 @@ from torchcbf.qp import realtime as qp_realtime
 from torchcbf.qp._function import MAX_DUAL_CONDITION
 
 #: ``FILTER_KERNEL_VERSION`` of the C source this module calls
-KERNEL_VERSION = 2
+KERNEL_VERSION = 3
 #: most states the path takes (beyond it the general path's batched solve pays off)
 MAX_BATCH = qp_realtime.MAX_BATCH
 #: the kernel's codes of the CBF slack modes

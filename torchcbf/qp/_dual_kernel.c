@@ -30,7 +30,7 @@
 
 /* Bumped whenever an exported signature or its meaning changes; _dual_native.py refuses a
  * built library of another version (e.g. an editable install not rebuilt after an edit). */
-#define KERNEL_VERSION 3
+#define KERNEL_VERSION 4
 
 int torchcbf_dual_version(void) { return KERNEL_VERSION; }
 
@@ -540,4 +540,125 @@ int torchcbf_dual_backward(int64_t B, int N, int M, const double *G, const doubl
     backward_rows_any(N, B, M, G, L, slots, ok, gx, gz, w_x, wz, mats);
     free(mats);
     return 0;
+}
+
+/* Whether v [n] holds no NaN and no infinity. */
+int torchcbf_dual_all_finite(int64_t n, const double *v) {
+    double s = 0.0;
+    for (int64_t i = 0; i < n; ++i) s += v[i] * 0.0;
+    return s == 0.0; /* NaN or an infinity makes the sum NaN */
+}
+
+/* Whether the Jacobi-scaled P [N,N] has off-diagonal row sums at most 1/2: its eigenvalues
+ * then lie in [1/2, 3/2] (Gershgorin) and no condition estimate is needed. */
+int torchcbf_dual_diagonally_dominant(int N, const double *P) {
+    for (int i = 0; i < N; ++i) {
+        double s = 0.0;
+        for (int j = 0; j < N; ++j)
+            s += fabs(P[i * N + j]) / sqrt(fabs(P[i * N + i]) * fabs(P[j * N + j]));
+        if (!(s <= 1.5 + 1e-12)) return 0;
+    }
+    return 1;
+}
+
+/* max_i |row i of L|^2 |column i of L^{-1}|^2 for the lower factor L [N,N] (the estimate of
+ * torchcbf.qp._function.condition_estimate); inv [N*N] is scratch. NaN propagates. */
+double torchcbf_dual_condition_estimate(int N, const double *L, double *inv) {
+    for (int j = 0; j < N; ++j) /* column j of L^{-1} by forward substitution */
+        for (int i = 0; i < N; ++i) {
+            double s = (i == j) ? 1.0 : 0.0;
+            for (int k = j; k < i; ++k) s -= L[i * N + k] * inv[k * N + j];
+            inv[i * N + j] = i < j ? 0.0 : s / L[i * N + i];
+        }
+    double worst = 0.0;
+    for (int i = 0; i < N; ++i) {
+        double row = 0.0, col = 0.0;
+        for (int k = 0; k < N; ++k) {
+            row += L[i * N + k] * L[i * N + k];
+            col += inv[k * N + i] * inv[k * N + i];
+        }
+        double c = row * col;
+        if (!(c <= worst)) worst = c;
+    }
+    return worst;
+}
+
+/* A few QPs in one call (the real-time path of solve_qp): P [B,N,N] (symmetrised here),
+ * q [B,N], G [B,M,N] and h [B,M] (M = 0: both NULL), bounds lb, ub [B,N] (NULL: none;
+ * infinite entries: none), turned into rows (upper, then lower). Outputs: x [B,N],
+ * z [B,M] (multipliers of G), z_lb, z_ub [B,N] (zeros where absent), iters [B]. Returns 0
+ * when every row is certified and its P conditioned well enough for the dual method
+ * (condition estimate at most max_condition, unless diagonally dominant), 1 otherwise (the
+ * caller takes its general path), -1 when memory ran out or the sizes are invalid. */
+int torchcbf_dual_solve_small(int64_t B, int N, int M, const double *P, const double *q,
+                              const double *G, const double *h, const double *lb,
+                              const double *ub, double eps, int max_iter,
+                              double max_condition, double *x, double *z, double *z_lb,
+                              double *z_ub, int64_t *iters) {
+    if (N < 1 || N > NMAX || M < 0 || B < 1) return -1;
+    int Mt = M + (ub ? N : 0) + (lb ? N : 0);
+    if (Mt < 1) return 1;
+    size_t per = (size_t)N * N + (size_t)Mt * N + Mt + Mt + (size_t)N * N;
+    double *buf = malloc(sizeof(double) * (per * B + N * N));
+    int64_t *slots = malloc(sizeof(int64_t) * N * B);
+    uint8_t *bytes = malloc((size_t)(Mt + 2) * B);
+    if (!buf || !slots || !bytes) {
+        free(buf), free(slots), free(bytes);
+        return -1;
+    }
+    double *Ps = buf, *Gs = Ps + B * N * N, *hs = Gs + B * Mt * N, *zs = hs + B * Mt;
+    double *L = zs + B * Mt, *inv = L + B * N * N;
+    uint8_t *active = bytes, *ok = active + B * Mt, *infeasible = ok + B;
+    int code = 0;
+    for (int64_t b = 0; b < B && code == 0; ++b) {
+        const double *Pb = P + b * N * N;
+        double *P2 = Ps + b * N * N, *G2 = Gs + b * Mt * N, *h2 = hs + b * Mt;
+        for (int i = 0; i < N; ++i)
+            for (int j = 0; j < N; ++j) P2[i * N + j] = 0.5 * (Pb[i * N + j] + Pb[j * N + i]);
+        if (M) {
+            memcpy(G2, G + b * M * N, sizeof(double) * M * N);
+            memcpy(h2, h + b * M, sizeof(double) * M);
+        }
+        memset(G2 + M * N, 0, sizeof(double) * (Mt - M) * N);
+        int r = M;
+        for (int pass = 0; pass < 2; ++pass) { /* upper bounds, then lower bounds */
+            const double *bound = pass == 0 ? ub : lb;
+            double sign = pass == 0 ? 1.0 : -1.0;
+            if (!bound) continue;
+            for (int j = 0; j < N; ++j, ++r) {
+                double v = bound[b * N + j];
+                if (isnan(v) || v == -sign * INFINITY) code = 1; /* NaN, lb = +inf, ub = -inf */
+                int finite = isfinite(v);
+                G2[r * N + j] = finite ? sign : 0.0;
+                h2[r] = finite ? sign * v : 1.0;
+            }
+        }
+    }
+    if (code == 0 && !(torchcbf_dual_all_finite(B * N * N, Ps) &&
+                       torchcbf_dual_all_finite(B * N, q) &&
+                       torchcbf_dual_all_finite(B * Mt * N, Gs) &&
+                       torchcbf_dual_all_finite(B * Mt, hs)))
+        code = 1;
+    if (code == 0 && torchcbf_dual_forward(B, N, Mt, Ps, q, Gs, hs, eps, max_iter, x, zs,
+                                           active, slots, L, ok, iters, infeasible) != 0)
+        code = -1;
+    for (int64_t b = 0; b < B && code == 0; ++b) {
+        if (!ok[b]) code = 1;
+        else if (!torchcbf_dual_diagonally_dominant(N, Ps + b * N * N) &&
+                 !(torchcbf_dual_condition_estimate(N, L + b * N * N, inv) <= max_condition))
+            code = 1;
+    }
+    for (int64_t b = 0; b < B && code == 0; ++b) {
+        const double *zb = zs + b * Mt;
+        if (M) memcpy(z + b * M, zb, sizeof(double) * M);
+        int r = M;
+        for (int pass = 0; pass < 2; ++pass) {
+            const double *bound = pass == 0 ? ub : lb;
+            double *out = pass == 0 ? z_ub : z_lb;
+            if (bound) memcpy(out + b * N, zb + r, sizeof(double) * N), r += N;
+            else memset(out + b * N, 0, sizeof(double) * N);
+        }
+    }
+    free(buf), free(slots), free(bytes);
+    return code;
 }

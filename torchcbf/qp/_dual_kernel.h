@@ -19,4 +19,16 @@ int torchcbf_dual_forward(int64_t B, int N, int M, const double *P, const double
 int torchcbf_dual_backward(int64_t B, int N, int M, const double *G, const double *L,
                            const int64_t *slots, const uint8_t *ok, const double *gx,
                            const double *gz, double *w_x, double *wz);
+
+int torchcbf_dual_all_finite(int64_t n, const double *v);
+
+int torchcbf_dual_diagonally_dominant(int N, const double *P);
+
+double torchcbf_dual_condition_estimate(int N, const double *L, double *inv);
+
+int torchcbf_dual_solve_small(int64_t B, int N, int M, const double *P, const double *q,
+                              const double *G, const double *h, const double *lb,
+                              const double *ub, double eps, int max_iter,
+                              double max_condition, double *x, double *z, double *z_lb,
+                              double *z_ub, int64_t *iters);
 #endif

@@ -28,13 +28,16 @@ MIN_WORK_PER_THREAD = 1024 * (4 * 4 + 8 * 4)
 #: most variables the kernel handles (``NMAX`` in the C source)
 MAX_VARS = 64
 #: ``KERNEL_VERSION`` of the C source this module calls
-KERNEL_VERSION = 3
+KERNEL_VERSION = 4
 
 _P = ctypes.c_void_p
 _I64 = ctypes.c_int64
 _INT = ctypes.c_int
 _FWD_ARGS = [_I64, _INT, _INT, _P, _P, _P, _P, ctypes.c_double, _INT] + [_P] * 8
 _BWD_ARGS = [_I64, _INT, _INT] + [_P] * 8
+# B, N, M; P, q, G, h, lb, ub; eps, max_iter, max_condition; x, z, z_lb, z_ub, iters
+_SMALL_ARGS = [_I64, _INT, _INT] + [_P] * 6 + [ctypes.c_double, _INT, ctypes.c_double]
+_SMALL_ARGS += [_P] * 5
 
 
 @functools.lru_cache(maxsize=1)
@@ -49,7 +52,9 @@ def _library() -> ctypes.CDLL | None:
     if lib is not None:
         lib.torchcbf_dual_forward.argtypes = _FWD_ARGS
         lib.torchcbf_dual_backward.argtypes = _BWD_ARGS
+        lib.torchcbf_dual_solve_small.argtypes = _SMALL_ARGS
         lib.torchcbf_dual_forward.restype = lib.torchcbf_dual_backward.restype = _INT
+        lib.torchcbf_dual_solve_small.restype = _INT
     return lib
 
 

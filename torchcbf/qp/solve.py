@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -383,16 +382,12 @@ def _empty_solution(inp: _Inputs) -> QPSolution:
     return QPSolution(x, none, lam, nu, none, link + empty(n), link + empty(n), slack)
 
 
-def _numpy_rows(t: Tensor | None, inp: _Inputs, trailing: tuple[int, ...]) -> np.ndarray | None:
-    """``t`` as a float64 numpy array ``[B, *trailing]`` (a view where possible)."""
-    if t is None:
-        return None
-    a = t.detach().numpy()
-    if a.dtype != np.float64:
-        a = a.astype(np.float64)
-    if a.shape[: a.ndim - len(trailing)] != inp.batch_shape:
-        a = np.broadcast_to(a, (*inp.batch_shape, *trailing))
-    return a.reshape(inp.B, *trailing)
+def _rows(t: Tensor | None, inp: _Inputs, trailing: tuple[int, ...]) -> Tensor | None:
+    """``t`` holding ``B`` rows of shape ``trailing`` (itself where its batch is already the
+    broadcast one, else broadcast); only its memory is read, so no reshape."""
+    if t is None or t.shape[: t.dim() - len(trailing)] == inp.batch_shape:
+        return t
+    return t.expand(*inp.batch_shape, *trailing)
 
 
 def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
@@ -408,27 +403,19 @@ def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
         or not _dual_native.available()
     ):
         return None
-    Q = _numpy_rows(inp.Q, inp, (n, n))
-    lb, ub = _numpy_rows(inp.lb, inp, (n,)), _numpy_rows(inp.ub, inp, (n,))
-    if (lb is not None and not (lb < math.inf).all()) or (
-        ub is not None and not (ub > -math.inf).all()
-    ):
-        return None  # NaN, lb = +inf or ub = -inf
     sol = realtime.solve_small(
-        0.5 * (Q + Q.transpose(0, 2, 1)),
-        _numpy_rows(inp.p, inp, (n,)),
-        _numpy_rows(inp.G, inp, (m, n)),
-        _numpy_rows(inp.h, inp, (m,)),
-        lb,
-        ub,
+        _rows(inp.Q, inp, (n, n)),
+        _rows(inp.p, inp, (n,)),
+        _rows(inp.G, inp, (m, n)),
+        _rows(inp.h, inp, (m,)),
+        _rows(inp.lb, inp, (n,)),
+        _rows(inp.ub, inp, (n,)),
         inp.eps,
         max_iter,
         inp.batch_shape,
-        np.float64 if inp.Q.dtype == torch.float64 else np.float32,
+        inp.Q.dtype,
     )
-    if sol is None:
-        return None
-    return QPSolution(*(torch.from_numpy(a) for a in sol))
+    return None if sol is None else QPSolution(*sol)
 
 
 class _Flat(NamedTuple):
