@@ -49,6 +49,10 @@ class BarrierStack(Barrier):
     def has_analytic(self) -> bool:
         return all(b.has_analytic for b in self.barriers)
 
+    @property
+    def has_second_order(self) -> bool:
+        return all(b.has_second_order for b in self.barriers)
+
     def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         return _stack_analytic(self.barriers, x, t)
 
@@ -66,7 +70,17 @@ def _stack_analytic(barriers: nn.ModuleList, x: Tensor, t: Tensor) -> AnalyticDe
     def quad(s: Tensor) -> Tensor:
         return torch.cat([_as_columns(p.hess_quad(s), x) for p in parts], -1)
 
-    return AnalyticDerivatives(h, dhdx, dhdt, quad)
+    if any(p.hess_mat is None or p.hess_dir is None for p in parts):
+        return AnalyticDerivatives(h, dhdx, dhdt, quad)
+
+    def hess_mat(m: Tensor) -> Tensor:
+        mats = [p.hess_mat(m) for p in parts]  # type: ignore[misc]
+        return torch.cat([v.unsqueeze(-3) if v.dim() == m.dim() else v for v in mats], -3)
+
+    def hess_dir(v: Tensor, s: Tensor) -> Tensor:
+        return torch.cat([_as_columns(p.hess_dir(v, s), x) for p in parts], -1)  # type: ignore[misc]
+
+    return AnalyticDerivatives(h, dhdx, dhdt, quad, hess_mat, hess_dir)
 
 
 class Scaled(Barrier):
@@ -95,6 +109,10 @@ class Scaled(Barrier):
     def has_analytic(self) -> bool:
         return self.barrier.has_analytic
 
+    @property
+    def has_second_order(self) -> bool:
+        return self.barrier.has_second_order
+
     def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         d = self.barrier.derivatives(x, t)
         c = self.scale.to(x)
@@ -102,7 +120,18 @@ class Scaled(Barrier):
         def quad(s: Tensor) -> Tensor:
             return c * d.hess_quad(s)
 
-        return AnalyticDerivatives(c * d.h, c.unsqueeze(-1) * d.dhdx, c * d.dhdt, quad)
+        first = (c * d.h, c.unsqueeze(-1) * d.dhdx, c * d.dhdt, quad)
+        if d.hess_mat is None or d.hess_dir is None:
+            return AnalyticDerivatives(*first)
+        inner_mat, inner_dir = d.hess_mat, d.hess_dir
+
+        def hess_mat(m: Tensor) -> Tensor:
+            return c[..., None, None] * inner_mat(m)
+
+        def hess_dir(v: Tensor, s: Tensor) -> Tensor:
+            return c * inner_dir(v, s)
+
+        return AnalyticDerivatives(*first, hess_mat, hess_dir)
 
     def extra_repr(self) -> str:
         return f"scale={self.scale.tolist()}"
@@ -151,6 +180,12 @@ class Transformed(Barrier):
         e = torch.exp(-self.rate * h)
         return -torch.expm1(-self.rate * h), self.rate * e, -self.rate * self.rate * e
 
+    def _phi3(self, h: Tensor) -> Tensor:
+        """The third derivative of ``phi`` at ``h``."""
+        if self.form == "radius":
+            return 0.375 * (h + 1.0) ** -2.5
+        return self.rate**3 * torch.exp(-self.rate * h)
+
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """``x [..., n] -> phi(h) [...]`` (or ``[..., k]``)."""
         return self._phi(self.barrier(x, t))[0]
@@ -159,18 +194,49 @@ class Transformed(Barrier):
     def has_analytic(self) -> bool:
         return self.barrier.has_analytic
 
+    @property
+    def has_second_order(self) -> bool:
+        return self.barrier.has_second_order
+
     def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         d = self.barrier.derivatives(x, t)
         phi, d1, d2 = self._phi(d.h)
         single = d.h.shape == x.shape[:-1]
         grad = d.dhdx.unsqueeze(-2) if single else d.dhdx  # [..., k, n]
 
+        def per_output(v: Tensor) -> Tensor:  # [..., k] -> the shape of h
+            return v.squeeze(-1) if single else v
+
         def quad(s: Tensor) -> Tensor:
             # tr(S' (phi'' grad grad' + phi' H) S) = phi'' |S' grad|^2 + phi' tr(S' H S)
             g2 = (grad @ s).square().sum(-1)  # [..., k]
-            return d1 * d.hess_quad(s) + d2 * (g2.squeeze(-1) if single else g2)
+            return d1 * d.hess_quad(s) + d2 * per_output(g2)
 
-        return AnalyticDerivatives(phi, d1.unsqueeze(-1) * d.dhdx, d1 * d.dhdt, quad)
+        first = (phi, d1.unsqueeze(-1) * d.dhdx, d1 * d.dhdt, quad)
+        if d.hess_mat is None or d.hess_dir is None:
+            return AnalyticDerivatives(*first)
+        inner_mat, inner_dir = d.hess_mat, d.hess_dir
+        d3 = self._phi3(d.h)
+
+        def hess_mat(m: Tensor) -> Tensor:
+            # (phi'' grad grad' + phi' H) M
+            outer = grad.unsqueeze(-1) * (grad @ m).unsqueeze(-2)  # [..., k, n, q]
+            outer = outer.squeeze(-3) if single else outer
+            return d1[..., None, None] * inner_mat(m) + d2[..., None, None] * outer
+
+        def hess_dir(v: Tensor, s: Tensor) -> Tensor:
+            # d/dv of tr(S' (phi'' g g' + phi' H) S) with g = grad h and gv = g . v:
+            # phi3 gv |S'g|^2 + phi2 (2 (S'Hv) . (S'g) + gv tr(S'HS)) + phi1 tr(S' dH[v] S)
+            gv = per_output((grad * v.unsqueeze(-2)).sum(-1))
+            sg = grad @ s  # [..., k, q]
+            hv = inner_mat(v.unsqueeze(-1))  # [..., (k,) n, 1]
+            hv = hv.unsqueeze(-3) if single else hv
+            shv = (hv * s.unsqueeze(-3)).sum(-2)  # rows (S' H v)': [..., k, q]
+            g2 = per_output(sg.square().sum(-1))
+            cross = per_output((shv * sg).sum(-1))
+            return d3 * gv * g2 + d2 * (2 * cross + gv * d.hess_quad(s)) + d1 * inner_dir(v, s)
+
+        return AnalyticDerivatives(*first, hess_mat, hess_dir)
 
     def extra_repr(self) -> str:
         return f"form={self.form!r}" + (f", rate={self.rate}" if self.form == "exp" else "")

@@ -31,6 +31,8 @@ LieMethod = Literal["autograd", "analytic"]
 #: few states) rather than by batched matmuls (faster on large batches)
 SMALL_BATCH_ELEMENTS = 256
 HessQuad = Callable[[Tensor], Tensor]
+HessMat = Callable[[Tensor], Tensor]
+HessDir = Callable[[Tensor, Tensor], Tensor]
 
 
 class LieTerms(NamedTuple):
@@ -56,12 +58,20 @@ class AnalyticDerivatives(NamedTuple):
 
     ``h [...]`` (or ``[..., k]``), ``dhdx [..., n]`` (or ``[..., k, n]``), ``dhdt`` like ``h``,
     and ``hess_quad(S [..., n, q]) -> tr(S' d2h/dx2 S)`` shaped like ``h``.
+
+    Second order, for functions with :attr:`LieFunction.has_second_order` (the closed-form
+    exponential CBF needs them; ``None`` otherwise): ``hess_mat(M [..., n, q]) -> H M``
+    ``[..., n, q]`` (or ``[..., k, n, q]``) with ``H = d2h/dx2``, and ``hess_dir(v [..., n],
+    S [..., n, q]) -> tr(S' (dH/dx . v) S)`` shaped like ``h`` (the change of ``hess_quad``
+    along ``v``; zero for quadratic shapes).
     """
 
     h: Tensor
     dhdx: Tensor
     dhdt: Tensor
     hess_quad: HessQuad
+    hess_mat: HessMat | None = None
+    hess_dir: HessDir | None = None
 
 
 class LieFunction(nn.Module):
@@ -79,6 +89,12 @@ class LieFunction(nn.Module):
     @property
     def has_analytic(self) -> bool:
         """Whether :meth:`derivatives` (``lie(..., method="analytic")``) is available."""
+        return False
+
+    @property
+    def has_second_order(self) -> bool:
+        """Whether :meth:`derivatives` also gives ``hess_mat`` and ``hess_dir`` (see
+        :class:`AnalyticDerivatives`), for every state and time."""
         return False
 
     def parts(self) -> list[LieFunction] | None:

@@ -23,6 +23,7 @@ from torchcbf._constants import ExactConstants, store
 from torchcbf.barriers._params import float_spec, register
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.lie import (
+    AnalyticDerivatives,
     FunctionPart,
     LieFunction,
     LieMethod,
@@ -32,6 +33,13 @@ from torchcbf.barriers.lie import (
 from torchcbf.dynamics.base import ControlAffine
 
 Form = Literal["high_order", "exponential"]
+
+
+def _rows_of(v: Tensor, single: bool) -> Tensor:
+    """``[..., k, n]`` rows as the shape of ``dh/dx`` (``[..., n]`` for one output)."""
+    return v.squeeze(-2) if single else v
+
+
 GainSpec = float | Sequence[float] | Tensor | None
 
 
@@ -245,6 +253,57 @@ class ExponentialBarrier(ExactConstants, Barrier):
             FunctionPart(functools.partial(self.value, base=p), self.time_varying)
             for p in flat_parts(self.barrier)
         ]
+
+    @property
+    def has_analytic(self) -> bool:
+        """Closed forms for relative degree two, a time-invariant barrier with second-order
+        closed forms and a model with closed-form drift derivatives (otherwise autograd)."""
+        return (
+            self.relative_degree == 2
+            and not self.time_varying
+            and self.barrier.has_second_order
+            and self.dynamics.has_drift_derivatives
+        )
+
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+        """``h_e = L_f h + k_0 h`` with ``grad h_e = H f + J' grad h + k_0 grad h`` and
+        ``tr(S' hess(h_e) S) = tr(S' (H'[f] + H J + J' H + sum_i grad_i h hess f_i + k_0 H) S)``
+        (``H`` the barrier's Hessian, ``J = df/dx``), from the barrier's second-order closed
+        forms and the model's drift derivatives."""
+        if not self.has_analytic:
+            return super().derivatives(x, t)
+        d = self.barrier.derivatives(x, t)
+        if d.hess_mat is None or d.hess_dir is None:
+            raise ValueError(f"{type(self.barrier).__name__} gave no second-order closed forms")
+        hess_dir = d.hess_dir
+        f = self.dynamics.f(x)
+        drift = self.dynamics.drift_derivatives(x)
+        k0 = self.coefficients.to(x)[0]
+        single = d.h.shape == x.shape[:-1]
+        grad = d.dhdx.unsqueeze(-2) if single else d.dhdx  # [..., k, n]
+        n = x.shape[-1]
+        # the Hessian once, as a matrix [..., (k,) n, n]: H f and H S are then one matmul each
+        eye = torch.eye(n, dtype=x.dtype, device=x.device).expand(*x.shape[:-1], n, n)
+        H = d.hess_mat(eye)
+
+        def per_output(v: Tensor) -> Tensor:  # [..., k] -> the shape of h
+            return v.squeeze(-1) if single else v
+
+        def cols(m: Tensor) -> Tensor:  # [..., n, q] against H
+            return m if single else m.unsqueeze(-3)
+
+        h_e = per_output((grad * f.unsqueeze(-2)).sum(-1)) + k0 * d.h
+        hf = (H @ cols(f.unsqueeze(-1)))[..., 0]  # [..., (k,) n]
+        dhdx = hf + _rows_of(grad @ drift.jac, single) + k0 * d.dhdx
+
+        mix = 2 * drift.jac + k0 * eye
+
+        def quad(s: Tensor) -> Tensor:
+            # tr(S' (H J + J' H + k_0 H) S) = sum(H S * (2 J + k_0 I) S), H symmetric
+            first = ((H @ cols(s)) * cols(mix @ s)).sum((-2, -1))
+            return hess_dir(f, s) + first + per_output(drift.hess_quad(grad, s))
+
+        return AnalyticDerivatives(h_e, dhdx, torch.zeros_like(h_e), quad)
 
 
 def _check_hurwitz(coefficients: Tensor) -> None:

@@ -74,6 +74,19 @@ def _embed(sel: StateIndex, grad_p: Tensor, n: int) -> Tensor:
     return torch.nn.functional.pad(grad_p, (span.start, n - span.stop))
 
 
+def _embed_rows(sel: StateIndex, rows_p: Tensor, n: int) -> Tensor:
+    """A matrix over the selected components ``[..., d, q]`` as one over the state
+    ``[..., n, q]`` (zero rows elsewhere)."""
+    span = sel._slice
+    if span is None:
+        out = rows_p.new_zeros(*rows_p.shape[:-2], n, rows_p.shape[-1])
+        out[..., list(sel.index), :] = rows_p
+        return out
+    if span.start == 0 and span.stop == n:
+        return rows_p
+    return torch.nn.functional.pad(rows_p, (0, 0, span.start, n - span.stop))
+
+
 class _ShapeStack(ExactConstants, Barrier):
     """A shape whose constants may carry a leading ``k`` axis (``self.num``): the ``k`` shapes
     are independent Lie parts, all with closed-form derivatives."""
@@ -173,6 +186,10 @@ class Ball(_SignedShapeStack):
         r = _row(self.radius, j).to(x)
         return self._sign() * (((self._sel(x) - c) ** 2).sum(-1) - r**2)
 
+    @property
+    def has_second_order(self) -> bool:
+        return True
+
     def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         sign = self._sign()
         diff = self._diff(x, t)
@@ -191,7 +208,14 @@ class Ball(_SignedShapeStack):
             val = 2 * sign * (self._sel.rows(s) ** 2).sum((-2, -1))
             return val.unsqueeze(-1).expand_as(h) if self.num is not None else val
 
-        return AnalyticDerivatives(h, dhdx, dhdt, quad)
+        def hess_mat(m: Tensor) -> Tensor:  # H = 2 I on the selected components
+            out = _embed_rows(self._sel, 2 * sign * self._sel.rows(m), x.shape[-1])
+            return out.unsqueeze(-3).expand(*h.shape, *out.shape[-2:]) if self.num else out
+
+        def hess_dir(v: Tensor, s: Tensor) -> Tensor:
+            return torch.zeros_like(h)
+
+        return AnalyticDerivatives(h, dhdx, dhdt, quad, hess_mat, hess_dir)
 
 
 class MovingBall(ExactConstants, Barrier):
@@ -319,6 +343,10 @@ class Ellipse(_SignedShapeStack):
             d = _rotate_t(cos, sin, d[..., 0], d[..., 1])
         return self._sign() * (((d / self.axes[j].to(x)) ** 2).sum(-1) - 1)
 
+    @property
+    def has_second_order(self) -> bool:
+        return True
+
     def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         sign = self._sign()
         a = self.axes.to(x)
@@ -327,16 +355,28 @@ class Ellipse(_SignedShapeStack):
         grad_p = self._body(2 * sign * q / a**2, x, transpose=False)
         dhdx = _embed(self._sel, grad_p, x.shape[-1])
 
-        def quad(s: Tensor) -> Tensor:
-            sp = self._sel.rows(s)  # [..., d, q]
-            if self.num is not None:
+        def body(s: Tensor, transpose: bool = True) -> Tensor:
+            """``R' S_p`` (or ``R S`` with ``transpose=False``) ``[..., (1,) d, q]``."""
+            sp = self._sel.rows(s) if transpose else s
+            if self.num is not None and transpose:
                 sp = sp.unsqueeze(-3)  # [..., 1, d, q]
-            if self.angle is not None:
-                cos, sin = self._rot(x)
-                sp = _rotate_t(cos, sin, sp[..., 0, :], sp[..., 1, :], dim=-2)
-            return 2 * sign * ((sp / a.unsqueeze(-1)) ** 2).sum((-2, -1))
+            if self.angle is None:
+                return sp
+            cos, sin = self._rot(x)
+            return _rotate_t(cos, sin if transpose else -sin, sp[..., 0, :], sp[..., 1, :], -2)
 
-        return AnalyticDerivatives(h, dhdx, torch.zeros_like(h), quad)
+        def quad(s: Tensor) -> Tensor:
+            return 2 * sign * ((body(s) / a.unsqueeze(-1)) ** 2).sum((-2, -1))
+
+        def hess_mat(m: Tensor) -> Tensor:  # H_p = 2 R diag(1 / a^2) R'
+            hm = body(body(m) * (2 * sign / a.unsqueeze(-1) ** 2), transpose=False)
+            out = _embed_rows(self._sel, hm, x.shape[-1])
+            return out.expand(*h.shape, *out.shape[-2:]) if self.num else out
+
+        def hess_dir(v: Tensor, s: Tensor) -> Tensor:
+            return torch.zeros_like(h)
+
+        return AnalyticDerivatives(h, dhdx, torch.zeros_like(h), quad, hess_mat, hess_dir)
 
 
 class HalfSpace(_ShapeStack):

@@ -1,7 +1,7 @@
 """Control-affine dynamics: the :class:`ControlAffine` base and standard models."""
 
 from torchcbf.dynamics._ik import IKResult
-from torchcbf.dynamics.base import ControlAffine
+from torchcbf.dynamics.base import ControlAffine, DriftDerivatives
 from torchcbf.dynamics.manipulator import (
     JointSpaceController,
     Manipulator,
@@ -24,6 +24,7 @@ __all__ = [
     "Bicycle",
     "ControlAffine",
     "DoubleIntegrator",
+    "DriftDerivatives",
     "FixedWing",
     "IKResult",
     "JointSpaceController",

@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -24,6 +25,15 @@ from torchcbf._checks import (
 
 SigmaSpec = float | Tensor | Callable[[Tensor], Tensor] | None
 LimitSpec = float | Tensor | list[float] | tuple[float, ...] | None
+
+
+class DriftDerivatives(NamedTuple):
+    """Closed-form derivatives of the drift at ``x [..., n]``: ``jac = df/dx [..., n, n]``
+    and ``hess_quad(w [..., k, n], S [..., n, q]) -> sum_i w_i tr(S' d2f_i/dx2 S) [..., k]``
+    (see :meth:`ControlAffine.drift_derivatives`)."""
+
+    jac: Tensor
+    hess_quad: Callable[[Tensor, Tensor], Tensor]
 
 
 class ControlAffine(nn.Module):
@@ -106,6 +116,17 @@ class ControlAffine(nn.Module):
     def g(self, x: Tensor) -> Tensor:
         """Control matrix ``g(x)``: ``[..., n] -> [..., n, m]``."""
         raise NotImplementedError(f"{type(self).__name__} must define g(x)")
+
+    @property
+    def has_drift_derivatives(self) -> bool:
+        """Whether :meth:`drift_derivatives` has closed forms (closed-form exponential CBFs
+        of relative degree two use them; otherwise those run by autograd)."""
+        return type(self).drift_derivatives is not ControlAffine.drift_derivatives
+
+    def drift_derivatives(self, x: Tensor) -> DriftDerivatives:
+        """Jacobian and second-derivative contraction of ``f`` at ``x [..., n]`` (see
+        :class:`DriftDerivatives`). Optional: override it with closed forms."""
+        raise NotImplementedError(f"{type(self).__name__} has no closed-form drift derivatives")
 
     def xdot(self, x: Tensor, u: Tensor) -> Tensor:
         """``f(x) + g(x) u`` for ``x [..., n]``, ``u [..., m]`` (batch dimensions broadcast),

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from torchcbf._checks import broadcast_shapes
-from torchcbf.dynamics.base import ControlAffine, register_constant
+from torchcbf.dynamics.base import ControlAffine, DriftDerivatives, register_constant
 
 
 def _zeros(x: Tensor, *shape: int) -> Tensor:
@@ -26,6 +26,17 @@ def _register_eye_g(model: ControlAffine, row: int) -> None:
     g = torch.zeros(n, m, dtype=torch.float64)
     g[row : row + m] = torch.eye(m, dtype=torch.float64)
     model.register_buffer("_g", g, persistent=False)
+
+
+def _constant_drift(x: Tensor, jac: Tensor | None = None) -> DriftDerivatives:
+    """Derivatives of an affine drift ``f = J x``: ``jac`` (zeros if ``None``), no curvature."""
+    n = x.shape[-1]
+    J = x.new_zeros(n, n) if jac is None else jac.to(x)
+
+    def hess_quad(w: Tensor, s: Tensor) -> Tensor:
+        return w.new_zeros(w.shape[:-1])
+
+    return DriftDerivatives(J.expand(*x.shape[:-1], n, n), hess_quad)
 
 
 def _expand_g(g: Tensor, x: Tensor) -> Tensor:
@@ -46,6 +57,9 @@ class SingleIntegrator(ControlAffine):
     def g(self, x: Tensor) -> Tensor:
         return _expand_g(self._g, x)
 
+    def drift_derivatives(self, x: Tensor) -> DriftDerivatives:
+        return _constant_drift(x)
+
     def xdot(self, x: Tensor, u: Tensor) -> Tensor:
         return u.expand(broadcast_shapes(x.shape, u.shape))
 
@@ -64,6 +78,12 @@ class DoubleIntegrator(ControlAffine):
     def g(self, x: Tensor) -> Tensor:
         return _expand_g(self._g, x)
 
+    def drift_derivatives(self, x: Tensor) -> DriftDerivatives:
+        n, d = self.state_dim, self.dim
+        jac = torch.zeros(n, n, dtype=x.dtype, device=x.device)
+        jac[:d, d:] = torch.eye(d, dtype=x.dtype, device=x.device)
+        return _constant_drift(x, jac)
+
     def xdot(self, x: Tensor, u: Tensor) -> Tensor:
         v, u = torch.broadcast_tensors(x[..., self.dim :], u)
         return torch.cat([v, u], dim=-1)
@@ -77,6 +97,9 @@ class Unicycle(ControlAffine):
 
     def f(self, x: Tensor) -> Tensor:
         return torch.zeros_like(x)
+
+    def drift_derivatives(self, x: Tensor) -> DriftDerivatives:
+        return _constant_drift(x)
 
     def g(self, x: Tensor) -> Tensor:
         theta = x[..., 2]
@@ -113,6 +136,24 @@ class AccelUnicycle(ControlAffine):
 
     def g(self, x: Tensor) -> Tensor:
         return _expand_g(self._g, x)
+
+    def drift_derivatives(self, x: Tensor) -> DriftDerivatives:
+        v, theta = x[..., 2:3], x[..., 3:4]
+        cos, sin = torch.cos(theta), torch.sin(theta)
+        # df_i/dv = (cos, sin)_i; df_i/dtheta = v (-sin, cos)_i; zero rows for v and theta
+        cs, turn = torch.cat([cos, sin], -1), torch.cat([-sin, cos], -1)  # [..., 2]
+        block = torch.stack([cs, v * turn], -1)  # [..., 2, 2]: rows (x, y), columns (v, theta)
+        jac = torch.nn.functional.pad(block, (2, 0, 0, 2))
+
+        def hess_quad(w: Tensor, s: Tensor) -> Tensor:
+            # d2f_i/dv dtheta = (-sin, cos)_i, d2f_i/dtheta2 = -v (cos, sin)_i:
+            # tr(S' d2f_i S) = 2 (-sin, cos)_i sum(S_v S_theta) - v (cos, sin)_i sum(S_theta^2)
+            sv_st = (s[..., 2, :] * s[..., 3, :]).sum(-1, keepdim=True)
+            st2 = s[..., 3, :].square().sum(-1, keepdim=True)
+            q = 2 * sv_st * turn - v * st2 * cs  # [..., 2]
+            return (w[..., :2] * q.unsqueeze(-2)).sum(-1)
+
+        return DriftDerivatives(jac, hess_quad)
 
     def xdot(self, x: Tensor, u: Tensor) -> Tensor:
         v, theta = x[..., 2], x[..., 3]
