@@ -30,7 +30,7 @@
 
 /* Bumped whenever an exported signature or its meaning changes; _dual_native.py refuses a
  * built library of another version (e.g. an editable install not rebuilt after an edit). */
-#define KERNEL_VERSION 4
+#define KERNEL_VERSION 5
 
 int torchcbf_dual_version(void) { return KERNEL_VERSION; }
 
@@ -661,4 +661,43 @@ int torchcbf_dual_solve_small(int64_t B, int N, int M, const double *P, const do
     }
     free(buf), free(slots), free(bytes);
     return code;
+}
+
+/* ok[b] &= (the condition estimate of the factor L_b is at most max_condition), rows
+ * [0, B): the rows the dual method may keep (torch reference: the test in
+ * torchcbf.qp._function._forward_dual). Returns -1 when memory ran out. */
+int torchcbf_dual_check_condition(int64_t B, int N, const double *L, double max_condition,
+                                  uint8_t *ok) {
+    double *inv = malloc(sizeof(double) * N * N);
+    if (!inv) return -1;
+    for (int64_t b = 0; b < B; ++b)
+        if (ok[b])
+            ok[b] = torchcbf_dual_condition_estimate(N, L + b * N * N, inv) <= max_condition;
+    free(inv);
+    return 0;
+}
+
+/* active[b, i] |= solved[b] and h_i - G_i x_b <= tight (|h_i| + max_j |G_ij| (1 + max|x_b|)),
+ * rows [0, B): the rows tight at x join the backward's active set (torch reference:
+ * torchcbf.qp._kkt.with_tight_rows). */
+int torchcbf_dual_tight_rows(int64_t B, int N, int M, const double *G, const double *h,
+                             const double *x, const uint8_t *solved, double tight,
+                             uint8_t *active) {
+    for (int64_t b = 0; b < B; ++b) {
+        if (!solved[b]) continue;
+        const double *xb = x + b * N;
+        double xmax = 0.0;
+        for (int c = 0; c < N; ++c) xmax = dmax(xmax, fabs(xb[c]));
+        for (int i = 0; i < M; ++i) {
+            const double *g = G + (b * M + i) * N;
+            double gx = 0.0, gmax = 0.0;
+            for (int c = 0; c < N; ++c) {
+                gx += g[c] * xb[c];
+                gmax = dmax(gmax, fabs(g[c]));
+            }
+            double hi = h[b * M + i];
+            if (hi - gx <= tight * (fabs(hi) + gmax * (1.0 + xmax))) active[b * M + i] = 1;
+        }
+    }
+    return 0;
 }

@@ -31,4 +31,11 @@ int torchcbf_dual_solve_small(int64_t B, int N, int M, const double *P, const do
                               const double *ub, double eps, int max_iter,
                               double max_condition, double *x, double *z, double *z_lb,
                               double *z_ub, int64_t *iters);
+
+int torchcbf_dual_check_condition(int64_t B, int N, const double *L, double max_condition,
+                                  uint8_t *ok);
+
+int torchcbf_dual_tight_rows(int64_t B, int N, int M, const double *G, const double *h,
+                             const double *x, const uint8_t *solved, double tight,
+                             uint8_t *active);
 #endif

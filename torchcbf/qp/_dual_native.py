@@ -28,7 +28,7 @@ MIN_WORK_PER_THREAD = 1024 * (4 * 4 + 8 * 4)
 #: most variables the kernel handles (``NMAX`` in the C source)
 MAX_VARS = 64
 #: ``KERNEL_VERSION`` of the C source this module calls
-KERNEL_VERSION = 4
+KERNEL_VERSION = 5
 
 _P = ctypes.c_void_p
 _I64 = ctypes.c_int64
@@ -38,6 +38,8 @@ _BWD_ARGS = [_I64, _INT, _INT] + [_P] * 8
 # B, N, M; P, q, G, h, lb, ub; eps, max_iter, max_condition; x, z, z_lb, z_ub, iters
 _SMALL_ARGS = [_I64, _INT, _INT] + [_P] * 6 + [ctypes.c_double, _INT, ctypes.c_double]
 _SMALL_ARGS += [_P] * 5
+_COND_ARGS = [_I64, _INT, _P, ctypes.c_double, _P]
+_TIGHT_ARGS = [_I64, _INT, _INT, _P, _P, _P, _P, ctypes.c_double, _P]
 
 
 @functools.lru_cache(maxsize=1)
@@ -53,6 +55,9 @@ def _library() -> ctypes.CDLL | None:
         lib.torchcbf_dual_forward.argtypes = _FWD_ARGS
         lib.torchcbf_dual_backward.argtypes = _BWD_ARGS
         lib.torchcbf_dual_solve_small.argtypes = _SMALL_ARGS
+        lib.torchcbf_dual_check_condition.argtypes = _COND_ARGS
+        lib.torchcbf_dual_tight_rows.argtypes = _TIGHT_ARGS
+        lib.torchcbf_dual_check_condition.restype = lib.torchcbf_dual_tight_rows.restype = _INT
         lib.torchcbf_dual_forward.restype = lib.torchcbf_dual_backward.restype = _INT
         lib.torchcbf_dual_solve_small.restype = _INT
     return lib
@@ -144,3 +149,28 @@ def backward(
     args = [(G, M * N), (L, N * N), (slots, N), (ok, 1), (gx, N), (gz, M), (w_x, N), (wz, M)]
     _run(lambda n, *a: fn(n, N, M, *a), B, args, N * N + M * N)
     return w_x, wz
+
+
+def well_conditioned(L: Tensor, ok: Tensor, max_condition: float) -> Tensor:
+    """``ok [B]`` and, per row, the condition estimate of the factor ``L [B,N,N]``
+    (:func:`~torchcbf.qp._function.condition_estimate`) at most ``max_condition``."""
+    B, N = L.shape[0], L.shape[-1]
+    L = L.contiguous()
+    out = ok.clone()
+    fn = _kernel().torchcbf_dual_check_condition
+    _run(lambda n, l, o: fn(n, N, l, max_condition, o), B, [(L, N * N), (out, 1)], N * N * N)
+    return out
+
+
+def tight_rows(
+    G: Tensor, h: Tensor, x: Tensor, active: Tensor, solved: Tensor, tight: float
+) -> Tensor:
+    """``active [B, M]`` plus the rows of ``solved`` problems tight at ``x`` (the rule of
+    :func:`torchcbf.qp._kkt.with_tight_rows`) for ``G [B,M,N], h [B,M], x [B,N]``."""
+    B, M, N = G.shape
+    G, h, x, solved = (t.contiguous() for t in (G, h, x, solved))
+    out = active.clone()
+    fn = _kernel().torchcbf_dual_tight_rows
+    rows = [(G, M * N), (h, M), (x, N), (solved, 1), (out, M)]
+    _run(lambda n, g, hh, xx, s, o: fn(n, N, M, g, hh, xx, s, tight, o), B, rows, M * N)
+    return out

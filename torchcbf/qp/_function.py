@@ -284,17 +284,22 @@ def _forward_dual(
     y = q.new_zeros(q.shape[0], 0)
     steps = dual_budget(cfg.max_iter, G.shape[-2], q.shape[-1])
     res = solve_dual(P, q, G, h, eps=cfg.eps, max_iter=steps, check_every=cfg.check_every)
-    ok = res.ok & (
-        condition_estimate(res.factor.L, batch_first=isinstance(res.factor, NativeFactor))
-        <= MAX_DUAL_CONDITION
-    )
+    native = isinstance(res.factor, NativeFactor)
+    if native:  # the same rule in the kernel, without a pass of tensor operations
+        ok = _dual_native.well_conditioned(res.factor.L, res.ok, MAX_DUAL_CONDITION)
+    else:
+        ok = res.ok & (condition_estimate(res.factor.L, batch_first=False) <= MAX_DUAL_CONDITION)
     x, z, y, status, iters, active, any_fallback = _ipm_fallback(
         P, q, G, h, A, b, cfg, x0, res.x, res.z, y, res.active, ok, res.iterations,
         infeasible=res.infeasible,
     )  # fmt: skip
     if not cfg.need_factor:
         return x, z, y, status, iters, None
-    backward_set = _kkt.with_tight_rows(G, h, x, active, status)
+    if native:
+        solved = status == int(Status.SOLVED)
+        backward_set = _dual_native.tight_rows(G, h, x, active, solved, _kkt.TIGHT)
+    else:
+        backward_set = _kkt.with_tight_rows(G, h, x, active, status)
     # rows another method solved, and rows with tight rows outside the dual active set;
     # rows not SOLVED get zero gradients from either factor (the dual method's factor only
     # serves the rows whose answer was kept)
