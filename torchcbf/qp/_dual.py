@@ -24,8 +24,10 @@ A row finishes when nothing is pending and no inactive row is violated beyond ro
 (judged on each row's own scale; a row already active is never picked again). The
 multipliers are then re-solved exactly on the final active set, which removes the rounding
 the rank-one updates accumulate, and the point is checked as a KKT point. Rows
-that end infeasible (no step restores ``p``), run out of steps, have ``P`` not positive
-definite or fail the final check are reported in ``ok`` and left to the caller's fallback.
+where no step restores ``p`` (an infeasible problem, or a degenerate vertex where ``p`` is
+tight to rounding) stop there and are judged by the same check. Rows that run out of steps,
+have ``P`` not positive definite or fail the final check are reported in ``ok`` and left to
+the caller's fallback.
 On a CPU the test "is every row done" runs every step (it costs no device synchronisation);
 on other devices every ``check_every`` steps.
 """
@@ -196,9 +198,9 @@ def _step(data: _Data, st: _State) -> _State:
     ratio = torch.where(d > 0, lam_S / d, math.inf)
     t_part, k_drop = ratio.min(0)
     t = torch.minimum(t_full, t_part)
-    bad = ~done & ~torch.isfinite(t)
-    fail = fail | bad
-    done = done | bad
+    # no step restores p: the row stops here, and the exact check on the final active set
+    # decides (at a degenerate vertex p is tight to rounding and the point is optimal)
+    done = done | ~torch.isfinite(t)
     full = ~done & (t_full <= t_part)
     part = ~done & (t_full > t_part)
     t = torch.where(done, 0.0, t)
@@ -336,7 +338,6 @@ def solve_dual(
     dscale = 1.0 + q.abs().amax(-1) + (R_S.abs().amax(0) * lam_S.abs()).amax(0)
     ok = (
         ~fail
-        & ~pending
         & done
         & nonsing
         & (pviol <= eps)

@@ -15,7 +15,8 @@
  * restore the violated row p (it depends on the active rows, all of whose multipliers would
  * grow), y = (1 on p, -d on the active rows) >= 0 combines the rows into 0 <= h'y < 0, a
  * Farkas certificate. It is checked in floating point (see farkas()) and the row reported
- * infeasible; otherwise the row is left to the caller's fallback.
+ * infeasible; otherwise (a degenerate vertex, where p is tight to rounding) the exact final
+ * check judges the point, as in the torch implementation.
  */
 #include <math.h>
 #include <stdint.h>
@@ -30,7 +31,7 @@
 
 /* Bumped whenever an exported signature or its meaning changes; _dual_native.py refuses a
  * built library of another version (e.g. an editable install not rebuilt after an edit). */
-#define KERNEL_VERSION 5
+#define KERNEL_VERSION 6
 
 int torchcbf_dual_version(void) { return KERNEL_VERSION; }
 
@@ -300,9 +301,10 @@ INLINE int solve_one(int N, int M, const double *RESTRICT P, const double *RESTR
             }
         }
         double t = dmin(t_full, t_part);
-        if (!isfinite(t)) {
+        if (!isfinite(t)) { /* infeasible (certified), or stalled: the final check judges */
             *infeasible = (uint8_t)farkas(N, M, G, h, S, d, p, row_scale, xu_max);
-            fail = done = 1;
+            fail = *infeasible;
+            done = 1;
             break;
         }
         it += 1;
@@ -374,7 +376,7 @@ INLINE int solve_one(int N, int M, const double *RESTRICT P, const double *RESTR
         stat = dmax(stat, fabs(s));
         finite &= isfinite(x[c]) != 0;
     }
-    int ok = !fail && !pending && done && nonsing && finite && pviol <= eps &&
+    int ok = !fail && done && nonsing && finite && pviol <= eps &&
              lam_min >= -eps * (1.0 + lam_abs) && stat <= eps * (1.0 + qmax + rl);
     if (!ok) return 0;
     memcpy(x_out, x, sizeof(double) * N);

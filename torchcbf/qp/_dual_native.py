@@ -28,7 +28,7 @@ MIN_WORK_PER_THREAD = 1024 * (4 * 4 + 8 * 4)
 #: most variables the kernel handles (``NMAX`` in the C source)
 MAX_VARS = 64
 #: ``KERNEL_VERSION`` of the C source this module calls
-KERNEL_VERSION = 5
+KERNEL_VERSION = 6
 
 _P = ctypes.c_void_p
 _I64 = ctypes.c_int64
