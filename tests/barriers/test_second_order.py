@@ -180,6 +180,15 @@ def test_autograd_path_where_closed_forms_do_not_apply() -> None:
     assert not rectify(moving, acc, "exponential", relative_degree=2).has_analytic
     assert not rectify(Ball([0.5, 0.2], 0.4), VanDerPol(), "exponential",
                        relative_degree=2, ).has_analytic  # fmt: skip
+
+    class Damped(DoubleIntegrator):  # a new f: the parent's drift derivatives do not apply
+        def f(self, x):
+            return torch.cat([x[..., 2:] - 0.5 * x[..., :2], torch.zeros_like(x[..., 2:])], -1)
+
+    damped = Damped(2)
+    assert not damped.has_drift_derivatives
+    ball = rectify(Ball([0.5, 0.2], 0.4), damped, "exponential", [2.0], relative_degree=2)
+    assert not ball.has_analytic
     third = rectify(Ball([0.5, 0.2], 0.4), acc, "exponential", relative_degree=3)
     assert not third.has_analytic
     with pytest.raises(ValueError, match="closed-form"):

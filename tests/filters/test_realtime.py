@@ -122,27 +122,45 @@ def test_grad_mode_without_gradients_takes_the_realtime_path(
     _same(out, _general(filt, x, u), 1e-9)
 
 
-@pytest.mark.parametrize("source", ["x", "u_nom", "t", "parameter"])
+@pytest.mark.parametrize("source", ["x", "u_nom", "parameter", "buffer", "closure"])
 def test_a_gradient_to_carry_takes_the_general_path(
     source: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     calls = _counting(monkeypatch)
-    filt = scene("vanilla", alpha=LinearClassK(2.0, learnable=source == "parameter"))
+    gain = torch.tensor(2.0, dtype=torch.float64, requires_grad=source in ("buffer", "closure"))
+    alpha = {
+        "parameter": LinearClassK(2.0, learnable=True),
+        "buffer": gain,  # kept as a buffer that requires grad
+        "closure": lambda h: gain * h,  # a tensor no module holds
+    }.get(source, 2.0)
+    filt = scene("vanilla", alpha=alpha)
     xs, us = random_states(2, seed=6)
     x, u = torch.tensor(xs), torch.tensor(us)
-    t = torch.zeros(2, dtype=torch.float64)
-    leaf = {"x": x, "u_nom": u, "t": t}.get(source)
+    leaf = {"x": x, "u_nom": u}.get(source)
     if leaf is not None:
         leaf.requires_grad_()
-    out = filt(x, u, t)
-    assert not calls
-    if source != "t":  # the scene's barriers do not depend on t
-        out.u.sum().backward()
-        grads = [leaf.grad] if leaf is not None else [p.grad for p in filt.parameters()]
-        assert all(g is not None and torch.isfinite(g).all() for g in grads)
+    out = filt(x, u)
+    assert not calls and out.u.requires_grad
+    out.u.sum().backward()
+    if leaf is not None:
+        grads = [leaf.grad]
+    elif source == "parameter":
+        grads = [p.grad for p in filt.parameters()]
+    else:
+        grads = [gain.grad]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)
     with torch.no_grad():  # no_grad: the real-time path, whatever requires grad
-        filt(x, u, t)
+        filt(x, u)
     assert len(calls) == 1
+
+
+def test_a_time_the_barriers_ignore_carries_no_gradient(monkeypatch: pytest.MonkeyPatch) -> None:
+    calls = _counting(monkeypatch)
+    filt = scene("vanilla")
+    xs, us = random_states(2, seed=6)
+    t = torch.zeros(2, dtype=torch.float64, requires_grad=True)
+    out = filt(torch.tensor(xs), torch.tensor(us), t)
+    assert len(calls) == 1 and not out.u.requires_grad
 
 
 @pytest.mark.parametrize("spread", [1e2, 1e7])

@@ -288,6 +288,9 @@ def test_errors_name_the_argument() -> None:
         SafetyFilter(dyn, [ball, "wall"])
     with pytest.raises(ValueError, match="alpha"):
         SafetyFilter(dyn, [ball, ball], alpha=[lambda h: h])
+    for bad in ({"max_iter": 0}, {"max_iter": 2.5}, {"eps": 0.0}, {"eps": 1.5}):
+        with pytest.raises(ValueError, match=r"qp_options\['(max_iter|eps)'\]"):
+            SafetyFilter(dyn, ball, qp_options=bad)
     filt = SafetyFilter(dyn, ball)
     with pytest.raises(ValueError, match=r"x must have shape \[\.\.\., 3\]"):
         filt(torch.zeros(4, 2), torch.zeros(4, 2))

@@ -115,6 +115,21 @@ def test_strictly_convex_problem_with_a_large_q_is_not_called_unbounded(method):
     assert float(sol.x[0]) == pytest.approx(1.0, abs=1e-9)
 
 
+@pytest.mark.parametrize("method", ["ipm", "auto"])
+@pytest.mark.parametrize("curvature", [1e-8, 1e-6, 1e-4])
+def test_weak_curvature_beside_a_free_direction_is_bounded(method, curvature):
+    """P = diag(0, c) is singular, so the unboundedness certificate is allowed, yet the problem
+    is bounded (x1 in a box, x2 = 1 / c): a direction whose curvature is large against P's
+    own scale is no recession direction, however small against q'x."""
+    Q = torch.diag(torch.tensor([0.0, curvature], dtype=F64))
+    p = torch.tensor([-1.0, -1.0], dtype=F64)
+    G = torch.tensor([[1.0, 0.0], [-1.0, 0.0]], dtype=F64)
+    h = torch.ones(2, dtype=F64)
+    sol = solve_qp(Q, p, G, h, method=method)
+    assert int(sol.status) == Status.SOLVED
+    torch.testing.assert_close(sol.x, torch.tensor([1.0, 1.0 / curvature], dtype=F64))
+
+
 def test_infeasible_box_and_equality_flagged():
     Q = torch.eye(3, dtype=F64).expand(4, 3, 3)
     p = torch.zeros(4, 3, dtype=F64)

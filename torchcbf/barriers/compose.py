@@ -75,7 +75,9 @@ def _stack_analytic(barriers: nn.ModuleList, x: Tensor, t: Tensor) -> AnalyticDe
 
     def hess_mat(m: Tensor) -> Tensor:
         mats = [p.hess_mat(m) for p in parts]  # type: ignore[misc]
-        return torch.cat([v.unsqueeze(-3) if v.dim() == m.dim() else v for v in mats], -3)
+        return torch.cat(
+            [v.unsqueeze(-3) if s else v for v, s in zip(mats, single, strict=True)], -3
+        )
 
     def hess_dir(v: Tensor, s: Tensor) -> Tensor:
         return torch.cat([_as_columns(p.hess_dir(v, s), x) for p in parts], -1)  # type: ignore[misc]

@@ -27,6 +27,11 @@ SigmaSpec = float | Tensor | Callable[[Tensor], Tensor] | None
 LimitSpec = float | Tensor | list[float] | tuple[float, ...] | None
 
 
+def _definer(cls: type, name: str) -> type | None:
+    """The class of ``cls``'s MRO whose body defines ``name``."""
+    return next((c for c in cls.__mro__ if name in vars(c)), None)
+
+
 class DriftDerivatives(NamedTuple):
     """Closed-form derivatives of the drift at ``x [..., n]``: ``jac = df/dx [..., n, n]``
     and ``hess_quad(w [..., k, n], S [..., n, q]) -> sum_i w_i tr(S' d2f_i/dx2 S) [..., k]``
@@ -119,9 +124,12 @@ class ControlAffine(nn.Module):
 
     @property
     def has_drift_derivatives(self) -> bool:
-        """Whether :meth:`drift_derivatives` has closed forms (closed-form exponential CBFs
-        of relative degree two use them; otherwise those run by autograd)."""
-        return type(self).drift_derivatives is not ControlAffine.drift_derivatives
+        """Whether :meth:`drift_derivatives` has closed forms for this model's ``f``
+        (closed-form exponential CBFs of relative degree two use them; otherwise those run by
+        autograd): the class that defines it must also define ``f``, so a subclass that
+        changes ``f`` does not inherit its parent's derivatives."""
+        owner = _definer(type(self), "drift_derivatives")
+        return owner is not ControlAffine and owner is _definer(type(self), "f")
 
     def drift_derivatives(self, x: Tensor) -> DriftDerivatives:
         """Jacobian and second-derivative contraction of ``f`` at ``x [..., n]`` (see

@@ -16,10 +16,13 @@
 
 #include "../qp/_dual_kernel.h"
 
-/* Bumped whenever an exported signature or its meaning changes (see _native.py). */
-#define FILTER_KERNEL_VERSION 3
+/* Bumped whenever an exported signature or its meaning changes (see _native.py); the version
+ * reported folds in the linked QP kernel's, whose solver this library carries. */
+#define FILTER_KERNEL_VERSION 4
 
-int torchcbf_filter_version(void) { return FILTER_KERNEL_VERSION; }
+int torchcbf_filter_version(void) {
+    return 100 * FILTER_KERNEL_VERSION + TORCHCBF_DUAL_KERNEL_VERSION;
+}
 
 /* slack modes, as SLACK_CODES in realtime.py */
 enum { SLACK_NONE = 0, SLACK_SHARED = 1, SLACK_PER_ROW = 2 };

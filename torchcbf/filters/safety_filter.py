@@ -24,12 +24,12 @@ Statuses (:class:`FilterStatus`) per row: ``SOLVED`` (every hard constraint met)
 (non-finite ``x``, ``u_nom`` or ``t`` in the row: fallback used; the row is sanitised
 before any computation so the other rows and the gradients are untouched).
 
-Real-time path: a few states on the CPU (at most ``torchcbf.filters.realtime.MAX_BATCH``)
-whose outputs cannot carry a gradient (grad mode off, or no input and no parameter of the
-filter requires grad) and the default QP backend: after the conditions, one call of a C
-kernel assembles the QP, solves it by the dual active-set method and computes the outputs
+Real-time path: a few finite states on the CPU (at most
+``torchcbf.filters.realtime.MAX_BATCH``) with the default QP backend, whose conditions carry
+no gradient (grad mode off, or nothing they depend on requires grad): one call of a C kernel
+assembles the QP, solves it by the dual active-set method and computes the outputs
 (:mod:`torchcbf.filters.realtime`). A batch the kernel does not certify completely (or with
-non-finite data) takes the general path, so both return the same answers.
+non-finite conditions) takes the general path, so both return the same answers.
 """
 
 from __future__ import annotations
@@ -40,11 +40,11 @@ from collections.abc import Sequence
 from enum import IntEnum
 from typing import Any, Literal, NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
 import torchcbf.qp as qp_layer
-from torchcbf._autograd import needs_graph
 from torchcbf._checks import (
     as_limit,
     as_matrix,
@@ -171,6 +171,20 @@ def _positive(name: str, value: Any) -> float:
     if not (value > 0 and math.isfinite(value)):
         raise ValueError(f"{name} must be finite and positive, got {value}")
     return float(value)
+
+
+def _check_qp_options(opts: dict[str, Any]) -> dict[str, Any]:
+    """``qp_options`` with ``eps`` and ``max_iter`` checked as :func:`~torchcbf.qp.solve_qp`
+    checks them (the real-time path reads them without calling it)."""
+    max_iter = opts.get("max_iter", 1)
+    if not isinstance(max_iter, int) or isinstance(max_iter, bool) or max_iter < 1:
+        raise ValueError(f"qp_options['max_iter'] must be a positive integer, got {max_iter!r}")
+    eps = opts.get("eps")
+    if eps is not None and (
+        isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0 < eps < 1
+    ):
+        raise ValueError(f"qp_options['eps'] must be a number in (0, 1), got {eps!r}")
+    return opts
 
 
 def _slack_mode(cbf_slack: str | None, relax_cbf: bool | None, elastic: bool | None) -> str:
@@ -308,7 +322,7 @@ class SafetyFilter(nn.Module):
             slack_tol = _positive("slack_tol", slack_tol)
         self.slack_tol = slack_tol
         self.exact = bool(self.lyapunovs) if exact is None else bool(exact)
-        self.qp_options = dict(qp_options or {})
+        self.qp_options = _check_qp_options(dict(qp_options or {}))
 
     # -- read-only views kept for callers of the former attributes -------------------------
     @property
@@ -344,18 +358,21 @@ class SafetyFilter(nn.Module):
         batch, xb, ub, tb = self._inputs(x, u_nom, t)
         conditions = None
         if self._realtime_applies(xb, ub, tb):
-            # no output can carry a gradient: the conditions need no graph
-            with torch.no_grad():
-                conditions = self._conditions(xb, tb)
+            # the conditions as the general path computes them (finite inputs): they carry a
+            # graph exactly when some output can have a gradient, whatever its source (an
+            # input, a parameter, a tensor captured by a class-K closure)
+            conditions = self._conditions(xb, tb)
+            grads = torch.is_grad_enabled()
+            if not (grads and _carries_grad(conditions, ub, self.R, *self._limit_tensors())):
                 out = self._realtime(batch, xb, ub, tb, conditions)
-            if out is not None:
-                return out
+                if out is not None:
+                    return out
         finite = torch.isfinite(xb).all(-1) & torch.isfinite(ub).all(-1) & torch.isfinite(tb)
         fin = finite.unsqueeze(-1)
         xs = torch.where(fin, xb, torch.zeros_like(xb))
         us = torch.where(fin, ub, torch.zeros_like(ub))
         ts = torch.where(finite, tb, torch.zeros_like(tb))
-        if conditions is None or not bool(finite.all()):
+        if conditions is None:
             conditions = self._conditions(xs, ts)
         cbf, clf, h, V = conditions
         lo, hi = self._limits(xs)
@@ -521,9 +538,10 @@ class SafetyFilter(nn.Module):
 
     # -- the real-time path ----------------------------------------------------------------
     def _realtime_applies(self, xb: Tensor, ub: Tensor, tb: Tensor) -> bool:
-        """Whether a call may take the real-time path: few states on the CPU, no output that
-        can carry a gradient (grad mode off, or nothing that requires grad: the inputs and
-        the filter's parameters), the default QP backend and the C kernel built."""
+        """Whether a call may take the real-time path: few states on the CPU, all finite
+        (non-finite rows are sanitised by the general path before any computation), the
+        default QP backend and the C kernel built; :meth:`forward` then also asks that no
+        output can carry a gradient."""
         opts = self.qp_options
         if (
             not 1 <= xb.shape[0] <= realtime.MAX_BATCH
@@ -534,7 +552,8 @@ class SafetyFilter(nn.Module):
             or not realtime.available()
         ):
             return False
-        return not needs_graph(self, xb, ub, tb)
+        total = xb.detach().numpy().sum() + ub.detach().numpy().sum() + tb.detach().numpy().sum()
+        return bool(np.isfinite(total))
 
     def _realtime(
         self,
@@ -549,13 +568,14 @@ class SafetyFilter(nn.Module):
         (non-finite data, a row the kernel does not certify)."""
         cbf, clf, h, V = conditions
         opts = self.qp_options
+        eps = opts.get("eps")
         res = realtime.solve(
             cbf, clf, xb, ub, tb, self.R, *self._limit_tensors(),
             slack=self.cbf_slack,
             two_pass=self.exact and self.cbf_slack == "shared",
             cbf_weight=self.cbf_slack_weight,
             clf_weight=self.clf_slack_weight,
-            eps=float(opts.get("eps") or qp_realtime.default_eps(xb.dtype)),
+            eps=float(qp_realtime.default_eps(xb.dtype) if eps is None else eps),
             max_iter=opts.get("max_iter", 50),
             slack_tol=self._slack_tol(xb),
             batch=batch,
@@ -573,6 +593,13 @@ class SafetyFilter(nn.Module):
             qp_status=torch.zeros_like(res.status),
             constraint_value=res.value.to(dt),
         )
+
+
+def _carries_grad(conditions: tuple[Any, Any, Tensor, Tensor], *more: Tensor | None) -> bool:
+    """Whether a condition tensor, ``h``, ``V`` or one of ``more`` requires grad."""
+    cbf, clf, h, V = conditions
+    tensors = [h, V, *more, *(cbf or ()), *(clf or ())]
+    return any(t is not None and t.requires_grad for t in tensors)
 
 
 def _residuals(

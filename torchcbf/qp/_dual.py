@@ -294,7 +294,7 @@ def solve_dual(
         fail=~pd,
         iters=torch.zeros(B, dtype=torch.int64, device=device),
     )
-    final = _Outcome(st.S, st.pending, st.fail, st.done, st.iters)  # full batch
+    final = _Outcome(st.S, st.fail, st.done, st.iters)  # full batch
     rows: Tensor | None = None  # global indices of the rows being iterated (None: all)
     sync_each = device.type == "cpu"
     for it in range(max_iter):
@@ -318,7 +318,7 @@ def solve_dual(
             st = _State(*(t.index_select(-1, keep) for t in st))
     else:
         final = _write_back(final, st, rows)
-    S, pending, fail, done, iters = final
+    S, fail, done, iters = final
 
     # exact multipliers and primal point on the final active set (the iterates accumulate
     # rounding), then the KKT check with per-row tolerances
@@ -359,7 +359,6 @@ class _Outcome(NamedTuple):
     """The fields of :class:`_State` read after the iteration, for the whole batch."""
 
     S: Tensor
-    pending: Tensor
     fail: Tensor
     done: Tensor
     iters: Tensor
@@ -367,7 +366,7 @@ class _Outcome(NamedTuple):
 
 def _write_back(final: _Outcome, st: _State, rows: Tensor | None) -> _Outcome:
     """Copy the iterated rows ``rows`` (all when ``None``) of ``st`` into ``final``."""
-    new = _Outcome(st.S, st.pending, st.fail, st.done, st.iters)
+    new = _Outcome(st.S, st.fail, st.done, st.iters)
     if rows is None:
         return new
     return _Outcome(*(f.index_copy(-1, rows, s) for f, s in zip(final, new, strict=True)))

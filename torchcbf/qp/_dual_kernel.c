@@ -29,11 +29,7 @@
 #define NMAX TORCHCBF_DUAL_NMAX
 #define NUNROLL 8
 
-/* Bumped whenever an exported signature or its meaning changes; _dual_native.py refuses a
- * built library of another version (e.g. an editable install not rebuilt after an edit). */
-#define KERNEL_VERSION 6
-
-int torchcbf_dual_version(void) { return KERNEL_VERSION; }
+int torchcbf_dual_version(void) { return TORCHCBF_DUAL_KERNEL_VERSION; }
 
 /* Every helper is inlined into one copy of the row solver per N (1..NUNROLL), so that N is a
  * compile-time constant and the small loops unroll; larger N share one copy. */
@@ -580,7 +576,8 @@ double torchcbf_dual_condition_estimate(int N, const double *L, double *inv) {
             col += inv[k * N + i] * inv[k * N + i];
         }
         double c = row * col;
-        if (!(c <= worst)) worst = c;
+        if (isnan(c)) return c;
+        worst = dmax(worst, c);
     }
     return worst;
 }

@@ -27,7 +27,7 @@ logger = logging.getLogger(__name__)
 MIN_WORK_PER_THREAD = 1024 * (4 * 4 + 8 * 4)
 #: most variables the kernel handles (``NMAX`` in the C source)
 MAX_VARS = 64
-#: ``KERNEL_VERSION`` of the C source this module calls
+#: ``TORCHCBF_DUAL_KERNEL_VERSION`` of the C source this module calls (_dual_kernel.h)
 KERNEL_VERSION = 6
 
 _P = ctypes.c_void_p
@@ -156,7 +156,7 @@ def well_conditioned(L: Tensor, ok: Tensor, max_condition: float) -> Tensor:
     (:func:`~torchcbf.qp._function.condition_estimate`) at most ``max_condition``."""
     B, N = L.shape[0], L.shape[-1]
     L = L.contiguous()
-    out = ok.clone()
+    out = ok.clone(memory_format=torch.contiguous_format)
     fn = _kernel().torchcbf_dual_check_condition
     _run(lambda n, l, o: fn(n, N, l, max_condition, o), B, [(L, N * N), (out, 1)], N * N * N)
     return out
@@ -169,7 +169,7 @@ def tight_rows(
     :func:`torchcbf.qp._kkt.with_tight_rows`) for ``G [B,M,N], h [B,M], x [B,N]``."""
     B, M, N = G.shape
     G, h, x, solved = (t.contiguous() for t in (G, h, x, solved))
-    out = active.clone()
+    out = active.clone(memory_format=torch.contiguous_format)
     fn = _kernel().torchcbf_dual_tight_rows
     rows = [(G, M * N), (h, M), (x, N), (solved, 1), (out, M)]
     _run(lambda n, g, hh, xx, s, o: fn(n, N, M, g, hh, xx, s, tight, o), B, rows, M * N)

@@ -213,6 +213,10 @@ def solve_ipm(
     # largest entry of every row of G and A, to weigh the rows a Farkas certificate combines
     g_rows = G.abs().amax(-1) if n > 0 else G.new_zeros(B, M)  # [B, M]
     a_rows = A.abs().amax(-1) if n > 0 else A.new_zeros(B, A.shape[-2])  # [B, E]
+    # largest entries of P, G and A, the scales of an unboundedness certificate
+    p_max = P.abs().amax((-2, -1)) if n > 0 else P.new_zeros(B)
+    g_max = _inf_norm(g_rows)
+    a_max = _inf_norm(a_rows)
     # a strictly convex QP is never dual infeasible: only rows whose P is not positive
     # definite may take the certificate (with a large q it fires falsely, e.g. P = 1,
     # q = -1e8, -10 <= x <= 1)
@@ -264,13 +268,19 @@ def solve_ipm(
             & (_inf_norm(Gtz) <= eps_inf * row_w)
             & (hz <= -eps_inf * rhs_w)
         )
+        # unbounded descent: a direction x with Px = 0, Ax = 0, Gx <= 0 and q'x < 0, each
+        # judged against q'x and against its own data's scale (a weak curvature next to a
+        # large q, as in P = diag(0, 1e-6), q = -1, is bounded, however large x grows)
         dinf_thr = -eps_inf * qx
+        xn = eps_inf * _inf_norm(x)
+        gx_max = Gx.amax(-1) if M > 0 else qx.new_zeros(B)
         dinf = (
             may_be_unbounded
             & (qx < 0)
-            & (_inf_norm(Px) <= dinf_thr)
-            & (_inf_norm(Ax) <= dinf_thr)
-            & ((Gx.amax(-1) if M > 0 else qx.new_zeros(B)) <= dinf_thr)
+            & (qx <= -qn * xn)
+            & (_inf_norm(Px) <= torch.minimum(dinf_thr, p_max * xn))
+            & (_inf_norm(Ax) <= torch.minimum(dinf_thr, a_max * xn))
+            & (gx_max <= torch.minimum(dinf_thr, g_max * xn))
         )
         status = torch.where(active & converged, int(Status.SOLVED), status)
         status = torch.where(active & ~converged & pinf, int(Status.PRIMAL_INFEASIBLE), status)
@@ -290,10 +300,11 @@ def solve_ipm(
                 full = _write_back(full, idx, state)
                 keep = active.nonzero().squeeze(-1)
                 idx = idx[keep]
+                rows = (P, q, G, h, A, b, reg, qn, hn, g_rows, a_rows, may_be_unbounded)
                 P, q, G, h, A, b, reg, qn, hn, g_rows, a_rows, may_be_unbounded = (
-                    t[keep]
-                    for t in (P, q, G, h, A, b, reg, qn, hn, g_rows, a_rows, may_be_unbounded)
+                    t[keep] for t in rows
                 )
+                p_max, g_max, a_max = (t[keep] for t in (p_max, g_max, a_max))
                 Gt, At = G.mT, A.mT
                 x, s, z, y, tau, kappa, status, iterations = (t[keep] for t in state)
                 inv_tau, rx, rz, ry, rt = (t[keep] for t in (inv_tau, rx, rz, ry, rt))
