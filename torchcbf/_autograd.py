@@ -1,5 +1,7 @@
-"""Whether a computation must record a graph: the one test behind every fast path that
-carries no gradient (the filter's real-time path, the planner's kernel, the estimators)."""
+"""Whether a computation must record a graph: the test behind the fast paths that carry no
+gradient and run only built-in code (the planner's C kernel, the estimators' Jacobians).
+Code that calls user functions (the safety filter's real-time path) asks its own results
+instead, since a user closure may hold a tensor that requires grad."""
 
 from __future__ import annotations
 
