@@ -18,7 +18,7 @@
 
 /* Bumped whenever an exported signature or its meaning changes (see _native.py); the version
  * reported folds in the linked QP kernel's, whose solver this library carries. */
-#define FILTER_KERNEL_VERSION 4
+#define FILTER_KERNEL_VERSION 5
 
 int torchcbf_filter_version(void) {
     return 100 * FILTER_KERNEL_VERSION + TORCHCBF_DUAL_KERNEL_VERSION;
@@ -29,6 +29,14 @@ enum { SLACK_NONE = 0, SLACK_SHARED = 1, SLACK_PER_ROW = 2 };
 
 /* the filter statuses written (FilterStatus in safety_filter.py) */
 enum { STATUS_SOLVED = 0, STATUS_RELAXED = 1 };
+
+/* Whether the states x [nx], controls u [nu] and times t [nt] (float64) are all finite: the
+ * real-time path's test before any computation on them. */
+int torchcbf_filter_inputs_finite(int64_t nx, const double *x, int64_t nu, const double *u,
+                                  int64_t nt, const double *t) {
+    return torchcbf_dual_all_finite(nx, x) && torchcbf_dual_all_finite(nu, u) &&
+           torchcbf_dual_all_finite(nt, t);
+}
 
 /* The filter QP of one state over z = [u (m); s (ks); delta (c)]: P [N,N], q [N],
  * G [M,N], h [M] with N = m + ks + c and M = k + c + (finite limits) + ks + c. */

@@ -26,7 +26,7 @@ from torchcbf.qp._function import MAX_DUAL_CONDITION
 
 #: ``100 FILTER_KERNEL_VERSION + TORCHCBF_DUAL_KERNEL_VERSION`` of the C sources this module
 #: calls (the filter's kernel carries the QP kernel's solver)
-KERNEL_VERSION = 100 * 4 + _dual_native.KERNEL_VERSION
+KERNEL_VERSION = 100 * 5 + _dual_native.KERNEL_VERSION
 #: most states the path takes (beyond it the general path's batched solve pays off)
 MAX_BATCH = qp_realtime.MAX_BATCH
 #: the kernel's codes of the CBF slack modes
@@ -52,12 +52,25 @@ def _library() -> ctypes.CDLL | None:
     if lib is not None:
         lib.torchcbf_filter_solve.argtypes = _ARGS
         lib.torchcbf_filter_solve.restype = _INT
+        lib.torchcbf_filter_inputs_finite.argtypes = [ctypes.c_int64, _P] * 3
+        lib.torchcbf_filter_inputs_finite.restype = _INT
     return lib
 
 
 def available() -> bool:
     """Whether the filter kernel was built and loads."""
     return _library() is not None
+
+
+def inputs_finite(x: Tensor, u: Tensor, t: Tensor) -> bool:
+    """Whether the CPU tensors ``x``, ``u`` and ``t`` hold no NaN and no infinity (one kernel
+    call for contiguous float64 tensors)."""
+    lib = _library()
+    tensors = (x, u, t)
+    if lib is not None and all(v.dtype == torch.float64 and v.is_contiguous() for v in tensors):
+        args = [a for v in tensors for a in (v.numel(), v.data_ptr())]
+        return bool(lib.torchcbf_filter_inputs_finite(*args))
+    return all(bool(torch.isfinite(v).all()) for v in tensors)
 
 
 class RealtimeOutput(NamedTuple):

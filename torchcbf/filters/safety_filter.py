@@ -40,7 +40,6 @@ from collections.abc import Sequence
 from enum import IntEnum
 from typing import Any, Literal, NamedTuple
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -552,8 +551,7 @@ class SafetyFilter(nn.Module):
             or not realtime.available()
         ):
             return False
-        total = xb.detach().numpy().sum() + ub.detach().numpy().sum() + tb.detach().numpy().sum()
-        return bool(np.isfinite(total))
+        return realtime.inputs_finite(xb, ub, tb)
 
     def _realtime(
         self,
