@@ -20,13 +20,11 @@ import torch
 from torch import Tensor
 
 from torchcbf._native import load_kernel
-from torchcbf.qp import _dual_native
 from torchcbf.qp import realtime as qp_realtime
-from torchcbf.qp._function import MAX_DUAL_CONDITION
 
 #: ``100 FILTER_KERNEL_VERSION + TORCHCBF_DUAL_KERNEL_VERSION`` of the C sources this module
 #: calls (the filter's kernel carries the QP kernel's solver)
-KERNEL_VERSION = 100 * 5 + _dual_native.KERNEL_VERSION
+KERNEL_VERSION = 100 * 5 + qp_realtime.KERNEL_VERSION
 #: most states the path takes (beyond it the general path's batched solve pays off)
 MAX_BATCH = qp_realtime.MAX_BATCH
 #: the kernel's codes of the CBF slack modes
@@ -139,7 +137,8 @@ def solve(
     code = lib.torchcbf_filter_solve(
         B, x.shape[1], m, k, c, SLACK_CODES[slack], int(two_pass),
         *[None if v is None else v.data_ptr() for v in held],
-        cbf_weight, clf_weight, eps, min(max_iter, 2**31 - 1), slack_tol, MAX_DUAL_CONDITION,
+        cbf_weight, clf_weight, eps, min(max_iter, 2**31 - 1), slack_tol,
+        qp_realtime.MAX_DUAL_CONDITION,
         u.data_ptr(), slk.data_ptr(), value.data_ptr(), status.data_ptr(),
     )  # fmt: skip
     if code < 0:

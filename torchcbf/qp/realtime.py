@@ -1,7 +1,8 @@
 """Real-time path for a few small QPs on the CPU: one call of the C kernel.
 
-Public for the layers above (the safety filter's real-time path): :func:`available`,
-:func:`default_eps`, :func:`solve_small` and :data:`MAX_BATCH`.
+Public for the layers above (the safety filter's real-time path, whose kernel links the QP
+kernel): :func:`available`, :func:`default_eps`, :func:`solve_small`, :data:`MAX_BATCH`,
+:data:`MAX_DUAL_CONDITION` and :data:`KERNEL_VERSION`.
 
 A control loop solves ONE small QP per tick; there the cost of a solve is the number of
 tensor operations around the kernel, not the kernel. :func:`solve_small` hands the data
@@ -25,8 +26,19 @@ from torchcbf.qp import _dual_native
 from torchcbf.qp._function import MAX_DUAL_CONDITION, dual_budget
 from torchcbf.qp._ipm import default_tolerances
 
-#: largest batch the numpy path takes (beyond it the general path's threads pay off)
+#: largest batch the path takes (beyond it the general path's threads pay off)
 MAX_BATCH = 16
+#: version of the QP kernel's C source (a library linking it folds it into its own)
+KERNEL_VERSION = _dual_native.KERNEL_VERSION
+__all__ = [
+    "KERNEL_VERSION",
+    "MAX_BATCH",
+    "MAX_DUAL_CONDITION",
+    "SmallSolution",
+    "available",
+    "default_eps",
+    "solve_small",
+]
 
 
 def available() -> bool:
