@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -30,6 +31,14 @@ LimitSpec = float | Tensor | list[float] | tuple[float, ...] | None
 def _definer(cls: type, name: str) -> type | None:
     """The class of ``cls``'s MRO whose body defines ``name``."""
     return next((c for c in cls.__mro__ if name in vars(c)), None)
+
+
+@functools.cache
+def _own_drift_derivatives(cls: type) -> bool:
+    """Whether the class of ``cls``'s MRO that defines ``f`` also defines
+    ``drift_derivatives`` (a property of the class alone, so computed once per class)."""
+    owner = _definer(cls, "drift_derivatives")
+    return owner is not ControlAffine and owner is _definer(cls, "f")
 
 
 class DriftDerivatives(NamedTuple):
@@ -128,8 +137,7 @@ class ControlAffine(nn.Module):
         (closed-form exponential CBFs of relative degree two use them; otherwise those run by
         autograd): the class that defines it must also define ``f``, so a subclass that
         changes ``f`` does not inherit its parent's derivatives."""
-        owner = _definer(type(self), "drift_derivatives")
-        return owner is not ControlAffine and owner is _definer(type(self), "f")
+        return _own_drift_derivatives(type(self))
 
     def drift_derivatives(self, x: Tensor) -> DriftDerivatives:
         """Jacobian and second-derivative contraction of ``f`` at ``x [..., n]`` (see
