@@ -18,7 +18,7 @@
 
 /* Bumped whenever an exported signature or its meaning changes (see _native.py); the version
  * reported folds in the linked QP kernel's, whose solver this library carries. */
-#define FILTER_KERNEL_VERSION 5
+#define FILTER_KERNEL_VERSION 6
 
 int torchcbf_filter_version(void) {
     return 100 * FILTER_KERNEL_VERSION + TORCHCBF_DUAL_KERNEL_VERSION;
@@ -118,8 +118,7 @@ static void assemble_one(int m, int k, int c, int ks, int slack, const double *a
  * The filter on B states. Inputs (float64, C-contiguous, batch first): CBF conditions
  * a . u + b >= 0 (a_cbf [B,k,m], b_cbf [B,k]), CLF conditions a . u + b <= delta (a_clf
  * [B,c,m], b_clf [B,c]), u_nom [B,m], R [m,m], limits lo, hi [m] (NULL, or infinite
- * entries, where absent);
- * the states x_state [B,n] and times t [B] are only checked to be finite.
+ * entries, where absent). The caller checks the states and times (inputs_finite above).
  * two_pass: also solve the hard QP (CBF slack columns zeroed) and prefer its solution; a
  * row whose hard QP the kernel proves infeasible takes the elastic one.
  * Outputs: u_out [B,m]; slack_out [B,k+c] (CBF violations, then CLF relaxations);
@@ -129,15 +128,14 @@ static void assemble_one(int m, int k, int c, int ks, int slack, const double *a
  * takes its general path), -1 when memory ran out or the sizes are invalid. The solver may
  * take max(max_iter, 4 (rows + variables)) steps (torchcbf.qp._function.dual_budget).
  */
-int torchcbf_filter_solve(int64_t B, int n, int m, int k, int c, int slack, int two_pass,
+int torchcbf_filter_solve(int64_t B, int m, int k, int c, int slack, int two_pass,
                           const double *a_cbf, const double *b_cbf, const double *a_clf,
                           const double *b_clf, const double *u_nom, const double *R,
-                          const double *lo, const double *hi, const double *x_state,
-                          const double *t, double cbf_weight,
+                          const double *lo, const double *hi, double cbf_weight,
                           double clf_weight, double eps, int max_iter, double slack_tol,
                           double max_condition, double *u_out, double *slack_out,
                           double *value_out, int64_t *status) {
-    if (B < 1 || n < 1 || m < 1 || k < 0 || c < 0 || k + c < 1) return -1;
+    if (B < 1 || m < 1 || k < 0 || c < 0 || k + c < 1) return -1;
     int ks = (k == 0 || slack == SLACK_NONE) ? 0 : (slack == SLACK_PER_ROW ? k : 1);
     int N = m + ks + c;
     if (N > TORCHCBF_DUAL_NMAX) return 1;
@@ -151,10 +149,10 @@ int torchcbf_filter_solve(int64_t B, int n, int m, int k, int c, int slack, int 
     for (int j = 0; j < m; ++j) limits += isfinite(lo[j]) + isfinite(hi[j]);
     int M = k + c + limits + ks + c;
     int64_t Bq = two_pass && ks ? 2 * B : B; /* problems: [elastic (B); hard (B)] */
-    const double *inputs[] = {x_state, t, a_cbf, b_cbf, a_clf, b_clf, u_nom, R};
-    const int64_t sizes[] = {n * B, B, (int64_t)k * m * B, (int64_t)k * B,
-                             (int64_t)c * m * B, (int64_t)c * B, (int64_t)m * B, m * m};
-    for (int i = 0; i < 8; ++i)
+    const double *inputs[] = {a_cbf, b_cbf, a_clf, b_clf, u_nom, R};
+    const int64_t sizes[] = {(int64_t)k * m * B, (int64_t)k * B, (int64_t)c * m * B,
+                             (int64_t)c * B,     (int64_t)m * B, m * m};
+    for (int i = 0; i < 6; ++i)
         if (!torchcbf_dual_all_finite(sizes[i], inputs[i])) return 1;
     size_t per = (size_t)N * N + N + (size_t)M * N + M + N + M + (size_t)N * N;
     double *buf = malloc(sizeof(double) * per * Bq + sizeof(double) * N * N);

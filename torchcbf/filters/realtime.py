@@ -24,7 +24,7 @@ from torchcbf.qp import realtime as qp_realtime
 
 #: ``100 FILTER_KERNEL_VERSION + TORCHCBF_DUAL_KERNEL_VERSION`` of the C sources this module
 #: calls (the filter's kernel carries the QP kernel's solver)
-KERNEL_VERSION = 100 * 5 + qp_realtime.KERNEL_VERSION
+KERNEL_VERSION = 100 * 6 + qp_realtime.KERNEL_VERSION
 #: most states the path takes (beyond it the general path's batched solve pays off)
 MAX_BATCH = qp_realtime.MAX_BATCH
 #: the kernel's codes of the CBF slack modes
@@ -33,9 +33,9 @@ SLACK_CODES = {"none": 0, "shared": 1, "per_row": 2}
 _P = ctypes.c_void_p
 _D = ctypes.c_double
 _INT = ctypes.c_int
-# B, n, m, k, c, slack, two_pass; a_cbf, b_cbf, a_clf, b_clf, u_nom, R, lo, hi, x, t;
+# B, m, k, c, slack, two_pass; a_cbf, b_cbf, a_clf, b_clf, u_nom, R, lo, hi;
 # cbf_weight, clf_weight, eps, max_iter, slack_tol, max_condition; u, slack, value, status
-_ARGS = [ctypes.c_int64] + [_INT] * 6 + [_P] * 10 + [_D] * 3 + [_INT] + [_D] * 2 + [_P] * 4
+_ARGS = [ctypes.c_int64] + [_INT] * 5 + [_P] * 8 + [_D] * 3 + [_INT] + [_D] * 2 + [_P] * 4
 
 
 @functools.lru_cache(maxsize=1)
@@ -83,18 +83,10 @@ class RealtimeOutput(NamedTuple):
     status: Tensor
 
 
-def _f64(v: Tensor) -> Tensor:
-    if v.dtype == torch.float64 and v.is_contiguous():
-        return v
-    return v.to(torch.float64).contiguous()
-
-
 def solve(
     cbf: tuple[Tensor, Tensor] | None,
     clf: tuple[Tensor, Tensor] | None,
-    x: Tensor,
     u_nom: Tensor,
-    t: Tensor,
     R: Tensor,
     lo: Tensor | None,
     hi: Tensor | None,
@@ -112,12 +104,12 @@ def solve(
     (``a . u + b >= 0``) and ``clf = (a [B,c,m], b [B,c])`` (``a . u + b <= delta``), with
     ``u_nom [B, m]``, ``R [m, m]`` and limits ``lo, hi [m]`` (``None`` or infinite where
     absent), CPU tensors without grad. ``two_pass``: also solve the hard QP and prefer its
-    answer (see :class:`~torchcbf.filters.SafetyFilter`'s ``exact``). ``x [B, n]`` and
-    ``t [B]`` are only checked to be finite. The outputs have the batch shape ``batch``
-    (default ``(B,)``).
+    answer (see :class:`~torchcbf.filters.SafetyFilter`'s ``exact``). The states and times
+    are the caller's to check (:func:`inputs_finite`, before any computation on them). The
+    outputs have the batch shape ``batch`` (default ``(B,)``).
 
-    Returns ``None`` when a state, control, time or condition is not finite, or when the
-    kernel does not certify every row (the caller then takes the general path)."""
+    Returns ``None`` when a control or condition is not finite, or when the kernel does not
+    certify every row (the caller then takes the general path)."""
     lib = _library()
     if lib is None:
         return None
@@ -126,16 +118,16 @@ def solve(
     c = 0 if clf is None else clf[1].shape[1]
     shape = (B,) if batch is None else batch
     # the tensors must outlive the call: each pointer's tensor is held by `held`
-    held = [None, None] if cbf is None else [_f64(cbf[0]), _f64(cbf[1])]
-    held += [None, None] if clf is None else [_f64(clf[0]), _f64(clf[1])]
-    held += [None if v is None else _f64(v) for v in (u_nom, R, lo, hi, x, t)]
+    conditions = (None, None) if cbf is None else cbf
+    conditions += (None, None) if clf is None else clf
+    held = [qp_realtime.as_float64(v) for v in (*conditions, u_nom, R, lo, hi)]
     f64 = torch.float64
     u = torch.empty(*shape, m, dtype=f64)
     slk = torch.empty(*shape, k + c, dtype=f64)
     value = torch.empty(*shape, k + c, dtype=f64)
     status = torch.empty(shape, dtype=torch.int64)
     code = lib.torchcbf_filter_solve(
-        B, x.shape[1], m, k, c, SLACK_CODES[slack], int(two_pass),
+        B, m, k, c, SLACK_CODES[slack], int(two_pass),
         *[None if v is None else v.data_ptr() for v in held],
         cbf_weight, clf_weight, eps, min(max_iter, 2**31 - 1), slack_tol,
         qp_realtime.MAX_DUAL_CONDITION,

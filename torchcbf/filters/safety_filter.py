@@ -310,7 +310,8 @@ class SafetyFilter(nn.Module):
         self.register_buffer("R", as_matrix("R", weight, m, dtype=torch.float64))
         self.register_buffer("u_min", as_limit("u_min", u_min, m))
         self.register_buffer("u_max", as_limit("u_max", u_max, m))
-        check_bounds("u_min", self._limit_tensors()[0], "u_max", self._limit_tensors()[1])
+        lo, hi = self._limit_tensors()
+        check_bounds("u_min", lo, "u_max", hi)
         self.cbf_slack = _slack_mode(cbf_slack, relax_cbf, elastic)
         if cbf_slack_weight is None:
             cbf_slack_weight = 1e2 if self.cbf_slack == "per_row" else 1e3
@@ -361,9 +362,10 @@ class SafetyFilter(nn.Module):
             # graph exactly when some output can have a gradient, whatever its source (an
             # input, a parameter, a tensor captured by a class-K closure)
             conditions = self._conditions(xb, tb)
+            limits = self._limit_tensors()
             grads = torch.is_grad_enabled()
-            if not (grads and _carries_grad(conditions, ub, self.R, *self._limit_tensors())):
-                out = self._realtime(batch, xb, ub, tb, conditions)
+            if not (grads and _carries_grad(conditions, ub, self.R, *limits)):
+                out = self._realtime(batch, xb, ub, conditions, limits)
                 if out is not None:
                     return out
         finite = torch.isfinite(xb).all(-1) & torch.isfinite(ub).all(-1) & torch.isfinite(tb)
@@ -558,17 +560,18 @@ class SafetyFilter(nn.Module):
         batch: tuple[int, ...],
         xb: Tensor,
         ub: Tensor,
-        tb: Tensor,
         conditions: tuple[Any, Any, Tensor, Tensor],
+        limits: tuple[Tensor | None, Tensor | None],
     ) -> FilterOutput | None:
-        """The filter on a few states by one call of the C kernel
-        (:mod:`torchcbf.filters.realtime`); ``None`` where the general path must answer
-        (non-finite data, a row the kernel does not certify)."""
+        """The filter on a few finite states by one call of the C kernel
+        (:mod:`torchcbf.filters.realtime`), with the conditions and the limits
+        (:meth:`_limit_tensors`) already at hand; ``None`` where the general path must answer
+        (non-finite conditions, a row the kernel does not certify)."""
         cbf, clf, h, V = conditions
         opts = self.qp_options
         eps = opts.get("eps")
         res = realtime.solve(
-            cbf, clf, xb, ub, tb, self.R, *self._limit_tensors(),
+            cbf, clf, ub, self.R, *limits,
             slack=self.cbf_slack,
             two_pass=self.exact and self.cbf_slack == "shared",
             cbf_weight=self.cbf_slack_weight,

@@ -1,8 +1,8 @@
 """Real-time path for a few small QPs on the CPU: one call of the C kernel.
 
 Public for the layers above (the safety filter's real-time path, whose kernel links the QP
-kernel): :func:`available`, :func:`default_eps`, :func:`solve_small`, :data:`MAX_BATCH`,
-:data:`MAX_DUAL_CONDITION` and :data:`KERNEL_VERSION`.
+kernel): :func:`available`, :func:`default_eps`, :func:`solve_small`, :func:`as_float64`,
+:data:`MAX_BATCH`, :data:`MAX_DUAL_CONDITION` and :data:`KERNEL_VERSION`.
 
 A control loop solves ONE small QP per tick; there the cost of a solve is the number of
 tensor operations around the kernel, not the kernel. :func:`solve_small` hands the data
@@ -35,6 +35,7 @@ __all__ = [
     "MAX_BATCH",
     "MAX_DUAL_CONDITION",
     "SmallSolution",
+    "as_float64",
     "available",
     "default_eps",
     "solve_small",
@@ -68,7 +69,9 @@ class SmallSolution(NamedTuple):
     slack: Tensor
 
 
-def _f64(v: Tensor | None) -> Tensor | None:
+def as_float64(v: Tensor | None) -> Tensor | None:
+    """``v`` as a contiguous float64 tensor (itself when it is one), for a kernel that reads
+    its memory; ``None`` stays ``None``."""
     if v is None or (v.dtype == torch.float64 and v.is_contiguous()):
         return v
     return v.to(torch.float64).contiguous()
@@ -102,7 +105,7 @@ def solve_small(
     rows = m + (N if ub is not None else 0) + (N if lb is not None else 0)
     if N > _dual_native.MAX_VARS or rows < 1:
         return None
-    held = [_f64(v) for v in (P, q, G, h, lb, ub)]
+    held = [as_float64(v) for v in (P, q, G, h, lb, ub)]
     f64 = torch.float64
     x = torch.empty(*shape, N, dtype=f64)
     z = torch.empty(*shape, m, dtype=f64)
