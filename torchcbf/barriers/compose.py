@@ -11,7 +11,7 @@ from torch import Tensor, nn
 
 from torchcbf.barriers._minmax import Mode, combine, reduce
 from torchcbf.barriers.base import Barrier
-from torchcbf.barriers.lie import AnalyticDerivatives, LieFunction
+from torchcbf.barriers.lie import AnalyticDerivatives, LieFunction, gradient_rows, per_output
 
 
 def _as_columns(h: Tensor, x: Tensor) -> Tensor:
@@ -85,27 +85,16 @@ def _stack_analytic(barriers: nn.ModuleList, x: Tensor, t: Tensor) -> AnalyticDe
     return AnalyticDerivatives(h, dhdx, dhdt, quad, hess_mat, hess_dir)
 
 
-class Scaled(Barrier):
-    """``scale * h(x, t)`` for constant scales ``> 0`` (a number, or ``[k]`` for a barrier
-    with ``k`` outputs): the same safe set, a rescaled CBF condition. Closed-form
-    derivatives when ``barrier`` has them."""
+class _OfOne(Barrier):
+    """A barrier made from one inner ``barrier``: closed forms (first and second order)
+    where the inner one has them, time-varying where it is."""
 
-    def __init__(self, barrier: LieFunction, scale: float | Sequence[float] | Tensor) -> None:
+    def __init__(self, barrier: LieFunction) -> None:
         super().__init__()
         if not isinstance(barrier, LieFunction):
             raise TypeError(f"barrier must be a Barrier, got {type(barrier).__name__}")
-        if isinstance(scale, bool):
-            raise TypeError("scale must be a number or a sequence/tensor of numbers")
-        value = torch.as_tensor(scale, dtype=torch.float64).detach().clone()
-        if value.dim() > 1 or value.numel() == 0 or not bool((value > 0).all()):
-            raise ValueError(f"scale must be positive numbers (scalar or [k]), got {scale!r}")
         self.barrier = barrier
-        self.register_buffer("scale", value)
         self.time_varying = barrier.time_varying
-
-    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
-        """``x [..., n] -> scale * h [...]`` (or ``[..., k]``)."""
-        return self.scale.to(x) * self.barrier(x, t)
 
     @property
     def has_analytic(self) -> bool:
@@ -114,6 +103,25 @@ class Scaled(Barrier):
     @property
     def has_second_order(self) -> bool:
         return self.barrier.has_second_order
+
+
+class Scaled(_OfOne):
+    """``scale * h(x, t)`` for constant scales ``> 0`` (a number, or ``[k]`` for a barrier
+    with ``k`` outputs): the same safe set, a rescaled CBF condition. Closed-form
+    derivatives when ``barrier`` has them."""
+
+    def __init__(self, barrier: LieFunction, scale: float | Sequence[float] | Tensor) -> None:
+        super().__init__(barrier)
+        if isinstance(scale, bool):
+            raise TypeError("scale must be a number or a sequence/tensor of numbers")
+        value = torch.as_tensor(scale, dtype=torch.float64).detach().clone()
+        if value.dim() > 1 or value.numel() == 0 or not bool((value > 0).all()):
+            raise ValueError(f"scale must be positive numbers (scalar or [k]), got {scale!r}")
+        self.register_buffer("scale", value)
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """``x [..., n] -> scale * h [...]`` (or ``[..., k]``)."""
+        return self.scale.to(x) * self.barrier(x, t)
 
     def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         d = self.barrier.derivatives(x, t)
@@ -142,7 +150,7 @@ class Scaled(Barrier):
 TransformForm = Literal["radius", "exp"]
 
 
-class Transformed(Barrier):
+class Transformed(_OfOne):
     """``phi(h(x, t))`` for an increasing ``phi`` with ``phi(0) = 0``: the same safe set, a
     reshaped CBF condition. Closed-form derivatives when ``barrier`` has them.
 
@@ -162,17 +170,13 @@ class Transformed(Barrier):
     FORMS = ("radius", "exp")
 
     def __init__(self, barrier: LieFunction, form: TransformForm, *, rate: float = 1.0) -> None:
-        super().__init__()
-        if not isinstance(barrier, LieFunction):
-            raise TypeError(f"barrier must be a Barrier, got {type(barrier).__name__}")
+        super().__init__(barrier)
         if form not in self.FORMS:
             raise ValueError(f"form must be one of {self.FORMS}, got {form!r}")
         if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not rate > 0:
             raise ValueError(f"rate must be a positive number, got {rate!r}")
-        self.barrier = barrier
         self.form = form
         self.rate = float(rate)
-        self.time_varying = barrier.time_varying
 
     def _phi(self, h: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``phi(h)``, ``phi'(h)``, ``phi''(h)``."""
@@ -192,27 +196,15 @@ class Transformed(Barrier):
         """``x [..., n] -> phi(h) [...]`` (or ``[..., k]``)."""
         return self._phi(self.barrier(x, t))[0]
 
-    @property
-    def has_analytic(self) -> bool:
-        return self.barrier.has_analytic
-
-    @property
-    def has_second_order(self) -> bool:
-        return self.barrier.has_second_order
-
     def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         d = self.barrier.derivatives(x, t)
         phi, d1, d2 = self._phi(d.h)
-        single = d.h.shape == x.shape[:-1]
-        grad = d.dhdx.unsqueeze(-2) if single else d.dhdx  # [..., k, n]
-
-        def per_output(v: Tensor) -> Tensor:  # [..., k] -> the shape of h
-            return v.squeeze(-1) if single else v
+        single, grad = gradient_rows(d, x)  # grad [..., k, n]
 
         def quad(s: Tensor) -> Tensor:
             # tr(S' (phi'' grad grad' + phi' H) S) = phi'' |S' grad|^2 + phi' tr(S' H S)
             g2 = (grad @ s).square().sum(-1)  # [..., k]
-            return d1 * d.hess_quad(s) + d2 * per_output(g2)
+            return d1 * d.hess_quad(s) + d2 * per_output(g2, single)
 
         first = (phi, d1.unsqueeze(-1) * d.dhdx, d1 * d.dhdt, quad)
         if d.hess_mat is None or d.hess_dir is None:
@@ -223,19 +215,19 @@ class Transformed(Barrier):
         def hess_mat(m: Tensor) -> Tensor:
             # (phi'' grad grad' + phi' H) M
             outer = grad.unsqueeze(-1) * (grad @ m).unsqueeze(-2)  # [..., k, n, q]
-            outer = outer.squeeze(-3) if single else outer
+            outer = per_output(outer, single, -3)
             return d1[..., None, None] * inner_mat(m) + d2[..., None, None] * outer
 
         def hess_dir(v: Tensor, s: Tensor) -> Tensor:
             # d/dv of tr(S' (phi'' g g' + phi' H) S) with g = grad h and gv = g . v:
             # phi3 gv |S'g|^2 + phi2 (2 (S'Hv) . (S'g) + gv tr(S'HS)) + phi1 tr(S' dH[v] S)
-            gv = per_output((grad * v.unsqueeze(-2)).sum(-1))
+            gv = per_output((grad * v.unsqueeze(-2)).sum(-1), single)
             sg = grad @ s  # [..., k, q]
             hv = inner_mat(v.unsqueeze(-1))  # [..., (k,) n, 1]
             hv = hv.unsqueeze(-3) if single else hv
             shv = (hv * s.unsqueeze(-3)).sum(-2)  # rows (S' H v)': [..., k, q]
-            g2 = per_output(sg.square().sum(-1))
-            cross = per_output((shv * sg).sum(-1))
+            g2 = per_output(sg.square().sum(-1), single)
+            cross = per_output((shv * sg).sum(-1), single)
             return d3 * gv * g2 + d2 * (2 * cross + gv * d.hess_quad(s)) + d1 * inner_dir(v, s)
 
         return AnalyticDerivatives(*first, hess_mat, hess_dir)

@@ -353,6 +353,19 @@ def stacked_terms(
     )
 
 
+def gradient_rows(d: AnalyticDerivatives, x: Tensor) -> tuple[bool, Tensor]:
+    """Whether ``d`` belongs to one scalar function (``h [...]``, for states ``x [..., n]``)
+    and its gradient as rows ``[..., k, n]`` either way (``k = 1`` for a scalar function)."""
+    single = d.h.shape == x.shape[:-1]
+    return single, d.dhdx.unsqueeze(-2) if single else d.dhdx
+
+
+def per_output(v: Tensor, single: bool, dim: int = -1) -> Tensor:
+    """A term with an output axis at ``dim`` (``[..., k]`` at -1, ``[..., k, n]`` at -2) in
+    the shape of the function's own terms: the axis dropped for a scalar one (``single``)."""
+    return v.squeeze(dim) if single else v
+
+
 def flat_parts(fn: LieFunction) -> list[LieFunction]:
     """``fn`` split into independently differentiable parts (see :meth:`LieFunction.parts`)."""
     parts = fn.parts()

@@ -28,16 +28,13 @@ from torchcbf.barriers.lie import (
     LieFunction,
     LieMethod,
     flat_parts,
+    gradient_rows,
     lie_derivatives,
+    per_output,
 )
 from torchcbf.dynamics.base import ControlAffine
 
 Form = Literal["high_order", "exponential"]
-
-
-def _rows_of(v: Tensor, single: bool) -> Tensor:
-    """``[..., k, n]`` rows as the shape of ``dh/dx`` (``[..., n]`` for one output)."""
-    return v.squeeze(-2) if single else v
 
 
 GainSpec = float | Sequence[float] | Tensor | None
@@ -279,29 +276,25 @@ class ExponentialBarrier(ExactConstants, Barrier):
         f = self.dynamics.f(x)
         drift = self.dynamics.drift_derivatives(x)
         k0 = self.coefficients.to(x)[0]
-        single = d.h.shape == x.shape[:-1]
-        grad = d.dhdx.unsqueeze(-2) if single else d.dhdx  # [..., k, n]
+        single, grad = gradient_rows(d, x)  # grad [..., k, n]
         n = x.shape[-1]
         # the Hessian once, as a matrix [..., (k,) n, n]: H f and H S are then one matmul each
         eye = torch.eye(n, dtype=x.dtype, device=x.device).expand(*x.shape[:-1], n, n)
         H = d.hess_mat(eye)
 
-        def per_output(v: Tensor) -> Tensor:  # [..., k] -> the shape of h
-            return v.squeeze(-1) if single else v
-
         def cols(m: Tensor) -> Tensor:  # [..., n, q] against H
             return m if single else m.unsqueeze(-3)
 
-        h_e = per_output((grad * f.unsqueeze(-2)).sum(-1)) + k0 * d.h
+        h_e = per_output((grad * f.unsqueeze(-2)).sum(-1), single) + k0 * d.h
         hf = (H @ cols(f.unsqueeze(-1)))[..., 0]  # [..., (k,) n]
-        dhdx = hf + _rows_of(grad @ drift.jac, single) + k0 * d.dhdx
+        dhdx = hf + per_output(grad @ drift.jac, single, -2) + k0 * d.dhdx
 
         mix = 2 * drift.jac + k0 * eye
 
         def quad(s: Tensor) -> Tensor:
             # tr(S' (H J + J' H + k_0 H) S) = sum(H S * (2 J + k_0 I) S), H symmetric
             first = ((H @ cols(s)) * cols(mix @ s)).sum((-2, -1))
-            return hess_dir(f, s) + first + per_output(drift.hess_quad(grad, s))
+            return hess_dir(f, s) + first + per_output(drift.hess_quad(grad, s), single)
 
         return AnalyticDerivatives(h_e, dhdx, torch.zeros_like(h_e), quad)
 
