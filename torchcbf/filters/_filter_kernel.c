@@ -149,10 +149,11 @@ int torchcbf_filter_solve(int64_t B, int m, int k, int c, int slack, int two_pas
     for (int j = 0; j < m; ++j) limits += isfinite(lo[j]) + isfinite(hi[j]);
     int M = k + c + limits + ks + c;
     int64_t Bq = two_pass && ks ? 2 * B : B; /* problems: [elastic (B); hard (B)] */
-    const double *inputs[] = {a_cbf, b_cbf, a_clf, b_clf, u_nom, R};
+    /* u_nom was checked with the states (inputs_finite); the conditions come from them */
+    const double *inputs[] = {a_cbf, b_cbf, a_clf, b_clf, R};
     const int64_t sizes[] = {(int64_t)k * m * B, (int64_t)k * B, (int64_t)c * m * B,
-                             (int64_t)c * B,     (int64_t)m * B, m * m};
-    for (int i = 0; i < 6; ++i)
+                             (int64_t)c * B, m * m};
+    for (int i = 0; i < 5; ++i)
         if (!torchcbf_dual_all_finite(sizes[i], inputs[i])) return 1;
     size_t per = (size_t)N * N + N + (size_t)M * N + M + N + M + (size_t)N * N;
     double *buf = malloc(sizeof(double) * per * Bq + sizeof(double) * N * N);

@@ -104,12 +104,12 @@ def solve(
     (``a . u + b >= 0``) and ``clf = (a [B,c,m], b [B,c])`` (``a . u + b <= delta``), with
     ``u_nom [B, m]``, ``R [m, m]`` and limits ``lo, hi [m]`` (``None`` or infinite where
     absent), CPU tensors without grad. ``two_pass``: also solve the hard QP and prefer its
-    answer (see :class:`~torchcbf.filters.SafetyFilter`'s ``exact``). The states and times
-    are the caller's to check (:func:`inputs_finite`, before any computation on them). The
+    answer (see :class:`~torchcbf.filters.SafetyFilter`'s ``exact``). States, times and
+    ``u_nom`` are the caller's to check (:func:`inputs_finite`, before any computation). The
     outputs have the batch shape ``batch`` (default ``(B,)``).
 
-    Returns ``None`` when a control or condition is not finite, or when the kernel does not
-    certify every row (the caller then takes the general path)."""
+    Returns ``None`` when a condition is not finite, or when the kernel does not certify
+    every row (the caller then takes the general path)."""
     lib = _library()
     if lib is None:
         return None
