@@ -342,7 +342,9 @@ def test_cost_slices_equal_one_call(backend):
     calls.clear()
     b = sliced(x)
     assert calls == [7] * 7 + [1]
-    assert torch.equal(a.plan, b.plan) and torch.equal(a.cost_min, b.cost_min)
+    # equal up to the order of the cost's own sums over a slice and over all samples
+    torch.testing.assert_close(a.plan, b.plan, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(a.cost_min, b.cost_min, rtol=1e-12, atol=1e-12)
     with pytest.raises(ValueError, match="cost_chunk"):
         MPPI(AccelUnicycle(), cost, 6, 50, 0.05, 1.0, 0.5, cost_chunk=-1)
     bad = MPPI(AccelUnicycle(), lambda s, u, t: s[..., 0, 0], 6, 50, 0.05, 1.0, 0.5, cost_chunk=7)

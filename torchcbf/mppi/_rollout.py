@@ -30,7 +30,7 @@ from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, SingleIntegrator,
 logger = logging.getLogger(__name__)
 
 #: ``KERNEL_VERSION`` of the C source this module calls
-KERNEL_VERSION = 2
+KERNEL_VERSION = 3
 #: limits of the kernel (``NMAX``, ``MMAX``, ``DMAX``, ``TMAX``, ``SMAX`` in the C source)
 MAX_STATE, MAX_CONTROL, MAX_DIM, MAX_TERMS, MAX_SHAPES = 8, 4, 4, 16, 32
 _HDR, _TREC, _SREC = 16, 16, 20
@@ -44,7 +44,7 @@ INTEGRATOR_CODES = {"euler": 0, "rk4": 1}
 
 _P = ctypes.c_void_p
 _I64 = ctypes.c_int64
-_RUN_ARGS = [_P, _I64, _I64] + [_P] * 11
+_RUN_ARGS = [_P, _I64, _I64] + [_P] * 11 + [ctypes.c_int]
 
 
 @functools.lru_cache(maxsize=1)
@@ -292,10 +292,12 @@ def run(
     """Run the kernel on samples ``0..count`` (``pairs [count, 2]`` of ``(b, k)``, or every
     ``(b, k)`` in order when ``None``), writing the requested outputs (see the C source).
 
-    All tensors are C-contiguous CPU tensors of the rollout dtype (``keys``, ``pairs``:
-    int64; ``wsum``: ``[T, B, H, m]`` float64 with one slice per thread, summed by the
-    caller). ``x0 [B, n]``, ``plan`` and ``wctrl [B, H, m]``, ``cost`` and ``weights
-    [count]``, ``states [count, H+1, n]``, ``controls`` and ``eps [count, H, m]``.
+    All tensors are CPU tensors of the rollout dtype (``keys``, ``pairs``: int64; ``wsum``:
+    ``[T, B, H, m]`` float64 with one slice per thread, summed by the caller). ``x0 [B,
+    n]``, ``plan`` and ``wctrl [B, H, m]``, ``cost`` and ``weights [count]``. With
+    ``pairs``, ``states [count, H+1, n]``, ``controls`` and ``eps [count, H, m]`` are
+    C-contiguous rows; without, they are ``[B, K, H+1, n]`` and ``[B, K, H, m]`` in
+    component-major storage (:func:`component_major`).
     """
     lib = _library()
     if lib is None:
@@ -303,8 +305,15 @@ def run(
     fn = lib.torchcbf_mppi_run_f64 if x0.dtype == torch.float64 else lib.torchcbf_mppi_run_f32
     inputs = [None if t is None else t.contiguous() for t in (pairs, x0, plan, wctrl, keys)]
     weights = None if weights is None else weights.contiguous()
-    for name, t in (("cost", cost), ("states", states), ("controls", controls), ("eps", eps)):
-        if t is not None and not t.is_contiguous():
+    if cost is not None and not cost.is_contiguous():
+        raise ValueError("cost must be contiguous")
+    cmajor = pairs is None
+    for name, t in (("states", states), ("controls", controls), ("eps", eps)):
+        if t is None:
+            continue
+        if cmajor and not t.permute(0, 3, 2, 1).is_contiguous():
+            raise ValueError(f"{name} must be in component-major storage")
+        if not cmajor and not t.is_contiguous():
             raise ValueError(f"{name} must be contiguous")
     if wsum is not None and not (wsum.is_contiguous() and wsum.dtype == torch.float64):
         raise ValueError("wsum must be a contiguous float64 tensor")
@@ -325,7 +334,7 @@ def run(
 
     def call(i: int) -> int:
         part = None if wsum is None else wsum[i].data_ptr()
-        return fn(cfg_ptr, bounds[i], bounds[i + 1], *common, *outs, part)
+        return fn(cfg_ptr, bounds[i], bounds[i + 1], *common, *outs, part, int(cmajor))
 
     if threads == 1:
         codes = [call(0)]
@@ -347,17 +356,8 @@ def draw_keys(generators: list[torch.Generator]) -> Tensor:
     return torch.cat([torch.randint(0, high, (1,), generator=g) for g in generators])
 
 
-def noise(
-    cfg: Tensor,
-    x0: Tensor,
-    plan: Tensor,
-    keys: Tensor,
-    num_samples: int,
-) -> tuple[Tensor, Tensor]:
-    """``(eps, controls)`` ``[B, K, H, m]`` of the samples as the kernel draws them (clamped
-    noise and controls), for tests and for a torch cost."""
-    B, H, m = plan.shape
-    eps = plan.new_empty(B * num_samples, H, m)
-    controls = plan.new_empty(B * num_samples, H, m)
-    run(cfg, B * num_samples, x0, plan, keys, controls=controls, eps=eps)
-    return eps.view(B, num_samples, H, m), controls.view(B, num_samples, H, m)
+def component_major(like: Tensor, B: int, K: int, steps: int, dim: int) -> Tensor:
+    """An uninitialised ``[B, K, steps, dim]`` tensor stored as ``[B, dim, steps, K]``:
+    each component's ``[steps, K]`` block is contiguous with the samples fastest, so a torch
+    cost written on ``[..., dim]`` rows runs long vectorised inner loops."""
+    return like.new_empty(B, dim, steps, K).permute(0, 3, 2, 1)

@@ -187,13 +187,28 @@ INL void SUFFIX(costs)(const problem_t *pr, REAL (*x)[LANES], int last, REAL *st
         if (discrete[s]) LOOP hprev[s][l] = hcur[s][l];
 }
 
+/* Store the `count` lanes of V[dim][LANES] as step j of a rollout output: sample-major
+ * rows [P, steps, dim] at positions p0 + lane, or component-major blocks [B, dim, steps, K]
+ * at the consecutive samples k0 + lane of environment b. */
+INL void SUFFIX(store)(REAL *out, REAL V[][LANES], int dim, int steps, int j, int count,
+                              int cmajor, int64_t b, int64_t K, int64_t k0, int64_t p0) {
+    for (int i = 0; i < dim; ++i) {
+        if (cmajor) {
+            REAL *dst = out + ((b * dim + i) * (int64_t)steps + j) * K + k0;
+            for (int l = 0; l < count; ++l) dst[l] = V[i][l];
+        } else {
+            for (int l = 0; l < count; ++l) out[((p0 + l) * (int64_t)steps + j) * dim + i] = V[i][l];
+        }
+    }
+}
+
 /* One block: `count` samples kk[0..count) of environment b, outputs at positions
  * p0 + lane. See the exported function for the arguments. */
 CLONES static void SUFFIX(block)(const problem_t *pr, const REAL *x0, const REAL *plan,
                                  const REAL *wctrl, uint64_t key, const int64_t *kk,
-                                 int count, int64_t p0, REAL *cost, REAL *states,
-                                 REAL *controls, REAL *eps, const REAL *weights,
-                                 double *wsum) {
+                                 int count, int64_t b, int64_t p0, int cmajor, REAL *cost,
+                                 REAL *states, REAL *controls, REAL *eps,
+                                 const REAL *weights, double *wsum) {
     const int n = pr->n, m = pr->m, H = pr->H, P = (pr->m + 1) / 2;
     const int dyn = states != NULL || (cost != NULL && pr->nterms > 0);
     const int clamp = pr->has_lo || pr->has_hi;
@@ -222,10 +237,7 @@ CLONES static void SUFFIX(block)(const problem_t *pr, const REAL *x0, const REAL
         for (int s = 0; s < T->nshape; ++s)
             SUFFIX(shape_h)(&pr->shapes[T->shape0 + s], X, hprev[T->shape0 + s]);
     }
-    const int64_t srow = (int64_t)(H + 1) * n, crow = (int64_t)H * m;
-    if (states != NULL)
-        for (int l = 0; l < count; ++l)
-            for (int i = 0; i < n; ++i) states[(p0 + l) * srow + i] = X[i][l];
+    if (states != NULL) SUFFIX(store)(states, X, n, H + 1, 0, count, cmajor, b, pr->K, kk[0], p0);
 
     const REAL scale = (REAL)4.656612873077393e-10; /* 2^-31 */
     const REAL two_pi = (REAL)6.283185307179586;
@@ -287,20 +299,12 @@ CLONES static void SUFFIX(block)(const problem_t *pr, const REAL *x0, const REAL
                 wsum[j * m + i] += acc;
             }
         }
-        if (controls != NULL || eps != NULL) {
-            for (int l = 0; l < count; ++l)
-                for (int i = 0; i < m; ++i) {
-                    int64_t at = (p0 + l) * crow + (int64_t)j * m + i;
-                    if (controls != NULL) controls[at] = U[i][l];
-                    if (eps != NULL) eps[at] = E[i][l];
-                }
-        }
+        if (controls != NULL) SUFFIX(store)(controls, U, m, H, j, count, cmajor, b, pr->K, kk[0], p0);
+        if (eps != NULL) SUFFIX(store)(eps, E, m, H, j, count, cmajor, b, pr->K, kk[0], p0);
         if (!dyn) continue;
         SUFFIX(integrate)(pr, X, U, K1, K2, K3, K4, XT);
         if (states != NULL)
-            for (int l = 0; l < count; ++l)
-                for (int i = 0; i < n; ++i)
-                    states[(p0 + l) * srow + (int64_t)(j + 1) * n + i] = X[i][l];
+            SUFFIX(store)(states, X, n, H + 1, j + 1, count, cmajor, b, pr->K, kk[0], p0);
         if (cost != NULL && pr->nterms > 0)
             SUFFIX(costs)(pr, X, j == H - 1, stage, terminal, whole, hprev);
     }
@@ -322,7 +326,9 @@ CLONES static void SUFFIX(block)(const problem_t *pr, const REAL *x0, const REAL
  *   x0        [B, n] start states;  plan [B, H, m] nominal controls;  keys [B] noise keys
  *   wctrl     [B, H, m] plan @ Sigma^-1 (control cost; NULL: none)
  *   cost      [P] total cost of sample p (NULL: not computed)
- *   states    [P, H+1, n], controls / eps [P, H, m] rows of sample p (NULL: not stored)
+ *   states    [P, H+1, n], controls / eps [P, H, m] rows of sample p (NULL: not stored);
+ *             with cmajor != 0 (pairs NULL) component-major blocks [B, n, H+1, K] and
+ *             [B, m, H, K] indexed by (b, k) instead (samples contiguous, for a torch cost)
  *   weights   [P] and wsum [B, H, m] (float64): wsum[b] += weights[p] * eps_p (NULL: none)
  *
  * Returns 0, or a negative code for a configuration the kernel does not accept.
@@ -331,10 +337,11 @@ int SUFFIX(torchcbf_mppi_run)(const double *cfg, int64_t p_lo, int64_t p_hi,
                               const int64_t *pairs, const REAL *x0, const REAL *plan,
                               const REAL *wctrl, const int64_t *keys, REAL *cost,
                               REAL *states, REAL *controls, REAL *eps, const REAL *weights,
-                              double *wsum) {
+                              double *wsum, int cmajor) {
     problem_t pr;
     int rc = parse(cfg, &pr);
     if (rc != 0) return rc;
+    if (cmajor && pairs != NULL) return -7; /* component-major outputs need samples in order */
     const int n = pr.n, m = pr.m, H = pr.H;
     int64_t kk[LANES];
     int64_t p = p_lo;
@@ -349,7 +356,7 @@ int SUFFIX(torchcbf_mppi_run)(const double *cfg, int64_t p_lo, int64_t p_hi,
         }
         SUFFIX(block)(&pr, x0 + b * n, plan + b * (int64_t)H * m,
                       wctrl != NULL ? wctrl + b * (int64_t)H * m : NULL, (uint64_t)keys[b], kk,
-                      count, p, cost, states, controls, eps, weights,
+                      count, b, p, cmajor, cost, states, controls, eps, weights,
                       wsum != NULL ? wsum + b * (int64_t)H * m : NULL);
         p += count;
     }

@@ -86,7 +86,10 @@ SHIFT_FILLS = ("zero", "last")
 NORMALIZATIONS = ("none", "range", "std")
 BACKENDS = ("auto", "torch")
 #: state elements (``B x slice x (H+1) x n``) per cost call when ``cost_chunk`` is automatic
-AUTO_CHUNK_ELEMENTS = 2**17
+AUTO_CHUNK_ELEMENTS = 2**16
+#: fewest samples per automatic slice (the inner loops of a torch cost run over a slice's
+#: samples, which are contiguous in the rollout buffers)
+MIN_CHUNK_SAMPLES = 16
 
 
 class MPPIOutput(NamedTuple):
@@ -175,10 +178,13 @@ class MPPI(nn.Module):
         backend: ``"auto"`` (default: the C kernel where it applies, see the module
             docstring) or ``"torch"`` (always the torch path).
         cost_chunk: samples per call of a torch cost: ``None`` (default) slices the samples
-            on the CPU so that one slice holds about ``AUTO_CHUNK_ELEMENTS`` state values (the
-            cost's intermediates then stay in cache, 2-3x faster for a cost written on whole
-            rollouts) and calls it once on other devices or when compiled; ``0`` calls it
-            once on all samples; ``c`` on slices of ``c`` samples.
+            on the CPU so that one slice holds about ``AUTO_CHUNK_ELEMENTS`` state values and
+            at least ``MIN_CHUNK_SAMPLES`` samples (the cost's intermediates then stay in
+            cache, 2-4x faster for a cost written on whole rollouts) and calls it once on
+            other devices or when compiled; ``0`` calls it once on all samples; ``c`` on
+            slices of ``c`` samples. The rollouts a torch cost receives are views of buffers
+            stored component-major (``[B, n, H+1, K]``, samples contiguous): index them,
+            do not ``.view`` them.
     """
 
     def __init__(
@@ -308,16 +314,18 @@ class MPPI(nn.Module):
         self._fresh = True
 
     def _rollout_buffers(self) -> tuple[Tensor, Tensor, Tensor]:
-        """Sample-major ``eps [B, K, H, m]``, ``controls [B, K, H, m]``, ``states
-        [B, K, H+1, n]``, allocated on first use (the fused path never needs them)."""
+        """``eps [B, K, H, m]``, ``controls [B, K, H, m]``, ``states [B, K, H+1, n]`` in
+        component-major storage (:func:`torchcbf.mppi._rollout.component_major`: a torch
+        cost's elementwise ops run over the samples), allocated on first use (the fused
+        path never needs them)."""
         if self._work is None:
             B, H, m = self._plan.shape
             K, n = self.num_samples, self.dynamics.state_dim
             like = self._plan
             self._work = (
-                like.new_empty(B, K, H, m),
-                like.new_empty(B, K, H, m),
-                like.new_empty(B, K, H + 1, n),
+                _rollout.component_major(like, B, K, H, m),
+                _rollout.component_major(like, B, K, H, m),
+                _rollout.component_major(like, B, K, H + 1, n),
             )
         return self._work
 
@@ -412,21 +420,21 @@ class MPPI(nn.Module):
         self._check_cost(cost)
         weights = self._weights(cost)
         K, H, m = self.num_samples, self.horizon, self.dynamics.control_dim
-        delta = (weights.w.unsqueeze(1) @ eps.view(B, K, H * m)).view(B, H, m)
-        best_states = states[self._rows, weights.best]  # [B, H+1, n]
+        by_component = eps.permute(0, 3, 2, 1).reshape(B, m * H, K)
+        delta = (by_component @ weights.w.unsqueeze(-1)).view(B, m, H).transpose(1, 2)
+        best_states = states[self._rows, weights.best].contiguous()  # [B, H+1, n]
         rollouts = None
         if self.keep_rollouts:
-            rollouts = states[:, : self.keep_rollouts].clone()
+            rollouts = states[:, : self.keep_rollouts].clone(memory_format=torch.contiguous_format)
         return self._output(cost, weights, delta, best_states, rollouts, unbatched)
 
     # -- torch path ----------------------------------------------------------------------------
     def _sample_noise(self, eps: Tensor) -> None:
         std = self._isotropic_std
+        storage = eps.permute(0, 3, 2, 1)  # [B, m, H, K], contiguous: the fast fill
         for b, gen in enumerate(self._generators):
-            if std is None:
-                torch.randn(eps.shape[1:], generator=gen, out=eps[b])
-            else:  # Sigma = s^2 I: one pass, no separate scaling
-                eps[b].normal_(0.0, std, generator=gen)
+            # Sigma = s^2 I: one pass, no separate scaling
+            storage[b].normal_(0.0, 1.0 if std is None else std, generator=gen)
         if std is None and self._diagonal:
             eps.mul_(torch.diagonal(self.noise_cov).to(eps).sqrt())
         elif std is None:
@@ -478,8 +486,9 @@ class MPPI(nn.Module):
                 cost[:, k : k + chunk] = part
         if self.control_cost_weight > 0.0:
             B, K, H, m = eps.shape
-            weighted = plan @ self.noise_cov_inv.to(plan)  # [B, H, m]
-            ctrl = (eps.reshape(B, K, H * m) @ weighted.reshape(B, H * m, 1)).squeeze(-1)
+            weighted = (plan @ self.noise_cov_inv.to(plan)).transpose(1, 2)  # [B, m, H]
+            by_component = eps.permute(0, 3, 2, 1).reshape(B, m * H, K)
+            ctrl = (weighted.reshape(B, 1, m * H) @ by_component).squeeze(1)
             cost = cost + self.control_cost_weight * ctrl
         return cost
 
@@ -498,7 +507,7 @@ class MPPI(nn.Module):
         if self._compiled or states.device.type != "cpu":
             return K
         per_sample = states.shape[0] * states.shape[2] * states.shape[3]
-        return max(1, AUTO_CHUNK_ELEMENTS // per_sample)
+        return max(MIN_CHUNK_SAMPLES, AUTO_CHUNK_ELEMENTS // per_sample)
 
     # -- kernel paths --------------------------------------------------------------------------
     def _kernel_plan(
