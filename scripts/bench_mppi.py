@@ -30,7 +30,11 @@ Lines (each planner runs in its own subprocess, so that memory and thread pools 
 Timing: median of ``--reps`` calls after 2 warm-up calls, with the range. Load is flagged
 per line: ``LOADED`` when the process got less than 80% of the CPU time its threads could
 use (CPU time / (wall time x threads)), ``NOISY`` when the slowest repeat is more than 1.5x
-the fastest; such figures should be re-measured on a quiet machine. Use ``--threads 1``
+the fastest, ``FAULTS`` when a call took more than 1,000 minor page faults (median): the
+allocator handed memory back to the kernel and took it again, which costs a torch cost on
+large rollouts up to 2x and varies from call to call (glibc trims its heap and maps large
+blocks afresh; ``MALLOC_TRIM_THRESHOLD_`` and ``MALLOC_MMAP_THRESHOLD_`` set high, e.g.
+``1073741824``, stop it; see docs/mppi.md). Such figures should be re-measured. Use ``--threads 1``
 (the default) for steady figures on a shared machine: with several intra-op threads on a
 loaded machine, every torch op waits for the slowest descheduled thread.
 
@@ -65,6 +69,8 @@ CENTERS = ((1.0, 2.0), (3.0, 2.0), (2.0, 5.0), (-1.0, 1.0), (0.5, -1.0))
 AXES = ((0.5, 1.5), (0.75, 2.0), (2.0, 0.25), (1.0, 0.75), (0.75, 0.5))
 DT, TEMPERATURE, GAMMA, SIGMA = 0.02, 0.03, 0.1, 4.0
 PAPER_CALLS = 250
+#: minor page faults per call above which a figure is flagged
+FAULTS_PER_CALL = 1000
 LINES = ("batched", "user", "fused", "realtime", "paper", "compiled")
 
 
@@ -144,22 +150,35 @@ def x0(B: int, nx: int, device: str) -> torch.Tensor:
     return x if B == 0 else x.repeat(B, 1)
 
 
+def minor_faults() -> int:
+    """Minor page faults of this process so far (0 where the platform does not count them)."""
+    try:
+        import resource
+    except ImportError:  # not on Windows
+        return 0
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+
+
 def timed(step: Callable[[torch.Tensor], object], x: torch.Tensor, reps: int) -> dict:
     t = time.perf_counter()
     for _ in range(2):
         step(x)
     first = time.perf_counter() - t
-    walls, cpus = [], []
+    walls, cpus, faults = [], [], []
     load = os.getloadavg()[0]
     for _ in range(reps):
+        f = minor_faults()
         c, t = time.process_time(), time.perf_counter()
         step(x)
         walls.append(time.perf_counter() - t)
         cpus.append(time.process_time() - c)
+        faults.append(minor_faults() - f)
     load = max(load, os.getloadavg()[0])
     walls.sort()
     cpus.sort()
+    faults.sort()
     return {
+        "faults": faults[len(faults) // 2],
         "median": walls[len(walls) // 2],
         "cpu": cpus[len(cpus) // 2],
         "min": walls[0],
@@ -260,10 +279,13 @@ def fmt(res: dict) -> str:
         flags.append("LOADED")
     if res["max"] > 1.5 * res["min"]:
         flags.append("NOISY")
+    if res["faults"] > FAULTS_PER_CALL:
+        flags.append("FAULTS")
     rate = res["state_steps"] / res["median"] / 1e6
     return (
         f"{res['median']:9.4f} [{res['min']:.4f}-{res['max']:.4f}] {res['cpu']:8.4f} {rate:7.1f} "
-        f"{res['first']:7.2f} {res['cpu_share']:5.2f} {res['load']:5.1f}  {' '.join(flags):<12}"
+        f"{res['first']:7.2f} {res['cpu_share']:5.2f} {res['load']:5.1f} {res['faults']:7d}  "
+        f"{' '.join(flags):<12}"
     )
 
 
@@ -315,12 +337,13 @@ def main() -> None:
         "s/call: median [range] of the timed calls (wall); cpu s: median process CPU time per "
         "call (the steadier figure on a loaded machine); M/s: million state-steps per second "
         "(B K H / median wall); first: the 2 warm-up calls; cpu: CPU time / (wall x threads); "
-        "load: 1-min load average; ratio: wall (CPU time)"
+        "load: 1-min load average; faults: minor page faults per call (median); ratio: wall "
+        "(CPU time)"
     )
     head = f"{'line':<9} {'planner':<27} {'path':<12} {'s/call':>9} {'[range]':<15}"
     print(
-        head
-        + f" {'cpu s':>8} {'M/s':>7} {'first s':>7} {'cpu':>5} {'load':>5}  {'flags':<12} ratio"
+        head + f" {'cpu s':>8} {'M/s':>7} {'first s':>7} {'cpu':>5} {'load':>5} {'faults':>7}  "
+        f"{'flags':<12} ratio"
     )
     for line in lines:
         ref: dict | None = None
