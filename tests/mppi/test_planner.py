@@ -354,3 +354,34 @@ def test_cost_slices_equal_one_call(backend):
     )
     with pytest.raises(ValueError, match="cost must return shape"):
         worse(x)
+
+
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+def test_batched_update_and_torch_noise_against_formulas(backend):
+    """B = 3 environments: the update and control cost of each against the MPPI formulas
+    on the samples the cost saw; the torch path's noise has covariance Sigma."""
+    B, K, H, lam, gamma = 3, 4000, 3, 0.7, 0.3
+    sigma = torch.tensor([[0.5, 0.1], [0.1, 0.3]], dtype=torch.float64)
+    seen = {}
+
+    def cost(states, controls, t0):
+        seen["states"], seen["controls"] = states.clone(), controls.clone()
+        return states[..., 1:, :].square().sum((-1, -2))
+
+    planner = MPPI(
+        SingleIntegrator(2), cost, H, K, 0.1, sigma, lam, gamma, seed=2, cost_chunk=0,
+        backend=backend,
+    )  # fmt: skip
+    x = torch.tensor([[0.2, 0.1], [-1.0, 0.5], [0.3, 2.0]], dtype=torch.float64)
+    first = planner(x)
+    eps0 = seen["controls"].reshape(-1, 2)  # the first plan is zero
+    torch.testing.assert_close(eps0.T.cov(), sigma, atol=0.03, rtol=0)
+    out = planner(x, shift=False)
+    v, states = seen["controls"], seen["states"]
+    eps = v - first.plan.unsqueeze(1)
+    S = states[..., 1:, :].square().sum((-1, -2))
+    S = S + gamma * torch.einsum("bhm,mn,bkhn->bk", first.plan, torch.linalg.inv(sigma), eps)
+    w = torch.softmax(-S / lam, -1)
+    torch.testing.assert_close(out.plan, first.plan + torch.einsum("bk,bkhm->bhm", w, eps))
+    torch.testing.assert_close(out.cost_min, S.min(-1).values)
+    torch.testing.assert_close(out.best_states, states[torch.arange(B), S.argmin(-1)])

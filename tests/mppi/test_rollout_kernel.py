@@ -290,3 +290,54 @@ def test_threads_do_not_change_results():
     finally:
         torch.set_num_threads(threads)
     assert torch.equal(plans[0], plans[1])
+
+
+def test_rollout_buffers_threads_and_layout():
+    """The kernel's rollout buffers: the same with threads splitting an environment, stored
+    component-major, and the raw call refuses sample-major buffers."""
+    dyn = AccelUnicycle()
+    x = _x0(dyn, 3, torch.float32)
+    threads = torch.get_num_threads()
+    seen = []
+    try:
+        for n in (1, 2):  # two threads split the 750 samples inside environment 1
+            torch.set_num_threads(n)
+            capture = Capture(QuadraticGoal((2.0, 4.0), 2.0, (0, 1)))
+            planner = MPPI(dyn, capture, 6, 250, 0.02, SIGMA, 1.0, 0.1, seed=4, cost_chunk=0)
+            planner(x)
+            assert planner.path == "rollout"
+            seen.append(capture.seen)
+    finally:
+        torch.set_num_threads(threads)
+    for key in ("states", "controls"):
+        assert torch.equal(seen[0][key], seen[1][key])
+    ref = [seen[0]["states"][:, :, 0]]
+    for j in range(6):
+        ref.append(euler(dyn, ref[-1], seen[0]["controls"][:, :, j], 0.02))
+    torch.testing.assert_close(seen[0]["states"], torch.stack(ref, 2), rtol=1e-6, atol=1e-6)
+    # what the cost receives: [B, K, H+1, n] views with each component's samples contiguous
+    buffers = planner._rollout_buffers()
+    for t in buffers:
+        assert t.permute(0, 3, 2, 1).is_contiguous() and t.stride(1) == 1
+    cfg = planner._configuration(_rollout.encode_model(dyn), None)
+    keys = _rollout.draw_keys(planner._generators)
+    with pytest.raises(ValueError, match="component-major"):
+        _rollout.run(cfg, 750, x, planner._plan, keys, states=torch.empty(3, 250, 7, 4))
+
+
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+def test_cost_slices_are_component_major(backend):
+    """Automatic slices: at least MIN_CHUNK_SAMPLES samples, samples contiguous."""
+    from torchcbf.mppi.planner import MIN_CHUNK_SAMPLES
+
+    shapes = []
+
+    def cost(states, controls, t0):
+        shapes.append((states.shape[1], states.stride(1), controls.stride(1)))
+        return states[..., -1, 0] + controls[..., 0].sum(-1)
+
+    planner = MPPI(AccelUnicycle(), cost, 60, 64, 0.02, 1.0, 1.0, backend=backend)
+    planner(_x0(AccelUnicycle(), 8, torch.float32))
+    assert planner.path == ("rollout" if backend == "auto" else "torch")
+    assert all(k >= MIN_CHUNK_SAMPLES and s == 1 and c == 1 for k, s, c in shapes[:-1])
+    assert sum(k for k, _, _ in shapes) == 64

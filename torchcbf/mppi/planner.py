@@ -25,8 +25,9 @@ Algorithm (per environment, as pytorch-mppi / Williams et al. 2017):
 
 Randomness: environment ``b`` draws its noise from its own ``torch.Generator`` on the
 device, seeded with ``seed + b``. Environment ``b`` of a batched planner therefore produces
-exactly the plans of a one-environment planner built with ``seed + b``. The global RNG is
-never used. ``reset()`` re-seeds the generators.
+the plans of a one-environment planner built with ``seed + b`` (exactly on the fused path;
+up to the rounding of a torch cost's reductions over a different slice of samples on the
+others). The global RNG is never used. ``reset()`` re-seeds the generators.
 
 Paths (``MPPI.path`` says which one the last call took):
 
@@ -48,8 +49,10 @@ Paths (``MPPI.path`` says which one the last call took):
   parameters): noise from ``torch.Generator``, rollouts with :mod:`torchcbf.integrators`,
   buffers allocated once and reused.
 
-Every path hands the cost contiguous sample-major buffers ``states [B, K, H+1, n]`` and
-``controls [B, K, H, m]``.
+Every path hands a torch cost ``states [B, K, H+1, n]`` and ``controls [B, K, H, m]`` as
+views of component-major storage (``[B, n, H+1, K]``, ``[B, m, H, K]``: each component's
+samples contiguous), sliced over the samples (``cost_chunk``); index them, do not ``.view``
+them.
 
 Compilation: ``MPPI(..., compile=True)`` (or a dict of ``torch.compile`` keyword arguments)
 compiles the evaluation of a torch cost (cost + control cost, called once on all samples)
@@ -180,7 +183,7 @@ class MPPI(nn.Module):
         cost_chunk: samples per call of a torch cost: ``None`` (default) slices the samples
             on the CPU so that one slice holds about ``AUTO_CHUNK_ELEMENTS`` state values and
             at least ``MIN_CHUNK_SAMPLES`` samples (the cost's intermediates then stay in
-            cache, 2-4x faster for a cost written on whole rollouts) and calls it once on
+            cache, about 3x faster for a cost written on whole rollouts) and calls it once on
             other devices or when compiled; ``0`` calls it once on all samples; ``c`` on
             slices of ``c`` samples. The rollouts a torch cost receives are views of buffers
             stored component-major (``[B, n, H+1, K]``, samples contiguous): index them,
@@ -447,7 +450,7 @@ class MPPI(nn.Module):
 
     def _rollout(self, x: Tensor, eps: Tensor, controls: Tensor, states: Tensor) -> None:
         """Clamp the samples (recomputing ``eps`` in place) and roll them out into the
-        sample-major state buffer."""
+        component-major state buffer."""
         nominal = self._plan.unsqueeze(1)
         torch.add(eps, nominal, out=controls)
         if self.u_min is not None or self.u_max is not None:
