@@ -32,9 +32,9 @@ per line: ``LOADED`` when the process got less than 80% of the CPU time its thre
 use (CPU time / (wall time x threads)), ``NOISY`` when the slowest repeat is more than 1.5x
 the fastest, ``FAULTS`` when a call took more than 1,000 minor page faults (median): the
 allocator handed memory back to the kernel and took it again, which costs a torch cost on
-large rollouts up to 2x and varies from call to call (glibc trims its heap and maps large
-blocks afresh; ``MALLOC_TRIM_THRESHOLD_`` and ``MALLOC_MMAP_THRESHOLD_`` set high, e.g.
-``1073741824``, stop it; see docs/mppi.md). Such figures should be re-measured. Use ``--threads 1``
+large rollouts up to 2x and varies from call to call (torchcbf raises glibc's thresholds
+once, see docs/mppi.md; the peer runs with the defaults). Such figures should be
+re-measured. Use ``--threads 1``
 (the default) for steady figures on a shared machine: with several intra-op threads on a
 loaded machine, every torch op waits for the slowest descheduled thread.
 

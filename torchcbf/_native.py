@@ -1,4 +1,5 @@
-"""Loading the optional C kernels (built by ``setup.py``) and the threads that run them.
+"""Loading the optional C kernels (built by ``setup.py``), the threads that run them, and
+the C library's heap settings that large torch workloads on the CPU depend on.
 
 Each kernel is a plain C library next to the module that calls it through ctypes, with a
 ``<prefix>_version()`` function. A library that is missing, does not load, or was built from
@@ -13,6 +14,7 @@ import functools
 import importlib.machinery
 import logging
 import os
+import platform
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -54,3 +56,38 @@ def thread_pool(threads: int, name: str) -> ThreadPoolExecutor:
 @functools.lru_cache(maxsize=16)
 def _pool(threads: int, name: str, pid: int) -> ThreadPoolExecutor:
     return ThreadPoolExecutor(threads, thread_name_prefix=name)
+
+
+#: a block of this size, allocated and freed once, raises glibc's dynamic thresholds to it
+HEAP_PRIMER_BYTES = 24 << 20
+
+
+@functools.cache
+def keep_freed_heap() -> bool:
+    """Let glibc keep freed blocks of up to ``HEAP_PRIMER_BYTES`` for reuse (once per process;
+    ``True`` where it applied).
+
+    glibc serves blocks above its mmap threshold (128 KiB at start) with fresh mappings and
+    hands the top of its heap back to the kernel once more than its trim threshold is free.
+    A torch cost evaluated slice by slice allocates and frees intermediates of a few MB per
+    slice, so every slice page-faults its memory in again (up to 10^5 faults, 2x the time,
+    per MPPI call). Freeing one mapped block of ``HEAP_PRIMER_BYTES`` raises both thresholds
+    the way glibc does for any program that frees such a block (mmap threshold to its size,
+    trim threshold to twice that); the process then keeps up to about 48 MB of freed memory
+    for reuse instead of returning it. Elsewhere (other C libraries, other systems) nothing
+    is done.
+    """
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        libc = ctypes.CDLL(None)
+        malloc, free = libc.malloc, libc.free
+    except (OSError, AttributeError):
+        return False
+    malloc.restype, malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
+    free.restype, free.argtypes = None, [ctypes.c_void_p]
+    block = malloc(HEAP_PRIMER_BYTES)
+    if not block:
+        return False
+    free(block)
+    return True

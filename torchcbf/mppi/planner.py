@@ -80,6 +80,7 @@ from torchcbf._checks import (
     check_last_dim,
     check_positive,
 )
+from torchcbf._native import keep_freed_heap
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.mppi import _rollout
 from torchcbf.mppi.history import History, HistoryBuffer
@@ -400,6 +401,8 @@ class MPPI(nn.Module):
             self.path = "fused"
             return self._fused(xb, model, cost_code, unbatched)
         eps, controls, states = self._rollout_buffers()
+        if xb.device.type == "cpu":
+            keep_freed_heap()  # a torch cost's intermediates are reused, not faulted in again
         if model is not None:
             self.path = "rollout"
             cfg = self._configuration(model, None)
