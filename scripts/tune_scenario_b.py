@@ -3,17 +3,20 @@
 Every grid point runs the filtered methods over a block of tuning seeds (10,000 and up,
 never the evaluation seeds 0-31) at a reduced MPPI size, and the rule below picks one:
 
-1. no collision in the planner-based methods (``mppi_scbf``, ``shield_mppi``);
+1. the fewest collisions in the planner-based methods (``mppi_scbf``, ``shield_mppi``);
 2. then the most goals reached by them;
 3. then the fewest collisions of ``scbf`` alone (no grid point keeps it collision-free: a
    stalled unicycle has no lateral authority and the position noise pushes it sideways,
    see docs/scenarios.md);
-4. then the larger equilibrium margin, then the smaller alpha (a gentler filter).
+4. then the larger equilibrium margin and goal-wall margin, then the smaller alpha (a
+   gentler filter).
 
 Usage::
 
     python scripts/tune_scenario_b.py --out docs/tuning    # the grid of docs/scenarios.md
     python scripts/tune_scenario_b.py --alpha 10,20 --margin 0.25 --seeds 8 --workers 1
+    python scripts/tune_scenario_b.py --alpha 50 --margin 0.25 --limit 40 \
+        --goal-wall-margin none,0.3,0.35,0.4 --seeds 960 --first-seed 50064 --out out/wall
 
 Writes ``tuning.csv`` and ``tuning.md`` (the table) to ``--out`` and prints the choice.
 """
@@ -44,9 +47,13 @@ def _limits(text: str) -> list[float | None]:
     return [None if v.strip() == "none" else float(v) for v in text.split(",") if v.strip()]
 
 
-def run_point(job: tuple[str, float, float, float | None, int, int, int, int]) -> dict[str, object]:
-    """One (method, alpha, margin, control limit) over the tuning seeds: counts, wall time."""
-    method, alpha, margin, limit, seeds, first, samples, horizon = job
+Job = tuple[str, float, float, float | None, float | None, int, int, int, int]
+
+
+def run_point(job: Job) -> dict[str, object]:
+    """One (method, alpha, margin, goal-wall margin, control limit) over the tuning seeds:
+    counts, wall time."""
+    method, alpha, margin, wall, limit, seeds, first, samples, horizon = job
     torch.set_num_threads(1)
     start = time.perf_counter()
     scenario = mppi_cbf(
@@ -57,6 +64,7 @@ def run_point(job: tuple[str, float, float, float | None, int, int, int, int]) -
         horizon=horizon,
         alpha=alpha,
         margin=margin,
+        goal_wall_margin=margin if wall is None else wall,
         control_limit=limit,
     )
     _, per_seed = scenario.run(progress=False)
@@ -65,6 +73,7 @@ def run_point(job: tuple[str, float, float, float | None, int, int, int, int]) -
         "method": method,
         "alpha": alpha,
         "margin": margin,
+        "goal_wall_margin": "none" if wall is None else wall,
         "control_limit": "none" if limit is None else limit,
         "seeds": seeds,
         "collisions": s["collision"]["count"],
@@ -76,22 +85,37 @@ def run_point(job: tuple[str, float, float, float | None, int, int, int, int]) -
     }
 
 
-def choose(rows: list[dict[str, object]]) -> tuple[float, float, str] | None:
-    """The grid point picked by the module docstring's rule (``None`` if none is safe)."""
-    points: dict[tuple[float, float, str], list[dict[str, object]]] = {}
+Point = tuple[float, float, float, str]
+
+
+def _wall(r: dict[str, object]) -> float:
+    wall = str(r.get("goal_wall_margin", "none"))
+    return float(r["margin"]) if wall == "none" else float(wall)
+
+
+def choose(rows: list[dict[str, object]]) -> Point | None:
+    """The grid point ``(alpha, margin, goal-wall margin, control limit)`` picked by the
+    module docstring's rule (``None`` without rows)."""
+    points: dict[Point, list[dict[str, object]]] = {}
     for r in rows:
-        key = (float(r["alpha"]), float(r["margin"]), str(r.get("control_limit", "none")))
+        key = (float(r["alpha"]), float(r["margin"]), _wall(r), str(r.get("control_limit", "none")))
         points.setdefault(key, []).append(r)
 
-    def count(point: tuple[float, float, str], key: str, planners: bool) -> int:
+    def count(point: Point, key: str, planners: bool) -> int:
         return sum(int(r[key]) for r in points[point] if (r["method"] != "scbf") == planners)
 
-    safe = [p for p in points if count(p, "collisions", True) == 0]
-    if not safe:
+    if not points:
         return None
     return max(
-        safe,
-        key=lambda p: (count(p, "goals", True), -count(p, "collisions", False), p[1], -p[0]),
+        points,
+        key=lambda p: (
+            -count(p, "collisions", True),
+            count(p, "goals", True),
+            -count(p, "collisions", False),
+            p[1],
+            p[2],
+            -p[0],
+        ),
     )
 
 
@@ -102,24 +126,26 @@ def write_table(rows: list[dict[str, object]], out: Path) -> str:
         writer.writeheader()
         writer.writerows(rows)
     lines = [
-        "| alpha | margin [m] | control limit | method | collisions | goal by 5 s | min b "
-        "| mean t_goal [s] |",
-        "|---|---|---|---|---|---|---|---|",
+        "| alpha | margin [m] | goal-wall margin [m] | control limit | method | collisions "
+        "| goal by 5 s | min b | mean t_goal [s] |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         t_goal = r["t_goal_mean"]
         t_goal = "-" if t_goal in (None, "") else f"{float(t_goal):.2f}"
         lines.append(
-            f"| {float(r['alpha']):g} | {float(r['margin']):g} | {r.get('control_limit', 'none')} "
+            f"| {float(r['alpha']):g} | {float(r['margin']):g} | {_wall(r):g} "
+            f"| {r.get('control_limit', 'none')} "
             f"| {r['method']} "
             f"| {r['collisions']}/{r['seeds']} | {r['goals']}/{r['seeds']} "
             f"| {float(r['min_b']):.3f} | {t_goal} |"
         )
     choice = choose(rows)
     verdict = (
-        "chosen: no grid point keeps the planner-based methods collision-free"
+        "chosen: nothing (no rows)"
         if choice is None
-        else f"chosen: alpha = {choice[0]:g}, margin = {choice[1]:g} m, control limit {choice[2]}"
+        else f"chosen: alpha = {choice[0]:g}, margin = {choice[1]:g} m, goal-wall margin "
+        f"{choice[2]:g} m, control limit {choice[3]}"
     )
     (out / "tuning.md").write_text("\n".join([*lines, "", verdict]) + "\n")
     return verdict
@@ -129,6 +155,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--alpha", default="20,50", help="alpha values")
     parser.add_argument("--margin", default="0.2,0.25,0.3", help="equilibrium margins (m)")
+    parser.add_argument(
+        "--goal-wall-margin",
+        default="none",
+        help="margins (m) of the ellipse at (2, 5) facing the goal ('none': the margin)",
+    )
     parser.add_argument(
         "--limit", default="none", help="bounds on |a| and |omega| ('none': unbounded)"
     )
@@ -151,11 +182,16 @@ def main() -> None:
         return
     if args.first_seed < 10_000:
         parser.error("tuning seeds start at 10,000 (0-31 are the evaluation seeds)")
-    jobs = [
-        (m, a, g, lim, args.seeds, args.first_seed, args.samples, args.horizon)
-        for a, g, lim, m in itertools.product(
-            _floats(args.alpha), _floats(args.margin), _limits(args.limit), args.methods.split(",")
-        )
+    grid = itertools.product(
+        _floats(args.alpha),
+        _floats(args.margin),
+        _limits(args.goal_wall_margin),
+        _limits(args.limit),
+        args.methods.split(","),
+    )
+    jobs: list[Job] = [
+        (m, a, g, w, lim, args.seeds, args.first_seed, args.samples, args.horizon)
+        for a, g, w, lim, m in grid
     ]
     with ProcessPoolExecutor(args.workers) as pool:
         rows = []

@@ -11,7 +11,14 @@ import torch
 from torchcbf.cli import main
 from torchcbf.filters import FilterStatus
 from torchcbf.scenarios import METHODS, mppi_cbf, reach_avoid, reach_avoid_spec
-from torchcbf.scenarios.unicycle_mppi_cbf import CONFIGS, FLAT_MARGIN, SIGMA, risk_failures
+from torchcbf.scenarios.unicycle_mppi_cbf import (
+    CONFIG_PARAMS,
+    CONFIGS,
+    FLAT_MARGIN,
+    GOAL_WALL,
+    SIGMA,
+    risk_failures,
+)
 from torchcbf.sim import strict
 
 
@@ -90,21 +97,33 @@ def test_mppi_cbf_barrier_scale_and_rectify_gain(dtype: torch.dtype) -> None:
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize(
-    ("config", "alpha", "beta", "margin"),
-    [("paper", 1.0, 1.0, FLAT_MARGIN), ("default", 7.0, 2.0, 0.3)],
+    ("config", "alpha", "beta", "margin", "wall"),
+    [
+        ("paper", 1.0, 1.0, FLAT_MARGIN, None),
+        ("default", 7.0, 2.0, 0.3, None),
+        ("default", 7.0, 2.0, 0.3, 0.45),
+    ],
 )
 def test_mppi_cbf_scales_put_the_margin_on_the_flat_sides(
-    dtype: torch.dtype, config: str, alpha: float, beta: float, margin: float
+    dtype: torch.dtype, config: str, alpha: float, beta: float, margin: float, wall: float | None
 ) -> None:
-    """c_i = beta min(axes_i) / (2 alpha k m): at rest h_e = c_i k b_i, which reaches the
-    equilibrium beta / alpha where b_i = 2 m / min(axes_i), i.e. (linearised at the boundary,
-    |grad b_i| = 2 / min(axes_i)) at distance m from the flat side, whatever k."""
+    """c_i = beta min(axes_i) / (2 alpha k m_i): at rest h_e = c_i k b_i, which reaches the
+    equilibrium beta / alpha where b_i = 2 m_i / min(axes_i), i.e. (linearised at the
+    boundary, |grad b_i| = 2 / min(axes_i)) at distance m_i from the flat side, whatever k;
+    m_i is the margin, the goal wall's its own (the default configuration's, or given)."""
     kwargs = {} if config == "paper" else {"alpha": alpha, "beta": beta, "margin": margin}
+    if wall is not None:
+        kwargs["goal_wall_margin"] = wall
+    margins = [margin] * len(AXES)
+    if config == "default":
+        margins[GOAL_WALL] = wall if wall is not None else CONFIG_PARAMS["default"].goal_wall_margin
     for k in (5.0, 20.0):
         scenario = mppi_cbf(
             "scbf", config=config, num_seeds=1, rectify_gain=k, dtype=dtype, **kwargs
         )
-        expected = [beta * min(a) * b / (2 * alpha * margin) for a, b in zip(AXES, B0, strict=True)]
+        expected = [
+            beta * min(a) * b / (2 * alpha * m) for a, b, m in zip(AXES, B0, margins, strict=True)
+        ]
         rtol = 1e-10 if dtype == torch.float64 else 1e-5
         torch.testing.assert_close(
             _h_at_start(scenario)[0], torch.tensor(expected, dtype=dtype), rtol=rtol, atol=0.0
@@ -286,19 +305,21 @@ def test_risk_failures_matches_a_loop() -> None:
 
 @pytest.mark.slow
 def test_mppi_cbf_default_configuration_targets() -> None:
-    """Default configuration on a block of 16 seeds that neither the tuning (10,000 and up)
-    nor the README's evaluation (0-31) used, at K = 1,000: MPPI + SCBF and the shield MPPI
-    never collide and reach the goal in at least 15 of 16 seeds; the risk-aware filter's
-    empirical failure rate within its horizon stays below rho."""
+    """Default configuration on 96 seeds that neither the tuning (10,000 and up) nor the
+    README's evaluation (0-31) used, at K = 1,000: MPPI + SCBF and the shield MPPI collide in
+    at most one seed each and reach the goal in at least 94 (over 1,920 tuning runs they
+    collided in 2, about 0.1% per seed: a block of 16 seeds is collision-free with about 97%
+    probability, docs/scenarios.md); the risk-aware filter's empirical failure rate within
+    its horizon stays below rho."""
     for method in ("mppi_scbf", "shield_mppi", "mppi_rascbf"):
-        scenario = mppi_cbf(method, num_seeds=16, seed=500, num_samples=1000, horizon=80)
+        scenario = mppi_cbf(method, num_seeds=96, seed=500, num_samples=1000, horizon=80)
         _, m = scenario.run(progress=False)
         if method == "mppi_rascbf":
             rate = m["risk_window_failures"].sum() / m["risk_windows"].sum()
             assert float(rate) <= scenario.params["rho"]
             continue
-        assert int(m["collision"].sum()) == 0, method
-        assert int(m["goal_reached"].sum()) >= 15, method
+        assert int(m["collision"].sum()) <= 1, method
+        assert int(m["goal_reached"].sum()) >= 94, method
 
 
 @pytest.mark.parametrize("bad", [["--seeds", "0"], ["--samples", "-3"], ["--horizon", "x"]])

@@ -22,9 +22,10 @@ obstacles, goal, MPPI and its costs are the same in all three):
 - ``"cbfkit"``: CBFkit's own reading, the sublevel barrier ``B_i = exp(-0.1 b_i)`` with
   ``L B + tr / 2 <= -alpha B + beta`` (alpha = beta = 1) on its exponential rectification
   ``B + 0.3 L_f B``;
-- ``"default"``: the project's choice of the free parameters (alpha, the equilibrium margin,
-  the shield's penalty), made by ``scripts/tune_scenario_b.py`` on tuning seeds 10,000 and
-  up, never on the evaluation seeds; the table is in docs/scenarios.md.
+- ``"default"``: the project's choice of the free parameters (alpha, the equilibrium margin
+  and the goal wall's own, the control bounds), made by ``scripts/tune_scenario_b.py`` on
+  tuning seeds 10,000 and up, never on the evaluation seeds; the tables are in
+  docs/scenarios.md.
 
 The equilibrium margin ``m``: where the condition is active and the robot at rest,
 ``h_e = beta / alpha``, i.e. ``b_i = beta / (alpha k c_i)``; with ``c_i = beta min(axes_i) /
@@ -67,6 +68,8 @@ X0 = (0.0, 0.0, 0.0, math.pi / 4)
 DT, STEPS, ROLLOUT_DT = 0.01, 500, 0.02
 FLAT_MARGIN = 2.0 / 3.0
 """Equilibrium margin (m) of the ``paper`` configuration."""
+GOAL_WALL = 2
+"""Index of the ellipse at (2, 5), whose flat side faces the goal 0.75 m away."""
 
 
 @dataclass(frozen=True)
@@ -80,6 +83,8 @@ class FilterParams:
             ``"cbfkit"``: CBFkit's sublevel ``L B + tr / 2 <= -alpha B + beta``).
         rectify_gain: ``k`` of the exponential form.
         margin: equilibrium distance (m) from the flat sides; sets ``c_i``.
+        goal_wall_margin: the margin of the ellipse :data:`GOAL_WALL` (``None``: ``margin``);
+            a robot that has reached the goal hovers between it and the goal.
         control_weight: diagonal of the QP weight ``R`` on ``(a, omega)``.
         control_limit: bound on ``|a|`` and ``|omega|`` (``None``: unbounded).
         rho: risk-aware methods: probability of leaving the safe set within ``T``.
@@ -93,6 +98,7 @@ class FilterParams:
     beta: float = 1.0
     rectify_gain: float = 20.0
     margin: float = 0.25
+    goal_wall_margin: float | None = 0.4
     control_weight: tuple[float, float] = (1.0, 1e-3)
     control_limit: tuple[float, float] | None = (40.0, 40.0)
     rho: float = 0.05
@@ -102,9 +108,16 @@ class FilterParams:
 
 CONFIG_PARAMS: dict[str, FilterParams] = {
     "default": FilterParams(),
-    "paper": FilterParams(alpha=1.0, beta=1.0, margin=FLAT_MARGIN, control_limit=None),
+    "paper": FilterParams(
+        alpha=1.0, beta=1.0, margin=FLAT_MARGIN, goal_wall_margin=None, control_limit=None
+    ),
     "cbfkit": FilterParams(
-        form="cbfkit", alpha=1.0, beta=1.0, rectify_gain=1.0 / 0.3, control_limit=None
+        form="cbfkit",
+        alpha=1.0,
+        beta=1.0,
+        rectify_gain=1.0 / 0.3,
+        goal_wall_margin=None,
+        control_limit=None,
     ),
 }
 
@@ -140,6 +153,7 @@ def mppi_cbf(
     beta: float | None = None,
     rectify_gain: float | None = None,
     margin: float | None = None,
+    goal_wall_margin: float | None = None,
     barrier_scale: float | Sequence[float] | None = None,
     control_weight: float | tuple[float, float] | None = None,
     control_limit: float | tuple[float, float] | None = None,
@@ -161,7 +175,7 @@ def mppi_cbf(
         num_samples, horizon: MPPI's ``K`` and ``H`` (the paper: 20,000 and 80).
         planner_every: replan every this many loop steps (2: once per rollout step of
             0.02 s); between replans the loop follows the plan.
-        alpha, beta, rectify_gain, margin, control_weight, control_limit, rho,
+        alpha, beta, rectify_gain, margin, goal_wall_margin, control_weight, control_limit, rho,
             risk_horizon, shield_weight: override the configuration's value
             (:class:`FilterParams`).
         barrier_scale: the scales ``c_i`` of the exponential form (one number or five),
@@ -181,6 +195,7 @@ def mppi_cbf(
         "beta": beta,
         "rectify_gain": rectify_gain,
         "margin": margin,
+        "goal_wall_margin": goal_wall_margin,
         "rho": rho,
         "risk_horizon": risk_horizon,
         "shield_weight": shield_weight,
@@ -310,8 +325,13 @@ def _rectified(
 def _scales(barrier_scale: float | Sequence[float] | None, params: FilterParams) -> list[float]:
     if barrier_scale is None:
         # c_i |grad b_i| k alpha / beta = 1 / margin on the flat sides, |grad b_i| = 2 / min(a_i)
-        k, m = params.rectify_gain, params.margin
-        return [params.beta * min(a) / (2.0 * params.alpha * k * m) for a in AXES]
+        k, margins = params.rectify_gain, [params.margin] * len(AXES)
+        if params.goal_wall_margin is not None:
+            margins[GOAL_WALL] = params.goal_wall_margin
+        return [
+            params.beta * min(a) / (2.0 * params.alpha * k * m)
+            for a, m in zip(AXES, margins, strict=True)
+        ]
     if isinstance(barrier_scale, (int, float)):
         scales = [float(barrier_scale)] * len(CENTERS)
     else:
