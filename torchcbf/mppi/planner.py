@@ -439,7 +439,7 @@ class MPPI(nn.Module):
         std = self._isotropic_std
         storage = eps.permute(0, 3, 2, 1)  # [B, m, H, K], contiguous: the fast fill
         for b, gen in enumerate(self._generators):
-            # Sigma = s^2 I: one pass, no separate scaling
+            # Sigma = s^2 I: drawn scaled in one pass; otherwise standard, scaled below
             storage[b].normal_(0.0, 1.0 if std is None else std, generator=gen)
         if std is None and self._diagonal:
             eps.mul_(torch.diagonal(self.noise_cov).to(eps).sqrt())
