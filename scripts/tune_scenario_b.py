@@ -43,7 +43,8 @@ def _floats(text: str) -> list[float]:
     return [float(v) for v in text.split(",") if v.strip()]
 
 
-def _limits(text: str) -> list[float | None]:
+def _optional_floats(text: str) -> list[float | None]:
+    """Comma-separated numbers, ``none`` for ``None``."""
     return [None if v.strip() == "none" else float(v) for v in text.split(",") if v.strip()]
 
 
@@ -185,8 +186,8 @@ def main() -> None:
     grid = itertools.product(
         _floats(args.alpha),
         _floats(args.margin),
-        _limits(args.goal_wall_margin),
-        _limits(args.limit),
+        _optional_floats(args.goal_wall_margin),
+        _optional_floats(args.limit),
         args.methods.split(","),
     )
     jobs: list[Job] = [

@@ -35,8 +35,6 @@ from torchcbf.barriers.lie import (
 from torchcbf.dynamics.base import ControlAffine
 
 Form = Literal["high_order", "exponential"]
-
-
 GainSpec = float | Sequence[float] | Tensor | None
 
 

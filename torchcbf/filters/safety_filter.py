@@ -62,6 +62,7 @@ from torchcbf.filters.modes import MODE_OPTIONS, FilterMode, make_mode
 from torchcbf.filters.qp_data import SLACK_MODES, SlackMode, assemble
 from torchcbf.qp import Status
 from torchcbf.qp import realtime as qp_realtime
+from torchcbf.qp.solve import check_options
 
 __all__ = ["FallbackSpec", "FilterOutput", "FilterStatus", "SafetyFilter"]
 
@@ -175,14 +176,7 @@ def _positive(name: str, value: Any) -> float:
 def _check_qp_options(opts: dict[str, Any]) -> dict[str, Any]:
     """``qp_options`` with ``eps`` and ``max_iter`` checked as :func:`~torchcbf.qp.solve_qp`
     checks them (the real-time path reads them without calling it)."""
-    max_iter = opts.get("max_iter", 1)
-    if not isinstance(max_iter, int) or isinstance(max_iter, bool) or max_iter < 1:
-        raise ValueError(f"qp_options['max_iter'] must be a positive integer, got {max_iter!r}")
-    eps = opts.get("eps")
-    if eps is not None and (
-        isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0 < eps < 1
-    ):
-        raise ValueError(f"qp_options['eps'] must be a number in (0, 1), got {eps!r}")
+    check_options(opts.get("max_iter", 1), opts.get("eps"), where="qp_options['{}']")
     return opts
 
 

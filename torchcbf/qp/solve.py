@@ -123,6 +123,19 @@ def _row_nonfinite(t: Tensor | None, trailing: int, batch: int) -> Tensor | None
     return ~torch.isfinite(flat.detach().abs().amax(-1))
 
 
+def check_options(max_iter: object, eps: object, *, where: str = "{}") -> None:
+    """Raise ``ValueError`` unless ``max_iter`` is a positive integer and ``eps`` is ``None``
+    or a number in (0, 1); ``where`` formats the option's name in the message (e.g.
+    ``"qp_options['{}']"`` for options passed on to :func:`solve_qp`)."""
+    if not isinstance(max_iter, int) or isinstance(max_iter, bool) or max_iter < 1:
+        name = where.format("max_iter")
+        raise ValueError(f"{name} must be a positive integer, got {max_iter!r}")
+    if eps is not None and (
+        isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0 < eps < 1
+    ):
+        raise ValueError(f"{where.format('eps')} must be a number in (0, 1), got {eps!r}")
+
+
 def solve_qp(
     Q: Tensor,
     p: Tensor,
@@ -338,15 +351,12 @@ def _validate(
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if method == "active_set" and A is not None and A.shape[-2] > 0:
         raise ValueError("method='active_set' does not take equality constraints A, b")
-    if not isinstance(max_iter, int) or isinstance(max_iter, bool) or max_iter < 1:
-        raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
+    check_options(max_iter, eps)
     if not isinstance(check_every, int) or check_every < 1:
         raise ValueError(f"check_every must be a positive integer, got {check_every!r}")
     eps_default, eps_inf = default_tolerances(dtype)
     if eps is None:
         eps = eps_default
-    elif not isinstance(eps, (int, float)) or not (0 < eps < 1):
-        raise ValueError(f"eps must be a number in (0, 1), got {eps!r}")
     x0 = warm_start.x if isinstance(warm_start, QPSolution) else warm_start
     if x0 is not None:
         x0 = _tensor("warm_start", x0, dtype, device)
