@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 
 import pytest
@@ -305,6 +306,45 @@ def test_compiled_matches_eager():
         a, b = eager(x, 0.1 * step), compiled(x, 0.1 * step)
         torch.testing.assert_close(a.plan, b.plan, atol=1e-10, rtol=1e-10)
         torch.testing.assert_close(a.cost_min, b.cost_min, atol=1e-10, rtol=1e-10)
+
+
+def _goal_cost(states, controls, t0):
+    """A cost written in Python (not one of torchcbf's terms): kernel rollouts + torch."""
+    p = states[..., 1:, :2]
+    return ((p - p.new_tensor([2.0, 4.0])) ** 2).sum((-1, -2)) + t0.unsqueeze(-1)
+
+
+def _user_planner(**kw):
+    dyn = AccelUnicycle(u_min=-2.0, u_max=2.0)
+    return MPPI(dyn, _goal_cost, 6, 32, 0.02, 1.0, 0.5, 0.1, seed=3, **kw)
+
+
+def test_compiled_closed_loop_compiles_once():
+    pytest.importorskip("torch._dynamo")
+    eager, compiled = _user_planner(), _user_planner(compile=True)
+    x = _x0(2)
+    torch.testing.assert_close(eager(x).plan, compiled(x).plan)
+    with torch.compiler.set_stance("fail_on_recompile"):
+        for step in range(1, 4):
+            x = x + 0.05 * step  # new values of the state, the time and the plan
+            a, b = eager(x, 0.1 * step), compiled(x, 0.1 * step)
+            torch.testing.assert_close(a.plan, b.plan, atol=1e-10, rtol=1e-10)
+            torch.testing.assert_close(a.cost_min, b.cost_min, atol=1e-10, rtol=1e-10)
+
+
+def test_compile_failure_runs_eager(caplog):
+    pytest.importorskip("torch._dynamo")
+
+    def broken(graph, inputs):
+        raise RuntimeError("no C++ compiler here")
+
+    eager, planner = _user_planner(), _user_planner(compile={"backend": broken})
+    x = _x0(2)
+    with caplog.at_level(logging.WARNING, logger="torchcbf"):
+        out = planner(x)
+    assert "running eager" in caplog.text and "no C++ compiler here" in caplog.text
+    torch.testing.assert_close(out.plan, eager(x).plan)
+    torch.testing.assert_close(planner(x, 0.1).plan, eager(x, 0.1).plan)
 
 
 @pytest.mark.parametrize("mode", ["range", "std"])
