@@ -579,22 +579,19 @@ def _print_rows(rows: list[dict[str, Any]], keys: list[str]) -> None:
         )
 
 
+def _engine_options(args: argparse.Namespace) -> dict[str, Any]:
+    """Where and how ``sweep`` and ``tune`` run their configurations (their common options)."""
+    names = ("device", "engine", "address", "num_cpus", "threads", "progress")
+    return {name: getattr(args, name) for name in names}
+
+
 def _sweep(args: argparse.Namespace) -> int:
     from torchcbf.sweep import parse_grid, run_sweep, write_sweep
 
     try:
         grid = parse_grid(args.scenario, args.grid)
         rows = run_sweep(
-            args.scenario,
-            grid,
-            num_seeds=args.seeds,
-            seed=args.seed,
-            device=args.device,
-            engine=args.engine,
-            address=args.address,
-            num_cpus=args.num_cpus,
-            threads=args.threads,
-            progress=args.progress,
+            args.scenario, grid, num_seeds=args.seeds, seed=args.seed, **_engine_options(args)
         )
     except (ValueError, ImportError) as error:
         print(f"torchcbf sweep: {error}", file=sys.stderr)
@@ -642,12 +639,7 @@ def _tune(args: argparse.Namespace) -> int:
             params=None if args.params is None else [p.strip() for p in args.params.split(",")],
             sampler_seed=args.sampler_seed,
             batch=args.batch,
-            device=args.device,
-            engine=args.engine,
-            address=args.address,
-            num_cpus=args.num_cpus,
-            threads=args.threads,
-            progress=args.progress,
+            **_engine_options(args),
         )
     except (ValueError, ImportError) as error:
         print(f"torchcbf tune: {error}", file=sys.stderr)
