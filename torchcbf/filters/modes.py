@@ -200,43 +200,62 @@ class RiskAware(FilterMode):
         lyapunovs: Sequence[LieFunction],
     ) -> None:
         _needs_diffusion(self.name, dynamics)
-        f64 = torch.float64
         states = self.safe_states
         if states is not None:
             check_last_dim("safe_states", states, dynamics.state_dim)
-        T = self.horizon
         if barriers:
-            if self.eta is None and states is None:
-                raise ValueError(
-                    "mode='risk_aware' needs eta= (noise bound |dh/dx sigma| on the safe set) "
-                    "or safe_states= (sample states to compute it from)"
-                )
-            if self.eta is None:
-                parts = [noise_bound(b, dynamics, states).reshape(-1) for b in barriers]
-                eta_t = torch.cat(parts).to(f64)
-            else:
-                eta_t = as_tensor("eta", self.eta, dtype=f64)
-                if eta_t.dim() > 1 or bool((eta_t < 0).any()):
-                    raise ValueError(
-                        f"eta must be a non-negative scalar or [k], got {eta_t.tolist()}"
-                    )
-            self.cbf_margin = risk_margin(eta_t, self.rho, T)
+            self.cbf_margin = self._margin(
+                "eta",
+                self.eta,
+                barriers,
+                dynamics,
+                self.rho,
+                safe_only=True,
+                missing="mode='risk_aware' needs eta= (noise bound |dh/dx sigma| on the safe "
+                "set) or safe_states= (sample states to compute it from)",
+            )
         if lyapunovs:
-            if self.clf_eta is None and states is None:
+            self.clf_margin = self._margin(
+                "clf_eta",
+                self.clf_eta,
+                lyapunovs,
+                dynamics,
+                self.clf_rho,
+                safe_only=False,
+                missing="mode='risk_aware' with lyapunovs needs clf_eta= (bound on "
+                "|dV/dx sigma|) or safe_states=",
+            )
+
+    def _margin(
+        self,
+        name: str,
+        eta: Tensor | float | Sequence[float] | None,
+        functions: Sequence[LieFunction],
+        dynamics: ControlAffine,
+        rho: float,
+        *,
+        safe_only: bool,
+        missing: str,
+    ) -> Tensor:
+        """``Delta [k]`` of ``functions`` from the bound ``eta`` (given, or computed over
+        ``safe_states``, on its safe points only where ``safe_only``); ``missing`` is the
+        error where neither is given."""
+        f64 = torch.float64
+        if eta is None:
+            if self.safe_states is None:
+                raise ValueError(missing)
+            parts = [
+                noise_bound(fn, dynamics, self.safe_states, safe_only=safe_only).reshape(-1)
+                for fn in functions
+            ]
+            bound = torch.cat(parts).to(f64)
+        else:
+            bound = as_tensor(name, eta, dtype=f64)
+            if bound.dim() > 1 or bool((bound < 0).any()):
                 raise ValueError(
-                    "mode='risk_aware' with lyapunovs needs clf_eta= (bound on |dV/dx sigma|) "
-                    "or safe_states="
+                    f"{name} must be a non-negative scalar or [k], got {bound.tolist()}"
                 )
-            if self.clf_eta is None:
-                parts = [
-                    noise_bound(v, dynamics, states, safe_only=False).reshape(-1) for v in lyapunovs
-                ]
-                eta_v = torch.cat(parts).to(f64)
-            else:
-                eta_v = as_tensor("clf_eta", self.clf_eta, dtype=f64)
-                if eta_v.dim() > 1 or bool((eta_v < 0).any()):
-                    raise ValueError(f"clf_eta must be non-negative, got {eta_v.tolist()}")
-            self.clf_margin = risk_margin(eta_v, self.clf_rho, T)
+        return risk_margin(bound, rho, self.horizon)
 
     def cbf(self, terms: LieTerms, alpha: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
         _check_k("eta", self.cbf_margin, terms.h.shape[-1])
