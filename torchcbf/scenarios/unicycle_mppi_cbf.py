@@ -82,7 +82,8 @@ class FilterParams:
         alpha, beta: the stochastic condition ``L h + tr / 2 >= -alpha h + beta`` (for
             ``"cbfkit"``: CBFkit's sublevel ``L B + tr / 2 <= -alpha B + beta``).
         rectify_gain: ``k`` of the exponential form.
-        margin: equilibrium distance (m) from the flat sides; sets ``c_i``.
+        margin: equilibrium distance (m) from the flat sides to first order (exactly
+            ``a (sqrt(1 + 2 margin / a) - 1)``, ``a`` the short semi-axis); sets ``c_i``.
         goal_wall_margin: the margin of the ellipse :data:`GOAL_WALL` (``None``: ``margin``);
             a robot that has reached the goal hovers between it and the goal.
         control_weight: diagonal of the QP weight ``R`` on ``(a, omega)``.
