@@ -129,9 +129,185 @@ TEN_THOUSAND_SHAPES = [
 ]
 
 
-def hard_family(name: str, B: int, g: torch.Generator) -> tuple:
-    """``(Q, p, G, h, lb, ub)`` of one of :data:`HARD_FAMILIES`, ``B`` rows, float64, drawn
-    from ``g``; ``n = 4``, ``m = 8`` but for the mid-size family."""
+@dataclass
+class HardProblem:
+    """``B`` rows of one of :data:`HARD_FAMILIES` (float64). ``A, b`` and ``lb, ub`` may be
+    ``None``; ``expect`` is what every row is by construction: ``"optimal"``,
+    ``"infeasible"`` or ``"unbounded"``; ``x_star [B, n]`` is the exact minimiser where the
+    construction knows it, else ``None``."""
+
+    Q: Tensor
+    p: Tensor
+    G: Tensor
+    h: Tensor
+    A: Tensor | None
+    b: Tensor | None
+    lb: Tensor | None
+    ub: Tensor | None
+    expect: str
+    x_star: Tensor | None = None
+
+    def data(self) -> tuple:
+        """``(Q, p, G, h, A, b, lb, ub)``, the positional arguments of ``solve_qp``."""
+        return self.Q, self.p, self.G, self.h, self.A, self.b, self.lb, self.ub
+
+
+def _mv(M: Tensor, v: Tensor) -> Tensor:
+    return (M @ v.unsqueeze(-1)).squeeze(-1)
+
+
+def _shuffle_rows(G: Tensor, h: Tensor, g: torch.Generator) -> tuple[Tensor, Tensor]:
+    """The rows of ``G x <= h`` in a random order, drawn for every problem of the batch."""
+    perm = torch.rand(h.shape, generator=g, dtype=h.dtype).argsort(-1)
+    return G.gather(1, perm.unsqueeze(-1).expand_as(G)), h.gather(1, perm)
+
+
+def _hard_family_new(name: str, B: int, g: torch.Generator) -> HardProblem:
+    """The families added after the first seven (their own draws from ``g``)."""
+    f64 = torch.float64
+    n, m = 4, 8
+
+    def rnd(*shape: int) -> Tensor:
+        return torch.randn(*shape, generator=g, dtype=f64)
+
+    def uni(*shape: int) -> Tensor:
+        return torch.rand(*shape, generator=g, dtype=f64)
+
+    def pd(k: int) -> Tensor:
+        L = rnd(B, k, k)
+        return L @ L.mT / k + 0.1 * torch.eye(k, dtype=f64)
+
+    def feasible_rows(x0: Tensor, rows: int) -> tuple[Tensor, Tensor]:
+        """``rows`` random rows with a slack in (0, 1) at ``x0``."""
+        G = rnd(B, rows, x0.shape[-1])
+        return G, _mv(G, x0) + uni(B, rows)
+
+    def integer_direction() -> Tensor:
+        """A direction ``d [B, n]`` with small integer entries, not zero."""
+        d = torch.randint(-3, 4, (B, n), generator=g).to(f64)
+        d[:, 0] = torch.where(d.abs().sum(-1) == 0, 1.0, d[:, 0])
+        return d
+
+    def orthogonal_to(d: Tensor, rows: int) -> Tensor:
+        """``rows`` random rows orthogonal to ``d`` in exact arithmetic: integer rows
+        ``(d.d) v - (v.d) d`` (exact in float64) times a power of two near ``1 / |row|``."""
+        v = torch.randint(-5, 6, (B, rows, n), generator=g).to(f64)
+        w = (d * d).sum(-1)[:, None, None] * v - (v @ d.unsqueeze(-1)) * d.unsqueeze(-2)
+        size = w.abs().amax(-1, keepdim=True).clamp(min=1.0)
+        return w * torch.exp2(-torch.round(torch.log2(size)))
+
+    def singular_q(d: Tensor) -> Tensor:
+        """A PSD ``Q`` of rank ``n - 1`` with ``Q d = 0`` exactly: ``W W'`` for ``W`` from
+        :func:`orthogonal_to` (products and sums of its entries, multiples of powers of two
+        of a few bits, are exact), scaled by a power of two to about unit size."""
+        W = orthogonal_to(d, n - 1).mT
+        Q = W @ W.mT
+        size = Q.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None]
+        return Q * torch.exp2(-torch.round(torch.log2(size)))
+
+    def descent_along(d: Tensor) -> Tensor:
+        """A random ``p`` with ``p.d / |d| = -(0.5 .. 1.5)``."""
+        u = d / d.norm(dim=-1, keepdim=True)
+        p = 3 * rnd(B, n)
+        p = p - (p * u).sum(-1, keepdim=True) * u
+        return p - (0.5 + uni(B, 1)) * u
+
+    A = b = lb = ub = x_star = None
+    if name == "rank-deficient Q in a box":
+        L = rnd(B, n, 2)
+        Q = L @ L.mT
+        p = 3 * rnd(B, n)
+        x0 = 1.5 * (2 * uni(B, n) - 1)  # inside the box
+        G, h = feasible_rows(x0, m)
+        lb, ub = torch.full((B, n), -2.0, dtype=f64), torch.full((B, n), 2.0, dtype=f64)
+        return HardProblem(Q, p, G, h, A, b, lb, ub, "optimal")
+    if name == "equalities with a box":
+        Q, p = pd(n), 3 * rnd(B, n)
+        x0 = 0.9 * (2 * uni(B, n) - 1)  # strictly inside [-1, 1]^n
+        A = rnd(B, 2, n)
+        b = _mv(A, x0)
+        G, h = feasible_rows(x0, m)
+        lb, ub = torch.full((B, n), -1.0, dtype=f64), torch.full((B, n), 1.0, dtype=f64)
+        return HardProblem(Q, p, G, h, A, b, lb, ub, "optimal")
+    if name == "degenerate vertex (6 rows tight, 4 variables)":
+        # rows 0..5 tight at x*, multipliers > 0 on rows 0 and 1 only, rows 6, 7 slack;
+        # then the rows are shuffled. Q is positive definite, so x* is the unique minimiser.
+        Q, x_star = pd(n), rnd(B, n)
+        G = rnd(B, m, n)
+        slack = torch.cat((torch.zeros(B, 6, dtype=f64), 0.1 + uni(B, 2)), -1)
+        h = _mv(G, x_star) + slack
+        lam = torch.cat((0.5 + uni(B, 2), torch.zeros(B, 6, dtype=f64)), -1)
+        p = -_mv(Q, x_star) - _mv(G.mT, lam)
+        G, h = _shuffle_rows(G, h, g)
+        return HardProblem(Q, p, G, h, A, b, lb, ub, "optimal", x_star)
+    if name == "near-parallel rows":
+        # rows m/2.. are rows 0..m/2-1 with every entry moved by 1e-9 randn and a right-hand
+        # side 1e-9 |randn| looser than their own value at x0 plus the first copy's slack
+        Q, p, x0 = pd(n), 3 * rnd(B, n), rnd(B, n)
+        G1 = rnd(B, m // 2, n)
+        slack = uni(B, m // 2)
+        G2 = G1 + 1e-9 * rnd(B, m // 2, n)
+        G = torch.cat((G1, G2), 1)
+        h = torch.cat((_mv(G1, x0) + slack, _mv(G2, x0) + slack + 1e-9 * rnd(B, m // 2).abs()), 1)
+        return HardProblem(Q, p, G, h, A, b, lb, ub, "optimal")
+    if name == "contradicting rows":
+        # g x <= c and -g x <= -c - 1 (at random places) among rows feasible at x0, where
+        # c = g x0 + slack
+        Q, p, x0 = pd(n), 3 * rnd(B, n), rnd(B, n)
+        G, h = feasible_rows(x0, m)
+        G[:, 1], h[:, 1] = -G[:, 0], -h[:, 0] - 1.0
+        G, h = _shuffle_rows(G, h, g)
+        return HardProblem(Q, p, G, h, A, b, lb, ub, "infeasible")
+    if name == "empty box":
+        # a box around x0 with lb > ub in one (random) component; rows feasible at x0
+        Q, p, x0 = pd(n), 3 * rnd(B, n), rnd(B, n)
+        G, h = feasible_rows(x0, m)
+        lb, ub = x0 - 1 - uni(B, n), x0 + 1 + uni(B, n)
+        j = torch.randint(0, n, (B, 1), generator=g)
+        lb = lb.scatter(1, j, ub.gather(1, j) + 0.1 + uni(B, 1))
+        return HardProblem(Q, p, G, h, A, b, lb, ub, "infeasible")
+    if name == "inconsistent equalities":
+        # two equality rows with the same A row, right-hand sides 0.5 .. 1.5 apart
+        Q, p, x0 = pd(n), 3 * rnd(B, n), rnd(B, n)
+        a = rnd(B, 1, n)
+        A = torch.cat((a, a), 1)
+        b0 = _mv(a, x0)
+        b = torch.cat((b0, b0 + 0.5 + uni(B, 1)), 1)
+        G, h = feasible_rows(x0, m)
+        return HardProblem(Q, p, G, h, A, b, lb, ub, "infeasible")
+    if name == "free direction":
+        # Q PSD with Q d = 0 and every row orthogonal to d (both exactly, in floating point
+        # too), p.d < 0: x0 + t d is feasible for all t and the objective falls without bound
+        d = integer_direction()
+        Q, p, x0 = singular_q(d), descent_along(d), rnd(B, n)
+        G = orthogonal_to(d, m)
+        h = _mv(G, x0) + uni(B, m)
+        return HardProblem(Q, p, G, h, A, b, lb, ub, "unbounded")
+    if name == "inequality recession":
+        # G d <= 0 (about half the rows G_i d = 0, the others < 0), Q d = 0 (Q = 0 on about a
+        # third of the problems, else singular_q), all exactly; p.d < 0
+        d = integer_direction()
+        Q = singular_q(d)
+        Q = torch.where(uni(B, 1, 1) < 1 / 3, 0.0, Q)
+        p, x0 = descent_along(d), rnd(B, n)
+        # orthogonal rows minus k s d, s the power of two nearest 1 / |d|^2, k in {0 (about
+        # half the rows, never the first), 1, 2, 3}: G_i d = -k s |d|^2 (about -k) exactly, and
+        # some row limits -d (which sets the family apart from the free direction)
+        k = torch.randint(1, 4, (B, m, 1), generator=g).to(f64)
+        zero = uni(B, m, 1) < 0.5
+        zero[:, 0] = False
+        k = torch.where(zero, 0.0, k)
+        scale = torch.exp2(-torch.round(torch.log2((d * d).sum(-1))))[:, None, None]
+        G = orthogonal_to(d, m) - k * scale * d.unsqueeze(-2)
+        h = _mv(G, x0) + uni(B, m)
+        return HardProblem(Q, p, G, h, A, b, lb, ub, "unbounded")
+    raise ValueError(f"unknown hard family {name!r}")
+
+
+def hard_family(name: str, B: int, g: torch.Generator) -> HardProblem:
+    """``B`` rows of the family ``name`` of :data:`HARD_FAMILIES`, float64, drawn from ``g``;
+    ``n = 4``, ``m = 8`` but for the mid-size families. Every row is what the family says by
+    construction (:attr:`HardProblem.expect`)."""
     f64 = torch.float64
 
     def rnd(*shape: int) -> torch.Tensor:
@@ -144,9 +320,12 @@ def hard_family(name: str, B: int, g: torch.Generator) -> tuple:
         U, _ = torch.linalg.qr(rnd(B, n, n))
         d = torch.logspace(0, -math.log10(cond), n, dtype=f64)
         Q = U @ torch.diag_embed(d.expand(B, n)) @ U.mT
-        return Q, rnd(B, n), rnd(B, m, n), torch.rand(B, m, generator=g, dtype=f64), lb, ub
-    if name == "mid-size n=25 m=100":
-        n, m = 25, 100
+        p, G, h = rnd(B, n), rnd(B, m, n), torch.rand(B, m, generator=g, dtype=f64)
+        return HardProblem(Q, p, G, h, None, None, lb, ub, "optimal")
+    if name not in _FIRST_FAMILIES:
+        return _hard_family_new(name, B, g)
+    if name.startswith("mid-size"):
+        n, m = (int(s.split("=")[1]) for s in name.split()[1:])
     L = rnd(B, n, n)
     Q = L @ L.mT / n + 0.1 * torch.eye(n, dtype=f64)
     p = 3 * rnd(B, n)
@@ -167,9 +346,22 @@ def hard_family(name: str, B: int, g: torch.Generator) -> tuple:
         Q = torch.zeros(B, n, n, dtype=f64)
         lb, ub = -2 * torch.ones(B, n, dtype=f64), 2 * torch.ones(B, n, dtype=f64)
         h = h.abs() + 1.0  # the box is the bounded part
-    return Q, p, G, h, lb, ub
+    return HardProblem(Q, p, G, h, None, None, lb, ub, "optimal")
 
 
+#: the families built by the shared construction of :func:`hard_family` (Q = L L'/n + 0.1 I,
+#: rows feasible at a random x0), with their draws in the order of the first version
+_FIRST_FAMILIES = (
+    "half the rows tight at x0",
+    "duplicated rows",
+    "row scales 1e-6..1e6",
+    "LP in a box (Q = 0)",
+    "mid-size n=25 m=100",
+    "mid-size n=64 m=256",
+)
+
+#: the hard families of scripts/qp_accuracy.py; family ``k`` draws from seed ``500 + k`` there,
+#: so new families go at the end
 HARD_FAMILIES = (
     "cond=1e6",
     "cond=1e8",
@@ -178,4 +370,15 @@ HARD_FAMILIES = (
     "row scales 1e-6..1e6",
     "LP in a box (Q = 0)",
     "mid-size n=25 m=100",
+    "cond=1e10",
+    "rank-deficient Q in a box",
+    "equalities with a box",
+    "degenerate vertex (6 rows tight, 4 variables)",
+    "near-parallel rows",
+    "mid-size n=64 m=256",
+    "contradicting rows",
+    "empty box",
+    "inconsistent equalities",
+    "free direction",
+    "inequality recession",
 )
