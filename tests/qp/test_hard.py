@@ -247,3 +247,26 @@ def test_hard_family_rows_have_the_expected_status_and_answer(cvx, name):
             assert np.abs(x - x_star).max() <= 1e-6 * (1.0 + np.abs(x_star).max()), i
             ref_tol = 1e-5
         assert np.abs(x - ref).max() <= ref_tol * (1.0 + np.abs(ref).max()), i
+
+
+@pytest.mark.parametrize("method", ["auto", "ipm"])
+@pytest.mark.parametrize("curvature", [1e-10, 1e-12])
+def test_weak_curvature_without_rows_is_solved_exactly(method, curvature):
+    """min c x^2 / 2 + x: x = -1 / c. The regularised polish leaves x off by up to 7e-5
+    (relative) at c = 1e-10, which its stationarity check now sees; the row is re-solved by
+    a Cholesky solve."""
+    t = torch.tensor
+    sol = solve_qp(
+        t([[curvature]], dtype=torch.float64), t([1.0], dtype=torch.float64), method=method
+    )
+    assert int(sol.status) == Status.SOLVED
+    assert abs(float(sol.x) * curvature + 1.0) <= 1e-12
+
+
+@pytest.mark.parametrize("method", ["auto", "ipm"])
+def test_free_direction_beside_weak_curvature_is_never_solved(method):
+    """P = diag(1e-7, 0), p = (1, -1): x2 is free and p2 < 0, so the problem is unbounded.
+    The regularised polish used to return a finite "SOLVED" x2 = 4e11."""
+    P = torch.tensor([[1e-7, 0.0], [0.0, 0.0]], dtype=torch.float64)
+    sol = solve_qp(P, torch.tensor([1.0, -1.0], dtype=torch.float64), method=method)
+    assert int(sol.status) in (Status.DUAL_INFEASIBLE, Status.NUMERICAL_ERROR)

@@ -197,11 +197,12 @@ def _finish(
     Nearly parallel active rows leave the interior point accurate only to about
     ``sqrt(eps)`` in ``x``, and an active-set guess missing one of them can still pass the
     polish's ``eps`` checks. So a row the solver calls solved whose polished point is not a
-    KKT point to rounding (``exact`` of :func:`torchcbf.qp._kkt.polish`) is re-solved
-    exactly by the dual active-set method (no equality rows) or by enumeration (few
-    candidate sets) where one applies. An unverified row that no exact method certifies is
-    reported ``NUMERICAL_ERROR``. Testing whether any row needs this is one host
-    synchronisation."""
+    KKT point to rounding (``exact`` of :func:`torchcbf.qp._kkt.polish`), and a row left
+    ``NUMERICAL_ERROR`` or ``MAX_ITER``, is re-solved exactly by the dual active-set method
+    (no equality rows), then by enumeration (few candidate sets) where one applies (a row
+    without any constraint by a Cholesky solve). An unverified row that no exact method
+    certifies is reported ``NUMERICAL_ERROR``. Testing whether any row needs this is one
+    host synchronisation."""
     if not cfg.polish:
         candidate = (status == int(Status.SOLVED)).unsqueeze(-1)
         return x, z, y, status, _kkt.active_set(z, s) & candidate
@@ -209,19 +210,13 @@ def _finish(
         P, q, G, h, A, b, x, s, z, y, status, eps=cfg.eps
     )
     solved = status == int(Status.SOLVED)
-    suspect = solved & ~exact
+    failed = (status == int(Status.NUMERICAL_ERROR)) | (status == int(Status.MAX_ITER))
+    suspect = (solved & ~exact) | failed
     if not bool(suspect.any()):
         return x, z, y, status, fac.active
     idx = suspect.nonzero().squeeze(-1)
     sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
-    M, E, N = G.shape[-2], A.shape[-2], q.shape[-1]
-    ok = torch.zeros_like(idx, dtype=torch.bool)
-    if E == 0 and M > 0 and dual_applies(N, _dual_native.applies(q)):
-        dual = solve_dual(*sub[:4], eps=cfg.eps, max_iter=dual_budget(cfg.max_iter, M, N))
-        xs, zs, ys, acts, ok = dual.x, dual.z, sub[1].new_zeros(len(idx), 0), dual.active, dual.ok
-    elif num_candidates(M, E, N, cfg.pairs) <= MAX_CANDIDATES_SMALL_BATCH:
-        en = solve_enum(*sub, eps=cfg.eps, pairs=cfg.pairs)
-        xs, zs, ys, acts, ok = en.x, en.z, en.y, en.active, en.ok
+    xs, zs, ys, acts, ok = _exact_resolve(*sub, cfg, failed.index_select(0, idx))
     active = fac.active
     if bool(ok.any()):
         keep = ok.unsqueeze(-1)
@@ -229,11 +224,56 @@ def _finish(
         z = z.index_copy(0, idx, torch.where(keep, zs, z.index_select(0, idx)))
         y = y.index_copy(0, idx, torch.where(keep, ys, y.index_select(0, idx)))
         active = active.index_copy(0, idx, torch.where(keep, acts, active.index_select(0, idx)))
-    failed = ~ok & ~verified.index_select(0, idx)
-    status = status.index_copy(
-        0, idx, torch.where(failed, int(Status.NUMERICAL_ERROR), status.index_select(0, idx))
-    )
+    before = status.index_select(0, idx)
+    unverified = ~ok & ~verified.index_select(0, idx) & (before == int(Status.SOLVED))
+    after = torch.where(unverified, int(Status.NUMERICAL_ERROR), before)
+    status = status.index_copy(0, idx, torch.where(ok, int(Status.SOLVED), after))
     return x, z, y, status, active
+
+
+def _exact_resolve(
+    P: Tensor,
+    q: Tensor,
+    G: Tensor,
+    h: Tensor,
+    A: Tensor,
+    b: Tensor,
+    cfg: SolverConfig,
+    strict: Tensor,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """``(x, z, y, active, ok)`` of the exact methods, tried in turn on the rows the ones
+    before did not certify: a Cholesky solve without rows, the dual active-set method (no
+    equality rows), enumeration (few candidate sets; after the dual method only on the
+    ``strict`` rows). On the ``strict [B]`` rows (those the interior point could not solve)
+    an answer must also be a KKT point to rounding:
+    enumeration judges its choice to ``eps``, which a nearly dependent active set can pass,
+    and both methods accept, to ``eps``, data that rounding made slightly infeasible."""
+    B, M, E, N = q.shape[0], G.shape[-2], A.shape[-2], q.shape[-1]
+    x, z, y = q.new_zeros(B, N), q.new_zeros(B, M), q.new_zeros(B, E)
+    active = torch.zeros(B, M, dtype=torch.bool, device=q.device)
+    ok = torch.zeros(B, dtype=torch.bool, device=q.device)
+    if M == 0 and E == 0:
+        L, info = torch.linalg.cholesky_ex(P)
+        xs = torch.cholesky_solve(-q.unsqueeze(-1), L).squeeze(-1)
+        ok = (info == 0) & torch.isfinite(xs).all(-1) & _kkt.kkt_point(P, q, G, h, A, b, xs, z, y)
+        return torch.where(ok.unsqueeze(-1), xs, x), z, y, active, ok
+    second = strict  # rows enumeration may take after the dual method
+    if E == 0 and dual_applies(N, _dual_native.applies(q)):
+        dual = solve_dual(P, q, G, h, eps=cfg.eps, max_iter=dual_budget(cfg.max_iter, M, N))
+        x, z, active = dual.x, dual.z, dual.active
+        ok = dual.ok & (~strict | _kkt.kkt_point(P, q, G, h, A, b, x, z, y))
+    else:
+        second = torch.ones_like(strict)
+    second = second & ~ok
+    if bool(second.any()) and num_candidates(M, E, N, cfg.pairs) <= MAX_CANDIDATES_SMALL_BATCH:
+        en = solve_enum(P, q, G, h, A, b, eps=cfg.eps, pairs=cfg.pairs)
+        take = en.ok & second
+        take = take & (~strict | _kkt.kkt_point(P, q, G, h, A, b, en.x, en.z, en.y))
+        keep = take.unsqueeze(-1)
+        x, z, y = torch.where(keep, en.x, x), torch.where(keep, en.z, z), torch.where(keep, en.y, y)
+        active = torch.where(keep, en.active, active)
+        ok = ok | take
+    return x, z, y, active, ok
 
 
 def _forward_enum(
