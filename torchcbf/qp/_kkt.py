@@ -30,7 +30,7 @@ from torch import Tensor
 
 from torchcbf.qp.status import Status
 
-_REFINE_STEPS = 3
+_REFINE_STEPS = 8
 
 
 class KKTFactor(NamedTuple):
