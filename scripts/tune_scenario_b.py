@@ -3,13 +3,18 @@
 Every grid point runs the filtered methods over a block of tuning seeds (10,000 and up,
 never the evaluation seeds 0-31) at a reduced MPPI size, and the rule below picks one:
 
-1. the fewest collisions in the planner-based methods (``mppi_scbf``, ``shield_mppi``);
-2. then the most goals reached by them;
-3. then the fewest collisions of ``scbf`` alone (no grid point keeps it collision-free: a
-   stalled unicycle has no lateral authority and the position noise pushes it sideways,
-   see docs/scenarios.md);
-4. then the larger equilibrium margin and goal-wall margin, then the smaller alpha (a
-   gentler filter).
+1. the planner-based methods (``mppi_scbf``, ``shield_mppi``) reach the goal in at least
+   30 of 32 seeds (the target rate); points that miss it rank after every point that meets
+   it;
+2. then the fewest collisions: the sum of the collision rates of the filtered methods
+   (``scbf`` may run on more seeds, ``--scbf-seeds``: it is cheap and its rate is the
+   largest);
+3. then the most goals reached by the planner-based methods;
+4. then the larger margins (equilibrium, goal wall, blocking ellipse), then the smaller
+   alpha (a gentler filter).
+
+Re-applied to the tables of the earlier sweeps (``--rows``), this rule picks the points the
+earlier rule picked.
 
 Usage::
 
@@ -17,6 +22,9 @@ Usage::
     python scripts/tune_scenario_b.py --alpha 10,20 --margin 0.25 --seeds 8 --workers 1
     python scripts/tune_scenario_b.py --alpha 50 --margin 0.25 --limit 40 \
         --goal-wall-margin none,0.3,0.35,0.4 --seeds 960 --first-seed 50064 --out out/wall
+    python scripts/tune_scenario_b.py --alpha 50 --margin 0.25 --limit 40 \
+        --goal-wall-margin 0.4 --blocking-margin none,0.275,0.3,0.325 --seeds 960 \
+        --scbf-seeds 8192 --first-seed 60000 --out out/blocking
 
 Writes ``tuning.csv`` and ``tuning.md`` (the table) to ``--out`` and prints the choice.
 """
@@ -48,13 +56,13 @@ def _optional_floats(text: str) -> list[float | None]:
     return [None if v.strip() == "none" else float(v) for v in text.split(",") if v.strip()]
 
 
-Job = tuple[str, float, float, float | None, float | None, int, int, int, int]
+Job = tuple[str, float, float, float | None, float | None, float | None, int, int, int, int]
 
 
 def run_point(job: Job) -> dict[str, object]:
-    """One (method, alpha, margin, goal-wall margin, control limit) over the tuning seeds:
-    counts, wall time."""
-    method, alpha, margin, wall, limit, seeds, first, samples, horizon = job
+    """One (method, alpha, margin, goal-wall margin, blocking margin, control limit) over the
+    tuning seeds: counts, wall time."""
+    method, alpha, margin, wall, blocking, limit, seeds, first, samples, horizon = job
     torch.set_num_threads(1)
     start = time.perf_counter()
     scenario = mppi_cbf(
@@ -66,6 +74,7 @@ def run_point(job: Job) -> dict[str, object]:
         alpha=alpha,
         margin=margin,
         goal_wall_margin=margin if wall is None else wall,
+        blocking_margin=margin if blocking is None else blocking,
         control_limit=limit,
     )
     _, per_seed = scenario.run(progress=False)
@@ -75,6 +84,7 @@ def run_point(job: Job) -> dict[str, object]:
         "alpha": alpha,
         "margin": margin,
         "goal_wall_margin": "none" if wall is None else wall,
+        "blocking_margin": "none" if blocking is None else blocking,
         "control_limit": "none" if limit is None else limit,
         "seeds": seeds,
         "collisions": s["collision"]["count"],
@@ -86,35 +96,50 @@ def run_point(job: Job) -> dict[str, object]:
     }
 
 
-Point = tuple[float, float, float, str]
+Point = tuple[float, float, float, float, str]
+TARGET_GOAL_RATE = 30 / 32
 
 
-def _wall(r: dict[str, object]) -> float:
-    wall = str(r.get("goal_wall_margin", "none"))
-    return float(r["margin"]) if wall == "none" else float(wall)
+def _own_margin(r: dict[str, object], column: str) -> float:
+    """The margin of one ellipse in a row (tables of earlier sweeps lack the column)."""
+    value = str(r.get(column, "none"))
+    return float(r["margin"]) if value == "none" else float(value)
 
 
 def choose(rows: list[dict[str, object]]) -> Point | None:
-    """The grid point ``(alpha, margin, goal-wall margin, control limit)`` picked by the
-    module docstring's rule (``None`` without rows)."""
+    """The grid point ``(alpha, margin, goal-wall margin, blocking margin, control limit)``
+    picked by the module docstring's rule (``None`` without rows)."""
     points: dict[Point, list[dict[str, object]]] = {}
     for r in rows:
-        key = (float(r["alpha"]), float(r["margin"]), _wall(r), str(r.get("control_limit", "none")))
+        key = (
+            float(r["alpha"]),
+            float(r["margin"]),
+            _own_margin(r, "goal_wall_margin"),
+            _own_margin(r, "blocking_margin"),
+            str(r.get("control_limit", "none")),
+        )
         points.setdefault(key, []).append(r)
 
-    def count(point: Point, key: str, planners: bool) -> int:
-        return sum(int(r[key]) for r in points[point] if (r["method"] != "scbf") == planners)
+    def planners(point: Point) -> list[dict[str, object]]:
+        return [r for r in points[point] if r["method"] != "scbf"]
+
+    def reaches_goals(point: Point) -> bool:
+        return all(int(r["goals"]) >= TARGET_GOAL_RATE * int(r["seeds"]) for r in planners(point))
+
+    def collision_rate(point: Point) -> float:
+        return sum(int(r["collisions"]) / int(r["seeds"]) for r in points[point])
 
     if not points:
         return None
     return max(
         points,
         key=lambda p: (
-            -count(p, "collisions", True),
-            count(p, "goals", True),
-            -count(p, "collisions", False),
+            reaches_goals(p),
+            -collision_rate(p),
+            sum(int(r["goals"]) for r in planners(p)),
             p[1],
             p[2],
+            p[3],
             -p[0],
         ),
     )
@@ -127,15 +152,16 @@ def write_table(rows: list[dict[str, object]], out: Path) -> str:
         writer.writeheader()
         writer.writerows(rows)
     lines = [
-        "| alpha | margin [m] | goal-wall margin [m] | control limit | method | collisions "
-        "| goal by 5 s | min b | mean t_goal [s] |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| alpha | margin [m] | goal-wall margin [m] | blocking margin [m] | control limit "
+        "| method | collisions | goal by 5 s | min b | mean t_goal [s] |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         t_goal = r["t_goal_mean"]
         t_goal = "-" if t_goal in (None, "") else f"{float(t_goal):.2f}"
         lines.append(
-            f"| {float(r['alpha']):g} | {float(r['margin']):g} | {_wall(r):g} "
+            f"| {float(r['alpha']):g} | {float(r['margin']):g} "
+            f"| {_own_margin(r, 'goal_wall_margin'):g} | {_own_margin(r, 'blocking_margin'):g} "
             f"| {r.get('control_limit', 'none')} "
             f"| {r['method']} "
             f"| {r['collisions']}/{r['seeds']} | {r['goals']}/{r['seeds']} "
@@ -146,7 +172,7 @@ def write_table(rows: list[dict[str, object]], out: Path) -> str:
         "chosen: nothing (no rows)"
         if choice is None
         else f"chosen: alpha = {choice[0]:g}, margin = {choice[1]:g} m, goal-wall margin "
-        f"{choice[2]:g} m, control limit {choice[3]}"
+        f"{choice[2]:g} m, blocking margin {choice[3]:g} m, control limit {choice[4]}"
     )
     (out / "tuning.md").write_text("\n".join([*lines, "", verdict]) + "\n")
     return verdict
@@ -162,10 +188,16 @@ def main() -> None:
         help="margins (m) of the ellipse at (2, 5) facing the goal ('none': the margin)",
     )
     parser.add_argument(
+        "--blocking-margin",
+        default="none",
+        help="margins (m) of the ellipse at (1, 2) across the start-goal line ('none': the margin)",
+    )
+    parser.add_argument(
         "--limit", default="none", help="bounds on |a| and |omega| ('none': unbounded)"
     )
     parser.add_argument("--methods", default=",".join(FILTERED))
     parser.add_argument("--seeds", type=int, default=16, help="tuning seeds per grid point")
+    parser.add_argument("--scbf-seeds", type=int, help="tuning seeds of scbf (default: --seeds)")
     parser.add_argument("--first-seed", type=int, default=10_000)
     parser.add_argument("--samples", type=int, default=1000, help="MPPI samples K")
     parser.add_argument("--horizon", type=int, default=80, help="MPPI horizon H")
@@ -187,12 +219,25 @@ def main() -> None:
         _floats(args.alpha),
         _floats(args.margin),
         _optional_floats(args.goal_wall_margin),
+        _optional_floats(args.blocking_margin),
         _optional_floats(args.limit),
         args.methods.split(","),
     )
+    scbf_seeds = args.scbf_seeds or args.seeds
     jobs: list[Job] = [
-        (m, a, g, w, lim, args.seeds, args.first_seed, args.samples, args.horizon)
-        for a, g, w, lim, m in grid
+        (
+            m,
+            a,
+            g,
+            w,
+            blk,
+            lim,
+            scbf_seeds if m == "scbf" else args.seeds,
+            args.first_seed,
+            args.samples,
+            args.horizon,
+        )  # fmt: skip
+        for a, g, w, blk, lim, m in grid
     ]
     with ProcessPoolExecutor(args.workers) as pool:
         rows = []

@@ -12,6 +12,7 @@ from torchcbf.cli import main
 from torchcbf.filters import FilterStatus
 from torchcbf.scenarios import METHODS, mppi_cbf, reach_avoid, reach_avoid_spec
 from torchcbf.scenarios.unicycle_mppi_cbf import (
+    BLOCKING,
     CONFIG_PARAMS,
     CONFIGS,
     FLAT_MARGIN,
@@ -97,26 +98,35 @@ def test_mppi_cbf_barrier_scale_and_rectify_gain(dtype: torch.dtype) -> None:
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize(
-    ("config", "alpha", "beta", "margin", "wall"),
+    ("config", "alpha", "beta", "margin", "wall", "blocking"),
     [
-        ("paper", 1.0, 1.0, FLAT_MARGIN, None),
-        ("default", 7.0, 2.0, 0.3, None),
-        ("default", 7.0, 2.0, 0.3, 0.45),
+        ("paper", 1.0, 1.0, FLAT_MARGIN, None, None),
+        ("default", 7.0, 2.0, 0.3, None, None),
+        ("default", 7.0, 2.0, 0.3, 0.45, 0.35),
     ],
 )
 def test_mppi_cbf_scales_put_the_margin_on_the_flat_sides(
-    dtype: torch.dtype, config: str, alpha: float, beta: float, margin: float, wall: float | None
+    dtype: torch.dtype,
+    config: str,
+    alpha: float,
+    beta: float,
+    margin: float,
+    wall: float | None,
+    blocking: float | None,
 ) -> None:
     """c_i = beta min(axes_i) / (2 alpha k m_i): at rest h_e = c_i k b_i, which reaches the
     equilibrium beta / alpha where b_i = 2 m_i / min(axes_i), i.e. (linearised at the
     boundary, |grad b_i| = 2 / min(axes_i)) at distance m_i from the flat side, whatever k;
-    m_i is the margin, the goal wall's its own (the default configuration's, or given)."""
+    m_i is the margin, the goal wall's and the blocking ellipse's their own (the default
+    configuration's, or given)."""
     kwargs = {} if config == "paper" else {"alpha": alpha, "beta": beta, "margin": margin}
     if wall is not None:
-        kwargs["goal_wall_margin"] = wall
+        kwargs.update(goal_wall_margin=wall, blocking_margin=blocking)
     margins = [margin] * len(AXES)
     if config == "default":
-        margins[GOAL_WALL] = wall if wall is not None else CONFIG_PARAMS["default"].goal_wall_margin
+        default = CONFIG_PARAMS["default"]
+        margins[GOAL_WALL] = wall if wall is not None else default.goal_wall_margin
+        margins[BLOCKING] = blocking if blocking is not None else default.blocking_margin
     for k in (5.0, 20.0):
         scenario = mppi_cbf(
             "scbf", config=config, num_seeds=1, rectify_gain=k, dtype=dtype, **kwargs

@@ -70,6 +70,9 @@ FLAT_MARGIN = 2.0 / 3.0
 """Equilibrium margin (m) of the ``paper`` configuration."""
 GOAL_WALL = 2
 """Index of the ellipse at (2, 5), whose flat side faces the goal 0.75 m away."""
+BLOCKING = 0
+"""Index of the ellipse at (1, 2) across the straight line from the start to the goal: the
+proportional controller presses the robot along its long side."""
 
 
 @dataclass(frozen=True)
@@ -86,6 +89,8 @@ class FilterParams:
             ``a (sqrt(1 + 2 margin / a) - 1)``, ``a`` the short semi-axis); sets ``c_i``.
         goal_wall_margin: the margin of the ellipse :data:`GOAL_WALL` (``None``: ``margin``);
             a robot that has reached the goal hovers between it and the goal.
+        blocking_margin: the margin of the ellipse :data:`BLOCKING` (``None``: ``margin``),
+            along whose long side a robot led by the proportional controller slides.
         control_weight: diagonal of the QP weight ``R`` on ``(a, omega)``.
         control_limit: bound on ``|a|`` and ``|omega|`` (``None``: unbounded).
         rho: risk-aware methods: probability of leaving the safe set within ``T``.
@@ -100,6 +105,7 @@ class FilterParams:
     rectify_gain: float = 20.0
     margin: float = 0.25
     goal_wall_margin: float | None = 0.4
+    blocking_margin: float | None = 0.3
     control_weight: tuple[float, float] = (1.0, 1e-3)
     control_limit: tuple[float, float] | None = (40.0, 40.0)
     rho: float = 0.05
@@ -110,7 +116,12 @@ class FilterParams:
 CONFIG_PARAMS: dict[str, FilterParams] = {
     "default": FilterParams(),
     "paper": FilterParams(
-        alpha=1.0, beta=1.0, margin=FLAT_MARGIN, goal_wall_margin=None, control_limit=None
+        alpha=1.0,
+        beta=1.0,
+        margin=FLAT_MARGIN,
+        goal_wall_margin=None,
+        blocking_margin=None,
+        control_limit=None,
     ),
     "cbfkit": FilterParams(
         form="cbfkit",
@@ -118,6 +129,7 @@ CONFIG_PARAMS: dict[str, FilterParams] = {
         beta=1.0,
         rectify_gain=1.0 / 0.3,
         goal_wall_margin=None,
+        blocking_margin=None,
         control_limit=None,
     ),
 }
@@ -155,6 +167,7 @@ def mppi_cbf(
     rectify_gain: float | None = None,
     margin: float | None = None,
     goal_wall_margin: float | None = None,
+    blocking_margin: float | None = None,
     barrier_scale: float | Sequence[float] | None = None,
     control_weight: float | tuple[float, float] | None = None,
     control_limit: float | tuple[float, float] | None = None,
@@ -176,8 +189,8 @@ def mppi_cbf(
         num_samples, horizon: MPPI's ``K`` and ``H`` (the paper: 20,000 and 80).
         planner_every: replan every this many loop steps (2: once per rollout step of
             0.02 s); between replans the loop follows the plan.
-        alpha, beta, rectify_gain, margin, goal_wall_margin, control_weight, control_limit, rho,
-            risk_horizon, shield_weight: override the configuration's value
+        alpha, beta, rectify_gain, margin, goal_wall_margin, blocking_margin, control_weight,
+            control_limit, rho, risk_horizon, shield_weight: override the configuration's value
             (:class:`FilterParams`).
         barrier_scale: the scales ``c_i`` of the exponential form (one number or five),
             overriding the ones ``margin`` sets.
@@ -197,6 +210,7 @@ def mppi_cbf(
         "rectify_gain": rectify_gain,
         "margin": margin,
         "goal_wall_margin": goal_wall_margin,
+        "blocking_margin": blocking_margin,
         "rho": rho,
         "risk_horizon": risk_horizon,
         "shield_weight": shield_weight,
@@ -327,8 +341,12 @@ def _scales(barrier_scale: float | Sequence[float] | None, params: FilterParams)
     if barrier_scale is None:
         # c_i |grad b_i| k alpha / beta = 1 / margin on the flat sides, |grad b_i| = 2 / min(a_i)
         k, margins = params.rectify_gain, [params.margin] * len(AXES)
-        if params.goal_wall_margin is not None:
-            margins[GOAL_WALL] = params.goal_wall_margin
+        for index, own in (
+            (GOAL_WALL, params.goal_wall_margin),
+            (BLOCKING, params.blocking_margin),
+        ):
+            if own is not None:
+                margins[index] = own
         return [
             params.beta * min(a) / (2.0 * params.alpha * k * m)
             for a, m in zip(AXES, margins, strict=True)
