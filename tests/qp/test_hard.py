@@ -270,3 +270,30 @@ def test_free_direction_beside_weak_curvature_is_never_solved(method):
     P = torch.tensor([[1e-7, 0.0], [0.0, 0.0]], dtype=torch.float64)
     sol = solve_qp(P, torch.tensor([1.0, -1.0], dtype=torch.float64), method=method)
     assert int(sol.status) in (Status.DUAL_INFEASIBLE, Status.NUMERICAL_ERROR)
+
+
+@pytest.mark.parametrize("method", ["auto", "ipm"])
+def test_free_direction_the_interior_point_gives_up_on_is_certified(method):
+    """d = (-3, 2, 1) has Q d = 0 and G d = 0 exactly and p.d < 0 (Q's other eigenvalues
+    5.7e-5 and 2.87): unbounded. The interior point stops with NUMERICAL_ERROR, its point
+    far out along d; that point certifies the direction."""
+    f64 = torch.float64
+    Q = torch.tensor(
+        [
+            [0.938720703125, 1.33837890625, 0.139404296875],
+            [1.33837890625, 1.908203125, 0.19873046875],
+            [0.139404296875, 0.19873046875, 0.020751953125],
+        ],
+        dtype=f64,
+    )
+    p = torch.tensor([1.3479330160930227, 1.1438807586347757, -1.7190601485133676], dtype=f64)
+    G = torch.tensor(
+        [[-0.625, -0.75, -0.375], [0.46875, 0.34375, 0.71875], [0.078125, 0.75, -1.265625]],
+        dtype=f64,
+    )
+    h = torch.tensor([-0.08368066396943041, 1.471951578295525, -0.6732820827812537], dtype=f64)
+    d = torch.tensor([-3.0, 2.0, 1.0], dtype=f64)
+    assert bool((Q @ d == 0).all()) and bool((G @ d == 0).all()) and float(p @ d) < 0
+    sol = solve_qp(Q, p, G, h, method=method)
+    assert int(sol.status) == Status.DUAL_INFEASIBLE
+    assert bool((sol.x == 0).all())

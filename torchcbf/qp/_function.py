@@ -22,7 +22,7 @@ from torchcbf.qp._enum import (
     num_candidates,
     solve_enum,
 )
-from torchcbf.qp._ipm import solve_ipm
+from torchcbf.qp._ipm import solve_ipm, unbounded_rows
 from torchcbf.qp.status import Status
 
 #: largest condition estimate ``max_i P_ii (P^{-1})_ii`` (see :func:`condition_estimate`)
@@ -227,7 +227,17 @@ def _finish(
     before = status.index_select(0, idx)
     unverified = ~ok & ~verified.index_select(0, idx) & (before == int(Status.SOLVED))
     after = torch.where(unverified, int(Status.NUMERICAL_ERROR), before)
-    status = status.index_copy(0, idx, torch.where(ok, int(Status.SOLVED), after))
+    after = torch.where(ok, int(Status.SOLVED), after)
+    # a row the interior point gave up on may have run off along a descent direction
+    unbounded = ~ok & failed.index_select(0, idx)
+    unbounded = unbounded & unbounded_rows(
+        sub[0], sub[1], sub[2], sub[4], x.index_select(0, idx), cfg.eps_inf
+    )
+    after = torch.where(unbounded, int(Status.DUAL_INFEASIBLE), after)
+    status = status.index_copy(0, idx, after)
+    drop = torch.zeros_like(status, dtype=torch.bool).index_copy(0, idx, unbounded).unsqueeze(-1)
+    x, z, y = (torch.where(drop, 0.0, t) for t in (x, z, y))
+    active = active & ~drop
     return x, z, y, status, active
 
 

@@ -62,6 +62,59 @@ def _inf_norm(v: Tensor) -> Tensor:
     return v.abs().amax(-1)
 
 
+def not_positive_definite(P: Tensor) -> Tensor:
+    """Rows ``[B]`` whose ``P`` is not numerically positive definite (a Cholesky pivot
+    missing or below ``1e-13`` of its diagonal entry): only these may be unbounded."""
+    L, info = torch.linalg.cholesky_ex(P)
+    pivots_ok = L.diagonal(dim1=-2, dim2=-1).square() > 1e-13 * P.diagonal(dim1=-2, dim2=-1).abs()
+    return (info != 0) | ~pivots_ok.all(-1)
+
+
+def _descent_direction(
+    x: Tensor,
+    qx: Tensor,
+    Px: Tensor,
+    Ax: Tensor,
+    Gx: Tensor,
+    qn: Tensor,
+    p_max: Tensor,
+    a_max: Tensor,
+    g_max: Tensor,
+    eps_inf: float,
+) -> Tensor:
+    """Rows where ``x`` is an unbounded descent direction: ``Px = 0, Ax = 0, Gx <= 0`` and
+    ``q'x < 0``, each judged against ``q'x`` and against its own data's scale (a weak
+    curvature next to a large ``q``, as in ``P = diag(0, 1e-6)``, ``q = -1``, is bounded,
+    however large ``x`` grows). Homogeneous in ``x``."""
+    thr = -eps_inf * qx
+    xn = eps_inf * _inf_norm(x)
+    gx_max = Gx.amax(-1) if Gx.shape[-1] > 0 else qx.new_zeros(qx.shape)
+    return (
+        (qx < 0)
+        & (qx <= -qn * xn)
+        & (_inf_norm(Px) <= torch.minimum(thr, p_max * xn))
+        & (_inf_norm(Ax) <= torch.minimum(thr, a_max * xn))
+        & (gx_max <= torch.minimum(thr, g_max * xn))
+    )
+
+
+def unbounded_rows(P: Tensor, q: Tensor, G: Tensor, A: Tensor, x: Tensor, eps_inf: float) -> Tensor:
+    """Rows ``[B]`` where ``x`` certifies unboundedness (the interior point method's test,
+    applied to a point it left behind: its iterates grow along the descent direction), for
+    ``P`` singular to rounding (smallest eigenvalue at most ``n`` machine epsilons of the
+    largest: a singular ``P`` whose Cholesky factor kept a rounding-sized pivot counts)."""
+    qx = (q * x).sum(-1)
+    p_max = P.abs().amax((-2, -1)) if x.shape[-1] > 0 else P.new_zeros(len(P))
+    g_max = _inf_norm(G.abs().amax(-1)) if x.shape[-1] > 0 else qx.new_zeros(qx.shape)
+    a_max = _inf_norm(A.abs().amax(-1)) if x.shape[-1] > 0 else qx.new_zeros(qx.shape)
+    lam = torch.linalg.eigvalsh(P) if x.shape[-1] > 0 else P.new_zeros(len(P), 1)
+    tol = x.shape[-1] * torch.finfo(P.dtype).eps * lam.abs().amax(-1)
+    singular = not_positive_definite(P) | (lam[..., 0] <= tol)
+    return singular & _descent_direction(
+        x, qx, _bmv(P, x), _bmv(A, x), _bmv(G, x), _inf_norm(q), p_max, a_max, g_max, eps_inf
+    )
+
+
 class _KKT:
     """Factorisation of ``[[P, G', A'], [G, -diag(1/d), 0], [A, 0, -reg_e I]]`` for a batch."""
 
@@ -220,9 +273,7 @@ def solve_ipm(
     # a strictly convex QP is never dual infeasible: only rows whose P is not positive
     # definite may take the certificate (with a large q it fires falsely, e.g. P = 1,
     # q = -1e8, -10 <= x <= 1)
-    L, info = torch.linalg.cholesky_ex(P)
-    pivots_ok = L.diagonal(dim1=-2, dim2=-1).square() > 1e-13 * P.diagonal(dim1=-2, dim2=-1).abs()
-    may_be_unbounded = (info != 0) | ~pivots_ok.all(-1)
+    may_be_unbounded = not_positive_definite(P)
     Gt, At = G.mT, A.mT
     idx = torch.arange(B, device=device)
     full: list[Tensor] | None = None
@@ -271,16 +322,8 @@ def solve_ipm(
         # unbounded descent: a direction x with Px = 0, Ax = 0, Gx <= 0 and q'x < 0, each
         # judged against q'x and against its own data's scale (a weak curvature next to a
         # large q, as in P = diag(0, 1e-6), q = -1, is bounded, however large x grows)
-        dinf_thr = -eps_inf * qx
-        xn = eps_inf * _inf_norm(x)
-        gx_max = Gx.amax(-1) if M > 0 else qx.new_zeros(B)
-        dinf = (
-            may_be_unbounded
-            & (qx < 0)
-            & (qx <= -qn * xn)
-            & (_inf_norm(Px) <= torch.minimum(dinf_thr, p_max * xn))
-            & (_inf_norm(Ax) <= torch.minimum(dinf_thr, a_max * xn))
-            & (gx_max <= torch.minimum(dinf_thr, g_max * xn))
+        dinf = may_be_unbounded & _descent_direction(
+            x, qx, Px, Ax, Gx, qn, p_max, a_max, g_max, eps_inf
         )
         status = torch.where(active & converged, int(Status.SOLVED), status)
         status = torch.where(active & ~converged & pinf, int(Status.PRIMAL_INFEASIBLE), status)
