@@ -30,7 +30,11 @@ from torch import Tensor
 
 from torchcbf.qp.status import Status
 
-_REFINE_STEPS = 8
+#: steps of iterative refinement on the regularised factor: the polish needs eight (each
+#: step cuts the error along a weak curvature lam by delta / (lam + delta), and a P of
+#: condition 1e10 has lam / delta = 10); the adjoints, with no status riding on them, three
+POLISH_REFINE_STEPS = 8
+ADJOINT_REFINE_STEPS = 3
 
 
 class KKTFactor(NamedTuple):
@@ -78,11 +82,12 @@ def factor_kkt(P: Tensor, G: Tensor, A: Tensor, active: Tensor) -> KKTFactor:
     return KKTFactor(K, LU, pivots, active, info == 0)
 
 
-def solve_kkt(fac: KKTFactor, rhs: Tensor) -> Tensor:
-    """Solve ``K w = rhs`` (``rhs [B, N]``) by the regularised factor and iterative refinement."""
+def solve_kkt(fac: KKTFactor, rhs: Tensor, steps: int = POLISH_REFINE_STEPS) -> Tensor:
+    """Solve ``K w = rhs`` (``rhs [B, N]``) by the regularised factor and ``steps`` of
+    iterative refinement."""
     r = rhs.unsqueeze(-1)
     w = torch.linalg.lu_solve(fac.LU, fac.pivots, r)
-    for _ in range(_REFINE_STEPS):
+    for _ in range(steps):
         w = w + torch.linalg.lu_solve(fac.LU, fac.pivots, r - fac.K @ w)
     return w.squeeze(-1)
 
@@ -279,7 +284,7 @@ def kkt_adjoints(
     :func:`input_gradients`. Rows that are not ``SOLVED`` get zeros."""
     n, M = x.shape[-1], z.shape[-1]
     af = fac.active.to(x.dtype)
-    w = solve_kkt(fac, torch.cat((gx, gz * af, gy), -1))
+    w = solve_kkt(fac, torch.cat((gx, gz * af, gy), -1), ADJOINT_REFINE_STEPS)
     good = (status == int(Status.SOLVED)) & fac.ok & torch.isfinite(w).all(-1)
     w = torch.where(good.unsqueeze(-1), w, torch.zeros_like(w))
     return w[..., :n], w[..., n : n + M] * af, w[..., n + M :], z * af
