@@ -24,7 +24,7 @@ Usage::
         --goal-wall-margin none,0.3,0.35,0.4 --seeds 960 --first-seed 50064 --out out/wall
     python scripts/tune_scenario_b.py --alpha 50 --margin 0.25 --limit 40 \
         --goal-wall-margin 0.4 --blocking-margin none,0.275,0.3,0.325 --seeds 960 \
-        --scbf-seeds 8192 --first-seed 60000 --out out/blocking
+        --scbf-seeds 8192 --first-seed 80000 --out out/blocking
 
 Writes ``tuning.csv`` and ``tuning.md`` (the table) to ``--out`` and prints the choice.
 """

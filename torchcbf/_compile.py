@@ -3,7 +3,7 @@ short enough for a closed loop and an eager fallback where the backend fails.
 
 Inductor's first CPU compile in a process normally builds and loads a test program for each
 vector instruction set the CPU reports (AVX-512, AVX2, ...) before it generates any code:
-about 10 s of a 13 s first call on a 2-core machine. torch's own kernels already run with
+about 8-10 s of an 11-13 s first call on a 2-core machine. torch's own kernels already run with
 the instruction set the CPU and the operating system support (``/proc/cpuinfo``), so during
 the first call of a compiled function (where it compiles) inductor is told to trust that
 list (``torch._inductor.config.cpp.vec_isa_ok = True``), unless the user set that option (or
@@ -14,6 +14,7 @@ first compile in the process decides it; later calls run without the patch (it c
 
 from __future__ import annotations
 
+import copy
 import logging
 from collections.abc import Callable
 from typing import Any
@@ -29,26 +30,29 @@ class Compiled:
     code, say), with a warning. Errors of ``fn`` itself are raised as they are."""
 
     def __init__(self, fn: Callable[..., Any], options: dict[str, Any]) -> None:
-        from torch._dynamo.exc import BackendCompilerFailed
-        from torch._inductor import config
-
         self.eager = fn
+        self.options = dict(options)
         self.compiled: Callable[..., Any] | None = torch.compile(fn, **options)
-        self._failure = BackendCompilerFailed
-        self._config = config
         self._first = True
+
+    def __deepcopy__(self, memo: dict[int, Any]) -> Compiled:
+        # compile the copy's function (a bound method: of the copied module)
+        return Compiled(copy.deepcopy(self.eager, memo), self.options)
 
     def __call__(self, *args: Any) -> Any:
         if self.compiled is None:
             return self.eager(*args)
+        from torch._dynamo.exc import BackendCompilerFailed
+        from torch._inductor import config
+
         try:
             # the ISA list is computed once per process, on the first CPU compile
-            if self._first and self._config.cpp.vec_isa_ok is None:
-                with self._config.patch({"cpp.vec_isa_ok": True}):
+            if self._first and config.cpp.vec_isa_ok is None:
+                with config.patch({"cpp.vec_isa_ok": True}):
                     out = self.compiled(*args)
             else:
                 out = self.compiled(*args)
-        except self._failure as err:
+        except BackendCompilerFailed as err:
             logger.warning("torchcbf: torch.compile failed (%s); running eager", err)
             self.compiled = None
             return self.eager(*args)

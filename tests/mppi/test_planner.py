@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 
@@ -330,6 +331,15 @@ def test_compiled_closed_loop_compiles_once():
             a, b = eager(x, 0.1 * step), compiled(x, 0.1 * step)
             torch.testing.assert_close(a.plan, b.plan, atol=1e-10, rtol=1e-10)
             torch.testing.assert_close(a.cost_min, b.cost_min, atol=1e-10, rtol=1e-10)
+
+
+def test_compiled_planner_deep_copies_with_its_own_compiled_cost():
+    pytest.importorskip("torch._dynamo")
+    planner = _user_planner(compile=True)
+    twin = copy.deepcopy(planner)
+    assert twin._score_fn.eager.__self__ is twin
+    x = _x0(2)
+    torch.testing.assert_close(twin(x).plan, planner(x).plan)
 
 
 def test_compile_failure_runs_eager(caplog):

@@ -297,3 +297,36 @@ def test_free_direction_the_interior_point_gives_up_on_is_certified(method):
     sol = solve_qp(Q, p, G, h, method=method)
     assert int(sol.status) == Status.DUAL_INFEASIBLE
     assert bool((sol.x == 0).all())
+
+
+def test_a_zero_multiplier_computed_as_noise_does_not_fail_the_stationarity_check():
+    """min (u - 1)^2 / 2 with x = u and no cost on x: the equality's multiplier is zero, and
+    computed as rounding noise it must not make its component look non-stationary."""
+    f64 = torch.float64
+    sol = solve_qp(
+        torch.diag(torch.tensor([1.0, 0.0], dtype=f64)),
+        torch.tensor([-1.0, 0.0], dtype=f64),
+        A=torch.tensor([[-1.0, 1.0]], dtype=f64),
+        b=torch.zeros(1, dtype=f64),
+        lb=torch.full((2,), -5.0, dtype=f64),
+        ub=torch.full((2,), 5.0, dtype=f64),
+    )
+    assert int(sol.status) == Status.SOLVED
+    torch.testing.assert_close(sol.x, torch.ones(2, dtype=f64))
+
+
+@pytest.mark.parametrize("method", ["auto", "enumerate"])
+def test_enumeration_judges_its_winner_on_its_own_scale(method):
+    """A weak curvature makes the unconstrained minimiser huge; judged on its scale, the
+    winner x = 1.649 > ub = 0.686 passed as feasible. The problem is infeasible."""
+    f64 = torch.float64
+    sol = solve_qp(
+        torch.tensor([[3.4e-11]], dtype=f64),
+        torch.tensor([0.008], dtype=f64),
+        A=torch.tensor([[0.1866]], dtype=f64),
+        b=torch.tensor([0.3077], dtype=f64),
+        lb=torch.tensor([-1.78], dtype=f64),
+        ub=torch.tensor([0.686], dtype=f64),
+        method=method,
+    )
+    assert int(sol.status) == Status.PRIMAL_INFEASIBLE

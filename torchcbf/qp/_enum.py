@@ -222,6 +222,13 @@ def _solve_chunk(
         dscale = dscale + (R.abs().amax(-1) * mult.abs()).amax(-1)
     ok = (best_score <= eps) & (stat.abs().amax(-1) <= eps * dscale)
     ok = ok & torch.isfinite(x).all(-1)
+    if Rn > 0:
+        # the winner's rows on its own scale: the candidates were judged on x_u's, which a
+        # weak curvature makes huge enough to pass an O(1) violation
+        wres = (R @ x.unsqueeze(-1)).squeeze(-1) - hr
+        wres = torch.cat((wres[..., :E].abs(), wres[..., E:].clamp_min(0.0)), -1)
+        wscale = row_scale(R, hr, x).clamp_min(torch.finfo(dtype).tiny)
+        ok = ok & ((wres / wscale).amax(-1) <= eps)
     return x, mult, chosen, ok
 
 

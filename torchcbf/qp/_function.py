@@ -200,9 +200,11 @@ def _finish(
     KKT point to rounding (``exact`` of :func:`torchcbf.qp._kkt.polish`), and a row left
     ``NUMERICAL_ERROR`` or ``MAX_ITER``, is re-solved exactly by the dual active-set method
     (no equality rows), then by enumeration (few candidate sets) where one applies (a row
-    without any constraint by a Cholesky solve). An unverified row that no exact method
-    certifies is reported ``NUMERICAL_ERROR``. Testing whether any row needs this is one
-    host synchronisation."""
+    without any constraint by a Cholesky solve). A row the solver called solved that
+    nothing verifies is reported ``NUMERICAL_ERROR``; a ``MAX_ITER``/``NUMERICAL_ERROR`` row
+    keeps its status, or becomes ``DUAL_INFEASIBLE`` (``x``, ``z``, ``y`` zeroed) where its
+    ``P`` is singular and its last point is a descent direction. Testing whether any row
+    needs this is one host synchronisation."""
     if not cfg.polish:
         candidate = (status == int(Status.SOLVED)).unsqueeze(-1)
         return x, z, y, status, _kkt.active_set(z, s) & candidate

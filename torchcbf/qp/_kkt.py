@@ -30,11 +30,12 @@ from torch import Tensor
 
 from torchcbf.qp.status import Status
 
-#: steps of iterative refinement on the regularised factor: the polish needs eight (each
-#: step cuts the error along a weak curvature lam by delta / (lam + delta), and a P of
-#: condition 1e10 has lam / delta = 10); the adjoints, with no status riding on them, three
+#: steps of iterative refinement on the regularised factor: the polished answer needs eight
+#: (each step cuts the error along a weak curvature lam by delta / (lam + delta), and a P of
+#: condition 1e10 has lam / delta = 10); the active-set guesses, judged to eps, and the
+#: adjoints three
 POLISH_REFINE_STEPS = 8
-ADJOINT_REFINE_STEPS = 3
+REFINE_STEPS = 3
 
 
 class KKTFactor(NamedTuple):
@@ -82,7 +83,7 @@ def factor_kkt(P: Tensor, G: Tensor, A: Tensor, active: Tensor) -> KKTFactor:
     return KKTFactor(K, LU, pivots, active, info == 0)
 
 
-def solve_kkt(fac: KKTFactor, rhs: Tensor, steps: int = POLISH_REFINE_STEPS) -> Tensor:
+def solve_kkt(fac: KKTFactor, rhs: Tensor, steps: int = REFINE_STEPS) -> Tensor:
     """Solve ``K w = rhs`` (``rhs [B, N]``) by the regularised factor and ``steps`` of
     iterative refinement."""
     r = rhs.unsqueeze(-1)
@@ -136,12 +137,11 @@ def polish(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, KKTFactor, Tensor, Tensor]:
     """Solve the active-set KKT system and keep verified answers. Returns
     ``(x, z, y, status, factor, verified, exact)``; rows whose polished point passes the
-    ``eps`` checks become ``SOLVED`` (also rescuing ``MAX_ITER``/``NUMERICAL_ERROR`` rows whose
-    guess is right) and are marked in ``verified [B]``. ``exact [B]`` marks the verified rows
-    whose polished point is a KKT point to rounding: no row violated and no multiplier
-    negative beyond ``1e4`` machine epsilons, each row judged on its own scale
-    ``|r_i| + max|R_i| (1 + max|x|)``. Near nearly parallel active rows a wrong active set
-    can pass the ``eps`` checks but not these."""
+    ``eps`` checks (stationarity included) become ``SOLVED`` (also rescuing
+    ``MAX_ITER``/``NUMERICAL_ERROR`` rows whose guess is right) and are marked in
+    ``verified [B]``. ``exact [B]`` marks the verified rows whose polished point is a KKT
+    point to rounding (:func:`kkt_point`). Near nearly parallel active rows a wrong active
+    set can pass the ``eps`` checks but not these."""
     n, M = q.shape[-1], h.shape[-1]
     candidate = (
         (status == int(Status.SOLVED))
@@ -168,7 +168,7 @@ def polish(
     act = torch.where(chosen.unsqueeze(-1), act, guesses[0] & candidate.unsqueeze(-1))
     fac = factor_kkt(P, G, A, act)
     rhs = torch.cat((-q, h * act.to(h.dtype), b), -1)
-    sol = solve_kkt(fac, rhs)
+    sol = solve_kkt(fac, rhs, POLISH_REFINE_STEPS)
     xp, zp, yp = sol[..., :n], sol[..., n : n + M], sol[..., n + M :]
     ok = chosen & fac.ok & torch.isfinite(sol).all(-1)
     keep = ok.unsqueeze(-1)
@@ -239,6 +239,9 @@ def stationarity_error(
         + torch.einsum("bmn,bm->bn", G.abs(), z.abs())
         + torch.einsum("ben,be->bn", A.abs(), y.abs())
     )
+    # a component whose terms are all rounding noise (a zero multiplier computed as 1e-27)
+    # is judged against the largest component's scale
+    s = s + 1e4 * torch.finfo(x.dtype).eps * s.amax(-1, keepdim=True) if s.shape[-1] > 0 else s
     err = r.abs() / s.clamp_min(torch.finfo(x.dtype).tiny)
     return err.amax(-1) if err.shape[-1] > 0 else err.new_zeros(err.shape[0])
 
@@ -284,7 +287,7 @@ def kkt_adjoints(
     :func:`input_gradients`. Rows that are not ``SOLVED`` get zeros."""
     n, M = x.shape[-1], z.shape[-1]
     af = fac.active.to(x.dtype)
-    w = solve_kkt(fac, torch.cat((gx, gz * af, gy), -1), ADJOINT_REFINE_STEPS)
+    w = solve_kkt(fac, torch.cat((gx, gz * af, gy), -1))
     good = (status == int(Status.SOLVED)) & fac.ok & torch.isfinite(w).all(-1)
     w = torch.where(good.unsqueeze(-1), w, torch.zeros_like(w))
     return w[..., :n], w[..., n : n + M] * af, w[..., n + M :], z * af
