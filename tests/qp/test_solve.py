@@ -237,6 +237,8 @@ def test_errors_name_the_argument():
     h = torch.ones(1, dtype=F64)
     with pytest.raises(ValueError, match="Q must have shape"):
         solve_qp(torch.ones(2, 3, dtype=F64), p)
+    with pytest.raises(ValueError, match="n >= 1"):
+        solve_qp(torch.ones(0, 0, dtype=F64), torch.zeros(0, dtype=F64))
     with pytest.raises(ValueError, match="p must have shape"):
         solve_qp(Q, torch.zeros(3, dtype=F64))
     with pytest.raises(ValueError, match="h must have shape"):

@@ -326,8 +326,8 @@ def _validate(
         raise TypeError(f"Q must be a torch.Tensor, got {type(Q).__name__}")
     if Q.dtype not in _FLOAT:
         raise TypeError(f"Q must be float32 or float64, got {Q.dtype}")
-    if Q.dim() < 2 or Q.shape[-1] != Q.shape[-2]:
-        raise ValueError(f"Q must have shape [..., n, n], got {tuple(Q.shape)}")
+    if Q.dim() < 2 or Q.shape[-1] != Q.shape[-2] or Q.shape[-1] == 0:
+        raise ValueError(f"Q must have shape [..., n, n] with n >= 1, got {tuple(Q.shape)}")
     dtype, device = Q.dtype, Q.device
     n = Q.shape[-1]
     p = _tensor("p", p, dtype, device)
