@@ -36,7 +36,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchcbf.qp._kkt import row_scale
+from torchcbf.qp._kkt import row_scale, scaled_violation
 
 #: ``method="auto"`` enumerates when the candidate count is at most ``MAX_CANDIDATES``, or at
 #: most ``MAX_CANDIDATES_SMALL_BATCH`` for batches of at most ``SMALL_BATCH`` rows (measured on
@@ -222,13 +222,9 @@ def _solve_chunk(
         dscale = dscale + (R.abs().amax(-1) * mult.abs()).amax(-1)
     ok = (best_score <= eps) & (stat.abs().amax(-1) <= eps * dscale)
     ok = ok & torch.isfinite(x).all(-1)
-    if Rn > 0:
-        # the winner's rows on its own scale: the candidates were judged on x_u's, which a
-        # weak curvature makes huge enough to pass an O(1) violation
-        wres = (R @ x.unsqueeze(-1)).squeeze(-1) - hr
-        wres = torch.cat((wres[..., :E].abs(), wres[..., E:].clamp_min(0.0)), -1)
-        wscale = row_scale(R, hr, x).clamp_min(torch.finfo(dtype).tiny)
-        ok = ok & ((wres / wscale).amax(-1) <= eps)
+    # the winner's rows on its own scale: the candidates were judged on x_u's, which a weak
+    # curvature makes huge enough to pass an O(1) violation
+    ok = ok & (scaled_violation(R[:, E:], hr[:, E:], R[:, :E], hr[:, :E], x) <= eps)
     return x, mult, chosen, ok
 
 

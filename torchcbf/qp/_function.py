@@ -230,16 +230,19 @@ def _finish(
     unverified = ~ok & ~verified.index_select(0, idx) & (before == int(Status.SOLVED))
     after = torch.where(unverified, int(Status.NUMERICAL_ERROR), before)
     after = torch.where(ok, int(Status.SOLVED), after)
+    status = status.index_copy(0, idx, after)
     # a row the interior point gave up on may have run off along a descent direction
     unbounded = ~ok & failed.index_select(0, idx)
-    unbounded = unbounded & unbounded_rows(
-        sub[0], sub[1], sub[2], sub[4], x.index_select(0, idx), cfg.eps_inf
-    )
-    after = torch.where(unbounded, int(Status.DUAL_INFEASIBLE), after)
-    status = status.index_copy(0, idx, after)
-    drop = torch.zeros_like(status, dtype=torch.bool).index_copy(0, idx, unbounded).unsqueeze(-1)
-    x, z, y = (torch.where(drop, 0.0, t) for t in (x, z, y))
-    active = active & ~drop
+    if bool(unbounded.any()):
+        unbounded = unbounded & unbounded_rows(
+            sub[0], sub[1], sub[2], sub[4], x.index_select(0, idx), cfg.eps_inf
+        )
+        status = status.index_copy(
+            0, idx, torch.where(unbounded, int(Status.DUAL_INFEASIBLE), after)
+        )
+        drop = torch.zeros_like(status, dtype=torch.bool).index_copy(0, idx, unbounded)
+        x, z, y = (torch.where(drop.unsqueeze(-1), 0.0, t) for t in (x, z, y))
+        active = active & ~drop.unsqueeze(-1)
     return x, z, y, status, active
 
 

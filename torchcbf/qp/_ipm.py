@@ -104,10 +104,9 @@ def unbounded_rows(P: Tensor, q: Tensor, G: Tensor, A: Tensor, x: Tensor, eps_in
     ``P`` singular to rounding (smallest eigenvalue at most ``n`` machine epsilons of the
     largest: a singular ``P`` whose Cholesky factor kept a rounding-sized pivot counts)."""
     qx = (q * x).sum(-1)
-    p_max = P.abs().amax((-2, -1)) if x.shape[-1] > 0 else P.new_zeros(len(P))
-    g_max = _inf_norm(G.abs().amax(-1)) if x.shape[-1] > 0 else qx.new_zeros(qx.shape)
-    a_max = _inf_norm(A.abs().amax(-1)) if x.shape[-1] > 0 else qx.new_zeros(qx.shape)
-    lam = torch.linalg.eigvalsh(P) if x.shape[-1] > 0 else P.new_zeros(len(P), 1)
+    p_max = P.abs().amax((-2, -1))
+    g_max, a_max = _inf_norm(G.abs().amax(-1)), _inf_norm(A.abs().amax(-1))
+    lam = torch.linalg.eigvalsh(P)
     tol = x.shape[-1] * torch.finfo(P.dtype).eps * lam.abs().amax(-1)
     singular = not_positive_definite(P) | (lam[..., 0] <= tol)
     return singular & _descent_direction(

@@ -180,6 +180,18 @@ def polish(
     return x, z, y, status, fac, ok, exact
 
 
+def scaled_violation(G: Tensor, h: Tensor, A: Tensor, b: Tensor, x: Tensor) -> Tensor:
+    """``[B]`` the largest violation of ``Gx <= h`` and ``Ax = b`` by ``x``, each row judged
+    on its own scale (:func:`row_scale`); 0 without rows."""
+    R, r = torch.cat((G, A), -2), torch.cat((h, b), -1)
+    res = (torch.einsum("bmn,bn->bm", R, x) - r) / row_scale(R, r, x).clamp_min(
+        torch.finfo(x.dtype).tiny
+    )
+    M = G.shape[-2]
+    pad = res.new_zeros(len(res), 1)
+    return torch.cat((res[..., :M].clamp_min(0.0), res[..., M:].abs(), pad), -1).amax(-1)
+
+
 def kkt_point(
     P: Tensor,
     q: Tensor,
@@ -197,27 +209,18 @@ def kkt_point(
     (:func:`stationarity_error`). A convex QP's KKT point is its minimiser, so this
     certifies an answer whatever method produced it."""
     rounding = 1e4 * torch.finfo(x.dtype).eps
-    tiny = torch.finfo(x.dtype).tiny
-    M = h.shape[-1]
-    R, r = torch.cat((G, A), -2), torch.cat((h, b), -1)
-    res = torch.einsum("bmn,bn->bm", R, x) - r
-    scale = row_scale(R, r, x).clamp_min(tiny)
-    viol = torch.cat((res[..., :M].clamp_min(0.0), res[..., M:].abs()), -1) / scale
-    zmax = 1.0 + z.abs().amax(-1, keepdim=True) if M > 0 else z.new_ones(len(z), 1)
-    positive = z > rounding * zmax
-    loose = positive & (-res[..., :M] / scale[..., :M] > rounding)
-    ok = (
-        (
-            viol.amax(-1) <= rounding
-            if viol.shape[-1] > 0
-            else torch.ones_like(x[..., 0], dtype=torch.bool)
-        )
+    slack = (h - torch.einsum("bmn,bn->bm", G, x)) / row_scale(G, h, x).clamp_min(
+        torch.finfo(x.dtype).tiny
+    )
+    za = torch.cat((z, z.new_zeros(len(z), 1)), -1)
+    zmax = 1.0 + za.abs().amax(-1)
+    loose = (z > rounding * zmax.unsqueeze(-1)) & (slack > rounding)
+    return (
+        (scaled_violation(G, h, A, b, x) <= rounding)
+        & (za.amin(-1) >= -rounding * zmax)
         & ~loose.any(-1)
         & (stationarity_error(P, q, G, A, x, z, y) <= rounding)
     )
-    if M > 0:
-        ok = ok & (z.amin(-1) >= -rounding * zmax[..., 0])
-    return ok
 
 
 def stationarity_error(
@@ -241,9 +244,8 @@ def stationarity_error(
     )
     # a component whose terms are all rounding noise (a zero multiplier computed as 1e-27)
     # is judged against the largest component's scale
-    s = s + 1e4 * torch.finfo(x.dtype).eps * s.amax(-1, keepdim=True) if s.shape[-1] > 0 else s
-    err = r.abs() / s.clamp_min(torch.finfo(x.dtype).tiny)
-    return err.amax(-1) if err.shape[-1] > 0 else err.new_zeros(err.shape[0])
+    s = s + 1e4 * torch.finfo(x.dtype).eps * s.amax(-1, keepdim=True)
+    return (r.abs() / s.clamp_min(torch.finfo(x.dtype).tiny)).amax(-1)
 
 
 def _verified(
