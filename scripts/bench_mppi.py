@@ -350,47 +350,48 @@ def main() -> None:
     )
     for line in lines:
         ref: dict | None = None
-        cache = tempfile.TemporaryDirectory(prefix="bench-mppi-inductor-")  # starts cold
-        for name, label in plan[line]:
-            cmd = [
-                sys.executable,
-                __file__,
-                "--one",
-                name,
-                "--threads",
-                str(args.threads),
-                "--reps",
-                str(args.reps),
-                "--device",
-                args.device,
-            ]
-            env = dict(os.environ)
-            if "compiled" in name:
-                env["TORCHINDUCTOR_CACHE_DIR"] = cache.name
-            out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
-            res = json.loads(out.stdout.strip().splitlines()[-1])
-            if not res:
-                print(f"{line:<9} {label:<27} not installed, skipped")
-                continue
-            ratio = ""
-            if res["path"] == "pytorch-mppi":
-                ref = res
-            elif ref is not None:
-                wall = (res["state_steps"] / res["median"]) / (ref["state_steps"] / ref["median"])
-                cpu = (res["state_steps"] / res["cpu"]) / (ref["state_steps"] / ref["cpu"])
-                if line == "batched":
-                    ratio = f"throughput {wall:.2f}x ({cpu:.2f}x) pytorch-mppi's"
-                else:
-                    ratio = f"time {1 / wall:.3f}x ({1 / cpu:.3f}x) pytorch-mppi's"
-            print(f"{line:<9} {label:<27} {res['path']:<12} {fmt(res)}  {ratio}")
-            if line == "paper":
-                total = res["median"] * PAPER_CALLS
-                print(
-                    f"{'':<9} projection: {PAPER_CALLS} calls x {res['median']:.3f} s = "
-                    f"{total:.0f} s ({total / 60:.1f} min) per MPPI method of the paper-size "
-                    f"scenario B run (planner only; {res['cpu'] * PAPER_CALLS:.0f} s CPU time)"
-                )
-        cache.cleanup()
+        with tempfile.TemporaryDirectory(prefix="bench-mppi-inductor-") as cache:  # starts cold
+            for name, label in plan[line]:
+                cmd = [
+                    sys.executable,
+                    __file__,
+                    "--one",
+                    name,
+                    "--threads",
+                    str(args.threads),
+                    "--reps",
+                    str(args.reps),
+                    "--device",
+                    args.device,
+                ]
+                env = dict(os.environ)
+                if "compiled" in name:
+                    env["TORCHINDUCTOR_CACHE_DIR"] = cache
+                out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
+                res = json.loads(out.stdout.strip().splitlines()[-1])
+                if not res:
+                    print(f"{line:<9} {label:<27} not installed, skipped")
+                    continue
+                ratio = ""
+                if res["path"] == "pytorch-mppi":
+                    ref = res
+                elif ref is not None:
+                    wall = (res["state_steps"] / res["median"]) / (
+                        ref["state_steps"] / ref["median"]
+                    )
+                    cpu = (res["state_steps"] / res["cpu"]) / (ref["state_steps"] / ref["cpu"])
+                    if line == "batched":
+                        ratio = f"throughput {wall:.2f}x ({cpu:.2f}x) pytorch-mppi's"
+                    else:
+                        ratio = f"time {1 / wall:.3f}x ({1 / cpu:.3f}x) pytorch-mppi's"
+                print(f"{line:<9} {label:<27} {res['path']:<12} {fmt(res)}  {ratio}")
+                if line == "paper":
+                    total = res["median"] * PAPER_CALLS
+                    print(
+                        f"{'':<9} projection: {PAPER_CALLS} calls x {res['median']:.3f} s = "
+                        f"{total:.0f} s ({total / 60:.1f} min) per MPPI method of the paper-size "
+                        f"scenario B run (planner only; {res['cpu'] * PAPER_CALLS:.0f} s CPU time)"
+                    )
 
 
 if __name__ == "__main__":

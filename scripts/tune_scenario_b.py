@@ -223,7 +223,7 @@ def main() -> None:
         _optional_floats(args.limit),
         args.methods.split(","),
     )
-    scbf_seeds = args.scbf_seeds or args.seeds
+    scbf_seeds = args.seeds if args.scbf_seeds is None else args.scbf_seeds
     jobs: list[Job] = [
         (
             m,

@@ -23,9 +23,9 @@ obstacles, goal, MPPI and its costs are the same in all three):
   ``L B + tr / 2 <= -alpha B + beta`` (alpha = beta = 1) on its exponential rectification
   ``B + 0.3 L_f B``;
 - ``"default"``: the project's choice of the free parameters (alpha, the equilibrium margin
-  and the goal wall's own, the control bounds), made by ``scripts/tune_scenario_b.py`` on
-  tuning seeds 10,000 and up, never on the evaluation seeds; the tables are in
-  docs/scenarios.md.
+  and the own margins of the goal wall and the blocking ellipse, the control bounds), made
+  by ``scripts/tune_scenario_b.py`` on tuning seeds 10,000 and up, never on the evaluation
+  seeds; the tables are in docs/scenarios.md.
 
 The equilibrium margin ``m``: where the condition is active and the robot at rest,
 ``h_e = beta / alpha``, i.e. ``b_i = beta / (alpha k c_i)``; with ``c_i = beta min(axes_i) /
