@@ -162,8 +162,9 @@ def _shuffle_rows(G: Tensor, h: Tensor, g: torch.Generator) -> tuple[Tensor, Ten
     return G.gather(1, perm.unsqueeze(-1).expand_as(G)), h.gather(1, perm)
 
 
-def _hard_family_new(name: str, B: int, g: torch.Generator) -> HardProblem:
-    """The families added after the first seven (their own draws from ``g``)."""
+def _constructed_family(name: str, B: int, g: torch.Generator) -> HardProblem:
+    """The families each built around their own known point, direction or contradiction
+    (the ones outside :data:`_SHARED_CONSTRUCTION` and the ``cond=`` families)."""
     f64 = torch.float64
     n, m = 4, 8
 
@@ -322,8 +323,8 @@ def hard_family(name: str, B: int, g: torch.Generator) -> HardProblem:
         Q = U @ torch.diag_embed(d.expand(B, n)) @ U.mT
         p, G, h = rnd(B, n), rnd(B, m, n), torch.rand(B, m, generator=g, dtype=f64)
         return HardProblem(Q, p, G, h, None, None, lb, ub, "optimal")
-    if name not in _FIRST_FAMILIES:
-        return _hard_family_new(name, B, g)
+    if name not in _SHARED_CONSTRUCTION:
+        return _constructed_family(name, B, g)
     if name.startswith("mid-size"):
         n, m = (int(s.split("=")[1]) for s in name.split()[1:])
     L = rnd(B, n, n)
@@ -350,8 +351,8 @@ def hard_family(name: str, B: int, g: torch.Generator) -> HardProblem:
 
 
 #: the families built by the shared construction of :func:`hard_family` (Q = L L'/n + 0.1 I,
-#: rows feasible at a random x0), with their draws in the order of the first version
-_FIRST_FAMILIES = (
+#: rows feasible at a random x0), all drawing from ``g`` in the same order
+_SHARED_CONSTRUCTION = (
     "half the rows tight at x0",
     "duplicated rows",
     "row scales 1e-6..1e6",
