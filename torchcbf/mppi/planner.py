@@ -58,10 +58,10 @@ Compilation: ``MPPI(..., compile=True)`` (or a dict of ``torch.compile`` keyword
 compiles the evaluation of a torch cost (cost + control cost, called once on all samples)
 and, on the torch path, one integration step; the loop over the horizon, noise sampling,
 weights and the plan update stay eager, and a fused cost is not affected. The first call
-compiles (3.5-6 s on a 2-core CPU with a cold compile cache, under 1 s with a warm one;
-see :mod:`torchcbf._compile`);
-later calls with the same ``B`` reuse the code, whatever the values of the state, time and
-plan. Where the backend fails to build, the planner warns and runs eager.
+compiles (3.5-6 s on a 2-core CPU with a cold compile cache, under 1 s with a warm one; see
+:mod:`torchcbf._compile`); later calls with the same ``B`` reuse the code, whatever the
+values of the state, time and plan. Where the backend fails to build, the planner warns and
+runs eager.
 """
 
 from __future__ import annotations
