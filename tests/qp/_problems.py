@@ -251,6 +251,21 @@ def _constructed_family(name: str, B: int, g: torch.Generator) -> HardProblem:
         G = torch.cat((G1, G2), 1)
         h = torch.cat((_mv(G1, x0) + slack, _mv(G2, x0) + slack + 1e-9 * rnd(B, m // 2).abs()), 1)
         return HardProblem(Q, p, G, h, A, b, lb, ub, "optimal")
+    if name == "relaxed filter rows (weights 1e-3..1e6)":
+        # a CBF filter's QP in (u1, u2, s): controls weighted 1e-3..1, a slack weighted
+        # 1e3..1e6 in both its terms, unit rows u . a_i + s >= c_i with c_i up to 1e4 (more
+        # than the box |u| <= 40 allows), so the slack and the multipliers are large
+        w = torch.exp2(torch.round(torch.log2(10 ** (3 * uni(B, 2) - 3))))
+        W = torch.exp2(torch.round(torch.log2(10 ** (3 * uni(B, 1) + 3))))
+        Q = torch.diag_embed(torch.cat((w, W), -1))
+        p = torch.cat((-w * 20 * rnd(B, 2), W), -1)
+        a = rnd(B, 5, 2)
+        a = a / a.norm(dim=-1, keepdim=True)
+        c = torch.sign(rnd(B, 5)) * 10 ** (4 * uni(B, 5))
+        G, h = torch.cat((-a, -torch.ones(B, 5, 1, dtype=f64)), -1), -c
+        lb = torch.tensor([-40.0, -40.0, 0.0], dtype=f64).expand(B, 3).clone()
+        ub = torch.tensor([40.0, 40.0, math.inf], dtype=f64).expand(B, 3).clone()
+        return HardProblem(Q, p, G, h, A, b, lb, ub, "optimal")
     if name == "contradicting rows":
         # g x <= c and -g x <= -c - 1 (at random places) among rows feasible at x0, where
         # c = g x0 + slack
@@ -382,4 +397,5 @@ HARD_FAMILIES = (
     "inconsistent equalities",
     "free direction",
     "inequality recession",
+    "relaxed filter rows (weights 1e-3..1e6)",
 )
