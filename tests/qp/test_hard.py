@@ -249,6 +249,17 @@ def test_hard_family_rows_have_the_expected_status_and_answer(cvx, name):
         assert np.abs(x - ref).max() <= ref_tol * (1.0 + np.abs(ref).max()), i
 
 
+@pytest.mark.parametrize("name", ["free direction", "inequality recession"])
+def test_unbounded_families_are_certified_over_more_rows(name):
+    """64 rows of another draw: an interior point that grows along the null space of ``Q``
+    carries the rest of ``x`` along (entries of 9e8 that differ by 1e5), so the direction it
+    leaves behind is only tested once projected on that null space."""
+    k = HARD_FAMILIES.index(name)
+    prob = hard_family(name, 64, torch.Generator().manual_seed(777 + k))
+    sol = solve_qp(*prob.data())
+    assert (sol.status == Status.DUAL_INFEASIBLE).all(), sol.status.tolist()
+
+
 @pytest.mark.parametrize("method", ["auto", "ipm"])
 @pytest.mark.parametrize("curvature", [1e-10, 1e-12])
 def test_weak_curvature_without_rows_is_solved_exactly(method, curvature):

@@ -102,16 +102,22 @@ def unbounded_rows(P: Tensor, q: Tensor, G: Tensor, A: Tensor, x: Tensor, eps_in
     """Rows ``[B]`` where ``x`` certifies unboundedness (the interior point method's test,
     applied to a point it left behind: its iterates grow along the descent direction), for
     ``P`` singular to rounding (smallest eigenvalue at most ``n`` machine epsilons of the
-    largest: a singular ``P`` whose Cholesky factor kept a rounding-sized pivot counts)."""
-    qx = (q * x).sum(-1)
+    largest: a singular ``P`` whose Cholesky factor kept a rounding-sized pivot counts).
+    The iterates grow along the null space of ``P`` but carry the rest of ``x`` along, so
+    ``x`` projected on that null space is tried as well."""
     p_max = P.abs().amax((-2, -1))
     g_max, a_max = _inf_norm(G.abs().amax(-1)), _inf_norm(A.abs().amax(-1))
-    lam = torch.linalg.eigvalsh(P)
+    lam, V = torch.linalg.eigh(P)
     tol = x.shape[-1] * torch.finfo(P.dtype).eps * lam.abs().amax(-1)
     singular = not_positive_definite(P) | (lam[..., 0] <= tol)
-    return singular & _descent_direction(
-        x, qx, _bmv(P, x), _bmv(A, x), _bmv(G, x), _inf_norm(q), p_max, a_max, g_max, eps_inf
-    )
+    null = (lam <= tol.unsqueeze(-1)).to(x.dtype)
+    found = torch.zeros_like(singular)
+    for d in (x, _bmv(V, null * _bmv(V.mT, x))):
+        qd = (q * d).sum(-1)
+        found = found | _descent_direction(
+            d, qd, _bmv(P, d), _bmv(A, d), _bmv(G, d), _inf_norm(q), p_max, a_max, g_max, eps_inf
+        )
+    return singular & found
 
 
 class _KKT:
