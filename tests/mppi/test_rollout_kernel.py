@@ -144,7 +144,9 @@ def test_fused_equals_torch_cost(model, integrator, dtype):
 
 
 def test_update_matches_direct_formula():
-    """The fused update against the MPPI formulas on the kernel's own noise (float64)."""
+    """The update of both kernel paths (fused cost; rollouts for a torch cost, the control
+    cost added by the kernel) against the MPPI formulas on the kernel's own noise
+    (float64)."""
     dyn = AccelUnicycle()
     cost = SumCost(
         QuadraticGoal((2.0, 4.0), 2.0, (0, 1), 10.0), BarrierCost(_ellipses(), 2.0, 0.01)
@@ -155,7 +157,7 @@ def test_update_matches_direct_formula():
     plan0 = fused(x, shift=False).plan
     reference(x, shift=False)
     out = fused(x)
-    reference(x)
+    out_ref = reference(x)
     states, v = capture.seen["states"][0], capture.seen["controls"][0]
     shifted = torch.cat([plan0[0, 1:], torch.zeros(1, 2, dtype=torch.float64)])
     eps = v - shifted
@@ -169,6 +171,9 @@ def test_update_matches_direct_formula():
     torch.testing.assert_close(out.best_states[0], states[S.argmin()], rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(out.rollouts[0], states[:5], rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(out.rollout_weights[0], w[:5], rtol=1e-10, atol=1e-14)
+    assert reference.path == "rollout"
+    torch.testing.assert_close(out_ref.plan[0], plan, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(out_ref.cost_min[0], S.min(), rtol=1e-12, atol=1e-12)
 
 
 def test_batch_equals_loop_and_seeds_repeat():
@@ -316,8 +321,7 @@ def test_rollout_buffers_threads_and_layout():
         ref.append(euler(dyn, ref[-1], seen[0]["controls"][:, :, j], 0.02))
     torch.testing.assert_close(seen[0]["states"], torch.stack(ref, 2), rtol=1e-6, atol=1e-6)
     # what the cost receives: [B, K, H+1, n] views with each component's samples contiguous
-    buffers = planner._rollout_buffers()
-    for t in buffers:
+    for t in planner._rollout_buffers(noise=True):
         assert t.permute(0, 3, 2, 1).is_contiguous() and t.stride(1) == 1
     cfg = planner._configuration(_rollout.encode_model(dyn), None)
     keys = _rollout.draw_keys(planner._generators)

@@ -311,7 +311,8 @@ class MPPI(nn.Module):
             return
         H, m, n = self.horizon, self.dynamics.control_dim, self.dynamics.state_dim
         self._plan = torch.zeros(B, H, m, device=device, dtype=dtype)
-        self._work: tuple[Tensor, Tensor, Tensor] | None = None
+        self._work: tuple[Tensor, Tensor] | None = None
+        self._noise: Tensor | None = None
         self._generators = [
             torch.Generator(device=device).manual_seed(self.seed + b) for b in range(B)
         ]
@@ -320,21 +321,23 @@ class MPPI(nn.Module):
         self._key = key
         self._fresh = True
 
-    def _rollout_buffers(self) -> tuple[Tensor, Tensor, Tensor]:
-        """``eps [B, K, H, m]``, ``controls [B, K, H, m]``, ``states [B, K, H+1, n]`` in
-        component-major storage (:func:`torchcbf.mppi._rollout.component_major`: a torch
+    def _rollout_buffers(self, noise: bool) -> tuple[Tensor | None, Tensor, Tensor]:
+        """``eps [B, K, H, m]`` (``None`` unless ``noise``: the kernel's rollout path
+        regenerates the noise it needs), ``controls [B, K, H, m]``, ``states [B, K, H+1, n]``
+        in component-major storage (:func:`torchcbf.mppi._rollout.component_major`: a torch
         cost's elementwise ops run over the samples), allocated on first use (the fused
         path never needs them)."""
+        B, H, m = self._plan.shape
+        K, n = self.num_samples, self.dynamics.state_dim
+        like = self._plan
         if self._work is None:
-            B, H, m = self._plan.shape
-            K, n = self.num_samples, self.dynamics.state_dim
-            like = self._plan
             self._work = (
-                _rollout.component_major(like, B, K, H, m),
                 _rollout.component_major(like, B, K, H, m),
                 _rollout.component_major(like, B, K, H + 1, n),
             )
-        return self._work
+        if noise and self._noise is None:
+            self._noise = _rollout.component_major(like, B, K, H, m)
+        return (self._noise if noise else None), *self._work
 
     @property
     def history(self) -> History | None:
@@ -403,34 +406,40 @@ class MPPI(nn.Module):
         if model is not None and cost_code is not None:
             self.path = "fused"
             return self._fused(xb, model, cost_code, unbatched)
-        eps, controls, states = self._rollout_buffers()
+        eps, controls, states = self._rollout_buffers(noise=model is None)
         if xb.device.type == "cpu":
             keep_freed_heap()  # a torch cost's intermediates are reused, not faulted in again
+        history = self._history.view() if self._needs_history else None
         if model is not None:
+            # the kernel stores the rollouts for the torch cost and adds the control cost;
+            # the update regenerates the noise of the weighted samples (as on the fused path)
             self.path = "rollout"
             cfg = self._configuration(model, None)
             keys = _rollout.draw_keys(self._generators)
+            xc = xb.contiguous()
+            wctrl = self._control_weights(plan)
+            ctrl = None if wctrl is None else plan.new_empty(B, self.num_samples)
             _rollout.run(
-                cfg,
-                B * self.num_samples,
-                xb.contiguous(),
-                plan,
-                keys,
-                states=states,
-                controls=controls,
-                eps=eps,
-            )
+                cfg, B * self.num_samples, xc, plan, keys,
+                states=states, controls=controls, wctrl=wctrl, cost=ctrl,
+            )  # fmt: skip
+            cost = self._score_fn(states, controls, None, plan, t0, history)
+            if ctrl is not None:
+                cost = cost + ctrl
+            self._check_cost(cost)
+            weights = self._weights(cost)
+            delta = self._kernel_update(cfg, xc, plan, keys, weights)
         else:
             self.path = "torch"
+            assert eps is not None
             self._sample_noise(eps)
             self._rollout(xb, eps, controls, states)
-        history = self._history.view() if self._needs_history else None
-        cost = self._score_fn(states, controls, eps, plan, t0, history)
-        self._check_cost(cost)
-        weights = self._weights(cost)
-        K, H, m = self.num_samples, self.horizon, self.dynamics.control_dim
-        by_component = eps.permute(0, 3, 2, 1).reshape(B, m * H, K)
-        delta = (by_component @ weights.w.unsqueeze(-1)).view(B, m, H).transpose(1, 2)
+            cost = self._score_fn(states, controls, eps, plan, t0, history)
+            self._check_cost(cost)
+            weights = self._weights(cost)
+            K, H, m = self.num_samples, self.horizon, self.dynamics.control_dim
+            by_component = eps.permute(0, 3, 2, 1).reshape(B, m * H, K)
+            delta = (by_component @ weights.w.unsqueeze(-1)).view(B, m, H).transpose(1, 2)
         best_states = states[self._rows, weights.best].contiguous()  # [B, H+1, n]
         rollouts = None
         if self.keep_rollouts:
@@ -480,7 +489,8 @@ class MPPI(nn.Module):
         history: History | None,
     ) -> Tensor:
         """Cost ``[B, K]`` of the rollouts (``[B, K, H+1, n]``, ``[B, K, H, m]``) plus the
-        control cost."""
+        control cost of the noise ``eps`` (none where ``eps`` is ``None``: the kernel adds
+        it)."""
         chunk = self._chunk(states)
         K = states.shape[1]
         if chunk >= K:
@@ -493,7 +503,7 @@ class MPPI(nn.Module):
                 )
                 self._check_cost(part, min(chunk, K - k))
                 cost[:, k : k + chunk] = part
-        if self.control_cost_weight > 0.0:
+        if self.control_cost_weight > 0.0 and eps is not None:
             B, K, H, m = eps.shape
             weighted = (plan @ self.noise_cov_inv.to(plan)).transpose(1, 2)  # [B, m, H]
             by_component = eps.permute(0, 3, 2, 1).reshape(B, m * H, K)
@@ -557,6 +567,27 @@ class MPPI(nn.Module):
             cost,
         )
 
+    def _control_weights(self, plan: Tensor) -> Tensor | None:
+        """``plan @ Sigma^-1 [B, H, m]``, the kernel's control-cost weights (``None`` without
+        a control cost)."""
+        if self.control_cost_weight == 0.0:
+            return None
+        return (plan @ self.noise_cov_inv.to(plan)).contiguous()
+
+    def _kernel_update(
+        self, cfg: Tensor, x: Tensor, plan: Tensor, keys: Tensor, weights: Any
+    ) -> Tensor:
+        """``sum_k w_k eps_k [B, H, m]`` with the noise of the samples of non-zero weight
+        regenerated by the kernel (accumulated in float64)."""
+        B, H, m = plan.shape
+        pairs = (weights.w > 0).nonzero()
+        count = pairs.shape[0]
+        wsum = torch.zeros(_rollout.update_threads(count), B, H, m, dtype=torch.float64)
+        if count:
+            w_sel = weights.w[pairs[:, 0], pairs[:, 1]].contiguous()
+            _rollout.run(cfg, count, x, plan, keys, pairs=pairs, weights=w_sel, wsum=wsum)
+        return wsum.sum(0).to(plan.dtype)
+
     def _fused(
         self,
         x: Tensor,
@@ -569,21 +600,10 @@ class MPPI(nn.Module):
         plan, x = self._plan, x.contiguous()
         cfg = self._configuration(model, cost_code)
         keys = _rollout.draw_keys(self._generators)
-        wctrl = None
-        if self.control_cost_weight > 0.0:
-            wctrl = (plan @ self.noise_cov_inv.to(plan)).contiguous()
         cost = plan.new_empty(B, K)
-        _rollout.run(cfg, B * K, x, plan, keys, wctrl=wctrl, cost=cost)
+        _rollout.run(cfg, B * K, x, plan, keys, wctrl=self._control_weights(plan), cost=cost)
         weights = self._weights(cost)
-        # update: regenerate the noise of the samples with a non-zero weight
-        pairs = (weights.w > 0).nonzero()
-        count = pairs.shape[0]
-        threads = _rollout.update_threads(count)
-        wsum = torch.zeros(threads, B, H, m, dtype=torch.float64)
-        if count:
-            w_sel = weights.w[pairs[:, 0], pairs[:, 1]].contiguous()
-            _rollout.run(cfg, count, x, plan, keys, pairs=pairs, weights=w_sel, wsum=wsum)
-        delta = wsum.sum(0).to(plan.dtype)
+        delta = self._kernel_update(cfg, x, plan, keys, weights)
         # re-roll the best sample and the kept samples
         R = self.keep_rollouts
         picks = [torch.stack([self._rows, weights.best], -1)]
