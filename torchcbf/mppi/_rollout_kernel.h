@@ -124,13 +124,14 @@ INL void SUFFIX(sq_dist)(const term_t *T, REAL (*x)[LANES], REAL *s) {
 
 /* Stage (and, on the last step, terminal) terms at the state x after step j. stage,
  * terminal and whole accumulate the three parts of the total in the order of SumCost. Each
- * shape is evaluated once per step (terms over the same barrier share its records), and the
- * discrete-time barrier terms' previous values are updated after every term has read them. */
+ * shape is evaluated once per step into hcur (terms over the same barrier share its
+ * records); the discrete-time barrier terms read the previous step's values in hprev. The
+ * caller alternates the two buffers, so this step's hcur is the next step's hprev. */
 INL void SUFFIX(costs)(const problem_t *pr, REAL (*x)[LANES], int last, REAL *stage,
-                       REAL *terminal, REAL *whole, REAL (*hprev)[LANES]) {
+                       REAL *terminal, REAL *whole, REAL (*hprev)[LANES],
+                       REAL (*hcur)[LANES]) {
     REAL st[LANES], tmp[LANES], h[LANES];
-    REAL hcur[SMAX][LANES];
-    unsigned char have[SMAX] = {0}, discrete[SMAX] = {0};
+    unsigned char have[SMAX] = {0};
     int first = 1;
     for (int t = 0; t < pr->nterms; ++t) {
         const term_t *T = &pr->terms[t];
@@ -138,7 +139,6 @@ INL void SUFFIX(costs)(const problem_t *pr, REAL (*x)[LANES], int last, REAL *st
             for (int s = T->shape0; s < T->shape0 + T->nshape; ++s) {
                 if (!have[s]) SUFFIX(shape_h)(&pr->shapes[s], x, hcur[s]);
                 have[s] = 1;
-                discrete[s] |= T->type == T_DISCRETE_BARRIER;
             }
         if (T->type == T_DISCRETE_BARRIER) {
             const REAL g1 = (REAL)(1.0 - T->extra);
@@ -183,8 +183,6 @@ INL void SUFFIX(costs)(const problem_t *pr, REAL (*x)[LANES], int last, REAL *st
         first = 0;
     }
     if (!first) LOOP stage[l] += st[l];
-    for (int s = 0; s < pr->nshapes; ++s)
-        if (discrete[s]) LOOP hprev[s][l] = hcur[s][l];
 }
 
 /* Store the `count` lanes of V[dim][LANES] as step j of a rollout output: sample-major
@@ -214,7 +212,7 @@ CLONES static void SUFFIX(block)(const problem_t *pr, const REAL *x0, const REAL
     const int clamp = pr->has_lo || pr->has_hi;
     REAL X[NMAX][LANES], U[MMAX][LANES], E[MMAX][LANES], Z[MMAX][LANES];
     REAL K1[NMAX][LANES], K2[NMAX][LANES], K3[NMAX][LANES], K4[NMAX][LANES], XT[NMAX][LANES];
-    REAL hprev[SMAX][LANES], w[LANES], R[LANES], A[LANES];
+    REAL hring[2][SMAX][LANES], w[LANES], R[LANES], A[LANES];
     REAL stage[LANES], terminal[LANES], whole[LANES], ctrl[LANES], keep[LANES], tmp[LANES];
     uint64_t ks[LANES];
     REAL lo[MMAX], hi[MMAX], L[MMAX * MMAX];
@@ -235,7 +233,7 @@ CLONES static void SUFFIX(block)(const problem_t *pr, const REAL *x0, const REAL
         const term_t *T = &pr->terms[t];
         if (T->type != T_DISCRETE_BARRIER) continue;
         for (int s = 0; s < T->nshape; ++s)
-            SUFFIX(shape_h)(&pr->shapes[T->shape0 + s], X, hprev[T->shape0 + s]);
+            SUFFIX(shape_h)(&pr->shapes[T->shape0 + s], X, hring[0][T->shape0 + s]);
     }
     if (states != NULL) SUFFIX(store)(states, X, n, H + 1, 0, count, cmajor, b, pr->K, kk[0], p0);
 
@@ -306,7 +304,8 @@ CLONES static void SUFFIX(block)(const problem_t *pr, const REAL *x0, const REAL
         if (states != NULL)
             SUFFIX(store)(states, X, n, H + 1, j + 1, count, cmajor, b, pr->K, kk[0], p0);
         if (cost != NULL && pr->nterms > 0)
-            SUFFIX(costs)(pr, X, j == H - 1, stage, terminal, whole, hprev);
+            SUFFIX(costs)(pr, X, j == H - 1, stage, terminal, whole, hring[j & 1],
+                          hring[(j + 1) & 1]);
     }
     if (cost != NULL) {
         const REAL gamma = (REAL)pr->gamma;
