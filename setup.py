@@ -1,7 +1,8 @@
 """Build of the optional C kernels (everything else is in pyproject.toml): the QP solver's
-CPU fast path, the safety filter's real-time path and MPPI's fused rollouts. If no C
-compiler is found the build goes on without them, and the solver, the filter and the planner
-run their torch implementations on the CPU too."""
+CPU fast path, the Lie terms of quadric barriers on a few states, the safety filter's
+real-time path and MPPI's fused rollouts. If no C compiler is found the build goes on
+without them, and the solver, the barriers, the filter and the planner run their torch
+implementations on the CPU too."""
 
 import platform
 import sys
@@ -18,6 +19,13 @@ setup(
             ["torchcbf/qp/_dual_kernel.c"],
             depends=["torchcbf/qp/_dual_kernel.h"],
             extra_compile_args=["-O3", "-std=c99"],
+            optional=True,
+        ),
+        Extension(  # closed-form Lie terms of quadric barriers on a few states
+            "torchcbf.barriers._lie_kernel",
+            ["torchcbf/barriers/_lie_kernel.c"],
+            extra_compile_args=["-O3", "-std=c99"],
+            libraries=["m"],
             optional=True,
         ),
         Extension(  # the safety filter's real-time path, linked with the QP kernel

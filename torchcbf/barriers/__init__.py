@@ -9,7 +9,13 @@ a relative-degree-one barrier (HOCBF or exponential CBF).
 
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.compose import BarrierStack, Intersection, Scaled, Transformed, Union
-from torchcbf.barriers.lie import AnalyticDerivatives, LieFunction, LieTerms, lie_derivatives
+from torchcbf.barriers.lie import (
+    AnalyticDerivatives,
+    LieFunction,
+    LieTerms,
+    Quadric,
+    lie_derivatives,
+)
 from torchcbf.barriers.lyapunov import Lyapunov, QuadraticLyapunov
 from torchcbf.barriers.neural import NeuralBarrier
 from torchcbf.barriers.rectify import (
@@ -56,6 +62,7 @@ __all__ = [
     "MovingBall",
     "NeuralBarrier",
     "QuadraticLyapunov",
+    "Quadric",
     "Scaled",
     "Transformed",
     "Union",

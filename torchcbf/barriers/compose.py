@@ -11,7 +11,13 @@ from torch import Tensor, nn
 
 from torchcbf.barriers._minmax import Mode, combine, reduce
 from torchcbf.barriers.base import Barrier
-from torchcbf.barriers.lie import AnalyticDerivatives, LieFunction, gradient_rows, per_output
+from torchcbf.barriers.lie import (
+    AnalyticDerivatives,
+    LieFunction,
+    Quadric,
+    gradient_rows,
+    per_output,
+)
 
 
 def _as_columns(h: Tensor, x: Tensor) -> Tensor:
@@ -122,6 +128,13 @@ class Scaled(_OfOne):
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """``x [..., n] -> scale * h [...]`` (or ``[..., k]``)."""
         return self.scale.to(x) * self.barrier(x, t)
+
+    def quadric(self) -> Quadric | None:
+        inner = self.barrier.quadric()
+        if inner is None:
+            return None
+        scale = self.scale if inner.scale is None else self.scale * inner.scale
+        return inner._replace(scale=scale)
 
     def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         d = self.barrier.derivatives(x, t)

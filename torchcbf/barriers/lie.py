@@ -74,6 +74,26 @@ class AnalyticDerivatives(NamedTuple):
     hess_dir: HessDir | None = None
 
 
+class Quadric(NamedTuple):
+    """``k`` quadrics on the position ``p = x[..., index]`` (``d`` components), the form the
+    native Lie kernel evaluates (see :meth:`LieFunction.quadric`):
+    ``h_j = sign * scale_j * (sum_i (q_ji / a_ji)^2 - r_j^2)`` with body coordinates
+    ``q_j = R(angle_j)' (p - c_j)``.
+
+    ``center`` ``[d]`` (one function, ``h [...]``) or ``[k, d]`` (``h [..., k]``); ``axes``
+    ``a`` shaped like ``center`` (``None``: all 1); ``radius`` ``r``, ``angle`` (``d = 2``)
+    and ``scale`` each ``[]`` or ``[k]`` (``None``: 1, no rotation, 1); ``sign`` +-1.
+    """
+
+    index: tuple[int, ...]
+    center: Tensor
+    axes: Tensor | None = None
+    radius: Tensor | None = None
+    angle: Tensor | None = None
+    scale: Tensor | None = None
+    sign: float = 1.0
+
+
 class LieFunction(nn.Module):
     """Base of :class:`~torchcbf.barriers.Barrier` and :class:`~torchcbf.barriers.Lyapunov`.
 
@@ -96,6 +116,14 @@ class LieFunction(nn.Module):
         """Whether :meth:`derivatives` also gives ``hess_mat`` and ``hess_dir`` (see
         :class:`AnalyticDerivatives`), for every state and time."""
         return False
+
+    def quadric(self) -> Quadric | None:
+        """This function as :class:`Quadric` (its constants as they are now), or ``None``.
+        Time-invariant quadric shapes give it (:class:`~torchcbf.barriers.Ball`,
+        :class:`~torchcbf.barriers.Ellipse`, :class:`~torchcbf.barriers.Scaled` of one);
+        :mod:`torchcbf.barriers.native` then evaluates their Lie terms in C. A subclass that
+        changes ``forward`` must override it too."""
+        return None
 
     def parts(self) -> list[LieFunction] | None:
         """Independent parts whose outputs, concatenated, are this function's ``[..., k]``

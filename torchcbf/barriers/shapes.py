@@ -21,7 +21,13 @@ from torchcbf._checks import check_number
 from torchcbf.barriers._minmax import combine, reduce
 from torchcbf.barriers._params import ExactConstants, StateIndex, register
 from torchcbf.barriers.base import Barrier
-from torchcbf.barriers.lie import AnalyticDerivatives, FunctionPart, LieFunction, time_tensor
+from torchcbf.barriers.lie import (
+    AnalyticDerivatives,
+    FunctionPart,
+    LieFunction,
+    Quadric,
+    time_tensor,
+)
 
 
 def _check_positive_tensor(name: str, value: Tensor) -> None:
@@ -190,6 +196,11 @@ class Ball(_SignedShapeStack):
     def has_second_order(self) -> bool:
         return True
 
+    def quadric(self) -> Quadric | None:
+        if self.velocity is not None:
+            return None
+        return Quadric(self._sel.index, self.center, radius=self.radius, sign=self._sign())
+
     def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         sign = self._sign()
         diff = self._diff(x, t)
@@ -346,6 +357,9 @@ class Ellipse(_SignedShapeStack):
     @property
     def has_second_order(self) -> bool:
         return True
+
+    def quadric(self) -> Quadric | None:
+        return Quadric(self._sel.index, self.center, self.axes, angle=self.angle, sign=self._sign())
 
     def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         sign = self._sign()

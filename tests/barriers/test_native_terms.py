@@ -1,0 +1,292 @@
+"""The native Lie terms (torchcbf.barriers.native): the same terms as the torch closed forms
+and as autograd for every model x shape (balls, ellipses, scaled and transformed) x form
+(plain, exponential CBF), and None wherever the torch path must answer (a gradient to carry,
+an unsupported function, model or input, no kernel)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import pytest
+import torch
+from torch import Tensor, nn
+
+from torchcbf._native import load_kernel
+from torchcbf.barriers import (
+    Ball,
+    BarrierStack,
+    Box,
+    Ellipse,
+    ExponentialBarrier,
+    HalfSpace,
+    MovingBall,
+    Scaled,
+    Transformed,
+    native,
+)
+from torchcbf.barriers.lie import LieTerms, lie_derivatives
+from torchcbf.dynamics import (
+    AccelUnicycle,
+    Bicycle,
+    DoubleIntegrator,
+    SingleIntegrator,
+    Unicycle,
+    VanDerPol,
+)
+
+pytestmark = pytest.mark.skipif(not native.available(), reason="C kernel not built")
+
+F64 = torch.float64
+
+SHAPES = {
+    "ball": lambda: Ball([0.5, 0.2], 0.4),
+    "balls_keep_in": lambda: Ball([[0.5, 0.2], [1.0, 1.0], [-1.0, 0.3]], [4.0, 5.0, 4.5],
+                                  keep_in=True),
+    "ellipse_rotated": lambda: Ellipse([0.2, -0.3], [0.5, 1.5], angle=0.4),
+    "ellipses_rotated": lambda: Ellipse(
+        [[0.2, -0.3], [1.0, 1.0]], [[0.5, 1.5], [2.0, 1.0]], angle=[0.4, -1.1], index=(1, 0)
+    ),
+    "ellipse_keep_in": lambda: Ellipse([[0.0, 0.5]], [[6.0, 5.0]], angle=0.3, keep_in=True),
+    "ellipsoid": lambda: Ellipse([0.2, -0.3, 0.1], [0.5, 1.5, 0.8], index=(0, 1, 2)),
+    "scaled_ball": lambda: Scaled(Ball([0.5, 0.2], 0.4), 0.7),
+    "scaled_ellipses": lambda: Scaled(
+        Ellipse([[1.0, 2.0], [-0.5, 0.5], [0.3, -1.0]], [[0.5, 1.5], [1.0, 0.3], [0.7, 0.7]]),
+        [2.0, 0.5, 0.1],
+    ),
+    "scaled_twice": lambda: Scaled(Scaled(Ball([[0.5, 0.2], [1.0, 1.0]], 0.4), [2.0, 3.0]), 0.5),
+    "radius": lambda: Transformed(Ellipse([0.2, -0.3], [0.5, 1.5], angle=0.4), "radius"),
+    "scaled_exp": lambda: Scaled(
+        Transformed(Ellipse([[1.0, 2.0], [-0.5, 0.5]], [[0.5, 1.5], [1.0, 0.3]]), "exp", rate=0.3),
+        [0.5, 2.0],
+    ),
+    "exp_of_scaled": lambda: Transformed(
+        Scaled(Ball([[0.5, 0.2], [1.0, 1.0]], [0.4, 0.3], keep_in=True), [0.2, 0.1]), "exp",
+        rate=0.7,
+    ),
+}  # fmt: skip
+MODELS = {
+    "single_integrator": lambda sigma: SingleIntegrator(3, sigma=sigma),
+    "double_integrator": lambda sigma: DoubleIntegrator(2, sigma=sigma),
+    "unicycle": lambda sigma: Unicycle(sigma=sigma),
+    "accel_unicycle": lambda sigma: AccelUnicycle(sigma=sigma),
+}
+SIGMAS = {
+    "none": lambda n: None,
+    "scalar": lambda n: 0.3,
+    "matrix": lambda n: torch.linspace(-0.4, 0.5, n * 2, dtype=F64).reshape(n, 2),
+}
+
+
+def _states(count: int, n: int, seed: int, dtype: torch.dtype = F64) -> Tensor:
+    gen = torch.Generator().manual_seed(seed)
+    x = 3 * torch.rand(count, n, generator=gen, dtype=F64) - 1.5
+    x[:, :2] += 2.5  # away from the centres
+    return x.to(dtype)
+
+
+def _model(name: str, sigma: str) -> nn.Module:
+    n = {"single_integrator": 3, "double_integrator": 4, "unicycle": 3, "accel_unicycle": 4}[name]
+    return MODELS[name](SIGMAS[sigma](n))
+
+
+def _columns(terms: LieTerms, x: Tensor) -> LieTerms:
+    """Terms of one function (``h [B]`` or ``[B, k]``) in the k-output form ``[B, k]``."""
+    if terms.h.shape != x.shape[:-1]:
+        return terms
+    return LieTerms(*(None if v is None else v.unsqueeze(1) for v in terms))
+
+
+def _assert_terms(got: LieTerms, want: LieTerms, dtype: torch.dtype) -> None:
+    tol = {"atol": 1e-12, "rtol": 1e-12} if dtype == F64 else {"atol": 1e-4, "rtol": 1e-4}
+    for name in LieTerms._fields:
+        g, w = getattr(got, name), getattr(want, name)
+        if w is None:
+            assert g is None, name
+            continue
+        assert g.dtype == dtype and g.shape == w.shape and not g.requires_grad, name
+        scale = 1.0 + float(w.detach().abs().max())
+        torch.testing.assert_close(g, w.detach(), atol=tol["atol"] * scale, rtol=tol["rtol"],
+                                   msg=name)  # fmt: skip
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32], ids=["float64", "float32"])
+@pytest.mark.parametrize("sigma", list(SIGMAS))
+@pytest.mark.parametrize("form", ["plain", "exponential"])
+@pytest.mark.parametrize("shape", list(SHAPES))
+@pytest.mark.parametrize("model", list(MODELS))
+def test_native_terms_match_closed_forms_and_autograd(
+    model: str, shape: str, form: str, sigma: str, dtype: torch.dtype
+) -> None:
+    dyn = _model(model, sigma).to(dtype)
+    barrier = SHAPES[shape]().to(dtype)
+    if form == "exponential":
+        barrier = ExponentialBarrier(barrier, dyn, 2, [2.5]).to(dtype)
+        assert barrier.has_analytic
+    x = _states(5, dyn.state_dim, seed=len(model) + len(shape), dtype=dtype)
+    with torch.no_grad():
+        found = native.lie_terms([barrier], x, dyn)
+    assert found is not None
+    terms, sizes = found
+    closed = _columns(lie_derivatives(barrier, x, dyn, method="analytic"), x)
+    assert sizes == [closed.h.shape[1]]
+    _assert_terms(terms, closed, dtype)
+    # autograd in float64, the reference of both
+    dyn64, barrier64 = dyn.double(), barrier.double()
+    auto = _columns(lie_derivatives(barrier64, x.double(), dyn64, method="autograd"), x)
+    _assert_terms(terms, LieTerms(*(None if v is None else v.to(dtype) for v in auto)), dtype)
+
+
+def test_several_functions_and_stacks_concatenate_in_order() -> None:
+    dyn = AccelUnicycle(sigma=0.2).double()
+    ellipses = Scaled(Ellipse([[1.0, 2.0], [-0.5, 0.5]], [[0.5, 1.5], [1.0, 0.3]]), [2.0, 0.5])
+    fns = [
+        Ball([[0.5, 0.2], [1.0, 1.0]], [0.4, 0.3]),
+        ExponentialBarrier(ellipses, dyn, 2, [3.0]),
+        BarrierStack(
+            Ball([0.5, 0.2], 0.4), ExponentialBarrier(Ball([1.0, 1.0], 0.3), dyn, 2, [1.0])
+        ),
+        ExponentialBarrier(BarrierStack(Ball([0.5, 0.2], 0.4), ellipses), dyn, 2, [2.0]),
+    ]
+    fns = [f.double() for f in fns]
+    x = _states(3, 4, seed=7)
+    with torch.no_grad():
+        terms, sizes = native.lie_terms(fns, x, dyn)
+    assert sizes == [2, 2, 2, 3]
+    parts = [_columns(lie_derivatives(f, x, dyn, method="analytic"), x) for f in fns]
+    want = LieTerms(*(torch.cat([getattr(p, n) for p in parts], 1) for n in LieTerms._fields))
+    _assert_terms(terms, want, F64)
+
+
+def test_without_a_hessian_the_trace_is_none() -> None:
+    dyn = AccelUnicycle(sigma=0.2).double()
+    x = _states(2, 4, seed=1)
+    terms, _ = native.lie_terms([Ball([0.5, 0.2], 0.4).double()], x, dyn, hessian=False)
+    assert terms.hess_trace is None
+    want = _columns(lie_derivatives(Ball([0.5, 0.2], 0.4).double(), x, dyn, hessian=False), x)
+    _assert_terms(terms, want, F64)
+
+
+def test_constants_are_read_at_every_call() -> None:
+    ball = Ball([0.5, 0.2], 0.4).double()
+    dyn = SingleIntegrator(2).double()
+    x = _states(1, 2, seed=2)
+    before = native.lie_terms([ball], x, dyn)[0].h
+    with torch.no_grad():
+        ball.center.add_(1.0)
+    ball.radius = torch.tensor(0.9, dtype=F64)  # a new buffer
+    after = native.lie_terms([ball], x, dyn)[0].h
+    assert not torch.equal(before, after)
+    torch.testing.assert_close(after, ball(x).unsqueeze(1), atol=1e-14, rtol=0)
+
+
+def test_a_gradient_to_carry_takes_the_torch_path() -> None:
+    dyn = AccelUnicycle(sigma=0.2).double()
+    learnable = Ball([0.5, 0.2], 0.4, learnable=True).double()
+    fixed = ExponentialBarrier(Ellipse([0.5, 0.2], [1.0, 2.0]), dyn, 2, [2.0]).double()
+    x = _states(2, 4, seed=3)
+    with torch.enable_grad():
+        assert native.lie_terms([learnable], x, dyn) is None
+        assert native.lie_terms([fixed], x.clone().requires_grad_(), dyn) is None
+        assert native.lie_terms([fixed], x, dyn) is not None  # nothing requires grad
+        gain = nn.Parameter(torch.tensor([2.0], dtype=F64))
+        assert native.lie_terms([ExponentialBarrier(fixed.barrier, dyn, 2, gain)], x, dyn) is None
+    with torch.no_grad():  # no graph to build: the kernel answers
+        assert native.lie_terms([learnable], x.requires_grad_(), dyn) is not None
+
+
+class _Drifting(AccelUnicycle):
+    """A subclass with another drift: not the model the kernel knows."""
+
+    def f(self, x: Tensor) -> Tensor:
+        return super().f(x) + 1.0
+
+
+class _Shifted(Ball):
+    """A subclass that changes ``forward`` alone: its inherited quadric is not its own."""
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        return super().forward(x, t) + 1.0
+
+
+def _unsupported_cases() -> dict[str, tuple]:
+    acc, x4 = AccelUnicycle(sigma=0.2).double(), _states(2, 4, seed=4)
+    ball = Ball([0.5, 0.2], 0.4).double()
+    return {
+        "half_space": ([HalfSpace([1.0, 0.0], 2.0, index=(0, 1))], x4, acc),
+        "box": ([Box([-5.0, -5.0], [5.0, 5.0], index=(0, 1))], x4, acc),
+        "transformed_twice": ([Transformed(Transformed(ball, "radius"), "exp")], x4, acc),
+        "transformed_rectified": (
+            [Transformed(ExponentialBarrier(ball, acc, 2, [1.0]), "exp")],
+            x4,
+            acc,
+        ),
+        "scaled_stack_of_transforms": (
+            [Scaled(BarrierStack(Transformed(ball, "exp"), Transformed(ball, "radius")), 2.0)],
+            x4,
+            acc,
+        ),
+        "moving_ball": ([Ball([0.5, 0.2], 0.4, velocity=[0.1, 0.0])], x4, acc),
+        "trajectory": ([MovingBall(lambda t: torch.stack([t, t], -1), 0.4)], x4, acc),
+        "one_unsupported_of_two": ([ball, HalfSpace([1.0, 0.0], 2.0, index=(0, 1))], x4, acc),
+        "scale_per_output_on_one_shape": ([Scaled(ball, [1.0, 2.0])], x4, acc),
+        "relative_degree_three": ([ExponentialBarrier(ball, acc, 3, [1.0, 2.0])], x4, acc),
+        "rectified_twice": (
+            [ExponentialBarrier(ExponentialBarrier(ball, acc, 2, [1.0]), acc, 2, [1.0])],
+            x4,
+            acc,
+        ),
+        "bicycle": ([ball], x4, Bicycle()),
+        "van_der_pol": ([ball], _states(2, 2, seed=4), VanDerPol()),
+        "subclass_with_own_drift": ([ball], x4, _Drifting()),
+        "shape_subclass_with_own_forward": ([_Shifted([0.5, 0.2], 0.4).double()], x4, acc),
+        "rectified_along_a_subclass": ([ExponentialBarrier(ball, _Drifting(), 2, [1.0])], x4, acc),
+        "callable_sigma": ([ball], x4, AccelUnicycle(sigma=lambda x: 0.1 * x[..., None])),
+        "batch_dimensions": ([ball], x4.unsqueeze(0), acc),
+        "float16": ([ball], x4.half(), acc),
+        "meta_device": ([ball], torch.empty(2, 4, device="meta"), acc),
+        "no_functions": ([], x4, acc),
+        "index_outside_the_state": ([Ball([0.5, 0.2], 0.4, index=(0, 5))], x4, acc),
+    }
+
+
+@pytest.mark.parametrize("case", list(_unsupported_cases()))
+def test_unsupported_cases_return_none(case: str) -> None:
+    fns, x, dyn = _unsupported_cases()[case]
+    with torch.no_grad():
+        assert native.lie_terms(fns, x, dyn) is None
+
+
+def test_strided_states_and_constants_of_another_dtype_are_read_as_float64() -> None:
+    dyn = DoubleIntegrator(2, sigma=0.3).double()
+    f32 = torch.float32
+    ellipse = Ellipse(torch.tensor([0.2, -0.3], dtype=f32), torch.tensor([0.5, 1.5], dtype=f32),
+                      angle=torch.tensor(0.4, dtype=f32))  # fmt: skip
+    barrier = ExponentialBarrier(ellipse, dyn, 2, torch.tensor([2.0], dtype=f32))
+    x = _states(3, 8, seed=8)[:, ::2]  # not contiguous
+    terms, _ = native.lie_terms([barrier], x, dyn)
+    # the torch closed forms cast the float32 constants to the state's float64 as well
+    want = _columns(lie_derivatives(barrier, x, dyn, method="analytic"), x)
+    _assert_terms(terms, want, F64)
+
+
+def test_callable_sigma_without_hessian_is_native() -> None:
+    dyn = AccelUnicycle(sigma=lambda x: 0.1 * x[..., None])
+    x = _states(2, 4, seed=5)
+    assert native.lie_terms([Ball([0.5, 0.2], 0.4).double()], x, dyn, hessian=False) is not None
+
+
+def test_a_missing_or_stale_kernel_is_refused(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    directory = Path(native.__file__).parent
+    with caplog.at_level(logging.WARNING, logger="torchcbf"):
+        stale = load_kernel(
+            directory, "_lie_kernel", "torchcbf_lie_version", native.KERNEL_VERSION + 1, "torch"
+        )
+    assert stale is None and "another version" in caplog.text
+    assert load_kernel(directory, "_no_such_kernel", "v", 1, "torch") is None
+    monkeypatch.setattr(native, "_library", lambda: None)
+    assert not native.available()
+    x = _states(1, 2, seed=6)
+    assert native.lie_terms([Ball([0.5, 0.2], 0.4).double()], x, SingleIntegrator(2)) is None

@@ -1,0 +1,327 @@
+/*
+ * Lie terms of quadric barriers on a few states, in one call (loaded through ctypes by
+ * torchcbf/barriers/native.py).
+ *
+ * On one state per control tick the closed forms of torchcbf/barriers (shapes.py, compose.py,
+ * rectify.py, lie.py) cost a few hundred tensor operations; this file evaluates the same
+ * formulas in a loop. The torch closed forms are the reference (the tests compare the two).
+ *
+ * A block is k quadrics on the position p = x[index] (d components):
+ *     b_j = w_j (sum_i (q_ji / a_ji)^2 - r_j^2),  q_j = R(angle_j)' (p - c_j)  (d = 2 to rotate)
+ * with gradient grad_p b_j = 2 w_j R diag(1 / a^2) q_j and constant Hessian
+ * B_p = 2 w_j R diag(1 / a^2) R', optionally transformed and scaled: h_j = s_j phi(b_j) with
+ * phi(b) = sqrt(b + 1) - 1 ("radius") or 1 - exp(-rate b) ("exp"), as compose.py's Transformed:
+ *     grad h = s phi1 grad b,  H = s (phi2 grad b grad b' + phi1 B),
+ *     dH[v] = s (phi3 (grad b . v) grad b grad b' + phi2 (B v grad b' + grad b v' B
+ *                + (grad b . v) B))
+ * (phi1, phi2, phi3 the derivatives of phi at b; B is constant). A rectified block is the
+ * exponential CBF of relative degree two of those functions along the model "inner" (drift f,
+ * Jacobian J):
+ *     h_e = grad h . f + k0 h,  grad h_e = H f + J' grad h + k0 grad h,
+ *     tr(S' hess(h_e) S) = tr(S' dH[f] S) + sum(H S * (2 J + k0 I) S)
+ *                          + sum_i (grad h)_i tr(S' hess f_i S).
+ * The Lie terms follow along the model "outer": L_f = grad . f, L_g = grad' g and, with a
+ * diffusion S = sigma [n, q], the Hessian trace tr(S' hess S).
+ */
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+/* Bumped whenever an exported signature or its meaning changes (see _native.py). */
+#define LIE_KERNEL_VERSION 1
+
+/* largest state, control, position and noise sizes (larger problems: torch) */
+#define LIE_NMAX 32
+
+/* the models, as MODEL_CODES in native.py */
+enum { SINGLE_INTEGRATOR = 0, DOUBLE_INTEGRATOR = 1, UNICYCLE = 2, ACCEL_UNICYCLE = 3 };
+
+/* the transforms phi, as TRANSFORM_CODES in native.py */
+enum { NO_TRANSFORM = 0, RADIUS = 1, EXP = 2 };
+
+/* A block's integers in `meta` (then its d indices) and its pointers in `params`; M_CENTER to
+ * M_SCALE and M_OUTER are the strides per output of the constants of those names (0: one
+ * value shared by all outputs). */
+enum {
+    M_K, M_D, M_CENTER, M_AXES, M_RADIUS, M_ANGLE, M_SCALE, M_SIGN, M_TRANSFORM, M_OUTER,
+    M_INNER, M_INNER_DIM, M_FIXED
+};
+enum { P_CENTER, P_AXES, P_RADIUS, P_ANGLE, P_SCALE, P_OUTER, P_K0, P_FIXED };
+
+int torchcbf_lie_version(void) { return LIE_KERNEL_VERSION; }
+
+/* State size of a model, or -1 for an unknown code. */
+static int model_size(int code, int dim) {
+    switch (code) {
+    case SINGLE_INTEGRATOR: return dim;
+    case DOUBLE_INTEGRATOR: return 2 * dim;
+    case UNICYCLE: return 3;
+    case ACCEL_UNICYCLE: return 4;
+    default: return -1;
+    }
+}
+
+/* Control size of a model. */
+static int model_controls(int code, int dim) {
+    return code == SINGLE_INTEGRATOR || code == DOUBLE_INTEGRATOR ? dim : 2;
+}
+
+/* Drift f [n], and where asked its Jacobian J [n, n] and the control matrix g [n, m]. */
+static void model_eval(int code, int dim, int n, int m, const double *x, double *f, double *J,
+                       double *g) {
+    memset(f, 0, sizeof(double) * n);
+    if (J) memset(J, 0, sizeof(double) * n * n);
+    if (g) memset(g, 0, sizeof(double) * n * m);
+    switch (code) {
+    case SINGLE_INTEGRATOR:
+        if (g)
+            for (int i = 0; i < dim; ++i) g[i * m + i] = 1.0;
+        break;
+    case DOUBLE_INTEGRATOR:
+        for (int i = 0; i < dim; ++i) {
+            f[i] = x[dim + i];
+            if (J) J[i * n + dim + i] = 1.0;
+            if (g) g[(dim + i) * m + i] = 1.0;
+        }
+        break;
+    case UNICYCLE:
+        if (g) {
+            g[0 * m + 0] = cos(x[2]);
+            g[1 * m + 0] = sin(x[2]);
+            g[2 * m + 1] = 1.0;
+        }
+        break;
+    case ACCEL_UNICYCLE: {
+        double v = x[2], c = cos(x[3]), s = sin(x[3]);
+        f[0] = v * c;
+        f[1] = v * s;
+        if (J) {
+            J[0 * n + 2] = c, J[0 * n + 3] = -v * s;
+            J[1 * n + 2] = s, J[1 * n + 3] = v * c;
+        }
+        if (g) {
+            g[2 * m + 0] = 1.0;
+            g[3 * m + 1] = 1.0;
+        }
+        break;
+    }
+    }
+}
+
+/* sum_i w_i tr(S' hess f_i S) for S [n, q] (zero for the drifts linear in x). */
+static double model_hess_quad(int code, int q, const double *x, const double *w,
+                              const double *S) {
+    if (code != ACCEL_UNICYCLE) return 0.0;
+    /* d2f/dv dtheta = (-sin, cos), d2f/dtheta2 = -v (cos, sin) on the rows (x, y) */
+    double v = x[2], c = cos(x[3]), s = sin(x[3]), sv_st = 0.0, st2 = 0.0;
+    for (int l = 0; l < q; ++l) {
+        sv_st += S[2 * q + l] * S[3 * q + l];
+        st2 += S[3 * q + l] * S[3 * q + l];
+    }
+    return w[0] * (-2.0 * sv_st * s - v * st2 * c) + w[1] * (2.0 * sv_st * c - v * st2 * s);
+}
+
+/* phi and its first three derivatives at b (compose.py's Transformed._phi and _phi3). */
+static void transform(int code, double rate, double b, double *phi) {
+    if (code == RADIUS) {
+        double r = sqrt(b + 1.0);
+        phi[0] = r - 1.0, phi[1] = 0.5 / r, phi[2] = -0.25 / (r * r * r);
+        phi[3] = 0.375 * pow(b + 1.0, -2.5);
+    } else if (code == EXP) {
+        double e = exp(-rate * b);
+        phi[0] = -expm1(-rate * b), phi[1] = rate * e, phi[2] = -rate * rate * e;
+        phi[3] = rate * rate * rate * e;
+    } else {
+        phi[0] = b, phi[1] = 1.0, phi[2] = 0.0, phi[3] = 0.0;
+    }
+}
+
+/* One quadric at the position p [d]: its value, its gradient over p (g [d]) and its Hessian
+ * over p (Bp [d, d]); `angle` NULL: no rotation, `a` NULL: unit axes. */
+static double quadric(int d, const double *p, const double *c, const double *a, double r,
+                      const double *angle, double w, double *g, double *Bp) {
+    double cs = 1.0, sn = 0.0, qv[LIE_NMAX], inv_a2[LIE_NMAX], value = 0.0;
+    if (angle) cs = cos(*angle), sn = sin(*angle);
+    for (int i = 0; i < d; ++i) {
+        qv[i] = p[i] - c[i];
+        inv_a2[i] = a ? 1.0 / (a[i] * a[i]) : 1.0;
+    }
+    if (angle) { /* body coordinates R' (p - c) */
+        double u = qv[0], v = qv[1];
+        qv[0] = cs * u + sn * v, qv[1] = -sn * u + cs * v;
+    }
+    for (int i = 0; i < d; ++i) {
+        double t = a ? qv[i] / a[i] : qv[i];
+        value += t * t;
+    }
+    for (int i = 0; i < d; ++i) g[i] = 2.0 * w * inv_a2[i] * qv[i];
+    if (angle) { /* back to the world axes */
+        double u = g[0], v = g[1];
+        g[0] = cs * u - sn * v, g[1] = sn * u + cs * v;
+    }
+    for (int i = 0; i < d; ++i) /* 2 w R diag(1 / a^2) R' */
+        for (int l = 0; l < d; ++l) {
+            double e = i == l ? inv_a2[i] : 0.0;
+            if (angle) {
+                double Ri[2] = {i == 0 ? cs : sn, i == 0 ? -sn : cs};
+                double Rl[2] = {l == 0 ? cs : sn, l == 0 ? -sn : cs};
+                e = Ri[0] * Rl[0] * inv_a2[0] + Ri[1] * Rl[1] * inv_a2[1];
+            }
+            Bp[i * d + l] = 2.0 * w * e;
+        }
+    return w * (value - r * r);
+}
+
+/*
+ * Lie terms of the blocks at B states, the outputs of all blocks concatenated (K in all).
+ * `meta` holds B, n, m, q, the outer model's code and size, the number of blocks, then per
+ * block M_FIXED integers and its d indices; `reals` one number per block (the rate of the
+ * "exp" transform). `ptrs` holds x [B, n] (float64, C-contiguous), sigma [n, q] (NULL: no
+ * Hessian trace), the outputs h, lfh, dhdt (zeros: the blocks are time-invariant) [B, K],
+ * lgh [B, K, m], hess [B, K] (written where sigma is given), dhdx [B, K, n], then per block
+ * P_FIXED pointers: center [k or 1, d], axes (NULL: unit), radius (NULL: 1), angle (NULL:
+ * none), scale w and outer scale s (NULL: 1), and k0 (rectified blocks). The outer model
+ * (code, size) is the one of the Lie terms; a rectified block (inner code >= 0) takes the
+ * drift of its inner model.
+ * Returns 0, or 1 when the sizes are out of range (the caller takes its torch path).
+ */
+int torchcbf_lie_quadrics(const int64_t *meta, const double *reals, void *const *ptrs) {
+    int64_t B = meta[0];
+    int n = (int)meta[1], m = (int)meta[2], q = (int)meta[3];
+    int outer = (int)meta[4], outer_dim = (int)meta[5], blocks = (int)meta[6];
+    const double *x = ptrs[0], *sigma = ptrs[1];
+    double *h_out = ptrs[2], *lfh_out = ptrs[3], *dhdt_out = ptrs[4], *lgh_out = ptrs[5];
+    double *hess_out = ptrs[6], *dhdx_out = ptrs[7];
+    void *const *params = ptrs + 8;
+    meta += 7;
+    if (B < 0 || n < 1 || n > LIE_NMAX || m < 1 || m > LIE_NMAX || q < 0 || q > LIE_NMAX ||
+        (sigma && (q < 1 || !hess_out)) || model_size(outer, outer_dim) != n ||
+        model_controls(outer, outer_dim) != m)
+        return 1;
+    int64_t K = 0;
+    for (int b = 0, at = 0; b < blocks; ++b) {
+        const int64_t *mb = meta + at;
+        void *const *pb = params + P_FIXED * b;
+        int64_t d = mb[M_D];
+        if (mb[M_K] < 1 || d < 1 || d > n || !pb[P_CENTER] || (pb[P_ANGLE] && d != 2) ||
+            mb[M_TRANSFORM] < NO_TRANSFORM || mb[M_TRANSFORM] > EXP)
+            return 1;
+        if (mb[M_INNER] >= 0 &&
+            (!pb[P_K0] || model_size((int)mb[M_INNER], (int)mb[M_INNER_DIM]) != n))
+            return 1;
+        for (int i = 0; i < d; ++i)
+            if (mb[M_FIXED + i] < 0 || mb[M_FIXED + i] >= n) return 1;
+        K += mb[M_K];
+        at += M_FIXED + (int)d;
+    }
+    double SS[LIE_NMAX * LIE_NMAX]; /* sigma sigma' [n, n]: tr(S' H S) = sum(H * SS) */
+    if (sigma)
+        for (int i = 0; i < n; ++i)
+            for (int l = 0; l < n; ++l) {
+                double e = 0.0;
+                for (int t = 0; t < q; ++t) e += sigma[i * q + t] * sigma[l * q + t];
+                SS[i * n + l] = e;
+            }
+    double f_out[LIE_NMAX], g_out[LIE_NMAX * LIE_NMAX], f_in[LIE_NMAX], J_in[LIE_NMAX * LIE_NMAX];
+    double p[LIE_NMAX], gb_p[LIE_NMAX], Bp[LIE_NMAX * LIE_NMAX], gb[LIE_NMAX], gh[LIE_NMAX];
+    double H[LIE_NMAX * LIE_NMAX], grad[LIE_NMAX], Bf[LIE_NMAX];
+    for (int64_t s = 0; s < B; ++s) {
+        const double *xs = x + s * n;
+        model_eval(outer, outer_dim, n, m, xs, f_out, NULL, g_out);
+        int64_t col = 0; /* the output being written */
+        int inner_done = -1, inner_done_dim = -1;
+        for (int b = 0, at = 0; b < blocks; ++b) {
+            const int64_t *mb = meta + at;
+            void *const *pb = params + P_FIXED * b;
+            const double *center = pb[P_CENTER], *axes = pb[P_AXES], *radius = pb[P_RADIUS];
+            const double *angle = pb[P_ANGLE], *scale = pb[P_SCALE], *outer_scale = pb[P_OUTER];
+            const double *k0_ptr = pb[P_K0];
+            int k = (int)mb[M_K], d = (int)mb[M_D], inner = (int)mb[M_INNER];
+            int code = (int)mb[M_TRANSFORM];
+            const int64_t *index = mb + M_FIXED;
+            at += M_FIXED + d;
+            if (inner >= 0 && (inner != inner_done || mb[M_INNER_DIM] != inner_done_dim)) {
+                model_eval(inner, (int)mb[M_INNER_DIM], n, m, xs, f_in, J_in, NULL);
+                inner_done = inner, inner_done_dim = (int)mb[M_INNER_DIM];
+            }
+            for (int i = 0; i < d; ++i) p[i] = xs[index[i]];
+            for (int j = 0; j < k; ++j, ++col) {
+                double w = (double)mb[M_SIGN] * (scale ? scale[j * mb[M_SCALE]] : 1.0);
+                double sj = outer_scale ? outer_scale[j * mb[M_OUTER]] : 1.0;
+                double b0 = quadric(d, p, center + j * mb[M_CENTER],
+                                    axes ? axes + j * mb[M_AXES] : NULL,
+                                    radius ? radius[j * mb[M_RADIUS]] : 1.0,
+                                    angle ? angle + j * mb[M_ANGLE] : NULL, w, gb_p, Bp);
+                double phi[4];
+                transform(code, reals[b], b0, phi);
+                /* grad b, grad h and H over the whole state */
+                memset(gb, 0, sizeof(double) * n);
+                for (int i = 0; i < d; ++i) gb[index[i]] += gb_p[i];
+                for (int i = 0; i < n; ++i) gh[i] = sj * phi[1] * gb[i];
+                for (int i = 0; i < n; ++i)
+                    for (int l = 0; l < n; ++l) H[i * n + l] = sj * phi[2] * gb[i] * gb[l];
+                for (int i = 0; i < d; ++i)
+                    for (int l = 0; l < d; ++l)
+                        H[index[i] * n + index[l]] += sj * phi[1] * Bp[i * d + l];
+                double value = sj * phi[0], trace = 0.0;
+                if (inner < 0) {
+                    memcpy(grad, gh, sizeof(double) * n);
+                    if (sigma)
+                        for (int i = 0; i < n * n; ++i) trace += H[i] * SS[i];
+                } else {
+                    double k0 = *k0_ptr;
+                    value *= k0;
+                    for (int i = 0; i < n; ++i) {
+                        double e = k0 * gh[i];
+                        for (int l = 0; l < n; ++l)
+                            e += H[i * n + l] * f_in[l] + J_in[l * n + i] * gh[l];
+                        value += gh[i] * f_in[i];
+                        grad[i] = e;
+                    }
+                    if (sigma) {
+                        /* sum(H S * (2 J + k0 I) S) = sum_il H_il ((2 J + k0 I) SS)_li */
+                        for (int i = 0; i < n; ++i)
+                            for (int l = 0; l < n; ++l) {
+                                double e = k0 * SS[l * n + i];
+                                for (int t = 0; t < n; ++t)
+                                    e += 2.0 * J_in[l * n + t] * SS[t * n + i];
+                                trace += H[i * n + l] * e;
+                            }
+                        trace += model_hess_quad(inner, q, xs, gh, sigma);
+                    }
+                    if (sigma && code != NO_TRANSFORM) { /* tr(S' dH[f] S) */
+                        double gf = 0.0, gSSg = 0.0, BfSSg = 0.0, trBSS = 0.0;
+                        memset(Bf, 0, sizeof(double) * n);
+                        for (int i = 0; i < d; ++i)
+                            for (int l = 0; l < d; ++l) {
+                                Bf[index[i]] += Bp[i * d + l] * f_in[index[l]];
+                                trBSS += Bp[i * d + l] * SS[index[l] * n + index[i]];
+                            }
+                        for (int i = 0; i < n; ++i) {
+                            gf += gb[i] * f_in[i];
+                            for (int l = 0; l < n; ++l) {
+                                gSSg += gb[i] * SS[i * n + l] * gb[l];
+                                BfSSg += Bf[i] * SS[i * n + l] * gb[l];
+                            }
+                        }
+                        trace += sj * (phi[3] * gf * gSSg + phi[2] * (2.0 * BfSSg + gf * trBSS));
+                    }
+                }
+                int64_t row = s * K + col;
+                double lf = 0.0;
+                for (int i = 0; i < n; ++i) lf += grad[i] * f_out[i];
+                h_out[row] = value;
+                lfh_out[row] = lf;
+                dhdt_out[row] = 0.0;
+                for (int l = 0; l < m; ++l) {
+                    double e = 0.0;
+                    for (int i = 0; i < n; ++i) e += grad[i] * g_out[i * m + l];
+                    lgh_out[row * m + l] = e;
+                }
+                memcpy(dhdx_out + row * n, grad, sizeof(double) * n);
+                if (sigma) hess_out[row] = trace;
+            }
+        }
+    }
+    return 0;
+}

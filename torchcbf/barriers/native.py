@@ -1,0 +1,261 @@
+"""Lie terms of quadric barriers on a few CPU states, in one call of a C kernel.
+
+A robot filters ONE state per control tick; there the closed forms of the shapes (a few
+hundred tensor operations for an exponential CBF with its Hessian trace) cost far more than
+the arithmetic. :func:`lie_terms` hands the same formulas to ``_lie_kernel.c``. It takes the
+functions whose :meth:`~torchcbf.barriers.LieFunction.quadric` is known (``Ball``,
+``Ellipse``, ``Scaled`` of them), :class:`~torchcbf.barriers.Transformed` and ``Scaled`` of
+those, exponential CBFs of relative degree two of any of these
+(:class:`~torchcbf.barriers.ExponentialBarrier`, time-invariant) and
+:class:`~torchcbf.barriers.BarrierStack` of them, along the built-in models with closed-form
+drift derivatives (:data:`MODEL_CODES`) with a constant diffusion or none.
+
+It answers ``None`` wherever the torch path must run instead: a function or model outside
+that list, a tensor on another device, a gradient to carry (grad mode on and the state or a
+constant requiring grad), sizes beyond the kernel's, or no kernel built (a missing library,
+or one built from another version of the source, see :func:`torchcbf._native.load_kernel`).
+The torch closed forms (``lie_derivatives(..., method="analytic")``) are the reference: the
+two agree to rounding (tests/barriers/test_native_terms.py).
+"""
+
+from __future__ import annotations
+
+import array
+import ctypes
+import functools
+from collections.abc import Sequence
+from pathlib import Path
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchcbf._native import load_kernel
+from torchcbf.barriers.compose import BarrierStack, Scaled, Transformed
+from torchcbf.barriers.lie import LieFunction, LieTerms, Quadric
+from torchcbf.barriers.rectify import ExponentialBarrier
+from torchcbf.dynamics.base import ControlAffine
+from torchcbf.dynamics.models import AccelUnicycle, DoubleIntegrator, SingleIntegrator, Unicycle
+
+__all__ = ["KERNEL_VERSION", "MODEL_CODES", "TRANSFORM_CODES", "available", "lie_terms"]
+
+#: version of ``_lie_kernel.c`` this module calls (``LIE_KERNEL_VERSION``)
+KERNEL_VERSION = 1
+#: the kernel's code of each model it knows (the exact class: a subclass may change ``f``)
+MODEL_CODES: dict[type, int] = {
+    SingleIntegrator: 0,
+    DoubleIntegrator: 1,
+    Unicycle: 2,
+    AccelUnicycle: 3,
+}
+#: the kernel's code of each transform of :class:`~torchcbf.barriers.Transformed`
+TRANSFORM_CODES: dict[str | None, int] = {None: 0, "radius": 1, "exp": 2}
+#: the kernel's largest state, control, position and noise sizes
+MAX_SIZE = 32
+
+
+@functools.lru_cache(maxsize=1)
+def _library() -> ctypes.CDLL | None:
+    lib = load_kernel(
+        Path(__file__).parent,
+        "_lie_kernel",
+        "torchcbf_lie_version",
+        KERNEL_VERSION,
+        "quadric barriers take their torch closed forms",
+    )
+    if lib is not None:
+        lib.torchcbf_lie_quadrics.argtypes = [ctypes.c_void_p] * 3  # meta, reals, ptrs
+        lib.torchcbf_lie_quadrics.restype = ctypes.c_int
+    return lib
+
+
+def available() -> bool:
+    """Whether the Lie kernel was built and loads."""
+    return _library() is not None
+
+
+class _Block(NamedTuple):
+    """One quadric function ``b``, as ``outer * phi(b)`` with ``phi`` the ``transform`` of
+    :class:`~torchcbf.barriers.Transformed` (``None``: ``phi(b) = b``), rectified along
+    ``inner`` with ``k0`` where ``inner`` is given."""
+
+    quadric: Quadric
+    transform: str | None = None
+    rate: float = 1.0
+    outer: Tensor | None = None
+    inner: ControlAffine | None = None
+    k0: Tensor | None = None
+
+
+def _describes_forward(fn: LieFunction) -> bool:
+    """Whether ``fn``'s :meth:`~torchcbf.barriers.LieFunction.quadric` was written for its
+    ``forward``: the class defining ``quadric`` is the one defining ``forward`` or a subclass
+    of it (a subclass of ``Ellipse`` that changes ``forward`` alone is not a quadric)."""
+    mro = type(fn).__mro__
+    owner = next(c for c in mro if "quadric" in c.__dict__)
+    return issubclass(owner, next(c for c in mro if "forward" in c.__dict__))
+
+
+def _blocks(fn: LieFunction) -> list[_Block] | None:
+    """``fn`` as the kernel's blocks (their outputs concatenated are ``fn``'s), or ``None``."""
+    quadric = fn.quadric() if _describes_forward(fn) else None
+    if quadric is not None:
+        return [_Block(quadric)]
+    cls = type(fn)
+    if cls is BarrierStack:
+        out: list[_Block] = []
+        for child in fn.barriers:
+            part = _blocks(child)
+            if part is None:
+                return None
+            out.extend(part)
+        return out
+    if cls not in (ExponentialBarrier, Transformed, Scaled):
+        return None
+    inner = _blocks(fn.barrier)
+    if inner is None or any(b.inner is not None for b in inner):
+        return None
+    if cls is ExponentialBarrier:
+        model = fn.dynamics
+        if fn.relative_degree != 2 or fn.time_varying or type(model) not in MODEL_CODES:
+            return None
+        k0 = fn.coefficients
+        return [b._replace(inner=model, k0=k0) for b in inner]
+    if cls is Transformed:
+        if any(b.transform is not None or b.outer is not None for b in inner):
+            return None
+        return [b._replace(transform=fn.form, rate=fn.rate) for b in inner]
+    # a scale outside a transform (inside one, the quadric holds it)
+    if len(inner) != 1:
+        return None
+    (block,) = inner
+    outer = fn.scale if block.outer is None else fn.scale * block.outer
+    return [block._replace(outer=outer)]
+
+
+def _encode(
+    block: _Block, meta: list[int], reals: list[float], tensors: list[Tensor | None]
+) -> int | None:
+    """Append ``block``'s integers (as ``_lie_kernel.c`` reads them) to ``meta``, its rate to
+    ``reals`` and its seven tensors to ``tensors``; return its number of outputs, or ``None``
+    where its constants' shapes are not the kernel's (the torch path then answers, or
+    raises)."""
+    quadric, transform, rate, outer, inner, k0 = block
+    index, center, axes, radius, angle, scale, sign = quadric
+    d = len(index)
+    if center.dim() == 2:
+        k = center.shape[0]
+        ok = (k,), (1,), ()
+    elif center.dim() == 1:
+        k = 1
+        ok = ((),)  # a [k] constant on one function: the torch path broadcasts it
+    else:
+        return None
+    if center.shape[-1] != d or (axes is not None and axes.shape != center.shape):
+        return None
+    if angle is not None and d != 2:
+        return None
+    strides = [d if k > 1 else 0] * 2
+    for v in (radius, angle, scale, outer):
+        if v is None:
+            strides.append(0)
+            continue
+        shape = v.shape
+        if shape not in ok:
+            return None
+        strides.append(1 if shape == (k,) and k > 1 else 0)
+    code = -1 if inner is None else MODEL_CODES[type(inner)]
+    meta += (
+        k, d, *strides[:5], int(sign), TRANSFORM_CODES[transform], strides[5], code,
+        _model_dim(inner), *index,
+    )  # fmt: skip
+    reals.append(rate)
+    tensors += (center, axes, radius, angle, scale, outer, k0)
+    return k
+
+
+def lie_terms(
+    fns: Sequence[LieFunction],
+    x: Tensor,
+    dynamics: ControlAffine,
+    *,
+    hessian: bool = True,
+) -> tuple[LieTerms, list[int]] | None:
+    """Lie terms of time-invariant quadric functions ``fns`` at a few states ``x [B, n]``
+    (CPU, float64 or float32), their outputs concatenated: ``h, lfh, dhdt, hess_trace
+    [B, K]``, ``lgh [B, K, m]``, ``dhdx [B, K, n]`` and each function's number of outputs,
+    as :func:`~torchcbf.barriers.lie.stacked_lie_derivatives` returns them (``hess_trace``
+    where ``hessian`` and the model has a diffusion, else ``None``; ``dhdt`` zeros).
+    Computed in float64 and returned in ``x``'s dtype, without a graph.
+
+    Returns ``None`` where the kernel does not apply (see the module); the caller then takes
+    the torch path, which gives the same terms."""
+    lib = _library()
+    outer = MODEL_CODES.get(type(dynamics))
+    if lib is None or outer is None or not fns or x.dim() != 2 or not x.is_cpu:
+        return None
+    dtype = x.dtype
+    if dtype is not torch.float64 and dtype is not torch.float32:
+        return None
+    B, n = x.shape
+    m = dynamics.control_dim
+    if n != dynamics.state_dim or n > MAX_SIZE or m > MAX_SIZE:
+        return None
+    sigma = dynamics.sigma_matrix if hessian else None
+    if hessian and sigma is None and dynamics.has_diffusion:
+        return None  # a callable diffusion
+    q = 0 if sigma is None else sigma.shape[-1]
+    if q > MAX_SIZE:
+        return None
+    meta = [B, n, m, q, outer, _model_dim(dynamics), 0]
+    reals: list[float] = []
+    tensors: list[Tensor | None] = []
+    sizes: list[int] = []
+    for fn in fns:
+        blocks = _blocks(fn)
+        if blocks is None:
+            return None
+        total = 0
+        for block in blocks:
+            k = _encode(block, meta, reals, tensors)
+            if k is None:
+                return None
+            total += k
+        sizes.append(total)
+    meta[6] = len(reals)
+    K = sum(sizes)
+    f64 = torch.float64
+    grads = torch.is_grad_enabled()
+    pointers = []
+    held = []  # float64 copies, kept alive through the call
+    for v in (x, sigma, *tensors):
+        if v is None:
+            pointers.append(0)
+            continue
+        if (grads and v.requires_grad) or not v.is_cpu:
+            return None
+        if v.dtype is not f64 or not v.is_contiguous():
+            v = v.detach().to(f64).contiguous()
+            held.append(v)
+        pointers.append(v.data_ptr())
+    h, lfh, dhdt = (torch.empty(B, K, dtype=f64) for _ in range(3))
+    lgh, dhdx = torch.empty(B, K, m, dtype=f64), torch.empty(B, K, n, dtype=f64)
+    trace = None if sigma is None else torch.empty(B, K, dtype=f64)
+    outputs = (h, lfh, dhdt, lgh, trace, dhdx)
+    pointers[2:2] = [0 if v is None else v.data_ptr() for v in outputs]
+    arrays = array.array("q", meta), array.array("d", reals), array.array("Q", pointers)
+    if lib.torchcbf_lie_quadrics(*(a.buffer_info()[0] for a in arrays)):
+        return None
+    terms = LieTerms(h, lfh, lgh, dhdt, trace, dhdx)
+    if dtype is not f64:
+        terms = LieTerms(*(None if v is None else v.to(dtype) for v in terms))
+    return terms, sizes
+
+
+def _model_dim(model: ControlAffine | None) -> int:
+    """The size parameter of a model's code (``dim`` of the integrators, else 0)."""
+    if isinstance(model, DoubleIntegrator):
+        return model.dim
+    if isinstance(model, SingleIntegrator):
+        return model.state_dim
+    return 0
