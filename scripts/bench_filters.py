@@ -5,8 +5,10 @@ B states outside the obstacles, a nominal control pushing through them.
 
 One state (the real-time path, float64): ``SafetyFilter`` on one state under
 ``torch.no_grad()`` and with grad enabled, the stochastic filter of scenario B (5 rectified
-ellipses, Hessian traces) on one and two states, and cbfpy's jitted filter (JAX, qpax) on
-the same scene; the control agreement with cbfpy is printed too (cbfpy solves to 1e-6).
+ellipses, Hessian traces) on one and two states and with grad enabled, scenario B's
+risk-aware filter (the ellipses in radius form) on one state, and cbfpy's jitted filter
+(JAX, qpax) on the same scene; the control agreement with cbfpy is printed too (cbfpy solves
+to 1e-6).
 
 Batched, reported per state:
 
@@ -129,6 +131,20 @@ def _single_state(calls: int) -> None:
             (
                 "torchcbf stochastic (scenario B), 2 states",
                 _percentiles(lambda: sc.safety_filter(xs, us), calls // 4),
+            )
+        )
+    rows.append(
+        (
+            "torchcbf stochastic (scenario B), grad enabled",
+            _percentiles(lambda: sc.safety_filter(xs[0], us[0]), calls // 4),
+        )
+    )
+    risk = mppi_cbf(method="mppi_rascbf", num_seeds=1, dtype=torch.float64).safety_filter
+    with torch.no_grad():
+        rows.append(
+            (
+                "torchcbf risk-aware (scenario B), 1 state",
+                _percentiles(lambda: risk(xs[0], us[0]), calls // 4),
             )
         )
     peer = _cbfpy_filter(ball.center.numpy(), ball.radius.numpy(), 2.0)

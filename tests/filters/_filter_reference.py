@@ -2,7 +2,9 @@
 
 The scene: a unicycle (x, y, theta; v, omega), two ball obstacles (one batched Ball module
 with k = 2) and one half-space wall, plus a quadratic Lyapunov function of the position.
-Every Lie derivative below is written out by hand in numpy (no autograd).
+A second scene (``rectified_rows``): two rotated, scaled ellipses rectified into exponential
+CBFs on an acceleration-controlled unicycle. Every Lie derivative below is written out by
+hand in numpy (no autograd).
 """
 
 from __future__ import annotations
@@ -128,3 +130,78 @@ def least_violation(x: np.ndarray, mode: str) -> float:
     P.an.value, P.bn.value = a / n[:, None], b / n
     P.lp.solve(solver=cp.CLARABEL)
     return float(P.lp.value)
+
+
+# A second scene: an acceleration-controlled unicycle (x, y, v, theta; a, omega) and two
+# rotated, scaled ellipses rectified into exponential CBFs of relative degree two,
+# h_e = L_f h + K0 h, with h = s ((q / a)^2 summed - 1), q = R(angle)' (p - c).
+ELLIPSE_CENTERS = np.array([[2.0, 1.0], [-0.5, 2.5]])
+ELLIPSE_AXES = np.array([[0.8, 0.4], [0.5, 1.0]])
+ELLIPSE_ANGLES = np.array([0.3, -0.6])
+ELLIPSE_SCALES = np.array([1.5, 0.5])
+K0 = 2.0
+ELLIPSE_GAINS = np.array([1.0, 3.0])
+ACCEL_U_MIN = np.array([-2.0, -1.5])
+ACCEL_U_MAX = np.array([2.0, 1.5])
+ACCEL_SIGMA = 0.25
+ACCEL_W_MAX = np.array([0.05, 0.05, 0.1, 0.1])
+ACCEL_ETA = np.array([0.4, 0.3])
+
+
+def rectified_rows(x: np.ndarray, mode: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(a [2, m], b [2], h_e [2])`` of the rectified-ellipse scene at one state."""
+    p, v, th = x[:2], x[2], x[3]
+    heading = np.array([np.cos(th), np.sin(th)])
+    turn = np.array([-np.sin(th), np.cos(th)])
+    a, b, hs = [], [], []
+    for c, axes, ang, s, gain, eta in zip(
+        ELLIPSE_CENTERS,
+        ELLIPSE_AXES,
+        ELLIPSE_ANGLES,
+        ELLIPSE_SCALES,
+        ELLIPSE_GAINS,
+        ACCEL_ETA,
+        strict=True,
+    ):
+        rot = np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+        D = np.diag(1.0 / axes**2)
+        q = rot.T @ (p - c)
+        h = s * (q @ D @ q - 1.0)
+        grad_p = 2 * s * rot @ D @ q
+        H_p = 2 * s * rot @ D @ rot.T
+        fp = v * heading
+        h_e = grad_p @ fp + K0 * h
+        dhdx = np.concatenate([H_p @ fp + K0 * grad_p, [grad_p @ heading, v * grad_p @ turn]])
+        lfh = dhdx[:2] @ fp
+        lgh = dhdx[2:]  # g = [0; I] on (v, theta)
+        tr = ACCEL_SIGMA**2 * (K0 * np.trace(H_p) - v * grad_p @ heading)
+        if mode == "vanilla":
+            row_b = lfh + gain * h_e
+        elif mode == "robust":
+            row_b = lfh + gain * h_e - np.abs(dhdx) @ ACCEL_W_MAX
+        elif mode == "stochastic":
+            row_b = lfh + 0.5 * tr + gain * h_e - BETA
+        else:
+            delta = np.sqrt(2 * HORIZON) * eta * erfinv(1 - RHO)
+            row_b = lfh + 0.5 * tr + (h_e - delta) / HORIZON
+        a.append(lgh)
+        b.append(row_b)
+        hs.append(h_e)
+    return np.stack(a), np.array(b), np.array(hs)
+
+
+def solve_rectified_reference(x: np.ndarray, u_nom: np.ndarray, mode: str) -> np.ndarray | None:
+    """The hard-constrained CBF QP of the rectified-ellipse scene in cvxpy (Clarabel, weight
+    ``R``, box ``ACCEL_U_MIN..ACCEL_U_MAX``); ``None`` if infeasible."""
+    a, b, _ = rectified_rows(x, mode)
+    u = cp.Variable(2)
+    r_half = np.linalg.cholesky(R).T
+    problem = cp.Problem(
+        cp.Minimize(0.5 * cp.sum_squares(r_half @ (u - u_nom))),
+        [a @ u + b >= 0, u >= ACCEL_U_MIN, u <= ACCEL_U_MAX],
+    )
+    problem.solve(solver=cp.CLARABEL, tol_gap_abs=1e-11, tol_gap_rel=1e-11, tol_feas=1e-11)
+    if problem.status == cp.INFEASIBLE:
+        return None
+    assert problem.status == cp.OPTIMAL, problem.status
+    return u.value

@@ -1,15 +1,30 @@
 """The real-time path of SafetyFilter (a few states, no gradient to carry, one call of the
-filter kernel): the same outputs as the general path, and cvxpy's control."""
+filter kernel): the same outputs as the general path, and cvxpy's control; with quadric
+barriers, the native Lie terms give the torch closed forms' answers."""
 
 from __future__ import annotations
 
+import functools
+
+import _filter_reference as ref
 import numpy as np
 import pytest
 import torch
 from _filter_reference import solve_reference
 from test_safety_filter import MODES, random_states, scene
 
-from torchcbf.filters import FilterStatus, LinearClassK, SafetyFilter, realtime
+from torchcbf.barriers import Ball, Ellipse, ExponentialBarrier, Scaled, Transformed, native
+from torchcbf.dynamics import AccelUnicycle, SingleIntegrator
+from torchcbf.filters import (
+    FilterStatus,
+    LinearClassK,
+    RiskAware,
+    Robust,
+    SafetyFilter,
+    Stochastic,
+    Vanilla,
+    realtime,
+)
 
 pytestmark = pytest.mark.skipif(not realtime.available(), reason="C kernel not built")
 
@@ -188,3 +203,177 @@ def test_ill_conditioned_weight_agrees_with_general_path(
         out = filt(x, u)
     assert answered == [spread < 1e4]
     _same(out, _general(filt, x, u), 1e-7)
+
+
+def rectified_scene(
+    mode: str, dtype: torch.dtype = torch.float64, *, radius: bool = False, **overrides
+) -> SafetyFilter:
+    """The rectified-ellipse scene of _filter_reference: two rotated, scaled ellipses as
+    exponential CBFs (closed forms, native Lie terms) on an accelerating unicycle; with
+    ``radius``, the ellipses in their radius form instead of scaled (no reference rows)."""
+    kw: dict = {}
+    if mode == "robust":
+        kw["disturbance_bound"] = ref.ACCEL_W_MAX
+    if mode in ("stochastic", "risk_aware"):
+        kw["sigma"] = ref.ACCEL_SIGMA
+    limits = {"u_min": torch.tensor(ref.ACCEL_U_MIN), "u_max": torch.tensor(ref.ACCEL_U_MAX)}
+    plant = AccelUnicycle(**limits, **kw)
+    ellipses = Ellipse(
+        torch.tensor(ref.ELLIPSE_CENTERS),
+        torch.tensor(ref.ELLIPSE_AXES),
+        angle=torch.tensor(ref.ELLIPSE_ANGLES),
+    )
+    # rectified along the noiseless model, filtered along the plant (as scenario B does)
+    shape = (
+        Transformed(ellipses, "radius") if radius else Scaled(ellipses, ref.ELLIPSE_SCALES.tolist())
+    )
+    barrier = ExponentialBarrier(shape, AccelUnicycle(), 2, [ref.K0])
+    modes = {
+        "vanilla": Vanilla(),
+        "robust": Robust(),
+        "stochastic": Stochastic(beta=ref.BETA),
+        "risk_aware": RiskAware(ref.RHO, ref.HORIZON, torch.tensor(ref.ACCEL_ETA)),
+    }
+    options = dict(mode=modes[mode], alpha=torch.tensor(ref.ELLIPSE_GAINS), R=torch.tensor(ref.R))
+    options.update(overrides)
+    return SafetyFilter(plant, barrier, **options).to(dtype)
+
+
+def rectified_states(count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """States of the rectified scene where both exponential CBFs are positive."""
+    rng = np.random.default_rng(seed)
+    out = []
+    while len(out) < count:
+        x = np.array([rng.uniform(-2.0, 4.0), rng.uniform(-1.0, 4.0), rng.uniform(-0.5, 2.0),
+                      rng.uniform(-np.pi, np.pi)])  # fmt: skip
+        if ref.rectified_rows(x, "vanilla")[2].min() > 0.05:
+            out.append(x)
+    return np.stack(out), 2.0 * rng.standard_normal((count, 2))
+
+
+def balls_scene(mode: str, dtype: torch.dtype = torch.float64, **overrides) -> SafetyFilter:
+    """Eight balls on a single integrator with box limits (the benchmark's scene)."""
+    kw = {"sigma": 0.2} if mode == "stochastic" else {}
+    gen = torch.Generator().manual_seed(0)
+    ball = Ball(8 * torch.rand(8, 2, generator=gen) - 4, 0.3 + 0.4 * torch.rand(8, generator=gen))
+    dyn = SingleIntegrator(2, u_min=-2.0, u_max=2.0, **kw)
+    mode_object = Stochastic(beta=0.1) if mode == "stochastic" else Vanilla()
+    return SafetyFilter(dyn, ball, mode=mode_object, **overrides).to(dtype)
+
+
+def balls_states(count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    filt = balls_scene("vanilla")
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-5.0, 5.0, (8 * count, 2))
+    with torch.no_grad():
+        keep = (filt.barriers[0](torch.tensor(x)) > 0.05).all(-1).numpy()
+    x = x[keep][:count]
+    return x, np.clip(-2.0 * x, -2.0, 2.0)
+
+
+def _native_spy(monkeypatch: pytest.MonkeyPatch) -> list[bool]:
+    """Whether each call of native.lie_terms answered (True) or left it to torch (False)."""
+    answered: list[bool] = []
+    real = native.lie_terms
+
+    def spied(*args, **kwargs):
+        out = real(*args, **kwargs)
+        answered.append(out is not None)
+        return out
+
+    monkeypatch.setattr(native, "lie_terms", spied)
+    return answered
+
+
+SCENES = {
+    "balls": (balls_scene, balls_states, ["vanilla", "stochastic"]),
+    "rectified_ellipses": (rectified_scene, rectified_states, MODES),
+    "rectified_radius": (
+        functools.partial(rectified_scene, radius=True),
+        rectified_states,
+        ["stochastic", "risk_aware"],
+    ),
+}
+SCENE_MODES = [(s, m) for s, (_, _, modes) in SCENES.items() for m in modes]
+
+
+@pytest.mark.skipif(not native.available(), reason="Lie kernel not built")
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
+@pytest.mark.parametrize(("scene_name", "mode"), SCENE_MODES)
+def test_native_lie_terms_give_the_torch_closed_forms_answers(
+    scene_name: str, mode: str, dtype: torch.dtype, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    build, states, _ = SCENES[scene_name]
+    filt, closed = build(mode, dtype), build(mode, dtype, lie_method="analytic")
+    xs, us = states(realtime.MAX_BATCH, seed=60 + MODES.index(mode))
+    x, u = torch.tensor(xs, dtype=dtype), torch.tensor(us, dtype=dtype)
+    answered = _native_spy(monkeypatch)
+    tol = 1e-10 if dtype == torch.float64 else 1e-4
+    with torch.no_grad():
+        for xb, ub in ((x[0], u[0]), (x, u)):
+            out = filt(xb, ub)
+            assert answered.pop() and not answered  # the native terms were used
+            _same(out, closed(xb, ub), tol)
+            assert not answered  # lie_method="analytic": the torch closed forms
+
+
+@pytest.mark.skipif(not native.available(), reason="Lie kernel not built")
+@pytest.mark.parametrize("mode", MODES)
+def test_rectified_scene_matches_cvxpy(mode: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    answered = _native_spy(monkeypatch)
+    filt = rectified_scene(mode)
+    xs, us = rectified_states(12, seed=80 + MODES.index(mode))
+    solved = 0
+    for i in range(len(xs)):
+        with torch.no_grad():
+            out = filt(torch.tensor(xs[i]), torch.tensor(us[i]))
+        assert answered == [True]
+        answered.clear()
+        np.testing.assert_allclose(out.h.numpy(), ref.rectified_rows(xs[i], mode)[2], atol=1e-12)
+        expected = ref.solve_rectified_reference(xs[i], us[i], mode)
+        if expected is None:
+            assert int(out.status) == FilterStatus.RELAXED
+            continue
+        solved += 1
+        assert int(out.status) == FilterStatus.SOLVED
+        assert np.abs(out.u.numpy() - expected).max() <= 1e-6
+    assert solved >= 6
+
+
+@pytest.mark.skipif(not native.available(), reason="Lie kernel not built")
+def test_a_state_that_requires_grad_takes_the_torch_path_with_its_gradients(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    filt = rectified_scene("stochastic")
+    xs, us = rectified_states(16, seed=7)
+    x, u = torch.tensor(xs), torch.tensor(us)
+    with torch.no_grad():
+        out = filt(x, u)
+    # rows the filter changed, solved: their active set is stable under small perturbations
+    rows = ((out.u - u).abs().amax(-1) > 0.05) & (out.status == FilterStatus.SOLVED)
+    assert int(rows.sum()) >= 2
+    x, u = x[rows][:2].clone().requires_grad_(), u[rows][:2]
+    answered = _native_spy(monkeypatch)
+    graph = filt(x, u)
+    assert answered == [False] and graph.u.requires_grad
+    torch.testing.assert_close(graph.u.detach(), out.u[rows][:2], atol=1e-10, rtol=0)
+    assert torch.autograd.gradcheck(lambda xx: filt(xx, u).u, (x,), eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+@pytest.mark.skipif(not native.available(), reason="Lie kernel not built")
+def test_a_large_batch_or_a_missing_kernel_takes_the_torch_path(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    filt, closed = (
+        rectified_scene("stochastic"),
+        rectified_scene("stochastic", lie_method="analytic"),
+    )
+    xs, us = rectified_states(realtime.MAX_BATCH + 1, seed=9)
+    x, u = torch.tensor(xs), torch.tensor(us)
+    answered = _native_spy(monkeypatch)
+    with torch.no_grad():
+        _same(filt(x, u), closed(x, u), 1e-12)
+        assert not answered  # beyond MAX_BATCH the kernel is not asked
+        monkeypatch.setattr(native, "_library", lambda: None)
+        _same(filt(x[:2], u[:2]), closed(x[:2], u[:2]), 1e-12)
+    assert answered == [False]

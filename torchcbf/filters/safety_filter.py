@@ -29,7 +29,10 @@ Real-time path: a few finite states on the CPU (at most
 no gradient (grad mode off, or nothing they depend on requires grad): one call of a C kernel
 assembles the QP, solves it by the dual active-set method and computes the outputs
 (:mod:`torchcbf.filters.realtime`). A batch the kernel does not certify completely (or with
-non-finite conditions) takes the general path, so both return the same answers.
+non-finite conditions) takes the general path, so both return the same answers. On at most
+``MAX_BATCH`` states with ``lie_method="auto"``, the Lie terms of quadric barriers (and of
+their exponential CBFs) come from one C call too (:func:`torchcbf.barriers.native.lie_terms`,
+which leaves every other case to the torch closed forms and autograd).
 """
 
 from __future__ import annotations
@@ -52,6 +55,7 @@ from torchcbf._checks import (
     check_bounds,
     check_last_dim,
 )
+from torchcbf.barriers import native
 from torchcbf.barriers.lie import LieFunction, LieTerms, stacked_lie_derivatives
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.filters import realtime
@@ -402,13 +406,15 @@ class SafetyFilter(nn.Module):
         n, m = dyn.state_dim, dyn.control_dim
         check_last_dim("x", x, n)
         check_last_dim("u_nom", u_nom, m)
-        try:
-            batch = broadcast_shapes(x.shape[:-1], u_nom.shape[:-1])
-        except RuntimeError:
-            raise ValueError(
-                f"batch dimensions of x {tuple(x.shape)} and u_nom {tuple(u_nom.shape)} "
-                "do not broadcast"
-            ) from None
+        batch = x.shape[:-1]
+        if u_nom.shape[:-1] != batch:
+            try:
+                batch = broadcast_shapes(batch, u_nom.shape[:-1])
+            except RuntimeError:
+                raise ValueError(
+                    f"batch dimensions of x {tuple(x.shape)} and u_nom {tuple(u_nom.shape)} "
+                    "do not broadcast"
+                ) from None
         if not x.is_floating_point() or u_nom.dtype != x.dtype:
             raise TypeError(
                 f"x and u_nom must share a floating dtype, got {x.dtype} and {u_nom.dtype}"
@@ -440,10 +446,15 @@ class SafetyFilter(nn.Module):
 
     def _lie(self, fns: nn.ModuleList, x: Tensor, t: Tensor) -> tuple[LieTerms | None, list[int]]:
         """k-output Lie terms of all ``fns`` concatenated, and each one's number of outputs.
-        Functions without closed forms share one stacked autograd call."""
+        A few states of quadric functions: one native call; functions without closed forms
+        share one stacked autograd call."""
         if not fns:
             return None, []
         hessian = self.condition.needs_hessian
+        if self.lie_method == "auto" and x.shape[0] <= realtime.MAX_BATCH:
+            found = native.lie_terms(fns, x, self.dynamics, hessian=hessian)
+            if found is not None:
+                return found
         methods = [self._lie_method(fn) for fn in fns]
         if len(fns) > 1 and all(m == "autograd" for m in methods):
             return stacked_lie_derivatives(list(fns), x, self.dynamics, t, hessian=hessian)
@@ -461,7 +472,8 @@ class SafetyFilter(nn.Module):
     @staticmethod
     def _class_k(fns: nn.ModuleList, values: Tensor, sizes: list[int]) -> Tensor:
         if len(fns) == 1:
-            return fns[0](values)
+            (fn,) = fns  # iterating a ModuleList is cheaper than indexing it
+            return fn(values)
         return torch.cat([fn(v) for fn, v in zip(fns, values.split(sizes, -1), strict=True)], -1)
 
     def _conditions(
@@ -540,7 +552,7 @@ class SafetyFilter(nn.Module):
         opts = self.qp_options
         if (
             not 1 <= xb.shape[0] <= realtime.MAX_BATCH
-            or xb.device.type != "cpu"
+            or not xb.is_cpu
             or (opts and not (opts.keys() <= _REALTIME_QP_OPTIONS))
             or opts.get("backend", "torch") != "torch"
             or opts.get("method", "auto") not in ("auto", "active_set")
@@ -578,15 +590,18 @@ class SafetyFilter(nn.Module):
         if res is None:
             return None
         dt = xb.dtype
+        u, slack, value = res.u, res.slack, res.value
+        if dt is not torch.float64:
+            u, slack, value = u.to(dt), slack.to(dt), value.to(dt)
         flat = len(batch) == 1
         return FilterOutput(
-            u=res.u.to(dt),
+            u=u,
             status=res.status,
             h=h if flat else h.reshape(*batch, h.shape[-1]),
-            slack=res.slack.to(dt),
+            slack=slack,
             clf_value=V if flat else V.reshape(*batch, V.shape[-1]),
             qp_status=torch.zeros_like(res.status),
-            constraint_value=res.value.to(dt),
+            constraint_value=value,
         )
 
 
