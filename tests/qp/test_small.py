@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from _problems import make_batch
 
-from tests.qp._problems import make_batch
 from torchcbf.qp import Status, _dual_native, realtime, solve_qp
 
 pytestmark = pytest.mark.skipif(not _dual_native.available(), reason="C kernel not built")
