@@ -19,6 +19,7 @@ from torchcbf.qp._dual import DualFactor, NativeFactor, dual_adjoints, solve_dua
 from torchcbf.qp._enum import (
     MAX_CANDIDATES_SMALL_BATCH,
     SMALL_BATCH,
+    EnumResult,
     num_candidates,
     solve_enum,
 )
@@ -291,12 +292,43 @@ def _exact_resolve(
     return x, z, y, active, ok
 
 
+def _certified_enum(
+    P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig
+) -> EnumResult:
+    """Enumeration's answer, kept (``ok``) only where it is a KKT point to rounding, directly
+    or once polished on its active set (an ill-conditioned ``P`` leaves the direct solve a
+    little off): enumeration judges its choice to ``eps``, which a nearly dependent active
+    set can pass with ``x`` far off."""
+    en = solve_enum(P, q, G, h, A, b, eps=cfg.eps, pairs=cfg.pairs)
+    exact = en.ok & _kkt.kkt_point(P, q, G, h, A, b, en.x, en.z, en.y)
+    redo = en.ok & ~exact
+    if not bool(redo.any()):
+        return en._replace(ok=exact)
+    idx = redo.nonzero().squeeze(-1)
+    sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b, en.x, en.z, en.y)]
+    slack = (sub[3] - torch.einsum("bmn,bn->bm", sub[2], sub[6])).clamp_min(0.0)
+    solved = torch.full_like(idx, int(Status.SOLVED))
+    xe, ze, ye, _, fac_e, _, polished = _kkt.polish(*sub[:6], sub[6], slack, *sub[7:], solved,
+                                                    eps=cfg.eps)  # fmt: skip
+    keep = polished.unsqueeze(-1)
+    return en._replace(
+        x=en.x.index_copy(0, idx, torch.where(keep, xe, sub[6])),
+        z=en.z.index_copy(0, idx, torch.where(keep, ze, sub[7])),
+        y=en.y.index_copy(0, idx, torch.where(keep, ye, sub[8])),
+        active=en.active.index_copy(
+            0, idx, torch.where(keep, fac_e.active, en.active.index_select(0, idx))
+        ),
+        ok=exact.index_copy(0, idx, polished),
+    )
+
+
 def _forward_enum(
     P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, _kkt.KKTFactor | None]:
     """Active-set enumeration for every row; the rows it cannot certify (infeasible, ``P``
-    not positive definite, too ill-conditioned) go to the interior point method."""
-    en = solve_enum(P, q, G, h, A, b, eps=cfg.eps, pairs=cfg.pairs)
+    not positive definite, too ill-conditioned, or no KKT point to rounding after the
+    polish, :func:`_certified_enum`) go to the interior point method."""
+    en = _certified_enum(P, q, G, h, A, b, cfg)
     iters = torch.zeros(q.shape[0], dtype=torch.int64, device=q.device)
     x, z, y, status, iters, active, _ = _ipm_fallback(
         P, q, G, h, A, b, cfg, x0, en.x, en.z, en.y, en.active, en.ok, iters
@@ -407,15 +439,7 @@ def _ipm_fallback(
         # a few rows the exact method could not certify (degenerate vertices, ties):
         # enumeration's fixed cost is far below the interior point method's iterations
         sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
-        en = solve_enum(*sub, eps=cfg.eps, pairs=cfg.pairs)
-        # kept only where the polish finds a KKT point to rounding on the same active set
-        # (nearly dependent rows can pass enumeration's eps checks with x far off)
-        slack = (sub[3] - torch.einsum("bmn,bn->bm", sub[2], en.x)).clamp_min(0.0)
-        solved = torch.where(en.ok, int(Status.SOLVED), int(Status.MAX_ITER))
-        xe, ze, ye, _, fac_e, _, exact = _kkt.polish(
-            *sub, en.x, slack, en.z, en.y, solved, eps=cfg.eps
-        )
-        en = en._replace(x=xe, z=ze, y=ye, active=fac_e.active, ok=en.ok & exact)
+        en = _certified_enum(*sub, cfg)
         if bool(en.ok.any()):
             keep = en.ok.unsqueeze(-1)
             x = x.index_copy(0, idx, torch.where(keep, en.x, x.index_select(0, idx)))
