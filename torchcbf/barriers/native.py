@@ -87,18 +87,20 @@ class _Block(NamedTuple):
     k0: Tensor | None = None
 
 
-def _describes_forward(fn: LieFunction) -> bool:
-    """Whether ``fn``'s :meth:`~torchcbf.barriers.LieFunction.quadric` was written for its
-    ``forward``: the class defining ``quadric`` is the one defining ``forward`` or a subclass
-    of it (a subclass of ``Ellipse`` that changes ``forward`` alone is not a quadric)."""
-    mro = type(fn).__mro__
+@functools.lru_cache(maxsize=256)
+def _describes_forward(cls: type) -> bool:
+    """Whether the :meth:`~torchcbf.barriers.LieFunction.quadric` of class ``cls`` was
+    written for its ``forward``: the class defining ``quadric`` is the one defining
+    ``forward`` or a subclass of it (a subclass of ``Ellipse`` that changes ``forward`` alone
+    is not a quadric)."""
+    mro = cls.__mro__
     owner = next(c for c in mro if "quadric" in c.__dict__)
     return issubclass(owner, next(c for c in mro if "forward" in c.__dict__))
 
 
 def _blocks(fn: LieFunction) -> list[_Block] | None:
     """``fn`` as the kernel's blocks (their outputs concatenated are ``fn``'s), or ``None``."""
-    quadric = fn.quadric() if _describes_forward(fn) else None
+    quadric = fn.quadric() if _describes_forward(type(fn)) else None
     if quadric is not None:
         return [_Block(quadric)]
     cls = type(fn)
