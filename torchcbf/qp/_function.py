@@ -305,16 +305,16 @@ def _certified_enum(
     if not bool(redo.any()):
         return en._replace(ok=exact)
     idx = redo.nonzero().squeeze(-1)
-    sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b, en.x, en.z, en.y)]
-    slack = (sub[3] - torch.einsum("bmn,bn->bm", sub[2], sub[6])).clamp_min(0.0)
+    data = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
+    x, z, y = (t.index_select(0, idx) for t in (en.x, en.z, en.y))
+    slack = (data[3] - torch.einsum("bmn,bn->bm", data[2], x)).clamp_min(0.0)
     solved = torch.full_like(idx, int(Status.SOLVED))
-    xe, ze, ye, _, fac_e, _, polished = _kkt.polish(*sub[:6], sub[6], slack, *sub[7:], solved,
-                                                    eps=cfg.eps)  # fmt: skip
+    xe, ze, ye, _, fac_e, _, polished = _kkt.polish(*data, x, slack, z, y, solved, eps=cfg.eps)
     keep = polished.unsqueeze(-1)
     return en._replace(
-        x=en.x.index_copy(0, idx, torch.where(keep, xe, sub[6])),
-        z=en.z.index_copy(0, idx, torch.where(keep, ze, sub[7])),
-        y=en.y.index_copy(0, idx, torch.where(keep, ye, sub[8])),
+        x=en.x.index_copy(0, idx, torch.where(keep, xe, x)),
+        z=en.z.index_copy(0, idx, torch.where(keep, ze, z)),
+        y=en.y.index_copy(0, idx, torch.where(keep, ye, y)),
         active=en.active.index_copy(
             0, idx, torch.where(keep, fac_e.active, en.active.index_select(0, idx))
         ),
