@@ -15,8 +15,12 @@ import importlib.machinery
 import logging
 import os
 import platform
+from collections.abc import Iterable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+
+import torch
+from torch import Tensor
 
 logger = logging.getLogger("torchcbf")
 
@@ -45,6 +49,20 @@ def load_kernel(directory: Path, stem: str, version_symbol: str, version: int, f
             return None
         return lib
     return None
+
+
+def float64_pointers(tensors: Iterable[Tensor | None]) -> tuple[list[int | None], list[Tensor]]:
+    """The data pointers of ``tensors`` as contiguous float64 CPU memory for a kernel
+    (``None`` stays ``None``), and the copies made for it: keep them alive through the call."""
+    f64 = torch.float64
+    pointers: list[int | None] = []
+    held = []
+    for v in tensors:
+        if v is not None and (v.dtype is not f64 or not v.is_contiguous()):
+            v = v.detach().to(f64).contiguous()
+            held.append(v)
+        pointers.append(None if v is None else v.data_ptr())
+    return pointers, held
 
 
 def thread_pool(threads: int, name: str) -> ThreadPoolExecutor:

@@ -16,6 +16,7 @@ from test_safety_filter import MODES, random_states, scene
 from torchcbf.barriers import Ball, Ellipse, ExponentialBarrier, Scaled, Transformed, native
 from torchcbf.dynamics import AccelUnicycle, SingleIntegrator
 from torchcbf.filters import (
+    CubicClassK,
     FilterStatus,
     LinearClassK,
     RiskAware,
@@ -272,16 +273,20 @@ def balls_states(count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _native_spy(monkeypatch: pytest.MonkeyPatch) -> list[bool]:
-    """Whether each call of native.lie_terms answered (True) or left it to torch (False)."""
+    """Whether each call of the native Lie terms (terms, conditions or a prepared call)
+    answered (True) or left it to torch (False)."""
     answered: list[bool] = []
-    real = native.lie_terms
 
-    def spied(*args, **kwargs):
-        out = real(*args, **kwargs)
-        answered.append(out is not None)
-        return out
+    def spy(real):
+        def spied(*args, **kwargs):
+            out = real(*args, **kwargs)
+            answered.append(out is not None)
+            return out
 
-    monkeypatch.setattr(native, "lie_terms", spied)
+        return spied
+
+    for name in ("lie_terms", "cbf_conditions", "condition_call"):
+        monkeypatch.setattr(native, name, spy(getattr(native, name)))
     return answered
 
 
@@ -355,7 +360,7 @@ def test_a_state_that_requires_grad_takes_the_torch_path_with_its_gradients(
     x, u = x[rows][:2].clone().requires_grad_(), u[rows][:2]
     answered = _native_spy(monkeypatch)
     graph = filt(x, u)
-    assert answered == [False] and graph.u.requires_grad
+    assert answered and not any(answered) and graph.u.requires_grad
     torch.testing.assert_close(graph.u.detach(), out.u[rows][:2], atol=1e-10, rtol=0)
     assert torch.autograd.gradcheck(lambda xx: filt(xx, u).u, (x,), eps=1e-6, atol=1e-6, rtol=1e-4)
 
@@ -376,4 +381,83 @@ def test_a_large_batch_or_a_missing_kernel_takes_the_torch_path(
         assert not answered  # beyond MAX_BATCH the kernel is not asked
         monkeypatch.setattr(native, "_library", lambda: None)
         _same(filt(x[:2], u[:2]), closed(x[:2], u[:2]), 1e-12)
-    assert answered == [False]
+    assert answered and not any(answered)
+
+
+@pytest.mark.skipif(not native.available(), reason="Lie kernel not built")
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
+@pytest.mark.parametrize(("scene_name", "mode"), [*SCENE_MODES, ("rectified_ellipses", "beta_k")])
+def test_affine_conditions_equal_the_modes_torch_conditions(
+    scene_name: str, mode: str, dtype: torch.dtype
+) -> None:
+    build, states, _ = SCENES[scene_name]
+    filt = build("stochastic" if mode == "beta_k" else mode, dtype)
+    if mode == "beta_k":  # one margin per barrier output
+        filt.condition = Stochastic(beta=[0.05, 0.2])
+    xs, _ = states(5, seed=90)
+    x = torch.tensor(xs, dtype=dtype)
+    (alpha,) = filt.alpha
+    affine = filt.condition.affine_cbf(alpha)
+    if mode == "robust":
+        assert affine is None  # the disturbance term is not affine in the kernel's terms
+        return
+    hessian = filt.condition.needs_hessian
+    with torch.no_grad():
+        found = native.cbf_conditions(filt.barriers, x, filt.dynamics, affine, hessian=hessian)
+        call = native.condition_call(filt.barriers, x, filt.dynamics, affine, hessian=hessian)
+        (barrier,) = filt.barriers
+        terms = barrier.lie(x, filt.dynamics, torch.zeros(5, dtype=dtype), method="analytic",
+                            hessian=hessian)  # fmt: skip
+        a, b = filt.condition.cbf(terms, alpha, filt.dynamics, x)
+    assert found is not None and call is not None
+    h, a_native, b_native, sizes = found
+    assert sizes == call.sizes == [terms.h.shape[-1]] and call.h.shape == h.shape
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    for got, want in ((h, terms.h), (a_native, a), (b_native, b)):
+        assert got.dtype == dtype and got.shape == want.shape
+        torch.testing.assert_close(got, want, atol=tol * (1 + float(want.abs().max())), rtol=tol)
+
+
+@pytest.mark.skipif(not native.available(), reason="Lie kernel not built")
+@pytest.mark.parametrize(
+    "alpha", ["per_barrier", "cubic", "wrong_size"], ids=lambda v: v.replace("_", "-")
+)
+def test_class_k_functions_the_kernel_cannot_take_use_the_torch_condition(
+    alpha: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    gen = torch.Generator().manual_seed(3)
+    balls = [Ball(4 * torch.rand(3, 2, generator=gen) - 2, 0.3) for _ in range(2)]
+    dyn = SingleIntegrator(2, u_min=-2.0, u_max=2.0)
+    spec = {
+        "per_barrier": [LinearClassK(1.0), LinearClassK(3.0)],
+        "cubic": CubicClassK(2.0),
+        "wrong_size": [1.0, 2.0],
+    }[alpha]
+    filt = SafetyFilter(dyn, balls, alpha=spec).double()
+    closed = SafetyFilter(dyn, balls, alpha=spec, lie_method="analytic").double()
+    x, u = torch.tensor([[2.5, 2.5]], dtype=torch.float64), torch.tensor([[-2.0, -2.0]])
+    answered = _native_spy(monkeypatch)
+    with torch.no_grad():
+        if alpha == "wrong_size":
+            with pytest.raises(ValueError, match="alpha has 2 gains for 6 outputs"):
+                filt(x, u.double())
+            return
+        out = filt(x, u.double())
+    assert answered == [True]  # the native Lie terms, the mode's torch condition
+    _same(out, closed(x, u.double()), 1e-12)
+
+
+@pytest.mark.skipif(not native.available(), reason="Lie kernel not built")
+def test_a_declined_fused_call_gives_the_general_paths_answer(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    filt = rectified_scene("stochastic")
+    closed = rectified_scene("stochastic", lie_method="analytic")
+    xs, us = rectified_states(3, seed=11)
+    x, u = torch.tensor(xs), torch.tensor(us)
+    # the filter's kernel refuses a Lie kernel of another version and answers 1
+    monkeypatch.setattr(native, "KERNEL_VERSION", native.KERNEL_VERSION + 1)
+    answered = _native_spy(monkeypatch)
+    with torch.no_grad():
+        _same(filt(x, u), closed(x, u), 1e-10)
+    assert answered == [True, True]  # the prepared call, then the general path's conditions

@@ -28,7 +28,7 @@
 #include <string.h>
 
 /* Bumped whenever an exported signature or its meaning changes (see _native.py). */
-#define LIE_KERNEL_VERSION 1
+#define LIE_KERNEL_VERSION 2
 
 /* largest state, control, position and noise sizes (larger problems: torch) */
 #define LIE_NMAX 32
@@ -174,29 +174,37 @@ static double quadric(int d, const double *p, const double *c, const double *a, 
 
 /*
  * Lie terms of the blocks at B states, the outputs of all blocks concatenated (K in all).
- * `meta` holds B, n, m, q, the outer model's code and size, the number of blocks, then per
- * block M_FIXED integers and its d indices; `reals` one number per block (the rate of the
- * "exp" transform). `ptrs` holds x [B, n] (float64, C-contiguous), sigma [n, q] (NULL: no
- * Hessian trace), the outputs h, lfh, dhdt (zeros: the blocks are time-invariant) [B, K],
- * lgh [B, K, m], hess [B, K] (written where sigma is given), dhdx [B, K, n], then per block
- * P_FIXED pointers: center [k or 1, d], axes (NULL: unit), radius (NULL: 1), angle (NULL:
- * none), scale w and outer scale s (NULL: 1), and k0 (rectified blocks). The outer model
- * (code, size) is the one of the Lie terms; a rectified block (inner code >= 0) takes the
- * drift of its inner model.
+ * `meta` holds B, n, m, q, the outer model's code and size, the number of blocks, the strides
+ * per output of the condition's gain and offset (below), then per block M_FIXED integers and
+ * its d indices; `reals` holds the condition's trace weight, gain scale and offset scale, then
+ * one number per block (the rate of the "exp" transform). `ptrs` holds x [B, n] (float64,
+ * C-contiguous), sigma [n, q] (NULL: no Hessian trace), the outputs h, lfh, dhdt (zeros: the
+ * blocks are time-invariant) [B, K], lgh [B, K, m], hess [B, K] (written where sigma is given),
+ * dhdx [B, K, n] and the condition b [B, K], then the condition's gain and offset, then per
+ * block P_FIXED pointers: center [k or 1, d], axes (NULL: unit), radius (NULL: 1), angle
+ * (NULL: none), scale w and outer scale s (NULL: 1), and k0 (rectified blocks). Every output
+ * but h and lgh may be NULL (not written). The affine CBF condition, where b is given, is
+ *     b = lfh + dhdt + trace_weight tr + gain_scale gain h + offset_scale offset
+ * (gain, offset: NULL for 1 and 0). The outer model (code, size) is the one of the Lie terms;
+ * a rectified block (inner code >= 0) takes the drift of its inner model.
  * Returns 0, or 1 when the sizes are out of range (the caller takes its torch path).
  */
 int torchcbf_lie_quadrics(const int64_t *meta, const double *reals, void *const *ptrs) {
     int64_t B = meta[0];
     int n = (int)meta[1], m = (int)meta[2], q = (int)meta[3];
     int outer = (int)meta[4], outer_dim = (int)meta[5], blocks = (int)meta[6];
+    int64_t gain_stride = meta[7], offset_stride = meta[8];
+    double trace_weight = reals[0], gain_scale = reals[1], offset_scale = reals[2];
     const double *x = ptrs[0], *sigma = ptrs[1];
     double *h_out = ptrs[2], *lfh_out = ptrs[3], *dhdt_out = ptrs[4], *lgh_out = ptrs[5];
-    double *hess_out = ptrs[6], *dhdx_out = ptrs[7];
-    void *const *params = ptrs + 8;
-    meta += 7;
+    double *hess_out = ptrs[6], *dhdx_out = ptrs[7], *b_out = ptrs[8];
+    const double *gain = ptrs[9], *offset = ptrs[10];
+    void *const *params = ptrs + 11;
+    meta += 9;
+    reals += 3;
     if (B < 0 || n < 1 || n > LIE_NMAX || m < 1 || m > LIE_NMAX || q < 0 || q > LIE_NMAX ||
-        (sigma && (q < 1 || !hess_out)) || model_size(outer, outer_dim) != n ||
-        model_controls(outer, outer_dim) != m)
+        !h_out || !lgh_out || (sigma && q < 1) || gain_stride < 0 || offset_stride < 0 ||
+        model_size(outer, outer_dim) != n || model_controls(outer, outer_dim) != m)
         return 1;
     int64_t K = 0;
     for (int b = 0, at = 0; b < blocks; ++b) {
@@ -311,15 +319,21 @@ int torchcbf_lie_quadrics(const int64_t *meta, const double *reals, void *const 
                 double lf = 0.0;
                 for (int i = 0; i < n; ++i) lf += grad[i] * f_out[i];
                 h_out[row] = value;
-                lfh_out[row] = lf;
-                dhdt_out[row] = 0.0;
+                if (lfh_out) lfh_out[row] = lf;
+                if (dhdt_out) dhdt_out[row] = 0.0;
                 for (int l = 0; l < m; ++l) {
                     double e = 0.0;
                     for (int i = 0; i < n; ++i) e += grad[i] * g_out[i * m + l];
                     lgh_out[row * m + l] = e;
                 }
-                memcpy(dhdx_out + row * n, grad, sizeof(double) * n);
-                if (sigma) hess_out[row] = trace;
+                if (dhdx_out) memcpy(dhdx_out + row * n, grad, sizeof(double) * n);
+                if (sigma && hess_out) hess_out[row] = trace;
+                if (b_out) {
+                    double gj = gain ? gain[col * gain_stride] : 1.0;
+                    double oj = offset ? offset[col * offset_stride] : 0.0;
+                    b_out[row] = lf + trace_weight * trace + gain_scale * gj * value +
+                                 offset_scale * oj;
+                }
             }
         }
     }

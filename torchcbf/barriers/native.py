@@ -37,10 +37,18 @@ from torchcbf.barriers.rectify import ExponentialBarrier
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.dynamics.models import AccelUnicycle, DoubleIntegrator, SingleIntegrator, Unicycle
 
-__all__ = ["KERNEL_VERSION", "MODEL_CODES", "TRANSFORM_CODES", "available", "lie_terms"]
+__all__ = [
+    "Affine",
+    "KERNEL_VERSION",
+    "MODEL_CODES",
+    "TRANSFORM_CODES",
+    "available",
+    "cbf_conditions",
+    "lie_terms",
+]
 
 #: version of ``_lie_kernel.c`` this module calls (``LIE_KERNEL_VERSION``)
-KERNEL_VERSION = 1
+KERNEL_VERSION = 2
 #: the kernel's code of each model it knows (the exact class: a subclass may change ``f``)
 MODEL_CODES: dict[type, int] = {
     SingleIntegrator: 0,
@@ -176,6 +184,19 @@ def _encode(
     return k
 
 
+class Affine(NamedTuple):
+    """A CBF condition ``a . u + b >= 0`` affine in the Lie terms, as the kernel evaluates
+    it: ``a = L_g h`` and ``b = L_f h + dh/dt + trace_weight tr + gain_scale gain h +
+    offset_scale offset`` (``tr`` the Hessian trace; ``gain`` and ``offset`` scalars or one
+    per output ``[K]``, ``None`` for 1 and 0)."""
+
+    trace_weight: float = 0.0
+    gain: Tensor | None = None
+    gain_scale: float = 1.0
+    offset: Tensor | None = None
+    offset_scale: float = 1.0
+
+
 def lie_terms(
     fns: Sequence[LieFunction],
     x: Tensor,
@@ -192,9 +213,124 @@ def lie_terms(
 
     Returns ``None`` where the kernel does not apply (see the module); the caller then takes
     the torch path, which gives the same terms."""
+    found = _evaluate(fns, x, dynamics, hessian, None)
+    if found is None:
+        return None
+    outputs, sizes = found
+    h, lfh, dhdt, lgh, trace, dhdx, _ = outputs
+    return LieTerms(h, lfh, lgh, dhdt, trace, dhdx), sizes
+
+
+def cbf_conditions(
+    fns: Sequence[LieFunction],
+    x: Tensor,
+    dynamics: ControlAffine,
+    affine: Affine,
+    *,
+    hessian: bool = True,
+) -> tuple[Tensor, Tensor, Tensor, list[int]] | None:
+    """The condition ``affine`` of the functions ``fns`` at a few states ``x [B, n]``, as
+    :func:`lie_terms` takes them: ``h [B, K]``, ``a [B, K, m]``, ``b [B, K]`` (``x``'s dtype,
+    no graph) and each function's number of outputs; ``None`` where the kernel does not
+    apply, or the gain or offset is neither a scalar nor ``[K]``."""
+    found = _evaluate(fns, x, dynamics, hessian, affine)
+    if found is None:
+        return None
+    outputs, sizes = found
+    return outputs[0], outputs[3], outputs[6], sizes
+
+
+class ConditionCall(NamedTuple):
+    """A prepared kernel call for the condition of :func:`cbf_conditions`, for a C caller
+    (the safety filter's kernel) that fills the ``lgh`` and ``b`` slots of ``pointers`` with
+    its own memory and calls the kernel at :func:`kernel_address`. ``h [B, K]`` (float64) is
+    written by that call; ``held`` are the tensors the pointers read (keep them alive until
+    then); ``sizes`` each function's number of outputs."""
+
+    meta: array.array
+    reals: array.array
+    pointers: array.array
+    h: Tensor
+    held: list[Tensor]
+    sizes: list[int]
+
+
+def condition_call(
+    fns: Sequence[LieFunction],
+    x: Tensor,
+    dynamics: ControlAffine,
+    affine: Affine,
+    *,
+    hessian: bool = True,
+) -> ConditionCall | None:
+    """:func:`cbf_conditions` prepared for a C caller (see :class:`ConditionCall`), or
+    ``None`` where it does not apply."""
+    found = _arguments(fns, x, dynamics, hessian, affine)
+    if found is None:
+        return None
+    meta, reals, pointers, held, sizes = found
+    h = torch.empty(x.shape[0], sum(sizes), dtype=torch.float64)
+    pointers[2:2] = [h.data_ptr(), 0, 0, 0, 0, 0, 0]
+    return ConditionCall(
+        array.array("q", meta), array.array("d", reals), array.array("Q", pointers), h, held,
+        sizes,
+    )  # fmt: skip
+
+
+@functools.lru_cache(maxsize=1)
+def kernel_address() -> int | None:
+    """The address of the kernel's ``torchcbf_lie_quadrics`` (``None``: no kernel)."""
     lib = _library()
+    return None if lib is None else ctypes.cast(lib.torchcbf_lie_quadrics, ctypes.c_void_p).value
+
+
+def _evaluate(
+    fns: Sequence[LieFunction],
+    x: Tensor,
+    dynamics: ControlAffine,
+    hessian: bool,
+    affine: Affine | None,
+) -> tuple[tuple[Tensor | None, ...], list[int]] | None:
+    """One kernel call: ``(h, lfh, dhdt, lgh, hess_trace, dhdx, b)`` in ``x``'s dtype (with
+    ``affine``: only ``h``, ``lgh`` and ``b``; without: all but ``b``) and the sizes."""
+    found = _arguments(fns, x, dynamics, hessian, affine)
+    if found is None:
+        return None
+    meta, reals, pointers, held, sizes = found
+    B, n = x.shape
+    K, m = sum(sizes), dynamics.control_dim
+    f64 = torch.float64
+    h, lgh = torch.empty(B, K, dtype=f64), torch.empty(B, K, m, dtype=f64)
+    if affine is None:
+        lfh, dhdt = torch.empty(B, K, dtype=f64), torch.empty(B, K, dtype=f64)
+        trace = None if pointers[1] == 0 else torch.empty(B, K, dtype=f64)
+        dhdx, b = torch.empty(B, K, n, dtype=f64), None
+    else:
+        lfh = dhdt = trace = dhdx = None
+        b = torch.empty(B, K, dtype=f64)
+    outputs = (h, lfh, dhdt, lgh, trace, dhdx, b)
+    pointers[2:2] = [0 if v is None else v.data_ptr() for v in outputs]
+    arrays = array.array("q", meta), array.array("d", reals), array.array("Q", pointers)
+    if _library().torchcbf_lie_quadrics(*(a.buffer_info()[0] for a in arrays)):  # type: ignore[union-attr]
+        return None
+    del held  # the tensors the kernel read
+    if x.dtype is not f64:
+        outputs = tuple(None if v is None else v.to(x.dtype) for v in outputs)
+    return outputs, sizes
+
+
+def _arguments(
+    fns: Sequence[LieFunction],
+    x: Tensor,
+    dynamics: ControlAffine,
+    hessian: bool,
+    affine: Affine | None,
+) -> tuple[list[int], list[float], list[int], list[Tensor], list[int]] | None:
+    """The kernel's ``meta``, ``reals`` and pointers (all but the seven outputs, which go
+    at index 2), the tensors those point into (keep them alive through the call) and each
+    function's number of outputs; ``None`` where the kernel does not apply."""
     outer = MODEL_CODES.get(type(dynamics))
-    if lib is None or outer is None or not fns or x.dim() != 2 or not x.is_cpu:
+    if _library() is None or outer is None or not fns or x.dim() != 2 or not x.is_cpu:
         return None
     dtype = x.dtype
     if dtype is not torch.float64 and dtype is not torch.float32:
@@ -209,8 +345,8 @@ def lie_terms(
     q = 0 if sigma is None else sigma.shape[-1]
     if q > MAX_SIZE:
         return None
-    meta = [B, n, m, q, outer, _model_dim(dynamics), 0]
-    reals: list[float] = []
+    meta = [B, n, m, q, outer, _model_dim(dynamics), 0, 0, 0]
+    reals: list[float] = [0.0, 1.0, 1.0]
     tensors: list[Tensor | None] = []
     sizes: list[int] = []
     for fn in fns:
@@ -224,13 +360,21 @@ def lie_terms(
                 return None
             total += k
         sizes.append(total)
-    meta[6] = len(reals)
-    K = sum(sizes)
+    meta[6] = len(reals) - 3
+    condition: tuple[Tensor | None, Tensor | None] = (None, None)
+    if affine is not None:
+        trace_weight, gain, gain_scale, offset, offset_scale = affine
+        strides = [_output_stride(v, sum(sizes)) for v in (gain, offset)]
+        if None in strides:
+            return None
+        meta[7:9] = strides
+        reals[:3] = float(trace_weight), float(gain_scale), float(offset_scale)
+        condition = gain, offset
     f64 = torch.float64
     grads = torch.is_grad_enabled()
     pointers = []
-    held = []  # float64 copies, kept alive through the call
-    for v in (x, sigma, *tensors):
+    held = []
+    for v in (x, sigma, *condition, *tensors):
         if v is None:
             pointers.append(0)
             continue
@@ -238,20 +382,16 @@ def lie_terms(
             return None
         if v.dtype is not f64 or not v.is_contiguous():
             v = v.detach().to(f64).contiguous()
-            held.append(v)
+        held.append(v)  # some are temporaries (a product of scales, a copy)
         pointers.append(v.data_ptr())
-    h, lfh, dhdt = (torch.empty(B, K, dtype=f64) for _ in range(3))
-    lgh, dhdx = torch.empty(B, K, m, dtype=f64), torch.empty(B, K, n, dtype=f64)
-    trace = None if sigma is None else torch.empty(B, K, dtype=f64)
-    outputs = (h, lfh, dhdt, lgh, trace, dhdx)
-    pointers[2:2] = [0 if v is None else v.data_ptr() for v in outputs]
-    arrays = array.array("q", meta), array.array("d", reals), array.array("Q", pointers)
-    if lib.torchcbf_lie_quadrics(*(a.buffer_info()[0] for a in arrays)):
-        return None
-    terms = LieTerms(h, lfh, lgh, dhdt, trace, dhdx)
-    if dtype is not f64:
-        terms = LieTerms(*(None if v is None else v.to(dtype) for v in terms))
-    return terms, sizes
+    return meta, reals, pointers, held, sizes
+
+
+def _output_stride(value: Tensor | None, K: int) -> int | None:
+    """The kernel's stride per output of a scalar or ``[K]`` constant (``None``: neither)."""
+    if value is None or value.numel() == 1:
+        return 0
+    return 1 if value.shape == (K,) else None
 
 
 def _model_dim(model: ControlAffine | None) -> int:

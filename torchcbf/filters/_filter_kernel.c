@@ -18,7 +18,7 @@
 
 /* Bumped whenever an exported signature or its meaning changes (see _native.py); the version
  * reported folds in the linked QP kernel's, whose solver this library carries. */
-#define FILTER_KERNEL_VERSION 6
+#define FILTER_KERNEL_VERSION 7
 
 int torchcbf_filter_version(void) {
     return 100 * FILTER_KERNEL_VERSION + TORCHCBF_DUAL_KERNEL_VERSION;
@@ -220,5 +220,44 @@ int torchcbf_filter_solve(int64_t B, int m, int k, int c, int slack, int two_pas
         status[b] = relaxed ? STATUS_RELAXED : STATUS_SOLVED;
     }
     free(buf), free(ints), free(bytes);
+    return code;
+}
+
+/* The Lie-term kernel of torchcbf/barriers/_lie_kernel.c (its torchcbf_lie_quadrics) and the
+ * slots of its pointer array this file fills: the outputs lgh [B, K, m] and the condition b
+ * [B, K] (LIE_KERNEL_VERSION 2). */
+typedef int (*lie_kernel)(const int64_t *meta, const double *reals, void *const *ptrs);
+#define LIE_KERNEL_VERSION_USED 2
+enum { LIE_LGH = 5, LIE_B = 8 };
+
+/*
+ * torchcbf_filter_solve with the CBF conditions of quadric barriers computed first by the
+ * Lie-term kernel `lie` (version `lie_version`) from its arguments lie_meta, lie_reals and
+ * lie_ptrs (prepared by torchcbf/barriers/native.py, with an affine condition and the h
+ * output set; the LIE_LGH and LIE_B slots are filled here with a workspace). One call per
+ * control tick instead of two, and no tensors for the conditions.
+ * Returns as torchcbf_filter_solve; 1 also when the Lie kernel declines or is another
+ * version.
+ */
+int torchcbf_filter_quadrics(void *lie, int lie_version, const int64_t *lie_meta,
+                             const double *lie_reals, void **lie_ptrs, int64_t B, int m, int k,
+                             int c, int slack, int two_pass, const double *a_clf,
+                             const double *b_clf, const double *u_nom, const double *R,
+                             const double *lo, const double *hi, double cbf_weight,
+                             double clf_weight, double eps, int max_iter, double slack_tol,
+                             double max_condition, double *u_out, double *slack_out,
+                             double *value_out, int64_t *status) {
+    if (!lie || lie_version != LIE_KERNEL_VERSION_USED || B < 1 || m < 1 || k < 1) return 1;
+    double *ab = malloc(sizeof(double) * (size_t)(B * k * (m + 1)));
+    if (!ab) return -1;
+    lie_ptrs[LIE_LGH] = ab, lie_ptrs[LIE_B] = ab + B * k * m;
+    int code = ((lie_kernel)lie)(lie_meta, lie_reals, lie_ptrs) ? 1 : 0;
+    if (code == 0)
+        code = torchcbf_filter_solve(B, m, k, c, slack, two_pass, ab, ab + B * k * m, a_clf,
+                                     b_clf, u_nom, R, lo, hi, cbf_weight, clf_weight, eps,
+                                     max_iter, slack_tol, max_condition, u_out, slack_out,
+                                     value_out, status);
+    lie_ptrs[LIE_LGH] = lie_ptrs[LIE_B] = NULL;
+    free(ab);
     return code;
 }

@@ -19,7 +19,9 @@ from torch import Tensor, nn
 
 from torchcbf._checks import as_tensor, check_last_dim
 from torchcbf.barriers.lie import LieFunction, LieTerms
+from torchcbf.barriers.native import Affine
 from torchcbf.dynamics.base import ControlAffine
+from torchcbf.filters.class_k import LinearClassK
 from torchcbf.filters.conditions import Condition, cbf_condition, clf_condition
 from torchcbf.filters.risk import noise_bound, risk_margin
 
@@ -63,6 +65,13 @@ class FilterMode(nn.Module):
         """CLF condition ``a . u + b <= 0`` for ``V [B, c]`` (relaxed by the filter)."""
         raise NotImplementedError(f"mode {self.name!r} does not take Lyapunov functions")
 
+    def affine_cbf(self, alpha: nn.Module) -> Affine | None:
+        """:meth:`cbf` with the class-K function ``alpha`` as an :class:`Affine` combination
+        of the Lie terms, where it is one; ``None`` (the default) otherwise. The filter then
+        evaluates the condition of quadric barriers in the Lie terms' C kernel
+        (:func:`torchcbf.barriers.native.cbf_conditions`); the two must agree."""
+        return None
+
     def extra_repr(self) -> str:
         return self.name
 
@@ -77,6 +86,10 @@ class Vanilla(FilterMode):
 
     def clf(self, terms: LieTerms, rate: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
         return clf_condition(terms, "vanilla", rate, dynamics, x)
+
+    def affine_cbf(self, alpha: nn.Module) -> Affine | None:
+        gain = _linear_gain(alpha)
+        return None if gain is None else Affine(gain=gain)
 
 
 class Robust(FilterMode):
@@ -102,6 +115,11 @@ class Robust(FilterMode):
 
     def clf(self, terms: LieTerms, rate: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
         return clf_condition(terms, "robust", rate, dynamics, x)
+
+
+def _linear_gain(alpha: nn.Module) -> Tensor | None:
+    """The gain of ``alpha`` where it is exactly :class:`LinearClassK`, else ``None``."""
+    return alpha.gain if type(alpha) is LinearClassK else None
 
 
 def _needs_diffusion(name: str, dynamics: ControlAffine) -> None:
@@ -136,6 +154,12 @@ class Stochastic(FilterMode):
 
     def clf(self, terms: LieTerms, rate: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
         return clf_condition(terms, "stochastic", rate, dynamics, x)
+
+    def affine_cbf(self, alpha: nn.Module) -> Affine | None:
+        gain = _linear_gain(alpha)
+        if gain is None:
+            return None
+        return Affine(trace_weight=0.5, gain=gain, offset=self.beta, offset_scale=-1.0)
 
 
 def _positive(name: str, value: Any) -> float:
@@ -281,6 +305,13 @@ class RiskAware(FilterMode):
             gamma=_like(self.clf_gamma, x),
             horizon=_like(self.horizon, x),
         )
+
+    def affine_cbf(self, alpha: nn.Module) -> Affine | None:
+        if self.cbf_margin is None:
+            return None
+        rate = 1.0 / float(self.horizon)
+        return Affine(trace_weight=0.5, gain_scale=rate, offset=self.cbf_margin,
+                      offset_scale=-rate)  # fmt: skip
 
     def extra_repr(self) -> str:
         return f"rho={self.rho}, horizon={float(self.horizon)}"

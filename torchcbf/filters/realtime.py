@@ -19,12 +19,13 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchcbf._native import load_kernel
+from torchcbf._native import float64_pointers, load_kernel
+from torchcbf.barriers import native
 from torchcbf.qp import realtime as qp_realtime
 
 #: ``100 FILTER_KERNEL_VERSION + TORCHCBF_DUAL_KERNEL_VERSION`` of the C sources this module
 #: calls (the filter's kernel carries the QP kernel's solver)
-KERNEL_VERSION = 100 * 6 + qp_realtime.KERNEL_VERSION
+KERNEL_VERSION = 100 * 7 + qp_realtime.KERNEL_VERSION
 #: most states the path takes (beyond it the general path's batched solve pays off)
 MAX_BATCH = qp_realtime.MAX_BATCH
 #: the kernel's codes of the CBF slack modes
@@ -36,6 +37,8 @@ _INT = ctypes.c_int
 # B, m, k, c, slack, two_pass; a_cbf, b_cbf, a_clf, b_clf, u_nom, R, lo, hi;
 # cbf_weight, clf_weight, eps, max_iter, slack_tol, max_condition; u, slack, value, status
 _ARGS = [ctypes.c_int64] + [_INT] * 5 + [_P] * 8 + [_D] * 3 + [_INT] + [_D] * 2 + [_P] * 4
+# the Lie-term kernel, its version, meta, reals, pointers; then _ARGS without a_cbf, b_cbf
+_QUADRIC_ARGS = [_P, _INT, _P, _P, _P] + _ARGS[:6] + _ARGS[8:]
 
 
 @functools.lru_cache(maxsize=1)
@@ -50,6 +53,8 @@ def _library() -> ctypes.CDLL | None:
     if lib is not None:
         lib.torchcbf_filter_solve.argtypes = _ARGS
         lib.torchcbf_filter_solve.restype = _INT
+        lib.torchcbf_filter_quadrics.argtypes = _QUADRIC_ARGS
+        lib.torchcbf_filter_quadrics.restype = _INT
         lib.torchcbf_filter_inputs_finite.argtypes = [ctypes.c_int64, _P] * 3
         lib.torchcbf_filter_inputs_finite.restype = _INT
     return lib
@@ -84,7 +89,7 @@ class RealtimeOutput(NamedTuple):
 
 
 def solve(
-    cbf: tuple[Tensor, Tensor] | None,
+    cbf: tuple[Tensor, Tensor] | native.ConditionCall | None,
     clf: tuple[Tensor, Tensor] | None,
     u_nom: Tensor,
     R: Tensor,
@@ -103,10 +108,12 @@ def solve(
     """The filter QP of ``B`` states from the conditions ``cbf = (a [B,k,m], b [B,k])``
     (``a . u + b >= 0``) and ``clf = (a [B,c,m], b [B,c])`` (``a . u + b <= delta``), with
     ``u_nom [B, m]``, ``R [m, m]`` and limits ``lo, hi [m]`` (``None`` or infinite where
-    absent), CPU tensors without grad. ``two_pass``: also solve the hard QP and prefer its
-    answer (see :class:`~torchcbf.filters.SafetyFilter`'s ``exact``). States, times and
-    ``u_nom`` are the caller's to check (:func:`inputs_finite`, before any computation). The
-    outputs have the batch shape ``batch`` (default ``(B,)``).
+    absent), CPU tensors without grad. ``cbf`` may also be a prepared call of the Lie-term
+    kernel (:func:`torchcbf.barriers.native.condition_call`): the kernel then computes the
+    conditions in the same C call (and writes its ``h``). ``two_pass``: also solve the hard
+    QP and prefer its answer (see :class:`~torchcbf.filters.SafetyFilter`'s ``exact``).
+    States, times and ``u_nom`` are the caller's to check (:func:`inputs_finite`, before any
+    computation). The outputs have the batch shape ``batch`` (default ``(B,)``).
 
     Returns ``None`` when a condition is not finite, or when the kernel does not certify
     every row (the caller then takes the general path)."""
@@ -114,25 +121,35 @@ def solve(
     if lib is None:
         return None
     B, m = u_nom.shape
-    k = 0 if cbf is None else cbf[1].shape[1]
+    call = cbf if isinstance(cbf, native.ConditionCall) else None
+    if call is not None:
+        k = sum(call.sizes)
+        cbf = None
+    else:
+        k = 0 if cbf is None else cbf[1].shape[1]
     c = 0 if clf is None else clf[1].shape[1]
     shape = (B,) if batch is None else batch
-    # the tensors must outlive the call: each pointer's tensor is held by `held`
     conditions = (None, None) if cbf is None else cbf
     conditions += (None, None) if clf is None else clf
-    held = [qp_realtime.as_float64(v) for v in (*conditions, u_nom, R, lo, hi)]
+    pointers, held = float64_pointers((*conditions, u_nom, R, lo, hi))
     f64 = torch.float64
     u = torch.empty(*shape, m, dtype=f64)
     slk = torch.empty(*shape, k + c, dtype=f64)
     value = torch.empty(*shape, k + c, dtype=f64)
     status = torch.empty(shape, dtype=torch.int64)
-    code = lib.torchcbf_filter_solve(
-        B, m, k, c, SLACK_CODES[slack], int(two_pass),
-        *[None if v is None else v.data_ptr() for v in held],
+    options = (
         cbf_weight, clf_weight, eps, min(max_iter, 2**31 - 1), slack_tol,
         qp_realtime.MAX_DUAL_CONDITION,
         u.data_ptr(), slk.data_ptr(), value.data_ptr(), status.data_ptr(),
     )  # fmt: skip
+    sizes = B, m, k, c, SLACK_CODES[slack], int(two_pass)
+    if call is None:
+        code = lib.torchcbf_filter_solve(*sizes, *pointers, *options)
+    else:
+        lie = native.kernel_address(), native.KERNEL_VERSION
+        arrays = (a.buffer_info()[0] for a in (call.meta, call.reals, call.pointers))
+        code = lib.torchcbf_filter_quadrics(*lie, *arrays, *sizes, *pointers[2:], *options)
+    del held  # the copies the kernel read
     if code < 0:
         raise MemoryError("torchcbf: the safety filter's kernel could not allocate its workspace")
     if code:

@@ -59,7 +59,7 @@ from torchcbf.barriers import native
 from torchcbf.barriers.lie import LieFunction, LieTerms, stacked_lie_derivatives
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.filters import realtime
-from torchcbf.filters.class_k import ClassKSpec, as_class_k
+from torchcbf.filters.class_k import ClassKSpec, GainClassK, as_class_k
 from torchcbf.filters.conditions import as_columns, concat_terms
 from torchcbf.filters.fallback import Fallback, FallbackSpec
 from torchcbf.filters.modes import MODE_OPTIONS, FilterMode, make_mode
@@ -358,14 +358,17 @@ class SafetyFilter(nn.Module):
         if self._realtime_applies(xb, ub, tb):
             # the conditions as the general path computes them (finite inputs): they carry a
             # graph exactly when some output can have a gradient, whatever its source (an
-            # input, a parameter, a tensor captured by a class-K closure)
-            conditions = self._conditions(xb, tb)
+            # input, a parameter, a tensor captured by a class-K closure); those of quadric
+            # barriers as a prepared native call, evaluated by the filter's kernel
+            conditions = self._conditions(xb, tb, prepare=True)
             limits = self._limit_tensors()
             grads = torch.is_grad_enabled()
             if not (grads and _carries_grad(conditions, ub, self.R, *limits)):
                 out = self._realtime(batch, xb, ub, conditions, limits)
                 if out is not None:
                     return out
+            if isinstance(conditions[0], native.ConditionCall):
+                conditions = None
         finite = torch.isfinite(xb).all(-1) & torch.isfinite(ub).all(-1) & torch.isfinite(tb)
         fin = finite.unsqueeze(-1)
         xs = torch.where(fin, xb, torch.zeros_like(xb))
@@ -464,34 +467,72 @@ class SafetyFilter(nn.Module):
             parts.append(as_columns(terms, x.shape[0]))
         return concat_terms(parts), [p.h.shape[1] for p in parts]
 
+    def _native_cbf(
+        self, x: Tensor, prepare: bool
+    ) -> tuple[Tensor, tuple[Tensor, Tensor] | native.ConditionCall] | None:
+        """``(h [B,k], (a [B,k,m], b [B,k]))`` of the CBF conditions from one native call
+        (:func:`torchcbf.barriers.native.cbf_conditions`) where the barriers are quadrics,
+        the batch is small and the mode's condition is affine in the Lie terms
+        (:meth:`~torchcbf.filters.modes.FilterMode.affine_cbf`); with ``prepare``, the call
+        prepared instead (:func:`~torchcbf.barriers.native.condition_call`; its ``h`` is
+        written when the filter's kernel makes it). ``None`` where that does not apply."""
+        barriers, alphas, mode = self.barriers, self.alpha, self.condition
+        if (
+            not barriers
+            or len(alphas) != 1
+            or self.lie_method != "auto"
+            or x.shape[0] > realtime.MAX_BATCH
+        ):
+            return None
+        (alpha,) = alphas
+        affine = mode.affine_cbf(alpha)
+        if affine is None:
+            return None
+        args = barriers, x, self.dynamics, affine
+        if prepare:
+            call = native.condition_call(*args, hessian=mode.needs_hessian)
+            return None if call is None else (call.h, call)
+        found = native.cbf_conditions(*args, hessian=mode.needs_hessian)
+        return None if found is None else (found[0], found[1:3])
+
     def _lie_method(self, fn: LieFunction) -> str:
         if self.lie_method == "auto":
             return "analytic" if fn.has_analytic else "autograd"
         return self.lie_method
 
     @staticmethod
-    def _class_k(fns: nn.ModuleList, values: Tensor, sizes: list[int]) -> Tensor:
+    def _class_k(fns: nn.ModuleList, values: Tensor, sizes: list[int], name: str) -> Tensor:
         if len(fns) == 1:
             (fn,) = fns  # iterating a ModuleList is cheaper than indexing it
+            gains = fn.gain.shape if isinstance(fn, GainClassK) else ()
+            if len(gains) == 1 and gains[0] not in (1, values.shape[-1]):
+                raise ValueError(
+                    f"{name} has {gains[0]} gains for {values.shape[-1]} outputs: give one "
+                    "gain per output, or a scalar"
+                )
             return fn(values)
         return torch.cat([fn(v) for fn, v in zip(fns, values.split(sizes, -1), strict=True)], -1)
 
     def _conditions(
-        self, x: Tensor, t: Tensor
-    ) -> tuple[tuple[Tensor, Tensor] | None, tuple[Tensor, Tensor] | None, Tensor, Tensor]:
+        self, x: Tensor, t: Tensor, *, prepare: bool = False
+    ) -> tuple[Any, tuple[Tensor, Tensor] | None, Tensor, Tensor]:
         """CBF conditions ``(a [B,k,m], b [B,k])``, CLF conditions ``(a [B,c,m], b [B,c])``
         (``None`` without functions), barrier values ``h [B,k]`` and Lyapunov values
-        ``V [B,c]``."""
-        cbf_terms, cbf_sizes = self._lie(self.barriers, x, t)
+        ``V [B,c]``. With ``prepare``, the CBF conditions may be a prepared native call
+        (see :meth:`_native_cbf`), for the real-time path."""
+        native_cbf = self._native_cbf(x, prepare)
+        cbf_terms, cbf_sizes = (None, []) if native_cbf else self._lie(self.barriers, x, t)
         clf_terms, clf_sizes = self._lie(self.lyapunovs, x, t)
         cbf = clf = None
         h = V = x.new_zeros(x.shape[0], 0)
-        if cbf_terms is not None:
-            alpha = lambda v: self._class_k(self.alpha, v, cbf_sizes)  # noqa: E731
+        if native_cbf is not None:
+            h, cbf = native_cbf
+        elif cbf_terms is not None:
+            alpha = lambda v: self._class_k(self.alpha, v, cbf_sizes, "alpha")  # noqa: E731
             cbf = tuple(self.condition.cbf(cbf_terms, alpha, self.dynamics, x))
             h = cbf_terms.h
         if clf_terms is not None:
-            rate = lambda v: self._class_k(self.clf_rate, v, clf_sizes)  # noqa: E731
+            rate = lambda v: self._class_k(self.clf_rate, v, clf_sizes, "clf_rate")  # noqa: E731
             clf = tuple(self.condition.clf(clf_terms, rate, self.dynamics, x))
             V = clf_terms.h
         return cbf, clf, h, V  # type: ignore[return-value]
@@ -592,7 +633,7 @@ class SafetyFilter(nn.Module):
         dt = xb.dtype
         u, slack, value = res.u, res.slack, res.value
         if dt is not torch.float64:
-            u, slack, value = u.to(dt), slack.to(dt), value.to(dt)
+            u, slack, value, h = u.to(dt), slack.to(dt), value.to(dt), h.to(dt)
         flat = len(batch) == 1
         return FilterOutput(
             u=u,
@@ -608,6 +649,8 @@ class SafetyFilter(nn.Module):
 def _carries_grad(conditions: tuple[Any, Any, Tensor, Tensor], *more: Tensor | None) -> bool:
     """Whether a condition tensor, ``h``, ``V`` or one of ``more`` requires grad."""
     cbf, clf, h, V = conditions
+    if isinstance(cbf, native.ConditionCall):
+        cbf = None  # it refuses tensors that require grad (with grad mode on)
     tensors = [h, V, *more, *(cbf or ()), *(clf or ())]
     return any(t is not None and t.requires_grad for t in tensors)
 
