@@ -17,6 +17,7 @@ from torchcbf.barriers import Ball, Ellipse, ExponentialBarrier, Scaled, Transfo
 from torchcbf.dynamics import AccelUnicycle, SingleIntegrator
 from torchcbf.filters import (
     CubicClassK,
+    FilterMode,
     FilterStatus,
     LinearClassK,
     RiskAware,
@@ -26,6 +27,7 @@ from torchcbf.filters import (
     Vanilla,
     realtime,
 )
+from torchcbf.filters.conditions import Condition
 
 pytestmark = pytest.mark.skipif(not realtime.available(), reason="C kernel not built")
 
@@ -252,14 +254,17 @@ def rectified_states(count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     return np.stack(out), 2.0 * rng.standard_normal((count, 2))
 
 
-def balls_scene(mode: str, dtype: torch.dtype = torch.float64, **overrides) -> SafetyFilter:
+def balls_scene(
+    mode: str | FilterMode, dtype: torch.dtype = torch.float64, **overrides
+) -> SafetyFilter:
     """Eight balls on a single integrator with box limits (the benchmark's scene)."""
     kw = {"sigma": 0.2} if mode == "stochastic" else {}
     gen = torch.Generator().manual_seed(0)
     ball = Ball(8 * torch.rand(8, 2, generator=gen) - 4, 0.3 + 0.4 * torch.rand(8, generator=gen))
     dyn = SingleIntegrator(2, u_min=-2.0, u_max=2.0, **kw)
-    mode_object = Stochastic(beta=0.1) if mode == "stochastic" else Vanilla()
-    return SafetyFilter(dyn, ball, mode=mode_object, **overrides).to(dtype)
+    if isinstance(mode, str):
+        mode = Stochastic(beta=0.1) if mode == "stochastic" else Vanilla()
+    return SafetyFilter(dyn, ball, mode=mode, **overrides).to(dtype)
 
 
 def balls_states(count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -461,3 +466,37 @@ def test_a_declined_fused_call_gives_the_general_paths_answer(
     with torch.no_grad():
         _same(filt(x, u), closed(x, u), 1e-10)
     assert answered == [True, True]  # the prepared call, then the general path's conditions
+
+
+class _Margin(FilterMode):
+    """A user's mode: vanilla minus a margin, with its affine form for the kernel."""
+
+    name = "margin"
+
+    def __init__(self, margin: float) -> None:
+        super().__init__()
+        self.register_buffer("margin", torch.tensor(margin, dtype=torch.float64))
+
+    def cbf(self, terms, alpha, dynamics, x):
+        return Condition(terms.lgh, terms.lfh + terms.dhdt + alpha(terms.h) - self.margin.to(x))
+
+    def affine_cbf(self, alpha):
+        if type(alpha) is not LinearClassK:
+            return None
+        return native.Affine(gain=alpha.gain, offset=self.margin, offset_scale=-1.0)
+
+
+@pytest.mark.skipif(not native.available(), reason="Lie kernel not built")
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
+def test_a_users_mode_with_an_affine_form_takes_the_kernel(
+    dtype: torch.dtype, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    filt = balls_scene(_Margin(0.3), dtype, alpha=[2.0] * 8)
+    closed = balls_scene(_Margin(0.3), dtype, alpha=[2.0] * 8, lie_method="analytic")
+    xs, us = balls_states(4, seed=5)
+    x, u = torch.tensor(xs, dtype=dtype), torch.tensor(us, dtype=dtype)
+    answered = _native_spy(monkeypatch)
+    with torch.no_grad():
+        out = filt(x, u)
+        assert answered == [True]
+        _same(out, closed(x, u), 1e-10 if dtype == torch.float64 else 1e-4)
