@@ -13,7 +13,15 @@ import torch
 from _filter_reference import solve_reference
 from test_safety_filter import MODES, random_states, scene
 
-from torchcbf.barriers import Ball, Ellipse, ExponentialBarrier, Scaled, Transformed, native
+from torchcbf.barriers import (
+    Ball,
+    Ellipse,
+    ExponentialBarrier,
+    QuadraticLyapunov,
+    Scaled,
+    Transformed,
+    native,
+)
 from torchcbf.dynamics import AccelUnicycle, SingleIntegrator
 from torchcbf.filters import (
     CubicClassK,
@@ -500,3 +508,24 @@ def test_a_users_mode_with_an_affine_form_takes_the_kernel(
         out = filt(x, u)
         assert answered == [True]
         _same(out, closed(x, u), 1e-10 if dtype == torch.float64 else 1e-4)
+
+
+@pytest.mark.skipif(not native.available(), reason="Lie kernel not built")
+@pytest.mark.parametrize("slack", ["shared", "per_row", "none"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
+def test_the_fused_call_takes_clf_rows_from_torch(
+    slack: str, dtype: torch.dtype, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    goal = QuadraticLyapunov(torch.tensor([3.0, -2.0]))
+    filt = balls_scene("vanilla", dtype, lyapunovs=goal, cbf_slack=slack)
+    closed = balls_scene("vanilla", dtype, lyapunovs=goal, cbf_slack=slack, lie_method="analytic")
+    xs, us = balls_states(realtime.MAX_BATCH, seed=8)
+    x, u = torch.tensor(xs, dtype=dtype), torch.tensor(us, dtype=dtype)
+    answered = _native_spy(monkeypatch)
+    calls = _counting(monkeypatch)
+    with torch.no_grad():
+        out = filt(x, u)
+    # the prepared CBF call and the Lyapunov function's declined one; the general path would
+    # have asked for the CBF conditions again
+    assert answered == [True, False] and calls == [1]
+    _same(out, closed(x, u), 1e-9 if dtype == torch.float64 else 1e-4)
