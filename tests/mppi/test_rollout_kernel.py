@@ -69,7 +69,13 @@ def _costs(n: int) -> dict[str, object]:
             DiscreteBarrierCost(balls, gamma=0.5, weight=20.0),
             BarrierCost(keep_in, 0.1, 0.01),
         ),
+        # a discrete-time term before its barrier's term: evaluated on its own
+        "discrete_first": SumCost(
+            DiscreteBarrierCost(balls, gamma=0.5, weight=20.0),
+            BarrierCost(balls, 0.7, 0.02),
+        ),
         # one barrier under three terms: its shapes are evaluated once per step and shared
+        # (the first discrete-time term in the barrier term's pass)
         "shared": SumCost(
             BarrierCost(balls, 0.7, 0.02),
             DiscreteBarrierCost(balls, gamma=0.5, weight=20.0),

@@ -72,6 +72,9 @@ enum { S_ELLIPSE = 0, S_BALL = 1 };
 typedef struct {
     int type, d, idx[DMAX], shape0, nshape;
     double weight, extra, eps, radius, center[DMAX];
+    /* derived by parse(): a barrier term's discrete-time term over the same shapes (-1:
+     * none), evaluated in the barrier term's loop; `paired` marks that discrete term */
+    int pair, paired;
 } term_t;
 
 typedef struct {
@@ -131,6 +134,16 @@ static int parse(const double *cfg, problem_t *pr) {
         T->shape0 = (int)p[14];
         T->nshape = (int)p[15];
         if (T->shape0 < 0 || T->nshape < 0 || T->shape0 + T->nshape > pr->nshapes) return -5;
+        T->pair = -1;
+    }
+    for (int t = 0; t < pr->nterms; ++t) {
+        term_t *T = &pr->terms[t];
+        for (int u = t + 1; u < pr->nterms && T->type == T_BARRIER && T->pair < 0; ++u) {
+            term_t *D = &pr->terms[u];
+            if (D->type == T_DISCRETE_BARRIER && !D->paired && D->shape0 == T->shape0 &&
+                D->nshape == T->nshape && T->nshape > 0)
+                T->pair = u, D->paired = 1;
+        }
     }
     for (int s = 0; s < pr->nshapes; ++s, p += SREC) {
         shape_t *S = &pr->shapes[s];

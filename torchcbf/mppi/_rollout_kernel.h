@@ -130,7 +130,7 @@ INL void SUFFIX(sq_dist)(const term_t *T, REAL (*x)[LANES], REAL *s) {
 INL void SUFFIX(costs)(const problem_t *pr, REAL (*x)[LANES], int last, REAL *stage,
                        REAL *terminal, REAL *whole, REAL (*hprev)[LANES],
                        REAL (*hcur)[LANES]) {
-    REAL st[LANES], tmp[LANES], h[LANES];
+    REAL st[LANES], tmp[LANES], h[LANES], pen[LANES];
     unsigned char have[SMAX] = {0};
     int first = 1;
     for (int t = 0; t < pr->nterms; ++t) {
@@ -140,6 +140,7 @@ INL void SUFFIX(costs)(const problem_t *pr, REAL (*x)[LANES], int last, REAL *st
                 if (!have[s]) SUFFIX(shape_h)(&pr->shapes[s], x, hcur[s]);
                 have[s] = 1;
             }
+        if (T->type == T_DISCRETE_BARRIER && T->paired) continue; /* in its barrier term */
         if (T->type == T_DISCRETE_BARRIER) {
             const REAL g1 = (REAL)(1.0 - T->extra);
             LOOP tmp[l] = 0;
@@ -166,7 +167,7 @@ INL void SUFFIX(costs)(const problem_t *pr, REAL (*x)[LANES], int last, REAL *st
                 REAL dist = SQRT(h[l]) - r;
                 tmp[l] = ko / (dist < e ? e : dist);
             }
-        } else { /* T_BARRIER: sum over the barrier's outputs */
+        } else if (T->pair < 0) { /* T_BARRIER: sum over the barrier's outputs */
             const REAL w = (REAL)T->weight, e = (REAL)T->eps;
             for (int s = 0; s < T->nshape; ++s) {
                 const REAL *hc = hcur[T->shape0 + s];
@@ -175,6 +176,26 @@ INL void SUFFIX(costs)(const problem_t *pr, REAL (*x)[LANES], int last, REAL *st
                 else
                     LOOP tmp[l] += w / (hc[l] < e ? e : hc[l]);
             }
+        } else { /* T_BARRIER and its discrete-time term, one pass over the values */
+            const term_t *D = &pr->terms[T->pair];
+            const REAL w = (REAL)T->weight, e = (REAL)T->eps, g1 = (REAL)(1.0 - D->extra);
+            for (int s = 0; s < T->nshape; ++s) {
+                const REAL *hc = hcur[T->shape0 + s], *hp = hprev[T->shape0 + s];
+                if (s == 0)
+                    LOOP {
+                        REAL hv = hc[l], v = g1 * hp[l] - hv;
+                        tmp[l] = w / (hv < e ? e : hv);
+                        pen[l] = v < 0 ? 0 : v;
+                    }
+                else
+                    LOOP {
+                        REAL hv = hc[l], v = g1 * hp[l] - hv;
+                        tmp[l] += w / (hv < e ? e : hv);
+                        pen[l] += v < 0 ? 0 : v;
+                    }
+            }
+            const REAL wd = (REAL)D->weight;
+            LOOP whole[l] += wd * pen[l];
         }
         if (first)
             LOOP st[l] = tmp[l];
