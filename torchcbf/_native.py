@@ -18,6 +18,7 @@ import platform
 from collections.abc import Iterable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -25,10 +26,18 @@ from torch import Tensor
 logger = logging.getLogger("torchcbf")
 
 
-def load_kernel(directory: Path, stem: str, version_symbol: str, version: int, fallback: str):
+def load_kernel(
+    directory: Path,
+    stem: str,
+    version_symbol: str,
+    version: int,
+    fallback: str,
+    signatures: dict[str, list[Any]] | None = None,
+):
     """The ctypes library ``directory/stem<extension suffix>`` if it loads and reports
     ``version``, else ``None`` (with a warning ending in ``fallback``, e.g. "MPPI runs in
-    torch")."""
+    torch"). ``signatures`` maps each exported function to its argument types; all return
+    ``int``."""
     for suffix in importlib.machinery.EXTENSION_SUFFIXES:
         path = directory / f"{stem}{suffix}"
         if not path.exists():
@@ -47,6 +56,9 @@ def load_kernel(directory: Path, stem: str, version_symbol: str, version: int, f
                 fallback,
             )
             return None
+        for name, argtypes in (signatures or {}).items():
+            function = getattr(lib, name)
+            function.argtypes, function.restype = argtypes, ctypes.c_int
         return lib
     return None
 

@@ -64,17 +64,14 @@ MAX_SIZE = 32
 
 @functools.lru_cache(maxsize=1)
 def _library() -> ctypes.CDLL | None:
-    lib = load_kernel(
+    return load_kernel(
         Path(__file__).parent,
         "_lie_kernel",
         "torchcbf_lie_version",
         KERNEL_VERSION,
         "quadric barriers take their torch closed forms",
+        signatures={"torchcbf_lie_quadrics": [ctypes.c_void_p] * 3},  # meta, reals, ptrs
     )
-    if lib is not None:
-        lib.torchcbf_lie_quadrics.argtypes = [ctypes.c_void_p] * 3  # meta, reals, ptrs
-        lib.torchcbf_lie_quadrics.restype = ctypes.c_int
-    return lib
 
 
 def available() -> bool:

@@ -43,21 +43,18 @@ _QUADRIC_ARGS = [_P, _INT, _P, _P, _P] + _ARGS[:6] + _ARGS[8:]
 
 @functools.lru_cache(maxsize=1)
 def _library() -> ctypes.CDLL | None:
-    lib = load_kernel(
+    return load_kernel(
         Path(__file__).parent,
         "_filter_kernel",
         "torchcbf_filter_version",
         KERNEL_VERSION,
         "the safety filter takes its general path on every batch",
+        signatures={
+            "torchcbf_filter_solve": _ARGS,
+            "torchcbf_filter_quadrics": _QUADRIC_ARGS,
+            "torchcbf_filter_inputs_finite": [ctypes.c_int64, _P] * 3,
+        },
     )
-    if lib is not None:
-        lib.torchcbf_filter_solve.argtypes = _ARGS
-        lib.torchcbf_filter_solve.restype = _INT
-        lib.torchcbf_filter_quadrics.argtypes = _QUADRIC_ARGS
-        lib.torchcbf_filter_quadrics.restype = _INT
-        lib.torchcbf_filter_inputs_finite.argtypes = [ctypes.c_int64, _P] * 3
-        lib.torchcbf_filter_inputs_finite.restype = _INT
-    return lib
 
 
 def available() -> bool:

@@ -49,19 +49,14 @@ _RUN_ARGS = [_P, _I64, _I64] + [_P] * 11 + [ctypes.c_int]
 
 @functools.lru_cache(maxsize=1)
 def _library() -> ctypes.CDLL | None:
-    lib = load_kernel(
+    return load_kernel(
         Path(__file__).parent,
         "_rollout_kernel",
         "torchcbf_mppi_version",
         KERNEL_VERSION,
         "MPPI runs in torch",
+        signatures={"torchcbf_mppi_run_f32": _RUN_ARGS, "torchcbf_mppi_run_f64": _RUN_ARGS},
     )
-    if lib is not None:
-        for name in ("torchcbf_mppi_run_f32", "torchcbf_mppi_run_f64"):
-            fn = getattr(lib, name)
-            fn.argtypes = _RUN_ARGS
-            fn.restype = ctypes.c_int
-    return lib
 
 
 def available() -> bool:

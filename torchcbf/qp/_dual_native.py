@@ -44,23 +44,20 @@ _TIGHT_ARGS = [_I64, _INT, _INT, _P, _P, _P, _P, ctypes.c_double, _P]
 
 @functools.lru_cache(maxsize=1)
 def _library() -> ctypes.CDLL | None:
-    lib = load_kernel(
+    return load_kernel(
         Path(__file__).parent,
         "_dual_kernel",
         "torchcbf_dual_version",
         KERNEL_VERSION,
         "using the torch solver",
+        signatures={
+            "torchcbf_dual_forward": _FWD_ARGS,
+            "torchcbf_dual_backward": _BWD_ARGS,
+            "torchcbf_dual_solve_small": _SMALL_ARGS,
+            "torchcbf_dual_check_condition": _COND_ARGS,
+            "torchcbf_dual_tight_rows": _TIGHT_ARGS,
+        },
     )
-    if lib is not None:
-        lib.torchcbf_dual_forward.argtypes = _FWD_ARGS
-        lib.torchcbf_dual_backward.argtypes = _BWD_ARGS
-        lib.torchcbf_dual_solve_small.argtypes = _SMALL_ARGS
-        lib.torchcbf_dual_check_condition.argtypes = _COND_ARGS
-        lib.torchcbf_dual_tight_rows.argtypes = _TIGHT_ARGS
-        lib.torchcbf_dual_check_condition.restype = lib.torchcbf_dual_tight_rows.restype = _INT
-        lib.torchcbf_dual_forward.restype = lib.torchcbf_dual_backward.restype = _INT
-        lib.torchcbf_dual_solve_small.restype = _INT
-    return lib
 
 
 def available() -> bool:
