@@ -482,6 +482,7 @@ class SafetyFilter(nn.Module):
             or len(alphas) != 1
             or self.lie_method != "auto"
             or x.shape[0] > realtime.MAX_BATCH
+            or not x.is_cpu  # (affine_cbf may read a number off the device)
         ):
             return None
         (alpha,) = alphas
