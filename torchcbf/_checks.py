@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import torch
@@ -229,3 +230,13 @@ def check_number(
     if low is not None and (v <= low if strict else v < low):
         raise ValueError(f"{name} must be {'>' if strict else '>='} {low}, got {v}")
     return v
+
+
+@functools.lru_cache(maxsize=512)
+def written_for(cls: type, method: str, reference: str) -> bool:
+    """Whether class ``cls``'s ``method`` was written for its ``reference`` method: the class
+    defining ``method`` is the one defining ``reference`` or a subclass of it (a subclass
+    that overrides ``reference`` alone inherits a ``method`` that no longer describes it)."""
+    mro = cls.__mro__
+    owner = next(c for c in mro if method in c.__dict__)
+    return issubclass(owner, next(c for c in mro if reference in c.__dict__))

@@ -65,15 +65,19 @@ def load_kernel(
 
 def float64_pointers(tensors: Iterable[Tensor | None]) -> tuple[list[int | None], list[Tensor]]:
     """The data pointers of ``tensors`` as contiguous float64 CPU memory for a kernel
-    (``None`` stays ``None``), and the copies made for it: keep them alive through the call."""
+    (``None`` stays ``None``), and the tensors they point into (copies where a tensor was of
+    another dtype or strided): the caller keeps that list alive through the call."""
     f64 = torch.float64
     pointers: list[int | None] = []
     held = []
     for v in tensors:
-        if v is not None and (v.dtype is not f64 or not v.is_contiguous()):
+        if v is None:
+            pointers.append(None)
+            continue
+        if v.dtype is not f64 or not v.is_contiguous():
             v = v.detach().to(f64).contiguous()
-            held.append(v)
-        pointers.append(None if v is None else v.data_ptr())
+        held.append(v)
+        pointers.append(v.data_ptr())
     return pointers, held
 
 

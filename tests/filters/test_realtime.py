@@ -529,3 +529,77 @@ def test_the_fused_call_takes_clf_rows_from_torch(
     # have asked for the CBF conditions again
     assert answered == [True, False] and calls == [1]
     _same(out, closed(x, u), 1e-9 if dtype == torch.float64 else 1e-4)
+
+
+class _Tighter(Vanilla):
+    """A subclass that changes the condition but not its affine form."""
+
+    def cbf(self, terms, alpha, dynamics, x):
+        a, b = super().cbf(terms, alpha, dynamics, x)
+        return Condition(a, b - 5.0)
+
+
+@pytest.mark.skipif(not native.available(), reason="Lie kernel not built")
+def test_a_subclass_overriding_cbf_alone_does_not_take_its_parents_affine_form(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    filt, closed = balls_scene(_Tighter()), balls_scene(_Tighter(), lie_method="analytic")
+    xs, us = balls_states(3, seed=6)
+    x, u = torch.tensor(xs), torch.tensor(us)
+    answered = _native_spy(monkeypatch)
+    with torch.no_grad():
+        for xb, ub in ((x[0], u[0]), (x, u)):
+            _same(filt(xb, ub), closed(xb, ub), 1e-10)
+    assert answered == [True, True]  # the native Lie terms, the subclass's torch condition
+
+
+@pytest.mark.skipif(not native.available(), reason="Lie kernel not built")
+@pytest.mark.parametrize("mode", ["stochastic", "risk_aware"])
+def test_a_one_entry_margin_for_several_outputs_is_refused_on_every_batch(mode: str) -> None:
+    filt = rectified_scene(mode)
+    if mode == "stochastic":
+        filt.condition = Stochastic(beta=[0.1])
+    else:
+        filt.condition = RiskAware(ref.RHO, ref.HORIZON, [0.1])
+        filt.condition.bind(filt.dynamics, list(filt.barriers), [])
+    xs, us = rectified_states(realtime.MAX_BATCH + 1, seed=12)
+    x, u = torch.tensor(xs), torch.tensor(us)
+    name = "beta" if mode == "stochastic" else "eta"
+    with torch.no_grad():
+        for count in (1, realtime.MAX_BATCH + 1):
+            with pytest.raises(ValueError, match=name):
+                filt(x[:count], u[:count])
+
+
+@pytest.mark.skipif(not native.available(), reason="Lie kernel not built")
+def test_a_horizon_that_requires_grad_keeps_its_gradient() -> None:
+    filt = rectified_scene("risk_aware")
+    xs, us = rectified_states(1, seed=13)
+    filt.condition.horizon.requires_grad_()
+    u = torch.tensor(us) + torch.tensor([[30.0, 30.0]])  # pushes into the ellipses
+    out = filt(torch.tensor(xs), u)
+    assert out.u.requires_grad
+    (grad,) = torch.autograd.grad(out.u.sum(), filt.condition.horizon)
+    assert torch.isfinite(grad)
+
+
+@pytest.mark.skipif(not native.available(), reason="Lie kernel not built")
+def test_plain_numbers_in_an_affine_form_and_a_mismatched_prepared_call() -> None:
+    filt = balls_scene("vanilla")
+    x = torch.tensor(balls_states(2, seed=14)[0])
+    args = filt.barriers, x, filt.dynamics
+    numbers = native.Affine(gain=2.0, offset=0.3, offset_scale=-1.0)
+    f64 = torch.float64
+    tensors = native.Affine(gain=torch.tensor(2.0, dtype=f64), offset=torch.tensor(0.3, dtype=f64),
+                            offset_scale=-1.0)  # fmt: skip
+    with torch.no_grad():
+        got, want = native.cbf_conditions(*args, numbers), native.cbf_conditions(*args, tensors)
+        for g, w in zip(got[:3], want[:3], strict=True):
+            torch.testing.assert_close(g, w, atol=1e-14, rtol=0)
+        call = native.condition_call(*args, numbers)
+        one = torch.zeros(1, 2, dtype=torch.float64)
+        options = dict(slack="shared", two_pass=False, cbf_weight=1e3, clf_weight=1e2,
+                       eps=1e-9, max_iter=50, slack_tol=1e-6)  # fmt: skip
+        with pytest.raises(ValueError, match="prepared condition call"):
+            realtime.solve(call, None, one, torch.eye(2, dtype=torch.float64), None, None,
+                           **options)  # fmt: skip

@@ -74,6 +74,12 @@ def _costs(n: int) -> dict[str, object]:
             DiscreteBarrierCost(balls, gamma=0.5, weight=20.0),
             BarrierCost(balls, 0.7, 0.02),
         ),
+        # a discrete-time term over other shapes between a barrier term and its own
+        "interleaved": SumCost(
+            BarrierCost(balls, 0.7, 0.02),
+            DiscreteBarrierCost(_ellipses(), gamma=0.3, weight=5.0),
+            DiscreteBarrierCost(balls, gamma=0.5, weight=20.0),
+        ),
         # one barrier under three terms: its shapes are evaluated once per step and shared
         # (the first discrete-time term in the barrier term's pass)
         "shared": SumCost(

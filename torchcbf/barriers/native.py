@@ -30,7 +30,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchcbf._native import load_kernel
+from torchcbf._checks import written_for
+from torchcbf._native import float64_pointers, load_kernel
 from torchcbf.barriers.compose import BarrierStack, Scaled, Transformed
 from torchcbf.barriers.lie import LieFunction, LieTerms, Quadric
 from torchcbf.barriers.rectify import ExponentialBarrier
@@ -92,20 +93,9 @@ class _Block(NamedTuple):
     k0: Tensor | None = None
 
 
-@functools.lru_cache(maxsize=256)
-def _describes_forward(cls: type) -> bool:
-    """Whether the :meth:`~torchcbf.barriers.LieFunction.quadric` of class ``cls`` was
-    written for its ``forward``: the class defining ``quadric`` is the one defining
-    ``forward`` or a subclass of it (a subclass of ``Ellipse`` that changes ``forward`` alone
-    is not a quadric)."""
-    mro = cls.__mro__
-    owner = next(c for c in mro if "quadric" in c.__dict__)
-    return issubclass(owner, next(c for c in mro if "forward" in c.__dict__))
-
-
 def _blocks(fn: LieFunction) -> list[_Block] | None:
     """``fn`` as the kernel's blocks (their outputs concatenated are ``fn``'s), or ``None``."""
-    quadric = fn.quadric() if _describes_forward(type(fn)) else None
+    quadric = fn.quadric() if written_for(type(fn), "quadric", "forward") else None
     if quadric is not None:
         return [_Block(quadric)]
     cls = type(fn)
@@ -184,13 +174,13 @@ def _encode(
 class Affine(NamedTuple):
     """A CBF condition ``a . u + b >= 0`` affine in the Lie terms, as the kernel evaluates
     it: ``a = L_g h`` and ``b = L_f h + dh/dt + trace_weight tr + gain_scale gain h +
-    offset_scale offset`` (``tr`` the Hessian trace; ``gain`` and ``offset`` scalars or one
-    per output ``[K]``, ``None`` for 1 and 0)."""
+    offset_scale offset`` (``tr`` the Hessian trace; ``gain`` and ``offset`` numbers, scalar
+    tensors or one per output ``[K]``, ``None`` for 1 and 0)."""
 
     trace_weight: float = 0.0
-    gain: Tensor | None = None
+    gain: Tensor | float | None = None
     gain_scale: float = 1.0
-    offset: Tensor | None = None
+    offset: Tensor | float | None = None
     offset_scale: float = 1.0
 
 
@@ -310,7 +300,6 @@ def _evaluate(
     arrays = array.array("q", meta), array.array("d", reals), array.array("Q", pointers)
     if _library().torchcbf_lie_quadrics(*(a.buffer_info()[0] for a in arrays)):  # type: ignore[union-attr]
         return None
-    del held  # the tensors the kernel read
     if x.dtype is not f64:
         outputs = tuple(None if v is None else v.to(x.dtype) for v in outputs)
     return outputs, sizes
@@ -361,32 +350,28 @@ def _arguments(
     condition: tuple[Tensor | None, Tensor | None] = (None, None)
     if affine is not None:
         trace_weight, gain, gain_scale, offset, offset_scale = affine
+        if isinstance(gain, (int, float)):  # a plain number folds into its scale
+            gain, gain_scale = None, gain_scale * gain
+        if isinstance(offset, (int, float)):
+            offset = torch.tensor(float(offset), dtype=torch.float64)
         strides = [_output_stride(v, sum(sizes)) for v in (gain, offset)]
         if None in strides:
             return None
         meta[7:9] = strides
         reals[:3] = float(trace_weight), float(gain_scale), float(offset_scale)
         condition = gain, offset
-    f64 = torch.float64
+    inputs = (x, sigma, *condition, *tensors)
     grads = torch.is_grad_enabled()
-    pointers = []
-    held = []
-    for v in (x, sigma, *condition, *tensors):
-        if v is None:
-            pointers.append(0)
-            continue
-        if (grads and v.requires_grad) or not v.is_cpu:
+    for v in inputs:
+        if v is not None and ((grads and v.requires_grad) or not v.is_cpu):
             return None
-        if v.dtype is not f64 or not v.is_contiguous():
-            v = v.detach().to(f64).contiguous()
-        held.append(v)  # some are temporaries (a product of scales, a copy)
-        pointers.append(v.data_ptr())
-    return meta, reals, pointers, held, sizes
+    pointers, held = float64_pointers(inputs)  # some are temporaries (a product of scales)
+    return meta, reals, [p or 0 for p in pointers], held, sizes
 
 
 def _output_stride(value: Tensor | None, K: int) -> int | None:
     """The kernel's stride per output of a scalar or ``[K]`` constant (``None``: neither)."""
-    if value is None or value.numel() == 1:
+    if value is None or value.dim() == 0 or (K == 1 and value.shape == (1,)):
         return 0
     return 1 if value.shape == (K,) else None
 

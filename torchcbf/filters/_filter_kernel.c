@@ -233,13 +233,13 @@ enum { LIE_LGH = 5, LIE_B = 8 };
 /*
  * torchcbf_filter_solve with the CBF conditions of quadric barriers computed first by the
  * Lie-term kernel `lie` (version `lie_version`) from its arguments lie_meta, lie_reals and
- * lie_ptrs (prepared by torchcbf/barriers/native.py, with an affine condition and the h
- * output set; the LIE_LGH and LIE_B slots are filled here with a workspace). One call per
- * control tick instead of two, and no tensors for the conditions.
- * Returns as torchcbf_filter_solve; 1 also when the Lie kernel declines or is another
- * version.
+ * lie_ptrs (prepared by torchcbf/barriers/native.py for B states and m controls, with an
+ * affine condition and the h output set; the LIE_LGH and LIE_B slots are filled here with a
+ * workspace), so no tensor holds the conditions.
+ * Returns as torchcbf_filter_solve; 1 also when the Lie kernel declines, is another version
+ * or was prepared for other sizes.
  */
-int torchcbf_filter_quadrics(void *lie, int lie_version, const int64_t *lie_meta,
+int torchcbf_filter_quadrics(lie_kernel lie, int lie_version, const int64_t *lie_meta,
                              const double *lie_reals, void **lie_ptrs, int64_t B, int m, int k,
                              int c, int slack, int two_pass, const double *a_clf,
                              const double *b_clf, const double *u_nom, const double *R,
@@ -247,11 +247,13 @@ int torchcbf_filter_quadrics(void *lie, int lie_version, const int64_t *lie_meta
                              double clf_weight, double eps, int max_iter, double slack_tol,
                              double max_condition, double *u_out, double *slack_out,
                              double *value_out, int64_t *status) {
-    if (!lie || lie_version != LIE_KERNEL_VERSION_USED || B < 1 || m < 1 || k < 1) return 1;
+    if (!lie || lie_version != LIE_KERNEL_VERSION_USED || B < 1 || m < 1 || k < 1 ||
+        lie_meta[0] != B || lie_meta[2] != m)
+        return 1;
     double *ab = malloc(sizeof(double) * (size_t)(B * k * (m + 1)));
     if (!ab) return -1;
     lie_ptrs[LIE_LGH] = ab, lie_ptrs[LIE_B] = ab + B * k * m;
-    int code = ((lie_kernel)lie)(lie_meta, lie_reals, lie_ptrs) ? 1 : 0;
+    int code = lie(lie_meta, lie_reals, lie_ptrs) ? 1 : 0;
     if (code == 0)
         code = torchcbf_filter_solve(B, m, k, c, slack, two_pass, ab, ab + B * k * m, a_clf,
                                      b_clf, u_nom, R, lo, hi, cbf_weight, clf_weight, eps,

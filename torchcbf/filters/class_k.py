@@ -32,7 +32,7 @@ def _gain(name: str, gain: float | Sequence[float] | Tensor) -> Tensor:
     return value
 
 
-class GainClassK(nn.Module):
+class _GainClassK(nn.Module):
     """A class-K function ``gain * phi(h)`` with a positive gain (fixed or learnable)."""
 
     def __init__(self, gain: float | Sequence[float] | Tensor = 1.0, learnable: bool = False):
@@ -60,21 +60,21 @@ class GainClassK(nn.Module):
         return f"gain={self.gain.detach().tolist()}, learnable={self.learnable}"
 
 
-class LinearClassK(GainClassK):
+class LinearClassK(_GainClassK):
     """``alpha(h) = gain * h`` (gain ``> 0``, scalar or ``[k]``; ``learnable`` optional)."""
 
     def _phi(self, h: Tensor) -> Tensor:
         return h
 
 
-class CubicClassK(GainClassK):
+class CubicClassK(_GainClassK):
     """``alpha(h) = gain * h^3``."""
 
     def _phi(self, h: Tensor) -> Tensor:
         return h**3
 
 
-class PowerClassK(GainClassK):
+class PowerClassK(_GainClassK):
     """``alpha(h) = gain * sign(h) |h|^power`` (``power > 0``; extended class-K)."""
 
     def __init__(

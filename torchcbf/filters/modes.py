@@ -17,7 +17,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor, check_last_dim
+from torchcbf._checks import as_tensor, check_last_dim, written_for
 from torchcbf.barriers.lie import LieFunction, LieTerms
 from torchcbf.barriers.native import Affine
 from torchcbf.dynamics.base import ControlAffine
@@ -115,6 +115,15 @@ class Robust(FilterMode):
 
     def clf(self, terms: LieTerms, rate: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
         return clf_condition(terms, "robust", rate, dynamics, x)
+
+
+def affine_condition(mode: FilterMode, alpha: nn.Module) -> Affine | None:
+    """``mode.affine_cbf(alpha)`` where it was written for the mode's ``cbf`` (see
+    :func:`torchcbf._checks.written_for`: a subclass of ``Vanilla`` that overrides ``cbf``
+    alone does not take its parent's affine form), else ``None``."""
+    if not written_for(type(mode), "affine_cbf", "cbf"):
+        return None
+    return mode.affine_cbf(alpha)
 
 
 def _linear_gain(alpha: nn.Module) -> Tensor | None:
@@ -307,7 +316,7 @@ class RiskAware(FilterMode):
         )
 
     def affine_cbf(self, alpha: nn.Module) -> Affine | None:
-        if self.cbf_margin is None:
+        if self.cbf_margin is None or self.horizon.requires_grad:
             return None
         rate = 1.0 / float(self.horizon)
         return Affine(trace_weight=0.5, gain_scale=rate, offset=self.cbf_margin,

@@ -122,12 +122,18 @@ def solve(
     if call is not None:
         k = sum(call.sizes)
         cbf = None
+        if call.h.shape != (B, k):
+            raise ValueError(
+                f"the prepared condition call is for h of shape {tuple(call.h.shape)}, "
+                f"u_nom has {B} rows"
+            )
     else:
         k = 0 if cbf is None else cbf[1].shape[1]
     c = 0 if clf is None else clf[1].shape[1]
     shape = (B,) if batch is None else batch
     conditions = (None, None) if cbf is None else cbf
     conditions += (None, None) if clf is None else clf
+    # `held`: the tensors the pointers read, alive through the call
     pointers, held = float64_pointers((*conditions, u_nom, R, lo, hi))
     f64 = torch.float64
     u = torch.empty(*shape, m, dtype=f64)
@@ -146,7 +152,6 @@ def solve(
         lie = native.kernel_address(), native.KERNEL_VERSION
         arrays = (a.buffer_info()[0] for a in (call.meta, call.reals, call.pointers))
         code = lib.torchcbf_filter_quadrics(*lie, *arrays, *sizes, *pointers[2:], *options)
-    del held  # the copies the kernel read
     if code < 0:
         raise MemoryError("torchcbf: the safety filter's kernel could not allocate its workspace")
     if code:

@@ -59,10 +59,10 @@ from torchcbf.barriers import native
 from torchcbf.barriers.lie import LieFunction, LieTerms, stacked_lie_derivatives
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.filters import realtime
-from torchcbf.filters.class_k import ClassKSpec, GainClassK, as_class_k
+from torchcbf.filters.class_k import ClassKSpec, _GainClassK, as_class_k
 from torchcbf.filters.conditions import as_columns, concat_terms
 from torchcbf.filters.fallback import Fallback, FallbackSpec
-from torchcbf.filters.modes import MODE_OPTIONS, FilterMode, make_mode
+from torchcbf.filters.modes import MODE_OPTIONS, FilterMode, affine_condition, make_mode
 from torchcbf.filters.qp_data import SLACK_MODES, SlackMode, assemble
 from torchcbf.qp import Status
 from torchcbf.qp import realtime as qp_realtime
@@ -482,11 +482,11 @@ class SafetyFilter(nn.Module):
             or len(alphas) != 1
             or self.lie_method != "auto"
             or x.shape[0] > realtime.MAX_BATCH
-            or not x.is_cpu  # (affine_cbf may read a number off the device)
+            or not x.is_cpu  # (an affine form may read a number off the device)
         ):
             return None
         (alpha,) = alphas
-        affine = mode.affine_cbf(alpha)
+        affine = affine_condition(mode, alpha)
         if affine is None:
             return None
         args = barriers, x, self.dynamics, affine
@@ -505,7 +505,7 @@ class SafetyFilter(nn.Module):
     def _class_k(fns: nn.ModuleList, values: Tensor, sizes: list[int], name: str) -> Tensor:
         if len(fns) == 1:
             (fn,) = fns  # iterating a ModuleList is cheaper than indexing it
-            gains = fn.gain.shape if isinstance(fn, GainClassK) else ()
+            gains = fn.gain.shape if isinstance(fn, _GainClassK) else ()
             if len(gains) == 1 and gains[0] not in (1, values.shape[-1]):
                 raise ValueError(
                     f"{name} has {gains[0]} gains for {values.shape[-1]} outputs: give one "
@@ -516,7 +516,12 @@ class SafetyFilter(nn.Module):
 
     def _conditions(
         self, x: Tensor, t: Tensor, *, prepare: bool = False
-    ) -> tuple[Any, tuple[Tensor, Tensor] | None, Tensor, Tensor]:
+    ) -> tuple[
+        tuple[Tensor, Tensor] | native.ConditionCall | None,
+        tuple[Tensor, Tensor] | None,
+        Tensor,
+        Tensor,
+    ]:
         """CBF conditions ``(a [B,k,m], b [B,k])``, CLF conditions ``(a [B,c,m], b [B,c])``
         (``None`` without functions), barrier values ``h [B,k]`` and Lyapunov values
         ``V [B,c]``. With ``prepare``, the CBF conditions may be a prepared native call

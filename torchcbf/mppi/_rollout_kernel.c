@@ -136,13 +136,17 @@ static int parse(const double *cfg, problem_t *pr) {
         if (T->shape0 < 0 || T->nshape < 0 || T->shape0 + T->nshape > pr->nshapes) return -5;
         T->pair = -1;
     }
+    /* the next discrete-time term after a barrier term, over the same shapes: its sum goes
+     * into `whole` at the barrier term's place, still the first after the earlier ones */
     for (int t = 0; t < pr->nterms; ++t) {
         term_t *T = &pr->terms[t];
-        for (int u = t + 1; u < pr->nterms && T->type == T_BARRIER && T->pair < 0; ++u) {
+        if (T->type != T_BARRIER || T->nshape == 0) continue;
+        for (int u = t + 1; u < pr->nterms; ++u) {
             term_t *D = &pr->terms[u];
-            if (D->type == T_DISCRETE_BARRIER && !D->paired && D->shape0 == T->shape0 &&
-                D->nshape == T->nshape && T->nshape > 0)
+            if (D->type != T_DISCRETE_BARRIER) continue;
+            if (!D->paired && D->shape0 == T->shape0 && D->nshape == T->nshape)
                 T->pair = u, D->paired = 1;
+            break;
         }
     }
     for (int s = 0; s < pr->nshapes; ++s, p += SREC) {

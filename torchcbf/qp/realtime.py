@@ -1,7 +1,7 @@
 """Real-time path for a few small QPs on the CPU: one call of the C kernel.
 
 Public for the layers above (the safety filter's real-time path, whose kernel links the QP
-kernel): :func:`available`, :func:`default_eps`, :func:`solve_small`, :func:`as_float64`,
+kernel): :func:`available`, :func:`default_eps`, :func:`solve_small`,
 :data:`MAX_BATCH`, :data:`MAX_DUAL_CONDITION` and :data:`KERNEL_VERSION`.
 
 A control loop solves ONE small QP per tick; there the cost of a solve is the number of
@@ -22,6 +22,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchcbf._native import float64_pointers
 from torchcbf.qp import _dual_native
 from torchcbf.qp._function import MAX_DUAL_CONDITION, dual_budget
 from torchcbf.qp._ipm import default_tolerances
@@ -35,7 +36,6 @@ __all__ = [
     "MAX_BATCH",
     "MAX_DUAL_CONDITION",
     "SmallSolution",
-    "as_float64",
     "available",
     "default_eps",
     "solve_small",
@@ -69,14 +69,6 @@ class SmallSolution(NamedTuple):
     slack: Tensor
 
 
-def as_float64(v: Tensor | None) -> Tensor | None:
-    """``v`` as a contiguous float64 tensor (itself when it is one), for a kernel that reads
-    its memory; ``None`` stays ``None``."""
-    if v is None or (v.dtype == torch.float64 and v.is_contiguous()):
-        return v
-    return v.to(torch.float64).contiguous()
-
-
 def solve_small(
     P: Tensor,
     q: Tensor,
@@ -105,7 +97,7 @@ def solve_small(
     rows = m + (N if ub is not None else 0) + (N if lb is not None else 0)
     if N > _dual_native.MAX_VARS or rows < 1:
         return None
-    held = [as_float64(v) for v in (P, q, G, h, lb, ub)]
+    pointers, held = float64_pointers((P, q, G, h, lb, ub))  # held: alive through the call
     f64 = torch.float64
     x = torch.empty(*shape, N, dtype=f64)
     z = torch.empty(*shape, m, dtype=f64)
@@ -113,7 +105,7 @@ def solve_small(
     z_ub = torch.empty(*shape, N, dtype=f64)
     iters = torch.empty(shape, dtype=torch.int64)
     code = _dual_native._kernel().torchcbf_dual_solve_small(
-        B, N, m, *[None if v is None else v.data_ptr() for v in held], eps,
+        B, N, m, *pointers, eps,
         min(dual_budget(max_iter, rows, N), 2**31 - 1), MAX_DUAL_CONDITION,
         x.data_ptr(), z.data_ptr(), z_lb.data_ptr(), z_ub.data_ptr(), iters.data_ptr(),
     )  # fmt: skip
