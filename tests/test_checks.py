@@ -8,7 +8,7 @@ import random
 import pytest
 import torch
 
-from torchcbf._checks import broadcast_shapes, check_batch_match
+from torchcbf._checks import broadcast_shapes, check_batch_match, written_for
 
 
 def test_broadcast_shapes_matches_torch_on_every_small_case():
@@ -110,3 +110,24 @@ def test_check_same_and_check_number():
     assert check_finite("v", torch.tensor([float("inf")]), allow_inf=True) is not None
     with pytest.raises(ValueError, match="v must not contain NaN or inf"):
         check_finite("v", torch.tensor([float("inf")]))
+
+
+def test_written_for_follows_the_class_that_defines_each_method() -> None:
+    class Base:
+        def forward(self): ...
+
+        def quadric(self): ...
+
+    class NewForward(Base):
+        def forward(self): ...
+
+    class Both(NewForward):
+        def quadric(self): ...
+
+    class Plain(Base):
+        pass
+
+    assert written_for(Base, "quadric", "forward")
+    assert written_for(Plain, "quadric", "forward")  # inherits both
+    assert not written_for(NewForward, "quadric", "forward")  # the inherited one is stale
+    assert written_for(Both, "quadric", "forward")
