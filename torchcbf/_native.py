@@ -63,16 +63,16 @@ def load_kernel(
     return None
 
 
-def float64_pointers(tensors: Iterable[Tensor | None]) -> tuple[list[int | None], list[Tensor]]:
-    """The data pointers of ``tensors`` as contiguous float64 CPU memory for a kernel
-    (``None`` stays ``None``), and the tensors they point into (copies where a tensor was of
-    another dtype or strided): the caller keeps that list alive through the call."""
+def float64_pointers(tensors: Iterable[Tensor | None]) -> tuple[list[int], list[Tensor]]:
+    """The data pointers of ``tensors`` as contiguous float64 CPU memory for a kernel (0, a
+    NULL pointer, for ``None``), and the tensors they point into (copies where a tensor was
+    of another dtype or strided): the caller keeps that list alive through the call."""
     f64 = torch.float64
-    pointers: list[int | None] = []
+    pointers = []
     held = []
     for v in tensors:
         if v is None:
-            pointers.append(None)
+            pointers.append(0)
             continue
         if v.dtype is not f64 or not v.is_contiguous():
             v = v.detach().to(f64).contiguous()

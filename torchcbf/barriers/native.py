@@ -366,7 +366,7 @@ def _arguments(
         if v is not None and ((grads and v.requires_grad) or not v.is_cpu):
             return None
     pointers, held = float64_pointers(inputs)  # some are temporaries (a product of scales)
-    return meta, reals, [p or 0 for p in pointers], held, sizes
+    return meta, reals, pointers, held, sizes
 
 
 def _output_stride(value: Tensor | None, K: int) -> int | None:
