@@ -66,11 +66,16 @@ def inputs_finite(x: Tensor, u: Tensor, t: Tensor) -> bool:
     """Whether the CPU tensors ``x``, ``u`` and ``t`` hold no NaN and no infinity (one kernel
     call for contiguous float64 tensors)."""
     lib = _library()
-    tensors = (x, u, t)
-    if lib is not None and all(v.dtype == torch.float64 and v.is_contiguous() for v in tensors):
-        args = [a for v in tensors for a in (v.numel(), v.data_ptr())]
-        return bool(lib.torchcbf_filter_inputs_finite(*args))
-    return all(bool(torch.isfinite(v).all()) for v in tensors)
+    f64 = torch.float64
+    if (
+        lib is not None
+        and x.dtype is f64 and u.dtype is f64 and t.dtype is f64
+        and x.is_contiguous() and u.is_contiguous() and t.is_contiguous()
+    ):  # fmt: skip
+        return bool(lib.torchcbf_filter_inputs_finite(
+            x.numel(), x.data_ptr(), u.numel(), u.data_ptr(), t.numel(), t.data_ptr()
+        ))  # fmt: skip
+    return all(bool(torch.isfinite(v).all()) for v in (x, u, t))
 
 
 class RealtimeOutput(NamedTuple):
@@ -149,9 +154,11 @@ def solve(
     if call is None:
         code = lib.torchcbf_filter_solve(*sizes, *pointers, *options)
     else:
-        lie = native.kernel_address(), native.KERNEL_VERSION
-        arrays = (a.buffer_info()[0] for a in (call.meta, call.reals, call.pointers))
-        code = lib.torchcbf_filter_quadrics(*lie, *arrays, *sizes, *pointers[2:], *options)
+        code = lib.torchcbf_filter_quadrics(
+            native.kernel_address(), native.KERNEL_VERSION, call.meta.buffer_info()[0],
+            call.reals.buffer_info()[0], call.pointers.buffer_info()[0], *sizes, *pointers[2:],
+            *options,
+        )  # fmt: skip
     if code < 0:
         raise MemoryError("torchcbf: the safety filter's kernel could not allocate its workspace")
     if code:

@@ -479,13 +479,14 @@ class SafetyFilter(nn.Module):
         barriers, alphas, mode = self.barriers, self.alpha, self.condition
         if (
             not barriers
-            or len(alphas) != 1
             or self.lie_method != "auto"
             or x.shape[0] > realtime.MAX_BATCH
             or not x.is_cpu  # (an affine form may read a number off the device)
         ):
             return None
-        (alpha,) = alphas
+        alpha, *others = alphas  # iterating a ModuleList is cheaper than its len()
+        if others:
+            return None
         affine = affine_condition(mode, alpha)
         if affine is None:
             return None
