@@ -39,6 +39,9 @@ from torchcbf.filters.conditions import Condition
 
 pytestmark = pytest.mark.skipif(not realtime.available(), reason="C kernel not built")
 
+#: a batch of a few states, as a controller of several robots filters them
+FEW = 16
+
 
 def _general(filt: SafetyFilter, x: torch.Tensor, u: torch.Tensor):
     """The general path: an input that requires grad (the real-time path carries none)."""
@@ -64,7 +67,7 @@ def _same(a, b, tol: float) -> None:
 def test_realtime_path_matches_general_path(
     mode: str, clf: bool, dtype: torch.dtype, slack: str
 ) -> None:
-    xs, us = random_states(realtime.MAX_BATCH, seed=20 + MODES.index(mode))
+    xs, us = random_states(FEW, seed=20 + MODES.index(mode))
     filt = scene(mode, dtype, clf=clf, cbf_slack=slack, fallback="brake")
     x, u = torch.tensor(xs, dtype=dtype), torch.tensor(us, dtype=dtype)
     tol = 1e-9 if dtype == torch.float64 else 1e-4
@@ -323,7 +326,7 @@ def test_native_lie_terms_give_the_torch_closed_forms_answers(
 ) -> None:
     build, states, _ = SCENES[scene_name]
     filt, closed = build(mode, dtype), build(mode, dtype, lie_method="analytic")
-    xs, us = states(realtime.MAX_BATCH, seed=60 + MODES.index(mode))
+    xs, us = states(FEW, seed=60 + MODES.index(mode))
     x, u = torch.tensor(xs, dtype=dtype), torch.tensor(us, dtype=dtype)
     answered = _native_spy(monkeypatch)
     tol = 1e-10 if dtype == torch.float64 else 1e-4
@@ -519,7 +522,7 @@ def test_the_fused_call_takes_clf_rows_from_torch(
     goal = QuadraticLyapunov(torch.tensor([3.0, -2.0]))
     filt = balls_scene("vanilla", dtype, lyapunovs=goal, cbf_slack=slack)
     closed = balls_scene("vanilla", dtype, lyapunovs=goal, cbf_slack=slack, lie_method="analytic")
-    xs, us = balls_states(realtime.MAX_BATCH, seed=8)
+    xs, us = balls_states(FEW, seed=8)
     x, u = torch.tensor(xs, dtype=dtype), torch.tensor(us, dtype=dtype)
     answered = _native_spy(monkeypatch)
     calls = _counting(monkeypatch)

@@ -24,15 +24,16 @@ Statuses (:class:`FilterStatus`) per row: ``SOLVED`` (every hard constraint met)
 (non-finite ``x``, ``u_nom`` or ``t`` in the row: fallback used; the row is sanitised
 before any computation so the other rows and the gradients are untouched).
 
-Real-time path: a few finite states on the CPU (at most
-``torchcbf.filters.realtime.MAX_BATCH``) with the default QP backend, whose conditions carry
-no gradient (grad mode off, or nothing they depend on requires grad): one call of a C kernel
-assembles the QP, solves it by the dual active-set method and computes the outputs
-(:mod:`torchcbf.filters.realtime`). A batch the kernel does not certify completely (or with
-non-finite conditions) takes the general path, so both return the same answers. On at most
-``MAX_BATCH`` states with ``lie_method="auto"``, the Lie terms of quadric barriers (and of
-their exponential CBFs) come from one C call too (:func:`torchcbf.barriers.native.lie_terms`,
-which leaves every other case to the torch closed forms and autograd).
+Real-time path: finite states on the CPU, at most ``torchcbf.filters.realtime.MAX_BATCH``,
+with the default QP backend, whose conditions carry no gradient (grad mode off, or nothing
+they depend on requires grad): one call of a C kernel assembles the QP, solves it by the dual
+active-set method and computes the outputs (:mod:`torchcbf.filters.realtime`). A batch the
+kernel does not certify completely (or with non-finite conditions) takes the general path,
+which gives the same answers (in float32, up to the general path's float32 rounding). On at
+most ``MAX_BATCH`` states with ``lie_method="auto"``, the Lie terms of quadric barriers (and
+of their exponential CBFs) come from C too (:mod:`torchcbf.barriers.native`), with the
+conditions where the mode's are affine in them (:meth:`FilterMode.affine_cbf`), in the same
+call as the QP; every other case takes the torch closed forms and autograd.
 """
 
 from __future__ import annotations
