@@ -257,11 +257,8 @@ def condition_call(
         return None
     meta, reals, pointers, held, sizes = found
     h = torch.empty(x.shape[0], sum(sizes), dtype=torch.float64)
-    pointers[2:2] = [h.data_ptr(), 0, 0, 0, 0, 0, 0]
-    return ConditionCall(
-        array.array("q", meta), array.array("d", reals), array.array("Q", pointers), h, held,
-        sizes,
-    )  # fmt: skip
+    arrays = _kernel_arrays(meta, reals, pointers, (h, None, None, None, None, None, None))
+    return ConditionCall(*arrays, h, held, sizes)
 
 
 @functools.lru_cache(maxsize=1)
@@ -296,8 +293,7 @@ def _evaluate(
         lfh = dhdt = trace = dhdx = None
         b = torch.empty(B, K, dtype=f64)
     outputs = (h, lfh, dhdt, lgh, trace, dhdx, b)
-    pointers[2:2] = [0 if v is None else v.data_ptr() for v in outputs]
-    arrays = array.array("q", meta), array.array("d", reals), array.array("Q", pointers)
+    arrays = _kernel_arrays(meta, reals, pointers, outputs)
     if _library().torchcbf_lie_quadrics(*(a.buffer_info()[0] for a in arrays)):  # type: ignore[union-attr]
         return None
     if x.dtype is not f64:
@@ -367,6 +363,18 @@ def _arguments(
             return None
     pointers, held = float64_pointers(inputs)  # some are temporaries (a product of scales)
     return meta, reals, pointers, held, sizes
+
+
+def _kernel_arrays(
+    meta: list[int],
+    reals: list[float],
+    pointers: list[int],
+    outputs: tuple[Tensor | None, ...],
+) -> tuple[array.array, array.array, array.array]:
+    """The kernel's three argument arrays, with the seven ``outputs`` (``h, lfh, dhdt, lgh,
+    hess_trace, dhdx, b``; ``None``: not written) put into the pointers at index 2."""
+    pointers[2:2] = [0 if v is None else v.data_ptr() for v in outputs]
+    return array.array("q", meta), array.array("d", reals), array.array("Q", pointers)
 
 
 def _output_stride(value: Tensor | None, K: int) -> int | None:

@@ -455,7 +455,7 @@ class SafetyFilter(nn.Module):
         if not fns:
             return None, []
         hessian = self.condition.needs_hessian
-        if self.lie_method == "auto" and x.shape[0] <= realtime.MAX_BATCH:
+        if self._native_applies(x):
             found = native.lie_terms(fns, x, self.dynamics, hessian=hessian)
             if found is not None:
                 return found
@@ -478,12 +478,8 @@ class SafetyFilter(nn.Module):
         prepared instead (:func:`~torchcbf.barriers.native.condition_call`; its ``h`` is
         written when the filter's kernel makes it). ``None`` where that does not apply."""
         barriers, alphas, mode = self.barriers, self.alpha, self.condition
-        if (
-            not barriers
-            or self.lie_method != "auto"
-            or x.shape[0] > realtime.MAX_BATCH
-            or not x.is_cpu  # (an affine form may read a number off the device)
-        ):
+        # asked first: on another device an affine form might read a number off it
+        if not barriers or not self._native_applies(x):
             return None
         alpha, *others = alphas  # iterating a ModuleList is cheaper than its len()
         if others:
@@ -497,6 +493,11 @@ class SafetyFilter(nn.Module):
             return None if call is None else (call.h, call)
         found = native.cbf_conditions(*args, hessian=mode.needs_hessian)
         return None if found is None else (found[0], found[1:3])
+
+    def _native_applies(self, x: Tensor) -> bool:
+        """Whether the native Lie terms may answer for ``x [B, n]``: ``lie_method="auto"``
+        and at most ``realtime.MAX_BATCH`` CPU states."""
+        return self.lie_method == "auto" and x.shape[0] <= realtime.MAX_BATCH and x.is_cpu
 
     def _lie_method(self, fn: LieFunction) -> str:
         if self.lie_method == "auto":
