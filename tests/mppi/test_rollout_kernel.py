@@ -87,6 +87,14 @@ def _costs(n: int) -> dict[str, object]:
             DiscreteBarrierCost(balls, gamma=0.5, weight=20.0),
             DiscreteBarrierCost(balls, gamma=0.1, weight=3.0),
         ),
+        # penalties over the first steps only (one paired with its barrier term, one alone)
+        # and over more steps than the horizon has
+        "discrete_steps": SumCost(
+            BarrierCost(balls, 0.7, 0.02),
+            DiscreteBarrierCost(balls, gamma=0.5, weight=20.0, steps=2),
+            DiscreteBarrierCost(_ellipses(), gamma=0.3, weight=5.0, steps=3),
+            DiscreteBarrierCost(rotated, gamma=0.2, weight=4.0, steps=50),
+        ),
     }
     if n >= 3:
         ball3 = Ball((1.0, 0.5, 2.0), 0.7, index=(0, 1, 2))

@@ -12,18 +12,20 @@ from torchcbf.mppi import MPPI, BarrierCost, DiscreteBarrierCost, QuadraticGoal,
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_discrete_barrier_cost_matches_a_loop(dtype: torch.dtype) -> None:
+@pytest.mark.parametrize("steps", [None, 1, 3, 5, 9])
+def test_discrete_barrier_cost_matches_a_loop(dtype: torch.dtype, steps: int | None) -> None:
     gen = torch.Generator().manual_seed(0)
     ellipses = Ellipse(
         torch.tensor([[1.0, 0.0], [0.0, 2.0]]), torch.tensor([[0.5, 1.0], [1.0, 0.3]])
     )
     ellipses = ellipses.to(dtype)
     states = torch.randn(2, 3, 6, 2, generator=gen, dtype=dtype) * 2
-    cost = DiscreteBarrierCost(ellipses, gamma=0.3, weight=7.0)(states, states[..., :5, :])
+    term = DiscreteBarrierCost(ellipses, gamma=0.3, weight=7.0, steps=steps)
+    cost = term(states, states[..., :5, :])
     expected = torch.zeros(2, 3, dtype=dtype)
     for b in range(2):
         for k in range(3):
-            for j in range(5):
+            for j in range(min(5, steps or 5)):
                 for i in range(2):
                     now = ellipses(states[b, k, j])[i]
                     nxt = ellipses(states[b, k, j + 1])[i]
@@ -42,6 +44,9 @@ def test_discrete_barrier_cost_one_output_barrier_and_errors() -> None:
             DiscreteBarrierCost(ball, gamma=bad, weight=1.0)
     with pytest.raises(ValueError, match="weight"):
         DiscreteBarrierCost(ball, gamma=0.5, weight=-1.0)
+    for bad_steps in (0, -2, 1.5, True):
+        with pytest.raises(ValueError, match="steps"):
+            DiscreteBarrierCost(ball, gamma=0.5, steps=bad_steps)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="barrier"):
         DiscreteBarrierCost(3.0, gamma=0.5, weight=1.0)  # type: ignore[arg-type]
 

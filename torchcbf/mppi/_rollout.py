@@ -30,7 +30,7 @@ from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, SingleIntegrator,
 logger = logging.getLogger(__name__)
 
 #: ``KERNEL_VERSION`` of the C source this module calls
-KERNEL_VERSION = 3
+KERNEL_VERSION = 4
 #: limits of the kernel (``NMAX``, ``MMAX``, ``DMAX``, ``TMAX``, ``SMAX`` in the C source)
 MAX_STATE, MAX_CONTROL, MAX_DIM, MAX_TERMS, MAX_SHAPES = 8, 4, 4, 16, 32
 _HDR, _TREC, _SREC = 16, 16, 20
@@ -192,7 +192,7 @@ def encode_cost(cost: object, state_dim: int) -> tuple[list[list[float]], list[l
             if kind is BarrierCost:
                 rec = _term(TERM_BARRIER, part.weight, 0.0, part.eps)
             else:
-                rec = _term(TERM_DISCRETE_BARRIER, part.weight, part.gamma, 0.0)
+                rec = _term(TERM_DISCRETE_BARRIER, part.weight, part.gamma, part.steps or 0)
             rec[14], rec[15] = shared[id(part.barrier)]
         else:
             return None

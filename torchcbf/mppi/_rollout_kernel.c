@@ -25,7 +25,7 @@
 
 /* Bumped whenever an exported signature or the meaning of the configuration changes;
  * _rollout.py refuses a built library of another version. */
-#define KERNEL_VERSION 3
+#define KERNEL_VERSION 4
 
 #define LANES 64
 #define NMAX 8
@@ -64,13 +64,15 @@ enum { S_ELLIPSE = 0, S_BALL = 1 };
  *   header  [0..HDR): version, model, integrator, n, m, H, K, dim, zero_noise, has_lo,
  *                     has_hi, nterms, nshapes, dt, gamma, (pad)
  *   then lo[MMAX], hi[MMAX], chol[MMAX*MMAX], ctrl-cost on/off is gamma > 0
- *   then nterms records of TREC doubles and nshapes records of SREC doubles. */
+ *   then nterms records of TREC doubles and nshapes records of SREC doubles. A term's
+ *   record: type, weight, extra, eps (for a discrete-time barrier term: the number of steps
+ *   it penalises, 0 for every step), d, idx[DMAX], center[DMAX], radius, shape0, nshape. */
 #define HDR 16
 #define TREC 16
 #define SREC 20
 
 typedef struct {
-    int type, d, idx[DMAX], shape0, nshape;
+    int type, d, idx[DMAX], shape0, nshape, steps;
     double weight, extra, eps, radius, center[DMAX];
     /* derived by parse(): a barrier term's discrete-time term over the same shapes (-1:
      * none), evaluated in the barrier term's loop; `paired` marks that discrete term */
@@ -135,6 +137,10 @@ static int parse(const double *cfg, problem_t *pr) {
         T->nshape = (int)p[15];
         if (T->shape0 < 0 || T->nshape < 0 || T->shape0 + T->nshape > pr->nshapes) return -5;
         T->pair = -1;
+        if (T->type == T_DISCRETE_BARRIER) {
+            if (p[3] < 0) return -5;
+            T->steps = p[3] == 0 || p[3] > pr->H ? pr->H : (int)p[3];
+        }
     }
     /* the next discrete-time term after a barrier term, over the same shapes: its sum goes
      * into `whole` at the barrier term's place, still the first after the earlier ones */

@@ -125,16 +125,19 @@ INL void SUFFIX(sq_dist)(const term_t *T, REAL (*x)[LANES], REAL *s) {
 /* Stage (and, on the last step, terminal) terms at the state x after step j. stage,
  * terminal and whole accumulate the three parts of the total in the order of SumCost. Each
  * shape is evaluated once per step into hcur (terms over the same barrier share its
- * records); the discrete-time barrier terms read the previous step's values in hprev. The
- * caller alternates the two buffers, so this step's hcur is the next step's hprev. */
-INL void SUFFIX(costs)(const problem_t *pr, REAL (*x)[LANES], int last, REAL *stage,
+ * records); the discrete-time barrier terms read the previous step's values in hprev (and
+ * stop after their `steps`). The caller alternates the two buffers, so this step's hcur is
+ * the next step's hprev. */
+INL void SUFFIX(costs)(const problem_t *pr, REAL (*x)[LANES], int j, REAL *stage,
                        REAL *terminal, REAL *whole, REAL (*hprev)[LANES],
                        REAL (*hcur)[LANES]) {
     REAL st[LANES], tmp[LANES], h[LANES], pen[LANES];
     unsigned char have[SMAX] = {0};
+    const int last = j == pr->H - 1;
     int first = 1;
     for (int t = 0; t < pr->nterms; ++t) {
         const term_t *T = &pr->terms[t];
+        if (T->type == T_DISCRETE_BARRIER && j >= T->steps) continue; /* past its steps */
         if (T->type == T_DISCRETE_BARRIER || T->type == T_BARRIER)
             for (int s = T->shape0; s < T->shape0 + T->nshape; ++s) {
                 if (!have[s]) SUFFIX(shape_h)(&pr->shapes[s], x, hcur[s]);
@@ -167,7 +170,8 @@ INL void SUFFIX(costs)(const problem_t *pr, REAL (*x)[LANES], int last, REAL *st
                 REAL dist = SQRT(h[l]) - r;
                 tmp[l] = ko / (dist < e ? e : dist);
             }
-        } else if (T->pair < 0) { /* T_BARRIER: sum over the barrier's outputs */
+        } else if (T->pair < 0 || j >= pr->terms[T->pair].steps) {
+            /* T_BARRIER: sum over the barrier's outputs */
             const REAL w = (REAL)T->weight, e = (REAL)T->eps;
             for (int s = 0; s < T->nshape; ++s) {
                 const REAL *hc = hcur[T->shape0 + s];
@@ -325,7 +329,7 @@ CLONES static void SUFFIX(block)(const problem_t *pr, const REAL *x0, const REAL
         if (states != NULL)
             SUFFIX(store)(states, X, n, H + 1, j + 1, count, cmajor, b, pr->K, kk[0], p0);
         if (cost != NULL && pr->nterms > 0)
-            SUFFIX(costs)(pr, X, j == H - 1, stage, terminal, whole, hring[j & 1],
+            SUFFIX(costs)(pr, X, j, stage, terminal, whole, hring[j & 1],
                           hring[(j + 1) & 1]);
     }
     if (cost != NULL) {

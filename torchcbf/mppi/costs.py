@@ -187,7 +187,8 @@ class DiscreteBarrierCost(nn.Module):
     """Penalty on the discrete-time CBF condition ``b(x_{k+1}) >= (1 - gamma) b(x_k)``.
 
     ``weight * sum_k sum_i relu((1 - gamma) b_i(x_k) - b_i(x_{k+1}))`` over the steps
-    ``k = 0..H-1`` of each rollout (``x_0`` the current state) and the outputs ``i`` of a
+    ``k = 0..S-1`` of each rollout (``x_0`` the current state; ``S`` is ``steps``, or the
+    horizon ``H``) and the outputs ``i`` of a
     multi-output barrier: zero for a rollout that keeps the condition, growing linearly with
     each violation (the default weight makes it steep). The condition lets ``b`` decay at most
     geometrically towards the boundary; with ``gamma = k dt`` it is the one-step form of
@@ -204,9 +205,13 @@ class DiscreteBarrierCost(nn.Module):
             many dimensions as the input is taken as ``k`` outputs).
         gamma: decay per step, ``0 < gamma <= 1``.
         weight: penalty weight, ``>= 0``.
+        steps: penalise only the first ``steps`` steps of each rollout (the part of the plan
+            the filter meets before the next replans); ``None``: every step.
     """
 
-    def __init__(self, barrier: Terminal, *, gamma: float, weight: float = 1e3) -> None:
+    def __init__(
+        self, barrier: Terminal, *, gamma: float, weight: float = 1e3, steps: int | None = None
+    ) -> None:
         super().__init__()
         if not callable(barrier):
             raise TypeError(f"barrier must be callable, got {type(barrier).__name__}")
@@ -214,10 +219,16 @@ class DiscreteBarrierCost(nn.Module):
             raise ValueError(f"gamma must be in (0, 1], got {gamma!r}")
         if not isinstance(weight, (int, float)) or not weight >= 0.0:
             raise ValueError(f"weight must be >= 0, got {weight!r}")
+        if steps is not None and (
+            isinstance(steps, bool) or not isinstance(steps, int) or steps < 1
+        ):
+            raise ValueError(f"steps must be a positive int or None, got {steps!r}")
         self.barrier = barrier
-        self.gamma, self.weight = float(gamma), float(weight)
+        self.gamma, self.weight, self.steps = float(gamma), float(weight), steps
 
     def forward(self, states: Tensor, controls: Tensor, t0: Tensor | None = None) -> Tensor:
+        if self.steps is not None:
+            states = states[..., : self.steps + 1, :]
         h = self.barrier(states)
         if h.dim() < states.dim():
             h = h.unsqueeze(-1)
