@@ -11,7 +11,10 @@ never the evaluation seeds 0-31) at a reduced MPPI size, and the rule below pick
    largest);
 3. then the most goals reached by the planner-based methods;
 4. then the larger margins (equilibrium, goal wall, blocking ellipse), then the smaller
-   alpha (a gentler filter).
+   alpha (a gentler filter);
+5. then the fewer rollout steps under the shield's discrete-time CBF penalty
+   (``--shield-steps``; a cheaper planner). ``scbf`` and ``mppi_scbf`` run once per filter
+   point, and their rows count for every value.
 
 Re-applied to the tables of the earlier sweeps (``--rows``), this rule picks the points the
 earlier rule picked.
@@ -25,6 +28,9 @@ Usage::
     python scripts/tune_scenario_b.py --alpha 50 --margin 0.25 --limit 40 \
         --goal-wall-margin 0.4 --blocking-margin none,0.275,0.3,0.325 --seeds 960 \
         --scbf-seeds 8192 --first-seed 80000 --out out/blocking
+    python scripts/tune_scenario_b.py --alpha 50 --margin 0.25 --limit 40 \
+        --goal-wall-margin 0.4 --blocking-margin 0.3 --shield-steps all,1,10,20 \
+        --seeds 480 --first-seed 300000 --out out/shield
 
 Writes ``tuning.csv`` and ``tuning.md`` (the table) to ``--out`` and prints the choice.
 """
@@ -35,6 +41,7 @@ import argparse
 import csv
 import itertools
 import json
+import math
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -56,13 +63,20 @@ def _optional_floats(text: str) -> list[float | None]:
     return [None if v.strip() == "none" else float(v) for v in text.split(",") if v.strip()]
 
 
-Job = tuple[str, float, float, float | None, float | None, float | None, int, int, int, int]
+def _steps(text: str) -> list[int | None]:
+    """Comma-separated step counts, ``all`` for ``None`` (the whole horizon)."""
+    return [None if v.strip() == "all" else int(v) for v in text.split(",") if v.strip()]
+
+
+Job = tuple[
+    str, float, float, float | None, float | None, float | None, int | None, int, int, int, int
+]
 
 
 def run_point(job: Job) -> dict[str, object]:
-    """One (method, alpha, margin, goal-wall margin, blocking margin, control limit) over the
-    tuning seeds: counts, wall time."""
-    method, alpha, margin, wall, blocking, limit, seeds, first, samples, horizon = job
+    """One (method, alpha, margin, goal-wall margin, blocking margin, control limit, shield
+    steps) over the tuning seeds: counts, wall time."""
+    method, alpha, margin, wall, blocking, limit, steps, seeds, first, samples, horizon = job
     torch.set_num_threads(1)
     start = time.perf_counter()
     scenario = mppi_cbf(
@@ -76,6 +90,7 @@ def run_point(job: Job) -> dict[str, object]:
         goal_wall_margin=margin if wall is None else wall,
         blocking_margin=margin if blocking is None else blocking,
         control_limit=limit,
+        shield_steps=steps,
     )
     _, per_seed = scenario.run(progress=False)
     s = summarize(per_seed)
@@ -86,6 +101,7 @@ def run_point(job: Job) -> dict[str, object]:
         "goal_wall_margin": "none" if wall is None else wall,
         "blocking_margin": "none" if blocking is None else blocking,
         "control_limit": "none" if limit is None else limit,
+        "shield_steps": "all" if steps is None else steps,
         "seeds": seeds,
         "collisions": s["collision"]["count"],
         "goals": s["goal_reached"]["count"],
@@ -96,7 +112,7 @@ def run_point(job: Job) -> dict[str, object]:
     }
 
 
-Point = tuple[float, float, float, float, str]
+Point = tuple[float, float, float, float, str, str]
 TARGET_GOAL_RATE = 30 / 32
 
 
@@ -107,9 +123,9 @@ def _own_margin(r: dict[str, object], column: str) -> float:
 
 
 def choose(rows: list[dict[str, object]]) -> Point | None:
-    """The grid point ``(alpha, margin, goal-wall margin, blocking margin, control limit)``
-    picked by the module docstring's rule (``None`` without rows)."""
-    points: dict[Point, list[dict[str, object]]] = {}
+    """The grid point ``(alpha, margin, goal-wall margin, blocking margin, control limit,
+    shield steps)`` picked by the module docstring's rule (``None`` without rows)."""
+    by_filter: dict[tuple[float, float, float, float, str], list[dict[str, object]]] = {}
     for r in rows:
         key = (
             float(r["alpha"]),
@@ -118,7 +134,16 @@ def choose(rows: list[dict[str, object]]) -> Point | None:
             _own_margin(r, "blocking_margin"),
             str(r.get("control_limit", "none")),
         )
-        points.setdefault(key, []).append(r)
+        by_filter.setdefault(key, []).append(r)
+    points: dict[Point, list[dict[str, object]]] = {}
+    for key, group in by_filter.items():
+        others = [r for r in group if r["method"] != "shield_mppi"]
+        shields: dict[str, list[dict[str, object]]] = {}
+        for r in group:
+            if r["method"] == "shield_mppi":
+                shields.setdefault(str(r.get("shield_steps", "all")), []).append(r)
+        for steps, shield in (shields or {"all": []}).items():
+            points[(*key, steps)] = others + shield
 
     def planners(point: Point) -> list[dict[str, object]]:
         return [r for r in points[point] if r["method"] != "scbf"]
@@ -141,8 +166,13 @@ def choose(rows: list[dict[str, object]]) -> Point | None:
             p[2],
             p[3],
             -p[0],
+            -_step_count(p[5]),
         ),
     )
+
+
+def _step_count(steps: str) -> float:
+    return math.inf if steps == "all" else float(steps)
 
 
 def write_table(rows: list[dict[str, object]], out: Path) -> str:
@@ -153,8 +183,8 @@ def write_table(rows: list[dict[str, object]], out: Path) -> str:
         writer.writerows(rows)
     lines = [
         "| alpha | margin [m] | goal-wall margin [m] | blocking margin [m] | control limit "
-        "| method | collisions | goal by 5 s | min b | mean t_goal [s] |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| shield steps | method | collisions | goal by 5 s | min b | mean t_goal [s] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         t_goal = r["t_goal_mean"]
@@ -163,6 +193,7 @@ def write_table(rows: list[dict[str, object]], out: Path) -> str:
             f"| {float(r['alpha']):g} | {float(r['margin']):g} "
             f"| {_own_margin(r, 'goal_wall_margin'):g} | {_own_margin(r, 'blocking_margin'):g} "
             f"| {r.get('control_limit', 'none')} "
+            f"| {r.get('shield_steps', 'all') if r['method'] == 'shield_mppi' else '-'} "
             f"| {r['method']} "
             f"| {r['collisions']}/{r['seeds']} | {r['goals']}/{r['seeds']} "
             f"| {float(r['min_b']):.3f} | {t_goal} |"
@@ -172,7 +203,8 @@ def write_table(rows: list[dict[str, object]], out: Path) -> str:
         "chosen: nothing (no rows)"
         if choice is None
         else f"chosen: alpha = {choice[0]:g}, margin = {choice[1]:g} m, goal-wall margin "
-        f"{choice[2]:g} m, blocking margin {choice[3]:g} m, control limit {choice[4]}"
+        f"{choice[2]:g} m, blocking margin {choice[3]:g} m, control limit {choice[4]}, "
+        f"shield steps {choice[5]}"
     )
     (out / "tuning.md").write_text("\n".join([*lines, "", verdict]) + "\n")
     return verdict
@@ -194,6 +226,11 @@ def main() -> None:
     )
     parser.add_argument(
         "--limit", default="none", help="bounds on |a| and |omega| ('none': unbounded)"
+    )
+    parser.add_argument(
+        "--shield-steps",
+        default="all",
+        help="rollout steps of the shield's penalty ('all': the horizon)",
     )
     parser.add_argument("--methods", default=",".join(FILTERED))
     parser.add_argument("--seeds", type=int, default=16, help="tuning seeds per grid point")
@@ -224,6 +261,7 @@ def main() -> None:
         args.methods.split(","),
     )
     scbf_seeds = args.seeds if args.scbf_seeds is None else args.scbf_seeds
+    shield_steps = _steps(args.shield_steps)
     jobs: list[Job] = [
         (
             m,
@@ -232,12 +270,14 @@ def main() -> None:
             w,
             blk,
             lim,
+            steps,
             scbf_seeds if m == "scbf" else args.seeds,
             args.first_seed,
             args.samples,
             args.horizon,
         )  # fmt: skip
         for a, g, w, blk, lim, m in grid
+        for steps in (shield_steps if m == "shield_mppi" else [None])
     ]
     with ProcessPoolExecutor(args.workers) as pool:
         rows = []

@@ -224,6 +224,22 @@ def test_mppi_cbf_rejects_bad_barrier_scale(bad) -> None:
         mppi_cbf("scbf", num_seeds=1, barrier_scale=bad)
 
 
+def test_mppi_cbf_shield_penalty_steps() -> None:
+    from torchcbf.mppi import DiscreteBarrierCost
+
+    def penalty(scenario) -> DiscreteBarrierCost:
+        terms = scenario.planner.planner.cost.terms
+        return next(t for t in terms if isinstance(t, DiscreteBarrierCost))
+
+    default = mppi_cbf("shield_mppi", num_seeds=1, num_samples=64)
+    assert penalty(default).steps == default.params["shield_steps"]
+    five = mppi_cbf("shield_mppi", num_seeds=1, num_samples=64, shield_steps=5)
+    assert penalty(five).steps == 5 and five.params["shield_steps"] == 5
+    for bad in (0, -1, 2.5, True):
+        with pytest.raises(ValueError, match="shield_steps"):
+            mppi_cbf("shield_mppi", num_seeds=1, shield_steps=bad)
+
+
 def test_mppi_cbf_rejects_unknown_method() -> None:
     with pytest.raises(ValueError, match="method must be one of"):
         mppi_cbf("cbf")

@@ -97,6 +97,7 @@ class FilterParams:
         risk_horizon: ``T`` (s) of the risk-aware condition; ``None`` chooses it (see
             :func:`risk_horizon`).
         shield_weight: weight of the shield's discrete-time CBF penalty.
+        shield_steps: rollout steps the shield's penalty covers (``None``: the horizon).
     """
 
     form: str = "exponential"
@@ -111,6 +112,7 @@ class FilterParams:
     rho: float = 0.05
     risk_horizon: float | None = None
     shield_weight: float = 1e3
+    shield_steps: int | None = None
 
 
 CONFIG_PARAMS: dict[str, FilterParams] = {
@@ -174,6 +176,7 @@ def mppi_cbf(
     rho: float | None = None,
     risk_horizon: float | None = None,
     shield_weight: float | None = None,
+    shield_steps: int | None = None,
     noise_sigma: float = 4.0,
     cost_normalization: str = "none",
     zero_noise_samples: int = 0,
@@ -190,8 +193,8 @@ def mppi_cbf(
         planner_every: replan every this many loop steps (2: once per rollout step of
             0.02 s); between replans the loop follows the plan.
         alpha, beta, rectify_gain, margin, goal_wall_margin, blocking_margin, control_weight,
-            control_limit, rho, risk_horizon, shield_weight: override the configuration's value
-            (:class:`FilterParams`).
+            control_limit, rho, risk_horizon, shield_weight, shield_steps: override the
+            configuration's value (:class:`FilterParams`).
         barrier_scale: the scales ``c_i`` of the exponential form (one number or five),
             overriding the ones ``margin`` sets.
         noise_sigma, cost_normalization, zero_noise_samples, shift_fill: MPPI's (the noise
@@ -219,6 +222,10 @@ def mppi_cbf(
     for name, value in overrides.items():
         if value is not None:
             params = replace(params, **{name: _positive(name, value)})
+    if shield_steps is not None:
+        if isinstance(shield_steps, bool) or not isinstance(shield_steps, int) or shield_steps < 1:
+            raise ValueError(f"shield_steps must be a positive int, got {shield_steps!r}")
+        params = replace(params, shield_steps=shield_steps)
     if control_weight is not None:
         params = replace(params, control_weight=_pair("control_weight", control_weight))
     if control_limit is not None:
@@ -242,7 +249,11 @@ def mppi_cbf(
         if method == "shield_mppi":
             # the discrete-time form of h_e >= 0 (b' >= -k b) over one rollout step
             gamma = min(params.rectify_gain * ROLLOUT_DT, 1.0)
-            terms.append(DiscreteBarrierCost(ellipses, gamma=gamma, weight=params.shield_weight))
+            terms.append(
+                DiscreteBarrierCost(
+                    ellipses, gamma=gamma, weight=params.shield_weight, steps=params.shield_steps
+                )
+            )
             record["shield_gamma"] = gamma
         planner = MPPI(
             nominal_model,
