@@ -9,7 +9,8 @@ Methods (:data:`METHODS`), each run over a batch of noise seeds:
 - ``"mppi_rascbf"``: MPPI filtered by the risk-aware stochastic CBF (probability ``rho`` of
   leaving the rectified safe set within the horizon ``T``);
 - ``"shield_mppi"``: a barrier-aware MPPI (:class:`~torchcbf.mppi.ShieldMPPI`): its rollouts
-  pay a steep penalty for breaking the discrete-time CBF condition of the obstacles, and
+  pay a steep penalty for breaking the discrete-time CBF condition of the obstacles over
+  their first ``shield_steps`` steps, and
   the control the filter actually applies is written back into the plan, so planner and
   filter stop pulling apart.
 
@@ -97,7 +98,8 @@ class FilterParams:
         risk_horizon: ``T`` (s) of the risk-aware condition; ``None`` chooses it (see
             :func:`risk_horizon`).
         shield_weight: weight of the shield's discrete-time CBF penalty.
-        shield_steps: rollout steps the shield's penalty covers (``None``: the horizon).
+        shield_steps: rollout steps the shield's penalty covers (``None``: the horizon; 10
+            by the sweep of docs/scenarios.md).
     """
 
     form: str = "exponential"
@@ -112,7 +114,7 @@ class FilterParams:
     rho: float = 0.05
     risk_horizon: float | None = None
     shield_weight: float = 1e3
-    shield_steps: int | None = None
+    shield_steps: int | None = 10
 
 
 CONFIG_PARAMS: dict[str, FilterParams] = {
