@@ -163,6 +163,43 @@ def test_fused_equals_torch_cost(model, integrator, dtype):
         torch.testing.assert_close(states, torch.stack(ref, 2), **tol)
 
 
+@pytest.mark.parametrize("model", ["single", "unicycle", "accel"])
+@pytest.mark.parametrize("steps", [1, 3, 7])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_fused_penalty_window_equals_torch(model, steps, dtype):
+    """Discrete-time penalties over the first steps (H = 7): one paired with its barrier
+    term, one alone with another window, against torch on the same samples. The penalties
+    differ between neighbouring windows on these rollouts, so an off-by-one would show."""
+    dyn = MODELS[model]()
+    balls = Ball(torch.tensor([[1.0, 1.0], [2.5, 3.0]]), torch.tensor([0.5, 0.8]))
+
+    def cost_with(s: int, s_alone: int) -> SumCost:
+        return SumCost(
+            BarrierCost(balls, 0.7, 0.02),
+            DiscreteBarrierCost(balls, gamma=0.02, weight=20.0, steps=s),
+            DiscreteBarrierCost(_ellipses(), gamma=0.02, weight=5.0, steps=s_alone),
+        )
+
+    alone = 8 - steps
+    fused, reference, capture, x = _pair(dyn, cost_with(steps, alone), dtype)
+    tol = dict(rtol=1e-12, atol=1e-12) if dtype == torch.float64 else dict(rtol=1e-5, atol=1e-5)
+    for shift in (True, False):
+        a, b = fused(x, shift=shift), reference(x, shift=shift)
+        assert fused.path == "fused" and reference.path == "rollout"
+        for field in ("plan", "cost_min", "cost_mean", "best_states"):
+            torch.testing.assert_close(getattr(a, field), getattr(b, field), **tol, msg=field)
+    states, controls = capture.seen["states"], capture.seen["controls"]
+    here = cost_with(steps, alone)(states, controls, None)
+    for s, s_alone in (
+        (steps - 1, alone),
+        (steps + 1, alone),
+        (steps, alone - 1),
+        (steps, alone + 1),
+    ):
+        if 1 <= s <= 7 and 1 <= s_alone <= 7:
+            assert not torch.equal(cost_with(s, s_alone)(states, controls, None), here)
+
+
 def test_update_matches_direct_formula():
     """The update of both kernel paths (fused cost; rollouts for a torch cost, the control
     cost added by the kernel) against the MPPI formulas on the kernel's own noise

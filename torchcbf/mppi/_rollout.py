@@ -192,7 +192,8 @@ def encode_cost(cost: object, state_dim: int) -> tuple[list[list[float]], list[l
             if kind is BarrierCost:
                 rec = _term(TERM_BARRIER, part.weight, 0.0, part.eps)
             else:
-                rec = _term(TERM_DISCRETE_BARRIER, part.weight, part.gamma, part.steps or 0)
+                steps = -1 if part.steps is None else part.steps
+                rec = _term(TERM_DISCRETE_BARRIER, part.weight, part.gamma, steps)
             rec[14], rec[15] = shared[id(part.barrier)]
         else:
             return None

@@ -66,7 +66,7 @@ enum { S_ELLIPSE = 0, S_BALL = 1 };
  *   then lo[MMAX], hi[MMAX], chol[MMAX*MMAX], ctrl-cost on/off is gamma > 0
  *   then nterms records of TREC doubles and nshapes records of SREC doubles. A term's
  *   record: type, weight, extra, eps (for a discrete-time barrier term: the number of steps
- *   it penalises, 0 for every step), d, idx[DMAX], center[DMAX], radius, shape0, nshape. */
+ *   it penalises, -1 for every step), d, idx[DMAX], center[DMAX], radius, shape0, nshape. */
 #define HDR 16
 #define TREC 16
 #define SREC 20
@@ -138,8 +138,8 @@ static int parse(const double *cfg, problem_t *pr) {
         if (T->shape0 < 0 || T->nshape < 0 || T->shape0 + T->nshape > pr->nshapes) return -5;
         T->pair = -1;
         if (T->type == T_DISCRETE_BARRIER) {
-            if (p[3] < 0) return -5;
-            T->steps = p[3] == 0 || p[3] > pr->H ? pr->H : (int)p[3];
+            if (p[3] != -1 && !(p[3] >= 0 && p[3] == floor(p[3]))) return -8;
+            T->steps = p[3] == -1 || p[3] > pr->H ? pr->H : (int)p[3];
         }
     }
     /* the next discrete-time term after a barrier term, over the same shapes: its sum goes

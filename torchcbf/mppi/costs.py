@@ -187,10 +187,10 @@ class DiscreteBarrierCost(nn.Module):
     """Penalty on the discrete-time CBF condition ``b(x_{k+1}) >= (1 - gamma) b(x_k)``.
 
     ``weight * sum_k sum_i relu((1 - gamma) b_i(x_k) - b_i(x_{k+1}))`` over the steps
-    ``k = 0..S-1`` of each rollout (``x_0`` the current state; ``S`` is ``steps``, or the
-    horizon ``H``) and the outputs ``i`` of a
-    multi-output barrier: zero for a rollout that keeps the condition, growing linearly with
-    each violation (the default weight makes it steep). The condition lets ``b`` decay at most
+    ``k = 0..S-1`` of each rollout (``x_0`` the current state; ``S`` is ``steps``, at most
+    the horizon ``H``) and the outputs ``i`` of a multi-output barrier: zero for a rollout
+    that keeps the condition, growing linearly with each violation (the default weight makes
+    it steep). The condition lets ``b`` decay at most
     geometrically towards the boundary; with ``gamma = k dt`` it is the one-step form of
     ``L_f b + k b >= 0`` (the safe set of an exponentially rectified barrier), so rollouts
     that a CBF filter would correct cost more: a planner-side counterpart of the filter.
@@ -205,8 +205,8 @@ class DiscreteBarrierCost(nn.Module):
             many dimensions as the input is taken as ``k`` outputs).
         gamma: decay per step, ``0 < gamma <= 1``.
         weight: penalty weight, ``>= 0``.
-        steps: penalise only the first ``steps`` steps of each rollout (the part of the plan
-            the filter meets before the next replans); ``None``: every step.
+        steps: penalise only the first ``steps`` steps of each rollout (``None``: every
+            step); the cost's time shrinks with it.
     """
 
     def __init__(
