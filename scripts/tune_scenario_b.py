@@ -30,7 +30,7 @@ Usage::
         --scbf-seeds 8192 --first-seed 80000 --out out/blocking
     python scripts/tune_scenario_b.py --alpha 50 --margin 0.25 --limit 40 \
         --goal-wall-margin 0.4 --blocking-margin 0.3 --shield-steps all,1,10,20 \
-        --seeds 480 --first-seed 300000 --out out/shield
+        --methods mppi_scbf,shield_mppi --seeds 960 --first-seed 300000 --out out/shield
 
 Writes ``tuning.csv`` and ``tuning.md`` (the table) to ``--out`` and prints the choice.
 """
@@ -90,7 +90,7 @@ def run_point(job: Job) -> dict[str, object]:
         goal_wall_margin=margin if wall is None else wall,
         blocking_margin=margin if blocking is None else blocking,
         control_limit=limit,
-        shield_steps=steps,
+        shield_steps=horizon if steps is None else steps,
     )
     _, per_seed = scenario.run(progress=False)
     s = summarize(per_seed)
@@ -172,6 +172,7 @@ def choose(rows: list[dict[str, object]]) -> Point | None:
 
 
 def _step_count(steps: str) -> float:
+    """A table's shield steps as a number (``all``: infinity)."""
     return math.inf if steps == "all" else float(steps)
 
 

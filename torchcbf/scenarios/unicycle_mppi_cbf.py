@@ -98,8 +98,8 @@ class FilterParams:
         risk_horizon: ``T`` (s) of the risk-aware condition; ``None`` chooses it (see
             :func:`risk_horizon`).
         shield_weight: weight of the shield's discrete-time CBF penalty.
-        shield_steps: rollout steps the shield's penalty covers (``None``: the horizon; 10
-            by the sweep of docs/scenarios.md).
+        shield_steps: rollout steps the shield's penalty covers (``None`` or at least the
+            horizon: all of them; 10 by the sweep of docs/scenarios.md).
     """
 
     form: str = "exponential"
@@ -225,9 +225,7 @@ def mppi_cbf(
         if value is not None:
             params = replace(params, **{name: _positive(name, value)})
     if shield_steps is not None:
-        if isinstance(shield_steps, bool) or not isinstance(shield_steps, int) or shield_steps < 1:
-            raise ValueError(f"shield_steps must be a positive int, got {shield_steps!r}")
-        params = replace(params, shield_steps=shield_steps)
+        params = replace(params, shield_steps=_positive_int("shield_steps", shield_steps))
     if control_weight is not None:
         params = replace(params, control_weight=_pair("control_weight", control_weight))
     if control_limit is not None:
@@ -463,6 +461,12 @@ def _positive(name: str, value: float) -> float:
     value = float(value)
     if not (value > 0 and math.isfinite(value)):
         raise ValueError(f"{name} must be a positive number, got {value!r}")
+    return value
+
+
+def _positive_int(name: str, value: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name} must be a positive int, got {value!r}")
     return value
 
 
