@@ -93,7 +93,7 @@ SHIFT_FILLS = ("zero", "last")
 NORMALIZATIONS = ("none", "range", "std")
 BACKENDS = ("auto", "torch")
 #: state elements (``B x slice x (H+1) x n``) per cost call when ``cost_chunk`` is automatic
-AUTO_CHUNK_ELEMENTS = 2**16
+AUTO_CHUNK_ELEMENTS = 2**17
 #: fewest samples per automatic slice (the inner loops of a torch cost run over a slice's
 #: samples, which are contiguous in the rollout buffers)
 MIN_CHUNK_SAMPLES = 16
