@@ -8,7 +8,7 @@ import random
 import pytest
 import torch
 
-from torchcbf._checks import broadcast_shapes, check_batch_match, written_for
+from torchcbf._checks import broadcast_shapes, check_batch_match, check_positive_int, written_for
 
 
 def test_broadcast_shapes_matches_torch_on_every_small_case():
@@ -110,6 +110,13 @@ def test_check_same_and_check_number():
     assert check_finite("v", torch.tensor([float("inf")]), allow_inf=True) is not None
     with pytest.raises(ValueError, match="v must not contain NaN or inf"):
         check_finite("v", torch.tensor([float("inf")]))
+
+
+def test_check_positive_int_takes_ints_from_one() -> None:
+    assert check_positive_int("n", 1) == 1 and check_positive_int("n", 40) == 40
+    for bad in (0, -3, 2.0, 1.5, True, None, "3"):
+        with pytest.raises(ValueError, match="n must be a positive int"):
+            check_positive_int("n", bad)
 
 
 def test_written_for_follows_the_class_that_defines_each_method() -> None:

@@ -65,6 +65,13 @@ def check_positive(name: str, value: float) -> float:
     return float(value)
 
 
+def check_positive_int(name: str, value: object) -> int:
+    """Check a Python int is >= 1 (a bool is not an int here)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name} must be a positive int, got {value!r}")
+    return value
+
+
 def check_index(name: str, index: Sequence[int], state_dim: int | None) -> tuple[int, ...]:
     """Check a tuple of state indices is valid for ``state_dim`` (if known)."""
     index = tuple(int(i) for i in index)

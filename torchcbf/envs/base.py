@@ -26,6 +26,7 @@ from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 from torch import Tensor, nn
 
+from torchcbf._checks import check_positive_int
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.envs import _noise
 
@@ -66,8 +67,7 @@ class TorchVectorEnv(gymnasium.vector.VectorEnv):
         dtype: torch.dtype = torch.float32,
         return_tensors: bool = False,
     ) -> None:
-        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
+        check_positive_int("num_envs", num_envs)
         if max_episode_steps is not None and (
             isinstance(max_episode_steps, bool)
             or not isinstance(max_episode_steps, int)

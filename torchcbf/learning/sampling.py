@@ -15,7 +15,14 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchcbf._checks import as_tensor, check_finite, check_index, check_positive, check_tensor
+from torchcbf._checks import (
+    as_tensor,
+    check_finite,
+    check_index,
+    check_positive,
+    check_positive_int,
+    check_tensor,
+)
 
 Occupancy = Callable[[Tensor], Tensor]
 
@@ -70,12 +77,6 @@ def _box(
     return lo, hi
 
 
-def _count(name: str, num: int) -> int:
-    if isinstance(num, bool) or not isinstance(num, int) or num < 1:
-        raise ValueError(f"{name} must be a positive int, got {num!r}")
-    return num
-
-
 def uniform_box(
     low: Tensor | Sequence[float],
     high: Tensor | Sequence[float],
@@ -92,7 +93,7 @@ def uniform_box(
     ``generator`` (on that device) or a new one seeded with ``seed`` (default 0).
     """
     lo, hi = _box(low, high, dtype, device)
-    num = _count("num", num)
+    num = check_positive_int("num", num)
     gen = make_generator(generator, seed, lo.device)
     r = torch.rand(num, lo.shape[0], generator=gen, device=lo.device, dtype=lo.dtype)
     return lo + (hi - lo) * r
@@ -155,8 +156,8 @@ def dilate(
     """
     radius = check_positive("radius", radius)
     index = check_index("index", index, None)
-    probes = _count("probes", probes)
-    rings = _count("rings", rings)
+    probes = check_positive_int("probes", probes)
+    rings = check_positive_int("rings", rings)
     dirs = _directions(len(index), probes)
     radii = torch.arange(1, rings + 1, dtype=torch.float64) * (radius / rings)
     offsets = (radii[:, None, None] * dirs[None]).reshape(-1, len(index))  # [R*P, d]
@@ -211,7 +212,7 @@ def sample_free(
     do not yield enough free states.
     """
     lo, hi = _box(low, high, dtype, device)
-    num = _count("num", num)
+    num = check_positive_int("num", num)
     gen = make_generator(generator, seed, lo.device)
     occ = dilate(occupied, margin, index=index) if margin > 0 else occupied
     found: list[Tensor] = []

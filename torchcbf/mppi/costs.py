@@ -18,7 +18,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor, check_finite, check_index
+from torchcbf._checks import as_tensor, check_finite, check_index, check_positive_int
 from torchcbf.mppi.history import History
 
 Stage = Callable[[Tensor, Tensor], Tensor]
@@ -219,12 +219,9 @@ class DiscreteBarrierCost(nn.Module):
             raise ValueError(f"gamma must be in (0, 1], got {gamma!r}")
         if not isinstance(weight, (int, float)) or not weight >= 0.0:
             raise ValueError(f"weight must be >= 0, got {weight!r}")
-        if steps is not None and (
-            isinstance(steps, bool) or not isinstance(steps, int) or steps < 1
-        ):
-            raise ValueError(f"steps must be a positive int or None, got {steps!r}")
         self.barrier = barrier
-        self.gamma, self.weight, self.steps = float(gamma), float(weight), steps
+        self.gamma, self.weight = float(gamma), float(weight)
+        self.steps = None if steps is None else check_positive_int("steps", steps)
 
     def forward(self, states: Tensor, controls: Tensor, t0: Tensor | None = None) -> Tensor:
         if self.steps is not None:

@@ -50,6 +50,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchcbf._checks import check_positive_int
 from torchcbf.barriers import Barrier, Ellipse, Scaled, Transformed, rectify
 from torchcbf.dynamics import AccelUnicycle
 from torchcbf.filters import FilterStatus, RiskAware, SafetyFilter, Stochastic
@@ -225,7 +226,7 @@ def mppi_cbf(
         if value is not None:
             params = replace(params, **{name: _positive(name, value)})
     if shield_steps is not None:
-        params = replace(params, shield_steps=_positive_int("shield_steps", shield_steps))
+        params = replace(params, shield_steps=check_positive_int("shield_steps", shield_steps))
     if control_weight is not None:
         params = replace(params, control_weight=_pair("control_weight", control_weight))
     if control_limit is not None:
@@ -461,12 +462,6 @@ def _positive(name: str, value: float) -> float:
     value = float(value)
     if not (value > 0 and math.isfinite(value)):
         raise ValueError(f"{name} must be a positive number, got {value!r}")
-    return value
-
-
-def _positive_int(name: str, value: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name} must be a positive int, got {value!r}")
     return value
 
 

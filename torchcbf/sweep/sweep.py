@@ -12,6 +12,7 @@ from typing import Any
 
 import torch
 
+from torchcbf._checks import check_positive_int
 from torchcbf.sweep.engines import check_engine, run_all
 from torchcbf.sweep.evaluate import evaluate
 from torchcbf.sweep.params import builder, check_keys, describe, jsonable
@@ -26,12 +27,6 @@ def configurations(grid: Mapping[str, Sequence[Any]]) -> list[dict[str, Any]]:
         if len(grid[key]) == 0:
             raise ValueError(f"grid[{key!r}] has no values")
     return [dict(zip(keys, combo, strict=True)) for combo in itertools.product(*grid.values())]
-
-
-def _check_count(name: str, value: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name} must be a positive int, got {value!r}")
-    return value
 
 
 def run_sweep(
@@ -57,8 +52,8 @@ def run_sweep(
     """
     check_keys(scenario, list(grid))
     check_engine(engine)
-    _check_count("num_seeds", num_seeds)
-    _check_count("threads", threads)
+    check_positive_int("num_seeds", num_seeds)
+    check_positive_int("threads", threads)
     configs = configurations(grid)
     make = builder(scenario)
     for params in configs:

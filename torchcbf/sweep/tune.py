@@ -22,10 +22,11 @@ from typing import Any
 
 from tqdm.auto import tqdm
 
+from torchcbf._checks import check_positive_int
 from torchcbf.sweep.engines import check_engine, ray_session, run_all
 from torchcbf.sweep.evaluate import evaluate
 from torchcbf.sweep.params import builder, builder_defaults, check_keys
-from torchcbf.sweep.sweep import _check_count, jsonable_tree, run_info, write_json, write_table
+from torchcbf.sweep.sweep import jsonable_tree, run_info, write_json, write_table
 
 TUNING_SEED = 10_000
 
@@ -204,7 +205,7 @@ def tune(
     check_keys(scenario, list(fixed))
     check_engine(engine)
     for name, value in (("trials", trials), ("num_seeds", num_seeds), ("batch", batch)):
-        _check_count(name, value)
+        check_positive_int(name, value)
     if max(seed, eval_seed) < min(seed, eval_seed) + num_seeds:
         raise ValueError(
             f"tuning seeds {seed}.. and evaluation seeds {eval_seed}.. overlap "
