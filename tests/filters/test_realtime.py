@@ -436,7 +436,9 @@ def test_affine_conditions_equal_the_modes_torch_conditions(
 
 @pytest.mark.skipif(not native.available(), reason="Lie kernel not built")
 @pytest.mark.parametrize(
-    "alpha", ["per_barrier", "cubic", "wrong_size"], ids=lambda v: v.replace("_", "-")
+    "alpha",
+    ["per_barrier", "cubic", "wrong_size", "wrong_size_per_barrier"],
+    ids=lambda v: v.replace("_", "-"),
 )
 def test_class_k_functions_the_kernel_cannot_take_use_the_torch_condition(
     alpha: str, monkeypatch: pytest.MonkeyPatch
@@ -448,14 +450,16 @@ def test_class_k_functions_the_kernel_cannot_take_use_the_torch_condition(
         "per_barrier": [LinearClassK(1.0), LinearClassK(3.0)],
         "cubic": CubicClassK(2.0),
         "wrong_size": [1.0, 2.0],
+        "wrong_size_per_barrier": [LinearClassK(1.0), LinearClassK([1.0, 2.0])],
     }[alpha]
     filt = SafetyFilter(dyn, balls, alpha=spec).double()
     closed = SafetyFilter(dyn, balls, alpha=spec, lie_method="analytic").double()
     x, u = torch.tensor([[2.5, 2.5]], dtype=torch.float64), torch.tensor([[-2.0, -2.0]])
     answered = _native_spy(monkeypatch)
     with torch.no_grad():
-        if alpha == "wrong_size":
-            with pytest.raises(ValueError, match="alpha has 2 gains for 6 outputs"):
+        if alpha.startswith("wrong_size"):
+            k = 6 if alpha == "wrong_size" else 3
+            with pytest.raises(ValueError, match=f"alpha has 2 gains for {k} outputs"):
                 filt(x, u.double())
             return
         out = filt(x, u.double())

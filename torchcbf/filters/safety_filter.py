@@ -508,14 +508,9 @@ class SafetyFilter(nn.Module):
     def _class_k(fns: nn.ModuleList, values: Tensor, sizes: list[int], name: str) -> Tensor:
         if len(fns) == 1:
             (fn,) = fns  # iterating a ModuleList is cheaper than indexing it
-            gains = fn.gain.shape if isinstance(fn, _GainClassK) else ()
-            if len(gains) == 1 and gains[0] not in (1, values.shape[-1]):
-                raise ValueError(
-                    f"{name} has {gains[0]} gains for {values.shape[-1]} outputs: give one "
-                    "gain per output, or a scalar"
-                )
-            return fn(values)
-        return torch.cat([fn(v) for fn, v in zip(fns, values.split(sizes, -1), strict=True)], -1)
+            return _apply_class_k(fn, values, name)
+        parts = zip(fns, values.split(sizes, -1), strict=True)
+        return torch.cat([_apply_class_k(fn, v, name) for fn, v in parts], -1)
 
     def _conditions(
         self, x: Tensor, t: Tensor, *, prepare: bool = False
@@ -653,6 +648,17 @@ class SafetyFilter(nn.Module):
             qp_status=torch.zeros_like(res.status),
             constraint_value=value,
         )
+
+
+def _apply_class_k(fn: nn.Module, values: Tensor, name: str) -> Tensor:
+    """``fn(values [B, k])``, after checking that a gain vector has one entry or ``k``."""
+    gains = fn.gain.shape if isinstance(fn, _GainClassK) else ()
+    if len(gains) == 1 and gains[0] not in (1, values.shape[-1]):
+        raise ValueError(
+            f"{name} has {gains[0]} gains for {values.shape[-1]} outputs: give one "
+            "gain per output, or a scalar"
+        )
+    return fn(values)
 
 
 def _carries_grad(conditions: tuple[Any, Any, Tensor, Tensor], *more: Tensor | None) -> bool:
