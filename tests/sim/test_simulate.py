@@ -155,6 +155,30 @@ def test_trajectory_round_trips(tmp_path) -> None:
     assert traj.to("cpu").u.device.type == "cpu"
     one = traj.scenario(1)
     assert torch.equal(one.x[0], traj.x[1])
+    assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # no temporary left
+
+
+class _Payload:
+    """Unpickling this object writes a file (as a crafted file could run any command)."""
+
+    def __init__(self, marker) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (open, (str(self.marker), "w"))
+
+
+def test_trajectory_load_refuses_a_crafted_pickle(tmp_path) -> None:
+    marker = tmp_path / "ran"
+    traj = simulate(SingleIntegrator(2), torch.zeros(1, 2), 2, 0.1, progress=False)
+    fields = {f: getattr(traj, f) for f in ("t", "x", "x_hat", "u_nom", "u", "h", "status")}
+    crafted = {**fields, "failed": traj.failed, "fail_step": traj.fail_step,
+               "planner": {0: _Payload(marker)}}  # fmt: skip
+    path = tmp_path / "evil.pt"
+    torch.save(crafted, path)
+    with pytest.raises(ValueError, match="tensors only"):
+        Trajectory.load(path)
+    assert not marker.exists()
 
 
 def test_metrics_against_a_loop() -> None:

@@ -2,13 +2,46 @@
 
 from __future__ import annotations
 
+import collections
 import dataclasses
+import pickle
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor
+
+from torchcbf import _io
+
+_TUPLE = "__namedtuple__"
+
+
+def _plain(value: Any) -> Any:
+    """``value`` with named tuples as tagged dicts: what ``torch.load(weights_only=True)``
+    reads back (tensors, numbers, strings, lists, tuples, dicts)."""
+    if isinstance(value, tuple) and hasattr(value, "_fields"):
+        fields = {k: _plain(v) for k, v in value._asdict().items()}
+        return {_TUPLE: type(value).__name__, "fields": fields}
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_plain(v) for v in value)
+    return value
+
+
+def _restore(value: Any) -> Any:
+    """The inverse of :func:`_plain`: tagged dicts as named tuples of the same name and fields
+    (built here, so reading a file never imports or runs code named by it)."""
+    if isinstance(value, dict):
+        if set(value) == {_TUPLE, "fields"} and isinstance(value["fields"], dict):
+            fields = {str(k): _restore(v) for k, v in value["fields"].items()}
+            kind = collections.namedtuple(str(value[_TUPLE]), list(fields))  # noqa: PYI024
+            return kind(**fields)
+        return {k: _restore(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_restore(v) for v in value]
+    return value
 
 
 @dataclass
@@ -80,14 +113,30 @@ class Trajectory:
         return {f.name: conv(getattr(self, f.name)) for f in dataclasses.fields(self)}
 
     def save(self, path: str | Path) -> None:
-        """Save with ``torch.save`` (tensors moved to the CPU)."""
-        torch.save(dataclasses.asdict(self.to("cpu")), Path(path))
+        """Save with ``torch.save`` (tensors moved to the CPU; planner snapshots as plain
+        dicts), written to a temporary name and renamed, so ``path`` is never half-written."""
+        cpu = self.to("cpu")
+        data = {f.name: _plain(getattr(cpu, f.name)) for f in dataclasses.fields(self)}
+        with _io.atomic_path(path) as tmp:
+            torch.save(data, tmp)
 
     @classmethod
     def load(cls, path: str | Path, map_location: str | torch.device = "cpu") -> Trajectory:
-        """Load a trajectory written by :meth:`save`."""
-        data = torch.load(Path(path), map_location=map_location, weights_only=False)
-        return cls(**data)
+        """Load a trajectory written by :meth:`save`. Tensors and plain containers only
+        (``torch.load(weights_only=True)``): a file holding any other Python object is refused
+        with a ValueError, never unpickled, so a file from elsewhere cannot run code.
+        Planner snapshots come back as named tuples with the fields they were saved with."""
+        try:
+            data = torch.load(Path(path), map_location=map_location, weights_only=True)
+        except pickle.UnpicklingError as error:
+            raise ValueError(
+                f"{path} is not a trajectory file of tensors only (Trajectory.save writes "
+                f"one); refused without unpickling its objects: {error}"
+            ) from None
+        names = {f.name for f in dataclasses.fields(cls)}
+        if not isinstance(data, dict) or not set(data) <= names:
+            raise ValueError(f"{path} is not a trajectory written by Trajectory.save")
+        return cls(**{k: _restore(v) for k, v in data.items()})
 
     def scenario(self, index: int) -> Trajectory:
         """Scenario ``index`` alone (batch of one)."""
