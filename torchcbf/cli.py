@@ -12,6 +12,12 @@ benchmarks.
 Every run prints its settings and a table, and writes ``metrics.json`` (strict JSON: ``null``
 where a value is undefined, e.g. the time of a goal never reached) with the settings, the
 software versions and the git commit, and the figures (PNG, GIF) to ``--out``.
+
+Every command checks its arguments, its device and its output folder before any work. A
+non-empty ``--out`` that is not this command's own run is refused unless ``--overwrite``
+(which removes the outputs of earlier torchcbf runs there); ``--resume`` continues an
+interrupted run, keeping what finished. Ctrl-C ends a run cleanly (exit code 130) with what
+finished saved, and says how to resume. Every file is written to a temporary name and renamed.
 """
 
 from __future__ import annotations
@@ -19,27 +25,42 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import shlex
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from torchcbf.sim import run_info, strict, summarize
+from torchcbf import _io
+from torchcbf.sim import Trajectory, run_info, strict, summarize
 
 # Benchmarks in the order ``torchcbf bench`` runs them (each a script of scripts/).
 BENCHES = ("bench_qp.py", "bench_barriers.py", "bench_filters.py", "bench_mppi.py")
 PAPER_SIZE_B = "torchcbf mppi-cbf --config default --seeds 32 --samples 20000 --horizon 80"
 
 
+INTERRUPTED = 130  # the exit code of a run ended by Ctrl-C (128 + SIGINT)
+
+
 def _save(fig: Any, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
-    fig.savefig(path, dpi=120, bbox_inches="tight")
-    plt.close(fig)
+    try:
+        with _io.atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=120, bbox_inches="tight")
+    finally:
+        plt.close(fig)
+    return path
+
+
+def _save_animation(make: Callable[..., Any], path: Path, *args: Any, **kwargs: Any) -> Path:
+    """``make(*args[0:1], tmp, *args[1:], **kwargs)`` writes an animation; renamed to ``path``."""
+    with _io.atomic_path(path) as tmp:
+        make(args[0], tmp, *args[1:], **kwargs)
     return path
 
 
@@ -84,33 +105,54 @@ A_HEADER = (
 )
 
 
-def _reach_avoid(args: argparse.Namespace, out: Path) -> dict[str, Any]:
+def _reach_avoid(args: argparse.Namespace, parts: _Parts) -> dict[str, Any]:
     from torchcbf.scenarios import reach_avoid
     from torchcbf.viz import animate, plot_trajectories
 
-    scenario = reach_avoid(
-        num_seeds=args.seeds,
-        num_samples=args.samples,
-        horizon=args.horizon,
-        seed=args.seed,
-        device=args.device,
-    )
+    def build(num_seeds: int) -> Any:
+        return reach_avoid(
+            num_seeds=num_seeds,
+            num_samples=args.samples,
+            horizon=args.horizon,
+            seed=args.seed,
+            device=args.device,
+        )
+
     print(
         f"\nScenario A (reach-avoid, single integrator): {args.seeds} seeds from {args.seed}, "
         f"MPPI K = {args.samples}, H = {args.horizon}, device {args.device}"
     )
-    start = time.perf_counter()
-    traj, per_seed = scenario.run(progress=args.progress)
-    seconds = time.perf_counter() - start
-    summary = summarize(per_seed)
     print(A_HEADER)
+
+    def compute() -> tuple[dict[str, Any], Any]:
+        scenario = build(args.seeds)
+        start = time.perf_counter()
+        traj, per_seed = scenario.run(progress=args.progress)
+        seconds = time.perf_counter() - start
+        entry = {
+            "settings": {
+                "seeds": args.seeds,
+                "first_seed": args.seed,
+                "num_samples": args.samples,
+                "horizon": args.horizon,
+            },
+            "units": {"min_h": "m (clearance |p - o| - r_o)", "seconds": "s"},
+            "summary": summarize(per_seed),
+            "per_seed": per_seed,
+            "seconds": seconds,
+        }
+        return entry, traj
+
+    entry, cpu = parts.unit("reach-avoid", compute)
+    summary = entry["summary"]
     print(
         f"{'reach-avoid':<14} {_rate(summary, 'spec_satisfied'):>20} "
         f"{_rate(summary, 'collision'):>20} {_num(summary['min_h']['min']):>18} "
-        f"{seconds:>9.1f}",
+        f"{entry['seconds']:>9.1f}",
         flush=True,
     )
-    cpu = traj.to("cpu")
+    scenario = build(1)  # its obstacles and goals, for the figures
+    out = parts.run.path
     figures = [
         _save(
             plot_trajectories(cpu, scenario.barriers, scenario.goals, title="reach-avoid"),
@@ -121,22 +163,41 @@ def _reach_avoid(args: argparse.Namespace, out: Path) -> dict[str, Any]:
         cpu, scenario, out / "reach_avoid", f"reach-avoid, seed {args.seed}"
     )
     if not args.no_gif:
-        figures.append(animate(cpu, out / "reach_avoid.gif", scenario.barriers, scenario.goals))
-    return {
-        "reach-avoid": {
-            "settings": {
-                "seeds": args.seeds,
-                "first_seed": args.seed,
-                "num_samples": args.samples,
-                "horizon": args.horizon,
-            },
-            "units": {"min_h": "m (clearance |p - o| - r_o)", "seconds": "s"},
-            "summary": summary,
-            "per_seed": per_seed,
-            "seconds": seconds,
-            "figures": [str(p) for p in figures],
-        }
-    }
+        figures.append(
+            _save_animation(
+                animate, out / "reach_avoid.gif", cpu, scenario.barriers, scenario.goals
+            )
+        )
+    return {"reach-avoid": {**entry, "figures": [str(p) for p in figures]}}
+
+
+class _Parts:
+    """The finished units of a scenario run (scenario A, each method of B), each saved as it
+    finishes under ``--out/.parts``: its metrics (JSON) and its trajectory
+    (:meth:`Trajectory.save`). A resumed run loads the units found there instead of running
+    them; the figures and ``metrics.json`` are always made from the saved units, so a
+    resumed run's outputs equal an uninterrupted one's."""
+
+    def __init__(self, run: Any) -> None:
+        from torchcbf.sweep.rundir import PARTS
+
+        self.run = run
+        self.folder = run.path / PARTS
+        self.folder.mkdir(exist_ok=True)
+        _io.remove_stale(self.folder)
+        self.done: list[str] = []
+
+    def unit(
+        self, name: str, compute: Callable[[], tuple[dict[str, Any], Any]]
+    ) -> tuple[dict[str, Any], Trajectory]:
+        stem = name.replace("/", "_")
+        metrics_path, traj_path = self.folder / f"{stem}.json", self.folder / f"{stem}.pt"
+        if not (self.run.resumed and metrics_path.exists() and traj_path.exists()):
+            entry, traj = compute()
+            traj.to("cpu").save(traj_path)
+            _io.write_json(metrics_path, strict(entry))  # last: its presence marks the unit done
+        self.done.append(name)
+        return json.loads(metrics_path.read_text()), Trajectory.load(traj_path)
 
 
 # -- scenario B ----------------------------------------------------------------------------
@@ -177,7 +238,7 @@ def _methods(text: str) -> list[str]:
     return names
 
 
-def _mppi_cbf(args: argparse.Namespace, out: Path) -> dict[str, Any]:
+def _mppi_cbf(args: argparse.Namespace, parts: _Parts) -> dict[str, Any]:
     from torchcbf.scenarios import mppi_cbf
     from torchcbf.scenarios.unicycle_mppi_cbf import DT, STEPS
 
@@ -191,37 +252,45 @@ def _mppi_cbf(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     print(B_HEADER, flush=True)
     results: dict[str, Any] = {}
     trajectories: dict[str, Any] = {}
-    scenario = None
-    for method in methods:
-        scenario = mppi_cbf(
+
+    def build(method: str, num_seeds: int) -> Any:
+        return mppi_cbf(
             method,
             config=args.config,
-            num_seeds=args.seeds,
+            num_seeds=num_seeds,
             num_samples=args.samples,
             horizon=args.horizon,
             seed=args.seed,
             device=args.device,
         )
-        start = time.perf_counter()
-        traj, per_seed = scenario.run(progress=args.progress)
-        seconds = time.perf_counter() - start
-        summary = summarize(per_seed)
-        print(_b_row(method, summary, scenario.steps, seconds), flush=True)
-        trajectories[method] = traj.to("cpu")
-        results[f"mppi-cbf/{args.config}/{method}"] = {
-            "params": scenario.params,
-            "units": {
-                "min_h": "ellipse value b_i (dimensionless; < 0 inside)",
-                "goal0_time": "s",
-                "goal0_final_distance": "m",
-                "seconds": "s",
-            },
-            "summary": summary,
-            "per_seed": per_seed,
-            "seconds": seconds,
-        }
-    assert scenario is not None
-    figures = _b_figures(trajectories, scenario, out, args)
+
+    for method in methods:
+
+        def compute(method: str = method) -> tuple[dict[str, Any], Any]:
+            scenario = build(method, args.seeds)
+            start = time.perf_counter()
+            traj, per_seed = scenario.run(progress=args.progress)
+            seconds = time.perf_counter() - start
+            entry = {
+                "params": scenario.params,
+                "units": {
+                    "min_h": "ellipse value b_i (dimensionless; < 0 inside)",
+                    "goal0_time": "s",
+                    "goal0_final_distance": "m",
+                    "seconds": "s",
+                },
+                "summary": summarize(per_seed),
+                "per_seed": per_seed,
+                "seconds": seconds,
+            }
+            return entry, traj
+
+        key = f"mppi-cbf/{args.config}/{method}"
+        entry, trajectories[method] = parts.unit(key, compute)
+        print(_b_row(method, entry["summary"], STEPS, entry["seconds"]), flush=True)
+        results[key] = entry
+    scenario = build(methods[-1], 1)  # its obstacles and goals, for the figures
+    figures = _b_figures(trajectories, scenario, parts.run.path, args)
     for entry in results.values():
         entry["figures"] = [str(p) for p in figures]
     return results
@@ -260,9 +329,10 @@ def _b_figures(
         figures += _rollout_figures(traj, scenario, out / f"{stem}_{method}", label, **view)
     if not args.no_gif:
         figures.append(
-            animate_methods(
-                trajectories,
+            _save_animation(
+                animate_methods,
                 out / f"{stem}.gif",
+                trajectories,
                 scenario.barriers,
                 scenario.goals,
                 title=f"scenario B, '{args.config}', seed {args.seed}",
@@ -292,8 +362,23 @@ def _scenario_options(p: argparse.ArgumentParser, seeds: int, samples: int, hori
     p.add_argument("--horizon", type=_positive_int, default=horizon, help="MPPI horizon H (steps)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     p.add_argument("--out", default="out", help="directory for metrics.json and the figures")
+    _add_output_options(p)
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     p.add_argument("--no-gif", action="store_true", help="skip the GIF animations")
+
+
+def _add_output_options(p: argparse.ArgumentParser) -> None:
+    group = p.add_mutually_exclusive_group()
+    group.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the interrupted run in --out (same arguments), keeping what finished",
+    )
+    group.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the outputs of an earlier torchcbf run in a non-empty --out",
+    )
 
 
 def _config_options(p: argparse.ArgumentParser, methods: str) -> None:
@@ -349,29 +434,73 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _resume_hint(argv: Sequence[str]) -> str:
+    """The command line that continues this run."""
+    kept = [a for a in argv if a not in ("--resume", "--overwrite")]
+    return "torchcbf " + " ".join(shlex.quote(a) for a in [*kept, "--resume"])
+
+
+def _interrupted(command: str, argv: Sequence[str], out: Path, saved: str) -> int:
+    print(
+        f"\ntorchcbf {command}: interrupted; {saved} saved in {out}. Continue with:\n  "
+        f"{_resume_hint(argv)}",
+        file=sys.stderr,
+        flush=True,
+    )
+    return INTERRUPTED
+
+
+def _scenario_settings(args: argparse.Namespace) -> dict[str, Any]:
+    names = ("seeds", "seed", "samples", "horizon", "device", "no_gif")
+    settings = {name: getattr(args, name) for name in names}
+    if args.command != "reach-avoid":
+        settings.update(config=args.config, methods=_methods(args.methods))
+    return settings
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
+    if getattr(args, "device", "cpu") == "cuda" and not torch.cuda.is_available():
+        parser.error("argument --device: cuda, but CUDA is not available on this machine")
     if args.command in ECOSYSTEM_COMMANDS:
-        return ECOSYSTEM_COMMANDS[args.command](args)
-    if args.device == "cuda" and not torch.cuda.is_available():
-        parser.error("--device cuda but CUDA is not available")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    if args.command == "reach-avoid":
-        results = _reach_avoid(args, out)
-    elif args.command == "mppi-cbf":
-        results = _mppi_cbf(args, out)
-    else:
-        demo_a = argparse.Namespace(**{**vars(args), "seeds": 4, "samples": 10_000, "horizon": 50})
-        results = {**_reach_avoid(demo_a, out), **_mppi_cbf(args, out)}
-        print(f"\nThe paper's size of scenario B (32 seeds, K = 20,000): {PAPER_SIZE_B}")
-    record = {
-        "command": " ".join(sys.argv[1:] if argv is None else argv),
-        "run": run_info(args.device),
-    }
-    text = json.dumps(strict({**record, "results": results}), indent=2, allow_nan=False)
-    (out / "metrics.json").write_text(text)
+        return ECOSYSTEM_COMMANDS[args.command](args, argv)
+    from torchcbf.sweep.rundir import OutputError, RunDir
+
+    try:
+        run = RunDir.claim(
+            args.out,
+            kind=args.command,
+            settings=_scenario_settings(args),
+            resume=args.resume,
+            overwrite=args.overwrite,
+        )
+    except OutputError as error:
+        print(f"torchcbf {args.command}: {error}", file=sys.stderr)
+        return 2
+    parts = _Parts(run)
+    try:
+        if args.command == "reach-avoid":
+            results = _reach_avoid(args, parts)
+        elif args.command == "mppi-cbf":
+            results = _mppi_cbf(args, parts)
+        else:
+            sizes = {"seeds": 4, "samples": 10_000, "horizon": 50}
+            demo_a = argparse.Namespace(**{**vars(args), **sizes})
+            results = {**_reach_avoid(demo_a, parts), **_mppi_cbf(args, parts)}
+            print(f"\nThe paper's size of scenario B (32 seeds, K = 20,000): {PAPER_SIZE_B}")
+        kept = [a for a in argv if a not in ("--resume", "--overwrite")]
+        record = {"command": " ".join(kept), "run": run_info(args.device)}
+        metrics_path = run.path / "metrics.json"
+        _io.write_json(metrics_path, strict({**record, "results": results}))
+    except KeyboardInterrupt:
+        saved = f"{len(parts.done)} finished part(s) ({', '.join(parts.done) or 'none'})"
+        return _interrupted(args.command, argv, run.path, saved)
+    figures = {Path(f).name for entry in results.values() for f in entry.get("figures", [])}
+    run.record(metrics_path, *sorted(figures))
+    run.finish()
+    out = run.path
     print(f"metrics: {out / 'metrics.json'}; figures: {out}/*.png, {out}/*.gif")
     return 0
 
@@ -445,7 +574,9 @@ def _describe_commands(sub: Any) -> None:
 
 def _add_engine_options(p: argparse.ArgumentParser, seeds: int, seed: int) -> None:
     p.add_argument("scenario", choices=["reach-avoid", "mppi-cbf"], help="scenario builder")
-    p.add_argument("--seeds", type=int, default=seeds, help="seeds per configuration (one batch)")
+    p.add_argument(
+        "--seeds", type=_positive_int, default=seeds, help="seeds per configuration (one batch)"
+    )
     p.add_argument("--seed", type=int, default=seed, help="first seed")
     p.add_argument("--engine", default="local", choices=["local", "ray"], help="where to run")
     p.add_argument(
@@ -454,11 +585,17 @@ def _add_engine_options(p: argparse.ArgumentParser, seeds: int, seed: int) -> No
         help="Ray cluster to join (default: start a local one for the run)",
     )
     p.add_argument(
-        "--num-cpus", type=int, default=None, help="CPUs of the local Ray cluster (default: all)"
+        "--num-cpus",
+        type=_positive_int,
+        default=None,
+        help="CPUs of the local Ray cluster (default: all)",
     )
-    p.add_argument("--threads", type=int, default=1, help="torch threads per configuration")
+    p.add_argument(
+        "--threads", type=_positive_int, default=1, help="torch threads per configuration"
+    )
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="torch device")
     p.add_argument("--out", default="out", help="output directory")
+    _add_output_options(p)
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
 
 
@@ -474,7 +611,7 @@ def _add_ecosystem_commands(sub: Any) -> None:
     )
     t = sub.add_parser("tune", help="Optuna search over a scenario's parameters")
     _add_engine_options(t, seeds=8, seed=10_000)
-    t.add_argument("--trials", type=int, default=20, help="Optuna trials")
+    t.add_argument("--trials", type=_positive_int, default=20, help="Optuna trials")
     t.add_argument("--eval-seed", type=int, default=0, help="first evaluation seed")
     t.add_argument(
         "--set",
@@ -487,7 +624,9 @@ def _add_ecosystem_commands(sub: Any) -> None:
         "--params", default=None, help="comma-separated dimensions to search (default: all)"
     )
     t.add_argument("--sampler-seed", type=int, default=0, help="seed of the TPE sampler")
-    t.add_argument("--batch", type=int, default=2, help="trials asked at once (parallel Ray tasks)")
+    t.add_argument(
+        "--batch", type=_positive_int, default=2, help="trials asked at once (parallel Ray tasks)"
+    )
     b = sub.add_parser("bench", help="run the benchmark scripts")
     b.add_argument("--quick", action="store_true", help="each script's short run (--quick)")
     b.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="torch device")
@@ -516,7 +655,7 @@ def _bench_scripts() -> list[Path]:
     return sorted(found.values(), key=lambda p: (order.get(p.name, len(order)), p.name))
 
 
-def _bench(args: argparse.Namespace) -> int:
+def _bench(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
     scripts = _bench_scripts()
     if args.only is not None:
         wanted = {
@@ -571,7 +710,10 @@ def _print_rows(rows: list[dict[str, Any]], keys: list[str]) -> None:
         f"{'t_goal [s]':>10} {'min barrier':>11} {'wall [s]':>8}"
     )
     for row in rows:
-        name = row.get("label") or describe({k: row[k] for k in keys}) or "defaults"
+        name = row.get("label") or describe({k: row[k] for k in keys if k in row}) or "defaults"
+        if row.get("status", "ok") != "ok":
+            print(f"{name:<36} failed: {row.get('error')}")
+            continue
         print(
             f"{name:<36} {pct(row, 'success'):>17} {pct(row, 'collision'):>19} "
             f"{num(row.get('time_to_goal_s'), '{:.2f}'):>10} "
@@ -585,35 +727,54 @@ def _engine_options(args: argparse.Namespace) -> dict[str, Any]:
     return {name: getattr(args, name) for name in names}
 
 
-def _sweep(args: argparse.Namespace) -> int:
-    from torchcbf.sweep import parse_grid, run_sweep, write_sweep
+def _check_engine(command: str, args: argparse.Namespace) -> bool:
+    if args.engine == "ray" and importlib.util.find_spec("ray") is None:
+        print(f'torchcbf {command}: --engine ray needs Ray: pip install "torchcbf[ray]"',
+              file=sys.stderr)  # fmt: skip
+        return False
+    return True
 
+
+def _sweep(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
+    from torchcbf.sweep import parse_grid, run_sweep
+    from torchcbf.sweep.sweep import JOURNAL, read_journal
+
+    if not _check_engine("sweep", args):
+        return 2
     try:
         grid = parse_grid(args.scenario, args.grid)
+    except ValueError as error:
+        print(f"torchcbf sweep: {error}", file=sys.stderr)
+        return 2
+    try:
         rows = run_sweep(
-            args.scenario, grid, num_seeds=args.seeds, seed=args.seed, **_engine_options(args)
+            args.scenario,
+            grid,
+            num_seeds=args.seeds,
+            seed=args.seed,
+            out=args.out,
+            resume=args.resume,
+            overwrite=args.overwrite,
+            **_engine_options(args),
         )
     except (ValueError, ImportError) as error:
         print(f"torchcbf sweep: {error}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        out = Path(args.out)
+        saved = f"{len(read_journal(out / JOURNAL))} finished configuration(s)"
+        return _interrupted("sweep", argv, out, saved)
     _print_rows(rows, list(grid))
-    paths = write_sweep(
-        rows,
-        grid,
-        args.out,
-        scenario=args.scenario,
-        num_seeds=args.seeds,
-        first_seed=args.seed,
-        engine=args.engine,
-        device=args.device,
-        threads=args.threads,
-    )
-    print("wrote " + ", ".join(str(p) for p in paths.values()))
+    failed = sum(row["status"] != "ok" for row in rows)
+    if failed:
+        print(f"{failed} of {len(rows)} configuration(s) failed (status and error in the table)")
+    out = Path(args.out)
+    print("wrote " + ", ".join(str(out / n) for n in ("sweep.csv", "sweep.json", "sweep.png")))
     return 0
 
 
-def _tune(args: argparse.Namespace) -> int:
-    from torchcbf.sweep import parse_value, tune, write_tune
+def _tune(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
+    from torchcbf.sweep import parse_value, tune
 
     try:
         import optuna
@@ -621,6 +782,8 @@ def _tune(args: argparse.Namespace) -> int:
         optuna.logging.set_verbosity(optuna.logging.WARNING)
     except ImportError:
         print('torchcbf tune needs Optuna: pip install "torchcbf[tune]"', file=sys.stderr)
+        return 2
+    if not _check_engine("tune", args):
         return 2
     try:
         fixed = {}
@@ -639,23 +802,37 @@ def _tune(args: argparse.Namespace) -> int:
             params=None if args.params is None else [p.strip() for p in args.params.split(",")],
             sampler_seed=args.sampler_seed,
             batch=args.batch,
+            out=args.out,
+            resume=args.resume,
+            overwrite=args.overwrite,
             **_engine_options(args),
         )
     except (ValueError, ImportError) as error:
         print(f"torchcbf tune: {error}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        return _interrupted("tune", argv, Path(args.out), "every finished trial")
     best, default = result["best"], result["default"]
-    print(f"best trial {best['trial']}: {best['arguments']}")
-    print(
-        f"objective on the tuning seeds {args.seed}..{args.seed + args.seeds - 1}: "
-        f"best {best['objective']:.4f}, default configuration {default['objective']:.4f}"
-    )
+    if result["failed_trials"]:
+        print(f"failed trials (error in study.csv): {result['failed_trials']}")
+    if best is None:
+        print("every trial failed: no best configuration")
+    else:
+        print(f"best trial {best['trial']}: {best['arguments']}")
+        print(
+            f"objective on the tuning seeds {args.seed}..{args.seed + args.seeds - 1}: "
+            f"best {best['objective']:.4f}, default configuration "
+            f"{_num(default['objective'], '{:.4f}')}"
+        )
     print(f"on the evaluation seeds {args.eval_seed}..{args.eval_seed + args.seeds - 1}:")
     evaluation = result["evaluation"]
-    labelled = [{**evaluation[k], "label": k} for k in ("best", "default")]
+    labelled = [{**evaluation[k], "label": k} for k in ("best", "default") if evaluation[k]]
     _print_rows(labelled, [])
-    paths = write_tune(result, args.out, engine=args.engine, device=args.device)
-    print("wrote " + ", ".join(str(p) for p in paths.values()))
+    out = Path(args.out)
+    print(
+        "wrote "
+        + ", ".join(str(out / n) for n in ("best.json", "study.csv", "study.png", "study.db"))
+    )
     return 0
 
 

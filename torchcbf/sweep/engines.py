@@ -1,14 +1,18 @@
 """Where configurations run: ``local`` (one after the other in this process) or ``ray``
 (one Ray task each, on a local Ray cluster started here or one joined at ``address``).
 
-Both engines call the same function with the same arguments and return the results in the
-order of the inputs; the simulation is seeded, so the numbers are the same.
+Both engines call the same function with the same arguments; the simulation is seeded, so
+the numbers are the same. :func:`run_each` hands every result over as soon as it is done,
+and a call that raises becomes a failed :class:`Outcome` carrying its error (the same text
+on both engines) while the other calls go on.
 """
 
 from __future__ import annotations
 
+import traceback
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Any
 
 from tqdm.auto import tqdm
@@ -47,6 +51,66 @@ def ray_session(address: str | None = None, num_cpus: int | None = None) -> Iter
             ray.shutdown()
 
 
+@dataclass(frozen=True)
+class Outcome:
+    """The result of one call: ``value`` when ``ok``, else ``error`` (``"Type: message"``)
+    and the ``traceback`` text."""
+
+    ok: bool
+    value: Any = None
+    error: str | None = None
+    traceback: str | None = None
+
+
+def guarded(fn: Callable[..., Any], kwargs: dict[str, Any]) -> Outcome:
+    """``fn(**kwargs)`` as an :class:`Outcome`; an ``Exception`` becomes a failed one
+    (``KeyboardInterrupt`` and ``SystemExit`` pass through)."""
+    try:
+        return Outcome(True, fn(**kwargs))
+    except Exception as error:  # noqa: BLE001 - every failure of one call is recorded
+        return Outcome(
+            False, error=f"{type(error).__name__}: {error}", traceback=traceback.format_exc()
+        )
+
+
+def run_each(
+    fn: Callable[..., Any],
+    calls: Sequence[dict[str, Any]],
+    on_result: Callable[[int, Outcome], None],
+    *,
+    engine: str = "local",
+    address: str | None = None,
+    num_cpus: int | None = None,
+    progress: bool = True,
+    desc: str = "sweep",
+) -> None:
+    """Call ``fn(**calls[i])`` for every ``i`` on ``engine`` and ``on_result(i, outcome)``
+    in this process as each finishes (input order on the local engine, completion order on
+    Ray). A call that raises, or whose Ray worker dies, is a failed outcome; the rest go on.
+    """
+    check_engine(engine)
+    if engine == "local":
+        for i, kw in enumerate(tqdm(calls, desc=desc, disable=not progress)):
+            on_result(i, guarded(fn, kw))
+        return
+    if not calls:
+        return
+    with ray_session(address, num_cpus) as ray:
+        remote = ray.remote(num_cpus=1)(guarded)
+        refs = {remote.remote(fn, kw): i for i, kw in enumerate(calls)}
+        with tqdm(total=len(refs), desc=f"{desc} (ray)", disable=not progress) as bar:
+            pending = list(refs)
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                for ref in done:
+                    try:
+                        outcome = ray.get(ref)
+                    except ray.exceptions.RayError as error:  # the task's worker died
+                        outcome = Outcome(False, error=f"{type(error).__name__}: {error}")
+                    on_result(refs[ref], outcome)
+                    bar.update(1)
+
+
 def run_all(
     fn: Callable[..., Any],
     calls: Sequence[dict[str, Any]],
@@ -57,16 +121,20 @@ def run_all(
     progress: bool = True,
     desc: str = "sweep",
 ) -> list[Any]:
-    """``[fn(**kw) for kw in calls]`` on ``engine``, in input order, with a progress bar."""
-    check_engine(engine)
-    if engine == "local":
-        return [fn(**kw) for kw in tqdm(calls, desc=desc, disable=not progress)]
-    with ray_session(address, num_cpus) as ray:
-        remote = ray.remote(num_cpus=1)(fn)
-        refs = [remote.remote(**kw) for kw in calls]
-        with tqdm(total=len(refs), desc=f"{desc} (ray)", disable=not progress) as bar:
-            pending = list(refs)
-            while pending:
-                done, pending = ray.wait(pending, num_returns=1)
-                bar.update(len(done))
-        return ray.get(refs)
+    """``[fn(**kw) for kw in calls]`` on ``engine``, in input order, with a progress bar
+    (RuntimeError naming the first failed call, after all have run)."""
+    outcomes: dict[int, Outcome] = {}
+    run_each(
+        fn,
+        calls,
+        outcomes.__setitem__,
+        engine=engine,
+        address=address,
+        num_cpus=num_cpus,
+        progress=progress,
+        desc=desc,
+    )
+    for i in range(len(calls)):
+        if not outcomes[i].ok:
+            raise RuntimeError(f"call {i} failed: {outcomes[i].error}")
+    return [outcomes[i].value for i in range(len(calls))]

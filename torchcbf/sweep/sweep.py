@@ -1,9 +1,18 @@
 """A grid over a scenario builder's keyword arguments: every configuration is one batch of
-seeds (:func:`torchcbf.sweep.evaluate.evaluate`), on the local or the Ray engine."""
+seeds (:func:`torchcbf.sweep.evaluate.evaluate`), on the local or the Ray engine.
+
+Given a run directory (``out``), a sweep records each configuration as it finishes: one line
+of the append-only ``sweep.jsonl`` (the journal), then ``sweep.json`` and ``sweep.csv``
+rewritten atomically with every row so far (``"complete": false`` until the end, when
+``sweep.png`` is drawn). ``resume=True`` reads the journal back and runs only the
+configurations it does not hold. A configuration that raises is a row with ``status``
+``"failed"`` and its ``error``; the others run on (and ``resume`` does not run it again).
+"""
 
 from __future__ import annotations
 
 import csv
+import io
 import itertools
 import json
 from collections.abc import Mapping, Sequence
@@ -12,10 +21,14 @@ from typing import Any
 
 import torch
 
+from torchcbf import _io
 from torchcbf._checks import check_positive_int
-from torchcbf.sweep.engines import check_engine, run_all
+from torchcbf.sweep.engines import Outcome, check_engine, run_each
 from torchcbf.sweep.evaluate import evaluate
 from torchcbf.sweep.params import builder, check_keys, describe, jsonable
+from torchcbf.sweep.rundir import RunDir
+
+JOURNAL = "sweep.jsonl"
 
 RATES = ("success", "collision", "goal")
 
@@ -27,6 +40,27 @@ def configurations(grid: Mapping[str, Sequence[Any]]) -> list[dict[str, Any]]:
         if len(grid[key]) == 0:
             raise ValueError(f"grid[{key!r}] has no values")
     return [dict(zip(keys, combo, strict=True)) for combo in itertools.product(*grid.values())]
+
+
+def sweep_settings(
+    scenario: str,
+    grid: Mapping[str, Sequence[Any]],
+    *,
+    num_seeds: int,
+    seed: int,
+    device: str,
+    threads: int,
+) -> dict[str, Any]:
+    """What makes two sweeps the same run (compared by ``resume``; the engine may differ,
+    its numbers are the same)."""
+    return {
+        "scenario": scenario,
+        "grid": jsonable_tree(dict(grid)),
+        "num_seeds": num_seeds,
+        "seed": seed,
+        "device": str(device),
+        "threads": threads,
+    }
 
 
 def run_sweep(
@@ -41,14 +75,21 @@ def run_sweep(
     num_cpus: int | None = None,
     threads: int = 1,
     progress: bool = True,
+    out: str | Path | RunDir | None = None,
+    resume: bool = False,
+    overwrite: bool = False,
 ) -> list[dict[str, Any]]:
     """Run every configuration of ``grid`` (``{builder keyword: [values]}``) of
     ``scenario`` on seeds ``seed .. seed + num_seeds - 1``; one row per configuration, in
-    grid order (see :func:`~torchcbf.sweep.evaluate.evaluate` for the columns).
+    grid order (see :func:`~torchcbf.sweep.evaluate.evaluate` for the columns), with
+    ``status`` ``"ok"``, or ``"failed"`` and the ``error`` of a configuration that raised.
 
     Every configuration is built once with one seed before anything runs, so a bad value
     fails at once with the builder's error. ``engine="ray"`` runs each configuration as a
     Ray task (``address``: join that cluster; otherwise a local one with ``num_cpus``).
+    ``out``: a run directory (a path, claimed with ``resume``/``overwrite`` as
+    :meth:`RunDir.claim` says, or a claimed :class:`RunDir`) where each row is written as
+    it finishes, then the table and the figure (see the module docstring).
     """
     check_keys(scenario, list(grid))
     check_engine(engine)
@@ -61,6 +102,12 @@ def run_sweep(
             make(**params, num_seeds=1, seed=seed, device=device)
         except (TypeError, ValueError) as error:
             raise ValueError(f"configuration {describe(params)}: {error}") from error
+    settings = sweep_settings(
+        scenario, grid, num_seeds=num_seeds, seed=seed, device=device, threads=threads
+    )
+    run = out
+    if out is not None and not isinstance(out, RunDir):
+        run = RunDir.claim(out, kind="sweep", settings=settings, resume=resume, overwrite=overwrite)
     calls = [
         {
             "scenario": scenario,
@@ -72,15 +119,106 @@ def run_sweep(
         }
         for params in configs
     ]
-    return run_all(
+    done: dict[int, dict[str, Any]] = {}
+    info = {
+        "scenario": scenario,
+        "num_seeds": num_seeds,
+        "first_seed": seed,
+        "engine": engine,
+        "device": device,
+        "threads": threads,
+    }
+    if run is not None:
+        done = read_journal(run.path / JOURNAL, configs)
+        _trim_journal(run.path / JOURNAL)
+
+    def finished(i: int, outcome: Outcome) -> None:
+        row = _row(configs[i], num_seeds, seed, outcome)
+        done[i] = row
+        if run is not None:
+            line = json.dumps({"index": i, "row": jsonable_tree(row)}, allow_nan=False)
+            _io.append_line(run.path / JOURNAL, line)
+            rows = [done[k] for k in sorted(done)]
+            _write_rows(rows, grid, run, complete=False, **info)
+
+    todo = [i for i in range(len(configs)) if i not in done]
+    run_each(
         evaluate,
-        calls,
+        [calls[i] for i in todo],
+        lambda j, outcome: finished(todo[j], outcome),
         engine=engine,
         address=address,
         num_cpus=num_cpus,
         progress=progress,
         desc=f"sweep {scenario}",
     )
+    rows = [done[i] for i in range(len(configs))]
+    if run is not None:
+        paths = _write_rows(rows, grid, run, complete=True, **info)
+        paths["figure"] = plot_sweep(rows, grid, run.path / "sweep.png")
+        run.record(JOURNAL, *paths.values())
+        run.finish()
+    return rows
+
+
+def _row(params: Mapping[str, Any], num_seeds: int, seed: int, outcome: Outcome) -> dict[str, Any]:
+    if outcome.ok:
+        return {**outcome.value, "status": "ok"}
+    return {
+        **{k: jsonable(v) for k, v in params.items()},
+        "num_seeds": num_seeds,
+        "first_seed": seed,
+        "status": "failed",
+        "error": outcome.error,
+    }
+
+
+def read_journal(
+    path: Path, configs: Sequence[Mapping[str, Any]] | None = None
+) -> dict[int, dict[str, Any]]:
+    """``{grid index: row}`` of the configurations a sweep's journal records as finished
+    (a last line cut by a kill is left out; with ``configs``, lines whose parameters are
+    not those of their index are too)."""
+    done: dict[int, dict[str, Any]] = {}
+    for line in _io.read_lines(path):
+        try:
+            entry = json.loads(line)
+            i, row = int(entry["index"]), dict(entry["row"])
+        except (ValueError, KeyError, TypeError):
+            continue
+        if configs is not None:
+            if not 0 <= i < len(configs):
+                continue
+            if any(row.get(k) != jsonable(v) for k, v in configs[i].items()):
+                continue
+        done[i] = row
+    return done
+
+
+def _trim_journal(path: Path) -> None:
+    """Cut a last line left incomplete by a kill, so the next line starts on its own."""
+    if not path.exists():
+        return
+    data = path.read_bytes()
+    end = data.rfind(b"\n") + 1
+    if end < len(data):
+        with path.open("r+b") as f:
+            f.truncate(end)
+
+
+def _write_rows(
+    rows: Sequence[Mapping[str, Any]],
+    grid: Mapping[str, Sequence[Any]],
+    run: RunDir,
+    *,
+    complete: bool,
+    **info: Any,
+) -> dict[str, Path]:
+    data = {"run": run_info(**info), "grid": dict(grid), "complete": complete, "rows": list(rows)}
+    return {
+        "csv": write_table(rows, run.path / "sweep.csv"),
+        "json": write_json(data, run.path / "sweep.json"),
+    }
 
 
 def write_table(rows: Sequence[Mapping[str, Any]], path: Path) -> Path:
@@ -88,12 +226,12 @@ def write_table(rows: Sequence[Mapping[str, Any]], path: Path) -> Path:
     columns: list[str] = []
     for row in rows:
         columns += [k for k in row if k not in columns]
-    with path.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=columns)
-        writer.writeheader()
-        for row in rows:
-            writer.writerow({k: _cell(row.get(k)) for k in columns})
-    return path
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=columns)
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: _cell(row.get(k)) for k in columns})
+    return _io.write_text(path, text.getvalue())
 
 
 def _cell(value: Any) -> Any:
@@ -104,8 +242,7 @@ def _cell(value: Any) -> Any:
 
 def write_json(data: Mapping[str, Any], path: Path) -> Path:
     """Strict JSON (no NaN/Infinity literals: they are written as null)."""
-    path.write_text(json.dumps(jsonable_tree(data), indent=2, allow_nan=False) + "\n")
-    return path
+    return _io.write_json(path, jsonable_tree(data))
 
 
 def jsonable_tree(value: Any) -> Any:
@@ -137,6 +274,7 @@ def plot_sweep(rows: Sequence[Mapping[str, Any]], grid: Mapping[str, Sequence[An
     others = [k for k in varied if k != x_key]
     x_values = [jsonable(v) for v in grid[x_key]] if x_key else [None]
     numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in x_values)
+    rows = [row for row in rows if row.get("status", "ok") == "ok"]  # failed rows: no rates
     rates = [r for r in RATES if f"{r}_rate" in rows[0]] if rows else []
     fig, axes = plt.subplots(1, len(rates) or 1, figsize=(4.2 * max(len(rates), 1), 3.6))
     axes = list(axes) if len(rates) > 1 else [axes]
@@ -165,7 +303,8 @@ def plot_sweep(rows: Sequence[Mapping[str, Any]], grid: Mapping[str, Sequence[An
     n = rows[0]["num_seeds"] if rows else 0
     fig.suptitle(f"rates over {n} seeds per configuration")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    with _io.atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
     plt.close(fig)
     return path
 

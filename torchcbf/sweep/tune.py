@@ -8,9 +8,17 @@ scores it with :func:`torchcbf.sweep.evaluate.objective` (success rate, ties bro
 time to goal). The best configuration and the builder's default are then both evaluated on
 the evaluation seeds (``0 ..``), which the search never saw.
 
-Trials are asked ``batch`` at a time from a seeded TPE sampler and told their results in
-order, so a study is reproducible and the same on the local and the Ray engine (where the
-trials of a batch run in parallel as Ray tasks).
+Trials are asked ``batch`` at a time from a TPE sampler seeded from ``sampler_seed`` and the
+trial's number, and told their results as they finish, before the next batch is asked, so a
+study is reproducible and the same on the local and the Ray engine (where the trials of a
+batch run in parallel as Ray tasks). A trial that raises is recorded as failed (Optuna's
+``FAIL`` state, its error in the row) and the study goes on.
+
+Given a run directory (``out``), the study lives in Optuna's SQLite storage ``study.db``
+there: every asked trial, its parameters, and its row once finished, are saved as they
+happen, and so are the default configuration's row and the final evaluations. ``resume=True``
+opens the same study: trials asked but never finished run again with their recorded
+parameters, the rest of the study continues, and the outputs equal an uninterrupted run's.
 """
 
 from __future__ import annotations
@@ -22,11 +30,16 @@ from typing import Any
 
 from tqdm.auto import tqdm
 
+from torchcbf import _io
 from torchcbf._checks import check_positive_int
-from torchcbf.sweep.engines import check_engine, ray_session, run_all
+from torchcbf.sweep.engines import Outcome, check_engine, ray_session, run_each
 from torchcbf.sweep.evaluate import evaluate
-from torchcbf.sweep.params import builder, builder_defaults, check_keys
+from torchcbf.sweep.params import builder, builder_defaults, check_keys, jsonable
+from torchcbf.sweep.rundir import RunDir
 from torchcbf.sweep.sweep import jsonable_tree, run_info, write_json, write_table
+
+STORAGE = "study.db"
+STUDY_NAME = "torchcbf-tune"
 
 TUNING_SEED = 10_000
 
@@ -163,6 +176,51 @@ def _arguments(dims: Sequence[Dimension], values: Mapping[str, Any]) -> dict[str
     return out
 
 
+def tune_settings(
+    scenario: str,
+    *,
+    trials: int,
+    num_seeds: int,
+    seed: int,
+    eval_seed: int,
+    fixed: Mapping[str, Any],
+    params: Sequence[str] | None,
+    sampler_seed: int,
+    batch: int,
+    device: str,
+    threads: int,
+) -> dict[str, Any]:
+    """What makes two studies the same run (compared by ``resume``; the engine may differ)."""
+    return {
+        "scenario": scenario,
+        "trials": trials,
+        "num_seeds": num_seeds,
+        "seed": seed,
+        "eval_seed": eval_seed,
+        "fixed": jsonable_tree(dict(fixed)),
+        "params": None if params is None else list(params),
+        "sampler_seed": sampler_seed,
+        "batch": batch,
+        "device": str(device),
+        "threads": threads,
+    }
+
+
+def _sampler(optuna: Any, sampler_seed: int, number: int, trials: int) -> Any:
+    """The TPE sampler that asks trial ``number``: seeded from ``sampler_seed`` and the
+    number, so a resumed study asks what an uninterrupted one would."""
+    import numpy as np
+
+    seed = int(np.random.SeedSequence([sampler_seed, number]).generate_state(1)[0])
+    return optuna.samplers.TPESampler(seed=seed, n_startup_trials=min(10, trials))
+
+
+def _outcome_row(outcome: Outcome) -> dict[str, Any]:
+    if outcome.ok:
+        return {**jsonable_tree(outcome.value), "status": "ok"}
+    return {"status": "failed", "error": outcome.error}
+
+
 def tune(
     scenario: str,
     *,
@@ -180,6 +238,9 @@ def tune(
     num_cpus: int | None = None,
     threads: int = 1,
     progress: bool = True,
+    out: str | Path | RunDir | None = None,
+    resume: bool = False,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Search ``scenario``'s space (:func:`search_space`) for ``trials`` trials.
 
@@ -191,11 +252,16 @@ def tune(
         params: the dimensions to search (default: all of the space the builder accepts).
         sampler_seed: seed of Optuna's TPE sampler.
         batch: trials asked before their results are told (run in parallel on Ray).
+        out: a run directory (path or claimed :class:`RunDir`) for the study's SQLite
+            storage and :func:`write_tune`'s files; ``resume``/``overwrite`` as
+            :meth:`RunDir.claim` says.
 
     Returns:
         ``{"best": ..., "default": ..., "evaluation": ..., "trials": [rows], ...}``: the best
         parameters and objective, the default configuration's objective on the same tuning
-        seeds, both re-run on the evaluation seeds, and one row per trial.
+        seeds, both re-run on the evaluation seeds, and one row per trial (``status``
+        ``"ok"``, or ``"failed"`` with its ``error``). ``best`` is None when every trial
+        failed.
     """
     try:
         import optuna
@@ -212,8 +278,32 @@ def tune(
             f"({num_seeds} seeds each)"
         )
     dims = search_space(scenario, params, fixed)
-    sampler = optuna.samplers.TPESampler(seed=sampler_seed, n_startup_trials=min(10, trials))
-    study = optuna.create_study(direction="maximize", sampler=sampler)
+    settings = tune_settings(
+        scenario,
+        trials=trials,
+        num_seeds=num_seeds,
+        seed=seed,
+        eval_seed=eval_seed,
+        fixed=fixed,
+        params=params,
+        sampler_seed=sampler_seed,
+        batch=batch,
+        device=device,
+        threads=threads,
+    )
+    run = out
+    if out is not None and not isinstance(out, RunDir):
+        run = RunDir.claim(out, kind="tune", settings=settings, resume=resume, overwrite=overwrite)
+    storage: Any = None
+    if run is not None:
+        storage = optuna.storages.RDBStorage(f"sqlite:///{run.path / STORAGE}")
+    study = optuna.create_study(
+        direction="maximize",
+        sampler=_sampler(optuna, sampler_seed, 0, trials),
+        storage=storage,
+        study_name=STUDY_NAME,
+        load_if_exists=True,
+    )
     common = {"num_seeds": num_seeds, "device": device, "threads": threads}
 
     def call(arguments: Mapping[str, Any], first_seed: int) -> dict[str, Any]:
@@ -224,26 +314,63 @@ def tune(
             **common,
         }
 
-    rows: list[dict[str, Any]] = []
-    run = {"engine": engine, "address": address, "num_cpus": num_cpus, "progress": False}
+    options = {"engine": engine, "address": address, "num_cpus": num_cpus, "progress": False}
+
+    def evaluate_once(key: str, arguments: Mapping[str, Any], first_seed: int) -> dict:
+        """The row of one configuration, kept in the study so a resumed run reuses it."""
+        if key not in study.user_attrs:
+            outcomes: list[Outcome] = []
+            run_each(
+                evaluate, [call(arguments, first_seed)], lambda i, o: outcomes.append(o), **options
+            )
+            study.set_user_attr(key, _outcome_row(outcomes[0]))
+        return dict(study.user_attrs[key])
+
     session = ray_session(address, num_cpus) if engine == "ray" else _nothing()
     desc = f"tune {scenario} ({engine})"
     with session, tqdm(total=trials + 3, desc=desc, disable=not progress) as bar:
-        (default_row,) = run_all(evaluate, [call({}, seed)], **run)
+        default_row = evaluate_once("default_row", {}, seed)
         bar.update(1)
-        while len(rows) < trials:
-            asked = [study.ask() for _ in range(min(batch, trials - len(rows)))]
-            arguments = [_arguments(dims, {d.name: d.suggest(t) for d in dims}) for t in asked]
-            results = run_all(evaluate, [call(a, seed) for a in arguments], **run)
-            for trial, result in zip(asked, results, strict=True):
-                study.tell(trial, result["objective"])
-                rows.append({"trial": trial.number, **trial.params, **result})
+        for start in range(0, trials, batch):
+            numbers = range(start, min(start + batch, trials))
+            known = {t.number: t for t in study.get_trials(deepcopy=False)}
+            for number in numbers:
+                if number not in known:  # asked in order: every earlier trial exists
+                    study.sampler = _sampler(optuna, sampler_seed, number, trials)
+                    trial = study.ask()
+                    if trial.number != number:
+                        raise RuntimeError(f"the study asked trial {trial.number}, not {number}")
+                    for d in dims:
+                        d.suggest(trial)
+            known = {t.number: t for t in study.get_trials(deepcopy=False)}
+            pending = [n for n in numbers if not known[n].state.is_finished()]
+            bar.update(len(numbers) - len(pending))
+            arguments = [_arguments(dims, known[n].params) for n in pending]
+
+            def finished(i: int, outcome: Outcome, pending: list[int] = pending) -> None:
+                number = pending[i]
+                study.set_user_attr(f"row_{number}", _outcome_row(outcome))
+                if outcome.ok:
+                    study.tell(number, outcome.value["objective"])
+                else:
+                    study.tell(number, state=optuna.trial.TrialState.FAIL)
                 bar.update(1)
-        best = study.best_trial
-        best_arguments = _arguments(dims, best.params)
-        evaluation = run_all(
-            evaluate, [call(best_arguments, eval_seed), call({}, eval_seed)], **run
-        )
+                if run is not None:
+                    write_table(_trial_rows(study, trials), run.path / "study.csv")
+
+            run_each(evaluate, [call(a, seed) for a in arguments], finished, **options)
+        rows = _trial_rows(study, trials)
+        complete = [
+            t for t in study.get_trials(deepcopy=False) if t.number < trials and t.value is not None
+        ]
+        best = max(complete, key=lambda t: (t.value, -t.number)) if complete else None
+        best_arguments = _arguments(dims, best.params) if best is not None else None
+        evaluation = {"best": None, "default": None}
+        if best is not None:
+            evaluation["best"] = evaluate_once(
+                f"evaluation_best_{best.number}", best_arguments, eval_seed
+            )
+        evaluation["default"] = evaluate_once("evaluation_default", {}, eval_seed)
         bar.update(2)
     defaults = {**builder_defaults(scenario), **fixed}
     make = builder(scenario)
@@ -254,7 +381,7 @@ def tune(
         params = getattr(built, "params", None) or {}
         return {k: v for k, v in params.items() if k not in ("num_seeds", "seed")}
 
-    return {
+    result = {
         "scenario": scenario,
         "fixed": fixed,
         "space": {d.name: d.describe() for d in dims},
@@ -262,7 +389,9 @@ def tune(
         "evaluation_seeds": {"first": eval_seed, "count": num_seeds},
         "sampler": {"name": "TPESampler", "seed": sampler_seed, "batch": batch},
         "objective": "success rate + tie-break / (2 seeds) (torchcbf.sweep.evaluate)",
-        "best": {
+        "best": None
+        if best is None
+        else {
             "trial": best.number,
             "params": best.params,
             "arguments": {**fixed, **best_arguments},
@@ -272,11 +401,35 @@ def tune(
         "default": {
             "arguments": defaults,
             "resolved": resolved(fixed),
-            "objective": default_row["objective"],
+            "objective": default_row.get("objective"),
         },
-        "evaluation": {"best": evaluation[0], "default": evaluation[1]},
+        "evaluation": evaluation,
+        "failed_trials": [r["trial"] for r in rows if r["status"] == "failed"],
         "trials": rows,
     }
+    if run is not None:
+        paths = write_tune(result, run.path, engine=engine, device=device)
+        run.record(STORAGE, *paths.values())
+        run.finish()
+    return result
+
+
+def _trial_rows(study: Any, trials: int) -> list[dict[str, Any]]:
+    """One row per finished trial, by number: its parameters and its evaluation row."""
+    rows = []
+    attrs = study.user_attrs
+    for t in sorted(study.get_trials(deepcopy=False), key=lambda t: t.number):
+        row = attrs.get(f"row_{t.number}")
+        if t.number >= trials or not t.state.is_finished() or row is None:
+            continue
+        rows.append(
+            {
+                "trial": t.number,
+                **{k: jsonable(v) for k, v in t.params.items()},
+                **row,
+            }
+        )
+    return rows
 
 
 class _nothing:
@@ -287,33 +440,39 @@ class _nothing:
         return None
 
 
-def plot_study(rows: Sequence[Mapping[str, Any]], default_objective: float, path: Path) -> Path:
-    """Objective per trial, the best so far, and the default configuration's objective."""
+def plot_study(
+    rows: Sequence[Mapping[str, Any]], default_objective: float | None, path: Path
+) -> Path:
+    """Objective per trial, the best so far, and the default configuration's objective
+    (failed trials left out)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    rows = [r for r in rows if r.get("objective") is not None]
     x = [r["trial"] for r in rows]
     y = [r["objective"] for r in rows]
     best = [max(y[: i + 1]) for i in range(len(y))]
     fig, ax = plt.subplots(figsize=(6, 3.6))
     ax.plot(x, y, "o", label="trial")
     ax.step(x, best, where="post", label="best so far")
-    ax.axhline(default_objective, color="gray", ls="--", label="default configuration")
+    if default_objective is not None:
+        ax.axhline(default_objective, color="gray", ls="--", label="default configuration")
     ax.set_xlabel("trial")
     ax.set_ylabel("objective (success rate + tie-break)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    with _io.atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
     plt.close(fig)
     return path
 
 
 def write_tune(result: Mapping[str, Any], out: str | Path, **info: Any) -> dict[str, Path]:
     """Write ``best.json`` (everything but the trial rows), ``study.csv`` (one row per
-    trial) and ``study.png`` into ``out``."""
+    trial) and ``study.png`` into ``out`` (each file atomically)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     summary = {k: v for k, v in result.items() if k != "trials"}

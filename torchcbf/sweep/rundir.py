@@ -1,0 +1,200 @@
+"""Run directories: where one command's outputs live, claimed before any work.
+
+A run directory holds ``run.json`` (the manifest: which command, its settings, whether it
+finished, the files it wrote) beside its outputs. :meth:`RunDir.claim` checks the location
+first (not a file, not under a file, writable) and then:
+
+- an empty or missing folder: a new run;
+- a folder holding an unfinished or finished run of the same command with the same
+  settings: continued with ``resume=True`` (what is done is kept and skipped);
+- anything else that is not empty: refused unless ``overwrite=True``, which first removes
+  the files of earlier torchcbf runs there (those their manifest lists and the command
+  outputs' own names) and leaves other files alone.
+
+So the outputs of two runs never mix. Every file is written through :mod:`torchcbf._io`
+(temporary name, then rename).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from torchcbf import _io
+
+MANIFEST = "run.json"
+
+# Output names of every torchcbf command, removed by ``overwrite`` when no manifest lists them.
+KNOWN_OUTPUTS = (
+    MANIFEST,
+    "metrics.json",
+    "sweep.csv",
+    "sweep.json",
+    "sweep.jsonl",
+    "sweep.png",
+    "best.json",
+    "study.csv",
+    "study.png",
+    "study.db",
+    "study.db-journal",
+)
+KNOWN_PATTERNS = ("reach_avoid*.png", "reach_avoid*.gif", "mppi_cbf_*.png", "mppi_cbf_*.gif")
+PARTS = ".parts"  # finished units of a scenario run (``torchcbf mppi-cbf``), kept for --resume
+
+
+class OutputError(ValueError):
+    """The output location cannot hold this run (the message says why and what to do)."""
+
+
+def check_location(out: str | Path) -> Path:
+    """``out`` as a folder this process can write: created if missing (OutputError if it is
+    a file, lies under a file, or cannot be written)."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"--out {out} is a file, not a folder")
+    for parent in out.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise OutputError(f"--out {out}: {parent} is a file, not a folder")
+            break
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".probe.", suffix=_io.TMP_SUFFIX + ".probe", dir=out)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as error:
+        raise OutputError(f"--out {out} cannot be written: {error.strerror or error}") from None
+    return out
+
+
+def _jsonable(value: Any) -> Any:
+    return json.loads(json.dumps(value, default=str))
+
+
+class RunDir:
+    """A claimed run directory (see the module docstring).
+
+    Attributes:
+        path: the folder.
+        kind: the command (``"sweep"``, ``"tune"``, ``"mppi-cbf"``, ...).
+        settings: what makes two runs the same run (compared on resume).
+        resumed: whether an earlier run's work is continued.
+    """
+
+    def __init__(self, path: Path, kind: str, settings: Mapping[str, Any], resumed: bool):
+        self.path = path
+        self.kind = kind
+        self.settings = _jsonable(dict(settings))
+        self.resumed = resumed
+        self.files: list[str] = []
+
+    @classmethod
+    def claim(
+        cls,
+        out: str | Path,
+        *,
+        kind: str,
+        settings: Mapping[str, Any],
+        resume: bool = False,
+        overwrite: bool = False,
+    ) -> RunDir:
+        """Check ``out`` and take it for a run of ``kind`` with ``settings`` (OutputError
+        when it holds something else and neither flag allows it)."""
+        if resume and overwrite:
+            raise OutputError("--resume and --overwrite exclude each other")
+        path = check_location(out)
+        settings = _jsonable(dict(settings))
+        manifest = read_manifest(path)
+        entries = [p for p in path.iterdir() if not _io.is_temporary(p)]
+        if manifest is not None and resume:
+            if manifest.get("kind") != kind:
+                raise OutputError(
+                    f"--out {path} holds a '{manifest.get('kind')}' run, not a '{kind}' run"
+                )
+            if manifest.get("settings") != settings:
+                changed = sorted(
+                    k
+                    for k in set(settings) | set(manifest.get("settings", {}))
+                    if settings.get(k) != manifest.get("settings", {}).get(k)
+                )
+                raise OutputError(
+                    f"--resume: the run in {path} has other settings ({', '.join(changed)}); "
+                    "run it again with the same arguments, or use another --out"
+                )
+            _io.remove_stale(path)
+            run = cls(path, kind, settings, resumed=True)
+            run.files = list(manifest.get("files", []))
+            run._write_manifest(complete=False)
+            return run
+        if entries:
+            if not overwrite:
+                what = (
+                    f"a '{manifest.get('kind')}' run"
+                    if manifest is not None
+                    else "files that are not a torchcbf run"
+                )
+                hint = (
+                    "--resume to continue it, --overwrite to replace it"
+                    if manifest is not None and manifest.get("kind") == kind
+                    else "--overwrite to replace torchcbf's outputs there"
+                )
+                raise OutputError(f"--out {path} holds {what}; use another --out, or {hint}")
+            clear(path, manifest)
+        _io.remove_stale(path)
+        run = cls(path, kind, settings, resumed=False)
+        run._write_manifest(complete=False)
+        return run
+
+    def _write_manifest(self, complete: bool) -> None:
+        data = {
+            "kind": self.kind,
+            "settings": self.settings,
+            "complete": complete,
+            "files": self.files,
+        }
+        _io.write_json(self.path / MANIFEST, data)
+
+    def record(self, *paths: str | Path) -> None:
+        """Note output files of this folder in the manifest (rewritten at once)."""
+        for p in paths:
+            name = Path(p).name
+            if name not in self.files:
+                self.files.append(name)
+        self._write_manifest(complete=False)
+
+    def finish(self) -> None:
+        """Mark the run complete."""
+        self._write_manifest(complete=True)
+
+
+def read_manifest(path: str | Path) -> dict[str, Any] | None:
+    """The manifest of the run in ``path`` (None when there is none or it is unreadable)."""
+    try:
+        data = json.loads((Path(path) / MANIFEST).read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def clear(path: Path, manifest: Mapping[str, Any] | None) -> None:
+    """Remove the outputs of earlier torchcbf runs from ``path`` (other files stay)."""
+    listed = [str(n) for n in (manifest or {}).get("files", [])]
+    names = set(KNOWN_OUTPUTS) | {n for n in listed if Path(n).name == n and n not in ("", "..")}
+    targets = {path / n for n in names}
+    for pattern in KNOWN_PATTERNS:
+        targets.update(path.glob(pattern))
+    for target in targets:
+        with contextlib.suppress(FileNotFoundError):
+            target.unlink()
+    parts = path / PARTS
+    if parts.is_dir():
+        for child in parts.iterdir():
+            with contextlib.suppress(FileNotFoundError):
+                child.unlink()
+        with contextlib.suppress(OSError):
+            parts.rmdir()
