@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+import torch
 
 from torchcbf.cli import main
 
@@ -32,3 +33,28 @@ def test_cli_unknown_method_names_it(tmp_path, capsys):
         main(argv)
     # the command exits with the message (SystemExit(message), shown on stderr)
     assert "--methods must be" in str(exc.value) + capsys.readouterr().err
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
+@pytest.mark.parametrize("command", [["sweep", "reach-avoid"], ["tune", "reach-avoid"],
+                                     ["mppi-cbf"], ["reach-avoid"], ["bench"]])  # fmt: skip
+def test_cuda_without_cuda_is_a_usage_error_before_any_work(command, tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = [*command, "--device", "cuda"] + (["--out", str(out)] if command[0] != "bench" else [])
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    assert "argument --device: cuda, but CUDA is not available" in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("command", [["mppi-cbf"], ["reach-avoid"], ["tune", "reach-avoid"]])
+def test_scenario_commands_refuse_a_bad_out_before_any_work(command, tmp_path, capsys):
+    (tmp_path / "file").write_text("x")
+    assert main([*command, "--out", str(tmp_path / "file" / "below")]) == 2
+    assert "is a file, not a folder" in capsys.readouterr().err
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "metrics.json").write_text("{}")
+    assert main([*command, "--out", str(tmp_path / "old")]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert (tmp_path / "old" / "metrics.json").read_text() == "{}"

@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 
 import pytest
 import torch
@@ -133,3 +134,74 @@ def test_cli_sweep_writes_csv_strict_json_and_figure(tmp_path, capsys) -> None:
 def test_cli_sweep_unknown_key_exits_2(tmp_path, capsys) -> None:
     assert main(["sweep", "reach-avoid", "--grid", "alpha=1", "--out", str(tmp_path)]) == 2
     assert "unknown key 'alpha'" in capsys.readouterr().err
+
+
+def _fails_at_48(**kwargs):
+    """``evaluate``, raising for the configuration with 48 samples."""
+    from torchcbf.sweep.evaluate import evaluate
+
+    if kwargs["params"].get("num_samples") == 48:
+        raise RuntimeError("boom at 48 samples")
+    return evaluate(**kwargs)
+
+
+def test_a_failing_point_is_recorded_and_the_rest_run(tmp_path, monkeypatch, capsys) -> None:
+    monkeypatch.setattr("torchcbf.sweep.sweep.evaluate", _fails_at_48)
+    args = ["sweep", "reach-avoid", "--grid", "num_samples=32,48,64", "--grid", "horizon=8",
+            "--seeds", "2", "--out", str(tmp_path), "--no-progress"]  # fmt: skip
+    assert main(args) == 0
+    assert "1 of 3 configuration(s) failed" in capsys.readouterr().out
+    rows = json.loads((tmp_path / "sweep.json").read_text())["rows"]
+    assert [r["status"] for r in rows] == ["ok", "failed", "ok"]
+    assert rows[1]["error"] == "RuntimeError: boom at 48 samples" and rows[1]["num_samples"] == 48
+    assert rows[2]["success_count"] >= 0  # the point after the failure ran
+    with (tmp_path / "sweep.csv").open() as f:
+        assert [r["status"] for r in csv.DictReader(f)] == ["ok", "failed", "ok"]
+    assert json.loads((tmp_path / "run.json").read_text())["complete"] is True
+
+
+def test_out_is_checked_before_any_work(tmp_path, monkeypatch, capsys) -> None:
+    def never(**kwargs):
+        raise AssertionError("a configuration ran")
+
+    monkeypatch.setattr("torchcbf.sweep.sweep.evaluate", never)
+    (tmp_path / "file").write_text("x")
+    sweep = ["sweep", "reach-avoid", "--grid", "horizon=8", "--no-progress", "--out"]
+    assert main([*sweep, str(tmp_path / "file")]) == 2
+    assert "is a file" in capsys.readouterr().err
+    assert main([*sweep, str(tmp_path / "file" / "below")]) == 2
+    assert "file is a file" in capsys.readouterr().err
+    (tmp_path / "theirs").mkdir()
+    (tmp_path / "theirs" / "notes.txt").write_text("keep")
+    assert main([*sweep, str(tmp_path / "theirs")]) == 2
+    assert "not a torchcbf run" in capsys.readouterr().err
+    assert main([*sweep, str(tmp_path / "theirs"), "--resume"]) == 2
+    assert (tmp_path / "theirs" / "notes.txt").read_text() == "keep"
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into a read-only folder")
+def test_a_read_only_out_is_refused_before_any_work(tmp_path, capsys) -> None:
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    try:
+        code = main(["sweep", "reach-avoid", "--out", str(ro / "x"), "--no-progress"])
+    finally:
+        ro.chmod(0o755)
+    assert code == 2 and "cannot be written" in capsys.readouterr().err
+
+
+def test_overwrite_replaces_an_earlier_run_and_keeps_other_files(tmp_path) -> None:
+    args = ["sweep", "reach-avoid", "--grid", "num_samples=32", "--grid", "horizon=8",
+            "--seeds", "2", "--out", str(tmp_path), "--no-progress"]  # fmt: skip
+    assert main(args) == 0
+    (tmp_path / "notes.txt").write_text("keep")
+    (tmp_path / "metrics.json").write_text("{}")  # an older scenario run's output
+    assert main(args) == 2  # a finished run is not replaced without --overwrite
+    other = [*args[:3], "num_samples=64", *args[4:], "--overwrite"]
+    assert main(other) == 0
+    rows = json.loads((tmp_path / "sweep.json").read_text())["rows"]
+    assert [r["num_samples"] for r in rows] == [64]
+    assert len((tmp_path / "sweep.jsonl").read_text().splitlines()) == 1
+    assert not (tmp_path / "metrics.json").exists()
+    assert (tmp_path / "notes.txt").read_text() == "keep"

@@ -116,3 +116,50 @@ def test_cli_sweep_on_ray(ray_cluster, tmp_path) -> None:
     assert main([*args, "--out", str(tmp_path / "local")]) == 0
     rows = [json.loads((tmp_path / d / "sweep.json").read_text())["rows"] for d in ("ray", "local")]
     assert _without_wall(rows[0]) == _without_wall(rows[1])
+
+
+def _fails_on_long_horizons(**kwargs: Any) -> dict[str, Any]:
+    """``evaluate``, raising for a horizon of 40 steps or more (the default runs)."""
+    from torchcbf.sweep.evaluate import evaluate
+
+    horizon = kwargs["params"].get("horizon")
+    if horizon is not None and horizon >= 40:
+        raise RuntimeError(f"boom at horizon {horizon}")
+    return evaluate(**kwargs)
+
+
+def _fails_at_48(**kwargs: Any) -> dict[str, Any]:
+    from torchcbf.sweep.evaluate import evaluate
+
+    if kwargs["params"].get("num_samples") == 48:
+        raise RuntimeError("boom at 48 samples")
+    return evaluate(**kwargs)
+
+
+def test_a_failing_trial_is_recorded_and_the_study_goes_on(monkeypatch, tmp_path) -> None:
+    import sys
+
+    monkeypatch.setattr(sys.modules["torchcbf.sweep.tune"], "evaluate", _fails_on_long_horizons)
+    result = _tune(out=tmp_path)
+    status = {r["trial"]: r["status"] for r in result["trials"]}
+    assert len(status) == 4 and set(status.values()) == {"ok", "failed"}
+    for row in result["trials"]:
+        if row["status"] == "failed":
+            assert row["error"] == f"RuntimeError: boom at horizon {row['horizon']}"
+            assert "objective" not in row
+    assert result["failed_trials"] == [t for t, s in status.items() if s == "failed"]
+    assert result["best"]["trial"] in [t for t, s in status.items() if s == "ok"]
+    assert (tmp_path / "study.csv").read_text().count("failed") == len(result["failed_trials"])
+
+
+def test_ray_records_a_failing_point_and_runs_the_rest(ray_cluster, monkeypatch) -> None:
+    import sys
+
+    ray_cluster.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    monkeypatch.setattr("torchcbf.sweep.sweep.evaluate", _fails_at_48)
+    grid = {"num_samples": [32, 48, 64], "horizon": [8]}
+    remote = run_sweep("reach-avoid", grid, num_seeds=2, engine="ray", progress=False)
+    local = run_sweep("reach-avoid", grid, num_seeds=2, progress=False)
+    assert [r["status"] for r in remote] == ["ok", "failed", "ok"]
+    assert remote[1]["error"] == "RuntimeError: boom at 48 samples"
+    assert _without_wall(remote) == _without_wall(local)
