@@ -8,7 +8,14 @@ import random
 import pytest
 import torch
 
-from torchcbf._checks import broadcast_shapes, check_batch_match, check_positive_int, written_for
+from torchcbf._checks import (
+    behaves_as,
+    broadcast_shapes,
+    check_batch_match,
+    check_positive_int,
+    honour_overrides,
+    stale_closed_forms,
+)
 
 
 def test_broadcast_shapes_matches_torch_on_every_small_case():
@@ -119,22 +126,82 @@ def test_check_positive_int_takes_ints_from_one() -> None:
             check_positive_int("n", bad)
 
 
-def test_written_for_follows_the_class_that_defines_each_method() -> None:
+def test_honour_overrides_follows_the_class_that_defines_each_method() -> None:
+    rules = {"quadric": (("forward",), ("flag",)), "fast": (("f", "g"), ())}
+
     class Base:
-        def forward(self): ...
+        flag = False
 
-        def quadric(self): ...
+        def forward(self):
+            return "base forward"
 
-    class NewForward(Base):
-        def forward(self): ...
+        def quadric(self):
+            return None
+
+        def f(self): ...
+
+        def g(self): ...
+
+        def fast(self):
+            return "general"
+
+        def __init_subclass__(cls) -> None:
+            honour_overrides(cls, Base, rules)
+
+    class Shape(Base):
+        flag = True
+
+        def forward(self):
+            return "shape"
+
+        def quadric(self):
+            return "quadric of shape"
+
+        def f(self): ...
+
+        def fast(self):
+            return "closed form"
+
+    class NewForward(Shape):
+        def forward(self):
+            return "padded"
 
     class Both(NewForward):
-        def quadric(self): ...
+        def quadric(self):
+            return "quadric of padded"
 
-    class Plain(Base):
+    class Plain(Shape):
         pass
 
-    assert written_for(Base, "quadric", "forward")
-    assert written_for(Plain, "quadric", "forward")  # inherits both
-    assert not written_for(NewForward, "quadric", "forward")  # the inherited one is stale
-    assert written_for(Both, "quadric", "forward")
+    class NewG(Shape):
+        def g(self): ...
+
+    class Restored(NewG):
+        fast = Shape.fast
+
+    assert stale_closed_forms(Shape, rules) == []
+    assert Plain().quadric() == "quadric of shape" and Plain.flag  # inherits both
+    assert NewForward().quadric() is None and not NewForward.flag  # the inherited one is stale
+    assert Both().quadric() == "quadric of padded" and not Both.flag
+    assert Shape().fast() == "closed form" and NewForward().fast() == "closed form"
+    assert NewG().fast() == "general"  # stands for f and g: a new g drops it
+    assert Restored().fast() == "closed form"  # named in the body: trusted again
+
+
+def test_behaves_as_needs_every_named_method_unchanged() -> None:
+    class Term:
+        def forward(self): ...
+
+        def stage(self): ...
+
+    class Renamed(Term):
+        weight = 2.0
+
+    class NewStage(Term):
+        def stage(self): ...
+
+    assert behaves_as(Term(), Term, ("forward", "stage"))
+    assert behaves_as(Renamed(), Term, ("forward", "stage"))
+    assert not behaves_as(NewStage(), Term, ("forward", "stage"))
+    assert behaves_as(NewStage(), Term, ("forward",))
+    assert not behaves_as(object(), Term, ("forward",))

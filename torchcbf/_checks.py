@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-import functools
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import torch
 from torch import Tensor
+
+#: fast form -> (the methods it stands for, the flags reset with it); see honour_overrides
+ClosedForms = Mapping[str, tuple[tuple[str, ...], tuple[str, ...]]]
 
 
 def broadcast_shapes(*shapes: Sequence[int]) -> tuple[int, ...]:
@@ -239,11 +241,43 @@ def check_number(
     return v
 
 
-@functools.lru_cache(maxsize=512)
-def written_for(cls: type, method: str, reference: str) -> bool:
-    """Whether class ``cls``'s ``method`` was written for its ``reference`` method: the class
-    defining ``method`` is the one defining ``reference`` or a subclass of it (a subclass
-    that overrides ``reference`` alone inherits a ``method`` that no longer describes it)."""
-    mro = cls.__mro__
-    owner = next(c for c in mro if method in c.__dict__)
-    return issubclass(owner, next(c for c in mro if reference in c.__dict__))
+def _defines(cls: type, name: str) -> type:
+    return next(c for c in cls.__mro__ if name in c.__dict__)
+
+
+def stale_closed_forms(cls: type, rules: ClosedForms) -> list[str]:
+    """The fast forms of ``rules`` that class ``cls`` inherits from a class that does not
+    also define what they stand for (see :func:`honour_overrides`)."""
+    return [
+        fast
+        for fast, (stands_for, _) in rules.items()
+        if not all(issubclass(_defines(cls, fast), _defines(cls, ref)) for ref in stands_for)
+    ]
+
+
+def honour_overrides(cls: type, base: type, rules: ClosedForms) -> None:
+    """Give class ``cls`` (a new subclass of ``base``) ``base``'s general version of every
+    fast form it would inherit stale.
+
+    ``rules`` maps the name of a fast form (a closed-form ``xdot``, a shape's
+    ``derivatives``, a native description) to ``(stands_for, companions)``: the methods it
+    stands for, and the flags that go with it (reset together). A fast form is trusted only
+    when the class defining it is the class defining each method it stands for, or a
+    subclass of it: a subclass that overrides ``f`` alone does not inherit a closed-form
+    ``xdot`` of the old ``f``; it gets ``f + g u``. A subclass restores an inherited fast
+    form by naming it in its own body (``xdot = Parent.xdot``). Called from
+    ``__init_subclass__``, so the rule holds for every path that asks the object.
+    """
+    for fast in stale_closed_forms(cls, rules):
+        for name in (fast, *rules[fast][1]):
+            setattr(cls, name, base.__dict__[name])
+
+
+def behaves_as(obj: object, cls: type, methods: Sequence[str]) -> bool:
+    """Whether ``obj`` is an instance of ``cls`` whose class keeps ``cls``'s ``methods`` (a
+    subclass may add to them, not change them): the test for handing ``obj`` to a kernel
+    that evaluates ``cls``'s formulas."""
+    if not isinstance(obj, cls):
+        return False
+    kind = type(obj)
+    return all(getattr(kind, name, None) is getattr(cls, name, None) for name in methods)

@@ -25,6 +25,24 @@ from torch import Tensor
 
 logger = logging.getLogger("torchcbf")
 
+#: the kernels' code of each model kind (:class:`torchcbf.dynamics.NativeModel`)
+MODEL_CODES: dict[str, int] = {
+    "single_integrator": 0,
+    "double_integrator": 1,
+    "unicycle": 2,
+    "accel_unicycle": 3,
+}
+
+
+def model_code(dynamics: object) -> tuple[int, int] | None:
+    """``(code, dim)`` of a model's :meth:`~torchcbf.dynamics.ControlAffine.native_model`
+    for the kernels, or ``None`` where torch must evaluate it."""
+    native = getattr(dynamics, "native_model", None)
+    found = None if native is None else native()
+    if found is None or found.kind not in MODEL_CODES:
+        return None
+    return MODEL_CODES[found.kind], int(found.dim)
+
 
 def load_kernel(
     directory: Path,

@@ -115,7 +115,7 @@ def test_rectified_scaled_shape_uses_closed_inner_derivatives():
     assert torch.autograd.gradcheck(lambda z: fast.lie(z, dyn).hess_trace, (xg,))
 
 
-def test_extension_points_public_names_and_former_aliases():
+def test_extension_points_public_names():
     from torchcbf.barriers.lie import AnalyticDerivatives
 
     dyn = Unicycle().double()
@@ -133,19 +133,12 @@ def test_extension_points_public_names_and_former_aliases():
                 self(x), g, torch.zeros_like(x[..., 0]), lambda s: 0 * s.sum((-2, -1))
             )
 
-    class Old(New):  # the former name still serves
-        def _analytic(self, x, t):
-            return New.derivatives(self, x, t)
-
-    Old.derivatives = Barrier.derivatives  # only the former name is overridden
-    for cls in (New, Old):
-        b = cls()
-        ana, auto = b.lie(x, dyn, method="analytic"), b.lie(x, dyn, method="autograd")
-        for name in ("h", "lfh", "lgh", "dhdx"):
-            torch.testing.assert_close(getattr(ana, name), getattr(auto, name))
-        torch.testing.assert_close(b._analytic(x, x[..., 0]).dhdx, b.derivatives(x, x[..., 0]).dhdx)
+    b = New()
+    ana, auto = b.lie(x, dyn, method="analytic"), b.lie(x, dyn, method="autograd")
+    for name in ("h", "lfh", "lgh", "dhdx"):
+        torch.testing.assert_close(getattr(ana, name), getattr(auto, name))
     stack = Ball([[0.0, 0.0], [1.0, 1.0]], [0.5, 0.4])
-    assert len(stack.parts()) == 2 and len(stack._parts()) == 2
+    assert len(stack.parts()) == 2
     assert Ball([0.0, 0.0], 0.5).parts() is None
     with pytest.raises(ValueError, match="no closed-form derivatives"):
         _Opaque(stack, 1.0).derivatives(x, x[..., 0])

@@ -18,12 +18,12 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable
-from typing import Literal, NamedTuple
+from typing import Any, ClassVar, Literal, NamedTuple
 
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor, check_tensor
+from torchcbf._checks import ClosedForms, as_tensor, check_tensor, honour_overrides
 from torchcbf.dynamics.base import ControlAffine
 
 LieMethod = Literal["autograd", "analytic"]
@@ -105,6 +105,18 @@ class LieFunction(nn.Module):
     """
 
     time_varying: bool = False
+    #: the closed forms a subclass may give, each trusted only where the class defining it
+    #: also defines ``forward`` (see :func:`torchcbf._checks.honour_overrides`): a subclass
+    #: that changes ``forward`` alone is differentiated by autograd and split into no parts
+    closed_forms: ClassVar[ClosedForms] = {
+        "derivatives": (("forward",), ("has_analytic", "has_second_order")),
+        "quadric": (("forward",), ()),
+        "parts": (("forward",), ()),
+    }
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        honour_overrides(cls, LieFunction, LieFunction.closed_forms)
 
     @property
     def has_analytic(self) -> bool:
@@ -130,26 +142,14 @@ class LieFunction(nn.Module):
         (``None``: one part). The autograd path differentiates the parts separately, so a
         backward pass for one output only runs through the graph of its own part. Override
         it in a function made of independent pieces (a stack of barriers, ``k`` shapes)."""
-        if type(self)._parts is not LieFunction._parts:  # a subclass of the former name
-            return self._parts()
         return None
 
     def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         """Closed-form ``h``, ``dh/dx``, ``dh/dt`` and the Hessian quadratic form at
         ``x [..., n]``, ``t [...]``. Override it together with :attr:`has_analytic`."""
-        if type(self)._analytic is not LieFunction._analytic:  # a subclass of the former name
-            return self._analytic(x, t)
         raise ValueError(
             f"{type(self).__name__} has no closed-form derivatives; use method='autograd'"
         )
-
-    def _parts(self) -> list[LieFunction] | None:
-        """Former name of :meth:`parts` (kept as an alias)."""
-        return self.parts()
-
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
-        """Former name of :meth:`derivatives` (kept as an alias)."""
-        return self.derivatives(x, t)
 
     def lie(
         self,

@@ -62,7 +62,7 @@ class QuadraticLyapunov(ExactConstants, Lyapunov):
     def has_analytic(self) -> bool:
         return True
 
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         e = self._sel(x) - self.goal.to(x)
         P = self.P.to(x)
         Ps = P + P.mT

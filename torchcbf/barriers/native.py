@@ -8,7 +8,8 @@ functions whose :meth:`~torchcbf.barriers.LieFunction.quadric` is known (``Ball`
 those, exponential CBFs of relative degree two of any of these
 (:class:`~torchcbf.barriers.ExponentialBarrier`, time-invariant) and
 :class:`~torchcbf.barriers.BarrierStack` of them, along the built-in models with closed-form
-drift derivatives (:data:`MODEL_CODES`) with a constant diffusion or none.
+drift derivatives (a :meth:`~torchcbf.dynamics.ControlAffine.native_model`) with a
+constant diffusion or none.
 
 It answers ``None`` wherever the torch path must run instead: a function or model outside
 that list, a tensor on another device, a gradient to carry (grad mode on and the state or a
@@ -30,18 +31,16 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchcbf._checks import written_for
-from torchcbf._native import float64_pointers, load_kernel
+from torchcbf._checks import behaves_as
+from torchcbf._native import float64_pointers, load_kernel, model_code
 from torchcbf.barriers.compose import BarrierStack, Scaled, Transformed
 from torchcbf.barriers.lie import LieFunction, LieTerms, Quadric
 from torchcbf.barriers.rectify import ExponentialBarrier
 from torchcbf.dynamics.base import ControlAffine
-from torchcbf.dynamics.models import AccelUnicycle, DoubleIntegrator, SingleIntegrator, Unicycle
 
 __all__ = [
     "Affine",
     "KERNEL_VERSION",
-    "MODEL_CODES",
     "TRANSFORM_CODES",
     "available",
     "cbf_conditions",
@@ -50,13 +49,6 @@ __all__ = [
 
 #: version of ``_lie_kernel.c`` this module calls (``LIE_KERNEL_VERSION``)
 KERNEL_VERSION = 2
-#: the kernel's code of each model it knows (the exact class: a subclass may change ``f``)
-MODEL_CODES: dict[type, int] = {
-    SingleIntegrator: 0,
-    DoubleIntegrator: 1,
-    Unicycle: 2,
-    AccelUnicycle: 3,
-}
 #: the kernel's code of each transform of :class:`~torchcbf.barriers.Transformed`
 TRANSFORM_CODES: dict[str | None, int] = {None: 0, "radius": 1, "exp": 2}
 #: the kernel's largest state, control, position and noise sizes
@@ -80,6 +72,20 @@ def available() -> bool:
     return _library() is not None
 
 
+#: the wrappers the kernel evaluates, and the methods each one's encoding stands for
+_WRAPPERS: dict[type, tuple[str, ...]] = {
+    BarrierStack: ("forward", "parts"),
+    ExponentialBarrier: ("forward", "value", "parts"),
+    Transformed: ("forward",),
+    Scaled: ("forward",),
+}
+
+
+def _wrapper(fn: LieFunction) -> type | None:
+    """The wrapper of :data:`_WRAPPERS` that ``fn`` behaves as, else ``None``."""
+    return next((w for w, names in _WRAPPERS.items() if behaves_as(fn, w, names)), None)
+
+
 class _Block(NamedTuple):
     """One quadric function ``b``, as ``outer * phi(b)`` with ``phi`` the ``transform`` of
     :class:`~torchcbf.barriers.Transformed` (``None``: ``phi(b) = b``), rectified along
@@ -95,10 +101,10 @@ class _Block(NamedTuple):
 
 def _blocks(fn: LieFunction) -> list[_Block] | None:
     """``fn`` as the kernel's blocks (their outputs concatenated are ``fn``'s), or ``None``."""
-    quadric = fn.quadric() if written_for(type(fn), "quadric", "forward") else None
+    quadric = fn.quadric()
     if quadric is not None:
         return [_Block(quadric)]
-    cls = type(fn)
+    cls = _wrapper(fn)
     if cls is BarrierStack:
         out: list[_Block] = []
         for child in fn.barriers:
@@ -107,14 +113,14 @@ def _blocks(fn: LieFunction) -> list[_Block] | None:
                 return None
             out.extend(part)
         return out
-    if cls not in (ExponentialBarrier, Transformed, Scaled):
+    if cls is None:
         return None
     inner = _blocks(fn.barrier)
     if inner is None or any(b.inner is not None for b in inner):
         return None
     if cls is ExponentialBarrier:
         model = fn.dynamics
-        if fn.relative_degree != 2 or fn.time_varying or type(model) not in MODEL_CODES:
+        if fn.relative_degree != 2 or fn.time_varying or model_code(model) is None:
             return None
         k0 = fn.coefficients
         return [b._replace(inner=model, k0=k0) for b in inner]
@@ -161,10 +167,10 @@ def _encode(
         if shape not in ok:
             return None
         strides.append(1 if shape == (k,) and k > 1 else 0)
-    code = -1 if inner is None else MODEL_CODES[type(inner)]
+    code, dim = (-1, 0) if inner is None else model_code(inner)  # type: ignore[misc]
     meta += (
-        k, d, *strides[:5], int(sign), TRANSFORM_CODES[transform], strides[5], code,
-        _model_dim(inner), *index,
+        k, d, *strides[:5], int(sign), TRANSFORM_CODES[transform], strides[5], code, dim,
+        *index,
     )  # fmt: skip
     reals.append(rate)
     tensors += (center, axes, radius, angle, scale, outer, k0)
@@ -311,7 +317,7 @@ def _arguments(
     """The kernel's ``meta``, ``reals`` and pointers (all but the seven outputs, which go
     at index 2), the tensors those point into (keep them alive through the call) and each
     function's number of outputs; ``None`` where the kernel does not apply."""
-    outer = MODEL_CODES.get(type(dynamics))
+    outer = model_code(dynamics)
     if _library() is None or outer is None or not fns or x.dim() != 2 or not x.is_cpu:
         return None
     dtype = x.dtype
@@ -327,7 +333,7 @@ def _arguments(
     q = 0 if sigma is None else sigma.shape[-1]
     if q > MAX_SIZE:
         return None
-    meta = [B, n, m, q, outer, _model_dim(dynamics), 0, 0, 0]
+    meta = [B, n, m, q, *outer, 0, 0, 0]
     reals: list[float] = [0.0, 1.0, 1.0]
     tensors: list[Tensor | None] = []
     sizes: list[int] = []
@@ -382,12 +388,3 @@ def _output_stride(value: Tensor | None, K: int) -> int | None:
     if value is None or value.dim() == 0 or (K == 1 and value.shape == (1,)):
         return 0
     return 1 if value.shape == (K,) else None
-
-
-def _model_dim(model: ControlAffine | None) -> int:
-    """The size parameter of a model's code (``dim`` of the integrators, else 0)."""
-    if isinstance(model, DoubleIntegrator):
-        return model.dim
-    if isinstance(model, SingleIntegrator):
-        return model.state_dim
-    return 0

@@ -106,6 +106,9 @@ class _ShapeStack(ExactConstants, Barrier):
         return self._sel.index
 
     def parts(self) -> list[LieFunction] | None:
+        """The ``k`` shapes, one part each (by ``_one``, which each shape writes with its
+        ``forward``; a shape declares these parts for its own ``forward`` by naming them in
+        its body, see :attr:`LieFunction.closed_forms`)."""
         return _split(self, self.num)
 
     @property
@@ -178,6 +181,8 @@ class Ball(_SignedShapeStack):
                 tt = tt[..., None]
             c = c + self.velocity.to(x) * tt
         return p - c
+
+    parts = _ShapeStack.parts
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """``x [..., n] -> h [...]`` (or ``[..., k]``)."""
@@ -340,6 +345,8 @@ class Ellipse(_SignedShapeStack):
             p = p.unsqueeze(-2)
         return self._body(p - self.center.to(x), x)
 
+    parts = _ShapeStack.parts
+
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """``x [..., n] -> h [...]`` (or ``[..., k]``)."""
         q = self._q(x) / self.axes.to(x)
@@ -425,6 +432,8 @@ class HalfSpace(_ShapeStack):
         if index is None and state_dim is None:
             state_dim = d
         self._sel = StateIndex(index, d, state_dim)
+
+    parts = _ShapeStack.parts
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """``x [..., n] -> h [...]`` (or ``[..., k]``)."""

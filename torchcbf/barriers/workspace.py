@@ -352,7 +352,7 @@ class JointLimitBarrier(Barrier):
     def has_analytic(self) -> bool:
         return True
 
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         h = self(x)
         eye = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)
         rows = torch.cat([eye[self.lower_joints], -eye[self.upper_joints]], 0)  # [k, n]
@@ -397,7 +397,7 @@ class JointVelocityBarrier(Barrier):
     def has_analytic(self) -> bool:
         return True
 
-    def _analytic(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
+    def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         h = self(x)
         eye = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)[self.arm.dof :]
         rows = torch.cat([eye[self.joints], -eye[self.joints]], 0)  # [k, n]

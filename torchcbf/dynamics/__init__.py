@@ -1,7 +1,7 @@
 """Control-affine dynamics: the :class:`ControlAffine` base and standard models."""
 
 from torchcbf.dynamics._ik import IKResult
-from torchcbf.dynamics.base import ControlAffine, DriftDerivatives
+from torchcbf.dynamics.base import ControlAffine, DriftDerivatives, NativeModel
 from torchcbf.dynamics.manipulator import (
     JointSpaceController,
     Manipulator,
@@ -29,6 +29,7 @@ __all__ = [
     "IKResult",
     "JointSpaceController",
     "Manipulator",
+    "NativeModel",
     "Quadrotor",
     "ResolvedRateController",
     "SingleIntegrator",

@@ -6,14 +6,14 @@
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 import torch
 from torch import Tensor, nn
 
 from torchcbf._checks import (
+    ClosedForms,
     as_limit,
     as_tensor,
     check_batch_match,
@@ -22,23 +22,11 @@ from torchcbf._checks import (
     check_last_dim,
     check_same,
     clamp_control,
+    honour_overrides,
 )
 
 SigmaSpec = float | Tensor | Callable[[Tensor], Tensor] | None
 LimitSpec = float | Tensor | list[float] | tuple[float, ...] | None
-
-
-def _definer(cls: type, name: str) -> type | None:
-    """The class of ``cls``'s MRO whose body defines ``name``."""
-    return next((c for c in cls.__mro__ if name in vars(c)), None)
-
-
-@functools.cache
-def _own_drift_derivatives(cls: type) -> bool:
-    """Whether the class of ``cls``'s MRO that defines ``f`` also defines
-    ``drift_derivatives`` (a property of the class alone, so computed once per class)."""
-    owner = _definer(cls, "drift_derivatives")
-    return owner is not ControlAffine and owner is _definer(cls, "f")
 
 
 class DriftDerivatives(NamedTuple):
@@ -48,6 +36,16 @@ class DriftDerivatives(NamedTuple):
 
     jac: Tensor
     hess_quad: Callable[[Tensor, Tensor], Tensor]
+
+
+class NativeModel(NamedTuple):
+    """A model the native kernels evaluate in closed form (see
+    :meth:`ControlAffine.native_model`): its ``kind`` (a key of
+    :data:`torchcbf._native.MODEL_CODES`) and ``dim``, the size that kind is built with (the
+    position dimension of the integrators, 0 for the unicycles)."""
+
+    kind: str
+    dim: int = 0
 
 
 class ControlAffine(nn.Module):
@@ -71,6 +69,20 @@ class ControlAffine(nn.Module):
         disturbance_bound: ``w_max``, scalar or ``[p]``; the disturbance is ``|w|_inf <= w_max``.
         disturbance_matrix: ``M`` of shape ``[n, p]`` (identity by default).
     """
+
+    #: the fast forms a model may give, each trusted only where the class defining it also
+    #: defines what it stands for (see :func:`torchcbf._checks.honour_overrides`): a subclass
+    #: that overrides ``f`` alone integrates ``f + g u``, takes its drift derivatives by
+    #: autograd and runs on no native kernel
+    closed_forms: ClassVar[ClosedForms] = {
+        "xdot": (("f", "g"), ()),
+        "drift_derivatives": (("f",), ()),
+        "native_model": (("f", "g", "xdot", "sigma", "drift_derivatives"), ()),
+    }
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        honour_overrides(cls, ControlAffine, ControlAffine.closed_forms)
 
     def __init__(
         self,
@@ -135,9 +147,15 @@ class ControlAffine(nn.Module):
     def has_drift_derivatives(self) -> bool:
         """Whether :meth:`drift_derivatives` has closed forms for this model's ``f``
         (closed-form exponential CBFs of relative degree two use them; otherwise those run by
-        autograd): the class that defines it must also define ``f``, so a subclass that
-        changes ``f`` does not inherit its parent's derivatives."""
-        return _own_drift_derivatives(type(self))
+        autograd): a subclass that changes ``f`` does not inherit its parent's derivatives
+        (see :attr:`closed_forms`)."""
+        return type(self).drift_derivatives is not ControlAffine.drift_derivatives
+
+    def native_model(self) -> NativeModel | None:
+        """This model as the native kernels know it, or ``None`` (the default: torch code
+        runs). Built-in models give it; a subclass that changes ``f``, ``g``, ``xdot``,
+        ``sigma`` or ``drift_derivatives`` does not inherit it (see :attr:`closed_forms`)."""
+        return None
 
     def drift_derivatives(self, x: Tensor) -> DriftDerivatives:
         """Jacobian and second-derivative contraction of ``f`` at ``x [..., n]`` (see
@@ -149,15 +167,11 @@ class ControlAffine(nn.Module):
         without input checks: the extension point for a faster closed form."""
         return self.f(x) + (self.g(x) @ u.unsqueeze(-1)).squeeze(-1)
 
-    def _xdot(self, x: Tensor, u: Tensor) -> Tensor:
-        """Former name of :meth:`xdot` (a subclass overriding it still takes effect)."""
-        return self.xdot(x, u)
-
     # -- derived ---------------------------------------------------------------------------
     def forward(self, x: Tensor, u: Tensor, w: Tensor | None = None) -> Tensor:
         """``xdot = f(x) + g(x) u (+ M w)`` for ``x [..., n]``, ``u [..., m]``, ``w [..., p]``."""
         self.check_inputs(x, u)
-        xdot = self._xdot(x, u)
+        xdot = self.xdot(x, u)
         if w is not None:
             xdot = xdot + self.disturbance(x, w)
         return xdot

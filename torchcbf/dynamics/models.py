@@ -12,7 +12,12 @@ import torch
 from torch import Tensor
 
 from torchcbf._checks import broadcast_shapes
-from torchcbf.dynamics.base import ControlAffine, DriftDerivatives, register_constant
+from torchcbf.dynamics.base import (
+    ControlAffine,
+    DriftDerivatives,
+    NativeModel,
+    register_constant,
+)
 
 
 def _zeros(x: Tensor, *shape: int) -> Tensor:
@@ -63,6 +68,9 @@ class SingleIntegrator(ControlAffine):
     def xdot(self, x: Tensor, u: Tensor) -> Tensor:
         return u.expand(broadcast_shapes(x.shape, u.shape))
 
+    def native_model(self) -> NativeModel:
+        return NativeModel("single_integrator", self.state_dim)
+
 
 class DoubleIntegrator(ControlAffine):
     """``pdot = v, vdot = u`` in ``dim`` dimensions: state ``(p, v)`` of size ``2 dim``."""
@@ -87,6 +95,9 @@ class DoubleIntegrator(ControlAffine):
     def xdot(self, x: Tensor, u: Tensor) -> Tensor:
         v, u = torch.broadcast_tensors(x[..., self.dim :], u)
         return torch.cat([v, u], dim=-1)
+
+    def native_model(self) -> NativeModel:
+        return NativeModel("double_integrator", self.control_dim)
 
 
 class Unicycle(ControlAffine):
@@ -117,6 +128,9 @@ class Unicycle(ControlAffine):
         return torch.stack(
             torch.broadcast_tensors(v * torch.cos(theta), v * torch.sin(theta), omega), -1
         )
+
+    def native_model(self) -> NativeModel:
+        return NativeModel("unicycle")
 
 
 class AccelUnicycle(ControlAffine):
@@ -161,6 +175,9 @@ class AccelUnicycle(ControlAffine):
             v * torch.cos(theta), v * torch.sin(theta), u[..., 0], u[..., 1]
         )
         return torch.stack(parts, -1)
+
+    def native_model(self) -> NativeModel:
+        return NativeModel("accel_unicycle")
 
 
 class Bicycle(ControlAffine):

@@ -12,12 +12,18 @@ A new mode subclasses :class:`FilterMode` and writes :meth:`~FilterMode.cbf` (an
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor, check_last_dim, written_for
+from torchcbf._checks import (
+    ClosedForms,
+    as_tensor,
+    behaves_as,
+    check_last_dim,
+    honour_overrides,
+)
 from torchcbf.barriers.lie import LieFunction, LieTerms
 from torchcbf.barriers.native import Affine
 from torchcbf.dynamics.base import ControlAffine
@@ -46,6 +52,13 @@ class FilterMode(nn.Module):
 
     name: str = ""
     needs_hessian: bool = False
+    #: :meth:`affine_cbf` is trusted only where the class defining it also defines
+    #: :meth:`cbf` (see :func:`torchcbf._checks.honour_overrides`)
+    closed_forms: ClassVar[ClosedForms] = {"affine_cbf": (("cbf",), ())}
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        honour_overrides(cls, FilterMode, FilterMode.closed_forms)
 
     def bind(
         self,
@@ -117,18 +130,9 @@ class Robust(FilterMode):
         return clf_condition(terms, "robust", rate, dynamics, x)
 
 
-def affine_condition(mode: FilterMode, alpha: nn.Module) -> Affine | None:
-    """``mode.affine_cbf(alpha)`` where it was written for the mode's ``cbf`` (see
-    :func:`torchcbf._checks.written_for`: a subclass of ``Vanilla`` that overrides ``cbf``
-    alone does not take its parent's affine form), else ``None``."""
-    if not written_for(type(mode), "affine_cbf", "cbf"):
-        return None
-    return mode.affine_cbf(alpha)
-
-
 def _linear_gain(alpha: nn.Module) -> Tensor | None:
-    """The gain of ``alpha`` where it is exactly :class:`LinearClassK`, else ``None``."""
-    return alpha.gain if type(alpha) is LinearClassK else None
+    """The gain of ``alpha`` where it behaves as :class:`LinearClassK`, else ``None``."""
+    return alpha.gain if behaves_as(alpha, LinearClassK, ("forward", "_phi", "gain")) else None
 
 
 def _needs_diffusion(name: str, dynamics: ControlAffine) -> None:
