@@ -282,8 +282,8 @@ def test_fallback_rule():
     goal = QuadraticGoal((2.0, 4.0), 2.0, (0, 1))
 
     class MyUnicycle(AccelUnicycle):
-        def _xdot(self, x, u):
-            return 0.5 * super()._xdot(x, u)
+        def xdot(self, x, u):
+            return 0.5 * super().xdot(x, u)
 
     def user_cost(states, controls, t0):
         return ((states[..., :2] - 1.0) ** 2).sum((-1, -2))

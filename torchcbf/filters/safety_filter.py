@@ -63,7 +63,7 @@ from torchcbf.filters import realtime
 from torchcbf.filters.class_k import ClassKSpec, _GainClassK, as_class_k
 from torchcbf.filters.conditions import as_columns, concat_terms
 from torchcbf.filters.fallback import Fallback, FallbackSpec
-from torchcbf.filters.modes import MODE_OPTIONS, FilterMode, affine_condition, make_mode
+from torchcbf.filters.modes import MODE_OPTIONS, FilterMode, make_mode
 from torchcbf.filters.qp_data import SLACK_MODES, SlackMode, assemble
 from torchcbf.qp import Status
 from torchcbf.qp import realtime as qp_realtime
@@ -100,6 +100,11 @@ class FilterOutput(NamedTuple):
         constraint_value: ``[..., k + c]`` at the returned ``u``: ``a . u + b`` for CBF rows
             and ``-(a . u + b)`` for CLF rows, so ``>= 0`` means the condition holds
             without slack.
+        path: what answered, ``"<lie>/<qp>"``: ``<lie>`` is ``native`` (the Lie terms and
+            conditions of every function from the C Lie kernel), ``torch`` (closed forms or
+            autograd in torch) or ``mixed``; ``<qp>`` is ``realtime`` (the filter's C kernel)
+            or the :attr:`torchcbf.qp.QPSolution.path` of the general path's QP. A call that
+            takes the C kernel end to end says ``native/realtime``.
     """
 
     u: Tensor
@@ -109,6 +114,11 @@ class FilterOutput(NamedTuple):
     clf_value: Tensor
     qp_status: Tensor
     constraint_value: Tensor
+    path: str = "torch/ipm"
+
+
+#: the values of :attr:`SafetyFilter.backend`
+BACKENDS = ("auto", "torch")
 
 
 def _modules(name: str, value: LieFunction | Sequence[LieFunction]) -> nn.ModuleList:
@@ -237,6 +247,10 @@ class SafetyFilter(nn.Module):
             prefer its solution. Default: ``True`` when there are Lyapunov functions.
         lie_method: ``"auto"`` (closed forms when a function has them, else autograd),
             ``"autograd"`` or ``"analytic"``.
+        backend: ``"auto"`` (default: the C kernels where they apply, see the module) or
+            ``"torch"`` (the general path: Lie terms in torch, the QP by
+            :func:`torchcbf.qp.solve_qp` with ``qp_options``). :attr:`FilterOutput.path`
+            says which answered.
         qp_options: keyword arguments for :func:`torchcbf.qp.solve_qp`.
         check_relative_degree: at construction, evaluate ``L_g h`` of every barrier output on
             16 sample states (``N(0, 4 I)``, seeded) and raise ``ValueError`` if it vanishes
@@ -267,6 +281,7 @@ class SafetyFilter(nn.Module):
         slack_tol: float | None = None,
         exact: bool | None = None,
         lie_method: Literal["auto", "autograd", "analytic"] = "auto",
+        backend: Literal["auto", "torch"] = "auto",
         qp_options: dict[str, Any] | None = None,
         check_relative_degree: bool = True,
         **legacy: Any,
@@ -302,6 +317,9 @@ class SafetyFilter(nn.Module):
                 f"lie_method must be 'auto', 'autograd' or 'analytic', got {lie_method!r}"
             )
         self.lie_method = lie_method
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        self.backend = backend
         m = dynamics.control_dim
         self.alpha = _alphas("alpha", alpha, len(self.barriers))
         self.clf_rate = _alphas("clf_rate", clf_rate, len(self.lyapunovs))
@@ -377,11 +395,11 @@ class SafetyFilter(nn.Module):
         ts = torch.where(finite, tb, torch.zeros_like(tb))
         if conditions is None:
             conditions = self._conditions(xs, ts)
-        cbf, clf, h, V = conditions
+        cbf, clf, h, V, lie = conditions
         lo, hi = self._limits(xs)
         weights = {"cbf_weight": self.cbf_slack_weight, "clf_weight": self.clf_slack_weight}
         qp = assemble(cbf, clf, us, self.R.to(us), lo, hi, slack=self.cbf_slack, **weights)
-        z, qp_status, qp_ok = self._solve(qp, finite)
+        z, qp_status, qp_ok, qp_path = self._solve(qp, finite)
         m = us.shape[-1]
         u = torch.where(qp_ok.unsqueeze(-1), z[:, :m], self.fallback(xb, ub, lo, hi))
         s = z[:, m : m + qp.ks]
@@ -398,7 +416,7 @@ class SafetyFilter(nn.Module):
         cval = torch.where(fin, cval, torch.full_like(cval, math.nan))
         h = torch.where(fin, h, torch.full_like(h, math.nan))
         V = torch.where(fin, V, torch.full_like(V, math.nan))
-        return _output(batch, u, status, h, slack, V, qp_status, cval)
+        return _output(batch, u, status, h, slack, V, qp_status, cval, f"{lie}/{qp_path}")
 
     # -- the steps of forward --------------------------------------------------------------
     def _inputs(
@@ -448,25 +466,28 @@ class SafetyFilter(nn.Module):
         )
         return tuple(batch), xb, ub, tb
 
-    def _lie(self, fns: nn.ModuleList, x: Tensor, t: Tensor) -> tuple[LieTerms | None, list[int]]:
-        """k-output Lie terms of all ``fns`` concatenated, and each one's number of outputs.
-        A few states of quadric functions: one native call; functions without closed forms
-        share one stacked autograd call."""
+    def _lie(
+        self, fns: nn.ModuleList, x: Tensor, t: Tensor
+    ) -> tuple[LieTerms | None, list[int], bool]:
+        """k-output Lie terms of all ``fns`` concatenated, each one's number of outputs, and
+        whether the C kernel gave them. A few states of quadric functions: one native call;
+        functions without closed forms share one stacked autograd call."""
         if not fns:
-            return None, []
+            return None, [], False
         hessian = self.condition.needs_hessian
         if self._native_applies(x):
             found = native.lie_terms(fns, x, self.dynamics, hessian=hessian)
             if found is not None:
-                return found
+                return *found, True
         methods = [self._lie_method(fn) for fn in fns]
         if len(fns) > 1 and all(m == "autograd" for m in methods):
-            return stacked_lie_derivatives(list(fns), x, self.dynamics, t, hessian=hessian)
+            terms, sizes = stacked_lie_derivatives(list(fns), x, self.dynamics, t, hessian=hessian)
+            return terms, sizes, False
         parts = []
         for fn, method in zip(fns, methods, strict=True):
             terms = fn.lie(x, self.dynamics, t, method=method, hessian=hessian)
             parts.append(as_columns(terms, x.shape[0]))
-        return concat_terms(parts), [p.h.shape[1] for p in parts]
+        return concat_terms(parts), [p.h.shape[1] for p in parts], False
 
     def _native_cbf(
         self, x: Tensor, prepare: bool
@@ -484,7 +505,7 @@ class SafetyFilter(nn.Module):
         alpha, *others = alphas  # iterating a ModuleList is cheaper than its len()
         if others:
             return None
-        affine = affine_condition(mode, alpha)
+        affine = mode.affine_cbf(alpha)
         if affine is None:
             return None
         args = barriers, x, self.dynamics, affine
@@ -497,7 +518,12 @@ class SafetyFilter(nn.Module):
     def _native_applies(self, x: Tensor) -> bool:
         """Whether the native Lie terms may answer for ``x [B, n]``: ``lie_method="auto"``
         and at most ``realtime.MAX_BATCH`` CPU states."""
-        return self.lie_method == "auto" and x.shape[0] <= realtime.MAX_BATCH and x.is_cpu
+        return (
+            self.lie_method == "auto"
+            and self.backend == "auto"
+            and x.shape[0] <= realtime.MAX_BATCH
+            and x.is_cpu
+        )
 
     def _lie_method(self, fn: LieFunction) -> str:
         if self.lie_method == "auto":
@@ -519,14 +545,23 @@ class SafetyFilter(nn.Module):
         tuple[Tensor, Tensor] | None,
         Tensor,
         Tensor,
+        str,
     ]:
         """CBF conditions ``(a [B,k,m], b [B,k])``, CLF conditions ``(a [B,c,m], b [B,c])``
-        (``None`` without functions), barrier values ``h [B,k]`` and Lyapunov values
-        ``V [B,c]``. With ``prepare``, the CBF conditions may be a prepared native call
-        (see :meth:`_native_cbf`), for the real-time path."""
+        (``None`` without functions), barrier values ``h [B,k]``, Lyapunov values
+        ``V [B,c]`` and where the Lie terms came from (``native``, ``torch`` or ``mixed``).
+        With ``prepare``, the CBF conditions may be a prepared native call (see
+        :meth:`_native_cbf`), for the real-time path."""
         native_cbf = self._native_cbf(x, prepare)
-        cbf_terms, cbf_sizes = (None, []) if native_cbf else self._lie(self.barriers, x, t)
-        clf_terms, clf_sizes = self._lie(self.lyapunovs, x, t)
+        if native_cbf:
+            cbf_terms, cbf_sizes, cbf_native = None, [], True
+        else:
+            cbf_terms, cbf_sizes, cbf_native = self._lie(self.barriers, x, t)
+        clf_terms, clf_sizes, clf_native = self._lie(self.lyapunovs, x, t)
+        used = [
+            f for f, on in ((cbf_native, cbf_sizes or native_cbf), (clf_native, clf_sizes)) if on
+        ]
+        lie = "native" if all(used) else ("mixed" if any(used) else "torch")
         cbf = clf = None
         h = V = x.new_zeros(x.shape[0], 0)
         if native_cbf is not None:
@@ -539,7 +574,7 @@ class SafetyFilter(nn.Module):
             rate = lambda v: self._class_k(self.clf_rate, v, clf_sizes, "clf_rate")  # noqa: E731
             clf = tuple(self.condition.clf(clf_terms, rate, self.dynamics, x))
             V = clf_terms.h
-        return cbf, clf, h, V  # type: ignore[return-value]
+        return cbf, clf, h, V, lie  # type: ignore[return-value]
 
     def _limit_tensors(self) -> tuple[Tensor | None, Tensor | None]:
         """The filter's own limits ``[m]``, else the dynamics' (``None``: no limit)."""
@@ -562,8 +597,8 @@ class SafetyFilter(nn.Module):
     def _two_pass(self, ks: int) -> bool:
         return bool(ks) and self.exact and self.cbf_slack == "shared"
 
-    def _solve(self, qp: Any, finite: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Solve the filter QP: ``(z [B, nz], qp_status [B], qp_ok [B])``. Rows with
+    def _solve(self, qp: Any, finite: Tensor) -> tuple[Tensor, Tensor, Tensor, str]:
+        """Solve the filter QP: ``(z [B, nz], qp_status [B], qp_ok [B], path)``. Rows with
         non-finite data get a harmless problem and ``qp_ok = False``."""
         G, hq = qp.G, qp.h
         B = hq.shape[0]
@@ -573,7 +608,7 @@ class SafetyFilter(nn.Module):
         if not self._two_pass(qp.ks):
             sol = qp_layer.solve_qp(qp.Q, qp.p, G, hq, lb=qp.lb, ub=qp.ub, **self.qp_options)
             ok = data_ok & (sol.status == Status.SOLVED) & torch.isfinite(sol.x).all(-1)
-            return sol.x, sol.status, ok
+            return sol.x, sol.status, ok, sol.path
         # rows [B:2B]: the hard QP (the slack columns of the CBF rows zeroed; s then
         # decouples and sits at its bound 0), solved in the same call as the elastic one
         k, m = qp.norms.shape[1], self.dynamics.control_dim
@@ -586,7 +621,7 @@ class SafetyFilter(nn.Module):
         el_ok, hard_ok = good[:B], good[B:]
         z = torch.where(hard_ok.unsqueeze(-1), sol.x[B:], sol.x[:B])
         qp_status = torch.where(hard_ok, sol.status[B:], sol.status[:B])
-        return z, qp_status, hard_ok | el_ok
+        return z, qp_status, hard_ok | el_ok, sol.path
 
     # -- the real-time path ----------------------------------------------------------------
     def _realtime_applies(self, xb: Tensor, ub: Tensor, tb: Tensor) -> bool:
@@ -596,7 +631,8 @@ class SafetyFilter(nn.Module):
         output can carry a gradient."""
         opts = self.qp_options
         if (
-            not 1 <= xb.shape[0] <= realtime.MAX_BATCH
+            self.backend != "auto"
+            or not 1 <= xb.shape[0] <= realtime.MAX_BATCH
             or not xb.is_cpu
             or (opts and not (opts.keys() <= _REALTIME_QP_OPTIONS))
             or opts.get("backend", "torch") != "torch"
@@ -611,14 +647,14 @@ class SafetyFilter(nn.Module):
         batch: tuple[int, ...],
         xb: Tensor,
         ub: Tensor,
-        conditions: tuple[Any, Any, Tensor, Tensor],
+        conditions: tuple[Any, Any, Tensor, Tensor, str],
         limits: tuple[Tensor | None, Tensor | None],
     ) -> FilterOutput | None:
         """The filter on a few finite states by one call of the C kernel
         (:mod:`torchcbf.filters.realtime`), with the conditions and the limits
         (:meth:`_limit_tensors`) already at hand; ``None`` where the general path must answer
         (non-finite conditions, a row the kernel does not certify)."""
-        cbf, clf, h, V = conditions
+        cbf, clf, h, V, lie = conditions
         opts = self.qp_options
         eps = opts.get("eps")
         res = realtime.solve(
@@ -647,6 +683,7 @@ class SafetyFilter(nn.Module):
             clf_value=V if flat else V.reshape(*batch, V.shape[-1]),
             qp_status=torch.zeros_like(res.status),
             constraint_value=value,
+            path=f"{lie}/realtime",
         )
 
 
@@ -661,9 +698,9 @@ def _apply_class_k(fn: nn.Module, values: Tensor, name: str) -> Tensor:
     return fn(values)
 
 
-def _carries_grad(conditions: tuple[Any, Any, Tensor, Tensor], *more: Tensor | None) -> bool:
+def _carries_grad(conditions: tuple[Any, Any, Tensor, Tensor, str], *more: Tensor | None) -> bool:
     """Whether a condition tensor, ``h``, ``V`` or one of ``more`` requires grad."""
-    cbf, clf, h, V = conditions
+    cbf, clf, h, V, _ = conditions
     if isinstance(cbf, native.ConditionCall):
         cbf = None  # it refuses tensors that require grad (with grad mode on)
     tensors = [h, V, *more, *(cbf or ()), *(clf or ())]
@@ -698,6 +735,7 @@ def _output(
     V: Tensor,
     qp_status: Tensor,
     cval: Tensor,
+    path: str,
 ) -> FilterOutput:
     """Reshape flat ``[B, ...]`` results to the batch shape."""
     return FilterOutput(
@@ -708,4 +746,5 @@ def _output(
         clf_value=V.reshape(*batch, V.shape[-1]),
         qp_status=qp_status.reshape(batch),
         constraint_value=cval.reshape(*batch, cval.shape[-1]),
+        path=path,
     )

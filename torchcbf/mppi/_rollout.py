@@ -23,9 +23,9 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from torchcbf._native import load_kernel, thread_pool
-from torchcbf.barriers import Ball, Ellipse
-from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, SingleIntegrator, Unicycle
+from torchcbf._checks import behaves_as
+from torchcbf._native import load_kernel, model_code, thread_pool
+from torchcbf.barriers import LieFunction
 
 logger = logging.getLogger(__name__)
 
@@ -37,7 +37,9 @@ _HDR, _TREC, _SREC = 16, 16, 20
 #: fewest samples a thread is given
 MIN_SAMPLES_PER_THREAD = 256
 
-MODEL_SINGLE, MODEL_DOUBLE, MODEL_UNICYCLE, MODEL_ACCEL_UNICYCLE = 0, 1, 2, 3
+#: the methods whose formulas the kernel evaluates for a built-in cost term (a subclass that
+#: changes one is scored by torch)
+_COST_METHODS = ("forward", "stage", "terminal")
 TERM_GOAL, TERM_OBSTACLE, TERM_BARRIER, TERM_DISCRETE_BARRIER = 0, 1, 2, 3
 SHAPE_ELLIPSE, SHAPE_BALL = 0, 1
 INTEGRATOR_CODES = {"euler": 0, "rk4": 1}
@@ -64,70 +66,71 @@ def available() -> bool:
     return _library() is not None
 
 
-def lanes() -> int:
-    """Samples per block of the kernel."""
-    lib = _library()
-    return 64 if lib is None else int(lib.torchcbf_mppi_lanes())
-
-
 # -- configuration ---------------------------------------------------------------------------
 def encode_model(dynamics: nn.Module) -> tuple[int, int] | None:
-    """``(model code, dim)`` of a built-in model (exact class, so an override of its
-    dynamics in a subclass is honoured by the torch path), or ``None``."""
-    kind = type(dynamics)
-    if kind is SingleIntegrator:
-        code, dim = MODEL_SINGLE, dynamics.state_dim
-    elif kind is DoubleIntegrator:
-        code, dim = MODEL_DOUBLE, dynamics.control_dim
-    elif kind is Unicycle:
-        code, dim = MODEL_UNICYCLE, 0
-    elif kind is AccelUnicycle:
-        code, dim = MODEL_ACCEL_UNICYCLE, 0
-    else:
+    """``(model code, dim)`` of a model the kernel knows (its
+    :meth:`~torchcbf.dynamics.ControlAffine.native_model`, which a subclass that changes the
+    dynamics does not inherit), or ``None``."""
+    found = model_code(dynamics)
+    if found is None:
         return None
     if dynamics.state_dim > MAX_STATE or dynamics.control_dim > MAX_CONTROL:
         return None
-    return code, dim
+    return found
 
 
 def _values(t: Tensor) -> list[float]:
     return [float(v) for v in t.detach().reshape(-1).tolist()]
 
 
+def _per_shape(value: Tensor | None, k: int, default: float) -> list[float] | None:
+    """A quadric's per-shape constant (``[]`` or ``[k]``, ``None``: ``default``) as k floats."""
+    if value is None:
+        return [default] * k
+    v = value.detach()
+    if v.dim() == 0:
+        return _values(v.expand(k))
+    return _values(v) if v.shape == (k,) else None
+
+
 def _shape_records(barrier: object) -> list[list[float]] | None:
-    """Kernel records of an :class:`Ellipse` or :class:`Ball` barrier (one per output)."""
-    kind = type(barrier)
-    if kind not in (Ellipse, Ball) or getattr(barrier, "time_varying", False):
+    """Kernel records of a barrier's :meth:`~torchcbf.barriers.LieFunction.quadric` (one
+    per output), or ``None``. The kernel evaluates ``sign (sum_i (q_i / a_i)^2 - c0)`` with
+    ``c0 = r^2`` for a ball (no axes, no rotation) and 1 otherwise, so a quadric's scale
+    goes into the sign and a radius into the axes."""
+    quadric = barrier.quadric() if isinstance(barrier, LieFunction) else None
+    if quadric is None or barrier.time_varying:
         return None
-    # the shapes expose no public accessor for their state components
-    index = tuple(barrier.index)
-    center = barrier.center.detach()
+    index = tuple(quadric.index)
+    center = quadric.center.detach()
     d = center.shape[-1]
-    if d > MAX_DIM or len(index) != d:
+    if center.dim() not in (1, 2) or d > MAX_DIM or len(index) != d:
         return None
     centers = center.reshape(-1, d)
     k = centers.shape[0]
-    sign = -1.0 if barrier.keep_in else 1.0
-    if kind is Ellipse:
-        axes = barrier.axes.detach().reshape(-1, d)
-        angle = barrier.angle
-        angles = None if angle is None else _values(angle.expand(k) if angle.dim() == 0 else angle)
-        radius = [0.0] * k
-        code = SHAPE_ELLIPSE
-    else:
-        axes = torch.ones_like(centers)
-        r = barrier.radius.detach()
-        radius = _values(r.expand(k) if r.dim() == 0 else r)
-        angles = None
-        code = SHAPE_BALL
+    if quadric.axes is not None and quadric.axes.shape != center.shape:
+        return None
+    radius = _per_shape(quadric.radius, k, 1.0)
+    scale = _per_shape(quadric.scale, k, 1.0)
+    angles = None if quadric.angle is None else _per_shape(quadric.angle, k, 0.0)
+    if radius is None or scale is None or (quadric.angle is not None and angles is None):
+        return None
+    if angles is not None and d != 2:
+        return None
+    ball = quadric.axes is None and angles is None
+    axes = torch.ones_like(centers) if quadric.axes is None else quadric.axes.detach()
+    axes = axes.reshape(-1, d)
     records = []
     for j in range(k):
         rec = [0.0] * _SREC
-        rec[0], rec[1] = code, d
-        c, a = _values(centers[j]), _values(axes[j])
+        rec[0], rec[1] = (SHAPE_BALL if ball else SHAPE_ELLIPSE), d
+        r = radius[j]
+        c = _values(centers[j])
+        a = _values(axes[j]) if ball else [v * abs(r) for v in _values(axes[j])]
         for i in range(d):
             rec[2 + i], rec[6 + i], rec[10 + i] = index[i], c[i], a[i]
-        rec[14], rec[15] = radius[j], sign
+        rec[14] = r if ball else 0.0
+        rec[15] = quadric.sign * scale[j] * (1.0 if ball else r * r)
         if angles is not None:
             rec[16], rec[17] = 1.0, angles[j]
         records.append(rec)
@@ -163,7 +166,9 @@ def encode_cost(cost: object, state_dim: int) -> tuple[list[list[float]], list[l
         SumCost,
     )
 
-    if type(cost) is SumCost:
+    _TERMS = (QuadraticGoal, ObstacleCost, BarrierCost, DiscreteBarrierCost)
+
+    if behaves_as(cost, SumCost, _COST_METHODS):
         parts = cost.stepwise_terms + cost.whole_terms
     else:
         parts = [cost]
@@ -171,7 +176,7 @@ def encode_cost(cost: object, state_dim: int) -> tuple[list[list[float]], list[l
     shapes: list[list[float]] = []
     shared: dict[int, tuple[int, int]] = {}  # id(barrier) -> its shape records (evaluated once)
     for part in parts:
-        kind = type(part)
+        kind = next((c for c in _TERMS if behaves_as(part, c, _COST_METHODS)), None)
         if kind is QuadraticGoal:
             rec = _point_term(
                 _term(TERM_GOAL, part.weight, part.terminal_weight, 0.0), part.index, part.goal
@@ -298,21 +303,15 @@ def run(
     lib = _library()
     if lib is None:
         raise RuntimeError("torchcbf: the MPPI kernel was not built (no C compiler at install)")
+    # inputs are read row-major: their layout is made so (outputs must already be)
+    pairs, x0, plan, wctrl, keys, weights = (
+        None if t is None else t.contiguous() for t in (pairs, x0, plan, wctrl, keys, weights)
+    )
+    _check_call(cfg, count, x0, plan, keys, pairs, wctrl, cost, states, controls, eps,
+                weights, wsum)  # fmt: skip
     fn = lib.torchcbf_mppi_run_f64 if x0.dtype == torch.float64 else lib.torchcbf_mppi_run_f32
-    inputs = [None if t is None else t.contiguous() for t in (pairs, x0, plan, wctrl, keys)]
-    weights = None if weights is None else weights.contiguous()
-    if cost is not None and not cost.is_contiguous():
-        raise ValueError("cost must be contiguous")
+    inputs = [pairs, x0, plan, wctrl, keys]
     cmajor = pairs is None
-    for name, t in (("states", states), ("controls", controls), ("eps", eps)):
-        if t is None:
-            continue
-        if cmajor and not t.permute(0, 3, 2, 1).is_contiguous():
-            raise ValueError(f"{name} must be in component-major storage")
-        if not cmajor and not t.is_contiguous():
-            raise ValueError(f"{name} must be contiguous")
-    if wsum is not None and not (wsum.is_contiguous() and wsum.dtype == torch.float64):
-        raise ValueError("wsum must be a contiguous float64 tensor")
     threads = 1 if wsum is None else wsum.shape[0]
     if wsum is None:
         threads = max(1, min(torch.get_num_threads(), count // MIN_SAMPLES_PER_THREAD))
@@ -339,6 +338,71 @@ def run(
     bad = [c for c in codes if c != 0]
     if bad:
         raise RuntimeError(f"torchcbf: the MPPI kernel refused its configuration (code {bad[0]})")
+
+
+def _check_call(
+    cfg: Tensor,
+    count: int,
+    x0: Tensor,
+    plan: Tensor,
+    keys: Tensor,
+    pairs: Tensor | None,
+    wctrl: Tensor | None,
+    cost: Tensor | None,
+    states: Tensor | None,
+    controls: Tensor | None,
+    eps: Tensor | None,
+    weights: Tensor | None,
+    wsum: Tensor | None,
+) -> None:
+    """Check every tensor :func:`run` hands the kernel against the sizes in ``cfg``: CPU,
+    its dtype, shape and layout, and the sample pairs in range; raise ``ValueError`` or
+    ``TypeError`` naming it (the kernel reads raw memory and checks none of it)."""
+    if not (cfg.dtype == torch.float64 and cfg.dim() == 1 and cfg.is_contiguous()):
+        raise ValueError("cfg must be a contiguous float64 vector")
+    head = cfg[:_HDR].tolist()
+    n, m, H, K = (int(v) for v in head[3:7])
+    nterms, nshapes = int(head[11]), int(head[12])
+    if cfg.numel() != _HDR + 2 * MAX_CONTROL + MAX_CONTROL**2 + nterms * _TREC + nshapes * _SREC:
+        raise ValueError(f"cfg has {cfg.numel()} entries, not those of its header")
+    real = x0.dtype
+    if real not in (torch.float32, torch.float64):
+        raise TypeError(f"x0 must be float32 or float64, got {real}")
+    B = x0.shape[0] if x0.dim() == 2 else -1
+    if pairs is None and not 0 <= count <= B * K:
+        raise ValueError(f"count must be in [0, {B * K}], got {count}")
+    rows = (count,) if pairs is not None else (B, K)
+    expected: list[tuple[str, Tensor | None, tuple[int, ...], torch.dtype]] = [
+        ("x0", x0, (B, n), real),
+        ("plan", plan, (B, H, m), real),
+        ("keys", keys, (B,), torch.int64),
+        ("pairs", pairs, (count, 2), torch.int64),
+        ("wctrl", wctrl, (B, H, m), real),
+        ("cost", cost, rows, real),
+        ("states", states, (*rows, H + 1, n), real),
+        ("controls", controls, (*rows, H, m), real),
+        ("eps", eps, (*rows, H, m), real),
+        ("weights", weights, (count,), real),
+        ("wsum", wsum, (wsum.shape[0] if wsum is not None else 0, B, H, m), torch.float64),
+    ]
+    for name, t, shape, dtype in expected:
+        if t is None:
+            continue
+        if t.device.type != "cpu":
+            raise ValueError(f"{name} must be on the CPU, got {t.device}")
+        if t.dtype != dtype:
+            raise TypeError(f"{name} must be {dtype} for this call, got {t.dtype}")
+        if tuple(t.shape) != shape:
+            raise ValueError(f"{name} must have shape {list(shape)}, got {list(t.shape)}")
+        cmajor = pairs is None and name in ("states", "controls", "eps")
+        if cmajor and not t.permute(0, 3, 2, 1).is_contiguous():
+            raise ValueError(f"{name} must be in component-major storage")
+        if not cmajor and not t.is_contiguous():
+            raise ValueError(f"{name} must be contiguous")
+    if pairs is not None and count:
+        low, high = pairs.amin(0).tolist(), pairs.amax(0).tolist()
+        if min(low) < 0 or high[0] >= B or high[1] >= K:
+            raise ValueError(f"pairs must hold (b, k) with b < {B} and k < {K}")
 
 
 def update_threads(count: int) -> int:

@@ -113,6 +113,8 @@ class MPPIOutput(NamedTuple):
         rollouts: ``[B, R, H+1, n]`` the first ``R = keep_rollouts`` sampled rollouts, or None.
         rollout_weights: ``[B, R]`` their weights, or None.
         nonfinite: ``[B]`` int64, samples whose cost was NaN or infinite (weight zero).
+        path: the path that planned (``"fused"``, ``"rollout"`` or ``"torch"``, see
+            :mod:`torchcbf.mppi.planner`).
     """
 
     u: Tensor
@@ -125,6 +127,7 @@ class MPPIOutput(NamedTuple):
     rollouts: Tensor | None
     rollout_weights: Tensor | None
     nonfinite: Tensor | None = None
+    path: str = "torch"
 
 
 def _limit(name: str, value: object, m: int) -> Tensor | None:
@@ -423,10 +426,9 @@ class MPPI(nn.Module):
                 cfg, B * self.num_samples, xc, plan, keys,
                 states=states, controls=controls, wctrl=wctrl, cost=ctrl,
             )  # fmt: skip
-            cost = self._score_fn(states, controls, None, plan, t0, history)
+            cost = self._check_cost(self._score_fn(states, controls, None, plan, t0, history))
             if ctrl is not None:
                 cost = cost + ctrl
-            self._check_cost(cost)
             weights = self._weights(cost)
             delta = self._kernel_update(cfg, xc, plan, keys, weights)
         else:
@@ -434,8 +436,7 @@ class MPPI(nn.Module):
             assert eps is not None
             self._sample_noise(eps)
             self._rollout(xb, eps, controls, states)
-            cost = self._score_fn(states, controls, eps, plan, t0, history)
-            self._check_cost(cost)
+            cost = self._check_cost(self._score_fn(states, controls, eps, plan, t0, history))
             weights = self._weights(cost)
             K, H, m = self.num_samples, self.horizon, self.dynamics.control_dim
             by_component = eps.permute(0, 3, 2, 1).reshape(B, m * H, K)
@@ -494,15 +495,14 @@ class MPPI(nn.Module):
         chunk = self._chunk(states)
         K = states.shape[1]
         if chunk >= K:
-            cost = self._rollout_cost(states, controls, t0, history)
+            cost = self._check_cost(self._rollout_cost(states, controls, t0, history))
         else:  # slices small enough for the cost's intermediates to stay in cache
             cost = states.new_empty(states.shape[:2])
             for k in range(0, K, chunk):
                 part = self._rollout_cost(
                     states[:, k : k + chunk], controls[:, k : k + chunk], t0, history
                 )
-                self._check_cost(part, min(chunk, K - k))
-                cost[:, k : k + chunk] = part
+                cost[:, k : k + chunk] = self._check_cost(part, min(chunk, K - k))
         if self.control_cost_weight > 0.0 and eps is not None:
             B, K, H, m = eps.shape
             weighted = (plan @ self.noise_cov_inv.to(plan)).transpose(1, 2)  # [B, m, H]
@@ -617,11 +617,21 @@ class MPPI(nn.Module):
         return self._output(cost, weights, delta, rolled[:B], rollouts, unbatched)
 
     # -- weights and update --------------------------------------------------------------------
-    def _check_cost(self, cost: Tensor, count: int | None = None) -> None:
-        B, K = self._plan.shape[0], self.num_samples if count is None else count
+    def _check_cost(self, cost: Tensor, count: int | None = None) -> Tensor:
+        """The cost's ``[B, K]`` (``K = count`` for a slice) in the planner's dtype: a
+        floating cost of another dtype is cast (documented); anything else raises."""
+        plan = self._plan
+        B, K = plan.shape[0], self.num_samples if count is None else count
         if not isinstance(cost, Tensor) or cost.shape != (B, K):
             shape = tuple(cost.shape) if isinstance(cost, Tensor) else type(cost).__name__
             raise ValueError(f"cost must return shape [{B}, {K}], got {shape}")
+        if not cost.is_floating_point():
+            raise TypeError(f"cost must return a floating-point tensor, got {cost.dtype}")
+        if cost.device != plan.device:
+            raise ValueError(
+                f"cost returned a tensor on {cost.device}, the planner is on {plan.device}"
+            )
+        return cost if cost.dtype == plan.dtype else cost.to(plan.dtype)
 
     def _weights(self, cost: Tensor) -> _Weights:
         finite = torch.isfinite(cost)
@@ -681,9 +691,10 @@ class MPPI(nn.Module):
             rollouts=rollouts,
             rollout_weights=w[:, : self.keep_rollouts].clone() if self.keep_rollouts else None,
             nonfinite=self.num_samples - count,
+            path=self.path,
         )
         if unbatched:
-            out = MPPIOutput(*(None if v is None else v.squeeze(0) for v in out))
+            out = MPPIOutput(*(v.squeeze(0) if isinstance(v, Tensor) else v for v in out))
         return out
 
     def extra_repr(self) -> str:

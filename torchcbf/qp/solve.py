@@ -37,6 +37,12 @@ class QPSolution(NamedTuple):
       the bound is infinite or absent), so that ``Qx + p + G'lam + A'nu - lam_lb + lam_ub = 0``.
     - ``slack [..., m]``: elastic violation ``t >= 0`` of each softened row (``Gx <= h + t``);
       zero for hard rows and when ``soft`` is not given.
+    - ``path``: what solved the batch (see :data:`PATHS`): ``"realtime"`` (a few small
+      problems in one call of the dual C kernel), ``"active_set_native"`` (the dual active
+      set method in C), ``"active_set"``, ``"enumerate"``, ``"closed_form"``, ``"ipm"`` (in
+      torch), ``"proxsuite"``, ``"qpsolvers:<solver>"``, or ``"empty"`` (no rows). Rows an
+      exact method cannot certify are solved again by the interior point method (their
+      ``status`` says how that ended).
     """
 
     x: Tensor
@@ -47,8 +53,12 @@ class QPSolution(NamedTuple):
     lam_lb: Tensor
     lam_ub: Tensor
     slack: Tensor
+    path: str = "ipm"
 
 
+#: the values of :attr:`QPSolution.path` (besides ``"qpsolvers:<solver>"``)
+PATHS = ("realtime", "active_set_native", "active_set", "enumerate", "closed_form", "ipm",
+         "proxsuite", "empty")  # fmt: skip
 _FLOAT = (torch.float32, torch.float64)
 METHODS = ("auto", "active_set", "enumerate", "ipm")
 #: most candidate active sets ``method="enumerate"`` accepts when asked for explicitly (its
@@ -262,7 +272,18 @@ def solve_qp(
     xs, z, y, status, iters = QPFunction.apply(
         std.P, std.q, std.G, std.h, std.A, flat.b, cfg, std.x0
     )
-    return _unpack(inp, flat, std, xs, z, y, status, iters)
+    return _unpack(inp, flat, std, xs, z, y, status, iters)._replace(path=_path(cfg, std.q))
+
+
+def _path(cfg: SolverConfig, q: Tensor) -> str:
+    """:attr:`QPSolution.path` of a batch solved with ``cfg`` (linear terms ``q [B, N]``)."""
+    if cfg.backend != "torch":
+        return cfg.backend
+    if cfg.closed_form:
+        return "closed_form"
+    if cfg.active_set:
+        return "active_set_native" if _dual_native.applies(q.double()) else "active_set"
+    return "enumerate" if cfg.enumerate else "ipm"
 
 
 _NAMES = ("Q", "p", "G", "h", "A", "b", "lb", "ub", "soft", "warm_start")
@@ -389,7 +410,7 @@ def _empty_solution(inp: _Inputs) -> QPSolution:
     given = [t for t in inp.given()[:9] if t is not None]
     link = sum((t.sum() for t in given if t.requires_grad), Q.new_zeros(())) * 0.0
     x, lam, nu, slack = (link + empty(k) for k in (n, m, me, m))
-    return QPSolution(x, none, lam, nu, none, link + empty(n), link + empty(n), slack)
+    return QPSolution(x, none, lam, nu, none, link + empty(n), link + empty(n), slack, "empty")
 
 
 def _rows(t: Tensor | None, inp: _Inputs, trailing: tuple[int, ...]) -> Tensor | None:
@@ -425,7 +446,7 @@ def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
         inp.batch_shape,
         inp.Q.dtype,
     )
-    return None if sol is None else QPSolution(*sol)
+    return None if sol is None else QPSolution(*sol, path="realtime")
 
 
 class _Flat(NamedTuple):
