@@ -229,8 +229,13 @@ def test_bad_input_names_the_argument() -> None:
     env.reset(seed=0)
     with pytest.raises(ValueError, match="actions"):
         env.step(np.zeros((3, 2)))
-    with pytest.raises(ValueError, match="actions"):
+    with pytest.raises(ValueError, match="actions must be finite"):
         env.step(np.full((2, 2), np.nan))
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="actions must be finite"):
+            env.step(torch.tensor([[0.0, 0.0], [bad, 0.0]]))
+    obs, *_ = env.step(torch.zeros(2, 2))  # the env is untouched by the refused steps
+    assert np.isfinite(obs).all()
     with pytest.raises(ValueError, match="seed"):
         env.reset(seed=[1, 2, 3])
 

@@ -193,6 +193,8 @@ class TorchVectorEnv(gymnasium.vector.VectorEnv):
 
     def _actions(self, actions: Any) -> Tensor:
         if isinstance(actions, Tensor):
+            if not bool(torch.isfinite(actions).all()):  # as for a NumPy action: refused
+                raise ValueError("actions must be finite")
             u = actions.to(device=self.device, dtype=self.dtype)
         else:
             array = np.asarray(actions, dtype=np.float64)
