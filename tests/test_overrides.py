@@ -1,0 +1,291 @@
+"""A user's subclass behaves as its code says: every built-in shape and model, subclassed to
+override one defining method, gives the answers of the general (autograd) path on every path
+that can reach it (Lie terms, the filter with its C kernels, MPPI with its rollout kernel),
+and a subclass that changes nothing keeps the fast paths."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import pytest
+import torch
+from torch import Tensor
+
+from torchcbf import integrators
+from torchcbf.barriers import (
+    Ball,
+    Barrier,
+    BarrierStack,
+    Box,
+    Ellipse,
+    HalfSpace,
+    Intersection,
+    LieFunction,
+    MovingBall,
+    QuadraticLyapunov,
+    Scaled,
+    Transformed,
+    rectify,
+)
+from torchcbf.dynamics import (
+    AccelUnicycle,
+    Bicycle,
+    ControlAffine,
+    DoubleIntegrator,
+    FixedWing,
+    Quadrotor,
+    SingleIntegrator,
+    Unicycle,
+    VanDerPol,
+)
+from torchcbf.filters import SafetyFilter
+from torchcbf.mppi import MPPI, BarrierCost, QuadraticGoal
+
+F64 = torch.float64
+
+#: every built-in shape (and composition) on a 2-D position, with its constructor arguments
+SHAPES: dict[str, Callable[[], LieFunction]] = {
+    "ball": lambda: Ball([0.0, 0.0], 0.5),
+    "balls": lambda: Ball([[0.0, 0.0], [1.5, 0.5]], [0.5, 0.3]),
+    "ellipse": lambda: Ellipse([0.2, -0.1], [0.6, 0.3], angle=0.4),
+    "ellipses": lambda: Ellipse([[0.0, 0.0], [1.0, 1.0]], [[0.5, 0.3], [0.2, 0.4]]),
+    "halfspace": lambda: HalfSpace([1.0, 0.5], 2.0),
+    "box": lambda: Box([-3.0, -3.0], [3.0, 3.0]),
+    "moving_ball": lambda: MovingBall(lambda t: torch.stack([t, 0 * t], -1), 0.4),
+    "lyapunov": lambda: QuadraticLyapunov([1.0, 2.0]),
+}
+#: the compositions, over a fresh shape
+WRAPPERS: dict[str, Callable[[LieFunction], LieFunction]] = {
+    "scaled": lambda b: Scaled(b, 2.0),
+    "transformed": lambda b: Transformed(b, "radius"),
+    "stack": lambda b: BarrierStack(b, Ball([2.0, 2.0], 0.2)),
+    "intersection": lambda b: Intersection(b, Ball([2.0, 2.0], 0.2)),
+}
+
+
+class Reference(Barrier):
+    """``1.5 h - 0.3`` of a function ``h`` by autograd only: no closed forms, no parts."""
+
+    def __init__(self, base: LieFunction) -> None:
+        super().__init__()
+        self.base = base
+        self.time_varying = base.time_varying
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        return 1.5 * self.base(x, t) - 0.3
+
+
+def padded(cls: type) -> type:
+    """``cls`` with ``forward`` overridden alone (a safety pad)."""
+
+    def forward(self, x, t=None):
+        return 1.5 * cls.forward(self, x, t) - 0.3
+
+    return type(f"Padded{cls.__name__}", (cls,), {"forward": forward})
+
+
+def _states(B: int, n: int, seed: int = 0) -> Tensor:
+    return 1.5 + torch.randn(B, n, generator=torch.Generator().manual_seed(seed), dtype=F64)
+
+
+def _subclassed(make: Callable[[], LieFunction], subclass: Callable[[type], type]):
+    """An instance of ``subclass(type(base))`` with ``base``'s state, and ``base``."""
+    base = make()
+    obj = subclass(type(base)).__new__(subclass(type(base)))
+    obj.__dict__.update(base.__dict__)  # same constants, same submodules
+    return obj, base
+
+
+@pytest.mark.parametrize("name", [*SHAPES, *WRAPPERS])
+def test_a_shape_overriding_forward_alone_answers_as_its_forward(name: str) -> None:
+    dyn = SingleIntegrator(2).double()
+    if name in SHAPES:
+        make = SHAPES[name]
+    else:
+        make = lambda: WRAPPERS[name](Ball([0.0, 0.0], 0.5))  # noqa: E731
+    sub, base = _subclassed(make, padded)
+    sub, base = sub.double(), base.double()
+    ref = Reference(base)
+    assert not sub.has_analytic and not sub.has_second_order
+    assert sub.quadric() is None and sub.parts() is None
+    x = _states(16, 2)
+    torch.testing.assert_close(sub(x), ref(x))
+    got, want = sub.lie(x, dyn), ref.lie(x, dyn)
+    for field in ("h", "lfh", "lgh", "dhdt", "dhdx"):
+        torch.testing.assert_close(getattr(got, field), getattr(want, field), msg=field)
+    if isinstance(base, QuadraticLyapunov):
+        return
+    u = torch.tensor([[-1.0, 0.3]], dtype=F64).expand(16, 2)
+    fast = SafetyFilter(dyn, [sub], check_relative_degree=False).double()
+    general = SafetyFilter(dyn, [ref], backend="torch", check_relative_degree=False).double()
+    with torch.no_grad():
+        for rows in (slice(0, 1), slice(0, 16)):
+            a, b = fast(x[rows], u[rows]), general(x[rows], u[rows])
+            assert a.path.startswith("torch/")
+            torch.testing.assert_close(a.h, b.h)
+            torch.testing.assert_close(a.u, b.u, atol=1e-7, rtol=1e-7)
+            assert torch.equal(a.status, b.status)
+
+
+@pytest.mark.parametrize("name", ["ball", "balls", "ellipse", "ellipses"])
+def test_a_quadric_subclass_that_changes_nothing_keeps_the_kernels(name: str) -> None:
+    dyn = SingleIntegrator(2).double()
+    same, base = _subclassed(SHAPES[name], lambda cls: type(f"My{cls.__name__}", (cls,), {}))
+    assert same.quadric() is not None
+    x, u = _states(4, 2), torch.tensor([[-1.0, 0.3]], dtype=F64).expand(4, 2)
+    with torch.no_grad():
+        a = SafetyFilter(dyn, [same], check_relative_degree=False).double()(x, u)
+        b = SafetyFilter(dyn, [base], backend="torch", check_relative_degree=False).double()(x, u)
+    assert a.path == "native/realtime" and b.path.startswith("torch/")
+    torch.testing.assert_close(a.u, b.u, atol=1e-9, rtol=1e-9)
+    cost = BarrierCost(same)
+    planner = MPPI(dyn, cost, horizon=5, num_samples=64, dt=0.1, noise_sigma=1.0, temperature=1.0)
+    assert planner(torch.zeros(2, dtype=F64)).path == "fused"
+    padded_cost = BarrierCost(_subclassed(SHAPES[name], padded)[0])
+    planner = MPPI(
+        dyn, padded_cost, horizon=5, num_samples=64, dt=0.1, noise_sigma=1.0, temperature=1.0
+    )
+    assert planner(torch.zeros(2, dtype=F64)).path == "rollout"
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: Scaled(Ellipse([0.5, 0.2], [0.6, 0.3], angle=0.3), 3.0),
+        lambda: Scaled(Ball([[0.5, 0.2], [-0.5, 0.4]], [0.4, 0.2], keep_in=False), [2.0, 0.5]),
+        lambda: Ellipse([0.5, 0.2], [0.6, 0.3], keep_in=True),
+    ],
+    ids=["scaled_ellipse", "scaled_balls", "keep_in_ellipse"],
+)
+def test_the_rollout_kernel_scores_any_quadric_as_torch_does(make, dtype) -> None:
+    """A quadric's scale and radius are folded into the kernel's record: the fused path's
+    lowest cost is the torch cost of the rollout it reports (the control cost is zero on the
+    first call, whose plan is zero)."""
+    dyn = SingleIntegrator(2).to(dtype)
+    shape = make().to(dtype)
+    cost = BarrierCost(shape, weight=2.0)
+    planner = MPPI(dyn, cost, horizon=6, num_samples=64, dt=0.1, noise_sigma=0.5, temperature=1.0)
+    out = planner(torch.tensor([-1.0, 0.0], dtype=dtype))
+    assert out.path == "fused"
+    states = out.best_states[None, None]  # [1, 1, H+1, n]
+    want = cost(states, states.new_zeros(1, 1, 6, 2))[0, 0]
+    tol = 1e-9 if dtype == torch.float64 else 1e-4
+    torch.testing.assert_close(out.cost_min, want, atol=tol, rtol=tol)
+
+
+#: every built-in model, with the position components a ball barrier is drawn in
+MODELS: dict[str, Callable[[], ControlAffine]] = {
+    "single_integrator": lambda: SingleIntegrator(2),
+    "double_integrator": lambda: DoubleIntegrator(2),
+    "unicycle": Unicycle,
+    "accel_unicycle": AccelUnicycle,
+    "bicycle": Bicycle,
+    "van_der_pol": VanDerPol,
+    "quadrotor": Quadrotor,
+    "fixed_wing": FixedWing,
+}
+
+
+def new_f(cls: type) -> type:
+    def f(self, x):
+        return cls.f(self, x) + 0.7
+
+    return type(f"Drifting{cls.__name__}", (cls,), {"f": f})
+
+
+def new_g(cls: type) -> type:
+    def g(self, x):
+        return 2.0 * cls.g(self, x)
+
+    return type(f"Doubled{cls.__name__}", (cls,), {"g": g})
+
+
+def _rk4(fn: Callable[[Tensor, Tensor], Tensor], x: Tensor, u: Tensor, dt: float) -> Tensor:
+    k1 = fn(x, u)
+    k2 = fn(x + 0.5 * dt * k1, u)
+    k3 = fn(x + 0.5 * dt * k2, u)
+    k4 = fn(x + dt * k3, u)
+    return x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
+@pytest.mark.parametrize("override", [new_f, new_g], ids=["f", "g"])
+@pytest.mark.parametrize("name", MODELS)
+def test_a_model_overriding_f_or_g_alone_integrates_its_own_dynamics(name: str, override) -> None:
+    sub, _ = _subclassed(MODELS[name], override)
+    sub = sub.double()
+    n, m = sub.state_dim, sub.control_dim
+    x, u = _states(8, n, seed=1), 0.3 * _states(8, m, seed=2)
+
+    def reference(z: Tensor, v: Tensor) -> Tensor:
+        return sub.f(z) + (sub.g(z) @ v.unsqueeze(-1)).squeeze(-1)
+
+    torch.testing.assert_close(sub(x, u), reference(x, u))
+    torch.testing.assert_close(sub.xdot(x, u), reference(x, u))
+    for method in ("euler", "rk4"):
+        got = integrators.step(sub, x, u, 0.05, method=method)
+        want = x + 0.05 * reference(x, u) if method == "euler" else _rk4(reference, x, u, 0.05)
+        torch.testing.assert_close(got, want)
+    assert sub.native_model() is None
+    if override is new_f:
+        assert not sub.has_drift_derivatives
+    goal = QuadraticGoal([1.0, 1.0], index=(0, 1))
+    planner = MPPI(sub, goal, horizon=4, num_samples=32, dt=0.05, noise_sigma=0.5, temperature=1.0,
+                   keep_rollouts=4, integrator="euler")  # fmt: skip
+    out = planner(x[0])
+    assert out.path == "torch"
+    # the kept rollouts follow the subclass's own dynamics from x0
+    first = out.rollouts[:, 1]  # [R, n] after one step from x[0]
+    assert first.shape == (4, n)
+
+
+@pytest.mark.parametrize("name", ["single_integrator", "double_integrator", "unicycle",
+                                  "accel_unicycle"])  # fmt: skip
+def test_a_native_model_subclass_keeps_the_kernels_unless_it_changes_the_dynamics(
+    name: str,
+) -> None:
+    same, base = _subclassed(MODELS[name], lambda cls: type(f"My{cls.__name__}", (cls,), {}))
+    assert same.native_model() == base.native_model() is not None
+    goal = QuadraticGoal([1.0, 1.0], index=(0, 1))
+    x0 = torch.zeros(same.state_dim, dtype=F64)
+    for model, path in ((same, "fused"), (_subclassed(MODELS[name], new_f)[0], "torch")):
+        planner = MPPI(model.double(), goal, horizon=4, num_samples=32, dt=0.05,
+                       noise_sigma=0.5, temperature=1.0)  # fmt: skip
+        assert planner(x0).path == path
+
+
+@pytest.mark.parametrize("name", ["single_integrator", "unicycle"])
+def test_filter_lie_terms_follow_a_model_with_a_new_drift(name: str) -> None:
+    """The C Lie kernel knows the parent's drift: a new ``f`` must take torch."""
+    sub, _ = _subclassed(MODELS[name], new_f)
+    sub = sub.double()
+    ball = Ball([0.0, 0.0], 0.5).double()
+    x = _states(3, sub.state_dim, seed=4)
+    u = torch.zeros(3, sub.control_dim, dtype=F64)
+    with torch.no_grad():
+        a = SafetyFilter(sub, [ball]).double()(x, u)
+        b = SafetyFilter(sub, [ball], backend="torch", lie_method="autograd").double()(x, u)
+    assert a.path.startswith("torch/")
+    torch.testing.assert_close(a.u, b.u, atol=1e-9, rtol=1e-9)
+    torch.testing.assert_close(a.constraint_value, b.constraint_value, atol=1e-9, rtol=1e-9)
+
+
+@pytest.mark.parametrize("name", ["double_integrator", "accel_unicycle"])
+def test_an_exponential_cbf_along_a_model_with_a_new_drift_uses_its_drift(name: str) -> None:
+    sub, _ = _subclassed(MODELS[name], new_f)
+    sub = sub.double()
+    ball = Ball([0.0, 0.0], 0.5).double()
+    rect = rectify(ball, sub, form="exponential")
+    assert not rect.has_analytic
+    x = _states(6, sub.state_dim, seed=5)
+    got = rect.lie(x, sub)
+    want = rect.lie(x, sub, method="autograd")
+    torch.testing.assert_close(got.h, want.h)
+    torch.testing.assert_close(got.lgh, want.lgh)
+    # the value itself: L_f h + k0 h with the subclass's own f
+    xg = x.clone().requires_grad_()
+    h = ball(xg)
+    (grad,) = torch.autograd.grad(h.sum(), xg)
+    lfh = (grad * sub.f(x)).sum(-1)
+    k0 = rect.coefficients[0]
+    torch.testing.assert_close(rect(x), lfh + k0 * ball(x))
