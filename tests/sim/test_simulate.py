@@ -170,7 +170,8 @@ class _Payload:
 
 def test_trajectory_load_refuses_a_crafted_pickle(tmp_path) -> None:
     marker = tmp_path / "ran"
-    traj = simulate(SingleIntegrator(2), torch.zeros(1, 2), 2, 0.1, progress=False)
+    zero = lambda x, t: torch.zeros_like(x)  # noqa: E731
+    traj = simulate(SingleIntegrator(2), torch.zeros(1, 2), 2, 0.1, nominal=zero, progress=False)
     fields = {f: getattr(traj, f) for f in ("t", "x", "x_hat", "u_nom", "u", "h", "status")}
     crafted = {**fields, "failed": traj.failed, "fail_step": traj.fail_step,
                "planner": {0: _Payload(marker)}}  # fmt: skip
@@ -229,10 +230,32 @@ def test_bad_inputs() -> None:
         simulate(dyn, torch.zeros(3, 2), 0, 0.1)
     with pytest.raises(ValueError, match="integrator must be one of"):
         simulate(dyn, torch.zeros(3, 2), 5, 0.1, integrator="heun")
+    zero = lambda x, t: torch.zeros_like(x)  # noqa: E731
     with pytest.raises(ValueError, match="one seed per scenario"):
-        simulate(dyn, torch.zeros(3, 2), 5, 0.1, seed=[1, 2])
+        simulate(dyn, torch.zeros(3, 2), 5, 0.1, nominal=zero, seed=[1, 2])
     with pytest.raises(TypeError, match="dynamics must be a ControlAffine"):
         simulate(object(), torch.zeros(3, 2), 5, 0.1)
+
+
+def test_no_controller_and_wrong_shapes_name_the_argument() -> None:
+    dyn = SingleIntegrator(2)
+    x0 = torch.zeros(3, 2)
+    with pytest.raises(ValueError, match="simulate needs a controller: pass planner="):
+        simulate(dyn, x0, 5, 0.1, progress=False)
+    with pytest.raises(ValueError, match=r"nominal\(x_hat, t\) must .* \[3, 2\], got \(3, 1\)"):
+        simulate(dyn, x0, 5, 0.1, nominal=lambda x, t: x[:, :1], progress=False)
+    with pytest.raises(ValueError, match=r"nominal\(x_hat, t\) must .* got \(2,\)"):
+        simulate(dyn, x0, 5, 0.1, nominal=lambda x, t: x[0], progress=False)
+    with pytest.raises(ValueError, match=r"nominal\(x_hat, t\) must .* got list"):
+        simulate(dyn, x0, 5, 0.1, nominal=lambda x, t: [0.0, 0.0], progress=False)
+
+    class WrongG(SingleIntegrator):
+        def g(self, x):
+            return super().g(x)[..., :1]  # [B, 2, 1] for control_dim 2
+
+    zero = lambda x, t: torch.zeros_like(x)  # noqa: E731
+    with pytest.raises(ValueError, match=r"dynamics.g\(x\) of WrongG must have shape \[3, 2, 2\]"):
+        simulate(WrongG(2), x0, 5, 0.1, nominal=zero, progress=False)
 
 
 def test_differentiable_rollout_matches_finite_differences() -> None:

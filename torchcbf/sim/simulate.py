@@ -8,7 +8,9 @@ Component protocols (any callables or modules that follow them):
   exists. With ``planner_every=k`` it runs every k steps and in between the loop follows its
   plan (index by elapsed time over ``planner.dt`` when the planner has one).
 - ``nominal(x_hat, t)`` (no planner) or ``nominal(x_hat, t, u_plan)`` returns ``u_nom [B, m]``.
-  Without a nominal controller the planner's control is the nominal one (zero if neither).
+  Without a nominal controller the planner's control is the nominal one; with neither, the
+  safety filter acts on a zero nominal control. At least one of the three is required (a
+  loop with none would run on zero control: ValueError).
 - ``safety_filter(x_hat, u_nom, t)`` returns an object with ``u``, ``status`` and ``h``
   (e.g. :class:`torchcbf.filters.SafetyFilter`). Without one, ``u_nom`` is clipped to the
   dynamics' control limits.
@@ -50,6 +52,29 @@ def _seeds(seed: int | Sequence[int] | Tensor, batch: int, device: torch.device)
             f"seed must be an int or hold one seed per scenario ({batch}), got {tuple(seeds.shape)}"
         )
     return seeds
+
+
+def _check_shape(what: str, value: Any, shape: tuple[int, ...]) -> None:
+    """A ValueError naming the component whose output has the wrong shape."""
+    got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
+    if got != shape:
+        raise ValueError(f"{what} must be a tensor of shape [B, m] = {list(shape)}, got {got}")
+
+
+def _check_model(dynamics: ControlAffine, x0: Tensor) -> None:
+    """``f`` and ``g`` of the plant give ``[B, n]`` and ``[B, n, m]`` on ``x0`` (ValueError
+    naming the model's method otherwise)."""
+    B, n, m = x0.shape[0], dynamics.state_dim, dynamics.control_dim
+    name = type(dynamics).__name__
+    with torch.no_grad():
+        for method, shape in (("f", (B, n)), ("g", (B, n, m))):
+            value = getattr(dynamics, method)(x0)
+            got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
+            if got != shape:
+                raise ValueError(
+                    f"dynamics.{method}(x) of {name} must have shape {list(shape)} for x0 of "
+                    f"shape {[B, n]} (state_dim {n}, control_dim {m}), got {got}"
+                )
 
 
 def _finite_rows(value: Tensor) -> Tensor:
@@ -169,9 +194,15 @@ def _simulate(
         raise ValueError(f"integrator must be one of {METHODS}, got {integrator!r}")
     if planner_every < 1:
         raise ValueError(f"planner_every must be >= 1, got {planner_every}")
+    if planner is None and nominal is None and safety_filter is None:
+        raise ValueError(
+            "simulate needs a controller: pass planner=, nominal= or safety_filter= (without "
+            "any, the loop would run on zero control)"
+        )
     method = "euler_maruyama" if dynamics.has_diffusion else integrator
 
     B, n, m = x0.shape[0], dynamics.state_dim, dynamics.control_dim
+    _check_model(dynamics, x0)
     device, dtype = x0.device, x0.dtype
     seeds = _seeds(seed, B, device)
     sigma0 = dynamics.sigma(x0)
@@ -242,11 +273,13 @@ def _simulate(
                 if k in snapshot_set:
                     snapshots[k] = plan_out
                 u_plan = plan_out.u
+                _check_shape("planner(x_hat, t).u", u_plan, (B, m))
             else:
                 idx = min(int((k - plan_step) * dt / plan_dt + 1e-9), plan_out.plan.shape[-2] - 1)
                 u_plan = plan_out.plan[:, idx]
         if nominal is not None:
             u_nom = nominal(x_hat, tk) if u_plan is None else nominal(x_hat, tk, u_plan)
+            _check_shape("nominal(x_hat, t)", u_nom, (B, m))
         elif u_plan is not None:
             u_nom = u_plan
         else:
@@ -257,6 +290,7 @@ def _simulate(
         if safety_filter is not None:
             out = safety_filter(x_hat, u_nom, tk)
             u = out.u
+            _check_shape("safety_filter(x_hat, u_nom, t).u", u, (B, m))
             if hs is None:
                 hs = x0.new_zeros(B, steps, out.h.reshape(B, -1).shape[-1])
                 statuses = torch.zeros(B, steps, dtype=torch.int64, device=device)
