@@ -13,13 +13,14 @@ ROOT = Path(torchcbf.__file__).parent
 # filters/mppi/estimation/learning (and the arm roadmap), then sim, then scenarios/envs/
 # sweep/viz, then the CLI
 LAYERS = {
-    "_autograd": 0, "_checks": 0, "_compile": 0, "_constants": 0, "_native": 0, "_random": 0,
+    "_autograd": 0, "_checks": 0, "_compile": 0, "_constants": 0, "_io": 0, "_native": 0,
+    "_random": 0,
     "_version": 0,
     "dynamics": 1, "integrators": 1, "qp": 1,
     "barriers": 2,
     "filters": 3, "mppi": 3, "estimation": 3, "learning": 3, "roadmap": 3,
     "sim": 4,
-    "scenarios": 5, "envs": 5, "sweep": 5, "viz": 5,
+    "scenarios": 5, "envs": 5, "sweep": 5, "viz": 5, "_info": 5,
     "cli": 6,
 }  # fmt: skip
 

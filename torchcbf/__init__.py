@@ -5,6 +5,7 @@ scenarios (:mod:`torchcbf.scenarios`) and training helpers (:mod:`torchcbf.learn
 imported from their own modules.
 """
 
+from torchcbf._info import info
 from torchcbf._version import __version__
 from torchcbf.barriers import (
     Ball,
@@ -85,6 +86,7 @@ __all__ = [
     "Unicycle",
     "Union",
     "VanDerPol",
+    "info",
     "metrics",
     "rectify",
     "simulate",

@@ -52,33 +52,45 @@ def load_kernel(
     fallback: str,
     signatures: dict[str, list[Any]] | None = None,
 ):
-    """The ctypes library ``directory/stem<extension suffix>`` if it loads and reports
-    ``version``, else ``None`` (with a warning ending in ``fallback``, e.g. "MPPI runs in
-    torch"). ``signatures`` maps each exported function to its argument types; all return
-    ``int``."""
-    for suffix in importlib.machinery.EXTENSION_SUFFIXES:
-        path = directory / f"{stem}{suffix}"
-        if not path.exists():
-            continue
-        try:
-            lib = ctypes.CDLL(str(path))
-        except OSError as err:
-            logger.warning("torchcbf: cannot load %s (%s); %s", path, err, fallback)
-            return None
-        found = getattr(lib, version_symbol, None)
-        if found is None or found() != version:
-            logger.warning(
-                "torchcbf: %s was built from another version of %s.c; %s (reinstall to rebuild it)",
-                path,
-                stem,
-                fallback,
-            )
-            return None
-        for name, argtypes in (signatures or {}).items():
-            function = getattr(lib, name)
-            function.argtypes, function.restype = argtypes, ctypes.c_int
-        return lib
-    return None
+    """The ctypes library ``directory/stem<extension suffix>`` if it exists, loads and
+    reports ``version``, else ``None`` with a warning ending in ``fallback`` (e.g. "MPPI runs
+    in torch"); callers cache the answer, so each kernel warns once per process.
+    ``signatures`` maps each exported function to its argument types; all return ``int``."""
+    path = kernel_file(directory, stem)
+    if path is None:
+        logger.warning(
+            "torchcbf: the C kernel %s is not built (no %s.* next to %s: no C compiler at "
+            "install?); %s",
+            stem,
+            stem,
+            directory,
+            fallback,
+        )
+        return None
+    try:
+        lib = ctypes.CDLL(str(path))
+    except OSError as err:
+        logger.warning("torchcbf: cannot load %s (%s); %s", path, err, fallback)
+        return None
+    found = getattr(lib, version_symbol, None)
+    if found is None or found() != version:
+        logger.warning(
+            "torchcbf: %s was built from another version of %s.c; %s (reinstall to rebuild it)",
+            path,
+            stem,
+            fallback,
+        )
+        return None
+    for name, argtypes in (signatures or {}).items():
+        function = getattr(lib, name)
+        function.argtypes, function.restype = argtypes, ctypes.c_int
+    return lib
+
+
+def kernel_file(directory: Path, stem: str) -> Path | None:
+    """The built library ``directory/stem<extension suffix>``, or ``None``."""
+    found = (directory / f"{stem}{suffix}" for suffix in importlib.machinery.EXTENSION_SUFFIXES)
+    return next((path for path in found if path.exists()), None)
 
 
 def float64_pointers(tensors: Iterable[Tensor | None]) -> tuple[list[int], list[Tensor]]:

@@ -49,6 +49,8 @@ __all__ = [
 
 #: version of ``_lie_kernel.c`` this module calls (``LIE_KERNEL_VERSION``)
 KERNEL_VERSION = 2
+#: the file name of the built kernel, without its extension suffix
+KERNEL_STEM = "_lie_kernel"
 #: the kernel's code of each transform of :class:`~torchcbf.barriers.Transformed`
 TRANSFORM_CODES: dict[str | None, int] = {None: 0, "radius": 1, "exp": 2}
 #: the kernel's largest state, control, position and noise sizes
@@ -59,7 +61,7 @@ MAX_SIZE = 32
 def _library() -> ctypes.CDLL | None:
     return load_kernel(
         Path(__file__).parent,
-        "_lie_kernel",
+        KERNEL_STEM,
         "torchcbf_lie_version",
         KERNEL_VERSION,
         "quadric barriers take their torch closed forms",

@@ -26,6 +26,8 @@ from torchcbf.qp import realtime as qp_realtime
 #: ``100 FILTER_KERNEL_VERSION + TORCHCBF_DUAL_KERNEL_VERSION`` of the C sources this module
 #: calls (the filter's kernel carries the QP kernel's solver)
 KERNEL_VERSION = 100 * 7 + qp_realtime.KERNEL_VERSION
+#: the file name of the built kernel, without its extension suffix
+KERNEL_STEM = "_filter_kernel"
 #: most states the path takes: on one thread the kernel, a state after another, beats the
 #: batched torch path up to about this size (scenario B's filter: 0.13 against 0.95 ms on 32
 #: states, 0.87 against 2.7 ms on 1,024; scripts/bench_filters.py), and a batch it declines
@@ -48,7 +50,7 @@ _QUADRIC_ARGS = [_P, _INT, _P, _P, _P] + _ARGS[:6] + _ARGS[8:]
 def _library() -> ctypes.CDLL | None:
     return load_kernel(
         Path(__file__).parent,
-        "_filter_kernel",
+        KERNEL_STEM,
         "torchcbf_filter_version",
         KERNEL_VERSION,
         "the safety filter takes its general path on every batch",

@@ -102,9 +102,10 @@ class FilterOutput(NamedTuple):
             without slack.
         path: what answered, ``"<lie>/<qp>"``: ``<lie>`` is ``native`` (the Lie terms and
             conditions of every function from the C Lie kernel), ``torch`` (closed forms or
-            autograd in torch) or ``mixed``; ``<qp>`` is ``realtime`` (the filter's C kernel)
-            or the :attr:`torchcbf.qp.QPSolution.path` of the general path's QP. A call that
-            takes the C kernel end to end says ``native/realtime``.
+            autograd in torch) or ``mixed``; ``<qp>`` is ``realtime`` (the QP in the
+            filter's C kernel, :mod:`torchcbf.filters.realtime`) or the
+            :attr:`torchcbf.qp.QPSolution.path` of the general path's QP. A call that takes
+            the C kernels end to end says ``native/realtime``.
     """
 
     u: Tensor

@@ -31,6 +31,8 @@ logger = logging.getLogger(__name__)
 
 #: ``KERNEL_VERSION`` of the C source this module calls
 KERNEL_VERSION = 4
+#: the file name of the built kernel, without its extension suffix
+KERNEL_STEM = "_rollout_kernel"
 #: limits of the kernel (``NMAX``, ``MMAX``, ``DMAX``, ``TMAX``, ``SMAX`` in the C source)
 MAX_STATE, MAX_CONTROL, MAX_DIM, MAX_TERMS, MAX_SHAPES = 8, 4, 4, 16, 32
 _HDR, _TREC, _SREC = 16, 16, 20
@@ -53,7 +55,7 @@ _RUN_ARGS = [_P, _I64, _I64] + [_P] * 11 + [ctypes.c_int]
 def _library() -> ctypes.CDLL | None:
     return load_kernel(
         Path(__file__).parent,
-        "_rollout_kernel",
+        KERNEL_STEM,
         "torchcbf_mppi_version",
         KERNEL_VERSION,
         "MPPI runs in torch",

@@ -29,6 +29,8 @@ MIN_WORK_PER_THREAD = 1024 * (4 * 4 + 8 * 4)
 MAX_VARS = 64
 #: ``TORCHCBF_DUAL_KERNEL_VERSION`` of the C source this module calls (_dual_kernel.h)
 KERNEL_VERSION = 6
+#: the file name of the built kernel, without its extension suffix
+KERNEL_STEM = "_dual_kernel"
 
 _P = ctypes.c_void_p
 _I64 = ctypes.c_int64
@@ -46,7 +48,7 @@ _TIGHT_ARGS = [_I64, _INT, _INT, _P, _P, _P, _P, ctypes.c_double, _P]
 def _library() -> ctypes.CDLL | None:
     return load_kernel(
         Path(__file__).parent,
-        "_dual_kernel",
+        KERNEL_STEM,
         "torchcbf_dual_version",
         KERNEL_VERSION,
         "using the torch solver",

@@ -37,8 +37,8 @@ class QPSolution(NamedTuple):
       the bound is infinite or absent), so that ``Qx + p + G'lam + A'nu - lam_lb + lam_ub = 0``.
     - ``slack [..., m]``: elastic violation ``t >= 0`` of each softened row (``Gx <= h + t``);
       zero for hard rows and when ``soft`` is not given.
-    - ``path``: what solved the batch (see :data:`PATHS`): ``"realtime"`` (a few small
-      problems in one call of the dual C kernel), ``"active_set_native"`` (the dual active
+    - ``path``: what solved the batch (see :data:`PATHS`): ``"small_native"`` (a few small
+      problems in one call of the dual C kernel, :mod:`torchcbf.qp.realtime`), ``"active_set_native"`` (the dual active
       set method in C), ``"active_set"``, ``"enumerate"``, ``"closed_form"``, ``"ipm"`` (in
       torch), ``"proxsuite"``, ``"qpsolvers:<solver>"``, or ``"empty"`` (no rows). Rows an
       exact method cannot certify are solved again by the interior point method (their
@@ -57,7 +57,7 @@ class QPSolution(NamedTuple):
 
 
 #: the values of :attr:`QPSolution.path` (besides ``"qpsolvers:<solver>"``)
-PATHS = ("realtime", "active_set_native", "active_set", "enumerate", "closed_form", "ipm",
+PATHS = ("small_native", "active_set_native", "active_set", "enumerate", "closed_form", "ipm",
          "proxsuite", "empty")  # fmt: skip
 _FLOAT = (torch.float32, torch.float64)
 METHODS = ("auto", "active_set", "enumerate", "ipm")
@@ -446,7 +446,7 @@ def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
         inp.batch_shape,
         inp.Q.dtype,
     )
-    return None if sol is None else QPSolution(*sol, path="realtime")
+    return None if sol is None else QPSolution(*sol, path="small_native")
 
 
 class _Flat(NamedTuple):
