@@ -192,7 +192,8 @@ def test_metrics_against_a_loop() -> None:
     def ball(x: torch.Tensor) -> torch.Tensor:
         return (x**2).sum(-1) - 0.5**2
 
-    m = metrics(traj, barriers=[ball], goals=[Goal((2.0, 0.0), 0.5, deadline=3.9)])
+    goals = [Goal((2.0, 0.0), 0.5, deadline=3.9)]
+    m = metrics(traj, barriers=[ball], goals=goals, segment_points=0)  # the samples alone
     for b in range(3):
         hb = [float(ball(traj.x[b, k])) for k in range(41)]
         hit = [k for k, v in enumerate(hb) if v < 0]
@@ -318,3 +319,31 @@ def test_wilson_interval_contains_the_rate(total: int) -> None:
     for k in range(total + 1):
         lo, hi = wilson_interval(k, total)
         assert 0.0 <= lo <= k / total <= hi <= 1.0
+
+
+def test_metrics_sees_a_collision_between_two_samples() -> None:
+    from torchcbf.barriers import Ball
+
+    dyn = SingleIntegrator(2)
+    x0 = torch.tensor([[-5.0, 0.0], [-5.0, 3.0]])  # the second passes 3 m beside the ball
+    right = lambda x, t: torch.tensor([2.0, 0.0]).expand_as(x)  # noqa: E731
+    traj = simulate(dyn, x0, 2, 5.0, nominal=right, progress=False)  # samples at x = -5, 5, 15
+    ball = Ball(torch.tensor([0.0, 0.0]), 1.0)
+    assert (ball(traj.x) > 0).all()  # no sample is inside
+    m = metrics(traj, barriers=[ball])
+    assert m["collision"].tolist() == [True, False]
+    assert m["collision_between_samples"].tolist() == [True, False]
+    # entered at x = -1: 2 s in; the first segment point inside is x = -5 + 10 * 4/9, t = 20/9
+    assert m["first_collision_time"][0].item() == pytest.approx(20 / 9, rel=1e-6)
+    assert math.isnan(m["first_collision_time"][1].item())
+    assert m["min_h"][0].item() == pytest.approx(24.0)  # over the samples: (5^2 - 1)
+    samples_only = metrics(traj, barriers=[ball], segment_points=0)
+    assert samples_only["collision"].tolist() == [False, False]
+    assert "collision_between_samples" not in samples_only
+    with pytest.raises(ValueError, match="segment_points"):
+        metrics(traj, barriers=[ball], segment_points=-1)
+    # a collision at a sample is not counted as between samples, and its time is the sample's
+    inside = simulate(dyn, torch.tensor([[0.0, 0.5]]), 2, 5.0, nominal=right, progress=False)
+    m = metrics(inside, barriers=[ball])
+    assert m["collision"].tolist() == [True] and m["collision_between_samples"].tolist() == [False]
+    assert m["first_collision_time"].tolist() == [0.0]

@@ -30,6 +30,29 @@ def _first_time(mask: Tensor, t: Tensor) -> Tensor:
     return torch.where(hit, t[first], torch.full_like(t[first], float("nan")))
 
 
+def _barrier_values(fns: Sequence[Callable[[Tensor], Tensor]], x: Tensor) -> Tensor:
+    """Every barrier's values on the states ``x [B, ..., n]`` as ``[B, ..., k]`` (evaluated
+    on the flattened states, so a function needs to take one batch dimension only)."""
+    flat = x.reshape(-1, x.shape[-1])
+    with torch.no_grad():
+        values = [fn(flat).reshape(flat.shape[0], -1) for fn in fns]
+    return torch.cat(values, -1).reshape(*x.shape[:-1], -1)
+
+
+def _swept(x: Tensor, t: Tensor, points: int) -> tuple[Tensor | None, Tensor]:
+    """The ``points`` interior points of the straight segments between consecutive samples
+    ``[B, T, points, n]`` and the times of samples and points in order ``[T (points + 1) + 1]``
+    (``None`` and the sample times when there is nothing to add)."""
+    if points == 0 or x.shape[1] < 2:
+        return None, t
+    s = torch.arange(1, points + 1, device=x.device, dtype=x.dtype) / (points + 1)
+    start, step = x[:, :-1, None, :], (x[:, 1:] - x[:, :-1])[:, :, None, :]
+    dense = start + s[:, None] * step
+    frac = torch.cat([torch.zeros(1, device=x.device, dtype=x.dtype), s])
+    times = (t[:-1, None] + frac * (t[1:] - t[:-1])[:, None]).reshape(-1)
+    return dense, torch.cat([times, t[-1:]])
+
+
 def wilson_interval(successes: int, total: int, z: float = 1.96) -> tuple[float, float]:
     """Wilson score interval for a rate (95% by default)."""
     if total == 0:
@@ -48,6 +71,7 @@ def metrics(
     goals: Sequence[Goal] = (),
     spec: Any | None = None,
     status_names: dict[int, str] | None = None,
+    segment_points: int = 8,
 ) -> dict[str, Tensor]:
     """Per-scenario metrics, each a tensor with leading dimension B.
 
@@ -60,32 +84,59 @@ def metrics(
         spec: a specification with ``robustness(states [B, T+1, n], times [T+1]) -> [B]``
             (:mod:`torchcbf.mppi` specs); ``spec_satisfied`` is ``robustness >= 0``.
         status_names: filter status codes to count, ``{code: name}``.
+        segment_points: with ``barriers``, the barriers are also evaluated at this many
+            evenly spaced points of the straight segment between each two consecutive
+            samples (a swept check: a step long enough to jump over an obstacle still counts
+            as a collision; an obstacle narrower than the segment's length over
+            ``segment_points + 1`` can still slip between the points). 0: samples only.
 
     Returns:
-        ``collision``, ``first_collision_time`` (nan if none), ``min_h``, per goal
+        ``collision`` (at a sample or, with ``barriers``, between two samples),
+        ``collision_between_samples`` (with ``barriers``: a segment crosses an obstacle that
+        no sample is inside), ``first_collision_time`` (nan if none; a point between samples
+        at its interpolated time), ``min_h`` (over the samples), per goal
         ``goal{i}_reached`` and ``goal{i}_time``, ``goal_reached`` (all goals),
         ``spec_robustness``/``spec_satisfied``, ``steps_{name}`` per status, ``effort``
         (``sum |u|^2 dt``) and ``failed``.
     """
     if not isinstance(trajectory, Trajectory):
         raise TypeError(f"trajectory must be a Trajectory, got {type(trajectory).__name__}")
+    if (
+        isinstance(segment_points, bool)
+        or not isinstance(segment_points, int)
+        or segment_points < 0
+    ):
+        raise ValueError(f"segment_points must be a non-negative int, got {segment_points!r}")
     traj = trajectory
     t = traj.t
     out: dict[str, Tensor] = {"failed": traj.failed}
     h: Tensor | None = None
     if barriers is not None:
         fns = [barriers] if callable(barriers) else list(barriers)
-        with torch.no_grad():
-            values = [fn(traj.x) for fn in fns]
-        h = torch.cat([v.reshape(*traj.x.shape[:2], -1) for v in values], dim=-1)
-        h_t = t
+        h = _barrier_values(fns, traj.x)
+        h_min = h.min(-1).values
+        unsafe = h_min < 0
+        out["min_h"] = h_min.min(-1).values
+        dense, dense_t = _swept(traj.x, t, segment_points)
+        if dense is not None:
+            between = _barrier_values(fns, dense).min(-1).values < 0  # [B, T, P]
+            crossed = between.any(-1)  # [B, T]
+            out["collision_between_samples"] = crossed.any(-1) & ~unsafe.any(-1)
+            # samples and segment points in time order: sample k, then its segment's points
+            B, T = crossed.shape
+            merged = torch.cat([unsafe[:, :-1, None], between], -1).reshape(B, -1)
+            merged = torch.cat([merged, unsafe[:, -1:]], -1)
+            out["collision"] = merged.any(-1)
+            out["first_collision_time"] = _first_time(merged, dense_t)
+        else:
+            out["collision"] = unsafe.any(-1)
+            out["first_collision_time"] = _first_time(unsafe, t)
     elif traj.h is not None:
-        h, h_t = traj.h, t[:-1]
-    if h is not None:
+        h = traj.h
         h_min = h.min(-1).values
         unsafe = h_min < 0
         out["collision"] = unsafe.any(-1)
-        out["first_collision_time"] = _first_time(unsafe, h_t)
+        out["first_collision_time"] = _first_time(unsafe, t[:-1])
         out["min_h"] = h_min.min(-1).values
     all_reached = torch.ones(traj.batch_size, dtype=torch.bool, device=traj.x.device)
     for i, goal in enumerate(goals):
