@@ -262,6 +262,7 @@ def test_joint_space_controller(planar: Manipulator, dtype: torch.dtype) -> None
 
 
 def test_missing_pytorch_kinematics_raises_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    # simulates the optional dependency not installed (an import of it then fails)
     monkeypatch.setitem(sys.modules, "pytorch_kinematics", None)
     with pytest.raises(ImportError, match=r'pip install "torchcbf\[arm\]"'):
         Manipulator("planar3")

@@ -286,6 +286,7 @@ def test_a_missing_or_stale_kernel_is_refused(
         )
     assert stale is None and "another version" in caplog.text
     assert load_kernel(directory, "_no_such_kernel", "v", 1, "torch") is None
+    # simulates a Lie kernel that failed to build (the loader then answers None)
     monkeypatch.setattr(native, "_library", lambda: None)
     assert not native.available()
     x = _states(1, 2, seed=6)

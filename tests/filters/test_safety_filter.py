@@ -34,7 +34,8 @@ from _filter_reference import (
 
 from torchcbf.barriers import Ball, HalfSpace, QuadraticLyapunov
 from torchcbf.dynamics import SingleIntegrator, Unicycle
-from torchcbf.filters import FilterStatus, LinearClassK, SafetyFilter, realtime
+from torchcbf.filters import FilterStatus, LinearClassK, SafetyFilter
+from torchcbf.qp import Status
 
 MODES = ["vanilla", "robust", "stochastic", "risk_aware"]
 
@@ -169,17 +170,7 @@ def test_nonfinite_rows_fallback_and_others_untouched(dtype: torch.dtype) -> Non
 
 
 @pytest.mark.parametrize("fallback", ["clip", "brake", "tensor", "callable"])
-def test_fallback_on_qp_failure(fallback: str, monkeypatch: pytest.MonkeyPatch) -> None:
-    import torchcbf.qp as qp
-
-    real_solve = qp.solve_qp
-
-    def failing_solve(*args, **kwargs):  # a solver that gives up on every row
-        sol = real_solve(*args, **kwargs)
-        return sol._replace(status=torch.full_like(sol.status, int(qp.Status.MAX_ITER)))
-
-    monkeypatch.setattr(qp, "solve_qp", failing_solve)
-    monkeypatch.setattr(realtime, "solve", lambda *args, **kwargs: None)  # general path
+def test_fallback_on_qp_failure(fallback: str) -> None:
     xs, us = random_states(4, seed=5)
     spec = {
         "clip": "clip",
@@ -187,9 +178,14 @@ def test_fallback_on_qp_failure(fallback: str, monkeypatch: pytest.MonkeyPatch) 
         "tensor": torch.tensor([0.5, -0.5]),
         "callable": lambda x, u: -u,
     }[fallback]
-    filt = scene("vanilla", fallback=spec)
+    # the general path with a QP that gives up on every row: one interior point iteration,
+    # no polishing
+    options = {"method": "ipm", "max_iter": 1, "polish": False}
+    filt = scene("vanilla", fallback=spec, backend="torch", qp_options=options)
     x, u = torch.tensor(xs), torch.tensor(us)
     out = filt(x, u)
+    assert out.path == "torch/ipm"
+    assert (out.qp_status == Status.MAX_ITER).all()
     assert (out.status == FilterStatus.FALLBACK).all()
     lo, hi = torch.tensor(U_MIN), torch.tensor(U_MAX)
     expected = {

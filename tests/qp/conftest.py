@@ -47,6 +47,8 @@ def kernel(request, monkeypatch) -> bool:
     """``False``: the C kernel is switched off (the torch implementation, and the closed
     form, run on the CPU); ``True``: it runs (skipped where it was not built)."""
     if not request.param:
+        # simulates a kernel that failed to build: no public switch runs the torch
+        # implementation on the CPU while the kernel is there
         monkeypatch.setattr(_dual_native, "available", lambda: False)
     elif not _dual_native.available():
         pytest.skip("the C kernel of the dual method was not built")

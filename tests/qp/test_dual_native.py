@@ -159,6 +159,7 @@ def test_max_iter_beyond_a_c_int_is_clamped():
 
 def test_a_library_built_from_another_version_is_refused(monkeypatch, caplog):
     """An editable install not rebuilt after an edit of the C source must not be called."""
+    # simulates a kernel built from another version of the source (the loader's check)
     monkeypatch.setattr(_dual_native, "KERNEL_VERSION", _dual_native.KERNEL_VERSION + 1)
     _dual_native._library.cache_clear()
     try:

@@ -111,16 +111,10 @@ def test_gradients_of_a_batch_with_hard_rows_match_the_kkt_path(kernel, dtype):
 
 
 @pytest.mark.parametrize("shape", [(12, 40), (25, 100)])
-def test_mid_size_problems_take_the_dual_method_and_are_right(cvx, shape, monkeypatch):
+def test_mid_size_problems_take_the_dual_method_and_are_right(cvx, shape):
     """Past 8 variables the C kernel's dual method serves the batch: every row SOLVED and
     right against Clarabel, gradients equal to the interior point path's."""
-    from torchcbf.qp import _dual_native, _function
-
-    calls = []
-    original = _function.solve_dual
-    monkeypatch.setattr(
-        _function, "solve_dual", lambda *a, **k: calls.append(a[1].shape) or original(*a, **k)
-    )
+    from torchcbf.qp import _dual_native
 
     if not _dual_native.available():
         pytest.skip("the C kernel of the dual method was not built")
@@ -135,7 +129,7 @@ def test_mid_size_problems_take_the_dual_method_and_are_right(cvx, shape, monkey
     pg = p.clone().requires_grad_()
     sol = solve_qp(Q, pg, G, h)
     assert bool((sol.status == Status.SOLVED).all())
-    assert calls and calls[0] == (B, n)  # the whole batch went to the dual method
+    assert sol.path == "active_set_native"  # the whole batch went to the dual method in C
     for i in range(0, B, 4):
         ref, _, st = cvx(*(t[i].numpy() for t in (Q, p, G, h)))
         assert st == "optimal"
@@ -178,11 +172,10 @@ def test_far_solutions_are_solved_and_far_contradictions_are_infeasible(method):
 
 
 def test_rows_not_solved_get_zero_gradients_when_every_fallback_fails(monkeypatch):
-    """Rows the dual method solved but handed on (here: every row, as for an ill-conditioned
-    Q) whose fallbacks then fail get zero gradients, not the dual method's."""
+    """Rows the dual method solved but handed on (every row: Q has condition 1e6) whose
+    fallbacks then fail get zero gradients, not the dual method's."""
     from torchcbf.qp import _function
 
-    monkeypatch.setattr(_function, "MAX_DUAL_CONDITION", 0.0)
     enum, ipm = _function.solve_enum, _function._ipm
 
     def enum_fails(*args, **kwargs):
@@ -193,10 +186,14 @@ def test_rows_not_solved_get_zero_gradients_when_every_fallback_fails(monkeypatc
         out = ipm(*args, **kwargs)  # (x, z, y, status, ...)
         return (*out[:3], torch.full_like(out[3], int(Status.MAX_ITER)), *out[4:])
 
+    # failing fallbacks injected: no public input makes both the enumeration and the
+    # interior point method fail on rows the dual method solved
     monkeypatch.setattr(_function, "solve_enum", enum_fails)
     monkeypatch.setattr(_function, "_ipm", ipm_fails)
     g = torch.Generator().manual_seed(0)
-    Q = torch.eye(3, dtype=torch.float64).expand(4, 3, 3)
+    rot, _ = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))
+    spread = torch.tensor([1.0, 1e-6, 1e-6], dtype=torch.float64)
+    Q = (rot @ torch.diag(spread) @ rot.T).expand(4, 3, 3)
     p = (5 * torch.randn(4, 3, generator=g, dtype=torch.float64)).requires_grad_()
     G = torch.randn(4, 6, 3, generator=g, dtype=torch.float64)
     h = torch.rand(4, 6, generator=g, dtype=torch.float64)

@@ -270,6 +270,7 @@ def test_cli_writes_metrics_and_figures(tmp_path, capsys) -> None:
 def test_cli_scenario_b_config_methods_and_strict_json(tmp_path, capsys, monkeypatch) -> None:
     from torchcbf.scenarios import unicycle_mppi_cbf
 
+    # a short run: the command has no option for the run's length
     monkeypatch.setattr(unicycle_mppi_cbf, "STEPS", 30)
     args = ["--seeds", "2", "--samples", "64", "--horizon", "10", "--out", str(tmp_path)]
     code = main(["mppi-cbf", "--config", "paper", "--methods", "scbf,shield_mppi", *args])
