@@ -38,11 +38,12 @@ class QPSolution(NamedTuple):
     - ``slack [..., m]``: elastic violation ``t >= 0`` of each softened row (``Gx <= h + t``);
       zero for hard rows and when ``soft`` is not given.
     - ``path``: what solved the batch (see :data:`PATHS`): ``"small_native"`` (a few small
-      problems in one call of the dual C kernel, :mod:`torchcbf.qp.realtime`), ``"active_set_native"`` (the dual active
-      set method in C), ``"active_set"``, ``"enumerate"``, ``"closed_form"``, ``"ipm"`` (in
-      torch), ``"proxsuite"``, ``"qpsolvers:<solver>"``, or ``"empty"`` (no rows). Rows an
-      exact method cannot certify are solved again by the interior point method (their
-      ``status`` says how that ended).
+      problems in one call of the dual C kernel, :mod:`torchcbf.qp.realtime`),
+      ``"active_set_native"`` (the dual active set method in C), ``"active_set"``,
+      ``"enumerate"``, ``"closed_form"``, ``"ipm"`` (in torch), ``"proxsuite"``,
+      ``"qpsolvers:<solver>"``, or ``"empty"`` (no rows). Rows an exact method cannot
+      certify are solved again by the interior point method (their ``status`` says how that
+      ended).
     """
 
     x: Tensor
@@ -240,8 +241,11 @@ def solve_qp(
     row's multiplier); the quadratic part keeps the solution unique. ``QPSolution.slack``
     reports ``t``.
 
-    Statuses: see :class:`Status`. A row with NaN/inf in its data (infinite bounds excepted)
-    is ``NON_FINITE`` with ``x = 0``; ``lb = +inf`` or ``ub = -inf`` is ``PRIMAL_INFEASIBLE``.
+    Rows without a bound: ``h_i = +inf`` (as OSQP and proxsuite write it), ``lb = -inf`` and
+    ``ub = +inf`` bound nothing; such a row is ignored by every method (its multiplier is
+    zero and its ``G`` row and ``h`` get zero gradients). Statuses: see :class:`Status`. A row
+    with NaN in its data, or inf anywhere but in ``h`` and the bounds, is ``NON_FINITE`` with
+    ``x = 0``; ``h_i = -inf``, ``lb = +inf`` or ``ub = -inf`` is ``PRIMAL_INFEASIBLE``.
     ``eps`` (default ``1e-7`` in float64, ``2e-6`` in float32) is the relative tolerance on
     residuals and duality gap; ``warm_start`` (``x [..., n]`` or a previous solution) seeds
     the primal iterate. ``polish`` (default: on for the torch backend) toggles the active-set
@@ -434,18 +438,29 @@ def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
         or not _dual_native.available()
     ):
         return None
-    sol = realtime.solve_small(
-        _rows(inp.Q, inp, (n, n)),
-        _rows(inp.p, inp, (n,)),
-        _rows(inp.G, inp, (m, n)),
-        _rows(inp.h, inp, (m,)),
-        _rows(inp.lb, inp, (n,)),
-        _rows(inp.ub, inp, (n,)),
-        inp.eps,
-        max_iter,
-        inp.batch_shape,
-        inp.Q.dtype,
-    )
+    G, h = _rows(inp.G, inp, (m, n)), _rows(inp.h, inp, (m,))
+
+    def solve(G: Tensor | None, h: Tensor | None) -> realtime.SmallSolution | None:
+        return realtime.solve_small(
+            _rows(inp.Q, inp, (n, n)),
+            _rows(inp.p, inp, (n,)),
+            G,
+            h,
+            _rows(inp.lb, inp, (n,)),
+            _rows(inp.ub, inp, (n,)),
+            inp.eps,
+            max_iter,
+            inp.batch_shape,
+            inp.Q.dtype,
+        )
+
+    sol = solve(G, h)
+    if sol is None and h is not None and bool(torch.isposinf(h).any()):
+        # the kernel refuses non-finite data: rows with h = +inf bound nothing (zero rows,
+        # where ``0 * G`` keeps a NaN or inf of G for the kernel to refuse); tried only after
+        # a refusal, so the common call pays nothing for it
+        free = torch.isposinf(h)
+        sol = solve(torch.where(free.unsqueeze(-1), 0.0 * G, G), torch.where(free, 1.0, h))
     return None if sol is None else QPSolution(*sol, path="small_native")
 
 
@@ -487,10 +502,15 @@ def _flatten(inp: _Inputs) -> _Flat:
     softf, x0f = flat(inp.soft, (m,)), flat(inp.x0, (n,))
 
     bad = torch.zeros(B, dtype=torch.bool, device=device)
-    for t, k in ((Qf, 2), (pf, 1), (Gf, 2), (hf, 1), (Af, 2), (bf, 1)):
+    for t, k in ((Qf, 2), (pf, 1), (Gf, 2), (Af, 2), (bf, 1)):
         if t.numel() > 0:
             bad = bad | _row_nonfinite(t, k, B)
     infeasible_bound = torch.zeros_like(bad)
+    if hf.numel() > 0:
+        Gf, hf, nan_h, empty_row = _free_rows(Gf, hf, B)
+        if nan_h is not None:
+            bad = bad | nan_h
+            infeasible_bound = infeasible_bound | empty_row
     if lbf is not None:
         bad = bad | torch.isnan(lbf).any(-1)
         infeasible_bound = infeasible_bound | (lbf == math.inf).any(-1)
@@ -521,6 +541,21 @@ def _flatten(inp: _Inputs) -> _Flat:
     if x0f is not None:
         x0f = torch.where(skip.view(B, 1) | ~torch.isfinite(x0f), 0.0, x0f)
     return _Flat(Qf, pf, Gf, hf, Af, bf, lbf, ubf, softf, x0f, bad, infeasible_bound, masked)
+
+
+def _free_rows(G: Tensor, h: Tensor, B: int) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
+    """Rows of ``G x <= h`` with ``h = +inf`` bound nothing: their ``G`` row becomes zero and
+    ``h`` one (always satisfied, multiplier zero, no gradient). Returns ``(G, h, nan [B],
+    empty [B])``: rows with a NaN in ``h``, and rows with ``h = -inf`` (nothing satisfies them);
+    both ``None`` where every ``h`` is finite (known without a device synchronisation only on
+    a CPU; elsewhere the masks always run)."""
+    if h.device.type == "cpu" and not bool(_row_nonfinite(h, 1, B).any()):
+        return G, h, None, None
+    free = h == math.inf
+    empty = h == -math.inf
+    G = torch.where(free.unsqueeze(-1), 0.0, G)
+    h = torch.where(free | empty, 1.0, h)
+    return G, h, torch.isnan(h).any(-1), empty.any(-1)
 
 
 class _Standard(NamedTuple):
