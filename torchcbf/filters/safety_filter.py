@@ -57,6 +57,7 @@ from torchcbf._checks import (
     check_last_dim,
 )
 from torchcbf.barriers import native
+from torchcbf.barriers.compiled import CompiledLie
 from torchcbf.barriers.lie import LieFunction, LieTerms, stacked_lie_derivatives
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.filters import realtime
@@ -252,6 +253,13 @@ class SafetyFilter(nn.Module):
             ``"torch"`` (the general path: Lie terms in torch, the QP by
             :func:`torchcbf.qp.solve_qp` with ``qp_options``). :attr:`FilterOutput.path`
             says which answered.
+        compile: ``True`` or a dict of ``torch.compile`` keyword arguments: outside grad
+            mode (``torch.no_grad()``, ``torch.inference_mode()``), the Lie terms of the
+            functions no C kernel evaluates (a user's own barriers and models) come from one
+            compiled call (:class:`torchcbf.barriers.compiled.CompiledLie`; path
+            ``compiled/...``). The first call compiles (seconds; again for a new batch size
+            or dtype); where compiling fails it warns and runs eager. In grad mode the
+            autograd path answers, whose terms carry the graph.
         qp_options: keyword arguments for :func:`torchcbf.qp.solve_qp`.
         check_relative_degree: at construction, evaluate ``L_g h`` of every barrier output on
             16 sample states (``N(0, 4 I)``, seeded) and raise ``ValueError`` if it vanishes
@@ -283,6 +291,7 @@ class SafetyFilter(nn.Module):
         exact: bool | None = None,
         lie_method: Literal["auto", "autograd", "analytic"] = "auto",
         backend: Literal["auto", "torch"] = "auto",
+        compile: bool | dict[str, Any] = False,
         qp_options: dict[str, Any] | None = None,
         check_relative_degree: bool = True,
         **legacy: Any,
@@ -321,6 +330,16 @@ class SafetyFilter(nn.Module):
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         self.backend = backend
+        self._compiled_lie: tuple[CompiledLie | None, CompiledLie | None] | None = None
+        if compile:
+            if not isinstance(compile, (bool, dict)):
+                raise TypeError(f"compile must be a bool or a dict, got {type(compile).__name__}")
+            opts = compile if isinstance(compile, dict) else {}
+            hess = self.condition.needs_hessian
+            self._compiled_lie = tuple(
+                CompiledLie(list(fns), dynamics, hessian=hess, options=opts) if fns else None
+                for fns in (self.barriers, self.lyapunovs)
+            )  # type: ignore[assignment]
         m = dynamics.control_dim
         self.alpha = _alphas("alpha", alpha, len(self.barriers))
         self.clf_rate = _alphas("clf_rate", clf_rate, len(self.lyapunovs))
@@ -468,27 +487,30 @@ class SafetyFilter(nn.Module):
         return tuple(batch), xb, ub, tb
 
     def _lie(
-        self, fns: nn.ModuleList, x: Tensor, t: Tensor
-    ) -> tuple[LieTerms | None, list[int], bool]:
+        self, fns: nn.ModuleList, x: Tensor, t: Tensor, compiled: CompiledLie | None
+    ) -> tuple[LieTerms | None, list[int], str]:
         """k-output Lie terms of all ``fns`` concatenated, each one's number of outputs, and
-        whether the C kernel gave them. A few states of quadric functions: one native call;
+        where they came from (``native``, ``compiled`` or ``torch``). A few states of quadric
+        functions: one native call; with ``compile``, outside grad mode, one compiled call;
         functions without closed forms share one stacked autograd call."""
         if not fns:
-            return None, [], False
+            return None, [], "torch"
         hessian = self.condition.needs_hessian
         if self._native_applies(x):
             found = native.lie_terms(fns, x, self.dynamics, hessian=hessian)
             if found is not None:
-                return *found, True
+                return *found, "native"
+        if compiled is not None and not torch.is_grad_enabled():
+            return *compiled(x, t), "compiled"
         methods = [self._lie_method(fn) for fn in fns]
         if len(fns) > 1 and all(m == "autograd" for m in methods):
             terms, sizes = stacked_lie_derivatives(list(fns), x, self.dynamics, t, hessian=hessian)
-            return terms, sizes, False
+            return terms, sizes, "torch"
         parts = []
         for fn, method in zip(fns, methods, strict=True):
             terms = fn.lie(x, self.dynamics, t, method=method, hessian=hessian)
             parts.append(as_columns(terms, x.shape[0]))
-        return concat_terms(parts), [p.h.shape[1] for p in parts], False
+        return concat_terms(parts), [p.h.shape[1] for p in parts], "torch"
 
     def _native_cbf(
         self, x: Tensor, prepare: bool
@@ -554,15 +576,14 @@ class SafetyFilter(nn.Module):
         With ``prepare``, the CBF conditions may be a prepared native call (see
         :meth:`_native_cbf`), for the real-time path."""
         native_cbf = self._native_cbf(x, prepare)
+        compiled = self._compiled_lie or (None, None)
         if native_cbf:
-            cbf_terms, cbf_sizes, cbf_native = None, [], True
+            cbf_terms, cbf_sizes, cbf_from = None, [], "native"
         else:
-            cbf_terms, cbf_sizes, cbf_native = self._lie(self.barriers, x, t)
-        clf_terms, clf_sizes, clf_native = self._lie(self.lyapunovs, x, t)
-        used = [
-            f for f, on in ((cbf_native, cbf_sizes or native_cbf), (clf_native, clf_sizes)) if on
-        ]
-        lie = "native" if all(used) else ("mixed" if any(used) else "torch")
+            cbf_terms, cbf_sizes, cbf_from = self._lie(self.barriers, x, t, compiled[0])
+        clf_terms, clf_sizes, clf_from = self._lie(self.lyapunovs, x, t, compiled[1])
+        used = {f for f, on in ((cbf_from, cbf_sizes or native_cbf), (clf_from, clf_sizes)) if on}
+        lie = used.pop() if len(used) == 1 else "mixed"
         cbf = clf = None
         h = V = x.new_zeros(x.shape[0], 0)
         if native_cbf is not None:

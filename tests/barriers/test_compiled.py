@@ -1,0 +1,151 @@
+"""Compiled Lie terms of user functions equal the autograd terms, and the filter takes them
+outside grad mode only."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+import torch
+from torch import Tensor
+
+from torchcbf.barriers import Ball, Barrier, MovingBall
+from torchcbf.barriers.compiled import CompiledLie
+from torchcbf.barriers.lie import stacked_lie_derivatives
+from torchcbf.dynamics import ControlAffine, Unicycle
+from torchcbf.filters import SafetyFilter
+
+#: dynamo's tracing (vmap, jacrev, the user code) without a C++ build: fast in tests
+TRACED = {"backend": "aot_eager"}
+
+
+class SuperEllipse(Barrier):
+    """``sum |(p - c) / a|^4 - 1``, a user-written shape without closed forms."""
+
+    def __init__(self, center: list[float], axes: list[float]) -> None:
+        super().__init__()
+        self.register_buffer("center", torch.tensor(center))
+        self.register_buffer("axes", torch.tensor(axes))
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        d = (x[..., :2] - self.center.to(x)) / self.axes.to(x)
+        return (d.abs() ** 4).sum(-1) - 1.0
+
+
+class SmoothPolygon(Barrier):
+    """Outside the box ``|p| <= 1``, smoothly: ``0.1 logsumexp((N p - 1) / 0.1)`` (two outputs:
+    the box and a shifted copy)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        normals = torch.tensor([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+        self.register_buffer("normals", normals)
+        self.register_buffer("shifts", torch.tensor([[0.0, 0.0], [3.0, 0.0]]))
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        p = x[..., None, :2] - self.shifts.to(x)  # [..., 2, 2]
+        s = p @ self.normals.to(x).mT - 1.0  # [..., 2, 4]
+        return 0.1 * torch.logsumexp(s / 0.1, -1)
+
+
+class Glider(ControlAffine):
+    """A user-written model: unicycle kinematics with a constant drift."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(3, 2, **kwargs)
+
+    def f(self, x: Tensor) -> Tensor:
+        return torch.zeros_like(x) + torch.tensor([0.2, 0.0, 0.0], dtype=x.dtype)
+
+    def g(self, x: Tensor) -> Tensor:
+        th = x[..., 2]
+        z, o = torch.zeros_like(th), torch.ones_like(th)
+        rows = [
+            torch.stack([th.cos(), z], -1),
+            torch.stack([th.sin(), z], -1),
+            torch.stack([z, o], -1),
+        ]
+        return torch.stack(rows, -2)
+
+
+def _functions() -> list:
+    return [
+        SuperEllipse([2.0, 0.5], [0.6, 0.4]),
+        SmoothPolygon(),
+        MovingBall(lambda t: torch.stack([t, 0.5 * t], -1), 0.3),
+    ]
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
+@pytest.mark.parametrize("diffusion", [False, True])
+def test_compiled_terms_equal_the_autograd_terms(dtype: torch.dtype, diffusion: bool) -> None:
+    model = (Glider(sigma=0.3) if diffusion else Glider()).to(dtype)
+    fns = [fn.to(dtype) for fn in _functions()]
+    x = torch.randn(5, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    x, t = x.to(dtype), torch.linspace(0.0, 1.0, 5, dtype=dtype)
+    got, sizes = CompiledLie(fns, model, hessian=True, options=TRACED)(x, t)
+    want, want_sizes = stacked_lie_derivatives(fns, x, model, t)
+    assert sizes == want_sizes == [1, 2, 1]
+    tol = 1e-10 if dtype == torch.float64 else 1e-4
+    for name in ("h", "lfh", "lgh", "dhdt", "dhdx", "hess_trace"):
+        a, b = getattr(got, name), getattr(want, name)
+        if b is None:
+            assert a is None, name
+            continue
+        assert not a.requires_grad, name
+        torch.testing.assert_close(a, b, atol=tol, rtol=tol, msg=name)
+    assert bool((got.dhdt[:, 3] != 0).all())  # the moving ball's time derivative
+
+
+def test_the_filter_takes_the_compiled_terms_outside_grad_mode_only() -> None:
+    model = Unicycle(u_min=-2.0, u_max=2.0).double()
+    fns = [SuperEllipse([2.0, 0.5], [0.6, 0.4]).double(), SmoothPolygon().double()]
+    compiled = SafetyFilter(model, fns, compile=TRACED).double()
+    general = SafetyFilter(model, fns, backend="torch").double()
+    x = torch.tensor([[0.0, 0.3, 0.1], [1.0, -0.5, 2.0], [4.0, 2.0, -1.0]], dtype=torch.float64)
+    u = torch.tensor([[1.0, 0.0]], dtype=torch.float64).expand(3, 2)
+    with torch.no_grad():
+        for rows in (slice(0, 1), slice(0, 3)):
+            a, b = compiled(x[rows], u[rows]), general(x[rows], u[rows])
+            assert a.path == "compiled/realtime" and b.path.startswith("torch/")
+            torch.testing.assert_close(a.u, b.u, atol=1e-9, rtol=1e-9)
+            torch.testing.assert_close(a.h, b.h)
+        a = compiled(x[0], u[0])  # one state, no batch axis
+        assert a.u.shape == (2,) and a.path == "compiled/realtime"
+    xg = x.clone().requires_grad_()
+    out = compiled(xg, u)
+    assert out.path.startswith("torch/") and out.u.requires_grad  # the graph is kept
+    out.u.sum().backward()
+    assert xg.grad is not None and torch.isfinite(xg.grad).all()
+
+
+def test_new_constants_are_read_without_a_recompile() -> None:
+    model = Unicycle().double()
+    shape = SuperEllipse([2.0, 0.5], [0.6, 0.4]).double()
+    lie = CompiledLie([shape], model, hessian=False, options=TRACED)
+    x, t = torch.tensor([[0.0, 0.3, 0.1]], dtype=torch.float64), torch.zeros(1, dtype=torch.float64)
+    first = lie(x, t)[0].h.clone()
+    shape.center.add_(0.5)
+    moved = lie(x, t)[0].h
+    assert not torch.equal(first, moved)
+    torch.testing.assert_close(moved, shape(x)[..., None])
+
+
+def test_a_backend_that_fails_warns_and_runs_eager(caplog: pytest.LogCaptureFixture) -> None:
+    def failing(gm, example_inputs):
+        raise RuntimeError("no compiler here")
+
+    model = Unicycle().double()
+    fns = [SuperEllipse([2.0, 0.5], [0.6, 0.4]).double(), Ball([0.0, 3.0], 0.5).double()]
+    x = torch.tensor([[0.0, 0.3, 0.1]], dtype=torch.float64)
+    t = torch.zeros(1, dtype=torch.float64)
+    with caplog.at_level(logging.WARNING, logger="torchcbf"):
+        got, _ = CompiledLie(fns, model, hessian=False, options={"backend": failing})(x, t)
+    assert any("torch.compile failed" in r.getMessage() for r in caplog.records)
+    want, _ = stacked_lie_derivatives(fns, x, model, t)
+    torch.testing.assert_close(got.lgh, want.lgh)
+
+
+def test_compile_option_is_checked() -> None:
+    with pytest.raises(TypeError, match="compile must be a bool or a dict"):
+        SafetyFilter(Unicycle(), [Ball([0.0, 3.0], 0.5)], compile="yes")

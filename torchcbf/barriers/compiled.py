@@ -1,0 +1,97 @@
+"""Lie terms of any barrier or Lyapunov functions, compiled with ``torch.compile``.
+
+A user's own function (a superellipse, a smooth polygon, a small network) has no closed
+forms, so the general path differentiates it by autograd at every call: on one state that is
+a few hundred tensor operations and two backward passes, most of it fixed cost. Here the
+whole computation, ``h``, ``dh/dx`` (``torch.func.jacrev``), ``dh/dt`` for time-varying
+functions, the Hessian trace ``tr(sigma' d2h/dx2 sigma)`` where asked (``jacrev`` of
+``jacrev``) and ``L_f h``, ``L_g h`` along the model, is one function of ``(x, t)`` that
+``torch.compile`` turns into a few fused loops (through :class:`torchcbf._compile.Compiled`:
+an eager run of the same function where the backend fails, with a warning).
+
+It computes values only, without a graph: :class:`~torchcbf.filters.SafetyFilter` asks for
+it when no output needs a gradient, and takes the autograd path otherwise. The terms equal
+those of :func:`~torchcbf.barriers.lie.stacked_lie_derivatives` to rounding
+(tests/barriers/test_compiled.py). The function is compiled for each batch size and dtype
+it meets (``dynamic=False``); new values of the state, the time or the functions' constants
+reuse the code.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from torchcbf._compile import Compiled
+from torchcbf.barriers.lie import LieFunction, LieTerms
+from torchcbf.dynamics.base import ControlAffine
+
+
+class CompiledLie:
+    """Compiled Lie terms of ``fns`` along ``dynamics``, their outputs concatenated.
+
+    Args:
+        fns: barrier or Lyapunov functions, each ``[...]`` or ``[..., k_i]``; each must
+            accept a state without batch dimensions (``x [n] -> [] or [k]``), as every
+            function written with ``...`` indexing does.
+        dynamics: the model (``f`` and ``g`` are compiled with the functions).
+        hessian: also give ``hess_trace`` (when the model has a diffusion).
+        options: keyword arguments of ``torch.compile`` (default ``dynamic=False``).
+
+    It holds references to ``fns`` and ``dynamics`` (the owner's modules, moved and trained
+    with it). ``self(x [B, n], t [B]) -> (LieTerms, sizes)`` as
+    :func:`~torchcbf.barriers.lie.stacked_lie_derivatives` returns them (``h, lfh, dhdt,
+    hess_trace [B, K]``, ``lgh [B, K, m]``, ``dhdx [B, K, n]``), without a graph.
+    """
+
+    def __init__(
+        self,
+        fns: Sequence[LieFunction],
+        dynamics: ControlAffine,
+        *,
+        hessian: bool,
+        options: dict[str, Any] | None = None,
+    ) -> None:
+        self.fns = list(fns)
+        self.dynamics = dynamics
+        self.sizes: list[int] | None = None
+        self.hessian = bool(hessian) and dynamics.has_diffusion
+        self.timed = any(fn.time_varying for fn in fns)
+        self._call = Compiled(self._terms, {"dynamic": False, **(options or {})})
+
+    def _values(self, x: Tensor, t: Tensor) -> Tensor:
+        """``[K]`` outputs of all functions at one state ``x [n]``, time ``t []``."""
+        return torch.cat([torch.atleast_1d(fn(x, t)) for fn in self.fns])
+
+    def _terms(self, x: Tensor, t: Tensor) -> tuple[Tensor, ...]:
+        values = torch.func.vmap(self._values)
+        h = values(x, t)
+        if self.timed:
+            dhdx, dhdt = torch.func.vmap(torch.func.jacrev(self._values, argnums=(0, 1)))(x, t)
+        else:
+            dhdx = torch.func.vmap(torch.func.jacrev(self._values))(x, t)
+            dhdt = torch.zeros_like(h)
+        f = self.dynamics.f(x)
+        g = self.dynamics.g(x)
+        lfh = (dhdx @ f.unsqueeze(-1)).squeeze(-1)
+        lgh = dhdx @ g
+        if not self.hessian:
+            return h, lfh, lgh, dhdt, dhdx
+        hess = torch.func.vmap(torch.func.jacrev(torch.func.jacrev(self._values)))(x, t)
+        s = self.dynamics.sigma(x)  # [B, n, q]
+        trace = (s.unsqueeze(1) * (hess @ s.unsqueeze(1))).sum((-2, -1))
+        return h, lfh, lgh, dhdt, dhdx, trace
+
+    def __call__(self, x: Tensor, t: Tensor) -> tuple[LieTerms, list[int]]:
+        """Lie terms at ``x [B, n]``, ``t [B]`` (no graph) and each function's number of
+        outputs."""
+        with torch.no_grad():
+            if self.sizes is None:  # once, eager: a Python int per function
+                self.sizes = [torch.atleast_1d(fn(x[0], t[0])).shape[-1] for fn in self.fns]
+            out = self._call(x, t)
+        h, lfh, lgh, dhdt, dhdx = out[:5]
+        terms = LieTerms(h, lfh, lgh, dhdt, out[5] if self.hessian else None, dhdx)
+        return terms, self.sizes
