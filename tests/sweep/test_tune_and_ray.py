@@ -163,3 +163,37 @@ def test_ray_records_a_failing_point_and_runs_the_rest(ray_cluster, monkeypatch)
     assert [r["status"] for r in remote] == ["ok", "failed", "ok"]
     assert remote[1]["error"] == "RuntimeError: boom at 48 samples"
     assert _without_wall(remote) == _without_wall(local)
+
+
+def _fake_evaluate(scenario, params, *, num_seeds, seed, device="cpu", threads=1):
+    """A fast stand-in for ``evaluate``: an objective that depends on every parameter."""
+    score = -abs(params.get("horizon", 50) - 33) - abs(params.get("num_samples", 10) - 900) / 100
+    return {**params, "num_seeds": num_seeds, "first_seed": seed, "objective": score}
+
+
+def test_tune_cut_between_two_parameters_resumes_as_if_never_cut(monkeypatch, tmp_path) -> None:
+    optuna = pytest.importorskip("optuna")
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    import sys
+
+    from torchcbf.sweep import tune
+    from torchcbf.sweep.tune import Dimension
+
+    monkeypatch.setattr(sys.modules["torchcbf.sweep.tune"], "evaluate", _fake_evaluate)
+    options = {"trials": 6, "num_seeds": 2, "batch": 2, "progress": False}
+    reference = tune("reach-avoid", out=tmp_path / "reference", **options)
+    original = Dimension.suggest
+
+    def cut(self, trial):
+        if trial.number == 3 and self.name == "horizon":  # num_samples drawn, horizon not
+            raise KeyboardInterrupt
+        return original(self, trial)
+
+    monkeypatch.setattr(Dimension, "suggest", cut)
+    with pytest.raises(KeyboardInterrupt):
+        tune("reach-avoid", out=tmp_path / "run", **options)
+    monkeypatch.setattr(Dimension, "suggest", original)
+    resumed = tune("reach-avoid", out=tmp_path / "run", resume=True, **options)
+    assert resumed["trials"] == reference["trials"]
+    assert resumed["best"] == reference["best"]
+    assert len({(r["num_samples"], r["horizon"]) for r in resumed["trials"]}) == 6

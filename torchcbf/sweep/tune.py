@@ -206,13 +206,25 @@ def tune_settings(
     }
 
 
-def _sampler(optuna: Any, sampler_seed: int, number: int, trials: int) -> Any:
-    """The TPE sampler that asks trial ``number``: seeded from ``sampler_seed`` and the
-    number, so a resumed study asks what an uninterrupted one would."""
+def _sampler(optuna: Any, sampler_seed: int, number: int, trials: int, part: int = 0) -> Any:
+    """The TPE sampler that draws part ``part`` (0: the ask, ``i + 1``: dimension ``i``) of
+    trial ``number``: seeded from ``sampler_seed``, the number and the part, so a resumed
+    study draws what an uninterrupted one would, even for a trial cut off between two of its
+    parameters."""
     import numpy as np
 
-    seed = int(np.random.SeedSequence([sampler_seed, number]).generate_state(1)[0])
+    seed = int(np.random.SeedSequence([sampler_seed, number, part]).generate_state(1)[0])
     return optuna.samplers.TPESampler(seed=seed, n_startup_trials=min(10, trials))
+
+
+def _suggest_all(
+    optuna: Any, study: Any, trial: Any, dims: Sequence[Dimension], **seeds: int
+) -> None:
+    """Draw every dimension of ``trial`` not drawn yet, each with its own seeded sampler."""
+    for i, d in enumerate(dims):
+        if d.name not in trial.params:
+            study.sampler = _sampler(optuna, part=i + 1, **seeds)
+            d.suggest(trial)
 
 
 def _outcome_row(outcome: Outcome) -> dict[str, Any]:
@@ -335,13 +347,18 @@ def tune(
             numbers = range(start, min(start + batch, trials))
             known = {t.number: t for t in study.get_trials(deepcopy=False)}
             for number in numbers:
+                seeds = {"sampler_seed": sampler_seed, "number": number, "trials": trials}
                 if number not in known:  # asked in order: every earlier trial exists
-                    study.sampler = _sampler(optuna, sampler_seed, number, trials)
+                    study.sampler = _sampler(optuna, **seeds)
                     trial = study.ask()
                     if trial.number != number:
                         raise RuntimeError(f"the study asked trial {trial.number}, not {number}")
-                    for d in dims:
-                        d.suggest(trial)
+                    _suggest_all(optuna, study, trial, dims, **seeds)
+                elif not known[number].state.is_finished() and set(known[number].params) != {
+                    d.name for d in dims
+                }:  # cut off while its parameters were drawn: the rest are drawn now
+                    trial = optuna.trial.Trial(study, known[number]._trial_id)
+                    _suggest_all(optuna, study, trial, dims, **seeds)
             known = {t.number: t for t in study.get_trials(deepcopy=False)}
             pending = [n for n in numbers if not known[n].state.is_finished()]
             bar.update(len(numbers) - len(pending))
