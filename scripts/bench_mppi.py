@@ -46,6 +46,10 @@ Usage::
     python scripts/bench_mppi.py --only fused realtime --reps 9
     python scripts/bench_mppi.py --threads 2 --only compiled
     python scripts/bench_mppi.py --profile             # where the time goes, per path
+    python scripts/bench_mppi.py --quick               # a short run: K / 10, 2 calls, no compile
+
+``--quick`` runs every line but ``compiled`` with a tenth of the samples and 2 timed calls: a
+check that every path runs, not figures to quote.
 """
 
 from __future__ import annotations
@@ -191,8 +195,11 @@ def timed(step: Callable[[torch.Tensor], object], x: torch.Tensor, reps: int) ->
     }
 
 
-def run_one(name: str, reps: int, device: str) -> dict:
-    """One planner of one line in this process."""
+QUICK_SCALE = 10  # --quick: samples divided by this
+
+
+def run_one(name: str, reps: int, device: str, quick: bool = False) -> dict:
+    """One planner of one line in this process (``quick``: K / :data:`QUICK_SCALE`)."""
     which, _, who = name.partition(":")
     if which == "batched":
         B, K, H, nx = (1, 20000, 80, 4) if who == "pytorch-mppi" else (32, 2000, 80, 4)
@@ -202,6 +209,8 @@ def run_one(name: str, reps: int, device: str) -> dict:
         B, K, H, nx = 1, 1000, 50, 2
     else:
         B, K, H, nx = 32, 20000, 80, 4
+    if quick:
+        K = max(K // QUICK_SCALE, 1)
     if who == "pytorch-mppi":
         step = pytorch_mppi(K, H, nx, device)
         if step is None:
@@ -298,16 +307,25 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--only", nargs="+", choices=LINES, help="lines to run")
     parser.add_argument("--profile", action="store_true", help="profile one call per path")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"every line but compiled, K / {QUICK_SCALE}, 2 timed calls (a check, not figures)",
+    )
     parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if args.quick:
+        args.reps = min(args.reps, 2)
     if args.one:
-        print(json.dumps(run_one(args.one, args.reps, args.device)))
+        print(json.dumps(run_one(args.one, args.reps, args.device, args.quick)))
         return
     if args.profile:
         profile(args.device)
         return
-    lines = list(args.only or LINES)
+    lines = list(args.only or (line for line in LINES if not (args.quick and line == "compiled")))
+    if args.quick:
+        print(f"--quick: K / {QUICK_SCALE} in every line, {args.reps} timed calls, no compile")
     plan = {
         "batched": [
             ("batched:pytorch-mppi", "pytorch-mppi K=20000 (B=1)"),
@@ -363,6 +381,7 @@ def main() -> None:
                     str(args.reps),
                     "--device",
                     args.device,
+                    *(["--quick"] if args.quick else []),
                 ]
                 env = dict(os.environ)
                 if "compiled" in name:
@@ -385,7 +404,7 @@ def main() -> None:
                     else:
                         ratio = f"time {1 / wall:.3f}x ({1 / cpu:.3f}x) pytorch-mppi's"
                 print(f"{line:<9} {label:<27} {res['path']:<12} {fmt(res)}  {ratio}")
-                if line == "paper":
+                if line == "paper" and not args.quick:
                     total = res["median"] * PAPER_CALLS
                     print(
                         f"{'':<9} projection: {PAPER_CALLS} calls x {res['median']:.3f} s = "

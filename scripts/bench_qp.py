@@ -180,7 +180,7 @@ def main() -> None:
 
         peers["proxsuite.QPFunction"] = run_proxsuite_qpfunction
     except ImportError:
-        notes.append("proxsuite.torch not installed: skipped")
+        notes.append("proxsuite.torch not installed: it and torchcbf[proxsuite] skipped")
     try:
         import qpth.qp  # noqa: F401
 
@@ -368,7 +368,9 @@ def main() -> None:
                 f"{B:>6} {n:>2} {m:>3} {'torchcbf[torch]':<22} {t_f * 1e6:>10.2f} "
                 f"{t_fb * 1e6:>14.2f} {'1.0':>24}"
             )
-            rows = [("torchcbf[proxsuite]", lambda: run_torchcbf("proxsuite", "cpu"), 8192)]
+            rows = []
+            if "proxsuite.QPFunction" in peers:  # torchcbf's proxsuite backend needs proxsuite
+                rows.append(("torchcbf[proxsuite]", lambda: run_torchcbf("proxsuite", "cpu"), 8192))
             for name, maker in peers.items():
                 cap = 64 if name == "cvxpylayers" else args.peer_max_batch
                 if name == "cvxpylayers":
