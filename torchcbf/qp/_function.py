@@ -82,6 +82,9 @@ class SolverConfig:
     active_set: bool = False
     pairs: tuple[tuple[int, int], ...] = ()
     need_factor: bool = True
+    #: unit roundoff of the inputs' dtype (the solve itself runs in float64): eigenvalues of
+    #: ``P`` below ``n`` of these, relative to the largest, are rounding of a zero
+    rounding: float = torch.finfo(torch.float64).eps
 
 
 def _closed_form(
@@ -126,6 +129,7 @@ def _forward(
         res = _closed_form(P, q, G, h) if cfg.closed_form else None
         if res is not None:
             x, s, z, status, iters = res
+            x, z, status = _drop_unbounded(P, q, G, A, x, (z,), status, cfg)
             y = q.new_zeros(q.shape[0], me)
             fac = _factor(P, G, h, A, x, z > s, status) if cfg.need_factor else None
             return x, z, y, status, iters, fac
@@ -205,10 +209,32 @@ def _finish(
     nothing verifies is reported ``NUMERICAL_ERROR``; a ``MAX_ITER``/``NUMERICAL_ERROR`` row
     keeps its status, or becomes ``DUAL_INFEASIBLE`` (``x``, ``z``, ``y`` zeroed) where its
     ``P`` is singular and its last point is a descent direction. Testing whether any row
-    needs this is one host synchronisation."""
+    needs this is one host synchronisation. Last, a ``SOLVED`` row whose answer certifies
+    unboundedness (:func:`unbounded_solved`) becomes ``DUAL_INFEASIBLE``."""
     if not cfg.polish:
         candidate = (status == int(Status.SOLVED)).unsqueeze(-1)
-        return x, z, y, status, _kkt.active_set(z, s) & candidate
+        active = _kkt.active_set(z, s) & candidate
+    else:
+        x, z, y, status, active = _polish_and_resolve(P, q, G, h, A, b, x, s, z, y, status, cfg)
+    x, z, y, active, status = _drop_unbounded(P, q, G, A, x, (z, y, active), status, cfg)
+    return x, z, y, status, active
+
+
+def _polish_and_resolve(
+    P: Tensor,
+    q: Tensor,
+    G: Tensor,
+    h: Tensor,
+    A: Tensor,
+    b: Tensor,
+    x: Tensor,
+    s: Tensor,
+    z: Tensor,
+    y: Tensor,
+    status: Tensor,
+    cfg: SolverConfig,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The polish and exact re-solves of :func:`_finish`."""
     x, z, y, status, fac, verified, exact = _kkt.polish(
         P, q, G, h, A, b, x, s, z, y, status, eps=cfg.eps
     )
@@ -245,6 +271,48 @@ def _finish(
         x, z, y = (torch.where(drop.unsqueeze(-1), 0.0, t) for t in (x, z, y))
         active = active & ~drop.unsqueeze(-1)
     return x, z, y, status, active
+
+
+def unbounded_solved(
+    P: Tensor, q: Tensor, G: Tensor, A: Tensor, x: Tensor, solved: Tensor, cfg: SolverConfig
+) -> Tensor:
+    """Rows ``[B]`` among ``solved`` whose ``x`` certifies that the problem is unbounded
+    (:func:`~torchcbf.qp._ipm.unbounded_rows`, ``P`` singular to the inputs' rounding).
+
+    A singular ``P`` rounded to a tiny positive eigenvalue turns a descent direction into a
+    minimiser far along it (``|x| ~ 1e11``), which the tolerances of every method accept as a
+    KKT point; the point itself is then the certificate. On a problem with an optimum no
+    minimiser passes (``x``, ``2x``, ... would all be feasible with a falling objective).
+    Only rows with ``q'x < 0`` can pass; the test (an eigendecomposition) runs on those, after
+    one host synchronisation."""
+    cand = solved & ((q * x).sum(-1) < 0)
+    if not bool(cand.any()):
+        return cand
+    idx = cand.nonzero().squeeze(-1)
+    sub = [t.index_select(0, idx) for t in (P, q, G, A, x)]
+    found = unbounded_rows(*sub, cfg.eps_inf, cfg.rounding)
+    return torch.zeros_like(cand).index_copy(0, idx, found)
+
+
+def _drop_unbounded(
+    P: Tensor,
+    q: Tensor,
+    G: Tensor,
+    A: Tensor,
+    x: Tensor,
+    others: tuple[Tensor, ...],
+    status: Tensor,
+    cfg: SolverConfig,
+) -> tuple[Tensor, ...]:
+    """``(x, *others, status)`` with the ``SOLVED`` rows that :func:`unbounded_solved` finds
+    reported ``DUAL_INFEASIBLE`` and ``x`` and ``others`` (multipliers, active sets) zeroed
+    there."""
+    unb = unbounded_solved(P, q, G, A, x, status == int(Status.SOLVED), cfg)
+    if not bool(unb.any()):
+        return (x, *others, status)
+    u = unb.unsqueeze(-1)
+    out = [torch.where(u, torch.zeros_like(t), t) for t in (x, *others)]
+    return (*out, torch.where(unb, int(Status.DUAL_INFEASIBLE), status))
 
 
 def _exact_resolve(
@@ -300,6 +368,9 @@ def _certified_enum(
     little off): enumeration judges its choice to ``eps``, which a nearly dependent active
     set can pass with ``x`` far off."""
     en = solve_enum(P, q, G, h, A, b, eps=cfg.eps, pairs=cfg.pairs)
+    # a point far along a descent direction (P singular to rounding) is no answer: the row
+    # goes to the interior point method, whose result carries the certificate
+    en = en._replace(ok=en.ok & ~unbounded_solved(P, q, G, A, en.x, en.ok, cfg))
     exact = en.ok & _kkt.kkt_point(P, q, G, h, A, b, en.x, en.z, en.y)
     redo = en.ok & ~exact
     if not bool(redo.any()):

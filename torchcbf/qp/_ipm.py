@@ -98,17 +98,29 @@ def _descent_direction(
     )
 
 
-def unbounded_rows(P: Tensor, q: Tensor, G: Tensor, A: Tensor, x: Tensor, eps_inf: float) -> Tensor:
+def unbounded_rows(
+    P: Tensor,
+    q: Tensor,
+    G: Tensor,
+    A: Tensor,
+    x: Tensor,
+    eps_inf: float,
+    rounding: float | None = None,
+) -> Tensor:
     """Rows ``[B]`` where ``x`` certifies unboundedness (the interior point method's test,
     applied to a point it left behind: its iterates grow along the descent direction), for
-    ``P`` singular to rounding (smallest eigenvalue at most ``n`` machine epsilons of the
-    largest: a singular ``P`` whose Cholesky factor kept a rounding-sized pivot counts).
+    ``P`` singular to rounding (smallest eigenvalue at most ``n`` units of ``rounding``, by
+    default the machine epsilon of ``P``'s dtype, of the largest: a singular ``P`` whose
+    Cholesky factor kept a rounding-sized pivot counts; data given in float32 and solved in
+    float64 pass float32's epsilon, below which its eigenvalues are rounding).
     The iterates grow along the null space of ``P`` but carry the rest of ``x`` along, so
     ``x`` projected on that null space is tried as well."""
+    if rounding is None:
+        rounding = torch.finfo(P.dtype).eps
     p_max = P.abs().amax((-2, -1))
     g_max, a_max = _inf_norm(G.abs().amax(-1)), _inf_norm(A.abs().amax(-1))
     lam, V = torch.linalg.eigh(P)
-    tol = x.shape[-1] * torch.finfo(P.dtype).eps * lam.abs().amax(-1)
+    tol = x.shape[-1] * rounding * lam.abs().amax(-1)
     singular = not_positive_definite(P) | (lam[..., 0] <= tol)
     null = (lam <= tol.unsqueeze(-1)).to(x.dtype)
     found = torch.zeros_like(singular)

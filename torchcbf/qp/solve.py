@@ -671,6 +671,7 @@ def _config(
         active_set=use_dual,
         pairs=std.pairs,
         need_factor=need_grad,
+        rounding=torch.finfo(inp.Q.dtype).eps,
     )
 
 

@@ -1,0 +1,142 @@
+"""Unbounded problems are never SOLVED: ``Q`` positive semidefinite with a null direction
+``d``, ``p'd < 0`` and ``G d < 0`` on every row (a recession direction; ``Q``'s zero
+eigenvalue is only zero to rounding) are ``DUAL_INFEASIBLE`` on every method and dtype; and
+no certificate is issued on problems with an optimum (singular ``Q`` bounded by the rows or a
+box, and random strictly convex problems), which stay ``SOLVED`` and equal Clarabel's."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchcbf.qp import Status, solve_qp
+
+METHODS = ("auto", "active_set", "enumerate", "ipm")
+DTYPES = (torch.float64, torch.float32)
+
+
+def _singular(B: int, n: int, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """``Q = L L'`` with ``L [n, n-1]`` (rank ``n - 1``, its zero eigenvalue rounded) and a
+    unit null vector ``d`` of ``Q``."""
+    f64 = torch.float64
+    L = torch.randn(B, n, n - 1, generator=g, dtype=f64)
+    d = torch.linalg.svd(L.mT).Vh[:, -1, :]
+    return L @ L.mT, d
+
+
+def recession(B: int, n: int = 4, m: int = 6, seed: int = 0):
+    """Unbounded: ``Q d = 0`` (to rounding), ``p'd = -1``, ``G d`` in ``[-1.1, -0.1]``."""
+    g = torch.Generator().manual_seed(seed)
+    f64 = torch.float64
+    Q, d = _singular(B, n, g)
+    p = torch.randn(B, n, generator=g, dtype=f64)
+    p = p - ((p * d).sum(-1, keepdim=True) + 1.0) * d
+    G = torch.randn(B, m, n, generator=g, dtype=f64)
+    Gd = (G @ d.unsqueeze(-1)).squeeze(-1)
+    target = -(torch.rand(B, m, generator=g, dtype=f64) + 0.1)
+    G = G + (target - Gd).unsqueeze(-1) * d.unsqueeze(-2)
+    h = torch.rand(B, m, generator=g, dtype=f64) + 0.1
+    return Q, p, G, h
+
+
+def bounded_singular(B: int, n: int = 4, m: int = 6, seed: int = 0, box: bool = False):
+    """The same ``Q`` and ``p``, but the first row limits ``d`` (``G_0 d > 0``) or a box
+    does: an optimum exists, far out along ``d`` when the limiting row is shallow."""
+    Q, p, G, h = recession(B, n, m, seed)
+    g = torch.Generator().manual_seed(seed + 1)
+    d = torch.linalg.eigh(Q).eigenvectors[..., 0]
+    d = d * torch.sign((p * d).sum(-1, keepdim=True)).neg()  # p'd < 0
+    if not box:
+        scale = torch.exp(torch.empty(B, 1, dtype=Q.dtype).uniform_(-4, 2, generator=g))
+        G[:, 0] = G[:, 0] + (scale - (G[:, 0] * d).sum(-1, keepdim=True)) * d
+    return Q, p, G, h
+
+
+def _tol(dtype: torch.dtype) -> float:
+    return 1e-6 if dtype == torch.float64 else 2e-3
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f64", "f32"])
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("seed", range(4))
+def test_recession_direction_is_dual_infeasible(method, dtype, seed):
+    Q, p, G, h = (t.to(dtype) for t in recession(40, seed=seed))
+    sol = solve_qp(Q, p, G, h, method=method)
+    counts = torch.bincount(sol.status, minlength=len(Status)).tolist()
+    assert counts[Status.SOLVED] == 0, counts
+    assert (sol.status == int(Status.DUAL_INFEASIBLE)).all(), counts
+    assert (sol.x == 0).all()
+    # one problem alone, and a few (the small-batch C path where it applies)
+    assert int(solve_qp(Q[0], p[0], G[0], h[0], method=method).status) == Status.DUAL_INFEASIBLE
+    few = solve_qp(Q[:3], p[:3], G[:3], h[:3], method=method)
+    assert (few.status == int(Status.DUAL_INFEASIBLE)).all()
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_recession_direction_with_box_rows_infinite(method):
+    Q, p, G, h = recession(10, seed=7)
+    lb = torch.full_like(p, -torch.inf)
+    ub = torch.full_like(p, torch.inf)
+    sol = solve_qp(Q, p, G, h, lb=lb, ub=ub, method=method)
+    assert (sol.status == int(Status.DUAL_INFEASIBLE)).all()
+
+
+def _check_against_clarabel(cvx, sol, Q, p, G, h, lb=None, ub=None, tol=1e-6):
+    for i in range(len(p)):
+        args = [t[i].double().numpy() for t in (Q, p, G, h)]
+        bounds = [None if t is None else t[i].double().numpy() for t in (lb, ub)]
+        x_ref, _, status = cvx(*args, lb=bounds[0], ub=bounds[1])
+        assert status == "optimal", (i, status)
+        assert int(sol.status[i]) == int(Status.SOLVED), (i, int(sol.status[i]))
+        x = sol.x[i].double()
+        ref = torch.from_numpy(x_ref)
+        assert float((x - ref).abs().max()) <= tol * (1 + float(ref.abs().max())), i
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f64", "f32"])
+@pytest.mark.parametrize("method", METHODS)
+def test_bounded_singular_q_stays_solved(cvx, method, dtype):
+    Q, p, G, h = (t.to(dtype) for t in bounded_singular(24, seed=3))
+    sol = solve_qp(Q, p, G, h, method=method)
+    # x can lie far along d (up to ~1e4): judge against Clarabel on the same (rounded) data
+    _check_against_clarabel(cvx, sol, Q, p, G, h, tol=_tol(dtype) * 10)
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f64", "f32"])
+@pytest.mark.parametrize("method", METHODS)
+def test_singular_q_in_a_box_stays_solved(cvx, method, dtype):
+    Q, p, G, h = (t.to(dtype) for t in bounded_singular(24, seed=4, box=True))
+    lb, ub = -2 * torch.ones_like(p), 3 * torch.ones_like(p)
+    sol = solve_qp(Q, p, G, h, lb=lb, ub=ub, method=method)
+    _check_against_clarabel(cvx, sol, Q, p, G, h, lb, ub, tol=_tol(dtype))
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f64", "f32"])
+@pytest.mark.parametrize("method", METHODS)
+def test_linear_program_in_a_box_stays_solved(cvx, method, dtype):
+    """``Q = 0``: every direction is a null direction; the rows and the box bound it."""
+    g = torch.Generator().manual_seed(5)
+    B, n, m = 16, 3, 4
+    Q = torch.zeros(B, n, n, dtype=torch.float64)
+    p = torch.randn(B, n, generator=g, dtype=torch.float64)
+    G = torch.randn(B, m, n, generator=g, dtype=torch.float64)
+    h = torch.rand(B, m, generator=g, dtype=torch.float64) + 0.1
+    Q, p, G, h = (t.to(dtype) for t in (Q, p, G, h))
+    lb, ub = -torch.ones_like(p), torch.ones_like(p)
+    sol = solve_qp(Q, p, G, h, lb=lb, ub=ub, method=method)
+    _check_against_clarabel(cvx, sol, Q, p, G, h, lb, ub, tol=_tol(dtype))
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f64", "f32"])
+@pytest.mark.parametrize("method", METHODS)
+def test_random_strictly_convex_problems_stay_solved(cvx, method, dtype):
+    g = torch.Generator().manual_seed(6)
+    B, n, m = 32, 4, 6
+    R = torch.randn(B, n, n, generator=g, dtype=torch.float64)
+    Q = R @ R.mT / n + 1e-3 * torch.eye(n, dtype=torch.float64)
+    p = 5 * torch.randn(B, n, generator=g, dtype=torch.float64)
+    G = torch.randn(B, m, n, generator=g, dtype=torch.float64)
+    h = torch.rand(B, m, generator=g, dtype=torch.float64) + 0.1
+    Q, p, G, h = (t.to(dtype) for t in (Q, p, G, h))
+    sol = solve_qp(Q, p, G, h, method=method)
+    _check_against_clarabel(cvx, sol, Q, p, G, h, tol=_tol(dtype))
