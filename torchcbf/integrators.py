@@ -6,6 +6,7 @@ All methods are batched over any leading dimensions of ``x [..., n]`` and ``u [.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Literal
 
 import torch
@@ -18,21 +19,34 @@ Method = Literal["euler", "rk4", "euler_maruyama"]
 METHODS: tuple[str, ...] = ("euler", "rk4", "euler_maruyama")
 
 
+def _rate(dynamics: ControlAffine, w: Tensor | None) -> Callable[[Tensor, Tensor], Tensor]:
+    """``(x, u) -> xdot`` of checked inputs: the model's ``xdot`` directly (no module call,
+    no input checks: :func:`step` made them once), with ``M w`` added where ``w`` is given;
+    the module call where a subclass rewrote ``forward`` itself."""
+    if type(dynamics).forward is not ControlAffine.forward:
+        return lambda x, u: dynamics(x, u, w)
+    if w is None:
+        return dynamics.xdot
+    return lambda x, u: dynamics.xdot(x, u) + dynamics.disturbance(x, w)
+
+
 def euler(
     dynamics: ControlAffine, x: Tensor, u: Tensor, dt: float, w: Tensor | None = None
 ) -> Tensor:
-    """Explicit Euler: ``x + dt * xdot(x, u)``."""
-    return x + dt * dynamics(x, u, w)
+    """Explicit Euler: ``x + dt * xdot(x, u)`` (inputs as :func:`step` checks them)."""
+    return x + dt * _rate(dynamics, w)(x, u)
 
 
 def rk4(
     dynamics: ControlAffine, x: Tensor, u: Tensor, dt: float, w: Tensor | None = None
 ) -> Tensor:
-    """Classical fourth-order Runge-Kutta with ``u`` (and ``w``) held over the step."""
-    k1 = dynamics(x, u, w)
-    k2 = dynamics(x + 0.5 * dt * k1, u, w)
-    k3 = dynamics(x + 0.5 * dt * k2, u, w)
-    k4 = dynamics(x + dt * k3, u, w)
+    """Classical fourth-order Runge-Kutta with ``u`` (and ``w``) held over the step (inputs
+    as :func:`step` checks them)."""
+    rate = _rate(dynamics, w)
+    k1 = rate(x, u)
+    k2 = rate(x + 0.5 * dt * k1, u)
+    k3 = rate(x + 0.5 * dt * k2, u)
+    k4 = rate(x + dt * k3, u)
     return x + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 

@@ -270,7 +270,9 @@ def test_simulate_bad_inputs_and_batches():
             dyn, torch.zeros(3, 2), 5, 0.1, progress=False,
             nominal=lambda x, t: torch.zeros(3, 2, dtype=F64),
         )  # fmt: skip
-    assert simulate(dyn, torch.zeros(0, 2), 5, 0.1, progress=False).x.shape == (0, 6, 2)
+    zero = lambda x, t: torch.zeros_like(x)  # noqa: E731
+    empty = simulate(dyn, torch.zeros(0, 2), 5, 0.1, nominal=zero, progress=False)
+    assert empty.x.shape == (0, 6, 2)
 
 
 def test_generators_on_another_device_are_named():
