@@ -44,3 +44,13 @@ def test_a_kernel_that_is_not_built_warns_once_naming_the_fallback(
     (record,) = caplog.records
     assert "_missing_kernel is not built" in record.getMessage()
     assert record.getMessage().endswith("torch runs instead")
+
+
+def test_the_info_command_prints_the_report(capsys: pytest.CaptureFixture[str]) -> None:
+    from torchcbf.cli import main
+
+    assert main(["info", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["torchcbf"] == torchcbf.__version__ and len(report["kernels"]) == 4
+    assert main(["info"]) == 0
+    assert "kernels:" in capsys.readouterr().out

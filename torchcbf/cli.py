@@ -8,6 +8,7 @@ benchmarks.
     torchcbf sweep       a grid over a scenario builder's keyword arguments (local or Ray)
     torchcbf tune        Optuna search over a scenario's declared search space (local or Ray)
     torchcbf bench       the benchmark scripts shipped with the package
+    torchcbf info        versions, devices and the C kernels of this installation
 
 Every run prints its settings and a table, and writes ``metrics.json`` (strict JSON: ``null``
 where a value is undefined, e.g. the time of a goal never reached) with the settings, the
@@ -547,6 +548,11 @@ DESCRIPTIONS = {
         "configuration's on the same seeds, both re-evaluated on the evaluation seeds), "
         "study.csv and study.png."
     ),
+    "info": (
+        "Print torchcbf's and torch's versions, the devices torch sees, its threads and every "
+        "C kernel: its version, whether it loaded, its file, and what runs without it "
+        "(torchcbf.info())."
+    ),
     "bench": (
         "Run the benchmark scripts shipped with the package (scripts/bench_*.py of the source "
         "tree, installed as torchcbf.scripts) one after the other. Peers that are not "
@@ -645,6 +651,8 @@ def _add_ecosystem_commands(sub: Any) -> None:
         help="comma-separated benchmarks to run, by name (qp, barriers, filters, mppi)",
     )
     b.add_argument("--list", action="store_true", help="list the benchmark scripts found and exit")
+    i = sub.add_parser("info", help="versions, devices and the C kernels of this installation")
+    i.add_argument("--json", action="store_true", help="print the report as JSON")
 
 
 def _bench_scripts() -> list[Path]:
@@ -845,7 +853,15 @@ def _tune(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
     return 0
 
 
-ECOSYSTEM_COMMANDS = {"bench": _bench, "sweep": _sweep, "tune": _tune}
+def _info(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
+    from torchcbf._info import format_info, info
+
+    report = info()
+    print(json.dumps(report, indent=2) if args.json else format_info(report))
+    return 0
+
+
+ECOSYSTEM_COMMANDS = {"bench": _bench, "info": _info, "sweep": _sweep, "tune": _tune}
 
 
 if __name__ == "__main__":
