@@ -3,6 +3,10 @@
 Scene: a 2-D single integrator with box limits, 8 ball obstacles (one batched ``Ball``),
 B states outside the obstacles, a nominal control pushing through them.
 
+One state, user code: a superellipse and a smooth polygon (user-written barriers) on a
+user-written unicycle, the filter as built (autograd Lie terms) and with ``compile=True``,
+against cbfpy's jitted filter of the same functions; first calls are timed apart.
+
 One state (the real-time path, float64): ``SafetyFilter`` on one state under
 ``torch.no_grad()`` and with grad enabled, the stochastic filter of scenario B (5 rectified
 ellipses, Hessian traces) on one and two states and with grad enabled, scenario B's
@@ -37,8 +41,8 @@ import numpy as np
 import torch
 
 import torchcbf.qp as qp_module
-from torchcbf.barriers import Ball
-from torchcbf.dynamics import SingleIntegrator
+from torchcbf.barriers import Ball, Barrier
+from torchcbf.dynamics import ControlAffine, SingleIntegrator
 from torchcbf.filters import SafetyFilter
 
 
@@ -181,6 +185,128 @@ def _single_state(calls: int) -> None:
         )
 
 
+class _SuperEllipse(Barrier):
+    """A user-written barrier: ``sum |(p - c) / a|^4 - 1``."""
+
+    def __init__(self, center: list[float], axes: list[float]) -> None:
+        super().__init__()
+        self.register_buffer("center", torch.tensor(center, dtype=torch.float64))
+        self.register_buffer("axes", torch.tensor(axes, dtype=torch.float64))
+
+    def forward(self, x: torch.Tensor, t: object = None) -> torch.Tensor:
+        d = (x[..., :2] - self.center) / self.axes
+        return (d.abs() ** 4).sum(-1) - 1.0
+
+
+class _SmoothPolygon(Barrier):
+    """A user-written barrier: outside a box, ``temp * logsumexp((N p - o) / temp)``."""
+
+    def __init__(self, normals: list[list[float]], offsets: list[float], temp: float) -> None:
+        super().__init__()
+        self.register_buffer("normals", torch.tensor(normals, dtype=torch.float64))
+        self.register_buffer("offsets", torch.tensor(offsets, dtype=torch.float64))
+        self.temp = temp
+
+    def forward(self, x: torch.Tensor, t: object = None) -> torch.Tensor:
+        s = x[..., :2] @ self.normals.mT - self.offsets
+        return self.temp * torch.logsumexp(s / self.temp, -1)
+
+
+class _Rover(ControlAffine):
+    """A user-written model: unicycle kinematics, ``x = (p, theta)``, ``u = (v, omega)``."""
+
+    def __init__(self) -> None:
+        super().__init__(3, 2, u_min=-2.0, u_max=2.0)
+
+    def f(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.zeros_like(x)
+
+    def g(self, x: torch.Tensor) -> torch.Tensor:
+        th = x[..., 2]
+        z, o = torch.zeros_like(th), torch.ones_like(th)
+        rows = [torch.stack([th.cos(), z], -1), torch.stack([th.sin(), z], -1)]
+        return torch.stack([*rows, torch.stack([z, o], -1)], -2)
+
+
+#: the user scene: a superellipse at (2, 0.5) and the box [2.5, 4.5] x [-1, 1] (4 faces)
+_SUPER = ([2.0, 0.5], [0.6, 0.4])
+_FACES = ([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]], [4.5, -2.5, 1.0, 1.0], 0.1)
+
+
+def _cbfpy_user_filter():
+    """cbfpy's jitted filter on the user scene (float64), or ``None`` without cbfpy."""
+    os.environ.setdefault("JAX_ENABLE_X64", "True")
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    try:
+        import jax
+        import jax.numpy as jnp
+        from cbfpy import CBF, CBFConfig
+    except ImportError:
+        return None
+    jax.config.update("jax_enable_x64", True)
+    c, a = (jnp.asarray(v) for v in _SUPER)
+    normals, offsets, temp = jnp.asarray(_FACES[0]), jnp.asarray(_FACES[1]), _FACES[2]
+
+    class Config(CBFConfig):
+        def __init__(self) -> None:
+            lim = 2.0 * np.ones(2)
+            super().__init__(n=3, m=2, u_min=-lim, u_max=lim, relax_qp=True, solver_tol=1e-6)
+
+        def f(self, z, *args, **kwargs):
+            return jnp.zeros(3)
+
+        def g(self, z, *args, **kwargs):
+            th = z[2]
+            return jnp.array([[jnp.cos(th), 0.0], [jnp.sin(th), 0.0], [0.0, 1.0]])
+
+        def h_1(self, z, *args, **kwargs):
+            d = (z[:2] - c) / a
+            poly = temp * jax.scipy.special.logsumexp((normals @ z[:2] - offsets) / temp)
+            return jnp.array([(jnp.abs(d) ** 4).sum() - 1.0, poly])
+
+    return jax.jit(CBF.from_config(Config()).safety_filter)
+
+
+def _user_state(calls: int) -> None:
+    """One state through a filter of user-written barriers on a user-written model: the
+    default (autograd Lie terms), ``compile=True``, and cbfpy's jitted filter."""
+    barriers = [_SuperEllipse(*_SUPER), _SmoothPolygon(*_FACES)]
+    x = torch.tensor([0.0, 0.3, 0.1], dtype=torch.float64)
+    u = torch.tensor([1.0, 0.0], dtype=torch.float64)
+    rows, firsts = [], {}
+    for name, kw in (("default", {}), ("compile=True", {"compile": True})):
+        filt = SafetyFilter(_Rover(), barriers, **kw)
+        with torch.no_grad():
+            t0 = time.perf_counter()
+            out = filt(x, u)
+            firsts[name] = time.perf_counter() - t0
+            timed = _percentiles(lambda f=filt: f(x, u), calls)
+            rows.append((f"torchcbf {name} ({out.path})", timed))
+            x2 = x + 0.01  # new values: no recompile
+            t0 = time.perf_counter()
+            filt(x2, u)
+            firsts[f"{name}, new state"] = time.perf_counter() - t0
+    peer = _cbfpy_user_filter()
+    if peer is not None:
+        xj, uj = x.numpy(), u.numpy()
+        t0 = time.perf_counter()
+        u_peer = np.asarray(peer(xj, uj))
+        firsts["cbfpy"] = time.perf_counter() - t0
+        rows.append(("cbfpy (jit, qpax)", _percentiles(lambda: np.asarray(peer(xj, uj)), calls)))
+        with torch.no_grad():
+            agree = float(np.abs(out.u.numpy() - u_peer).max())
+    print("\n# one state, user-written barriers and model, float64 (p10 / median us per call)")
+    base = rows[-1][1][1] if peer is not None else None
+    for name, (p10, med) in rows:
+        ratio = f"{med / base:8.2f}x cbfpy" if base else ""
+        print(f"{name:45s} {p10:9.1f} {med:9.1f}  {ratio}")
+    print("first calls (s): " + ", ".join(f"{k} {v:.3f}" for k, v in firsts.items()))
+    if peer is None:
+        print("cbfpy not installed: its line is skipped")
+    else:
+        print(f"max |u_torchcbf - u_cbfpy|: {agree:.1e}")
+
+
 def _scene(batch: int, k: int, dtype: torch.dtype, seed: int):
     gen = torch.Generator().manual_seed(seed)
     centers = 8 * torch.rand(k, 2, generator=gen, dtype=dtype) - 4
@@ -256,6 +382,7 @@ def main() -> None:
         f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} cores"
     )
     _single_state(args.calls if not args.quick else 300)
+    _user_state(args.calls if not args.quick else 300)
     dtype = getattr(torch, args.dtype)
     dyn, ball, filt, x_cpu, u_nom_cpu = _scene(args.batch, args.barriers, dtype, seed=0)
     device = torch.device(args.device)
