@@ -24,6 +24,10 @@ Lines (each planner runs in its own subprocess, so that memory and thread pools 
 - ``paper``: B = 32, K = 20,000, H = 80, the fused planner of scenario B: time per planning
   call and the projection to the 250 calls of one paper-size run (500 steps, replanning
   every 2).
+- ``model``, ``model20k``, ``modelbatch``: the same Python cost on a user-written model
+  (:class:`UserUnicycle`: ``f`` and ``g`` only), so everything runs in torch: K = 1,000,
+  H = 50; K = 20,000, H = 80; and B = 32 x K = 2,000, H = 80 against pytorch-mppi's
+  throughput at K = 20,000; each eager and under ``compile=True`` (one step and the cost).
 - ``compiled``: one environment, K = 20,000, H = 80, the Python cost under
   ``torch.compile`` (kernel rollouts), twice: in a process with a cold compile cache (the
   first call a user sees on a new machine) and in a second process sharing that cache.
@@ -67,7 +71,7 @@ from collections.abc import Callable
 import torch
 
 from torchcbf.barriers import Ellipse
-from torchcbf.dynamics import AccelUnicycle, SingleIntegrator
+from torchcbf.dynamics import AccelUnicycle, ControlAffine, SingleIntegrator
 from torchcbf.mppi import MPPI, BarrierCost, QuadraticGoal, SumCost
 
 GOAL = (2.0, 4.0)
@@ -77,7 +81,8 @@ DT, TEMPERATURE, GAMMA, SIGMA = 0.02, 0.03, 0.1, 4.0
 PAPER_CALLS = 250
 #: minor page faults per call above which a figure is flagged
 FAULTS_PER_CALL = 1000
-LINES = ("batched", "user", "fused", "realtime", "paper", "compiled")
+LINES = ("batched", "user", "fused", "realtime", "paper", "compiled", "model", "model20k",
+         "modelbatch")  # fmt: skip
 
 
 def user_cost(device: str) -> Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]:
@@ -94,6 +99,25 @@ def user_cost(device: str) -> Callable[[torch.Tensor, torch.Tensor, torch.Tensor
         return stage.sum(-1) + terminal
 
     return cost
+
+
+class UserUnicycle(ControlAffine):
+    """AccelUnicycle's dynamics written as a user would: ``f`` and ``g`` only (no closed-form
+    ``xdot``, no native description: torch integrates ``f + g u``)."""
+
+    def __init__(self) -> None:
+        super().__init__(4, 2)
+
+    def f(self, x: torch.Tensor) -> torch.Tensor:
+        v, th = x[..., 2], x[..., 3]
+        zero = torch.zeros_like(v)
+        return torch.stack([v * torch.cos(th), v * torch.sin(th), zero, zero], -1)
+
+    def g(self, x: torch.Tensor) -> torch.Tensor:
+        g = x.new_zeros(*x.shape[:-1], 4, 2)
+        g[..., 2, 0] = 1.0
+        g[..., 3, 1] = 1.0
+        return g
 
 
 def builtin_cost() -> SumCost:
@@ -145,7 +169,7 @@ def pytorch_mppi(K: int, H: int, nx: int, device: str) -> Callable[[torch.Tensor
 def torchcbf(
     B: int, K: int, H: int, cost: str, device: str, *, model: str = "accel", **kw: object
 ) -> Callable[[torch.Tensor], object]:
-    dyn = AccelUnicycle() if model == "accel" else SingleIntegrator(2)
+    dyn = {"accel": AccelUnicycle, "user": UserUnicycle}.get(model, lambda: SingleIntegrator(2))()
     fn = builtin_cost() if cost == "builtin" else user_cost(device)
     planner = MPPI(dyn, fn, H, K, DT, SIGMA, TEMPERATURE, GAMMA, seed=0, **kw).to(device)
     return planner
@@ -207,6 +231,12 @@ def run_one(name: str, reps: int, device: str, quick: bool = False) -> dict:
         B, K, H, nx = 1, 20000, 80, 4
     elif which == "realtime":
         B, K, H, nx = 1, 1000, 50, 2
+    elif which == "model":
+        B, K, H, nx = 1, 1000, 50, 4
+    elif which == "model20k":
+        B, K, H, nx = 1, 20000, 80, 4
+    elif which == "modelbatch":
+        B, K, H, nx = (1, 20000, 80, 4) if who == "pytorch-mppi" else (32, 2000, 80, 4)
     else:
         B, K, H, nx = 32, 20000, 80, 4
     if quick:
@@ -217,7 +247,7 @@ def run_one(name: str, reps: int, device: str, quick: bool = False) -> dict:
             return {}
         x = x0(0, nx, device)
     else:
-        model = "accel" if nx == 4 else "single"
+        model = "user" if which.startswith("model") else ("accel" if nx == 4 else "single")
         kw: dict[str, object] = {}
         if which == "paper":
             kw["keep_rollouts"] = 512
@@ -228,7 +258,7 @@ def run_one(name: str, reps: int, device: str, quick: bool = False) -> dict:
         builtin = which in ("fused", "realtime", "paper") or who == "fused"
         cost = "builtin" if builtin else "user"
         step = torchcbf(B, K, H, cost, device, model=model, **kw)
-        x = x0(B if which in ("batched", "paper") else 0, nx, device)
+        x = x0(B if which in ("batched", "paper", "modelbatch") else 0, nx, device)
     with torch.no_grad():
         res = timed(step, x, reps)
     res["state_steps"] = B * K * H
@@ -344,6 +374,21 @@ def main() -> None:
             ("realtime:auto", "torchcbf fused"),
         ],
         "paper": [("paper:auto", "torchcbf fused B=32")],
+        "model": [
+            ("model:pytorch-mppi", "pytorch-mppi"),
+            ("model:auto", "torchcbf user model"),
+            ("model:compiled", "torchcbf user model comp."),
+        ],
+        "model20k": [
+            ("model20k:pytorch-mppi", "pytorch-mppi"),
+            ("model20k:auto", "torchcbf user model"),
+            ("model20k:compiled", "torchcbf user model comp."),
+        ],
+        "modelbatch": [
+            ("modelbatch:pytorch-mppi", "pytorch-mppi K=20000 (B=1)"),
+            ("modelbatch:auto", "torchcbf B=32 x K=2000"),
+            ("modelbatch:compiled", "torchcbf B=32 x K=2000 comp."),
+        ],
         "compiled": [
             ("user:pytorch-mppi", "pytorch-mppi"),
             ("compiled:auto", "torchcbf compiled, cold"),
@@ -399,7 +444,7 @@ def main() -> None:
                         ref["state_steps"] / ref["median"]
                     )
                     cpu = (res["state_steps"] / res["cpu"]) / (ref["state_steps"] / ref["cpu"])
-                    if line == "batched":
+                    if line in ("batched", "modelbatch"):
                         ratio = f"throughput {wall:.2f}x ({cpu:.2f}x) pytorch-mppi's"
                     else:
                         ratio = f"time {1 / wall:.3f}x ({1 / cpu:.3f}x) pytorch-mppi's"
