@@ -67,11 +67,19 @@ class ExactConstants(nn.Module):
         return out
 
 
-def remember(module: nn.Module, name: str, exact: Tensor) -> Tensor:
-    """Register the buffer ``name`` holding ``exact`` (float64, from Python numbers) in the
-    default dtype, and remember ``exact`` for :class:`ExactConstants`; return the buffer."""
+def remember(
+    module: nn.Module,
+    name: str,
+    exact: Tensor,
+    *,
+    dtype: torch.dtype | None = None,
+    device: torch.device | None = None,
+) -> Tensor:
+    """Register the buffer ``name`` holding ``exact`` (float64, from Python numbers) in
+    ``dtype`` (default: the default dtype) on ``device``, and remember ``exact`` for
+    :class:`ExactConstants`; return the buffer."""
     exact = exact.detach().to(torch.float64)
-    module.register_buffer(name, exact.to(torch.get_default_dtype()))
+    module.register_buffer(name, exact.to(device=device, dtype=dtype or torch.get_default_dtype()))
     _exact_values(module)[name] = exact
     return getattr(module, name)
 

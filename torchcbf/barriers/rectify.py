@@ -19,7 +19,7 @@ import torch
 from torch import Tensor, nn
 
 from torchcbf._checks import as_tensor, check_finite
-from torchcbf._constants import ExactConstants, store
+from torchcbf._constants import ExactConstants, remember, store
 from torchcbf.barriers._params import float_spec, register
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.lie import (
@@ -87,7 +87,9 @@ def _gain_tensor(
         module.register_parameter(name, value)
     else:
         device, dtype = float_spec(module)
-        value = as_tensor(name, gains, dtype=dtype, device=device).detach().clone()
+        given = isinstance(gains, Tensor)
+        value = as_tensor(name, gains, dtype=dtype if given else torch.float64, device=device)
+        value = value.detach().clone()
         check_finite(name, value)
         if value.dim() == 0:
             value = value.expand(count).clone()
@@ -95,11 +97,14 @@ def _gain_tensor(
             raise ValueError(
                 f"{name} must be a number or have {count} entries, got shape {tuple(value.shape)}"
             )
-        module.register_buffer(name, value)
+        if given:
+            module.register_buffer(name, value)
+        else:  # Python numbers: exact under .double()
+            remember(module, name, value, dtype=dtype, device=device)
     return getattr(module, name)
 
 
-class HighOrderBarrier(Barrier):
+class HighOrderBarrier(ExactConstants, Barrier):
     """High-order CBF (Xiao & Belta) with linear class-K gains.
 
     ``psi_0 = h``, ``psi_i = D psi_{i-1} + alpha_i psi_{i-1}`` for ``i = 1..r-1``; this module

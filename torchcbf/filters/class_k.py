@@ -16,6 +16,7 @@ import torch
 from torch import Tensor, nn
 
 from torchcbf._checks import as_tensor
+from torchcbf._constants import ExactConstants, remember
 
 ClassKSpec = float | Sequence[float] | Tensor | Callable[[Tensor], Tensor] | nn.Module
 
@@ -32,8 +33,9 @@ def _gain(name: str, gain: float | Sequence[float] | Tensor) -> Tensor:
     return value
 
 
-class _GainClassK(nn.Module):
-    """A class-K function ``gain * phi(h)`` with a positive gain (fixed or learnable)."""
+class _GainClassK(ExactConstants):
+    """A class-K function ``gain * phi(h)`` with a positive gain (fixed or learnable; a gain
+    given as Python numbers stays exact under ``.double()``)."""
 
     def __init__(self, gain: float | Sequence[float] | Tensor = 1.0, learnable: bool = False):
         super().__init__()
@@ -41,8 +43,10 @@ class _GainClassK(nn.Module):
         self.learnable = bool(learnable)
         if learnable:
             self.log_gain = nn.Parameter(value.detach().log())
-        else:
+        elif isinstance(gain, Tensor):
             self.register_buffer("_gain", value)
+        else:
+            remember(self, "_gain", as_tensor("gain", gain, dtype=torch.float64))
 
     @property
     def gain(self) -> Tensor:
@@ -123,7 +127,8 @@ def as_class_k(spec: ClassKSpec, name: str = "alpha") -> nn.Module:
         isinstance(spec, Sequence) and all(isinstance(v, (int, float)) for v in spec)
     ):
         try:
-            return LinearClassK(_gain(name, spec))
+            checked = _gain(name, spec)  # errors name the argument
+            return LinearClassK(checked if isinstance(spec, Tensor) else spec)
         except TypeError as err:
             raise TypeError(f"{name}: {err}") from None
     if callable(spec):

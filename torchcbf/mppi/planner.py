@@ -71,7 +71,7 @@ from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from torchcbf import integrators
 from torchcbf._autograd import needs_graph
@@ -83,6 +83,7 @@ from torchcbf._checks import (
     check_positive,
 )
 from torchcbf._compile import Compiled
+from torchcbf._constants import ExactConstants, remember
 from torchcbf._native import keep_freed_heap
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.mppi import _rollout
@@ -147,7 +148,7 @@ class _Weights(NamedTuple):
     finite: Tensor
 
 
-class MPPI(nn.Module):
+class MPPI(ExactConstants):
     """MPPI planner (see the module docstring for the algorithm, the paths and the RNG).
 
     Args:
@@ -276,10 +277,15 @@ class MPPI(nn.Module):
         #: the path of the last call: ``"fused"``, ``"rollout"`` or ``"torch"``
         self.path: str | None = None
 
-        cov = as_matrix("noise_sigma", noise_sigma, m)
-        self.register_buffer("noise_cov", cov)
-        self.register_buffer("noise_chol", torch.linalg.cholesky(cov))
-        self.register_buffer("noise_cov_inv", torch.cholesky_inverse(self.noise_chol))
+        given = isinstance(noise_sigma, Tensor)
+        cov = as_matrix("noise_sigma", noise_sigma, m, dtype=None if given else torch.float64)
+        chol = torch.linalg.cholesky(cov)
+        for name, value in (("noise_cov", cov), ("noise_chol", chol),
+                            ("noise_cov_inv", torch.cholesky_inverse(chol))):  # fmt: skip
+            if given:
+                self.register_buffer(name, value)
+            else:  # Python numbers: exact under .double()
+                remember(self, name, value)
         self._diagonal = bool(torch.equal(cov, torch.diag(torch.diagonal(cov))))
         diag = torch.diagonal(cov)
         isotropic = self._diagonal and bool((diag == diag[0]).all())
@@ -287,8 +293,11 @@ class MPPI(nn.Module):
         lo = _limit("u_min", u_min, m) if u_min is not None else dynamics.u_min
         hi = _limit("u_max", u_max, m) if u_max is not None else dynamics.u_max
         check_bounds("u_min", lo, "u_max", hi)
-        self.register_buffer("u_min", None if lo is None else lo.clone())
-        self.register_buffer("u_max", None if hi is None else hi.clone())
+        for name, value, spec in (("u_min", lo, u_min), ("u_max", hi, u_max)):
+            if value is not None and spec is not None and not isinstance(spec, Tensor):
+                remember(self, name, as_limit(name, spec, m))  # Python numbers: exact
+            else:
+                self.register_buffer(name, None if value is None else value.clone())
 
         self._needs_history = bool(getattr(cost, "needs_history", False))
         self._integrate = integrators.euler if integrator == "euler" else integrators.rk4
