@@ -76,9 +76,9 @@ def _percentiles(fn: Callable[[], object], calls: int) -> tuple[float, float]:
     return 1e6 * times[len(times) // 10], 1e6 * statistics.median(times)
 
 
-def _cbfpy_filter(centers: np.ndarray, radii: np.ndarray, u_lim: float):
-    """cbfpy's filter on the same scene: ``(single, batched)``, both jitted (float64), or
-    ``None`` when cbfpy is not installed."""
+def _cbfpy():
+    """``(jax, jax.numpy, cbfpy.CBF, cbfpy.CBFConfig)`` in float64 on the CPU, or ``None``
+    when cbfpy is not installed."""
     os.environ.setdefault("JAX_ENABLE_X64", "True")
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
     try:
@@ -88,6 +88,16 @@ def _cbfpy_filter(centers: np.ndarray, radii: np.ndarray, u_lim: float):
     except ImportError:
         return None
     jax.config.update("jax_enable_x64", True)
+    return jax, jnp, CBF, CBFConfig
+
+
+def _cbfpy_filter(centers: np.ndarray, radii: np.ndarray, u_lim: float):
+    """cbfpy's filter on the same scene: ``(single, batched)``, both jitted (float64), or
+    ``None`` when cbfpy is not installed."""
+    found = _cbfpy()
+    if found is None:
+        return None
+    jax, jnp, CBF, CBFConfig = found
     c = jnp.asarray(centers)
     r2 = jnp.asarray(radii) ** 2
 
@@ -235,15 +245,10 @@ _FACES = ([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]], [4.5, -2.5, 1.0, 1
 
 def _cbfpy_user_filter():
     """cbfpy's jitted filter on the user scene (float64), or ``None`` without cbfpy."""
-    os.environ.setdefault("JAX_ENABLE_X64", "True")
-    os.environ.setdefault("JAX_PLATFORMS", "cpu")
-    try:
-        import jax
-        import jax.numpy as jnp
-        from cbfpy import CBF, CBFConfig
-    except ImportError:
+    found = _cbfpy()
+    if found is None:
         return None
-    jax.config.update("jax_enable_x64", True)
+    jax, jnp, CBF, CBFConfig = found
     c, a = (jnp.asarray(v) for v in _SUPER)
     normals, offsets, temp = jnp.asarray(_FACES[0]), jnp.asarray(_FACES[1]), _FACES[2]
 
