@@ -289,3 +289,26 @@ def test_an_exponential_cbf_along_a_model_with_a_new_drift_uses_its_drift(name: 
     lfh = (grad * sub.f(x)).sum(-1)
     k0 = rect.coefficients[0]
     torch.testing.assert_close(rect(x), lfh + k0 * ball(x))
+
+
+def test_a_model_overriding_sigma_alone_is_an_sde_with_that_diffusion() -> None:
+    class Noisy(Unicycle):
+        def sigma(self, x: Tensor) -> Tensor:
+            scale = 0.2 + 0.1 * x[..., :1, None].abs()
+            return scale * torch.eye(3, dtype=x.dtype).expand(*x.shape[:-1], 3, 3)
+
+    model = Noisy().double()
+    assert model.has_diffusion and model.native_model() is None
+    ball = Ball([0.0, 0.0], 0.5).double()
+    x = _states(4, 3, seed=6)
+    terms = ball.lie(x, model)
+    s = model.sigma(x)
+    hess = torch.zeros(4, 3, 3, dtype=F64)
+    hess[:, 0, 0] = hess[:, 1, 1] = 2.0  # d2h/dp2 of the ball
+    torch.testing.assert_close(terms.hess_trace, (s.mT @ hess @ s).diagonal(0, -2, -1).sum(-1))
+    u = torch.zeros(4, 2, dtype=F64)
+    with torch.no_grad():
+        a = SafetyFilter(model, [ball], mode="stochastic").double()(x, u)
+        b = SafetyFilter(model, [ball], mode="stochastic", backend="torch").double()(x, u)
+    assert a.path.startswith("torch/")
+    torch.testing.assert_close(a.u, b.u, atol=1e-9, rtol=1e-9)

@@ -198,7 +198,10 @@ class ControlAffine(nn.Module):
 
     @property
     def has_diffusion(self) -> bool:
-        """Whether the model is an SDE (has ``sigma``)."""
+        """Whether the model is an SDE (has ``sigma``: given at construction, or a subclass's
+        own :meth:`sigma`)."""
+        if type(self).sigma is not ControlAffine.sigma:
+            return True
         return self._sigma_fn is not None or self.sigma_matrix is not None
 
     def sigma(self, x: Tensor) -> Tensor | None:
