@@ -291,6 +291,7 @@ def run(
     eps: Tensor | None = None,
     weights: Tensor | None = None,
     wsum: Tensor | None = None,
+    layout: str = "component",
 ) -> None:
     """Run the kernel on samples ``0..count`` (``pairs [count, 2]`` of ``(b, k)``, or every
     ``(b, k)`` in order when ``None``), writing the requested outputs (see the C source).
@@ -299,8 +300,8 @@ def run(
     ``[T, B, H, m]`` float64 with one slice per thread, summed by the caller). ``x0 [B,
     n]``, ``plan`` and ``wctrl [B, H, m]``, ``cost`` and ``weights [count]``. With
     ``pairs``, ``states [count, H+1, n]``, ``controls`` and ``eps [count, H, m]`` are
-    C-contiguous rows; without, they are ``[B, K, H+1, n]`` and ``[B, K, H, m]`` in
-    component-major storage (:func:`component_major`).
+    C-contiguous rows; without, they are ``[B, K, H+1, n]`` and ``[B, K, H, m]`` stored as
+    ``layout`` says (:func:`rollout_buffer`).
     """
     lib = _library()
     if lib is None:
@@ -309,11 +310,11 @@ def run(
     pairs, x0, plan, wctrl, keys, weights = (
         None if t is None else t.contiguous() for t in (pairs, x0, plan, wctrl, keys, weights)
     )
+    cmajor = pairs is None and layout == "component"
     _check_call(cfg, count, x0, plan, keys, pairs, wctrl, cost, states, controls, eps,
-                weights, wsum)  # fmt: skip
+                weights, wsum, cmajor)  # fmt: skip
     fn = lib.torchcbf_mppi_run_f64 if x0.dtype == torch.float64 else lib.torchcbf_mppi_run_f32
     inputs = [pairs, x0, plan, wctrl, keys]
-    cmajor = pairs is None
     threads = 1 if wsum is None else wsum.shape[0]
     if wsum is None:
         threads = max(1, min(torch.get_num_threads(), count // MIN_SAMPLES_PER_THREAD))
@@ -356,6 +357,7 @@ def _check_call(
     eps: Tensor | None,
     weights: Tensor | None,
     wsum: Tensor | None,
+    cmajor: bool,
 ) -> None:
     """Check every tensor :func:`run` hands the kernel against the sizes in ``cfg``: CPU,
     its dtype, shape and layout, and the sample pairs in range; raise ``ValueError`` or
@@ -396,10 +398,10 @@ def _check_call(
             raise TypeError(f"{name} must be {dtype} for this call, got {t.dtype}")
         if tuple(t.shape) != shape:
             raise ValueError(f"{name} must have shape {list(shape)}, got {list(t.shape)}")
-        cmajor = pairs is None and name in ("states", "controls", "eps")
-        if cmajor and not t.permute(0, 3, 2, 1).is_contiguous():
+        by_component = cmajor and name in ("states", "controls", "eps")
+        if by_component and not t.permute(0, 3, 2, 1).is_contiguous():
             raise ValueError(f"{name} must be in component-major storage")
-        if not cmajor and not t.is_contiguous():
+        if not by_component and not t.is_contiguous():
             raise ValueError(f"{name} must be contiguous")
     if pairs is not None and count:
         low, high = pairs.amin(0).tolist(), pairs.amax(0).tolist()
@@ -416,6 +418,14 @@ def draw_keys(generators: list[torch.Generator]) -> Tensor:
     """One 63-bit noise key per environment ``[B]`` (int64, CPU) from its generator."""
     high = 2**63 - 1
     return torch.cat([torch.randint(0, high, (1,), generator=g) for g in generators])
+
+
+def rollout_buffer(like: Tensor, B: int, K: int, steps: int, dim: int, layout: str) -> Tensor:
+    """An uninitialised ``[B, K, steps, dim]`` tensor like ``like``, stored component-major
+    (:func:`component_major`) for ``layout="component"``, C-contiguous for ``"sample"``."""
+    if layout == "component":
+        return component_major(like, B, K, steps, dim)
+    return like.new_empty(B, K, steps, dim)
 
 
 def component_major(like: Tensor, B: int, K: int, steps: int, dim: int) -> Tensor:

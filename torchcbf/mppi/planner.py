@@ -49,10 +49,11 @@ Paths (``MPPI.path`` says which one the last call took):
   parameters): noise from ``torch.Generator``, rollouts with :mod:`torchcbf.integrators`,
   buffers allocated once and reused.
 
-Every path hands a torch cost ``states [B, K, H+1, n]`` and ``controls [B, K, H, m]`` as
-views of component-major storage (``[B, n, H+1, K]``, ``[B, m, H, K]``: each component's
-samples contiguous), sliced over the samples (``cost_chunk``); index them, do not ``.view``
-them.
+Every path hands a torch cost ``states [B, K, H+1, n]`` and ``controls [B, K, H, m]``,
+sliced over the samples (``cost_chunk``), as views of component-major storage (``[B, n,
+H+1, K]``, ``[B, m, H, K]``: each component's samples contiguous) or, with
+``layout="sample"``, of C-contiguous buffers (each state contiguous); index them, do not
+``.view`` them.
 
 Compilation: ``MPPI(..., compile=True)`` (or a dict of ``torch.compile`` keyword arguments)
 compiles the evaluation of a torch cost (cost + control cost, called once on all samples)
@@ -93,6 +94,7 @@ INTEGRATORS = ("euler", "rk4")
 SHIFT_FILLS = ("zero", "last")
 NORMALIZATIONS = ("none", "range", "std")
 BACKENDS = ("auto", "torch")
+LAYOUTS = ("component", "sample")
 #: state elements (``B x slice x (H+1) x n``) per cost call when ``cost_chunk`` is automatic
 AUTO_CHUNK_ELEMENTS = 2**17
 #: fewest samples per automatic slice (the inner loops of a torch cost run over a slice's
@@ -193,9 +195,16 @@ class MPPI(ExactConstants):
             at least ``MIN_CHUNK_SAMPLES`` samples (the cost's intermediates then stay in
             cache, about 3x faster for a cost written on whole rollouts) and calls it once on
             other devices or when compiled; ``0`` calls it once on all samples; ``c`` on
-            slices of ``c`` samples. The rollouts a torch cost receives are views of buffers
-            stored component-major (``[B, n, H+1, K]``, samples contiguous): index them,
-            do not ``.view`` them.
+            slices of ``c`` samples.
+        layout: the memory of the rollouts a torch cost receives (``states [B, K, H+1, n]``,
+            ``controls [B, K, H, m]``): ``"component"`` (default) stores them as ``[B, n,
+            H+1, K]`` (each component's samples contiguous: fastest for a cost that works on
+            components, ``states[..., 0]``, ``states[..., :2] - goal``, 1.4x faster than
+            ``"sample"`` on scenario B's cost), ``"sample"`` as ``[B, K, H+1, n]`` (each
+            state contiguous: fastest for a cost that reduces over the state axis,
+            ``.norm(dim=-1)``, ``.sum(-1)``, up to 18x faster than ``"component"``). Either
+            way a cost should index its inputs, not ``.view`` them. The plans do not depend
+            on it beyond the rounding of the cost's reductions.
     """
 
     def __init__(
@@ -221,6 +230,7 @@ class MPPI(ExactConstants):
         compile: bool | dict[str, Any] = False,
         backend: str = "auto",
         cost_chunk: int | None = None,
+        layout: str = "component",
     ) -> None:
         super().__init__()
         if not isinstance(dynamics, ControlAffine):
@@ -255,6 +265,8 @@ class MPPI(ExactConstants):
             not isinstance(cost_chunk, int) or isinstance(cost_chunk, bool) or cost_chunk < 0
         ):
             raise ValueError(f"cost_chunk must be None or an integer >= 0, got {cost_chunk!r}")
+        if layout not in LAYOUTS:
+            raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         if not isinstance(control_cost_weight, (int, float)) or not control_cost_weight >= 0:
@@ -274,6 +286,7 @@ class MPPI(ExactConstants):
         self.cost_normalization = cost_normalization
         self.backend = backend
         self.cost_chunk = cost_chunk
+        self.layout = layout
         #: the path of the last call: ``"fused"``, ``"rollout"`` or ``"torch"``
         self.path: str | None = None
 
@@ -336,19 +349,18 @@ class MPPI(ExactConstants):
     def _rollout_buffers(self, noise: bool) -> tuple[Tensor | None, Tensor, Tensor]:
         """``eps [B, K, H, m]`` (``None`` unless ``noise``: the kernel's rollout path
         regenerates the noise it needs), ``controls [B, K, H, m]``, ``states [B, K, H+1, n]``
-        in component-major storage (:func:`torchcbf.mppi._rollout.component_major`: a torch
-        cost's elementwise ops run over the samples), allocated on first use (the fused
-        path never needs them)."""
+        stored as :attr:`layout` says (:func:`torchcbf.mppi._rollout.rollout_buffer`),
+        allocated on first use (the fused path never needs them)."""
         B, H, m = self._plan.shape
         K, n = self.num_samples, self.dynamics.state_dim
-        like = self._plan
+        like, layout = self._plan, self.layout
         if self._work is None:
             self._work = (
-                _rollout.component_major(like, B, K, H, m),
-                _rollout.component_major(like, B, K, H + 1, n),
+                _rollout.rollout_buffer(like, B, K, H, m, layout),
+                _rollout.rollout_buffer(like, B, K, H + 1, n, layout),
             )
         if noise and self._noise is None:
-            self._noise = _rollout.component_major(like, B, K, H, m)
+            self._noise = _rollout.rollout_buffer(like, B, K, H, m, layout)
         return (self._noise if noise else None), *self._work
 
     @property
@@ -433,7 +445,7 @@ class MPPI(ExactConstants):
             ctrl = None if wctrl is None else plan.new_empty(B, self.num_samples)
             _rollout.run(
                 cfg, B * self.num_samples, xc, plan, keys,
-                states=states, controls=controls, wctrl=wctrl, cost=ctrl,
+                states=states, controls=controls, wctrl=wctrl, cost=ctrl, layout=self.layout,
             )  # fmt: skip
             cost = self._check_cost(self._score_fn(states, controls, None, plan, t0, history))
             if ctrl is not None:
@@ -459,10 +471,16 @@ class MPPI(ExactConstants):
     # -- torch path ----------------------------------------------------------------------------
     def _sample_noise(self, eps: Tensor) -> None:
         std = self._isotropic_std
-        storage = eps.permute(0, 3, 2, 1)  # [B, m, H, K], contiguous: the fast fill
+        storage = eps.permute(0, 3, 2, 1)  # [B, m, H, K]: contiguous in the component layout
+        direct = storage.is_contiguous()
+        scratch = None if direct else eps.new_empty(storage.shape[1:])
         for b, gen in enumerate(self._generators):
-            # Sigma = s^2 I: drawn scaled in one pass; otherwise standard, scaled below
-            storage[b].normal_(0.0, 1.0 if std is None else std, generator=gen)
+            # Sigma = s^2 I: drawn scaled in one pass; otherwise standard, scaled below; the
+            # same draws in [m, H, K] order in either layout
+            target = storage[b] if scratch is None else scratch
+            target.normal_(0.0, 1.0 if std is None else std, generator=gen)
+            if scratch is not None:
+                storage[b].copy_(scratch)
         if std is None and self._diagonal:
             eps.mul_(torch.diagonal(self.noise_cov).to(eps).sqrt())
         elif std is None:
