@@ -16,7 +16,9 @@ Lines (each planner runs in its own subprocess, so that memory and thread pools 
   same cost under ``compile=True`` (a cold compile cache); and the same batch with the cost
   built from torchcbf's terms (fused).
 - ``user``: one environment, K = 20,000, H = 80, the same Python cost: torchcbf's default
-  path (kernel rollouts + torch cost) and its all-torch path (``backend="torch"``).
+  path (kernel rollouts + torch cost), the same with ``layout="sample"`` (each state
+  contiguous: slower for this cost, which works on components) and its all-torch path
+  (``backend="torch"``).
 - ``fused``: one environment, K = 20,000, H = 80, the cost built from torchcbf's cost terms
   (everything in the C kernel).
 - ``realtime``: single integrator, K = 1,000, H = 50, goal + ellipse cost (fused) against
@@ -253,6 +255,8 @@ def run_one(name: str, reps: int, device: str, quick: bool = False) -> dict:
             kw["keep_rollouts"] = 512
         if who == "torch":
             kw["backend"] = "torch"
+        if who == "sample":
+            kw["layout"] = "sample"
         if "compiled" in (which, who):
             kw["compile"] = True
         builtin = which in ("fused", "realtime", "paper") or who == "fused"
@@ -366,6 +370,7 @@ def main() -> None:
         "user": [
             ("user:pytorch-mppi", "pytorch-mppi"),
             ("user:auto", "torchcbf default"),
+            ("user:sample", "torchcbf layout=sample"),
             ("user:torch", "torchcbf all-torch"),
         ],
         "fused": [("fused:pytorch-mppi", "pytorch-mppi"), ("fused:auto", "torchcbf fused")],
