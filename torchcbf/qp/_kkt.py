@@ -87,8 +87,33 @@ def factor_kkt(P: Tensor, G: Tensor, A: Tensor, active: Tensor) -> KKTFactor:
     )
     del M
     Kreg = Ks + torch.diag_embed(sign * delta.unsqueeze(-1))
-    LU, pivots, info = torch.linalg.lu_factor_ex(Kreg)
-    return KKTFactor(K, LU, pivots, active, info == 0, d)
+    LU, pivots, ok = _checked_lu(Kreg)
+    return KKTFactor(K, LU, pivots, active, ok, d)
+
+
+def _checked_lu(K: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``(LU, pivots, ok [B])`` of ``K [B, N, N]``, where ``ok`` says the factor is usable.
+
+    A batched LU of the linear algebra library can come back broken without saying so
+    (seen with MKL's batched ``getrf`` on a CPU after ``torch.set_num_threads``, N >= ~130:
+    pivots out of range, which make ``lu_solve`` raise, or a factor that does not reproduce
+    ``K``). Each row is checked: pivots in range, a finite factor, and the solve of
+    ``K 1`` giving back ``1`` to within 0.5 (far above the rounding of any factor the
+    regularisation allows). A broken row gets the identity permutation, so that solving
+    with it never raises, and ``ok = False``: its status says so, not an exception."""
+    LU, pivots, info = torch.linalg.lu_factor_ex(K)
+    N = K.shape[-1]
+    in_range = ((pivots >= 1) & (pivots <= N)).all(-1)
+    ok = (info == 0) & in_range & torch.isfinite(LU).flatten(-2).all(-1)
+    if N == 0:
+        return LU, pivots, ok
+    identity = torch.arange(1, N + 1, dtype=pivots.dtype, device=pivots.device)
+    pivots = torch.where(in_range.unsqueeze(-1), pivots, identity)
+    LU = torch.where(ok.view(-1, 1, 1), LU, torch.eye(N, dtype=K.dtype, device=K.device))
+    ones = K.new_ones(*K.shape[:-1], 1)
+    back = torch.linalg.lu_solve(LU, pivots, K @ ones)
+    ok = ok & ((back - 1.0).abs().amax((-2, -1)) <= 0.5)
+    return LU, pivots, ok
 
 
 def _equilibrate(K: Tensor, sweeps: int = 3) -> Tensor:
