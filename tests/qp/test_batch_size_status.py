@@ -64,3 +64,42 @@ def test_broken_batched_lu_is_a_status_not_an_exception(cvx, monkeypatch, broken
         assert status == "optimal"
         ref = torch.from_numpy(x_ref)
         assert float((sol.x[i] - ref).abs().max()) <= 1e-6 * (1 + float(ref.abs().max()))
+
+
+def _elastic(B: int, seed: int = 0):
+    """Filter-like QPs: two controls with a rotated weight of condition 1e3 and a slack
+    ``s >= 0`` (no upper bound) of weight 5e5 softening three rows (always feasible);
+    ``cond(Q) ~ 5e8``."""
+    g = torch.Generator().manual_seed(seed)
+    f64 = torch.float64
+    V = torch.linalg.qr(torch.randn(B, 2, 2, generator=g, dtype=f64)).Q
+    Qu = V @ torch.diag(torch.tensor([1e-3, 1.0], dtype=f64)) @ V.mT
+    Q = torch.zeros(B, 3, 3, dtype=f64)
+    Q[:, :2, :2] = Qu
+    Q[:, 2, 2] = 5e5
+    u_nom = 2 * torch.randn(B, 2, generator=g, dtype=f64)
+    p = torch.cat((-(Qu @ u_nom.unsqueeze(-1)).squeeze(-1), torch.full((B, 1), 5e5)), -1)
+    Lg = torch.randn(B, 3, 2, generator=g, dtype=f64)
+    G = torch.cat((-Lg, -torch.ones(B, 3, 1, dtype=f64)), -1)
+    h = 3 * torch.randn(B, 3, generator=g, dtype=f64)
+    lb = torch.tensor([-1.0, -1.0, 0.0], dtype=f64).expand(B, 3)
+    ub = torch.tensor([1.0, 1.0, math.inf], dtype=f64).expand(B, 3)
+    return Q, p, G, h, lb, ub
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("method", ["auto", "ipm"])
+def test_elastic_filter_qp_status_does_not_depend_on_batch_size(method, dtype):
+    data = [t.to(dtype) for t in _elastic(130)]
+    full = solve_qp(*data[:4], lb=data[4], ub=data[5], method=method)
+    assert (full.status == int(Status.SOLVED)).all()
+    for B in (1, 16, 64, 65):
+        part = solve_qp(*(t[:B] for t in data[:4]), lb=data[4][:B], ub=data[5][:B], method=method)
+        assert torch.equal(part.status, full.status[:B]), B
+        tol = 1e-7 if dtype == torch.float64 else 2e-3
+        torch.testing.assert_close(part.x, full.x[:B], atol=tol, rtol=tol)
+    # copies of one problem: 64 and 65 of them (the few-failed-rows threshold)
+    for B in (64, 65):
+        copies = [t[:1].expand(B, *t.shape[1:]) for t in data]
+        out = solve_qp(*copies[:4], lb=copies[4], ub=copies[5], method=method)
+        assert (out.status == int(full.status[0])).all(), B

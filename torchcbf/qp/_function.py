@@ -350,9 +350,11 @@ def _exact_resolve(
         second = torch.ones_like(strict)
     second = second & ~ok
     if bool(second.any()) and num_candidates(M, E, N, cfg.pairs) <= MAX_CANDIDATES_SMALL_BATCH:
-        en = solve_enum(P, q, G, h, A, b, eps=cfg.eps, pairs=cfg.pairs)
+        # the same certified enumeration (polished on its active set where the direct solve
+        # is a little off) that takes a few failed rows before the interior point method, so
+        # that a row's status does not depend on how many rows failed beside it
+        en = _certified_enum(P, q, G, h, A, b, cfg)
         take = en.ok & second
-        take = take & (~strict | _kkt.kkt_point(P, q, G, h, A, b, en.x, en.z, en.y))
         keep = take.unsqueeze(-1)
         x, z, y = torch.where(keep, en.x, x), torch.where(keep, en.z, z), torch.where(keep, en.y, y)
         active = torch.where(keep, en.active, active)
