@@ -135,3 +135,28 @@ def test_bad_inputs() -> None:
         step(lambda x, u: x, torch.zeros(2), torch.zeros(2), 0.1)
     with pytest.raises(TypeError, match="u must be a torch.Tensor"):
         step(model, torch.zeros(2), 0.0, 0.1)
+
+
+def test_public_integrators_check_inputs_and_run_forward_hooks() -> None:
+    import pytest
+
+    from torchcbf.dynamics import SingleIntegrator
+    from torchcbf.integrators import euler, rk4, unchecked
+
+    model = SingleIntegrator(2)
+    x = torch.zeros(2)
+    for fn in (euler, rk4):
+        with pytest.raises(ValueError, match="u must have shape"):
+            fn(model, x, torch.zeros(1), 0.1)
+        with pytest.raises(TypeError, match="u has dtype torch.float64"):
+            fn(model, x, torch.zeros(2, dtype=torch.float64), 0.1)
+    calls = []
+    handle = model.register_forward_hook(lambda *args: calls.append(1))
+    rk4(model, x, torch.ones(2), 0.1)
+    handle.remove()
+    assert len(calls) == 4  # the hook runs at every stage
+    torch.testing.assert_close(
+        unchecked("rk4")(model, x, torch.ones(2), 0.1), rk4(model, x, torch.ones(2), 0.1)
+    )
+    with pytest.raises(ValueError, match="method must be 'euler' or 'rk4'"):
+        unchecked("heun")

@@ -312,3 +312,49 @@ def test_a_model_overriding_sigma_alone_is_an_sde_with_that_diffusion() -> None:
         b = SafetyFilter(model, [ball], mode="stochastic", backend="torch").double()(x, u)
     assert a.path.startswith("torch/")
     torch.testing.assert_close(a.u, b.u, atol=1e-9, rtol=1e-9)
+
+
+def test_a_model_overriding_forward_alone_runs_no_kernel() -> None:
+    class Damped(SingleIntegrator):
+        def forward(self, x: Tensor, u: Tensor, w: Tensor | None = None) -> Tensor:
+            return super().forward(x, u, w) - 3.0 * x
+
+    model = Damped(2).double()
+    assert model.native_model() is None
+    x = torch.tensor([1.0, 0.0], dtype=F64)
+    for integrator in ("euler", "rk4"):
+        got = integrators.step(model, x, torch.zeros(2, dtype=F64), 0.1, method=integrator)
+        assert got[0] < 1.0  # the damping acts
+    planner = MPPI(model, QuadraticGoal([1.0, 0.0]), horizon=4, num_samples=16, dt=0.1,
+                   noise_sigma=1e-12, temperature=1.0, keep_rollouts=1)  # fmt: skip
+    out = planner(x)
+    assert out.path == "torch" and out.rollouts[0, -1, 0] < 1.0
+
+
+def test_an_exponential_cbf_overriding_value_loses_its_closed_forms() -> None:
+    from torchcbf.barriers import ExponentialBarrier
+
+    class Margin(ExponentialBarrier):
+        def value(self, x, t, base=None):
+            return super().value(x, t, base) - 0.5 * x[..., 2] ** 2
+
+    model = DoubleIntegrator(2).double()
+    cbf = Margin(Ball([1.0, 1.0], 0.5).double(), model, 2, [1.0])
+    assert not cbf.has_analytic and cbf.parts() is None
+    x = torch.tensor([[0.1, -0.3, 0.4, 0.2]], dtype=F64)
+    u = torch.tensor([[2.0, 2.0]], dtype=F64)
+    with torch.no_grad():
+        a = SafetyFilter(model, [cbf]).double()(x, u)
+        b = SafetyFilter(model, [cbf], lie_method="autograd", backend="torch").double()(x, u)
+    assert a.path.startswith("torch/")
+    torch.testing.assert_close(a.u, b.u, atol=1e-9, rtol=1e-9)
+    torch.testing.assert_close(a.h, b.h)
+
+
+def test_a_shape_overriding_lie_takes_no_kernel() -> None:
+    class Shifted(Ball):
+        def lie(self, x, dynamics, t=None, *, method="autograd", hessian=True):
+            terms = super().lie(x, dynamics, t, method=method, hessian=hessian)
+            return terms._replace(h=terms.h - 0.5)
+
+    assert Shifted([0.0, 0.0], 0.5).quadric() is None

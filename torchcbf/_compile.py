@@ -41,6 +41,13 @@ class Compiled:
         self.compiled: Callable[..., Any] | None = torch.compile(fn, **options)
         self._first = True
 
+    def __getstate__(self) -> dict[str, Any]:
+        # the compiled function does not pickle: compile again where it is loaded
+        return {"eager": self.eager, "options": self.options}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__init__(state["eager"], state["options"])
+
     def __deepcopy__(self, memo: dict[int, Any]) -> Compiled:
         # compile the copy's function (a bound method: of the copied module)
         return Compiled(copy.deepcopy(self.eager, memo), self.options)

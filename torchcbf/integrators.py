@@ -21,33 +21,64 @@ METHODS: tuple[str, ...] = ("euler", "rk4", "euler_maruyama")
 
 def _rate(dynamics: ControlAffine, w: Tensor | None) -> Callable[[Tensor, Tensor], Tensor]:
     """``(x, u) -> xdot`` of checked inputs: the model's ``xdot`` directly (no module call,
-    no input checks: :func:`step` made them once), with ``M w`` added where ``w`` is given;
-    the module call where a subclass rewrote ``forward`` itself."""
-    if type(dynamics).forward is not ControlAffine.forward:
+    no input checks), with ``M w`` added where ``w`` is given; the module call where a
+    subclass rewrote ``forward`` itself or forward hooks are registered."""
+    hooked = dynamics._forward_hooks or dynamics._forward_pre_hooks
+    if hooked or type(dynamics).forward is not ControlAffine.forward:
         return lambda x, u: dynamics(x, u, w)
     if w is None:
         return dynamics.xdot
     return lambda x, u: dynamics.xdot(x, u) + dynamics.disturbance(x, w)
 
 
-def euler(
+def _euler(
     dynamics: ControlAffine, x: Tensor, u: Tensor, dt: float, w: Tensor | None = None
 ) -> Tensor:
-    """Explicit Euler: ``x + dt * xdot(x, u)`` (inputs as :func:`step` checks them)."""
     return x + dt * _rate(dynamics, w)(x, u)
 
 
-def rk4(
+def _rk4(
     dynamics: ControlAffine, x: Tensor, u: Tensor, dt: float, w: Tensor | None = None
 ) -> Tensor:
-    """Classical fourth-order Runge-Kutta with ``u`` (and ``w``) held over the step (inputs
-    as :func:`step` checks them)."""
     rate = _rate(dynamics, w)
     k1 = rate(x, u)
     k2 = rate(x + 0.5 * dt * k1, u)
     k3 = rate(x + 0.5 * dt * k2, u)
     k4 = rate(x + dt * k3, u)
     return x + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def _checked(dynamics: ControlAffine, x: Tensor, u: Tensor, w: Tensor | None) -> None:
+    if not isinstance(dynamics, ControlAffine):
+        raise TypeError(f"dynamics must be a ControlAffine module, got {type(dynamics).__name__}")
+    dynamics.check_inputs(x, u)
+    if w is not None:
+        check_same("x", x, "w", w)
+
+
+def euler(
+    dynamics: ControlAffine, x: Tensor, u: Tensor, dt: float, w: Tensor | None = None
+) -> Tensor:
+    """Explicit Euler: ``x + dt * xdot(x, u)`` for ``x [..., n]``, ``u [..., m]``."""
+    _checked(dynamics, x, u, w)
+    return _euler(dynamics, x, u, dt, w)
+
+
+def rk4(
+    dynamics: ControlAffine, x: Tensor, u: Tensor, dt: float, w: Tensor | None = None
+) -> Tensor:
+    """Classical fourth-order Runge-Kutta with ``u`` (and ``w``) held over the step, for
+    ``x [..., n]``, ``u [..., m]``."""
+    _checked(dynamics, x, u, w)
+    return _rk4(dynamics, x, u, dt, w)
+
+
+def unchecked(method: str) -> Callable[..., Tensor]:
+    """``euler`` or ``rk4`` without input checks, ``(dynamics, x, u, dt, w=None) -> x'``: for
+    a loop over time steps whose inputs were checked once (MPPI's rollouts)."""
+    if method not in ("euler", "rk4"):
+        raise ValueError(f"method must be 'euler' or 'rk4', got {method!r}")
+    return _euler if method == "euler" else _rk4
 
 
 def euler_maruyama(
@@ -113,16 +144,12 @@ def step(
     Raises ``TypeError`` when ``u``, ``w`` or ``noise`` has another dtype than ``x`` and
     ``ValueError`` when it is on another device (both named), as for a bad shape or ``dt``.
     """
-    if not isinstance(dynamics, ControlAffine):
-        raise TypeError(f"dynamics must be a ControlAffine module, got {type(dynamics).__name__}")
-    dynamics.check_inputs(x, u)
-    if w is not None:
-        check_same("x", x, "w", w)
+    _checked(dynamics, x, u, w)
     dt = check_positive("dt", dt)
     if method == "euler":
-        return euler(dynamics, x, u, dt, w)
+        return _euler(dynamics, x, u, dt, w)
     if method == "rk4":
-        return rk4(dynamics, x, u, dt, w)
+        return _rk4(dynamics, x, u, dt, w)
     if method == "euler_maruyama":
         return euler_maruyama(dynamics, x, u, dt, w, generator=generator, noise=noise)
     raise ValueError(f"method must be one of {METHODS}, got {method!r}")

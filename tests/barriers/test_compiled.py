@@ -149,3 +149,37 @@ def test_a_backend_that_fails_warns_and_runs_eager(caplog: pytest.LogCaptureFixt
 def test_compile_option_is_checked() -> None:
     with pytest.raises(TypeError, match="compile must be a bool or a dict"):
         SafetyFilter(Unicycle(), [Ball([0.0, 3.0], 0.5)], compile="yes")
+
+
+def test_functions_that_call_autograd_themselves_take_the_autograd_path(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    from torchcbf.barriers import rectify
+    from torchcbf.dynamics import DoubleIntegrator
+
+    model = DoubleIntegrator(2).double()
+    hocbf = rectify(SuperEllipse([2.0, 0.5], [0.6, 0.4]).double(), model, form="high_order")
+    compiled = SafetyFilter(model, [hocbf], compile=TRACED).double()
+    general = SafetyFilter(model, [hocbf], backend="torch").double()
+    x = torch.tensor([[0.0, 0.3, 0.5, 0.1]], dtype=torch.float64)
+    u = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
+    with caplog.at_level(logging.WARNING, logger="torchcbf"), torch.no_grad():
+        a, b = compiled(x, u), compiled(x, u)
+    assert sum("cannot be compiled" in r.getMessage() for r in caplog.records) == 1
+    assert a.path.startswith("torch/") and b.path.startswith("torch/")
+    with torch.no_grad():
+        torch.testing.assert_close(a.u, general(x, u).u, atol=1e-9, rtol=1e-9)
+
+
+def test_a_compiled_filter_pickles_and_compiles_again_where_loaded() -> None:
+    import pickle
+
+    model = Unicycle().double()
+    filt = SafetyFilter(model, [SuperEllipse([2.0, 0.5], [0.6, 0.4]).double()], compile=TRACED)
+    x = torch.tensor([[0.0, 0.3, 0.1]], dtype=torch.float64)
+    u = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
+    with torch.no_grad():
+        want = filt.double()(x, u)
+        got = pickle.loads(pickle.dumps(filt))(x, u)
+    assert got.path == want.path == "compiled/realtime"
+    torch.testing.assert_close(got.u, want.u)

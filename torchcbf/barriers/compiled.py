@@ -25,7 +25,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcbf._compile import Compiled
+from torchcbf._compile import Compiled, logger
 from torchcbf.barriers.lie import LieFunction, LieTerms
 from torchcbf.dynamics.base import ControlAffine
 
@@ -60,7 +60,7 @@ class CompiledLie:
         self.sizes: list[int] | None = None
         self.hessian = bool(hessian) and dynamics.has_diffusion
         self.timed = any(fn.time_varying for fn in fns)
-        self._call = Compiled(self._terms, {"dynamic": False, **(options or {})})
+        self._call: Compiled | None = Compiled(self._terms, {"dynamic": False, **(options or {})})
 
     def _values(self, x: Tensor, t: Tensor) -> Tensor:
         """``[K]`` outputs of all functions at one state ``x [n]``, time ``t []``."""
@@ -85,13 +85,29 @@ class CompiledLie:
         trace = (s.unsqueeze(1) * (hess @ s.unsqueeze(1))).sum((-2, -1))
         return h, lfh, lgh, dhdt, dhdx, trace
 
-    def __call__(self, x: Tensor, t: Tensor) -> tuple[LieTerms, list[int]]:
+    def __call__(self, x: Tensor, t: Tensor) -> tuple[LieTerms, list[int]] | None:
         """Lie terms at ``x [B, n]``, ``t [B]`` (no graph) and each function's number of
-        outputs."""
+        outputs; ``None`` (from then on, after one warning) where the functions cannot be
+        transformed (a function that calls autograd itself, as the high-order and
+        exponential CBFs do): the caller then takes the autograd path."""
+        if self._call is None:
+            return None
         with torch.no_grad():
             if self.sizes is None:  # once, eager: a Python int per function
                 self.sizes = [torch.atleast_1d(fn(x[0], t[0])).shape[-1] for fn in self.fns]
-            out = self._call(x, t)
+            try:
+                out = self._call(x, t)
+            except Exception as err:  # noqa: BLE001 - any failure: the general path answers
+                names = ", ".join(type(fn).__name__ for fn in self.fns)
+                logger.warning(
+                    "torchcbf: the Lie terms of %s cannot be compiled (%s: %s); they take the "
+                    "autograd path",
+                    names,
+                    type(err).__name__,
+                    str(err).splitlines()[0] if str(err) else "",
+                )
+                self._call = None
+                return None
         h, lfh, lgh, dhdt, dhdx = out[:5]
         terms = LieTerms(h, lfh, lgh, dhdt, out[5] if self.hessian else None, dhdx)
         return terms, self.sizes

@@ -107,16 +107,19 @@ class LieFunction(nn.Module):
     time_varying: bool = False
     #: the closed forms a subclass may give, each trusted only where the class defining it
     #: also defines ``forward`` (see :func:`torchcbf._checks.honour_overrides`): a subclass
-    #: that changes ``forward`` alone is differentiated by autograd and split into no parts
+    #: that changes ``forward`` alone is differentiated by autograd and split into no parts;
+    #: the C kernels read ``quadric`` instead of calling ``lie``. A class whose ``forward``
+    #: calls another public method of its own extends this table (and its subclasses are
+    #: checked against it).
     closed_forms: ClassVar[ClosedForms] = {
         "derivatives": (("forward",), ("has_analytic", "has_second_order")),
-        "quadric": (("forward",), ()),
+        "quadric": (("forward", "lie"), ()),
         "parts": (("forward",), ()),
     }
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        honour_overrides(cls, LieFunction, LieFunction.closed_forms)
+        honour_overrides(cls, LieFunction, cls.closed_forms)
 
     @property
     def has_analytic(self) -> bool:

@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor, check_finite
+from torchcbf._checks import ClosedForms, as_tensor, check_finite
 from torchcbf._constants import ExactConstants, remember, store
 from torchcbf.barriers._params import float_spec, register
 from torchcbf.barriers.base import Barrier
@@ -190,6 +190,13 @@ class ExponentialBarrier(ExactConstants, Barrier):
         barrier, dynamics, relative_degree: as for :class:`HighOrderBarrier`.
         coefficients: ``[k_0, ..., k_{r-2}]`` (a tensor, or an ``nn.Parameter`` to learn them).
     """
+
+    #: ``forward`` is :meth:`value`: a subclass that changes ``value`` loses the closed forms
+    closed_forms: ClassVar[ClosedForms] = {
+        **LieFunction.closed_forms,
+        "derivatives": (("forward", "value"), ("has_analytic", "has_second_order")),
+        "parts": (("forward", "value"), ()),
+    }
 
     def __init__(
         self,

@@ -77,12 +77,12 @@ class ControlAffine(nn.Module):
     closed_forms: ClassVar[ClosedForms] = {
         "xdot": (("f", "g"), ()),
         "drift_derivatives": (("f",), ()),
-        "native_model": (("f", "g", "xdot", "sigma", "drift_derivatives"), ()),
+        "native_model": (("f", "g", "xdot", "forward", "sigma", "drift_derivatives"), ()),
     }
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        honour_overrides(cls, ControlAffine, ControlAffine.closed_forms)
+        honour_overrides(cls, ControlAffine, cls.closed_forms)
 
     def __init__(
         self,
@@ -154,7 +154,8 @@ class ControlAffine(nn.Module):
     def native_model(self) -> NativeModel | None:
         """This model as the native kernels know it, or ``None`` (the default: torch code
         runs). Built-in models give it; a subclass that changes ``f``, ``g``, ``xdot``,
-        ``sigma`` or ``drift_derivatives`` does not inherit it (see :attr:`closed_forms`)."""
+        ``forward``, ``sigma`` or ``drift_derivatives`` does not inherit it (see
+        :attr:`closed_forms`)."""
         return None
 
     def drift_derivatives(self, x: Tensor) -> DriftDerivatives:

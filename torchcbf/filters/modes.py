@@ -58,7 +58,7 @@ class FilterMode(nn.Module):
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        honour_overrides(cls, FilterMode, FilterMode.closed_forms)
+        honour_overrides(cls, FilterMode, cls.closed_forms)
 
     def bind(
         self,

@@ -500,8 +500,10 @@ class SafetyFilter(nn.Module):
             found = native.lie_terms(fns, x, self.dynamics, hessian=hessian)
             if found is not None:
                 return *found, "native"
-        if compiled is not None and not torch.is_grad_enabled():
-            return *compiled(x, t), "compiled"
+        if compiled is not None and self.lie_method == "auto" and not torch.is_grad_enabled():
+            found = compiled(x, t)
+            if found is not None:
+                return *found, "compiled"
         methods = [self._lie_method(fn) for fn in fns]
         if len(fns) > 1 and all(m == "autograd" for m in methods):
             terms, sizes = stacked_lie_derivatives(list(fns), x, self.dynamics, t, hessian=hessian)

@@ -313,7 +313,7 @@ class MPPI(ExactConstants):
                 self.register_buffer(name, None if value is None else value.clone())
 
         self._needs_history = bool(getattr(cost, "needs_history", False))
-        self._integrate = integrators.euler if integrator == "euler" else integrators.rk4
+        self._integrate = integrators.unchecked(integrator)
         self._compiled = bool(compile)
         self._step_fn: Callable[..., Tensor] = self._step
         self._score_fn: Callable[..., Tensor] = self._score
