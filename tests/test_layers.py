@@ -20,8 +20,8 @@ LAYERS = {
     "barriers": 2,
     "filters": 3, "mppi": 3, "estimation": 3, "learning": 3, "roadmap": 3,
     "sim": 4,
-    "scenarios": 5, "envs": 5, "sweep": 5, "viz": 5, "_info": 5,
-    "cli": 6,
+    "scenarios": 5, "envs": 5, "sweep": 5, "viz": 5,
+    "cli": 6, "_info": 6,
 }  # fmt: skip
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 
 import torch
@@ -277,7 +278,9 @@ def behaves_as(obj: object, cls: type, methods: Sequence[str]) -> bool:
     """Whether ``obj`` is an instance of ``cls`` whose class keeps ``cls``'s ``methods`` (a
     subclass may add to them, not change them): the test for handing ``obj`` to a kernel
     that evaluates ``cls``'s formulas."""
-    if not isinstance(obj, cls):
-        return False
-    kind = type(obj)
+    return isinstance(obj, cls) and _keeps(type(obj), cls, tuple(methods))
+
+
+@functools.lru_cache(maxsize=512)
+def _keeps(kind: type, cls: type, methods: tuple[str, ...]) -> bool:
     return all(getattr(kind, name, None) is getattr(cls, name, None) for name in methods)

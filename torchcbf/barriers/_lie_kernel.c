@@ -33,7 +33,7 @@
 /* largest state, control, position and noise sizes (larger problems: torch) */
 #define LIE_NMAX 32
 
-/* the models, as MODEL_CODES in native.py */
+/* the models, as MODEL_CODES in torchcbf/_native.py */
 enum { SINGLE_INTEGRATOR = 0, DOUBLE_INTEGRATOR = 1, UNICYCLE = 2, ACCEL_UNICYCLE = 3 };
 
 /* the transforms phi, as TRANSFORM_CODES in native.py */

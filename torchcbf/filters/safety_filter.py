@@ -102,8 +102,9 @@ class FilterOutput(NamedTuple):
             and ``-(a . u + b)`` for CLF rows, so ``>= 0`` means the condition holds
             without slack.
         path: what answered, ``"<lie>/<qp>"``: ``<lie>`` is ``native`` (the Lie terms and
-            conditions of every function from the C Lie kernel), ``torch`` (closed forms or
-            autograd in torch) or ``mixed``; ``<qp>`` is ``realtime`` (the QP in the
+            conditions of every function from the C Lie kernel), ``compiled`` (from one
+            compiled call, ``compile=True``), ``torch`` (closed forms or autograd in torch) or
+            ``mixed``; ``<qp>`` is ``realtime`` (the QP in the
             filter's C kernel, :mod:`torchcbf.filters.realtime`) or the
             :attr:`torchcbf.qp.QPSolution.path` of the general path's QP. A call that takes
             the C kernels end to end says ``native/realtime``.
@@ -251,15 +252,17 @@ class SafetyFilter(nn.Module):
             ``"autograd"`` or ``"analytic"``.
         backend: ``"auto"`` (default: the C kernels where they apply, see the module) or
             ``"torch"`` (the general path: Lie terms in torch, the QP by
-            :func:`torchcbf.qp.solve_qp` with ``qp_options``). :attr:`FilterOutput.path`
-            says which answered.
+            :func:`torchcbf.qp.solve_qp` with ``qp_options``, whose own method may still run
+            its dual C kernel: ``qp_options={"method": "ipm"}`` or ``"enumerate"`` keeps it
+            all in torch). :attr:`FilterOutput.path` says which answered.
         compile: ``True`` or a dict of ``torch.compile`` keyword arguments: outside grad
             mode (``torch.no_grad()``, ``torch.inference_mode()``), the Lie terms of the
             functions no C kernel evaluates (a user's own barriers and models) come from one
             compiled call (:class:`torchcbf.barriers.compiled.CompiledLie`; path
-            ``compiled/...``). The first call compiles (seconds; again for a new batch size
-            or dtype); where compiling fails it warns and runs eager. In grad mode the
-            autograd path answers, whose terms carry the graph.
+            ``compiled/...``), with ``lie_method="auto"``. The first call compiles
+            (seconds; again for a new batch size or dtype); where compiling fails it warns
+            and runs eager. In grad mode the autograd path answers, whose terms carry the
+            graph.
         qp_options: keyword arguments for :func:`torchcbf.qp.solve_qp`.
         check_relative_degree: at construction, evaluate ``L_g h`` of every barrier output on
             16 sample states (``N(0, 4 I)``, seeded) and raise ``ValueError`` if it vanishes

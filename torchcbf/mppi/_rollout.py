@@ -19,6 +19,7 @@ import ctypes
 import functools
 import logging
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -168,7 +169,7 @@ def encode_cost(cost: object, state_dim: int) -> tuple[list[list[float]], list[l
         SumCost,
     )
 
-    _TERMS = (QuadraticGoal, ObstacleCost, BarrierCost, DiscreteBarrierCost)
+    built_in = (QuadraticGoal, ObstacleCost, BarrierCost, DiscreteBarrierCost)
 
     if behaves_as(cost, SumCost, _COST_METHODS):
         parts = cost.stepwise_terms + cost.whole_terms
@@ -178,7 +179,7 @@ def encode_cost(cost: object, state_dim: int) -> tuple[list[list[float]], list[l
     shapes: list[list[float]] = []
     shared: dict[int, tuple[int, int]] = {}  # id(barrier) -> its shape records (evaluated once)
     for part in parts:
-        kind = next((c for c in _TERMS if behaves_as(part, c, _COST_METHODS)), None)
+        kind = next((c for c in built_in if behaves_as(part, c, _COST_METHODS)), None)
         if kind is QuadraticGoal:
             rec = _point_term(
                 _term(TERM_GOAL, part.weight, part.terminal_weight, 0.0), part.index, part.goal
@@ -219,6 +220,17 @@ def encode_cost(cost: object, state_dim: int) -> tuple[list[list[float]], list[l
     return terms, shapes
 
 
+class Configuration(NamedTuple):
+    """The kernel's float64 configuration ``values`` and the sizes written in it (``n``,
+    ``m``, ``horizon``, ``samples``), against which :func:`run` checks its tensors."""
+
+    values: Tensor
+    n: int
+    m: int
+    horizon: int
+    samples: int
+
+
 def configuration(
     model: tuple[int, int],
     integrator: str,
@@ -233,8 +245,8 @@ def configuration(
     dt: float,
     gamma: float,
     cost: tuple[list[list[float]], list[list[float]]] | None,
-) -> Tensor:
-    """The kernel's float64 configuration vector (layout in ``_rollout_kernel.c``)."""
+) -> Configuration:
+    """The kernel's configuration (layout of its float64 vector in ``_rollout_kernel.c``)."""
     terms, shapes = cost if cost is not None else ([], [])
     head = [0.0] * _HDR
     head[:15] = [
@@ -268,7 +280,8 @@ def configuration(
     flat = head + lo + hi + L
     for rec in terms + shapes:
         flat.extend(rec)
-    return torch.tensor(flat, dtype=torch.float64)
+    values = torch.tensor(flat, dtype=torch.float64)
+    return Configuration(values, n, m, horizon, num_samples)
 
 
 # -- calls -----------------------------------------------------------------------------------
@@ -277,7 +290,7 @@ def _ptr(t: Tensor | None) -> int | None:
 
 
 def run(
-    cfg: Tensor,
+    cfg: Configuration,
     count: int,
     x0: Tensor,
     plan: Tensor,
@@ -328,7 +341,7 @@ def run(
         bounds = [0, *cut, count]
     common = [_ptr(t) for t in inputs]
     outs = [_ptr(cost), _ptr(states), _ptr(controls), _ptr(eps), _ptr(weights)]
-    cfg_ptr = cfg.data_ptr()
+    cfg_ptr = cfg.values.data_ptr()
 
     def call(i: int) -> int:
         part = None if wsum is None else wsum[i].data_ptr()
@@ -344,7 +357,7 @@ def run(
 
 
 def _check_call(
-    cfg: Tensor,
+    cfg: Configuration,
     count: int,
     x0: Tensor,
     plan: Tensor,
@@ -359,16 +372,11 @@ def _check_call(
     wsum: Tensor | None,
     cmajor: bool,
 ) -> None:
-    """Check every tensor :func:`run` hands the kernel against the sizes in ``cfg``: CPU,
-    its dtype, shape and layout, and the sample pairs in range; raise ``ValueError`` or
-    ``TypeError`` naming it (the kernel reads raw memory and checks none of it)."""
-    if not (cfg.dtype == torch.float64 and cfg.dim() == 1 and cfg.is_contiguous()):
-        raise ValueError("cfg must be a contiguous float64 vector")
-    head = cfg[:_HDR].tolist()
-    n, m, H, K = (int(v) for v in head[3:7])
-    nterms, nshapes = int(head[11]), int(head[12])
-    if cfg.numel() != _HDR + 2 * MAX_CONTROL + MAX_CONTROL**2 + nterms * _TREC + nshapes * _SREC:
-        raise ValueError(f"cfg has {cfg.numel()} entries, not those of its header")
+    """Check every tensor :func:`run` hands the kernel against the sizes of ``cfg``: CPU,
+    its dtype, shape and layout; raise ``ValueError`` or ``TypeError`` naming it (the kernel
+    reads raw memory and checks none of it). The values of ``pairs`` are the caller's
+    (built from ``nonzero`` or ``arange``, sorted by environment)."""
+    n, m, H, K = cfg.n, cfg.m, cfg.horizon, cfg.samples
     real = x0.dtype
     if real not in (torch.float32, torch.float64):
         raise TypeError(f"x0 must be float32 or float64, got {real}")
@@ -376,37 +384,42 @@ def _check_call(
     if pairs is None and not 0 <= count <= B * K:
         raise ValueError(f"count must be in [0, {B * K}], got {count}")
     rows = (count,) if pairs is not None else (B, K)
-    expected: list[tuple[str, Tensor | None, tuple[int, ...], torch.dtype]] = [
-        ("x0", x0, (B, n), real),
-        ("plan", plan, (B, H, m), real),
-        ("keys", keys, (B,), torch.int64),
-        ("pairs", pairs, (count, 2), torch.int64),
-        ("wctrl", wctrl, (B, H, m), real),
-        ("cost", cost, rows, real),
-        ("states", states, (*rows, H + 1, n), real),
-        ("controls", controls, (*rows, H, m), real),
-        ("eps", eps, (*rows, H, m), real),
-        ("weights", weights, (count,), real),
-        ("wsum", wsum, (wsum.shape[0] if wsum is not None else 0, B, H, m), torch.float64),
-    ]
-    for name, t, shape, dtype in expected:
-        if t is None:
-            continue
-        if t.device.type != "cpu":
-            raise ValueError(f"{name} must be on the CPU, got {t.device}")
-        if t.dtype != dtype:
-            raise TypeError(f"{name} must be {dtype} for this call, got {t.dtype}")
-        if tuple(t.shape) != shape:
-            raise ValueError(f"{name} must have shape {list(shape)}, got {list(t.shape)}")
-        by_component = cmajor and name in ("states", "controls", "eps")
-        if by_component and not t.permute(0, 3, 2, 1).is_contiguous():
-            raise ValueError(f"{name} must be in component-major storage")
-        if not by_component and not t.is_contiguous():
-            raise ValueError(f"{name} must be contiguous")
-    if pairs is not None and count:
-        low, high = pairs.amin(0).tolist(), pairs.amax(0).tolist()
-        if min(low) < 0 or high[0] >= B or high[1] >= K:
-            raise ValueError(f"pairs must hold (b, k) with b < {B} and k < {K}")
+    _expect("x0", x0, (B, n), real)
+    _expect("plan", plan, (B, H, m), real)
+    _expect("keys", keys, (B,), torch.int64)
+    if pairs is not None:
+        _expect("pairs", pairs, (count, 2), torch.int64)
+    if wctrl is not None:
+        _expect("wctrl", wctrl, (B, H, m), real)
+    if cost is not None:
+        _expect("cost", cost, rows, real)
+    if states is not None:
+        _expect("states", states, (*rows, H + 1, n), real, cmajor)
+    if controls is not None:
+        _expect("controls", controls, (*rows, H, m), real, cmajor)
+    if eps is not None:
+        _expect("eps", eps, (*rows, H, m), real, cmajor)
+    if weights is not None:
+        _expect("weights", weights, (count,), real)
+    if wsum is not None:
+        _expect("wsum", wsum, (wsum.shape[0], B, H, m), torch.float64)
+
+
+def _expect(
+    name: str, t: Tensor, shape: tuple[int, ...], dtype: torch.dtype, by_component: bool = False
+) -> None:
+    """Raise unless ``t`` is a CPU tensor of ``dtype`` and ``shape``, stored component-major
+    (``by_component``: :func:`component_major`) or C-contiguous."""
+    if t.device.type != "cpu":
+        raise ValueError(f"{name} must be on the CPU, got {t.device}")
+    if t.dtype != dtype:
+        raise TypeError(f"{name} must be {dtype} for this call, got {t.dtype}")
+    if t.shape != shape:
+        raise ValueError(f"{name} must have shape {list(shape)}, got {list(t.shape)}")
+    if by_component and not t.permute(0, 3, 2, 1).is_contiguous():
+        raise ValueError(f"{name} must be in component-major storage")
+    if not by_component and not t.is_contiguous():
+        raise ValueError(f"{name} must be contiguous")
 
 
 def update_threads(count: int) -> int:
