@@ -109,4 +109,5 @@ def test_every_subcommand_has_a_description_and_shows_defaults(command, capsys) 
     assert stop.value.code == 0
     text = " ".join(capsys.readouterr().out.split())
     assert " ".join(DESCRIPTIONS[command].split())[:60] in text
-    assert "(default: cpu)" in text
+    if command != "info":  # the only command without a device
+        assert "(default: cpu)" in text
