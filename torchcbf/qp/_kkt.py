@@ -204,6 +204,10 @@ def polish(
     if M > 0:
         guesses.append(s <= tol * (1.0 + s.abs().amax(-1, keepdim=True)))
         guesses.append(z >= tol * (1.0 + z.abs().amax(-1, keepdim=True)))
+        # a zero row (an infinite bound, h = +inf) bounds nothing: never active, whatever
+        # multiplier the interior point left on it
+        bounds = (G != 0).any(-1)
+        guesses = [g & bounds for g in guesses]
     chosen = torch.zeros_like(candidate)
     act = torch.zeros_like(guesses[0])
     for guess in guesses:
