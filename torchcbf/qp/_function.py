@@ -37,6 +37,10 @@ MAX_DUAL_CONDITION = 1e4
 #: its torch implementation (its unrolled eliminations grow as N^3 tensor operations); the C
 #: kernel takes up to ``_dual_native.MAX_VARS`` (see :func:`dual_applies`)
 MAX_ACTIVE_SET_VARS = 8
+#: farthest a polished point no exact method certifies may lie from the interior point's
+#: own point, in units of ``sqrt(eps)`` relative to ``1 + max|x|`` (the interior point is
+#: accurate to about ``sqrt(eps)`` near nearly parallel active rows)
+POLISH_MOVE = 10.0
 
 
 def dual_budget(max_iter: int, rows: int, n: int) -> int:
@@ -234,7 +238,14 @@ def _polish_and_resolve(
     status: Tensor,
     cfg: SolverConfig,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """The polish and exact re-solves of :func:`_finish`."""
+    """The polish and exact re-solves of :func:`_finish`.
+
+    A polished point that passes the ``eps`` checks but that no exact method certifies is
+    kept only near the interior point's own point (within :data:`POLISH_MOVE` ``sqrt(eps)``,
+    relative): nearly dependent rows let a wrong active-set guess pass those checks far
+    away. Farther off, the row keeps the interior point's answer where that converged, and
+    is ``NUMERICAL_ERROR`` otherwise."""
+    own = (x, s, z, y, status)
     x, z, y, status, fac, verified, exact = _kkt.polish(
         P, q, G, h, A, b, x, s, z, y, status, eps=cfg.eps
     )
@@ -255,7 +266,26 @@ def _polish_and_resolve(
         active = active.index_copy(0, idx, torch.where(keep, acts, active.index_select(0, idx)))
     before = status.index_select(0, idx)
     unverified = ~ok & ~verified.index_select(0, idx) & (before == int(Status.SOLVED))
-    after = torch.where(unverified, int(Status.NUMERICAL_ERROR), before)
+    x_own, s_own, z_own, y_own, status_own = (t.index_select(0, idx) for t in own)
+    moved = (x.index_select(0, idx) - x_own).abs().amax(-1)
+    far = (
+        ~ok
+        & ~unverified
+        & (before == int(Status.SOLVED))
+        & (moved > POLISH_MOVE * cfg.eps**0.5 * (1.0 + x_own.abs().amax(-1)))
+    )
+    revert = far & (status_own == int(Status.SOLVED))
+    if bool(revert.any()):
+        back = revert.unsqueeze(-1)
+        x, z, y = (
+            t.index_copy(0, idx, torch.where(back, t_own, t.index_select(0, idx)))
+            for t, t_own in ((x, x_own), (z, z_own), (y, y_own))
+        )
+        own_active = _kkt.active_set(z_own, s_own)
+        active = active.index_copy(
+            0, idx, torch.where(back, own_active, active.index_select(0, idx))
+        )
+    after = torch.where(unverified | (far & ~revert), int(Status.NUMERICAL_ERROR), before)
     after = torch.where(ok, int(Status.SOLVED), after)
     status = status.index_copy(0, idx, after)
     # a row the interior point gave up on may have run off along a descent direction
@@ -537,25 +567,79 @@ def _ipm_fallback(
     return x, z, y, status, iters, active, True
 
 
+class Scaling(NamedTuple):
+    """Powers of two that scale a batch's data: the objective by ``c [B]``, the rows of
+    ``G x <= h`` by ``r [B, M]`` and those of ``A x = b`` by ``e [B, E]``."""
+
+    c: Tensor
+    r: Tensor
+    e: Tensor
+
+    def apply(self, P, q, G, h, A, b) -> tuple[Tensor, ...]:
+        """The scaled data ``(c P, c q, r G, r h, e A, e b)``; the minimiser is unchanged."""
+        c, r, e = self.c, self.r, self.e
+        c2 = c.view(-1, 1, 1)
+        return (c2 * P, c.unsqueeze(-1) * q, r.unsqueeze(-1) * G, r * h,
+                e.unsqueeze(-1) * A, e * b)  # fmt: skip
+
+    def multipliers(self) -> tuple[Tensor, Tensor]:
+        """Factors ``(r / c, e / c)`` taking the scaled problem's multipliers to the
+        original's (``z = z' r / c``, ``y = y' e / c``)."""
+        inv_c = (1.0 / self.c).unsqueeze(-1)
+        return self.r * inv_c, self.e * inv_c
+
+
+def _inverse_power_of_two(v: Tensor) -> Tensor:
+    """``1 / v`` rounded to a power of two (exact to scale by); 1 where ``v`` is 0."""
+    pos = v > 0
+    return torch.where(pos, torch.exp2(-torch.round(torch.log2(torch.where(pos, v, 1.0)))), 1.0)
+
+
+def data_scaling(P: Tensor, q: Tensor, G: Tensor, A: Tensor) -> Scaling:
+    """The :class:`Scaling` every torch method solves a batch under: the objective's largest
+    entry (of ``P`` and ``q``) and every row's largest entry near one. The interior point
+    method's residual and gap tests, the polish's and the exact methods' multiplier tests
+    carry absolute terms (``1 + scale``), which an objective of 1e-15 passes at a wrong
+    point and one of 1e15 fails at the right one; after the scaling they are relative.
+    Zero rows (infinite bounds) keep a factor of one."""
+    c = _inverse_power_of_two(torch.maximum(P.abs().amax((-2, -1)), q.abs().amax(-1)))
+    r, e = (_inverse_power_of_two(R.abs().amax(-1)) for R in (G, A))
+    return Scaling(c, r, e)
+
+
 class QPFunction(torch.autograd.Function):
-    """``(P, q, G, h, A, b) -> (x, z, y, status, iterations)``, batched ``[B, ...]``."""
+    """``(P, q, G, h, A, b) -> (x, z, y, status, iterations)``, batched ``[B, ...]``.
+
+    The torch backend solves the problem under :func:`data_scaling` and scales the
+    multipliers (and the gradients) back; the other backends get the data as given."""
 
     @staticmethod
     def forward(ctx, P, q, G, h, A, b, cfg: SolverConfig, x0):  # noqa: D102
         dtype = q.dtype
         f64 = [t.detach().to(torch.float64) for t in (P, q, G, h, A, b)]
         x0d = None if x0 is None else x0.detach().to(torch.float64)
+        scaling = data_scaling(f64[0], f64[1], f64[2], f64[4]) if cfg.backend == "torch" else None
+        if scaling is not None:
+            f64 = list(scaling.apply(*f64))
         x, z, y, status, iters, fac = _forward(*f64, cfg, x0d)
         ctx.fac = fac
+        ctx.scaling = scaling
         ctx.save_for_backward(x, z, y, status)
         ctx.dtype = dtype
         ctx.mark_non_differentiable(status, iters)
+        if scaling is not None:
+            fz, fy = scaling.multipliers()
+            z, y = z * fz, y * fy
         return x.to(dtype), z.to(dtype), y.to(dtype), status, iters
 
     @staticmethod
     def backward(ctx, gx, gz, gy, _gs, _gi):  # noqa: D102
         x, z, y, status = ctx.saved_tensors
         gx, gz, gy = (g.to(torch.float64) for g in (gx, gz, gy))
+        scaling = ctx.scaling
+        if scaling is not None:  # gradients of the scaled problem's outputs
+            fz, fy = scaling.multipliers()
+            gz, gy = gz * fz, gy * fy
         fac = ctx.fac
         if isinstance(fac, (DualFactor, NativeFactor, MixedFactor)):
             mixed = isinstance(fac, MixedFactor)
@@ -568,4 +652,8 @@ class QPFunction(torch.autograd.Function):
         else:
             wx, wz, wy, lam = _kkt.kkt_adjoints(fac, x, z, y, status, gx, gz, gy)
         grads = _kkt.input_gradients(x, lam, y, wx, wz, wy, ctx.needs_input_grad[:6])
+        if scaling is not None:  # the scaled data are the inputs times the factors
+            c, r, e = scaling
+            factors = (c.view(-1, 1, 1), c.unsqueeze(-1), r.unsqueeze(-1), r, e.unsqueeze(-1), e)
+            grads = tuple(None if g is None else g * f for g, f in zip(grads, factors, strict=True))
         return (*(None if g is None else g.to(ctx.dtype) for g in grads), None, None)
