@@ -567,26 +567,20 @@ def _ipm_fallback(
     return x, z, y, status, iters, active, True
 
 
+#: objectives whose largest entry lies within ``[1 / SCALE_BAND, SCALE_BAND]`` are solved
+#: as given (:func:`data_scaling`)
+SCALE_BAND = 16.0
+
+
 class Scaling(NamedTuple):
-    """Powers of two that scale a batch's data: the objective by ``c [B]``, the rows of
-    ``G x <= h`` by ``r [B, M]`` and those of ``A x = b`` by ``e [B, E]``."""
+    """The factor ``c [B]`` (a power of two) that scales a batch's objective."""
 
     c: Tensor
-    r: Tensor
-    e: Tensor
 
-    def apply(self, P, q, G, h, A, b) -> tuple[Tensor, ...]:
-        """The scaled data ``(c P, c q, r G, r h, e A, e b)``; the minimiser is unchanged."""
-        c, r, e = self.c, self.r, self.e
-        c2 = c.view(-1, 1, 1)
-        return (c2 * P, c.unsqueeze(-1) * q, r.unsqueeze(-1) * G, r * h,
-                e.unsqueeze(-1) * A, e * b)  # fmt: skip
-
-    def multipliers(self) -> tuple[Tensor, Tensor]:
-        """Factors ``(r / c, e / c)`` taking the scaled problem's multipliers to the
-        original's (``z = z' r / c``, ``y = y' e / c``)."""
-        inv_c = (1.0 / self.c).unsqueeze(-1)
-        return self.r * inv_c, self.e * inv_c
+    def apply(self, P: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
+        """The scaled objective ``(c P, c q)``; the minimiser is unchanged, the multipliers
+        of the scaled problem are ``c`` times the original's."""
+        return self.c.view(-1, 1, 1) * P, self.c.unsqueeze(-1) * q
 
 
 def _inverse_power_of_two(v: Tensor) -> Tensor:
@@ -595,32 +589,36 @@ def _inverse_power_of_two(v: Tensor) -> Tensor:
     return torch.where(pos, torch.exp2(-torch.round(torch.log2(torch.where(pos, v, 1.0)))), 1.0)
 
 
-def data_scaling(P: Tensor, q: Tensor, G: Tensor, A: Tensor) -> Scaling:
+def data_scaling(P: Tensor, q: Tensor) -> Scaling:
     """The :class:`Scaling` every torch method solves a batch under: the objective's largest
-    entry (of ``P`` and ``q``) and every row's largest entry near one. The interior point
-    method's residual and gap tests, the polish's and the exact methods' multiplier tests
-    carry absolute terms (``1 + scale``), which an objective of 1e-15 passes at a wrong
-    point and one of 1e15 fails at the right one; after the scaling they are relative.
-    Zero rows (infinite bounds) keep a factor of one."""
-    c = _inverse_power_of_two(torch.maximum(P.abs().amax((-2, -1)), q.abs().amax(-1)))
-    r, e = (_inverse_power_of_two(R.abs().amax(-1)) for R in (G, A))
-    return Scaling(c, r, e)
+    entry (of ``P`` and ``q``) brought near one, where it lies outside
+    ``[1 / SCALE_BAND, SCALE_BAND]``. The interior point method's residual and gap tests
+    and the polish's and the exact methods' multiplier tests carry absolute terms
+    (``1 + scale``), which an objective of 1e-15 passes at a wrong point and one of 1e15
+    fails at the right one; after the scaling they are relative. (Each row's own scale is
+    already judged on its own, :func:`torchcbf.qp._kkt.row_scale`.)"""
+    big = torch.maximum(P.abs().amax((-2, -1)), q.abs().amax(-1))
+    band = (big >= 1.0 / SCALE_BAND) & (big <= SCALE_BAND)
+    return Scaling(torch.where(band, 1.0, _inverse_power_of_two(big)))
 
 
 class QPFunction(torch.autograd.Function):
     """``(P, q, G, h, A, b) -> (x, z, y, status, iterations)``, batched ``[B, ...]``.
 
-    The torch backend solves the problem under :func:`data_scaling` and scales the
-    multipliers (and the gradients) back; the other backends get the data as given."""
+    The torch backend solves the problem with its objective scaled (:func:`data_scaling`)
+    and scales the multipliers (and the gradients) back; the other backends get the data
+    as given."""
 
     @staticmethod
     def forward(ctx, P, q, G, h, A, b, cfg: SolverConfig, x0):  # noqa: D102
         dtype = q.dtype
         f64 = [t.detach().to(torch.float64) for t in (P, q, G, h, A, b)]
         x0d = None if x0 is None else x0.detach().to(torch.float64)
-        scaling = data_scaling(f64[0], f64[1], f64[2], f64[4]) if cfg.backend == "torch" else None
+        scaling = data_scaling(f64[0], f64[1]) if cfg.backend == "torch" else None
+        if scaling is not None and q.device.type == "cpu" and bool((scaling.c == 1.0).all()):
+            scaling = None  # nothing to scale (asking costs no device synchronisation here)
         if scaling is not None:
-            f64 = list(scaling.apply(*f64))
+            f64[0], f64[1] = scaling.apply(f64[0], f64[1])
         x, z, y, status, iters, fac = _forward(*f64, cfg, x0d)
         ctx.fac = fac
         ctx.scaling = scaling
@@ -628,8 +626,8 @@ class QPFunction(torch.autograd.Function):
         ctx.dtype = dtype
         ctx.mark_non_differentiable(status, iters)
         if scaling is not None:
-            fz, fy = scaling.multipliers()
-            z, y = z * fz, y * fy
+            inv_c = (1.0 / scaling.c).unsqueeze(-1)
+            z, y = z * inv_c, y * inv_c
         return x.to(dtype), z.to(dtype), y.to(dtype), status, iters
 
     @staticmethod
@@ -638,8 +636,8 @@ class QPFunction(torch.autograd.Function):
         gx, gz, gy = (g.to(torch.float64) for g in (gx, gz, gy))
         scaling = ctx.scaling
         if scaling is not None:  # gradients of the scaled problem's outputs
-            fz, fy = scaling.multipliers()
-            gz, gy = gz * fz, gy * fy
+            inv_c = (1.0 / scaling.c).unsqueeze(-1)
+            gz, gy = gz * inv_c, gy * inv_c
         fac = ctx.fac
         if isinstance(fac, (DualFactor, NativeFactor, MixedFactor)):
             mixed = isinstance(fac, MixedFactor)
@@ -652,8 +650,9 @@ class QPFunction(torch.autograd.Function):
         else:
             wx, wz, wy, lam = _kkt.kkt_adjoints(fac, x, z, y, status, gx, gz, gy)
         grads = _kkt.input_gradients(x, lam, y, wx, wz, wy, ctx.needs_input_grad[:6])
-        if scaling is not None:  # the scaled data are the inputs times the factors
-            c, r, e = scaling
-            factors = (c.view(-1, 1, 1), c.unsqueeze(-1), r.unsqueeze(-1), r, e.unsqueeze(-1), e)
-            grads = tuple(None if g is None else g * f for g, f in zip(grads, factors, strict=True))
+        if scaling is not None:  # the scaled P and q are c times the inputs
+            dP, dq = grads[0], grads[1]
+            dP = None if dP is None else dP * scaling.c.view(-1, 1, 1)
+            dq = None if dq is None else dq * scaling.c.unsqueeze(-1)
+            grads = (dP, dq, *grads[2:])
         return (*(None if g is None else g.to(ctx.dtype) for g in grads), None, None)
