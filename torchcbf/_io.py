@@ -42,9 +42,28 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
 
 def _umask() -> int:
+    """The process's umask, read without changing it where the system says it (Linux's
+    ``/proc/self/status``; setting it to read it races with other threads creating files)."""
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
     mask = os.umask(0o022)
     os.umask(mask)
     return mask
+
+
+def save_figure(fig: Any, path: str | Path, **options: Any) -> Path:
+    """Save a matplotlib figure to ``path`` atomically (``savefig(**options)``, dpi 120 by
+    default) and close it."""
+    import matplotlib.pyplot as plt
+
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, **{"dpi": 120, "format": Path(path).suffix[1:] or "png", **options})
+    finally:
+        plt.close(fig)
+    return Path(path)
 
 
 def write_bytes(path: str | Path, data: bytes) -> Path:

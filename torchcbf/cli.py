@@ -48,14 +48,7 @@ INTERRUPTED = 130  # the exit code of a run ended by Ctrl-C (128 + SIGINT)
 
 
 def _save(fig: Any, path: Path) -> Path:
-    import matplotlib.pyplot as plt
-
-    try:
-        with _io.atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=120, bbox_inches="tight")
-    finally:
-        plt.close(fig)
-    return path
+    return _io.save_figure(fig, path, bbox_inches="tight")
 
 
 def _save_animation(make: Callable[..., Any], path: Path, *args: Any, **kwargs: Any) -> Path:

@@ -347,3 +347,26 @@ def test_metrics_sees_a_collision_between_two_samples() -> None:
     m = metrics(inside, barriers=[ball])
     assert m["collision"].tolist() == [True] and m["collision_between_samples"].tolist() == [False]
     assert m["first_collision_time"].tolist() == [0.0]
+
+
+def test_trajectory_load_names_missing_fields(tmp_path) -> None:
+    path = tmp_path / "partial.pt"
+    torch.save({"t": torch.zeros(2)}, path)
+    with pytest.raises(ValueError, match="missing fail_step, failed"):
+        Trajectory.load(path)
+
+
+def test_the_swept_check_in_slices_equals_the_whole(monkeypatch) -> None:
+    import importlib
+
+    from torchcbf.barriers import Ball
+
+    module = importlib.import_module("torchcbf.sim.metrics")
+    x = torch.randn(3, 50, 2, generator=torch.Generator().manual_seed(0)).cumsum(1)
+    t = torch.linspace(0.0, 1.0, 50)
+    ball = [Ball([0.0, 0.0], 2.0)]
+    whole, times = module._swept(ball, x, t, 8)
+    monkeypatch.setattr(module, "SWEPT_CHUNK_ELEMENTS", 3 * 8 * 2 * 7)  # 7 steps a slice
+    sliced, sliced_times = module._swept(ball, x, t, 8)
+    assert torch.equal(whole, sliced) and torch.equal(times, sliced_times)
+    assert whole.any() and not whole.all()

@@ -204,12 +204,37 @@ def test_overwrite_replaces_an_earlier_run_and_keeps_other_files(tmp_path) -> No
             "--seeds", "2", "--out", str(tmp_path), "--no-progress"]  # fmt: skip
     assert main(args) == 0
     (tmp_path / "notes.txt").write_text("keep")
-    (tmp_path / "metrics.json").write_text("{}")  # an older scenario run's output
+    (tmp_path / "metrics.json").write_text("{}")  # no manifest lists it: not torchcbf's to remove
     assert main(args) == 2  # a finished run is not replaced without --overwrite
     other = [*args[:3], "num_samples=64", *args[4:], "--overwrite"]
     assert main(other) == 0
     rows = json.loads((tmp_path / "sweep.json").read_text())["rows"]
     assert [r["num_samples"] for r in rows] == [64]
     assert len((tmp_path / "sweep.jsonl").read_text().splitlines()) == 1
-    assert not (tmp_path / "metrics.json").exists()
+    assert (tmp_path / "metrics.json").read_text() == "{}"
     assert (tmp_path / "notes.txt").read_text() == "keep"
+
+
+def test_overwrite_removes_only_what_a_torchcbf_manifest_lists(tmp_path, capsys) -> None:
+    from torchcbf.sweep.rundir import OutputError, RunDir
+
+    args = ["sweep", "reach-avoid", "--grid", "num_samples=32", "--grid", "horizon=8",
+            "--seeds", "2", "--no-progress"]  # fmt: skip
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "run.json").write_text('{"files": ["data.csv"], "note": "my experiment"}')
+    (mine / "data.csv").write_text("a,b")
+    assert (
+        main([*args, "--out", str(mine), "--overwrite"]) == 2
+    )  # a run.json torchcbf did not write
+    assert "torchcbf did not write" in capsys.readouterr().err
+    assert (mine / "data.csv").read_text() == "a,b"
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    (plain / "reach_avoid_final.png").write_text("mine")
+    assert main([*args, "--out", str(plain), "--overwrite"]) == 0
+    assert (plain / "reach_avoid_final.png").read_text() == "mine"
+    held = RunDir.claim(tmp_path / "held", kind="sweep", settings={})
+    with pytest.raises(OutputError, match="in use by another torchcbf run"):
+        RunDir.claim(tmp_path / "held", kind="sweep", settings={}, resume=True)
+    del held

@@ -197,3 +197,13 @@ def test_tune_cut_between_two_parameters_resumes_as_if_never_cut(monkeypatch, tm
     assert resumed["trials"] == reference["trials"]
     assert resumed["best"] == reference["best"]
     assert len({(r["num_samples"], r["horizon"]) for r in resumed["trials"]}) == 6
+
+
+def test_tune_checks_its_fixed_values_before_any_work(tmp_path) -> None:
+    pytest.importorskip("optuna")
+    from torchcbf.sweep import tune
+
+    with pytest.raises(ValueError, match="rho must be in"):
+        tune("mppi-cbf", trials=2, num_seeds=1, fixed={"method": "mppi_rascbf", "rho": 5.0},
+             params=["noise_sigma"], out=tmp_path / "t", progress=False)  # fmt: skip
+    assert not (tmp_path / "t").exists()

@@ -227,6 +227,7 @@ def mppi_cbf(
             params = replace(params, **{name: _positive(name, value)})
     if shield_steps is not None:
         params = replace(params, shield_steps=check_positive_int("shield_steps", shield_steps))
+    check_positive_int("planner_every", planner_every)
     if control_weight is not None:
         params = replace(params, control_weight=_pair("control_weight", control_weight))
     if control_limit is not None:

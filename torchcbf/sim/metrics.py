@@ -39,18 +39,31 @@ def _barrier_values(fns: Sequence[Callable[[Tensor], Tensor]], x: Tensor) -> Ten
     return torch.cat(values, -1).reshape(*x.shape[:-1], -1)
 
 
-def _swept(x: Tensor, t: Tensor, points: int) -> tuple[Tensor | None, Tensor]:
-    """The ``points`` interior points of the straight segments between consecutive samples
-    ``[B, T, points, n]`` and the times of samples and points in order ``[T (points + 1) + 1]``
+#: state values of segment points evaluated at once by the swept check (bounds its memory)
+SWEPT_CHUNK_ELEMENTS = 2**22
+
+
+def _swept(
+    fns: Sequence[Callable[[Tensor], Tensor]], x: Tensor, t: Tensor, points: int
+) -> tuple[Tensor | None, Tensor]:
+    """Whether some barrier is negative at each of the ``points`` interior points of the
+    straight segments between consecutive samples ``[B, T, points]`` (evaluated a few steps
+    at a time), and the times of samples and points in order ``[T (points + 1) + 1]``
     (``None`` and the sample times when there is nothing to add)."""
     if points == 0 or x.shape[1] < 2:
         return None, t
     s = torch.arange(1, points + 1, device=x.device, dtype=x.dtype) / (points + 1)
-    start, step = x[:, :-1, None, :], (x[:, 1:] - x[:, :-1])[:, :, None, :]
-    dense = start + s[:, None] * step
+    B, T, n = x.shape[0], x.shape[1] - 1, x.shape[-1]
+    steps = max(1, SWEPT_CHUNK_ELEMENTS // max(1, B * points * n))
+    between = []
+    for j in range(0, T, steps):
+        end = min(j + steps, T)
+        start = x[:, j:end, None, :]
+        step = (x[:, j + 1 : end + 1] - x[:, j:end])[:, :, None, :]
+        between.append(_barrier_values(fns, start + s[:, None] * step).min(-1).values < 0)
     frac = torch.cat([torch.zeros(1, device=x.device, dtype=x.dtype), s])
     times = (t[:-1, None] + frac * (t[1:] - t[:-1])[:, None]).reshape(-1)
-    return dense, torch.cat([times, t[-1:]])
+    return torch.cat(between, 1), torch.cat([times, t[-1:]])
 
 
 def wilson_interval(successes: int, total: int, z: float = 1.96) -> tuple[float, float]:
@@ -117,9 +130,8 @@ def metrics(
         h_min = h.min(-1).values
         unsafe = h_min < 0
         out["min_h"] = h_min.min(-1).values
-        dense, dense_t = _swept(traj.x, t, segment_points)
-        if dense is not None:
-            between = _barrier_values(fns, dense).min(-1).values < 0  # [B, T, P]
+        between, dense_t = _swept(fns, traj.x, t, segment_points)  # [B, T, P]
+        if between is not None:
             crossed = between.any(-1)  # [B, T]
             out["collision_between_samples"] = crossed.any(-1) & ~unsafe.any(-1)
             # samples and segment points in time order: sample k, then its segment's points

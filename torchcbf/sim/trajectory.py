@@ -133,9 +133,15 @@ class Trajectory:
                 f"{path} is not a trajectory file of tensors only (Trajectory.save writes "
                 f"one); refused without unpickling its objects: {error}"
             ) from None
-        names = {f.name for f in dataclasses.fields(cls)}
-        if not isinstance(data, dict) or not set(data) <= names:
-            raise ValueError(f"{path} is not a trajectory written by Trajectory.save")
+        fields = dataclasses.fields(cls)
+        names = {f.name for f in fields}
+        needed = {f.name for f in fields if f.default is f.default_factory is dataclasses.MISSING}
+        if not isinstance(data, dict) or not needed <= set(data) <= names:
+            missing = sorted(needed - set(data)) if isinstance(data, dict) else []
+            raise ValueError(
+                f"{path} is not a trajectory written by Trajectory.save"
+                + (f" (missing {', '.join(missing)})" if missing else "")
+            )
         return cls(**{k: _restore(v) for k, v in data.items()})
 
     def scenario(self, index: int) -> Trajectory:

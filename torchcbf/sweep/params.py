@@ -167,6 +167,19 @@ def jsonable(value: Any) -> Any:
     return str(value)
 
 
+def check_buildable(
+    scenario: str, configs: Sequence[Mapping[str, Any]], *, seed: int, device: str
+) -> None:
+    """Build each configuration of ``scenario`` once, on one seed, so that a value its builder
+    refuses is a ``ValueError`` naming the configuration before any work."""
+    make = builder(scenario)
+    for params in configs:
+        try:
+            make(**params, num_seeds=1, seed=seed, device=device)
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"configuration {describe(params)}: {error}") from error
+
+
 def describe(params: Mapping[str, Any]) -> str:
     """``key=value`` pairs as the command line writes them."""
     return " ".join(f"{k}={_text(v)}" for k, v in params.items())

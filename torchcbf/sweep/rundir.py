@@ -8,8 +8,11 @@ first (not a file, not under a file, writable) and then:
 - a folder holding an unfinished or finished run of the same command with the same
   settings: continued with ``resume=True`` (what is done is kept and skipped);
 - anything else that is not empty: refused unless ``overwrite=True``, which first removes
-  the files of earlier torchcbf runs there (those their manifest lists and the command
-  outputs' own names) and leaves other files alone.
+  the files the manifest of the earlier torchcbf run there lists (and its ``.parts``) and
+  leaves every other file alone (a folder without a torchcbf manifest loses nothing; a
+  ``run.json`` torchcbf did not write is never replaced).
+
+A manifest is torchcbf's only when it says so (``"format": "torchcbf run"``).
 
 So the outputs of two runs never mix. Every file is written through :mod:`torchcbf._io`
 (temporary name, then rename).
@@ -28,22 +31,10 @@ from typing import Any
 from torchcbf import _io
 
 MANIFEST = "run.json"
-
-# Output names of every torchcbf command, removed by ``overwrite`` when no manifest lists them.
-KNOWN_OUTPUTS = (
-    MANIFEST,
-    "metrics.json",
-    "sweep.csv",
-    "sweep.json",
-    "sweep.jsonl",
-    "sweep.png",
-    "best.json",
-    "study.csv",
-    "study.png",
-    "study.db",
-    "study.db-journal",
-)
-KNOWN_PATTERNS = ("reach_avoid*.png", "reach_avoid*.gif", "mppi_cbf_*.png", "mppi_cbf_*.gif")
+#: the mark of a manifest torchcbf wrote
+FORMAT = "torchcbf run"
+#: held (an exclusive ``flock``) by the process that claimed the folder, until it exits
+LOCK = ".torchcbf.lock"
 PARTS = ".parts"  # finished units of a scenario run (``torchcbf mppi-cbf``), kept for --resume
 
 
@@ -92,6 +83,7 @@ class RunDir:
         self.settings = _jsonable(dict(settings))
         self.resumed = resumed
         self.files: list[str] = []
+        self._lock: Any = None
 
     @classmethod
     def claim(
@@ -102,15 +94,23 @@ class RunDir:
         settings: Mapping[str, Any],
         resume: bool = False,
         overwrite: bool = False,
+        outputs: tuple[str, ...] = (),
     ) -> RunDir:
         """Check ``out`` and take it for a run of ``kind`` with ``settings`` (OutputError
-        when it holds something else and neither flag allows it)."""
+        when it holds something else and neither flag allows it). ``outputs``: the names the
+        run writes as it goes, listed in the manifest from the start (so that an interrupted
+        run's files are known to ``overwrite``)."""
         if resume and overwrite:
             raise OutputError("--resume and --overwrite exclude each other")
         path = check_location(out)
+        lock = _lock(path)
         settings = _jsonable(dict(settings))
         manifest = read_manifest(path)
-        entries = [p for p in path.iterdir() if not _io.is_temporary(p)]
+        if manifest is None and (path / MANIFEST).exists():
+            raise OutputError(
+                f"--out {path} holds a {MANIFEST} that torchcbf did not write; use another --out"
+            )
+        entries = [p for p in path.iterdir() if not _io.is_temporary(p) and p.name != LOCK]
         if manifest is not None and resume:
             if manifest.get("kind") != kind:
                 raise OutputError(
@@ -128,7 +128,8 @@ class RunDir:
                 )
             _io.remove_stale(path)
             run = cls(path, kind, settings, resumed=True)
-            run.files = list(manifest.get("files", []))
+            run._lock = lock
+            run.files = list(dict.fromkeys([*manifest.get("files", []), *outputs]))
             run._write_manifest(complete=False)
             return run
         if entries:
@@ -147,11 +148,14 @@ class RunDir:
             clear(path, manifest)
         _io.remove_stale(path)
         run = cls(path, kind, settings, resumed=False)
+        run._lock = lock
+        run.files = list(outputs)
         run._write_manifest(complete=False)
         return run
 
     def _write_manifest(self, complete: bool) -> None:
         data = {
+            "format": FORMAT,
             "kind": self.kind,
             "settings": self.settings,
             "complete": complete,
@@ -168,27 +172,51 @@ class RunDir:
         self._write_manifest(complete=False)
 
     def finish(self) -> None:
-        """Mark the run complete."""
+        """Mark the run complete and release the folder."""
         self._write_manifest(complete=True)
+        if self._lock is not None:
+            self._lock.close()
+            self._lock = None
+
+
+def _lock(path: Path) -> Any:
+    """An exclusive lock on ``path`` for this process (the open lock file; closed, and so
+    released, when the process ends), or OutputError where another process holds it. Where
+    ``fcntl`` is missing (Windows) nothing is locked."""
+    try:
+        import fcntl
+    except ImportError:
+        return None
+    handle = open(path / LOCK, "a")  # noqa: SIM115 - held open for the life of the run
+    try:
+        fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        handle.close()
+        raise OutputError(
+            f"--out {path} is in use by another torchcbf run (wait for it, or use another --out)"
+        ) from None
+    return handle
 
 
 def read_manifest(path: str | Path) -> dict[str, Any] | None:
-    """The manifest of the run in ``path`` (None when there is none or it is unreadable)."""
+    """The manifest of the torchcbf run in ``path`` (None when there is none, it is
+    unreadable, or torchcbf did not write it)."""
     try:
         data = json.loads((Path(path) / MANIFEST).read_text())
     except (OSError, ValueError):
         return None
-    return data if isinstance(data, dict) else None
+    ours = isinstance(data, dict) and data.get("format") == FORMAT
+    return data if ours and isinstance(data.get("kind"), str) else None
 
 
 def clear(path: Path, manifest: Mapping[str, Any] | None) -> None:
-    """Remove the outputs of earlier torchcbf runs from ``path`` (other files stay)."""
-    listed = [str(n) for n in (manifest or {}).get("files", [])]
-    names = set(KNOWN_OUTPUTS) | {n for n in listed if Path(n).name == n and n not in ("", "..")}
-    targets = {path / n for n in names}
-    for pattern in KNOWN_PATTERNS:
-        targets.update(path.glob(pattern))
-    for target in targets:
+    """Remove the outputs the torchcbf ``manifest`` of ``path`` lists, the manifest and its
+    ``.parts`` (nothing without a manifest; other files stay)."""
+    if manifest is None:
+        return
+    listed = [str(n) for n in manifest.get("files", [])]
+    names = {MANIFEST} | {n for n in listed if Path(n).name == n and n not in ("", ".", "..")}
+    for target in (path / n for n in names):
         with contextlib.suppress(FileNotFoundError):
             target.unlink()
     parts = path / PARTS

@@ -25,10 +25,12 @@ from torchcbf import _io
 from torchcbf._checks import check_positive_int
 from torchcbf.sweep.engines import Outcome, check_engine, run_each
 from torchcbf.sweep.evaluate import evaluate
-from torchcbf.sweep.params import builder, check_keys, describe, jsonable
+from torchcbf.sweep.params import check_buildable, check_keys, describe, jsonable
 from torchcbf.sweep.rundir import RunDir
 
 JOURNAL = "sweep.jsonl"
+#: the files a sweep writes in its run directory
+OUTPUTS = (JOURNAL, "sweep.json", "sweep.csv", "sweep.png")
 
 RATES = ("success", "collision", "goal")
 
@@ -96,18 +98,14 @@ def run_sweep(
     check_positive_int("num_seeds", num_seeds)
     check_positive_int("threads", threads)
     configs = configurations(grid)
-    make = builder(scenario)
-    for params in configs:
-        try:
-            make(**params, num_seeds=1, seed=seed, device=device)
-        except (TypeError, ValueError) as error:
-            raise ValueError(f"configuration {describe(params)}: {error}") from error
+    check_buildable(scenario, configs, seed=seed, device=device)
     settings = sweep_settings(
         scenario, grid, num_seeds=num_seeds, seed=seed, device=device, threads=threads
     )
     run = out
     if out is not None and not isinstance(out, RunDir):
-        run = RunDir.claim(out, kind="sweep", settings=settings, resume=resume, overwrite=overwrite)
+        run = RunDir.claim(out, kind="sweep", settings=settings, resume=resume,
+                           overwrite=overwrite, outputs=OUTPUTS)  # fmt: skip
     calls = [
         {
             "scenario": scenario,
@@ -303,10 +301,7 @@ def plot_sweep(rows: Sequence[Mapping[str, Any]], grid: Mapping[str, Sequence[An
     n = rows[0]["num_seeds"] if rows else 0
     fig.suptitle(f"rates over {n} seeds per configuration")
     fig.tight_layout()
-    with _io.atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120, format="png")
-    plt.close(fig)
-    return path
+    return _io.save_figure(fig, path)
 
 
 def write_sweep(

@@ -34,11 +34,13 @@ from torchcbf import _io
 from torchcbf._checks import check_positive_int
 from torchcbf.sweep.engines import Outcome, check_engine, ray_session, run_each
 from torchcbf.sweep.evaluate import evaluate
-from torchcbf.sweep.params import builder, builder_defaults, check_keys, jsonable
+from torchcbf.sweep.params import builder, builder_defaults, check_buildable, check_keys, jsonable
 from torchcbf.sweep.rundir import RunDir
 from torchcbf.sweep.sweep import jsonable_tree, run_info, write_json, write_table
 
 STORAGE = "study.db"
+#: the files a study writes in its run directory (SQLite may add its journal beside the db)
+OUTPUTS = (STORAGE, f"{STORAGE}-journal", "study.csv", "best.json", "study.png")
 STUDY_NAME = "torchcbf-tune"
 
 TUNING_SEED = 10_000
@@ -290,6 +292,7 @@ def tune(
             f"({num_seeds} seeds each)"
         )
     dims = search_space(scenario, params, fixed)
+    check_buildable(scenario, [fixed], seed=seed, device=device)
     settings = tune_settings(
         scenario,
         trials=trials,
@@ -305,7 +308,8 @@ def tune(
     )
     run = out
     if out is not None and not isinstance(out, RunDir):
-        run = RunDir.claim(out, kind="tune", settings=settings, resume=resume, overwrite=overwrite)
+        run = RunDir.claim(out, kind="tune", settings=settings, resume=resume,
+                           overwrite=overwrite, outputs=OUTPUTS)  # fmt: skip
     storage: Any = None
     if run is not None:
         storage = optuna.storages.RDBStorage(f"sqlite:///{run.path / STORAGE}")
@@ -481,10 +485,7 @@ def plot_study(
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    with _io.atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120, format="png")
-    plt.close(fig)
-    return path
+    return _io.save_figure(fig, path)
 
 
 def write_tune(result: Mapping[str, Any], out: str | Path, **info: Any) -> dict[str, Path]:
