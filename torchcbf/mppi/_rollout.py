@@ -328,9 +328,7 @@ def run(
                 weights, wsum, cmajor)  # fmt: skip
     fn = lib.torchcbf_mppi_run_f64 if x0.dtype == torch.float64 else lib.torchcbf_mppi_run_f32
     inputs = [pairs, x0, plan, wctrl, keys]
-    threads = 1 if wsum is None else wsum.shape[0]
-    if wsum is None:
-        threads = max(1, min(torch.get_num_threads(), count // MIN_SAMPLES_PER_THREAD))
+    threads = update_threads(count) if wsum is None else wsum.shape[0]
     bounds = [count * i // threads for i in range(threads + 1)]
     if wsum is not None and inputs[0] is not None and threads > 1:
         # each environment's weighted sum is accumulated by one thread, in sample order, so
@@ -423,7 +421,8 @@ def _expect(
 
 
 def update_threads(count: int) -> int:
-    """Threads of an update pass over ``count`` samples."""
+    """Threads of a kernel pass over ``count`` samples (an update pass's ``wsum`` holds one
+    slice per thread)."""
     return max(1, min(torch.get_num_threads(), count // MIN_SAMPLES_PER_THREAD))
 
 

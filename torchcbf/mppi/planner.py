@@ -447,7 +447,7 @@ class MPPI(ExactConstants):
                 cfg, B * self.num_samples, xc, plan, keys,
                 states=states, controls=controls, wctrl=wctrl, cost=ctrl, layout=self.layout,
             )  # fmt: skip
-            cost = self._check_cost(self._score_fn(states, controls, None, plan, t0, history))
+            cost = self._score_fn(states, controls, None, plan, t0, history)
             if ctrl is not None:
                 cost = cost + ctrl
             weights = self._weights(cost)
@@ -457,7 +457,7 @@ class MPPI(ExactConstants):
             assert eps is not None
             self._sample_noise(eps)
             self._rollout(xb, eps, controls, states)
-            cost = self._check_cost(self._score_fn(states, controls, eps, plan, t0, history))
+            cost = self._score_fn(states, controls, eps, plan, t0, history)
             weights = self._weights(cost)
             K, H, m = self.num_samples, self.horizon, self.dynamics.control_dim
             by_component = eps.permute(0, 3, 2, 1).reshape(B, m * H, K)
@@ -472,8 +472,7 @@ class MPPI(ExactConstants):
     def _sample_noise(self, eps: Tensor) -> None:
         std = self._isotropic_std
         storage = eps.permute(0, 3, 2, 1)  # [B, m, H, K]: contiguous in the component layout
-        direct = storage.is_contiguous()
-        scratch = None if direct else eps.new_empty(storage.shape[1:])
+        scratch = None if storage.is_contiguous() else eps.new_empty(storage.shape[1:])
         for b, gen in enumerate(self._generators):
             # Sigma = s^2 I: drawn scaled in one pass; otherwise standard, scaled below; the
             # same draws in [m, H, K] order in either layout
@@ -516,9 +515,9 @@ class MPPI(ExactConstants):
         t0: Tensor,
         history: History | None,
     ) -> Tensor:
-        """Cost ``[B, K]`` of the rollouts (``[B, K, H+1, n]``, ``[B, K, H, m]``) plus the
-        control cost of the noise ``eps`` (none where ``eps`` is ``None``: the kernel adds
-        it)."""
+        """Cost ``[B, K]`` of the rollouts (``[B, K, H+1, n]``, ``[B, K, H, m]``), checked and
+        cast by :meth:`_check_cost`, plus the control cost of the noise ``eps`` (none where
+        ``eps`` is ``None``: the kernel adds it)."""
         chunk = self._chunk(states)
         K = states.shape[1]
         if chunk >= K:
