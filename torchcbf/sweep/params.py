@@ -157,7 +157,10 @@ def parse_grid(scenario: str, items: Sequence[str]) -> dict[str, list[Any]]:
 
 
 def jsonable(value: Any) -> Any:
-    """A parameter value as strict JSON (tuples as lists, non-finite floats as None)."""
+    """A value as strict JSON: mappings with string keys, tuples as lists, non-finite floats
+    as None, anything else that is not a JSON scalar as its ``str``."""
+    if isinstance(value, Mapping):
+        return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, (tuple, list)):
         return [jsonable(v) for v in value]
     if isinstance(value, float) and not math.isfinite(value):

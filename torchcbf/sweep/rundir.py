@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from torchcbf import _io
+from torchcbf.sweep.params import jsonable
 
 MANIFEST = "run.json"
 #: the mark of a manifest torchcbf wrote
@@ -63,10 +64,6 @@ def check_location(out: str | Path) -> Path:
     return out
 
 
-def _jsonable(value: Any) -> Any:
-    return json.loads(json.dumps(value, default=str))
-
-
 class RunDir:
     """A claimed run directory (see the module docstring).
 
@@ -80,7 +77,7 @@ class RunDir:
     def __init__(self, path: Path, kind: str, settings: Mapping[str, Any], resumed: bool):
         self.path = path
         self.kind = kind
-        self.settings = _jsonable(dict(settings))
+        self.settings = jsonable(settings)
         self.resumed = resumed
         self.files: list[str] = []
         self._lock: Any = None
@@ -104,7 +101,7 @@ class RunDir:
             raise OutputError("--resume and --overwrite exclude each other")
         path = check_location(out)
         lock = _lock(path)
-        settings = _jsonable(dict(settings))
+        settings = jsonable(settings)
         manifest = read_manifest(path)
         if manifest is None and (path / MANIFEST).exists():
             raise OutputError(

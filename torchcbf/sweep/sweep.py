@@ -57,7 +57,7 @@ def sweep_settings(
     its numbers are the same)."""
     return {
         "scenario": scenario,
-        "grid": jsonable_tree(dict(grid)),
+        "grid": jsonable(dict(grid)),
         "num_seeds": num_seeds,
         "seed": seed,
         "device": str(device),
@@ -134,7 +134,7 @@ def run_sweep(
         row = _row(configs[i], num_seeds, seed, outcome)
         done[i] = row
         if run is not None:
-            line = json.dumps({"index": i, "row": jsonable_tree(row)}, allow_nan=False)
+            line = json.dumps({"index": i, "row": jsonable(row)}, allow_nan=False)
             _io.append_line(run.path / JOURNAL, line)
             rows = [done[k] for k in sorted(done)]
             _write_rows(rows, grid, run, complete=False, **info)
@@ -240,16 +240,7 @@ def _cell(value: Any) -> Any:
 
 def write_json(data: Mapping[str, Any], path: Path) -> Path:
     """Strict JSON (no NaN/Infinity literals: they are written as null)."""
-    return _io.write_json(path, jsonable_tree(data))
-
-
-def jsonable_tree(value: Any) -> Any:
-    """``value`` with every leaf made strict-JSON (:func:`~torchcbf.sweep.params.jsonable`)."""
-    if isinstance(value, Mapping):
-        return {str(k): jsonable_tree(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [jsonable_tree(v) for v in value]
-    return jsonable(value)
+    return _io.write_json(path, jsonable(data))
 
 
 def run_info(**extra: Any) -> dict[str, Any]:

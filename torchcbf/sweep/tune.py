@@ -36,7 +36,7 @@ from torchcbf.sweep.engines import Outcome, check_engine, ray_session, run_each
 from torchcbf.sweep.evaluate import evaluate
 from torchcbf.sweep.params import builder, builder_defaults, check_buildable, check_keys, jsonable
 from torchcbf.sweep.rundir import RunDir
-from torchcbf.sweep.sweep import jsonable_tree, run_info, write_json, write_table
+from torchcbf.sweep.sweep import run_info, write_json, write_table
 
 STORAGE = "study.db"
 #: the files a study writes in its run directory (SQLite may add its journal beside the db)
@@ -199,7 +199,7 @@ def tune_settings(
         "num_seeds": num_seeds,
         "seed": seed,
         "eval_seed": eval_seed,
-        "fixed": jsonable_tree(dict(fixed)),
+        "fixed": jsonable(dict(fixed)),
         "params": None if params is None else list(params),
         "sampler_seed": sampler_seed,
         "batch": batch,
@@ -231,7 +231,7 @@ def _suggest_all(
 
 def _outcome_row(outcome: Outcome) -> dict[str, Any]:
     if outcome.ok:
-        return {**jsonable_tree(outcome.value), "status": "ok"}
+        return {**jsonable(outcome.value), "status": "ok"}
     return {"status": "failed", "error": outcome.error}
 
 
@@ -496,7 +496,7 @@ def write_tune(result: Mapping[str, Any], out: str | Path, **info: Any) -> dict[
     summary = {k: v for k, v in result.items() if k != "trials"}
     rows = result["trials"]
     return {
-        "json": write_json({"run": run_info(**info), **jsonable_tree(summary)}, out / "best.json"),
+        "json": write_json({"run": run_info(**info), **jsonable(summary)}, out / "best.json"),
         "csv": write_table(rows, out / "study.csv"),
         "figure": plot_study(rows, result["default"]["objective"], out / "study.png"),
     }
