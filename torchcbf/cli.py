@@ -428,10 +428,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _run_arguments(argv: Sequence[str]) -> list[str]:
+    """``argv`` without the flags that only say how to treat ``--out`` (what identifies a run)."""
+    return [a for a in argv if a not in ("--resume", "--overwrite")]
+
+
 def _resume_hint(argv: Sequence[str]) -> str:
     """The command line that continues this run."""
-    kept = [a for a in argv if a not in ("--resume", "--overwrite")]
-    return "torchcbf " + " ".join(shlex.quote(a) for a in [*kept, "--resume"])
+    return "torchcbf " + " ".join(shlex.quote(a) for a in [*_run_arguments(argv), "--resume"])
 
 
 def _interrupted(command: str, argv: Sequence[str], out: Path, saved: str) -> int:
@@ -493,8 +497,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
             demo_a = argparse.Namespace(**{**vars(args), **sizes})
             results = {**_reach_avoid(demo_a, parts), **_mppi_cbf(args, parts)}
             print(f"\nThe paper's size of scenario B (32 seeds, K = 20,000): {PAPER_SIZE_B}")
-        kept = [a for a in argv if a not in ("--resume", "--overwrite")]
-        record = {"command": " ".join(kept), "run": run_info(args.device)}
+        record = {"command": " ".join(_run_arguments(argv)), "run": run_info(args.device)}
         metrics_path = run.path / "metrics.json"
         _io.write_json(metrics_path, strict({**record, "results": results}))
     except KeyboardInterrupt:

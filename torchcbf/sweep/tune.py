@@ -23,6 +23,7 @@ parameters, the rest of the study continues, and the outputs equal an uninterrup
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -342,7 +343,7 @@ def tune(
             study.set_user_attr(key, _outcome_row(outcomes[0]))
         return dict(study.user_attrs[key])
 
-    session = ray_session(address, num_cpus) if engine == "ray" else _nothing()
+    session = ray_session(address, num_cpus) if engine == "ray" else contextlib.nullcontext()
     desc = f"tune {scenario} ({engine})"
     with session, tqdm(total=trials + 3, desc=desc, disable=not progress) as bar:
         default_row = evaluate_once("default_row", {}, seed)
@@ -451,14 +452,6 @@ def _trial_rows(study: Any, trials: int) -> list[dict[str, Any]]:
             }
         )
     return rows
-
-
-class _nothing:
-    def __enter__(self) -> None:
-        return None
-
-    def __exit__(self, *exc: Any) -> None:
-        return None
 
 
 def plot_study(
