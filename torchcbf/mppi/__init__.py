@@ -10,12 +10,16 @@ from torchcbf.mppi.costs import (
     SumCost,
 )
 from torchcbf.mppi.history import History, HistoryBuffer
+from torchcbf.mppi.interpolated import KMPPI, rbf_kernel
 from torchcbf.mppi.planner import MPPI, MPPIOutput
 from torchcbf.mppi.shield import ShieldMPPI
+from torchcbf.mppi.smooth import SMPPI
 from torchcbf.mppi.specs import Always, And, Avoid, Eventually, Or, Reach, Spec
 
 __all__ = [
+    "KMPPI",
     "MPPI",
+    "SMPPI",
     "Always",
     "And",
     "Avoid",
@@ -29,6 +33,7 @@ __all__ = [
     "Or",
     "QuadraticGoal",
     "Reach",
+    "rbf_kernel",
     "ShieldMPPI",
     "RolloutCost",
     "Spec",

@@ -45,9 +45,12 @@ Paths (``MPPI.path`` says which one the last call took):
 - ``"rollout"``: a built-in model with any other cost: the kernel draws the noise and rolls
   out into the ``[B, K, H+1, n]`` buffer, torch evaluates the cost.
 - ``"torch"``: everything else (any :class:`~torchcbf.dynamics.ControlAffine`, CUDA, a
-  planner built with ``backend="torch"``, or gradients requested through the planner's
-  parameters): noise from ``torch.Generator``, rollouts with :mod:`torchcbf.integrators`,
-  buffers allocated once and reused.
+  planner built with ``backend="torch"``, gradients requested through the planner's
+  parameters, and the options the kernel does not express: ``step=``, ``noise_abs_cost``,
+  ``action_sampler``, ``sample_null_action`` and the variants that sample otherwise,
+  :class:`~torchcbf.mppi.SMPPI` and :class:`~torchcbf.mppi.KMPPI`): noise from
+  ``torch.Generator``, rollouts with :mod:`torchcbf.integrators` (or ``step``), buffers
+  allocated once and reused.
 
 Every path hands a torch cost ``states [B, K, H+1, n]`` and ``controls [B, K, H, m]``,
 sliced over the samples (``cost_chunk``), as views of component-major storage (``[B, n,
@@ -69,8 +72,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -142,12 +146,51 @@ def _limit(name: str, value: object, m: int) -> Tensor | None:
     return t.to(value.dtype if isinstance(value, Tensor) else torch.get_default_dtype())
 
 
+def _scale(value: object, m: int, like: Tensor) -> Tensor | None:
+    """``u_scale`` as a positive finite ``[m]`` tensor in the dtype of ``like`` (``None``
+    for no scale)."""
+    if value is None:
+        return None
+    t = torch.as_tensor(value, dtype=like.dtype, device=like.device)
+    if t.dim() == 0:
+        t = t.expand(m)
+    if t.shape != (m,) or not bool(((t > 0) & torch.isfinite(t)).all()):
+        raise ValueError(
+            f"u_scale must be a positive number or [{m}] positive numbers, got {value!r}"
+        )
+    return t.clone()
+
+
 class _Weights(NamedTuple):
     w: Tensor  # [B, K] normalised weights (0 for non-finite costs)
     cost_min: Tensor
     best: Tensor
     ok: Tensor
     finite: Tensor
+
+
+def _weighted_sum(z: Tensor, w: Tensor) -> Tensor:
+    """``sum_k w_k z_k``: ``z [B, K, S, m]``, ``w [B, K]`` -> ``[B, S, m]``."""
+    B, K, S, m = z.shape
+    by_component = z.permute(0, 3, 2, 1).reshape(B, m * S, K)
+    return (by_component @ w.unsqueeze(-1)).view(B, m, S).transpose(1, 2)
+
+
+def _shifted(seq: Tensor, fill: str) -> Tensor:
+    """``seq [B, H, m]`` moved one step earlier; the last entry zero (``fill="zero"``) or
+    repeated (``"last"``)."""
+    last = seq[:, -1:] if fill == "last" else torch.zeros_like(seq[:, -1:])
+    return torch.cat([seq[:, 1:], last], 1)
+
+
+def _resized(seq: Tensor, horizon: int, fill: str) -> Tensor:
+    """``seq [B, H, m]`` truncated or extended to ``horizon`` steps (the added entries zero
+    or, with ``fill="last"``, the last one)."""
+    H = seq.shape[1]
+    if horizon <= H:
+        return seq[:, :horizon].clone()
+    last = seq[:, -1:] if fill == "last" else torch.zeros_like(seq[:, -1:])
+    return torch.cat([seq, last.expand(-1, horizon - H, -1)], 1)
 
 
 class MPPI(ExactConstants):
@@ -205,7 +248,35 @@ class MPPI(ExactConstants):
             ``.norm(dim=-1)``, ``.sum(-1)``, up to 18x faster than ``"component"``). Either
             way a cost should index its inputs, not ``.view`` them. The plans do not depend
             on it beyond the rounding of the cost's reductions.
+        step: discrete-time dynamics ``step(x [B, K, n], u [B, K, m], j) -> [B, K, n]`` with
+            ``j`` the step of the horizon (``0 .. H-1``, as pytorch-mppi's
+            ``step_dependent_dynamics``; the global time of the step is ``t + j dt``), used
+            instead of integrating ``dynamics`` (which still gives ``n``, ``m`` and the
+            default limits). Runs on the torch path.
+        u_scale: action scale ``s > 0`` (scalar or ``[m]``): the planner samples actions
+            ``a`` with covariance ``noise_sigma`` and applies ``u = s a``, so the applied
+            noise has covariance ``S Sigma S`` (``S = diag(s)``). Everything the planner
+            returns or takes (``u``, ``plan``, ``u_min``/``u_max``, ``correct``) is in the
+            applied units ``u``, and the cost sees ``u`` (pytorch-mppi returns ``a`` and
+            bounds ``a``: multiply both by ``s``).
+        noise_abs_cost: the control cost reads ``|eps|``: ``gamma sum_j U_j' Sigma^-1
+            |eps_j|`` (pytorch-mppi's option of that name). Runs on the torch path.
+        action_sampler: extra candidate sequences ``action_sampler(x [B, n], t [B]) ->
+            [S, H, m]`` (for every environment) or ``[B, S, H, m]``, in the applied units;
+            they take the samples after the zero-noise (and null-action) samples, are
+            clamped to the limits and weighted like any sample (pytorch-mppi's
+            ``specific_action_sampler``). Runs on the torch path.
+        sample_null_action: one sample is the zero control sequence (pytorch-mppi's
+            ``sample_null_action``), after the zero-noise samples. Runs on the torch path.
+
+    Control limits are one-sided when one side is given: ``u_max`` alone bounds the control
+    from above only (pytorch-mppi mirrors it into ``u_min = -u_max``); write ``u_min=-b,
+    u_max=b`` for a symmetric bound.
     """
+
+    #: how the samples are drawn: ``"gaussian"`` around the plan (the C kernel's sampling);
+    #: a variant that samples otherwise (``"smooth"``, ``"kernel"``) runs on the torch path
+    sampling: ClassVar[str] = "gaussian"
 
     def __init__(
         self,
@@ -231,6 +302,11 @@ class MPPI(ExactConstants):
         backend: str = "auto",
         cost_chunk: int | None = None,
         layout: str = "component",
+        step: Callable[[Tensor, Tensor, int], Tensor] | None = None,
+        u_scale: float | Tensor | None = None,
+        noise_abs_cost: bool = False,
+        action_sampler: Callable[[Tensor, Tensor], Tensor] | None = None,
+        sample_null_action: bool = False,
     ) -> None:
         super().__init__()
         if not isinstance(dynamics, ControlAffine):
@@ -273,6 +349,21 @@ class MPPI(ExactConstants):
             raise ValueError(f"control_cost_weight must be >= 0, got {control_cost_weight!r}")
         if not isinstance(seed, int):
             raise TypeError(f"seed must be an int, got {type(seed).__name__}")
+        if step is not None and not callable(step):
+            raise TypeError(f"step must be callable or None, got {type(step).__name__}")
+        if action_sampler is not None and not callable(action_sampler):
+            raise TypeError(
+                f"action_sampler must be callable or None, got {type(action_sampler).__name__}"
+            )
+        for name, flag in (("noise_abs_cost", noise_abs_cost),
+                           ("sample_null_action", sample_null_action)):  # fmt: skip
+            if not isinstance(flag, bool):
+                raise TypeError(f"{name} must be a bool, got {type(flag).__name__}")
+        if sample_null_action and zero_noise_samples + 1 > num_samples:
+            raise ValueError(
+                f"sample_null_action needs a sample beyond the zero_noise_samples "
+                f"({zero_noise_samples}) of num_samples ({num_samples})"
+            )
         self.dynamics = dynamics
         self.cost = cost
         m = dynamics.control_dim
@@ -290,8 +381,16 @@ class MPPI(ExactConstants):
         #: the path of the last call: ``"fused"``, ``"rollout"`` or ``"torch"``
         self.path: str | None = None
 
+        self.step = step
+        self.noise_abs_cost = noise_abs_cost
+        self.action_sampler = action_sampler
+        self.sample_null_action = sample_null_action
         given = isinstance(noise_sigma, Tensor)
         cov = as_matrix("noise_sigma", noise_sigma, m, dtype=None if given else torch.float64)
+        scale = _scale(u_scale, m, cov)
+        if scale is not None:  # u = s a with a ~ N(U_a, Sigma): the applied noise is S Sigma S
+            cov = scale.unsqueeze(-1) * cov * scale
+        self.register_buffer("u_scale", scale)  # [m] or None; already applied to noise_cov
         chol = torch.linalg.cholesky(cov)
         for name, value in (("noise_cov", cov), ("noise_chol", chol),
                             ("noise_cov_inv", torch.cholesky_inverse(chol))):  # fmt: skip
@@ -343,8 +442,16 @@ class MPPI(ExactConstants):
         ]
         self._history = HistoryBuffer(self.history_size, B, n, device=device, dtype=dtype)
         self._rows = torch.arange(B, device=device)
+        self._allocate(B, device, dtype)
         self._key = key
         self._fresh = True
+
+    def _allocate(self, B: int, device: torch.device, dtype: torch.dtype) -> None:
+        """Per-batch state of a variant beside the plan (none here)."""
+
+    def _sampling_steps(self) -> int:
+        """Rows of the sampled noise per sample: ``H`` (one per plan step) here."""
+        return self.horizon
 
     def _rollout_buffers(self, noise: bool) -> tuple[Tensor | None, Tensor, Tensor]:
         """``eps [B, K, H, m]`` (``None`` unless ``noise``: the kernel's rollout path
@@ -360,7 +467,8 @@ class MPPI(ExactConstants):
                 _rollout.rollout_buffer(like, B, K, H + 1, n, layout),
             )
         if noise and self._noise is None:
-            self._noise = _rollout.rollout_buffer(like, B, K, H, m, layout)
+            steps = self._sampling_steps()
+            self._noise = _rollout.rollout_buffer(like, B, K, steps, m, layout)
         return (self._noise if noise else None), *self._work
 
     @property
@@ -394,7 +502,17 @@ class MPPI(ExactConstants):
 
         ``shift=False`` refines the plan without the warm-start shift (e.g. several
         iterations at the same time).
+
+        ``x`` may be a NumPy array (as a Gymnasium environment returns it): it is planned
+        on the planner's device in its own floating dtype (float32 or float64; others in
+        torch's default dtype), and every array field of the output is then a NumPy array
+        (``out.u`` goes straight into ``env.step``).
         """
+        if isinstance(x, np.ndarray):
+            out = self.forward(self._from_numpy(x), t, shift)
+            return MPPIOutput(
+                *(v.detach().cpu().numpy() if isinstance(v, Tensor) else v for v in out)
+            )
         n = self.dynamics.state_dim
         check_last_dim("x", x, n)
         if x.dim() > 2:
@@ -418,12 +536,7 @@ class MPPI(ExactConstants):
 
         plan = self._plan
         if shift and not self._fresh:
-            fill = plan[:, -1:].clone() if self.shift_fill == "last" else None
-            plan[:, :-1] = plan[:, 1:].clone()
-            if fill is None:
-                plan[:, -1].zero_()
-            else:
-                plan[:, -1:] = fill
+            self._shift()
         self._fresh = False
 
         model, cost_code = self._kernel_plan(xb)
@@ -456,17 +569,101 @@ class MPPI(ExactConstants):
             self.path = "torch"
             assert eps is not None
             self._sample_noise(eps)
-            self._rollout(xb, eps, controls, states)
-            cost = self._score_fn(states, controls, eps, plan, t0, history)
+            ctrl_eps = self._perturb(xb, t0, eps, controls)
+            self._rollout(xb, controls, states)
+            cost = self._score_fn(states, controls, ctrl_eps, self._cost_plan(), t0, history)
+            extra = self._extra_cost(controls)
+            if extra is not None:
+                cost = cost + extra
             weights = self._weights(cost)
-            K, H, m = self.num_samples, self.horizon, self.dynamics.control_dim
-            by_component = eps.permute(0, 3, 2, 1).reshape(B, m * H, K)
-            delta = (by_component @ weights.w.unsqueeze(-1)).view(B, m, H).transpose(1, 2)
+            delta = _weighted_sum(eps, weights.w)
         best_states = states[self._rows, weights.best].contiguous()  # [B, H+1, n]
         rollouts = None
         if self.keep_rollouts:
             rollouts = states[:, : self.keep_rollouts].clone(memory_format=torch.contiguous_format)
         return self._output(cost, weights, delta, best_states, rollouts, unbatched)
+
+    def _from_numpy(self, x: np.ndarray) -> Tensor:
+        dtype = x.dtype if x.dtype in (np.float32, np.float64) else None
+        t = torch.as_tensor(x, dtype=None if dtype is not None else torch.get_default_dtype())
+        return t.to(self.noise_cov.device)
+
+    def _shift(self) -> None:
+        """The warm start: the plan moves one step, the last control is ``shift_fill``'s."""
+        self._plan.copy_(_shifted(self._plan, self.shift_fill))
+
+    def change_horizon(self, horizon: int) -> None:
+        """Plan over ``horizon`` steps from the next call on, keeping the current plan: a
+        shorter horizon truncates it, a longer one extends it with ``shift_fill``'s control
+        (zero, or the last one). The sample buffers are rebuilt on the next call."""
+        if not isinstance(horizon, int) or isinstance(horizon, bool) or horizon < 1:
+            raise ValueError(f"horizon must be an integer >= 1, got {horizon!r}")
+        if self._key is not None:
+            self._resize(horizon)
+            self._work, self._noise = None, None
+        self.horizon = horizon
+
+    def _resize(self, horizon: int) -> None:
+        self._plan = _resized(self._plan, horizon, self.shift_fill)
+
+    def rollout_samples(
+        self,
+        x: Tensor,
+        num_rollouts: int = 1,
+        *,
+        plan: Tensor | None = None,
+        seed: int | None = None,
+    ) -> Tensor:
+        """Roll out a control sequence for display: ``[R, H+1, n]`` for ``x [n]`` (``[B, R,
+        H+1, n]`` for ``x [B, n]``), ``R = num_rollouts``, ``states[..., 0, :] = x``.
+
+        ``plan``: ``[H, m]`` or ``[B, H, m]`` controls in the dynamics' units (default: the
+        current plan, which needs a previous call with the same ``B``). The planner's
+        dynamics (``step`` or the integrator) rolls out; for an SDE model (one with
+        ``sigma``) each rollout draws its own diffusion noise (Euler-Maruyama, from a
+        generator seeded with ``seed``, default the planner's), otherwise the ``R``
+        rollouts are equal. The planner's state is not changed.
+        """
+        n, m = self.dynamics.state_dim, self.dynamics.control_dim
+        if not isinstance(num_rollouts, int) or isinstance(num_rollouts, bool) or num_rollouts < 1:
+            raise ValueError(f"num_rollouts must be an integer >= 1, got {num_rollouts!r}")
+        check_last_dim("x", x, n)
+        if x.dim() > 2:
+            raise ValueError(f"x must have shape [{n}] or [B, {n}], got {tuple(x.shape)}")
+        xb = x.unsqueeze(0) if x.dim() == 1 else x
+        B = xb.shape[0]
+        if plan is None:
+            if self._key is None or self._plan.shape[0] != B:
+                raise ValueError(
+                    f"rollout_samples needs a plan for {B} environment(s): pass plan= or call "
+                    "the planner with this batch first"
+                )
+            plan = self._plan
+        if not isinstance(plan, Tensor) or plan.dim() not in (2, 3) or plan.shape[-1] != m:
+            shape = tuple(plan.shape) if isinstance(plan, Tensor) else type(plan).__name__
+            raise ValueError(f"plan must have shape [H, {m}] or [{B}, H, {m}], got {shape}")
+        if plan.dim() == 3 and plan.shape[0] != B:
+            raise ValueError(
+                f"plan must have shape [H, {m}] or [{B}, H, {m}], got {tuple(plan.shape)}"
+            )
+        plan = plan.to(xb).expand(B, *plan.shape[-2:])
+        H, R = plan.shape[1], num_rollouts
+        stochastic = self.step is None and self.dynamics.has_diffusion
+        gen = torch.Generator(device=xb.device).manual_seed(self.seed if seed is None else seed)
+        states = xb.new_empty(B, R, H + 1, n)
+        states[:, :, 0] = xb.unsqueeze(1)
+        state = states[:, :, 0]
+        with torch.no_grad():
+            for j in range(H):
+                u = plan[:, j].unsqueeze(1).expand(B, R, m)
+                if stochastic:
+                    state = integrators.euler_maruyama(
+                        self.dynamics, state, u, self.dt, generator=gen
+                    )
+                else:
+                    state = self._step(state, u, j)
+                states[:, :, j + 1] = state
+        return states[0] if x.dim() == 1 else states
 
     # -- torch path ----------------------------------------------------------------------------
     def _sample_noise(self, eps: Tensor) -> None:
@@ -487,23 +684,90 @@ class MPPI(ExactConstants):
         if self.zero_noise_samples:
             eps[:, : self.zero_noise_samples].zero_()
 
-    def _step(self, x: Tensor, u: Tensor) -> Tensor:
+    def _step(self, x: Tensor, u: Tensor, j: int) -> Tensor:
+        if self.step is not None:
+            return self.step(x, u, j)
         return self._integrate(self.dynamics, x, u, self.dt)
 
-    def _rollout(self, x: Tensor, eps: Tensor, controls: Tensor, states: Tensor) -> None:
-        """Clamp the samples (recomputing ``eps`` in place) and roll them out into the
-        component-major state buffer."""
+    def _clamp(self, u: Tensor) -> Tensor:
+        """``u`` clamped to the control limits, in place."""
+        if self.u_min is not None or self.u_max is not None:
+            lo = None if self.u_min is None else self.u_min.to(u)
+            hi = None if self.u_max is None else self.u_max.to(u)
+            u.clamp_(lo, hi)
+        return u
+
+    def _perturb(self, x: Tensor, t0: Tensor, eps: Tensor, controls: Tensor) -> Tensor:
+        """Fill ``controls [B, K, H, m]`` with the samples ``clamp(U + eps)`` (candidates from
+        ``action_sampler`` and the null action in their rows) and recompute ``eps`` from them
+        in place; return the noise the control cost reads (``eps`` here)."""
         nominal = self._plan.unsqueeze(1)
         torch.add(eps, nominal, out=controls)
-        if self.u_min is not None or self.u_max is not None:
-            lo = None if self.u_min is None else self.u_min.to(x)
-            hi = None if self.u_max is None else self.u_max.to(x)
-            controls.clamp_(lo, hi)
-            torch.sub(controls, nominal, out=eps)
+        self._candidates(x, t0, controls)
+        self._clamp(controls)
+        torch.sub(controls, nominal, out=eps)
+        return eps
+
+    def _candidates(self, x: Tensor, t0: Tensor, controls: Tensor) -> slice | None:
+        """Write the null action and the ``action_sampler``'s sequences into their rows of
+        ``controls [B, K, H, m]`` (after the zero-noise samples); return those rows."""
+        first = self.zero_noise_samples
+        row = first
+        if self.sample_null_action:
+            controls[:, row].zero_()
+            row += 1
+        if self.action_sampler is not None:
+            seqs = self._sampled_actions(x, t0, row)
+            controls[:, row : row + seqs.shape[1]] = seqs
+            row += seqs.shape[1]
+        return slice(first, row) if row > first else None
+
+    def _sampled_actions(self, x: Tensor, t0: Tensor, row: int) -> Tensor:
+        """The sampler's sequences ``[B, S, H, m]``, checked (``[S, H, m]`` is broadcast)."""
+        assert self.action_sampler is not None
+        B, H, m = self._plan.shape
+        seqs = self.action_sampler(x, t0)
+        room = self.num_samples - row
+        if not isinstance(seqs, Tensor) or not seqs.is_floating_point():
+            what = seqs.dtype if isinstance(seqs, Tensor) else type(seqs).__name__
+            raise TypeError(f"action_sampler must return a floating tensor, got {what}")
+        if seqs.dim() == 3:
+            seqs = seqs.unsqueeze(0).expand(B, *seqs.shape)
+        if (
+            seqs.dim() != 4
+            or seqs.shape[0] != B
+            or seqs.shape[2:] != (H, m)
+            or seqs.shape[1] > room
+        ):
+            raise ValueError(
+                f"action_sampler must return [S, {H}, {m}] or [{B}, S, {H}, {m}] with S <= "
+                f"{room} (the samples left after the zero-noise and null-action samples), "
+                f"got {tuple(seqs.shape)}"
+            )
+        if seqs.device != x.device:
+            raise ValueError(
+                f"action_sampler returned a tensor on {seqs.device}, the planner is on {x.device}"
+            )
+        return seqs.to(x.dtype)
+
+    def _cost_plan(self) -> Tensor:
+        """The plan ``[B, H, m]`` the control cost pairs with the sampled noise."""
+        return self._plan
+
+    def _extra_cost(self, controls: Tensor) -> Tensor | None:
+        """A variant's own cost of the samples ``[B, K]`` (none here)."""
+        return None
+
+    def _update_plan(self, delta: Tensor) -> None:
+        """The update ``U <- clamp(U + delta)`` of the plan."""
+        self._clamp(self._plan.add_(delta))
+
+    def _rollout(self, x: Tensor, controls: Tensor, states: Tensor) -> None:
+        """Roll the sampled controls out into the state buffer."""
         states[:, :, 0] = x.unsqueeze(1)
         state = states[:, :, 0]
         for j in range(self.horizon):
-            state = self._step_fn(state, controls[:, :, j])
+            state = self._step_fn(state, controls[:, :, j], j)
             states[:, :, j + 1] = state
 
     def _score(
@@ -530,6 +794,8 @@ class MPPI(ExactConstants):
                 )
                 cost[:, k : k + chunk] = self._check_cost(part, min(chunk, K - k))
         if self.control_cost_weight > 0.0 and eps is not None:
+            if self.noise_abs_cost:
+                eps = eps.abs()
             B, K, H, m = eps.shape
             weighted = (plan @ self.noise_cov_inv.to(plan)).transpose(1, 2)  # [B, m, H]
             by_component = eps.permute(0, 3, 2, 1).reshape(B, m * H, K)
@@ -565,12 +831,25 @@ class MPPI(ExactConstants):
             and x.dtype in (torch.float32, torch.float64)
             and _rollout.available()
         )
-        if not usable or needs_graph(self, x):
+        if not usable or not self._kernel_expresses() or needs_graph(self, x):
             return None, None
         model = _rollout.encode_model(self.dynamics)
         if model is None or self._needs_history:
             return model, None
         return model, _rollout.encode_cost(self.cost, self.dynamics.state_dim)
+
+    def _kernel_expresses(self) -> bool:
+        """Whether the kernel's sampling, rollout and control cost are this planner's: the
+        plain Gaussian samples around the plan, the model's own integration and the linear
+        control cost (a variant's sampling, ``step``, ``noise_abs_cost`` and candidate
+        samples run in torch)."""
+        return (
+            self.sampling == "gaussian"
+            and self.step is None
+            and not self.noise_abs_cost
+            and self.action_sampler is None
+            and not self.sample_null_action
+        )
 
     def _configuration(
         self,
@@ -694,12 +973,8 @@ class MPPI(ExactConstants):
         rollouts: Tensor | None,
         unbatched: bool,
     ) -> MPPIOutput:
+        self._update_plan(delta)
         plan = self._plan
-        plan.add_(delta)
-        if self.u_min is not None or self.u_max is not None:
-            lo = None if self.u_min is None else self.u_min.to(plan)
-            hi = None if self.u_max is None else self.u_max.to(plan)
-            plan.clamp_(lo, hi)
         finite, ok, w = weights.finite, weights.ok, weights.w
         count = finite.sum(-1)
         cost_mean = torch.where(finite, cost, torch.zeros_like(cost)).sum(-1) / count.clamp_min(1)
