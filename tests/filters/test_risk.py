@@ -8,8 +8,8 @@ import pytest
 import torch
 from scipy.special import erfinv
 
-from torchcbf.barriers import Ball, HalfSpace, QuadraticLyapunov
-from torchcbf.dynamics import SingleIntegrator
+from torchcbf.barriers import Ball, Ellipse, HalfSpace, QuadraticLyapunov, Transformed, rectify
+from torchcbf.dynamics import AccelUnicycle, SingleIntegrator
 from torchcbf.filters import SafetyFilter, noise_bound, risk_margin
 from torchcbf.integrators import step
 
@@ -32,6 +32,28 @@ def test_noise_bound_analytic(dtype: torch.dtype) -> None:
         noise_bound(ball, dyn, states[[0, 3]])
     with pytest.raises(ValueError, match="SDE"):
         noise_bound(ball, SingleIntegrator(2), states)
+
+
+def test_noise_bound_closed_forms_match_autograd(dtype: torch.dtype) -> None:
+    # a rectified radius-form ellipse barrier (scenario B's risk-aware barrier) has closed
+    # forms; the bound must equal autograd's, which the bound took before
+    model = AccelUnicycle(sigma=0.2).to(dtype)
+    shapes = Ellipse(
+        torch.tensor([[1.0, 0.5], [-1.0, 2.0]]), torch.tensor([[0.5, 0.8], [0.7, 0.3]])
+    )
+    barrier = rectify(Transformed(shapes, "radius"), model, "exponential", gains=[2.0]).to(dtype)
+    assert barrier.has_analytic
+    gen = torch.Generator().manual_seed(0)
+    states = torch.randn(500, 4, generator=gen, dtype=dtype) * torch.tensor(
+        [3.0, 3.0, 1.0, 3.0], dtype=dtype
+    )
+    eta = noise_bound(barrier, model, states)
+    with torch.no_grad():
+        terms = barrier.lie(states, model, method="autograd", hessian=False)
+    norm = torch.linalg.vector_norm(terms.dhdx @ model.sigma(states), dim=-1)
+    ref = torch.where(terms.h >= 0, norm, torch.full_like(norm, -math.inf)).amax(0)
+    tol = 1e-10 if dtype == F64 else 1e-4
+    torch.testing.assert_close(eta, ref, rtol=tol, atol=tol)
 
 
 def test_risk_margin_formula() -> None:
