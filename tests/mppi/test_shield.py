@@ -117,3 +117,60 @@ def test_shield_mppi_filters_and_feeds_back() -> None:
     assert shield.dt == planner.dt
     with pytest.raises(TypeError, match="planner"):
         ShieldMPPI(filt, filt)  # type: ignore[arg-type]
+
+
+class _Counting:
+    """A filter that counts its calls."""
+
+    def __init__(self, inner: SafetyFilter) -> None:
+        self.inner, self.calls = inner, 0
+
+    def __call__(self, x: torch.Tensor, u: torch.Tensor, t: object) -> object:
+        self.calls += 1
+        return self.inner(x, u, t)
+
+
+def test_in_loop_shield_filters_once_per_step_with_the_same_trajectory() -> None:
+    from torchcbf.sim import simulate
+
+    dyn = SingleIntegrator(2).double()
+    ball = Ball([1.0, 0.0], 0.5).double()
+    cost = SumCost(
+        QuadraticGoal([2.0, 0.0], weight=1.0), DiscreteBarrierCost(ball, gamma=0.2, weight=1e3)
+    )
+    x0 = torch.tensor([[0.0, 0.05], [-1.0, 0.5]], dtype=torch.float64)
+    runs = {}
+    for in_loop in (False, True):
+        filt = _Counting(SafetyFilter(dyn, [ball], alpha=1.0).double())
+        planner = MPPI(dyn, cost, horizon=6, num_samples=64, dt=0.1, noise_sigma=1.0,
+                       temperature=0.1, seed=0).double()  # fmt: skip
+        shield = ShieldMPPI(planner, filt, in_loop=in_loop)
+        loop_filter = shield.loop_filter if in_loop else filt
+        traj = simulate(dyn, x0, steps=20, dt=0.05, planner=shield, safety_filter=loop_filter,
+                        planner_every=2, integrator="euler", progress=False)  # fmt: skip
+        runs[in_loop] = (traj, filt.calls)
+    (before, calls_before), (after, calls_after) = runs[False], runs[True]
+    assert calls_before == 20 + 10 and calls_after == 20
+    # filtering the filtered control again returns it (up to the QP's tolerance)
+    torch.testing.assert_close(after.x, before.x, rtol=1e-6, atol=1e-6)
+    torch.testing.assert_close(after.u, before.u, rtol=1e-6, atol=1e-6)
+    assert float(after.h.min()) >= -1e-9
+
+
+def test_in_loop_shield_feeds_the_loop_filters_control_back() -> None:
+    dyn = SingleIntegrator(2).double()
+    ball = Ball([1.0, 0.0], 0.5).double()
+    filt = SafetyFilter(dyn, [ball], alpha=1.0).double()
+    shield = ShieldMPPI(_planner(), filt, in_loop=True)
+    x = torch.tensor([[0.45, 0.0], [-1.0, 0.5]], dtype=torch.float64)
+    out = shield(x, 0.0)
+    raw_u = out.u.clone()
+    filtered = shield.loop_filter(x, out.u, 0.0).u
+    torch.testing.assert_close(out.plan[:, 0], filtered)
+    torch.testing.assert_close(shield.planner._plan[:, 0], filtered)
+    assert not torch.equal(raw_u, filtered)  # the first state needs the filter
+    again = shield.loop_filter(x, raw_u, 0.0).u  # a later call leaves the plan alone
+    torch.testing.assert_close(out.plan[:, 0], filtered)
+    torch.testing.assert_close(again, filtered)
+    with pytest.raises(ValueError, match="in_loop"):
+        _ = ShieldMPPI(_planner(), filt).loop_filter
