@@ -52,6 +52,7 @@ Usage::
     python scripts/bench_mppi.py --only fused realtime --reps 9
     python scripts/bench_mppi.py --threads 2 --only compiled
     python scripts/bench_mppi.py --profile             # where the time goes, per path
+    python scripts/bench_mppi.py --filtered            # scenario B's filtered closed loops
     python scripts/bench_mppi.py --quick               # a short run: K / 10, 2 calls, no compile
 
 ``--quick`` runs every line but ``compiled`` with a tenth of the samples and 2 timed calls: a
@@ -334,6 +335,74 @@ def fmt(res: dict) -> str:
     )
 
 
+class _TimedFilter:
+    """A safety filter that counts its calls and their wall time."""
+
+    def __init__(self, inner: Callable[..., object]) -> None:
+        self.inner, self.calls, self.seconds = inner, 0, 0.0
+
+    def __call__(self, x: torch.Tensor, u: torch.Tensor, t: object) -> object:
+        start = time.perf_counter()
+        out = self.inner(x, u, t)
+        self.seconds += time.perf_counter() - start
+        self.calls += 1
+        return out
+
+
+def filtered(num_samples: int, steps: int) -> None:
+    """Scenario B's filtered methods in closed loop (32 seeds): the scenario's build time
+    (the risk-aware filter's noise bound included), filter calls per control step, time per
+    filter call and per control step (planner, filter, plant)."""
+    from torchcbf.mppi import ShieldMPPI
+    from torchcbf.scenarios.unicycle_mppi_cbf import mppi_cbf
+    from torchcbf.sim import simulate
+
+    print(f"scenario B closed loop, 32 seeds, K = {num_samples}, {steps} steps, one thread")
+    print(f"{'method':<30}{'build s':>9}{'calls/step':>12}{'filter ms':>11}{'step ms':>9}")
+    load = os.getloadavg()[0]
+    for label, method, in_loop in (
+        ("mppi_scbf", "mppi_scbf", None),
+        ("mppi_rascbf", "mppi_rascbf", None),
+        ("shield_mppi, shield filters", "shield_mppi", False),
+        ("shield_mppi, in_loop=True", "shield_mppi", True),
+    ):
+        start = time.perf_counter()
+        sc = mppi_cbf(method, num_seeds=32, num_samples=num_samples)
+        build = time.perf_counter() - start
+        timed_filter = _TimedFilter(sc.safety_filter)
+        planner, loop_filter = sc.planner, timed_filter
+        if in_loop is not None:
+            planner = ShieldMPPI(sc.planner.planner, timed_filter, in_loop=in_loop)
+            loop_filter = planner.loop_filter if in_loop else timed_filter
+        start = time.perf_counter()
+        with torch.no_grad():
+            simulate(sc.dynamics, sc.x0, steps=steps, dt=sc.dt, planner=planner,
+                     safety_filter=loop_filter, integrator=sc.integrator,
+                     planner_every=sc.planner_every, progress=False)  # fmt: skip
+        loop = time.perf_counter() - start
+        calls = timed_filter.calls / steps
+        per_call = 1e3 * timed_filter.seconds / max(timed_filter.calls, 1)
+        print(f"{label:<30}{build:>9.2f}{calls:>12.2f}{per_call:>11.3f}{1e3 * loop / steps:>9.2f}")
+    # the risk-aware filter's noise bound over scenario B's operating grid (its build cost)
+    from torchcbf.barriers import Transformed, rectify
+    from torchcbf.dynamics import AccelUnicycle
+    from torchcbf.filters import noise_bound
+    from torchcbf.scenarios.unicycle_mppi_cbf import SIGMA, obstacles, operating_states
+
+    plant = AccelUnicycle(sigma=SIGMA).double()
+    radius = Transformed(obstacles(), "radius").double()
+    barrier = rectify(radius, plant, form="exponential", gains=[1.0])
+    grid = operating_states()
+    for method in ("autograd", "analytic"):
+        start = time.perf_counter()
+        noise_bound(barrier, plant, grid, method=method)
+        seconds = time.perf_counter() - start
+        print(f"noise_bound over {grid.shape[0]} states, {method:<9}{seconds:>7.2f} s")
+    load = max(load, os.getloadavg()[0])
+    if load > 1.0:
+        print(f"LOADED: load average {load:.1f} during the run; compare rows, not absolutes")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--threads", type=int, default=1)
@@ -346,6 +415,11 @@ def main() -> None:
         action="store_true",
         help=f"every line but compiled, K / {QUICK_SCALE}, 2 timed calls (a check, not figures)",
     )
+    parser.add_argument(
+        "--filtered",
+        action="store_true",
+        help="scenario B's filtered methods in closed loop (K = 1,000, 100 steps)",
+    )
     parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -356,6 +430,9 @@ def main() -> None:
         return
     if args.profile:
         profile(args.device)
+        return
+    if args.filtered:
+        filtered(100 if args.quick else 1000, 20 if args.quick else 100)
         return
     lines = list(args.only or (line for line in LINES if not (args.quick and line == "compiled")))
     if args.quick:

@@ -54,6 +54,10 @@ def test_noise_bound_closed_forms_match_autograd(dtype: torch.dtype) -> None:
     ref = torch.where(terms.h >= 0, norm, torch.full_like(norm, -math.inf)).amax(0)
     tol = 1e-10 if dtype == F64 else 1e-4
     torch.testing.assert_close(eta, ref, rtol=tol, atol=tol)
+    forced = noise_bound(barrier, model, states, method="autograd")
+    torch.testing.assert_close(forced, ref, rtol=tol, atol=tol)
+    with pytest.raises(ValueError, match="method"):
+        noise_bound(barrier, model, states, method="exact")
 
 
 def test_risk_margin_formula() -> None:

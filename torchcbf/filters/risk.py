@@ -25,6 +25,7 @@ def noise_bound(
     t: Tensor | float | None = None,
     *,
     safe_only: bool = True,
+    method: str | None = None,
 ) -> Tensor:
     """``eta = max |dh/dx sigma|_2`` over sample states, per barrier output (the barrier's
     closed-form derivatives where it has them, else autograd).
@@ -37,6 +38,8 @@ def noise_bound(
         t: time for time-varying barriers.
         safe_only: keep only the states where ``h >= 0`` (per output); ``False`` takes all
             (used for Lyapunov functions).
+        method: ``None`` (the barrier's closed forms where it has them, else autograd),
+            ``"analytic"`` or ``"autograd"`` (see :func:`torchcbf.barriers.lie_derivatives`).
 
     Returns:
         ``eta`` of shape ``[]`` (scalar barrier) or ``[k]``, detached.
@@ -49,7 +52,8 @@ def noise_bound(
         raise ValueError(f"noise_bound needs an SDE model; {type(dynamics).__name__} has no sigma")
     # the closed forms where the barrier has them (a rectified radius-form ellipse does):
     # the bound scans a grid of many states, where autograd costs 3-4x more
-    method = "analytic" if barrier.has_analytic else "autograd"
+    if method is None:
+        method = "analytic" if barrier.has_analytic else "autograd"
     with torch.no_grad():
         terms = barrier.lie(states, dynamics, t, method=method, hessian=False)
         sigma = dynamics.sigma(states)  # [..., n, q]
