@@ -1,0 +1,448 @@
+"""PPO on a torchcbf TorchRL environment, four ways (:data:`METHODS`), for safe-RL comparisons
+(``scripts/safe_rl.py``, docs/safe_rl.md):
+
+- ``"ppo"``: PPO on the reward alone (a collision ends the episode with a penalty);
+- ``"ppo_lagrangian"``: PPO-Lagrangian: a cost critic on the ``"cost"`` entry (1 at a
+  collision), the advantage ``(A_r - lambda A_c) / (1 + lambda)``, and the multiplier
+  ``lambda <- max(0, lambda + lr_lambda (J_c - cost_limit))`` after every batch, ``J_c`` the
+  batch's collisions per finished episode;
+- ``"ppo_shield"``: PPO on the environment wrapped in a
+  :class:`~torchcbf.envs.filter_transform.SafetyFilterTransform` (the filter as a shield);
+- ``"ppo_filter_layer"``: the policy's mean is a
+  :class:`~torchcbf.envs.filter_policy.FilteredPolicy` (the QP layer last), so PPO's gradient
+  passes through the QP, plus ``intervention_weight`` times the squared correction of the
+  network's action by the layer (scaled by the action bounds; its gradient also passes the
+  QP), on the shielded environment (the sampled exploration noise is filtered too).
+
+The policy is a Gaussian, mean ``tanh(MLP(observation))`` times the action bounds (or that
+through the filter layer) with a state-independent standard deviation; the critics are
+MLPs. Every run is a pure function of its seed (torch's global RNG is forked and restored).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import Tensor, nn
+from torchrl.envs import Compose, EnvBase, RewardSum, TransformedEnv
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
+from torchrl.objectives.value import GAE
+
+from torchcbf.barriers import HalfSpace, rectify
+from torchcbf.envs.filter_policy import FilteredPolicy
+from torchcbf.envs.filter_transform import SafetyFilterTransform
+from torchcbf.envs.torchrl import TorchRLEnv
+from torchcbf.filters import SafetyFilter
+from torchcbf.scenarios.unicycle_mppi_cbf import obstacles
+
+__all__ = [
+    "METHODS",
+    "PPOConfig",
+    "RunResult",
+    "evaluate",
+    "make_env",
+    "make_policy",
+    "scenario_filter",
+    "train",
+]
+
+METHODS = ("ppo", "ppo_lagrangian", "ppo_shield", "ppo_filter_layer")
+SHIELDED = ("ppo_shield", "ppo_filter_layer")
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    """Settings of one PPO run (the same for every method of a comparison).
+
+    Attributes:
+        env_id: the torchcbf environment id.
+        env_kwargs: the scenario's options as ``((name, value), ...)``.
+        num_envs: environments stepped as one batch while collecting.
+        rollout_steps: steps per environment per batch (``num_envs * rollout_steps`` frames).
+        total_frames: the frame budget.
+        epochs, minibatch_size: PPO epochs over each batch and the minibatch size.
+        lr: Adam's step size (policy and critics).
+        gamma, lmbda: discount and GAE's lambda.
+        clip: PPO's ratio clip.
+        entropy_coef: entropy bonus.
+        init_std: the policy's initial standard deviation, a fraction of the bounds.
+        hidden: width of the two hidden layers.
+        cost_limit, lagrangian_lr: PPO-Lagrangian's bound on collisions per episode and
+            the multiplier's step.
+        intervention_weight: weight of the filter layer's correction penalty.
+        eval_episodes: deterministic evaluation episodes (one per environment).
+    """
+
+    env_id: str = "torchcbf/UnicycleEllipses-v0"
+    env_kwargs: tuple[tuple[str, Any], ...] = (("sigma", 0.0), ("start_noise", 0.1))
+    num_envs: int = 256
+    rollout_steps: int = 128
+    total_frames: int = 2_000_000
+    epochs: int = 4
+    minibatch_size: int = 4096
+    lr: float = 3e-4
+    gamma: float = 0.995
+    lmbda: float = 0.95
+    clip: float = 0.2
+    entropy_coef: float = 0.0
+    init_std: float = 0.5
+    hidden: int = 64
+    cost_limit: float = 0.0
+    lagrangian_lr: float = 1.0
+    intervention_weight: float = 1.0
+    eval_episodes: int = 256
+
+
+@dataclass
+class RunResult:
+    """One run: ``curve`` has one row per batch (frames, mean return, goal rate and
+    collisions of the episodes that ended in it, the multiplier); ``train`` and ``eval``
+    hold totals and rates."""
+
+    method: str
+    seed: int
+    curve: list[dict[str, float]]
+    train: dict[str, float]
+    eval: dict[str, float]
+    wall_time: float
+    frames_per_second: float
+
+
+SPEED_BOUND = 2.0
+"""``|v| <= SPEED_BOUND`` (m/s): a barrier of :func:`scenario_filter` on scenario B."""
+
+
+def scenario_filter(env: TorchRLEnv) -> SafetyFilter:
+    """A safety filter for a torchcbf environment, on the environment's plant.
+
+    ``torchcbf/UnicycleEllipses-v0``: the exponential CBFs ``L_f b_i + k b_i`` of scenario B's
+    ellipses with ``k = a_max / SPEED_BOUND`` and the speed bound ``|v| <= SPEED_BOUND``,
+    ``alpha = 10``, ``R = diag(1, 1e-3)``: with ``|a| <= a_max`` the braking the condition
+    asks for (about ``k |v|``) stays within the bound, so the QP stays feasible (scenario
+    B's own gain ``k = 20`` needs ``|a|`` up to 40 m/s^2). It keeps the deterministic plant
+    (``sigma=0``) out of the obstacles; with process noise it is a plain CBF filter and the
+    noise can still push the robot in.
+    ``torchcbf/ReachAvoid-v0``: the obstacle disc, ``alpha = 5`` (exactly safe for the
+    single integrator's step of 0.1 s, since ``alpha dt <= 1``).
+    """
+    vec = env.vector_env
+    kw = {"device": vec.device, "dtype": vec.dtype}
+    name = type(vec).__name__
+    if name == "UnicycleEllipsesVectorEnv":
+        gain = float(vec.dynamics.u_max[0]) / SPEED_BOUND
+        ellipses = rectify(obstacles(), vec.dynamics, form="exponential", gains=[gain])
+        speed = HalfSpace([[1.0], [-1.0]], [SPEED_BOUND, SPEED_BOUND], index=(2,), state_dim=4)
+        weight = torch.tensor([1.0, 1e-3], dtype=torch.float64)
+        return SafetyFilter(
+            vec.dynamics, barriers=[ellipses, speed], alpha=10.0, R=torch.diag(weight)
+        ).to(**kw)
+    if name == "ReachAvoidVectorEnv":
+        return SafetyFilter(vec.dynamics, barriers=list(vec.barriers), alpha=5.0).to(**kw)
+    raise ValueError(f"no scenario filter for {name}; build a SafetyFilter on env.dynamics")
+
+
+def make_env(config: PPOConfig, method: str, *, num_envs: int, seed: int) -> TransformedEnv:
+    """The environment of ``method``: shielded for :data:`SHIELDED`, with the episode return
+    summed in ``"episode_reward"``."""
+    _check_method(method)
+    base = TorchRLEnv(config.env_id, num_envs, seed=seed, **dict(config.env_kwargs))
+    transforms = [RewardSum()]
+    if method in SHIELDED:
+        transforms.insert(0, SafetyFilterTransform(scenario_filter(base)))
+    return TransformedEnv(base, Compose(*transforms))
+
+
+class _Mean(nn.Module):
+    """``tanh(MLP(observation))`` times the action bounds."""
+
+    def __init__(self, obs_dim: int, bound: Tensor, hidden: int) -> None:
+        super().__init__()
+        self.net = _mlp(obs_dim, bound.shape[-1], hidden)
+        self.register_buffer("bound", bound)
+
+    def forward(self, observation: Tensor) -> Tensor:
+        return torch.tanh(self.net(observation)) * self.bound
+
+
+class _Scale(nn.Module):
+    """A state-independent standard deviation, a learned fraction of the bounds."""
+
+    def __init__(self, bound: Tensor, init: float) -> None:
+        super().__init__()
+        self.log_std = nn.Parameter(torch.full_like(bound, math.log(init)))
+        self.register_buffer("bound", bound)
+
+    def forward(self, loc: Tensor) -> Tensor:
+        return (self.log_std.exp() * self.bound).expand_as(loc)
+
+
+class _Unfiltered(nn.Module):
+    """The mean as both the action's mean and the nominal one (no filter layer)."""
+
+    def __init__(self, mean: nn.Module) -> None:
+        super().__init__()
+        self.mean = mean
+
+    def forward(self, observation: Tensor) -> tuple[Tensor, Tensor]:
+        loc = self.mean(observation)
+        return loc, loc
+
+
+def _mlp(n_in: int, n_out: int, hidden: int) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Linear(n_in, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(),
+        nn.Linear(hidden, n_out),
+    )  # fmt: skip
+
+
+def make_policy(
+    env: EnvBase, config: PPOConfig, *, safety_filter: nn.Module | None = None
+) -> ProbabilisticActor:
+    """The Gaussian policy (writes ``"loc"``, ``"loc_nominal"``, ``"scale"``, ``"action"``
+    and ``"action_log_prob"``); with ``safety_filter`` its mean is a
+    :class:`FilteredPolicy` (``"loc"`` filtered, ``"loc_nominal"`` the network's)."""
+    spec = env.full_action_spec["action"]
+    bound = spec.space.high[0].clone()
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    mean = _Mean(obs_dim, bound, config.hidden)
+    if safety_filter is None:
+        head = TensorDictModule(
+            _Unfiltered(mean), in_keys=["observation"], out_keys=["loc", "loc_nominal"]
+        )
+    else:
+        state_fn = getattr(env, "state_from_observation", None)
+        layer = FilteredPolicy(mean, safety_filter, state_fn=state_fn)
+        head = TensorDictModule(
+            layer, in_keys=["observation"], out_keys=["loc", "loc_nominal", "policy_status"]
+        )
+    module = TensorDictSequential(
+        head, TensorDictModule(_Scale(bound, config.init_std), ["loc"], ["scale"])
+    )
+    return ProbabilisticActor(
+        module,
+        in_keys=["loc", "scale"],
+        distribution_class=IndependentNormal,
+        return_log_prob=True,
+        spec=spec,
+    )
+
+
+def _critic(env: EnvBase, hidden: int, key: str) -> ValueOperator:
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    return ValueOperator(_mlp(obs_dim, 1, hidden), in_keys=["observation"], out_keys=[key])
+
+
+def _check_method(method: str) -> None:
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+
+
+def _collect(
+    env: EnvBase, policy: nn.Module, td: TensorDictBase, steps: int
+) -> tuple[TensorDictBase, TensorDictBase]:
+    """``steps`` steps of every environment: the batch ``[N, steps]`` and the next input."""
+    frames = []
+    for _ in range(steps):
+        policy(td)
+        out, td = env.step_and_maybe_reset(td)
+        frames.append(out)
+    return torch.stack(frames, dim=1).contiguous(), td
+
+
+def _episode_stats(batch: TensorDictBase) -> dict[str, float]:
+    done = batch["next", "done"].squeeze(-1)
+    episodes = int(done.sum())
+    if episodes == 0:
+        return {"episodes": 0.0, "return": math.nan, "goal_rate": math.nan, "collisions": 0.0}
+    ret = batch["next", "episode_reward"].squeeze(-1)[done]
+    goals = batch["next", "success"].squeeze(-1)[done]
+    return {
+        "episodes": float(episodes),
+        "return": float(ret.mean()),
+        "goal_rate": float(goals.float().mean()),
+        "collisions": float(batch["next", "cost"].sum()),
+    }
+
+
+def train(
+    method: str,
+    config: PPOConfig,
+    *,
+    seed: int,
+    progress: Callable[[dict[str, float]], None] | None = None,
+) -> RunResult:
+    """Train ``method`` (:data:`METHODS`) under ``config`` from ``seed``; evaluate the
+    deterministic policy on ``config.eval_episodes`` held-out episodes."""
+    _check_method(method)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        return _train(method, config, seed, progress)
+
+
+def _train(
+    method: str,
+    config: PPOConfig,
+    seed: int,
+    progress: Callable[[dict[str, float]], None] | None,
+) -> RunResult:
+    env = make_env(config, method, num_envs=config.num_envs, seed=seed * 1_000_003)
+    layer_filter = scenario_filter(env.base_env) if method == "ppo_filter_layer" else None
+    policy = make_policy(env, config, safety_filter=layer_filter)
+    critic = _critic(env, config.hidden, "state_value")
+    gae = GAE(gamma=config.gamma, lmbda=config.lmbda, value_network=critic, average_gae=False)
+    params = list(policy.parameters()) + list(critic.parameters())
+    cost_critic = cost_gae = None
+    if method == "ppo_lagrangian":
+        cost_critic = _critic(env, config.hidden, "cost_value")
+        cost_gae = GAE(
+            gamma=config.gamma, lmbda=config.lmbda, value_network=cost_critic, average_gae=False
+        )
+        cost_gae.set_keys(
+            reward="cost",
+            value="cost_value",
+            advantage="cost_advantage",
+            value_target="cost_value_target",
+        )
+        params += list(cost_critic.parameters())
+    optim = torch.optim.Adam(params, lr=config.lr)
+    bound = env.full_action_spec["action"].space.high[0]
+    lagrange = 0.0
+    frames_per_batch = config.num_envs * config.rollout_steps
+    batches = max(1, config.total_frames // frames_per_batch)
+    curve: list[dict[str, float]] = []
+    totals = {"episodes": 0.0, "goals": 0.0, "collisions": 0.0, "interventions": 0.0}
+    start = time.perf_counter()
+    td = env.reset()
+    for index in range(batches):
+        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+            batch, td = _collect(env, policy, td, config.rollout_steps)
+            gae(batch)
+            if cost_gae is not None:
+                cost_gae(batch)
+        stats = _episode_stats(batch)
+        totals["episodes"] += stats["episodes"]
+        totals["collisions"] += stats["collisions"]
+        if stats["episodes"]:
+            totals["goals"] += stats["goal_rate"] * stats["episodes"]
+        if method in SHIELDED:
+            totals["interventions"] += float(batch["next", "filter_intervention"].sum())
+        if method == "ppo_lagrangian" and stats["episodes"]:
+            rate = stats["collisions"] / stats["episodes"]
+            lagrange = max(0.0, lagrange + config.lagrangian_lr * (rate - config.cost_limit))
+        _update(batch.reshape(-1), policy, critic, cost_critic, optim, config, lagrange, bound)
+        row = {"frames": float((index + 1) * frames_per_batch), **stats, "lagrange": lagrange}
+        curve.append(row)
+        if progress is not None:
+            progress(row)
+    wall = time.perf_counter() - start
+    frames = batches * frames_per_batch
+    train_stats = {
+        "frames": float(frames),
+        "episodes": totals["episodes"],
+        "collisions": totals["collisions"],
+        "goal_rate": totals["goals"] / max(totals["episodes"], 1.0),
+        "intervention_rate": totals["interventions"] / frames,
+    }
+    eval_env = make_env(
+        config, method, num_envs=config.eval_episodes, seed=10**9 + seed * 1_000_003
+    )
+    evaluation = evaluate(eval_env, policy)
+    return RunResult(method, seed, curve, train_stats, evaluation, wall, frames / wall)
+
+
+def _update(
+    data: TensorDictBase,
+    policy: ProbabilisticActor,
+    critic: ValueOperator,
+    cost_critic: ValueOperator | None,
+    optim: torch.optim.Optimizer,
+    config: PPOConfig,
+    lagrange: float,
+    bound: Tensor,
+) -> None:
+    """PPO's clipped update over ``config.epochs`` passes of shuffled minibatches."""
+    n = data.shape[0]
+    advantage = data["advantage"]
+    if cost_critic is not None:
+        advantage = (advantage - lagrange * data["cost_advantage"]) / (1.0 + lagrange)
+    data.set("_adv", advantage)
+    for _ in range(config.epochs):
+        order = torch.randperm(n)
+        for chunk in order.split(config.minibatch_size):
+            sub = data[chunk].clone(False)
+            adv = sub["_adv"].squeeze(-1)
+            adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+            dist = policy.get_dist(sub)
+            log_prob = dist.log_prob(sub["action"])
+            ratio = (log_prob - sub["action_log_prob"]).exp()
+            gain = torch.minimum(ratio * adv, ratio.clamp(1 - config.clip, 1 + config.clip) * adv)
+            loss = -gain.mean() - config.entropy_coef * dist.entropy().mean()
+            value = critic(sub.select("observation"))["state_value"]
+            loss = loss + 0.5 * (value - sub["value_target"]).square().mean()
+            if cost_critic is not None:
+                cost = cost_critic(sub.select("observation"))["cost_value"]
+                loss = loss + 0.5 * (cost - sub["cost_value_target"]).square().mean()
+            if config.intervention_weight and "policy_status" in sub.keys():
+                correction = (sub["loc"] - sub["loc_nominal"]) / bound
+                loss = loss + config.intervention_weight * correction.square().sum(-1).mean()
+            optim.zero_grad()
+            loss.backward()
+            nn.utils.clip_grad_norm_([p for g in optim.param_groups for p in g["params"]], 0.5)
+            optim.step()
+
+
+def evaluate(
+    env: EnvBase, policy: nn.Module, *, intervention_tol: float = 1e-4
+) -> dict[str, float]:
+    """One deterministic episode per environment of ``env`` (from its reset): mean return,
+    goal rate, collisions, and the rates of steps where the shield (``"filter_intervention"``)
+    or the policy's own filter layer (``"loc"`` differs from ``"loc_nominal"``) changed the
+    action."""
+    n = env.batch_size[0]
+    device = env.device
+    running = torch.ones(n, dtype=torch.bool, device=device)
+    ret = torch.zeros(n, device=device)
+    goals = torch.zeros(n, dtype=torch.bool, device=device)
+    collisions = torch.zeros(n, device=device)
+    shield = layer = steps = 0.0
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.reset()
+        while bool(running.any()):
+            policy(td)
+            out = env.step(td)
+            nxt = out["next"]
+            alive = running.float()
+            ret += nxt["reward"].squeeze(-1) * alive
+            goals |= nxt["success"].squeeze(-1) & running
+            collisions += nxt["cost"].squeeze(-1) * alive
+            steps += float(alive.sum())
+            if "filter_intervention" in nxt.keys():
+                shield += float((nxt["filter_intervention"].squeeze(-1) & running).sum())
+            change = (out["loc"] - out["loc_nominal"]).abs().amax(-1)
+            layer += float(((change > intervention_tol) & running).sum())
+            running = running & ~nxt["done"].squeeze(-1)
+            td = step_mdp(out)
+    return {
+        "episodes": float(n),
+        "return": float(ret.mean()),
+        "goal_rate": float(goals.float().mean()),
+        "collisions": float((collisions > 0).sum()),
+        "shield_intervention_rate": shield / steps,
+        "layer_intervention_rate": layer / steps,
+        "steps": steps,
+    }
+
+
+def config_dict(config: PPOConfig) -> dict[str, Any]:
+    """``config`` as a JSON-ready dict."""
+    out = asdict(config)
+    out["env_kwargs"] = dict(config.env_kwargs)
+    return out
