@@ -44,6 +44,7 @@ def planner(cls: type[MPPI] = MPPI, cost=None, dtype=torch.float64, **kwargs) ->
         {"noise_abs_cost": True},
         {"action_sampler": lambda x, t: torch.zeros(2, 8, 2, dtype=x.dtype)},
         {"sample_null_action": True},
+        {"noise_mu": 0.2},
     ],
 )
 def test_options_the_kernel_cannot_express_take_the_torch_path(option: dict) -> None:
@@ -75,6 +76,20 @@ def test_u_scale_is_a_scaled_noise_covariance(dtype: torch.dtype, backend: str) 
         planner(u_scale=-1.0)
     with pytest.raises(ValueError, match="u_scale"):
         planner(u_scale=[1.0, 2.0, 3.0])
+
+
+@pytest.mark.parametrize("scale", [None, 2.0])
+def test_noise_mu_shifts_the_samples(scale: float | None) -> None:
+    mu = torch.tensor([0.5, -0.25], dtype=torch.float64)
+    p = planner(noise_mu=mu, u_scale=scale, noise_sigma=0.04)
+    seen = recorded(p)
+    p(torch.zeros(2, dtype=torch.float64))
+    eps = seen[-1].reshape(-1, 2)  # 512 draws per component
+    s = 1.0 if scale is None else scale
+    # mean s mu, standard deviation s 0.2: within 4 standard errors
+    assert bool(((eps.mean(0) - s * mu).abs() < 4 * s * 0.2 / math.sqrt(512)).all())
+    with pytest.raises(ValueError, match="noise_mu"):
+        planner(noise_mu=[0.0, math.inf])
 
 
 def test_step_of_the_integrator_gives_the_integrators_plans() -> None:

@@ -47,8 +47,8 @@ Paths (``MPPI.path`` says which one the last call took):
 - ``"torch"``: everything else (any :class:`~torchcbf.dynamics.ControlAffine`, CUDA, a
   planner built with ``backend="torch"``, gradients requested through the planner's
   parameters, and the options the kernel does not express: ``step=``, ``noise_abs_cost``,
-  ``action_sampler``, ``sample_null_action`` and the variants that sample otherwise,
-  :class:`~torchcbf.mppi.SMPPI` and :class:`~torchcbf.mppi.KMPPI`): noise from
+  ``noise_mu``, ``action_sampler``, ``sample_null_action`` and the variants that sample
+  otherwise, :class:`~torchcbf.mppi.SMPPI` and :class:`~torchcbf.mppi.KMPPI`): noise from
   ``torch.Generator``, rollouts with :mod:`torchcbf.integrators` (or ``step``), buffers
   allocated once and reused.
 
@@ -268,6 +268,9 @@ class MPPI(ExactConstants):
             ``specific_action_sampler``). Runs on the torch path.
         sample_null_action: one sample is the zero control sequence (pytorch-mppi's
             ``sample_null_action``), after the zero-noise samples. Runs on the torch path.
+        noise_mu: mean of the sampled noise (scalar or ``[m]``, in the units of
+            ``noise_sigma``; pytorch-mppi's ``noise_mu``): biases the samples. Runs on the
+            torch path.
 
     Control limits are one-sided when one side is given: ``u_max`` alone bounds the control
     from above only (pytorch-mppi mirrors it into ``u_min = -u_max``); write ``u_min=-b,
@@ -307,6 +310,7 @@ class MPPI(ExactConstants):
         noise_abs_cost: bool = False,
         action_sampler: Callable[[Tensor, Tensor], Tensor] | None = None,
         sample_null_action: bool = False,
+        noise_mu: float | Tensor | None = None,
     ) -> None:
         super().__init__()
         if not isinstance(dynamics, ControlAffine):
@@ -391,6 +395,16 @@ class MPPI(ExactConstants):
         if scale is not None:  # u = s a with a ~ N(U_a, Sigma): the applied noise is S Sigma S
             cov = scale.unsqueeze(-1) * cov * scale
         self.register_buffer("u_scale", scale)  # [m] or None; already applied to noise_cov
+        mu = as_limit("noise_mu", noise_mu, m)  # float64 [m] or None
+        if mu is not None and not bool(torch.isfinite(mu).all()):
+            raise ValueError(f"noise_mu must be finite, got {noise_mu!r}")
+        if mu is not None and scale is not None:
+            mu = mu * scale.to(mu)
+        if mu is not None and not isinstance(noise_mu, Tensor):
+            remember(self, "noise_mu", mu)  # Python numbers: exact
+        else:
+            dtype = noise_mu.dtype if isinstance(noise_mu, Tensor) else None
+            self.register_buffer("noise_mu", None if mu is None else mu.to(dtype))
         chol = torch.linalg.cholesky(cov)
         for name, value in (("noise_cov", cov), ("noise_chol", chol),
                             ("noise_cov_inv", torch.cholesky_inverse(chol))):  # fmt: skip
@@ -681,6 +695,8 @@ class MPPI(ExactConstants):
             eps.mul_(torch.diagonal(self.noise_cov).to(eps).sqrt())
         elif std is None:
             eps.copy_(eps @ self.noise_chol.to(eps).mT)
+        if self.noise_mu is not None:
+            eps.add_(self.noise_mu.to(eps))
         if self.zero_noise_samples:
             eps[:, : self.zero_noise_samples].zero_()
 
@@ -849,6 +865,7 @@ class MPPI(ExactConstants):
             and not self.noise_abs_cost
             and self.action_sampler is None
             and not self.sample_null_action
+            and self.noise_mu is None
         )
 
     def _configuration(
