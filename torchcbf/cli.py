@@ -24,6 +24,7 @@ finished saved, and says how to resume. Every file is written to a temporary nam
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib.util
 import json
 import shlex
@@ -37,7 +38,7 @@ from typing import Any
 import torch
 
 from torchcbf import _io
-from torchcbf.sim import Trajectory, run_info, strict, summarize
+from torchcbf.sim import Trajectory, run_info, strict
 
 # Benchmarks in the order ``torchcbf bench`` runs them (each a script of scripts/).
 BENCHES = ("bench_qp.py", "bench_barriers.py", "bench_filters.py", "bench_mppi.py")
@@ -47,127 +48,13 @@ PAPER_SIZE_B = "torchcbf mppi-cbf --config default --seeds 32 --samples 20000 --
 INTERRUPTED = 130  # the exit code of a run ended by Ctrl-C (128 + SIGINT)
 
 
-def _save(fig: Any, path: Path) -> Path:
-    return _io.save_figure(fig, path, bbox_inches="tight")
-
-
-def _save_animation(make: Callable[..., Any], path: Path, *args: Any, **kwargs: Any) -> Path:
-    """``make(*args[0:1], tmp, *args[1:], **kwargs)`` writes an animation; renamed to ``path``."""
-    with _io.atomic_path(path) as tmp:
-        make(args[0], tmp, *args[1:], **kwargs)
-    return path
-
-
-def _rate(summary: dict[str, Any], key: str) -> str:
-    s = summary.get(key)
-    if s is None:
-        return "-"
-    return f"{s['count']}/{s['n']} [{100 * s['ci95_low']:.0f}-{100 * s['ci95_high']:.0f}%]"
-
-
 def _num(value: float | None, fmt: str = "{:.3f}") -> str:
     return "-" if value is None else fmt.format(value)
 
 
-def _rollout_figures(traj: Any, scenario: Any, stem: Path, label: str, **view: Any) -> list[Path]:
-    """The MPPI rollouts of the first seed at each snapshot step: ``{stem}_rollouts_t{k}.png``."""
-    from torchcbf.viz import plot_rollouts
-
-    paths = []
-    for step, snap in traj.planner.items():
-        if getattr(snap, "rollouts", None) is None:
-            continue
-        fig = plot_rollouts(
-            snap.rollouts[0],
-            snap.rollout_weights[0],
-            snap.best_states[0],
-            barriers=scenario.barriers,
-            goals=scenario.goals,
-            executed=traj.x[0, : step + 1],
-            title=f"{label}: MPPI rollouts at t = {float(traj.t[step]):.2f} s",
-            plan_label="lowest-cost rollout",
-            **view,
-        )
-        paths.append(_save(fig, stem.parent / f"{stem.name}_rollouts_t{step}.png"))
-    return paths
-
-
-# -- scenario A ----------------------------------------------------------------------------
-A_HEADER = (
-    f"{'scenario':<14} {'spec met [95% CI]':>20} {'collisions [95% CI]':>20} "
-    f"{'min clearance [m]':>18} {'wall [s]':>9}"
-)
-
-
-def _reach_avoid(args: argparse.Namespace, parts: _Parts) -> dict[str, Any]:
-    from torchcbf.scenarios import reach_avoid
-    from torchcbf.viz import animate, plot_trajectories
-
-    def build(num_seeds: int) -> Any:
-        return reach_avoid(
-            num_seeds=num_seeds,
-            num_samples=args.samples,
-            horizon=args.horizon,
-            seed=args.seed,
-            device=args.device,
-        )
-
-    print(
-        f"\nScenario A (reach-avoid, single integrator): {args.seeds} seeds from {args.seed}, "
-        f"MPPI K = {args.samples}, H = {args.horizon}, device {args.device}"
-    )
-    print(A_HEADER)
-
-    def compute() -> tuple[dict[str, Any], Any]:
-        scenario = build(args.seeds)
-        start = time.perf_counter()
-        traj, per_seed = scenario.run(progress=args.progress)
-        seconds = time.perf_counter() - start
-        entry = {
-            "settings": {
-                "seeds": args.seeds,
-                "first_seed": args.seed,
-                "num_samples": args.samples,
-                "horizon": args.horizon,
-            },
-            "units": {"min_h": "m (clearance |p - o| - r_o)", "seconds": "s"},
-            "summary": summarize(per_seed),
-            "per_seed": per_seed,
-            "seconds": seconds,
-        }
-        return entry, traj
-
-    entry, cpu = parts.unit("reach-avoid", compute)
-    summary = entry["summary"]
-    print(
-        f"{'reach-avoid':<14} {_rate(summary, 'spec_satisfied'):>20} "
-        f"{_rate(summary, 'collision'):>20} {_num(summary['min_h']['min']):>18} "
-        f"{entry['seconds']:>9.1f}",
-        flush=True,
-    )
-    scenario = build(1)  # its obstacles and goals, for the figures
-    out = parts.run.path
-    figures = [
-        _save(
-            plot_trajectories(cpu, scenario.barriers, scenario.goals, title="reach-avoid"),
-            out / "reach_avoid_trajectories.png",
-        )
-    ]
-    figures += _rollout_figures(
-        cpu, scenario, out / "reach_avoid", f"reach-avoid, seed {args.seed}"
-    )
-    if not args.no_gif:
-        figures.append(
-            _save_animation(
-                animate, out / "reach_avoid.gif", cpu, scenario.barriers, scenario.goals
-            )
-        )
-    return {"reach-avoid": {**entry, "figures": [str(p) for p in figures]}}
-
-
 class _Parts:
-    """The finished units of a scenario run (scenario A, each method of B), each saved as it
-    finishes under ``--out/.parts``: its metrics (JSON) and its trajectory
+    """The finished units of a scenario run (one per variant: scenario B's methods), each
+    saved as it finishes under ``--out/.parts``: its metrics (JSON) and its trajectory
     (:meth:`Trajectory.save`). A resumed run loads the units found there instead of running
     them; the figures and ``metrics.json`` are always made from the saved units, so a
     resumed run's outputs equal an uninterrupted one's."""
@@ -194,146 +81,121 @@ class _Parts:
         return json.loads(metrics_path.read_text()), Trajectory.load(traj_path)
 
 
-# -- scenario B ----------------------------------------------------------------------------
-B_HEADER = (
-    f"{'method':<12} {'collisions [95% CI]':>20} {'goal by 5 s [95% CI]':>21} "
-    f"{'t_goal [s]':>10} {'min b':>7} {'relaxed [%]':>11} {'fallback [%]':>12} {'wall [s]':>9}"
-)
-CONFIG_NOTES = {
-    "default": "filter parameters chosen by scripts/tune_scenario_b.py on seeds >= 10,000",
-    "paper": "the paper's alpha = beta = 1: the noise band (about 0.2 m) fills the passages",
-    "cbfkit": "CBFkit's sublevel barrier exp(-0.1 b) with alpha = beta = 1",
-}
-
-
-def _steps_pct(summary: dict[str, Any], name: str, steps: int) -> str:
-    s = summary.get(f"steps_{name}")
-    return "-" if s is None or s["mean"] is None else f"{100 * s['mean'] / steps:.1f}"
-
-
-def _b_row(method: str, summary: dict[str, Any], steps: int, seconds: float) -> str:
-    return (
-        f"{method:<12} {_rate(summary, 'collision'):>20} {_rate(summary, 'goal_reached'):>21} "
-        f"{_num(summary['goal0_time']['mean'], '{:.2f}'):>10} "
-        f"{_num(summary['min_h']['min'], '{:.2f}'):>7} {_steps_pct(summary, 'relaxed', steps):>11} "
-        f"{_steps_pct(summary, 'fallback', steps):>12} {seconds:>9.1f}"
-    )
-
-
-def _methods(text: str) -> list[str]:
-    from torchcbf.scenarios.unicycle_mppi_cbf import METHODS
-
-    names = list(METHODS) if text == "all" else [m.strip() for m in text.split(",") if m.strip()]
-    unknown = [m for m in names if m not in METHODS]
+def _variants(entry: Any, text: str | None) -> list[Any]:
+    """The variant values a run compares (``all`` or a comma-separated list), ``[None]`` for
+    a scenario without variants."""
+    if entry.variant is None:
+        return [None]
+    allowed = tuple(entry.choices.get(entry.variant, ()))
+    names = list(allowed) if text == "all" else [v.strip() for v in text.split(",") if v.strip()]
+    unknown = [v for v in names if allowed and v not in allowed]
     if unknown or not names:
         raise SystemExit(
-            f"torchcbf: --methods must be 'all' or a list from {METHODS}, got {text!r}"
+            f"torchcbf: --{entry.variant}s must be 'all' or a list from {allowed}, got {text!r}"
         )
     return names
 
 
-def _mppi_cbf(args: argparse.Namespace, parts: _Parts) -> dict[str, Any]:
-    from torchcbf.scenarios import mppi_cbf
-    from torchcbf.scenarios.unicycle_mppi_cbf import DT, STEPS
+def _unit_key(entry: Any, params: dict[str, Any], variant: Any) -> str:
+    """``NAME[/choice-valued options...][/variant]``: the name of a run's unit."""
+    values = {**entry.defaults(), **params}
+    parts = [entry.name]
+    parts += [str(values[key]) for key in entry.options.values() if key in entry.choices]
+    return "/".join(parts + ([str(variant)] if variant is not None else []))
 
-    methods = _methods(args.methods)
+
+def _run_scenario(
+    entry: Any, args: argparse.Namespace, parts: _Parts, sizes: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """Run ``entry`` with the command's parameters (``sizes`` override them: the demo's),
+    one batch per variant; print the table; draw the figures."""
+    from torchcbf.sim.metrics import summarize
+    from torchcbf.sweep.params import describe
+
+    params = _parameters(entry, args)
+    num_seeds = args.seeds
+    if sizes is not None:
+        sizes = dict(sizes)
+        num_seeds = sizes.pop("num_seeds", num_seeds)
+        params.update(sizes)
+    variants = _variants(entry, getattr(args, "variants", None) or "all")
+    label_width = max(12, *(len(str(v)) for v in variants if v is not None), len(entry.name))
+    widths = [max(len(c.header), 8) for c in entry.columns]
+    shown = describe(params) or "defaults"
     print(
-        f"\nScenario B (MPPI and stochastic CBFs, unicycle), configuration '{args.config}' "
-        f"({CONFIG_NOTES[args.config]}): {args.seeds} seeds from {args.seed}, MPPI K = "
-        f"{args.samples}, H = {args.horizon}, {STEPS} steps of {DT} s, device {args.device}"
+        f"\n{entry.name}: {entry.description}\n{num_seeds} seeds from {args.seed}, "
+        f"{shown}, device {args.device}"
     )
-    print("min b: closest approach to an ellipse, b_i = |(p - c_i) / a_i|^2 - 1 (contact at 0)")
-    print(B_HEADER, flush=True)
+    header = " ".join(f"{c.header:>{w}}" for c, w in zip(entry.columns, widths, strict=True))
+    label = entry.variant or "scenario"
+    print(f"{label:<{label_width}} {header} {'wall [s]':>9}", flush=True)
     results: dict[str, Any] = {}
     trajectories: dict[str, Any] = {}
+    for variant in variants:
+        run_params = {**params, entry.variant: variant} if variant is not None else params
 
-    def build(method: str, num_seeds: int) -> Any:
-        return mppi_cbf(
-            method,
-            config=args.config,
-            num_seeds=num_seeds,
-            num_samples=args.samples,
-            horizon=args.horizon,
-            seed=args.seed,
-            device=args.device,
-        )
-
-    for method in methods:
-
-        def compute(method: str = method) -> tuple[dict[str, Any], Any]:
-            scenario = build(method, args.seeds)
+        def compute(run_params: dict[str, Any] = run_params) -> tuple[dict[str, Any], Any]:
+            scenario = entry.make(
+                **run_params, num_seeds=num_seeds, seed=args.seed, device=args.device
+            )
             start = time.perf_counter()
             traj, per_seed = scenario.run(progress=args.progress)
             seconds = time.perf_counter() - start
-            entry = {
+            record = {
+                "settings": {"seeds": num_seeds, "first_seed": args.seed, **run_params},
                 "params": scenario.params,
-                "units": {
-                    "min_h": "ellipse value b_i (dimensionless; < 0 inside)",
-                    "goal0_time": "s",
-                    "goal0_final_distance": "m",
-                    "seconds": "s",
-                },
+                "units": dict(entry.units),
                 "summary": summarize(per_seed),
                 "per_seed": per_seed,
                 "seconds": seconds,
             }
-            return entry, traj
+            return record, traj
 
-        key = f"mppi-cbf/{args.config}/{method}"
-        entry, trajectories[method] = parts.unit(key, compute)
-        print(_b_row(method, entry["summary"], STEPS, entry["seconds"]), flush=True)
-        results[key] = entry
-    scenario = build(methods[-1], 1)  # its obstacles and goals, for the figures
-    figures = _b_figures(trajectories, scenario, parts.run.path, args)
-    for entry in results.values():
-        entry["figures"] = [str(p) for p in figures]
+        key = _unit_key(entry, run_params, variant)
+        record, traj = parts.unit(key, compute)
+        name = str(variant) if variant is not None else entry.name
+        trajectories[name] = traj
+        cells = " ".join(
+            f"{c.cell(record['summary']):>{w}}" for c, w in zip(entry.columns, widths, strict=True)
+        )
+        print(f"{name:<{label_width}} {cells} {record['seconds']:>9.1f}", flush=True)
+        results[key] = record
+    from torchcbf.scenarios.figures import standard_figures
+
+    scenario = entry.make(**run_params, num_seeds=num_seeds, seed=args.seed, device="cpu")
+    title = entry.name + (f", {shown}" if shown != "defaults" else "")
+    draw = entry.figures or functools.partial(standard_figures, stem=entry.name.replace("-", "_"))
+    figures = draw(
+        trajectories, scenario, parts.run.path, title=title, gif=not args.no_gif,
+        first_seed=args.seed,
+    )  # fmt: skip
+    for record in results.values():
+        record["figures"] = [str(p) for p in figures]
     return results
 
 
-def _b_figures(
-    trajectories: dict[str, Any], scenario: Any, out: Path, args: argparse.Namespace
-) -> list[Path]:
-    from torchcbf.viz import animate_methods, plot_barrier_bands, plot_methods
+def _parameters(entry: Any, args: argparse.Namespace) -> dict[str, Any]:
+    """The parameters the command line sets: its options, then ``--set KEY=VALUE``."""
+    from torchcbf.sweep.params import parse_value
 
-    view = {"xlim": (-2.5, 5.0), "ylim": (-2.0, 6.5)}
-    stem = f"mppi_cbf_{args.config}"
-    n = args.seeds
-    figures = [
-        _save(
-            plot_methods(
-                trajectories,
-                scenario.barriers,
-                scenario.goals,
-                title=f"scenario B, '{args.config}': {n} seeds per method",
-                **view,
-            ),
-            out / f"{stem}_trajectories.png",
-        ),
-        _save(
-            plot_barrier_bands(
-                trajectories,
-                scenario.barriers,
-                title=f"scenario B, '{args.config}': closest ellipse over time ({n} seeds)",
-            ),
-            out / f"{stem}_barriers.png",
-        ),
-    ]
-    for method, traj in trajectories.items():
-        label = f"{method}, seed {args.seed}"
-        figures += _rollout_figures(traj, scenario, out / f"{stem}_{method}", label, **view)
-    if not args.no_gif:
-        figures.append(
-            _save_animation(
-                animate_methods,
-                out / f"{stem}.gif",
-                trajectories,
-                scenario.barriers,
-                scenario.goals,
-                title=f"scenario B, '{args.config}', seed {args.seed}",
-                **view,
-            )
-        )
-    return figures
+    params = {}
+    for flag, key in entry.options.items():
+        value = getattr(args, _dest(flag), None)
+        if value is not None:
+            params[key] = value
+    for item in getattr(args, "set", None) or []:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise SystemExit(f"torchcbf: --set takes KEY=VALUE, got {item!r}")
+        try:
+            params[key.strip()] = parse_value(entry, key.strip(), value)
+        except ValueError as error:
+            raise SystemExit(f"torchcbf {entry.name}: --set {item}: {error}") from None
+    return params
+
+
+def _dest(flag: str) -> str:
+    return "option_" + flag.replace("-", "_")
 
 
 # -- command line --------------------------------------------------------------------------
@@ -347,18 +209,71 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def _scenario_options(p: argparse.ArgumentParser, seeds: int, samples: int, horizon: int) -> None:
-    p.add_argument(
-        "--seeds", type=_positive_int, default=seeds, help="noise/planner seeds, run as one batch"
-    )
+def _common_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="first seed")
-    p.add_argument("--samples", type=_positive_int, default=samples, help="MPPI samples K")
-    p.add_argument("--horizon", type=_positive_int, default=horizon, help="MPPI horizon H (steps)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     p.add_argument("--out", default="out", help="directory for metrics.json and the figures")
     _add_output_options(p)
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     p.add_argument("--no-gif", action="store_true", help="skip the GIF animations")
+
+
+def _option_type(entry: Any, key: str) -> Callable[[str], Any]:
+    """A parameter's value read from text, with argparse's message on a bad value."""
+    from torchcbf.sweep.params import parse_value
+
+    kinds = [k for k in entry.types()[key] if k in (int, float, str, bool)]
+    kind = kinds[0].__name__ if kinds else "value"
+
+    def read(text: str) -> Any:
+        try:
+            return parse_value(entry, key, text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"invalid {kind} value: {text!r}") from None
+
+    read.__name__ = kind
+    return read
+
+
+def _add_scenario_command(sub: Any, entry: Any) -> None:
+    """``torchcbf NAME``: the registered scenario ``entry`` over one batch of seeds."""
+    p = sub.add_parser(
+        entry.name,
+        help=(entry.description.split(": ")[0] if entry.description else entry.name),
+        description=entry.description or None,
+    )
+    p.add_argument(
+        "--seeds",
+        type=_positive_int,
+        default=entry.num_seeds,
+        help="noise/planner seeds, run as one batch",
+    )
+    defaults = entry.defaults()
+    for flag, key in entry.options.items():
+        p.add_argument(
+            f"--{flag}",
+            dest=_dest(flag),
+            type=_option_type(entry, key),
+            choices=entry.choices.get(key),
+            default=None,
+            help=f"the parameter {key} (default: {defaults[key]})",
+        )
+    if entry.variant is not None:
+        allowed = ", ".join(map(str, entry.choices.get(entry.variant, ())))
+        p.add_argument(
+            f"--{entry.variant}s",
+            dest="variants",
+            default="all",
+            help=f"'all' or a comma-separated list of {allowed}: one batch and table row each",
+        )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="any other parameter of the scenario (repeatable)",
+    )
+    _common_run_options(p)
 
 
 def _add_output_options(p: argparse.ArgumentParser) -> None:
@@ -375,57 +290,50 @@ def _add_output_options(p: argparse.ArgumentParser) -> None:
     )
 
 
-def _config_options(p: argparse.ArgumentParser, methods: str) -> None:
-    p.add_argument(
-        "--config",
-        default="default",
-        choices=["default", "paper", "cbfkit"],
-        help="scenario B's filter parameters (see docs/scenarios.md)",
-    )
-    p.add_argument(
-        "--methods",
-        default=methods,
-        help="'all' or a comma-separated list of scbf, mppi, mppi_scbf, mppi_rascbf, shield_mppi",
-    )
-
-
 def build_parser() -> argparse.ArgumentParser:
-    """The ``torchcbf`` argument parser."""
+    """The ``torchcbf`` argument parser (one command per registered scenario)."""
+    from torchcbf.scenarios import scenarios
+
     parser = argparse.ArgumentParser(
         prog="torchcbf", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     _add_version(parser)
+    parser.add_argument(
+        "--import",
+        dest="imports",
+        action="append",
+        default=[],
+        metavar="MODULE",
+        help="import MODULE first (a module that registers scenarios; repeatable)",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
-    fmt = argparse.ArgumentDefaultsHelpFormatter
-    a = sub.add_parser(
-        "reach-avoid",
-        help="scenario A at the paper's sizes",
-        description="Scenario A: timed reach-avoid with MPPI on a single integrator.",
-        formatter_class=fmt,
-    )
-    _scenario_options(a, 10, 10_000, 50)
-    b = sub.add_parser(
-        "mppi-cbf",
-        help="scenario B at the paper's sizes",
-        description="Scenario B: MPPI, stochastic CBFs and their combinations on a noisy "
-        "unicycle among five ellipses, every method over one batch of seeds.",
-        formatter_class=fmt,
-    )
-    _scenario_options(b, 32, 20_000, 80)
-    _config_options(b, "all")
+    for entry in scenarios().values():
+        _add_scenario_command(sub, entry)
     d = sub.add_parser(
         "demo",
-        help="both scenarios at sizes that finish in a few minutes",
-        description="Scenario A (4 seeds, K = 10,000, H = 50) and scenario B in its default "
-        f"configuration, every method (8 seeds, K = 1,000, H = 80). The paper's size of B: "
-        f"{PAPER_SIZE_B}.",
-        formatter_class=fmt,
+        help="the reference scenarios at sizes that finish in a few minutes",
+        description="Every registered scenario with demo sizes: scenario A (4 seeds, K = "
+        "10,000, H = 50) and scenario B in its default configuration, every method (8 seeds, "
+        f"K = 1,000, H = 80). The paper's size of B: {PAPER_SIZE_B}.",
     )
-    _scenario_options(d, 8, 1000, 80)
-    _config_options(d, "all")
+    _common_run_options(d)
     _add_ecosystem_commands(sub)
     _describe_commands(sub)
     return parser
+
+
+def _imports(argv: Sequence[str]) -> list[str]:
+    """The modules named by ``--import`` before the command (read before the parser is
+    built, since their scenarios add commands)."""
+    found = []
+    for i, arg in enumerate(argv):
+        if arg == "--import" and i + 1 < len(argv):
+            found.append(argv[i + 1])
+        elif arg.startswith("--import="):
+            found.append(arg.partition("=")[2])
+        elif not arg.startswith("-"):
+            break
+    return found
 
 
 def _run_arguments(argv: Sequence[str]) -> list[str]:
@@ -449,10 +357,10 @@ def _interrupted(command: str, argv: Sequence[str], out: Path, saved: str) -> in
 
 
 def _scenario_settings(args: argparse.Namespace) -> dict[str, Any]:
-    names = ("seeds", "seed", "samples", "horizon", "device", "no_gif")
-    settings = {name: getattr(args, name) for name in names}
-    if args.command != "reach-avoid":
-        settings.update(config=args.config, methods=_methods(args.methods))
+    """What identifies a scenario run (compared by ``--resume``)."""
+    names = ("seeds", "seed", "device", "no_gif", "variants", "set")
+    settings = {name: getattr(args, name) for name in names if hasattr(args, name)}
+    settings.update({k: v for k, v in vars(args).items() if k.startswith("option_")})
     return settings
 
 
@@ -466,8 +374,16 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    from torchcbf.scenarios import import_scenarios, scenarios
+
     argv = list(sys.argv[1:] if argv is None else argv)
+    for module in _imports(argv):
+        try:
+            import_scenarios(module)
+        except ImportError as error:
+            print(f"torchcbf: --import {module}: {error}", file=sys.stderr)
+            return 2
+    parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "device", "cpu") == "cuda" and not torch.cuda.is_available():
         parser.error("argument --device: cuda, but CUDA is not available on this machine")
@@ -475,6 +391,23 @@ def _main(argv: Sequence[str] | None = None) -> int:
         return ECOSYSTEM_COMMANDS[args.command](args, argv)
     from torchcbf.sweep.rundir import OutputError, RunDir
 
+    registry = scenarios()
+    if args.command == "demo":
+        plan = [(e, dict(e.demo)) for e in registry.values() if e.demo is not None]
+    else:
+        plan = [(registry[args.command], None)]
+    try:
+        for entry, sizes in plan:  # a bad parameter is refused before any work
+            params = {**_parameters(entry, args), **(sizes or {})}
+            params.pop("num_seeds", None)
+            variants = _variants(entry, getattr(args, "variants", None) or "all")
+            from torchcbf.sweep.params import check_buildable
+
+            configs = [{**params, entry.variant: v} if v is not None else params for v in variants]
+            check_buildable(entry, configs, seed=args.seed, device=args.device)
+    except ValueError as error:
+        print(f"torchcbf {args.command}: {error}", file=sys.stderr)
+        return 2
     try:
         run = RunDir.claim(
             args.out,
@@ -488,14 +421,10 @@ def _main(argv: Sequence[str] | None = None) -> int:
         return 2
     parts = _Parts(run)
     try:
-        if args.command == "reach-avoid":
-            results = _reach_avoid(args, parts)
-        elif args.command == "mppi-cbf":
-            results = _mppi_cbf(args, parts)
-        else:
-            sizes = {"seeds": 4, "samples": 10_000, "horizon": 50}
-            demo_a = argparse.Namespace(**{**vars(args), **sizes})
-            results = {**_reach_avoid(demo_a, parts), **_mppi_cbf(args, parts)}
+        results: dict[str, Any] = {}
+        for entry, sizes in plan:
+            results.update(_run_scenario(entry, args, parts, sizes))
+        if args.command == "demo":
             print(f"\nThe paper's size of scenario B (32 seeds, K = 20,000): {PAPER_SIZE_B}")
         record = {"command": " ".join(_run_arguments(argv)), "run": run_info(args.device)}
         metrics_path = run.path / "metrics.json"
@@ -538,11 +467,13 @@ DESCRIPTIONS = {
     ),
     "tune": (
         "Optuna search over a scenario's declared search space. Objective: the success rate "
-        "over a batch of tuning seeds (from --seed, default 10,000: disjoint from the "
-        "evaluation seeds 0, 1, ...) minus a tie-break below one success in mean time to "
-        "goal. Writes best.json (best parameters, its objective and the default "
-        "configuration's on the same seeds, both re-evaluated on the evaluation seeds), "
-        "study.csv and study.png."
+        "over a batch of tuning seeds (--seeds from --seed, default 16 from 10,000: disjoint "
+        "from the evaluation seeds) plus a tie-break below one success in mean time to "
+        "goal. The best trial and the default configuration are then run on the held-out "
+        "evaluation seeds (--eval-seeds from --eval-seed, default twice --seeds from 0); the "
+        "best is recommended only if it beats the default there. Writes best.json (best "
+        "parameters, the default's, both evaluations and the recommendation), study.csv "
+        "and study.png."
     ),
     "info": (
         "Print torchcbf's and torch's versions, the devices torch sees, its threads and every "
@@ -584,7 +515,9 @@ def _describe_commands(sub: Any) -> None:
 
 
 def _add_engine_options(p: argparse.ArgumentParser, seeds: int, seed: int) -> None:
-    p.add_argument("scenario", choices=["reach-avoid", "mppi-cbf"], help="scenario builder")
+    from torchcbf.scenarios import scenarios
+
+    p.add_argument("scenario", choices=list(scenarios()), help="a registered scenario")
     p.add_argument(
         "--seeds", type=_positive_int, default=seeds, help="seeds per configuration (one batch)"
     )
@@ -621,9 +554,15 @@ def _add_ecosystem_commands(sub: Any) -> None:
         help="values of one builder keyword (repeat for a product grid; none: the defaults)",
     )
     t = sub.add_parser("tune", help="Optuna search over a scenario's parameters")
-    _add_engine_options(t, seeds=8, seed=10_000)
+    _add_engine_options(t, seeds=16, seed=10_000)
     t.add_argument("--trials", type=_positive_int, default=20, help="Optuna trials")
     t.add_argument("--eval-seed", type=int, default=0, help="first evaluation seed")
+    t.add_argument(
+        "--eval-seeds",
+        type=_positive_int,
+        default=None,
+        help="evaluation seeds (default: twice --seeds)",
+    )
     t.add_argument(
         "--set",
         action="append",
@@ -718,17 +657,21 @@ def _print_rows(rows: list[dict[str, Any]], keys: list[str]) -> None:
 
     from torchcbf.sweep.params import describe
 
+    names = [
+        row.get("label") or describe({k: row[k] for k in keys if k in row}) or "defaults"
+        for row in rows
+    ]
+    w = max([len("configuration"), *map(len, names)])
     print(
-        f"{'configuration':<36} {'success (95% CI)':>17} {'collision (95% CI)':>19} "
+        f"{'configuration':<{w}} {'success (95% CI)':>17} {'collision (95% CI)':>19} "
         f"{'t_goal [s]':>10} {'min barrier':>11} {'wall [s]':>8}"
     )
-    for row in rows:
-        name = row.get("label") or describe({k: row[k] for k in keys if k in row}) or "defaults"
+    for name, row in zip(names, rows, strict=True):
         if row.get("status", "ok") != "ok":
-            print(f"{name:<36} failed: {row.get('error')}")
+            print(f"{name:<{w}} failed: {row.get('error')}")
             continue
         print(
-            f"{name:<36} {pct(row, 'success'):>17} {pct(row, 'collision'):>19} "
+            f"{name:<{w}} {pct(row, 'success'):>17} {pct(row, 'collision'):>19} "
             f"{num(row.get('time_to_goal_s'), '{:.2f}'):>10} "
             f"{num(row.get('min_h'), '{:.3f}'):>11} {row['wall_s']:>8.1f}"
         )
@@ -777,6 +720,11 @@ def _sweep(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
         out = Path(args.out)
         saved = f"{len(read_journal(out / JOURNAL))} finished configuration(s)"
         return _interrupted("sweep", argv, out, saved)
+    from torchcbf.sweep.params import describe
+    from torchcbf.sweep.sweep import fixed_parameters
+
+    print(f"{args.scenario}, {args.seeds} seeds from {args.seed} per configuration; held fixed: "
+          f"{describe(fixed_parameters(args.scenario, grid)) or 'nothing'}")  # fmt: skip
     _print_rows(rows, list(grid))
     failed = sum(row["status"] != "ok" for row in rows)
     if failed:
@@ -811,6 +759,7 @@ def _tune(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
             num_seeds=args.seeds,
             seed=args.seed,
             eval_seed=args.eval_seed,
+            eval_seeds=args.eval_seeds,
             fixed=fixed,
             params=None if args.params is None else [p.strip() for p in args.params.split(",")],
             sampler_seed=args.sampler_seed,
@@ -832,15 +781,19 @@ def _tune(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
         print("every trial failed: no best configuration")
     else:
         print(f"best trial {best['trial']}: {best['arguments']}")
+        tuning = result["tuning_seeds"]
         print(
-            f"objective on the tuning seeds {args.seed}..{args.seed + args.seeds - 1}: "
-            f"best {best['objective']:.4f}, default configuration "
-            f"{_num(default['objective'], '{:.4f}')}"
+            f"objective on the tuning seeds {tuning['first']}.."
+            f"{tuning['first'] + tuning['count'] - 1}: best {best['objective']:.4f}, default "
+            f"configuration {_num(default['objective'], '{:.4f}')}"
         )
-    print(f"on the evaluation seeds {args.eval_seed}..{args.eval_seed + args.seeds - 1}:")
-    evaluation = result["evaluation"]
+    evaluation, held_out = result["evaluation"], result["evaluation_seeds"]
+    first, count = held_out["first"], held_out["count"]
+    print(f"on the held-out evaluation seeds {first}..{first + count - 1}:")
     labelled = [{**evaluation[k], "label": k} for k in ("best", "default") if evaluation[k]]
     _print_rows(labelled, [])
+    recommended = result["recommended"]
+    print(f"recommended: the {recommended['source']} configuration ({recommended['reason']})")
     out = Path(args.out)
     print(
         "wrote "

@@ -19,9 +19,10 @@ from torchcbf.sweep import builder_defaults, configurations, parse_grid, parse_v
 from torchcbf.sweep.evaluate import objective, success, tie_break
 
 
-def test_keywords_come_from_the_builder_signature() -> None:
-    a = builder_defaults("reach-avoid")
-    assert a == {"num_samples": 10_000, "horizon": 50}  # num_seeds, seed, device, dtype: reserved
+def test_keywords_come_from_the_parameters_dataclass() -> None:
+    a = builder_defaults("reach-avoid")  # num_seeds, seed, device, dtype: set by the run
+    assert a == {"num_samples": 10_000, "horizon": 50, "temperature": 0.03, "noise_sigma": 4.0,
+                 "control_cost_weight": 0.1}  # fmt: skip
     b = builder_defaults("mppi-cbf")
     assert b["method"] == "mppi_scbf" and "rectify_gain" in b and "num_seeds" not in b
 
@@ -49,7 +50,7 @@ def test_values_take_a_type_the_builder_admits() -> None:
 @pytest.mark.parametrize(
     ("items", "match"),
     [
-        (["temperature=1"], "unknown key 'temperature'.*horizon, num_samples"),
+        (["gain=1"], "unknown key 'gain'.*horizon, noise_sigma, num_samples"),
         (["num_seeds=3"], "num_seeds"),
         (["num_samples=1.5"], "num_samples takes an integer"),
         (["num_samples"], "KEY=V1,V2"),

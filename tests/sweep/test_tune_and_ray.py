@@ -9,7 +9,8 @@ from typing import Any
 import pytest
 
 from torchcbf.cli import main
-from torchcbf.sweep import SEARCH_SPACES, builder_defaults, run_sweep, search_space
+from torchcbf.scenarios import scenarios
+from torchcbf.sweep import recommend, run_sweep, search_space
 
 SMALL = {"num_samples": 32}
 
@@ -18,12 +19,15 @@ def _without_wall(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return [{k: v for k, v in row.items() if k != "wall_s"} for row in rows]
 
 
-def test_search_spaces_name_builder_keywords() -> None:
-    for scenario, dims in SEARCH_SPACES.items():
-        accepted = builder_defaults(scenario)
-        for d in dims:
-            assert d.optional or d.keyword in accepted, (scenario, d.name)
-        assert search_space(scenario)  # something to search today
+def test_search_spaces_name_parameters() -> None:
+    for name, entry in scenarios().items():
+        accepted = entry.defaults()
+        for d in entry.search_space:
+            assert d.keyword in accepted, (name, d.name)
+        assert search_space(name)  # something to search today
+    assert {d.name for d in search_space("reach-avoid")} == {
+        "num_samples", "horizon", "temperature", "noise_sigma", "control_cost_weight"
+    }  # fmt: skip
     names = [d.name for d in search_space("mppi-cbf", fixed={"rectify_gain": 5.0})]
     assert "rectify_gain" not in names and {"control_weight_omega", "noise_sigma"} <= set(names)
     filter_only = [d.name for d in search_space("mppi-cbf", fixed={"method": "scbf"})]
@@ -60,7 +64,10 @@ def test_tune_is_reproducible_and_reports_best_and_default(study) -> None:
     assert a["best"]["arguments"] == {"num_samples": 32, "horizon": best_row["horizon"]}
     assert all(r["first_seed"] == 10_000 for r in a["trials"])  # tuning seeds
     assert a["evaluation"]["best"]["first_seed"] == 0  # evaluation seeds
-    assert a["default"]["arguments"] == {"num_samples": 32, "horizon": 50}
+    assert a["default"]["arguments"] == {
+        "num_samples": 32, "horizon": 50, "temperature": 0.03, "noise_sigma": 4.0,
+        "control_cost_weight": 0.1,
+    }  # fmt: skip
     assert a["evaluation"]["default"]["num_samples"] == 32
     assert "horizon" not in a["evaluation"]["default"]  # the builder's own default
     c = _tune(sampler_seed=1, trials=2)
@@ -84,7 +91,26 @@ def test_cli_tune_writes_best_json_and_study(tmp_path, capsys) -> None:
     assert best["tuning_seeds"] == {"first": 10_000, "count": 2}
     assert (tmp_path / "study.csv").read_text().count("\n") == 3  # header + 2 trials
     assert (tmp_path / "study.png").exists()
-    assert "default configuration" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "default configuration" in out and "recommended: the " in out
+    assert best["recommended"]["source"] in ("best", "default")
+    assert best["evaluation_seeds"] == {"first": 0, "count": 4}  # twice the tuning seeds
+
+
+def test_recommend_keeps_the_default_unless_the_best_beats_it() -> None:
+    ok = {"status": "ok"}
+    better = {"best": {**ok, "objective": 0.9}, "default": {**ok, "objective": 0.5}}
+    worse = {"best": {**ok, "objective": 0.0}, "default": {**ok, "objective": 1.0}}
+    tie = {"best": {**ok, "objective": 0.5}, "default": {**ok, "objective": 0.5}}
+    assert recommend(better, {"a": 1}, {"a": 0})["source"] == "best"
+    kept = recommend(worse, {"a": 1}, {"a": 0})
+    assert kept["source"] == "default" and kept["arguments"] == {"a": 0}
+    assert "not better than the default" in kept["reason"]
+    assert recommend(tie, {"a": 1}, {"a": 0})["source"] == "default"
+    assert (
+        recommend({"best": None, "default": better["default"]}, None, {"a": 0})["source"]
+        == "default"
+    )
 
 
 @pytest.fixture(scope="module")

@@ -14,11 +14,20 @@ sample costs are normalised by their standard deviation before the exponent
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
 import torch
 
+from torchcbf._checks import check_number, check_positive_int
 from torchcbf.dynamics import SingleIntegrator
 from torchcbf.mppi import MPPI, And, Avoid, Reach
 from torchcbf.scenarios.base import Scenario
+from torchcbf.scenarios.figures import standard_figures
+from torchcbf.scenarios.registry import Column, Dimension, ScenarioEntry, register
+from torchcbf.sim import Trajectory
 
 GOALS = (
     ((4.0, 4.0), (0.0, 3.5), 10.0),
@@ -36,30 +45,55 @@ def reach_avoid_spec() -> And:
     return And(avoid, *reaches)
 
 
-def reach_avoid(
+@dataclass(frozen=True)
+class ReachAvoidParams:
+    """The parameters of scenario A.
+
+    Attributes:
+        num_samples, horizon: MPPI's ``K`` and ``H`` (the paper: 10,000 and 50).
+        temperature: MPPI's temperature (on costs normalised by their standard deviation).
+        noise_sigma: standard deviation of the sampled controls (per axis).
+        control_cost_weight: weight of MPPI's control cost.
+    """
+
+    num_samples: int = 10_000
+    horizon: int = 50
+    temperature: float = 0.03
+    noise_sigma: float = 4.0
+    control_cost_weight: float = 0.1
+
+
+def build(
+    params: ReachAvoidParams,
+    *,
     num_seeds: int = 10,
-    num_samples: int = 10_000,
-    horizon: int = 50,
     seed: int = 0,
     device: str | torch.device = "cpu",
-    dtype: torch.dtype = torch.float32,
+    dtype: torch.dtype | None = None,
 ) -> Scenario:
-    """Build scenario A for ``num_seeds`` seeds planned as one batch of environments."""
+    """Scenario A with ``params`` for ``num_seeds`` seeds planned as one batch."""
+    check_positive_int("num_seeds", num_seeds)
+    check_positive_int("num_samples", params.num_samples)
+    check_positive_int("horizon", params.horizon)
+    for name in ("temperature", "noise_sigma"):
+        check_number(name, getattr(params, name), low=0.0, strict=True)
+    check_number("control_cost_weight", params.control_cost_weight, low=0.0)
+    dtype = torch.float32 if dtype is None else dtype
     dt, steps = 0.1, 100
     dynamics = SingleIntegrator(2, u_min=-5.0, u_max=5.0).to(device=device, dtype=dtype)
     spec = reach_avoid_spec().to(device=device, dtype=dtype)
     planner = MPPI(
         dynamics,
         spec,
-        horizon=horizon,
-        num_samples=num_samples,
+        horizon=params.horizon,
+        num_samples=params.num_samples,
         dt=dt,
-        noise_sigma=4.0 * torch.eye(2),
-        temperature=0.03,
-        control_cost_weight=0.1,
+        noise_sigma=params.noise_sigma * torch.eye(2),
+        temperature=params.temperature,
+        control_cost_weight=params.control_cost_weight,
         seed=seed,
         cost_normalization="std",
-        keep_rollouts=min(512, num_samples),
+        keep_rollouts=min(512, params.num_samples),
     ).to(device=device, dtype=dtype)
     x0 = torch.zeros(num_seeds, 2, device=device, dtype=dtype)
     avoid = spec.specs[0]
@@ -80,4 +114,61 @@ def reach_avoid(
         goals=[s for s in spec.specs[1:]],
         spec=spec,
         snapshot_steps=(20,),
+        params={**asdict(params), "num_seeds": num_seeds, "seed": seed, "dt": dt, "steps": steps},
     )
+
+
+def reach_avoid(
+    *,
+    num_seeds: int = 10,
+    seed: int = 0,
+    device: str | torch.device = "cpu",
+    dtype: torch.dtype | None = None,
+    **params: Any,
+) -> Scenario:
+    """Build scenario A for ``num_seeds`` seeds; ``params``: fields of
+    :class:`ReachAvoidParams` (e.g. ``num_samples=1000``)."""
+    return ENTRY.make(num_seeds=num_seeds, seed=seed, device=device, dtype=dtype, **params)
+
+
+def figures(
+    trajectories: Mapping[str, Trajectory],
+    scenario: Scenario,
+    out: Path,
+    *,
+    title: str,
+    gif: bool = True,
+    first_seed: int = 0,
+) -> list[Path]:
+    """The paths, the rollouts at 2 s and the animation (``reach_avoid_*``)."""
+    return standard_figures(
+        trajectories, scenario, out, stem="reach_avoid", title=title, gif=gif,
+        first_seed=first_seed,
+    )  # fmt: skip
+
+
+ENTRY = register(
+    ScenarioEntry(
+        name="reach-avoid",
+        build=build,
+        params=ReachAvoidParams,
+        description="Scenario A: timed reach-avoid with MPPI on a single integrator.",
+        search_space=(
+            Dimension("num_samples", "int", 256, 10_000, log=True),
+            Dimension("horizon", "int", 20, 60),
+            Dimension("temperature", "float", 1e-3, 1.0, log=True),
+            Dimension("noise_sigma", "float", 0.5, 16.0, log=True),
+            Dimension("control_cost_weight", "float", 1e-3, 1.0, log=True),
+        ),
+        columns=(
+            Column("spec met [95% CI]", "spec_satisfied"),
+            Column("collisions [95% CI]", "collision"),
+            Column("min clearance [m]", "min_h", "min", "{:.3f}"),
+        ),
+        figures=figures,
+        options={"samples": "num_samples", "horizon": "horizon"},
+        units={"min_h": "m (clearance |p - o| - r_o)", "seconds": "s"},
+        num_seeds=10,
+        demo={"num_seeds": 4, "num_samples": 10_000, "horizon": 50},
+    )
+)

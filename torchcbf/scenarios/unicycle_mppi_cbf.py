@@ -43,8 +43,9 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -58,6 +59,8 @@ from torchcbf.filters.risk import noise_bound
 from torchcbf.mppi import MPPI, DiscreteBarrierCost, QuadraticGoal, ShieldMPPI, SumCost
 from torchcbf.mppi.costs import BarrierCost
 from torchcbf.scenarios.base import Scenario
+from torchcbf.scenarios.figures import standard_figures
+from torchcbf.scenarios.registry import Column, Dimension, ScenarioEntry, register
 from torchcbf.sim import Goal, Trajectory
 
 METHODS = ("scbf", "mppi", "mppi_scbf", "mppi_rascbf", "shield_mppi")
@@ -158,38 +161,11 @@ def proportional_controller(goal: tuple[float, float] = GOAL):
     return control
 
 
-def mppi_cbf(
-    method: str = "mppi_scbf",
-    *,
-    config: str = "default",
-    num_seeds: int = 32,
-    num_samples: int = 20_000,
-    horizon: int = 80,
-    seed: int = 0,
-    planner_every: int = 2,
-    alpha: float | None = None,
-    beta: float | None = None,
-    rectify_gain: float | None = None,
-    margin: float | None = None,
-    goal_wall_margin: float | None = None,
-    blocking_margin: float | None = None,
-    barrier_scale: float | Sequence[float] | None = None,
-    control_weight: float | tuple[float, float] | None = None,
-    control_limit: float | tuple[float, float] | None = None,
-    rho: float | None = None,
-    risk_horizon: float | None = None,
-    shield_weight: float | None = None,
-    shield_steps: int | None = None,
-    noise_sigma: float = 4.0,
-    cost_normalization: str = "none",
-    zero_noise_samples: int = 0,
-    shift_fill: str = "zero",
-    device: str | torch.device = "cpu",
-    dtype: torch.dtype = torch.float32,
-) -> Scenario:
-    """Build scenario B with one of :data:`METHODS` for ``num_seeds`` noise seeds.
+@dataclass(frozen=True)
+class MppiCbfParams:
+    """The parameters of scenario B.
 
-    Args:
+    Attributes:
         method: one of :data:`METHODS`.
         config: one of :data:`CONFIGS`: the filter's parameters (:data:`CONFIG_PARAMS`).
         num_samples, horizon: MPPI's ``K`` and ``H`` (the paper: 20,000 and 80).
@@ -197,15 +173,78 @@ def mppi_cbf(
             0.02 s); between replans the loop follows the plan.
         alpha, beta, rectify_gain, margin, goal_wall_margin, blocking_margin, control_weight,
             control_limit, rho, risk_horizon, shield_weight, shield_steps: override the
-            configuration's value (:class:`FilterParams`).
+            configuration's value (:class:`FilterParams`; ``None``: the configuration's).
         barrier_scale: the scales ``c_i`` of the exponential form (one number or five),
             overriding the ones ``margin`` sets.
         noise_sigma, cost_normalization, zero_noise_samples, shift_fill: MPPI's (the noise
             covariance is ``noise_sigma * I``, CBFkit's ``control_cov``).
+    """
+
+    method: str = "mppi_scbf"
+    config: str = "default"
+    num_samples: int = 20_000
+    horizon: int = 80
+    planner_every: int = 2
+    alpha: float | None = None
+    beta: float | None = None
+    rectify_gain: float | None = None
+    margin: float | None = None
+    goal_wall_margin: float | None = None
+    blocking_margin: float | None = None
+    barrier_scale: float | tuple[float, ...] | None = None
+    control_weight: float | tuple[float, float] | None = None
+    control_limit: float | tuple[float, float] | None = None
+    rho: float | None = None
+    risk_horizon: float | None = None
+    shield_weight: float | None = None
+    shield_steps: int | None = None
+    noise_sigma: float = 4.0
+    cost_normalization: str = "none"
+    zero_noise_samples: int = 0
+    shift_fill: str = "zero"
+
+
+def mppi_cbf(
+    method: str | None = None,
+    *,
+    num_seeds: int = 32,
+    seed: int = 0,
+    device: str | torch.device = "cpu",
+    dtype: torch.dtype | None = None,
+    **params: Any,
+) -> Scenario:
+    """Build scenario B with one of :data:`METHODS` (``None``: ``"mppi_scbf"``) for
+    ``num_seeds`` noise seeds; ``params``: fields of :class:`MppiCbfParams`.
 
     Returns:
         A :class:`Scenario` whose ``params`` record every parameter used.
     """
+    if method is not None:
+        params["method"] = method
+    return ENTRY.make(num_seeds=num_seeds, seed=seed, device=device, dtype=dtype, **params)
+
+
+def build(
+    p: MppiCbfParams,
+    *,
+    num_seeds: int = 32,
+    seed: int = 0,
+    device: str | torch.device = "cpu",
+    dtype: torch.dtype | None = None,
+) -> Scenario:
+    """Scenario B with the parameters ``p`` for ``num_seeds`` noise seeds."""
+    dtype = torch.float32 if dtype is None else dtype
+    check_positive_int("num_seeds", num_seeds)
+    method, config = p.method, p.config
+    num_samples, horizon, planner_every = p.num_samples, p.horizon, p.planner_every
+    barrier_scale, noise_sigma = p.barrier_scale, p.noise_sigma
+    cost_normalization, zero_noise_samples, shift_fill = (
+        p.cost_normalization, p.zero_noise_samples, p.shift_fill,
+    )  # fmt: skip
+    alpha, beta, rectify_gain, margin = p.alpha, p.beta, p.rectify_gain, p.margin
+    goal_wall_margin, blocking_margin = p.goal_wall_margin, p.blocking_margin
+    control_weight, control_limit, rho = p.control_weight, p.control_limit, p.rho
+    risk_horizon, shield_weight, shield_steps = p.risk_horizon, p.shield_weight, p.shield_steps
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if config not in CONFIGS:
@@ -472,3 +511,83 @@ def _pair(name: str, value: float | Sequence[float]) -> tuple[float, float]:
     if len(pair) != 2 or not all(v > 0 and math.isfinite(v) for v in pair):
         raise ValueError(f"{name} must be a positive number or two positive numbers, got {value!r}")
     return (pair[0], pair[1])
+
+
+VIEW = {"xlim": (-2.5, 5.0), "ylim": (-2.0, 6.5)}
+
+
+def figures(
+    trajectories: Mapping[str, Trajectory],
+    scenario: Scenario,
+    out: Path,
+    *,
+    title: str,
+    gif: bool = True,
+    first_seed: int = 0,
+) -> list[Path]:
+    """Every method's paths, the closest-ellipse bands, the rollouts at 2 s and the
+    animation (``mppi_cbf_{config}_*``)."""
+    config = scenario.params.get("config", "default")
+    return standard_figures(
+        trajectories, scenario, out, stem=f"mppi_cbf_{config}", title=title, gif=gif,
+        first_seed=first_seed, view=VIEW,
+    )  # fmt: skip
+
+
+def _omega_weight(w: float) -> tuple[float, float]:
+    return (1.0, float(w))
+
+
+_NO_PLANNER = ("scbf",)
+_NO_FILTER = ("mppi",)
+
+ENTRY = register(
+    ScenarioEntry(
+        name="mppi-cbf",
+        build=build,
+        params=MppiCbfParams,
+        description=(
+            "Scenario B: MPPI, stochastic CBFs and their combinations on a noisy unicycle "
+            "among five ellipses, every method over one batch of seeds."
+        ),
+        # the stochastic CBF's free parameters and MPPI's noise and temperature
+        search_space=(
+            Dimension("rectify_gain", "float", 1.0, 100.0, log=True, skip_variants=_NO_FILTER),
+            Dimension("barrier_scale", "float", 1e-3, 1.0, log=True, skip_variants=_NO_FILTER),
+            Dimension(
+                "control_weight_omega",
+                "float",
+                1e-4,
+                1.0,
+                log=True,
+                argument="control_weight",
+                to_argument=_omega_weight,
+                skip_variants=_NO_FILTER,
+            ),  # fmt: skip
+            Dimension("noise_sigma", "float", 1.0, 16.0, log=True, skip_variants=_NO_PLANNER),
+            Dimension("alpha", "float", 0.5, 100.0, log=True, skip_variants=_NO_FILTER),
+            Dimension("beta", "float", 0.0, 2.0, skip_variants=_NO_FILTER),
+            Dimension("margin", "float", 0.05, 0.5, skip_variants=_NO_FILTER),
+        ),
+        columns=(
+            Column("collisions [95% CI]", "collision"),
+            Column("goal by 5 s [95% CI]", "goal_reached"),
+            Column("t_goal [s]", "goal0_time", "mean"),
+            Column("min b", "min_h", "min"),
+            Column("relaxed [%]", "steps_relaxed", "mean", "{:.1f}", 100.0 / STEPS),
+            Column("fallback [%]", "steps_fallback", "mean", "{:.1f}", 100.0 / STEPS),
+        ),
+        figures=figures,
+        variant="method",
+        choices={"method": METHODS, "config": CONFIGS},
+        options={"samples": "num_samples", "horizon": "horizon", "config": "config"},
+        units={
+            "min_h": "ellipse value b_i (dimensionless; < 0 inside)",
+            "goal0_time": "s",
+            "goal0_final_distance": "m",
+            "seconds": "s",
+        },
+        num_seeds=32,
+        demo={"num_seeds": 8, "num_samples": 1000, "horizon": 80, "config": "default"},
+    )
+)

@@ -10,26 +10,32 @@ from __future__ import annotations
 import math
 import platform
 import subprocess
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from torchcbf._version import __version__
+
 
 def strict(value: Any) -> Any:
-    """``value`` with every non-finite float (nan, inf) replaced by ``None``, tensors as
-    lists and tuples as lists, ready for ``json.dumps(..., allow_nan=False)``."""
+    """``value`` as strict JSON, ready for ``json.dumps(..., allow_nan=False)``: every
+    non-finite float (nan, inf) as ``None``, tensors and tuples as lists, mappings with
+    string keys, dtypes by name, anything else that is not a JSON scalar as its ``str``."""
     if isinstance(value, torch.Tensor):
         value = value.detach().cpu().tolist()
     if isinstance(value, float):
         return value if math.isfinite(value) else None
-    if isinstance(value, dict):
+    if isinstance(value, Mapping):
         return {str(k): strict(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [strict(v) for v in value]
     if isinstance(value, torch.dtype):
         return str(value).removeprefix("torch.")
-    return value
+    if isinstance(value, (bool, int, str)) or value is None:
+        return value
+    return str(value)
 
 
 def git_commit(path: str | Path | None = None) -> str | None:
@@ -47,10 +53,9 @@ def git_commit(path: str | Path | None = None) -> str | None:
     return out.stdout.strip() or None
 
 
-def run_info(device: str | torch.device = "cpu") -> dict[str, Any]:
-    """Versions and machine of a run: torchcbf, torch, Python, git commit, device, threads."""
-    from torchcbf import __version__
-
+def run_info(device: str | torch.device = "cpu", **extra: Any) -> dict[str, Any]:
+    """Versions and machine of a run: torchcbf, torch, Python, git commit, device, threads,
+    and ``extra`` (the run's own settings)."""
     dev = torch.device(device)
     info: dict[str, Any] = {
         "torchcbf": __version__,
@@ -63,4 +68,4 @@ def run_info(device: str | torch.device = "cpu") -> dict[str, Any]:
     }
     if dev.type == "cuda" and torch.cuda.is_available():
         info["gpu"] = torch.cuda.get_device_name(dev)
-    return info
+    return {**info, **extra}

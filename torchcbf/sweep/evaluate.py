@@ -21,8 +21,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcbf.sim import summarize, wilson_interval
-from torchcbf.sweep.params import builder, jsonable
+from torchcbf.sim import strict, summarize, wilson_interval
+from torchcbf.sweep.params import ScenarioName, builder
 
 
 def success(per_seed: Mapping[str, Tensor]) -> Tensor:
@@ -68,7 +68,7 @@ def _rate(flags: Tensor) -> dict[str, float]:
 
 
 def evaluate(
-    scenario: str,
+    scenario: ScenarioName,
     params: Mapping[str, Any],
     *,
     num_seeds: int,
@@ -76,11 +76,11 @@ def evaluate(
     device: str = "cpu",
     threads: int = 1,
 ) -> dict[str, Any]:
-    """Build ``scenario`` with ``params``, run seeds ``seed .. seed + num_seeds - 1`` as one
-    batch, return one row: the parameters, success/collision/goal rates with 95% Wilson
-    intervals, the mean time to goal (s), the minimum barrier value, the objective and the
-    wall time. The run uses ``threads`` torch threads (restored afterwards) so that every
-    engine computes the same numbers.
+    """Build ``scenario`` (a registered name or an entry) with ``params``, run seeds
+    ``seed .. seed + num_seeds - 1`` as one batch, return one row: the parameters,
+    success/collision/goal rates with 95% Wilson intervals, the mean time to goal (s), the
+    minimum barrier value, the objective and the wall time. The run uses ``threads`` torch
+    threads (restored afterwards) so that every engine computes the same numbers.
     """
     previous = torch.get_num_threads()
     torch.set_num_threads(threads)
@@ -95,7 +95,7 @@ def evaluate(
     duration = scenario_run.steps * scenario_run.dt
     summary = summarize(per_seed)
     ok = success(per_seed)
-    row: dict[str, Any] = {k: jsonable(v) for k, v in params.items()}
+    row: dict[str, Any] = {k: strict(v) for k, v in params.items()}
     row.update(
         {
             "num_seeds": num_seeds,

@@ -1,50 +1,41 @@
-"""Scenario builders by name, and their keyword arguments read from the command line.
+"""A scenario's parameters read from the command line, checked and described.
 
-A builder's keyword arguments are read from its signature, so a sweep or a search covers
-whatever the builder accepts. A value given as text is converted to a type the argument's
-annotation admits (or, without one, the type of its default): ``int``, ``float``, ``bool``
+The parameters of a registered scenario are the fields of its parameters dataclass
+(:class:`torchcbf.scenarios.ScenarioEntry`), so a sweep or a search covers whatever the
+scenario declares. A value given as text is converted to a type the field's annotation
+admits (or, without one, the type of its default): ``int``, ``float``, ``bool``
 (``true``/``false``), ``str``, a tuple (``a:b``, e.g. ``control_limit=2:4``) and ``none``.
 """
 
 from __future__ import annotations
 
-import inspect
-import math
-import types
 import typing
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
-from torchcbf.scenarios import Scenario, mppi_cbf, reach_avoid
-
-SCENARIOS: dict[str, Callable[..., Scenario]] = {"reach-avoid": reach_avoid, "mppi-cbf": mppi_cbf}
+from torchcbf.scenarios import Scenario, ScenarioEntry, get
 
 # Arguments that the sweep itself sets (seeds, placement): not part of a configuration.
 RESERVED = ("num_seeds", "seed", "device", "dtype")
 
-
-def builder(scenario: str) -> Callable[..., Scenario]:
-    """The builder of ``scenario`` (a key of :data:`SCENARIOS`)."""
-    if scenario not in SCENARIOS:
-        raise ValueError(f"scenario must be one of {sorted(SCENARIOS)}, got {scenario!r}")
-    return SCENARIOS[scenario]
+ScenarioName = str | ScenarioEntry
 
 
-def builder_defaults(scenario: str) -> dict[str, Any]:
-    """The builder's keyword arguments and their defaults, without :data:`RESERVED`."""
-    params = inspect.signature(builder(scenario)).parameters
-    return {
-        name: p.default
-        for name, p in params.items()
-        if name not in RESERVED
-        and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
-        and p.default is not inspect.Parameter.empty
-    }
+def builder(scenario: ScenarioName) -> Callable[..., Scenario]:
+    """``make(**params, num_seeds=..., seed=..., device=...)`` of ``scenario`` (a registered
+    name or a :class:`~torchcbf.scenarios.ScenarioEntry`)."""
+    return get(scenario).make
 
 
-def check_keys(scenario: str, keys: Sequence[str]) -> None:
-    """Raise a ValueError naming any key that is not a keyword argument of the builder."""
-    known = builder_defaults(scenario)
+def builder_defaults(scenario: ScenarioName) -> dict[str, Any]:
+    """The scenario's parameters and their defaults."""
+    return get(scenario).defaults()
+
+
+def check_keys(scenario: ScenarioName, keys: Sequence[str]) -> None:
+    """Raise a ValueError naming any key that is not a parameter of the scenario."""
+    entry = get(scenario)
+    known = entry.defaults()
     for key in keys:
         if key in RESERVED:
             raise ValueError(
@@ -52,7 +43,7 @@ def check_keys(scenario: str, keys: Sequence[str]) -> None:
             )
         if key not in known:
             raise ValueError(
-                f"unknown key {key!r} for scenario {scenario!r}; its keyword arguments are: "
+                f"unknown key {key!r} for scenario {entry.name!r}; its parameters are: "
                 f"{', '.join(sorted(known))}"
             )
 
@@ -72,17 +63,6 @@ def _literal(text: str) -> Any:
         except ValueError:
             pass
     return text
-
-
-def _hint_types(scenario: str, key: str) -> tuple[Any, ...]:
-    """The types the builder's annotation of ``key`` admits (empty without an annotation)."""
-    try:
-        hint = typing.get_type_hints(builder(scenario)).get(key)
-    except (NameError, TypeError):
-        return ()
-    if hint is None:
-        return ()
-    return typing.get_args(hint) if isinstance(hint, types.UnionType) else (hint,)
 
 
 def _is_sequence(kind: Any) -> bool:
@@ -131,17 +111,18 @@ def _text(value: Any) -> str:
     return "none" if value is None else str(value)
 
 
-def parse_value(scenario: str, key: str, text: str) -> Any:
-    """The value of ``key`` for the builder of ``scenario``, read from ``text``."""
+def parse_value(scenario: ScenarioName, key: str, text: str) -> Any:
+    """The value of parameter ``key`` of ``scenario``, read from ``text``."""
     check_keys(scenario, [key])
-    default = builder_defaults(scenario)[key]
-    admitted = _hint_types(scenario, key)
+    entry = get(scenario)
+    default = entry.defaults()[key]
+    admitted = entry.types()[key]
     if str in admitted and not ({int, float, bool, type(None)} & set(admitted)):
         return text.strip()  # a text argument takes the text as it is
     return _coerce(key, _literal(text), default, admitted)
 
 
-def parse_grid(scenario: str, items: Sequence[str]) -> dict[str, list[Any]]:
+def parse_grid(scenario: ScenarioName, items: Sequence[str]) -> dict[str, list[Any]]:
     """``["KEY=V1,V2", ...]`` -> ``{KEY: [V1, V2]}`` in the builder's types (a ValueError
     names a malformed item, an unknown key or a value of the wrong type)."""
     grid: dict[str, list[Any]] = {}
@@ -156,26 +137,12 @@ def parse_grid(scenario: str, items: Sequence[str]) -> dict[str, list[Any]]:
     return grid
 
 
-def jsonable(value: Any) -> Any:
-    """A value as strict JSON: mappings with string keys, tuples as lists, non-finite floats
-    as None, anything else that is not a JSON scalar as its ``str``."""
-    if isinstance(value, Mapping):
-        return {str(k): jsonable(v) for k, v in value.items()}
-    if isinstance(value, (tuple, list)):
-        return [jsonable(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, (bool, int, float, str)) or value is None:
-        return value
-    return str(value)
-
-
 def check_buildable(
-    scenario: str, configs: Sequence[Mapping[str, Any]], *, seed: int, device: str
+    scenario: ScenarioName, configs: Sequence[Mapping[str, Any]], *, seed: int, device: str
 ) -> None:
     """Build each configuration of ``scenario`` once, on one seed, so that a value its builder
     refuses is a ``ValueError`` naming the configuration before any work."""
-    make = builder(scenario)
+    make = get(scenario).make
     for params in configs:
         try:
             make(**params, num_seeds=1, seed=seed, device=device)

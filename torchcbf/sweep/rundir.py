@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from torchcbf import _io
-from torchcbf.sweep.params import jsonable
+from torchcbf.sim import strict
 
 MANIFEST = "run.json"
 #: the mark of a manifest torchcbf wrote
@@ -77,7 +77,7 @@ class RunDir:
     def __init__(self, path: Path, kind: str, settings: Mapping[str, Any], resumed: bool):
         self.path = path
         self.kind = kind
-        self.settings = jsonable(settings)
+        self.settings = strict(settings)
         self.resumed = resumed
         self.files: list[str] = []
         self._lock: Any = None
@@ -101,7 +101,7 @@ class RunDir:
             raise OutputError("--resume and --overwrite exclude each other")
         path = check_location(out)
         lock = _lock(path)
-        settings = jsonable(settings)
+        settings = strict(settings)
         manifest = read_manifest(path)
         if manifest is None and (path / MANIFEST).exists():
             raise OutputError(

@@ -19,13 +19,13 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from torchcbf import _io
 from torchcbf._checks import check_positive_int
+from torchcbf.scenarios import get
+from torchcbf.sim import run_info, strict
 from torchcbf.sweep.engines import Outcome, check_engine, run_each
 from torchcbf.sweep.evaluate import evaluate
-from torchcbf.sweep.params import check_buildable, check_keys, describe, jsonable
+from torchcbf.sweep.params import ScenarioName, check_buildable, check_keys, describe
 from torchcbf.sweep.rundir import RunDir
 
 JOURNAL = "sweep.jsonl"
@@ -57,7 +57,7 @@ def sweep_settings(
     its numbers are the same)."""
     return {
         "scenario": scenario,
-        "grid": jsonable(dict(grid)),
+        "grid": strict(dict(grid)),
         "num_seeds": num_seeds,
         "seed": seed,
         "device": str(device),
@@ -66,7 +66,7 @@ def sweep_settings(
 
 
 def run_sweep(
-    scenario: str,
+    scenario: ScenarioName,
     grid: Mapping[str, Sequence[Any]],
     *,
     num_seeds: int = 8,
@@ -81,8 +81,9 @@ def run_sweep(
     resume: bool = False,
     overwrite: bool = False,
 ) -> list[dict[str, Any]]:
-    """Run every configuration of ``grid`` (``{builder keyword: [values]}``) of
-    ``scenario`` on seeds ``seed .. seed + num_seeds - 1``; one row per configuration, in
+    """Run every configuration of ``grid`` (``{parameter: [values]}``) of ``scenario`` (a
+    registered name or a :class:`~torchcbf.scenarios.ScenarioEntry`) on seeds ``seed ..
+    seed + num_seeds - 1``; one row per configuration, in
     grid order (see :func:`~torchcbf.sweep.evaluate.evaluate` for the columns), with
     ``status`` ``"ok"``, or ``"failed"`` and the ``error`` of a configuration that raised.
 
@@ -93,14 +94,15 @@ def run_sweep(
     :meth:`RunDir.claim` says, or a claimed :class:`RunDir`) where each row is written as
     it finishes, then the table and the figure (see the module docstring).
     """
-    check_keys(scenario, list(grid))
+    entry = get(scenario)
+    check_keys(entry, list(grid))
     check_engine(engine)
     check_positive_int("num_seeds", num_seeds)
     check_positive_int("threads", threads)
     configs = configurations(grid)
-    check_buildable(scenario, configs, seed=seed, device=device)
+    check_buildable(entry, configs, seed=seed, device=device)
     settings = sweep_settings(
-        scenario, grid, num_seeds=num_seeds, seed=seed, device=device, threads=threads
+        entry.name, grid, num_seeds=num_seeds, seed=seed, device=device, threads=threads
     )
     run = out
     if out is not None and not isinstance(out, RunDir):
@@ -108,7 +110,7 @@ def run_sweep(
                            overwrite=overwrite, outputs=OUTPUTS)  # fmt: skip
     calls = [
         {
-            "scenario": scenario,
+            "scenario": entry,
             "params": params,
             "num_seeds": num_seeds,
             "seed": seed,
@@ -119,12 +121,13 @@ def run_sweep(
     ]
     done: dict[int, dict[str, Any]] = {}
     info = {
-        "scenario": scenario,
+        "scenario": entry.name,
+        "fixed": fixed_parameters(entry, grid),
         "num_seeds": num_seeds,
         "first_seed": seed,
         "engine": engine,
         "device": device,
-        "threads": threads,
+        "torch_threads": threads,  # what each configuration ran with
     }
     if run is not None:
         done = read_journal(run.path / JOURNAL, configs)
@@ -134,10 +137,10 @@ def run_sweep(
         row = _row(configs[i], num_seeds, seed, outcome)
         done[i] = row
         if run is not None:
-            line = json.dumps({"index": i, "row": jsonable(row)}, allow_nan=False)
+            line = json.dumps({"index": i, "row": strict(row)}, allow_nan=False)
             _io.append_line(run.path / JOURNAL, line)
             rows = [done[k] for k in sorted(done)]
-            _write_rows(rows, grid, run, complete=False, **info)
+            _write_rows(rows, grid, run.path, complete=False, **info)
 
     todo = [i for i in range(len(configs)) if i not in done]
     run_each(
@@ -148,22 +151,26 @@ def run_sweep(
         address=address,
         num_cpus=num_cpus,
         progress=progress,
-        desc=f"sweep {scenario}",
+        desc=f"sweep {entry.name}",
     )
     rows = [done[i] for i in range(len(configs))]
     if run is not None:
-        paths = _write_rows(rows, grid, run, complete=True, **info)
-        paths["figure"] = plot_sweep(rows, grid, run.path / "sweep.png")
+        paths = write_sweep(rows, grid, run.path, **info)
         run.record(JOURNAL, *paths.values())
         run.finish()
     return rows
+
+
+def fixed_parameters(scenario: ScenarioName, grid: Mapping[str, Sequence[Any]]) -> dict:
+    """The scenario's parameters a sweep over ``grid`` holds at their defaults."""
+    return {k: v for k, v in get(scenario).defaults().items() if k not in grid}
 
 
 def _row(params: Mapping[str, Any], num_seeds: int, seed: int, outcome: Outcome) -> dict[str, Any]:
     if outcome.ok:
         return {**outcome.value, "status": "ok"}
     return {
-        **{k: jsonable(v) for k, v in params.items()},
+        **{k: strict(v) for k, v in params.items()},
         "num_seeds": num_seeds,
         "first_seed": seed,
         "status": "failed",
@@ -187,7 +194,7 @@ def read_journal(
         if configs is not None:
             if not 0 <= i < len(configs):
                 continue
-            if any(row.get(k) != jsonable(v) for k, v in configs[i].items()):
+            if any(row.get(k) != strict(v) for k, v in configs[i].items()):
                 continue
         done[i] = row
     return done
@@ -207,15 +214,15 @@ def _trim_journal(path: Path) -> None:
 def _write_rows(
     rows: Sequence[Mapping[str, Any]],
     grid: Mapping[str, Sequence[Any]],
-    run: RunDir,
+    out: Path,
     *,
     complete: bool,
     **info: Any,
 ) -> dict[str, Path]:
     data = {"run": run_info(**info), "grid": dict(grid), "complete": complete, "rows": list(rows)}
     return {
-        "csv": write_table(rows, run.path / "sweep.csv"),
-        "json": write_json(data, run.path / "sweep.json"),
+        "csv": write_table(rows, out / "sweep.csv"),
+        "json": write_json(data, out / "sweep.json"),
     }
 
 
@@ -239,15 +246,8 @@ def _cell(value: Any) -> Any:
 
 
 def write_json(data: Mapping[str, Any], path: Path) -> Path:
-    """Strict JSON (no NaN/Infinity literals: they are written as null)."""
-    return _io.write_json(path, jsonable(data))
-
-
-def run_info(**extra: Any) -> dict[str, Any]:
-    """Versions and settings recorded with every table."""
-    from torchcbf import __version__
-
-    return {"torchcbf": __version__, "torch": torch.__version__, **extra}
+    """Strict JSON (:func:`torchcbf.sim.strict`: no NaN/Infinity literals, written as null)."""
+    return _io.write_json(path, strict(data))
 
 
 def plot_sweep(rows: Sequence[Mapping[str, Any]], grid: Mapping[str, Sequence[Any]], path: Path):
@@ -261,7 +261,7 @@ def plot_sweep(rows: Sequence[Mapping[str, Any]], grid: Mapping[str, Sequence[An
     varied = [k for k, v in grid.items() if len(v) > 1] or list(grid)
     x_key = varied[0] if varied else None
     others = [k for k in varied if k != x_key]
-    x_values = [jsonable(v) for v in grid[x_key]] if x_key else [None]
+    x_values = [strict(v) for v in grid[x_key]] if x_key else [None]
     numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in x_values)
     rows = [row for row in rows if row.get("status", "ok") == "ok"]  # failed rows: no rates
     rates = [r for r in RATES if f"{r}_rate" in rows[0]] if rows else []
@@ -301,13 +301,11 @@ def write_sweep(
     out: str | Path,
     **info: Any,
 ) -> dict[str, Path]:
-    """Write ``sweep.csv``, ``sweep.json`` (rows, grid and :func:`run_info`) and
-    ``sweep.png`` into ``out``."""
+    """Write a finished sweep into ``out``: ``sweep.csv``, ``sweep.json`` (rows, grid,
+    ``"complete": true`` and :func:`run_info` with ``info``, e.g. the fixed parameters) and
+    ``sweep.png``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    data = {"run": run_info(**info), "grid": dict(grid), "rows": list(rows)}
-    return {
-        "csv": write_table(rows, out / "sweep.csv"),
-        "json": write_json(data, out / "sweep.json"),
-        "figure": plot_sweep(rows, grid, out / "sweep.png"),
-    }
+    paths = _write_rows(rows, grid, out, complete=True, **info)
+    paths["figure"] = plot_sweep(rows, grid, out / "sweep.png")
+    return paths

@@ -1,0 +1,164 @@
+"""The scenario registry: a scenario registered from outside the package gets the command
+line, sweeps and tuning; entries are checked when they are made."""
+
+from __future__ import annotations
+
+import json
+import sys
+import textwrap
+from dataclasses import dataclass
+
+import pytest
+
+from torchcbf.cli import main
+from torchcbf.scenarios import (
+    Column,
+    Dimension,
+    ScenarioEntry,
+    get,
+    register,
+    scenarios,
+    unregister,
+)
+from torchcbf.sweep import run_sweep, search_space
+
+# A user's own scenario: a single integrator driven to a goal by a proportional controller
+# of gain ``gain`` and filtered by a CBF keeping it out of a disc, in a module of its own.
+USER_MODULE = textwrap.dedent(
+    """
+    from dataclasses import dataclass
+
+    import torch
+
+    from torchcbf.barriers import Ball
+    from torchcbf.dynamics import SingleIntegrator
+    from torchcbf.filters import SafetyFilter
+    from torchcbf.scenarios import Column, Dimension, Scenario, ScenarioEntry, register
+    from torchcbf.sim import Goal
+
+
+    @dataclass(frozen=True)
+    class Params:
+        gain: float = 1.0
+        alpha: float = 1.0
+
+
+    def build(p, *, num_seeds, seed, device, dtype=None):
+        dtype = dtype or torch.float64
+        model = SingleIntegrator(2, u_min=-2.0, u_max=2.0).to(device=device, dtype=dtype)
+        disc = Ball(torch.tensor([1.0, 0.05]), 0.3).to(device=device, dtype=dtype)
+        goal = torch.tensor([2.0, 0.0], device=device, dtype=dtype)
+        gen = torch.Generator().manual_seed(seed)
+        x0 = 0.05 * torch.randn(num_seeds, 2, generator=gen, dtype=dtype).to(device)
+        return Scenario(
+            name="user-disc",
+            dynamics=model,
+            x0=x0,
+            steps=60,
+            dt=0.05,
+            seeds=torch.arange(seed, seed + num_seeds),
+            nominal=lambda x, t: p.gain * (goal - x),
+            safety_filter=SafetyFilter(model, [disc], alpha=p.alpha),
+            barriers=[disc],
+            metric_goals=[Goal((2.0, 0.0), 0.3)],
+            params={"gain": p.gain, "alpha": p.alpha},
+        )
+
+
+    ENTRY = register(
+        ScenarioEntry(
+            name="user-disc",
+            build=build,
+            params=Params,
+            description="A user's scenario: a filtered single integrator past a disc.",
+            search_space=(Dimension("gain", "float", 0.5, 4.0, log=True),),
+            columns=(Column("goal [95% CI]", "goal_reached"), Column("min h", "min_h", "min")),
+            num_seeds=4,
+        )
+    )
+    """
+)
+
+
+@pytest.fixture
+def user_module(tmp_path, monkeypatch):
+    (tmp_path / "user_scenario_pkg.py").write_text(USER_MODULE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    yield "user_scenario_pkg"
+    sys.modules.pop("user_scenario_pkg", None)
+    if "user-disc" in scenarios():
+        unregister("user-disc")
+
+
+def test_a_user_scenario_runs_from_the_command_line(user_module, tmp_path, capsys) -> None:
+    out = tmp_path / "run"
+    code = main(["--import", user_module, "user-disc", "--seeds", "3", "--set", "gain=2",
+                 "--out", str(out), "--no-progress", "--no-gif"])  # fmt: skip
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "goal [95% CI]" in text and "3 seeds from 0, gain=2.0" in text
+    data = json.loads((out / "metrics.json").read_text())
+    result = data["results"]["user-disc"]
+    assert result["params"] == {"gain": 2.0, "alpha": 1.0}
+    assert result["summary"]["collision"]["count"] == 0  # the filter holds
+    assert (out / "user_disc_trajectories.png").exists()  # the standard figures
+
+
+def test_a_user_scenario_sweeps_and_tunes(user_module, tmp_path, capsys) -> None:
+    code = main(["--import", user_module, "sweep", "user-disc", "--grid", "gain=0.5,2",
+                 "--seeds", "2", "--out", str(tmp_path / "sweep"), "--no-progress"])  # fmt: skip
+    assert code == 0
+    assert "held fixed: alpha=1.0" in capsys.readouterr().out
+    entry = get("user-disc")
+    rows = run_sweep(entry, {"alpha": [0.5, 2.0]}, num_seeds=2, progress=False)
+    assert [r["alpha"] for r in rows] == [0.5, 2.0] and all(r["status"] == "ok" for r in rows)
+    assert [d.name for d in search_space(entry)] == ["gain"]
+    optuna = pytest.importorskip("optuna")
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    from torchcbf.sweep import tune
+
+    result = tune(entry, trials=2, num_seeds=2, progress=False)
+    assert result["scenario"] == "user-disc" and len(result["trials"]) == 2
+    assert result["recommended"]["source"] in ("best", "default")
+
+
+@dataclass(frozen=True)
+class _Params:
+    k: float = 1.0
+
+
+def _build(p, *, num_seeds, seed, device, dtype=None):
+    raise AssertionError("not built in these tests")
+
+
+def test_entries_are_checked_when_made() -> None:
+    with pytest.raises(TypeError, match="dataclass"):
+        ScenarioEntry(name="x", build=_build, params=dict)
+    with pytest.raises(ValueError, match="not a field"):
+        ScenarioEntry(name="x", build=_build, params=_Params, options={"gain": "gain"})
+    with pytest.raises(ValueError, match="not a field"):
+        ScenarioEntry(
+            name="x", build=_build, params=_Params, search_space=(Dimension("g", "float", 0, 1),)
+        )
+    with pytest.raises(ValueError, match="kind"):
+        Column("c", "m", "median")
+    entry = ScenarioEntry(name="x-test", build=_build, params=_Params)
+    with pytest.raises(ValueError, match="unknown parameter"):
+        entry.parameters(gain=2.0)
+    register(entry)
+    try:
+        register(entry)  # the same entry again: nothing happens
+        with pytest.raises(ValueError, match="already registered"):
+            register(ScenarioEntry(name="x-test", build=_build, params=_Params, num_seeds=3))
+    finally:
+        unregister("x-test")
+
+
+def test_the_reference_scenarios_are_registered() -> None:
+    assert {"reach-avoid", "mppi-cbf", "arm-reach"} <= set(scenarios())
+    b = get("mppi-cbf")
+    assert b.variant == "method" and b.defaults()["num_samples"] == 20_000
+    with pytest.raises(ValueError, match="method must be one of"):
+        b.make(method="nope", num_seeds=1)
+    with pytest.raises(ValueError, match="scenario must be one of"):
+        get("nope")
