@@ -74,7 +74,9 @@ def solve_proxsuite(
         )
         if x0n is not None:
             qp.solve(x0n[i], None, None)
-    if x0n is None:
+        elif B == 1 or torch.get_num_threads() == 1:
+            qp.solve()  # no thread pool to start for one problem or one thread
+    if x0n is None and B > 1 and torch.get_num_threads() > 1:
         proxqp.dense.solve_in_parallel(qps, torch.get_num_threads())
     codes = {
         proxqp.PROXQP_SOLVED: Status.SOLVED,

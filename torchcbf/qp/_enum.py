@@ -60,19 +60,27 @@ class EnumResult(NamedTuple):
     ok: Tensor
 
 
-def num_candidates(M: int, E: int, N: int, pairs: tuple[tuple[int, int], ...] = ()) -> int:
-    """Number of candidate active sets for ``M`` inequalities, ``E`` equalities, ``N`` vars."""
+@functools.lru_cache(maxsize=256)
+def num_candidates(
+    M: int, E: int, N: int, pairs: tuple[tuple[int, int], ...] = (), cap: int | None = None
+) -> int:
+    """Number of candidate active sets for ``M`` inequalities, ``E`` equalities, ``N`` vars;
+    with ``cap``, counting stops at the first set size that takes the count beyond it (the
+    result is then some number above ``cap``)."""
     kmax = N - E
     if kmax < 0:
         return 0
     # sets with at most one row of each (disjoint) pair: choose j pairs, one side each
     npairs = len(pairs)
     free = M - 2 * npairs
-    return sum(
-        math.comb(npairs, j) * 2**j * math.comb(free, k - j)
-        for k in range(min(kmax, M) + 1)
-        for j in range(min(k, npairs) + 1)
-    )
+    total = 0
+    for k in range(min(kmax, M) + 1):
+        total += sum(
+            math.comb(npairs, j) * 2**j * math.comb(free, k - j) for j in range(min(k, npairs) + 1)
+        )
+        if cap is not None and total > cap:
+            break
+    return total
 
 
 @functools.lru_cache(maxsize=64)

@@ -8,7 +8,7 @@ input dtype. The backward is the implicit differentiation of the active-set KKT 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import torch
@@ -89,6 +89,9 @@ class SolverConfig:
     #: unit roundoff of the inputs' dtype (the solve itself runs in float64): eigenvalues of
     #: ``P`` below ``n`` of these, relative to the largest, are rounding of a zero
     rounding: float = torch.finfo(torch.float64).eps
+    #: the rows the interior point method would solve go to proxsuite's dense solver first
+    #: (:func:`_ipm_routed`)
+    route: bool = False
 
 
 def _closed_form(
@@ -166,10 +169,100 @@ def _factor(
     return _kkt.factor_kkt(P, G, A, _kkt.with_tight_rows(G, h, x, active, status))
 
 
+#: absolute tolerance and iteration budget of proxsuite's dense solver where ``auto`` routes
+#: rows to it (its own defaults are 1e-5 and 10,000); its answer is then judged to ``eps``
+ROUTE_EPS = 1e-9
+ROUTE_MAX_ITER = 10_000
+
+
+def _ipm_routed(
+    P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """proxsuite's dense solver, then the interior point method for the rows it leaves.
+
+    A row is kept where proxsuite calls it solved, its answer is a KKT point to ``eps``
+    (:func:`torchcbf.qp._kkt.kkt_residuals_ok`) and no certificate of unboundedness
+    (:func:`unbounded_solved`: ``P`` singular to the inputs' rounding); a kept row is
+    polished on its active set (:func:`_polish_active`). Every other row, proxsuite's
+    infeasibility claims included, goes to the interior point method, whose certificates set
+    the status. Returns what :func:`_ipm` returns."""
+    from torchcbf.qp import _backends
+
+    out = _backends.solve_proxsuite(P, q, G, h, A, b, eps=ROUTE_EPS, max_iter=ROUTE_MAX_ITER, x0=x0)
+    x, s, z, y, st, iters = (t.to(q.device) for t in out)
+    ok = (st == int(Status.SOLVED)) & _kkt.kkt_residuals_ok(P, q, G, h, A, b, x, z, y, cfg.eps)
+    # a minimiser far along a direction where P is singular to the inputs' rounding
+    ok = ok & ~unbounded_solved(P, q, G, A, x, ok, cfg)
+    status = torch.where(ok, int(Status.SOLVED), int(Status.MAX_ITER))
+    active = _kkt.active_set(z, s) & ok.unsqueeze(-1)
+    if cfg.polish and bool(ok.any()):
+        x, z, y, active = _polish_active(P, q, G, h, A, b, x, z, y, active, ok)
+    if bool(ok.all()):
+        return x, z, y, status, iters, active
+    idx = (~ok).nonzero().squeeze(-1)
+    sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
+    x0s = None if x0 is None else x0.index_select(0, idx)
+    xs, zs, ys, sts, its, acts = _ipm(*sub, replace(cfg, route=False), x0s)
+    return (
+        x.index_copy(0, idx, xs),
+        z.index_copy(0, idx, zs),
+        y.index_copy(0, idx, ys),
+        status.index_copy(0, idx, sts),
+        iters.index_copy(0, idx, its),
+        active.index_copy(0, idx, acts),
+    )
+
+
+def _polish_active(
+    P: Tensor,
+    q: Tensor,
+    G: Tensor,
+    h: Tensor,
+    A: Tensor,
+    b: Tensor,
+    x: Tensor,
+    z: Tensor,
+    y: Tensor,
+    active: Tensor,
+    ok: Tensor,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``(x, z, y, active)`` with the ``ok`` rows' answers replaced by the solution of their
+    active-set KKT system where that is a KKT point to rounding
+    (:func:`torchcbf.qp._kkt.kkt_point`); elsewhere the answers stay as given.
+
+    The system holds only the active rows (padded to the batch's largest active set with
+    rows that pin their multiplier to zero), so its size is ``n + |active| + k``, not
+    ``n + M + k``: an outside solver's answer is polished for a fraction of its cost."""
+    n, E = q.shape[-1], b.shape[-1]
+    counts = active.sum(-1)
+    Ka = int(counts.max()) if active.numel() else 0
+    order = torch.argsort((~active).to(torch.int8), dim=-1, stable=True)[:, :Ka]
+    valid = torch.arange(Ka, device=q.device) < counts.unsqueeze(-1)
+    Ga = G.gather(1, order.unsqueeze(-1).expand(-1, -1, n)) * valid.unsqueeze(-1)
+    ha = torch.where(valid, h.gather(1, order), 0.0)
+    fac = _kkt.factor_kkt(P, Ga, A, valid)
+    sol = _kkt.solve_kkt(fac, torch.cat((-q, ha, b), -1), _kkt.POLISH_REFINE_STEPS)
+    xp, ya = sol[..., :n], sol[..., n + Ka :]
+    zp = torch.zeros_like(z).scatter(1, order, torch.where(valid, sol[..., n : n + Ka], 0.0))
+    exact = ok & fac.ok & torch.isfinite(sol).all(-1)
+    exact = exact & _kkt.kkt_point(P, q, G, h, A, b, xp, zp, ya)
+    keep = exact.unsqueeze(-1)
+    del E
+    return (
+        torch.where(keep, xp, x),
+        torch.where(keep, zp.clamp_min(0.0), z),
+        torch.where(keep, ya, y),
+        active,
+    )
+
+
 def _ipm(
     P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """The interior point method and its polish: ``(x, z, y, status, iterations, active)``."""
+    """The interior point method and its polish: ``(x, z, y, status, iterations, active)``
+    (rows routed to proxsuite first where ``cfg.route``, :func:`_ipm_routed`)."""
+    if cfg.route:
+        return _ipm_routed(P, q, G, h, A, b, cfg, x0)
     out = solve_ipm(
         P,
         q,
@@ -379,7 +472,11 @@ def _exact_resolve(
     else:
         second = torch.ones_like(strict)
     second = second & ~ok
-    if bool(second.any()) and num_candidates(M, E, N, cfg.pairs) <= MAX_CANDIDATES_SMALL_BATCH:
+    if (
+        bool(second.any())
+        and num_candidates(M, E, N, cfg.pairs, cap=MAX_CANDIDATES_SMALL_BATCH)
+        <= MAX_CANDIDATES_SMALL_BATCH
+    ):
         # the same certified enumeration (polished on its active set where the direct solve
         # is a little off) that takes a few failed rows before the interior point method, so
         # that a row's status does not depend on how many rows failed beside it
@@ -537,7 +634,8 @@ def _ipm_fallback(
     if (
         not cfg.enumerate
         and len(idx) <= SMALL_BATCH
-        and num_candidates(M, E, N, cfg.pairs) <= MAX_CANDIDATES_SMALL_BATCH
+        and num_candidates(M, E, N, cfg.pairs, cap=MAX_CANDIDATES_SMALL_BATCH)
+        <= MAX_CANDIDATES_SMALL_BATCH
     ):
         # a few rows the exact method could not certify (degenerate vertices, ties):
         # enumeration's fixed cost is far below the interior point method's iterations

@@ -273,6 +273,55 @@ def kkt_point(
     )
 
 
+def kkt_residuals_ok(
+    P: Tensor,
+    q: Tensor,
+    G: Tensor,
+    h: Tensor,
+    A: Tensor,
+    b: Tensor,
+    x: Tensor,
+    z: Tensor,
+    y: Tensor,
+    eps: float,
+) -> Tensor:
+    """Rows ``[B]`` where ``(x, z, y)`` is a KKT point to ``eps``: every row violated by at
+    most ``eps`` of its own scale (:func:`scaled_violation`), multipliers nonnegative to
+    ``eps``, stationary (``|Px + q + G'z + A'y|`` at most ``eps`` of the largest of its
+    terms, the interior point method's own test) and complementary (duality gap
+    ``z'(h - Gx) + y'(b - Ax)`` at most ``eps`` of its terms). The test an outside solver's
+    answer passes before it is reported solved; finite values only."""
+    finite = torch.isfinite(x).all(-1) & torch.isfinite(z).all(-1) & torch.isfinite(y).all(-1)
+    x, z, y = (torch.nan_to_num(t, nan=0.0, posinf=0.0, neginf=0.0) for t in (x, z, y))
+    za = torch.cat((z, z.new_zeros(len(z), 1)), -1)
+    zmax = 1.0 + za.abs().amax(-1)
+    slack = h - torch.einsum("bmn,bn->bm", G, x)
+    eq_res = b - torch.einsum("ben,bn->be", A, x)
+    gap = (z * slack).sum(-1) + (y * eq_res).sum(-1)
+    gap_scale = (
+        1.0
+        + (x * torch.einsum("bij,bj->bi", P, x)).sum(-1).abs()
+        + (q * x).sum(-1).abs()
+        + (z * h).sum(-1).abs()
+        + (y * b).sum(-1).abs()
+    )
+    terms = (
+        torch.einsum("bij,bj->bi", P, x),
+        q,
+        torch.einsum("bmn,bm->bn", G, z),
+        torch.einsum("ben,be->bn", A, y),
+    )
+    dual_res = sum(terms).abs().amax(-1)
+    dual_scale = 1.0 + torch.stack([t.abs().amax(-1) for t in terms], -1).amax(-1)
+    return (
+        finite
+        & (scaled_violation(G, h, A, b, x) <= eps)
+        & (za.amin(-1) >= -eps * zmax)
+        & (dual_res <= eps * dual_scale)
+        & (gap.abs() <= eps * gap_scale)
+    )
+
+
 def stationarity_error(
     P: Tensor, q: Tensor, G: Tensor, A: Tensor, x: Tensor, z: Tensor, y: Tensor
 ) -> Tensor:

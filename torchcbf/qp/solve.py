@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+import importlib.util
 import math
 from typing import NamedTuple
 
@@ -59,7 +61,7 @@ class QPSolution(NamedTuple):
 
 #: the values of :attr:`QPSolution.path` (besides ``"qpsolvers:<solver>"``)
 PATHS = ("small_native", "active_set_native", "active_set", "enumerate", "closed_form", "ipm",
-         "proxsuite", "empty")  # fmt: skip
+         "auto_proxsuite", "proxsuite", "empty")  # fmt: skip
 _FLOAT = (torch.float32, torch.float64)
 METHODS = ("auto", "active_set", "enumerate", "ipm")
 #: most candidate active sets ``method="enumerate"`` accepts when asked for explicitly (its
@@ -287,7 +289,9 @@ def _path(cfg: SolverConfig, q: Tensor) -> str:
         return "closed_form"
     if cfg.active_set:
         return "active_set_native" if _dual_native.applies(q.double()) else "active_set"
-    return "enumerate" if cfg.enumerate else "ipm"
+    if cfg.enumerate:
+        return "enumerate"
+    return "auto_proxsuite" if cfg.route else "ipm"
 
 
 _NAMES = ("Q", "p", "G", "h", "A", "b", "lb", "ub", "soft", "warm_start")
@@ -642,17 +646,26 @@ def _config(
     exact = backend == "torch" and not closed_form and M + me > 0
     use_dual = exact and method == "active_set" and me == 0
     use_enum = exact and method == "enumerate"
-    C = num_candidates(M, me, N, std.pairs) if me <= N else 0
+    C = num_candidates(M, me, N, std.pairs, cap=MAX_CANDIDATES_EXPLICIT) if me <= N else 0
     if use_enum and C > MAX_CANDIDATES_EXPLICIT:
         raise ValueError(
-            f"method='enumerate' would try {C} candidate active sets (N={N} variables, "
-            f"M={M} inequality rows incl. bounds, k={me} equalities), more than "
-            f"{MAX_CANDIDATES_EXPLICIT}; use method='auto', 'active_set' or 'ipm'"
+            f"method='enumerate' would try more than {MAX_CANDIDATES_EXPLICIT} candidate active "
+            f"sets (N={N} variables, M={M} inequality rows incl. bounds, k={me} equalities); "
+            "use method='auto', 'active_set' or 'ipm'"
         )
+    route = (
+        exact
+        and method == "auto"
+        and B <= ROUTE_MAX_BATCH
+        and inp.Q.device.type == "cpu"
+        and _proxsuite_available()
+    )
     if exact and method == "auto":
         dual = me == 0 and dual_applies(N, kernel)
         if dual and kernel:
             use_dual = True
+        elif route:
+            pass  # the interior point method's path, which routes to proxsuite first
         elif B <= SMALL_BATCH and 0 < C <= MAX_CANDIDATES_SMALL_BATCH:
             use_enum = True
         elif dual:
@@ -672,7 +685,17 @@ def _config(
         pairs=std.pairs,
         need_factor=need_grad,
         rounding=torch.finfo(inp.Q.dtype).eps,
+        route=route,
     )
+
+
+#: largest batch ``method="auto"`` routes to proxsuite's dense solver (see :func:`solve_qp`)
+ROUTE_MAX_BATCH = 4
+
+
+@functools.cache
+def _proxsuite_available() -> bool:
+    return importlib.util.find_spec("proxsuite") is not None
 
 
 def _unpack(
