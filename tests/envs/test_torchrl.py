@@ -23,7 +23,14 @@ from torchcbf.dynamics import SingleIntegrator  # noqa: E402
 from torchcbf.envs import UnicycleEllipsesVectorEnv  # noqa: E402
 from torchcbf.envs.filter_policy import FilteredPolicy  # noqa: E402
 from torchcbf.envs.filter_transform import FILTER_KEYS, SafetyFilterTransform  # noqa: E402
-from torchcbf.envs.safe_ppo import PPOConfig, scenario_filter, train  # noqa: E402
+from torchcbf.envs.safe_ppo import (  # noqa: E402
+    PPOConfig,
+    RunResult,
+    mean_ci,
+    scenario_filter,
+    summarize,
+    train,
+)
 from torchcbf.envs.torchrl import TorchRLEnv  # noqa: E402
 from torchcbf.filters import SafetyFilter  # noqa: E402
 
@@ -336,3 +343,33 @@ def test_ppo_smoke_run_is_reproducible():
     assert a.eval["collisions"] == 0  # the filter layer on the shielded env
     with pytest.raises(ValueError, match="method"):
         train("sac", config, seed=0)
+
+
+def test_mean_ci_and_summary():
+    mean, half = mean_ci([1.0, 2.0, 3.0])
+    assert mean == 2.0 and half == pytest.approx(4.303 / math.sqrt(3), rel=1e-4)
+    assert math.isnan(mean_ci([5.0])[1])
+    with pytest.raises(ValueError):
+        mean_ci([])
+    runs = [
+        RunResult(
+            "ppo",
+            seed,
+            [],
+            {"collisions": c, "goal_rate": 1.0, "intervention_rate": 0.0},
+            {
+                "return": r,
+                "goal_rate": 1.0,
+                "collisions": 0.0,
+                "shield_intervention_rate": 0.0,
+                "layer_intervention_rate": 0.0,
+            },
+            10.0,
+            100.0,
+        )
+        for seed, (c, r) in enumerate([(2.0, 1.0), (4.0, 3.0)])
+    ]
+    summary = summarize(runs)
+    assert summary["ppo"]["train collisions"] == mean_ci([2.0, 4.0])
+    assert summary["ppo"]["eval return"][0] == 2.0
+    assert summary["ppo"]["frames/s"] == (100.0, 0.0)

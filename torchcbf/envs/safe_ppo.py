@@ -47,10 +47,14 @@ __all__ = [
     "METHODS",
     "PPOConfig",
     "RunResult",
+    "SUMMARY_FIELDS",
+    "config_dict",
     "evaluate",
     "make_env",
+    "mean_ci",
     "make_policy",
     "scenario_filter",
+    "summarize",
     "train",
 ]
 
@@ -373,11 +377,14 @@ def _update(
     advantage = data["advantage"]
     if cost_critic is not None:
         advantage = (advantage - lagrange * data["cost_advantage"]) / (1.0 + lagrange)
-    data.set("_adv", advantage)
+    keys = ["observation", "action", "action_log_prob", "value_target"]
+    if cost_critic is not None:
+        keys.append("cost_value_target")
+    data = data.select(*keys).set("_adv", advantage)
     for _ in range(config.epochs):
         order = torch.randperm(n)
         for chunk in order.split(config.minibatch_size):
-            sub = data[chunk].clone(False)
+            sub = data[chunk]
             adv = sub["_adv"].squeeze(-1)
             adv = (adv - adv.mean()) / (adv.std() + 1e-8)
             dist = policy.get_dist(sub)
@@ -445,4 +452,58 @@ def config_dict(config: PPOConfig) -> dict[str, Any]:
     """``config`` as a JSON-ready dict."""
     out = asdict(config)
     out["env_kwargs"] = dict(config.env_kwargs)
+    return out
+
+
+# two-sided 95% quantiles of Student's t for 1..30 degrees of freedom
+_T975 = (
+    12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228,
+    2.201, 2.179, 2.160, 2.145, 2.131, 2.120, 2.110, 2.101, 2.093, 2.086,
+    2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048, 2.045, 2.042,
+)  # fmt: skip
+
+
+def mean_ci(values: list[float]) -> tuple[float, float]:
+    """Mean and half-width of its 95% confidence interval (Student's t over the values;
+    ``nan`` half-width for one value)."""
+    n = len(values)
+    if n == 0:
+        raise ValueError("mean_ci needs at least one value")
+    mean = sum(values) / n
+    if n == 1:
+        return mean, math.nan
+    var = sum((v - mean) ** 2 for v in values) / (n - 1)
+    t = _T975[n - 2] if n - 1 <= len(_T975) else 1.96
+    return mean, t * math.sqrt(var / n)
+
+
+#: the quantities :func:`summarize` reports, as (name, where, key)
+SUMMARY_FIELDS = (
+    ("train collisions", "train", "collisions"),
+    ("train goal rate", "train", "goal_rate"),
+    ("train shield interventions", "train", "intervention_rate"),
+    ("eval return", "eval", "return"),
+    ("eval goal rate", "eval", "goal_rate"),
+    ("eval collisions", "eval", "collisions"),
+    ("eval shield interventions", "eval", "shield_intervention_rate"),
+    ("eval filter-layer interventions", "eval", "layer_intervention_rate"),
+    ("frames/s", "run", "frames_per_second"),
+    ("wall time (s)", "run", "wall_time"),
+)
+
+
+def summarize(results: list[RunResult]) -> dict[str, dict[str, tuple[float, float]]]:
+    """Per method, every :data:`SUMMARY_FIELDS` quantity as (mean, 95% CI half-width) over
+    the seeds of ``results``."""
+    out: dict[str, dict[str, tuple[float, float]]] = {}
+    for method in dict.fromkeys(r.method for r in results):
+        runs = [r for r in results if r.method == method]
+        row = {}
+        for name, where, key in SUMMARY_FIELDS:
+            if where == "run":
+                values = [float(getattr(r, key)) for r in runs]
+            else:
+                values = [float(getattr(r, where)[key]) for r in runs]
+            row[name] = mean_ci(values)
+        out[method] = row
     return out

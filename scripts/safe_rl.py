@@ -1,0 +1,179 @@
+"""Safe RL comparison: PPO four ways on a torchcbf TorchRL environment (docs/safe_rl.md).
+
+Methods (:data:`torchcbf.envs.safe_ppo.METHODS`): unconstrained PPO, PPO-Lagrangian on the
+collision cost, PPO with the safety filter as a shield on the environment, and PPO trained
+through the filter as the policy's last layer. Every method runs the same seeds, the same
+frame budget and the same PPO settings. Printed (and written to ``--out``): per method the
+mean and 95% confidence half-width over the seeds of the training collisions, goal rate and
+shield interventions, the evaluation return, goal rate, collisions and interventions, the
+frames per second and the wall time; a figure of the learning curves.
+
+Run: ``python scripts/safe_rl.py --seeds 3 --out runs/safe_rl`` (scenario B, one torch
+thread). ``--env torchcbf/ReachAvoid-v0`` runs scenario A. Figures taken while the machine is
+loaded vary between runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import torch
+
+from torchcbf._io import save_figure, write_json, write_text
+from torchcbf.envs.safe_ppo import (
+    METHODS,
+    SUMMARY_FIELDS,
+    PPOConfig,
+    RunResult,
+    config_dict,
+    summarize,
+    train,
+)
+from torchcbf.sim.records import run_info, strict
+
+LABELS = {
+    "ppo": "PPO",
+    "ppo_lagrangian": "PPO-Lagrangian",
+    "ppo_shield": "PPO + shield",
+    "ppo_filter_layer": "PPO through the filter layer",
+}
+
+
+def _table(summary: dict[str, dict[str, tuple[float, float]]]) -> str:
+    names = [name for name, _, _ in SUMMARY_FIELDS]
+    lines = ["| method | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
+    for method, row in summary.items():
+        cells = []
+        for name in names:
+            mean, half = row[name]
+            digits = 0 if name in ("frames/s", "wall time (s)", "train collisions") else 3
+            cell = f"{mean:.{digits}f}"
+            if not math.isnan(half):
+                cell += f" ± {half:.{digits}f}"
+            cells.append(cell)
+        lines.append(f"| {LABELS.get(method, method)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _figure(results: list[RunResult], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = (("return", "episode return"), ("goal_rate", "goal rate"), ("collisions", None))
+    fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
+    for method in dict.fromkeys(r.method for r in results):
+        runs = [r for r in results if r.method == method]
+        frames = torch.tensor([row["frames"] for row in runs[0].curve]) / 1e6
+        for ax, (key, _) in zip(axes, keys, strict=True):
+            values = torch.tensor([[row[key] for row in r.curve] for r in runs])
+            if key == "collisions":
+                values = values.cumsum(-1)
+            else:  # a running mean over 5 batches: episodes end sparsely
+                values = _smooth(values, 5)
+            mean = values.nanmean(0)
+            ax.plot(frames, mean, label=LABELS.get(method, method))
+            if len(runs) > 1:
+                lo, hi = values.nan_to_num(nan=float(mean.nanmean())).aminmax(dim=0)
+                ax.fill_between(frames, lo, hi, alpha=0.2)
+    axes[0].set_ylabel("episode return (training)")
+    axes[1].set_ylabel("goal rate (training episodes)")
+    axes[2].set_ylabel("collisions so far (training)")
+    axes[2].set_yscale("symlog")
+    for ax in axes:
+        ax.set_xlabel("frames (millions)")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle("PPO four ways: mean over seeds, band = min..max over seeds")
+    fig.tight_layout()
+    save_figure(fig, path, dpi=120)
+    plt.close(fig)
+
+
+def _smooth(values: torch.Tensor, width: int) -> torch.Tensor:
+    """Running mean over the last ``width`` batches, ignoring batches without episodes."""
+    valid = ~values.isnan()
+    filled = values.nan_to_num(0.0).cumsum(-1)
+    counts = valid.to(values.dtype).cumsum(-1)
+    shifted = torch.nn.functional.pad(filled, (width, 0))[..., :-width]
+    shifted_counts = torch.nn.functional.pad(counts, (width, 0))[..., :-width]
+    total, count = filled - shifted, counts - shifted_counts
+    return torch.where(count > 0, total / count.clamp_min(1), torch.full_like(total, math.nan))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--env", default="torchcbf/UnicycleEllipses-v0")
+    parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--seed", type=int, default=0, help="first seed")
+    parser.add_argument("--frames", type=int, default=PPOConfig.total_frames)
+    parser.add_argument("--num-envs", type=int, default=PPOConfig.num_envs)
+    parser.add_argument("--rollout-steps", type=int, default=PPOConfig.rollout_steps)
+    parser.add_argument("--eval-episodes", type=int, default=PPOConfig.eval_episodes)
+    parser.add_argument("--sigma", type=float, default=0.0, help="scenario B's process noise")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--out", default=None, help="folder for results.json and the figure")
+    args = parser.parse_args()
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    for method in methods:
+        if method not in METHODS:
+            parser.error(f"--methods: {method!r} is not one of {METHODS}")
+    torch.set_num_threads(args.threads)
+    env_kwargs = dict(PPOConfig.env_kwargs) if args.env == PPOConfig.env_id else {}
+    if args.env == PPOConfig.env_id:
+        env_kwargs["sigma"] = args.sigma
+    config = replace(
+        PPOConfig(),
+        env_id=args.env,
+        env_kwargs=tuple(env_kwargs.items()),
+        total_frames=args.frames,
+        num_envs=args.num_envs,
+        rollout_steps=args.rollout_steps,
+        eval_episodes=args.eval_episodes,
+    )
+    print(f"load average {os.getloadavg()}, torch threads {torch.get_num_threads()}")
+    print(json.dumps(config_dict(config)))
+    results: list[RunResult] = []
+    start = time.perf_counter()
+    for seed in range(args.seed, args.seed + args.seeds):
+        for method in methods:
+            result = train(method, config, seed=seed)
+            results.append(result)
+            ev = result.eval
+            print(
+                f"seed {seed} {method}: {result.wall_time:.0f} s, "
+                f"{result.frames_per_second:.0f} frames/s, train collisions "
+                f"{result.train['collisions']:.0f}, eval return {ev['return']:.2f}, goal rate "
+                f"{ev['goal_rate']:.3f}, collisions {ev['collisions']:.0f}",
+                flush=True,
+            )
+    total = time.perf_counter() - start
+    summary = summarize(results)
+    print(_table(summary))
+    print(f"whole comparison: {total:.0f} s; load average {os.getloadavg()}")
+    if args.out is not None:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        record = {
+            "config": config_dict(config),
+            "seeds": list(range(args.seed, args.seed + args.seeds)),
+            "total_seconds": total,
+            "summary": {m: {k: list(v) for k, v in row.items()} for m, row in summary.items()},
+            "runs": [asdict(r) for r in results],
+        }
+        write_json(out / "results.json", strict({**record, "run": run_info()}))
+        write_text(out / "table.md", _table(summary) + "\n")
+        _figure(results, out / "safe_rl_curves.png")
+        print(f"wrote {out / 'results.json'}, {out / 'table.md'}, {out / 'safe_rl_curves.png'}")
+
+
+if __name__ == "__main__":
+    main()
