@@ -11,12 +11,14 @@ model's limits (docs/own_problem.md):
 - ``unicycle``: a kinematic unicycle (0 <= v <= 1.5 m/s, |omega| <= 2 rad/s), two goals,
   two discs, one of them on the straight line to the first goal.
 
-For ``drag`` it also runs the two hand settings a newcomer tries first (``--baselines``):
-default spec weights with a horizon of 1 s (shorter than the windows), and scenario A's
-settings copied over. Each family runs ``--seeds`` seeds from ``--seed`` as one batch
-(scenario b uses planner seed ``seed + b``) and prints how many meet the specification.
+For ``drag`` it also runs the proposed planner behind a CBF-QP filter on the disc
+(``--filtered``: exponential rectification with gain 8, alpha 8) and the two hand settings a
+newcomer tries first (``--baselines``): default spec weights with a horizon of 1 s (shorter
+than the windows), and scenario A's settings copied over. Each family runs ``--seeds``
+seeds from ``--seed`` as one batch (scenario b uses planner seed ``seed + b``) and prints how
+many meet the specification.
 
-    python examples/own_problem.py --seeds 16 --seed 0 --samples 1000 --baselines
+    python examples/own_problem.py --seeds 16 --seed 0 --samples 1000 --filtered --baselines
 """
 
 from __future__ import annotations
@@ -26,7 +28,9 @@ import time
 
 import torch
 
+from torchcbf.barriers import Ball, rectify
 from torchcbf.dynamics import ControlAffine, SingleIntegrator, Unicycle
+from torchcbf.filters import SafetyFilter
 from torchcbf.mppi import MPPI, And, Avoid, Reach
 from torchcbf.mppi.defaults import propose_settings
 from torchcbf.sim import metrics, simulate
@@ -81,11 +85,11 @@ def family(name: str):
     raise ValueError(f"unknown family {name!r}")
 
 
-def success(model, spec, planner, x0, dt, steps, seeds, seed) -> int:
+def success(model, spec, planner, x0, dt, steps, seeds, seed, safety_filter=None) -> int:
     """How many of ``seeds`` closed loops (one batch) meet ``spec``."""
     traj = simulate(
         model, x0.expand(seeds, -1).clone(), steps=steps, dt=dt, planner=planner, seed=seed,
-        progress=False,
+        safety_filter=safety_filter, progress=False,
     )  # fmt: skip
     return int(metrics(traj, spec=spec)["spec_satisfied"].sum())
 
@@ -98,6 +102,7 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=1000)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--baselines", action="store_true", help="also the two hand settings")
+    parser.add_argument("--filtered", action="store_true", help="also behind a CBF-QP filter")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     print(f"seeds {args.seed}-{args.seed + args.seeds - 1}, K = {args.samples}")
@@ -106,12 +111,22 @@ def main() -> None:
         model, spec, x0, dt, steps = family(name)
         runs = []
         settings = propose_settings(model, spec, dt=dt, x0=x0)
-        runs.append(("proposed", settings.planner(model, num_samples=args.samples, seed=args.seed)))
+        runs.append(
+            ("proposed", settings.planner(model, num_samples=args.samples, seed=args.seed), None)
+        )
+        if args.filtered and name == "drag":
+            disc = Ball(center=[1.0, 1.0], radius=0.4)
+            barrier = rectify(disc, model, form="exponential", gains=[8.0])
+            runs.append((
+                "proposed + CBF-QP filter",
+                settings.planner(model, num_samples=args.samples, seed=args.seed),
+                SafetyFilter(model, barriers=[barrier], alpha=8.0),
+            ))  # fmt: skip
         if args.baselines and name == "drag":
             runs.append(("spec weights 1, H = 1 s", MPPI(
                 model, spec, horizon=20, num_samples=args.samples, dt=dt,
                 noise_sigma=torch.eye(2), temperature=1.0, seed=args.seed,
-            )))  # fmt: skip
+            ), None))  # fmt: skip
             copied = And(
                 Avoid((1.0, 1.0), 0.4, weight=0.3, eps=0.01),
                 Reach((2.0, 2.0), 0.4, interval=(0.0, 2.0), weight=10.0),
@@ -121,10 +136,10 @@ def main() -> None:
                 model, copied, horizon=50, num_samples=args.samples, dt=dt,
                 noise_sigma=4.0 * torch.eye(2), temperature=0.03, control_cost_weight=0.1,
                 seed=args.seed, cost_normalization="std",
-            )))  # fmt: skip
-        for label, planner in runs:
+            ), None))  # fmt: skip
+        for label, planner, filt in runs:
             start = time.perf_counter()
-            met = success(model, spec, planner, x0, dt, steps, args.seeds, args.seed)
+            met = success(model, spec, planner, x0, dt, steps, args.seeds, args.seed, filt)
             wall = time.perf_counter() - start
             print(
                 f"{name:<10} {label:<34} {planner.horizon:>4} {met:>3} / {args.seeds:<2}"
