@@ -9,8 +9,22 @@ shield interventions, the evaluation return, goal rate, collisions and intervent
 frames per second and the wall time; a figure of the learning curves.
 
 Run: ``python scripts/safe_rl.py --seeds 3 --out runs/safe_rl`` (scenario B, one torch
-thread). ``--env torchcbf/ReachAvoid-v0`` runs scenario A. Figures taken while the machine is
-loaded vary between runs.
+thread). ``--env torchcbf/ReachAvoid-v0`` runs scenario A.
+
+``--throughput`` measures environment steps per second instead (scenario B, a fixed
+nominal action, batches of ``--sizes``), against peers in the same run:
+
+- ``TorchRLEnv``: :class:`~torchcbf.envs.torchrl.TorchRLEnv` stepped with
+  ``step_and_maybe_reset`` (TorchRL's loop: resets of ended rows included);
+- ``TorchRLEnv + SafetyFilterTransform``: the same with the shield of
+  :func:`~torchcbf.envs.safe_ppo.scenario_filter` (one filter call per step for all N);
+- ``gymnasium vector env``: the Gymnasium vector env of the same scenario, NumPy in and out
+  and tensors (``return_tensors=True``);
+- ``TorchRL GymWrapper (1 env)``: TorchRL's Gym wrapper around the single Gymnasium env, a
+  Gym round trip per step.
+
+Figures taken while the machine is loaded (the load average is printed) vary between runs;
+compare ratios within one run.
 """
 
 from __future__ import annotations
@@ -23,18 +37,26 @@ import time
 from dataclasses import asdict, replace
 from pathlib import Path
 
+import gymnasium
 import torch
+from torchrl.envs import TransformedEnv
+from torchrl.envs.libs.gym import GymWrapper
 
+import torchcbf.envs  # noqa: F401  (registers the ids)
 from torchcbf._io import save_figure, write_json, write_text
+from torchcbf.envs.filter_transform import SafetyFilterTransform
 from torchcbf.envs.safe_ppo import (
     METHODS,
     SUMMARY_FIELDS,
     PPOConfig,
     RunResult,
     config_dict,
+    scenario_filter,
     summarize,
     train,
 )
+from torchcbf.envs.torchrl import TorchRLEnv
+from torchcbf.envs.unicycle_ellipses import UnicycleEllipsesVectorEnv
 from torchcbf.sim.records import run_info, strict
 
 LABELS = {
@@ -108,6 +130,70 @@ def _smooth(values: torch.Tensor, width: int) -> torch.Tensor:
     return torch.where(count > 0, total / count.clamp_min(1), torch.full_like(total, math.nan))
 
 
+ENV_ID = "torchcbf/UnicycleEllipses-v0"
+
+
+def _action(n: int) -> torch.Tensor:
+    # forward and turning left: the robots move, some meet the obstacles, episodes end
+    return torch.tensor([[2.0, 1.0]]).expand(n, 2).contiguous()
+
+
+def _torchrl(env, n: int, steps: int) -> float:
+    td = env.reset()
+    action = _action(n)
+    for _ in range(3):
+        td["action"] = action
+        _, td = env.step_and_maybe_reset(td)
+    start = time.perf_counter()
+    for _ in range(steps):
+        td["action"] = action
+        _, td = env.step_and_maybe_reset(td)
+    return n * steps / (time.perf_counter() - start)
+
+
+def _gym_vector(n: int, steps: int, sigma: float, tensors: bool) -> float:
+    env = UnicycleEllipsesVectorEnv(n, sigma=sigma, return_tensors=tensors)
+    env.reset(seed=0)
+    action = _action(n) if tensors else _action(n).numpy()
+    for _ in range(3):
+        env.step(action)
+    start = time.perf_counter()
+    for _ in range(steps):
+        env.step(action)
+    return n * steps / (time.perf_counter() - start)
+
+
+def _gym_wrapper(steps: int, sigma: float) -> float:
+    env = GymWrapper(gymnasium.make(ENV_ID, sigma=sigma))
+    return _torchrl(env, 1, steps)
+
+
+def throughput(args: argparse.Namespace) -> None:
+    """Environment steps per second (see the module docstring)."""
+    steps = 10 if args.quick else 40
+    print(f"load average {os.getloadavg()}, torch threads {torch.get_num_threads()}")
+    print(f"scenario B, sigma = {args.sigma}; environment steps per second")
+    print(f"| {'what':44s} | {'N':>6s} | {'steps/s':>10s} | vs gymnasium (NumPy) |")
+    print(f"|{'-' * 46}|{'-' * 8}|{'-' * 12}|{'-' * 22}|")
+
+    def row(what: str, n: int, rate: float, ref: float | None) -> None:
+        ratio = f"{rate / ref:.2f}x" if ref else ""
+        print(f"| {what:44s} | {n:6d} | {rate:10.3g} | {ratio:>20s} |", flush=True)
+
+    for n in [int(v) for v in args.sizes.split(",")]:
+        ref = _gym_vector(n, steps, args.sigma, tensors=False)
+        row("gymnasium vector env (NumPy)", n, ref, ref)
+        row("gymnasium vector env (tensors)", n, _gym_vector(n, steps, args.sigma, True), ref)
+        env = TorchRLEnv(ENV_ID, n, seed=0, sigma=args.sigma)
+        row("TorchRLEnv", n, _torchrl(env, n, steps), ref)
+        if n in [int(v) for v in args.filter_sizes.split(",")]:
+            base = TorchRLEnv(ENV_ID, n, seed=0, sigma=args.sigma)
+            shielded = TransformedEnv(base, SafetyFilterTransform(scenario_filter(base)))
+            rate = _torchrl(shielded, n, max(steps // 4, 3))
+            row("TorchRLEnv + SafetyFilterTransform", n, rate, ref)
+    row("TorchRL GymWrapper (1 env, Gym round trip)", 1, _gym_wrapper(steps * 20, args.sigma), None)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--env", default="torchcbf/UnicycleEllipses-v0")
@@ -121,12 +207,21 @@ def main() -> None:
     parser.add_argument("--sigma", type=float, default=0.0, help="scenario B's process noise")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", default=None, help="folder for results.json and the figure")
+    parser.add_argument(
+        "--throughput", action="store_true", help="measure environment steps per second only"
+    )
+    parser.add_argument("--sizes", default="1024,16384,65536", help="--throughput: batch sizes")
+    parser.add_argument("--filter-sizes", default="1024,16384", help="--throughput: with filter")
+    parser.add_argument("--quick", action="store_true", help="--throughput: fewer steps")
     args = parser.parse_args()
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     for method in methods:
         if method not in METHODS:
             parser.error(f"--methods: {method!r} is not one of {METHODS}")
     torch.set_num_threads(args.threads)
+    if args.throughput:
+        throughput(args)
+        return
     env_kwargs = dict(PPOConfig.env_kwargs) if args.env == PPOConfig.env_id else {}
     if args.env == PPOConfig.env_id:
         env_kwargs["sigma"] = args.sigma
