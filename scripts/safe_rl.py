@@ -205,6 +205,7 @@ def main() -> None:
     parser.add_argument("--rollout-steps", type=int, default=PPOConfig.rollout_steps)
     parser.add_argument("--eval-episodes", type=int, default=PPOConfig.eval_episodes)
     parser.add_argument("--sigma", type=float, default=0.0, help="scenario B's process noise")
+    parser.add_argument("--start-noise", type=float, default=0.1, help="start perturbation (m)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", default=None, help="folder for results.json and the figure")
     parser.add_argument(
@@ -222,7 +223,7 @@ def main() -> None:
     if args.throughput:
         throughput(args)
         return
-    env_kwargs = dict(PPOConfig.env_kwargs) if args.env == PPOConfig.env_id else {}
+    env_kwargs: dict[str, float] = {"start_noise": args.start_noise}
     if args.env == PPOConfig.env_id:
         env_kwargs["sigma"] = args.sigma
     config = replace(
