@@ -6,9 +6,11 @@ from torchcbf.viz.figures import (
     axis_labels,
     draw_goals,
     draw_unsafe_set,
+    mark_minimum,
     plot_barrier_values,
     plot_rollouts,
     plot_trajectories,
+    weight_ranks,
 )
 
 __all__ = [
@@ -18,9 +20,11 @@ __all__ = [
     "barrier_traces",
     "draw_goals",
     "draw_unsafe_set",
+    "mark_minimum",
     "plot_barrier_bands",
     "plot_barrier_values",
     "plot_methods",
     "plot_rollouts",
     "plot_trajectories",
+    "weight_ranks",
 ]

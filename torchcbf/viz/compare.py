@@ -43,6 +43,11 @@ def _mark_exits(
     return int(left.sum())
 
 
+def _legend_right(ax: Axes, fontsize: int = 8) -> None:
+    """The legend right of the axes, where it covers no data (saved with a tight box)."""
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=fontsize, frameon=False)
+
+
 def plot_methods(
     trajectories: Mapping[str, Trajectory],
     barriers: Sequence[BarrierFn] = (),
@@ -57,7 +62,7 @@ def plot_methods(
     """Every seed's path of every method (``{name: Trajectory}``, ``x [B, T+1, n]``), one
     colour per method, over the obstacles and goals. The view is ``xlim`` x ``ylim`` (default:
     fitted to the goals and the starts); paths that leave it end in a triangle on the border,
-    counted in the legend."""
+    counted in the legend, which sits right of the axes (never over an obstacle or a goal)."""
     fig, ax = plt.subplots(figsize=(7, 7))
     firsts = np.concatenate([_xy(t, index)[:, :1] for t in trajectories.values()])
     xlim, ylim = _draw_scene(ax, firsts, barriers, goals, firsts.shape[-1], index, xlim, ylim)
@@ -77,7 +82,7 @@ def plot_methods(
     ax.set_ylabel(f"y [{units}]")
     if title:
         ax.set_title(title)
-    ax.legend(loc="upper left", fontsize=8, framealpha=0.9)
+    _legend_right(ax)
     return fig
 
 
@@ -97,12 +102,17 @@ def plot_barrier_bands(
     ylim: tuple[float, float] | None = (-0.5, 5.0),
 ) -> Figure:
     """Per method: the median over seeds of ``min_i b_i(x(t))``, the 5-95 % band across
-    seeds (the noise band) and the minimum over seeds; ``b = 0`` (contact) dashed."""
+    seeds (the noise band) and the minimum over seeds; ``b = 0`` (contact) dashed. ``ylim``
+    frames the bands; its lower end moves down to show the lowest value of any method,
+    which is marked with its value."""
     fig, ax = plt.subplots(figsize=(8, 4))
+    lowest: dict[str, tuple[float, int, float]] = {}
     for j, (name, traj) in enumerate(trajectories.items()):
         color = COLORS[j % len(COLORS)]
         t = _np(traj.t)
         h = barrier_traces(traj, barriers)
+        b, k = np.unravel_index(np.nanargmin(h), h.shape)
+        lowest[name] = (float(h[b, k]), int(b), float(t[k]))
         lo, med, hi = np.percentile(h, [5, 50, 95], axis=0)
         ax.fill_between(t, lo, hi, color=color, alpha=0.2, lw=0)
         ax.plot(t, med, color=color, lw=1.8, label=f"{name}: median, 5-95 % band")
@@ -110,10 +120,17 @@ def plot_barrier_bands(
     ax.axhline(0.0, color="tab:red", ls="--", lw=1.0, label="contact (b = 0)")
     if ylim is not None:
         ax.set_ylim(*ylim)
+    worst = min(trajectories, key=lambda name: lowest[name][0])
+    value, seed, when = lowest[worst]
+    lo, hi = ax.get_ylim()
+    if value < lo + 0.05 * (hi - lo):
+        ax.set_ylim(value - 0.08 * (hi - value), hi)
+    label = f"lowest: {value:.2f} ({worst}, seed index {seed}, t = {when:.2f} s)"
+    ax.plot(when, value, marker="v", color="tab:red", ms=8, mec="k", mew=0.5, zorder=5, label=label)
     ax.set_xlabel("t [s]")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
-    ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=7)
+    _legend_right(ax, fontsize=7)
     return fig
 
 
@@ -134,7 +151,8 @@ def animate_methods(
     """A GIF of scenario ``seed_index`` (the same noise seed) under every method; returns
     its path."""
     path = Path(path)
-    fig, ax = plt.subplots(figsize=(6, 6))
+    fig, ax = plt.subplots(figsize=(8.4, 6))
+    fig.subplots_adjust(left=0.08, right=0.7)  # room for the legend (frames keep this box)
     xys = {name: _xy(t, index)[seed_index] for name, t in trajectories.items()}
     starts = np.stack([xy[:1] for xy in xys.values()])
     xlim, ylim = _draw_scene(ax, starts, barriers, goals, starts.shape[-1], index, xlim, ylim)
@@ -150,7 +168,7 @@ def animate_methods(
         color = COLORS[j % len(COLORS)]
         lines.append(ax.plot([], [], color=color, lw=1.5, label=name)[0])
         dots.append(ax.plot([], [], "o", color=color, ms=5)[0])
-    ax.legend(loc="upper left", fontsize=8)
+    _legend_right(ax)
     t = _np(next(iter(trajectories.values())).t)
     steps = len(t)
     ticks = np.linspace(0, steps - 1, min(frames, steps)).round().astype(int)

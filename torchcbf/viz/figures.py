@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from matplotlib.animation import FuncAnimation, PillowWriter
 from matplotlib.axes import Axes
-from matplotlib.colors import LogNorm
+from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
@@ -99,6 +99,40 @@ def axis_labels(index: tuple[int, int], labels: tuple[str, str] | None = None) -
     return (f"x[{index[0]}]", f"x[{index[1]}]")
 
 
+def weight_ranks(weights: np.ndarray) -> np.ndarray:
+    """``[K]`` ranks of ``weights [K]`` scaled to ``[0, 1]`` (0: lightest, 1: heaviest; ties
+    share their mean rank)."""
+    w = np.asarray(weights, dtype=float)
+    if w.size < 2:
+        return np.ones_like(w)
+    order = np.argsort(w, kind="stable")
+    ranks = np.empty(w.size)
+    ranks[order] = np.arange(w.size, dtype=float)
+    _, inverse = np.unique(w, return_inverse=True)
+    ranks = np.bincount(inverse, ranks) / np.bincount(inverse)  # mean rank of each value
+    return ranks[inverse] / (w.size - 1)
+
+
+def mark_minimum(ax: Axes, t: np.ndarray, h: np.ndarray, color: str = "tab:red") -> None:
+    """Mark the smallest value of ``h [B, T]`` over time ``t [T]`` with its value, and widen
+    the y-axis so that it shows (a fixed lower limit hides the worst collision)."""
+    b, j = np.unravel_index(np.nanargmin(h), h.shape)
+    value = float(h[b, j])
+    ax.plot(t[j], value, marker="v", color=color, ms=8, mec="k", mew=0.5, zorder=5,
+            label=f"lowest: {value:.2f} (scenario {b}, t = {t[j]:.2f} s)")  # fmt: skip
+    lo, hi = ax.get_ylim()
+    if value < lo + 0.05 * (hi - lo):
+        ax.set_ylim(value - 0.08 * (hi - value), hi)
+
+
+def _legend_below(ax: Axes, fontsize: int = 8) -> None:
+    """The legend under the axes, where it covers no data (save with a tight bounding box)."""
+    if not ax.get_legend_handles_labels()[0]:
+        return
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2, fontsize=fontsize,
+              frameon=False)  # fmt: skip
+
+
 def _limits(
     traj_xy: np.ndarray, goals: Sequence[Any], margin: float = 1.0
 ) -> tuple[tuple[float, float], tuple[float, float]]:
@@ -178,7 +212,7 @@ def plot_trajectories(
     if title:
         ax.set_title(title)
     if ax.get_legend_handles_labels()[0]:
-        ax.legend(loc="best", fontsize=8)
+        _legend_below(ax)
     return fig
 
 
@@ -202,10 +236,11 @@ def plot_barrier_values(
         ax.plot(t, h[b], color="tab:blue", alpha=0.3, lw=0.8, label=label)
     ax.plot(t, h.min(0), color="tab:blue", lw=2.0, label="minimum over scenarios")
     ax.axhline(0.0, color="tab:red", ls="--", lw=1.0, label="h = 0 (boundary)")
+    mark_minimum(ax, t, h)
     ax.set_xlabel("t [s]")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
-    ax.legend(loc="best", fontsize=8)
+    _legend_below(ax)
     return fig
 
 
@@ -224,21 +259,20 @@ def plot_rollouts(
     xlim: tuple[float, float] | None = None,
     ylim: tuple[float, float] | None = None,
 ) -> Figure:
-    """Sampled rollouts ``[K, H+1, n]`` coloured by their weight ``[K]`` (the paper's third
-    figure), a plan's states ``[H+1, n]`` (labelled ``plan_label``) and the executed path
-    ``[T, n]``."""
+    """Sampled rollouts ``[K, H+1, n]`` coloured by the rank of their weight ``[K]`` (the
+    paper's third figure), a plan's states ``[H+1, n]`` (labelled ``plan_label``) and the
+    executed path ``[T, n]``. MPPI's weights span tens of orders of magnitude, so a colour
+    scale on the weight (or its logarithm over a few decades) puts almost every rollout at
+    its bottom; ranks spread them evenly. The legend sits below the axes."""
     fig, ax = (ax.figure, ax) if ax is not None else plt.subplots(figsize=(6, 6))
     R = _np(rollouts)[..., list(index)]
-    w = _np(weights).astype(float)
-    # MPPI weights span many orders of magnitude: colour by log10 of the weight relative to
-    # the largest, over six decades.
-    w = np.log10(np.clip(w / max(w.max(), 1e-300), 1e-6, 1.0)) / 6.0 + 1.0
+    rank = weight_ranks(_np(weights))
     xlim, ylim = _draw_scene(ax, R, barriers, goals, _np(rollouts).shape[-1], index, xlim, ylim)
     cmap = plt.get_cmap("viridis")
-    for k in np.argsort(w):
-        ax.plot(R[k, :, 0], R[k, :, 1], color=cmap(w[k]), lw=0.6, alpha=0.25 + 0.75 * w[k])
-    sm = plt.cm.ScalarMappable(cmap=cmap, norm=LogNorm(1e-6, 1.0))
-    fig.colorbar(sm, ax=ax, label="sample weight / largest weight")
+    for k in np.argsort(rank, kind="stable"):  # the heaviest drawn last, on top
+        ax.plot(R[k, :, 0], R[k, :, 1], color=cmap(rank[k]), lw=0.6, alpha=0.2 + 0.6 * rank[k])
+    sm = plt.cm.ScalarMappable(cmap=cmap, norm=Normalize(0.0, 1.0))
+    fig.colorbar(sm, ax=ax, label="rank of the sample's weight (1 = heaviest)")
     if executed is not None:
         E = _np(executed)[..., list(index)]
         ax.plot(E[:, 0], E[:, 1], "k-", lw=2.0, label="executed")
@@ -252,7 +286,7 @@ def plot_rollouts(
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.set_title(title)
-    ax.legend(loc="best", fontsize=8)
+    _legend_below(ax)
     return fig
 
 

@@ -1,0 +1,113 @@
+"""Figures: rollout colours spread by rank, the deepest violation shown and marked, legends
+outside the data."""
+
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import torch  # noqa: E402
+from matplotlib.colors import to_rgba  # noqa: E402
+
+from torchcbf.barriers import Ball  # noqa: E402
+from torchcbf.sim import Trajectory  # noqa: E402
+from torchcbf.viz import (  # noqa: E402
+    plot_barrier_bands,
+    plot_barrier_values,
+    plot_methods,
+    plot_rollouts,
+    weight_ranks,
+)
+
+
+@pytest.fixture(autouse=True)
+def _close():
+    yield
+    plt.close("all")
+
+
+def _reference_ranks(w: np.ndarray) -> np.ndarray:
+    """Mean rank of each value by a loop over the samples, scaled to [0, 1]."""
+    out = np.empty(len(w))
+    for i, v in enumerate(w):
+        below, equal = np.sum(w < v), np.sum(w == v)
+        out[i] = (below + (equal - 1) / 2) / (len(w) - 1)
+    return out
+
+
+@pytest.mark.parametrize(
+    "w",
+    [
+        np.exp(-np.linspace(0.0, 700.0, 50)),
+        np.array([0.0, 0.0, 1e-300, 0.5, 0.5, 1.0]),
+        np.random.default_rng(0).random(33),
+    ],
+)
+def test_weight_ranks_match_a_loop(w) -> None:
+    np.testing.assert_allclose(weight_ranks(w), _reference_ranks(w))
+
+
+def _traj(x: torch.Tensor, dt: float = 0.1) -> Trajectory:
+    B, T1, n = x.shape
+    zeros = torch.zeros(B, T1 - 1, 2)
+    return Trajectory(t=torch.arange(T1) * dt, x=x, x_hat=x, u_nom=zeros, u=zeros, h=None,
+                      status=None, failed=torch.zeros(B, dtype=torch.bool),
+                      fail_step=torch.full((B,), -1))  # fmt: skip
+
+
+def test_rollouts_spread_over_the_colour_scale() -> None:
+    K, H = 200, 10
+    rollouts = torch.randn(K, H + 1, 2).cumsum(1)
+    weights = torch.exp(-torch.linspace(0.0, 600.0, K, dtype=torch.float64))  # as MPPI's do
+    fig = plot_rollouts(rollouts, weights)
+    ax = fig.axes[0]
+    cmap = plt.get_cmap("viridis")
+    colours = {tuple(np.round(to_rgba(line.get_color())[:3], 4)) for line in ax.lines[:K]}
+    assert len(colours) > K // 2  # one colour per rank, not one for almost all
+    levels = [to_rgba(line.get_color())[:3] for line in ax.lines[:K]]
+    median = np.median([np.argmin([np.abs(np.array(cmap(q)[:3]) - c).sum()
+                                   for q in np.linspace(0, 1, 101)]) for c in levels])  # fmt: skip
+    assert 40 <= median <= 60
+
+
+def test_barrier_bands_show_and_mark_the_deepest_violation() -> None:
+    x = torch.zeros(3, 21, 2)
+    x[:, :, 0] = torch.linspace(-3.0, 0.0, 21)  # every path ends at the ball's centre
+    ball = Ball(center=[0.0, 0.0], radius=0.8)  # h = |p|^2 - 0.64: -0.64 at the centre
+    fig = plot_barrier_bands({"scbf": _traj(x)}, [ball])
+    ax = fig.axes[0]
+    assert ax.get_ylim()[0] < -0.64
+    labels = ax.get_legend_handles_labels()[1]
+    assert any(label.startswith("lowest: -0.64 (scbf") for label in labels)
+
+
+def test_barrier_values_mark_the_minimum() -> None:
+    h = torch.tensor([[1.0, 0.5, 0.2], [1.0, -0.9, 0.3]])
+    fig = plot_barrier_values(torch.tensor([0.0, 0.1, 0.2]), h)
+    ax = fig.axes[0]
+    assert ax.get_ylim()[0] < -0.9
+    assert any(
+        "lowest: -0.90 (scenario 1, t = 0.10 s)" in s for s in ax.get_legend_handles_labels()[1]
+    )
+
+
+def _outside(fig, ax) -> bool:
+    fig.canvas.draw()
+    legend = ax.get_legend().get_window_extent()
+    box = ax.get_window_extent()
+    return not legend.overlaps(box)
+
+
+def test_legends_do_not_cover_the_workspace() -> None:
+    x = torch.zeros(2, 11, 4)
+    x[:, :, 0] = torch.linspace(0.0, 3.0, 11)
+    obstacle = Ball(center=[1.0, 1.0], radius=0.5)
+    fig = plot_methods({"a": _traj(x), "b": _traj(x + 0.1)}, [obstacle])
+    assert _outside(fig, fig.axes[0])
+    fig = plot_rollouts(torch.randn(20, 6, 2), torch.rand(20), torch.randn(6, 2),
+                        barriers=[obstacle])  # fmt: skip
+    assert _outside(fig, fig.axes[0])
