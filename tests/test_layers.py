@@ -49,9 +49,14 @@ def _imports() -> dict[str, set[str]]:
     return graph
 
 
+# the package's face (torchcbf/__init__.py) imports the public names of every layer, so a
+# module that imports from it reaches up; only the command line sits with it at the top
+FACE = LAYERS["cli"]
+
+
 def _layer(module: str) -> int | None:
     parts = module.split(".")
-    return LAYERS.get(parts[1]) if len(parts) > 1 else None
+    return LAYERS.get(parts[1]) if len(parts) > 1 else FACE
 
 
 def test_every_subpackage_has_a_layer():

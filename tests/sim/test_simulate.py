@@ -11,7 +11,16 @@ import torch
 from torchcbf.dynamics import AccelUnicycle, SingleIntegrator
 from torchcbf.estimation import EKF, GaussianSensor
 from torchcbf.integrators import step
-from torchcbf.sim import Goal, Trajectory, metrics, simulate, summarize, wilson_interval
+from torchcbf.sim import (
+    ClosedLoop,
+    Goal,
+    Nominal,
+    Trajectory,
+    metrics,
+    simulate,
+    summarize,
+    wilson_interval,
+)
 
 
 class _Plan(NamedTuple):
@@ -225,13 +234,16 @@ def test_wilson_interval_known_values() -> None:
 
 def test_bad_inputs() -> None:
     dyn = SingleIntegrator(2)
+    zero = lambda x, t: torch.zeros_like(x)  # noqa: E731
     with pytest.raises(ValueError, match=r"x0 must have shape \[\.\.\., 2\]"):
-        simulate(dyn, torch.zeros(3, 3), 5, 0.1)
+        simulate(dyn, torch.zeros(3, 3), 5, 0.1, nominal=zero)
     with pytest.raises(ValueError, match="steps must be a positive int"):
-        simulate(dyn, torch.zeros(3, 2), 0, 0.1)
+        simulate(dyn, torch.zeros(3, 2), 0, 0.1, nominal=zero)
     with pytest.raises(ValueError, match="integrator must be one of"):
         simulate(dyn, torch.zeros(3, 2), 5, 0.1, integrator="heun")
-    zero = lambda x, t: torch.zeros_like(x)  # noqa: E731
+    with pytest.raises(ValueError, match="an estimator needs a sensor"):
+        ekf = EKF(dyn, GaussianSensor(std=0.1, state_dim=2), Q=0.01 * torch.eye(2))
+        ClosedLoop(dynamics=dyn, nominal=zero, estimator=ekf)
     with pytest.raises(ValueError, match="one seed per scenario"):
         simulate(dyn, torch.zeros(3, 2), 5, 0.1, nominal=zero, seed=[1, 2])
     with pytest.raises(TypeError, match="dynamics must be a ControlAffine"):
@@ -241,7 +253,7 @@ def test_bad_inputs() -> None:
 def test_no_controller_and_wrong_shapes_name_the_argument() -> None:
     dyn = SingleIntegrator(2)
     x0 = torch.zeros(3, 2)
-    with pytest.raises(ValueError, match="simulate needs a controller: pass planner="):
+    with pytest.raises(ValueError, match="a closed loop needs a controller: planner="):
         simulate(dyn, x0, 5, 0.1, progress=False)
     with pytest.raises(ValueError, match=r"nominal\(x_hat, t\) must .* \[3, 2\], got \(3, 1\)"):
         simulate(dyn, x0, 5, 0.1, nominal=lambda x, t: x[:, :1], progress=False)
@@ -370,3 +382,20 @@ def test_the_swept_check_in_slices_equals_the_whole(monkeypatch) -> None:
     sliced, sliced_times = module._swept(ball, x, t, 8)
     assert torch.equal(whole, sliced) and torch.equal(times, sliced_times)
     assert whole.any() and not whole.all()
+
+
+def test_a_closed_loop_object_runs_the_same_loop_as_simulate() -> None:
+    dyn = SingleIntegrator(2, u_min=-1.0, u_max=1.0)
+    goal = torch.tensor([1.0, 2.0])
+    nominal = lambda x, t: 2.0 * (goal - x)  # noqa: E731
+    x0 = torch.randn(4, 2, generator=torch.Generator().manual_seed(0))
+    loop = ClosedLoop(dynamics=dyn, nominal=nominal, integrator="euler")
+    assert isinstance(nominal, Nominal)
+    a = loop.simulate(x0, 20, 0.05, progress=False)
+    b = simulate(dyn, x0, 20, 0.05, nominal=nominal, integrator="euler", progress=False)
+    assert torch.equal(a.x, b.x) and torch.equal(a.u, b.u)
+    # the loop by hand: clipped proportional control, Euler steps
+    x = x0.clone()
+    for _ in range(20):
+        x = x + 0.05 * (2.0 * (goal - x)).clamp(-1.0, 1.0)
+    torch.testing.assert_close(a.x[:, -1], x)

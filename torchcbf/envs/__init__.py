@@ -1,7 +1,9 @@
 """Gymnasium environments of the reference scenarios and a safety-filter wrapper (extra
 ``gym``: ``pip install "torchcbf[gym]"``).
 
-Importing this package registers:
+Importing this package registers with Gymnasium the environment of every registered
+scenario that declares one (:class:`torchcbf.scenarios.EnvEntry`; :func:`register_envs`
+does it again after a user's scenario registers):
 
 - ``torchcbf/ReachAvoid-v0``: scenario A (:mod:`torchcbf.envs.reach_avoid`);
 - ``torchcbf/UnicycleEllipses-v0``: scenario B (:mod:`torchcbf.envs.unicycle_ellipses`).
@@ -30,23 +32,27 @@ from torchcbf.envs.unicycle_ellipses import UnicycleEllipsesEnv, UnicycleEllipse
 ENV_IDS = ("torchcbf/ReachAvoid-v0", "torchcbf/UnicycleEllipses-v0")
 
 
-def _register() -> None:
-    entries = {
-        "torchcbf/ReachAvoid-v0": ("reach_avoid", "ReachAvoid", 100),
-        "torchcbf/UnicycleEllipses-v0": ("unicycle_ellipses", "UnicycleEllipses", 500),
-    }
-    for env_id, (module, name, steps) in entries.items():
-        if env_id in gymnasium.registry:
+def register_envs() -> list[str]:
+    """Register with Gymnasium the environment of every registered scenario that has one
+    and is not registered yet; returns the ids registered now."""
+    from torchcbf.scenarios import scenarios
+
+    added = []
+    for entry in scenarios().values():
+        env = entry.env
+        if env is None or env.id in gymnasium.registry:
             continue
         gymnasium.register(
-            id=env_id,
-            entry_point=f"torchcbf.envs.{module}:{name}Env",
-            vector_entry_point=f"torchcbf.envs.{module}:{name}VectorEnv",
-            max_episode_steps=steps,
+            id=env.id,
+            entry_point=env.entry_point,
+            vector_entry_point=env.vector_entry_point,
+            max_episode_steps=env.max_episode_steps,
         )
+        added.append(env.id)
+    return added
 
 
-_register()
+register_envs()
 
 __all__ = [
     "ENV_IDS",
@@ -58,4 +64,5 @@ __all__ = [
     "UnicycleEllipsesEnv",
     "UnicycleEllipsesVectorEnv",
     "VectorSafetyFilterWrapper",
+    "register_envs",
 ]

@@ -7,6 +7,7 @@ from torchcbf.scenarios.base import Scenario
 from torchcbf.scenarios.registry import (
     Column,
     Dimension,
+    EnvEntry,
     ScenarioEntry,
     get,
     import_scenarios,
@@ -32,6 +33,7 @@ __all__ = [
     "ArmReachParams",
     "Column",
     "Dimension",
+    "EnvEntry",
     "MppiCbfParams",
     "ReachAvoidParams",
     "Scenario",

@@ -1,5 +1,5 @@
-"""A ready closed-loop experiment: everything :func:`torchcbf.sim.simulate` needs, plus what
-its metrics and figures read."""
+"""A ready closed-loop experiment: a :class:`~torchcbf.sim.ClosedLoop` with its initial
+states, its length and seeds, and what its metrics and figures read."""
 
 from __future__ import annotations
 
@@ -10,31 +10,27 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcbf.dynamics.base import ControlAffine
-from torchcbf.sim import Goal, Trajectory, metrics, simulate
+from torchcbf.sim import ClosedLoop, Goal, Trajectory, metrics
 
 
-@dataclass
-class Scenario:
-    """One experiment over a batch of seeds.
+@dataclass(kw_only=True)
+class Scenario(ClosedLoop):
+    """One experiment over a batch of seeds: the closed loop (``dynamics``, ``planner``,
+    ``nominal``, ``safety_filter``, ``integrator``, ``planner_every``, ... of
+    :class:`~torchcbf.sim.ClosedLoop`) run from ``x0 [B, n]`` for ``steps`` steps of ``dt``.
 
-    ``barriers`` are the true obstacles (metrics and plots); ``goals`` the goal regions;
-    ``spec`` a specification whose robustness decides success (optional); ``params`` every
-    parameter the builder used (recorded with the results); ``extra_metrics(trajectory)``
-    per-seed metrics of the scenario's own, added to the standard ones.
+    ``barriers`` are the true obstacles (metrics and plots); ``goals`` the goal regions (for
+    the figures); ``metric_goals`` the goals the metrics time; ``spec`` a specification
+    whose robustness decides success (optional); ``params`` every parameter the builder used
+    (recorded with the results); ``extra_metrics(trajectory)`` per-seed metrics of the
+    scenario's own, added to the standard ones.
     """
 
     name: str
-    dynamics: ControlAffine
     x0: Tensor
     steps: int
     dt: float
     seeds: Tensor
-    planner: Any | None = None
-    nominal: Callable[..., Tensor] | None = None
-    safety_filter: Any | None = None
-    integrator: str = "rk4"
-    planner_every: int = 1
     barriers: Sequence[Callable[[Tensor], Tensor]] = ()
     goals: Sequence[Any] = ()
     metric_goals: Sequence[Goal] = ()
@@ -46,19 +42,13 @@ class Scenario:
 
     def run(self, progress: bool = True) -> tuple[Trajectory, dict[str, Tensor]]:
         """Simulate every seed in one batch; returns the trajectory and per-seed metrics."""
-        traj = simulate(
-            self.dynamics,
+        traj = self.simulate(
             self.x0,
             self.steps,
             self.dt,
-            planner=self.planner,
-            nominal=self.nominal,
-            safety_filter=self.safety_filter,
-            integrator=self.integrator,
             seed=self.seeds,
             progress=progress,
             progress_label=self.name,
-            planner_every=self.planner_every,
             snapshot_steps=self.snapshot_steps,
         )
         with torch.no_grad():

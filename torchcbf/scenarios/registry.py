@@ -132,6 +132,18 @@ Figures = Callable[..., list[Path]]
 
 
 @dataclass(frozen=True)
+class EnvEntry:
+    """The Gymnasium environment of a scenario, registered with Gymnasium by
+    :mod:`torchcbf.envs` (``entry_point`` and ``vector_entry_point`` as
+    ``gymnasium.register`` takes them: ``"module:Class"``)."""
+
+    id: str
+    entry_point: str
+    vector_entry_point: str | None = None
+    max_episode_steps: int | None = None
+
+
+@dataclass(frozen=True)
 class ScenarioEntry:
     """A registered scenario.
 
@@ -160,7 +172,7 @@ class ScenarioEntry:
         num_seeds: seeds of ``torchcbf NAME`` by default.
         demo: parameters and ``num_seeds`` of its part in ``torchcbf demo`` (``None``: not
             part of the demo).
-        env: the Gymnasium id of its environment, if it has one.
+        env: its Gymnasium environment, if it has one (:class:`EnvEntry`).
     """
 
     name: str
@@ -176,7 +188,7 @@ class ScenarioEntry:
     units: Mapping[str, str] = field(default_factory=dict)
     num_seeds: int = 8
     demo: Mapping[str, Any] | None = None
-    env: str | None = None
+    env: EnvEntry | None = None
 
     def __post_init__(self) -> None:
         if not self.name or not isinstance(self.name, str) or " " in self.name:

@@ -26,7 +26,7 @@ from torchcbf.dynamics import SingleIntegrator
 from torchcbf.mppi import MPPI, And, Avoid, Reach
 from torchcbf.scenarios.base import Scenario
 from torchcbf.scenarios.figures import standard_figures
-from torchcbf.scenarios.registry import Column, Dimension, ScenarioEntry, register
+from torchcbf.scenarios.registry import Column, Dimension, EnvEntry, ScenarioEntry, register
 from torchcbf.sim import Trajectory
 
 GOALS = (
@@ -170,5 +170,11 @@ ENTRY = register(
         units={"min_h": "m (clearance |p - o| - r_o)", "seconds": "s"},
         num_seeds=10,
         demo={"num_seeds": 4, "num_samples": 10_000, "horizon": 50},
+        env=EnvEntry(
+            id="torchcbf/ReachAvoid-v0",
+            entry_point="torchcbf.envs.reach_avoid:ReachAvoidEnv",
+            vector_entry_point="torchcbf.envs.reach_avoid:ReachAvoidVectorEnv",
+            max_episode_steps=100,
+        ),
     )
 )

@@ -60,7 +60,7 @@ from torchcbf.mppi import MPPI, DiscreteBarrierCost, QuadraticGoal, ShieldMPPI, 
 from torchcbf.mppi.costs import BarrierCost
 from torchcbf.scenarios.base import Scenario
 from torchcbf.scenarios.figures import standard_figures
-from torchcbf.scenarios.registry import Column, Dimension, ScenarioEntry, register
+from torchcbf.scenarios.registry import Column, Dimension, EnvEntry, ScenarioEntry, register
 from torchcbf.sim import Goal, Trajectory
 
 METHODS = ("scbf", "mppi", "mppi_scbf", "mppi_rascbf", "shield_mppi")
@@ -589,5 +589,11 @@ ENTRY = register(
         },
         num_seeds=32,
         demo={"num_seeds": 8, "num_samples": 1000, "horizon": 80, "config": "default"},
+        env=EnvEntry(
+            id="torchcbf/UnicycleEllipses-v0",
+            entry_point="torchcbf.envs.unicycle_ellipses:UnicycleEllipsesEnv",
+            vector_entry_point="torchcbf.envs.unicycle_ellipses:UnicycleEllipsesVectorEnv",
+            max_episode_steps=STEPS,
+        ),
     )
 )
