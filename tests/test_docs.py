@@ -19,6 +19,8 @@ import contextlib
 import io
 import math
 import re
+import sys
+import types
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -155,8 +157,17 @@ def output_matches(got: str, want: str) -> bool:
 
 def run_page(blocks: list[Block], *, slow: bool) -> None:
     """Run the blocks of one page in order in one namespace; fail on the first that raises
-    or prints something other than its ```text block."""
-    namespace: dict[str, object] = {"__name__": "__docs__"}
+    or prints something other than its ```text block. The page runs as a module of its own
+    (in ``sys.modules`` while it runs), as a script would: dataclasses and pickling work."""
+    page = types.ModuleType("__docs__")
+    sys.modules[page.__name__] = page
+    try:
+        _run_blocks(blocks, page.__dict__, slow=slow)
+    finally:
+        sys.modules.pop(page.__name__, None)
+
+
+def _run_blocks(blocks: list[Block], namespace: dict[str, object], *, slow: bool) -> None:
     for block in blocks:
         if block.mode == "skip" or (block.mode == "slow" and not slow):
             continue

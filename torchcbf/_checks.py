@@ -145,18 +145,6 @@ def check_same(name_a: str, a: Tensor, name_b: str, b: Tensor) -> None:
         )
 
 
-def check_module_device(name: str, value: Tensor, module: torch.nn.Module) -> None:
-    """Raise ``ValueError`` if ``value`` is not on the device of ``module``'s tensors (modules
-    without tensors accept any device)."""
-    for tensor in list(module.parameters()) + list(module.buffers()):
-        if tensor.device != value.device:
-            raise ValueError(
-                f"{name} is on device {value.device} but {type(module).__name__} is on device "
-                f"{tensor.device}: move the module with .to({name}.device)"
-            )
-        return
-
-
 def as_limit(name: str, value: object, size: int) -> Tensor | None:
     """A bound given as a scalar or ``[size]`` vector, as a float64 ``[size]`` tensor (``None``
     stays ``None``). ``+-inf`` means unbounded; NaN raises. A tensor that requires grad keeps

@@ -1,10 +1,9 @@
-"""Condition modes as objects, the deprecated keyword aliases, and the fallback policy."""
+"""Condition modes as objects or names, the slack modes, and the fallback policy."""
 
 from __future__ import annotations
 
 import pytest
 import torch
-from _filter_reference import BETA, CLF_ETA, CLF_GAMMA, ETA, HORIZON, RHO
 from test_safety_filter import MODES, random_states, scene
 
 from torchcbf.barriers import Ball
@@ -12,7 +11,6 @@ from torchcbf.dynamics import SingleIntegrator
 from torchcbf.filters import (
     Fallback,
     FilterMode,
-    RiskAware,
     Robust,
     SafetyFilter,
     Stochastic,
@@ -20,54 +18,46 @@ from torchcbf.filters import (
 )
 from torchcbf.filters.conditions import Condition
 
-OBJECTS = {
-    "vanilla": lambda: Vanilla(),
-    "robust": lambda: Robust(),
-    "stochastic": lambda: Stochastic(beta=BETA),
-    "risk_aware": lambda: RiskAware(
-        RHO, HORIZON, torch.tensor(ETA), clf_eta=CLF_ETA, clf_gamma=CLF_GAMMA
-    ),
-}
-
 
 @pytest.mark.parametrize("mode", MODES)
-def test_mode_object_equals_mode_name(mode: str) -> None:
+def test_mode_objects_and_names(mode: str) -> None:
     xs, us = random_states(8, seed=3)
     x, u = torch.tensor(xs), torch.tensor(us)
-    with pytest.warns(DeprecationWarning):
-        by_name = scene(mode)(x, u)
-    keep = ("alpha", "clf_rate", "R", "clf_slack_weight")
     filt = scene(mode)
-    obj = SafetyFilter(
-        filt.dynamics, list(filt.barriers), list(filt.lyapunovs), mode=OBJECTS[mode](),
-        **{k: getattr(filt, k) if k != "alpha" else filt.alpha[0] for k in keep if k != "clf_rate"},
-        clf_rate=filt.clf_rate[0],
-    )  # fmt: skip
-    out = obj(x, u)
-    assert out.path == by_name.path
-    for a, b in zip(out[:-1], by_name[:-1], strict=True):
-        torch.testing.assert_close(a, b, equal_nan=True)
-    assert obj.mode == mode and isinstance(obj.condition, FilterMode)
+    assert filt.mode == mode and isinstance(filt.condition, FilterMode)
+    out = filt(x, u)
+    assert out.u.shape == u.shape
+    if mode in ("vanilla", "robust", "stochastic"):  # a name: the mode's defaults
+        by_name = SafetyFilter(
+            filt.dynamics, list(filt.barriers), list(filt.lyapunovs), mode=mode,
+            alpha=filt.alpha[0], clf_rate=filt.clf_rate[0], R=filt.R,
+            clf_slack_weight=filt.clf_slack_weight,
+        )  # fmt: skip
+        plain = {"vanilla": Vanilla(), "robust": Robust(), "stochastic": Stochastic()}[mode]
+        by_object = SafetyFilter(
+            filt.dynamics, list(filt.barriers), list(filt.lyapunovs), mode=plain,
+            alpha=filt.alpha[0], clf_rate=filt.clf_rate[0], R=filt.R,
+            clf_slack_weight=filt.clf_slack_weight,
+        )  # fmt: skip
+        for a, b in zip(by_name(x, u)[:-1], by_object(x, u)[:-1], strict=True):
+            torch.testing.assert_close(a, b, equal_nan=True)
+    else:
+        with pytest.raises(ValueError, match="needs its parameters"):
+            SafetyFilter(filt.dynamics, list(filt.barriers), mode=mode)
 
 
-def test_deprecated_booleans_map_to_cbf_slack() -> None:
+def test_slack_modes_and_unknown_keywords() -> None:
     dyn = SingleIntegrator(2, u_min=-1.0, u_max=1.0)
     ball = Ball([1.0, 0.0], 0.5)
-    with pytest.warns(DeprecationWarning, match="cbf_slack='per_row'"):
-        soft = SafetyFilter(dyn, ball, relax_cbf=True)
-    with pytest.warns(DeprecationWarning):
-        hard = SafetyFilter(dyn, ball, elastic=False)
-    assert soft.cbf_slack == "per_row" and soft.relax_cbf and soft.elastic
-    assert hard.cbf_slack == "none" and not hard.elastic
     assert SafetyFilter(dyn, ball).cbf_slack == "shared"
+    assert SafetyFilter(dyn, ball, cbf_slack="per_row").cbf_slack == "per_row"
     with pytest.raises(ValueError, match="cbf_slack must be one of"):
         SafetyFilter(dyn, ball, cbf_slack="some")
-    with pytest.raises(ValueError, match="not both"):
-        SafetyFilter(dyn, ball, cbf_slack="none", elastic=False)
-    with pytest.raises(TypeError, match="unexpected keyword arguments \\['gamma'\\]"):
-        SafetyFilter(dyn, ball, gamma=1.0)
-    with pytest.raises(ValueError, match="belong to the mode object"):
-        SafetyFilter(dyn, ball, mode=Vanilla(), beta=1.0)
+    for keyword in ("elastic", "relax_cbf", "beta", "gamma"):  # options of the mode object
+        with pytest.raises(TypeError, match=keyword):
+            SafetyFilter(dyn, ball, **{keyword: 1.0})
+    with pytest.raises(ValueError, match="mode must be one of"):
+        SafetyFilter(dyn, ball, mode="careful")
 
 
 def test_a_custom_mode_object_runs_in_the_filter() -> None:

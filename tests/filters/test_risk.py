@@ -10,7 +10,14 @@ from scipy.special import erfinv
 
 from torchcbf.barriers import Ball, Ellipse, HalfSpace, QuadraticLyapunov, Transformed, rectify
 from torchcbf.dynamics import AccelUnicycle, SingleIntegrator
-from torchcbf.filters import SafetyFilter, noise_bound, risk_margin
+from torchcbf.filters import (
+    FilterMode,
+    RiskAware,
+    SafetyFilter,
+    Stochastic,
+    noise_bound,
+    risk_margin,
+)
 from torchcbf.integrators import step
 
 F64 = torch.float64
@@ -71,8 +78,8 @@ def test_safe_states_give_the_same_filter_as_eta() -> None:
     dyn = SingleIntegrator(1, sigma=0.4)
     wall = HalfSpace([1.0], 1.0)
     states = torch.linspace(-3, 1, 50).unsqueeze(-1)
-    a = SafetyFilter(dyn, wall, mode="risk_aware", rho=0.1, horizon=1.0, eta=0.4)
-    b = SafetyFilter(dyn, wall, mode="risk_aware", rho=0.1, horizon=1.0, safe_states=states)
+    a = SafetyFilter(dyn, wall, mode=RiskAware(rho=0.1, horizon=1.0, eta=0.4))
+    b = SafetyFilter(dyn, wall, mode=RiskAware(rho=0.1, horizon=1.0, safe_states=states))
     assert torch.allclose(a.cbf_margin.float(), b.cbf_margin.float())
     x, u = torch.tensor([[0.2]]), torch.tensor([[3.0]])
     assert torch.allclose(a(x, u).u, b(x, u).u)
@@ -99,7 +106,7 @@ def _exit_rate(
 SIGMA, T = 0.5, 1.0
 
 
-def _filters(mode: str, **kw) -> SafetyFilter:
+def _filters(mode: str | FilterMode, **kw) -> SafetyFilter:
     dyn = SingleIntegrator(1, sigma=SIGMA)
     wall = HalfSpace([1.0], 1.0)  # |dh/dx sigma| = sigma exactly
     # a single CBF without CLF: the elastic QP alone is exact (checked against cvxpy)
@@ -115,7 +122,7 @@ def vanilla_rate() -> float:
 
 
 def test_risk_aware_exit_probability_below_rho(vanilla_rate: float) -> None:
-    filt = _filters("risk_aware", rho=0.1, horizon=T, eta=SIGMA)
+    filt = _filters(RiskAware(rho=0.1, horizon=T, eta=SIGMA))
     assert torch.allclose(filt.cbf_margin, torch.tensor(H0, dtype=F64))
     rate = _exit_rate(filt, H0, seed=1)  # start on the margin Delta: the tightest start
     # binomial standard error is below 0.007 at 2000 samples
@@ -124,14 +131,14 @@ def test_risk_aware_exit_probability_below_rho(vanilla_rate: float) -> None:
 
 
 def test_stochastic_filter_exits_less_than_vanilla(vanilla_rate: float) -> None:
-    rate = _exit_rate(_filters("stochastic", alpha=1.0, beta=1.0), H0, seed=1)
+    rate = _exit_rate(_filters(Stochastic(beta=1.0), alpha=1.0), H0, seed=1)
     assert rate < 0.5 * vanilla_rate and vanilla_rate > 0.2, (rate, vanilla_rate)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("rho", [0.02, 0.05, 0.2, 0.5])
 def test_risk_aware_exit_probability_several_rho(rho: float) -> None:
-    filt = _filters("risk_aware", rho=rho, horizon=T, eta=SIGMA)
+    filt = _filters(RiskAware(rho=rho, horizon=T, eta=SIGMA))
     h0 = float(filt.cbf_margin)
     rate = _exit_rate(filt, h0, seed=3, dt=0.01)
     vanilla = _exit_rate(_filters("vanilla", alpha=1.0), h0, seed=3, dt=0.01)

@@ -34,10 +34,28 @@ from _filter_reference import (
 
 from torchcbf.barriers import Ball, HalfSpace, QuadraticLyapunov
 from torchcbf.dynamics import SingleIntegrator, Unicycle
-from torchcbf.filters import FilterStatus, LinearClassK, SafetyFilter
+from torchcbf.filters import (
+    FilterStatus,
+    LinearClassK,
+    RiskAware,
+    Robust,
+    SafetyFilter,
+    Stochastic,
+    Vanilla,
+)
 from torchcbf.qp import Status
 
 MODES = ["vanilla", "robust", "stochastic", "risk_aware"]
+
+
+MODE_OBJECTS = {
+    "vanilla": lambda: Vanilla(),
+    "robust": lambda: Robust(),
+    "stochastic": lambda: Stochastic(beta=BETA),
+    "risk_aware": lambda: RiskAware(
+        RHO, HORIZON, torch.tensor(ETA), clf_eta=CLF_ETA, clf_gamma=CLF_GAMMA
+    ),
+}
 
 
 def _tol(dtype: torch.dtype) -> float:
@@ -58,17 +76,11 @@ def scene(
         HalfSpace(WALL_A, WALL_B, index=(0, 1)),
     ]
     options = dict(
-        mode=mode,
+        mode=MODE_OBJECTS[mode](),
         alpha=torch.tensor(GAINS),
         clf_rate=CLF_RATE,
         R=torch.tensor(R),
         clf_slack_weight=CLF_W,
-        beta=BETA,
-        rho=RHO,
-        horizon=HORIZON,
-        eta=torch.tensor(ETA),
-        clf_eta=CLF_ETA,
-        clf_gamma=CLF_GAMMA,
     )
     options.update(overrides)
     lyap = [QuadraticLyapunov(GOAL)] if clf else []
@@ -240,7 +252,7 @@ def test_soft_cbf_and_per_barrier_class_k() -> None:
     hard = SafetyFilter(dyn, wall, alpha=2.0).double()(x, u)
     assert torch.allclose(hard.u, torch.tensor([[2.0]], dtype=torch.float64))
     # soft: min 1/2 (u-3)^2 + 1/2 w s^2, u - s <= 2  ->  u = 2 + (1/(1+w))
-    soft = SafetyFilter(dyn, wall, alpha=2.0, relax_cbf=True, cbf_slack_weight=4.0).double()
+    soft = SafetyFilter(dyn, wall, alpha=2.0, cbf_slack="per_row", cbf_slack_weight=4.0).double()
     out = soft(x, u)
     assert torch.allclose(out.u, torch.tensor([[2.2]], dtype=torch.float64), atol=1e-8)
     assert out.status[0] == FilterStatus.RELAXED
@@ -259,16 +271,14 @@ def test_errors_name_the_argument() -> None:
     with pytest.raises(ValueError, match="mode"):
         SafetyFilter(dyn, ball, mode="magic")
     with pytest.raises(ValueError, match="eta"):
-        SafetyFilter(Unicycle(sigma=0.1), ball, mode="risk_aware", rho=0.1, horizon=1.0)
+        SafetyFilter(Unicycle(sigma=0.1), ball, mode=RiskAware(rho=0.1, horizon=1.0))
     with pytest.raises(ValueError, match="rho"):
-        SafetyFilter(Unicycle(sigma=0.1), ball, mode="risk_aware", horizon=1.0, eta=1.0)
+        SafetyFilter(Unicycle(sigma=0.1), ball, mode=RiskAware(None, horizon=1.0, eta=1.0))
     with pytest.raises(ValueError, match="clf_eta"):
         SafetyFilter(
             Unicycle(sigma=0.1),
             lyapunovs=QuadraticLyapunov([0.0, 0.0]),
-            mode="risk_aware",
-            rho=0.1,
-            horizon=1.0,
+            mode=RiskAware(rho=0.1, horizon=1.0),
         )
     with pytest.raises(ValueError, match="disturbance_bound"):
         SafetyFilter(dyn, ball, mode="robust")
@@ -303,7 +313,7 @@ def test_errors_name_the_argument() -> None:
 @pytest.mark.parametrize("mode", ["vanilla", "robust"])
 def test_hard_only_qp_matches_cvxpy_and_falls_back_when_infeasible(mode: str) -> None:
     xs, us = random_states(24, seed=1)
-    filt = scene(mode, elastic=False)
+    filt = scene(mode, cbf_slack="none")
     out = filt(torch.tensor(xs), torch.tensor(us))
     lo, hi = torch.tensor(U_MIN), torch.tensor(U_MAX)
     for i in range(len(xs)):
@@ -316,7 +326,7 @@ def test_hard_only_qp_matches_cvxpy_and_falls_back_when_infeasible(mode: str) ->
             assert np.allclose(out.u[i].numpy(), ref, atol=1e-6, rtol=0)
     # an infeasible row (two walls leaving no room) takes the fallback, never a NaN
     walls = HalfSpace(torch.tensor([[1.0], [-1.0]]), torch.tensor([-1.0, -1.0]))
-    hard = SafetyFilter(SingleIntegrator(1), walls, elastic=False, fallback="brake").double()
+    hard = SafetyFilter(SingleIntegrator(1), walls, cbf_slack="none", fallback="brake").double()
     out = hard(torch.zeros(1, 1, dtype=torch.float64), torch.ones(1, 1, dtype=torch.float64))
     assert out.status[0] == FilterStatus.FALLBACK and out.u[0, 0] == 0.0
 
@@ -336,7 +346,7 @@ def _dense_scene() -> tuple[SingleIntegrator, Ball, torch.Tensor, torch.Tensor]:
 
 def _ipm_vs_enumeration(elastic: bool) -> float:
     dyn, ball, x, u_nom = _dense_scene()
-    kw = {"alpha": 1.0, "elastic": elastic}
+    kw = {"alpha": 1.0, "cbf_slack": "shared" if elastic else "none"}
     ipm = SafetyFilter(dyn, ball, qp_options={"method": "ipm"}, **kw).double()
     exact = SafetyFilter(dyn, ball, qp_options={"method": "enumerate"}, **kw).double()
     with torch.no_grad():

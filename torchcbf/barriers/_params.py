@@ -1,4 +1,4 @@
-"""Helpers shared by the shapes: parameters as buffers or ``nn.Parameter``, state indices."""
+"""Helpers shared by the shapes: state indices and the device and dtype of a module."""
 
 from __future__ import annotations
 
@@ -8,19 +8,8 @@ import torch
 from torch import Tensor, nn
 
 from torchcbf._checks import check_index, check_tensor
-from torchcbf._constants import ExactConstants, store
 
-__all__ = ["ExactConstants", "StateIndex", "check_state", "float_spec", "register"]
-
-
-def register(
-    module: nn.Module, name: str, value: object, learnable: bool, *, allow_inf: bool = False
-) -> Tensor:
-    """Store ``value`` on ``module`` as an ``nn.Parameter`` (given one, or ``learnable``) or a
-    buffer; return the stored tensor. A tensor that requires grad keeps its gradient, Python
-    numbers stay exact under ``.double()`` (see :mod:`torchcbf._constants`); NaN (and ``inf``
-    unless ``allow_inf``) raises ``ValueError`` naming ``name``."""
-    return store(module, name, value, learnable=learnable, allow_inf=allow_inf)
+__all__ = ["StateIndex", "check_state", "float_spec"]
 
 
 def check_state(name: str, x: object, index: tuple[int, ...], state_dim: int | None) -> Tensor:

@@ -24,6 +24,7 @@ import torch
 from torch import Tensor, nn
 
 from torchcbf._checks import ClosedForms, as_tensor, check_tensor, honour_overrides
+from torchcbf._constants import ExactConstants, store
 from torchcbf.dynamics.base import ControlAffine
 
 LieMethod = Literal["autograd", "analytic"]
@@ -94,14 +95,15 @@ class Quadric(NamedTuple):
     sign: float = 1.0
 
 
-class LieFunction(nn.Module):
+class LieFunction(ExactConstants):
     """Base of :class:`~torchcbf.barriers.Barrier` and :class:`~torchcbf.barriers.Lyapunov`.
 
     Subclasses write ``forward(x [..., n], t=None) -> [...]`` (or ``[..., k]`` for ``k``
-    functions evaluated at once). Time-varying subclasses set ``time_varying = True`` and
-    receive ``t`` as a tensor broadcastable to the batch shape ``[...]``. Subclasses may add
-    closed-form derivatives by overriding :meth:`derivatives` and :attr:`has_analytic`, and
-    declare independent pieces with :meth:`parts`.
+    functions evaluated at once) and store their constants with :meth:`register_constant`.
+    Time-varying subclasses set ``time_varying = True`` and receive ``t`` as a tensor
+    broadcastable to the batch shape ``[...]``. Subclasses may add closed-form derivatives
+    by overriding :meth:`derivatives` and :attr:`has_analytic`, and declare independent
+    pieces with :meth:`parts`.
     """
 
     time_varying: bool = False
@@ -120,6 +122,16 @@ class LieFunction(nn.Module):
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         honour_overrides(cls, LieFunction, cls.closed_forms)
+
+    def register_constant(
+        self, name: str, value: object, *, learnable: bool = False, allow_inf: bool = False
+    ) -> Tensor:
+        """Store the constant ``name`` and return it: an ``nn.Parameter`` when ``value`` is
+        one or ``learnable``, else a buffer (so ``.to(device, dtype)`` moves it). A tensor
+        that requires grad keeps its gradient; Python numbers stay exact under ``.double()``
+        (``0.1``, not ``float32(0.1)``). NaN, and ``inf`` unless ``allow_inf``, raise a
+        ``ValueError`` naming ``name``."""
+        return store(self, name, value, learnable=learnable, allow_inf=allow_inf)
 
     @property
     def has_analytic(self) -> bool:

@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from torchcbf._checks import as_tensor, check_spd
-from torchcbf.barriers._params import ExactConstants, StateIndex, register
+from torchcbf.barriers._params import StateIndex
 from torchcbf.barriers.lie import AnalyticDerivatives, LieFunction
 
 
@@ -20,7 +20,7 @@ class Lyapunov(LieFunction):
     """
 
 
-class QuadraticLyapunov(ExactConstants, Lyapunov):
+class QuadraticLyapunov(Lyapunov):
     """``V = (p - goal)' P (p - goal)`` with ``p = x[..., index]``.
 
     Args:
@@ -41,13 +41,13 @@ class QuadraticLyapunov(ExactConstants, Lyapunov):
         state_dim: int | None = None,
     ) -> None:
         super().__init__()
-        g = register(self, "goal", goal, learnable)
+        g = self.register_constant("goal", goal, learnable=learnable)
         if g.dim() != 1 or g.shape[0] == 0:
             raise ValueError(f"goal must have shape [d], got {tuple(g.shape)}")
         d = g.shape[0]
         if P is None:
             P = torch.eye(d, dtype=g.dtype, device=g.device)
-        Pm = register(self, "P", P, learnable)
+        Pm = self.register_constant("P", P, learnable=learnable)
         if Pm.shape != (d, d):
             raise ValueError(f"P must have shape [{d}, {d}], got {tuple(Pm.shape)}")
         check_spd("P", as_tensor("P", Pm.detach()))

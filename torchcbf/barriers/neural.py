@@ -6,7 +6,6 @@ import torch
 from torch import Tensor, nn
 
 from torchcbf._checks import check_number
-from torchcbf.barriers._params import register
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.lie import LieFunction, time_tensor
 
@@ -43,7 +42,7 @@ class NeuralBarrier(Barrier):
         self.offset = offset
         self.scale: float | Tensor
         if isinstance(scale, Tensor):
-            register(self, "scale", scale, False)
+            self.register_constant("scale", scale)
             if self.scale.dim() != 0:
                 raise ValueError(f"scale must be a scalar, got shape {tuple(self.scale.shape)}")
         else:

@@ -19,8 +19,8 @@ import torch
 from torch import Tensor, nn
 
 from torchcbf._checks import ClosedForms, as_tensor, check_finite
-from torchcbf._constants import ExactConstants, remember, store
-from torchcbf.barriers._params import float_spec, register
+from torchcbf._constants import remember, store
+from torchcbf.barriers._params import float_spec
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.lie import (
     AnalyticDerivatives,
@@ -104,7 +104,7 @@ def _gain_tensor(
     return getattr(module, name)
 
 
-class HighOrderBarrier(ExactConstants, Barrier):
+class HighOrderBarrier(Barrier):
     """High-order CBF (Xiao & Belta) with linear class-K gains.
 
     ``psi_0 = h``, ``psi_i = D psi_{i-1} + alpha_i psi_{i-1}`` for ``i = 1..r-1``; this module
@@ -178,7 +178,7 @@ class _Psi(LieFunction):
         return self._parent.psi(x, t, self.order, self._base)
 
 
-class ExponentialBarrier(ExactConstants, Barrier):
+class ExponentialBarrier(Barrier):
     """Exponential CBF (Nguyen & Sreenath) in relative-degree-one form.
 
     ``h_e = D^{r-1} h + k_{r-2} D^{r-2} h + ... + k_0 h`` (``D = L_f + d/dt``): the polynomial
@@ -214,10 +214,10 @@ class ExponentialBarrier(ExactConstants, Barrier):
         self.dynamics = dynamics
         self.relative_degree = int(relative_degree)
         if isinstance(coefficients, nn.Parameter):
-            k = register(self, "coefficients", coefficients, False)
+            k = self.register_constant("coefficients", coefficients)
         elif isinstance(coefficients, Tensor):
             device, dtype = float_spec(self)
-            k = register(self, "coefficients", coefficients.to(device, dtype), False)
+            k = self.register_constant("coefficients", coefficients.to(device, dtype))
         else:  # Python numbers: in the barrier's dtype, and exact under .double()
             values = [float(c) for c in coefficients]
             device, dtype = float_spec(self)  # the barrier's, before the new buffer counts

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from torchcbf._checks import check_number
 from torchcbf.barriers._minmax import combine, reduce
-from torchcbf.barriers._params import ExactConstants, StateIndex, register
+from torchcbf.barriers._params import StateIndex
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.lie import (
     AnalyticDerivatives,
@@ -93,7 +93,7 @@ def _embed_rows(sel: StateIndex, rows_p: Tensor, n: int) -> Tensor:
     return torch.nn.functional.pad(rows_p, (0, 0, span.start, n - span.stop))
 
 
-class _ShapeStack(ExactConstants, Barrier):
+class _ShapeStack(Barrier):
     """A shape whose constants may carry a leading ``k`` axis (``self.num``): the ``k`` shapes
     are independent Lie parts, all with closed-form derivatives."""
 
@@ -154,14 +154,14 @@ class Ball(_SignedShapeStack):
         state_dim: int | None = None,
     ) -> None:
         super().__init__()
-        c = register(self, "center", center, learnable)
+        c = self.register_constant("center", center, learnable=learnable)
         self.num = _check_centers("center", c)
-        r = register(self, "radius", radius, learnable)
+        r = self.register_constant("radius", radius, learnable=learnable)
         _check_per_shape("radius", r, self.num)
         _check_positive_tensor("radius", r.detach())
         self.register_buffer("velocity", None)
         if velocity is not None:
-            v = register(self, "velocity", velocity, learnable)
+            v = self.register_constant("velocity", velocity, learnable=learnable)
             if v.shape != c.shape:
                 raise ValueError(
                     f"velocity must have the shape of center {tuple(c.shape)}, got {tuple(v.shape)}"
@@ -234,7 +234,7 @@ class Ball(_SignedShapeStack):
         return AnalyticDerivatives(h, dhdx, dhdt, quad, hess_mat, hess_dir)
 
 
-class MovingBall(ExactConstants, Barrier):
+class MovingBall(Barrier):
     """A ball whose centre follows a trajectory: ``h = |p - c(t)|^2 - r^2``.
 
     Args:
@@ -262,7 +262,7 @@ class MovingBall(ExactConstants, Barrier):
         if not callable(trajectory):
             raise TypeError(f"trajectory must be callable t -> center, got {type(trajectory)}")
         self.trajectory = trajectory
-        r = register(self, "radius", radius, learnable)
+        r = self.register_constant("radius", radius, learnable=learnable)
         _check_per_shape("radius", r, None)
         _check_positive_tensor("radius", r.detach())
         self.keep_in = bool(keep_in)
@@ -307,9 +307,9 @@ class Ellipse(_SignedShapeStack):
         state_dim: int | None = None,
     ) -> None:
         super().__init__()
-        c = register(self, "center", center, learnable)
+        c = self.register_constant("center", center, learnable=learnable)
         self.num = _check_centers("center", c)
-        a = register(self, "axes", axes, learnable)
+        a = self.register_constant("axes", axes, learnable=learnable)
         if a.shape != c.shape:
             raise ValueError(
                 f"axes must have the shape of center {tuple(c.shape)}, got {tuple(a.shape)}"
@@ -319,7 +319,7 @@ class Ellipse(_SignedShapeStack):
         if angle is not None:
             if c.shape[-1] != 2:
                 raise ValueError(f"angle needs a 2-D ellipse, got center of shape {tuple(c.shape)}")
-            ang = register(self, "angle", angle, learnable)
+            ang = self.register_constant("angle", angle, learnable=learnable)
             _check_per_shape("angle", ang, self.num)
         self.keep_in = bool(keep_in)
         self._sel = StateIndex(index, c.shape[-1], state_dim)
@@ -422,9 +422,9 @@ class HalfSpace(_ShapeStack):
         state_dim: int | None = None,
     ) -> None:
         super().__init__()
-        av = register(self, "a", a, learnable)
+        av = self.register_constant("a", a, learnable=learnable)
         self.num = _check_centers("a", av)
-        bv = register(self, "b", b, learnable)
+        bv = self.register_constant("b", b, learnable=learnable)
         _check_per_shape("b", bv, self.num)
         if bool((av.detach().abs().sum(-1) == 0).any()):
             raise ValueError("a must be a non-zero normal vector")
@@ -462,7 +462,7 @@ class HalfSpace(_ShapeStack):
         return f"index={self._sel.index}, k={self.num}"
 
 
-class Box(ExactConstants, Barrier):
+class Box(Barrier):
     """Keep-in box ``low <= p <= high``: ``h = min_i min(p_i - low_i, high_i - p_i)``.
 
     The hard minimum over the ``2 d`` faces (default) is exact but only piecewise smooth (its
@@ -488,8 +488,8 @@ class Box(ExactConstants, Barrier):
         state_dim: int | None = None,
     ) -> None:
         super().__init__()
-        lo = register(self, "low", low, learnable, allow_inf=True)
-        hi = register(self, "high", high, learnable, allow_inf=True)
+        lo = self.register_constant("low", low, learnable=learnable, allow_inf=True)
+        hi = self.register_constant("high", high, learnable=learnable, allow_inf=True)
         if lo.dim() != 1 or hi.shape != lo.shape:
             raise ValueError(
                 "low and high must both have shape [d], got "

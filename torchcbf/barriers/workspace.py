@@ -22,7 +22,6 @@ from torch import Tensor
 
 from torchcbf._checks import check_number
 from torchcbf._constants import reshape
-from torchcbf.barriers._params import ExactConstants, register
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.lie import AnalyticDerivatives, LieFunction
 
@@ -46,7 +45,7 @@ def _norm(v: Tensor) -> Tensor:
     return torch.sqrt((v * v).sum(-1) + _EPS**2)
 
 
-class _LinkSpheres(ExactConstants, Barrier):
+class _LinkSpheres(Barrier):
     """Shared part of the sphere barriers: ``S`` spheres on links of ``arm``."""
 
     def __init__(
@@ -61,7 +60,7 @@ class _LinkSpheres(ExactConstants, Barrier):
         self.arm = arm
         self.links = arm.check_links(links)
         s = len(self.links)
-        r = register(self, "radii", radii, False)
+        r = self.register_constant("radii", radii)
         if r.dim() == 0:
             reshape(self, "radii", lambda t: t.expand(s).clone())
         elif r.shape != (s,):
@@ -72,7 +71,7 @@ class _LinkSpheres(ExactConstants, Barrier):
             raise ValueError(f"radii must be >= 0, got {self.radii.detach().tolist()}")
         self.register_buffer("offsets", None)
         if offsets is not None:
-            off = register(self, "offsets", offsets, False)
+            off = self.register_constant("offsets", offsets)
             if off.shape != (s, 3):
                 raise ValueError(f"offsets must have shape [{s}, 3], got {tuple(off.shape)}")
 
@@ -89,7 +88,7 @@ class _LinkSpheres(ExactConstants, Barrier):
 
 def _obstacles(module: Barrier, center: object) -> int:
     """Register obstacle centres ``obstacle_center [O, 3]``; return ``O``."""
-    c = register(module, "obstacle_center", center, False)
+    c = module.register_constant("obstacle_center", center)
     if c.dim() == 1:
         reshape(module, "obstacle_center", lambda t: t.unsqueeze(0))
     if module.obstacle_center.dim() != 2 or module.obstacle_center.shape[-1] != 3:
@@ -126,7 +125,7 @@ class LinkSphereBarrier(_LinkSpheres):
     ) -> None:
         super().__init__(arm, links, radii, offsets)
         o = _obstacles(self, obstacle_center)
-        rad = register(self, "obstacle_radius", obstacle_radius, False)
+        rad = self.register_constant("obstacle_radius", obstacle_radius)
         if rad.dim() == 0:
             reshape(self, "obstacle_radius", lambda t: t.expand(o).clone())
         elif rad.shape != (o,):
@@ -191,7 +190,7 @@ class LinkBoxBarrier(_LinkSpheres):
     ) -> None:
         super().__init__(arm, links, radii, offsets)
         o = _obstacles(self, box_center)
-        e = register(self, "half_extents", box_half_extents, False)
+        e = self.register_constant("half_extents", box_half_extents)
         if e.dim() == 1:
             reshape(self, "half_extents", lambda t: t.unsqueeze(0))
         if self.half_extents.shape != (o, 3):
@@ -213,7 +212,7 @@ class LinkBoxBarrier(_LinkSpheres):
         return f"links={self.links}, boxes={self.obstacle_center.shape[0]}"
 
 
-class EndEffectorBoxBarrier(ExactConstants, Barrier):
+class EndEffectorBoxBarrier(Barrier):
     """Keep a link point (the end effector by default) inside a box: ``h [..., 6]``.
 
     ``h = (p - low - r, high - r - p)``: one smooth constraint per face (better for a
@@ -240,8 +239,8 @@ class EndEffectorBoxBarrier(ExactConstants, Barrier):
         _check_arm(arm)
         self.arm = arm
         self.link = arm.check_links([link or arm.end_link])[0]
-        lo = register(self, "low", low, False)
-        hi = register(self, "high", high, False)
+        lo = self.register_constant("low", low)
+        hi = self.register_constant("high", high)
         if lo.shape != (3,) or hi.shape != (3,):
             raise ValueError(
                 f"low and high must have shape [3], got {tuple(lo.shape)}, {tuple(hi.shape)}"
@@ -266,7 +265,7 @@ def _register_offset(module: Barrier, offset: Tensor | Sequence[float] | None) -
     """The buffer ``module.offset``: a point ``[3]`` in the link frame, or ``None``."""
     module.register_buffer("offset", None)
     if offset is not None:
-        off = register(module, "offset", offset, False)
+        off = module.register_constant("offset", offset)
         if off.shape != (3,):
             raise ValueError(f"offset must have shape [3], got {tuple(off.shape)}")
 
@@ -276,7 +275,7 @@ def _point(arm: Manipulator, x: Tensor, link: str, offset: Tensor | None) -> Ten
     return arm.fk(x, [link], off)[..., 0, :]
 
 
-class PointBarrier(ExactConstants, Barrier):
+class PointBarrier(Barrier):
     """Any position-space barrier applied to a link point: ``h(x) = shape(p(x))``.
 
     ``shape`` is a barrier on a 3-vector "state" ``p [..., 3]`` (e.g.

@@ -272,8 +272,6 @@ class Manipulator(ControlAffine):
             raise ValueError(f"unknown links {unknown}; the chain has {self.link_names}")
         return links
 
-    _check_links = check_links  # former name, kept as an alias
-
     def link_poses(self, x: Tensor, links: Sequence[str] | None = None) -> Tensor:
         """Homogeneous world poses of links: ``x [..., dof or n] -> [..., L, 4, 4]``."""
         names = self.links if links is None else self.check_links(links)

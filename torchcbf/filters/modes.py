@@ -331,37 +331,23 @@ class RiskAware(FilterMode):
 
 
 #: the mode options :class:`SafetyFilter` still accepts as keywords (with ``mode`` a string)
-MODE_OPTIONS: dict[str, tuple[str, ...]] = {
-    "vanilla": (),
-    "robust": (),
-    "stochastic": ("beta",),
-    "risk_aware": ("rho", "horizon", "eta", "safe_states", "clf_rho", "clf_eta", "clf_gamma"),
-}
+MODE_NAMES = ("vanilla", "robust", "stochastic", "risk_aware")
 
 
-def make_mode(mode: str | FilterMode, options: dict[str, Any]) -> FilterMode:
-    """A :class:`FilterMode` from its name and keyword options (or the object itself)."""
+def make_mode(mode: str | FilterMode) -> FilterMode:
+    """``mode`` itself, or the mode of a name with its default options (``"stochastic"``:
+    ``beta = 0``; ``"risk_aware"`` has no defaults and needs its object)."""
     if isinstance(mode, FilterMode):
-        if options:
-            raise ValueError(
-                f"{', '.join(sorted(options))} belong to the mode object; pass them to "
-                f"{type(mode).__name__}(...)"
-            )
         return mode
-    if mode not in MODE_OPTIONS:
-        raise ValueError(f"mode must be one of {tuple(MODE_OPTIONS)} or a FilterMode, got {mode!r}")
     if mode == "vanilla":
         return Vanilla()
     if mode == "robust":
         return Robust()
     if mode == "stochastic":
-        return Stochastic(options.get("beta", 0.0))
-    return RiskAware(
-        options.get("rho"),  # type: ignore[arg-type]
-        options.get("horizon"),  # type: ignore[arg-type]
-        options.get("eta"),
-        safe_states=options.get("safe_states"),
-        clf_rho=options.get("clf_rho"),
-        clf_eta=options.get("clf_eta"),
-        clf_gamma=options.get("clf_gamma", 0.0),
-    )
+        return Stochastic()
+    if mode == "risk_aware":
+        raise ValueError(
+            "the risk-aware mode needs its parameters: mode=RiskAware(rho=..., horizon=..., "
+            "eta=...)"
+        )
+    raise ValueError(f"mode must be one of {MODE_NAMES} or a FilterMode, got {mode!r}")

@@ -39,7 +39,6 @@ call as the QP; every other case takes the torch closed forms and autograd.
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Sequence
 from enum import IntEnum
 from typing import Any, Literal, NamedTuple
@@ -64,7 +63,7 @@ from torchcbf.filters import realtime
 from torchcbf.filters.class_k import ClassKSpec, _GainClassK, as_class_k
 from torchcbf.filters.conditions import as_columns, concat_terms
 from torchcbf.filters.fallback import Fallback, FallbackSpec
-from torchcbf.filters.modes import MODE_OPTIONS, FilterMode, make_mode
+from torchcbf.filters.modes import FilterMode, make_mode
 from torchcbf.filters.qp_data import SLACK_MODES, SlackMode, assemble
 from torchcbf.qp import Status
 from torchcbf.qp import realtime as qp_realtime
@@ -198,26 +197,10 @@ def _check_qp_options(opts: dict[str, Any]) -> dict[str, Any]:
     return opts
 
 
-def _slack_mode(cbf_slack: str | None, relax_cbf: bool | None, elastic: bool | None) -> str:
-    """``cbf_slack``, or its value from the deprecated ``relax_cbf``/``elastic`` booleans."""
-    if relax_cbf is None and elastic is None:
-        mode = "shared" if cbf_slack is None else cbf_slack
-        if mode not in SLACK_MODES:
-            raise ValueError(f"cbf_slack must be one of {SLACK_MODES}, got {cbf_slack!r}")
-        return mode
-    if cbf_slack is not None:
-        raise ValueError("give cbf_slack= or the deprecated relax_cbf=/elastic=, not both")
-    warnings.warn(
-        "relax_cbf= and elastic= are deprecated: use cbf_slack='per_row' (relax_cbf=True) or "
-        "cbf_slack='none' (elastic=False)",
-        DeprecationWarning,
-        stacklevel=3,
-    )
-    if relax_cbf and elastic is False:
-        raise ValueError("relax_cbf=True needs elastic=True (the slack variables)")
-    if relax_cbf:
-        return "per_row"
-    return "none" if elastic is False else "shared"
+def _slack_mode(cbf_slack: str) -> str:
+    if cbf_slack not in SLACK_MODES:
+        raise ValueError(f"cbf_slack must be one of {SLACK_MODES}, got {cbf_slack!r}")
+    return cbf_slack
 
 
 class SafetyFilter(nn.Module):
@@ -269,9 +252,6 @@ class SafetyFilter(nn.Module):
             on all of them: a barrier of relative degree two or more (a position barrier on
             an acceleration-controlled model) gives the QP nothing to act on, and the filter
             would return ``u_nom`` unchanged. ``False`` skips the check.
-        **legacy: the mode options ``beta``, ``rho``, ``horizon``, ``eta``, ``safe_states``,
-            ``clf_rho``, ``clf_eta``, ``clf_gamma`` (with ``mode`` a name) and the booleans
-            ``relax_cbf``, ``elastic``: deprecated aliases, still honoured.
     """
 
     def __init__(
@@ -286,7 +266,7 @@ class SafetyFilter(nn.Module):
         R: Tensor | float | Sequence[float] | None = None,
         u_min: Tensor | float | Sequence[float] | None = None,
         u_max: Tensor | float | Sequence[float] | None = None,
-        cbf_slack: SlackMode | None = None,
+        cbf_slack: SlackMode = "shared",
         cbf_slack_weight: float | None = None,
         clf_slack_weight: float = 1e2,
         fallback: FallbackSpec = "clip",
@@ -297,25 +277,10 @@ class SafetyFilter(nn.Module):
         compile: bool | dict[str, Any] = False,
         qp_options: dict[str, Any] | None = None,
         check_relative_degree: bool = True,
-        **legacy: Any,
     ) -> None:
         super().__init__()
         if not isinstance(dynamics, ControlAffine):
             raise TypeError(f"dynamics must be a ControlAffine, got {type(dynamics).__name__}")
-        relax_cbf, elastic = legacy.pop("relax_cbf", None), legacy.pop("elastic", None)
-        known = {name for names in MODE_OPTIONS.values() for name in names}
-        unknown = sorted(set(legacy) - known)
-        if unknown:
-            raise TypeError(f"SafetyFilter got unexpected keyword arguments {unknown}")
-        if legacy:
-            warnings.warn(
-                f"{', '.join(sorted(legacy))} as SafetyFilter keywords are deprecated: pass "
-                "them to the mode object (e.g. mode=Stochastic(beta=1.0))",
-                DeprecationWarning,
-                stacklevel=2,
-            )
-            if isinstance(mode, str):  # options of another mode were ignored, and still are
-                legacy = {k: v for k, v in legacy.items() if k in MODE_OPTIONS.get(mode, ())}
         self.dynamics = dynamics
         self.barriers = _modules("barriers", barriers)
         self.lyapunovs = _modules("lyapunovs", lyapunovs)
@@ -323,7 +288,7 @@ class SafetyFilter(nn.Module):
             raise ValueError("barriers and lyapunovs are both empty: nothing to filter")
         if check_relative_degree:
             _require_control_authority(list(self.barriers), dynamics)
-        self.condition = make_mode(mode, legacy)
+        self.condition = make_mode(mode)
         self.condition.bind(dynamics, list(self.barriers), list(self.lyapunovs))
         if lie_method not in ("auto", "autograd", "analytic"):
             raise ValueError(
@@ -352,7 +317,7 @@ class SafetyFilter(nn.Module):
         self.register_buffer("u_max", as_limit("u_max", u_max, m))
         lo, hi = self._limit_tensors()
         check_bounds("u_min", lo, "u_max", hi)
-        self.cbf_slack = _slack_mode(cbf_slack, relax_cbf, elastic)
+        self.cbf_slack = _slack_mode(cbf_slack)
         if cbf_slack_weight is None:
             cbf_slack_weight = 1e2 if self.cbf_slack == "per_row" else 1e3
         self.cbf_slack_weight = _positive("cbf_slack_weight", cbf_slack_weight)
@@ -364,19 +329,11 @@ class SafetyFilter(nn.Module):
         self.exact = bool(self.lyapunovs) if exact is None else bool(exact)
         self.qp_options = _check_qp_options(dict(qp_options or {}))
 
-    # -- read-only views kept for callers of the former attributes -------------------------
+    # -- read-only views of the condition --------------------------------------------------
     @property
     def mode(self) -> str:
         """The condition mode's name."""
         return self.condition.name
-
-    @property
-    def relax_cbf(self) -> bool:
-        return self.cbf_slack == "per_row"
-
-    @property
-    def elastic(self) -> bool:
-        return self.cbf_slack != "none"
 
     @property
     def cbf_margin(self) -> Tensor | None:
