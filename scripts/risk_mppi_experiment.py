@@ -1,0 +1,200 @@
+"""Experiment: a risk-aware MPPI for scenario B worth choosing (tuning seeds only).
+
+Scenario B's ``mppi_rascbf`` filters MPPI with the risk-aware CBF on the rectified radius
+form ``h_i = L_f r_i + k r_i`` of the ellipses (``r_i = |q_i| - 1``). Its margin ``Delta_i``
+holds the robot, at rest, on ``r_i >= Delta_i / k``: the ellipse scaled by
+``1 + Delta_i / k`` in its own coordinates, a berth as wide in ``r`` along the long axes as
+along the short ones, so in metres up to ``a_max / a_min`` (8 for the flat ellipse at
+(2, 5)) times the berth the noise needs at the flat sides. The planner does not know that
+set: it plans through what the filter then refuses.
+
+Variants (each on 32 tuning seeds from ``--seed``, never the evaluation seeds 0-31):
+
+- ``baseline``: the scenario's ``mppi_rascbf``;
+- ``margin``: the planner's barrier cost on the filter's margin set (the ellipses scaled by
+  ``1 + Delta_i / k``) instead of the ellipses: a planner that knows the risk margin;
+- ``shield``: :class:`~torchcbf.mppi.ShieldMPPI` (``in_loop``) with the discrete-time CBF
+  penalty on the margin set over the first 10 rollout steps (scenario B's shield on the
+  risk margin), the filter's control fed back into the plan;
+- ``margin+shield``: both;
+- each with ``--horizons``: the risk horizon ``T`` (s) instead of the scenario's choice
+  (``Delta ~ sqrt(T)``: a shorter horizon, a narrower berth, a bound over a shorter time),
+  ``--gains``: the rectification gain ``k`` (the approach speed ``h >= 0`` allows near
+  an ellipse grows with it), and ``--speeds``: ``v > 0`` adds two risk-aware barriers
+  keeping the speed in ``[-0.5, v]`` (the speeds of the grid ``eta`` is taken over);
+  ``v < 0`` takes ``eta`` over a grid whose speeds reach ``|v|`` instead (the scenario's
+  grid stops at 3 m/s, and its robots reach 6-7 m/s).
+
+Per variant: collisions, goals reached, robots leaving the field ``[-2.5, 5] x [-2, 6.5]``,
+relaxed filter steps, and the risk-aware check (windows from ``h >= Delta`` that leave the
+safe set within ``T``; failure rate against ``rho``).
+
+Usage::
+
+    python scripts/risk_mppi_experiment.py                           # K = 1,000, seeds 10,000+
+    python scripts/risk_mppi_experiment.py --variants margin+shield --horizons 0.1 --seed 10032
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import itertools
+import time
+from dataclasses import replace
+
+import torch
+
+from torchcbf.barriers import Ellipse, HalfSpace
+from torchcbf.filters import RiskAware, SafetyFilter, noise_bound
+from torchcbf.mppi import BarrierCost, DiscreteBarrierCost, QuadraticGoal, ShieldMPPI, SumCost
+from torchcbf.scenarios.unicycle_mppi_cbf import (
+    AXES,
+    CENTERS,
+    GOAL,
+    ROLLOUT_DT,
+    SIGMA,
+    mppi_cbf,
+    operating_states,
+    risk_failures,
+)
+
+VARIANTS = ("baseline", "margin", "shield", "margin+shield")
+FIELD = ((-2.5, 5.0), (-2.0, 6.5))
+
+
+def margin_set(delta: list[float], k: float) -> Ellipse:
+    """The filter's margin set at rest: each ellipse scaled by ``1 + Delta_i / k``."""
+    scale = torch.tensor([1.0 + d / k for d in delta]).unsqueeze(-1)
+    return Ellipse(torch.tensor(CENTERS), torch.tensor(AXES) * scale, index=(0, 1))
+
+
+def speed_limited(sc, v_max: float) -> SafetyFilter:
+    """The scenario's risk-aware filter with the speed kept in ``[-0.5, v_max]`` by two more
+    risk-aware barriers (``|dh/dx sigma| = sigma`` for both)."""
+    old = sc.safety_filter
+    params = sc.params
+    speed = HalfSpace(torch.tensor([[1.0], [-1.0]]), torch.tensor([v_max, 0.5]), index=(2,))
+    eta = torch.tensor([*params["eta"], SIGMA, SIGMA], dtype=torch.float64)
+    return SafetyFilter(
+        sc.dynamics,
+        barriers=[old.barriers[0], speed.to(sc.x0.dtype)],
+        mode=RiskAware(rho=params["rho"], horizon=params["risk_horizon"], eta=eta),
+        R=torch.diag(torch.tensor(params["control_weight"], dtype=torch.float64)),
+    ).to(sc.x0.dtype)
+
+
+def covering(sc, v_hi: float) -> SafetyFilter:
+    """The scenario's risk-aware filter with ``eta`` taken over operating states whose speeds
+    reach ``v_hi`` (the scenario's grid stops at 3 m/s, below what its robots reach)."""
+    old = sc.safety_filter
+    grid = operating_states()
+    speeds = torch.linspace(-0.5, v_hi, 16, dtype=torch.float64)
+    positions = torch.unique(grid[:, :2], dim=0)
+    headings = torch.unique(grid[:, 3])
+    states = torch.cartesian_prod(positions[:, 0].unique(), positions[:, 1].unique(), speeds,
+                                  headings)  # fmt: skip
+    barrier = copy.deepcopy(old.barriers[0]).double()
+    plant = copy.deepcopy(sc.dynamics).double()
+    eta = noise_bound(barrier, plant, states)
+    params = sc.params
+    return SafetyFilter(
+        sc.dynamics,
+        barriers=old.barriers[0],
+        mode=RiskAware(rho=params["rho"], horizon=params["risk_horizon"], eta=eta),
+        R=torch.diag(torch.tensor(params["control_weight"], dtype=torch.float64)),
+    ).to(sc.x0.dtype)
+
+
+def with_filter(sc, safety_filter: SafetyFilter):
+    """The scenario with another risk-aware filter (its risk check on that filter's
+    barriers and margins)."""
+    delta = safety_filter.cbf_margin.detach().double()
+    window = round(sc.params["risk_horizon"] / sc.dt)
+
+    def extra(traj):
+        return risk_failures(traj.h, delta.to(traj.h), window)
+
+    return replace(sc, safety_filter=safety_filter, extra_metrics=extra)
+
+
+def build(
+    variant: str,
+    seed: int,
+    seeds: int,
+    samples: int,
+    horizon: float | None,
+    gain: float | None = None,
+    speed: float | None = None,
+):
+    sc = mppi_cbf(
+        "mppi_rascbf",
+        seed=seed,
+        num_seeds=seeds,
+        num_samples=samples,
+        risk_horizon=horizon,
+        rectify_gain=gain,
+    )
+    if speed is not None:
+        limited = speed_limited(sc, speed) if speed > 0 else covering(sc, -speed)
+        sc = with_filter(sc, limited)
+    if variant == "baseline":
+        return sc
+    k, delta = sc.params["rectify_gain"], sc.params["delta"]
+    dtype = sc.x0.dtype
+    inflated = margin_set(delta, k).to(dtype)
+    planner = sc.planner
+    terms = [QuadraticGoal(GOAL, weight=2.0, index=(0, 1), terminal_weight=10.0)]
+    barrier = inflated if "margin" in variant else sc.barriers[0]
+    terms.append(BarrierCost(barrier, weight=2.0, eps=0.01))
+    if "shield" in variant:
+        gamma = min(k * ROLLOUT_DT, 1.0)
+        terms.append(DiscreteBarrierCost(inflated, gamma=gamma, weight=1e3, steps=10))
+    planner.cost = SumCost(*terms).to(dtype)
+    safety_filter = sc.safety_filter
+    if "shield" in variant:
+        planner = ShieldMPPI(planner, safety_filter, in_loop=True)
+        safety_filter = planner.loop_filter
+    return replace(sc, planner=planner, safety_filter=safety_filter)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--seed", type=int, default=10_000)
+    parser.add_argument("--seeds", type=int, default=32)
+    parser.add_argument("--samples", type=int, default=1000)
+    parser.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS))
+    parser.add_argument("--horizons", nargs="+", type=float, default=[None])
+    parser.add_argument("--gains", nargs="+", type=float, default=[None])
+    parser.add_argument("--speeds", nargs="+", type=float, default=[None])
+    args = parser.parse_args()
+    if args.seed < 10_000:
+        parser.error("tune on seeds >= 10,000 (0-31 are the evaluation seeds)")
+    torch.set_num_threads(1)
+    print(f"seeds {args.seed}..{args.seed + args.seeds - 1}, K = {args.samples}")
+    print(
+        f"{'variant':<15}{'speed':>6}{'k':>5}{'T s':>6}{'collide':>8}{'goal':>6}{'leave':>6}"
+        f"{'relaxed':>8}{'windows':>9}{'fail':>6}{'rate':>8}{'wall s':>8}"
+    )
+    grid = itertools.product(args.speeds, args.gains, args.horizons, args.variants)
+    for speed, gain, horizon, variant in grid:
+        start = time.perf_counter()
+        sc = build(variant, args.seed, args.seeds, args.samples, horizon, gain, speed)
+        traj, m = sc.run(progress=False)
+        x = traj.x
+        (x0, x1), (y0, y1) = FIELD
+        out = (x[..., 0] < x0) | (x[..., 0] > x1) | (x[..., 1] < y0) | (x[..., 1] > y1)
+        windows = int(m["risk_windows"].sum())
+        fails = int(m["risk_window_failures"].sum())
+        print(
+            f"{variant:<15}{'-' if speed is None else f'{speed:g}':>6}"
+            f"{sc.params['rectify_gain']:>5.0f}"
+            f"{sc.params['risk_horizon']:>6.3f}{int(m['collision'].sum()):>8}"
+            f"{int(m['goal_reached'].sum()):>6}{int(out.any(-1).sum()):>6}"
+            f"{int(m['steps_relaxed'].sum()):>8}{windows:>9}{fails:>6}"
+            f"{fails / max(windows, 1):>8.4f}{time.perf_counter() - start:>8.1f}"
+        )
+
+
+if __name__ == "__main__":
+    main()
