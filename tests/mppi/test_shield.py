@@ -172,5 +172,6 @@ def test_in_loop_shield_feeds_the_loop_filters_control_back() -> None:
     again = shield.loop_filter(x, raw_u, 0.0).u  # a later call leaves the plan alone
     torch.testing.assert_close(out.plan[:, 0], filtered)
     torch.testing.assert_close(again, filtered)
+    assert shield.loop_filter.barriers is filt.barriers  # the filter's attributes read through
     with pytest.raises(ValueError, match="in_loop"):
         _ = ShieldMPPI(_planner(), filt).loop_filter

@@ -98,10 +98,16 @@ class LoopFilter:
     shield's filter, and its first call after a planning call writes the filtered control
     into the planner's plan and into the plan that call returned (so the steps that follow
     the plan until the next replan start from it). Not a module: it only refers to the
-    shield, whose filter it calls."""
+    shield, whose filter it calls; its other attributes are that filter's."""
 
     def __init__(self, shield: ShieldMPPI) -> None:
         self.shield = shield
+
+    def __getattr__(self, name: str) -> Any:
+        # the shield's filter's attributes (barriers, margins, ...) read through
+        if name == "shield":
+            raise AttributeError(name)
+        return getattr(self.shield.safety_filter, name)
 
     def __call__(self, x: Tensor, u: Tensor, t: float | Tensor = 0.0) -> Any:
         shield = self.shield
