@@ -111,3 +111,69 @@ def test_every_subcommand_has_a_description_and_shows_defaults(command, capsys) 
     assert " ".join(DESCRIPTIONS[command].split())[:60] in text
     if command != "info":  # the only command without a device
         assert "(default: cpu)" in text
+
+
+def _source_copy(dest: Path, *, with_setup: bool) -> Path:
+    """The package's sources under ``dest`` (no built kernels); without ``setup.py`` no C
+    extension is built, which keeps a build to a few seconds."""
+    ignore = shutil.ignore_patterns("__pycache__", "*.so", "*.egg-info", "build")
+    for name in ("torchcbf", "scripts"):
+        shutil.copytree(ROOT / name, dest / name, ignore=ignore)
+    for name in ("pyproject.toml", "README.md", "LICENSE") + (("setup.py",) if with_setup else ()):
+        shutil.copy(ROOT / name, dest / name)
+    return dest
+
+
+def test_editable_install_is_a_path_that_type_checkers_and_the_parent_folder_see(tmp_path):
+    """`pip install -e .` builds a compat editable wheel: its .pth holds the checkout's
+    folder (type checkers follow such paths, not import hooks), and Python started in the
+    clone's parent folder imports the package rather than the clone as a namespace."""
+    clone = _source_copy(tmp_path / "torchcbf", with_setup=False)  # a clone's default name
+    built = subprocess.run(
+        [sys.executable, "-c",
+         "from setuptools import build_meta as b; print(b.build_editable('dist'))"],
+        capture_output=True, text=True, cwd=clone,
+    )  # fmt: skip
+    assert built.returncode == 0, built.stderr[-2000:]
+    wheel = clone / "dist" / built.stdout.strip().splitlines()[-1]
+    names = zipfile.ZipFile(wheel).namelist()
+    (pth,) = [n for n in names if n.endswith(".pth")]
+    assert not [n for n in names if n.endswith("_finder.py")]  # no import hook
+    assert zipfile.ZipFile(wheel).read(pth).decode().strip() == str(clone)
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "torchcbf.pth").write_text(f"{clone}\n")
+    found = subprocess.run(
+        [sys.executable, "-c",
+         f"import site; site.addsitedir({str(site)!r}); import torchcbf; print(torchcbf.__file__)"],
+        capture_output=True, text=True, cwd=tmp_path,
+    )  # fmt: skip
+    assert found.returncode == 0, found.stderr[-2000:]
+    assert found.stdout.strip() == str(clone / "torchcbf" / "__init__.py")
+
+
+def test_sdist_holds_what_a_build_needs(tmp_path) -> None:
+    src = _source_copy(tmp_path / "src", with_setup=True)
+    built = subprocess.run(
+        [sys.executable, "-c",
+         "from setuptools import build_meta as b; print(b.build_sdist('dist'))"],
+        capture_output=True, text=True, cwd=src,
+    )  # fmt: skip
+    assert built.returncode == 0, built.stderr[-2000:]
+    import tarfile
+
+    sdist = src / "dist" / built.stdout.strip().splitlines()[-1]
+    names = {n.split("/", 1)[1] for n in tarfile.open(sdist).getnames() if "/" in n}
+    sources = [p.relative_to(ROOT).as_posix() for p in (ROOT / "torchcbf").rglob("*.[ch]")]
+    for name in ("LICENSE", "README.md", "setup.py", "pyproject.toml", "torchcbf/py.typed",
+                 "torchcbf/assets/arm7.urdf", "scripts/bench_qp.py", *sources):  # fmt: skip
+        assert name in names, name
+
+
+def test_metadata_names_the_license_file_and_the_changelog_has_the_version() -> None:
+    tomllib = pytest.importorskip("tomllib")
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert project["license"] == {"text": "MIT"}
+    assert (ROOT / "LICENSE").read_text().startswith("MIT License")
+    changelog = (ROOT / "CHANGELOG.md").read_text()
+    assert f"## {torchcbf.__version__}" in changelog and "## Unreleased" in changelog
