@@ -173,7 +173,7 @@ def test_sdist_holds_what_a_build_needs(tmp_path) -> None:
 def test_metadata_names_the_license_file_and_the_changelog_has_the_version() -> None:
     tomllib = pytest.importorskip("tomllib")
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-    assert project["license"] == {"text": "MIT"}
+    assert project["license"] == "MIT" and project["license-files"] == ["LICENSE"]
     assert (ROOT / "LICENSE").read_text().startswith("MIT License")
     changelog = (ROOT / "CHANGELOG.md").read_text()
     assert f"## {torchcbf.__version__}" in changelog and "## Unreleased" in changelog
