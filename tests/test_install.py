@@ -177,3 +177,19 @@ def test_metadata_names_the_license_file_and_the_changelog_has_the_version() -> 
     assert (ROOT / "LICENSE").read_text().startswith("MIT License")
     changelog = (ROOT / "CHANGELOG.md").read_text()
     assert f"## {torchcbf.__version__}" in changelog and "## Unreleased" in changelog
+
+
+def test_ci_reads_the_readme_commands() -> None:
+    """.ci/run takes the test command from the README's first code block (the line that runs
+    pytest) and splits it at '&& .venv/bin/python -m pytest'; the block also starts with the
+    install-and-demo command."""
+    ci = subprocess.run(
+        ["awk", "/^```/{n++; next} n==1 && /pytest/", str(ROOT / "README.md")],
+        capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    test_cmd = ci.stdout.splitlines()[0]
+    assert "&& .venv/bin/python -m pytest" in test_cmd
+    assert test_cmd.startswith("python3 -m venv .venv && .venv/bin/pip install torch==")
+    first_block = (ROOT / "README.md").read_text().split("```")[1]
+    commands = [line for line in first_block.splitlines() if line.startswith("python3 -m venv")]
+    assert len(commands) == 2 and "torchcbf demo" in commands[0] and commands[1] == test_cmd
