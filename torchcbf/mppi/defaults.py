@@ -68,8 +68,8 @@ class MPPISettings:
     """Proposed MPPI settings for one specification and model.
 
     Attributes:
-        spec: a copy of the specification with the proposed weights, urgencies and eps
-            (the planner's cost; the user's object is left unchanged).
+        spec: a copy of the specification with the proposed goal and obstacle weights and
+            obstacle ``eps`` (the planner's cost; the user's object is left unchanged).
         horizon: ``H``, rollout steps of ``dt``.
         dt: the planning step (s).
         noise_sigma: ``[m, m]`` covariance of the control noise.
@@ -186,7 +186,9 @@ def propose_settings(
     Args:
         dynamics: the model the planner rolls out; it must have finite ``u_min``/``u_max``.
         spec: a specification with at least one :class:`Reach` (goals); :class:`Avoid`
-            discs are re-weighted, other nodes are kept as they are.
+            discs are re-weighted, other nodes are kept as they are. The rules read the
+            goals as visited one after the other, in the order of their windows (an
+            ``And`` of goals); under an ``Or`` they apply to each goal all the same.
         dt: the planning step (s).
         x0: ``[n]`` the start state (zeros by default).
         max_horizon: the longest horizon proposed (steps).
