@@ -112,7 +112,7 @@ def test_check_same_and_check_number():
     for bad, err in ((float("nan"), ValueError), (True, TypeError), (torch.tensor(1.0), TypeError)):
         with pytest.raises(err, match="k"):
             check_number("k", bad)
-    with pytest.raises(ValueError, match="k must be > 0.0"):
+    with pytest.raises(ValueError, match="k must be a finite number > 0, got 0.0"):
         check_number("k", 0.0, low=0.0, strict=True)
     assert check_finite("v", torch.tensor([float("inf")]), allow_inf=True) is not None
     with pytest.raises(ValueError, match="v must not contain NaN or inf"):

@@ -125,7 +125,7 @@ def test_bad_inputs() -> None:
         step(model, torch.zeros(2), torch.zeros(2), 0.1, method="euler_maruyama")
     with pytest.raises(ValueError, match="method must be one of"):
         step(model, torch.zeros(2), torch.zeros(2), 0.1, method="midpoint")
-    with pytest.raises(ValueError, match="dt must be a finite positive"):
+    with pytest.raises(ValueError, match="dt must be a finite number > 0"):
         step(model, torch.zeros(2), torch.zeros(2), -0.1)
     with pytest.raises(ValueError, match=r"x must have shape \[\.\.\., 2\], got \(3,\)"):
         step(model, torch.zeros(3), torch.zeros(2), 0.1)

@@ -60,12 +60,8 @@ def check_batch_match(name_a: str, a: Tensor, name_b: str, b: Tensor, trailing: 
 
 
 def check_positive(name: str, value: float) -> float:
-    """Check a Python number is finite and > 0."""
-    if not isinstance(value, (int, float)) or isinstance(value, bool):
-        raise TypeError(f"{name} must be a number, got {type(value).__name__}")
-    if not value > 0 or value != value or value == float("inf"):
-        raise ValueError(f"{name} must be a finite positive number, got {value}")
-    return float(value)
+    """A finite Python number ``> 0`` as a float (:func:`check_number`)."""
+    return check_number(name, value, low=0.0, strict=True)
 
 
 def check_positive_int(name: str, value: object) -> int:
@@ -223,10 +219,11 @@ def check_number(
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise TypeError(f"{name} must be a number, got {type(value).__name__}")
     v = float(value)
+    bound = "" if low is None else f" {'>' if strict else '>='} {low:g}"
     if v != v or v in (float("inf"), float("-inf")):
-        raise ValueError(f"{name} must be finite, got {v}")
+        raise ValueError(f"{name} must be a finite number{bound}, got {v}")
     if low is not None and (v <= low if strict else v < low):
-        raise ValueError(f"{name} must be {'>' if strict else '>='} {low}, got {v}")
+        raise ValueError(f"{name} must be a finite number{bound}, got {v}")
     return v
 
 

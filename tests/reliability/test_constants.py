@@ -184,7 +184,7 @@ def test_neural_barrier_scale_tensor_keeps_its_gradient():
     x = torch.tensor([[0.3, -0.1]], dtype=F64)
     barrier(x).sum().backward()
     assert torch.allclose(scale.grad, net(x).sum().detach())
-    with pytest.raises(ValueError, match="scale must be finite"):
+    with pytest.raises(ValueError, match="scale must be a finite number"):
         NeuralBarrier(net, scale=float("nan"))
 
 

@@ -256,13 +256,14 @@ def test_mppi_bad_inputs_and_nan_row():
 
 def test_simulate_bad_inputs_and_batches():
     dyn = SingleIntegrator(2)
+    zero = lambda x, t: torch.zeros_like(x)  # noqa: E731
     with pytest.raises(ValueError, match=r"x0 must have shape \[\.\.\., 2\]"):
-        simulate(dyn, torch.zeros(3, 3), 5, 0.1, progress=False)
+        simulate(dyn, torch.zeros(3, 3), 5, 0.1, nominal=zero, progress=False)
     for steps in (0, -1):
         with pytest.raises(ValueError, match="steps"):
-            simulate(dyn, torch.zeros(3, 2), steps, 0.1, progress=False)
+            simulate(dyn, torch.zeros(3, 2), steps, 0.1, nominal=zero, progress=False)
     with pytest.raises(ValueError, match="dt"):
-        simulate(dyn, torch.zeros(3, 2), 5, math.nan, progress=False)
+        simulate(dyn, torch.zeros(3, 2), 5, math.nan, nominal=zero, progress=False)
     with pytest.raises(ValueError, match="integrator"):
         simulate(dyn, torch.zeros(3, 2), 5, 0.1, integrator="foo", progress=False)
     with pytest.raises(TypeError, match="u has dtype torch.float64 but x has dtype torch.float32"):
@@ -270,7 +271,6 @@ def test_simulate_bad_inputs_and_batches():
             dyn, torch.zeros(3, 2), 5, 0.1, progress=False,
             nominal=lambda x, t: torch.zeros(3, 2, dtype=F64),
         )  # fmt: skip
-    zero = lambda x, t: torch.zeros_like(x)  # noqa: E731
     empty = simulate(dyn, torch.zeros(0, 2), 5, 0.1, nominal=zero, progress=False)
     assert empty.x.shape == (0, 6, 2)
 

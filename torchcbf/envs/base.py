@@ -33,15 +33,6 @@ from torchcbf.envs import _noise
 _SEED_RANGE = 2**31
 
 
-def check_nonnegative(name: str, value: float) -> float:
-    """A finite Python number ``>= 0`` (TypeError/ValueError naming ``name`` otherwise)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise TypeError(f"{name} must be a number, got {type(value).__name__}")
-    if not 0 <= value < float("inf"):
-        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-    return float(value)
-
-
 class TorchVectorEnv(gymnasium.vector.VectorEnv):
     """Base of the batched environments: ``num_envs`` rows stepped as one tensor batch.
 

@@ -28,9 +28,10 @@ import torch
 from gymnasium import spaces
 from torch import Tensor, nn
 
+from torchcbf._checks import check_number
 from torchcbf.barriers import Ball
 from torchcbf.dynamics import SingleIntegrator
-from torchcbf.envs.base import TorchEnv, TorchVectorEnv, check_nonnegative
+from torchcbf.envs.base import TorchEnv, TorchVectorEnv
 from torchcbf.integrators import step
 from torchcbf.scenarios.single_integrator_reach_avoid import (
     GOAL_RADIUS,
@@ -76,9 +77,9 @@ class ReachAvoidVectorEnv(TorchVectorEnv):
             dtype=dtype,
             return_tensors=return_tensors,
         )
-        self.goal_bonus = check_nonnegative("goal_bonus", goal_bonus)
-        self.collision_penalty = check_nonnegative("collision_penalty", collision_penalty)
-        self.start_noise = check_nonnegative("start_noise", start_noise)
+        self.goal_bonus = check_number("goal_bonus", goal_bonus, low=0.0)
+        self.collision_penalty = check_number("collision_penalty", collision_penalty, low=0.0)
+        self.start_noise = check_number("start_noise", start_noise, low=0.0)
         self.dt = DT
         kw = {"device": self.device, "dtype": dtype}
         self.dynamics = SingleIntegrator(2, u_min=-SPEED_LIMIT, u_max=SPEED_LIMIT).to(**kw)

@@ -33,8 +33,9 @@ import torch
 from gymnasium import spaces
 from torch import Tensor, nn
 
+from torchcbf._checks import check_number
 from torchcbf.dynamics import AccelUnicycle
-from torchcbf.envs.base import TorchEnv, TorchVectorEnv, check_nonnegative
+from torchcbf.envs.base import TorchEnv, TorchVectorEnv
 from torchcbf.integrators import step
 from torchcbf.scenarios.unicycle_mppi_cbf import GOAL, SIGMA, obstacles
 
@@ -83,10 +84,10 @@ class UnicycleEllipsesVectorEnv(TorchVectorEnv):
         limit = [float(v) for v in control_limit]
         if len(limit) != 2 or not all(0 < v < math.inf for v in limit):
             raise ValueError(f"control_limit must be two positive numbers, got {control_limit!r}")
-        self.sigma = check_nonnegative("sigma", sigma)
-        self.goal_bonus = check_nonnegative("goal_bonus", goal_bonus)
-        self.collision_penalty = check_nonnegative("collision_penalty", collision_penalty)
-        self.start_noise = check_nonnegative("start_noise", start_noise)
+        self.sigma = check_number("sigma", sigma, low=0.0)
+        self.goal_bonus = check_number("goal_bonus", goal_bonus, low=0.0)
+        self.collision_penalty = check_number("collision_penalty", collision_penalty, low=0.0)
+        self.start_noise = check_number("start_noise", start_noise, low=0.0)
         self.dt = DT
         kw = {"device": self.device, "dtype": dtype}
         diffusion = {"sigma": self.sigma} if self.sigma > 0 else {}

@@ -22,6 +22,7 @@ from torchcbf._checks import (
     as_tensor,
     behaves_as,
     check_last_dim,
+    check_number,
     honour_overrides,
 )
 from torchcbf.barriers.lie import LieFunction, LieTerms
@@ -175,14 +176,6 @@ class Stochastic(FilterMode):
         return Affine(trace_weight=0.5, gain=gain, offset=self.beta, offset_scale=-1.0)
 
 
-def _positive(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise TypeError(f"{name} must be a number, got {type(value).__name__}")
-    if not (value > 0 and value < float("inf")):
-        raise ValueError(f"{name} must be finite and positive, got {value}")
-    return float(value)
-
-
 class RiskAware(FilterMode):
     """Risk-aware conditions: leave the safe set within ``horizon`` with probability at most
     ``rho`` (needs dynamics with ``sigma``); ``alpha`` is unused.
@@ -218,7 +211,7 @@ class RiskAware(FilterMode):
         if horizon is None:
             raise ValueError("horizon (T > 0) is required for mode='risk_aware'")
         self.rho = float(rho)
-        T = _positive("horizon", horizon)
+        T = check_number("horizon", horizon, low=0.0, strict=True)
         self.register_buffer("horizon", torch.tensor(T, dtype=torch.float64))
         self.eta = eta
         self.safe_states = safe_states

@@ -54,6 +54,7 @@ from torchcbf._checks import (
     broadcast_shapes,
     check_bounds,
     check_last_dim,
+    check_number,
 )
 from torchcbf.barriers import native
 from torchcbf.barriers.compiled import CompiledLie
@@ -180,14 +181,6 @@ def _require_control_authority(
                 "check_relative_degree=False if the barrier acts only in a region the samples "
                 "miss."
             )
-
-
-def _positive(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise TypeError(f"{name} must be a number, got {type(value).__name__}")
-    if not (value > 0 and math.isfinite(value)):
-        raise ValueError(f"{name} must be finite and positive, got {value}")
-    return float(value)
 
 
 def _check_qp_options(opts: dict[str, Any]) -> dict[str, Any]:
@@ -320,11 +313,15 @@ class SafetyFilter(nn.Module):
         self.cbf_slack = _slack_mode(cbf_slack)
         if cbf_slack_weight is None:
             cbf_slack_weight = 1e2 if self.cbf_slack == "per_row" else 1e3
-        self.cbf_slack_weight = _positive("cbf_slack_weight", cbf_slack_weight)
-        self.clf_slack_weight = _positive("clf_slack_weight", clf_slack_weight)
+        self.cbf_slack_weight = check_number(
+            "cbf_slack_weight", cbf_slack_weight, low=0.0, strict=True
+        )
+        self.clf_slack_weight = check_number(
+            "clf_slack_weight", clf_slack_weight, low=0.0, strict=True
+        )
         self.fallback = Fallback(fallback, m)
         if slack_tol is not None:
-            slack_tol = _positive("slack_tol", slack_tol)
+            slack_tol = check_number("slack_tol", slack_tol, low=0.0, strict=True)
         self.slack_tol = slack_tol
         self.exact = bool(self.lyapunovs) if exact is None else bool(exact)
         self.qp_options = _check_qp_options(dict(qp_options or {}))

@@ -51,7 +51,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcbf._checks import check_positive_int
+from torchcbf._checks import check_number, check_positive_int
 from torchcbf.barriers import Barrier, Ellipse, Scaled, Transformed, rectify
 from torchcbf.dynamics import AccelUnicycle
 from torchcbf.filters import FilterStatus, RiskAware, SafetyFilter, Stochastic
@@ -263,7 +263,7 @@ def build(
     params = CONFIG_PARAMS[config]
     for name, value in overrides.items():
         if value is not None:
-            params = replace(params, **{name: _positive(name, value)})
+            params = replace(params, **{name: check_number(name, value, low=0.0, strict=True)})
     if shield_steps is not None:
         params = replace(params, shield_steps=check_positive_int("shield_steps", shield_steps))
     check_positive_int("planner_every", planner_every)
@@ -496,13 +496,6 @@ def _risk_aware_filter(
     margins = safety_filter.cbf_margin.tolist()
     info = {"risk_horizon": T, "eta": eta.tolist(), "h0": h0.tolist(), "delta": margins}
     return safety_filter, info
-
-
-def _positive(name: str, value: float) -> float:
-    value = float(value)
-    if not (value > 0 and math.isfinite(value)):
-        raise ValueError(f"{name} must be a positive number, got {value!r}")
-    return value
 
 
 def _pair(name: str, value: float | Sequence[float]) -> tuple[float, float]:
