@@ -1,11 +1,14 @@
-"""The ``torchcbf`` command: run the reference scenarios, write metrics and figures, run the
-benchmarks.
+"""The ``torchcbf`` command: run the registered scenarios, write metrics and figures, sweep
+and tune them, run the benchmarks.
 
-    torchcbf reach-avoid [--seeds N --samples K --horizon H --device cpu|cuda --out DIR]
-    torchcbf mppi-cbf    [--config default|paper|cbfkit --methods all|scbf,mppi,... --seeds N ...]
-    torchcbf demo        both scenarios (B in its default configuration) at sizes that finish
-                         in a few minutes on 2 CPU cores
-    torchcbf sweep       a grid over a scenario builder's keyword arguments (local or Ray)
+    torchcbf NAME        a registered scenario (reach-avoid, mppi-cbf, arm-reach, and any
+                         registered by --import MODULE or a package's entry point):
+                         [--seeds N --set KEY=VALUE ... --device cpu|cuda --out DIR], its
+                         own options (reach-avoid: --samples K --horizon H; mppi-cbf:
+                         --config default|paper|cbfkit --methods all|scbf,mppi,...)
+    torchcbf demo        scenarios A and B (B in its default configuration) at sizes that
+                         finish in a few minutes on 2 CPU cores
+    torchcbf sweep       a grid over a scenario's parameters (local or Ray)
     torchcbf tune        Optuna search over a scenario's declared search space (local or Ray)
     torchcbf bench       the benchmark scripts shipped with the package
     torchcbf info        versions, devices and the C kernels of this installation
@@ -436,7 +439,9 @@ def _main(argv: Sequence[str] | None = None) -> int:
     run.record(metrics_path, *sorted(figures))
     run.finish()
     out = run.path
-    print(f"metrics: {out / 'metrics.json'}; figures: {out}/*.png, {out}/*.gif")
+    kinds = sorted({Path(f).suffix for f in figures})
+    shown = ", ".join(f"{out}/*{kind}" for kind in kinds) or "none"
+    print(f"metrics: {out / 'metrics.json'}; figures: {shown}")
     return 0
 
 
