@@ -34,6 +34,57 @@ def _verify(
     return torch.where((status == int(Status.SOLVED)) & bad, int(Status.MAX_ITER), status)
 
 
+class _BoxSplit:
+    """One problem's rows ``Gx <= h`` split into proxsuite's box constraints (rows with one
+    nonzero entry, the tightest per variable and side) and general one-sided rows (rows of
+    zeros with ``h >= 0``, which bound nothing, dropped). proxsuite's dense solver is
+    markedly more robust with bounds passed as its box than as rows."""
+
+    def __init__(self, G: np.ndarray, h: np.ndarray) -> None:
+        M, n = G.shape
+        nz = G != 0
+        count = nz.sum(1)
+        single = count == 1
+        self.general = np.flatnonzero(~single & ~((count == 0) & (h >= 0)))
+        rows = np.flatnonzero(single)
+        col = nz[rows].argmax(1)
+        coef = G[rows, col]
+        bound = h[rows] / coef
+        self.lb = np.full(n, -_BIG)
+        self.ub = np.full(n, _BIG)
+        # the row that sets each variable's bound: sort by (variable, bound), take the first
+        # upper (smallest bound) and the last lower (largest bound) of each variable
+        self.upper_row = np.full(n, -1)
+        self.lower_row = np.full(n, -1)
+        for side, pick in ((coef > 0, 0), (coef < 0, -1)):
+            r, c, v = rows[side], col[side], bound[side]
+            if len(r) == 0:
+                continue
+            order = np.lexsort((v, c))
+            r, c, v = r[order], c[order], v[order]
+            first = np.flatnonzero(np.r_[True, c[1:] != c[:-1]])
+            last = np.r_[first[1:] - 1, len(c) - 1]
+            take = first if pick == 0 else last
+            if pick == 0:
+                self.ub[c[take]] = np.minimum(v[take], _BIG)
+                self.upper_row[c[take]] = r[take]
+            else:
+                self.lb[c[take]] = np.maximum(v[take], -_BIG)
+                self.lower_row[c[take]] = r[take]
+        self.G = G
+
+    def multipliers(self, z_general: np.ndarray, z_box: np.ndarray) -> np.ndarray:
+        """Multipliers ``z [M]`` of the original rows from proxsuite's (general rows, then the
+        box: positive at an upper bound, negative at a lower one)."""
+        z = np.zeros(self.G.shape[0])
+        z[self.general] = np.maximum(z_general, 0.0)
+        for rows, sign in ((self.upper_row, 1.0), (self.lower_row, -1.0)):
+            j = np.flatnonzero(rows >= 0)
+            r = rows[j]
+            z[r] = np.maximum(sign * z_box[j], 0.0) / np.abs(self.G[r, j])
+        return z
+
+
 def solve_proxsuite(
     P: Tensor,
     q: Tensor,
@@ -45,18 +96,26 @@ def solve_proxsuite(
     eps: float,
     max_iter: int,
     x0: Tensor | None = None,
+    box: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Solve every row with ``proxsuite.proxqp.dense`` in parallel (OpenMP threads)."""
+    """Solve every row with ``proxsuite.proxqp.dense``, in parallel (OpenMP threads) where
+    there are several rows and threads. With ``box``, rows of ``G`` with one nonzero entry
+    go to proxsuite as box constraints (:class:`_BoxSplit`)."""
     from proxsuite import proxqp
 
     B, n = q.shape
     M, me = h.shape[-1], b.shape[-1]
     Pn, qn, Gn, hn, An, bn = (t.detach().cpu().double().numpy() for t in (P, q, G, h, A, b))
     x0n = None if x0 is None else x0.detach().cpu().double().numpy()
-    lower = np.full(M, -_BIG)
-    qps = proxqp.dense.BatchQP()
+    parallel = x0n is None and B > 1 and torch.get_num_threads() > 1
+    qps = proxqp.dense.VectorQP() if parallel else []
+    splits = []
     for i in range(B):
-        qp = qps.init_qp_in_place(n, me, M)
+        split = _BoxSplit(Gn[i], hn[i]) if box else None
+        splits.append(split)
+        gen = split.general if box else np.arange(M)
+        m_in = len(gen)
+        qp = proxqp.dense.QP(n, me, m_in, box)
         qp.settings.eps_abs = eps
         qp.settings.eps_rel = 0.0
         qp.settings.max_iter = max_iter
@@ -68,15 +127,17 @@ def solve_proxsuite(
             qn[i],
             An[i] if me > 0 else None,
             bn[i] if me > 0 else None,
-            Gn[i] if M > 0 else None,
-            lower if M > 0 else None,
-            hn[i] if M > 0 else None,
+            Gn[i][gen] if m_in > 0 else None,
+            np.full(m_in, -_BIG) if m_in > 0 else None,
+            hn[i][gen] if m_in > 0 else None,
+            *((split.lb, split.ub) if box else ()),
         )
         if x0n is not None:
             qp.solve(x0n[i], None, None)
-        elif B == 1 or torch.get_num_threads() == 1:
+        elif not parallel:
             qp.solve()  # no thread pool to start for one problem or one thread
-    if x0n is None and B > 1 and torch.get_num_threads() > 1:
+        qps.append(qp)
+    if parallel:
         proxqp.dense.solve_in_parallel(qps, torch.get_num_threads())
     codes = {
         proxqp.PROXQP_SOLVED: Status.SOLVED,
@@ -91,10 +152,15 @@ def solve_proxsuite(
     st = np.zeros(B, dtype=np.int64)
     it = np.zeros(B, dtype=np.int64)
     for i in range(B):
-        res = qps.get(i).results
+        res = qps[i].results
         x[i] = res.x
         if M > 0:
-            z[i] = np.maximum(res.z, 0.0)
+            zr = np.asarray(res.z)
+            if box:
+                m_in = len(splits[i].general)
+                z[i] = splits[i].multipliers(zr[:m_in], zr[m_in:])
+            else:
+                z[i] = np.maximum(zr, 0.0)
         if me > 0:
             y[i] = res.y
         st[i] = int(codes.get(res.info.status, Status.MAX_ITER))

@@ -173,6 +173,15 @@ def _factor(
 #: rows to it (its own defaults are 1e-5 and 10,000); its answer is then judged to ``eps``
 ROUTE_EPS = 1e-9
 ROUTE_MAX_ITER = 10_000
+#: tolerance of the interior point method on the rows proxsuite leaves (at most the
+#: caller's ``eps``): the problems proxsuite fails on are the degenerate ones, where a point
+#: converged to ``eps`` in the norm can still miss a small row by more
+ROUTE_FALLBACK_EPS = 1e-9
+
+
+def _slack(data: list[Tensor], x: Tensor) -> Tensor:
+    """``h - Gx`` for ``data = [P, q, G, h, A, b]``."""
+    return data[3] - torch.einsum("bmn,bn->bm", data[2], x)
 
 
 def _ipm_routed(
@@ -188,7 +197,9 @@ def _ipm_routed(
     the status. Returns what :func:`_ipm` returns."""
     from torchcbf.qp import _backends
 
-    out = _backends.solve_proxsuite(P, q, G, h, A, b, eps=ROUTE_EPS, max_iter=ROUTE_MAX_ITER, x0=x0)
+    out = _backends.solve_proxsuite(
+        P, q, G, h, A, b, eps=ROUTE_EPS, max_iter=ROUTE_MAX_ITER, x0=x0, box=True
+    )
     x, s, z, y, st, iters = (t.to(q.device) for t in out)
     ok = (st == int(Status.SOLVED)) & _kkt.kkt_residuals_ok(P, q, G, h, A, b, x, z, y, cfg.eps)
     # a minimiser far along a direction where P is singular to the inputs' rounding
@@ -202,7 +213,16 @@ def _ipm_routed(
     idx = (~ok).nonzero().squeeze(-1)
     sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
     x0s = None if x0 is None else x0.index_select(0, idx)
-    xs, zs, ys, sts, its, acts = _ipm(*sub, replace(cfg, route=False), x0s)
+    tight = replace(cfg, route=False, eps=min(cfg.eps, ROUTE_FALLBACK_EPS))
+    xs, zs, ys, sts, its, acts = _ipm(*sub, tight, x0s)
+    # the interior point method ran to a tighter tolerance than asked for: a row it did not
+    # finish whose last point is a KKT point to the caller's eps is solved by that standard
+    unfinished = (sts == int(Status.MAX_ITER)) | (sts == int(Status.NUMERICAL_ERROR))
+    if bool(unfinished.any()):
+        good = unfinished & _kkt.kkt_residuals_ok(*sub, xs, zs, ys, cfg.eps)
+        good = good & ~unbounded_solved(sub[0], sub[1], sub[2], sub[4], xs, good, cfg)
+        sts = torch.where(good, int(Status.SOLVED), sts)
+        acts = torch.where(good.unsqueeze(-1), acts | _kkt.active_set(zs, _slack(sub, xs)), acts)
     return (
         x.index_copy(0, idx, xs),
         z.index_copy(0, idx, zs),
@@ -337,7 +357,10 @@ def _polish_and_resolve(
     kept only near the interior point's own point (within :data:`POLISH_MOVE` ``sqrt(eps)``,
     relative): nearly dependent rows let a wrong active-set guess pass those checks far
     away. Farther off, the row keeps the interior point's answer where that converged, and
-    is ``NUMERICAL_ERROR`` otherwise."""
+    is ``NUMERICAL_ERROR`` otherwise. A row the polish cannot verify at all is
+    ``NUMERICAL_ERROR``, except where no exact method applies (:func:`_exact_applies`): there
+    it keeps the interior point's answer where that converged and is a KKT point to ``eps``
+    on the given data (:func:`torchcbf.qp._kkt.kkt_residuals_ok`)."""
     own = (x, s, z, y, status)
     x, z, y, status, fac, verified, exact = _kkt.polish(
         P, q, G, h, A, b, x, s, z, y, status, eps=cfg.eps
@@ -367,7 +390,14 @@ def _polish_and_resolve(
         & (before == int(Status.SOLVED))
         & (moved > POLISH_MOVE * cfg.eps**0.5 * (1.0 + x_own.abs().amax(-1)))
     )
-    revert = far & (status_own == int(Status.SOLVED))
+    own_solved = status_own == int(Status.SOLVED)
+    # beyond the exact methods' reach, a row the polish could not verify keeps the interior
+    # point's own answer where that is a KKT point to eps on the caller's data (the method
+    # stops on its scaled data); within it, their verdict stands
+    own_kkt = unverified & own_solved & (not _exact_applies(P, q, G, A, cfg))
+    if bool(own_kkt.any()):
+        own_kkt = own_kkt & _kkt.kkt_residuals_ok(*sub, x_own, z_own, y_own, cfg.eps)
+    revert = (far & own_solved) | own_kkt
     if bool(revert.any()):
         back = revert.unsqueeze(-1)
         x, z, y = (
@@ -378,7 +408,7 @@ def _polish_and_resolve(
         active = active.index_copy(
             0, idx, torch.where(back, own_active, active.index_select(0, idx))
         )
-    after = torch.where(unverified | (far & ~revert), int(Status.NUMERICAL_ERROR), before)
+    after = torch.where((unverified | far) & ~revert, int(Status.NUMERICAL_ERROR), before)
     after = torch.where(ok, int(Status.SOLVED), after)
     status = status.index_copy(0, idx, after)
     # a row the interior point gave up on may have run off along a descent direction
@@ -394,6 +424,18 @@ def _polish_and_resolve(
         x, z, y = (torch.where(drop.unsqueeze(-1), 0.0, t) for t in (x, z, y))
         active = active & ~drop.unsqueeze(-1)
     return x, z, y, status, active
+
+
+def _exact_applies(P: Tensor, q: Tensor, G: Tensor, A: Tensor, cfg: SolverConfig) -> bool:
+    """Whether :func:`_exact_resolve` has an exact method for these rows (the dual method
+    without equality rows, or enumeration of few candidate sets)."""
+    M, E, N = G.shape[-2], A.shape[-2], q.shape[-1]
+    if M == 0 and E == 0:
+        return True
+    if E == 0 and dual_applies(N, _dual_native.applies(q)):
+        return True
+    cap = MAX_CANDIDATES_SMALL_BATCH
+    return num_candidates(M, E, N, cfg.pairs, cap=cap) <= cap
 
 
 def unbounded_solved(

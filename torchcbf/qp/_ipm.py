@@ -132,35 +132,127 @@ def unbounded_rows(
     return singular & found
 
 
+#: sweeps of the Ruiz equilibration of the data (:func:`_equilibrate`)
+RUIZ_SWEEPS = 10
+
+
+class _Scaling(NamedTuple):
+    """``x = D x~``, rows of ``G`` by ``Eg``, of ``A`` by ``Ea``, objective by ``c``."""
+
+    D: Tensor
+    Eg: Tensor
+    Ea: Tensor
+    c: Tensor
+
+
+def _pow2(v: Tensor) -> Tensor:
+    """``v`` rounded to a power of two (scaling by it is exact)."""
+    return torch.exp2(torch.round(torch.log2(v)))
+
+
+def _equilibrate(
+    P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor
+) -> tuple[tuple[Tensor, ...], _Scaling]:
+    """Ruiz equilibration of ``[[P, G', A'], [G, 0, 0], [A, 0, 0]]``: variables and rows
+    scaled (powers of two) until every column of the variables and every row has largest
+    entry near one, then the objective scaled so that ``P``'s mean column and ``q`` are
+    near one. Returns the scaled ``(P, q, G, h, A, b)`` and the :class:`_Scaling`.
+    Degenerate problems whose rows and curvatures span many orders of magnitude (linear
+    programs in a QP's clothes) otherwise leave the normal equations unsolvable to the
+    precision the stopping tests ask for."""
+    B, n = q.shape
+    D = q.new_ones(B, n)
+    Eg = q.new_ones(B, G.shape[-2])
+    Ea = q.new_ones(B, A.shape[-2])
+
+    def inv_sqrt(v: Tensor) -> Tensor:
+        return torch.where(v > 0, v.clamp(1e-8, 1e8).rsqrt(), torch.ones_like(v))
+
+    for _ in range(RUIZ_SWEEPS):
+        Ps = D.unsqueeze(-1) * P * D.unsqueeze(-2)
+        Gs = Eg.unsqueeze(-1) * G * D.unsqueeze(-2)
+        As = Ea.unsqueeze(-1) * A * D.unsqueeze(-2)
+        col = Ps.abs().amax(-2)
+        if G.shape[-2] > 0:
+            col = torch.maximum(col, Gs.abs().amax(-2))
+            Eg = Eg * inv_sqrt(Gs.abs().amax(-1))
+        if A.shape[-2] > 0:
+            col = torch.maximum(col, As.abs().amax(-2))
+            Ea = Ea * inv_sqrt(As.abs().amax(-1))
+        D = D * inv_sqrt(col)
+    D, Eg, Ea = _pow2(D), _pow2(Eg), _pow2(Ea)
+    Ps = D.unsqueeze(-1) * P * D.unsqueeze(-2)
+    qs = D * q
+    mean_col = Ps.abs().amax(-2).mean(-1)
+    cost = torch.maximum(mean_col, _inf_norm(qs))
+    c = torch.where(cost > 0, 1.0 / cost.clamp(1e-4, 1e4), torch.ones_like(cost))
+    c = _pow2(c)
+    scaled = (
+        c.view(-1, 1, 1) * Ps,
+        c.unsqueeze(-1) * qs,
+        Eg.unsqueeze(-1) * G * D.unsqueeze(-2),
+        Eg * h,
+        Ea.unsqueeze(-1) * A * D.unsqueeze(-2),
+        Ea * b,
+    )
+    return scaled, _Scaling(D, Eg, Ea, c)
+
+
+#: regularisation of the equality block of the Newton system, relative to its largest
+#: entry (refined away, :data:`REFINE_STEPS`)
+EQ_REG = 1e-10
+#: iterative refinement steps on the Newton system with equality rows
+REFINE_STEPS = 2
+
+
 class _KKT:
-    """Factorisation of ``[[P, G', A'], [G, -diag(1/d), 0], [A, 0, -reg_e I]]`` for a batch."""
+    """Factorisation of ``[[P, G', A'], [G, -diag(1/d), 0], [A, 0, 0]]`` for a batch: ``z``
+    eliminated (``H = P + G' diag(d) G``); without equality rows ``H`` by Cholesky, with
+    them the quasi-definite ``[[H, A'], [A, -delta I]]`` by LU, refined against ``delta = 0``
+    (dependent or nearly dependent equalities and a singular ``H`` on the free variables of a
+    linear program leave it solvable, where a Schur complement ``A H^-1 A'`` is not)."""
 
     def __init__(self, P: Tensor, G: Tensor, A: Tensor, d: Tensor, reg: Tensor) -> None:
         self.G, self.A, self.d = G, A, d
         H = P + G.mT @ (d.unsqueeze(-1) * G)
         # static regularisation, scaled by the data (not by z/s, which would blur the step)
         H = H + torch.diag_embed(reg.expand(H.shape[:-1]))
-        self.L, info = torch.linalg.cholesky_ex(H)
-        self.ok = info == 0
         self.has_eq = A.shape[-2] > 0
-        if self.has_eq:
-            self.HinvAt = torch.cholesky_solve(A.mT, self.L)
-            S = A @ self.HinvAt
-            S = S + torch.diag_embed(reg.expand(S.shape[:-1]))
-            self.Ls, info_s = torch.linalg.cholesky_ex(S)
-            self.ok = self.ok & (info_s == 0)
+        if not self.has_eq:
+            self.L, info = torch.linalg.cholesky_ex(H)
+            self.ok = info == 0
+            return
+        n, E = H.shape[-1], A.shape[-2]
+        K = torch.cat(
+            (torch.cat((H, A.mT), -1), torch.cat((A, A.new_zeros(A.shape[0], E, E)), -1)), -2
+        )
+        delta = EQ_REG * A.abs().amax((-2, -1)).clamp_min(1.0)
+        shift = torch.cat((K.new_zeros(K.shape[0], n), -delta.unsqueeze(-1).expand(-1, E)), -1)
+        self.K = K
+        self.LU, self.pivots, info = torch.linalg.lu_factor_ex(K + torch.diag_embed(shift))
+        self.ok = (info == 0) & torch.isfinite(self.LU).flatten(-2).all(-1)
+        eye = torch.eye(n + E, dtype=K.dtype, device=K.device)
+        self.LU = torch.where(self.ok.view(-1, 1, 1), self.LU, eye)
+        self.pivots = torch.where(
+            self.ok.unsqueeze(-1),
+            self.pivots,
+            torch.arange(1, n + E + 1, dtype=self.pivots.dtype, device=K.device),
+        )
 
     def solve(self, rx: Tensor, rz: Tensor, ry: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Solve for ``(dx, dz, dy)``; right-hand sides ``[B, *, k]`` (k columns)."""
         d = self.d.unsqueeze(-1)
         rt = rx + self.G.mT @ (d * rz)
-        u = torch.cholesky_solve(rt, self.L)
         if self.has_eq:
-            dy = torch.cholesky_solve(self.A @ u - ry, self.Ls)
-            dx = u - self.HinvAt @ dy
+            n = rt.shape[-2]
+            r = torch.cat((rt, ry), -2)
+            w = torch.linalg.lu_solve(self.LU, self.pivots, r)
+            for _ in range(REFINE_STEPS):
+                w = w + torch.linalg.lu_solve(self.LU, self.pivots, r - self.K @ w)
+            dx, dy = w[..., :n, :], w[..., n:, :]
         else:
             dy = ry
-            dx = u
+            dx = torch.cholesky_solve(rt, self.L)
         dz = d * (self.G @ dx - rz)
         return dx, dz, dy
 
@@ -244,6 +336,9 @@ def solve_ipm(
     B, n = q.shape
     M = h.shape[-1]
     dtype, device = q.dtype, q.device
+    (P, q, G, h, A, b), scaling = _equilibrate(P, q, G, h, A, b)
+    if x0 is not None:
+        x0 = x0 / scaling.D
     reg_rel = 1e-12 if dtype == torch.float64 else 1e-6
     d_reg = 1e-13 if dtype == torch.float64 else 1e-6
     data_scale = torch.maximum(
@@ -452,6 +547,12 @@ def solve_ipm(
     s = torch.where(keep, s * inv, torch.zeros_like(s))
     z = torch.where(keep, z * inv, torch.zeros_like(z))
     y = torch.where(keep, y * inv, torch.zeros_like(y))
+    # back to the caller's variables, rows and objective
+    inv_c = (1.0 / scaling.c).unsqueeze(-1)
+    x = x * scaling.D
+    s = s / scaling.Eg
+    z = z * scaling.Eg * inv_c
+    y = y * scaling.Ea * inv_c
     finite = (
         torch.isfinite(x).all(-1)
         & torch.isfinite(z).all(-1)

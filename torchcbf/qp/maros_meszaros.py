@@ -191,19 +191,26 @@ def judge(
 ) -> str:
     """Judge one answer against the reference (one of :data:`OUTCOMES`).
 
-    A solved answer is ``"right"`` when its objective is within ``tol`` of the reference's,
-    relative to ``max(1, |f*|)``, and it violates no constraint by more than ``tol``
-    (:meth:`Problem.violation`); otherwise ``"wrong"``. An infeasibility or unboundedness
+    A solved answer is ``"right"`` when it violates no constraint by more than ``tol``
+    (:meth:`Problem.violation`) and its objective is at most ``tol`` above the reference's,
+    relative to ``max(1, |f*|)``; otherwise ``"wrong"``. (A feasible point further below
+    the reference's objective proves the reference suboptimal; :func:`below_reference`
+    says which right answers are.) An infeasibility or unboundedness
     certificate on a problem the reference solves is ``"false_certificate"``; any other
     unsolved answer to a problem the reference solves is ``"failed"``. Problems the
     reference does not solve are ``"no_reference"``."""
     if ref.status != "optimal":
         return "no_reference"
     if solved:
-        obj = prob.objective(x)
-        close = abs(obj - ref.objective) <= tol * max(1.0, abs(ref.objective))
+        close = prob.objective(x) - ref.objective <= tol * max(1.0, abs(ref.objective))
         return "right" if close and prob.violation(x) <= tol else "wrong"
     return "false_certificate" if certificate else "failed"
+
+
+def below_reference(prob: Problem, x: np.ndarray, ref: Reference, *, tol: float) -> bool:
+    """Whether ``x``'s objective lies more than ``tol`` (relative to ``max(1, |f*|)``) below
+    the reference's."""
+    return ref.objective - prob.objective(x) > tol * max(1.0, abs(ref.objective))
 
 
 def proxsuite_dense(prob: Problem, *, eps: float = 1e-9, max_iter: int = 10_000) -> Reference:

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from torchcbf._checks import broadcast_shapes
-from torchcbf.qp import _dual_native, realtime
+from torchcbf.qp import _direct, _dual_native, realtime
 from torchcbf.qp._enum import (
     MAX_CANDIDATES,
     MAX_CANDIDATES_SMALL_BATCH,
@@ -60,8 +60,8 @@ class QPSolution(NamedTuple):
 
 
 #: the values of :attr:`QPSolution.path` (besides ``"qpsolvers:<solver>"``)
-PATHS = ("small_native", "active_set_native", "active_set", "enumerate", "closed_form", "ipm",
-         "auto_proxsuite", "proxsuite", "empty")  # fmt: skip
+PATHS = ("small_native", "small_proxsuite", "active_set_native", "active_set", "enumerate",
+         "closed_form", "ipm", "auto_proxsuite", "proxsuite", "empty")  # fmt: skip
 _FLOAT = (torch.float32, torch.float64)
 METHODS = ("auto", "active_set", "enumerate", "ipm")
 #: most candidate active sets ``method="enumerate"`` accepts when asked for explicitly (its
@@ -272,6 +272,13 @@ def solve_qp(
         small = _solve_small(inp, max_iter)
         if small is not None:
             return small
+    if not need_grad and backend == "torch" and method == "auto" and _direct_applies(inp):
+        direct = _direct.solve_direct(
+            inp.Q, inp.p, inp.G, inp.h, inp.A, inp.b, inp.lb, inp.ub, inp.eps, inp.eps_inf,
+            inp.batch_shape,
+        )  # fmt: skip
+        if direct is not None:
+            return QPSolution(*direct, path="small_proxsuite")
     flat = _flatten(inp)
     std = _standard_form(flat, inp)
     cfg = _config(inp, std, backend, method, polish, max_iter, check_every, need_grad)
@@ -466,6 +473,22 @@ def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
         free = torch.isposinf(h)
         sol = solve(torch.where(free.unsqueeze(-1), 0.0 * G, G), torch.where(free, 1.0, h))
     return None if sol is None else QPSolution(*sol, path="small_native")
+
+
+def _direct_applies(inp: _Inputs) -> bool:
+    """Whether ``method="auto"`` tries proxsuite straight from the inputs
+    (:mod:`torchcbf.qp._direct`): at most ``ROUTE_MAX_BATCH`` CPU rows with some row or
+    bound, no elastic rows, proxsuite installed, and beyond the real-time C kernel's reach
+    (equality rows, more than ``_dual_native.MAX_VARS`` variables, or no kernel built)."""
+    beyond_kernel = inp.me > 0 or inp.n > _dual_native.MAX_VARS or not _dual_native.available()
+    return (
+        inp.B <= ROUTE_MAX_BATCH
+        and beyond_kernel
+        and inp.soft is None
+        and inp.Q.device.type == "cpu"
+        and (inp.m + inp.me > 0 or inp.lb is not None or inp.ub is not None)
+        and _proxsuite_available()
+    )
 
 
 class _Flat(NamedTuple):

@@ -1,0 +1,152 @@
+"""``method="auto"`` on a few CPU QPs beyond the C kernel's reach: proxsuite's dense solver
+straight from the inputs (``small_proxsuite``, no gradients) or inside the differentiable
+map (``auto_proxsuite``), each answer verified by torchcbf, polished, and otherwise handed
+to torchcbf's own methods."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from _problems import make_batch
+
+from torchcbf.qp import Status, solve_qp
+from torchcbf.qp import _function as qp_function
+
+pytest.importorskip("proxsuite")
+F64 = torch.float64
+
+
+def _mid_size(seed: int, n: int = 80, m: int = 60, k: int = 10):
+    """A feasible QP with ``n > 64`` variables, rows tight at a known point, equalities and
+    a box: ``P`` positive semidefinite of rank ``n / 2`` (linear-program-like directions)."""
+    g = torch.Generator().manual_seed(seed)
+    L = torch.randn(n, n // 2, generator=g, dtype=F64)
+    P = L @ L.mT / n
+    x0 = torch.rand(n, generator=g, dtype=F64) - 0.5
+    G = torch.randn(m, n, generator=g, dtype=F64)
+    h = G @ x0 + torch.rand(m, generator=g, dtype=F64) * (torch.rand(m, generator=g) < 0.5)
+    A = torch.randn(k, n, generator=g, dtype=F64)
+    b = A @ x0
+    p = torch.randn(n, generator=g, dtype=F64)
+    return P, p, G, h, A, b, -torch.ones(n, dtype=F64), torch.ones(n, dtype=F64)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_mid_size_problem_matches_clarabel_and_the_interior_point_path(cvx, seed):
+    data = _mid_size(seed)
+    with torch.no_grad():
+        direct = solve_qp(*data)
+    assert direct.path == "small_proxsuite"
+    ref, obj, st = cvx(*(t.numpy() for t in data))
+    assert st == "optimal" and int(direct.status) == Status.SOLVED
+    x = direct.x.numpy()
+    P, p = data[0].numpy(), data[1].numpy()
+    assert abs(0.5 * x @ P @ x + p @ x - obj) <= 1e-8 * (1.0 + abs(obj))
+    ipm = solve_qp(*data, method="ipm")
+    assert int(ipm.status) == Status.SOLVED
+    assert abs(float(0.5 * ipm.x @ data[0] @ ipm.x + data[1] @ ipm.x) - obj) <= 1e-7 * (
+        1 + abs(obj)
+    )
+    # stationarity with the returned multipliers (bounds included)
+    P, p, G, h, A, b = data[:6]
+    r = P @ direct.x + p + G.T @ direct.lam + A.T @ direct.nu + direct.lam_ub - direct.lam_lb
+    assert float(r.abs().max()) < 1e-9
+
+
+def test_gradients_through_a_routed_answer_match_the_interior_point_path():
+    data = _mid_size(3)
+    grads = {}
+    for method in ("auto", "ipm"):
+        p = data[1].clone().requires_grad_()
+        h = data[3].clone().requires_grad_()
+        sol = solve_qp(data[0], p, data[2], h, *data[4:], method=method)
+        assert int(sol.status) == Status.SOLVED
+        if method == "auto":
+            assert sol.path == "auto_proxsuite"
+        grads[method] = torch.autograd.grad((sol.x * torch.linspace(-1, 1, 80, dtype=F64)).sum(),
+                                            (p, h))  # fmt: skip
+    for a, b in zip(grads["auto"], grads["ipm"], strict=True):
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-5)
+
+
+def test_equality_problems_one_at_a_time_equal_the_batch():
+    batch = make_batch(6, 4, 6, 2, True, seed=4, frac_infeasible=0.0)
+    args = (batch.Q, batch.p, batch.G, batch.h, batch.A, batch.b, batch.lb, batch.ub)
+    full = solve_qp(*args)
+    assert full.path != "small_proxsuite"
+    for i in range(6):
+        one = solve_qp(*(t[i] for t in args))
+        assert one.path == "small_proxsuite" and int(one.status) == int(full.status[i])
+        for name in ("x", "lam", "nu", "lam_lb", "lam_ub"):
+            torch.testing.assert_close(getattr(one, name), getattr(full, name)[i], atol=1e-8,
+                                       rtol=0)  # fmt: skip
+
+
+def test_infinite_rows_are_ignored_on_the_direct_path():
+    Q = torch.eye(3, dtype=F64)
+    p = -torch.ones(3, dtype=F64)
+    G = torch.tensor([[1.0, 1.0, 1.0], [1.0, 0.0, 0.0]], dtype=F64)
+    h = torch.tensor([1.0, torch.inf], dtype=F64)
+    A = torch.tensor([[1.0, -1.0, 0.0]], dtype=F64)
+    b = torch.zeros(1, dtype=F64)
+    sol = solve_qp(Q, p, G, h, A, b)
+    assert sol.path == "small_proxsuite" and int(sol.status) == Status.SOLVED
+    torch.testing.assert_close(sol.x, torch.full((3,), 1.0 / 3.0, dtype=F64))
+    assert float(sol.lam[1]) == 0.0
+
+
+@pytest.mark.parametrize("case", ["infeasible", "unbounded", "nan"])
+def test_unsolved_problems_take_the_general_path(case):
+    Q = torch.eye(3, dtype=F64)
+    p = torch.zeros(3, dtype=F64)
+    A = torch.tensor([[1.0, 1.0, 0.0]], dtype=F64)
+    b = torch.ones(1, dtype=F64)
+    G = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=F64)
+    h = torch.zeros(2, dtype=F64)
+    expect = Status.SOLVED
+    if case == "infeasible":  # x1 + x2 = 1 with x1, x2 <= 0
+        expect = Status.PRIMAL_INFEASIBLE
+    elif case == "unbounded":  # no curvature along x3, which the objective rewards
+        Q = torch.diag(torch.tensor([1.0, 1.0, 0.0], dtype=F64))
+        p = torch.tensor([0.0, 0.0, -1.0], dtype=F64)
+        h = torch.ones(2, dtype=F64)
+        expect = Status.DUAL_INFEASIBLE
+    else:
+        p = torch.tensor([0.0, float("nan"), 0.0], dtype=F64)
+        expect = Status.NON_FINITE
+    sol = solve_qp(Q, p, G, h, A, b)
+    assert sol.path != "small_proxsuite"
+    assert int(sol.status) == expect
+
+
+def test_a_row_proxsuite_leaves_is_solved_by_the_interior_point_method(monkeypatch):
+    """Where proxsuite fails (simulated), the routed rows are solved by torchcbf itself."""
+    from torchcbf.qp import _backends
+
+    real = _backends.solve_proxsuite
+
+    def failing(*args, **kwargs):
+        x, s, z, y, st, it = real(*args, **kwargs)
+        return x, s, z, y, torch.full_like(st, int(Status.MAX_ITER)), it
+
+    monkeypatch.setattr(_backends, "solve_proxsuite", failing)
+    data = _mid_size(5)
+    p = data[1].clone().requires_grad_()
+    sol = solve_qp(data[0], p, *data[2:])
+    assert sol.path == "auto_proxsuite" and int(sol.status) == Status.SOLVED
+    ref = solve_qp(data[0], p.detach(), *data[2:], method="ipm")
+    torch.testing.assert_close(sol.x.detach(), ref.x, atol=1e-6, rtol=0)
+    sol.x.sum().backward()
+    assert torch.isfinite(p.grad).all()
+
+
+def test_routing_applies_to_small_batches_only():
+    data = _mid_size(6)
+    big = [t.expand(5, *t.shape) for t in data]
+    sol = solve_qp(*big)
+    assert sol.path == "ipm"
+    assert (sol.status == Status.SOLVED).all()
+    assert qp_function.ROUTE_EPS <= 1e-9
+    one = solve_qp(*data)
+    np.testing.assert_allclose(sol.x[0].numpy(), one.x.numpy(), atol=1e-6)
