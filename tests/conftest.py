@@ -1,4 +1,13 @@
-"""Shared fixtures: every numerical test runs over dtypes x devices."""
+"""Shared fixtures: every numerical test runs over dtypes x devices.
+
+Devices. ``DEVICES`` is ``["cpu"]``, plus ``"cuda"`` where torch sees a GPU; a test that takes
+the ``device`` fixture runs once per entry. The environment variable
+``TORCHCBF_TEST_DEVICES`` (comma-separated, e.g. ``cuda`` or ``cpu,cuda``) chooses the entries
+instead; naming a device that is not present is a usage error, not a silent skip. Every test
+that takes the fixture, and every test with ``cuda`` in its name, carries the ``device``
+marker, so ``TORCHCBF_TEST_DEVICES=cuda pytest -m "device and not slow"`` runs exactly the
+tests that exercise CUDA (``scripts/device_check.sh`` does this on a GPU machine).
+"""
 
 from __future__ import annotations
 
@@ -8,7 +17,30 @@ from collections.abc import Iterator
 import pytest
 import torch
 
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+def _present(name: str) -> bool:
+    if name == "cpu":
+        return True
+    if name == "cuda":
+        return torch.cuda.is_available()
+    return False
+
+
+def _devices() -> list[str]:
+    chosen = os.environ.get("TORCHCBF_TEST_DEVICES", "").strip()
+    if not chosen:
+        return ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    names = [name.strip() for name in chosen.split(",") if name.strip()]
+    missing = [name for name in names if not _present(name)]
+    if missing:
+        raise pytest.UsageError(
+            f"TORCHCBF_TEST_DEVICES={chosen!r}: {missing} not present here "
+            f"(cuda available: {torch.cuda.is_available()}); known devices: cpu, cuda"
+        )
+    return list(dict.fromkeys(names))
+
+
+DEVICES = _devices()
 DTYPES = [torch.float64, torch.float32]
 
 
@@ -39,9 +71,20 @@ def _one_thread() -> Iterator[None]:
         torch.set_num_threads(threads)
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers",
+        "device: the test takes the device fixture or names cuda (set automatically; select "
+        "with -m device, and the devices with TORCHCBF_TEST_DEVICES)",
+    )
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """``slow`` reproductions run only when selected (``-m slow``) or with ``TORCHCBF_SLOW=1``,
-    so a plain ``pytest`` stays fast."""
+    so a plain ``pytest`` stays fast. Tests on a device get the ``device`` marker."""
+    for item in items:
+        if "device" in getattr(item, "fixturenames", ()) or "cuda" in item.name.lower():
+            item.add_marker(pytest.mark.device)
     markexpr = config.getoption("-m") or ""
     if os.environ.get("TORCHCBF_SLOW") == "1" or (
         "slow" in markexpr and "not slow" not in markexpr
