@@ -9,8 +9,8 @@ hand in numpy (no autograd).
 
 from __future__ import annotations
 
-import cvxpy as cp
 import numpy as np
+import pytest
 from scipy.special import erfinv
 
 CENTERS = np.array([[1.0, 0.5], [-1.0, 1.5]])
@@ -68,10 +68,16 @@ def rows(x: np.ndarray, mode: str) -> tuple[np.ndarray, ...]:
     return a, b, aV, bV, h
 
 
+def _cvxpy():
+    """cvxpy, imported where a reference needs it (a test without it is skipped)."""
+    return pytest.importorskip("cvxpy")
+
+
 class _Problems:
     """The two cvxpy problems, parametrised (DPP) so that they compile once."""
 
     def __init__(self) -> None:
+        cp = _cvxpy()
         self.a, self.b = cp.Parameter((3, 2)), cp.Parameter(3)
         self.aV, self.bV = cp.Parameter((1, 2)), cp.Parameter(1)
         self.u_nom = cp.Parameter(2)
@@ -111,6 +117,7 @@ def solve_reference(
     """The hard-constrained CBF / relaxed CLF QP in cvxpy (Clarabel); ``None`` if infeasible.
 
     ``clf=False`` drops the CLF (its row becomes ``0 <= delta``)."""
+    cp = _cvxpy()
     P = _problems()
     P.a.value, P.b.value, aV, bV, _ = rows(x, mode)
     P.aV.value, P.bV.value = (aV, bV) if clf else (0 * aV, 0 * bV)
@@ -126,6 +133,7 @@ def least_violation(x: np.ndarray, mode: str) -> float:
     """``min_u max_i max(0, -(a_i u + b_i) / |a_i|)`` over the control box (an LP)."""
     a, b, *_ = rows(x, mode)
     n = np.maximum(np.linalg.norm(a, axis=1), 1e-6)
+    cp = _cvxpy()
     P = _problems()
     P.an.value, P.bn.value = a / n[:, None], b / n
     P.lp.solve(solver=cp.CLARABEL)
@@ -193,6 +201,7 @@ def rectified_rows(x: np.ndarray, mode: str) -> tuple[np.ndarray, np.ndarray, np
 def solve_rectified_reference(x: np.ndarray, u_nom: np.ndarray, mode: str) -> np.ndarray | None:
     """The hard-constrained CBF QP of the rectified-ellipse scene in cvxpy (Clarabel, weight
     ``R``, box ``ACCEL_U_MIN..ACCEL_U_MAX``); ``None`` if infeasible."""
+    cp = _cvxpy()
     a, b, _ = rectified_rows(x, mode)
     u = cp.Variable(2)
     r_half = np.linalg.cholesky(R).T

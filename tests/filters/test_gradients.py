@@ -12,16 +12,18 @@ from torchcbf.filters import FilterStatus, LinearClassK, SafetyFilter
 F64 = torch.float64
 
 
-def test_gradcheck_barrier_params_class_k_and_u_nom() -> None:
+def test_gradcheck_barrier_params_class_k_and_u_nom(device: torch.device) -> None:
     dyn = SingleIntegrator(2, u_min=-3.0, u_max=3.0)
     ball = Ball(
         nn.Parameter(torch.tensor([0.0, 0.1], dtype=F64)),
         nn.Parameter(torch.tensor(1.0, dtype=F64)),
     )
     alpha = LinearClassK(0.8, learnable=True)
-    filt = SafetyFilter(dyn, ball, alpha=alpha).double()
-    x = torch.tensor([[-2.0, 0.3], [1.5, -1.0], [0.2, 2.0]], dtype=F64)
-    u_nom = torch.tensor([[2.0, 0.2], [-2.0, 1.0], [0.1, -2.5]], dtype=F64, requires_grad=True)
+    filt = SafetyFilter(dyn, ball, alpha=alpha).to(device=device, dtype=F64)
+    x = torch.tensor([[-2.0, 0.3], [1.5, -1.0], [0.2, 2.0]], dtype=F64, device=device)
+    u_nom = torch.tensor(
+        [[2.0, 0.2], [-2.0, 1.0], [0.1, -2.5]], dtype=F64, device=device, requires_grad=True
+    )
     out = filt(x, u_nom)
     # every row is active (the filter changed u_nom) and solved
     assert (out.status == FilterStatus.SOLVED).all()
@@ -40,14 +42,16 @@ def test_gradcheck_barrier_params_class_k_and_u_nom() -> None:
     assert torch.autograd.gradcheck(fn, (*inputs, u_nom), eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
-def test_gradcheck_state_through_lie_terms() -> None:
+def test_gradcheck_state_through_lie_terms(device: torch.device) -> None:
     # a unicycle (g depends on the state) with a CLF and a CBF: d u / d x
     dyn = Unicycle(u_min=torch.tensor([-1.0, -2.0]), u_max=torch.tensor([1.5, 2.0]))
-    filt = SafetyFilter(
-        dyn, Ball([1.0, 0.0], 0.5), QuadraticLyapunov([3.0, 0.5]), alpha=1.0
-    ).double()
-    x = torch.tensor([[0.0, 0.1, 0.2], [0.4, -0.6, 0.9]], dtype=F64, requires_grad=True)
-    u_nom = torch.tensor([[1.4, 0.0], [1.0, -0.3]], dtype=F64)
+    filt = SafetyFilter(dyn, Ball([1.0, 0.0], 0.5), QuadraticLyapunov([3.0, 0.5]), alpha=1.0).to(
+        device=device, dtype=F64
+    )
+    x = torch.tensor(
+        [[0.0, 0.1, 0.2], [0.4, -0.6, 0.9]], dtype=F64, device=device, requires_grad=True
+    )
+    u_nom = torch.tensor([[1.4, 0.0], [1.0, -0.3]], dtype=F64, device=device)
     out = filt(x, u_nom)
     assert (out.status == FilterStatus.SOLVED).all()
     assert torch.autograd.gradcheck(

@@ -31,6 +31,7 @@ from _filter_reference import (
     rows,
     solve_reference,
 )
+from conftest import device_matches_cpu
 
 from torchcbf.barriers import Ball, HalfSpace, QuadraticLyapunov
 from torchcbf.dynamics import SingleIntegrator, Unicycle
@@ -123,6 +124,25 @@ def test_matches_cvxpy_hard_qp(mode: str, clf: bool, dtype: torch.dtype) -> None
     assert feasible >= 12
     # the constraints were active somewhere (the filter did change u_nom)
     assert (out.u - torch.tensor(us, dtype=dtype)).abs().amax() > 0.1
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_device_answers_equal_cpu_answers(mode: str, dtype: torch.dtype, device) -> None:
+    xs, us = random_states(32, seed=11 + MODES.index(mode))
+
+    def run(dev: torch.device):
+        filt = scene(mode, dtype).to(dev)
+        x = torch.tensor(xs, dtype=dtype, device=dev)
+        out = filt(x, torch.tensor(us, dtype=dtype, device=dev))
+        return out.u, out.status, out.h, out.slack
+
+    # float32: the QP's own accuracy, as against cvxpy above
+    loose = {} if dtype == torch.float64 else {"rtol": 1e-3, "atol": _tol(dtype)}
+    u, status, h, slack = device_matches_cpu(run, device, dtype, **loose)
+    assert bool(torch.isfinite(u).all()) and bool(torch.isfinite(slack).all())
+    known = (FilterStatus.SOLVED, FilterStatus.RELAXED)
+    assert bool(torch.isin(status, torch.tensor(known, device=status.device)).all())
+    assert bool((h > 0).all())  # random_states draws safe states
 
 
 def test_constraint_values_and_outputs() -> None:

@@ -7,9 +7,12 @@ from typing import NamedTuple
 
 import pytest
 import torch
+from conftest import device_matches_cpu
 
+from torchcbf.barriers import Ball, rectify
 from torchcbf.dynamics import AccelUnicycle, SingleIntegrator
 from torchcbf.estimation import EKF, GaussianSensor
+from torchcbf.filters import SafetyFilter
 from torchcbf.integrators import step
 from torchcbf.sim import (
     ClosedLoop,
@@ -271,10 +274,10 @@ def test_no_controller_and_wrong_shapes_name_the_argument() -> None:
         simulate(WrongG(2), x0, 5, 0.1, nominal=zero, progress=False)
 
 
-def test_differentiable_rollout_matches_finite_differences() -> None:
-    dyn = SingleIntegrator(2).double()
-    gain = torch.tensor(1.5, dtype=torch.float64, requires_grad=True)
-    x0 = torch.tensor([[1.0, -0.5]], dtype=torch.float64)
+def test_differentiable_rollout_matches_finite_differences(device: torch.device) -> None:
+    dyn = SingleIntegrator(2).to(device=device, dtype=torch.float64)
+    gain = torch.tensor(1.5, dtype=torch.float64, device=device, requires_grad=True)
+    x0 = torch.tensor([[1.0, -0.5]], dtype=torch.float64, device=device)
 
     def final_cost(g: torch.Tensor, differentiable: bool) -> torch.Tensor:
         traj = simulate(
@@ -297,14 +300,15 @@ def test_differentiable_rollout_matches_finite_differences() -> None:
     assert not final_cost(gain, False).requires_grad
 
 
-def test_sensor_and_estimator_close_the_loop() -> None:
+def test_sensor_and_estimator_close_the_loop(device: torch.device) -> None:
     """With a noisy position sensor, the EKF estimate the controller sees is closer to the
-    truth than the raw measurements are."""
-    dyn = AccelUnicycle(sigma=0.05).double()
-    sensor = GaussianSensor(C=torch.eye(4, dtype=torch.float64)[:2], std=0.2).double()
-    ekf = EKF(dyn, sensor).double()
-    x0 = torch.tensor([0.0, 0.0, 0.5, math.pi / 4], dtype=torch.float64).repeat(64, 1)
-    P0 = 1e-4 * torch.eye(4, dtype=torch.float64)
+    truth than the raw measurements are (a property of the noise, on every device)."""
+    f64 = {"dtype": torch.float64, "device": device}
+    dyn = AccelUnicycle(sigma=0.05).to(**f64)
+    sensor = GaussianSensor(C=torch.eye(4, **f64)[:2], std=0.2).to(**f64)
+    ekf = EKF(dyn, sensor).to(**f64)
+    x0 = torch.tensor([0.0, 0.0, 0.5, math.pi / 4], **f64).repeat(64, 1)
+    P0 = 1e-4 * torch.eye(4, **f64)
     traj = simulate(
         dyn,
         x0,
@@ -316,6 +320,7 @@ def test_sensor_and_estimator_close_the_loop() -> None:
         P0=P0,
         progress=False,
     )
+    assert traj.x.device.type == device.type and traj.x_hat.device.type == device.type
     est_err = (traj.x_hat[:, 50:, :2] - traj.x[:, 50:, :2]).norm(dim=-1).pow(2).mean().sqrt()
     assert float(est_err) < 0.5 * 0.2 * math.sqrt(2)
     assert not bool(traj.failed.any())
@@ -384,11 +389,11 @@ def test_the_swept_check_in_slices_equals_the_whole(monkeypatch) -> None:
     assert whole.any() and not whole.all()
 
 
-def test_a_closed_loop_object_runs_the_same_loop_as_simulate() -> None:
-    dyn = SingleIntegrator(2, u_min=-1.0, u_max=1.0)
-    goal = torch.tensor([1.0, 2.0])
+def test_a_closed_loop_object_runs_the_same_loop_as_simulate(device: torch.device) -> None:
+    dyn = SingleIntegrator(2, u_min=-1.0, u_max=1.0).to(device)
+    goal = torch.tensor([1.0, 2.0], device=device)
     nominal = lambda x, t: 2.0 * (goal - x)  # noqa: E731
-    x0 = torch.randn(4, 2, generator=torch.Generator().manual_seed(0))
+    x0 = torch.randn(4, 2, generator=torch.Generator().manual_seed(0)).to(device)
     loop = ClosedLoop(dynamics=dyn, nominal=nominal, integrator="euler")
     assert isinstance(nominal, Nominal)
     a = loop.simulate(x0, 20, 0.05, progress=False)
@@ -399,3 +404,27 @@ def test_a_closed_loop_object_runs_the_same_loop_as_simulate() -> None:
     for _ in range(20):
         x = x + 0.05 * (2.0 * (goal - x)).clamp(-1.0, 1.0)
     torch.testing.assert_close(a.x[:, -1], x)
+
+
+def test_filtered_loop_on_device_equals_cpu(dtype: torch.dtype, device: torch.device) -> None:
+    """A noise-free filtered closed loop (unicycle, two rectified balls on the way to the
+    goal, heading controller) gives the CPU's answers on every device."""
+    x0 = torch.tensor([[0.0, 0.0, 0.0, math.pi / 4]]).repeat(8, 1)
+    x0[:, 1] += torch.linspace(-0.5, 0.5, 8)
+
+    def run(dev: torch.device):
+        dyn = AccelUnicycle().to(device=dev, dtype=dtype)
+        balls = Ball(torch.tensor([[1.0, 2.0], [1.5, 2.9]]), torch.tensor([0.3, 0.25]))
+        # rectified on the CPU: its relative-degree check draws sample states
+        barrier = rectify(balls, AccelUnicycle(), form="exponential").to(device=dev, dtype=dtype)
+        filt = SafetyFilter(dyn, barrier, alpha=2.0).to(device=dev, dtype=dtype)
+        start = x0.to(device=dev, dtype=dtype)
+        traj = simulate(
+            dyn, start, 60, 0.02, nominal=_heading_controller, safety_filter=filt, progress=False
+        )
+        return traj.x, traj.u_nom, traj.u, traj.h, traj.status
+
+    loose = {} if dtype == torch.float64 else {"rtol": 1e-3, "atol": 1e-4}
+    x, u_nom, u, h, status = device_matches_cpu(run, device, dtype, **loose)
+    assert bool(torch.isfinite(x).all()) and bool(h.amin() > -1e-6)
+    assert bool((u - u_nom).abs().amax() > 0.1)  # the filter acted
