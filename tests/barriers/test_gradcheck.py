@@ -43,49 +43,50 @@ def _x(rows: int, n: int, seed: int = 0) -> torch.Tensor:
     return torch.randn(rows, n, generator=torch.Generator().manual_seed(seed), dtype=D)
 
 
-def test_gradcheck_ball_unicycle_state_and_params():
+def test_gradcheck_ball_unicycle_state_and_params(device: torch.device) -> None:
     sigma = torch.tensor([[0.3, 0.1], [0.0, 0.2], [0.5, -0.4]], dtype=D)
-    m = _Terms(Ball([1.0, -2.0], 0.7, velocity=[0.3, 0.1]).to(D), Unicycle(sigma=sigma).to(D))
+    m = _Terms(Ball([1.0, -2.0], 0.7, velocity=[0.3, 0.1]), Unicycle(sigma=sigma)).to(device, D)
     b = m.barrier
     _check(
         m,
-        _x(3, 3),
+        _x(3, 3).to(device),
         {"barrier.center": b.center, "barrier.radius": b.radius, "barrier.velocity": b.velocity},
-        t=torch.tensor([0.1, 0.5, 1.0], dtype=D),
+        t=torch.tensor([0.1, 0.5, 1.0], dtype=D, device=device),
     )
 
 
-def test_gradcheck_ellipse_with_state_dependent_sigma():
+def test_gradcheck_ellipse_with_state_dependent_sigma(device: torch.device) -> None:
     def sigma(x):
         return torch.stack([torch.sin(x) + 2.0, x**2 * 0.1], -1)  # [..., 4, 2]
 
-    m = _Terms(Ellipse([1.0, 2.0], [0.5, 1.5], angle=0.4).to(D), AccelUnicycle(sigma=sigma).to(D))
+    ellipse = Ellipse([1.0, 2.0], [0.5, 1.5], angle=0.4)
+    m = _Terms(ellipse, AccelUnicycle(sigma=sigma)).to(device, D)
     b = m.barrier
     _check(
         m,
-        _x(3, 4, 1),
+        _x(3, 4, 1).to(device),
         {"barrier.center": b.center, "barrier.axes": b.axes, "barrier.angle": b.angle},
     )
 
 
-def test_gradcheck_neural_barrier_weights():
+def test_gradcheck_neural_barrier_weights(device: torch.device) -> None:
     torch.manual_seed(0)  # noqa: NPY002 - test network weights only
     net = nn.Sequential(nn.Linear(4, 5), nn.Tanh(), nn.Linear(5, 1)).to(D)
     m = _Terms(
         NeuralBarrier(net, offset=Ball([0.0, 0.5], 0.3).to(D)), AccelUnicycle(sigma=0.28).to(D)
-    )
+    ).to(device)
     params = {f"barrier.net.{k}": v for k, v in net.named_parameters()}
     params["barrier.offset.center"] = m.barrier.offset.center
-    _check(m, _x(2, 4, 2), params)
+    _check(m, _x(2, 4, 2).to(device), params)
 
 
 @pytest.mark.parametrize("form", ["high_order", "exponential"])
-def test_gradcheck_rectified_barrier(form):
+def test_gradcheck_rectified_barrier(form: str, device: torch.device) -> None:
     dyn = DoubleIntegrator(sigma=0.2).to(D)
     ball = Ball([0.5, -0.3], 0.6).to(D)
     rect = rectify(ball, dyn, form=form, gains=[1.5])
-    m = _Terms(rect, dyn)
+    m = _Terms(rect, dyn).to(device)
     params = {"barrier.barrier.center": ball.center, "barrier.barrier.radius": ball.radius}
     gname = "barrier.gains" if form == "high_order" else "barrier.coefficients"
     params[gname] = getattr(rect, gname.split(".")[1])
-    _check(m, _x(3, 4, 3), params)
+    _check(m, _x(3, 4, 3).to(device), params)

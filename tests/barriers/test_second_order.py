@@ -82,15 +82,17 @@ def _hessians(shape, x: torch.Tensor) -> torch.Tensor:
 
 @pytest.mark.parametrize("name", list(SHAPES))
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_hess_mat_and_hess_dir_match_autograd(name: str, dtype: torch.dtype) -> None:
-    shape = SHAPES[name]().to(dtype)
+def test_hess_mat_and_hess_dir_match_autograd(
+    name: str, dtype: torch.dtype, device: torch.device
+) -> None:
+    shape = SHAPES[name]().to(device=device, dtype=dtype)
     assert shape.has_second_order
     n = 4
-    x = _states(3, n, seed=1, dtype=dtype)
+    x = _states(3, n, seed=1, dtype=dtype).to(device)
     gen = torch.Generator().manual_seed(2)
-    m = torch.randn(3, n, 2, generator=gen, dtype=torch.float64).to(dtype)
-    v = torch.randn(3, n, generator=gen, dtype=torch.float64).to(dtype)
-    d = shape.derivatives(x, torch.zeros(3, dtype=dtype))
+    m = torch.randn(3, n, 2, generator=gen, dtype=torch.float64).to(device=device, dtype=dtype)
+    v = torch.randn(3, n, generator=gen, dtype=torch.float64).to(device=device, dtype=dtype)
+    d = shape.derivatives(x, torch.zeros(3, dtype=dtype, device=device))
     H = _hessians(shape.double(), x.double())  # [B, k, n, n]
     want = H @ m.double().unsqueeze(1)
     got = d.hess_mat(m)
@@ -98,7 +100,8 @@ def test_hess_mat_and_hess_dir_match_autograd(name: str, dtype: torch.dtype) -> 
     torch.testing.assert_close(got.double(), want, **_tol(dtype))
     # hess_dir(v, S) = d/de tr(S' H(x + e v) S), by autograd through the closed-form quad
     xg = x.double().clone().requires_grad_()
-    quad = shape.double().derivatives(xg, torch.zeros(3, dtype=torch.float64)).hess_quad(m.double())
+    zero = torch.zeros(3, dtype=torch.float64, device=device)
+    quad = shape.double().derivatives(xg, zero).hess_quad(m.double())
     quad = quad if quad.dim() == 2 else quad.unsqueeze(-1)
 
     def along_v(out: torch.Tensor) -> torch.Tensor:
@@ -114,14 +117,16 @@ def test_hess_mat_and_hess_dir_match_autograd(name: str, dtype: torch.dtype) -> 
 
 @pytest.mark.parametrize("model", list(MODELS))
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_drift_derivatives_match_autograd(model: str, dtype: torch.dtype) -> None:
-    dyn = MODELS[model]().to(dtype)
+def test_drift_derivatives_match_autograd(
+    model: str, dtype: torch.dtype, device: torch.device
+) -> None:
+    dyn = MODELS[model]().to(device=device, dtype=dtype)
     assert dyn.has_drift_derivatives
     n = dyn.state_dim
-    x = _states(3, n, seed=3, dtype=dtype)
+    x = _states(3, n, seed=3, dtype=dtype).to(device)
     gen = torch.Generator().manual_seed(4)
-    w = torch.randn(3, 2, n, generator=gen, dtype=torch.float64).to(dtype)
-    s = torch.randn(3, n, 3, generator=gen, dtype=torch.float64).to(dtype)
+    w = torch.randn(3, 2, n, generator=gen, dtype=torch.float64).to(device=device, dtype=dtype)
+    s = torch.randn(3, n, 3, generator=gen, dtype=torch.float64).to(device=device, dtype=dtype)
     d = dyn.drift_derivatives(x)
     f = lambda z: dyn.double().f(z)  # noqa: E731
     jac = torch.stack([torch.autograd.functional.jacobian(f, xi) for xi in x.double()])
@@ -143,12 +148,13 @@ def test_drift_derivatives_match_autograd(model: str, dtype: torch.dtype) -> Non
 @pytest.mark.parametrize("model", ["accel_unicycle", "double_integrator"])
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_exponential_barrier_closed_forms_match_autograd(
-    name: str, model: str, dtype: torch.dtype
+    name: str, model: str, dtype: torch.dtype, device: torch.device
 ) -> None:
-    dyn = MODELS[model]().to(dtype)
-    barrier = rectify(SHAPES[name]().to(dtype), dyn, "exponential", [2.5], relative_degree=2)
+    dyn = MODELS[model]().to(device=device, dtype=dtype)
+    shape = SHAPES[name]().to(device=device, dtype=dtype)
+    barrier = rectify(shape, dyn, "exponential", [2.5], relative_degree=2)
     assert barrier.has_analytic
-    x = _states(5, dyn.state_dim, seed=5, dtype=dtype)
+    x = _states(5, dyn.state_dim, seed=5, dtype=dtype).to(device)
     got = barrier.lie(x, dyn, method="analytic")
     want = barrier.lie(x, dyn, method="autograd")
     for field in got._fields:

@@ -62,16 +62,16 @@ def test_ellipse_scenario_b_form(dtype):
 
 @pytest.mark.parametrize("smooth", [False, True])
 @pytest.mark.parametrize("kind", [Intersection, Union])
-def test_composition_values_and_analytic(dtype, kind, smooth):
+def test_composition_values_and_analytic(dtype, kind, smooth, device):
     parts = [
         Ball([0.0, 0.0], 1.0),
         Ellipse([1.0, 2.0], [0.5, 1.5]),
         Ball([[2.0, 0.0], [0.0, 3.0]], [0.5, 0.7]),
     ]
-    comp = kind(*parts, smooth=smooth, temperature=0.3).to(dtype)
-    dyn = AccelUnicycle(sigma=torch.tensor([0.28, 0.1, 0.2, 0.3])).to(dtype)
-    x = _x(300, 4, dtype, seed=2)
-    stacked = BarrierStack(*parts).to(dtype)(x)
+    comp = kind(*parts, smooth=smooth, temperature=0.3).to(device, dtype)
+    dyn = AccelUnicycle(sigma=torch.tensor([0.28, 0.1, 0.2, 0.3])).to(device, dtype)
+    x = _x(300, 4, dtype, seed=2).to(device)
+    stacked = BarrierStack(*parts).to(device, dtype)(x)
     if smooth:
         sign = -1.0 if kind is Intersection else 1.0
         ref = sign * 0.3 * torch.logsumexp(sign * stacked / 0.3, -1)
@@ -86,10 +86,11 @@ def test_composition_values_and_analytic(dtype, kind, smooth):
 
 
 @pytest.mark.parametrize("smooth", [False, True])
-def test_box_analytic_matches_autograd(dtype, smooth):
-    box = Box([-1.0, -2.0], [1.0, 3.0], index=(0, 1), smooth=smooth, temperature=0.2).to(dtype)
-    dyn = DoubleIntegrator(sigma=0.3).to(dtype)
-    x = _x(200, 4, dtype, seed=3)
+def test_box_analytic_matches_autograd(dtype, smooth, device):
+    box = Box([-1.0, -2.0], [1.0, 3.0], index=(0, 1), smooth=smooth, temperature=0.2)
+    box = box.to(device, dtype)
+    dyn = DoubleIntegrator(sigma=0.3).to(device, dtype)
+    x = _x(200, 4, dtype, seed=3).to(device)
     a, b = box.lie(x, dyn, method="analytic"), box.lie(x, dyn)
     for name in LieTerms._fields:
         torch.testing.assert_close(getattr(a, name), getattr(b, name).detach(), msg=name)

@@ -44,13 +44,12 @@ def _functions(dyn):
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("grad", [False, True])
-def test_stacked_equals_one_call_per_function(dtype, grad):
-    dyn = AccelUnicycle(sigma=0.3).to(dtype)
-    fns = [f.to(dtype) for f in _functions(dyn)]
-    x = (2 * torch.randn(7, 4, generator=torch.Generator().manual_seed(0), dtype=torch.float64)).to(
-        dtype
-    )
-    t = torch.linspace(0, 1, 7, dtype=dtype)
+def test_stacked_equals_one_call_per_function(dtype, grad, device):
+    dyn = AccelUnicycle(sigma=0.3).to(device, dtype)
+    fns = [f.to(device, dtype) for f in _functions(dyn)]
+    gen = torch.Generator().manual_seed(0)
+    x = (2 * torch.randn(7, 4, generator=gen, dtype=torch.float64)).to(device, dtype)
+    t = torch.linspace(0, 1, 7, dtype=dtype, device=device)
     ctx = torch.enable_grad() if grad else torch.no_grad()
     with ctx:
         terms, sizes = stacked_lie_derivatives(fns, x, dyn, t)

@@ -41,11 +41,11 @@ SHAPES = {
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("form", ["radius", "exp"])
 @pytest.mark.parametrize("shape", sorted(SHAPES))
-def test_closed_forms_match_autograd_and_hand_formula(dtype, form, shape):
-    dyn = Unicycle(sigma=0.3).to(dtype)
-    inner = SHAPES[shape]().to(dtype)
-    fn = Transformed(inner, form, rate=0.7).to(dtype)
-    x = _states(13, 3, 0, dtype)
+def test_closed_forms_match_autograd_and_hand_formula(dtype, form, shape, device):
+    dyn = Unicycle(sigma=0.3).to(device, dtype)
+    inner = SHAPES[shape]().to(device, dtype)
+    fn = Transformed(inner, form, rate=0.7).to(device, dtype)
+    x = _states(13, 3, 0, dtype).to(device)
     ana = fn.lie(x, dyn, method="analytic")
     auto = fn.lie(x, dyn, method="autograd")
     for name in ana._fields:
