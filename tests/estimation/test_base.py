@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import device_matches_cpu
 
 from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, Unicycle
 from torchcbf.estimation import (
@@ -153,15 +154,45 @@ def test_bad_input_raises_clear_errors():
 
 
 @pytest.mark.parametrize("cls", FILTERS, ids=lambda c: c.__name__)
-def test_non_finite_measurement_row_is_skipped_and_flagged(cls, dtype):
+def test_device_answers_equal_cpu_answers(cls, dtype, device):
+    """Five steps of each filter on the nonlinear range-bearing problem, with measurements
+    drawn on the CPU, give the CPU's means, covariances and statuses on every device."""
+    gen = torch.Generator().manual_seed(5)
+    B, T = 64, 5
+    x0 = torch.randn(B, 3, generator=gen, dtype=torch.float64) * 0.5
+    us = torch.randn(T, B, 2, generator=gen, dtype=torch.float64)
+    ys = [
+        _unicycle_rb()[1].measure(torch.randn(B, 3, generator=gen, dtype=torch.float64), gen)
+        for _ in range(T)
+    ]
+
+    def run(dev: torch.device):
+        dyn, sensor = _unicycle_rb()
+        est = cls(dyn.to(dev, dtype), sensor.to(dev, dtype))
+        f = {"device": dev, "dtype": dtype}
+        state = est.init(x0.to(**f), 0.1 * torch.eye(3, **f))
+        for k in range(T):
+            state = est.step(state, us[k].to(**f), 0.1, ys[k].to(**f))
+        return state.mean, state.cov, state.status
+
+    loose = {} if dtype == torch.float64 else {"rtol": 1e-3, "atol": 1e-4}
+    mean, cov, status = device_matches_cpu(run, device, dtype, **loose)
+    assert bool(torch.isfinite(mean).all()) and bool(torch.isfinite(cov).all())
+    assert bool((torch.linalg.eigvalsh(cov.double()) > 0).all())
+
+
+@pytest.mark.parametrize("cls", FILTERS, ids=lambda c: c.__name__)
+def test_non_finite_measurement_row_is_skipped_and_flagged(cls, dtype, device):
     dyn, sensor = _unicycle_rb(dtype)
+    dyn, sensor = dyn.to(device), sensor.to(device)
     est = cls(dyn, sensor)
+    f = {"dtype": dtype, "device": device}
     state = est.predict(
-        est.init(torch.zeros(3, 3, dtype=dtype), torch.eye(3, dtype=dtype) * 0.1),
-        torch.ones(3, 2, dtype=dtype),
+        est.init(torch.zeros(3, 3, **f), torch.eye(3, **f) * 0.1),
+        torch.ones(3, 2, **f),
         0.1,
     )
-    y = sensor.expected(torch.full((3, 3), 0.05, dtype=dtype))
+    y = sensor.expected(torch.full((3, 3), 0.05, **f))
     y[1, 2] = float("nan")
     new = est.update(state, y)
     assert bool(torch.isfinite(new.mean).all() and torch.isfinite(new.cov).all())
@@ -169,7 +200,7 @@ def test_non_finite_measurement_row_is_skipped_and_flagged(cls, dtype):
     assert torch.equal(new.mean[1], state.mean[1]) and torch.equal(new.cov[1], state.cov[1])
     assert not torch.equal(new.mean[0], state.mean[0])
     # predict clears the bits of the previous step
-    assert bool((est.predict(new, torch.ones(3, 2, dtype=dtype), 0.1).status == 0).all())
+    assert bool((est.predict(new, torch.ones(3, 2, **f), 0.1).status == 0).all())
 
 
 @pytest.mark.parametrize("cls", [UKF, HybridEKFUKF], ids=lambda c: c.__name__)
@@ -194,22 +225,23 @@ def test_indefinite_covariance_is_regularized_not_nan(cls, dtype):
 
 
 @pytest.mark.parametrize("cls", FILTERS, ids=lambda c: c.__name__)
-def test_gradcheck_through_predict_and_update(cls):
+def test_gradcheck_through_predict_and_update(cls, device):
     """Gradients of the posterior w.r.t. the prior mean, the control and the measurement
     (through the autograd Jacobians, the matrix exponentials and the Cholesky factors)."""
-    dyn = AccelUnicycle(sigma=torch.tensor([0.05, 0.05, 0.1, 0.1], dtype=torch.float64))
+    f64 = {"dtype": torch.float64, "device": device}
+    dyn = AccelUnicycle(sigma=torch.tensor([0.05, 0.05, 0.1, 0.1])).to(**f64)
     lm = torch.tensor([[4.0, 3.0], [-3.0, 4.0]], dtype=torch.float64)
-    sensor = RangeBearing(lm, 0.1, 0.05, heading_index=3)
+    sensor = RangeBearing(lm, 0.1, 0.05, heading_index=3).to(**f64)
     est = cls(dyn, sensor)
-    P0 = torch.diag(torch.tensor([0.1, 0.1, 0.05, 0.05], dtype=torch.float64))
+    P0 = torch.diag(torch.tensor([0.1, 0.1, 0.05, 0.05], **f64))
 
     def run(x0, u, y):
         state = est.step(est.init(x0, P0), u, 0.1, y)
         return state.mean, state.cov
 
     g = torch.Generator().manual_seed(0)
-    x0 = (torch.randn(2, 4, generator=g, dtype=torch.float64) * 0.2).requires_grad_()
-    u = torch.randn(2, 2, generator=g, dtype=torch.float64).requires_grad_()
+    x0 = (torch.randn(2, 4, generator=g, dtype=torch.float64) * 0.2).to(device).requires_grad_()
+    u = torch.randn(2, 2, generator=g, dtype=torch.float64).to(device).requires_grad_()
     y = sensor.expected(x0.detach() + 0.05).requires_grad_()
     assert torch.autograd.gradcheck(run, (x0, u, y), atol=1e-6, rtol=1e-5, fast_mode=True)
 
