@@ -52,13 +52,13 @@ def test_classification_loss_matches_a_loop(device, dtype) -> None:
         classification_loss(h, safe.float())
 
 
-def test_condition_at_filter_solution_matches_analytic_reference(dtype) -> None:
+def test_condition_at_filter_solution_matches_analytic_reference(dtype, device) -> None:
     # single integrator, |u_i| <= 1, h = |x|^2 - 1, alpha = 2: a = 2x, b = 2 h
     dyn = SingleIntegrator(2, u_min=-1.0, u_max=1.0)
-    filt = SafetyFilter(dyn, Ball([0.0, 0.0], 1.0), alpha=2.0).to(dtype)
+    filt = SafetyFilter(dyn, Ball([0.0, 0.0], 1.0), alpha=2.0).to(device, dtype)
     gen = torch.Generator().manual_seed(1)
-    x = (torch.rand(400, 2, generator=gen, dtype=F64) * 4 - 2).to(dtype)
-    u_nom = (torch.rand(400, 2, generator=gen, dtype=F64) * 2 - 1).to(dtype)
+    x = (torch.rand(400, 2, generator=gen, dtype=F64) * 4 - 2).to(device, dtype)
+    u_nom = (torch.rand(400, 2, generator=gen, dtype=F64) * 2 - 1).to(device, dtype)
     out = filt(x, u_nom)
     a, b = 2 * x, 2 * ((x**2).sum(-1) - 1)
     nominal = (a * u_nom).sum(-1) + b
@@ -77,25 +77,28 @@ def test_condition_at_filter_solution_matches_analytic_reference(dtype) -> None:
     assert torch.equal(relaxed, best < -1e-3) or bool((relaxed == (best < 0)).float().mean() > 0.99)
 
 
-def _small_filter(u_max: float = 0.5) -> tuple[SafetyFilter, torch.Tensor, torch.Tensor]:
+def _small_filter(
+    u_max: float = 0.5, device: torch.device | str = "cpu"
+) -> tuple[SafetyFilter, torch.Tensor, torch.Tensor]:
     torch.manual_seed(0)
     net = MLP(2, (5,), activation="tanh").double()
     with torch.no_grad():
         net.layers[-1].weight.mul_(0.3)
     barrier = NeuralBarrier(net, offset=Ball([0.0, 0.0], 1.0))
     dyn = SingleIntegrator(2, u_min=-u_max, u_max=u_max)
-    filt = SafetyFilter(dyn, barrier, alpha=LinearClassK(1.0, learnable=True)).double()
+    filt = SafetyFilter(dyn, barrier, alpha=LinearClassK(1.0, learnable=True))
+    filt = filt.to(device=device, dtype=F64)
     x = torch.tensor(
         [[0.2, 0.1], [-0.3, 0.4], [1.1, 0.2], [0.1, -1.2], [2.0, 1.5], [-1.8, -1.9]], dtype=F64
     )
     u_nom = torch.tensor(
         [[0.3, 0.0], [0.0, -0.2], [-0.5, 0.0], [0.0, 0.5], [0.1, 0.1], [0.2, -0.1]], dtype=F64
     )
-    return filt, x, u_nom
+    return filt, x.to(device), u_nom.to(device)
 
 
-def test_gradcheck_cbf_condition_loss_wrt_network_weights() -> None:
-    filt, x, u_nom = _small_filter()
+def test_gradcheck_cbf_condition_loss_wrt_network_weights(device) -> None:
+    filt, x, u_nom = _small_filter(device=device)
     out = filt(x, u_nom)
     status = out.status
     cv = out.constraint_value[:, 0]
@@ -119,10 +122,10 @@ def test_gradcheck_cbf_condition_loss_wrt_network_weights() -> None:
     assert torch.autograd.gradcheck(loss, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
-def test_gradient_through_the_qp_cancels_on_active_rows() -> None:
+def test_gradient_through_the_qp_cancels_on_active_rows(device) -> None:
     # On a row where the filter meets the condition with equality, a.u* + b stays 0 when the
     # weights move (u* follows them): d/dtheta is 0 only if the gradient flows through u*.
-    filt, x, u_nom = _small_filter()
+    filt, x, u_nom = _small_filter(device=device)
     out = filt(x, u_nom)
     row = int(torch.nonzero((out.status == 0) & (out.constraint_value[:, 0].abs() < 1e-8))[0])
     w = filt.barriers[0].net.layers[0].weight

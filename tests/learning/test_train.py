@@ -10,17 +10,17 @@ from torch import nn
 from torchcbf.learning import MLP, load_checkpoint, save_checkpoint, train
 
 
-def _problem() -> tuple[nn.Module, torch.Tensor, torch.Tensor]:
+def _problem(device: torch.device | str = "cpu") -> tuple[nn.Module, torch.Tensor, torch.Tensor]:
     torch.manual_seed(0)
-    model = nn.Linear(3, 1).double()
+    model = nn.Linear(3, 1).to(device=device, dtype=torch.float64)
     gen = torch.Generator().manual_seed(1)
-    x = torch.randn(64, 3, generator=gen, dtype=torch.float64)
-    y = x @ torch.tensor([[1.0], [-2.0], [0.5]], dtype=torch.float64) + 0.3
+    x = torch.randn(64, 3, generator=gen, dtype=torch.float64).to(device)
+    y = x @ torch.tensor([[1.0], [-2.0], [0.5]], dtype=torch.float64, device=device) + 0.3
     return model, x, y
 
 
-def test_train_fits_a_linear_model() -> None:
-    model, x, y = _problem()
+def test_train_fits_a_linear_model(device: torch.device) -> None:
+    model, x, y = _problem(device)
     opt = torch.optim.Adam(model.parameters(), lr=0.05)
     seen: list[int] = []
 
@@ -35,24 +35,25 @@ def test_train_fits_a_linear_model() -> None:
     assert res.losses[-1] < 1e-4 * res.losses[0]
     assert set(res.metrics) == {"rmse"} and res.skipped == 0 and res.seconds_per_step > 0
     w = model.weight.detach().reshape(-1)
-    assert torch.allclose(w, torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64), atol=1e-3)
+    want = torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64, device=device)
+    assert torch.allclose(w, want, atol=1e-3)
 
 
-def test_checkpoint_round_trip_and_resume_equals_one_run(tmp_path) -> None:
+def test_checkpoint_round_trip_and_resume_equals_one_run(tmp_path, device) -> None:
     def run(model: nn.Module, opt: torch.optim.Optimizer, steps: int, start: int = 0, **kw):
-        _, x, y = _problem()
+        _, x, y = _problem(device)
         loss_fn = lambda s: ((model(x) - y) ** 2).mean()  # noqa: E731
         return train(loss_fn, opt, steps, start_step=start, progress=False, **kw)
 
-    ref, _, _ = _problem()
+    ref, _, _ = _problem(device)
     run(ref, torch.optim.Adam(ref.parameters(), lr=0.05), 20)
 
-    model, _, _ = _problem()
+    model, _, _ = _problem(device)
     opt = torch.optim.Adam(model.parameters(), lr=0.05)
     path = tmp_path / "ckpt" / "model.pt"
     res = run(model, opt, 10, checkpoint=path, checkpoint_every=5, module=model)
     assert path.exists() and res.step == 10
-    fresh, _, _ = _problem()
+    fresh, _, _ = _problem(device)
     with torch.no_grad():
         fresh.weight.zero_()
     fresh_opt = torch.optim.Adam(fresh.parameters(), lr=0.05)
