@@ -13,6 +13,7 @@ import torch
 pytest.importorskip("pytorch_kinematics")
 
 from _arm_reference import LENGTHS, fd_jacobian, planar_fk  # noqa: E402
+from conftest import device_matches_cpu  # noqa: E402
 
 from torchcbf.dynamics.manipulator import (  # noqa: E402
     JointSpaceController,
@@ -169,11 +170,27 @@ def test_dtype_device_and_module_to(planar: Manipulator) -> None:
     torch.testing.assert_close(arm.fk(q64), planar_fk(q64), atol=1e-6, rtol=0)
     # the chain cache is per instance: another arm is unaffected
     assert (torch.float32, torch.device("cpu")) not in Manipulator("planar3")._chains
-    if torch.cuda.is_available():
-        arm.cuda()
-        out = arm.fk(q64.cuda())
-        assert out.device.type == "cuda"
-        torch.testing.assert_close(out.cpu(), planar_fk(q64), atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("name", ["planar3", "arm7"])
+def test_device_answers_equal_cpu_answers(name: str, dtype: torch.dtype, device) -> None:
+    """Forward kinematics, the end effector and its Jacobian on a device module give the
+    CPU's answers (and the hand-written planar kinematics)."""
+    gen = torch.Generator().manual_seed(4)
+    q = Manipulator(name).random_configurations(32, generator=gen, dtype=torch.float64)
+
+    def run(dev: torch.device):
+        arm = Manipulator(name).to(dev)
+        qd = q.to(device=dev, dtype=dtype)
+        ee, J = arm.end_effector_and_jacobian(qd)
+        return arm.fk(qd), ee, J
+
+    fk, _, J = device_matches_cpu(run, device, dtype, rtol=0, atol=_tol(dtype))
+    assert fk.dtype == dtype
+    if name == "planar3":
+        torch.testing.assert_close(fk.cpu().double(), planar_fk(q), atol=_tol(dtype), rtol=0)
+        want = planar_jacobian(q)
+        torch.testing.assert_close(J.cpu().double(), want, atol=_tol(dtype), rtol=0)
 
 
 def test_control_affine_structure(dtype: torch.dtype) -> None:
