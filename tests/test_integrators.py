@@ -69,11 +69,11 @@ def test_rk4_matches_exact_solution_with_control(dtype: torch.dtype, device) -> 
 
 @pytest.mark.parametrize("batch", [(), (4,), (3, 5)])
 @pytest.mark.parametrize("method", ["euler", "rk4", "euler_maruyama"])
-def test_batched_equals_loop(method: str, batch: tuple[int, ...]) -> None:
-    model = VanDerPol(mu=2.0).double()
+def test_batched_equals_loop(method: str, batch: tuple[int, ...], device) -> None:
+    model = VanDerPol(mu=2.0).to(device=device, dtype=torch.float64)
     gen = torch.Generator().manual_seed(1)
-    x = torch.randn(*batch, 2, generator=gen, dtype=torch.float64)
-    u = torch.randn(*batch, 1, generator=gen, dtype=torch.float64)
+    x = torch.randn(*batch, 2, generator=gen, dtype=torch.float64).to(device)
+    u = torch.randn(*batch, 1, generator=gen, dtype=torch.float64).to(device)
     out = step(model, x, u, 0.05, method=method)
     flat_x, flat_u, flat_out = x.reshape(-1, 2), u.reshape(-1, 1), out.reshape(-1, 2)
     for i in range(flat_x.shape[0]):
@@ -82,15 +82,16 @@ def test_batched_equals_loop(method: str, batch: tuple[int, ...]) -> None:
         )
 
 
-def test_euler_maruyama_variance_and_seeding() -> None:
+def test_euler_maruyama_variance_and_seeding(device) -> None:
     sigma, dt, steps, paths = 0.7, 0.01, 50, 100_000
-    model = SingleIntegrator(1, sigma=sigma).double()
+    model = SingleIntegrator(1, sigma=sigma).to(device=device, dtype=torch.float64)
     state = torch.random.get_rng_state()
+    cuda_state = torch.cuda.get_rng_state(device) if device.type == "cuda" else None
 
     def run(seed: int) -> torch.Tensor:
-        gen = torch.Generator().manual_seed(seed)
-        x = torch.zeros(paths, 1, dtype=torch.float64)
-        u = torch.zeros(1, dtype=torch.float64)
+        gen = torch.Generator(device=device).manual_seed(seed)
+        x = torch.zeros(paths, 1, dtype=torch.float64, device=device)
+        u = torch.zeros(1, dtype=torch.float64, device=device)
         for _ in range(steps):
             x = step(model, x, u, dt, method="euler_maruyama", generator=gen)
         return x
@@ -102,6 +103,8 @@ def test_euler_maruyama_variance_and_seeding() -> None:
     assert torch.equal(x, run(3))
     assert not torch.equal(x, run(4))
     assert torch.equal(state, torch.random.get_rng_state())
+    if cuda_state is not None:
+        assert torch.equal(cuda_state, torch.cuda.get_rng_state(device))
 
 
 def test_euler_maruyama_given_noise_and_no_diffusion() -> None:

@@ -124,16 +124,16 @@ def test_to_dtype_moves_buffers(name: str) -> None:
     assert all(b.dtype == torch.float32 for _, b in model.named_buffers())
 
 
-def test_sigma_forms() -> None:
-    x = torch.randn(7, 4, dtype=torch.float64)
-    scalar = AccelUnicycle(sigma=0.28).double().sigma(x)
-    torch.testing.assert_close(scalar, 0.28 * torch.eye(4, dtype=torch.float64).expand(7, 4, 4))
-    vec = AccelUnicycle(sigma=torch.tensor([0.1, 0.2, 0.3, 0.4])).double().sigma(x)
-    torch.testing.assert_close(
-        vec[0], torch.diag(torch.tensor([0.1, 0.2, 0.3, 0.4], dtype=torch.float64))
-    )
-    mat = AccelUnicycle(sigma=torch.ones(4, 2)).sigma(x.float())
-    assert mat.shape == (7, 4, 2)
+def test_sigma_forms(device) -> None:
+    f64 = {"dtype": torch.float64, "device": device}
+    x = torch.randn(7, 4, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    x = x.to(device)
+    scalar = AccelUnicycle(sigma=0.28).to(**f64).sigma(x)
+    torch.testing.assert_close(scalar, 0.28 * torch.eye(4, **f64).expand(7, 4, 4))
+    vec = AccelUnicycle(sigma=torch.tensor([0.1, 0.2, 0.3, 0.4])).to(**f64).sigma(x)
+    torch.testing.assert_close(vec[0], torch.diag(torch.tensor([0.1, 0.2, 0.3, 0.4], **f64)))
+    mat = AccelUnicycle(sigma=torch.ones(4, 2)).to(device).sigma(x.float())
+    assert mat.shape == (7, 4, 2) and mat.device.type == device.type
 
     def state_sigma(state: torch.Tensor) -> torch.Tensor:
         return torch.diag_embed(state.abs())
@@ -143,15 +143,16 @@ def test_sigma_forms() -> None:
     assert not AccelUnicycle().has_diffusion and AccelUnicycle().sigma(x) is None
 
 
-def test_disturbance_and_clamp() -> None:
+def test_disturbance_and_clamp(device) -> None:
     M = torch.tensor([[1.0], [0.0]])
     model = SingleIntegrator(
         2, disturbance_bound=0.5, disturbance_matrix=M, u_min=[-1, -2], u_max=[1, 2]
-    )
-    x, u, w = torch.zeros(3, 2), torch.ones(3, 2), torch.full((3, 1), 0.25)
-    torch.testing.assert_close(model(x, u, w), torch.tensor([[1.25, 1.0]]).expand(3, 2))
+    ).to(device)
+    d = {"device": device}
+    x, u, w = torch.zeros(3, 2, **d), torch.ones(3, 2, **d), torch.full((3, 1), 0.25, **d)
+    torch.testing.assert_close(model(x, u, w), torch.tensor([[1.25, 1.0]], **d).expand(3, 2))
     torch.testing.assert_close(
-        model.clamp_control(torch.tensor([5.0, -5.0])), torch.tensor([1.0, -2.0])
+        model.clamp_control(torch.tensor([5.0, -5.0], **d)), torch.tensor([1.0, -2.0], **d)
     )
     assert model.disturbance_bound.shape == (1,)
     tensor_bound = SingleIntegrator(2, disturbance_bound=torch.tensor([0.1, 0.2]))
