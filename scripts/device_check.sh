@@ -1,0 +1,234 @@
+#!/usr/bin/env bash
+# One call on a lent GPU machine: install torchcbf from the working tree (no network), run
+# the figures of scripts/device_figures.py, the tests that exercise the device, the
+# benchmark scripts (torchcbf bench --quick) and scenario A, and write to $OUT:
+#
+#   device_check.json  every figure, the card's name, date, commit, versions, the test
+#                      counts and failed ids, each step's exit status and seconds
+#   report.md          the same as Markdown tables (scripts/device_report.py)
+#   figures.log tests.log bench.log install.log scenarios.log   the raw logs
+#   tests.xml          pytest's JUnit file
+#
+# Steps, in order of value, each bounded by its own time budget (seconds, flags below):
+#   install (60) -> figures (150, a figure started in time may run on up to 60 more)
+#   -> tests (120) -> bench (120, shared by the scripts) -> scenario A (45)
+# which keeps the whole run under 9 minutes at worst, about 5 where the steps end early. A step that fails does not stop the others;
+# the script ends with a list of the failed steps and exit status 1 if there is any.
+#
+# Before the device call, HERE (the machine with the project's .venv), once per session:
+#
+#   bash scripts/device_check.sh --prepare
+#
+# copies the pure-Python packages the device image lacks (pytorch-mppi and its helpers,
+# pytorch-kinematics, gymnasium) from .venv into build/device-carry/site, and records the
+# commit in build/device-carry/commit.txt (the device gets no .git). build/ is git-ignored,
+# so the run call must carry it. The device call (one; what is under $OUT comes back even at the limit):
+#
+#   run(command="bash scripts/device_check.sh", carry=["build/device-carry"], timeout_s=600)
+#
+# Then: python scripts/device_report.py <files_at>/device_check.json --cpu <cpu json>.
+# Rehearsal on a CPU (every step, small sizes): bash scripts/device_check.sh --device cpu
+# --quick --out /tmp/device-check. Packages absent on the device (proxsuite, qpsolvers,
+# cvxpy, clarabel, cbfpy, qpth) make their tests and benchmark lines skip.
+#
+# Flags: --device cuda|cpu (default cuda), --out DIR (default $OUT), --quick (small sizes),
+# --python PY (default python3 on the device, .venv/bin/python here), --no-install,
+# --figures-budget S, --tests-budget S, --bench-budget S, --scenario-budget S,
+# --skip STEP (figures|tests|bench|scenarios; repeatable), --prepare.
+
+set -uo pipefail
+
+DEVICE=cuda
+QUICK=0
+INSTALL=1
+PREPARE=0
+FIGURES_BUDGET=150
+TESTS_BUDGET=120
+BENCH_BUDGET=120
+SCENARIO_BUDGET=45
+SKIP=" "
+PY=""
+DEST="${OUT:-}"
+
+die() { echo "device_check: $*" >&2; exit 2; }
+
+while [ $# -gt 0 ]; do
+    case "$1" in
+        --device) DEVICE="$2"; shift 2 ;;
+        --out) DEST="$2"; shift 2 ;;
+        --quick) QUICK=1; shift ;;
+        --python) PY="$2"; shift 2 ;;
+        --no-install) INSTALL=0; shift ;;
+        --prepare) PREPARE=1; shift ;;
+        --figures-budget) FIGURES_BUDGET="$2"; shift 2 ;;
+        --tests-budget) TESTS_BUDGET="$2"; shift 2 ;;
+        --bench-budget) BENCH_BUDGET="$2"; shift 2 ;;
+        --scenario-budget) SCENARIO_BUDGET="$2"; shift 2 ;;
+        --skip) SKIP="$SKIP$2 "; shift 2 ;;
+        -h|--help) sed -n '2,40p' "$0"; exit 0 ;;
+        *) die "unknown argument '$1' (see --help)" ;;
+    esac
+done
+
+REPO="$(cd "$(dirname "$0")/.." && pwd)"
+cd "$REPO" || die "cannot enter $REPO"
+CARRY="$REPO/build/device-carry"
+
+if [ "$PREPARE" = 1 ]; then
+    PY="${PY:-$REPO/.venv/bin/python}"
+    [ -x "$PY" ] || die "--prepare: no python at $PY (--python PY)"
+    rm -rf "$CARRY" && mkdir -p "$CARRY/site" || die "cannot create $CARRY"
+    for pkg in pytorch_mppi arm_pytorch_utilities pytorch_seed pytorch_kinematics gymnasium \
+               farama_notifications; do
+        src="$("$PY" -c "import importlib.util as u, os; s = u.find_spec('$pkg'); \
+print(os.path.dirname(s.origin) if s and s.origin else '')" 2>/dev/null)"
+        [ -n "$src" ] && [ -d "$src" ] || die "--prepare: $pkg is not installed in $PY"
+        cp -r "$src" "$CARRY/site/" || die "--prepare: copying $src failed"
+    done
+    find "$CARRY/site" -name __pycache__ -type d -prune -exec rm -rf {} +
+    commit="$(git rev-parse HEAD)" || die "--prepare: not a git checkout"
+    dirty=""; [ -n "$(git status --porcelain --untracked-files=no)" ] && dirty=" dirty"
+    echo "$commit$dirty" >"$CARRY/commit.txt"
+    echo "prepared $CARRY ($(du -sh "$CARRY" | cut -f1)), commit $commit$dirty"
+    echo "device call: run(command=\"bash scripts/device_check.sh\", carry=[\"build/device-carry\"], timeout_s=600)"
+    exit 0
+fi
+
+[ -n "$DEST" ] || die "no output folder: set OUT or pass --out DIR"
+case "$DEVICE" in cpu|cuda) ;; *) die "--device must be cpu or cuda, not '$DEVICE'" ;; esac
+mkdir -p "$DEST" || die "cannot create $DEST"
+DEST="$(cd "$DEST" && pwd)"
+if [ -z "$PY" ]; then
+    if [ -x "$REPO/.venv/bin/python" ]; then PY="$REPO/.venv/bin/python"; else PY=python3; fi
+fi
+command -v "$PY" >/dev/null || die "no python '$PY'"
+export PYTHONUNBUFFERED=1 MPLBACKEND=Agg
+if [ -d "$CARRY/site" ]; then
+    export PYTHONPATH="$CARRY/site${PYTHONPATH:+:$PYTHONPATH}"
+elif [ "$DEVICE" = cuda ]; then
+    echo "device_check: WARNING: $CARRY/site is missing (run --prepare here and carry" \
+         "build/device-carry): pytorch-mppi, arm and gymnasium tests and lines will skip" >&2
+fi
+STEPS="$DEST/steps.tsv"
+: >"$STEPS"
+FAILED=""
+
+# step NAME RC SECONDS NOTE: one line of the step table
+step() {
+    printf '%s\t%s\t%s\t%s\n' "$1" "$2" "$3" "$4" >>"$STEPS"
+    if [ "$2" != 0 ]; then FAILED="$FAILED $1"; echo "device_check: step $1 FAILED (exit $2): $4" >&2; fi
+}
+skipped() { case "$SKIP" in *" $1 "*) return 0 ;; *) return 1 ;; esac; }
+now() { date +%s.%N; }
+since() { awk -v a="$1" -v b="$(now)" 'BEGIN { printf "%.1f", b - a }'; }
+
+# --- the device and torch, before anything else -------------------------------------------
+"$PY" - "$DEVICE" <<'EOF' || die "torch does not import or does not see the device (above)"
+import sys
+import torch
+device = sys.argv[1]
+print(f"python {sys.version.split()[0]}, torch {torch.__version__}, cuda {torch.version.cuda}")
+if device == "cuda":
+    if not torch.cuda.is_available():
+        sys.exit("--device cuda, but torch.cuda.is_available() is False")
+    print("card:", torch.cuda.get_device_name(0))
+EOF
+command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm \
+    --format=csv >"$DEST/install.log" 2>&1
+
+# --- install ------------------------------------------------------------------------------
+t0=$(now)
+if [ "$INSTALL" = 1 ]; then
+    if timeout 60 "$PY" -m pip install --no-deps --no-build-isolation --no-index -e . \
+            >>"$DEST/install.log" 2>&1; then
+        step install 0 "$(since "$t0")" "pip install -e . (no deps, no index)"
+    else
+        # an older setuptools rejects pyproject.toml's metadata: build the C kernels (CPU
+        # only) in place from setup.py alone, in a folder without pyproject.toml whose
+        # torchcbf/ is the tree's; the package itself runs from the tree
+        tmpb="$(mktemp -d)"
+        ln -s "$REPO/torchcbf" "$tmpb/torchcbf" && cp setup.py "$tmpb/"
+        (cd "$tmpb" && timeout 120 "$PY" setup.py build_ext --inplace) >>"$DEST/install.log" 2>&1
+        rc=$?
+        rm -rf "$tmpb"
+        step install 1 "$(since "$t0")" "pip install -e . failed (install.log); C kernels by setup.py build_ext --inplace: exit $rc; running from PYTHONPATH"
+    fi
+else
+    step install 0 0 "skipped (--no-install); running from PYTHONPATH"
+fi
+# the working tree comes first on sys.path, whatever was installed before
+export PYTHONPATH="$REPO${PYTHONPATH:+:$PYTHONPATH}"
+"$PY" -c "import torchcbf, torchcbf.cli; print('torchcbf', torchcbf.__version__, 'from', torchcbf.__file__)" \
+    >>"$DEST/install.log" 2>&1 || { cat "$DEST/install.log" >&2; die "torchcbf does not import"; }
+"$PY" -m torchcbf.cli info >>"$DEST/install.log" 2>&1
+tail -n 3 "$DEST/install.log"
+
+# --- figures ------------------------------------------------------------------------------
+if ! skipped figures; then
+    t0=$(now)
+    quick=(); [ "$QUICK" = 1 ] && quick=(--quick)
+    timeout -k 10 $((FIGURES_BUDGET + 60)) "$PY" scripts/device_figures.py --device "$DEVICE" \
+        "${quick[@]}" --budget "$FIGURES_BUDGET" --out "$DEST/figures.json" 2>&1 | tee "$DEST/figures.log"
+    step figures "${PIPESTATUS[0]}" "$(since "$t0")" "scripts/device_figures.py (figures.log)"
+fi
+
+# --- tests on the device --------------------------------------------------------------------
+if ! skipped tests; then
+    t0=$(now)
+    par=()
+    if [ "$DEVICE" = cuda ] && "$PY" -c "import xdist" 2>/dev/null; then par=(-n 4); fi
+    # SIGINT at the budget: pytest stops and still writes the JUnit file of what ran
+    TORCHCBF_TEST_DEVICES="$DEVICE" timeout -s INT -k 30 "$TESTS_BUDGET" "$PY" -m pytest \
+        -m "device and not slow" -q -p no:cacheprovider "${par[@]}" --durations=15 \
+        --junitxml="$DEST/tests.xml" >"$DEST/tests.log" 2>&1
+    rc=$?
+    tail -n 5 "$DEST/tests.log"
+    note="TORCHCBF_TEST_DEVICES=$DEVICE pytest -m 'device and not slow' (tests.log)"
+    [ "$rc" = 124 ] || [ "$rc" = 130 ] || [ "$rc" = 2 ] && note="$note; stopped at the budget or interrupted"
+    step tests "$rc" "$(since "$t0")" "$note"
+fi
+
+# --- benchmark scripts ------------------------------------------------------------------------
+if ! skipped bench; then
+    # one script at a time, each with its share of the budget, so that one slow script does
+    # not starve the others (the share is in bench.log)
+    : >"$DEST/bench.log"
+    names="$("$PY" -m torchcbf.cli bench --list | awk '{print $1}')"
+    count="$(echo "$names" | wc -w)"
+    [ "$count" -gt 0 ] || step bench 1 0 "torchcbf bench --list found no scripts"
+    for name in $names; do
+        t0=$(now)
+        share=$((BENCH_BUDGET / count))
+        echo "### torchcbf bench --only $name --device $DEVICE --quick (budget ${share} s)" >>"$DEST/bench.log"
+        timeout -s INT -k 10 "$share" "$PY" -m torchcbf.cli bench --only "$name" --device "$DEVICE" \
+            --quick >>"$DEST/bench.log" 2>&1
+        rc=$?
+        note="torchcbf bench --only $name --device $DEVICE --quick (bench.log)"
+        [ "$rc" = 124 ] && note="$note: stopped at its ${share} s budget"
+        step "bench_$name" "$rc" "$(since "$t0")" "$note"
+    done
+fi
+
+# --- scenario A ----------------------------------------------------------------------------
+if ! skipped scenarios; then
+    t0=$(now)
+    if [ "$QUICK" = 1 ]; then size=(--seeds 2 --samples 500); else size=(--seeds 10 --samples 10000); fi
+    tmp="$(mktemp -d)"
+    timeout -s INT -k 10 "$SCENARIO_BUDGET" "$PY" -m torchcbf.cli reach-avoid "${size[@]}" \
+        --device "$DEVICE" --out "$tmp/reach-avoid" --no-gif --no-progress >"$DEST/scenarios.log" 2>&1
+    rc=$?
+    step scenario_a "$rc" "$(since "$t0")" "torchcbf reach-avoid ${size[*]} --device $DEVICE --no-gif (wall seconds, figures included)"
+    rm -rf "$tmp"
+fi
+
+# --- the JSON and the report ---------------------------------------------------------------
+"$PY" scripts/device_figures.py --collect "$DEST" || die "collecting device_check.json failed"
+"$PY" scripts/device_report.py "$DEST/device_check.json" --out "$DEST/report.md" \
+    || die "scripts/device_report.py failed"
+rm -f "$DEST/figures.json" "$DEST/steps.tsv"  # both are inside device_check.json
+cat "$DEST/report.md"
+if [ -n "$FAILED" ]; then
+    echo "device_check: FAILED steps:$FAILED (logs in $DEST)" >&2
+    exit 1
+fi
+echo "device_check: all steps passed; $DEST/device_check.json"
