@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import _devices, assert_same_answers, device_matches_cpu
+from _devices import assert_same_answers, device_matches_cpu, devices
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -25,16 +25,16 @@ def _script(name: str):
 
 def test_devices_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("TORCHCBF_TEST_DEVICES", raising=False)
-    assert _devices() == ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    assert devices() == ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     monkeypatch.setenv("TORCHCBF_TEST_DEVICES", " cpu, cpu ")
-    assert _devices() == ["cpu"]
+    assert devices() == ["cpu"]
     monkeypatch.setenv("TORCHCBF_TEST_DEVICES", "tpu")
     with pytest.raises(pytest.UsageError, match=r"\['tpu'\] not present"):
-        _devices()
+        devices()
     if not torch.cuda.is_available():
         monkeypatch.setenv("TORCHCBF_TEST_DEVICES", "cpu,cuda")
         with pytest.raises(pytest.UsageError, match=r"\['cuda'\] not present"):
-            _devices()
+            devices()
 
 
 def test_same_answers_tolerances_and_exact_leaves() -> None:

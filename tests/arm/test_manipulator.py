@@ -13,7 +13,7 @@ import torch
 pytest.importorskip("pytorch_kinematics")
 
 from _arm_reference import LENGTHS, fd_jacobian, planar_fk  # noqa: E402
-from conftest import device_matches_cpu  # noqa: E402
+from _devices import device_matches_cpu  # noqa: E402
 
 from torchcbf.dynamics.manipulator import (  # noqa: E402
     JointSpaceController,

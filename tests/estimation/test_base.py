@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import device_matches_cpu
+from _devices import device_matches_cpu
 
 from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, Unicycle
 from torchcbf.estimation import (

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from _devices import device_matches_cpu
 from _filter_reference import (
     BETA,
     CENTERS,
@@ -31,7 +32,6 @@ from _filter_reference import (
     rows,
     solve_reference,
 )
-from conftest import device_matches_cpu
 
 from torchcbf.barriers import Ball, HalfSpace, QuadraticLyapunov
 from torchcbf.dynamics import SingleIntegrator, Unicycle

@@ -7,7 +7,7 @@ from typing import NamedTuple
 
 import pytest
 import torch
-from conftest import device_matches_cpu
+from _devices import device_matches_cpu
 
 from torchcbf.barriers import Ball, rectify
 from torchcbf.dynamics import AccelUnicycle, SingleIntegrator
