@@ -348,7 +348,10 @@ def build(
             )
         safety_filter = safety_filter.to(device=device, dtype=dtype)
         if method == "shield_mppi":
-            planner = ShieldMPPI(planner, safety_filter)
+            # one filter call per control step: the loop's filter feeds its control back
+            # into the plan, so the shield does not filter again on replanning steps
+            planner = ShieldMPPI(planner, safety_filter, in_loop=True)
+            safety_filter = planner.loop_filter
 
     x0 = torch.tensor(X0, device=device, dtype=dtype).repeat(num_seeds, 1)
     goal_region = Goal(GOAL, 0.25, deadline=STEPS * DT)
