@@ -11,7 +11,9 @@ torchcbf (torch and proxsuite backends), proxsuite's torch ``QPFunction``, qpth'
 ``QPFunction`` and cvxpylayers (small batches; skipped if not installed). Also prints the
 headline lines: fwd+bwd at B=4096, n=4, m=8; forward latency at B=1 (n=2, m=6 and
 n=8, m=12, under ``torch.no_grad()``) against proxsuite's dense solver called directly in the
-same run; and forward throughput at B=1,000,000, n=2, m=6 on --device. Figures taken on a
+same run; equality-constrained QPs (one QP against proxsuite's dense solver, batches
+against qpax, ``--equality-only`` for just these); and forward throughput at B=1,000,000,
+n=2, m=6 on --device. Figures taken on a
 loaded machine vary: the load average is printed, compare ratios within one run.
 
     python scripts/bench_qp.py --quick
@@ -157,6 +159,94 @@ def proxsuite_dense_direct(Q, p, G, h) -> Callable[[], None]:
     return solve
 
 
+def make_equality_problems(B: int, n: int, m: int, k: int, seed: int = 0):
+    """Random feasible QPs with ``k`` equality rows: ``Q`` positive definite, the point
+    ``x0`` satisfies ``A x0 = b`` and every inequality with slack, some made tight."""
+    g = torch.Generator().manual_seed(seed)
+    f64 = torch.float64
+    L = torch.randn(B, n, n, generator=g, dtype=f64)
+    Q = L @ L.mT / n + 0.5 * torch.eye(n, dtype=f64)
+    p = 3.0 * torch.randn(B, n, generator=g, dtype=f64)
+    x0 = torch.randn(B, n, generator=g, dtype=f64)
+    G = torch.randn(B, m, n, generator=g, dtype=f64)
+    h = (G @ x0.unsqueeze(-1)).squeeze(-1) + 0.2 * torch.rand(B, m, generator=g, dtype=f64)
+    A = torch.randn(B, k, n, generator=g, dtype=f64)
+    b = (A @ x0.unsqueeze(-1)).squeeze(-1)
+    return Q, p, G, h, A, b
+
+
+def proxsuite_equality_direct(Q, p, G, h, A, b) -> Callable[[], None]:
+    """Forward of one QP with equalities through proxsuite's dense solver (eps 1e-9)."""
+    from proxsuite import proxqp
+
+    Qn, pn, Gn, hn, An, bn = (t.numpy() for t in (Q, p, G, h, A, b))
+    n, m, k = pn.shape[0], hn.shape[0], bn.shape[0]
+    lower = np.full(m, -1e20)
+
+    def solve() -> None:
+        qp = proxqp.dense.QP(n, k, m)
+        qp.settings.eps_abs = 1e-9
+        qp.settings.verbose = False
+        qp.init(Qn, pn, An, bn, Gn, lower, hn)
+        qp.solve()
+
+    return solve
+
+
+def qpax_batch(Q, p, G, h, A, b) -> Callable[[], None] | None:
+    """qpax (jax, float64, ``jit(vmap(solve_qp))``) on the batch; ``None`` if not installed."""
+    try:
+        import jax
+        import jax.numpy as jnp
+        import qpax
+    except ImportError:
+        return None
+    jax.config.update("jax_enable_x64", True)
+    data = [jnp.asarray(t.numpy()) for t in (Q, p, A, b, G, h)]
+    solve = jax.jit(jax.vmap(lambda *a: qpax.solve_qp(*a)[0]))
+
+    def run() -> None:
+        solve(*data).block_until_ready()
+
+    return run
+
+
+def equality_lines() -> None:
+    """One QP with equalities against proxsuite's dense solver, and batches against qpax."""
+    print("\n# equality-constrained QPs (forward, float64, under torch.no_grad())")
+    for n, m, k in ((10, 8, 3), (50, 40, 10)):
+        one = tuple(t[0] for t in make_equality_problems(1, n, m, k, seed=n))
+        with torch.no_grad():
+            sol = solve_qp(*one)
+            t1 = timeit(lambda one=one: solve_qp(*one), min_time=1.0, max_reps=2000)
+        direct = proxsuite_equality_direct(*one)
+        t_px = timeit(direct, min_time=1.0, max_reps=2000)
+        print(
+            f"one QP n={n} m={m} k={k}: torchcbf (auto, path {sol.path}, status "
+            f"{Status(int(sol.status)).name}) {t1 * 1e6:.1f} us; proxsuite dense (construct + "
+            f"solve) {t_px * 1e6:.1f} us; torchcbf/proxsuite {t1 / t_px:.2f}"
+        )
+    for B, n, m, k in ((64, 10, 8, 3), (1000, 10, 8, 3), (1000, 4, 6, 2)):
+        data = make_equality_problems(B, n, m, k, seed=B + n)
+        with torch.no_grad():
+            sol = solve_qp(*data)
+            t_ours = timeit(lambda data=data: solve_qp(*data), min_time=1.0, max_reps=20) / B
+        solved = int((sol.status == Status.SOLVED).sum())
+        line = (
+            f"B={B} n={n} m={m} k={k}: torchcbf (auto, path {sol.path}) "
+            f"{t_ours * 1e6:.2f} us/QP (solved {solved}/{B})"
+        )
+        run = qpax_batch(*data)
+        if run is None:
+            line += "; qpax not installed"
+        else:
+            t_qpax = timeit(run, min_time=1.0, max_reps=20) / B
+            line += (
+                f"; qpax (jit+vmap) {t_qpax * 1e6:.2f} us/QP -> torchcbf/qpax {t_ours / t_qpax:.2f}"
+            )
+        print(line)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="small subset of the grid")
@@ -168,10 +258,18 @@ def main() -> None:
     )
     parser.add_argument("--big", type=int, default=1_000_000, help="batch of the throughput line")
     parser.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
+    parser.add_argument(
+        "--equality-only", action="store_true", help="only the equality-constrained lines"
+    )
     args = parser.parse_args()
     dev = args.device
     if args.threads is not None:
         torch.set_num_threads(args.threads)
+    if args.equality_only:
+        load = os.getloadavg()
+        print(f"# threads {torch.get_num_threads()}, load average {load[0]:.2f}")
+        equality_lines()
+        return
 
     peers: dict[str, Callable | None] = {}
     notes = []
@@ -341,6 +439,8 @@ def main() -> None:
     line = [f"{m}: {timeit(lambda m=m: filt(m), min_time=0.5, max_reps=200) * 1e3:.3f} ms"
             for m in ("auto", "enumerate", "ipm")]  # fmt: skip
     print("B=1 n=3 m=8 + box forward (filter shape, 431 candidates): " + ", ".join(line))
+
+    equality_lines()
 
     # 3) throughput at B=big, n=2, m=6 on --device
     B = args.big

@@ -1,5 +1,5 @@
 """A few QPs without gradients, straight from the tensors' memory into proxsuite's dense
-solver, verified in numpy.
+solver, verified (and, where small, polished) in numpy.
 
 One mid-size QP (or a handful) costs proxsuite well under a millisecond where it is small;
 the general path's tensor operations around it would cost more than the solve. This path
@@ -20,7 +20,6 @@ import torch
 from torch import Tensor
 
 from torchcbf.qp._function import ROUTE_EPS, ROUTE_MAX_ITER
-from torchcbf.qp._ipm import _descent_direction
 
 _BIG = 1e20
 
@@ -115,33 +114,8 @@ def solve_direct(
         return None
     x, lam, y, lam_lb, lam_ub = _polish(P, q, Gn, hn, An, bn, lbn, ubn, free, x, lam, y,
                                         lam_lb, lam_ub)  # fmt: skip
-    qx = (q * x).sum(-1)
-    if (qx < 0).any():  # a minimiser far along a direction of (rounding-level) zero curvature
-        t = [torch.from_numpy(v) for v in (x, qx, P, q, Gn, An)]
-        xt, qxt, Pt, qt, Gt, At = t
-        Gs = torch.where(torch.from_numpy(free).unsqueeze(-1), 0.0, Gt)
-        box = torch.cat(
-            (
-                torch.diag_embed(torch.from_numpy(np.isfinite(ubn)).double()),
-                -torch.diag_embed(torch.from_numpy(np.isfinite(lbn)).double()),
-            ),
-            -2,
-        )
-        Gs = torch.cat((Gs, box), -2)
-        descent = _descent_direction(
-            xt,
-            qxt,
-            (Pt @ xt.unsqueeze(-1)).squeeze(-1),
-            (At @ xt.unsqueeze(-1)).squeeze(-1),
-            (Gs @ xt.unsqueeze(-1)).squeeze(-1),
-            qt.abs().amax(-1),
-            Pt.abs().amax((-2, -1)),
-            At.abs().amax((-2, -1)) if k else torch.zeros(B, dtype=torch.float64),
-            Gs.abs().amax((-2, -1)) if Gs.shape[-2] else torch.zeros(B, dtype=torch.float64),
-            eps_inf,
-        )
-        if bool(descent.any()):
-            return None
+    if _descent(P, q, Gn, An, lbn, ubn, free, x, eps_inf):
+        return None
     dtype = Q.dtype
 
     def out(v: np.ndarray) -> Tensor:
@@ -154,6 +128,10 @@ def solve_direct(
     )  # fmt: skip
 
 
+#: largest active-set system (variables, active rows and equalities) the path polishes:
+#: beyond it the factorisation would cost more than proxsuite's solve, and the answer stays
+#: proxsuite's (accurate to its tolerance, verified to ``eps``)
+POLISH_MAX_UNKNOWNS = 200
 #: a KKT point "to rounding" (the polish's acceptance test), in units of float64's epsilon
 _ROUNDING = 1e4 * np.finfo(np.float64).eps
 
@@ -176,7 +154,8 @@ def _polish(
 ) -> tuple[np.ndarray, ...]:
     """The answers re-solved on their active sets (rows whose multiplier exceeds their
     slack), kept only where every row's re-solved point is a KKT point to rounding;
-    otherwise the answers as given. The active rows are packed (padded with rows that pin
+    otherwise (and where the system has more than :data:`POLISH_MAX_UNKNOWNS` unknowns) the
+    answers as given. The active rows are packed (padded with rows that pin
     their multiplier to zero) and solved with two steps of iterative refinement."""
     B, n = q.shape
     k = b.shape[-1]
@@ -198,6 +177,8 @@ def _polish(
     Ra = np.take_along_axis(R, order[..., None], 1) * valid[..., None]
     ra = np.where(valid, np.take_along_axis(r, order, 1), 0.0)
     N = n + Ka + k
+    if N > POLISH_MAX_UNKNOWNS:
+        return x, lam, y, lam_lb, lam_ub
     K = np.zeros((B, N, N))
     K[:, :n, :n] = P
     K[:, :n, n : n + Ka] = Ra.swapaxes(-1, -2)
@@ -205,13 +186,16 @@ def _polish(
     K[:, n : n + Ka, n : n + Ka] = np.eye(Ka) * ~valid[:, None, :]
     K[:, :n, n + Ka :] = A.swapaxes(-1, -2)
     K[:, n + Ka :, :n] = A
-    rhs = np.concatenate((-q, ra, b), 1)
-    try:
-        w = np.linalg.solve(K, rhs[..., None])
-        for _ in range(2):
-            w = w + np.linalg.solve(K, rhs[..., None] - K @ w)
-    except np.linalg.LinAlgError:
+    rhs = torch.from_numpy(np.concatenate((-q, ra, b), 1)[..., None])
+    Kt = torch.from_numpy(K)
+    # torch's LU (its thread setting, not numpy's BLAS pool), factored once for the refinement
+    LU, pivots, info = torch.linalg.lu_factor_ex(Kt)
+    if bool((info != 0).any()):
         return x, lam, y, lam_lb, lam_ub
+    wt = torch.linalg.lu_solve(LU, pivots, rhs)
+    for _ in range(2):
+        wt = wt + torch.linalg.lu_solve(LU, pivots, rhs - Kt @ wt)
+    w = wt.numpy()
     w = w[..., 0]
     if not np.isfinite(w).all():
         return x, lam, y, lam_lb, lam_ub
@@ -267,6 +251,45 @@ def _exact(
     )
     scale = scale + tol * scale.max(-1, keepdims=True)
     return bool((np.abs(res) <= tol * np.maximum(scale, tiny)).all())
+
+
+def _descent(
+    P: np.ndarray,
+    q: np.ndarray,
+    G: np.ndarray,
+    A: np.ndarray,
+    lb: np.ndarray,
+    ub: np.ndarray,
+    free: np.ndarray,
+    x: np.ndarray,
+    eps_inf: float,
+) -> bool:
+    """Whether some row's ``x`` is a direction of unbounded descent (the test of
+    :func:`torchcbf.qp._ipm._descent_direction`): a minimiser far along a direction where
+    ``P`` is singular to the inputs' rounding, which the general path reports
+    ``DUAL_INFEASIBLE``."""
+    qx = (q * x).sum(-1)
+    xn = eps_inf * np.abs(x).max(-1)
+    thr = -eps_inf * qx
+    cand = (qx < 0) & (qx <= -np.abs(q).max(-1) * xn)
+    if not cand.any():
+        return False
+    px = np.abs(np.einsum("bij,bj->bi", P, x)).max(-1)
+    cand &= px <= np.minimum(thr, np.abs(P).max((-2, -1)) * xn)
+    if A.shape[1]:
+        ax = np.abs(np.einsum("ben,bn->be", A, x)).max(-1)
+        cand &= ax <= np.minimum(thr, np.abs(A).max((-2, -1)) * xn)
+    Gf = np.where(free[..., None], 0.0, G)
+    parts = [np.where(np.isfinite(ub), x, -np.inf), np.where(np.isfinite(lb), -x, -np.inf)]
+    g_max = (
+        np.ones(len(x)) if (np.isfinite(ub).any() or np.isfinite(lb).any()) else np.zeros(len(x))
+    )
+    if G.shape[1]:
+        parts.append(np.einsum("bmn,bn->bm", Gf, x))
+        g_max = np.maximum(g_max, np.abs(Gf).max((-2, -1)))
+    gx = np.concatenate(parts, -1).max(-1, initial=-np.inf)
+    cand &= gx <= np.minimum(thr, g_max * xn)
+    return bool(cand.any())
 
 
 def _verified(

@@ -477,13 +477,11 @@ def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
 
 def _direct_applies(inp: _Inputs) -> bool:
     """Whether ``method="auto"`` tries proxsuite straight from the inputs
-    (:mod:`torchcbf.qp._direct`): at most ``ROUTE_MAX_BATCH`` CPU rows with some row or
-    bound, no elastic rows, proxsuite installed, and beyond the real-time C kernel's reach
-    (equality rows, more than ``_dual_native.MAX_VARS`` variables, or no kernel built)."""
-    beyond_kernel = inp.me > 0 or inp.n > _dual_native.MAX_VARS or not _dual_native.available()
+    (:mod:`torchcbf.qp._direct`; after the real-time C kernel, where that applies, has not
+    certified the batch): at most ``ROUTE_MAX_BATCH`` CPU rows with some row or bound, no
+    elastic rows, proxsuite installed."""
     return (
         inp.B <= ROUTE_MAX_BATCH
-        and beyond_kernel
         and inp.soft is None
         and inp.Q.device.type == "cpu"
         and (inp.m + inp.me > 0 or inp.lb is not None or inp.ub is not None)
