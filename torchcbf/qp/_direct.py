@@ -51,7 +51,6 @@ def solve_direct(
     solved; ``None`` where some datum is not finite (other than ``h = +inf``, ``lb = -inf``,
     ``ub = +inf``) or some row is not verified (see the module docstring). CPU tensors,
     batch shapes broadcasting to ``shape``."""
-    from proxsuite import proxqp
 
     B, n = math.prod(shape), p.shape[-1]
     m = 0 if h is None else h.shape[-1]
@@ -76,41 +75,19 @@ def solve_direct(
     ):
         return None
     free = hn == np.inf
-    x = np.zeros((B, n))
-    z = np.zeros((B, m))
-    zb = np.zeros((B, n))
-    y = np.zeros((B, k))
-    iters = np.zeros(B, dtype=np.int64)
     lo_box = np.maximum(lbn, -_BIG)
     hi_box = np.minimum(ubn, _BIG)
-    for i in range(B):
-        rows = np.flatnonzero(~free[i])
-        r = len(rows)
-        qp = proxqp.dense.QP(n, k, r, True)
-        qp.settings.eps_abs = ROUTE_EPS
-        qp.settings.eps_rel = 0.0
-        qp.settings.max_iter = ROUTE_MAX_ITER
-        qp.settings.verbose = False
-        qp.init(
-            P[i], q[i], An[i] if k else None, bn[i] if k else None,
-            Gn[i][rows] if r else None, np.full(r, -_BIG) if r else None,
-            hn[i][rows] if r else None, lo_box[i], hi_box[i],
-        )  # fmt: skip
-        qp.solve()
-        res = qp.results
-        if res.info.status != proxqp.PROXQP_SOLVED:
-            return None
-        x[i] = res.x
-        zr = np.asarray(res.z)
-        z[i, rows] = zr[:r]
-        zb[i] = zr[r:]
-        if k:
-            y[i] = res.y
-        iters[i] = res.info.iter
-    lam = np.maximum(z, 0.0)
-    lam_ub = np.where(np.isfinite(ubn), np.maximum(zb, 0.0), 0.0)
-    lam_lb = np.where(np.isfinite(lbn), np.maximum(-zb, 0.0), 0.0)
-    if not _verified(P, q, Gn, hn, An, bn, lbn, ubn, free, x, lam, y, lam_lb, lam_ub, eps):
+    for box in (False, True):
+        out = _proxsuite(P, q, Gn, hn, An, bn, lo_box, hi_box, free, box=box)
+        if out is None:
+            continue
+        x, z, zb, y, iters = out
+        lam = np.maximum(z, 0.0)
+        lam_ub = np.where(np.isfinite(ubn), np.maximum(zb, 0.0), 0.0)
+        lam_lb = np.where(np.isfinite(lbn), np.maximum(-zb, 0.0), 0.0)
+        if _verified(P, q, Gn, hn, An, bn, lbn, ubn, free, x, lam, y, lam_lb, lam_ub, eps):
+            break
+    else:
         return None
     x, lam, y, lam_lb, lam_ub = _polish(P, q, Gn, hn, An, bn, lbn, ubn, free, x, lam, y,
                                         lam_lb, lam_ub)  # fmt: skip
@@ -126,6 +103,64 @@ def solve_direct(
         out(x), status, out(lam), out(y), torch.from_numpy(iters).reshape(shape),
         out(lam_lb), out(lam_ub), out(np.zeros((B, m))),
     )  # fmt: skip
+
+
+def _proxsuite(
+    P: np.ndarray,
+    q: np.ndarray,
+    G: np.ndarray,
+    h: np.ndarray,
+    A: np.ndarray,
+    b: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    free: np.ndarray,
+    *,
+    box: bool,
+) -> tuple[np.ndarray, ...] | None:
+    """proxsuite's dense solver on every row: ``(x, z, z_bounds, y, iterations)``, or
+    ``None`` where some row is not solved. The bounds go in as proxsuite's box (``box``) or
+    as identity rows of its double-sided inequalities: the rows are often faster, the box
+    more robust (with the rows it has called problems with an optimum infeasible)."""
+    from proxsuite import proxqp
+
+    B, n = q.shape
+    m, k = h.shape[-1], b.shape[-1]
+    x = np.zeros((B, n))
+    z = np.zeros((B, m))
+    zb = np.zeros((B, n))
+    y = np.zeros((B, k))
+    iters = np.zeros(B, dtype=np.int64)
+    eye = np.eye(n)
+    for i in range(B):
+        rows = np.flatnonzero(~free[i])
+        r = len(rows)
+        C, lo_i, hi_i = G[i][rows], np.full(r, -_BIG), h[i][rows]
+        if not box:
+            C = np.vstack((C, eye))
+            lo_i, hi_i = np.concatenate((lo_i, lo[i])), np.concatenate((hi_i, hi[i]))
+        qp = proxqp.dense.QP(n, k, len(lo_i), box)
+        qp.settings.eps_abs = ROUTE_EPS
+        qp.settings.eps_rel = 0.0
+        qp.settings.max_iter = ROUTE_MAX_ITER
+        qp.settings.verbose = False
+        qp.init(
+            P[i], q[i], A[i] if k else None, b[i] if k else None,
+            C if len(lo_i) else None, lo_i if len(lo_i) else None, hi_i if len(lo_i) else None,
+            *((lo[i], hi[i]) if box else ()),
+        )  # fmt: skip
+        qp.solve()
+        res = qp.results
+        if res.info.status != proxqp.PROXQP_SOLVED:
+            return None
+        x[i] = res.x
+        zr = np.asarray(res.z)
+        z[i, rows] = zr[:r]
+        zb[i] = zr[r:]
+        if k:
+            y[i] = res.y
+        iters[i] = res.info.iter
+    return x, z, zb, y, iters
 
 
 #: largest active-set system (variables, active rows and equalities) the path polishes:
