@@ -4,16 +4,19 @@
 # benchmark scripts (torchcbf bench --quick) and scenario A, and write to $OUT:
 #
 #   device_check.json  every figure, the card's name, date, commit, versions, the test
-#                      counts and failed ids, each step's exit status and seconds
+#                      counts and failed ids, each step's exit status and seconds (rewritten
+#                      after every step, so a run stopped at its limit still leaves one)
 #   report.md          the same as Markdown tables (scripts/device_report.py)
-#   figures.log tests.log bench.log install.log scenarios.log   the raw logs
-#   tests.xml          pytest's JUnit file
+#   install.log figures.log tests.log bench.log scenarios.log   the raw logs
+# (7 files: the device tool brings back at most 8)
 #
 # Steps, in order of value, each bounded by its own time budget (seconds, flags below):
-#   install (60) -> figures (150, a figure started in time may run on up to 60 more)
-#   -> tests (120) -> bench (120, shared by the scripts) -> scenario A (45)
-# which keeps the whole run under 9 minutes at worst, about 5 where the steps end early. A step that fails does not stop the others;
-# the script ends with a list of the failed steps and exit status 1 if there is any.
+#   install (150) -> figures (150, a figure started in time may run on up to 60 more)
+#   -> tests (120) -> bench (100, shared by the scripts) -> scenario A (45)
+# about 10 minutes if every step runs to its budget (the JSON is kept up to date, so the
+# call's limit loses only the step it stops), far less where the steps end early. A step
+# that fails does not stop the others; the script ends with a list of the failed steps and
+# exit status 1 if there is any.
 #
 # Before the device call, HERE (the machine with the project's .venv), once per session:
 #
@@ -44,7 +47,7 @@ INSTALL=1
 PREPARE=0
 FIGURES_BUDGET=150
 TESTS_BUDGET=120
-BENCH_BUDGET=120
+BENCH_BUDGET=100
 SCENARIO_BUDGET=45
 SKIP=" "
 PY=""
@@ -109,14 +112,17 @@ elif [ "$DEVICE" = cuda ]; then
     echo "device_check: WARNING: $CARRY/site is missing (run --prepare here and carry" \
          "build/device-carry): pytorch-mppi, arm and gymnasium tests and lines will skip" >&2
 fi
-STEPS="$DEST/steps.tsv"
+WORK="$(mktemp -d)"  # figures.json, tests.xml, steps.tsv: the JSON's pieces
+STEPS="$WORK/steps.tsv"
 : >"$STEPS"
 FAILED=""
 
-# step NAME RC SECONDS NOTE: one line of the step table
+# step NAME RC SECONDS NOTE: one line of the step table, then the JSON so far
 step() {
     printf '%s\t%s\t%s\t%s\n' "$1" "$2" "$3" "$4" >>"$STEPS"
     if [ "$2" != 0 ]; then FAILED="$FAILED $1"; echo "device_check: step $1 FAILED (exit $2): $4" >&2; fi
+    "$PY" scripts/device_report.py --collect "$WORK" "$DEST/device_check.json" \
+        || echo "device_check: writing device_check.json failed" >&2
 }
 skipped() { case "$SKIP" in *" $1 "*) return 0 ;; *) return 1 ;; esac; }
 now() { date +%s.%N; }
@@ -139,9 +145,14 @@ command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version,m
 # --- install ------------------------------------------------------------------------------
 t0=$(now)
 if [ "$INSTALL" = 1 ]; then
-    if timeout 60 "$PY" -m pip install --no-deps --no-build-isolation --no-index -e . \
-            >>"$DEST/install.log" 2>&1; then
+    timeout 150 "$PY" -m pip install --no-deps --no-build-isolation --no-index -e . \
+        >>"$DEST/install.log" 2>&1
+    rc=$?
+    if [ "$rc" = 0 ]; then
         step install 0 "$(since "$t0")" "pip install -e . (no deps, no index)"
+    elif [ "$rc" = 124 ]; then
+        # the build itself is slow here: a second build would be too
+        step install 1 "$(since "$t0")" "pip install -e . stopped after 150 s (install.log); running from PYTHONPATH with whatever C kernels it built"
     else
         # an older setuptools rejects pyproject.toml's metadata: build the C kernels (CPU
         # only) in place from setup.py alone, in a folder without pyproject.toml whose
@@ -168,7 +179,7 @@ if ! skipped figures; then
     t0=$(now)
     quick=(); [ "$QUICK" = 1 ] && quick=(--quick)
     timeout -k 10 $((FIGURES_BUDGET + 60)) "$PY" scripts/device_figures.py --device "$DEVICE" \
-        "${quick[@]}" --budget "$FIGURES_BUDGET" --out "$DEST/figures.json" 2>&1 | tee "$DEST/figures.log"
+        "${quick[@]}" --budget "$FIGURES_BUDGET" --out "$WORK/figures.json" 2>&1 | tee "$DEST/figures.log"
     step figures "${PIPESTATUS[0]}" "$(since "$t0")" "scripts/device_figures.py (figures.log)"
 fi
 
@@ -180,7 +191,7 @@ if ! skipped tests; then
     # SIGINT at the budget: pytest stops and still writes the JUnit file of what ran
     TORCHCBF_TEST_DEVICES="$DEVICE" timeout -s INT -k 30 "$TESTS_BUDGET" "$PY" -m pytest \
         -m "device and not slow" -q -p no:cacheprovider "${par[@]}" --durations=15 \
-        --junitxml="$DEST/tests.xml" >"$DEST/tests.log" 2>&1
+        --junitxml="$WORK/tests.xml" >"$DEST/tests.log" 2>&1
     rc=$?
     tail -n 5 "$DEST/tests.log"
     note="TORCHCBF_TEST_DEVICES=$DEVICE pytest -m 'device and not slow' (tests.log)"
@@ -217,15 +228,17 @@ if ! skipped scenarios; then
     timeout -s INT -k 10 "$SCENARIO_BUDGET" "$PY" -m torchcbf.cli reach-avoid "${size[@]}" \
         --device "$DEVICE" --out "$tmp/reach-avoid" --no-gif --no-progress >"$DEST/scenarios.log" 2>&1
     rc=$?
-    step scenario_a "$rc" "$(since "$t0")" "torchcbf reach-avoid ${size[*]} --device $DEVICE --no-gif (wall seconds, figures included)"
+    cp "$tmp/reach-avoid/metrics.json" "$WORK/scenario_a.json" 2>/dev/null
+    step scenario_a "$rc" "$(since "$t0")" "torchcbf reach-avoid ${size[*]} --device $DEVICE --no-gif (wall seconds: start, run and figures)"
     rm -rf "$tmp"
 fi
 
 # --- the JSON and the report ---------------------------------------------------------------
-"$PY" scripts/device_figures.py --collect "$DEST" || die "collecting device_check.json failed"
+"$PY" scripts/device_report.py --collect "$WORK" "$DEST/device_check.json" \
+    || die "writing device_check.json failed"
 "$PY" scripts/device_report.py "$DEST/device_check.json" --out "$DEST/report.md" \
     || die "scripts/device_report.py failed"
-rm -f "$DEST/figures.json" "$DEST/steps.tsv"  # both are inside device_check.json
+rm -rf "$WORK"
 cat "$DEST/report.md"
 if [ -n "$FAILED" ]; then
     echo "device_check: FAILED steps:$FAILED (logs in $DEST)" >&2

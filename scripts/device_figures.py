@@ -19,8 +19,8 @@ after warm-up calls, with the device synchronised around every call:
 A figure that fails is recorded with its error and the exit status is 1; ``--budget``
 seconds bound the whole run (figures not started in time are recorded as skipped).
 
-``--collect DIR`` instead assembles ``DIR/device_check.json`` from ``DIR/figures.json``, the
-pytest JUnit file ``DIR/tests.xml`` and the step table ``DIR/steps.tsv`` that
+``scripts/device_report.py --collect`` joins this JSON with the test results and the steps
+that
 ``scripts/device_check.sh`` writes.
 
     python scripts/device_figures.py --device cuda --out figures.json
@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import math
 import os
 import platform
 import statistics
@@ -40,7 +39,6 @@ import subprocess
 import sys
 import time
 import traceback
-import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -48,8 +46,10 @@ from typing import Any
 import torch
 
 SCRIPTS = Path(__file__).resolve().parent
-if str(SCRIPTS) not in sys.path:  # the bench scripts' problem builders
+if str(SCRIPTS) not in sys.path:  # the bench scripts' problem builders, device_report
     sys.path.insert(0, str(SCRIPTS))
+
+from device_report import strict_json  # noqa: E402
 
 
 def _sync(device: torch.device) -> None:
@@ -346,78 +346,26 @@ def measure(args: argparse.Namespace) -> int:
     figs = Figures(args.budget)
     info = provenance(device)
     print(f"{info['card']} ({info['device']}), torch {info['torch']}, commit {info['commit']}")
+
+    def write() -> None:  # after every figure: a run stopped from outside keeps what it has
+        result = {
+            **info,
+            "quick": args.quick,
+            "figures": figs.figures,
+            "errors": figs.errors,
+            "skipped": figs.skipped,
+        }
+        Path(args.out).write_text(json.dumps(strict_json(result), indent=1))
+
+    write()
     for name, fn in plan:
         figs.run(name, fn)
-    result = {
-        **info,
-        "quick": args.quick,
-        "figures": figs.figures,
-        "errors": figs.errors,
-        "skipped": figs.skipped,
-    }
-    Path(args.out).write_text(json.dumps(_strict(result), indent=1))
+        write()
     print(
         f"wrote {args.out}: {len(figs.figures)} figures, {len(figs.errors)} errors, "
         f"{len(figs.skipped)} skipped"
     )
     return 1 if figs.errors or figs.skipped else 0
-
-
-def _strict(obj: Any) -> Any:
-    """JSON without NaN/Infinity literals (``null`` instead)."""
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, dict):
-        return {k: _strict(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_strict(v) for v in obj]
-    return obj
-
-
-def junit_summary(path: Path) -> dict[str, Any]:
-    """Counts and the failed tests' ids from a pytest JUnit XML file."""
-    if not path.is_file():
-        return {"present": False}
-    root = ET.parse(path).getroot()
-    cases = list(root.iter("testcase"))
-    failed, skipped = [], 0
-    for case in cases:
-        ident = f"{case.get('classname')}::{case.get('name')}"
-        if case.find("failure") is not None or case.find("error") is not None:
-            failed.append(ident)
-        elif case.find("skipped") is not None:
-            skipped += 1
-    return {
-        "present": True,
-        "total": len(cases),
-        "failed": len(failed),
-        "skipped": skipped,
-        "passed": len(cases) - len(failed) - skipped,
-        "failed_ids": failed[:200],
-        "seconds": sum(float(c.get("time") or 0) for c in cases),
-    }
-
-
-def collect(out: Path) -> int:
-    """``out/device_check.json`` from the figures, the test results and the steps."""
-    figures_path = out / "figures.json"
-    result: dict[str, Any] = (
-        json.loads(figures_path.read_text()) if figures_path.is_file() else {"figures": []}
-    )
-    steps = []
-    steps_path = out / "steps.tsv"
-    if steps_path.is_file():
-        for line in steps_path.read_text().splitlines():
-            name, rc, seconds, *note = line.split("\t")
-            steps.append(
-                {"step": name, "rc": int(rc), "seconds": float(seconds), "note": "\t".join(note)}
-            )
-    result["steps"] = steps
-    result["tests"] = junit_summary(out / "tests.xml")
-    (out / "device_check.json").write_text(json.dumps(_strict(result), indent=1))
-    bad = [s["step"] for s in steps if s["rc"] != 0]
-    print(f"wrote {out / 'device_check.json'}; steps failed: {bad or 'none'}")
-    return 0
 
 
 def main() -> int:
@@ -429,10 +377,7 @@ def main() -> int:
     parser.add_argument("--threads", type=int, default=1, help="torch threads (CPU work)")
     parser.add_argument("--only", nargs="+", help="figure name prefixes to run")
     parser.add_argument("--out", default="figures.json", help="JSON file written")
-    parser.add_argument("--collect", type=Path, help="assemble DIR/device_check.json and exit")
     args = parser.parse_args()
-    if args.collect is not None:
-        return collect(args.collect)
     return measure(args)
 
 

@@ -5,13 +5,21 @@ how many times faster the first is), then the steps, the test counts and any err
 
     python scripts/device_report.py out/device_check.json
     python scripts/device_report.py gpu/device_check.json --cpu cpu/device_check.json --out gpu.md
+    python scripts/device_report.py --collect WORK out/device_check.json   # the JSON itself
+
+``--collect WORK`` writes the JSON from the pieces ``scripts/device_check.sh`` leaves in its
+work folder: ``figures.json`` (scripts/device_figures.py), ``tests.xml`` (pytest),
+``steps.tsv`` and ``scenario_*.json`` (a scenario run's metrics.json: its simulation seconds
+become a figure); it uses only the standard library, so it runs after every step.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
+import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import Any
 
@@ -56,7 +64,8 @@ def _who(data: dict[str, Any]) -> str:
 
 def render(data: dict[str, Any], ref: dict[str, Any] | None = None) -> str:
     """The Markdown report of one JSON, with ``ref``'s figures beside where given."""
-    lines = [f"### torchcbf on {data.get('card')}", "", f"- run: {_who(data)}"]
+    card = data.get("card") or "an unknown device"
+    lines = [f"### torchcbf on {card}", "", f"- run: {_who(data)}"]
     if ref is not None:
         lines.append(f"- beside: {_who(ref)}")
     lines.append("")
@@ -105,12 +114,90 @@ def render(data: dict[str, Any], ref: dict[str, Any] | None = None) -> str:
     return "\n".join(lines) + "\n"
 
 
+def strict_json(obj: Any) -> Any:
+    """JSON without NaN/Infinity literals (``null`` instead)."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, dict):
+        return {k: strict_json(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [strict_json(v) for v in obj]
+    return obj
+
+
+def junit_summary(path: Path) -> dict[str, Any]:
+    """Counts and the failed tests' ids from a pytest JUnit XML file."""
+    if not path.is_file():
+        return {"present": False}
+    root = ET.parse(path).getroot()
+    cases = list(root.iter("testcase"))
+    failed, skipped = [], 0
+    for case in cases:
+        ident = f"{case.get('classname')}::{case.get('name')}"
+        if case.find("failure") is not None or case.find("error") is not None:
+            failed.append(ident)
+        elif case.find("skipped") is not None:
+            skipped += 1
+    return {
+        "present": True,
+        "total": len(cases),
+        "failed": len(failed),
+        "skipped": skipped,
+        "passed": len(cases) - len(failed) - skipped,
+        "failed_ids": failed[:200],
+        "seconds": sum(float(c.get("time") or 0) for c in cases),
+    }
+
+
+def collect(work: Path, out: Path) -> int:
+    """``out`` (device_check.json) from ``work``'s ``figures.json`` (scripts/device_figures.py),
+    pytest's JUnit file ``tests.xml`` and the step table ``steps.tsv`` (one line per step:
+    name, exit status, seconds, note; tab-separated), each where present."""
+    figures_path = work / "figures.json"
+    result: dict[str, Any] = (
+        json.loads(figures_path.read_text()) if figures_path.is_file() else {"figures": []}
+    )
+    steps = []
+    steps_path = work / "steps.tsv"
+    if steps_path.is_file():
+        for line in steps_path.read_text().splitlines():
+            name, rc, seconds, *note = line.split("\t")
+            steps.append(
+                {"step": name, "rc": int(rc), "seconds": float(seconds), "note": "\t".join(note)}
+            )
+    result["steps"] = steps
+    result["tests"] = junit_summary(work / "tests.xml")
+    for path in sorted(work.glob("scenario_*.json")):  # a scenario run's metrics.json
+        for name, res in json.loads(path.read_text()).get("results", {}).items():
+            settings = res.get("settings", {})
+            size = ", ".join(f"{k}={v}" for k, v in settings.items())
+            result["figures"].append(
+                {
+                    "name": f"scenario.{name}",
+                    "value": res.get("seconds"),
+                    "unit": "s",
+                    "label": f"scenario {name} simulation time (figures apart), {size}",
+                    "summary": res.get("summary"),
+                }
+            )
+    out.write_text(json.dumps(strict_json(result), indent=1))
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("json", type=Path, help="device_check.json of the run to report")
     parser.add_argument("--cpu", type=Path, help="a second device_check.json shown beside")
     parser.add_argument("--out", type=Path, help="write the Markdown here (default: print)")
+    parser.add_argument(
+        "--collect",
+        type=Path,
+        metavar="WORK",
+        help="write JSON (the positional path) from WORK's pieces and exit",
+    )
     args = parser.parse_args()
+    if args.collect is not None:
+        return collect(args.collect, args.json)
     text = render(_load(args.json), _load(args.cpu) if args.cpu else None)
     if args.out:
         args.out.write_text(text)

@@ -131,7 +131,7 @@ def test_report_tables(tmp_path: Path) -> None:
 
 
 def test_collect_reads_figures_steps_and_junit(tmp_path: Path) -> None:
-    figures = _script("device_figures")
+    report = _script("device_report")
     (tmp_path / "figures.json").write_text(json.dumps({"card": "c", "figures": []}))
     (tmp_path / "steps.tsv").write_text("install\t0\t3.5\tpip\ntests\t1\t9.0\tpytest\tnote\n")
     (tmp_path / "tests.xml").write_text(
@@ -139,20 +139,31 @@ def test_collect_reads_figures_steps_and_junit(tmp_path: Path) -> None:
         '<testcase classname="a" name="t2" time="0.5"><failure message="x"/></testcase>'
         '<testcase classname="b" name="t3"><skipped/></testcase></testsuite></testsuites>'
     )
-    assert figures.collect(tmp_path) == 0
-    data = json.loads((tmp_path / "device_check.json").read_text())
+    metrics = {"results": {"reach-avoid": {"settings": {"seeds": 10}, "seconds": 2.5}}}
+    (tmp_path / "scenario_a.json").write_text(json.dumps(metrics))
+    out = tmp_path / "device_check.json"
+    cmd = [sys.executable, str(ROOT / "scripts" / "device_report.py")]
+    subprocess.run([*cmd, "--collect", str(tmp_path), str(out)], check=True)
+    data = json.loads(out.read_text())
     assert data["card"] == "c"
+    (scenario,) = data["figures"]
+    assert scenario["name"] == "scenario.reach-avoid" and scenario["value"] == 2.5
+    assert "| `scenario.reach-avoid` | seeds=10 | 2.50 s |" in report.render(data)
     assert data["steps"][1] == {"step": "tests", "rc": 1, "seconds": 9.0, "note": "pytest\tnote"}
     assert data["tests"] == {
-        "present": True,
-        "total": 3,
-        "failed": 1,
-        "skipped": 1,
-        "passed": 1,
-        "failed_ids": ["a::t2"],
-        "seconds": 2.0,
-    }
-    assert figures._strict({"a": [float("nan"), 1.0]}) == {"a": [None, 1.0]}
+        "present": True, "total": 3, "failed": 1, "skipped": 1, "passed": 1,
+        "failed_ids": ["a::t2"], "seconds": 2.0,
+    }  # fmt: skip
+    # before any piece exists: an empty JSON that the report still renders
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert report.collect(empty, empty / "j.json") == 0
+    assert json.loads((empty / "j.json").read_text()) == {
+        "figures": [], "steps": [], "tests": {"present": False}
+    }  # fmt: skip
+    text = report.render(json.loads((empty / "j.json").read_text()))
+    assert "### torchcbf on an unknown device" in text
+    assert report.strict_json({"a": [float("nan"), 1.0]}) == {"a": [None, 1.0]}
 
 
 def test_device_figures_quick_on_the_cpu(tmp_path: Path) -> None:
