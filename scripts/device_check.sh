@@ -18,7 +18,7 @@
 # that fails does not stop the others; the script ends with a list of the failed steps and
 # exit status 1 if there is any.
 #
-# Before the device call, HERE (the machine with the project's .venv), once per session:
+# Right before the device call, HERE (the machine with the project's .venv; it records the commit):
 #
 #   bash scripts/device_check.sh --prepare
 #
