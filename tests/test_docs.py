@@ -10,12 +10,16 @@ The convention (one rule for every page):
 - a block preceded by the line ``<!-- docs-test: slow -->`` runs only under ``-m slow``
   (the slow test of that page runs every block in order, the default one skips it);
 - a block preceded by ``<!-- docs-test: skip REASON -->`` never runs (a GPU, the network, a
-  multi-minute run); the reason is mandatory.
+  multi-minute run); the reason is mandatory;
+- a block preceded by ``<!-- docs-test: requires MODULE[,MODULE] -->`` runs only where those
+  modules import (an optional extra: ``gymnasium``, ``optuna``, ...); a later block that uses
+  its names needs the same marker.
 """
 
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import io
 import math
 import re
@@ -48,6 +52,7 @@ class Block:
     expected: str | None  # the ```text block right after it, if any
     mode: str  # "run", "slow" or "skip"
     reason: str = ""
+    requires: tuple[str, ...] = ()
 
     @property
     def name(self) -> str:
@@ -75,24 +80,27 @@ def parse(text: str, page: str) -> list[Block]:
     for k, (start, end, lang, body) in enumerate(fences):
         if lang != "python":
             continue
-        mode, reason = "run", ""
+        mode, reason, requires = "run", "", ()
         prev = start - 1
         while prev >= 0 and not lines[prev].strip():
             prev -= 1
-        marker = _MARKER.search(lines[prev]) if prev >= 0 else None
-        if marker:
-            kind, reason = marker.group(1), marker.group(2)
-            if kind not in ("slow", "skip"):
+        while prev >= 0 and (marker := _MARKER.search(lines[prev])):  # markers stack
+            kind, arg = marker.group(1), marker.group(2)
+            if kind not in ("slow", "skip", "requires"):
                 raise ValueError(f"{page}:{prev + 1}: unknown docs-test marker {kind!r}")
-            if kind == "skip" and not reason:
-                raise ValueError(f"{page}:{prev + 1}: a docs-test skip needs a reason")
-            mode = kind
+            if kind in ("skip", "requires") and not arg:
+                raise ValueError(f"{page}:{prev + 1}: a docs-test {kind} needs a reason")
+            if kind == "requires":
+                requires = tuple(m.strip() for m in arg.split(",") if m.strip())
+            elif mode == "run" or kind == "skip":
+                mode, reason = kind, arg
+            prev -= 1
         expected = None
         if k + 1 < len(fences) and fences[k + 1][2] == "text":
             between = lines[end + 1 : fences[k + 1][0]]
             if not any(line.strip() for line in between):
                 expected = fences[k + 1][3]
-        blocks.append(Block(page, start + 1, body, expected, mode, reason))
+        blocks.append(Block(page, start + 1, body, expected, mode, reason, requires))
     return blocks
 
 
@@ -170,6 +178,8 @@ def run_page(blocks: list[Block], *, slow: bool) -> None:
 def _run_blocks(blocks: list[Block], namespace: dict[str, object], *, slow: bool) -> None:
     for block in blocks:
         if block.mode == "skip" or (block.mode == "slow" and not slow):
+            continue
+        if not all(importlib.util.find_spec(m) is not None for m in block.requires):
             continue
         out = io.StringIO()
         try:
@@ -278,6 +288,20 @@ def test_run_page_fails_on_wrong_output_and_on_errors() -> None:
     run_page(parse(broken, "page.md"), slow=False)  # the slow block is not run
     with pytest.raises(AssertionError, match="raised NameError"):
         run_page(parse(broken, "page.md"), slow=True)
+
+
+def test_requires_skips_blocks_whose_modules_are_missing() -> None:
+    page = (
+        "<!-- docs-test: requires no_such_module_here -->\n```python\nraise RuntimeError\n```\n"
+        "<!-- docs-test: requires json, math -->\n```python\nimport json\nprint(1)\n```\n"
+        "```text\n1\n```\n"
+    )
+    blocks = parse(page, "p.md")
+    assert [b.requires for b in blocks] == [("no_such_module_here",), ("json", "math")]
+    run_page(blocks, slow=False)
+    marked = parse("<!-- docs-test: requires json -->\n<!-- docs-test: slow -->\n"
+                   "```python\npass\n```\n", "p.md")  # fmt: skip
+    assert (marked[0].mode, marked[0].requires) == ("slow", ("json",))
 
 
 def test_skip_needs_a_reason_and_markers_are_known() -> None:

@@ -140,16 +140,21 @@ def test_editable_install_is_a_path_that_type_checkers_and_the_parent_folder_see
     (pth,) = [n for n in names if n.endswith(".pth")]
     assert not [n for n in names if n.endswith("_finder.py")]  # no import hook
     assert zipfile.ZipFile(wheel).read(pth).decode().strip() == str(clone)
-    site = tmp_path / "site"
-    site.mkdir()
-    (site / "torchcbf.pth").write_text(f"{clone}\n")
+    # Python as the compat install leaves it: site-packages, then the .pth's path; -S keeps
+    # this interpreter's own torchcbf install (an import hook or another .pth) out of it
+    import site
+
+    path = [*site.getsitepackages(), str(clone)]
     found = subprocess.run(
-        [sys.executable, "-c",
-         f"import site; site.addsitedir({str(site)!r}); import torchcbf; print(torchcbf.__file__)"],
+        [sys.executable, "-S", "-c",
+         f"import sys; sys.path.extend({path!r}); import torchcbf; print(torchcbf.__file__)"],
         capture_output=True, text=True, cwd=tmp_path,
     )  # fmt: skip
     assert found.returncode == 0, found.stderr[-2000:]
-    assert found.stdout.strip() == str(clone / "torchcbf" / "__init__.py")
+    installed = any((Path(p) / "torchcbf" / "__init__.py").exists() for p in path[:-1])
+    expected = "site-packages" if installed else str(clone / "torchcbf" / "__init__.py")
+    assert found.stdout.strip().endswith("torchcbf/__init__.py")  # a package, not the clone
+    assert expected in found.stdout
 
 
 def test_sdist_holds_what_a_build_needs(tmp_path) -> None:
