@@ -12,8 +12,9 @@ torchcbf (torch and proxsuite backends), proxsuite's torch ``QPFunction``, qpth'
 headline lines: fwd+bwd at B=4096, n=4, m=8; forward latency at B=1 (n=2, m=6 and
 n=8, m=12, under ``torch.no_grad()``) against proxsuite's dense solver called directly in the
 same run; equality-constrained QPs (one QP against proxsuite's dense solver, batches
-against qpax, ``--equality-only`` for just these); and forward throughput at B=1,000,000,
-n=2, m=6 on --device. Figures taken on a
+against qpax, ``--equality-only`` for just these); one rotated cond-1e9 row in a batch
+and the time of B=4, n=8 against m up to 4,096 (``--scaling-only``); and forward
+throughput at B=1,000,000, n=2, m=6 on --device. Figures taken on a
 loaded machine vary: the load average is printed, compare ratios within one run.
 
     python scripts/bench_qp.py --quick
@@ -247,6 +248,38 @@ def equality_lines() -> None:
         print(line)
 
 
+def hard_row_and_scaling_lines() -> None:
+    """A batch with one rotated cond-1e9 row against the same batch without it, and the
+    time of one batch (B=4, n=8) as the number of rows m grows, ``method="ipm"`` and auto."""
+    print("\n# one hard row in a batch; time against m (forward, float64, no_grad)")
+    for B in (64, 1024):
+        Q, p, G, h = make_problems(B, 4, 8, "cpu", seed=3)
+        hard = Q.clone()
+        rot, _ = torch.linalg.qr(torch.randn(4, 4, generator=torch.Generator().manual_seed(1),
+                                             dtype=torch.float64))  # fmt: skip
+        hard[B // 2] = rot @ torch.diag(torch.tensor([1.0, 1e-3, 1e-6, 1e-9])).double() @ rot.T
+        with torch.no_grad():
+            easy, hardest = (Q, p, G, h), (hard, p, G, h)
+            t_easy = timeit(lambda d=easy: solve_qp(*d), min_time=1.0)
+            t_hard = timeit(lambda d=hardest: solve_qp(*d), min_time=1.0)
+            st = solve_qp(hard, p, G, h).status
+        print(
+            f"B={B} n=4 m=8: {t_easy * 1e3:.2f} ms; with one rotated cond-1e9 row "
+            f"{t_hard * 1e3:.2f} ms ({t_hard / t_easy:.2f}x), solved "
+            f"{int((st == Status.SOLVED).sum())}/{B}"
+        )
+    for method in ("ipm", "auto"):
+        parts = []
+        for m in (256, 1024, 2048, 4096):
+            Q, p, G, h = make_problems(4, 8, m, "cpu", seed=m)
+            with torch.no_grad():
+                d, mt = (Q, p, G, h), method
+                t = timeit(lambda d=d, mt=mt: solve_qp(*d, method=mt), min_time=0.5, max_reps=3)
+                st = solve_qp(Q, p, G, h, method=method).status
+            parts.append(f"m={m}: {t * 1e3:.0f} ms ({int((st == Status.SOLVED).sum())}/4)")
+        print(f"B=4 n=8 method={method!r}: " + ", ".join(parts))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="small subset of the grid")
@@ -261,14 +294,20 @@ def main() -> None:
     parser.add_argument(
         "--equality-only", action="store_true", help="only the equality-constrained lines"
     )
+    parser.add_argument(
+        "--scaling-only", action="store_true", help="only the hard-row and growing-m lines"
+    )
     args = parser.parse_args()
     dev = args.device
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    if args.equality_only:
+    if args.equality_only or args.scaling_only:
         load = os.getloadavg()
         print(f"# threads {torch.get_num_threads()}, load average {load[0]:.2f}")
-        equality_lines()
+        if args.equality_only:
+            equality_lines()
+        if args.scaling_only:
+            hard_row_and_scaling_lines()
         return
 
     peers: dict[str, Callable | None] = {}
@@ -441,6 +480,7 @@ def main() -> None:
     print("B=1 n=3 m=8 + box forward (filter shape, 431 candidates): " + ", ".join(line))
 
     equality_lines()
+    hard_row_and_scaling_lines()
 
     # 3) throughput at B=big, n=2, m=6 on --device
     B = args.big

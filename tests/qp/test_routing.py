@@ -150,3 +150,25 @@ def test_routing_applies_to_small_batches_only():
     assert qp_function.ROUTE_EPS <= 1e-9
     one = solve_qp(*data)
     np.testing.assert_allclose(sol.x[0].numpy(), one.x.numpy(), atol=1e-6)
+
+
+def test_problems_the_kernel_fits_are_not_routed():
+    """A problem of the C kernel's shape (no equalities, at most 64 variables) with a
+    positive definite Q is served by torchcbf's own methods at every batch size, also where
+    the kernel declines it (condition 1e8): routing cannot make its status depend on the
+    batch size. A singular Q, which the dual method never takes, may go to proxsuite."""
+    c, s_ = 0.6, 0.8
+    rot = torch.tensor([[c, -s_], [s_, c]], dtype=F64)
+    Q = rot @ torch.diag(torch.tensor([1.0, 1e-8], dtype=F64)) @ rot.T
+    p = torch.tensor([-1.0, -1.0], dtype=F64)
+    G = torch.tensor([[1.0, 1.0], [0.0, 1.0]], dtype=F64)
+    h = torch.tensor([2.0, 1.0], dtype=F64)
+    one = solve_qp(Q, p, G, h)
+    many = solve_qp(Q.expand(9, 2, 2), p.expand(9, 2), G.expand(9, 2, 2), h.expand(9, 2))
+    assert "proxsuite" not in one.path and "proxsuite" not in many.path
+    assert int(one.status) == Status.SOLVED and (many.status == Status.SOLVED).all()
+    torch.testing.assert_close(one.x, many.x[0])
+    singular = torch.diag(torch.tensor([1.0, 0.0], dtype=F64))
+    sol = solve_qp(singular, p, G, h)
+    assert sol.path == "small_proxsuite" and int(sol.status) == Status.SOLVED
+    torch.testing.assert_close(sol.x, torch.tensor([1.0, 1.0], dtype=F64))

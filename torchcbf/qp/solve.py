@@ -23,7 +23,7 @@ from torchcbf.qp._function import (
     SolverConfig,
     dual_applies,
 )
-from torchcbf.qp._ipm import default_tolerances
+from torchcbf.qp._ipm import default_tolerances, not_positive_definite
 from torchcbf.qp.status import Status
 
 
@@ -475,18 +475,31 @@ def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
     return None if sol is None else QPSolution(*sol, path="small_native")
 
 
+def _beyond_kernel(inp: _Inputs) -> bool:
+    """Whether the problems lie beyond the dual method's C kernel by their shape (equality
+    rows, or more than ``_dual_native.MAX_VARS`` variables): only these are routed to
+    proxsuite, so a problem the kernel's shape fits (a safety filter's) is served the same
+    way at every batch size."""
+    return inp.me > 0 or inp.n > _dual_native.MAX_VARS
+
+
 def _direct_applies(inp: _Inputs) -> bool:
     """Whether ``method="auto"`` tries proxsuite straight from the inputs
-    (:mod:`torchcbf.qp._direct`; after the real-time C kernel, where that applies, has not
-    certified the batch): at most ``ROUTE_MAX_BATCH`` CPU rows with some row or bound, no
-    elastic rows, proxsuite installed."""
-    return (
+    (:mod:`torchcbf.qp._direct`): at most ``ROUTE_MAX_BATCH`` CPU problems, no elastic rows,
+    proxsuite installed, beyond the C kernel's shape (:func:`_beyond_kernel`) or with some
+    ``Q`` not positive definite (which the dual method never takes, at any batch size; a
+    safety filter's ``Q`` is positive definite)."""
+    if not (
         inp.B <= ROUTE_MAX_BATCH
         and inp.soft is None
         and inp.Q.device.type == "cpu"
-        and (inp.m + inp.me > 0 or inp.lb is not None or inp.ub is not None)
         and _proxsuite_available()
-    )
+    ):
+        return False
+    if _beyond_kernel(inp):
+        return True
+    Q = inp.Q.detach().double()
+    return bool(not_positive_definite(0.5 * (Q + Q.mT)).any())
 
 
 class _Flat(NamedTuple):
@@ -678,6 +691,7 @@ def _config(
         exact
         and method == "auto"
         and B <= ROUTE_MAX_BATCH
+        and _beyond_kernel(inp)
         and inp.Q.device.type == "cpu"
         and _proxsuite_available()
     )
