@@ -116,7 +116,7 @@ def _run_scenario(
     from torchcbf.sweep.params import describe
 
     params = _parameters(entry, args)
-    num_seeds = args.seeds
+    num_seeds = getattr(args, "seeds", None) or entry.num_seeds  # the demo has no --seeds
     if sizes is not None:
         sizes = dict(sizes)
         num_seeds = sizes.pop("num_seeds", num_seeds)

@@ -162,3 +162,25 @@ def test_the_reference_scenarios_are_registered() -> None:
         b.make(method="nope", num_seeds=1)
     with pytest.raises(ValueError, match="scenario must be one of"):
         get("nope")
+
+
+@pytest.mark.slow
+def test_the_demo_runs_every_scenario_with_demo_sizes(tmp_path, capsys) -> None:
+    """``torchcbf demo`` (the README's first command) at tiny sizes: the registered entries'
+    demo sizes swapped for tiny ones through the public registry."""
+    import dataclasses
+
+    originals = {n: e for n, e in scenarios().items() if e.demo is not None}
+    assert set(originals) == {"reach-avoid", "mppi-cbf"}
+    tiny = {"num_seeds": 1, "num_samples": 16, "horizon": 4}
+    try:
+        for entry in originals.values():
+            register(dataclasses.replace(entry, demo={**entry.demo, **tiny}), replace=True)
+        assert main(["demo", "--out", str(tmp_path), "--no-gif", "--no-progress"]) == 0
+    finally:
+        for entry in originals.values():
+            register(entry, replace=True)
+    data = json.loads((tmp_path / "metrics.json").read_text())
+    methods = get("mppi-cbf").choices["method"]
+    assert set(data["results"]) == {"reach-avoid"} | {f"mppi-cbf/default/{m}" for m in methods}
+    assert "The paper's size of scenario B" in capsys.readouterr().out

@@ -9,6 +9,7 @@ from torchcbf.mppi.costs import (
     StageCost,
     SumCost,
 )
+from torchcbf.mppi.defaults import MPPISettings, propose_settings
 from torchcbf.mppi.history import History, HistoryBuffer
 from torchcbf.mppi.interpolated import KMPPI, rbf_kernel
 from torchcbf.mppi.planner import MPPI, MPPIOutput
@@ -17,6 +18,8 @@ from torchcbf.mppi.smooth import SMPPI
 from torchcbf.mppi.specs import Always, And, Avoid, Eventually, Or, Reach, Spec
 
 __all__ = [
+    "MPPISettings",
+    "propose_settings",
     "KMPPI",
     "MPPI",
     "SMPPI",
