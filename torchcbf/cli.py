@@ -166,7 +166,10 @@ def _run_scenario(
     from torchcbf.scenarios.figures import standard_figures
 
     scenario = entry.make(**run_params, num_seeds=num_seeds, seed=args.seed, device="cpu")
-    title = entry.name + (f", {shown}" if shown != "defaults" else "")
+    values = {**entry.defaults(), **params}
+    named = {k: values[k] for k in entry.options.values() if k in entry.choices}
+    named.update({k: v for k, v in params.items() if k not in named})
+    title = ", ".join([entry.name, *(f"{k}={v}" for k, v in named.items())])
     draw = entry.figures or functools.partial(standard_figures, stem=entry.name.replace("-", "_"))
     figures = draw(
         trajectories, scenario, parts.run.path, title=title, gif=not args.no_gif,
