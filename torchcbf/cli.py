@@ -99,6 +99,27 @@ def _variants(entry: Any, text: str | None) -> list[Any]:
     return names
 
 
+def _plan(
+    entry: Any, args: argparse.Namespace, sizes: dict[str, Any] | None
+) -> tuple[int, dict[str, Any], list[Any]]:
+    """What a run of ``entry`` does: its seeds, its parameters (the command line's, then the
+    demo's ``sizes``) and the variants it compares (``--set`` of the variant names one)."""
+    params = _parameters(entry, args)
+    num_seeds = getattr(args, "seeds", None) or entry.num_seeds  # the demo has no --seeds
+    if sizes is not None:
+        sizes = dict(sizes)
+        num_seeds = sizes.pop("num_seeds", num_seeds)
+        params.update(sizes)
+    text = getattr(args, "variants", None) or "all"
+    if entry.variant is not None and entry.variant in params:
+        if text != "all":
+            raise SystemExit(
+                f"torchcbf: give --{entry.variant}s or --set {entry.variant}=..., not both"
+            )
+        return num_seeds, params, _variants(entry, str(params.pop(entry.variant)))
+    return num_seeds, params, _variants(entry, text)
+
+
 def _unit_key(entry: Any, params: dict[str, Any], variant: Any) -> str:
     """``NAME[/choice-valued options...][/variant]``: the name of a run's unit."""
     values = {**entry.defaults(), **params}
@@ -115,16 +136,11 @@ def _run_scenario(
     from torchcbf.sim.metrics import summarize
     from torchcbf.sweep.params import describe
 
-    params = _parameters(entry, args)
-    num_seeds = getattr(args, "seeds", None) or entry.num_seeds  # the demo has no --seeds
-    if sizes is not None:
-        sizes = dict(sizes)
-        num_seeds = sizes.pop("num_seeds", num_seeds)
-        params.update(sizes)
-    variants = _variants(entry, getattr(args, "variants", None) or "all")
+    num_seeds, params, variants = _plan(entry, args, sizes)
     label_width = max(12, *(len(str(v)) for v in variants if v is not None), len(entry.name))
-    widths = [max(len(c.header), 8) for c in entry.columns]
-    shown = describe(params) or "defaults"
+    widths = [max(len(c.header), 15) for c in entry.columns]
+    values = {**entry.defaults(), **params}
+    shown = describe({**{k: values[k] for k in entry.options.values()}, **params}) or "defaults"
     print(
         f"\n{entry.name}: {entry.description}\n{num_seeds} seeds from {args.seed}, "
         f"{shown}, device {args.device}"
@@ -362,11 +378,20 @@ def _interrupted(command: str, argv: Sequence[str], out: Path, saved: str) -> in
     return INTERRUPTED
 
 
-def _scenario_settings(args: argparse.Namespace) -> dict[str, Any]:
-    """What identifies a scenario run (compared by ``--resume``)."""
-    names = ("seeds", "seed", "device", "no_gif", "variants", "set")
-    settings = {name: getattr(args, name) for name in names if hasattr(args, name)}
-    settings.update({k: v for k, v in vars(args).items() if k.startswith("option_")})
+def _scenario_settings(args: argparse.Namespace, plan: list[tuple[Any, Any]]) -> dict:
+    """What identifies a scenario run (compared by ``--resume``): per scenario its seeds,
+    every parameter resolved (defaults included, so a run is not resumed across a change of
+    defaults) and the variants it compares."""
+    settings: dict[str, Any] = {"seed": args.seed, "device": args.device, "no_gif": args.no_gif}
+    for entry, sizes in plan:
+        num_seeds, params, variants = _plan(entry, args, sizes)
+        settings[entry.name] = strict(
+            {
+                "num_seeds": num_seeds,
+                "params": {**entry.defaults(), **params},
+                "variants": variants,
+            }
+        )
     return settings
 
 
@@ -403,12 +428,10 @@ def _main(argv: Sequence[str] | None = None) -> int:
     else:
         plan = [(registry[args.command], None)]
     try:
-        for entry, sizes in plan:  # a bad parameter is refused before any work
-            params = {**_parameters(entry, args), **(sizes or {})}
-            params.pop("num_seeds", None)
-            variants = _variants(entry, getattr(args, "variants", None) or "all")
-            from torchcbf.sweep.params import check_buildable
+        from torchcbf.sweep.params import check_buildable
 
+        for entry, sizes in plan:  # a bad parameter is refused before any work
+            _, params, variants = _plan(entry, args, sizes)
             configs = [{**params, entry.variant: v} if v is not None else params for v in variants]
             check_buildable(entry, configs, seed=args.seed, device=args.device)
     except ValueError as error:
@@ -418,7 +441,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
         run = RunDir.claim(
             args.out,
             kind=args.command,
-            settings=_scenario_settings(args),
+            settings=_scenario_settings(args, plan),
             resume=args.resume,
             overwrite=args.overwrite,
         )

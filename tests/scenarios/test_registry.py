@@ -154,6 +154,39 @@ def test_entries_are_checked_when_made() -> None:
         unregister("x-test")
 
 
+def test_names_variants_and_reloads() -> None:
+    with pytest.raises(ValueError, match="is a command of torchcbf"):
+        ScenarioEntry(name="sweep", build=_build, params=_Params)
+    with pytest.raises(ValueError, match="needs its values in choices"):
+        ScenarioEntry(name="x", build=_build, params=_Params, variant="k")
+    register(ScenarioEntry(name="x-reload", build=_build, params=_Params))
+    try:  # the module registering it imported again: new function objects, same names
+        import importlib
+
+        module = importlib.import_module(__name__)
+        register(ScenarioEntry(name="x-reload", build=module._build, params=module._Params))
+    finally:
+        unregister("x-reload")
+
+
+def test_set_of_the_variant_runs_that_variant(tmp_path, capsys, monkeypatch) -> None:
+    from torchcbf.scenarios import unicycle_mppi_cbf
+
+    monkeypatch.setattr(unicycle_mppi_cbf, "STEPS", 20)  # a short run: no option for its length
+    args = ["mppi-cbf", "--seeds", "1", "--samples", "16", "--horizon", "4", "--no-progress",
+            "--no-gif"]  # fmt: skip
+    assert main([*args, "--set", "method=scbf", "--out", str(tmp_path / "a")]) == 0
+    data = json.loads((tmp_path / "a" / "metrics.json").read_text())
+    assert set(data["results"]) == {"mppi-cbf/default/scbf"}
+    # one method still gets the comparison figures, named after it
+    assert (tmp_path / "a" / "mppi_cbf_default_barriers.png").exists()
+    settings = json.loads((tmp_path / "a" / "run.json").read_text())["settings"]["mppi-cbf"]
+    assert settings["variants"] == ["scbf"] and settings["params"]["num_samples"] == 16
+    assert settings["params"]["rectify_gain"] is None  # defaults recorded too
+    with pytest.raises(SystemExit):
+        main([*args, "--set", "method=scbf", "--methods", "mppi", "--out", str(tmp_path / "b")])
+
+
 def test_the_reference_scenarios_are_registered() -> None:
     assert {"reach-avoid", "mppi-cbf", "arm-reach"} <= set(scenarios())
     b = get("mppi-cbf")

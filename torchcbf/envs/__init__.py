@@ -28,15 +28,12 @@ from torchcbf.envs.base import TorchEnv, TorchVectorEnv
 from torchcbf.envs.reach_avoid import ReachAvoidEnv, ReachAvoidVectorEnv
 from torchcbf.envs.safety_wrapper import SafetyFilterWrapper, VectorSafetyFilterWrapper
 from torchcbf.envs.unicycle_ellipses import UnicycleEllipsesEnv, UnicycleEllipsesVectorEnv
-
-ENV_IDS = ("torchcbf/ReachAvoid-v0", "torchcbf/UnicycleEllipses-v0")
+from torchcbf.scenarios import scenarios
 
 
 def register_envs() -> list[str]:
     """Register with Gymnasium the environment of every registered scenario that has one
     and is not registered yet; returns the ids registered now."""
-    from torchcbf.scenarios import scenarios
-
     added = []
     for entry in scenarios().values():
         env = entry.env
@@ -53,6 +50,8 @@ def register_envs() -> list[str]:
 
 
 register_envs()
+#: the ids of the reference scenarios' environments
+ENV_IDS = tuple(e.env.id for e in scenarios().values() if e.env is not None)
 
 __all__ = [
     "ENV_IDS",

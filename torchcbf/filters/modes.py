@@ -207,9 +207,9 @@ class RiskAware(FilterMode):
     ) -> None:
         super().__init__()
         if rho is None or not (0 < float(rho) < 1):
-            raise ValueError(f"rho must be in (0, 1) for mode='risk_aware', got {rho!r}")
+            raise ValueError(f"rho must be in (0, 1) for RiskAware, got {rho!r}")
         if horizon is None:
-            raise ValueError("horizon (T > 0) is required for mode='risk_aware'")
+            raise ValueError("horizon (T > 0) is required for RiskAware")
         self.rho = float(rho)
         T = check_number("horizon", horizon, low=0.0, strict=True)
         self.register_buffer("horizon", torch.tensor(T, dtype=torch.float64))
@@ -241,7 +241,7 @@ class RiskAware(FilterMode):
                 dynamics,
                 self.rho,
                 safe_only=True,
-                missing="mode='risk_aware' needs eta= (noise bound |dh/dx sigma| on the safe "
+                missing="RiskAware needs eta= (noise bound |dh/dx sigma| on the safe "
                 "set) or safe_states= (sample states to compute it from)",
             )
         if lyapunovs:
@@ -252,7 +252,7 @@ class RiskAware(FilterMode):
                 dynamics,
                 self.clf_rho,
                 safe_only=False,
-                missing="mode='risk_aware' with lyapunovs needs clf_eta= (bound on "
+                missing="RiskAware with lyapunovs needs clf_eta= (bound on "
                 "|dV/dx sigma|) or safe_states=",
             )
 
@@ -323,7 +323,7 @@ class RiskAware(FilterMode):
         return f"rho={self.rho}, horizon={float(self.horizon)}"
 
 
-#: the mode options :class:`SafetyFilter` still accepts as keywords (with ``mode`` a string)
+#: the names ``SafetyFilter(mode=...)`` takes for a mode with its default options
 MODE_NAMES = ("vanilla", "robust", "stochastic", "risk_aware")
 
 

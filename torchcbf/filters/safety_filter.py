@@ -207,7 +207,8 @@ class SafetyFilter(nn.Module):
         lyapunovs: a Lyapunov function or a sequence (``c`` outputs in total).
         mode: a :class:`~torchcbf.filters.modes.FilterMode` (``Vanilla()``, ``Robust()``,
             ``Stochastic(beta=...)``, ``RiskAware(rho=..., horizon=..., eta=...)``) or its
-            name ``"vanilla"``, ``"robust"``, ``"stochastic"``, ``"risk_aware"``.
+            name for its defaults: ``"vanilla"``, ``"robust"``, ``"stochastic"`` (``"risk_aware"``
+            has none: it needs its object).
         alpha: class-K function of the CBF conditions: a gain (``alpha(h) = gain h``), gains
             per barrier output (sequence or tensor ``[k]``), a callable/module (e.g.
             :class:`LinearClassK` with ``learnable=True``), or one callable per barrier

@@ -61,11 +61,13 @@ def standard_figures(
     gif: bool = True,
     first_seed: int = 0,
     view: Mapping[str, Any] | None = None,
+    compare: bool | None = None,
 ) -> list[Path]:
-    """Figures of a finished run into ``out``, named ``{stem}_*``: one variant gives the paths
-    (``{stem}_trajectories.png``), its rollouts and ``{stem}.gif``; several give the paths
-    in one colour per variant, the closest-obstacle bands (``{stem}_barriers.png``), each
-    variant's rollouts and an animation of all of them."""
+    """Figures of a finished run into ``out``, named ``{stem}_*``: a single run gives the
+    paths (``{stem}_trajectories.png``), its rollouts and ``{stem}.gif``; a comparison of
+    variants (``compare``; default: more than one trajectory) gives the paths in one colour
+    per variant, the closest-obstacle bands (``{stem}_barriers.png``), each variant's
+    rollouts (``{stem}_{variant}_rollouts_*``) and an animation of all of them."""
     from torchcbf.viz import (
         animate,
         animate_methods,
@@ -78,7 +80,7 @@ def standard_figures(
     out = Path(out)
     barriers, goals = list(scenario.barriers), list(scenario.goals)
     n = next(iter(trajectories.values())).x.shape[0] if trajectories else 0
-    if len(trajectories) == 1:
+    if not (len(trajectories) > 1 if compare is None else compare):
         ((name, traj),) = trajectories.items()
         figures = [
             save(

@@ -22,8 +22,11 @@ import dataclasses
 import functools
 import importlib
 import importlib.metadata
+import os
+import sys
 import types
 import typing
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +39,8 @@ from torchcbf.scenarios.base import Scenario
 ENTRY_POINT_GROUP = "torchcbf.scenarios"
 #: keywords every builder takes besides its parameters: they place and size the batch
 RUN_KEYWORDS = ("num_seeds", "seed", "device", "dtype")
+#: the command line's own commands, which no scenario may be named
+COMMANDS = ("demo", "sweep", "tune", "bench", "info")
 
 
 @dataclass(frozen=True)
@@ -193,6 +198,11 @@ class ScenarioEntry:
     def __post_init__(self) -> None:
         if not self.name or not isinstance(self.name, str) or " " in self.name:
             raise ValueError(f"ScenarioEntry.name must be a word, got {self.name!r}")
+        if self.name in COMMANDS:
+            raise ValueError(
+                f"ScenarioEntry.name {self.name!r} is a command of torchcbf; the names "
+                f"{COMMANDS} are taken"
+            )
         if not callable(self.build):
             raise TypeError(f"ScenarioEntry.build must be callable, got {self.build!r}")
         if not (isinstance(self.params, type) and dataclasses.is_dataclass(self.params)):
@@ -204,6 +214,11 @@ class ScenarioEntry:
                     f"{self.params.__name__}.{reserved}: {RUN_KEYWORDS} are set by the run, "
                     "not parameters"
                 )
+        if self.variant is not None and not self.choices.get(self.variant):
+            raise ValueError(
+                f"ScenarioEntry {self.name!r}: the variant {self.variant!r} needs its values "
+                "in choices (what 'all' runs)"
+            )
         named = [("variant", self.variant)] if self.variant is not None else []
         named += [(f"options[{flag!r}]", key) for flag, key in self.options.items()]
         named += [(f"choices[{key!r}]", key) for key in self.choices]
@@ -286,12 +301,28 @@ def register(entry: ScenarioEntry, *, replace: bool = False) -> ScenarioEntry:
     if not isinstance(entry, ScenarioEntry):
         raise TypeError(f"register takes a ScenarioEntry, got {type(entry).__name__}")
     current = _REGISTRY.get(entry.name)
+    if current is not None and _same(current, entry):
+        replace = True  # the module that registers it was imported again (a reload)
     if current is not None and current != entry and not replace:
         raise ValueError(
             f"a scenario named {entry.name!r} is already registered (pass replace=True)"
         )
     _REGISTRY[entry.name] = entry
     return entry
+
+
+def _origin(value: Any) -> tuple[str, str]:
+    return getattr(value, "__module__", ""), getattr(value, "__qualname__", repr(value))
+
+
+def _same(a: ScenarioEntry, b: ScenarioEntry) -> bool:
+    """Whether ``b`` is ``a`` registered again by its module (the same builder and
+    parameters by module and name, the rest equal)."""
+    return (
+        _origin(a.build) == _origin(b.build)
+        and _origin(a.params) == _origin(b.params)
+        and dataclasses.replace(a, build=b.build, params=b.params) == b
+    )
 
 
 def unregister(name: str) -> None:
@@ -302,7 +333,14 @@ def unregister(name: str) -> None:
 @functools.cache
 def _load_entry_points() -> None:
     for point in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
-        point.load()
+        try:
+            point.load()
+        except Exception as error:  # one broken package must not break every command
+            warnings.warn(
+                f"the scenarios of entry point {point.name!r} ({point.value}) did not load: "
+                f"{type(error).__name__}: {error}",
+                stacklevel=2,
+            )
 
 
 def scenarios() -> dict[str, ScenarioEntry]:
@@ -322,5 +360,9 @@ def get(scenario: str | ScenarioEntry) -> ScenarioEntry:
 
 
 def import_scenarios(module: str) -> None:
-    """Import ``module`` so that the scenarios it registers are known."""
+    """Import ``module`` (a dotted name, found from the current directory too, as ``python
+    -m`` would) so that the scenarios it registers are known."""
+    here = os.getcwd()
+    if here not in sys.path:
+        sys.path.insert(0, here)
     importlib.import_module(module)

@@ -265,8 +265,9 @@ def build(
     }
     params = CONFIG_PARAMS[config]
     for name, value in overrides.items():
-        if value is not None:
-            params = replace(params, **{name: check_number(name, value, low=0.0, strict=True)})
+        if value is not None:  # beta > 0 too: the scales c_i set by the margin are prop. to it
+            value = check_number(name, value, low=0.0, strict=True)
+            params = replace(params, **{name: value})
     if shield_steps is not None:
         params = replace(params, shield_steps=check_positive_int("shield_steps", shield_steps))
     check_positive_int("planner_every", planner_every)
@@ -529,7 +530,7 @@ def figures(
     config = scenario.params.get("config", "default")
     return standard_figures(
         trajectories, scenario, out, stem=f"mppi_cbf_{config}", title=title, gif=gif,
-        first_seed=first_seed, view=VIEW,
+        first_seed=first_seed, view=VIEW, compare=True,
     )  # fmt: skip
 
 
@@ -539,6 +540,7 @@ def _omega_weight(w: float) -> tuple[float, float]:
 
 _NO_PLANNER = ("scbf",)
 _NO_FILTER = ("mppi",)
+_SCALED = ("mppi", "mppi_rascbf")  # no stochastic CBF with scales, alpha and beta
 
 ENTRY = register(
     ScenarioEntry(
@@ -549,10 +551,12 @@ ENTRY = register(
             "Scenario B: MPPI, stochastic CBFs and their combinations on a noisy unicycle "
             "among five ellipses, every method over one batch of seeds."
         ),
-        # the stochastic CBF's free parameters and MPPI's noise and temperature
+        # the stochastic CBF's free parameters (the risk-aware filter has neither alpha nor
+        # beta nor the scales) and MPPI's noise; the margin is left out: it sets the scales
+        # that barrier_scale searches directly
         search_space=(
             Dimension("rectify_gain", "float", 1.0, 100.0, log=True, skip_variants=_NO_FILTER),
-            Dimension("barrier_scale", "float", 1e-3, 1.0, log=True, skip_variants=_NO_FILTER),
+            Dimension("barrier_scale", "float", 1e-3, 1.0, log=True, skip_variants=_SCALED),
             Dimension(
                 "control_weight_omega",
                 "float",
@@ -564,9 +568,8 @@ ENTRY = register(
                 skip_variants=_NO_FILTER,
             ),  # fmt: skip
             Dimension("noise_sigma", "float", 1.0, 16.0, log=True, skip_variants=_NO_PLANNER),
-            Dimension("alpha", "float", 0.5, 100.0, log=True, skip_variants=_NO_FILTER),
-            Dimension("beta", "float", 0.0, 2.0, skip_variants=_NO_FILTER),
-            Dimension("margin", "float", 0.05, 0.5, skip_variants=_NO_FILTER),
+            Dimension("alpha", "float", 0.5, 100.0, log=True, skip_variants=_SCALED),
+            Dimension("beta", "float", 0.05, 2.0, skip_variants=_SCALED),
         ),
         columns=(
             Column("collisions [95% CI]", "collision"),

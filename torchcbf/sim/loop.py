@@ -110,7 +110,7 @@ class ClosedLoop:
             or not isinstance(self.planner_every, int)
             or (self.planner_every < 1)
         ):
-            raise ValueError(f"planner_every must be >= 1, got {self.planner_every!r}")
+            raise ValueError(f"planner_every must be a positive int, got {self.planner_every!r}")
         if self.planner is None and self.nominal is None and self.safety_filter is None:
             raise ValueError(
                 "a closed loop needs a controller: planner=, nominal= or safety_filter= "

@@ -14,9 +14,7 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 from torchcbf.scenarios import Scenario, ScenarioEntry, get
-
-# Arguments that the sweep itself sets (seeds, placement): not part of a configuration.
-RESERVED = ("num_seeds", "seed", "device", "dtype")
+from torchcbf.scenarios.registry import RUN_KEYWORDS as RESERVED
 
 ScenarioName = str | ScenarioEntry
 

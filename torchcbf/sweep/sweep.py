@@ -45,7 +45,7 @@ def configurations(grid: Mapping[str, Sequence[Any]]) -> list[dict[str, Any]]:
 
 
 def sweep_settings(
-    scenario: str,
+    scenario: ScenarioName,
     grid: Mapping[str, Sequence[Any]],
     *,
     num_seeds: int,
@@ -54,10 +54,12 @@ def sweep_settings(
     threads: int,
 ) -> dict[str, Any]:
     """What makes two sweeps the same run (compared by ``resume``; the engine may differ,
-    its numbers are the same)."""
+    its numbers are the same): the parameters held at their defaults included, so a sweep
+    is not resumed across a change of defaults."""
     return {
-        "scenario": scenario,
+        "scenario": get(scenario).name,
         "grid": strict(dict(grid)),
+        "fixed": strict(fixed_parameters(scenario, grid)),
         "num_seeds": num_seeds,
         "seed": seed,
         "device": str(device),
@@ -102,7 +104,7 @@ def run_sweep(
     configs = configurations(grid)
     check_buildable(entry, configs, seed=seed, device=device)
     settings = sweep_settings(
-        entry.name, grid, num_seeds=num_seeds, seed=seed, device=device, threads=threads
+        entry, grid, num_seeds=num_seeds, seed=seed, device=device, threads=threads
     )
     run = out
     if out is not None and not isinstance(out, RunDir):

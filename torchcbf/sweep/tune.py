@@ -92,7 +92,7 @@ def _arguments(dims: Sequence[Dimension], values: Mapping[str, Any]) -> dict[str
 
 
 def tune_settings(
-    scenario: str,
+    scenario: ScenarioName,
     *,
     trials: int,
     num_seeds: int,
@@ -106,9 +106,15 @@ def tune_settings(
     device: str,
     threads: int,
 ) -> dict[str, Any]:
-    """What makes two studies the same run (compared by ``resume``; the engine may differ)."""
+    """What makes two studies the same run (compared by ``resume``; the engine may differ):
+    the search space and the defaults included, so a study is not resumed across a change
+    of either."""
+    entry = get(scenario)
+    dims = search_space(entry, params, fixed)
     return {
-        "scenario": scenario,
+        "scenario": entry.name,
+        "space": {d.name: d.describe() for d in dims},
+        "defaults": strict(entry.defaults()),
         "trials": trials,
         "num_seeds": num_seeds,
         "seed": seed,
@@ -220,7 +226,7 @@ def tune(
     dims = search_space(entry, params, fixed)
     check_buildable(entry, [fixed], seed=seed, device=device)
     settings = tune_settings(
-        name,
+        entry,
         trials=trials,
         num_seeds=num_seeds,
         seed=seed,
