@@ -344,9 +344,10 @@ def _load_entry_points() -> None:
 
 
 def scenarios() -> dict[str, ScenarioEntry]:
-    """Every registered scenario by name (those of installed packages' entry points too)."""
+    """Every registered scenario by name, in the order they registered (those of installed
+    packages' entry points too); ``torchcbf demo`` runs them in this order."""
     _load_entry_points()
-    return dict(sorted(_REGISTRY.items()))
+    return dict(_REGISTRY)
 
 
 def get(scenario: str | ScenarioEntry) -> ScenarioEntry:
