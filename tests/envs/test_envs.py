@@ -110,6 +110,40 @@ def test_next_step_autoreset() -> None:
     np.testing.assert_allclose(obs[0, :3], [0.1, 0.0, 0.1], atol=1e-6)  # a fresh episode
 
 
+def test_same_step_and_disabled_autoreset() -> None:
+    """SAME_STEP: the step that ends a row returns the new episode's first observation, the
+    ended one's in info['final_obs'], and the flags of the end; DISABLED leaves the row as
+    it is until a masked reset. Both follow NEXT_STEP's trajectory until the end."""
+    kw = {"num_envs": 2, "vectorization_mode": "vector_entry_point"}
+    toward_obstacle = np.array([[5.0, 5.0], [0.0, 1.0]], dtype=np.float32)
+    runs = {}
+    for mode in ("NextStep", "SameStep", "Disabled"):
+        env = gym.make_vec("torchcbf/ReachAvoid-v0", autoreset_mode=mode, **kw)
+        assert env.metadata["autoreset_mode"] == AutoresetMode(mode)
+        obs0, _ = env.reset(seed=0)
+        steps = []
+        for _ in range(20):
+            steps.append(env.step(toward_obstacle))
+            if steps[-1][2][0]:
+                break
+        runs[mode] = (env, obs0, steps)
+    _, obs0, nxt = runs["NextStep"]
+    _, _, same = runs["SameStep"]
+    assert len(same) == len(nxt)
+    obs, reward, term, _, info = same[-1]
+    assert term[0] and reward[0] < -5 and info["_final_obs"][0] and not info["_final_obs"][1]
+    np.testing.assert_array_equal(info["final_obs"][0], nxt[-1][0][0])  # the last state
+    assert info["final_info"]["collision"][0]
+    np.testing.assert_array_equal(obs[0], obs0[0])  # the new episode's first observation
+    np.testing.assert_array_equal(obs[1], nxt[-1][0][1])
+    env, _, disabled = runs["Disabled"]
+    np.testing.assert_array_equal(disabled[-1][0], nxt[-1][0])
+    obs, _ = env.reset(options={"reset_mask": np.array([True, False])})
+    np.testing.assert_array_equal(obs[0], obs0[0])
+    with pytest.raises(ValueError, match="autoreset_mode must be"):
+        gym.make_vec("torchcbf/ReachAvoid-v0", autoreset_mode="sometimes", **kw)
+
+
 def test_truncation_at_the_time_limit() -> None:
     env = gym.make_vec(
         "torchcbf/UnicycleEllipses-v0", num_envs=3, vectorization_mode="vector_entry_point",

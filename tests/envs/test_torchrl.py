@@ -373,3 +373,20 @@ def test_mean_ci_and_summary():
     assert summary["ppo"]["train collisions"] == mean_ci([2.0, 4.0])
     assert summary["ppo"]["eval return"][0] == 2.0
     assert summary["ppo"]["frames/s"] == (100.0, 0.0)
+
+
+def test_gym_wrapper_takes_a_same_step_vector_env() -> None:
+    """TorchRL's GymWrapper wraps a torchcbf vector env in SAME_STEP autoreset: its specs
+    check, and a rollout past the episodes' ends gives the vector env's own steps."""
+    from torchrl.envs import GymWrapper
+
+    kw = {"num_envs": 3, "vectorization_mode": "vector_entry_point", "autoreset_mode": "SameStep"}
+    wrapped = GymWrapper(gymnasium.make_vec("torchcbf/ReachAvoid-v0", **kw))
+    assert tuple(wrapped.batch_size) == (3,)
+    check_env_specs(wrapped)
+    wrapped.set_seed(0)
+    td = wrapped.rollout(120, break_when_any_done=False)
+    assert td.shape == (3, 120) and bool(td["next", "done"].any())  # episodes ended, went on
+    reference = gymnasium.make_vec("torchcbf/ReachAvoid-v0", **kw)
+    obs, _ = reference.reset(seed=0)
+    np.testing.assert_allclose(td["observation"][:, 0].numpy(), obs, rtol=1e-6)

@@ -7,10 +7,14 @@ episode number, step), so a vector env reproduces ``num_envs`` single envs exact
 without a seed starts the next episode of the same seed (a fresh random seed before the
 first seeded reset).
 
-Autoreset (vector env): Gymnasium's next-step mode (``AutoresetMode.NEXT_STEP``): a
-sub-environment that ends (terminated or truncated) at one ``step`` is reset by the next
-``step``, which ignores its action and returns its first observation, reward 0, and
-``terminated = truncated = False``.
+Autoreset (vector env, ``autoreset_mode=``): Gymnasium's next-step mode by default
+(``AutoresetMode.NEXT_STEP``): a sub-environment that ends (terminated or truncated) at one
+``step`` is reset by the next ``step``, which ignores its action and returns its first
+observation, reward 0, and ``terminated = truncated = False``. ``SAME_STEP`` resets it in
+the step where it ends (the new episode's observation returned, the ended one's in
+``info["final_obs"]`` and ``info["final_info"]``, rows marked by ``info["_final_obs"]``), as
+TorchRL's ``GymWrapper`` expects; ``DISABLED`` leaves resets to
+``reset(options={"reset_mask": ...})``.
 """
 
 from __future__ import annotations
@@ -57,8 +61,17 @@ class TorchVectorEnv(gymnasium.vector.VectorEnv):
         device: str | torch.device = "cpu",
         dtype: torch.dtype = torch.float32,
         return_tensors: bool = False,
+        autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     ) -> None:
         check_positive_int("num_envs", num_envs)
+        try:
+            mode = AutoresetMode(autoreset_mode)
+        except ValueError:
+            names = [m.value for m in AutoresetMode]
+            raise ValueError(
+                f"autoreset_mode must be an AutoresetMode or one of {names}, got {autoreset_mode!r}"
+            ) from None
+        self.metadata = {**type(self).metadata, "autoreset_mode": mode}
         if max_episode_steps is not None and (
             isinstance(max_episode_steps, bool)
             or not isinstance(max_episode_steps, int)
@@ -82,6 +95,11 @@ class TorchVectorEnv(gymnasium.vector.VectorEnv):
         self._done = torch.zeros(num_envs, dtype=torch.bool, device=self.device)
         self._seeded = False
         self._started = False
+
+    @property
+    def autoreset_mode(self) -> AutoresetMode:
+        """How ended sub-environments start again (``metadata["autoreset_mode"]``)."""
+        return self.metadata["autoreset_mode"]
 
     def _set_spaces(self, observation: spaces.Box, action: spaces.Box) -> None:
         self.single_observation_space = observation
@@ -212,18 +230,32 @@ class TorchVectorEnv(gymnasium.vector.VectorEnv):
                 truncated = torch.zeros_like(terminated)
             else:
                 truncated = self._steps >= self.max_episode_steps
-            # next-step autoreset: rows that ended at the previous step start again now,
-            # their action ignored
-            restart = self._done
-            self._reset_rows(restart, None)
-            fresh = self._info()
-            info = {k: torch.where(_rows(restart, v), fresh[k], v) for k, v in info.items()}
-            reward = torch.where(restart, torch.zeros_like(reward), reward)
-            terminated = terminated & ~restart
-            truncated = truncated & ~restart
+            mode = self.metadata["autoreset_mode"]
+            if mode == AutoresetMode.NEXT_STEP:
+                # rows that ended at the previous step start again now, their action ignored
+                restart = self._done
+                self._reset_rows(restart, None)
+                fresh = self._info()
+                info = {k: torch.where(_rows(restart, v), fresh[k], v) for k, v in info.items()}
+                reward = torch.where(restart, torch.zeros_like(reward), reward)
+                terminated = terminated & ~restart
+                truncated = truncated & ~restart
             self._done = terminated | truncated
+            obs = self._observe()
+            if mode == AutoresetMode.SAME_STEP:
+                # rows that end now start again at once: the observation is the new
+                # episode's, the last one of the ended episode is in info["final_obs"]
+                ended = self._done
+                final_obs, final_info = obs, info
+                self._reset_rows(ended, None)
+                obs, fresh = self._observe(), self._info()
+                info = {k: torch.where(_rows(ended, v), fresh[k], v) for k, v in info.items()}
+                info["final_obs"] = final_obs
+                info["final_info"] = final_info
+                info["_final_obs"] = info["_final_info"] = ended
+                self._done = torch.zeros_like(ended)
         return (
-            self._out_obs(self._observe()),
+            self._out_obs(obs),
             reward if self.return_tensors else reward.cpu().numpy().astype(np.float64),
             terminated if self.return_tensors else terminated.cpu().numpy(),
             truncated if self.return_tensors else truncated.cpu().numpy(),
@@ -235,10 +267,13 @@ class TorchVectorEnv(gymnasium.vector.VectorEnv):
             return obs
         return obs.cpu().numpy().astype(self.single_observation_space.dtype, copy=False)
 
-    def _out_info(self, info: dict[str, Tensor]) -> dict[str, Any]:
+    def _out_info(self, info: dict[str, Any]) -> dict[str, Any]:
         if self.return_tensors:
             return dict(info)
-        return {k: v.cpu().numpy() for k, v in info.items()}
+        return {
+            k: self._out_info(v) if isinstance(v, dict) else v.cpu().numpy()
+            for k, v in info.items()
+        }
 
     def close_extras(self, **kwargs: Any) -> None:
         """Nothing to release: the batch lives in tensors."""

@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 from gymnasium import spaces
+from gymnasium.vector import AutoresetMode
 from torch import Tensor, nn
 
 from torchcbf._checks import check_number
@@ -56,6 +57,10 @@ class ReachAvoidVectorEnv(TorchVectorEnv):
         start_noise: standard deviation (m) of the start position around the origin.
         device, dtype: where the batch lives.
         return_tensors: return tensors on ``device`` instead of NumPy arrays.
+        autoreset_mode: Gymnasium's ``AutoresetMode``: ``NEXT_STEP`` (default; an ended row
+            starts again at the next step), ``SAME_STEP`` (at once, the ended episode's last
+            observation in ``info["final_obs"]``) or ``DISABLED`` (reset rows with
+            ``reset(options={"reset_mask": ...})``).
     """
 
     def __init__(
@@ -69,6 +74,7 @@ class ReachAvoidVectorEnv(TorchVectorEnv):
         device: str | torch.device = "cpu",
         dtype: torch.dtype = torch.float32,
         return_tensors: bool = False,
+        autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     ) -> None:
         super().__init__(
             num_envs,
@@ -76,6 +82,7 @@ class ReachAvoidVectorEnv(TorchVectorEnv):
             device=device,
             dtype=dtype,
             return_tensors=return_tensors,
+            autoreset_mode=autoreset_mode,
         )
         self.goal_bonus = check_number("goal_bonus", goal_bonus, low=0.0)
         self.collision_penalty = check_number("collision_penalty", collision_penalty, low=0.0)

@@ -31,6 +31,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 from gymnasium import spaces
+from gymnasium.vector import AutoresetMode
 from torch import Tensor, nn
 
 from torchcbf._checks import check_number
@@ -58,6 +59,10 @@ class UnicycleEllipsesVectorEnv(TorchVectorEnv):
         start_noise: standard deviation (m) of the start position around the origin.
         device, dtype: where the batch lives.
         return_tensors: return tensors on ``device`` instead of NumPy arrays.
+        autoreset_mode: Gymnasium's ``AutoresetMode``: ``NEXT_STEP`` (default; an ended row
+            starts again at the next step), ``SAME_STEP`` (at once, the ended episode's last
+            observation in ``info["final_obs"]``) or ``DISABLED`` (reset rows with
+            ``reset(options={"reset_mask": ...})``).
     """
 
     def __init__(
@@ -73,6 +78,7 @@ class UnicycleEllipsesVectorEnv(TorchVectorEnv):
         device: str | torch.device = "cpu",
         dtype: torch.dtype = torch.float32,
         return_tensors: bool = False,
+        autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     ) -> None:
         super().__init__(
             num_envs,
@@ -80,6 +86,7 @@ class UnicycleEllipsesVectorEnv(TorchVectorEnv):
             device=device,
             dtype=dtype,
             return_tensors=return_tensors,
+            autoreset_mode=autoreset_mode,
         )
         limit = [float(v) for v in control_limit]
         if len(limit) != 2 or not all(0 < v < math.inf for v in limit):
