@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import importlib.util
 import math
 from typing import NamedTuple
 
@@ -729,8 +728,15 @@ ROUTE_MAX_BATCH = 4
 
 
 @functools.cache
+@functools.cache
 def _proxsuite_available() -> bool:
-    return importlib.util.find_spec("proxsuite") is not None
+    """Whether proxsuite's dense solver imports (an installed but broken proxsuite counts
+    as missing: ``auto`` then keeps every problem on torchcbf's own methods)."""
+    try:
+        from proxsuite import proxqp  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def _unpack(
