@@ -14,9 +14,7 @@ sample costs are normalised by their standard deviation before the exponent
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -25,9 +23,7 @@ from torchcbf._checks import check_number, check_positive_int
 from torchcbf.dynamics import SingleIntegrator
 from torchcbf.mppi import MPPI, And, Avoid, Reach
 from torchcbf.scenarios.base import Scenario
-from torchcbf.scenarios.figures import standard_figures
 from torchcbf.scenarios.registry import Column, Dimension, EnvEntry, ScenarioEntry, register
-from torchcbf.sim import Trajectory
 
 GOALS = (
     ((4.0, 4.0), (0.0, 3.5), 10.0),
@@ -131,22 +127,6 @@ def reach_avoid(
     return ENTRY.make(num_seeds=num_seeds, seed=seed, device=device, dtype=dtype, **params)
 
 
-def figures(
-    trajectories: Mapping[str, Trajectory],
-    scenario: Scenario,
-    out: Path,
-    *,
-    title: str,
-    gif: bool = True,
-    first_seed: int = 0,
-) -> list[Path]:
-    """The paths, the rollouts at 2 s and the animation (``reach_avoid_*``)."""
-    return standard_figures(
-        trajectories, scenario, out, stem="reach_avoid", title=title, gif=gif,
-        first_seed=first_seed,
-    )  # fmt: skip
-
-
 ENTRY = register(
     ScenarioEntry(
         name="reach-avoid",
@@ -165,7 +145,6 @@ ENTRY = register(
             Column("collisions [95% CI]", "collision"),
             Column("min clearance [m]", "min_h", "min", "{:.3f}"),
         ),
-        figures=figures,
         options={"samples": "num_samples", "horizon": "horizon"},
         units={"min_h": "m (clearance |p - o| - r_o)", "seconds": "s"},
         num_seeds=10,
