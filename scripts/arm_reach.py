@@ -20,7 +20,14 @@ import torch
 
 from torchcbf.dynamics.manipulator import Manipulator
 from torchcbf.roadmap import sample_free_configurations
-from torchcbf.scenarios.arm_reach import GEOMETRY, ArmReachScenario, build, link_spheres, run
+from torchcbf.scenarios.arm_reach import (
+    GEOMETRY,
+    ArmReachScenario,
+    build,
+    link_spheres,
+    run,
+    top_view,
+)
 
 
 def time_filter(
@@ -85,44 +92,16 @@ def time_ik(
 
 def plot(sc: ArmReachScenario, result: dict, path: str, shown: int = 12) -> None:
     """Top view (x-y) of end-effector paths, arm poses at start and end, obstacle, targets."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Circle
-
-    fig, ax = plt.subplots(figsize=(7, 7))
-    center, radius = GEOMETRY[sc.name]["obstacle"]
-    ax.add_patch(Circle(center[:2], radius, color="tab:red", alpha=0.35, label="obstacle"))
-    ee = result["ee"].cpu().numpy()
-    x = result["x"]
-    reached = result["reached"].cpu().numpy()
-    tgt = sc.target.cpu().numpy()
-    n = min(shown, ee.shape[0])
-    for b in range(n):
-        color = "tab:blue" if reached[b] else "tab:orange"
-        ax.plot(ee[b, :, 0], ee[b, :, 1], color=color, lw=1)
-        ax.plot(tgt[b, 0], tgt[b, 1], "x", color=color, ms=6)
-    chain = [sc.arm.fk(x[:n, 0]), sc.arm.fk(x[:n, -1])]
-    for pts, style in zip(chain, (":", "-"), strict=True):
-        pts = pts.cpu().numpy()
-        for b in range(n):
-            p = pts[b]
-            ax.plot([0.0, *p[:, 0]], [0.0, *p[:, 1]], style, color="0.4", lw=0.8)
-    ax.plot([], [], color="tab:blue", label="reached")
-    ax.plot([], [], color="tab:orange", label="not reached")
-    ax.plot([], [], ":", color="0.4", label="start pose")
-    ax.plot([], [], "-", color="0.4", label="final pose")
-    ax.set_aspect("equal")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_title(
+    title = (
         f"{sc.name}: reach {result['reach_rate']:.1%}, "
         f"min clearance {result['min_clearance']:.4f} m"
     )
-    ax.legend(loc="lower left", fontsize=8)
+    fig = top_view(sc.arm, sc.name, result["x"], sc.target, result["reached"], title=title,
+                   shown=shown)  # fmt: skip
     fig.tight_layout()
     fig.savefig(path, dpi=120)
+    import matplotlib.pyplot as plt  # after top_view chose the Agg backend
+
     plt.close(fig)
 
 

@@ -51,6 +51,7 @@ import time
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -70,6 +71,7 @@ __all__ = [
     "ArmReachScenario",
     "build",
     "build_scenario",
+    "top_view",
     "link_spheres",
     "run",
 ]
@@ -371,39 +373,33 @@ def build_scenario(
     )
 
 
-def figures(
-    trajectories: Mapping[str, Trajectory],
-    scenario: Scenario,
-    out: Path,
+def top_view(
+    arm: Manipulator,
+    name: str,
+    x: Tensor,
+    target: Tensor,
+    reached: Tensor,
     *,
     title: str,
-    gif: bool = True,
-    first_seed: int = 0,
     shown: int = 12,
-) -> list[Path]:
-    """Top view (x-y) of the end-effector paths of the first ``shown`` rows, the arm at the
-    start and the end, the obstacle and the targets (``arm_reach.png``; no animation)."""
+) -> Any:
+    """A matplotlib figure, top view (x-y) of arm ``name``'s end-effector paths of the first
+    ``shown`` rows of ``x [B, T+1, dof]`` (blue where ``reached [B]``, else orange), the arm
+    at the start and the end, the obstacle and the targets ``[B, 3]``."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.patches import Circle
 
-    from torchcbf.scenarios.figures import save
-
-    (traj,) = trajectories.values()
-    arm, target = scenario.dynamics, scenario.goals[0]
-    tol = scenario.params["tol"]
-    x = traj.x.to(target)
-    ee = arm.end_effector(x)
-    reached = ((ee[:, -1] - target).norm(dim=-1) < tol).cpu().numpy()
-    n = min(shown, ee.shape[0])
+    n = min(shown, x.shape[0])
     fig, ax = plt.subplots(figsize=(7, 7))
-    center, radius = GEOMETRY[scenario.params["arm"]]["obstacle"]
+    center, radius = GEOMETRY[name]["obstacle"]
     ax.add_patch(Circle(center[:2], radius, color="tab:red", alpha=0.35, label="obstacle"))
-    e, tgt = ee.detach().cpu().numpy(), target.cpu().numpy()
+    e = arm.end_effector(x[:n]).detach().cpu().numpy()
+    tgt, ok = target.detach().cpu().numpy(), reached.cpu().numpy()
     for b in range(n):
-        color = "tab:blue" if reached[b] else "tab:orange"
+        color = "tab:blue" if ok[b] else "tab:orange"
         ax.plot(e[b, :, 0], e[b, :, 1], color=color, lw=1)
         ax.plot(tgt[b, 0], tgt[b, 1], "x", color=color, ms=6)
     for pts, style in zip((arm.fk(x[:n, 0]), arm.fk(x[:n, -1])), (":", "-"), strict=True):
@@ -417,8 +413,31 @@ def figures(
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
-    ax.set_title(f"{title}: {n} of {ee.shape[0]} rows, reached {reached.mean():.0%}")
+    ax.set_title(title)
     ax.legend(loc="lower left", fontsize=8)
+    return fig
+
+
+def figures(
+    trajectories: Mapping[str, Trajectory],
+    scenario: Scenario,
+    out: Path,
+    *,
+    title: str,
+    gif: bool = True,
+    first_seed: int = 0,
+    shown: int = 12,
+) -> list[Path]:
+    """:func:`top_view` of the run (``arm_reach.png``; no animation)."""
+    from torchcbf.scenarios.figures import save
+
+    (traj,) = trajectories.values()
+    arm, target = scenario.dynamics, scenario.goals[0]
+    x = traj.x.to(target)
+    reached = (arm.end_effector(x[:, -1]) - target).norm(dim=-1) < scenario.params["tol"]
+    n = min(shown, x.shape[0])
+    title = f"{title}: {n} of {x.shape[0]} rows, reached {reached.double().mean():.0%}"
+    fig = top_view(arm, scenario.params["arm"], x, target, reached, title=title, shown=shown)
     return [save(fig, Path(out) / "arm_reach.png")]
 
 
