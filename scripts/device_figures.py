@@ -136,6 +136,7 @@ def _mppi(device: torch.device, K: int, H: int, cost: str, reps: int, **kw: Any)
         "value": t["median"],
         "unit": "s/call",
         "path": getattr(planner, "path", "torch"),
+        "engine": getattr(planner, "engine", None),
         "K": K,
         "H": H,
         "timing": t,
@@ -145,12 +146,14 @@ def _mppi(device: torch.device, K: int, H: int, cost: str, reps: int, **kw: Any)
 def mppi_figures(device: torch.device, quick: bool, reps: int) -> list[tuple[str, Callable]]:
     scale = 16 if quick else 1
 
-    def builtin(K: int, H: int) -> Callable[[], list[dict]]:
+    def builtin(K: int, H: int, backend: str = "auto") -> Callable[[], list[dict]]:
         def measure() -> list[dict]:
-            row = _mppi(device, K // scale, H, "builtin", reps)
+            row = _mppi(device, K // scale, H, "builtin", reps, backend=backend)
+            path = "" if backend == "auto" else f".{backend}"
             row.update(
-                name=f"mppi.builtin.K{K}.H{H}",
-                label=f"MPPI, built-in model and cost terms, K={K // scale}, H={H}",
+                name=f"mppi.builtin{path}.K{K}.H{H}",
+                label=f"MPPI, built-in model and cost terms, K={K // scale}, H={H}"
+                + ("" if backend == "auto" else f", backend={backend!r} (the general path)"),
             )
             return [row]
 
@@ -198,6 +201,7 @@ def mppi_figures(device: torch.device, quick: bool, reps: int) -> list[tuple[str
     return [
         ("mppi.builtin.K16384.H100", builtin(16384, 100)),
         ("mppi.builtin.K20000.H80", builtin(20000, 80)),
+        ("mppi.builtin.torch.K16384.H100", builtin(16384, 100, "torch")),
         ("mppi.user.eager.K20000.H80", user(False)),
         ("mppi.user.compiled.K20000.H80", user(True)),
         ("mppi.pytorch_mppi.K20000.H80", peer),

@@ -1,5 +1,5 @@
-"""torchcbf.info(): versions, devices and the state of every C kernel; a kernel that is not
-built warns, naming what runs instead."""
+"""torchcbf.info(): versions, devices and the state of every kernel (C and Triton); a C
+kernel that is not built warns, naming what runs instead."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from torchcbf._info import format_info, kernels
 from torchcbf._native import load_kernel
 from torchcbf.barriers import native
 from torchcbf.filters import realtime
-from torchcbf.mppi import _rollout
+from torchcbf.mppi import _rollout, _triton
 from torchcbf.qp import _dual_native
 
 
@@ -27,11 +27,15 @@ def test_info_reports_versions_devices_and_every_kernel() -> None:
     cuda = torch.cuda.device_count() if torch.cuda.is_available() else 0
     assert len(report["devices"]) == 1 + cuda
     names = [k["name"] for k in report["kernels"]]
-    assert len(names) == 4 and len(set(names)) == 4
+    assert len(names) == 5 and len(set(names)) == 5
     modules = (_dual_native, native, realtime, _rollout)
-    for k, module in zip(kernels(), modules, strict=True):
+    found = kernels()
+    for k, module in zip(found[:4], modules, strict=True):
         assert k.loaded == module.available() and k.version == module.KERNEL_VERSION
         assert not k.loaded or Path(k.path).name.startswith(module.KERNEL_STEM)
+    gpu = found[4]
+    assert gpu.devices == ("cuda",) and gpu.loaded == _triton.available()
+    assert gpu.version == _rollout.KERNEL_VERSION  # it reads the C kernel's configuration
     text = format_info(report)
     assert all(name in text for name in names)
 
@@ -51,6 +55,6 @@ def test_the_info_command_prints_the_report(capsys: pytest.CaptureFixture[str]) 
 
     assert main(["info", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
-    assert report["torchcbf"] == torchcbf.__version__ and len(report["kernels"]) == 4
+    assert report["torchcbf"] == torchcbf.__version__ and len(report["kernels"]) == 5
     assert main(["info"]) == 0
     assert "kernels:" in capsys.readouterr().out

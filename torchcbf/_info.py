@@ -1,4 +1,4 @@
-"""What this installation of torchcbf can run: versions, devices and the C kernels."""
+"""What this installation of torchcbf can run: versions, devices and the kernels."""
 
 from __future__ import annotations
 
@@ -14,9 +14,10 @@ from torchcbf._version import __version__
 
 
 class KernelInfo(NamedTuple):
-    """One C kernel: its ``name``, the ``version`` of the source this torchcbf calls,
-    whether it ``loaded`` (built, loadable, of that version), the ``path`` of the built
-    library (``None``: not built), the ``devices`` it runs on, and what runs without it
+    """One kernel (C, or Triton for CUDA): its ``name``, the ``version`` of the source
+    this torchcbf calls, whether it ``loaded`` (built, loadable, of that version), the
+    ``path`` of the built library (``None``: not built or Triton missing), the ``devices``
+    it runs on, and what runs without it
     (``fallback``)."""
 
     name: str
@@ -42,8 +43,8 @@ def _kernels() -> list[tuple[str, ModuleType, str]]:
 
 
 def kernels() -> list[KernelInfo]:
-    """The four C kernels and their state (loading each one, so a missing or stale build
-    gives its warning here)."""
+    """The four C kernels and the Triton kernel, and their state (loading each one, so a
+    missing or stale build gives its warning here)."""
     found = []
     for name, module, fallback in _kernels():
         path = kernel_file(Path(module.__file__).parent, module.KERNEL_STEM)
@@ -57,6 +58,18 @@ def kernels() -> list[KernelInfo]:
                 fallback=fallback,
             )
         )
+    from torchcbf.mppi import _triton
+
+    found.append(
+        KernelInfo(
+            name="mppi: rollouts and built-in costs (Triton)",
+            version=int(_triton.KERNEL_VERSION),
+            loaded=_triton.available(),
+            path=_triton.location(),
+            devices=("cuda",),
+            fallback="MPPI's torch path on CUDA",
+        )
+    )
     return found
 
 
@@ -85,6 +98,6 @@ def format_info(report: dict[str, Any]) -> str:
     lines.append("kernels:")
     for k in report["kernels"]:
         state = "loaded" if k["loaded"] else f"NOT LOADED (runs: {k['fallback']})"
-        where = k["path"] or "not built"
+        where = k["path"] or ("not built" if "cpu" in k["devices"] else "Triton not installed")
         lines.append(f"  {k['name']}: version {k['version']}, {state}, {where}")
     return "\n".join(lines)

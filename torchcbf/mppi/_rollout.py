@@ -427,9 +427,68 @@ def update_threads(count: int) -> int:
 
 
 def draw_keys(generators: list[torch.Generator]) -> Tensor:
-    """One 63-bit noise key per environment ``[B]`` (int64, CPU) from its generator."""
+    """One 63-bit noise key per environment ``[B]`` (int64, on the generators' device)."""
     high = 2**63 - 1
-    return torch.cat([torch.randint(0, high, (1,), generator=g) for g in generators])
+    return torch.cat(
+        [torch.randint(0, high, (1,), generator=g, device=g.device) for g in generators]
+    )
+
+
+class Kernel:
+    """The C kernel bound to one configuration: the passes a planner calls (the Triton
+    kernel, :class:`torchcbf.mppi._triton.Kernel`, has the same methods). ``fused``: the
+    configuration holds the cost terms (the kernel scores the samples itself)."""
+
+    name = "c"
+
+    def __init__(self, cfg: Configuration, *, fused: bool) -> None:
+        self.cfg, self.fused = cfg, fused
+
+    def costs(self, x: Tensor, plan: Tensor, keys: Tensor, wctrl: Tensor | None) -> Tensor:
+        """Total cost ``[B, K]`` of every sample."""
+        B, K = plan.shape[0], self.cfg.samples
+        cost = plan.new_empty(B, K)
+        run(self.cfg, B * K, x, plan, keys, wctrl=wctrl, cost=cost)
+        return cost
+
+    def update(self, x: Tensor, plan: Tensor, keys: Tensor, w: Tensor) -> Tensor:
+        """``sum_k w_k eps_k [B, H, m]`` for ``w [B, K]`` with the noise of the samples of
+        non-zero weight regenerated (accumulated in float64)."""
+        B, H, m = plan.shape
+        pairs = (w > 0).nonzero()
+        count = pairs.shape[0]
+        wsum = torch.zeros(update_threads(count), B, H, m, dtype=torch.float64)
+        if count:
+            w_sel = w[pairs[:, 0], pairs[:, 1]].contiguous()
+            run(self.cfg, count, x, plan, keys, pairs=pairs, weights=w_sel, wsum=wsum)
+        return wsum.sum(0).to(plan.dtype)
+
+    def rows(self, x: Tensor, plan: Tensor, keys: Tensor, pairs: Tensor) -> Tensor:
+        """The rollouts ``[P, H+1, n]`` of the samples ``pairs [P, 2]`` of ``(b, k)``."""
+        states = plan.new_empty(pairs.shape[0], plan.shape[1] + 1, self.cfg.n)
+        run(self.cfg, pairs.shape[0], x, plan, keys, pairs=pairs.contiguous(), states=states)
+        return states
+
+    def buffers(
+        self,
+        x: Tensor,
+        plan: Tensor,
+        keys: Tensor,
+        states: Tensor,
+        controls: Tensor,
+        wctrl: Tensor | None,
+        layout: str,
+    ) -> Tensor | None:
+        """Fill every sample's ``states [B, K, H+1, n]`` and ``controls [B, K, H, m]``
+        (stored as ``layout`` says); return the control cost ``[B, K]`` (``None`` without
+        ``wctrl``)."""
+        B = plan.shape[0]
+        ctrl = None if wctrl is None else plan.new_empty(B, self.cfg.samples)
+        run(
+            self.cfg, B * self.cfg.samples, x, plan, keys,
+            states=states, controls=controls, wctrl=wctrl, cost=ctrl, layout=layout,
+        )  # fmt: skip
+        return ctrl
 
 
 def rollout_buffer(like: Tensor, B: int, K: int, steps: int, dim: int, layout: str) -> Tensor:

@@ -44,8 +44,16 @@ Paths (``MPPI.path`` says which one the last call took):
   samples differ from the torch path's for the same seed).
 - ``"rollout"``: a built-in model with any other cost: the kernel draws the noise and rolls
   out into the ``[B, K, H+1, n]`` buffer, torch evaluates the cost.
-- ``"torch"``: everything else (any :class:`~torchcbf.dynamics.ControlAffine`, CUDA, a
-  planner built with ``backend="torch"``, gradients requested through the planner's
+- on CUDA both paths run the Triton kernel of :mod:`torchcbf.mppi._triton` (where Triton
+  imports; it ships with CUDA builds of torch): the same configuration, formulas and
+  counter-based noise as the C kernel, so a CUDA planner plans what the CPU planner plans for
+  the same seed (to rounding), one launch per pass with the loop over the horizon inside the
+  kernel. Its tables are read from the planner, model and cost once and kept until one of
+  their tensors changes (in place or replaced) or a number attribute changes, so a planning
+  call does not wait for the device. The rollout path on CUDA needs ``layout="component"``.
+  ``MPPI.engine`` says which kernel the last call ran (``"c"``, ``"triton"`` or ``None``).
+- ``"torch"``: everything else (any :class:`~torchcbf.dynamics.ControlAffine`, CUDA without
+  Triton, a planner built with ``backend="torch"``, gradients requested through the planner's
   parameters, and the options the kernel does not express: ``step=``, ``noise_abs_cost``,
   ``noise_mu``, ``action_sampler``, ``sample_null_action`` and the variants that sample
   otherwise, :class:`~torchcbf.mppi.SMPPI` and :class:`~torchcbf.mppi.KMPPI`): noise from
@@ -71,12 +79,13 @@ runs eager.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable
 from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from torchcbf import integrators
 from torchcbf._autograd import needs_graph
@@ -91,13 +100,13 @@ from torchcbf._compile import Compiled
 from torchcbf._constants import ExactConstants, remember
 from torchcbf._native import keep_freed_heap
 from torchcbf.dynamics.base import ControlAffine
-from torchcbf.mppi import _rollout
+from torchcbf.mppi import _rollout, _triton
 from torchcbf.mppi.history import History, HistoryBuffer
 
 INTEGRATORS = ("euler", "rk4")
 SHIFT_FILLS = ("zero", "last")
 NORMALIZATIONS = ("none", "range", "std")
-BACKENDS = ("auto", "torch")
+BACKENDS = ("auto", "torch", "triton")
 LAYOUTS = ("component", "sample")
 #: state elements (``B x slice x (H+1) x n``) per cost call when ``cost_chunk`` is automatic
 AUTO_CHUNK_ELEMENTS = 2**17
@@ -135,6 +144,24 @@ class MPPIOutput(NamedTuple):
     rollout_weights: Tensor | None
     nonfinite: Tensor | None = None
     path: str = "torch"
+
+
+def _state_signature(module: nn.Module) -> tuple[Any, ...]:
+    """What a kernel configuration read from ``module`` depends on, read without a host
+    sync: the storage, in-place version, dtype and shape of each parameter and buffer of its
+    modules, and their public number, string and tuple attributes."""
+    out: list[Any] = []
+    for mod in module.modules():
+        for t in (*mod._parameters.values(), *mod._buffers.values()):
+            out.append(None if t is None else (t.data_ptr(), t._version, t.dtype, t.shape))
+        for name, value in vars(mod).items():
+            if name.startswith("_") or name in ("path", "engine"):  # reports, not settings
+                continue
+            if isinstance(value, Tensor):
+                out.append((name, value.data_ptr(), value._version))
+            elif value is None or isinstance(value, (bool, int, float, str, slice, tuple)):
+                out.append((name, value))
+    return tuple(out)
 
 
 def _limit(name: str, value: object, m: int) -> Tensor | None:
@@ -231,8 +258,10 @@ class MPPI(ExactConstants):
             tests/mppi/test_scenario_a.py).
         compile: ``True`` or a dict of ``torch.compile`` kwargs: compile a torch cost (and the
             torch path's integration step); see the module docstring and docs/mppi.md.
-        backend: ``"auto"`` (default: the C kernel where it applies, see the module
-            docstring) or ``"torch"`` (always the torch path).
+        backend: ``"auto"`` (default: the C kernel on the CPU and the Triton kernel on
+            CUDA where they apply, see the module docstring), ``"torch"`` (always the torch
+            path) or ``"triton"`` (the Triton kernel where it applies, also on the CPU under
+            ``TRITON_INTERPRET=1``; Triton must import).
         cost_chunk: samples per call of a torch cost: ``None`` (default) slices the samples
             on the CPU so that one slice holds about ``AUTO_CHUNK_ELEMENTS`` state values and
             at least ``MIN_CHUNK_SAMPLES`` samples (the cost's intermediates then stay in
@@ -384,6 +413,8 @@ class MPPI(ExactConstants):
         self.layout = layout
         #: the path of the last call: ``"fused"``, ``"rollout"`` or ``"torch"``
         self.path: str | None = None
+        #: the kernel of the last call's fused or rollout path: ``"c"`` or ``"triton"``
+        self.engine: str | None = None
 
         self.step = step
         self.noise_abs_cost = noise_abs_cost
@@ -434,13 +465,17 @@ class MPPI(ExactConstants):
             kwargs = compile if isinstance(compile, dict) else {}
             self._step_fn = Compiled(self._step, kwargs)
             self._score_fn = Compiled(self._score, kwargs)
+        if backend == "triton" and not _triton.available():
+            raise ValueError("backend='triton' needs Triton, which does not import here")
         self._key: tuple[Any, ...] | None = None
+        self._tables: tuple[Any, _triton.Kernel | None] | None = None
         self._fresh = True
 
     # -- state -------------------------------------------------------------------------------
     def reset(self) -> None:
         """Forget the plan, the history and re-seed the generators (next call starts afresh)."""
         self._key = None
+        self._tables = None
         self._fresh = True
 
     def _ensure_state(self, B: int, device: torch.device, dtype: torch.dtype) -> None:
@@ -553,32 +588,28 @@ class MPPI(ExactConstants):
             self._shift()
         self._fresh = False
 
-        model, cost_code = self._kernel_plan(xb)
-        if model is not None and cost_code is not None:
+        kernel = self._kernel(xb)
+        self.engine = None if kernel is None else kernel.name
+        if kernel is not None and kernel.fused:
             self.path = "fused"
-            return self._fused(xb, model, cost_code, unbatched)
-        eps, controls, states = self._rollout_buffers(noise=model is None)
+            return self._fused(kernel, xb, unbatched)
+        eps, controls, states = self._rollout_buffers(noise=kernel is None)
         if xb.device.type == "cpu":
             keep_freed_heap()  # a torch cost's intermediates are reused, not faulted in again
         history = self._history.view() if self._needs_history else None
-        if model is not None:
+        if kernel is not None:
             # the kernel stores the rollouts for the torch cost and adds the control cost;
             # the update regenerates the noise of the weighted samples (as on the fused path)
             self.path = "rollout"
-            cfg = self._configuration(model, None)
             keys = _rollout.draw_keys(self._generators)
             xc = xb.contiguous()
             wctrl = self._control_weights(plan)
-            ctrl = None if wctrl is None else plan.new_empty(B, self.num_samples)
-            _rollout.run(
-                cfg, B * self.num_samples, xc, plan, keys,
-                states=states, controls=controls, wctrl=wctrl, cost=ctrl, layout=self.layout,
-            )  # fmt: skip
+            ctrl = kernel.buffers(xc, plan, keys, states, controls, wctrl, self.layout)
             cost = self._score_fn(states, controls, None, plan, t0, history)
             if ctrl is not None:
                 cost = cost + ctrl
             weights = self._weights(cost)
-            delta = self._kernel_update(cfg, xc, plan, keys, weights)
+            delta = kernel.update(xc, plan, keys, weights.w)
         else:
             self.path = "torch"
             assert eps is not None
@@ -837,22 +868,55 @@ class MPPI(ExactConstants):
         return max(MIN_CHUNK_SAMPLES, AUTO_CHUNK_ELEMENTS // per_sample)
 
     # -- kernel paths --------------------------------------------------------------------------
-    def _kernel_plan(
-        self, x: Tensor
-    ) -> tuple[tuple[int, int] | None, tuple[list[list[float]], list[list[float]]] | None]:
-        """``(model, cost)`` encodings for the kernel, each ``None`` where torch runs."""
-        usable = (
-            self.backend == "auto"
-            and x.device.type == "cpu"
-            and x.dtype in (torch.float32, torch.float64)
-            and _rollout.available()
-        )
-        if not usable or not self._kernel_expresses() or needs_graph(self, x):
-            return None, None
+    def _engine(self, x: Tensor) -> str | None:
+        """The kernel that plans for ``x``: ``"c"`` on the CPU, ``"triton"`` on CUDA (or
+        with ``backend="triton"``), ``None`` where torch runs."""
+        if (
+            self.backend == "torch"
+            or x.dtype not in (torch.float32, torch.float64)
+            or not self._kernel_expresses()
+            or needs_graph(self, x)
+        ):
+            return None
+        if self.backend == "triton":
+            if x.device.type == "cpu" and os.environ.get("TRITON_INTERPRET") != "1":
+                raise ValueError(
+                    "backend='triton' plans on CUDA tensors (on the CPU only under "
+                    "TRITON_INTERPRET=1); x is on the CPU"
+                )
+            return "triton"
+        if x.device.type == "cpu":
+            return "c" if _rollout.available() else None
+        return "triton" if x.device.type == "cuda" and _triton.available() else None
+
+    def _kernel(self, x: Tensor) -> _rollout.Kernel | _triton.Kernel | None:
+        """The kernel bound to this planner's configuration, or ``None`` where torch runs:
+        fused where the cost is made of built-in terms, else for the rollouts alone. The
+        Triton kernel's tables are kept until a tensor or number of the planner, its model
+        or its cost changes (read without a host sync)."""
+        engine = self._engine(x)
+        if engine is None:
+            return None
+        if engine == "triton":
+            signature = (x.device, x.dtype, _state_signature(self))
+            cached = self._tables
+            if cached is not None and cached[0] == signature:
+                return cached[1]
         model = _rollout.encode_model(self.dynamics)
-        if model is None or self._needs_history:
-            return model, None
-        return model, _rollout.encode_cost(self.cost, self.dynamics.state_dim)
+        cost = None
+        if model is not None and not self._needs_history:
+            cost = _rollout.encode_cost(self.cost, self.dynamics.state_dim)
+        kernel: _rollout.Kernel | _triton.Kernel | None = None
+        if model is not None:
+            cfg = self._configuration(model, cost)
+            if engine == "c":
+                return _rollout.Kernel(cfg, fused=cost is not None)
+            if cost is not None or self.layout == "component":
+                tab = _triton.tables(cfg, x.dtype, x.device)
+                kernel = _triton.Kernel(tab, fused=cost is not None)
+        if engine == "triton":
+            self._tables = (signature, kernel)
+        return kernel
 
     def _kernel_expresses(self) -> bool:
         """Whether the kernel's sampling, rollout and control cost are this planner's: the
@@ -896,45 +960,23 @@ class MPPI(ExactConstants):
             return None
         return (plan @ self.noise_cov_inv.to(plan)).contiguous()
 
-    def _kernel_update(
-        self, cfg: _rollout.Configuration, x: Tensor, plan: Tensor, keys: Tensor, weights: _Weights
-    ) -> Tensor:
-        """``sum_k w_k eps_k [B, H, m]`` with the noise of the samples of non-zero weight
-        regenerated by the kernel (accumulated in float64)."""
-        B, H, m = plan.shape
-        pairs = (weights.w > 0).nonzero()
-        count = pairs.shape[0]
-        wsum = torch.zeros(_rollout.update_threads(count), B, H, m, dtype=torch.float64)
-        if count:
-            w_sel = weights.w[pairs[:, 0], pairs[:, 1]].contiguous()
-            _rollout.run(cfg, count, x, plan, keys, pairs=pairs, weights=w_sel, wsum=wsum)
-        return wsum.sum(0).to(plan.dtype)
-
     def _fused(
-        self,
-        x: Tensor,
-        model: tuple[int, int],
-        cost_code: tuple[list[list[float]], list[list[float]]],
-        unbatched: bool,
+        self, kernel: _rollout.Kernel | _triton.Kernel, x: Tensor, unbatched: bool
     ) -> MPPIOutput:
-        B, H, m = self._plan.shape
-        K, n = self.num_samples, self.dynamics.state_dim
+        B, H, _ = self._plan.shape
+        n = self.dynamics.state_dim
         plan, x = self._plan, x.contiguous()
-        cfg = self._configuration(model, cost_code)
         keys = _rollout.draw_keys(self._generators)
-        cost = plan.new_empty(B, K)
-        _rollout.run(cfg, B * K, x, plan, keys, wctrl=self._control_weights(plan), cost=cost)
+        cost = kernel.costs(x, plan, keys, self._control_weights(plan))
         weights = self._weights(cost)
-        delta = self._kernel_update(cfg, x, plan, keys, weights)
+        delta = kernel.update(x, plan, keys, weights.w)
         # re-roll the best sample and the kept samples
         R = self.keep_rollouts
         picks = [torch.stack([self._rows, weights.best], -1)]
         if R:
             ks = torch.arange(R, device=x.device)
             picks.append(torch.cartesian_prod(self._rows, ks))
-        pairs = torch.cat(picks).contiguous()
-        rolled = plan.new_empty(pairs.shape[0], H + 1, n)
-        _rollout.run(cfg, pairs.shape[0], x, plan, keys, pairs=pairs, states=rolled)
+        rolled = kernel.rows(x, plan, keys, torch.cat(picks))
         rollouts = rolled[B:].view(B, R, H + 1, n) if R else None
         return self._output(cost, weights, delta, rolled[:B], rollouts, unbatched)
 

@@ -1,0 +1,162 @@
+"""The Triton MPPI kernel against the C kernel (same configuration, same noise).
+
+Runs on CUDA where present, else on the CPU under ``TRITON_INTERPRET=1`` (set before
+Python starts: ``TRITON_INTERPRET=1 pytest tests/mppi/test_triton.py``); skipped where
+Triton is not installed.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+
+import pytest
+import torch
+
+from torchcbf.barriers import Ball, Ellipse
+from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, SingleIntegrator, Unicycle
+from torchcbf.mppi import (
+    MPPI,
+    BarrierCost,
+    DiscreteBarrierCost,
+    ObstacleCost,
+    QuadraticGoal,
+    SumCost,
+    _rollout,
+    _triton,
+)
+
+if torch.cuda.is_available():
+    TARGET = torch.device("cuda")
+elif os.environ.get("TRITON_INTERPRET") == "1":
+    TARGET = torch.device("cpu")
+else:
+    TARGET = None
+
+pytestmark = [
+    pytest.mark.device,
+    pytest.mark.skipif(not _triton.available(), reason="Triton is not installed"),
+    pytest.mark.skipif(TARGET is None, reason="no CUDA device and TRITON_INTERPRET is not 1"),
+    pytest.mark.skipif(
+        not _rollout.available(), reason="the C kernel (the reference) is not built"
+    ),
+]
+
+#: (rtol, atol) of the Triton kernel against the C kernel: rounding of the same formulas
+TOL = {torch.float64: (1e-9, 1e-9), torch.float32: (2e-4, 2e-5)}
+MODELS = [
+    (AccelUnicycle, "rk4"),
+    (Unicycle, "euler"),
+    (lambda: DoubleIntegrator(2), "rk4"),
+    (lambda: SingleIntegrator(3), "euler"),
+]
+
+
+def _cost() -> SumCost:
+    balls = Ball(center=torch.tensor([[2.0, 0.5], [4.0, -0.5]]), radius=0.5)
+    ellipse = Ellipse(center=torch.tensor([3.0, 1.0]), axes=torch.tensor([0.6, 0.3]), angle=0.4)
+    return SumCost(
+        QuadraticGoal(goal=[6.0, 0.0], index=[0, 1], weight=1.0, terminal_weight=5.0),
+        BarrierCost(balls, weight=0.1),
+        DiscreteBarrierCost(ellipse, gamma=0.3, weight=10.0, steps=7),
+        BarrierCost(ellipse, weight=0.05),
+        ObstacleCost(center=[5.0, 0.3], radius=0.3),
+    )
+
+
+def _planner(make, integrator: str, dtype: torch.dtype, backend: str, cost=None, **kw) -> MPPI:
+    dyn = make()
+    m = dyn.control_dim
+    return MPPI(
+        dyn,
+        _cost() if cost is None else cost,
+        horizon=12,
+        num_samples=300,
+        dt=0.1,
+        noise_sigma=torch.tensor([[0.5, 0.1], [0.1, 0.4]]) if m == 2 else 0.6,
+        temperature=0.5,
+        control_cost_weight=0.2,
+        u_min=[-1.0] * m,
+        u_max=[1.5] * m,
+        integrator=integrator,
+        seed=3,
+        backend=backend,
+        zero_noise_samples=1,
+        **kw,
+    ).to(dtype)
+
+
+def _plans(planner: MPPI, x: torch.Tensor, calls: int = 3) -> list:
+    return [planner(x) for _ in range(calls)]
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize(("make", "integrator"), MODELS)
+def test_fused_plans_match_the_c_kernel(make, integrator, dtype):
+    torch.manual_seed(0)
+    ref = _planner(make, integrator, dtype, "auto", keep_rollouts=3)
+    tri = _planner(make, integrator, dtype, "triton", keep_rollouts=3).to(TARGET)
+    n = ref.dynamics.state_dim
+    x = (torch.rand(2, n, dtype=dtype) - 0.5) * 0.5
+    rtol, atol = TOL[dtype]
+    for a, b in zip(_plans(ref, x), _plans(tri, x.to(TARGET)), strict=True):
+        assert ref.path == "fused" and tri.path == "fused"
+        assert ref.engine == "c" and tri.engine == "triton"
+        for name in ("u", "plan", "cost_min", "cost_mean", "best_states", "rollouts"):
+            torch.testing.assert_close(
+                getattr(b, name).cpu(), getattr(a, name), rtol=rtol, atol=atol, msg=name
+            )
+        assert torch.equal(a.status, b.status.cpu())
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_rollout_path_with_a_torch_cost_matches_the_c_kernel(dtype):
+    def cost(states, controls, t):  # a user's cost: torch scores the stored rollouts
+        return (states[..., :2] - torch.tensor([3.0, 1.0]).to(states)).square().sum((-1, -2))
+
+    ref = _planner(AccelUnicycle, "rk4", dtype, "auto", cost=cost)
+    tri = _planner(AccelUnicycle, "rk4", dtype, "triton", cost=cost).to(TARGET)
+    x = torch.tensor([[0.0, 0.0, 0.5, 0.1], [1.0, -1.0, 0.0, 2.0]], dtype=dtype)
+    rtol, atol = TOL[dtype]
+    for a, b in zip(_plans(ref, x), _plans(tri, x.to(TARGET)), strict=True):
+        assert ref.path == "rollout" and tri.path == "rollout"
+        torch.testing.assert_close(b.plan.cpu(), a.plan, rtol=rtol, atol=atol)
+        torch.testing.assert_close(b.best_states.cpu(), a.best_states, rtol=rtol, atol=atol)
+
+
+def test_tables_follow_a_changed_goal():
+    goal = QuadraticGoal(goal=[6.0, 0.0], index=[0, 1], weight=1.0)
+    planner = _planner(Unicycle, "euler", torch.float64, "triton", cost=goal).to(TARGET)
+    ref = _planner(Unicycle, "euler", torch.float64, "auto", cost=copy.deepcopy(goal))
+    x = torch.zeros(3, dtype=torch.float64)
+    planner(x.to(TARGET))
+    first = planner._tables[1]
+    planner(x.to(TARGET))
+    ref(x), ref(x)
+    assert planner._tables[1] is first  # nothing changed: the tables are kept
+    with torch.no_grad():
+        planner.cost.goal.copy_(torch.tensor([-4.0, 2.0]))
+        ref.cost.goal.copy_(torch.tensor([-4.0, 2.0]))
+    b, a = planner(x.to(TARGET)), ref(x)
+    assert planner._tables[1] is not first
+    torch.testing.assert_close(b.plan.cpu(), a.plan, rtol=1e-9, atol=1e-9)
+
+
+def test_options_the_kernel_does_not_express_run_in_torch():
+    planner = _planner(Unicycle, "euler", torch.float64, "triton", noise_abs_cost=True)
+    planner = planner.to(TARGET)
+    planner(torch.zeros(3, dtype=torch.float64, device=TARGET))
+    assert planner.path == "torch" and planner.engine is None
+
+
+def test_boundary_checks_name_the_argument():
+    planner = _planner(Unicycle, "euler", torch.float64, "triton").to(TARGET)
+    x = torch.zeros(1, 3, dtype=torch.float64, device=TARGET)
+    planner._ensure_state(1, x.device, x.dtype)
+    kernel = planner._kernel(x)
+    keys = torch.zeros(1, dtype=torch.int64, device=TARGET)
+    plan = torch.zeros(1, 12, 2, dtype=torch.float32, device=TARGET)
+    with pytest.raises(ValueError, match="x0 must be a contiguous torch.float32"):
+        kernel.costs(x, plan, keys, None)
+    with pytest.raises(ValueError, match="keys"):
+        kernel.costs(x.float(), plan, keys.int(), None)

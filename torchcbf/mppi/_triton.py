@@ -1,0 +1,569 @@
+"""GPU fast path of MPPI: the rollout kernel of :mod:`torchcbf.mppi._rollout` in Triton.
+
+It reads the C kernel's configuration (:func:`torchcbf.mppi._rollout.configuration`) and
+evaluates the same formulas with the same counter-based noise, so a CUDA planner plans what
+the CPU planner plans for the same seed, to rounding. Each pass is one launch over the
+``B x K`` samples, one lane per sample, with the loop over the horizon inside the kernel:
+
+- :func:`costs`: noise, rollout, built-in cost terms and the control cost; nothing stored;
+- :func:`update`: ``sum_k w_k eps_k`` with the noise regenerated, as float64 partial sums per
+  block of samples, summed by torch in a fixed order (deterministic);
+- :func:`rows`: the rollouts ``[P, H+1, n]`` of chosen ``(b, k)`` pairs (the best sample,
+  the kept samples);
+- :func:`buffers`: every sample's states and controls in the component-major buffers a
+  torch cost reads, and the control cost.
+
+Triton is optional (it ships with CUDA builds of torch); :func:`available` says whether it
+imports. On the CPU the kernel runs only under ``TRITON_INTERPRET=1`` (the tests use it).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from pathlib import Path
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchcbf.mppi import _rollout
+
+try:  # Triton is optional: the planner uses torch where it is missing
+    import triton
+    import triton.language as tl
+except ImportError:  # pragma: no cover - depends on the installation
+    triton = None
+    tl = None
+
+#: samples per program
+BLOCK = 128
+#: the kernel's passes
+_COSTS, _UPDATE, _ROWS, _BUFFERS = 0, 1, 2, 3
+#: layout of the parameter vector: dt, dt/2, dt/6, gamma, 2 pi, lo[4], hi[4], chol[4 x 4]
+_P_LO, _P_HI, _P_L, _NPAR = 5, 9, 13, 29
+#: per-term values: weight, extra, eps, radius, first shape, shapes, steps, 1 - extra
+_TVAL = 8
+
+
+#: the configuration this kernel reads (:data:`torchcbf.mppi._rollout.KERNEL_VERSION`)
+KERNEL_VERSION = _rollout.KERNEL_VERSION
+
+
+def available() -> bool:
+    """Whether Triton imports."""
+    return triton is not None
+
+
+def location() -> str | None:
+    """Triton's version and where it is installed, or ``None`` where it does not import."""
+    if triton is None:
+        return None
+    return f"triton {triton.__version__} at {Path(triton.__file__).parent}"
+
+
+class Tables(NamedTuple):
+    """The kernel's configuration on the device (built once per configuration by
+    :func:`tables`) and its compile-time structure."""
+
+    par: Tensor  # [_NPAR]
+    tmask: Tensor  # [T, NP] components of each term's point
+    tcent: Tensor  # [T, NP] each term's point (goal, obstacle centre) on them
+    tval: Tensor  # [T, _TVAL]
+    sa: Tensor  # [SP, 4, NP] rows of A: a shape's h = sign (|A (x - c)|^2 - c0)
+    sc: Tensor  # [SP, NP] its centre
+    sval: Tensor  # [SP, 2] sign, c0
+    meta: dict
+
+
+def _pow2(v: int) -> int:
+    return max(2, 1 << (max(v, 1) - 1).bit_length())
+
+
+def tables(cfg: _rollout.Configuration, dtype: torch.dtype, device: torch.device) -> Tables:
+    """Parse the C kernel's configuration vector (its layout in ``_rollout_kernel.c``) into
+    the Triton kernel's dense tables, in ``dtype`` on ``device``."""
+    v = cfg.values.tolist()
+    hdr, mmax = _rollout._HDR, _rollout.MAX_CONTROL
+    model, integrator, n, m, H = (int(x) for x in v[1:6])
+    dim, zero_noise, has_lo, has_hi, nterms, nshapes = (int(x) for x in v[7:13])
+    dt, gamma = v[13], v[14]
+    lo, hi = v[hdr : hdr + mmax], v[hdr + mmax : hdr + 2 * mmax]
+    chol = v[hdr + 2 * mmax : hdr + 2 * mmax + mmax * mmax]
+    par = [dt, 0.5 * dt, dt / 6.0, gamma, 2.0 * math.pi, *lo, *hi, *chol]
+    NP, SP = _pow2(n), _pow2(nshapes)
+    base = hdr + 2 * mmax + mmax * mmax
+    tmask = torch.zeros(max(nterms, 1), NP, dtype=torch.float64)
+    tcent = torch.zeros_like(tmask)
+    tval = torch.zeros(max(nterms, 1), _TVAL, dtype=torch.float64)
+    types = 0
+    for t in range(nterms):
+        rec = v[base + t * _rollout._TREC : base + (t + 1) * _rollout._TREC]
+        kind, d = int(rec[0]), int(rec[4])
+        types |= kind << (2 * t)
+        for i in range(d):
+            c = int(rec[5 + i])
+            if tmask[t, c] != 0:  # a repeated component: the dense tables cannot say it
+                raise ValueError("a cost term's index repeats a state component")
+            tmask[t, c], tcent[t, c] = 1.0, rec[9 + i]
+        steps = 0.0
+        if kind == _rollout.TERM_DISCRETE_BARRIER:
+            steps = H if rec[3] == -1 or rec[3] > H else rec[3]
+        tval[t] = torch.tensor(
+            [rec[1], rec[2], rec[3], rec[13], rec[14], rec[15], steps, 1.0 - rec[2]],
+            dtype=torch.float64,
+        )
+    sa = torch.zeros(SP, 4, NP, dtype=torch.float64)
+    sc = torch.zeros(SP, NP, dtype=torch.float64)
+    sval = torch.zeros(SP, 2, dtype=torch.float64)
+    shapes0 = base + nterms * _rollout._TREC
+    rows_used = 1
+    for s in range(nshapes):
+        rec = v[shapes0 + s * _rollout._SREC : shapes0 + (s + 1) * _rollout._SREC]
+        kind, d = int(rec[0]), int(rec[1])
+        idx = [int(rec[2 + i]) for i in range(d)]
+        if len(set(idx)) != d:
+            raise ValueError("a barrier's index repeats a state component")
+        ball = kind == _rollout.SHAPE_BALL
+        rows_used = max(rows_used, d)
+        for i, c in enumerate(idx):
+            sc[s, c] = rec[6 + i]
+        if int(rec[16]):  # a rotated 2-D ellipse
+            co, si = math.cos(rec[17]), math.sin(rec[17])
+            ax, ay = rec[10], rec[11]
+            sa[s, 0, idx[0]], sa[s, 0, idx[1]] = co / ax, si / ax
+            sa[s, 1, idx[0]], sa[s, 1, idx[1]] = -si / ay, co / ay
+        else:
+            for i, c in enumerate(idx):
+                sa[s, i, c] = 1.0 if ball else 1.0 / rec[10 + i]
+        r = rec[14]
+        sval[s] = torch.tensor([rec[15], r * r if ball else 1.0], dtype=torch.float64)
+    meta = dict(
+        MODEL=model,
+        RK4=integrator == _rollout.INTEGRATOR_CODES["rk4"],
+        N=n,
+        M=m,
+        DIM=dim,
+        NP=NP,
+        MP=_pow2(m),
+        SP=SP,
+        DQ=rows_used,
+        NT=nterms,
+        TYPES=types,
+        HAS_SHAPES=nshapes > 0,
+        HAS_DISCRETE=any(((types >> (2 * t)) & 3) == 3 for t in range(nterms)),
+        HAS_LO=bool(has_lo),
+        HAS_HI=bool(has_hi),
+        CLAMP=bool(has_lo or has_hi),
+    )
+    meta["zero_noise"] = zero_noise
+    meta["K"] = int(v[6])
+    put = functools.partial(torch.Tensor.to, device=device, dtype=dtype)
+    return Tables(
+        put(torch.tensor(par, dtype=torch.float64)),
+        put(tmask),
+        put(tcent),
+        put(tval),
+        put(sa),
+        put(sc),
+        put(sval),
+        meta,
+    )
+
+
+# -- the kernel ------------------------------------------------------------------------------
+if triton is not None:
+
+    @triton.jit
+    def _mix64(z):
+        z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9
+        z = (z ^ (z >> 27)) * 0x94D049BB133111EB
+        return z ^ (z >> 31)
+
+    @triton.jit
+    def _col(X, cols, i):
+        """Column ``i`` ``[BLOCK]`` of ``X [BLOCK, C]``."""
+        return tl.sum(tl.where(cols[None, :] == i, X, 0.0), axis=1)
+
+    @triton.jit
+    def _put(X, cols, i, v):
+        """``X`` with column ``i`` replaced by ``v [BLOCK]``."""
+        return tl.where(cols[None, :] == i, v[:, None], X)
+
+    @triton.jit
+    def _xdot(X, U, cols, ucols, MODEL: tl.constexpr, DIM: tl.constexpr):
+        """``f(x) + g(x) u`` of the built-in models (codes of :data:`MODEL_CODES`)."""
+        K = tl.zeros_like(X)
+        if MODEL == 0:  # single integrator
+            for i in tl.static_range(DIM):
+                K = _put(K, cols, i, _col(U, ucols, i))
+        elif MODEL == 1:  # double integrator
+            for i in tl.static_range(DIM):
+                K = _put(K, cols, i, _col(X, cols, DIM + i))
+                K = _put(K, cols, DIM + i, _col(U, ucols, i))
+        elif MODEL == 2:  # unicycle
+            v = _col(U, ucols, 0)
+            th = _col(X, cols, 2)
+            K = _put(K, cols, 0, v * tl.cos(th))
+            K = _put(K, cols, 1, v * tl.sin(th))
+            K = _put(K, cols, 2, _col(U, ucols, 1))
+        else:  # accel unicycle
+            v = _col(X, cols, 2)
+            th = _col(X, cols, 3)
+            K = _put(K, cols, 0, v * tl.cos(th))
+            K = _put(K, cols, 1, v * tl.sin(th))
+            K = _put(K, cols, 2, _col(U, ucols, 0))
+            K = _put(K, cols, 3, _col(U, ucols, 1))
+        return K
+
+    @triton.jit
+    def _shapes_h(X, sa_ptr, sc_ptr, sval_ptr, cols, scols, NP: tl.constexpr, DQ: tl.constexpr):
+        """``h [BLOCK, SP]`` of every shape at ``X [BLOCK, NP]`` (``DQ`` rows of ``A``)."""
+        grid = scols[:, None] * NP + cols[None, :]  # [SP, NP]
+        D = X[:, None, :] - tl.load(sc_ptr + grid)[None, :, :]
+        q = tl.sum(D * tl.load(sa_ptr + scols[:, None] * 4 * NP + cols[None, :])[None], 2)
+        acc = q * q
+        for r in tl.static_range(1, DQ):
+            A = tl.load(sa_ptr + (scols[:, None] * 4 + r) * NP + cols[None, :])
+            q = tl.sum(D * A[None], 2)
+            acc += q * q
+        sign = tl.load(sval_ptr + scols * 2)
+        c0 = tl.load(sval_ptr + scols * 2 + 1)
+        return sign[None, :] * (acc - c0[None, :])
+
+    @triton.jit
+    def _rollout_kernel(
+        par_ptr,
+        tmask_ptr,
+        tcent_ptr,
+        tval_ptr,
+        sa_ptr,
+        sc_ptr,
+        sval_ptr,
+        x0_ptr,
+        plan_ptr,
+        wctrl_ptr,
+        keys_ptr,
+        pairs_ptr,
+        w_ptr,
+        cost_ptr,
+        states_ptr,
+        controls_ptr,
+        part_ptr,
+        count,
+        K,
+        zero_noise,
+        H: tl.constexpr,
+        MODEL: tl.constexpr,
+        RK4: tl.constexpr,
+        N: tl.constexpr,
+        M: tl.constexpr,
+        DIM: tl.constexpr,
+        NP: tl.constexpr,
+        MP: tl.constexpr,
+        SP: tl.constexpr,
+        DQ: tl.constexpr,
+        NT: tl.constexpr,
+        TYPES: tl.constexpr,
+        HAS_SHAPES: tl.constexpr,
+        HAS_DISCRETE: tl.constexpr,
+        HAS_LO: tl.constexpr,
+        HAS_HI: tl.constexpr,
+        CLAMP: tl.constexpr,
+        HAS_WCTRL: tl.constexpr,
+        MODE: tl.constexpr,
+        PAIRS: tl.constexpr,
+        BLOCK: tl.constexpr,
+    ):
+        lane = tl.arange(0, BLOCK)
+        if PAIRS:
+            p = tl.program_id(0).to(tl.int64) * BLOCK + lane
+            live = p < count
+            b = tl.load(pairs_ptr + 2 * p, mask=live, other=0)
+            k = tl.load(pairs_ptr + 2 * p + 1, mask=live, other=0)
+        else:
+            k = tl.program_id(1).to(tl.int64) * BLOCK + lane
+            live = k < K
+            b = tl.zeros_like(k) + tl.program_id(0).to(tl.int64)
+            p = b * K + k
+        cols = tl.arange(0, NP)
+        ucols = tl.arange(0, MP)
+        scols = tl.arange(0, SP)
+        xmask = live[:, None] & (cols[None, :] < N)
+        umask = live[:, None] & (ucols[None, :] < M)
+        X = tl.load(x0_ptr + b[:, None] * N + cols[None, :], mask=xmask, other=0.0)
+        real = X.dtype
+        key = tl.load(keys_ptr + b, mask=live, other=0).to(tl.uint64)
+        keep = tl.where(k < zero_noise, 0.0, 1.0).to(real)
+        ku = k.to(tl.uint64)
+        dt = tl.load(par_ptr + 0)
+        two_pi = tl.load(par_ptr + 4)
+        if HAS_LO:
+            lo = tl.load(par_ptr + 5 + ucols, mask=ucols < M, other=0.0)
+        if HAS_HI:
+            hi = tl.load(par_ptr + 9 + ucols, mask=ucols < M, other=0.0)
+        if MODE == 1:
+            w = tl.load(w_ptr + p, mask=live, other=0.0)
+        if MODE == 3:
+            sidx = (b[:, None] * N + cols[None, :]) * (H + 1) * K + k[:, None]
+            tl.store(states_ptr + sidx, X, mask=xmask)
+        if MODE == 2:
+            tl.store(states_ptr + p[:, None] * (H + 1) * N + cols[None, :], X, mask=xmask)
+        zero = tl.zeros([BLOCK], dtype=real)
+        stage = zero
+        terminal = zero
+        whole = zero
+        ctrl = zero
+        if HAS_DISCRETE:
+            Hprev = _shapes_h(X, sa_ptr, sc_ptr, sval_ptr, cols, scols, NP, DQ)
+        P: tl.constexpr = (M + 1) // 2
+        for j in range(H):
+            # standard normals, one Box-Muller pair per hash; eps = L z
+            E = tl.zeros([BLOCK, MP], dtype=real)
+            for q in tl.static_range(P):
+                cnt = ku * (H * P) + (j * P + q + 1)
+                hsh = _mix64(key + cnt * 0x9E3779B97F4A7C15)
+                u1 = ((hsh >> 33).to(real) + 0.5) * 4.656612873077393e-10
+                u2 = ((hsh >> 2) & 0x7FFFFFFF).to(real) * 4.656612873077393e-10
+                R = keep * tl.sqrt(-2.0 * tl.log(u1))
+                A = two_pi * u2
+                L0 = tl.load(par_ptr + 13 + ucols * 4 + 2 * q, mask=ucols < M, other=0.0)
+                E += L0[None, :] * (R * tl.cos(A))[:, None]
+                if 2 * q + 1 < M:
+                    L1 = tl.load(par_ptr + 13 + ucols * 4 + 2 * q + 1, mask=ucols < M, other=0.0)
+                    E += L1[None, :] * (R * tl.sin(A))[:, None]
+            pj = tl.load(
+                plan_ptr + (b[:, None] * H + j) * M + ucols[None, :], mask=umask, other=0.0
+            )
+            U = pj + E
+            if HAS_LO:
+                U = tl.where(U < lo[None, :], lo[None, :], U)
+            if HAS_HI:
+                U = tl.where(U > hi[None, :], hi[None, :], U)
+            if CLAMP:
+                E = U - pj
+            if HAS_WCTRL:
+                wc = tl.load(
+                    wctrl_ptr + (b[:, None] * H + j) * M + ucols[None, :], mask=umask, other=0.0
+                )
+                ctrl += tl.sum(E * wc, 1)
+            if MODE == 1:
+                part = tl.sum((w[:, None] * E).to(tl.float64), 0)
+                blk = tl.program_id(0).to(tl.int64) * tl.num_programs(1) + tl.program_id(1)
+                tl.store(part_ptr + ((blk * H + j) * M + ucols), part, mask=ucols < M)
+            else:
+                if MODE == 3:
+                    cidx = (b[:, None] * M + ucols[None, :]) * H * K + j * K + k[:, None]
+                    tl.store(controls_ptr + cidx, U, mask=umask)
+                K1 = _xdot(X, U, cols, ucols, MODEL, DIM)
+                if RK4:
+                    half = tl.load(par_ptr + 1)
+                    sixth = tl.load(par_ptr + 2)
+                    K2 = _xdot(X + half * K1, U, cols, ucols, MODEL, DIM)
+                    K3 = _xdot(X + half * K2, U, cols, ucols, MODEL, DIM)
+                    K4 = _xdot(X + dt * K3, U, cols, ucols, MODEL, DIM)
+                    X = X + sixth * (K1 + 2.0 * K2 + 2.0 * K3 + K4)
+                else:
+                    X = X + dt * K1
+                if MODE == 2:
+                    ridx = (p[:, None] * (H + 1) + j + 1) * N + cols[None, :]
+                    tl.store(states_ptr + ridx, X, mask=xmask)
+                if MODE == 3:
+                    sidx = (b[:, None] * N + cols[None, :]) * (H + 1) * K + (j + 1) * K + k[:, None]
+                    tl.store(states_ptr + sidx, X, mask=xmask)
+                if MODE == 0:
+                    if HAS_SHAPES:
+                        Hcur = _shapes_h(X, sa_ptr, sc_ptr, sval_ptr, cols, scols, NP, DQ)
+                    step = zero
+                    for t in tl.static_range(NT):
+                        kind: tl.constexpr = (TYPES >> (2 * t)) & 3
+                        weight = tl.load(tval_ptr + t * 8)
+                        extra = tl.load(tval_ptr + t * 8 + 1)
+                        eps = tl.load(tval_ptr + t * 8 + 2)
+                        if kind <= 1:  # goal, obstacle: |p - c|^2
+                            tm = tl.load(tmask_ptr + t * NP + cols)
+                            tc = tl.load(tcent_ptr + t * NP + cols)
+                            dq = (X - tc[None, :]) * tm[None, :]
+                            sq = tl.sum(dq * dq, 1)
+                            if kind == 0:
+                                step += weight * sq
+                                last = (j == H - 1) & (extra != 0.0)
+                                terminal += tl.where(last, extra * sq, 0.0)
+                            else:
+                                dist = tl.sqrt(sq) - tl.load(tval_ptr + t * 8 + 3)
+                                step += extra / tl.where(dist < eps, eps, dist)
+                        else:
+                            s0 = tl.load(tval_ptr + t * 8 + 4)
+                            ns = tl.load(tval_ptr + t * 8 + 5)
+                            inside = (scols >= s0) & (scols < s0 + ns)
+                            if kind == 2:  # barrier
+                                hv = tl.where(Hcur < eps, eps, Hcur)
+                                step += tl.sum(tl.where(inside[None, :], weight / hv, 0.0), 1)
+                            else:  # discrete-time barrier, over its first `steps` steps
+                                g1 = tl.load(tval_ptr + t * 8 + 7)
+                                steps = tl.load(tval_ptr + t * 8 + 6)
+                                v = g1 * Hprev - Hcur
+                                v = tl.where(inside[None, :] & (v > 0), v, 0.0)
+                                pen = weight * tl.sum(v, 1)
+                                whole += tl.where(j < steps, pen, 0.0)
+                    stage += step
+                    if HAS_DISCRETE:
+                        Hprev = Hcur
+        if MODE % 3 == 0:  # the costs and buffers passes
+            c = (stage + terminal) + whole
+            if HAS_WCTRL:
+                c = c + tl.load(par_ptr + 3) * ctrl
+            tl.store(cost_ptr + p, c, mask=live)
+
+
+# -- calls -----------------------------------------------------------------------------------
+def _launch(
+    tab: Tables,
+    mode: int,
+    grid: tuple[int, ...],
+    x0: Tensor,
+    plan: Tensor,
+    keys: Tensor,
+    *,
+    count: int = 0,
+    K: int,
+    pairs: Tensor | None = None,
+    wctrl: Tensor | None = None,
+    weights: Tensor | None = None,
+    cost: Tensor | None = None,
+    states: Tensor | None = None,
+    controls: Tensor | None = None,
+    part: Tensor | None = None,
+) -> None:
+    if triton is None:
+        raise RuntimeError("torchcbf: the MPPI GPU kernel needs Triton, which does not import")
+    H = plan.shape[1]
+    dummy = x0  # pointers the pass does not read (never dereferenced)
+    meta = {k: v for k, v in tab.meta.items() if k not in ("zero_noise", "K")}
+    _rollout_kernel[grid](
+        tab.par, tab.tmask, tab.tcent, tab.tval, tab.sa, tab.sc, tab.sval,
+        x0, plan, dummy if wctrl is None else wctrl, keys,
+        keys if pairs is None else pairs, dummy if weights is None else weights,
+        dummy if cost is None else cost, dummy if states is None else states,
+        dummy if controls is None else controls, dummy if part is None else part,
+        count, K, tab.meta["zero_noise"],
+        H=H, HAS_WCTRL=wctrl is not None, MODE=mode, PAIRS=pairs is not None, BLOCK=BLOCK, **meta,
+    )  # fmt: skip
+
+
+def _check(tab: Tables, x0: Tensor, plan: Tensor, keys: Tensor, K: int) -> None:
+    """The checks at the kernel's boundary: device, dtype, shape and layout of the inputs."""
+    B, H, m = plan.shape
+    n = tab.meta["N"]
+    for name, t, shape, dtype in (
+        ("x0", x0, (B, n), plan.dtype),
+        ("plan", plan, (B, H, m), plan.dtype),
+        ("keys", keys, (B,), torch.int64),
+        ("tables", tab.par, (_NPAR,), plan.dtype),
+    ):
+        if t.device != plan.device:
+            raise ValueError(f"{name} is on {t.device}, the plan on {plan.device}")
+        if t.dtype != dtype or tuple(t.shape) != shape or not t.is_contiguous():
+            raise ValueError(
+                f"{name} must be a contiguous {dtype} tensor of shape {list(shape)}, got "
+                f"{t.dtype} {list(t.shape)}"
+            )
+    if m != tab.meta["M"] or K < 1:
+        raise ValueError(f"the plan's control size {m} or K={K} does not match the tables")
+
+
+class Kernel:
+    """The Triton kernel bound to one configuration's tables, with the methods of
+    :class:`torchcbf.mppi._rollout.Kernel`."""
+
+    name = "triton"
+
+    def __init__(self, tab: Tables, *, fused: bool) -> None:
+        self.tab, self.fused = tab, fused
+
+    def costs(self, x: Tensor, plan: Tensor, keys: Tensor, wctrl: Tensor | None) -> Tensor:
+        return costs(self.tab, x, plan, keys, self.tab.meta["K"], wctrl)
+
+    def update(self, x: Tensor, plan: Tensor, keys: Tensor, w: Tensor) -> Tensor:
+        return update(self.tab, x, plan, keys, w)
+
+    def rows(self, x: Tensor, plan: Tensor, keys: Tensor, pairs: Tensor) -> Tensor:
+        return rows(self.tab, x, plan, keys, self.tab.meta["K"], pairs)
+
+    def buffers(
+        self,
+        x: Tensor,
+        plan: Tensor,
+        keys: Tensor,
+        states: Tensor,
+        controls: Tensor,
+        wctrl: Tensor | None,
+        layout: str,
+    ) -> Tensor | None:
+        if layout != "component":
+            raise ValueError(f"the Triton kernel stores component-major buffers, not {layout!r}")
+        ctrl = buffers(self.tab, x, plan, keys, states, controls, wctrl)
+        return None if wctrl is None else ctrl
+
+
+def costs(
+    tab: Tables, x0: Tensor, plan: Tensor, keys: Tensor, K: int, wctrl: Tensor | None
+) -> Tensor:
+    """Total cost ``[B, K]`` of every sample (built-in terms and the control cost)."""
+    _check(tab, x0, plan, keys, K)
+    B = plan.shape[0]
+    cost = plan.new_empty(B, K)
+    grid = (B, triton.cdiv(K, BLOCK))
+    _launch(tab, _COSTS, grid, x0, plan, keys, K=K, wctrl=wctrl, cost=cost)
+    return cost
+
+
+def update(tab: Tables, x0: Tensor, plan: Tensor, keys: Tensor, weights: Tensor) -> Tensor:
+    """``sum_k w_k eps_k [B, H, m]`` for ``weights [B, K]``, accumulated in float64."""
+    B, H, m = plan.shape
+    K = weights.shape[1]
+    _check(tab, x0, plan, keys, K)
+    blocks = triton.cdiv(K, BLOCK)
+    part = torch.empty(B, blocks, H, m, dtype=torch.float64, device=plan.device)
+    weights = weights.to(plan.dtype).contiguous()
+    _launch(tab, _UPDATE, (B, blocks), x0, plan, keys, K=K, weights=weights, part=part)
+    return part.sum(1).to(plan.dtype)
+
+
+def rows(tab: Tables, x0: Tensor, plan: Tensor, keys: Tensor, K: int, pairs: Tensor) -> Tensor:
+    """The rollouts ``[P, H+1, n]`` of the samples ``pairs [P, 2]`` of ``(b, k)``."""
+    _check(tab, x0, plan, keys, K)
+    count = pairs.shape[0]
+    states = plan.new_empty(count, plan.shape[1] + 1, tab.meta["N"])
+    if count:
+        grid = (triton.cdiv(count, BLOCK),)
+        pairs = pairs.to(torch.int64).contiguous()
+        _launch(tab, _ROWS, grid, x0, plan, keys, K=K, count=count, pairs=pairs, states=states)
+    return states
+
+
+def buffers(
+    tab: Tables,
+    x0: Tensor,
+    plan: Tensor,
+    keys: Tensor,
+    states: Tensor,
+    controls: Tensor,
+    wctrl: Tensor | None,
+) -> Tensor:
+    """Fill the component-major ``states [B, K, H+1, n]`` and ``controls [B, K, H, m]``
+    (:func:`torchcbf.mppi._rollout.component_major`) of every sample; return the control
+    cost ``gamma sum_j U_j' Sigma^-1 eps_j`` ``[B, K]`` (zeros without ``wctrl``)."""
+    B, K = states.shape[:2]
+    _check(tab, x0, plan, keys, K)
+    for name, t in (("states", states), ("controls", controls)):
+        if t.dtype != plan.dtype or not t.permute(0, 3, 2, 1).is_contiguous():
+            raise ValueError(f"{name} must be a component-major {plan.dtype} buffer")
+    cost = plan.new_empty(B, K)
+    grid = (B, triton.cdiv(K, BLOCK))
+    ntab = tab._replace(meta={**tab.meta, "NT": 0, "HAS_SHAPES": False, "HAS_DISCRETE": False})
+    _launch(
+        ntab, _BUFFERS, grid, x0, plan, keys, K=K, wctrl=wctrl, cost=cost,
+        states=states, controls=controls,
+    )  # fmt: skip
+    return cost
