@@ -8,11 +8,13 @@
 #                      after every step, so a run stopped at its limit still leaves one)
 #   report.md          the same as Markdown tables (scripts/device_report.py)
 #   install.log figures.log tests.log bench.log scenarios.log   the raw logs
-# (7 files: the device tool brings back at most 8)
+#   profile.log        torch.profiler tables of the filter and the QP (scripts/device_profile.py)
+# (8 files: the device tool brings back at most 8)
 #
 # Steps, in order of value, each bounded by its own time budget (seconds, flags below):
 #   install (150) -> figures (150, a figure started in time may run on up to 60 more)
-#   -> tests (120) -> bench (100, shared by the scripts) -> scenario A (45)
+#   -> tests (120) -> bench (100, shared by the scripts) -> scenario A (45) -> profile (40)
+#   -> scenario B (90)
 # about 10 minutes if every step runs to its budget (the JSON is kept up to date, so the
 # call's limit loses only the step it stops), far less where the steps end early. A step
 # that fails does not stop the others; the script ends with a list of the failed steps and
@@ -37,7 +39,9 @@
 # Flags: --device cuda|cpu (default cuda), --out DIR (default $OUT), --quick (small sizes),
 # --python PY (default python3 on the device, .venv/bin/python here), --no-install,
 # --figures-budget S, --tests-budget S, --bench-budget S, --scenario-budget S,
-# --skip STEP (figures|tests|bench|scenarios; repeatable), --prepare.
+# --scenario-b-budget S, --profile-budget S,
+# --skip STEP (figures|tests|bench|scenarios|profile|scenario_b; repeatable),
+# --prepare.
 
 set -uo pipefail
 
@@ -49,6 +53,8 @@ FIGURES_BUDGET=150
 TESTS_BUDGET=120
 BENCH_BUDGET=100
 SCENARIO_BUDGET=45
+SCENARIO_B_BUDGET=90
+PROFILE_BUDGET=40
 SKIP=" "
 PY=""
 DEST="${OUT:-}"
@@ -67,6 +73,8 @@ while [ $# -gt 0 ]; do
         --tests-budget) TESTS_BUDGET="$2"; shift 2 ;;
         --bench-budget) BENCH_BUDGET="$2"; shift 2 ;;
         --scenario-budget) SCENARIO_BUDGET="$2"; shift 2 ;;
+        --scenario-b-budget) SCENARIO_B_BUDGET="$2"; shift 2 ;;
+        --profile-budget) PROFILE_BUDGET="$2"; shift 2 ;;
         --skip) SKIP="$SKIP$2 "; shift 2 ;;
         -h|--help) sed -n '2,40p' "$0"; exit 0 ;;
         *) die "unknown argument '$1' (see --help)" ;;
@@ -230,6 +238,30 @@ if ! skipped scenarios; then
     rc=$?
     cp "$tmp/reach-avoid/metrics.json" "$WORK/scenario_a.json" 2>/dev/null
     step scenario_a "$rc" "$(since "$t0")" "torchcbf reach-avoid ${size[*]} --device $DEVICE --no-gif (wall seconds: start, run and figures)"
+    rm -rf "$tmp"
+fi
+
+# --- where the filter's and the QP's time goes (torch.profiler tables) ------------------------
+if ! skipped profile; then
+    t0=$(now)
+    states=1000000; [ "$QUICK" = 1 ] && states=2000
+    timeout -s INT -k 10 "$PROFILE_BUDGET" "$PY" scripts/device_profile.py --device "$DEVICE" \
+        --states "$states" --out "$DEST/profile.log" >/dev/null 2>"$WORK/profile.err"
+    rc=$?
+    [ "$rc" = 0 ] || cat "$WORK/profile.err" >>"$DEST/scenarios.log"
+    step profile "$rc" "$(since "$t0")" "scripts/device_profile.py --states $states (profile.log)"
+fi
+
+# --- scenario B at the paper's size -----------------------------------------------------------
+if ! skipped scenario_b; then
+    t0=$(now)
+    if [ "$QUICK" = 1 ]; then size=(--seeds 2 --samples 500); else size=(--seeds 32 --samples 20000); fi
+    tmp="$(mktemp -d)"
+    timeout -s INT -k 10 "$SCENARIO_B_BUDGET" "$PY" -m torchcbf.cli mppi-cbf "${size[@]}" \
+        --device "$DEVICE" --out "$tmp/mppi-cbf" --no-gif --no-progress >>"$DEST/scenarios.log" 2>&1
+    rc=$?
+    cp "$tmp/mppi-cbf/metrics.json" "$WORK/scenario_b.json" 2>/dev/null
+    step scenario_b "$rc" "$(since "$t0")" "torchcbf mppi-cbf ${size[*]} --device $DEVICE --no-gif (wall seconds: start, run and figures; all five methods)"
     rm -rf "$tmp"
 fi
 

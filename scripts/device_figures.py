@@ -289,17 +289,19 @@ def _git(*args: str) -> str | None:
 
 
 def provenance(device: torch.device) -> dict[str, Any]:
-    """Card, software and commit. The commit comes from git where the checkout has it, else
-    from ``build/device-carry/commit.txt`` (written by ``device_check.sh --prepare``)."""
-    commit, dirty = _git("rev-parse", "HEAD"), None
-    if commit:
-        dirty = bool(_git("status", "--porcelain", "--untracked-files=no"))
+    """Card, software and commit. The commit comes from ``build/device-carry/commit.txt``
+    where it exists (written by ``device_check.sh --prepare`` for the tree that travels to
+    the device, which may sit inside another checkout), else from git."""
+    commit, dirty = None, None
+    stamp = SCRIPTS.parent / "build" / "device-carry" / "commit.txt"
+    if stamp.is_file():
+        fields = stamp.read_text().split()
+        commit = fields[0] if fields else None
+        dirty = len(fields) > 1 and fields[1] == "dirty"
     else:
-        stamp = SCRIPTS.parent / "build" / "device-carry" / "commit.txt"
-        if stamp.is_file():
-            fields = stamp.read_text().split()
-            commit = fields[0] if fields else None
-            dirty = len(fields) > 1 and fields[1] == "dirty"
+        commit = _git("rev-parse", "HEAD")
+        if commit:
+            dirty = bool(_git("status", "--porcelain", "--untracked-files=no"))
     if device.type == "cuda":
         card = torch.cuda.get_device_name(device)
         props = torch.cuda.get_device_properties(device)

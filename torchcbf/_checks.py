@@ -141,6 +141,18 @@ def check_same(name_a: str, a: Tensor, name_b: str, b: Tensor) -> None:
         )
 
 
+def check_generator(generator: torch.Generator, name: str, like: Tensor) -> None:
+    """Raise ``ValueError`` unless ``generator`` draws on the device of ``like`` (the tensor
+    ``name``). A CUDA generator made with ``device="cuda"`` reports no index: it draws on
+    the current device."""
+    gen = generator.device
+    index = gen.index
+    if gen.type == "cuda" and index is None:
+        index = torch.cuda.current_device()
+    if gen.type != like.device.type or (index is not None and index != like.device.index):
+        raise ValueError(f"generator is on device {gen} but {name} is on device {like.device}")
+
+
 def as_limit(name: str, value: object, size: int) -> Tensor | None:
     """A bound given as a scalar or ``[size]`` vector, as a float64 ``[size]`` tensor (``None``
     stays ``None``). ``+-inf`` means unbounded; NaN raises. A tensor that requires grad keeps

@@ -12,7 +12,13 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from torchcbf._checks import broadcast_shapes, check_last_dim, check_positive, check_same
+from torchcbf._checks import (
+    broadcast_shapes,
+    check_generator,
+    check_last_dim,
+    check_positive,
+    check_same,
+)
 from torchcbf.dynamics.base import ControlAffine
 
 Method = Literal["euler", "rk4", "euler_maruyama"]
@@ -107,10 +113,7 @@ def euler_maruyama(
                 "euler_maruyama on a model with a diffusion needs generator= or noise= "
                 "(torchcbf never draws from the global random state)"
             )
-        if generator.device != x.device:
-            raise ValueError(
-                f"generator is on device {generator.device} but x is on device {x.device}"
-            )
+        check_generator(generator, "x", x)
         shape = broadcast_shapes(drift.shape[:-1], sigma.shape[:-2]) + (q,)
         noise = torch.randn(shape, generator=generator, device=x.device, dtype=x.dtype)
     else:

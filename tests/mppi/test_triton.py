@@ -1,8 +1,10 @@
-"""The Triton MPPI kernel against the C kernel (same configuration, same noise).
+"""The Triton MPPI kernel against the C kernel (same configuration, same noise keys).
 
 Runs on CUDA where present, else on the CPU under ``TRITON_INTERPRET=1`` (set before
 Python starts: ``TRITON_INTERPRET=1 pytest tests/mppi/test_triton.py``); skipped where
-Triton is not installed.
+Triton is not installed. Each pass of the two kernels is compared with the same keys; whole
+planners are compared on the CPU (on CUDA the planner's generators draw other keys than the
+CPU's, so there a batched planner is compared with one planner per environment).
 """
 
 from __future__ import annotations
@@ -90,6 +92,70 @@ def _plans(planner: MPPI, x: torch.Tensor, calls: int = 3) -> list:
     return [planner(x) for _ in range(calls)]
 
 
+on_cpu_only = pytest.mark.skipif(
+    TARGET is not None and TARGET.type != "cpu",
+    reason="the CUDA generators draw other noise keys than the CPU's",
+)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize(("make", "integrator"), MODELS)
+def test_kernel_passes_match_the_c_kernel(make, integrator, dtype):
+    gen = torch.Generator().manual_seed(1)
+    planner = _planner(make, integrator, dtype, "auto")
+    n, m = planner.dynamics.state_dim, planner.dynamics.control_dim
+    B, K, H = 3, planner.num_samples, planner.horizon
+    x = torch.rand(B, n, generator=gen, dtype=dtype) - 0.5
+    plan = torch.randn(B, H, m, generator=gen, dtype=dtype) * 0.5
+    keys = torch.randint(0, 2**62, (B,), generator=gen)
+    wctrl = (plan @ planner.noise_cov_inv.to(plan)).contiguous()
+    w = torch.rand(B, K, generator=gen, dtype=dtype)
+    w[:, ::3] = 0.0
+    pairs = torch.tensor([[0, 5], [2, K - 1], [1, 0]])
+    model = _rollout.encode_model(planner.dynamics)
+    terms = _rollout.encode_cost(planner.cost, n)
+    c_fused = _rollout.Kernel(planner._configuration(model, terms), fused=True)
+    c_plain = _rollout.Kernel(planner._configuration(model, None), fused=False)
+    t_fused, t_plain = (
+        _triton.Kernel(_triton.tables(k.cfg, dtype, TARGET), fused=k.fused)
+        for k in (c_fused, c_plain)
+    )
+    on = {"x": x.to(TARGET), "plan": plan.to(TARGET), "keys": keys.to(TARGET)}
+    rtol, atol = TOL[dtype]
+
+    def close(got, want, what):
+        torch.testing.assert_close(got.cpu(), want, rtol=rtol, atol=atol, msg=what)
+
+    close(t_fused.costs(**on, wctrl=wctrl.to(TARGET)), c_fused.costs(x, plan, keys, wctrl), "costs")
+    close(t_fused.update(**on, w=w.to(TARGET)), c_fused.update(x, plan, keys, w), "update")
+    close(t_fused.rows(**on, pairs=pairs.to(TARGET)), c_fused.rows(x, plan, keys, pairs), "rows")
+    bufs = [_rollout.component_major(x, B, K, H + 1, n), _rollout.component_major(x, B, K, H, m)]
+    ctrl = c_plain.buffers(x, plan, keys, *bufs, wctrl, "component")
+    tbufs = [_rollout.component_major(on["x"], B, K, H + 1, n),
+             _rollout.component_major(on["x"], B, K, H, m)]  # fmt: skip
+    tctrl = t_plain.buffers(**on, states=tbufs[0], controls=tbufs[1],
+                            wctrl=wctrl.to(TARGET), layout="component")  # fmt: skip
+    close(tctrl, ctrl, "control cost")
+    close(tbufs[0], bufs[0], "states")
+    close(tbufs[1], bufs[1], "controls")
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_a_batched_planner_plans_each_environment_as_one_planner(dtype):
+    x = torch.tensor([[0.0, 0.0, 0.5, 0.1], [1.0, -1.0, 0.0, 2.0]], dtype=dtype, device=TARGET)
+    batched = _planner(AccelUnicycle, "rk4", dtype, "triton").to(TARGET)
+    outs = _plans(batched, x)
+    assert batched.path == "fused" and batched.engine == "triton"
+    rtol, atol = TOL[dtype]
+    for b in range(2):
+        one = _planner(AccelUnicycle, "rk4", dtype, "triton").to(TARGET)
+        one.seed = batched.seed + b
+        one.reset()
+        for out, single in zip(outs, _plans(one, x[b]), strict=True):
+            torch.testing.assert_close(single.plan, out.plan[b], rtol=rtol, atol=atol)
+
+
+@on_cpu_only
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize(("make", "integrator"), MODELS)
 def test_fused_plans_match_the_c_kernel(make, integrator, dtype):
@@ -109,6 +175,7 @@ def test_fused_plans_match_the_c_kernel(make, integrator, dtype):
         assert torch.equal(a.status, b.status.cpu())
 
 
+@on_cpu_only
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_rollout_path_with_a_torch_cost_matches_the_c_kernel(dtype):
     def cost(states, controls, t):  # a user's cost: torch scores the stored rollouts
@@ -139,7 +206,10 @@ def test_tables_follow_a_changed_goal():
         ref.cost.goal.copy_(torch.tensor([-4.0, 2.0]))
     b, a = planner(x.to(TARGET)), ref(x)
     assert planner._tables[1] is not first
-    torch.testing.assert_close(b.plan.cpu(), a.plan, rtol=1e-9, atol=1e-9)
+    goal_row = planner._tables[1].tab.tcent[0, :2].cpu()
+    assert torch.equal(goal_row, torch.tensor([-4.0, 2.0], dtype=torch.float64))
+    if TARGET.type == "cpu":  # the same keys: the C planner's plan
+        torch.testing.assert_close(b.plan.cpu(), a.plan, rtol=1e-9, atol=1e-9)
 
 
 def test_options_the_kernel_does_not_express_run_in_torch():

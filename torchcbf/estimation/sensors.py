@@ -22,6 +22,7 @@ from torch import Tensor, nn
 from torchcbf._checks import (
     as_tensor,
     check_finite,
+    check_generator,
     check_last_dim,
     check_positive,
     check_same,
@@ -113,10 +114,7 @@ class Sensor(ExactConstants, nn.Module):
                     f"{type(self).__name__}.measure needs generator= or noise= (torchcbf never "
                     "draws from the global random state); expected(x) is the noise-free output"
                 )
-            if generator.device != y.device:
-                raise ValueError(
-                    f"generator is on device {generator.device} but x is on device {y.device}"
-                )
+            check_generator(generator, "x", y)
             noise = torch.randn(y.shape, generator=generator, device=y.device, dtype=y.dtype)
         else:
             check_last_dim("noise", noise, p)

@@ -376,16 +376,17 @@ if triton is not None:
                         Hcur = _shapes_h(X, sa_ptr, sc_ptr, sval_ptr, cols, scols, NP, DQ)
                     step = zero
                     for t in tl.static_range(NT):
-                        kind: tl.constexpr = (TYPES >> (2 * t)) & 3
+                        # the term's kind, bits 2t..2t+1 of TYPES (constexpr: one branch is
+                        # compiled per term)
                         weight = tl.load(tval_ptr + t * 8)
                         extra = tl.load(tval_ptr + t * 8 + 1)
                         eps = tl.load(tval_ptr + t * 8 + 2)
-                        if kind <= 1:  # goal, obstacle: |p - c|^2
+                        if ((TYPES >> (2 * t)) & 3) <= 1:  # goal, obstacle: |p - c|^2
                             tm = tl.load(tmask_ptr + t * NP + cols)
                             tc = tl.load(tcent_ptr + t * NP + cols)
                             dq = (X - tc[None, :]) * tm[None, :]
                             sq = tl.sum(dq * dq, 1)
-                            if kind == 0:
+                            if ((TYPES >> (2 * t)) & 3) == 0:  # goal
                                 step += weight * sq
                                 last = (j == H - 1) & (extra != 0.0)
                                 terminal += tl.where(last, extra * sq, 0.0)
@@ -396,7 +397,7 @@ if triton is not None:
                             s0 = tl.load(tval_ptr + t * 8 + 4)
                             ns = tl.load(tval_ptr + t * 8 + 5)
                             inside = (scols >= s0) & (scols < s0 + ns)
-                            if kind == 2:  # barrier
+                            if ((TYPES >> (2 * t)) & 3) == 2:  # barrier
                                 hv = tl.where(Hcur < eps, eps, Hcur)
                                 step += tl.sum(tl.where(inside[None, :], weight / hv, 0.0), 1)
                             else:  # discrete-time barrier, over its first `steps` steps
