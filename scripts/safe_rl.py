@@ -23,6 +23,13 @@ nominal action, batches of ``--sizes``), against peers in the same run:
 - ``TorchRL GymWrapper (1 env)``: TorchRL's Gym wrapper around the single Gymnasium env, a
   Gym round trip per step.
 
+``--shield-check`` counts the collisions of scenario B's shield
+(:func:`~torchcbf.envs.safe_ppo.scenario_filter` with each of ``--check-margins``) on the plant
+with process noise ``--sigma``, for three nominal controllers: ``still`` (zero action: the
+noise alone moves the robot), ``random`` (Gaussian actions, half the bounds) and
+``go-to-goal + noise`` (scenario B's proportional controller plus Gaussian noise of a fifth
+of the bounds, which presses the robot along the ellipses).
+
 Figures taken while the machine is loaded (the load average is printed) vary between runs;
 compare ratios within one run.
 """
@@ -32,8 +39,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import multiprocessing
 import os
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -57,6 +66,7 @@ from torchcbf.envs.safe_ppo import (
 )
 from torchcbf.envs.torchrl import TorchRLEnv
 from torchcbf.envs.unicycle_ellipses import UnicycleEllipsesVectorEnv
+from torchcbf.scenarios.unicycle_mppi_cbf import proportional_controller
 from torchcbf.sim.records import run_info, strict
 
 LABELS = {
@@ -74,7 +84,7 @@ def _table(summary: dict[str, dict[str, tuple[float, float]]]) -> str:
         cells = []
         for name in names:
             mean, half = row[name]
-            digits = 0 if name in ("frames/s", "wall time (s)", "train collisions") else 3
+            digits = 0 if name in ("frames/s", "wall time (s)", "train collision steps") else 3
             cell = f"{mean:.{digits}f}"
             if not math.isnan(half):
                 cell += f" ± {half:.{digits}f}"
@@ -194,6 +204,80 @@ def throughput(args: argparse.Namespace) -> None:
     row("TorchRL GymWrapper (1 env, Gym round trip)", 1, _gym_wrapper(steps * 20, args.sigma), None)
 
 
+def _check_policy(name: str, n: int, generator: torch.Generator):
+    limit = torch.tensor([5.0, 10.0])
+    go_to_goal = proportional_controller()
+
+    def act(observation: torch.Tensor) -> torch.Tensor:
+        if name == "still":
+            return torch.zeros(n, 2)
+        noise = torch.randn(n, 2, generator=generator) * limit
+        if name == "random":
+            return (0.5 * noise).clamp(-limit, limit)
+        return (go_to_goal(observation, 0.0) + 0.2 * noise).clamp(-limit, limit)
+
+    return act
+
+
+def shield_check(args: argparse.Namespace) -> None:
+    """Collisions of scenario B's shield on the noisy plant (see the module docstring)."""
+    n, steps = args.check_envs, args.check_steps
+    margins = [float(v) for v in args.check_margins.split(",")]
+    print(f"load average {os.getloadavg()}, torch threads {torch.get_num_threads()}")
+    print(
+        f"scenario B, sigma = {args.sigma}, start noise {args.start_noise} m; {n} robots x "
+        f"{steps} steps of {0.01} s per row (episodes restart when they end)"
+    )
+    print("| margin (m) | nominal | steps | episodes | collisions | goals | QP not solved |")
+    print("|---|---|---|---|---|---|---|")
+    for margin in margins:
+        for name in ("still", "random", "go-to-goal + noise"):
+            base = TorchRLEnv(
+                ENV_ID, n, seed=args.seed, sigma=args.sigma, start_noise=args.start_noise
+            )
+            env = TransformedEnv(base, SafetyFilterTransform(scenario_filter(base, margin=margin)))
+            act = _check_policy(name, n, torch.Generator().manual_seed(args.seed))
+            zero = torch.zeros((), dtype=torch.int64)
+            episodes, collisions, goals, unsolved = (
+                zero.clone(),
+                zero.clone(),
+                zero.clone(),
+                zero.clone(),
+            )
+            td = env.reset()
+            with torch.no_grad():
+                for _ in range(steps):
+                    td["action"] = act(td["observation"])
+                    out, td = env.step_and_maybe_reset(td)
+                    nxt = out["next"]
+                    episodes += nxt["done"].sum()
+                    collisions += nxt["cost"].sum().long()
+                    goals += nxt["success"].sum()
+                    unsolved += (nxt["filter_status"] != 0).sum()
+            print(
+                f"| {margin:g} | {name} | {n * steps:,} | {int(episodes):,} | "
+                f"{int(collisions):,} | {int(goals):,} | {int(unsolved):,} |",
+                flush=True,
+            )
+
+
+def _train_one(method: str, config: PPOConfig, seed: int, threads: int) -> RunResult:
+    torch.set_num_threads(threads)
+    return train(method, config, seed=seed)
+
+
+def _report(result: RunResult) -> RunResult:
+    ev = result.eval
+    print(
+        f"seed {result.seed} {result.method}: {result.wall_time:.0f} s training, "
+        f"{result.frames_per_second:.0f} frames/s, train collision steps "
+        f"{result.train['collisions']:.0f}, eval return {ev['return']:.2f}, goal rate "
+        f"{ev['goal_rate']:.3f}, episodes with a collision {ev['collisions']:.0f}",
+        flush=True,
+    )
+    return result
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--env", default="torchcbf/UnicycleEllipses-v0")
@@ -204,9 +288,30 @@ def main() -> None:
     parser.add_argument("--num-envs", type=int, default=PPOConfig.num_envs)
     parser.add_argument("--rollout-steps", type=int, default=PPOConfig.rollout_steps)
     parser.add_argument("--eval-episodes", type=int, default=PPOConfig.eval_episodes)
-    parser.add_argument("--sigma", type=float, default=0.0, help="scenario B's process noise")
+    parser.add_argument(
+        "--sigma", type=float, default=0.05, help="scenario B's process noise (m/sqrt(s))"
+    )
+    parser.add_argument(
+        "--terminate-on-collision",
+        action=argparse.BooleanOptionalAction,
+        default=False,
+        help="end an episode at a collision (default: it goes on, the cost marks each step)",
+    )
+    parser.add_argument(
+        "--collision-penalty", type=float, default=0.0, help="reward penalty per collision step"
+    )
     parser.add_argument("--start-noise", type=float, default=0.1, help="start perturbation (m)")
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument(
+        "--margin", type=float, default=None, help="scenario B's filter margin (m; default 3 sigma)"
+    )
+    parser.add_argument(
+        "--shaping",
+        action=argparse.BooleanOptionalAction,
+        default=PPOConfig.shaping,
+        help="progress along the shortest collision-free path (default) or the straight line",
+    )
+    parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
+    parser.add_argument("--jobs", type=int, default=1, help="runs trained at once (processes)")
     parser.add_argument("--out", default=None, help="folder for results.json and the figure")
     parser.add_argument(
         "--throughput", action="store_true", help="measure environment steps per second only"
@@ -214,6 +319,14 @@ def main() -> None:
     parser.add_argument("--sizes", default="1024,16384,65536", help="--throughput: batch sizes")
     parser.add_argument("--filter-sizes", default="1024,16384", help="--throughput: with filter")
     parser.add_argument("--quick", action="store_true", help="--throughput: fewer steps")
+    parser.add_argument(
+        "--shield-check",
+        action="store_true",
+        help="count the shield's collisions on scenario B's plant (--sigma) only",
+    )
+    parser.add_argument("--check-margins", default="0,0.15", help="--shield-check: margins (m)")
+    parser.add_argument("--check-envs", type=int, default=2048, help="--shield-check: robots")
+    parser.add_argument("--check-steps", type=int, default=1500, help="--shield-check: steps")
     args = parser.parse_args()
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     for method in methods:
@@ -223,9 +336,14 @@ def main() -> None:
     if args.throughput:
         throughput(args)
         return
-    env_kwargs: dict[str, float] = {"start_noise": args.start_noise}
+    if args.shield_check:
+        shield_check(args)
+        return
+    env_kwargs: dict[str, float | bool] = {"start_noise": args.start_noise}
     if args.env == PPOConfig.env_id:
         env_kwargs["sigma"] = args.sigma
+    env_kwargs["terminate_on_collision"] = args.terminate_on_collision
+    env_kwargs["collision_penalty"] = args.collision_penalty
     config = replace(
         PPOConfig(),
         env_id=args.env,
@@ -234,27 +352,34 @@ def main() -> None:
         num_envs=args.num_envs,
         rollout_steps=args.rollout_steps,
         eval_episodes=args.eval_episodes,
+        shaping=args.shaping,
+        filter_margin=args.margin,
     )
     print(f"load average {os.getloadavg()}, torch threads {torch.get_num_threads()}")
     print(json.dumps(config_dict(config)))
+    runs = [(seed, m) for seed in range(args.seed, args.seed + args.seeds) for m in methods]
+    # the slowest method first, so that parallel workers finish together
+    runs.sort(key=lambda run: (-METHODS.index(run[1]), run[0]))
     results: list[RunResult] = []
     start = time.perf_counter()
-    for seed in range(args.seed, args.seed + args.seeds):
-        for method in methods:
-            result = train(method, config, seed=seed)
-            results.append(result)
-            ev = result.eval
-            print(
-                f"seed {seed} {method}: {result.wall_time:.0f} s, "
-                f"{result.frames_per_second:.0f} frames/s, train collisions "
-                f"{result.train['collisions']:.0f}, eval return {ev['return']:.2f}, goal rate "
-                f"{ev['goal_rate']:.3f}, collisions {ev['collisions']:.0f}",
-                flush=True,
-            )
+    if args.jobs == 1:
+        for seed, method in runs:
+            results.append(_report(_train_one(method, config, seed, args.threads)))
+    else:
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(args.jobs, mp_context=context) as pool:
+            futures = [
+                pool.submit(_train_one, method, config, seed, args.threads) for seed, method in runs
+            ]
+            for future in as_completed(futures):
+                results.append(_report(future.result()))
+    results.sort(key=lambda r: (r.seed, METHODS.index(r.method)))
     total = time.perf_counter() - start
     summary = summarize(results)
     print(_table(summary))
-    print(f"whole comparison: {total:.0f} s; load average {os.getloadavg()}")
+    print(
+        f"whole comparison: {total:.0f} s ({args.jobs} process(es)); load average {os.getloadavg()}"
+    )
     if args.out is not None:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
@@ -262,6 +387,7 @@ def main() -> None:
             "config": config_dict(config),
             "seeds": list(range(args.seed, args.seed + args.seeds)),
             "total_seconds": total,
+            "jobs": args.jobs,
             "summary": {m: {k: list(v) for k, v in row.items()} for m, row in summary.items()},
             "runs": [asdict(r) for r in results],
         }

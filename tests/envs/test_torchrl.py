@@ -137,6 +137,28 @@ def test_collision_terminates_with_cost():
     assert bool(out["next", "terminated"]) and float(out["next", "h"].min()) < 0
 
 
+@pytest.mark.parametrize("env_id", IDS)
+def test_collision_without_termination_costs_every_step_inside(env_id):
+    kwargs = {"sigma": 0.0} if "Unicycle" in env_id else {}
+    ends = TorchRLEnv(env_id, 1, seed=0, **kwargs)
+    goes_on = TorchRLEnv(env_id, 1, seed=0, terminate_on_collision=False, **kwargs)
+    # scenario A: straight into the disc at (3, 3); B: along the heading into ellipse 0
+    action = torch.tensor([[3.0, 3.0]]) if "Reach" in env_id else torch.tensor([[5.0, 0.0]])
+    td_a, td_b = ends.reset(), goes_on.reset()
+    inside = 0
+    for _ in range(30 if "Reach" in env_id else 90):
+        td_a["action"], td_b["action"] = action, action
+        out_a, out_b = ends.step(td_a), goes_on.step(td_b)
+        torch.testing.assert_close(out_a["next", "observation"], out_b["next", "observation"])
+        torch.testing.assert_close(out_a["next", "reward"], out_b["next", "reward"])
+        cost = float(out_b["next", "cost"])
+        inside += int(cost)
+        assert bool(out_b["next", "terminated"]) == bool(out_b["next", "success"])
+        assert bool(out_a["next", "terminated"]) == (cost == 1.0 or bool(out_a["next", "success"]))
+        td_a, td_b = step_mdp(out_a, keep_other=True), step_mdp(out_b, keep_other=True)
+    assert inside >= 2  # several steps inside, each with the cost and the penalty
+
+
 def test_bad_arguments():
     with pytest.raises(TypeError, match="env must be"):
         TorchRLEnv(3)
@@ -370,7 +392,7 @@ def test_mean_ci_and_summary():
         for seed, (c, r) in enumerate([(2.0, 1.0), (4.0, 3.0)])
     ]
     summary = summarize(runs)
-    assert summary["ppo"]["train collisions"] == mean_ci([2.0, 4.0])
+    assert summary["ppo"]["train collision steps"] == mean_ci([2.0, 4.0])
     assert summary["ppo"]["eval return"][0] == 2.0
     assert summary["ppo"]["frames/s"] == (100.0, 0.0)
 

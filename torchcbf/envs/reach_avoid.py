@@ -13,9 +13,10 @@ Reward per step: the progress towards the current target (the first goal not yet
 ``|p - c| - |p' - c|`` in metres, plus ``goal_bonus`` for each goal visited at this step,
 minus ``collision_penalty`` when the step ends inside the obstacle.
 
-Termination: all three goals visited (success), the obstacle entered (collision), or a
-goal's window closed without a visit (the specification can no longer hold). Truncation:
-the time limit of 100 steps.
+Termination: all three goals visited (success), the obstacle entered (collision; with
+``terminate_on_collision=False`` the episode goes on and the penalty and the collision flag
+mark every step that ends inside), or a goal's window closed without a visit (the
+specification can no longer hold). Truncation: the time limit of 100 steps.
 
 Start: the origin, plus ``start_noise`` (m, default 0) times a standard normal draw of the
 episode's seed.
@@ -54,6 +55,8 @@ class ReachAvoidVectorEnv(TorchVectorEnv):
         max_episode_steps: truncation (``make_vec`` passes the registration's 100).
         goal_bonus: reward for each goal visited in its window.
         collision_penalty: subtracted at the step that enters the obstacle.
+        terminate_on_collision: end the episode at a collision (default); False
+            keeps it running (the cost marks every step inside an obstacle).
         start_noise: standard deviation (m) of the start position around the origin.
         device, dtype: where the batch lives.
         return_tensors: return tensors on ``device`` instead of NumPy arrays.
@@ -70,6 +73,7 @@ class ReachAvoidVectorEnv(TorchVectorEnv):
         max_episode_steps: int | None = MAX_EPISODE_STEPS,
         goal_bonus: float = 1.0,
         collision_penalty: float = 10.0,
+        terminate_on_collision: bool = True,
         start_noise: float = 0.0,
         device: str | torch.device = "cpu",
         dtype: torch.dtype = torch.float32,
@@ -86,6 +90,7 @@ class ReachAvoidVectorEnv(TorchVectorEnv):
         )
         self.goal_bonus = check_number("goal_bonus", goal_bonus, low=0.0)
         self.collision_penalty = check_number("collision_penalty", collision_penalty, low=0.0)
+        self.terminate_on_collision = bool(terminate_on_collision)
         self.start_noise = check_number("start_noise", start_noise, low=0.0)
         self.dt = DT
         kw = {"device": self.device, "dtype": dtype}
@@ -132,7 +137,7 @@ class ReachAvoidVectorEnv(TorchVectorEnv):
         success = self._visited.all(-1) & ~collision
         reward = reward + self.goal_bonus * new.sum(-1).to(self.dtype)
         reward = reward - self.collision_penalty * collision.to(self.dtype)
-        terminated = success | collision | missed
+        terminated = success | (collision & self.terminate_on_collision) | missed
         info = {"h": h[:, None], "collision": collision, "success": success}
         return reward, terminated, info
 

@@ -1,11 +1,12 @@
 """PPO on a torchcbf TorchRL environment, four ways (:data:`METHODS`), for safe-RL comparisons
 (``scripts/safe_rl.py``, docs/safe_rl.md):
 
-- ``"ppo"``: PPO on the reward alone (a collision ends the episode with a penalty);
-- ``"ppo_lagrangian"``: PPO-Lagrangian: a cost critic on the ``"cost"`` entry (1 at a
-  collision), the advantage ``(A_r - lambda A_c) / (1 + lambda)``, and the multiplier
-  ``lambda <- max(0, lambda + lr_lambda (J_c - cost_limit))`` after every batch, ``J_c`` the
-  batch's collisions per finished episode;
+- ``"ppo"``: PPO on the reward alone (the cost is not seen);
+- ``"ppo_lagrangian"``: PPO-Lagrangian: a cost critic on the ``"cost"`` entry (1 at a step
+  that ends inside an obstacle), the advantage ``(A_r - lambda A_c) / (1 + lambda)``, and the
+  multiplier ``lambda <- max(0, lambda + lr_lambda (J_c - cost_limit))`` after every batch,
+  ``J_c`` the batch's cost per step times the episode length (the cost of an episode at the
+  batch's rate);
 - ``"ppo_shield"``: PPO on the environment wrapped in a
   :class:`~torchcbf.envs.filter_transform.SafetyFilterTransform` (the filter as a shield);
 - ``"ppo_filter_layer"``: the policy's mean is a
@@ -31,17 +32,19 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import Tensor, nn
-from torchrl.envs import Compose, EnvBase, RewardSum, TransformedEnv
+from torchrl.envs import Compose, EnvBase, RewardSum, Transform, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 from torchrl.objectives.value import GAE
 
-from torchcbf.barriers import HalfSpace, rectify
+from torchcbf.barriers import Ellipse, HalfSpace, rectify
 from torchcbf.envs.filter_policy import FilteredPolicy
-from torchcbf.envs.filter_transform import SafetyFilterTransform
+from torchcbf.envs.filter_transform import SafetyFilterTransform, barrier_values
+from torchcbf.envs.shaping import GeodesicProgress, geodesic_distance
 from torchcbf.envs.torchrl import TorchRLEnv
 from torchcbf.filters import SafetyFilter
-from torchcbf.scenarios.unicycle_mppi_cbf import obstacles
+from torchcbf.scenarios import single_integrator_reach_avoid as scenario_a
+from torchcbf.scenarios import unicycle_mppi_cbf as scenario_b
 
 __all__ = [
     "METHODS",
@@ -54,6 +57,7 @@ __all__ = [
     "mean_ci",
     "make_policy",
     "scenario_filter",
+    "scenario_shaping",
     "summarize",
     "train",
 ]
@@ -79,14 +83,22 @@ class PPOConfig:
         entropy_coef: entropy bonus.
         init_std: the policy's initial standard deviation, a fraction of the bounds.
         hidden: width of the two hidden layers.
-        cost_limit, lagrangian_lr: PPO-Lagrangian's bound on collisions per episode and
-            the multiplier's step.
+        cost_limit, lagrangian_lr: PPO-Lagrangian's bound on the cost of an episode (steps
+            inside an obstacle) and the multiplier's step.
         intervention_weight: weight of the filter layer's correction penalty.
         eval_episodes: deterministic evaluation episodes (one per environment).
+        shaping: the progress reward measured along the shortest collision-free path
+            (:func:`scenario_shaping`) instead of the straight line.
+        filter_margin: the margin of :func:`scenario_filter` (``None``: its default).
     """
 
     env_id: str = "torchcbf/UnicycleEllipses-v0"
-    env_kwargs: tuple[tuple[str, Any], ...] = (("sigma", 0.0), ("start_noise", 0.1))
+    env_kwargs: tuple[tuple[str, Any], ...] = (
+        ("sigma", 0.05),
+        ("start_noise", 0.1),
+        ("terminate_on_collision", False),
+        ("collision_penalty", 0.0),
+    )
     num_envs: int = 256
     rollout_steps: int = 128
     total_frames: int = 2_000_000
@@ -100,9 +112,11 @@ class PPOConfig:
     init_std: float = 0.5
     hidden: int = 64
     cost_limit: float = 0.0
-    lagrangian_lr: float = 1.0
+    lagrangian_lr: float = 0.05
     intervention_weight: float = 1.0
     eval_episodes: int = 256
+    shaping: bool = True
+    filter_margin: float | None = None
 
 
 @dataclass
@@ -124,16 +138,24 @@ SPEED_BOUND = 2.0
 """``|v| <= SPEED_BOUND`` (m/s): a barrier of :func:`scenario_filter` on scenario B."""
 
 
-def scenario_filter(env: TorchRLEnv) -> SafetyFilter:
+MARGIN_PER_SIGMA = 3.0
+"""The filter's clearance around scenario B's ellipses per unit of process noise: ``margin =
+MARGIN_PER_SIGMA * sigma`` metres (``sigma`` in m/sqrt(s): the spread of the noise over
+9 s, or three standard deviations of its spread over 1 s)."""
+
+
+def scenario_filter(env: TorchRLEnv, *, margin: float | None = None) -> SafetyFilter:
     """A safety filter for a torchcbf environment, on the environment's plant.
 
     ``torchcbf/UnicycleEllipses-v0``: the exponential CBFs ``L_f b_i + k b_i`` of scenario B's
-    ellipses with ``k = a_max / SPEED_BOUND`` and the speed bound ``|v| <= SPEED_BOUND``,
-    ``alpha = 10``, ``R = diag(1, 1e-3)``: with ``|a| <= a_max`` the braking the condition
-    asks for (about ``k |v|``) stays within the bound, so the QP stays feasible (scenario
-    B's own gain ``k = 20`` needs ``|a|`` up to 40 m/s^2). It keeps the deterministic plant
-    (``sigma=0``) out of the obstacles; with process noise it is a plain CBF filter and the
-    noise can still push the robot in.
+    ellipses, each semi-axis lengthened by ``margin`` (m; default
+    ``MARGIN_PER_SIGMA * sigma``, 0 for the deterministic plant), with
+    ``k = a_max / SPEED_BOUND`` and the speed bound ``|v| <= SPEED_BOUND``, ``alpha = 30``,
+    ``R = diag(1, 1e-3)``: with ``|a| <= a_max`` the braking the condition asks for (about
+    ``k |v|``) stays within the bound, so the QP stays feasible (scenario B's own gain
+    ``k = 20`` needs ``|a|`` up to 40 m/s^2). Without noise it keeps the robot out of the
+    ellipses; with process noise the margin is the room the noise has before the filter
+    pulls the robot back (docs/safe_rl.md measures it).
     ``torchcbf/ReachAvoid-v0``: the obstacle disc, ``alpha = 5`` (exactly safe for the
     single integrator's step of 0.1 s, since ``alpha dt <= 1``).
     """
@@ -141,16 +163,72 @@ def scenario_filter(env: TorchRLEnv) -> SafetyFilter:
     kw = {"device": vec.device, "dtype": vec.dtype}
     name = type(vec).__name__
     if name == "UnicycleEllipsesVectorEnv":
+        if margin is None:
+            margin = MARGIN_PER_SIGMA * float(vec.sigma)
+        if not (isinstance(margin, (int, float)) and 0 <= margin < math.inf):
+            raise ValueError(f"margin must be a number >= 0, got {margin!r}")
+        axes = torch.tensor(scenario_b.AXES) + float(margin)
+        inflated = Ellipse(torch.tensor(scenario_b.CENTERS), axes, index=(0, 1))
         gain = float(vec.dynamics.u_max[0]) / SPEED_BOUND
-        ellipses = rectify(obstacles(), vec.dynamics, form="exponential", gains=[gain])
+        ellipses = rectify(inflated, vec.dynamics, form="exponential", gains=[gain])
         speed = HalfSpace([[1.0], [-1.0]], [SPEED_BOUND, SPEED_BOUND], index=(2,), state_dim=4)
         weight = torch.tensor([1.0, 1e-3], dtype=torch.float64)
         return SafetyFilter(
-            vec.dynamics, barriers=[ellipses, speed], alpha=10.0, R=torch.diag(weight)
+            vec.dynamics, barriers=[ellipses, speed], alpha=30.0, R=torch.diag(weight)
         ).to(**kw)
     if name == "ReachAvoidVectorEnv":
         return SafetyFilter(vec.dynamics, barriers=list(vec.barriers), alpha=5.0).to(**kw)
     raise ValueError(f"no scenario filter for {name}; build a SafetyFilter on env.dynamics")
+
+
+def _free(env: TorchRLEnv) -> Callable[[Tensor], Tensor]:
+    """Points ``[..., 2]`` -> outside every obstacle of ``env`` (the position is the first two
+    state entries, the rest zero)."""
+    barriers, n = env.barriers, env.dynamics.state_dim
+
+    def free(p: Tensor) -> Tensor:
+        x = torch.nn.functional.pad(p, (0, n - 2))
+        return (barrier_values(barriers.to(p.dtype), x) >= 0).all(-1)
+
+    return free
+
+
+SHAPING_CLEARANCE = 0.2
+"""Clearance (m) of the shortest paths of scenario B's shaping (0.3 m in scenario A)."""
+
+
+def scenario_shaping(env: TorchRLEnv) -> GeodesicProgress:
+    """The environment's reward with the progress measured along the shortest
+    collision-free path to the current goal (:class:`~torchcbf.envs.shaping.GeodesicProgress`)
+    instead of the straight line, which crosses an obstacle in both scenarios. The paths
+    keep a clearance from the obstacles, and the potential grows inside it (a learner is paid
+    for keeping away).
+
+    ``torchcbf/UnicycleEllipses-v0``: one goal; ``torchcbf/ReachAvoid-v0``: the three goals,
+    the current one the first not yet visited (the observation's flags).
+    """
+    vec = env.vector_env
+    name = type(vec).__name__
+    free = _free(env)
+    if name == "UnicycleEllipsesVectorEnv":
+        field = geodesic_distance(
+            free, scenario_b.GOAL, low=(-3.0, -3.0), high=(6.0, 8.0), clearance=SHAPING_CLEARANCE
+        )
+        return GeodesicProgress(field, scenario_b.GOAL).to(vec.device)
+    if name == "ReachAvoidVectorEnv":
+        goals = [g for g, _, _ in scenario_a.GOALS]
+        fields = [
+            geodesic_distance(
+                free, g, low=(-2.0, -2.0), high=(9.0, 11.0), spacing=0.1, clearance=0.3
+            )
+            for g in goals
+        ]
+
+        def target(observation: Tensor) -> Tensor:
+            return torch.argmin(observation[..., 3:6].to(torch.int8), dim=-1)
+
+        return GeodesicProgress(fields, goals, target_fn=target).to(vec.device)
+    raise ValueError(f"no reward shaping for {name}")
 
 
 def make_env(config: PPOConfig, method: str, *, num_envs: int, seed: int) -> TransformedEnv:
@@ -158,22 +236,58 @@ def make_env(config: PPOConfig, method: str, *, num_envs: int, seed: int) -> Tra
     summed in ``"episode_reward"``."""
     _check_method(method)
     base = TorchRLEnv(config.env_id, num_envs, seed=seed, **dict(config.env_kwargs))
-    transforms = [RewardSum()]
+    transforms: list[Transform] = [RewardSum()]
+    if config.shaping:
+        transforms.insert(0, scenario_shaping(base))
     if method in SHIELDED:
-        transforms.insert(0, SafetyFilterTransform(scenario_filter(base)))
+        transforms.insert(
+            0, SafetyFilterTransform(scenario_filter(base, margin=config.filter_margin))
+        )
     return TransformedEnv(base, Compose(*transforms))
 
 
-class _Mean(nn.Module):
-    """``tanh(MLP(observation))`` times the action bounds."""
+class _Features(nn.Module):
+    """The observation with its angle entries replaced by their cosine and sine (a heading
+    wrapped to [-pi, pi) jumps at pi; its cosine and sine do not)."""
 
-    def __init__(self, obs_dim: int, bound: Tensor, hidden: int) -> None:
+    def __init__(self, angles: tuple[int, ...] = ()) -> None:
         super().__init__()
-        self.net = _mlp(obs_dim, bound.shape[-1], hidden)
+        self.angles = angles
+
+    def forward(self, observation: Tensor) -> Tensor:
+        if not self.angles:
+            return observation
+        keep = [i for i in range(observation.shape[-1]) if i not in self.angles]
+        angle = observation[..., list(self.angles)]
+        return torch.cat([observation[..., keep], angle.cos(), angle.sin()], dim=-1)
+
+    def size(self, obs_dim: int) -> int:
+        """Entries of the features of an observation of ``obs_dim`` entries."""
+        return obs_dim + len(self.angles)
+
+
+def _features(env: EnvBase) -> _Features:
+    base = getattr(env, "base_env", env)
+    vec = getattr(base, "vector_env", None)
+    if type(vec).__name__ == "UnicycleEllipsesVectorEnv":
+        return _Features((3,))  # the heading
+    return _Features()
+
+
+class _Mean(nn.Module):
+    """``tanh(MLP(features(observation)))`` times the action bounds."""
+
+    def __init__(self, features: _Features, obs_dim: int, bound: Tensor, hidden: int) -> None:
+        super().__init__()
+        self.features = features
+        self.net = _mlp(features.size(obs_dim), bound.shape[-1], hidden)
+        with torch.no_grad():  # start near the zero action: no full-throttle first policy
+            self.net[-1].weight.mul_(0.01)
+            self.net[-1].bias.zero_()
         self.register_buffer("bound", bound)
 
     def forward(self, observation: Tensor) -> Tensor:
-        return torch.tanh(self.net(observation)) * self.bound
+        return torch.tanh(self.net(self.features(observation))) * self.bound
 
 
 class _Scale(nn.Module):
@@ -216,7 +330,7 @@ def make_policy(
     spec = env.full_action_spec["action"]
     bound = spec.space.high[0].clone()
     obs_dim = env.observation_spec["observation"].shape[-1]
-    mean = _Mean(obs_dim, bound, config.hidden)
+    mean = _Mean(_features(env), obs_dim, bound, config.hidden)
     if safety_filter is None:
         head = TensorDictModule(
             _Unfiltered(mean), in_keys=["observation"], out_keys=["loc", "loc_nominal"]
@@ -241,7 +355,9 @@ def make_policy(
 
 def _critic(env: EnvBase, hidden: int, key: str) -> ValueOperator:
     obs_dim = env.observation_spec["observation"].shape[-1]
-    return ValueOperator(_mlp(obs_dim, 1, hidden), in_keys=["observation"], out_keys=[key])
+    features = _features(env)
+    net = nn.Sequential(features, _mlp(features.size(obs_dim), 1, hidden))
+    return ValueOperator(net, in_keys=["observation"], out_keys=[key])
 
 
 def _check_method(method: str) -> None:
@@ -298,7 +414,9 @@ def _train(
     progress: Callable[[dict[str, float]], None] | None,
 ) -> RunResult:
     env = make_env(config, method, num_envs=config.num_envs, seed=seed * 1_000_003)
-    layer_filter = scenario_filter(env.base_env) if method == "ppo_filter_layer" else None
+    layer_filter = None
+    if method == "ppo_filter_layer":
+        layer_filter = scenario_filter(env.base_env, margin=config.filter_margin)
     policy = make_policy(env, config, safety_filter=layer_filter)
     critic = _critic(env, config.hidden, "state_value")
     gae = GAE(gamma=config.gamma, lmbda=config.lmbda, value_network=critic, average_gae=False)
@@ -320,6 +438,7 @@ def _train(
     bound = env.full_action_spec["action"].space.high[0]
     lagrange = 0.0
     frames_per_batch = config.num_envs * config.rollout_steps
+    episode_steps = env.base_env.vector_env.max_episode_steps or config.rollout_steps
     batches = max(1, config.total_frames // frames_per_batch)
     curve: list[dict[str, float]] = []
     totals = {"episodes": 0.0, "goals": 0.0, "collisions": 0.0, "interventions": 0.0}
@@ -338,9 +457,10 @@ def _train(
             totals["goals"] += stats["goal_rate"] * stats["episodes"]
         if method in SHIELDED:
             totals["interventions"] += float(batch["next", "filter_intervention"].sum())
-        if method == "ppo_lagrangian" and stats["episodes"]:
-            rate = stats["collisions"] / stats["episodes"]
-            lagrange = max(0.0, lagrange + config.lagrangian_lr * (rate - config.cost_limit))
+        if method == "ppo_lagrangian":
+            episode_cost = stats["collisions"] / frames_per_batch * episode_steps
+            step = config.lagrangian_lr * (episode_cost - config.cost_limit)
+            lagrange = max(0.0, lagrange + step)
         _update(batch.reshape(-1), policy, critic, cost_critic, optim, config, lagrange, bound)
         row = {"frames": float((index + 1) * frames_per_batch), **stats, "lagrange": lagrange}
         curve.append(row)
@@ -407,7 +527,7 @@ def _update(
 
 
 def evaluate(
-    env: EnvBase, policy: nn.Module, *, intervention_tol: float = 1e-4
+    env: EnvBase, policy: nn.Module, *, intervention_tol: float = 1e-4, check_every: int = 25
 ) -> dict[str, float]:
     """One deterministic episode per environment of ``env`` (from its reset): mean return,
     goal rate, collisions, and the rates of steps where the shield (``"filter_intervention"``)
@@ -419,32 +539,37 @@ def evaluate(
     ret = torch.zeros(n, device=device)
     goals = torch.zeros(n, dtype=torch.bool, device=device)
     collisions = torch.zeros(n, device=device)
-    shield = layer = steps = 0.0
+    zero = torch.zeros((), device=device)
+    shield, layer, steps = zero.clone(), zero.clone(), zero.clone()
+    index = 0
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         td = env.reset()
-        while bool(running.any()):
+        # the totals stay on the device; whether any episode runs is read every few steps
+        while index % check_every or bool(running.any()):
             policy(td)
             out = env.step(td)
             nxt = out["next"]
-            alive = running.float()
-            ret += nxt["reward"].squeeze(-1) * alive
+            alive = running.to(ret.dtype)
+            ret += nxt["reward"].squeeze(-1).to(ret.dtype) * alive
             goals |= nxt["success"].squeeze(-1) & running
-            collisions += nxt["cost"].squeeze(-1) * alive
-            steps += float(alive.sum())
+            collisions += nxt["cost"].squeeze(-1).to(ret.dtype) * alive
+            steps += alive.sum()
             if "filter_intervention" in nxt.keys():
-                shield += float((nxt["filter_intervention"].squeeze(-1) & running).sum())
+                shield += (nxt["filter_intervention"].squeeze(-1) & running).sum()
             change = (out["loc"] - out["loc_nominal"]).abs().amax(-1)
-            layer += float(((change > intervention_tol) & running).sum())
+            layer += ((change > intervention_tol) & running).sum()
             running = running & ~nxt["done"].squeeze(-1)
             td = step_mdp(out)
+            index += 1
+    total = float(steps)
     return {
         "episodes": float(n),
         "return": float(ret.mean()),
         "goal_rate": float(goals.float().mean()),
         "collisions": float((collisions > 0).sum()),
-        "shield_intervention_rate": shield / steps,
-        "layer_intervention_rate": layer / steps,
-        "steps": steps,
+        "shield_intervention_rate": float(shield) / total,
+        "layer_intervention_rate": float(layer) / total,
+        "steps": total,
     }
 
 
@@ -479,12 +604,12 @@ def mean_ci(values: list[float]) -> tuple[float, float]:
 
 #: the quantities :func:`summarize` reports, as (name, where, key)
 SUMMARY_FIELDS = (
-    ("train collisions", "train", "collisions"),
+    ("train collision steps", "train", "collisions"),
     ("train goal rate", "train", "goal_rate"),
     ("train shield interventions", "train", "intervention_rate"),
     ("eval return", "eval", "return"),
     ("eval goal rate", "eval", "goal_rate"),
-    ("eval collisions", "eval", "collisions"),
+    ("eval episodes with a collision", "eval", "collisions"),
     ("eval shield interventions", "eval", "shield_intervention_rate"),
     ("eval filter-layer interventions", "eval", "layer_intervention_rate"),
     ("frames/s", "run", "frames_per_second"),

@@ -209,7 +209,7 @@ class TorchRLEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         vec = self.vector_env
         with torch.no_grad():
-            u = vec._actions(tensordict.get("action"))
+            u = self._action(tensordict.get("action"))
             z = vec._draw(vec._steps + 1, vec.noise_dim) if vec.noise_dim else None
             reward, terminated, info = vec._advance(u, z)
             vec._steps = vec._steps + 1
@@ -220,6 +220,28 @@ class TorchRLEnv(EnvBase):
             obs = vec._observe()
         terminated, truncated = terminated[:, None], truncated[:, None]
         return self._output(obs, info, reward[:, None], terminated, truncated)
+
+    def _action(self, action: Tensor) -> Tensor:
+        """The action ``[N, m]`` on the env's device and dtype, clipped to the bounds.
+
+        A non-finite action raises ValueError on the CPU; on an accelerator the check is
+        asynchronous (``torch._assert_async``: a failure surfaces at a later synchronisation)
+        so that a step never waits for the device.
+        """
+        vec = self.vector_env
+        if not isinstance(action, Tensor):
+            raise TypeError(f"action must be a tensor, got {type(action).__name__}")
+        shape = (vec.num_envs, vec.single_action_space.shape[0])
+        if tuple(action.shape) != shape:
+            raise ValueError(f"action must have shape {shape}, got {tuple(action.shape)}")
+        u = action.to(device=vec.device, dtype=vec.dtype)
+        finite = torch.isfinite(u).all()
+        if u.device.type == "cpu":
+            if not bool(finite):  # a CPU reduction: nothing to wait for
+                raise ValueError("action must be finite")
+        else:
+            torch._assert_async(finite, "TorchRLEnv: action must be finite")
+        return torch.minimum(torch.maximum(u, vec._u_low), vec._u_high)
 
     def _output(
         self,

@@ -16,8 +16,9 @@ Reward per step: the progress towards the goal ``|p - g| - |p' - g|`` in metres,
 ``goal_bonus`` at the step that reaches the goal, minus ``collision_penalty`` at the step
 that ends inside an obstacle.
 
-Termination: the goal reached (success) or an obstacle entered (collision). Truncation: the
-time limit of 500 steps.
+Termination: the goal reached (success) or an obstacle entered (collision; with
+``terminate_on_collision=False`` the episode goes on and the penalty and the collision flag
+mark every step that ends inside). Truncation: the time limit of 500 steps.
 
 The process noise of each step, and the start perturbation ``start_noise`` (m, default 0)
 of the position, are standard normal draws that depend only on the episode's seed.
@@ -56,6 +57,8 @@ class UnicycleEllipsesVectorEnv(TorchVectorEnv):
         sigma: diffusion of every state (0: deterministic Euler steps).
         goal_bonus: reward at the step that reaches the goal.
         collision_penalty: subtracted at the step that enters an obstacle.
+        terminate_on_collision: end the episode at a collision (default); False
+            keeps it running (the cost marks every step inside an obstacle).
         start_noise: standard deviation (m) of the start position around the origin.
         device, dtype: where the batch lives.
         return_tensors: return tensors on ``device`` instead of NumPy arrays.
@@ -74,6 +77,7 @@ class UnicycleEllipsesVectorEnv(TorchVectorEnv):
         sigma: float = SIGMA,
         goal_bonus: float = 10.0,
         collision_penalty: float = 10.0,
+        terminate_on_collision: bool = True,
         start_noise: float = 0.0,
         device: str | torch.device = "cpu",
         dtype: torch.dtype = torch.float32,
@@ -94,6 +98,7 @@ class UnicycleEllipsesVectorEnv(TorchVectorEnv):
         self.sigma = check_number("sigma", sigma, low=0.0)
         self.goal_bonus = check_number("goal_bonus", goal_bonus, low=0.0)
         self.collision_penalty = check_number("collision_penalty", collision_penalty, low=0.0)
+        self.terminate_on_collision = bool(terminate_on_collision)
         self.start_noise = check_number("start_noise", start_noise, low=0.0)
         self.dt = DT
         kw = {"device": self.device, "dtype": dtype}
@@ -137,7 +142,8 @@ class UnicycleEllipsesVectorEnv(TorchVectorEnv):
         success = (after <= GOAL_RADIUS) & ~collision
         reward = before - after + self.goal_bonus * success.to(self.dtype)
         reward = reward - self.collision_penalty * collision.to(self.dtype)
-        return reward, success | collision, {"h": h, "collision": collision, "success": success}
+        terminated = success | (collision & self.terminate_on_collision)
+        return reward, terminated, {"h": h, "collision": collision, "success": success}
 
     def _info(self) -> dict[str, Tensor]:
         h = self.barriers[0](self._x)
