@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from torchcbf.qp import _dual_native, _kkt
+from torchcbf.qp import _eliminate as eliminate
 from torchcbf.qp._dual import DualFactor, NativeFactor, dual_adjoints, solve_dual
 from torchcbf.qp._enum import (
     MAX_CANDIDATES_SMALL_BATCH,
@@ -92,6 +93,10 @@ class SolverConfig:
     #: the rows the interior point method would solve go to proxsuite's dense solver first
     #: (:func:`_ipm_routed`)
     route: bool = False
+    #: equality rows are eliminated first and the reduced problem is solved by the dual
+    #: active-set method (:func:`_forward_eliminated`); the other options then describe the
+    #: path of the rows whose ``A`` is rank deficient
+    eliminate: bool = False
 
 
 def _closed_form(
@@ -132,6 +137,8 @@ def _forward(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, _kkt.KKTFactor]:
     """Solve in float64; return ``(x, z, y, status, iterations, kkt_factor)``."""
     me = b.shape[-1]
+    if cfg.backend == "torch" and cfg.eliminate and me > 0:
+        return _forward_eliminated(P, q, G, h, A, b, cfg, x0)
     if cfg.backend == "torch":
         res = _closed_form(P, q, G, h) if cfg.closed_form else None
         if res is not None:
@@ -159,6 +166,59 @@ def _forward(
         x, s, z, y, status, iters = (t.to(q.device) for t in out)
         x, z, y, status, active = _finish(P, q, G, h, A, b, x, s, z, y, status, cfg)
     fac = _factor(P, G, h, A, x, active, status) if cfg.need_factor else None
+    return x, z, y, status, iters, fac
+
+
+def _forward_eliminated(
+    P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, _kkt.KKTFactor | None]:
+    """Equality rows eliminated (:mod:`torchcbf.qp._eliminate`) and the reduced problem
+    solved by the dual active-set method (its rows it cannot certify by the interior point
+    method, as in :func:`_forward_dual`); the rows whose ``A`` is rank deficient are solved
+    with their equalities kept, by the path the rest of ``cfg`` names. Returns what
+    :func:`_forward` returns; the backward factor is the active-set KKT system of the full
+    problem. Finding the rank-deficient rows is one host synchronisation."""
+    B, N = q.shape
+    k = b.shape[-1]
+    red = eliminate.reduce_equalities(A, b)
+    base = replace(cfg, eliminate=False, need_factor=False)
+    all_ok = bool(red.ok.all())
+    idx = None if all_ok else red.ok.nonzero().squeeze(-1)
+
+    def rows(t: Tensor) -> Tensor:
+        return t if idx is None else t.index_select(0, idx)
+
+    Pk, qk, Gk, hk = (rows(t) for t in (P, q, G, h))
+    red_k = eliminate.Reduction(*(rows(t) for t in red))
+    Pr, qr = eliminate.reduced_objective(red_k, Pk, qk)
+    Gr, hr = eliminate.reduced_rows(red_k, Gk, hk, cfg.eps)
+    w0 = None
+    if x0 is not None:
+        w0 = (red_k.Z.mT @ (rows(x0) - red_k.xp).unsqueeze(-1)).squeeze(-1)
+    inner = replace(base, active_set=True, enumerate=False, closed_form=False)
+    none = q.new_zeros(Pr.shape[0], 0, N - k)
+    w, zk, _, st, it, _ = _forward_dual(Pr, qr, Gr, hr, none, none[..., 0], inner, w0)
+    xk = eliminate.full_point(red_k, w)
+    grad = torch.einsum("bij,bj->bi", Pk, xk) + qk + torch.einsum("bmn,bm->bn", Gk, zk)
+    yk = eliminate.equality_multipliers(red_k, grad)
+    infeasible = (st == int(Status.PRIMAL_INFEASIBLE)) | (st == int(Status.DUAL_INFEASIBLE))
+    xk, zk, yk = (torch.where(infeasible.unsqueeze(-1), 0.0, t) for t in (xk, zk, yk))
+    if idx is None:
+        x, z, y, status, iters = xk, zk, yk, st, it
+    else:
+        bad = (~red.ok).nonzero().squeeze(-1)
+        sub = [t.index_select(0, bad) for t in (P, q, G, h, A, b)]
+        x0b = None if x0 is None else x0.index_select(0, bad)
+        xb, zb, yb, stb, itb, _ = _forward(*sub, base, x0b)
+        x = q.new_zeros(B, N).index_copy(0, idx, xk).index_copy(0, bad, xb)
+        z = h.new_zeros(B, h.shape[-1]).index_copy(0, idx, zk).index_copy(0, bad, zb)
+        y = b.new_zeros(B, k).index_copy(0, idx, yk).index_copy(0, bad, yb)
+        status = st.new_zeros(B).index_copy(0, idx, st).index_copy(0, bad, stb)
+        iters = it.new_zeros(B).index_copy(0, idx, it).index_copy(0, bad, itb)
+    fac = None
+    if cfg.need_factor:
+        active = _kkt.active_set(z, _slack([P, q, G, h, A, b], x))
+        fac = _factor(P, G, h, A, x, active, status)
     return x, z, y, status, iters, fac
 
 

@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from torchcbf._checks import broadcast_shapes
-from torchcbf.qp import _direct, _dual_native, realtime
+from torchcbf.qp import _direct, _dual_native, _eliminate, realtime
 from torchcbf.qp._enum import (
     MAX_CANDIDATES,
     MAX_CANDIDATES_SMALL_BATCH,
@@ -293,6 +293,8 @@ def _path(cfg: SolverConfig, q: Tensor) -> str:
         return cfg.backend
     if cfg.closed_form:
         return "closed_form"
+    if cfg.eliminate:  # the reduced problem goes to the C kernel
+        return "active_set_native"
     if cfg.active_set:
         return "active_set_native" if _dual_native.applies(q.double()) else "active_set"
     if cfg.enumerate:
@@ -442,12 +444,14 @@ def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
     if (
         inp.B > realtime.MAX_BATCH
         or n > _dual_native.MAX_VARS
-        or inp.me > 0
+        or inp.me >= n
         or inp.soft is not None
         or inp.Q.device.type != "cpu"
         or not _dual_native.available()
     ):
         return None
+    if inp.me > 0:
+        return _solve_small_eliminated(inp, max_iter)
     G, h = _rows(inp.G, inp, (m, n)), _rows(inp.h, inp, (m,))
 
     def solve(G: Tensor | None, h: Tensor | None) -> realtime.SmallSolution | None:
@@ -472,6 +476,76 @@ def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
         free = torch.isposinf(h)
         sol = solve(torch.where(free.unsqueeze(-1), 0.0 * G, G), torch.where(free, 1.0, h))
     return None if sol is None else QPSolution(*sol, path="small_native")
+
+
+def _solve_small_eliminated(inp: _Inputs, max_iter: int) -> QPSolution | None:
+    """:func:`_solve_small` for problems with equality rows: the equalities eliminated
+    (:mod:`torchcbf.qp._eliminate`), box bounds turned into rows of the reduced problem,
+    which the C kernel solves; ``None`` where some ``A`` is rank deficient, some datum is
+    not finite (``h = +inf`` aside) or the kernel does not certify every row."""
+    n, m, k, B = inp.n, inp.m, inp.me, inp.B
+    f64 = torch.float64
+    # one problem as matrices and vectors: their products cost a third of a batched one's
+    lead = () if B == 1 else (B,)
+
+    def flat(t: Tensor, trailing: tuple[int, ...]) -> Tensor:
+        return t.detach().expand(*inp.batch_shape, *trailing).reshape(*lead, *trailing).to(f64)
+
+    red = _eliminate.reduce_equalities(flat(inp.A, (k, n)), flat(inp.b, (k,)))
+    if not bool(red.ok.all()):
+        return None
+    Q = flat(inp.Q, (n, n))
+    P = 0.5 * (Q + Q.mT)
+    q = flat(inp.p, (n,))
+    parts_G, parts_h = [], []
+    if m:
+        parts_G.append(flat(inp.G, (m, n)))
+        parts_h.append(flat(inp.h, (m,)))
+    finite: dict[float, Tensor] = {}
+    for bound, sign in ((inp.ub, 1.0), (inp.lb, -1.0)):
+        if bound is not None:
+            v = flat(bound, (n,))
+            fin = finite[sign] = torch.isfinite(v)
+            parts_G.append(torch.diag_embed(fin.to(f64), offset=0) * sign)
+            parts_h.append(torch.where(fin, sign * v, 1.0))
+    if not parts_G:
+        return None
+    G_all = parts_G[0] if len(parts_G) == 1 else torch.cat(parts_G, -2)
+    h_all = parts_h[0] if len(parts_h) == 1 else torch.cat(parts_h, -1)
+    Pr, qr = _eliminate.reduced_objective(red, P, q)
+    Gr, hr = _eliminate.reduced_rows(red, G_all, h_all, inp.eps)
+    sol = realtime.solve_small(Pr, qr, Gr, hr, None, None, inp.eps, max_iter, lead)
+    if sol is None and m and bool(torch.isposinf(parts_h[0]).any()):
+        # rows with h = +inf bound nothing (the kernel refuses them): zero rows, tried only
+        # after a refusal, as in _solve_small
+        free = torch.isposinf(h_all)
+        G_all = torch.where(free.unsqueeze(-1), 0.0 * G_all, G_all)
+        h_all = torch.where(free, 1.0, h_all)
+        Gr, hr = _eliminate.reduced_rows(red, G_all, h_all, inp.eps)
+        sol = realtime.solve_small(Pr, qr, Gr, hr, None, None, inp.eps, max_iter, lead)
+    if sol is None:
+        return None
+    x = _eliminate.full_point(red, sol.x)
+    z = sol.z
+    grad = P @ x.unsqueeze(-1) + q.unsqueeze(-1) + G_all.mT @ z.unsqueeze(-1)
+    y = _eliminate.equality_multipliers(red, grad.squeeze(-1))
+    zeros = x.new_zeros(*lead, n)
+    lam_ub = lam_lb = zeros
+    if inp.ub is not None:
+        lam_ub = torch.where(finite[1.0], z[..., m : m + n], 0.0)
+    if inp.lb is not None:
+        off = m + (n if inp.ub is not None else 0)
+        lam_lb = torch.where(finite[-1.0], z[..., off : off + n], 0.0)
+    dt, shape = inp.Q.dtype, inp.batch_shape
+
+    def out(t: Tensor) -> Tensor:
+        return t.to(dt).reshape(*shape, t.shape[-1])
+
+    iters = sol.iterations.reshape(shape)
+    return QPSolution(
+        out(x), torch.zeros_like(iters), out(z[..., :m]), out(y), iters, out(lam_lb),
+        out(lam_ub), out(x.new_zeros(*lead, m)), "small_native",
+    )  # fmt: skip
 
 
 def _beyond_kernel(inp: _Inputs) -> bool:
@@ -694,6 +768,8 @@ def _config(
         and inp.Q.device.type == "cpu"
         and _proxsuite_available()
     )
+    # equality rows eliminated where the reduced problem fits the dual method's C kernel
+    eliminate = exact and method == "auto" and kernel and 0 < me < N and dual_applies(N - me, True)
     if exact and method == "auto":
         dual = me == 0 and dual_applies(N, kernel)
         if dual and kernel:
@@ -720,6 +796,7 @@ def _config(
         need_factor=need_grad,
         rounding=torch.finfo(inp.Q.dtype).eps,
         route=route,
+        eliminate=eliminate,
     )
 
 
