@@ -20,10 +20,13 @@ Variants (each on 32 tuning seeds from ``--seed``, never the evaluation seeds 0-
 - each with ``--horizons``: the risk horizon ``T`` (s) instead of the scenario's choice
   (``Delta ~ sqrt(T)``: a shorter horizon, a narrower berth, a bound over a shorter time),
   ``--gains``: the rectification gain ``k`` (the approach speed ``h >= 0`` allows near
-  an ellipse grows with it), and ``--speeds``: ``v > 0`` adds two risk-aware barriers
-  keeping the speed in ``[-0.5, v]`` (the speeds of the grid ``eta`` is taken over);
-  ``v < 0`` takes ``eta`` over a grid whose speeds reach ``|v|`` instead (the scenario's
-  grid stops at 3 m/s, and its robots reach 6-7 m/s).
+  an ellipse grows with it), ``--speeds``: ``v`` adds two risk-aware barriers keeping the
+  speed in ``[-0.5, v]`` (the speeds of the grid ``eta`` is taken over),
+  ``--max-speeds``: the scenario's ``risk_max_speed``, the top speed of the grid ``eta`` is
+  taken over (3 m/s by default; its robots reach 6-7 m/s), and ``--inflations``: the
+  scenario's ``risk_inflation``, metres added to every semi-axis of the ellipses the
+  filter keeps the robot out of (a berth the same in every direction, where the radius
+  form's margin is proportional to the semi-axis).
 
 Per variant: collisions, goals reached, robots leaving the field ``[-2.5, 5] x [-2, 6.5]``,
 relaxed filter steps, and the risk-aware check (windows from ``h >= Delta`` that leave the
@@ -33,12 +36,12 @@ Usage::
 
     python scripts/risk_mppi_experiment.py                           # K = 1,000, seeds 10,000+
     python scripts/risk_mppi_experiment.py --variants margin+shield --horizons 0.1 --seed 10032
+    python scripts/risk_mppi_experiment.py --variants baseline --inflations 0 0.1 --max-speeds 8
 """
 
 from __future__ import annotations
 
 import argparse
-import copy
 import itertools
 import time
 from dataclasses import replace
@@ -46,7 +49,7 @@ from dataclasses import replace
 import torch
 
 from torchcbf.barriers import Ellipse, HalfSpace
-from torchcbf.filters import RiskAware, SafetyFilter, noise_bound
+from torchcbf.filters import RiskAware, SafetyFilter
 from torchcbf.mppi import BarrierCost, DiscreteBarrierCost, QuadraticGoal, ShieldMPPI, SumCost
 from torchcbf.scenarios.unicycle_mppi_cbf import (
     AXES,
@@ -55,7 +58,6 @@ from torchcbf.scenarios.unicycle_mppi_cbf import (
     ROLLOUT_DT,
     SIGMA,
     mppi_cbf,
-    operating_states,
     risk_failures,
 )
 
@@ -84,28 +86,6 @@ def speed_limited(sc, v_max: float) -> SafetyFilter:
     ).to(sc.x0.dtype)
 
 
-def covering(sc, v_hi: float) -> SafetyFilter:
-    """The scenario's risk-aware filter with ``eta`` taken over operating states whose speeds
-    reach ``v_hi`` (the scenario's grid stops at 3 m/s, below what its robots reach)."""
-    old = sc.safety_filter
-    grid = operating_states()
-    speeds = torch.linspace(-0.5, v_hi, 16, dtype=torch.float64)
-    positions = torch.unique(grid[:, :2], dim=0)
-    headings = torch.unique(grid[:, 3])
-    states = torch.cartesian_prod(positions[:, 0].unique(), positions[:, 1].unique(), speeds,
-                                  headings)  # fmt: skip
-    barrier = copy.deepcopy(old.barriers[0]).double()
-    plant = copy.deepcopy(sc.dynamics).double()
-    eta = noise_bound(barrier, plant, states)
-    params = sc.params
-    return SafetyFilter(
-        sc.dynamics,
-        barriers=old.barriers[0],
-        mode=RiskAware(rho=params["rho"], horizon=params["risk_horizon"], eta=eta),
-        R=torch.diag(torch.tensor(params["control_weight"], dtype=torch.float64)),
-    ).to(sc.x0.dtype)
-
-
 def with_filter(sc, safety_filter: SafetyFilter):
     """The scenario with another risk-aware filter (its risk check on that filter's
     barriers and margins)."""
@@ -126,6 +106,8 @@ def build(
     horizon: float | None,
     gain: float | None = None,
     speed: float | None = None,
+    max_speed: float | None = None,
+    inflation: float | None = None,
 ):
     sc = mppi_cbf(
         "mppi_rascbf",
@@ -134,10 +116,11 @@ def build(
         num_samples=samples,
         risk_horizon=horizon,
         rectify_gain=gain,
+        risk_max_speed=max_speed,
+        risk_inflation=inflation,
     )
     if speed is not None:
-        limited = speed_limited(sc, speed) if speed > 0 else covering(sc, -speed)
-        sc = with_filter(sc, limited)
+        sc = with_filter(sc, speed_limited(sc, speed))
     if variant == "baseline":
         return sc
     k, delta = sc.params["rectify_gain"], sc.params["delta"]
@@ -167,32 +150,42 @@ def main() -> None:
     parser.add_argument("--horizons", nargs="+", type=float, default=[None])
     parser.add_argument("--gains", nargs="+", type=float, default=[None])
     parser.add_argument("--speeds", nargs="+", type=float, default=[None])
+    parser.add_argument("--max-speeds", nargs="+", type=float, default=[None])
+    parser.add_argument("--inflations", nargs="+", type=float, default=[None])
     args = parser.parse_args()
     if args.seed < 10_000:
         parser.error("tune on seeds >= 10,000 (0-31 are the evaluation seeds)")
     torch.set_num_threads(1)
     print(f"seeds {args.seed}..{args.seed + args.seeds - 1}, K = {args.samples}")
     print(
-        f"{'variant':<15}{'speed':>6}{'k':>5}{'T s':>6}{'collide':>8}{'goal':>6}{'leave':>6}"
-        f"{'relaxed':>8}{'windows':>9}{'fail':>6}{'rate':>8}{'wall s':>8}"
+        f"{'variant':<15}{'speed':>6}{'vmax':>5}{'infl':>5}{'k':>5}{'T s':>6}{'collide':>8}"
+        f"{'goal':>6}{'leave':>6}{'relaxed':>8}{'windows':>9}{'fail':>6}{'rate':>8}"
+        f"{'v top':>6}{'wall s':>8}  colliding seeds"
     )
-    grid = itertools.product(args.speeds, args.gains, args.horizons, args.variants)
-    for speed, gain, horizon, variant in grid:
+    grid = itertools.product(
+        args.inflations, args.max_speeds, args.speeds, args.gains, args.horizons, args.variants
+    )
+    for inflation, max_speed, speed, gain, horizon, variant in grid:
         start = time.perf_counter()
-        sc = build(variant, args.seed, args.seeds, args.samples, horizon, gain, speed)
+        sc = build(
+            variant, args.seed, args.seeds, args.samples, horizon, gain, speed, max_speed, inflation
+        )
         traj, m = sc.run(progress=False)
         x = traj.x
         (x0, x1), (y0, y1) = FIELD
         out = (x[..., 0] < x0) | (x[..., 0] > x1) | (x[..., 1] < y0) | (x[..., 1] > y1)
         windows = int(m["risk_windows"].sum())
         fails = int(m["risk_window_failures"].sum())
+        colliding = (torch.nonzero(m["collision"]).flatten() + args.seed).tolist()
         print(
             f"{variant:<15}{'-' if speed is None else f'{speed:g}':>6}"
+            f"{sc.params['risk_max_speed']:>5g}{sc.params['risk_inflation']:>5g}"
             f"{sc.params['rectify_gain']:>5.0f}"
             f"{sc.params['risk_horizon']:>6.3f}{int(m['collision'].sum()):>8}"
             f"{int(m['goal_reached'].sum()):>6}{int(out.any(-1).sum()):>6}"
             f"{int(m['steps_relaxed'].sum()):>8}{windows:>9}{fails:>6}"
-            f"{fails / max(windows, 1):>8.4f}{time.perf_counter() - start:>8.1f}"
+            f"{fails / max(windows, 1):>8.4f}{float(x[..., 2].amax()):>6.1f}"
+            f"{time.perf_counter() - start:>8.1f}  {colliding}"
         )
 
 

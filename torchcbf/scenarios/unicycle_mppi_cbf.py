@@ -102,6 +102,12 @@ class FilterParams:
         risk_horizon: ``T`` (s) of the risk-aware condition; ``None`` chooses it (see
             :func:`risk_horizon`; the paper and cbfkit configurations), 0.1 s in the default
             configuration.
+        risk_inflation: risk-aware method: metres added to every semi-axis of the ellipses
+            its filter keeps the robot out of (a berth the same in every direction; the
+            margin ``Delta`` holds the robot off by a multiple of each semi-axis).
+        risk_max_speed: risk-aware method: the top speed (m/s) of the operating states the
+            noise bound ``eta`` is taken over (:func:`operating_states`); the bound holds
+            only while the robot is no faster.
         shield_weight: weight of the shield's discrete-time CBF penalty.
         shield_steps: rollout steps the shield's penalty covers (``None`` or at least the
             horizon: all of them; 10 by the sweep of docs/scenarios.md).
@@ -118,6 +124,8 @@ class FilterParams:
     control_limit: tuple[float, float] | None = (40.0, 40.0)
     rho: float = 0.05
     risk_horizon: float | None = None
+    risk_inflation: float = 0.0
+    risk_max_speed: float = 3.0
     shield_weight: float = 1e3
     shield_steps: int | None = 10
 
@@ -146,9 +154,10 @@ CONFIG_PARAMS: dict[str, FilterParams] = {
 }
 
 
-def obstacles() -> Ellipse:
-    """The five ellipses as one barrier ``b(x) -> [..., 5]`` on the position ``(x, y)``."""
-    return Ellipse(torch.tensor(CENTERS), torch.tensor(AXES), index=(0, 1))
+def obstacles(*, inflation: float = 0.0) -> Ellipse:
+    """The five ellipses as one barrier ``b(x) -> [..., 5]`` on the position ``(x, y)``;
+    ``inflation`` (m) is added to every semi-axis."""
+    return Ellipse(torch.tensor(CENTERS), torch.tensor(AXES) + inflation, index=(0, 1))
 
 
 def proportional_controller(goal: tuple[float, float] = GOAL):
@@ -175,8 +184,9 @@ class MppiCbfParams:
         planner_every: replan every this many loop steps (2: once per rollout step of
             0.02 s); between replans the loop follows the plan.
         alpha, beta, rectify_gain, margin, goal_wall_margin, blocking_margin, control_weight,
-            control_limit, rho, risk_horizon, shield_weight, shield_steps: override the
-            configuration's value (:class:`FilterParams`; ``None``: the configuration's).
+            control_limit, rho, risk_horizon, risk_inflation, risk_max_speed, shield_weight,
+            shield_steps: override the configuration's value (:class:`FilterParams`;
+            ``None``: the configuration's).
         barrier_scale: the scales ``c_i`` of the exponential form (one number or five),
             overriding the ones ``margin`` sets.
         noise_sigma, cost_normalization, zero_noise_samples, shift_fill: MPPI's (the noise
@@ -199,6 +209,8 @@ class MppiCbfParams:
     control_limit: float | tuple[float, float] | None = None
     rho: float | None = None
     risk_horizon: float | None = None
+    risk_inflation: float | None = None
+    risk_max_speed: float | None = None
     shield_weight: float | None = None
     shield_steps: int | None = None
     noise_sigma: float = 4.0
@@ -248,6 +260,7 @@ def build(
     goal_wall_margin, blocking_margin = p.goal_wall_margin, p.blocking_margin
     control_weight, control_limit, rho = p.control_weight, p.control_limit, p.rho
     risk_horizon, shield_weight, shield_steps = p.risk_horizon, p.shield_weight, p.shield_steps
+    risk_inflation, risk_max_speed = p.risk_inflation, p.risk_max_speed
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if config not in CONFIGS:
@@ -261,6 +274,7 @@ def build(
         "blocking_margin": blocking_margin,
         "rho": rho,
         "risk_horizon": risk_horizon,
+        "risk_max_speed": risk_max_speed,
         "shield_weight": shield_weight,
     }
     params = CONFIG_PARAMS[config]
@@ -268,6 +282,10 @@ def build(
         if value is not None:  # beta > 0 too: the scales c_i set by the margin are prop. to it
             value = check_number(name, value, low=0.0, strict=True)
             params = replace(params, **{name: value})
+    if risk_inflation is not None:
+        params = replace(
+            params, risk_inflation=check_number("risk_inflation", risk_inflation, low=0.0)
+        )
     if shield_steps is not None:
         params = replace(params, shield_steps=check_positive_int("shield_steps", shield_steps))
     check_positive_int("planner_every", planner_every)
@@ -422,14 +440,15 @@ def _scales(barrier_scale: float | Sequence[float] | None, params: FilterParams)
     return scales
 
 
-def operating_states(dtype: torch.dtype = torch.float64) -> Tensor:
+def operating_states(dtype: torch.dtype = torch.float64, *, max_speed: float = 3.0) -> Tensor:
     """A grid ``[N, 4]`` over where the robot operates: positions in the obstacle field
-    ``[-2.5, 5] x [-2, 6.5]`` m, speeds ``[-0.5, 3]`` m/s, every heading. The risk-aware
-    noise bound ``eta`` is taken over its safe points."""
+    ``[-2.5, 5] x [-2, 6.5]`` m, speeds ``[-0.5, max_speed]`` m/s (every 0.5 m/s at most),
+    every heading. The risk-aware noise bound ``eta`` is taken over its safe points."""
+    max_speed = check_number("max_speed", max_speed, low=0.0, strict=True)
     axes = (
         torch.linspace(-2.5, 5.0, 31, dtype=dtype),
         torch.linspace(-2.0, 6.5, 35, dtype=dtype),
-        torch.linspace(-0.5, 3.0, 8, dtype=dtype),
+        torch.linspace(-0.5, max_speed, math.ceil((max_speed + 0.5) / 0.5) + 1, dtype=dtype),
         torch.linspace(-math.pi, math.pi, 12, dtype=dtype)[:-1],
     )
     return torch.cartesian_prod(*axes)
@@ -486,12 +505,13 @@ def _risk_aware_filter(
     :func:`risk_horizon`."""
     k = params.rectify_gain
     f64 = copy.deepcopy(plant).double()
-    radius = Transformed(obstacles(), "radius")  # |q| - 1: a bounded gradient
+    # |q| - 1: a bounded gradient
+    radius = Transformed(obstacles(inflation=params.risk_inflation), "radius")
     barrier = rectify(radius, model, form="exponential", gains=[k])
     barrier64 = copy.deepcopy(barrier).double()
     x0 = torch.tensor(X0, dtype=torch.float64)
     with torch.enable_grad():
-        eta = noise_bound(barrier64, f64, operating_states())
+        eta = noise_bound(barrier64, f64, operating_states(max_speed=params.risk_max_speed))
     h0 = barrier64(x0).detach()
     T = params.risk_horizon or risk_horizon(h0, eta, params.rho, params.margin)
     safety_filter = SafetyFilter(

@@ -1,0 +1,83 @@
+"""Scenario B's risk-aware filter: the inflated ellipses and the speed range of its noise
+bound."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchcbf.scenarios.unicycle_mppi_cbf import (
+    AXES,
+    CENTERS,
+    SIGMA,
+    mppi_cbf,
+    obstacles,
+    operating_states,
+)
+
+
+def test_obstacles_inflation_adds_to_every_semi_axis() -> None:
+    m = 0.2
+    grown = obstacles(inflation=m).double()
+    for (cx, cy), (a1, a2) in zip(CENTERS, AXES, strict=True):
+        on_axes = torch.tensor(
+            [[cx + a1 + m, cy, 0.0, 0.0], [cx, cy - a2 - m, 0.0, 0.0]], dtype=torch.float64
+        )
+        b = grown(on_axes)  # [2, 5]: the vertices of the grown ellipse lie on its boundary
+        i = CENTERS.index((cx, cy))
+        torch.testing.assert_close(b[:, i], torch.zeros(2, dtype=torch.float64))
+    torch.testing.assert_close(obstacles(inflation=0.0).axes, obstacles().axes)
+
+
+@pytest.mark.parametrize("max_speed", [3.0, 8.0, 0.7])
+def test_operating_states_cover_the_speeds(max_speed: float) -> None:
+    grid = operating_states(max_speed=max_speed)
+    speeds = grid[:, 2].unique()
+    assert float(speeds.min()) == -0.5
+    assert float(speeds.max()) == pytest.approx(max_speed)
+    assert float(speeds.diff().max()) <= 0.5 + 1e-12
+    assert grid.shape[-1] == 4
+    for bad in (0.0, -1.0, math.inf):
+        with pytest.raises(ValueError, match="max_speed"):
+            operating_states(max_speed=bad)
+
+
+def test_risk_filter_noise_bound_covers_its_speeds_on_the_inflated_ellipses() -> None:
+    """eta_i bounds |dh_i/dx sigma| (autograd) at safe states with speeds up to
+    risk_max_speed, for the radius form of the inflated ellipses; the filter's barrier is
+    zero on the inflated boundary at rest."""
+    m, v_max = 0.1, 8.0
+    sc = mppi_cbf(
+        "mppi_rascbf",
+        num_seeds=1,
+        num_samples=8,
+        horizon=4,
+        dtype=torch.float64,
+        risk_inflation=m,
+        risk_max_speed=v_max,
+    )
+    p = sc.params
+    assert p["risk_inflation"] == m and p["risk_max_speed"] == v_max
+    eta = torch.tensor(p["eta"], dtype=torch.float64)
+    narrow = mppi_cbf("mppi_rascbf", num_seeds=1, num_samples=8, horizon=4, dtype=torch.float64)
+    assert narrow.params["risk_max_speed"] == 3.0 and narrow.params["risk_inflation"] == 0.0
+    (barrier,) = sc.safety_filter.barriers
+    gen = torch.Generator().manual_seed(5)
+    lo = torch.tensor([-2.5, -2.0, -0.5, -math.pi], dtype=torch.float64)
+    hi = torch.tensor([5.0, 6.5, v_max, math.pi], dtype=torch.float64)
+    x = lo + (hi - lo) * torch.rand(4000, 4, generator=gen, dtype=torch.float64)
+    x.requires_grad_(True)
+    h = barrier(x)
+    for i in range(h.shape[-1]):
+        (grad,) = torch.autograd.grad(h[:, i].sum(), x, retain_graph=True)
+        norm = (grad * SIGMA).norm(dim=-1)[h[:, i].detach() >= 0]
+        assert float(norm.max()) <= float(eta[i]) * 1.15  # the grid's maximum, up to spacing
+    (cx, cy), (a1, _) = CENTERS[0], AXES[0]
+    at_rest = torch.tensor([[cx - a1 - m, cy, 0.0, 0.0]], dtype=torch.float64)
+    # the axes are built in float32 (0.6 is not exact there), then cast
+    assert float(barrier(at_rest)[0, 0]) == pytest.approx(0.0, abs=1e-5)
+    for name, bad in (("risk_inflation", -0.1), ("risk_max_speed", 0.0)):
+        with pytest.raises(ValueError, match=name):
+            mppi_cbf("mppi_rascbf", num_seeds=1, num_samples=8, horizon=4, **{name: bad})
