@@ -62,7 +62,7 @@ def test_risk_filter_noise_bound_covers_its_speeds_on_the_inflated_ellipses() ->
     assert p["risk_inflation"] == m and p["risk_max_speed"] == v_max
     eta = torch.tensor(p["eta"], dtype=torch.float64)
     narrow = mppi_cbf("mppi_rascbf", num_seeds=1, num_samples=8, horizon=4, dtype=torch.float64)
-    assert narrow.params["risk_max_speed"] == 3.0 and narrow.params["risk_inflation"] == 0.0
+    assert narrow.params["risk_max_speed"] == 8.0 and narrow.params["risk_inflation"] == 0.0
     (barrier,) = sc.safety_filter.barriers
     gen = torch.Generator().manual_seed(5)
     lo = torch.tensor([-2.5, -2.0, -0.5, -math.pi], dtype=torch.float64)
