@@ -36,8 +36,11 @@ except ImportError:  # pragma: no cover - depends on the installation
     triton = None
     tl = None
 
-#: samples per program
-BLOCK = 128
+#: samples per program: one warp, one sample per thread (K = 16,384 gives 512 programs,
+#: enough to occupy every multiprocessor of a large GPU)
+BLOCK = 32
+#: warps per program
+WARPS = 1
 #: the kernel's passes
 _COSTS, _UPDATE, _ROWS, _BUFFERS = 0, 1, 2, 3
 #: layout of the parameter vector: dt, dt/2, dt/6, gamma, 2 pi, lo[4], hi[4], chol[4 x 4]
@@ -182,13 +185,14 @@ if triton is not None:
 
     @triton.jit
     def _col(X, cols, i):
-        """Column ``i`` ``[BLOCK]`` of ``X [BLOCK, C]``."""
-        return tl.sum(tl.where(cols[None, :] == i, X, 0.0), axis=1)
+        """Component ``i`` ``[BLOCK]`` of ``X [C, BLOCK]`` (each lane's components are in
+        its own thread: the sum runs in registers)."""
+        return tl.sum(tl.where(cols[:, None] == i, X, 0.0), axis=0)
 
     @triton.jit
     def _put(X, cols, i, v):
-        """``X`` with column ``i`` replaced by ``v [BLOCK]``."""
-        return tl.where(cols[None, :] == i, v[:, None], X)
+        """``X [C, BLOCK]`` with component ``i`` replaced by ``v [BLOCK]``."""
+        return tl.where(cols[:, None] == i, v[None, :], X)
 
     @triton.jit
     def _xdot(X, U, cols, ucols, MODEL: tl.constexpr, DIM: tl.constexpr):
@@ -218,18 +222,19 @@ if triton is not None:
 
     @triton.jit
     def _shapes_h(X, sa_ptr, sc_ptr, sval_ptr, cols, scols, NP: tl.constexpr, DQ: tl.constexpr):
-        """``h [BLOCK, SP]`` of every shape at ``X [BLOCK, NP]`` (``DQ`` rows of ``A``)."""
+        """``h [SP, BLOCK]`` of every shape at ``X [NP, BLOCK]`` (``DQ`` rows of ``A``)."""
         grid = scols[:, None] * NP + cols[None, :]  # [SP, NP]
-        D = X[:, None, :] - tl.load(sc_ptr + grid)[None, :, :]
-        q = tl.sum(D * tl.load(sa_ptr + scols[:, None] * 4 * NP + cols[None, :])[None], 2)
+        D = X[None, :, :] - tl.load(sc_ptr + grid)[:, :, None]  # [SP, NP, BLOCK]
+        A = tl.load(sa_ptr + scols[:, None] * 4 * NP + cols[None, :])
+        q = tl.sum(D * A[:, :, None], 1)
         acc = q * q
         for r in tl.static_range(1, DQ):
             A = tl.load(sa_ptr + (scols[:, None] * 4 + r) * NP + cols[None, :])
-            q = tl.sum(D * A[None], 2)
+            q = tl.sum(D * A[:, :, None], 1)
             acc += q * q
         sign = tl.load(sval_ptr + scols * 2)
         c0 = tl.load(sval_ptr + scols * 2 + 1)
-        return sign[None, :] * (acc - c0[None, :])
+        return sign[:, None] * (acc - c0[:, None])
 
     @triton.jit
     def _rollout_kernel(
@@ -289,9 +294,10 @@ if triton is not None:
         cols = tl.arange(0, NP)
         ucols = tl.arange(0, MP)
         scols = tl.arange(0, SP)
-        xmask = live[:, None] & (cols[None, :] < N)
-        umask = live[:, None] & (ucols[None, :] < M)
-        X = tl.load(x0_ptr + b[:, None] * N + cols[None, :], mask=xmask, other=0.0)
+        # [component, lane] tensors: a lane's components stay in its thread
+        xmask = (cols[:, None] < N) & live[None, :]
+        umask = (ucols[:, None] < M) & live[None, :]
+        X = tl.load(x0_ptr + b[None, :] * N + cols[:, None], mask=xmask, other=0.0)
         real = X.dtype
         key = tl.load(keys_ptr + b, mask=live, other=0).to(tl.uint64)
         keep = tl.where(k < zero_noise, 0.0, 1.0).to(real)
@@ -299,16 +305,16 @@ if triton is not None:
         dt = tl.load(par_ptr + 0)
         two_pi = tl.load(par_ptr + 4)
         if HAS_LO:
-            lo = tl.load(par_ptr + 5 + ucols, mask=ucols < M, other=0.0)
+            lo = tl.load(par_ptr + 5 + ucols, mask=ucols < M, other=0.0)[:, None]
         if HAS_HI:
-            hi = tl.load(par_ptr + 9 + ucols, mask=ucols < M, other=0.0)
+            hi = tl.load(par_ptr + 9 + ucols, mask=ucols < M, other=0.0)[:, None]
         if MODE == 1:
             w = tl.load(w_ptr + p, mask=live, other=0.0)
         if MODE == 3:
-            sidx = (b[:, None] * N + cols[None, :]) * (H + 1) * K + k[:, None]
+            sidx = (b[None, :] * N + cols[:, None]) * (H + 1) * K + k[None, :]
             tl.store(states_ptr + sidx, X, mask=xmask)
         if MODE == 2:
-            tl.store(states_ptr + p[:, None] * (H + 1) * N + cols[None, :], X, mask=xmask)
+            tl.store(states_ptr + p[None, :] * (H + 1) * N + cols[:, None], X, mask=xmask)
         zero = tl.zeros([BLOCK], dtype=real)
         stage = zero
         terminal = zero
@@ -319,7 +325,7 @@ if triton is not None:
         P: tl.constexpr = (M + 1) // 2
         for j in range(H):
             # standard normals, one Box-Muller pair per hash; eps = L z
-            E = tl.zeros([BLOCK, MP], dtype=real)
+            E = tl.zeros([MP, BLOCK], dtype=real)
             for q in tl.static_range(P):
                 cnt = ku * (H * P) + (j * P + q + 1)
                 hsh = _mix64(key + cnt * 0x9E3779B97F4A7C15)
@@ -328,32 +334,32 @@ if triton is not None:
                 R = keep * tl.sqrt(-2.0 * tl.log(u1))
                 A = two_pi * u2
                 L0 = tl.load(par_ptr + 13 + ucols * 4 + 2 * q, mask=ucols < M, other=0.0)
-                E += L0[None, :] * (R * tl.cos(A))[:, None]
+                E += L0[:, None] * (R * tl.cos(A))[None, :]
                 if 2 * q + 1 < M:
                     L1 = tl.load(par_ptr + 13 + ucols * 4 + 2 * q + 1, mask=ucols < M, other=0.0)
-                    E += L1[None, :] * (R * tl.sin(A))[:, None]
+                    E += L1[:, None] * (R * tl.sin(A))[None, :]
             pj = tl.load(
-                plan_ptr + (b[:, None] * H + j) * M + ucols[None, :], mask=umask, other=0.0
+                plan_ptr + (b[None, :] * H + j) * M + ucols[:, None], mask=umask, other=0.0
             )
             U = pj + E
             if HAS_LO:
-                U = tl.where(U < lo[None, :], lo[None, :], U)
+                U = tl.where(U < lo, lo, U)
             if HAS_HI:
-                U = tl.where(U > hi[None, :], hi[None, :], U)
+                U = tl.where(U > hi, hi, U)
             if CLAMP:
                 E = U - pj
             if HAS_WCTRL:
                 wc = tl.load(
-                    wctrl_ptr + (b[:, None] * H + j) * M + ucols[None, :], mask=umask, other=0.0
+                    wctrl_ptr + (b[None, :] * H + j) * M + ucols[:, None], mask=umask, other=0.0
                 )
-                ctrl += tl.sum(E * wc, 1)
+                ctrl += tl.sum(E * wc, 0)
             if MODE == 1:
-                part = tl.sum((w[:, None] * E).to(tl.float64), 0)
+                part = tl.sum((w[None, :] * E).to(tl.float64), 1)
                 blk = tl.program_id(0).to(tl.int64) * tl.num_programs(1) + tl.program_id(1)
                 tl.store(part_ptr + ((blk * H + j) * M + ucols), part, mask=ucols < M)
             else:
                 if MODE == 3:
-                    cidx = (b[:, None] * M + ucols[None, :]) * H * K + j * K + k[:, None]
+                    cidx = (b[None, :] * M + ucols[:, None]) * H * K + j * K + k[None, :]
                     tl.store(controls_ptr + cidx, U, mask=umask)
                 K1 = _xdot(X, U, cols, ucols, MODEL, DIM)
                 if RK4:
@@ -366,10 +372,10 @@ if triton is not None:
                 else:
                     X = X + dt * K1
                 if MODE == 2:
-                    ridx = (p[:, None] * (H + 1) + j + 1) * N + cols[None, :]
+                    ridx = (p[None, :] * (H + 1) + j + 1) * N + cols[:, None]
                     tl.store(states_ptr + ridx, X, mask=xmask)
                 if MODE == 3:
-                    sidx = (b[:, None] * N + cols[None, :]) * (H + 1) * K + (j + 1) * K + k[:, None]
+                    sidx = (b[None, :] * N + cols[:, None]) * (H + 1) * K + (j + 1) * K + k[None, :]
                     tl.store(states_ptr + sidx, X, mask=xmask)
                 if MODE == 0:
                     if HAS_SHAPES:
@@ -384,8 +390,8 @@ if triton is not None:
                         if ((TYPES >> (2 * t)) & 3) <= 1:  # goal, obstacle: |p - c|^2
                             tm = tl.load(tmask_ptr + t * NP + cols)
                             tc = tl.load(tcent_ptr + t * NP + cols)
-                            dq = (X - tc[None, :]) * tm[None, :]
-                            sq = tl.sum(dq * dq, 1)
+                            dq = (X - tc[:, None]) * tm[:, None]
+                            sq = tl.sum(dq * dq, 0)
                             if ((TYPES >> (2 * t)) & 3) == 0:  # goal
                                 step += weight * sq
                                 last = (j == H - 1) & (extra != 0.0)
@@ -399,13 +405,13 @@ if triton is not None:
                             inside = (scols >= s0) & (scols < s0 + ns)
                             if ((TYPES >> (2 * t)) & 3) == 2:  # barrier
                                 hv = tl.where(Hcur < eps, eps, Hcur)
-                                step += tl.sum(tl.where(inside[None, :], weight / hv, 0.0), 1)
+                                step += tl.sum(tl.where(inside[:, None], weight / hv, 0.0), 0)
                             else:  # discrete-time barrier, over its first `steps` steps
                                 g1 = tl.load(tval_ptr + t * 8 + 7)
                                 steps = tl.load(tval_ptr + t * 8 + 6)
                                 v = g1 * Hprev - Hcur
-                                v = tl.where(inside[None, :] & (v > 0), v, 0.0)
-                                pen = weight * tl.sum(v, 1)
+                                v = tl.where(inside[:, None] & (v > 0), v, 0.0)
+                                pen = weight * tl.sum(v, 0)
                                 whole += tl.where(j < steps, pen, 0.0)
                     stage += step
                     if HAS_DISCRETE:
@@ -448,7 +454,8 @@ def _launch(
         dummy if cost is None else cost, dummy if states is None else states,
         dummy if controls is None else controls, dummy if part is None else part,
         count, K, tab.meta["zero_noise"],
-        H=H, HAS_WCTRL=wctrl is not None, MODE=mode, PAIRS=pairs is not None, BLOCK=BLOCK, **meta,
+        H=H, HAS_WCTRL=wctrl is not None, MODE=mode, PAIRS=pairs is not None, BLOCK=BLOCK,
+        num_warps=WARPS, **meta,
     )  # fmt: skip
 
 
