@@ -173,13 +173,17 @@ def test_far_solutions_are_solved_and_far_contradictions_are_infeasible(method):
 
 def test_rows_not_solved_get_zero_gradients_when_every_fallback_fails(monkeypatch):
     """Rows the dual method solved but handed on (every row: Q has condition 1e6) whose
-    fallbacks then fail get zero gradients, not the dual method's."""
+    certification and fallbacks then fail get zero gradients, not the dual method's."""
     from torchcbf.qp import _function
 
-    enum, ipm = _function.solve_enum, _function._ipm
+    enum, enum_kkt, ipm = _function.solve_enum, _function.solve_enum_kkt, _function._ipm
 
     def enum_fails(*args, **kwargs):
         out = enum(*args, **kwargs)
+        return out._replace(ok=torch.zeros_like(out.ok))
+
+    def enum_kkt_fails(*args, **kwargs):
+        out = enum_kkt(*args, **kwargs)
         return out._replace(ok=torch.zeros_like(out.ok))
 
     def ipm_fails(*args, **kwargs):
@@ -189,7 +193,11 @@ def test_rows_not_solved_get_zero_gradients_when_every_fallback_fails(monkeypatc
     # failing fallbacks injected: no public input makes both the enumeration and the
     # interior point method fail on rows the dual method solved
     monkeypatch.setattr(_function, "solve_enum", enum_fails)
+    monkeypatch.setattr(_function, "solve_enum_kkt", enum_kkt_fails)
     monkeypatch.setattr(_function, "_ipm", ipm_fails)
+    monkeypatch.setattr(
+        _function, "_certify_ill_conditioned", lambda *a: (a[6].x, a[6].z, ~a[7] & False)
+    )
     g = torch.Generator().manual_seed(0)
     rot, _ = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))
     spread = torch.tensor([1.0, 1e-6, 1e-6], dtype=torch.float64)

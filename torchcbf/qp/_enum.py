@@ -36,6 +36,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchcbf.qp import _kkt
 from torchcbf.qp._kkt import row_scale, scaled_violation
 
 #: ``method="auto"`` enumerates when the candidate count is at most ``MAX_CANDIDATES``, or at
@@ -281,3 +282,48 @@ def solve_enum(
     y, z = mult[:, :E], mult[:, E:].clamp_min(0.0)
     active = chosen[:, E:] & okc
     return EnumResult(x, z, y, active, ok)
+
+
+def solve_enum_kkt(
+    P: Tensor,
+    q: Tensor,
+    G: Tensor,
+    h: Tensor,
+    A: Tensor,
+    b: Tensor,
+    *,
+    eps: float,
+    pairs: tuple[tuple[int, int], ...] = (),
+) -> EnumResult:
+    """Enumeration on each candidate's own KKT system (:func:`torchcbf.qp._kkt.solve_active`,
+    batched over rows and candidates), without ``P^{-1}``: for a few rows whose ``P`` is too
+    ill-conditioned for :func:`solve_enum`, whose Schur complement works around
+    ``x_u = -P^{-1} q`` and loses the digits a weak curvature costs (``x_u ~ 1e8`` for a
+    ``P`` of condition 1e9). Each candidate is judged on its own point (rows on their own
+    scale, multipliers against their largest); the best one within ``eps`` is kept (``ok``).
+    Its cost is about ``B C`` small LU factorisations for ``C`` candidates: meant for a few
+    rows (the caller's ``SMALL_BATCH``)."""
+    B, N = q.shape
+    M, E = G.shape[-2], A.shape[-2]
+    tab = _table(M, E, N, pairs, q.device)
+    C = tab.absmask.shape[0]
+
+    def per_candidate(t: Tensor) -> Tensor:
+        return t.unsqueeze(1).expand(B, C, *t.shape[1:]).reshape(B * C, *t.shape[1:])
+
+    act = tab.absmask[:, E:].unsqueeze(0).expand(B, C, M).reshape(B * C, M)
+    data = [per_candidate(t) for t in (P, q, G, h, A, b)]
+    x, z, y, solved = _kkt.solve_active(*data, act)
+    pviol = scaled_violation(data[2], data[3], data[4], data[5], x)
+    zmax = 1.0 + z.abs().amax(-1) if M > 0 else x.new_ones(B * C)
+    dviol = (-z.amin(-1)).clamp_min(0.0) / zmax if M > 0 else x.new_zeros(B * C)
+    score = torch.where(solved, torch.maximum(pviol, dviol), math.inf).view(B, C)
+    best_score, best = score.nan_to_num(nan=math.inf).min(-1)
+    pick = (torch.arange(B, device=q.device) * C + best).view(B)
+    x, z, y, active = x[pick], z[pick].clamp_min(0.0), y[pick], act[pick]
+    ok = best_score <= eps
+    okc = ok.unsqueeze(-1)
+    return EnumResult(
+        torch.where(okc, x, 0.0), torch.where(okc, z, 0.0), torch.where(okc, y, 0.0),
+        active & okc, ok,
+    )  # fmt: skip

@@ -16,13 +16,14 @@ from torch import Tensor
 
 from torchcbf.qp import _dual_native, _kkt
 from torchcbf.qp import _eliminate as eliminate
-from torchcbf.qp._dual import DualFactor, NativeFactor, dual_adjoints, solve_dual
+from torchcbf.qp._dual import DualFactor, DualResult, NativeFactor, dual_adjoints, solve_dual
 from torchcbf.qp._enum import (
     MAX_CANDIDATES_SMALL_BATCH,
     SMALL_BATCH,
     EnumResult,
     num_candidates,
     solve_enum,
+    solve_enum_kkt,
 )
 from torchcbf.qp._ipm import solve_ipm, unbounded_rows
 from torchcbf.qp.status import Status
@@ -34,6 +35,13 @@ from torchcbf.qp.status import Status
 #: method (whose answer the polish verifies). The estimate ignores a diagonal scaling of
 #: ``P`` (e.g. control weights of different units), which the method handles
 MAX_DUAL_CONDITION = 1e4
+#: weight of the proximal term of :func:`_certify_ill_conditioned`, relative to ``P``'s largest
+#: diagonal entry, and the most proximal steps it takes
+PROX_WEIGHT = 1e-5
+PROX_STEPS = 2
+#: most candidate KKT systems (rows times candidate sets) :func:`_certified_enum` solves for
+#: the rows enumeration by Schur complement could not certify (:func:`solve_enum_kkt`)
+KKT_ENUM_SYSTEMS = 4096
 #: largest number of variables (after softening) the dual active-set method is used for by
 #: its torch implementation (its unrolled eliminations grow as N^3 tensor operations); the C
 #: kernel takes up to ``_dual_native.MAX_VARS`` (see :func:`dual_applies`)
@@ -310,24 +318,11 @@ def _polish_active(
     active-set KKT system where that is a KKT point to rounding
     (:func:`torchcbf.qp._kkt.kkt_point`); elsewhere the answers stay as given.
 
-    The system holds only the active rows (padded to the batch's largest active set with
-    rows that pin their multiplier to zero), so its size is ``n + |active| + k``, not
-    ``n + M + k``: an outside solver's answer is polished for a fraction of its cost."""
-    n, E = q.shape[-1], b.shape[-1]
-    counts = active.sum(-1)
-    Ka = int(counts.max()) if active.numel() else 0
-    order = torch.argsort((~active).to(torch.int8), dim=-1, stable=True)[:, :Ka]
-    valid = torch.arange(Ka, device=q.device) < counts.unsqueeze(-1)
-    Ga = G.gather(1, order.unsqueeze(-1).expand(-1, -1, n)) * valid.unsqueeze(-1)
-    ha = torch.where(valid, h.gather(1, order), 0.0)
-    fac = _kkt.factor_kkt(P, Ga, A, valid)
-    sol = _kkt.solve_kkt(fac, torch.cat((-q, ha, b), -1), _kkt.POLISH_REFINE_STEPS)
-    xp, ya = sol[..., :n], sol[..., n + Ka :]
-    zp = torch.zeros_like(z).scatter(1, order, torch.where(valid, sol[..., n : n + Ka], 0.0))
-    exact = ok & fac.ok & torch.isfinite(sol).all(-1)
-    exact = exact & _kkt.kkt_point(P, q, G, h, A, b, xp, zp, ya)
+    The system holds only the active rows (:func:`torchcbf.qp._kkt.solve_active`): an outside
+    solver's answer is polished for a fraction of its cost."""
+    xp, zp, ya, solved = _kkt.solve_active(P, q, G, h, A, b, active, _kkt.POLISH_REFINE_STEPS)
+    exact = ok & solved & _kkt.kkt_point(P, q, G, h, A, b, xp, zp, ya)
     keep = exact.unsqueeze(-1)
-    del E
     return (
         torch.where(keep, xp, x),
         torch.where(keep, zp.clamp_min(0.0), z),
@@ -422,18 +417,18 @@ def _polish_and_resolve(
     it keeps the interior point's answer where that converged and is a KKT point to ``eps``
     on the given data (:func:`torchcbf.qp._kkt.kkt_residuals_ok`)."""
     own = (x, s, z, y, status)
-    x, z, y, status, fac, verified, exact = _kkt.polish(
+    x, z, y, status, polished_active, verified, exact = _kkt.polish(
         P, q, G, h, A, b, x, s, z, y, status, eps=cfg.eps
     )
     solved = status == int(Status.SOLVED)
     failed = (status == int(Status.NUMERICAL_ERROR)) | (status == int(Status.MAX_ITER))
     suspect = (solved & ~exact) | failed
     if not bool(suspect.any()):
-        return x, z, y, status, fac.active
+        return x, z, y, status, polished_active
     idx = suspect.nonzero().squeeze(-1)
     sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
     xs, zs, ys, acts, ok = _exact_resolve(*sub, cfg, failed.index_select(0, idx))
-    active = fac.active
+    active = polished_active
     if bool(ok.any()):
         keep = ok.unsqueeze(-1)
         x = x.index_copy(0, idx, torch.where(keep, xs, x.index_select(0, idx)))
@@ -599,6 +594,16 @@ def _certified_enum(
     little off): enumeration judges its choice to ``eps``, which a nearly dependent active
     set can pass with ``x`` far off."""
     en = solve_enum(P, q, G, h, A, b, eps=cfg.eps, pairs=cfg.pairs)
+    fail = ~en.ok
+    C = num_candidates(G.shape[-2], A.shape[-2], q.shape[-1], cfg.pairs)
+    n_fail = int(fail.sum())
+    if 0 < n_fail * C <= KKT_ENUM_SYSTEMS:
+        # a few rows the Schur complement lost (P too ill-conditioned): every candidate's
+        # own KKT system, before the interior point method's iterations
+        idx = fail.nonzero().squeeze(-1)
+        sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
+        ek = solve_enum_kkt(*sub, eps=cfg.eps, pairs=cfg.pairs)
+        en = EnumResult(*(t.index_copy(0, idx, u) for t, u in zip(en, ek, strict=True)))
     # a point far along a descent direction (P singular to rounding) is no answer: the row
     # goes to the interior point method, whose result carries the certificate
     en = en._replace(ok=en.ok & ~unbounded_solved(P, q, G, A, en.x, en.ok, cfg))
@@ -611,14 +616,14 @@ def _certified_enum(
     x, z, y = (t.index_select(0, idx) for t in (en.x, en.z, en.y))
     slack = (data[3] - torch.einsum("bmn,bn->bm", data[2], x)).clamp_min(0.0)
     solved = torch.full_like(idx, int(Status.SOLVED))
-    xe, ze, ye, _, fac_e, _, polished = _kkt.polish(*data, x, slack, z, y, solved, eps=cfg.eps)
+    xe, ze, ye, _, act_e, _, polished = _kkt.polish(*data, x, slack, z, y, solved, eps=cfg.eps)
     keep = polished.unsqueeze(-1)
     return en._replace(
         x=en.x.index_copy(0, idx, torch.where(keep, xe, x)),
         z=en.z.index_copy(0, idx, torch.where(keep, ze, z)),
         y=en.y.index_copy(0, idx, torch.where(keep, ye, y)),
         active=en.active.index_copy(
-            0, idx, torch.where(keep, fac_e.active, en.active.index_select(0, idx))
+            0, idx, torch.where(keep, act_e, en.active.index_select(0, idx))
         ),
         ok=exact.index_copy(0, idx, polished),
     )
@@ -678,8 +683,9 @@ def _forward_dual(
         ok = _dual_native.well_conditioned(res.factor.L, res.ok, MAX_DUAL_CONDITION)
     else:
         ok = res.ok & (condition_estimate(res.factor.L, batch_first=False) <= MAX_DUAL_CONDITION)
+    x, z, rescued = _certify_ill_conditioned(P, q, G, h, A, b, res, ok, cfg)
     x, z, y, status, iters, active, any_fallback = _ipm_fallback(
-        P, q, G, h, A, b, cfg, x0, res.x, res.z, y, res.active, ok, res.iterations,
+        P, q, G, h, A, b, cfg, x0, x, z, y, res.active, ok | rescued, res.iterations,
         infeasible=res.infeasible,
     )  # fmt: skip
     if not cfg.need_factor:
@@ -700,6 +706,65 @@ def _forward_dual(
     # the other rows keep the dual method's factors: hard rows do not slow the whole batch
     sub = [t.index_select(0, rows) for t in (P, G, A, backward_set)]
     return x, z, y, status, iters, MixedFactor(dual_factor, rows, _kkt.factor_kkt(*sub))
+
+
+def _certify_ill_conditioned(
+    P: Tensor,
+    q: Tensor,
+    G: Tensor,
+    h: Tensor,
+    A: Tensor,
+    b: Tensor,
+    res: DualResult,
+    ok: Tensor,
+    cfg: SolverConfig,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``(x, z, certified [B])`` for the rows the dual method left uncertified (not ``ok``:
+    not converged, or ``P`` beyond :data:`MAX_DUAL_CONDITION`) and did not prove infeasible.
+
+    A row is certified where a point is a KKT point to rounding
+    (:func:`torchcbf.qp._kkt.kkt_point`) and no certificate of unboundedness
+    (:func:`unbounded_solved`), whatever its conditioning: the method's own answer,
+    or the solution on an active set (:func:`torchcbf.qp._kkt.solve_active`) guessed first by
+    the method itself, then by up to :data:`PROX_STEPS` proximal steps (the dual method on
+    ``P + rho I``, ``rho`` = :data:`PROX_WEIGHT` of ``P``'s largest diagonal entry, centred at
+    the last step's point), whose conditioning the dual method handles and whose active set
+    is, away from ties, the problem's own. The rows left go on to enumeration and the interior
+    point method: a hard row costs a few small solves instead of their iterations. Testing
+    whether any row needs this is one host synchronisation (none on a CPU)."""
+    rows = ~ok & ~res.infeasible
+    if not bool(rows.any()):
+        return res.x, res.z, rows
+    idx = rows.nonzero().squeeze(-1)
+    sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
+    xs, zs, guess, conv = (t.index_select(0, idx) for t in (res.x, res.z, res.active, res.ok))
+    ys = q.new_zeros(len(idx), 0)
+    good = conv & _kkt.kkt_point(*sub, xs, zs, ys)
+    good = good & ~unbounded_solved(sub[0], sub[1], sub[2], sub[4], xs, good, cfg)
+    rho = PROX_WEIGHT * sub[0].diagonal(dim1=-2, dim2=-1).amax(-1)
+    Pr = sub[0] + torch.diag_embed(rho.unsqueeze(-1).expand_as(sub[1]))
+    center = torch.zeros_like(xs)
+    steps = dual_budget(cfg.max_iter, G.shape[-2], q.shape[-1])
+    for step in range(PROX_STEPS + 1):
+        if bool(good.all()):
+            break
+        if step == 0 and not bool((conv & ~good).any()):
+            continue  # no converged row to polish: the method's active sets are no guess
+        if step > 0:
+            prox = solve_dual(Pr, sub[1] - rho.unsqueeze(-1) * center, sub[2], sub[3],
+                              eps=cfg.eps, max_iter=steps)  # fmt: skip
+            guess = prox.active
+            center = torch.where(prox.ok.unsqueeze(-1), prox.x, center)
+        xp, zp, yp, solved = _kkt.solve_active(*sub, guess, _kkt.POLISH_REFINE_STEPS)
+        zp = zp.clamp_min(0.0)
+        new = ~good & solved & _kkt.kkt_point(*sub, xp, zp, yp)
+        # a point far along a direction where P is singular to rounding is no answer: the
+        # interior point method certifies such a row unbounded
+        new = new & ~unbounded_solved(sub[0], sub[1], sub[2], sub[4], xp, new, cfg)
+        keep = new.unsqueeze(-1)
+        xs, zs = torch.where(keep, xp, xs), torch.where(keep, zp, zs)
+        good = good | new
+    return res.x.index_copy(0, idx, xs), res.z.index_copy(0, idx, zs), rows.index_copy(0, idx, good)
 
 
 def _ipm_fallback(

@@ -182,13 +182,14 @@ def polish(
     eps: float,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, KKTFactor, Tensor, Tensor]:
     """Solve the active-set KKT system and keep verified answers. Returns
-    ``(x, z, y, status, factor, verified, exact)``; rows whose polished point passes the
+    ``(x, z, y, status, active, verified, exact)`` (``active [B, M]``: the active set solved
+    on); rows whose polished point passes the
     ``eps`` checks (stationarity included) become ``SOLVED`` (also rescuing
     ``MAX_ITER``/``NUMERICAL_ERROR`` rows whose guess is right) and are marked in
     ``verified [B]``. ``exact [B]`` marks the verified rows whose polished point is a KKT
     point to rounding (:func:`kkt_point`). Near nearly parallel active rows a wrong active
     set can pass the ``eps`` checks but not these."""
-    n, M = q.shape[-1], h.shape[-1]
+    M = h.shape[-1]
     candidate = (
         (status == int(Status.SOLVED))
         | (status == int(Status.MAX_ITER))
@@ -216,18 +217,52 @@ def polish(
         act = torch.where(ok_g.unsqueeze(-1), trial, act)
         chosen = chosen | ok_g
     act = torch.where(chosen.unsqueeze(-1), act, guesses[0] & candidate.unsqueeze(-1))
-    fac = factor_kkt(P, G, A, act)
-    rhs = torch.cat((-q, h * act.to(h.dtype), b), -1)
-    sol = solve_kkt(fac, rhs, POLISH_REFINE_STEPS)
-    xp, zp, yp = sol[..., :n], sol[..., n : n + M], sol[..., n + M :]
-    ok = chosen & fac.ok & torch.isfinite(sol).all(-1)
+    xp, zp, yp, solved = solve_active(P, q, G, h, A, b, act, POLISH_REFINE_STEPS)
+    ok = chosen & solved
     keep = ok.unsqueeze(-1)
     x = torch.where(keep, xp, x)
-    z = torch.where(keep, (zp * act.to(zp.dtype)).clamp_min(0.0), z)
+    z = torch.where(keep, zp.clamp_min(0.0), z)
     y = torch.where(keep, yp, y)
     status = torch.where(ok, int(Status.SOLVED), status)
-    exact = ok & kkt_point(P, q, G, h, A, b, xp, zp * act.to(zp.dtype), yp)
-    return x, z, y, status, fac, ok, exact
+    exact = ok & kkt_point(P, q, G, h, A, b, xp, zp, yp)
+    return x, z, y, status, act, ok, exact
+
+
+def solve_active(
+    P: Tensor,
+    q: Tensor,
+    G: Tensor,
+    h: Tensor,
+    A: Tensor,
+    b: Tensor,
+    act: Tensor,
+    steps: int = REFINE_STEPS,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``(x [B,n], z [B,M], y [B,E], ok [B])``: the equality-constrained solution with the
+    rows ``act [B, M]`` of ``Gx <= h`` held tight (``z`` zero off ``act``), ``ok`` where the
+    factorisation is usable and the solution finite.
+
+    Only the active rows enter the system (gathered, padded to the batch's largest active
+    set with rows that pin their multiplier to zero), so its size is
+    ``n + max|act| + E``, not ``n + M + E``: a problem with thousands of rows and a handful
+    active costs about what the active rows cost. Finding the largest active set is one
+    host synchronisation."""
+    n, M = q.shape[-1], h.shape[-1]
+    counts = act.sum(-1)
+    Ka = int(counts.max()) if act.numel() else 0
+    if Ka == M:
+        Ga, ha, valid, order = G, h, act, None
+    else:
+        # active rows first, in their order; then the first inactive ones as padding
+        order = torch.argsort((~act).to(torch.int8), dim=-1, stable=True)[:, :Ka]
+        valid = torch.arange(Ka, device=q.device) < counts.unsqueeze(-1)
+        Ga = G.gather(1, order.unsqueeze(-1).expand(-1, -1, n))
+        ha = h.gather(1, order)
+    fac = factor_kkt(P, Ga, A, valid)
+    sol = solve_kkt(fac, torch.cat((-q, ha * valid.to(h.dtype), b), -1), steps)
+    xp, za, yp = sol[..., :n], sol[..., n : n + Ka] * valid.to(sol.dtype), sol[..., n + Ka :]
+    zp = za if order is None else za.new_zeros(za.shape[0], M).scatter(1, order, za)
+    return xp, zp, yp, fac.ok & torch.isfinite(sol).all(-1)
 
 
 def scaled_violation(G: Tensor, h: Tensor, A: Tensor, b: Tensor, x: Tensor) -> Tensor:
@@ -352,12 +387,9 @@ def _verified(
 ) -> Tensor:
     """Rows whose equality-constrained solution on ``act`` is primal and dual feasible and
     stationary to ``eps``."""
-    n, M = q.shape[-1], h.shape[-1]
-    fac = factor_kkt(P, G, A, act)
-    sol = solve_kkt(fac, torch.cat((-q, h * act.to(h.dtype), b), -1))
-    xp, zp = sol[..., :n], sol[..., n : n + M] * act.to(sol.dtype)
-    ok = fac.ok & torch.isfinite(sol).all(-1)
-    ok = ok & (stationarity_error(P, q, G, A, xp, zp, sol[..., n + M :]) <= eps)
+    M = h.shape[-1]
+    xp, zp, yp, ok = solve_active(P, q, G, h, A, b, act)
+    ok = ok & (stationarity_error(P, q, G, A, xp, zp, yp) <= eps)
     viol = torch.cat(
         (
             (torch.einsum("bmn,bn->bm", G, xp) - h).clamp_min(0.0),

@@ -1,0 +1,78 @@
+"""Rows whose ``Q`` is too ill-conditioned for the dual method's own answer (rotated, condition
+1e5 to 1e9) in a batch of easy ones: certified as KKT points to rounding by an active-set solve
+or by enumeration on each candidate's KKT system, without the interior point method's
+iterations; answers against Clarabel, alone and in the batch."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from torchcbf.qp import Status, solve_qp
+from torchcbf.qp import _function as qp_function
+
+F64 = torch.float64
+
+
+def _batch(B: int, cond: float, hard_rows: tuple[int, ...], seed: int = 3):
+    g = torch.Generator().manual_seed(seed)
+    n, m = 4, 8
+    L = torch.randn(B, n, n, generator=g, dtype=F64)
+    Q = L @ L.mT / n + 0.5 * torch.eye(n, dtype=F64)
+    p = 3.0 * torch.randn(B, n, generator=g, dtype=F64)
+    G = torch.randn(B, m, n, generator=g, dtype=F64)
+    h = 0.2 + torch.rand(B, m, generator=g, dtype=F64)
+    for i in hard_rows:
+        rot, _ = torch.linalg.qr(torch.randn(n, n, generator=g, dtype=F64))
+        eig = torch.logspace(0, -np.log10(cond), n, dtype=F64)
+        Q[i] = rot @ torch.diag(eig) @ rot.T
+    return Q, p, G, h
+
+
+def _no_interior_point(*args, **kwargs):
+    raise AssertionError("the interior point method ran")
+
+
+@pytest.mark.parametrize("cond", [1e5, 1e7, 1e9])
+@pytest.mark.parametrize("B", [1, 64])
+def test_hard_rows_certified_without_the_interior_point_method(cvx, monkeypatch, cond, B):
+    hard = (0,) if B == 1 else (5, 32, 40)
+    Q, p, G, h = _batch(B, cond, hard)
+    monkeypatch.setattr(qp_function, "solve_ipm", _no_interior_point)
+    with torch.no_grad():
+        sol = solve_qp(Q, p, G, h)
+    monkeypatch.undo()
+    assert bool((sol.status == Status.SOLVED).all())
+    for i in hard:
+        ref, _, status = cvx(Q[i].numpy(), p[i].numpy(), G[i].numpy(), h[i].numpy())
+        assert status == "optimal"
+        assert np.abs(sol.x[i].numpy() - ref).max() <= 1e-6 * (1 + np.abs(ref).max())
+        alone = solve_qp(Q[i], p[i], G[i], h[i])
+        assert int(alone.status) == Status.SOLVED
+        torch.testing.assert_close(alone.x, sol.x[i], atol=1e-9 * (1 + float(alone.x.abs().max())),
+                                   rtol=0)  # fmt: skip
+
+
+def test_hard_rows_in_float32_and_with_gradients(cvx):
+    Q, p, G, h = _batch(64, 1e9, (7, 50))
+    sol = solve_qp(Q.float(), p.float(), G.float(), h.float())
+    assert bool((sol.status == Status.SOLVED).all())
+    for i in (7, 50):
+        ref, _, _ = cvx(Q[i].numpy(), p[i].numpy(), G[i].numpy(), h[i].numpy())
+        assert np.abs(sol.x[i].double().numpy() - ref).max() <= 1e-3 * (1 + np.abs(ref).max())
+    pg = p.clone().requires_grad_()
+    out = solve_qp(Q, pg, G, h)
+    assert bool((out.status == Status.SOLVED).all())
+    (grad,) = torch.autograd.grad(out.x.sum(), pg)
+    assert bool(torch.isfinite(grad).all())
+    # the gradient of a hard row against central differences in its own p
+    i, step = 7, 1e-6
+    for j in range(4):
+        hi, lo = p.clone(), p.clone()
+        hi[i, j] += step
+        lo[i, j] -= step
+        fd = (solve_qp(Q[i], hi[i], G[i], h[i]).x - solve_qp(Q[i], lo[i], G[i], h[i]).x).sum()
+        assert abs(float(fd) / (2 * step) - float(grad[i, j])) <= 1e-4 * (
+            1 + abs(float(grad[i, j]))
+        )
