@@ -1,5 +1,6 @@
-"""Where the time of a device figure goes: torch.profiler tables of the safety filter on
-``B`` states x 8 balls + box, and of the batched QP forward + backward (n = 4, m = 8).
+"""Where the time of a device figure goes: torch.profiler tables of one MPPI planning call
+(built-in model and cost terms, K = 16,384, H = 100), of the safety filter on ``B`` states x
+8 balls + box, and of the batched QP forward + backward (n = 4, m = 8).
 
     python scripts/device_profile.py --device cuda --out profile.log
 
@@ -52,6 +53,11 @@ def _filter_call(filt: torch.nn.Module, x: torch.Tensor, u_nom: torch.Tensor) ->
         filt(x, u_nom)
 
 
+def _mppi_call(planner: torch.nn.Module, x: torch.Tensor) -> None:
+    with torch.no_grad():
+        planner(x)
+
+
 def _qp_call(Q: torch.Tensor, p: torch.Tensor, G: torch.Tensor, h: torch.Tensor) -> None:
     from torchcbf.qp import solve_qp
 
@@ -67,9 +73,14 @@ def main() -> int:
     args = parser.parse_args()
     device = torch.device(args.device)
     import bench_filters
+    import bench_mppi
     import bench_qp
 
     parts = []
+    planner = bench_mppi.torchcbf(1, 16384, 100, "builtin", str(device))
+    call = functools.partial(_mppi_call, planner, bench_mppi.x0(0, 4, str(device)))
+    parts.append("## MPPI, built-in model and cost terms, K=16384, H=100, float32\n")
+    parts.append(_table(call, device, args.rows))
     for dtype in (torch.float32, torch.float64):
         _, _, filt, x, u_nom = bench_filters._scene(args.states, 8, dtype, seed=0)
         call = functools.partial(_filter_call, filt.to(device), x.to(device), u_nom.to(device))
