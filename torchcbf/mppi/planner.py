@@ -48,9 +48,11 @@ Paths (``MPPI.path`` says which one the last call took):
   imports; it ships with CUDA builds of torch): the same configuration, formulas and
   counter-based noise as the C kernel, so a CUDA planner plans what the CPU planner plans for
   the same seed (to rounding), one launch per pass with the loop over the horizon inside the
-  kernel. Its tables are read from the planner, model and cost once and kept until one of
-  their tensors changes (in place or replaced) or a number attribute changes, so a planning
-  call does not wait for the device. The rollout path on CUDA needs ``layout="component"``.
+  kernel. The rollout path on CUDA needs ``layout="component"``.
+- either kernel's configuration is read from the planner, its model and its cost once and
+  kept until one of their tensors changes (in place or replaced) or one of their number,
+  string or tuple attributes changes (a change through ``.data`` is not seen: call
+  ``reset()`` after one), so a planning call neither re-encodes it nor waits for the device.
   ``MPPI.engine`` says which kernel the last call ran (``"c"``, ``"triton"`` or ``None``).
 - ``"torch"``: everything else (any :class:`~torchcbf.dynamics.ControlAffine`, CUDA without
   Triton, a planner built with ``backend="torch"``, gradients requested through the planner's
@@ -468,7 +470,7 @@ class MPPI(ExactConstants):
         if backend == "triton" and not _triton.available():
             raise ValueError("backend='triton' needs Triton, which does not import here")
         self._key: tuple[Any, ...] | None = None
-        self._tables: tuple[Any, _triton.Kernel | None] | None = None
+        self._tables: tuple[Any, _rollout.Kernel | _triton.Kernel | None] | None = None
         self._fresh = True
 
     # -- state -------------------------------------------------------------------------------
@@ -892,16 +894,15 @@ class MPPI(ExactConstants):
     def _kernel(self, x: Tensor) -> _rollout.Kernel | _triton.Kernel | None:
         """The kernel bound to this planner's configuration, or ``None`` where torch runs:
         fused where the cost is made of built-in terms, else for the rollouts alone. The
-        Triton kernel's tables are kept until a tensor or number of the planner, its model
-        or its cost changes (read without a host sync)."""
+        kernel and its configuration are kept until a tensor or number of the planner, its
+        model or its cost changes (checked without reading the device: no host sync)."""
         engine = self._engine(x)
         if engine is None:
             return None
-        if engine == "triton":
-            signature = (x.device, x.dtype, _state_signature(self))
-            cached = self._tables
-            if cached is not None and cached[0] == signature:
-                return cached[1]
+        signature = (engine, x.device, x.dtype, self.backend, _state_signature(self))
+        cached = self._tables
+        if cached is not None and cached[0] == signature:
+            return cached[1]
         model = _rollout.encode_model(self.dynamics)
         cost = None
         if model is not None and not self._needs_history:
@@ -910,12 +911,11 @@ class MPPI(ExactConstants):
         if model is not None:
             cfg = self._configuration(model, cost)
             if engine == "c":
-                return _rollout.Kernel(cfg, fused=cost is not None)
-            if cost is not None or self.layout == "component":
+                kernel = _rollout.Kernel(cfg, fused=cost is not None)
+            elif cost is not None or self.layout == "component":
                 tab = _triton.tables(cfg, x.dtype, x.device)
                 kernel = _triton.Kernel(tab, fused=cost is not None)
-        if engine == "triton":
-            self._tables = (signature, kernel)
+        self._tables = (signature, kernel)
         return kernel
 
     def _kernel_expresses(self) -> bool:
