@@ -402,3 +402,24 @@ def test_cost_slices_are_component_major(backend):
     assert planner.path == ("rollout" if backend == "auto" else "torch")
     assert all(k >= MIN_CHUNK_SAMPLES and s == 1 and c == 1 for k, s, c in shapes[:-1])
     assert sum(k for k, _, _ in shapes) == 64
+
+
+@pytest.mark.parametrize("change", ["in place", "attribute"])
+def test_a_changed_cost_is_read_again(change):
+    # the kernel's configuration is kept between calls: a change of the cost must reach it
+    dyn = AccelUnicycle(u_min=-3.0, u_max=3.0)
+    x = _x0(dyn, 1, torch.float64)[0]
+    goal = QuadraticGoal((2.0, 4.0), 2.0, (0, 1)).double()
+    fused = MPPI(dyn, goal, 10, 300, 0.02, 4.0, 0.03, 0.1).double()
+    by_torch = MPPI(dyn, Capture(goal), 10, 300, 0.02, 4.0, 0.03, 0.1).double()
+    for _ in range(2):
+        fused(x), by_torch(x)
+    if change == "in place":
+        with torch.no_grad():
+            goal.goal.copy_(torch.tensor([-1.0, 3.0]))
+    else:
+        goal.weight = 7.0
+    for _ in range(2):
+        a, b = fused(x), by_torch(x)
+        assert fused.path == "fused" and by_torch.path == "rollout"
+        torch.testing.assert_close(a.plan, b.plan, rtol=1e-9, atol=1e-9)
