@@ -25,7 +25,7 @@ from torchcbf.qp._enum import (
     solve_enum,
     solve_enum_kkt,
 )
-from torchcbf.qp._ipm import solve_ipm, unbounded_rows
+from torchcbf.qp._ipm import not_positive_definite, solve_ipm, unbounded_rows
 from torchcbf.qp.status import Status
 
 #: largest condition estimate ``max_i P_ii (P^{-1})_ii`` (see :func:`condition_estimate`)
@@ -508,6 +508,14 @@ def unbounded_solved(
     cand = solved & ((q * x).sum(-1) < 0)
     if not bool(cand.any()):
         return cand
+    # P - tau I positive definite, for tau at least the test's singularity threshold
+    # (n units of rounding of the largest eigenvalue, bounded by the largest row sum), rules
+    # the row out without an eigendecomposition
+    n = P.shape[-1]
+    tau = 2.0 * n * cfg.rounding * P.abs().sum(-1).amax(-1)
+    cand = cand & not_positive_definite(P - torch.diag_embed(tau.unsqueeze(-1).expand(-1, n)))
+    if not bool(cand.any()):
+        return cand
     idx = cand.nonzero().squeeze(-1)
     sub = [t.index_select(0, idx) for t in (P, q, G, A, x)]
     found = unbounded_rows(*sub, cfg.eps_inf, cfg.rounding)
@@ -739,8 +747,10 @@ def _certify_ill_conditioned(
     sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
     xs, zs, guess, conv = (t.index_select(0, idx) for t in (res.x, res.z, res.active, res.ok))
     ys = q.new_zeros(len(idx), 0)
-    good = conv & _kkt.kkt_point(*sub, xs, zs, ys)
-    good = good & ~unbounded_solved(sub[0], sub[1], sub[2], sub[4], xs, good, cfg)
+    good = conv
+    if bool(conv.any()):
+        good = conv & _kkt.kkt_point(*sub, xs, zs, ys)
+        good = good & ~unbounded_solved(sub[0], sub[1], sub[2], sub[4], xs, good, cfg)
     rho = PROX_WEIGHT * sub[0].diagonal(dim1=-2, dim2=-1).amax(-1)
     Pr = sub[0] + torch.diag_embed(rho.unsqueeze(-1).expand_as(sub[1]))
     center = torch.zeros_like(xs)

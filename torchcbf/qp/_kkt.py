@@ -36,6 +36,9 @@ from torchcbf.qp.status import Status
 #: adjoints three
 POLISH_REFINE_STEPS = 8
 REFINE_STEPS = 3
+#: a refinement step smaller than this fraction of the solution's largest entry (rounding of
+#: float64) changes nothing further: the steps stop there
+REFINED = 4 * torch.finfo(torch.float64).eps
 
 
 class KKTFactor(NamedTuple):
@@ -134,8 +137,14 @@ def solve_kkt(fac: KKTFactor, rhs: Tensor, steps: int = REFINE_STEPS) -> Tensor:
     d = fac.d.unsqueeze(-1)
     r = rhs.unsqueeze(-1)
     w = d * torch.linalg.lu_solve(fac.LU, fac.pivots, d * r)
+    # on a CPU, asking whether the refinement has reached rounding costs no device
+    # synchronisation: the steps stop there
+    check = rhs.device.type == "cpu"
     for _ in range(steps):
-        w = w + d * torch.linalg.lu_solve(fac.LU, fac.pivots, d * (r - fac.K @ w))
+        step = d * torch.linalg.lu_solve(fac.LU, fac.pivots, d * (r - fac.K @ w))
+        w = w + step
+        if check and not bool((step.abs() > REFINED * w.abs().amax(-2, keepdim=True)).any()):
+            break
     return w.squeeze(-1)
 
 
