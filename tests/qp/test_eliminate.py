@@ -208,3 +208,24 @@ def test_unbounded_reduced_problem_is_certified():
         with torch.no_grad():
             sol = solve_qp(*args)
         assert bool((sol.status == Status.DUAL_INFEASIBLE).all())
+
+
+@pytest.mark.parametrize("which", ["lb", "ub"])
+@pytest.mark.parametrize("B", [1, 3, 20])
+def test_one_sided_bounds_with_equalities(cvx, which, B):
+    batch = make_batch(B, 6, 4, 2, True, seed=B, frac_infeasible=0.0)
+    lb = batch.lb if which == "lb" else None
+    ub = batch.ub if which == "ub" else None
+    data = (batch.Q, batch.p, batch.G, batch.h, batch.A, batch.b, lb, ub)
+    with torch.no_grad():
+        sol = solve_qp(*data)
+    assert bool((sol.status == Status.SOLVED).all())
+    res = _kkt_residual(data, sol)
+    assert float(res.max()) < 1e-9
+    absent = sol.lam_ub if which == "lb" else sol.lam_lb
+    assert float(absent.abs().max()) == 0.0
+    for i in range(B):
+        row = [None if t is None else t[i].numpy() for t in data]
+        ref, _, status = cvx(*row)
+        assert status == "optimal"
+        assert np.abs(sol.x[i].numpy() - ref).max() <= 1e-7 * (1.0 + np.abs(ref).max())

@@ -6,6 +6,7 @@ import functools
 import math
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -480,71 +481,66 @@ def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
 
 def _solve_small_eliminated(inp: _Inputs, max_iter: int) -> QPSolution | None:
     """:func:`_solve_small` for problems with equality rows: the equalities eliminated
-    (:mod:`torchcbf.qp._eliminate`), box bounds turned into rows of the reduced problem,
-    which the C kernel solves; ``None`` where some ``A`` is rank deficient, some datum is
-    not finite (``h = +inf`` aside) or the kernel does not certify every row."""
+    (:func:`torchcbf.qp._eliminate.solve_small`, in numpy), box bounds turned into rows of
+    the reduced problem, which the C kernel solves; ``None`` where some ``A`` is rank
+    deficient, some datum is not finite (``h = +inf`` aside) or the kernel does not certify
+    every row."""
     n, m, k, B = inp.n, inp.m, inp.me, inp.B
-    f64 = torch.float64
-    # one problem as matrices and vectors: their products cost a third of a batched one's
+    # one problem as matrices and vectors (cheaper calls than a stack of one)
     lead = () if B == 1 else (B,)
 
-    def flat(t: Tensor, trailing: tuple[int, ...]) -> Tensor:
-        return t.detach().expand(*inp.batch_shape, *trailing).reshape(*lead, *trailing).to(f64)
+    def flat(t: Tensor, trailing: tuple[int, ...]) -> np.ndarray:
+        t = t.detach()
+        if t.shape != (*lead, *trailing):
+            t = t.expand(*inp.batch_shape, *trailing).reshape(*lead, *trailing)
+        return (t if t.dtype == torch.float64 else t.double()).numpy()
 
-    red = _eliminate.reduce_equalities(flat(inp.A, (k, n)), flat(inp.b, (k,)))
-    if not bool(red.ok.all()):
-        return None
-    Q = flat(inp.Q, (n, n))
-    P = 0.5 * (Q + Q.mT)
-    q = flat(inp.p, (n,))
     parts_G, parts_h = [], []
     if m:
         parts_G.append(flat(inp.G, (m, n)))
         parts_h.append(flat(inp.h, (m,)))
-    finite: dict[float, Tensor] = {}
+    finite: dict[float, np.ndarray] = {}
     for bound, sign in ((inp.ub, 1.0), (inp.lb, -1.0)):
         if bound is not None:
             v = flat(bound, (n,))
-            fin = finite[sign] = torch.isfinite(v)
-            parts_G.append(torch.diag_embed(fin.to(f64), offset=0) * sign)
-            parts_h.append(torch.where(fin, sign * v, 1.0))
+            fin = finite[sign] = np.isfinite(v)
+            parts_G.append(sign * (np.eye(n) * fin[..., None, :]))
+            parts_h.append(np.where(fin, sign * v, 1.0))
     if not parts_G:
         return None
-    G_all = parts_G[0] if len(parts_G) == 1 else torch.cat(parts_G, -2)
-    h_all = parts_h[0] if len(parts_h) == 1 else torch.cat(parts_h, -1)
-    Pr, qr = _eliminate.reduced_objective(red, P, q)
-    Gr, hr = _eliminate.reduced_rows(red, G_all, h_all, inp.eps)
-    sol = realtime.solve_small(Pr, qr, Gr, hr, None, None, inp.eps, max_iter, lead)
-    if sol is None and m and bool(torch.isposinf(parts_h[0]).any()):
-        # rows with h = +inf bound nothing (the kernel refuses them): zero rows, tried only
-        # after a refusal, as in _solve_small
-        free = torch.isposinf(h_all)
-        G_all = torch.where(free.unsqueeze(-1), 0.0 * G_all, G_all)
-        h_all = torch.where(free, 1.0, h_all)
-        Gr, hr = _eliminate.reduced_rows(red, G_all, h_all, inp.eps)
-        sol = realtime.solve_small(Pr, qr, Gr, hr, None, None, inp.eps, max_iter, lead)
-    if sol is None:
+    G_all = parts_G[0] if len(parts_G) == 1 else np.concatenate(parts_G, -2)
+    h_all = parts_h[0] if len(parts_h) == 1 else np.concatenate(parts_h, -1)
+    if m and np.isposinf(parts_h[0]).any():
+        # rows with h = +inf bound nothing (the kernel refuses them): zero rows
+        free = np.isposinf(h_all)
+        G_all = np.where(free[..., None], 0.0 * G_all, G_all)
+        h_all = np.where(free, 1.0, h_all)
+
+    def inner(P, q, G, h):
+        sol = realtime.solve_small(*(torch.from_numpy(v) for v in (P, q, G, h)), None, None,
+                                   inp.eps, max_iter, lead)  # fmt: skip
+        return None if sol is None else (sol.x.numpy(), sol.z.numpy(), sol.iterations)
+
+    Q, p, A, b = flat(inp.Q, (n, n)), flat(inp.p, (n,)), flat(inp.A, (k, n)), flat(inp.b, (k,))
+    out = _eliminate.solve_small(Q, p, G_all, h_all, A, b, inp.eps, inner)
+    if out is None:
         return None
-    x = _eliminate.full_point(red, sol.x)
-    z = sol.z
-    grad = P @ x.unsqueeze(-1) + q.unsqueeze(-1) + G_all.mT @ z.unsqueeze(-1)
-    y = _eliminate.equality_multipliers(red, grad.squeeze(-1))
-    zeros = x.new_zeros(*lead, n)
-    lam_ub = lam_lb = zeros
-    if inp.ub is not None:
-        lam_ub = torch.where(finite[1.0], z[..., m : m + n], 0.0)
-    if inp.lb is not None:
-        off = m + (n if inp.ub is not None else 0)
-        lam_lb = torch.where(finite[-1.0], z[..., off : off + n], 0.0)
+    x, z, y, iters = out
+    zeros = np.zeros_like(x)
+    lam_ub = np.where(finite[1.0], z[..., m : m + n], 0.0) if inp.ub is not None else zeros
+    off = m + (n if inp.ub is not None else 0)
+    lam_lb = np.where(finite[-1.0], z[..., off : off + n], 0.0) if inp.lb is not None else zeros
     dt, shape = inp.Q.dtype, inp.batch_shape
 
-    def out(t: Tensor) -> Tensor:
-        return t.to(dt).reshape(*shape, t.shape[-1])
+    def out_(v: np.ndarray) -> Tensor:
+        t = torch.from_numpy(v)
+        t = t if dt == torch.float64 else t.to(dt)
+        return t if shape == lead else t.reshape(*shape, v.shape[-1])
 
-    iters = sol.iterations.reshape(shape)
+    iters = iters if shape == lead else iters.reshape(shape)
     return QPSolution(
-        out(x), torch.zeros_like(iters), out(z[..., :m]), out(y), iters, out(lam_lb),
-        out(lam_ub), out(x.new_zeros(*lead, m)), "small_native",
+        out_(x), torch.zeros_like(iters), out_(z[..., :m]), out_(y), iters, out_(lam_lb),
+        out_(lam_ub), out_(np.zeros((*lead, m))), "small_native",
     )  # fmt: skip
 
 
