@@ -193,3 +193,27 @@ def test_bad_inputs_name_argument_and_shapes() -> None:
         Unicycle(sigma=torch.ones(2))
     with pytest.raises(ValueError, match="wheelbase"):
         Bicycle(wheelbase=-1.0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize(
+    ("g_shape", "u_shape"),
+    [((3, 2), (5, 2)), ((300, 4, 3), (300, 3)), ((4, 3), (2, 300, 3)), ((7, 50, 2, 1), (50, 1))],
+)
+def test_matvec_equals_matmul_and_differentiates(g_shape, u_shape, dtype):
+    from torchcbf.dynamics.base import matvec
+
+    gen = torch.Generator().manual_seed(0)
+    g = torch.randn(g_shape, generator=gen, dtype=dtype)
+    u = torch.randn(u_shape, generator=gen, dtype=dtype)
+    ref = (g @ u.unsqueeze(-1)).squeeze(-1)
+    torch.testing.assert_close(matvec(g, u), ref)
+
+
+def test_matvec_gradients_on_the_column_path():
+    from torchcbf.dynamics.base import MATVEC_COLUMNS_FROM, matvec
+
+    gen = torch.Generator().manual_seed(1)
+    g = torch.randn(MATVEC_COLUMNS_FROM, 2, 2, generator=gen, dtype=torch.float64)
+    u = torch.randn(MATVEC_COLUMNS_FROM, 2, generator=gen, dtype=torch.float64)
+    torch.autograd.gradcheck(matvec, (g.requires_grad_(True), u.requires_grad_(True)))

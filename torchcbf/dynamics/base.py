@@ -48,6 +48,23 @@ class NativeModel(NamedTuple):
     dim: int = 0
 
 
+#: rows of a batch from which :func:`matvec` sums columns instead of calling ``matmul``
+MATVEC_COLUMNS_FROM = 256
+
+
+def matvec(g: Tensor, u: Tensor) -> Tensor:
+    """``g u`` for ``g [..., n, m]`` and ``u [..., m]`` (batch dimensions broadcast):
+    ``[..., n]``. For a batch of many small matrices it sums ``m`` scaled columns (CPU
+    matmul of ``[n, m] x [m, 1]`` blocks is several times slower); a few use ``matmul``."""
+    rows = max(g.numel() // max(g.shape[-1] * g.shape[-2], 1), u.numel() // max(u.shape[-1], 1))
+    if rows < MATVEC_COLUMNS_FROM or g.shape[-1] > 8:
+        return (g @ u.unsqueeze(-1)).squeeze(-1)
+    out = g[..., 0] * u[..., 0:1]
+    for j in range(1, g.shape[-1]):
+        out = out + g[..., j] * u[..., j : j + 1]
+    return out
+
+
 class ControlAffine(nn.Module):
     """Control-affine system ``xdot = f(x) + g(x) u (+ M w)``, optionally an SDE.
 
@@ -166,7 +183,7 @@ class ControlAffine(nn.Module):
     def xdot(self, x: Tensor, u: Tensor) -> Tensor:
         """``f(x) + g(x) u`` for ``x [..., n]``, ``u [..., m]`` (batch dimensions broadcast),
         without input checks: the extension point for a faster closed form."""
-        return self.f(x) + (self.g(x) @ u.unsqueeze(-1)).squeeze(-1)
+        return self.f(x) + matvec(self.g(x), u)
 
     # -- derived ---------------------------------------------------------------------------
     def forward(self, x: Tensor, u: Tensor, w: Tensor | None = None) -> Tensor:
