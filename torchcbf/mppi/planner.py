@@ -148,21 +148,27 @@ class MPPIOutput(NamedTuple):
     path: str = "torch"
 
 
+_PLAIN = (bool, int, float, str, slice, tuple, type(None))
+
+
 def _state_signature(module: nn.Module) -> tuple[Any, ...]:
     """What a kernel configuration read from ``module`` depends on, read without a host
-    sync: the storage, in-place version, dtype and shape of each parameter and buffer of its
-    modules, and their public number, string and tuple attributes."""
+    sync: the storage and in-place version of each parameter and buffer of its modules, and
+    their public number, string and tuple attributes (``path`` and ``engine`` report, they
+    configure nothing)."""
     out: list[Any] = []
+    add = out.append
     for mod in module.modules():
-        for t in (*mod._parameters.values(), *mod._buffers.values()):
-            out.append(None if t is None else (t.data_ptr(), t._version, t.dtype, t.shape))
-        for name, value in vars(mod).items():
-            if name.startswith("_") or name in ("path", "engine"):  # reports, not settings
+        for group in (mod._parameters, mod._buffers):
+            for t in group.values():
+                add(None if t is None else (t.data_ptr(), t._version))
+        for name, value in mod.__dict__.items():
+            if name[0] == "_" or name in ("path", "engine"):
                 continue
             if isinstance(value, Tensor):
-                out.append((name, value.data_ptr(), value._version))
-            elif value is None or isinstance(value, (bool, int, float, str, slice, tuple)):
-                out.append((name, value))
+                add((name, value.data_ptr(), value._version))
+            elif isinstance(value, _PLAIN):
+                add((name, value))
     return tuple(out)
 
 
