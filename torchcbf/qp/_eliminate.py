@@ -130,10 +130,11 @@ def solve_small(
     k = A.shape[-2]
     Qf, Rf = (t.numpy() for t in torch.linalg.qr(torch.from_numpy(_mT(A)), mode="complete"))
     Y, Z, R = Qf[..., :k], Qf[..., k:], Rf[..., :k, :]
-    diag = np.abs(np.diagonal(R, axis1=-2, axis2=-1))
-    if not (diag > RANK_TOL * np.sqrt((A * A).sum(-1))).all():
+    diag = np.diagonal(R, axis1=-2, axis2=-1)
+    if not (diag * diag > RANK_TOL**2 * (A * A).sum(-1)).all():
         return None
-    xp = _mv(Y, np.linalg.solve(_mT(R), b[..., None])[..., 0])
+    R_inv = np.linalg.inv(R)  # k x k, well conditioned by the test above
+    xp = _mv(Y, _mv(_mT(R_inv), b))
     P = 0.5 * (Q + _mT(Q))
     Zt = _mT(Z)
     Pr = Zt @ (P @ Z)
@@ -152,5 +153,5 @@ def solve_small(
     w, z, iters = out
     x = xp + _mv(Z, w)
     grad = _mv(P, x) + p + _mv(_mT(G), z)
-    y = -np.linalg.solve(R, _mv(_mT(Y), grad)[..., None])[..., 0]
+    y = -_mv(R_inv, _mv(_mT(Y), grad))
     return x, z, y, iters

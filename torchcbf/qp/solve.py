@@ -209,7 +209,10 @@ def solve_qp(
       - ``"ipm"``: the interior point method for every row.
       - ``"auto"`` (default): the dual active-set method where it applies (no equality
         rows, at most 64 variables after softening) when the data are on the CPU and its C
-        kernel is built (see below). Otherwise enumeration for batches of
+        kernel is built (see below); equality rows are first eliminated by a null-space
+        basis (:mod:`torchcbf.qp._eliminate`) where at most 64 variables are left and the
+        rows of ``A`` are independent (other rows keep their equalities and the path
+        below). Otherwise enumeration for batches of
         at most ``SMALL_BATCH`` rows with at most ``MAX_CANDIDATES_SMALL_BATCH`` candidate
         sets, then the dual method in torch (at most ``MAX_ACTIVE_SET_VARS`` = 8
         variables), else enumeration up to
