@@ -117,7 +117,7 @@ def _figure(results: list[RunResult], path: Path) -> None:
                 ax.fill_between(frames, lo, hi, alpha=0.2)
     axes[0].set_ylabel("episode return (training)")
     axes[1].set_ylabel("goal rate (training episodes)")
-    axes[2].set_ylabel("collisions so far (training)")
+    axes[2].set_ylabel("steps inside an obstacle so far (training)")
     axes[2].set_yscale("symlog")
     for ax in axes:
         ax.set_xlabel("frames (millions)")

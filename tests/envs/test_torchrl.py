@@ -24,6 +24,7 @@ from torchcbf.envs import UnicycleEllipsesVectorEnv  # noqa: E402
 from torchcbf.envs.filter_policy import FilteredPolicy  # noqa: E402
 from torchcbf.envs.filter_transform import FILTER_KEYS, SafetyFilterTransform  # noqa: E402
 from torchcbf.envs.safe_ppo import (  # noqa: E402
+    METHODS,
     PPOConfig,
     RunResult,
     mean_ci,
@@ -412,3 +413,48 @@ def test_gym_wrapper_takes_a_same_step_vector_env() -> None:
     reference = gymnasium.make_vec("torchcbf/ReachAvoid-v0", **kw)
     obs, _ = reference.reset(seed=0)
     np.testing.assert_allclose(td["observation"][:, 0].numpy(), obs, rtol=1e-6)
+
+
+@pytest.mark.slow
+def test_safe_rl_script_runs_at_tiny_sizes(tmp_path):
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[2] / "scripts" / "safe_rl.py"
+    common = [sys.executable, str(script), "--env", "torchcbf/ReachAvoid-v0"]
+    tiny = ["--seeds", "2", "--frames", "64", "--num-envs", "4", "--rollout-steps", "8"]
+    out = tmp_path / "run"
+    done = subprocess.run(
+        [*common, *tiny, "--eval-episodes", "2", "--jobs", "2", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stderr
+    record = json.loads((out / "results.json").read_text())
+    assert [(r["seed"], r["method"]) for r in record["runs"]] == [
+        (seed, method) for seed in (0, 1) for method in METHODS
+    ]
+    assert record["summary"]["ppo_shield"]["train collision steps"] == [0.0, 0.0]
+    check = subprocess.run(
+        [
+            sys.executable,
+            str(script),
+            "--shield-check",
+            "--sigma",
+            "0.05",
+            "--check-envs",
+            "8",
+            "--check-steps",
+            "20",
+            "--check-margins",
+            "0.15",
+        ],  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert check.returncode == 0, check.stderr
+    assert check.stdout.count("| 0.15 |") == 3

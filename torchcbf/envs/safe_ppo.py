@@ -15,9 +15,12 @@
   network's action by the layer (scaled by the action bounds; its gradient also passes the
   QP), on the shielded environment (the sampled exploration noise is filtered too).
 
-The policy is a Gaussian, mean ``tanh(MLP(observation))`` times the action bounds (or that
-through the filter layer) with a state-independent standard deviation; the critics are
-MLPs. Every run is a pure function of its seed (torch's global RNG is forked and restored).
+The policy is a Gaussian, mean ``tanh(MLP(features))`` times the action bounds (or that
+through the filter layer; the last layer starts near zero) with a state-independent standard
+deviation; the critics are MLPs; the features are the observation with a heading replaced by
+its cosine and sine. Every method sees the same reward, by default shaped
+(:func:`scenario_shaping`). Every run is a pure function of its seed (torch's global RNG is
+forked and restored).
 """
 
 from __future__ import annotations
