@@ -1,8 +1,9 @@
 """GPU fast path of MPPI: the rollout kernel of :mod:`torchcbf.mppi._rollout` in Triton.
 
 It reads the C kernel's configuration (:func:`torchcbf.mppi._rollout.configuration`) and
-evaluates the same formulas with the same counter-based noise, so a CUDA planner plans what
-the CPU planner plans for the same seed, to rounding. Each pass is one launch over the
+evaluates the same formulas with the same counter-based noise: given the same keys it gives
+the C kernel's samples, rollouts and costs to rounding (the keys come from the planner's
+generators, which draw other numbers on CUDA than on the CPU). Each pass is one launch over the
 ``B x K`` samples, one lane per sample, with the loop over the horizon inside the kernel:
 
 - :func:`costs`: noise, rollout, built-in cost terms and the control cost; nothing stored;

@@ -46,9 +46,10 @@ Paths (``MPPI.path`` says which one the last call took):
   out into the ``[B, K, H+1, n]`` buffer, torch evaluates the cost.
 - on CUDA both paths run the Triton kernel of :mod:`torchcbf.mppi._triton` (where Triton
   imports; it ships with CUDA builds of torch): the same configuration, formulas and
-  counter-based noise as the C kernel, so a CUDA planner plans what the CPU planner plans for
-  the same seed (to rounding), one launch per pass with the loop over the horizon inside the
-  kernel. The rollout path on CUDA needs ``layout="component"``.
+  counter-based noise as the C kernel (given the same keys both kernels give the same
+  samples, rollouts and costs to rounding; the keys come from the device's generators,
+  which draw other numbers on CUDA than on the CPU), one launch per pass with the loop over
+  the horizon inside the kernel. The rollout path on CUDA needs ``layout="component"``.
 - either kernel's configuration is read from the planner, its model and its cost once and
   kept until one of their tensors changes (in place or replaced) or one of their number,
   string or tuple attributes changes (a change through ``.data`` is not seen: call
