@@ -197,16 +197,16 @@ def test_tables_follow_a_changed_goal():
     ref = _planner(Unicycle, "euler", torch.float64, "auto", cost=copy.deepcopy(goal))
     x = torch.zeros(3, dtype=torch.float64)
     planner(x.to(TARGET))
-    first = planner._tables[1]
+    first = planner._kernel_cache[1]
     planner(x.to(TARGET))
     ref(x), ref(x)
-    assert planner._tables[1] is first  # nothing changed: the tables are kept
+    assert planner._kernel_cache[1] is first  # nothing changed: the tables are kept
     with torch.no_grad():
         planner.cost.goal.copy_(torch.tensor([-4.0, 2.0]))
         ref.cost.goal.copy_(torch.tensor([-4.0, 2.0]))
     b, a = planner(x.to(TARGET)), ref(x)
-    assert planner._tables[1] is not first
-    goal_row = planner._tables[1].tab.tcent[0, :2].cpu()
+    assert planner._kernel_cache[1] is not first
+    goal_row = planner._kernel_cache[1].tab.tcent[0, :2].cpu()
     assert torch.equal(goal_row, torch.tensor([-4.0, 2.0], dtype=torch.float64))
     if TARGET.type == "cpu":  # the same keys: the C planner's plan
         torch.testing.assert_close(b.plan.cpu(), a.plan, rtol=1e-9, atol=1e-9)

@@ -77,7 +77,9 @@ class Tables(NamedTuple):
     sa: Tensor  # [SP, 4, NP] rows of A: a shape's h = sign (|A (x - c)|^2 - c0)
     sc: Tensor  # [SP, NP] its centre
     sval: Tensor  # [SP, 2] sign, c0
-    meta: dict
+    meta: dict  # the kernel's compile-time arguments
+    samples: int  # K
+    zero_noise: int
 
 
 def _pow2(v: int) -> int:
@@ -160,8 +162,6 @@ def tables(cfg: _rollout.Configuration, dtype: torch.dtype, device: torch.device
         HAS_HI=bool(has_hi),
         CLAMP=bool(has_lo or has_hi),
     )
-    meta["zero_noise"] = zero_noise
-    meta["K"] = int(v[6])
     put = functools.partial(torch.Tensor.to, device=device, dtype=dtype)
     return Tables(
         put(torch.tensor(par, dtype=torch.float64)),
@@ -172,6 +172,8 @@ def tables(cfg: _rollout.Configuration, dtype: torch.dtype, device: torch.device
         put(sc),
         put(sval),
         meta,
+        int(v[6]),
+        zero_noise,
     )
 
 
@@ -321,8 +323,9 @@ if triton is not None:
         terminal = zero
         whole = zero
         ctrl = zero
-        if HAS_DISCRETE:
-            Hprev = _shapes_h(X, sa_ptr, sc_ptr, sval_ptr, cols, scols, NP, DQ)
+        if MODE == 0:  # only the costs pass reads the shapes
+            if HAS_DISCRETE:
+                Hprev = _shapes_h(X, sa_ptr, sc_ptr, sval_ptr, cols, scols, NP, DQ)
         P: tl.constexpr = (M + 1) // 2
         for j in range(H):
             # standard normals, one Box-Muller pair per hash; eps = L z
@@ -447,16 +450,15 @@ def _launch(
         raise RuntimeError("torchcbf: the MPPI GPU kernel needs Triton, which does not import")
     H = plan.shape[1]
     dummy = x0  # pointers the pass does not read (never dereferenced)
-    meta = {k: v for k, v in tab.meta.items() if k not in ("zero_noise", "K")}
     _rollout_kernel[grid](
         tab.par, tab.tmask, tab.tcent, tab.tval, tab.sa, tab.sc, tab.sval,
         x0, plan, dummy if wctrl is None else wctrl, keys,
         keys if pairs is None else pairs, dummy if weights is None else weights,
         dummy if cost is None else cost, dummy if states is None else states,
         dummy if controls is None else controls, dummy if part is None else part,
-        count, K, tab.meta["zero_noise"],
+        count, K, tab.zero_noise,
         H=H, HAS_WCTRL=wctrl is not None, MODE=mode, PAIRS=pairs is not None, BLOCK=BLOCK,
-        num_warps=WARPS, **meta,
+        num_warps=WARPS, **tab.meta,
     )  # fmt: skip
 
 
@@ -491,13 +493,13 @@ class Kernel:
         self.tab, self.fused = tab, fused
 
     def costs(self, x: Tensor, plan: Tensor, keys: Tensor, wctrl: Tensor | None) -> Tensor:
-        return costs(self.tab, x, plan, keys, self.tab.meta["K"], wctrl)
+        return costs(self.tab, x, plan, keys, self.tab.samples, wctrl)
 
     def update(self, x: Tensor, plan: Tensor, keys: Tensor, w: Tensor) -> Tensor:
         return update(self.tab, x, plan, keys, w)
 
     def rows(self, x: Tensor, plan: Tensor, keys: Tensor, pairs: Tensor) -> Tensor:
-        return rows(self.tab, x, plan, keys, self.tab.meta["K"], pairs)
+        return rows(self.tab, x, plan, keys, self.tab.samples, pairs)
 
     def buffers(
         self,
@@ -570,9 +572,8 @@ def buffers(
             raise ValueError(f"{name} must be a component-major {plan.dtype} buffer")
     cost = plan.new_empty(B, K)
     grid = (B, triton.cdiv(K, BLOCK))
-    ntab = tab._replace(meta={**tab.meta, "NT": 0, "HAS_SHAPES": False, "HAS_DISCRETE": False})
     _launch(
-        ntab, _BUFFERS, grid, x0, plan, keys, K=K, wctrl=wctrl, cost=cost,
+        tab, _BUFFERS, grid, x0, plan, keys, K=K, wctrl=wctrl, cost=cost,
         states=states, controls=controls,
     )  # fmt: skip
     return cost

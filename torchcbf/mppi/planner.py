@@ -477,14 +477,14 @@ class MPPI(ExactConstants):
         if backend == "triton" and not _triton.available():
             raise ValueError("backend='triton' needs Triton, which does not import here")
         self._key: tuple[Any, ...] | None = None
-        self._tables: tuple[Any, _rollout.Kernel | _triton.Kernel | None] | None = None
+        self._kernel_cache: tuple[Any, _rollout.Kernel | _triton.Kernel | None] | None = None
         self._fresh = True
 
     # -- state -------------------------------------------------------------------------------
     def reset(self) -> None:
         """Forget the plan, the history and re-seed the generators (next call starts afresh)."""
         self._key = None
-        self._tables = None
+        self._kernel_cache = None
         self._fresh = True
 
     def _ensure_state(self, B: int, device: torch.device, dtype: torch.dtype) -> None:
@@ -907,7 +907,7 @@ class MPPI(ExactConstants):
         if engine is None:
             return None
         signature = (engine, x.device, x.dtype, self.backend, _state_signature(self))
-        cached = self._tables
+        cached = self._kernel_cache
         if cached is not None and cached[0] == signature:
             return cached[1]
         model = _rollout.encode_model(self.dynamics)
@@ -922,7 +922,7 @@ class MPPI(ExactConstants):
             elif cost is not None or self.layout == "component":
                 tab = _triton.tables(cfg, x.dtype, x.device)
                 kernel = _triton.Kernel(tab, fused=cost is not None)
-        self._tables = (signature, kernel)
+        self._kernel_cache = (signature, kernel)
         return kernel
 
     def _kernel_expresses(self) -> bool:
