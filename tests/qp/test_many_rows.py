@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from torchcbf.qp import Status, _kkt, solve_qp
+from torchcbf.qp._data import QPData
 
 F64 = torch.float64
 
@@ -51,7 +52,7 @@ def test_solve_active_solves_the_active_rows_kkt_system():
     act = torch.zeros(B, M, dtype=torch.bool)
     for i, rows in enumerate(([], [0, 1, 2], [7], [3, 11], [2, 5, 9], [10])):
         act[i, rows] = True
-    x, z, y, ok = _kkt.solve_active(P, q, G, h, A, b, act, steps=8)
+    x, z, y, ok = _kkt.solve_active(QPData(P, q, G, h, A, b), act, steps=8)
     assert bool(ok.all())
     # the exact KKT system on the active rows, solved by a dense solve row by row
     for i in range(B):

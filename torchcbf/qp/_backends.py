@@ -10,6 +10,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchcbf.qp._data import QPData
 from torchcbf.qp.status import Status
 
 _BIG = 1e20
@@ -86,12 +87,7 @@ class _BoxSplit:
 
 
 def solve_proxsuite(
-    P: Tensor,
-    q: Tensor,
-    G: Tensor,
-    h: Tensor,
-    A: Tensor,
-    b: Tensor,
+    data: QPData,
     *,
     eps: float,
     max_iter: int,
@@ -101,6 +97,7 @@ def solve_proxsuite(
     """Solve every row with ``proxsuite.proxqp.dense``, in parallel (OpenMP threads) where
     there are several rows and threads. With ``box``, rows of ``G`` with one nonzero entry
     go to proxsuite as box constraints (:class:`_BoxSplit`)."""
+    P, q, G, h, A, b = data
     from proxsuite import proxqp
 
     B, n = q.shape
@@ -197,12 +194,7 @@ def _finish(
 
 def solve_qpsolvers(
     solver: str,
-    P: Tensor,
-    q: Tensor,
-    G: Tensor,
-    h: Tensor,
-    A: Tensor,
-    b: Tensor,
+    data: QPData,
     *,
     eps: float,
     max_iter: int,
@@ -212,6 +204,7 @@ def solve_qpsolvers(
     Infeasibility is read from the solver's own status string where it exposes one
     (Clarabel, OSQP, proxqp, HiGHS, SCS report 'primal/dual infeasible'); any other failure is
     ``MAX_ITER``. ``max_iter`` is not forwarded (option names differ between solvers)."""
+    P, q, G, h, A, b = data
     import qpsolvers
 
     if solver not in qpsolvers.available_solvers:

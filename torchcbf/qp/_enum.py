@@ -37,6 +37,7 @@ import torch
 from torch import Tensor
 
 from torchcbf.qp import _kkt
+from torchcbf.qp._data import QPData
 from torchcbf.qp._kkt import row_scale, scaled_violation
 
 #: ``method="auto"`` enumerates when the candidate count is at most ``MAX_CANDIDATES``, or at
@@ -238,12 +239,7 @@ def _solve_chunk(
 
 
 def solve_enum(
-    P: Tensor,
-    q: Tensor,
-    G: Tensor,
-    h: Tensor,
-    A: Tensor,
-    b: Tensor,
+    data: QPData,
     *,
     eps: float,
     pairs: tuple[tuple[int, int], ...] = (),
@@ -255,6 +251,7 @@ def solve_enum(
     variable). Returns :class:`EnumResult`; rows with ``ok = False`` hold zeros and must be
     solved by another method. Rows are processed in chunks of bounded memory (a loop over
     blocks of rows, not over rows)."""
+    P, q, G, h, A, b = data
     B, N = q.shape
     M, E = G.shape[-2], A.shape[-2]
     L, info = torch.linalg.cholesky_ex(P)
@@ -285,12 +282,7 @@ def solve_enum(
 
 
 def solve_enum_kkt(
-    P: Tensor,
-    q: Tensor,
-    G: Tensor,
-    h: Tensor,
-    A: Tensor,
-    b: Tensor,
+    data: QPData,
     *,
     eps: float,
     pairs: tuple[tuple[int, int], ...] = (),
@@ -303,18 +295,16 @@ def solve_enum_kkt(
     scale, multipliers against their largest); the best one within ``eps`` is kept (``ok``).
     Its cost is about ``B C`` small LU factorisations for ``C`` candidates: meant for a few
     rows (the caller's ``SMALL_BATCH``)."""
+    P, q, G, h, A, b = data
     B, N = q.shape
     M, E = G.shape[-2], A.shape[-2]
     tab = _table(M, E, N, pairs, q.device)
     C = tab.absmask.shape[0]
 
-    def per_candidate(t: Tensor) -> Tensor:
-        return t.unsqueeze(1).expand(B, C, *t.shape[1:]).reshape(B * C, *t.shape[1:])
-
     act = tab.absmask[:, E:].unsqueeze(0).expand(B, C, M).reshape(B * C, M)
-    data = [per_candidate(t) for t in (P, q, G, h, A, b)]
-    x, z, y, solved = _kkt.solve_active(*data, act)
-    pviol = scaled_violation(data[2], data[3], data[4], data[5], x)
+    each = data.expand(C)
+    x, z, y, solved = _kkt.solve_active(each, act)
+    pviol = scaled_violation(each.G, each.h, each.A, each.b, x)
     zmax = 1.0 + z.abs().amax(-1) if M > 0 else x.new_ones(B * C)
     dviol = (-z.amin(-1)).clamp_min(0.0) / zmax if M > 0 else x.new_zeros(B * C)
     score = torch.where(solved, torch.maximum(pviol, dviol), math.inf).view(B, C)

@@ -8,6 +8,7 @@ input dtype. The backward is the implicit differentiation of the active-set KKT 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -16,6 +17,7 @@ from torch import Tensor
 
 from torchcbf.qp import _dual_native, _kkt
 from torchcbf.qp import _eliminate as eliminate
+from torchcbf.qp._data import QPData
 from torchcbf.qp._dual import DualFactor, DualResult, NativeFactor, dual_adjoints, solve_dual
 from torchcbf.qp._enum import (
     MAX_CANDIDATES_SMALL_BATCH,
@@ -80,41 +82,67 @@ class MixedFactor(NamedTuple):
 BackwardFactor = _kkt.KKTFactor | DualFactor | NativeFactor | MixedFactor
 
 
+#: the algorithms that answer a row, in the order of their codes in ``Forward.method`` (and
+#: :attr:`torchcbf.qp.QPSolution.method`): the projection formula, the dual active-set
+#: method, active-set enumeration, the interior point method (with its polish and exact
+#: re-solves), proxsuite's dense solver, a ``qpsolvers`` solver
+ANSWERED_BY = ("closed_form", "active_set", "enumerate", "ipm", "proxsuite", "qpsolvers")
+
+
+def method_code(name: str) -> int:
+    """The code of ``name`` (one of :data:`ANSWERED_BY`)."""
+    return ANSWERED_BY.index(name)
+
+
 @dataclass(frozen=True)
 class SolverConfig:
     """Options forwarded from ``solve_qp`` to the forward pass."""
 
+    #: the entry of :data:`SOLVERS` that solves the batch
+    method: str
+    #: ``"torch"``, ``"proxsuite"`` or ``"qpsolvers:<solver>"`` (the ``"outside"`` method)
     backend: str
     eps: float
     eps_inf: float
     max_iter: int
     check_every: int
-    closed_form: bool
     polish: bool
-    enumerate: bool = False
-    active_set: bool = False
+    #: the entry of :data:`SOLVERS` for the rows ``"eliminate"`` cannot reduce (``A`` rank
+    #: deficient); where it is ``"auto_proxsuite"``, the rows an exact method leaves go to
+    #: proxsuite before the interior point method
+    fallback: str = "ipm"
     pairs: tuple[tuple[int, int], ...] = ()
     need_factor: bool = True
     #: unit roundoff of the inputs' dtype (the solve itself runs in float64): eigenvalues of
     #: ``P`` below ``n`` of these, relative to the largest, are rounding of a zero
     rounding: float = torch.finfo(torch.float64).eps
-    #: the rows the interior point method would solve go to proxsuite's dense solver first
-    #: (:func:`_ipm_routed`)
-    route: bool = False
-    #: equality rows are eliminated first and the reduced problem is solved by the dual
-    #: active-set method (:func:`_forward_eliminated`); the other options then describe the
-    #: path of the rows whose ``A`` is rank deficient
-    eliminate: bool = False
 
 
-def _closed_form(
-    P: Tensor, q: Tensor, G: Tensor, h: Tensor
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None:
+class Forward(NamedTuple):
+    """What a method of :data:`SOLVERS` returns, float64, ``[B, ...]``: the answer, the
+    per-row status, iterations and :data:`ANSWERED_BY` code, and the backward's factor
+    (``None`` unless ``cfg.need_factor``)."""
+
+    x: Tensor
+    z: Tensor
+    y: Tensor
+    status: Tensor
+    iterations: Tensor
+    method: Tensor
+    factor: BackwardFactor | None
+
+
+def _codes(B: int, name: str, device: torch.device) -> Tensor:
+    return torch.full((B,), method_code(name), dtype=torch.int64, device=device)
+
+
+def _closed_form(data: QPData) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None:
     """Exact solution for one inequality and ``P`` positive definite (projection formula).
 
     ``x = x_u - lam P^{-1} g`` with ``x_u = -P^{-1} q`` and
     ``lam = max(0, (g'x_u - h) / g'P^{-1}g)``.
     Returns ``None`` when some row's ``P`` is not positive definite (one host sync)."""
+    P, q, G, h = data.P, data.q, data.G, data.h
     L, info = torch.linalg.cholesky_ex(P)
     if bool((info != 0).any()):
         return None
@@ -136,60 +164,72 @@ def _closed_form(
     )
     x = torch.where((status == int(Status.SOLVED)).unsqueeze(-1), x, torch.zeros_like(x))
     z = lam.unsqueeze(-1)
-    s = (h - torch.einsum("bmn,bn->bm", G, x)).clamp_min(0.0)
+    s = data.slack(x).clamp_min(0.0)
     return x, s, z, status, torch.zeros_like(status)
 
 
-def _forward(
-    P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, _kkt.KKTFactor]:
-    """Solve in float64; return ``(x, z, y, status, iterations, kkt_factor)``."""
-    me = b.shape[-1]
-    if cfg.backend == "torch" and cfg.eliminate and me > 0:
-        return _forward_eliminated(P, q, G, h, A, b, cfg, x0)
-    if cfg.backend == "torch":
-        res = _closed_form(P, q, G, h) if cfg.closed_form else None
-        if res is not None:
-            x, s, z, status, iters = res
-            x, z, status = _drop_unbounded(P, q, G, A, x, (z,), status, cfg)
-            y = q.new_zeros(q.shape[0], me)
-            fac = _factor(P, G, h, A, x, z > s, status) if cfg.need_factor else None
-            return x, z, y, status, iters, fac
-        if cfg.active_set:
-            return _forward_dual(P, q, G, h, A, b, cfg, x0)
-        if cfg.enumerate:
-            return _forward_enum(P, q, G, h, A, b, cfg, x0)
-        x, z, y, status, iters, active = _ipm(P, q, G, h, A, b, cfg, x0)
+def _forward(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> Forward:
+    """Solve in float64 by the method ``cfg.method`` names (:data:`SOLVERS`)."""
+    return SOLVERS[cfg.method](data, cfg, x0)
+
+
+def _forward_closed_form(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> Forward:
+    """The projection formula (one inequality row); the interior point method where some
+    ``P`` is not positive definite."""
+    res = _closed_form(data)
+    if res is None:
+        return _forward_ipm(data, cfg, x0)
+    x, s, z, status, iters = res
+    x, z, status = _drop_unbounded(data, x, (z,), status, cfg)
+    y = data.q.new_zeros(data.batch, data.b.shape[-1])
+    fac = _factor(data, x, z > s, status) if cfg.need_factor else None
+    return Forward(x, z, y, status, iters, _codes(data.batch, "closed_form", x.device), fac)
+
+
+def _forward_ipm(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> Forward:
+    """The interior point method and its polish for every row."""
+    x, z, y, status, iters, active, codes = _ipm(data, cfg, x0)
+    fac = _factor(data, x, active, status) if cfg.need_factor else None
+    return Forward(x, z, y, status, iters, codes, fac)
+
+
+def _forward_routed(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> Forward:
+    """proxsuite's dense solver, then the interior point method (:func:`_ipm_routed`)."""
+    x, z, y, status, iters, active, codes = _ipm_routed(data, cfg, x0)
+    fac = _factor(data, x, active, status) if cfg.need_factor else None
+    return Forward(x, z, y, status, iters, codes, fac)
+
+
+def _forward_outside(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> Forward:
+    """An outside solver (``cfg.backend``: proxsuite or a ``qpsolvers`` solver) for every
+    row, its answer polished and judged as the interior point method's is (:func:`_finish`)."""
+    from torchcbf.qp import _backends
+
+    if cfg.backend == "proxsuite":
+        out = _backends.solve_proxsuite(data, eps=cfg.eps, max_iter=cfg.max_iter, x0=x0)
+        name = "proxsuite"
     else:
-        from torchcbf.qp import _backends
-
-        if cfg.backend == "proxsuite":
-            out = _backends.solve_proxsuite(
-                P, q, G, h, A, b, eps=cfg.eps, max_iter=cfg.max_iter, x0=x0
-            )
-        else:
-            out = _backends.solve_qpsolvers(
-                cfg.backend.split(":", 1)[1], P, q, G, h, A, b, eps=cfg.eps, max_iter=cfg.max_iter
-            )
-        x, s, z, y, status, iters = (t.to(q.device) for t in out)
-        x, z, y, status, active = _finish(P, q, G, h, A, b, x, s, z, y, status, cfg)
-    fac = _factor(P, G, h, A, x, active, status) if cfg.need_factor else None
-    return x, z, y, status, iters, fac
+        solver = cfg.backend.split(":", 1)[1]
+        out = _backends.solve_qpsolvers(solver, data, eps=cfg.eps, max_iter=cfg.max_iter)
+        name = "qpsolvers"
+    x, s, z, y, status, iters = (t.to(data.q.device) for t in out)
+    x, z, y, status, active = _finish(data, x, s, z, y, status, cfg)
+    fac = _factor(data, x, active, status) if cfg.need_factor else None
+    return Forward(x, z, y, status, iters, _codes(data.batch, name, x.device), fac)
 
 
-def _forward_eliminated(
-    P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, _kkt.KKTFactor | None]:
+def _forward_eliminated(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> Forward:
     """Equality rows eliminated (:mod:`torchcbf.qp._eliminate`) and the reduced problem
     solved by the dual active-set method (its rows it cannot certify by the interior point
     method, as in :func:`_forward_dual`); the rows whose ``A`` is rank deficient are solved
-    with their equalities kept, by the path the rest of ``cfg`` names. Returns what
-    :func:`_forward` returns; the backward factor is the active-set KKT system of the full
-    problem. Finding the rank-deficient rows is one host synchronisation."""
+    with their equalities kept, by ``cfg.fallback``. The backward factor is the active-set
+    KKT system of the full problem. Finding the rank-deficient rows is one host
+    synchronisation."""
+    P, q, G, h, A, b = data
     B, N = q.shape
     k = b.shape[-1]
     red = eliminate.reduce_equalities(A, b)
-    base = replace(cfg, eliminate=False, need_factor=False)
+    base = replace(cfg, method=cfg.fallback, need_factor=False)
     all_ok = bool(red.ok.all())
     idx = None if all_ok else red.ok.nonzero().squeeze(-1)
 
@@ -203,38 +243,38 @@ def _forward_eliminated(
     w0 = None
     if x0 is not None:
         w0 = (red_k.Z.mT @ (rows(x0) - red_k.xp).unsqueeze(-1)).squeeze(-1)
-    inner = replace(base, active_set=True, enumerate=False, closed_form=False)
+    inner = replace(base, method="active_set")
     none = q.new_zeros(Pr.shape[0], 0, N - k)
-    w, zk, _, st, it, _ = _forward_dual(Pr, qr, Gr, hr, none, none[..., 0], inner, w0)
+    w, zk, _, st, it, codes_k, _ = _forward_dual(
+        QPData(Pr, qr, Gr, hr, none, none[..., 0]), inner, w0
+    )
     xk = eliminate.full_point(red_k, w)
     grad = torch.einsum("bij,bj->bi", Pk, xk) + qk + torch.einsum("bmn,bm->bn", Gk, zk)
     yk = eliminate.equality_multipliers(red_k, grad)
     infeasible = (st == int(Status.PRIMAL_INFEASIBLE)) | (st == int(Status.DUAL_INFEASIBLE))
     xk, zk, yk = (torch.where(infeasible.unsqueeze(-1), 0.0, t) for t in (xk, zk, yk))
     if idx is None:
-        x, z, y, status, iters = xk, zk, yk, st, it
+        x, z, y, status, iters, codes = xk, zk, yk, st, it, codes_k
     else:
         bad = (~red.ok).nonzero().squeeze(-1)
-        sub = [t.index_select(0, bad) for t in (P, q, G, h, A, b)]
         x0b = None if x0 is None else x0.index_select(0, bad)
-        xb, zb, yb, stb, itb, _ = _forward(*sub, base, x0b)
-        x = q.new_zeros(B, N).index_copy(0, idx, xk).index_copy(0, bad, xb)
-        z = h.new_zeros(B, h.shape[-1]).index_copy(0, idx, zk).index_copy(0, bad, zb)
-        y = b.new_zeros(B, k).index_copy(0, idx, yk).index_copy(0, bad, yb)
-        status = st.new_zeros(B).index_copy(0, idx, st).index_copy(0, bad, stb)
-        iters = it.new_zeros(B).index_copy(0, idx, it).index_copy(0, bad, itb)
+        out = _forward(data.rows(bad), base, x0b)
+        x, z, y, status, iters, codes = (
+            t.new_zeros(B, *t.shape[1:]).index_copy(0, idx, tk).index_copy(0, bad, tb)
+            for t, tk, tb in zip(
+                (q, h, b, st, it, codes_k), (xk, zk, yk, st, it, codes_k), out[:6], strict=True
+            )
+        )
     fac = None
     if cfg.need_factor:
-        active = _kkt.active_set(z, _slack([P, q, G, h, A, b], x))
-        fac = _factor(P, G, h, A, x, active, status)
-    return x, z, y, status, iters, fac
+        fac = _factor(data, x, _kkt.active_set(z, data.slack(x)), status)
+    return Forward(x, z, y, status, iters, codes, fac)
 
 
-def _factor(
-    P: Tensor, G: Tensor, h: Tensor, A: Tensor, x: Tensor, active: Tensor, status: Tensor
-) -> _kkt.KKTFactor:
+def _factor(data: QPData, x: Tensor, active: Tensor, status: Tensor) -> _kkt.KKTFactor:
     """The backward's KKT factor: on ``active`` plus every row tight at ``x``."""
-    return _kkt.factor_kkt(P, G, A, _kkt.with_tight_rows(G, h, x, active, status))
+    G = data.G
+    return _kkt.factor_kkt(data.P, G, data.A, _kkt.with_tight_rows(G, data.h, x, active, status))
 
 
 #: absolute tolerance and iteration budget of proxsuite's dense solver where ``auto`` routes
@@ -246,15 +286,12 @@ ROUTE_MAX_ITER = 10_000
 #: converged to ``eps`` in the norm can still miss a small row by more
 ROUTE_FALLBACK_EPS = 1e-9
 
+#: one return of :func:`_ipm` and :func:`_ipm_routed`: ``(x, z, y, status, iterations,
+#: active, method)``
+_IPMOut = tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]
 
-def _slack(data: list[Tensor], x: Tensor) -> Tensor:
-    """``h - Gx`` for ``data = [P, q, G, h, A, b]``."""
-    return data[3] - torch.einsum("bmn,bn->bm", data[2], x)
 
-
-def _ipm_routed(
-    P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+def _ipm_routed(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> _IPMOut:
     """proxsuite's dense solver, then the interior point method for the rows it leaves.
 
     A row is kept where proxsuite calls it solved, its answer is a KKT point to ``eps``
@@ -265,32 +302,31 @@ def _ipm_routed(
     the status. Returns what :func:`_ipm` returns."""
     from torchcbf.qp import _backends
 
-    out = _backends.solve_proxsuite(
-        P, q, G, h, A, b, eps=ROUTE_EPS, max_iter=ROUTE_MAX_ITER, x0=x0, box=True
-    )
-    x, s, z, y, st, iters = (t.to(q.device) for t in out)
-    ok = (st == int(Status.SOLVED)) & _kkt.kkt_residuals_ok(P, q, G, h, A, b, x, z, y, cfg.eps)
+    out = _backends.solve_proxsuite(data, eps=ROUTE_EPS, max_iter=ROUTE_MAX_ITER, x0=x0, box=True)
+    x, s, z, y, st, iters = (t.to(data.q.device) for t in out)
+    ok = (st == int(Status.SOLVED)) & _kkt.kkt_residuals_ok(data, x, z, y, cfg.eps)
     # a minimiser far along a direction where P is singular to the inputs' rounding
-    ok = ok & ~unbounded_solved(P, q, G, A, x, ok, cfg)
+    ok = ok & ~unbounded_solved(data, x, ok, cfg)
     status = torch.where(ok, int(Status.SOLVED), int(Status.MAX_ITER))
     active = _kkt.active_set(z, s) & ok.unsqueeze(-1)
+    codes = _codes(data.batch, "proxsuite", x.device)
     if cfg.polish and bool(ok.any()):
-        x, z, y, active = _polish_active(P, q, G, h, A, b, x, z, y, active, ok)
+        x, z, y, active = _polish_active(data, x, z, y, active, ok)
     if bool(ok.all()):
-        return x, z, y, status, iters, active
+        return x, z, y, status, iters, active, codes
     idx = (~ok).nonzero().squeeze(-1)
-    sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
+    sub = data.rows(idx)
     x0s = None if x0 is None else x0.index_select(0, idx)
-    tight = replace(cfg, route=False, eps=min(cfg.eps, ROUTE_FALLBACK_EPS))
-    xs, zs, ys, sts, its, acts = _ipm(*sub, tight, x0s)
+    tight = replace(cfg, eps=min(cfg.eps, ROUTE_FALLBACK_EPS))
+    xs, zs, ys, sts, its, acts, cs = _ipm(sub, tight, x0s)
     # the interior point method ran to a tighter tolerance than asked for: a row it did not
     # finish whose last point is a KKT point to the caller's eps is solved by that standard
     unfinished = (sts == int(Status.MAX_ITER)) | (sts == int(Status.NUMERICAL_ERROR))
     if bool(unfinished.any()):
-        good = unfinished & _kkt.kkt_residuals_ok(*sub, xs, zs, ys, cfg.eps)
-        good = good & ~unbounded_solved(sub[0], sub[1], sub[2], sub[4], xs, good, cfg)
+        good = unfinished & _kkt.kkt_residuals_ok(sub, xs, zs, ys, cfg.eps)
+        good = good & ~unbounded_solved(sub, xs, good, cfg)
         sts = torch.where(good, int(Status.SOLVED), sts)
-        acts = torch.where(good.unsqueeze(-1), acts | _kkt.active_set(zs, _slack(sub, xs)), acts)
+        acts = torch.where(good.unsqueeze(-1), acts | _kkt.active_set(zs, sub.slack(xs)), acts)
     return (
         x.index_copy(0, idx, xs),
         z.index_copy(0, idx, zs),
@@ -298,16 +334,12 @@ def _ipm_routed(
         status.index_copy(0, idx, sts),
         iters.index_copy(0, idx, its),
         active.index_copy(0, idx, acts),
+        codes.index_copy(0, idx, cs),
     )
 
 
 def _polish_active(
-    P: Tensor,
-    q: Tensor,
-    G: Tensor,
-    h: Tensor,
-    A: Tensor,
-    b: Tensor,
+    data: QPData,
     x: Tensor,
     z: Tensor,
     y: Tensor,
@@ -320,8 +352,8 @@ def _polish_active(
 
     The system holds only the active rows (:func:`torchcbf.qp._kkt.solve_active`): an outside
     solver's answer is polished for a fraction of its cost."""
-    xp, zp, ya, solved = _kkt.solve_active(P, q, G, h, A, b, active, _kkt.POLISH_REFINE_STEPS)
-    exact = ok & solved & _kkt.kkt_point(P, q, G, h, A, b, xp, zp, ya)
+    xp, zp, ya, solved = _kkt.solve_active(data, active, _kkt.POLISH_REFINE_STEPS)
+    exact = ok & solved & _kkt.kkt_point(data, xp, zp, ya)
     keep = exact.unsqueeze(-1)
     return (
         torch.where(keep, xp, x),
@@ -331,37 +363,23 @@ def _polish_active(
     )
 
 
-def _ipm(
-    P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """The interior point method and its polish: ``(x, z, y, status, iterations, active)``
-    (rows routed to proxsuite first where ``cfg.route``, :func:`_ipm_routed`)."""
-    if cfg.route:
-        return _ipm_routed(P, q, G, h, A, b, cfg, x0)
+def _ipm(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> _IPMOut:
+    """The interior point method and its polish: ``(x, z, y, status, iterations, active,
+    method)``."""
     out = solve_ipm(
-        P,
-        q,
-        G,
-        h,
-        A,
-        b,
+        data,
         eps=cfg.eps,
         eps_inf=cfg.eps_inf,
         max_iter=cfg.max_iter,
         check_every=cfg.check_every,
         x0=x0,
     )
-    x, z, y, status, active = _finish(P, q, G, h, A, b, *out[:5], cfg)
-    return x, z, y, status, out.iterations, active
+    x, z, y, status, active = _finish(data, *out[:5], cfg)
+    return x, z, y, status, out.iterations, active, _codes(data.batch, "ipm", x.device)
 
 
 def _finish(
-    P: Tensor,
-    q: Tensor,
-    G: Tensor,
-    h: Tensor,
-    A: Tensor,
-    b: Tensor,
+    data: QPData,
     x: Tensor,
     s: Tensor,
     z: Tensor,
@@ -387,18 +405,13 @@ def _finish(
         candidate = (status == int(Status.SOLVED)).unsqueeze(-1)
         active = _kkt.active_set(z, s) & candidate
     else:
-        x, z, y, status, active = _polish_and_resolve(P, q, G, h, A, b, x, s, z, y, status, cfg)
-    x, z, y, active, status = _drop_unbounded(P, q, G, A, x, (z, y, active), status, cfg)
+        x, z, y, status, active = _polish_and_resolve(data, x, s, z, y, status, cfg)
+    x, z, y, active, status = _drop_unbounded(data, x, (z, y, active), status, cfg)
     return x, z, y, status, active
 
 
 def _polish_and_resolve(
-    P: Tensor,
-    q: Tensor,
-    G: Tensor,
-    h: Tensor,
-    A: Tensor,
-    b: Tensor,
+    data: QPData,
     x: Tensor,
     s: Tensor,
     z: Tensor,
@@ -416,9 +429,10 @@ def _polish_and_resolve(
     ``NUMERICAL_ERROR``, except where no exact method applies (:func:`_exact_applies`): there
     it keeps the interior point's answer where that converged and is a KKT point to ``eps``
     on the given data (:func:`torchcbf.qp._kkt.kkt_residuals_ok`)."""
+    P, q, G, h, A, b = data
     own = (x, s, z, y, status)
     x, z, y, status, polished_active, verified, exact = _kkt.polish(
-        P, q, G, h, A, b, x, s, z, y, status, eps=cfg.eps
+        data, x, s, z, y, status, eps=cfg.eps
     )
     solved = status == int(Status.SOLVED)
     failed = (status == int(Status.NUMERICAL_ERROR)) | (status == int(Status.MAX_ITER))
@@ -426,8 +440,8 @@ def _polish_and_resolve(
     if not bool(suspect.any()):
         return x, z, y, status, polished_active
     idx = suspect.nonzero().squeeze(-1)
-    sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
-    xs, zs, ys, acts, ok = _exact_resolve(*sub, cfg, failed.index_select(0, idx))
+    sub = data.rows(idx)
+    xs, zs, ys, acts, ok = _exact_resolve(sub, cfg, failed.index_select(0, idx))
     active = polished_active
     if bool(ok.any()):
         keep = ok.unsqueeze(-1)
@@ -449,9 +463,9 @@ def _polish_and_resolve(
     # beyond the exact methods' reach, a row the polish could not verify keeps the interior
     # point's own answer where that is a KKT point to eps on the caller's data (the method
     # stops on its scaled data); within it, their verdict stands
-    own_kkt = unverified & own_solved & (not _exact_applies(P, q, G, A, cfg))
+    own_kkt = unverified & own_solved & (not _exact_applies(data, cfg))
     if bool(own_kkt.any()):
-        own_kkt = own_kkt & _kkt.kkt_residuals_ok(*sub, x_own, z_own, y_own, cfg.eps)
+        own_kkt = own_kkt & _kkt.kkt_residuals_ok(sub, x_own, z_own, y_own, cfg.eps)
     revert = (far & own_solved) | own_kkt
     if bool(revert.any()):
         back = revert.unsqueeze(-1)
@@ -470,7 +484,7 @@ def _polish_and_resolve(
     unbounded = ~ok & failed.index_select(0, idx)
     if bool(unbounded.any()):
         unbounded = unbounded & unbounded_rows(
-            sub[0], sub[1], sub[2], sub[4], x.index_select(0, idx), cfg.eps_inf
+            sub.P, sub.q, sub.G, sub.A, x.index_select(0, idx), cfg.eps_inf
         )
         status = status.index_copy(
             0, idx, torch.where(unbounded, int(Status.DUAL_INFEASIBLE), after)
@@ -481,10 +495,11 @@ def _polish_and_resolve(
     return x, z, y, status, active
 
 
-def _exact_applies(P: Tensor, q: Tensor, G: Tensor, A: Tensor, cfg: SolverConfig) -> bool:
+def _exact_applies(data: QPData, cfg: SolverConfig) -> bool:
     """Whether :func:`_exact_resolve` has an exact method for these rows (the dual method
     without equality rows, or enumeration of few candidate sets)."""
-    M, E, N = G.shape[-2], A.shape[-2], q.shape[-1]
+    N, M, E = data.sizes
+    q = data.q
     if M == 0 and E == 0:
         return True
     if E == 0 and dual_applies(N, _dual_native.applies(q)):
@@ -493,9 +508,7 @@ def _exact_applies(P: Tensor, q: Tensor, G: Tensor, A: Tensor, cfg: SolverConfig
     return num_candidates(M, E, N, cfg.pairs, cap=cap) <= cap
 
 
-def unbounded_solved(
-    P: Tensor, q: Tensor, G: Tensor, A: Tensor, x: Tensor, solved: Tensor, cfg: SolverConfig
-) -> Tensor:
+def unbounded_solved(data: QPData, x: Tensor, solved: Tensor, cfg: SolverConfig) -> Tensor:
     """Rows ``[B]`` among ``solved`` whose ``x`` certifies that the problem is unbounded
     (:func:`~torchcbf.qp._ipm.unbounded_rows`, ``P`` singular to the inputs' rounding).
 
@@ -505,6 +518,7 @@ def unbounded_solved(
     minimiser passes (``x``, ``2x``, ... would all be feasible with a falling objective).
     Only rows with ``q'x < 0`` can pass; the test (an eigendecomposition) runs on those, after
     one host synchronisation."""
+    P, q = data.P, data.q
     cand = solved & ((q * x).sum(-1) < 0)
     if not bool(cand.any()):
         return cand
@@ -517,16 +531,13 @@ def unbounded_solved(
     if not bool(cand.any()):
         return cand
     idx = cand.nonzero().squeeze(-1)
-    sub = [t.index_select(0, idx) for t in (P, q, G, A, x)]
+    sub = [t.index_select(0, idx) for t in (P, q, data.G, data.A, x)]
     found = unbounded_rows(*sub, cfg.eps_inf, cfg.rounding)
     return torch.zeros_like(cand).index_copy(0, idx, found)
 
 
 def _drop_unbounded(
-    P: Tensor,
-    q: Tensor,
-    G: Tensor,
-    A: Tensor,
+    data: QPData,
     x: Tensor,
     others: tuple[Tensor, ...],
     status: Tensor,
@@ -535,7 +546,7 @@ def _drop_unbounded(
     """``(x, *others, status)`` with the ``SOLVED`` rows that :func:`unbounded_solved` finds
     reported ``DUAL_INFEASIBLE`` and ``x`` and ``others`` (multipliers, active sets) zeroed
     there."""
-    unb = unbounded_solved(P, q, G, A, x, status == int(Status.SOLVED), cfg)
+    unb = unbounded_solved(data, x, status == int(Status.SOLVED), cfg)
     if not bool(unb.any()):
         return (x, *others, status)
     u = unb.unsqueeze(-1)
@@ -544,12 +555,7 @@ def _drop_unbounded(
 
 
 def _exact_resolve(
-    P: Tensor,
-    q: Tensor,
-    G: Tensor,
-    h: Tensor,
-    A: Tensor,
-    b: Tensor,
+    data: QPData,
     cfg: SolverConfig,
     strict: Tensor,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
@@ -560,6 +566,7 @@ def _exact_resolve(
     an answer must also be a KKT point to rounding:
     enumeration judges its choice to ``eps``, which a nearly dependent active set can pass,
     and both methods accept, to ``eps``, data that rounding made slightly infeasible."""
+    P, q, G, h, A, b = data
     B, M, E, N = q.shape[0], G.shape[-2], A.shape[-2], q.shape[-1]
     x, z, y = q.new_zeros(B, N), q.new_zeros(B, M), q.new_zeros(B, E)
     active = torch.zeros(B, M, dtype=torch.bool, device=q.device)
@@ -567,13 +574,13 @@ def _exact_resolve(
     if M == 0 and E == 0:
         L, info = torch.linalg.cholesky_ex(P)
         xs = torch.cholesky_solve(-q.unsqueeze(-1), L).squeeze(-1)
-        ok = (info == 0) & torch.isfinite(xs).all(-1) & _kkt.kkt_point(P, q, G, h, A, b, xs, z, y)
+        ok = (info == 0) & torch.isfinite(xs).all(-1) & _kkt.kkt_point(data, xs, z, y)
         return torch.where(ok.unsqueeze(-1), xs, x), z, y, active, ok
     second = strict  # rows enumeration may take after the dual method
     if E == 0 and dual_applies(N, _dual_native.applies(q)):
         dual = solve_dual(P, q, G, h, eps=cfg.eps, max_iter=dual_budget(cfg.max_iter, M, N))
         x, z, active = dual.x, dual.z, dual.active
-        ok = dual.ok & (~strict | _kkt.kkt_point(P, q, G, h, A, b, x, z, y))
+        ok = dual.ok & (~strict | _kkt.kkt_point(data, x, z, y))
     else:
         second = torch.ones_like(strict)
     second = second & ~ok
@@ -585,7 +592,7 @@ def _exact_resolve(
         # the same certified enumeration (polished on its active set where the direct solve
         # is a little off) that takes a few failed rows before the interior point method, so
         # that a row's status does not depend on how many rows failed beside it
-        en = _certified_enum(P, q, G, h, A, b, cfg)
+        en = _certified_enum(data, cfg)
         take = en.ok & second
         keep = take.unsqueeze(-1)
         x, z, y = torch.where(keep, en.x, x), torch.where(keep, en.z, z), torch.where(keep, en.y, y)
@@ -594,37 +601,36 @@ def _exact_resolve(
     return x, z, y, active, ok
 
 
-def _certified_enum(
-    P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig
-) -> EnumResult:
+def _certified_enum(data: QPData, cfg: SolverConfig) -> EnumResult:
     """Enumeration's answer, kept (``ok``) only where it is a KKT point to rounding, directly
     or once polished on its active set (an ill-conditioned ``P`` leaves the direct solve a
     little off): enumeration judges its choice to ``eps``, which a nearly dependent active
     set can pass with ``x`` far off."""
-    en = solve_enum(P, q, G, h, A, b, eps=cfg.eps, pairs=cfg.pairs)
+    en = solve_enum(data, eps=cfg.eps, pairs=cfg.pairs)
     fail = ~en.ok
-    C = num_candidates(G.shape[-2], A.shape[-2], q.shape[-1], cfg.pairs)
+    N, M, E = data.sizes
+    C = num_candidates(M, E, N, cfg.pairs)
     n_fail = int(fail.sum())
     if 0 < n_fail * C <= KKT_ENUM_SYSTEMS:
         # a few rows the Schur complement lost (P too ill-conditioned): every candidate's
         # own KKT system, before the interior point method's iterations
         idx = fail.nonzero().squeeze(-1)
-        sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
-        ek = solve_enum_kkt(*sub, eps=cfg.eps, pairs=cfg.pairs)
+        sub = data.rows(idx)
+        ek = solve_enum_kkt(sub, eps=cfg.eps, pairs=cfg.pairs)
         en = EnumResult(*(t.index_copy(0, idx, u) for t, u in zip(en, ek, strict=True)))
     # a point far along a descent direction (P singular to rounding) is no answer: the row
     # goes to the interior point method, whose result carries the certificate
-    en = en._replace(ok=en.ok & ~unbounded_solved(P, q, G, A, en.x, en.ok, cfg))
-    exact = en.ok & _kkt.kkt_point(P, q, G, h, A, b, en.x, en.z, en.y)
+    en = en._replace(ok=en.ok & ~unbounded_solved(data, en.x, en.ok, cfg))
+    exact = en.ok & _kkt.kkt_point(data, en.x, en.z, en.y)
     redo = en.ok & ~exact
     if not bool(redo.any()):
         return en._replace(ok=exact)
     idx = redo.nonzero().squeeze(-1)
-    data = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
+    sub = data.rows(idx)
     x, z, y = (t.index_select(0, idx) for t in (en.x, en.z, en.y))
-    slack = (data[3] - torch.einsum("bmn,bn->bm", data[2], x)).clamp_min(0.0)
+    slack = sub.slack(x).clamp_min(0.0)
     solved = torch.full_like(idx, int(Status.SOLVED))
-    xe, ze, ye, _, act_e, _, polished = _kkt.polish(*data, x, slack, z, y, solved, eps=cfg.eps)
+    xe, ze, ye, _, act_e, _, polished = _kkt.polish(sub, x, slack, z, y, solved, eps=cfg.eps)
     keep = polished.unsqueeze(-1)
     return en._replace(
         x=en.x.index_copy(0, idx, torch.where(keep, xe, x)),
@@ -637,19 +643,18 @@ def _certified_enum(
     )
 
 
-def _forward_enum(
-    P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, _kkt.KKTFactor | None]:
+def _forward_enum(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> Forward:
     """Active-set enumeration for every row; the rows it cannot certify (infeasible, ``P``
     not positive definite, too ill-conditioned, or no KKT point to rounding after the
     polish, :func:`_certified_enum`) go to the interior point method."""
-    en = _certified_enum(P, q, G, h, A, b, cfg)
-    iters = torch.zeros(q.shape[0], dtype=torch.int64, device=q.device)
-    x, z, y, status, iters, active, _ = _ipm_fallback(
-        P, q, G, h, A, b, cfg, x0, en.x, en.z, en.y, en.active, en.ok, iters
+    en = _certified_enum(data, cfg)
+    iters = torch.zeros(data.batch, dtype=torch.int64, device=data.q.device)
+    codes = _codes(data.batch, "enumerate", data.q.device)
+    x, z, y, status, iters, active, codes = _ipm_fallback(
+        data, cfg, x0, en.x, en.z, en.y, en.active, en.ok, iters, codes
     )
-    fac = _factor(P, G, h, A, x, active, status) if cfg.need_factor else None
-    return x, z, y, status, iters, fac
+    fac = _factor(data, x, active, status) if cfg.need_factor else None
+    return Forward(x, z, y, status, iters, codes, fac)
 
 
 def condition_estimate(L: Tensor, batch_first: bool = True) -> Tensor:
@@ -674,15 +679,14 @@ def condition_estimate(L: Tensor, batch_first: bool = True) -> Tensor:
     return (p_diag * inv_diag).amax(-1)
 
 
-def _forward_dual(
-    P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, cfg: SolverConfig, x0
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, BackwardFactor | None]:
+def _forward_dual(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> Forward:
     """Dual active-set method for every row (no equality rows); the rows it cannot certify go
     to the interior point method. The backward uses the dual method's own factors when every
     row was solved by it and no row has a tight row outside its active set (a degenerate
     vertex, where the method's multipliers may leave out a row that must stay tight); the
     other rows get the active-set KKT factorisation, row by row (:class:`MixedFactor`).
     Finding them is a second host synchronisation, with gradients only."""
+    P, q, G, h, A, b = data
     y = q.new_zeros(q.shape[0], 0)
     steps = dual_budget(cfg.max_iter, G.shape[-2], q.shape[-1])
     res = solve_dual(P, q, G, h, eps=cfg.eps, max_iter=steps, check_every=cfg.check_every)
@@ -691,13 +695,14 @@ def _forward_dual(
         ok = _dual_native.well_conditioned(res.factor.L, res.ok, MAX_DUAL_CONDITION)
     else:
         ok = res.ok & (condition_estimate(res.factor.L, batch_first=False) <= MAX_DUAL_CONDITION)
-    x, z, rescued = _certify_ill_conditioned(P, q, G, h, A, b, res, ok, cfg)
-    x, z, y, status, iters, active, any_fallback = _ipm_fallback(
-        P, q, G, h, A, b, cfg, x0, x, z, y, res.active, ok | rescued, res.iterations,
+    x, z, rescued = _certify_ill_conditioned(data, res, ok, cfg)
+    codes = _codes(data.batch, "active_set", x.device)
+    x, z, y, status, iters, active, codes = _ipm_fallback(
+        data, cfg, x0, x, z, y, res.active, ok | rescued, res.iterations, codes,
         infeasible=res.infeasible,
     )  # fmt: skip
     if not cfg.need_factor:
-        return x, z, y, status, iters, None
+        return Forward(x, z, y, status, iters, codes, None)
     if native:
         solved = status == int(Status.SOLVED)
         backward_set = _dual_native.tight_rows(G, h, x, active, solved, _kkt.TIGHT)
@@ -710,19 +715,15 @@ def _forward_dual(
     dual_factor = res.factor._replace(ok=ok & ~redo)
     rows = redo.nonzero().squeeze(-1)
     if len(rows) == 0:
-        return x, z, y, status, iters, dual_factor
+        return Forward(x, z, y, status, iters, codes, dual_factor)
     # the other rows keep the dual method's factors: hard rows do not slow the whole batch
     sub = [t.index_select(0, rows) for t in (P, G, A, backward_set)]
-    return x, z, y, status, iters, MixedFactor(dual_factor, rows, _kkt.factor_kkt(*sub))
+    fac = MixedFactor(dual_factor, rows, _kkt.factor_kkt(*sub))
+    return Forward(x, z, y, status, iters, codes, fac)
 
 
 def _certify_ill_conditioned(
-    P: Tensor,
-    q: Tensor,
-    G: Tensor,
-    h: Tensor,
-    A: Tensor,
-    b: Tensor,
+    data: QPData,
     res: DualResult,
     ok: Tensor,
     cfg: SolverConfig,
@@ -744,33 +745,34 @@ def _certify_ill_conditioned(
     if not bool(rows.any()):
         return res.x, res.z, rows
     idx = rows.nonzero().squeeze(-1)
-    sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
+    sub = data.rows(idx)
     xs, zs, guess, conv = (t.index_select(0, idx) for t in (res.x, res.z, res.active, res.ok))
-    ys = q.new_zeros(len(idx), 0)
+    ys = data.q.new_zeros(len(idx), 0)
     good = conv
     if bool(conv.any()):
-        good = conv & _kkt.kkt_point(*sub, xs, zs, ys)
-        good = good & ~unbounded_solved(sub[0], sub[1], sub[2], sub[4], xs, good, cfg)
-    rho = PROX_WEIGHT * sub[0].diagonal(dim1=-2, dim2=-1).amax(-1)
-    Pr = sub[0] + torch.diag_embed(rho.unsqueeze(-1).expand_as(sub[1]))
+        good = conv & _kkt.kkt_point(sub, xs, zs, ys)
+        good = good & ~unbounded_solved(sub, xs, good, cfg)
+    rho = PROX_WEIGHT * sub.P.diagonal(dim1=-2, dim2=-1).amax(-1)
+    Pr = sub.P + torch.diag_embed(rho.unsqueeze(-1).expand_as(sub.q))
     center = torch.zeros_like(xs)
-    steps = dual_budget(cfg.max_iter, G.shape[-2], q.shape[-1])
+    N, M, _ = data.sizes
+    steps = dual_budget(cfg.max_iter, M, N)
     for step in range(PROX_STEPS + 1):
         if bool(good.all()):
             break
         if step == 0 and not bool((conv & ~good).any()):
             continue  # no converged row to polish: the method's active sets are no guess
         if step > 0:
-            prox = solve_dual(Pr, sub[1] - rho.unsqueeze(-1) * center, sub[2], sub[3],
+            prox = solve_dual(Pr, sub.q - rho.unsqueeze(-1) * center, sub.G, sub.h,
                               eps=cfg.eps, max_iter=steps)  # fmt: skip
             guess = prox.active
             center = torch.where(prox.ok.unsqueeze(-1), prox.x, center)
-        xp, zp, yp, solved = _kkt.solve_active(*sub, guess, _kkt.POLISH_REFINE_STEPS)
+        xp, zp, yp, solved = _kkt.solve_active(sub, guess, _kkt.POLISH_REFINE_STEPS)
         zp = zp.clamp_min(0.0)
-        new = ~good & solved & _kkt.kkt_point(*sub, xp, zp, yp)
+        new = ~good & solved & _kkt.kkt_point(sub, xp, zp, yp)
         # a point far along a direction where P is singular to rounding is no answer: the
         # interior point method certifies such a row unbounded
-        new = new & ~unbounded_solved(sub[0], sub[1], sub[2], sub[4], xp, new, cfg)
+        new = new & ~unbounded_solved(sub, xp, new, cfg)
         keep = new.unsqueeze(-1)
         xs, zs = torch.where(keep, xp, xs), torch.where(keep, zp, zs)
         good = good | new
@@ -778,12 +780,7 @@ def _certify_ill_conditioned(
 
 
 def _ipm_fallback(
-    P: Tensor,
-    q: Tensor,
-    G: Tensor,
-    h: Tensor,
-    A: Tensor,
-    b: Tensor,
+    data: QPData,
     cfg: SolverConfig,
     x0,
     x: Tensor,
@@ -792,32 +789,34 @@ def _ipm_fallback(
     active: Tensor,
     ok: Tensor,
     iters: Tensor,
+    codes: Tensor,
     infeasible: Tensor | None = None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, bool]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Re-solve the rows with ``ok = False`` by the interior point method (with polish); rows
     marked ``infeasible`` (proved so by the first solver) are reported ``PRIMAL_INFEASIBLE``.
 
     Deciding whether any row needs it is the one host synchronisation of the exact paths
-    (``bool(fail.any())``). Returns ``(x, z, y, status, iterations, active, any_fallback)``."""
+    (``bool(fail.any())``). Returns ``(x, z, y, status, iterations, active, method)``, the
+    method's codes (:data:`ANSWERED_BY`) updated from ``codes`` on the rows re-solved."""
     status = torch.where(ok, int(Status.SOLVED), int(Status.MAX_ITER))
     fail = ~ok
     if infeasible is not None:  # proved by the solver: PRIMAL_INFEASIBLE, x = 0, no re-solve
         status = torch.where(infeasible, int(Status.PRIMAL_INFEASIBLE), status)
         fail = fail & ~infeasible
     if not bool(fail.any()):
-        return x, z, y, status, iters, active, False
+        return x, z, y, status, iters, active, codes
     idx = fail.nonzero().squeeze(-1)
-    M, E, N = G.shape[-2], A.shape[-2], q.shape[-1]
+    N, M, E = data.sizes
     if (
-        not cfg.enumerate
+        cfg.method != "enumerate"
         and len(idx) <= SMALL_BATCH
         and num_candidates(M, E, N, cfg.pairs, cap=MAX_CANDIDATES_SMALL_BATCH)
         <= MAX_CANDIDATES_SMALL_BATCH
     ):
         # a few rows the exact method could not certify (degenerate vertices, ties):
         # enumeration's fixed cost is far below the interior point method's iterations
-        sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
-        en = _certified_enum(*sub, cfg)
+        sub = data.rows(idx)
+        en = _certified_enum(sub, cfg)
         if bool(en.ok.any()):
             keep = en.ok.unsqueeze(-1)
             x = x.index_copy(0, idx, torch.where(keep, en.x, x.index_select(0, idx)))
@@ -829,17 +828,33 @@ def _ipm_fallback(
             status = status.index_copy(
                 0, idx, torch.where(en.ok, int(Status.SOLVED), status.index_select(0, idx))
             )
+            codes = codes.index_copy(0, idx[en.ok], _codes(int(en.ok.sum()), "enumerate", x.device))
             idx = idx[~en.ok]
             if len(idx) == 0:
-                return x, z, y, status, iters, active, True
-    sub = [t.index_select(0, idx) for t in (P, q, G, h, A, b)]
+                return x, z, y, status, iters, active, codes
+    sub = data.rows(idx)
     x0s = None if x0 is None else x0.index_select(0, idx)
-    xs, zs, ys, sts, its, acts = _ipm(*sub, cfg, x0s)
+    # the batch's own fallback where it is proxsuite's dense solver first
+    ipm = _ipm_routed if cfg.fallback == "auto_proxsuite" else _ipm
+    xs, zs, ys, sts, its, acts, cs = ipm(sub, cfg, x0s)
     x, z, y = x.index_copy(0, idx, xs), z.index_copy(0, idx, zs), y.index_copy(0, idx, ys)
     status = status.index_copy(0, idx, sts)
     active = active.index_copy(0, idx, acts)
     iters = iters.index_copy(0, idx, its)
-    return x, z, y, status, iters, active, True
+    return x, z, y, status, iters, active, codes.index_copy(0, idx, cs)
+
+
+#: the methods, each ``(data, cfg, x0) -> Forward``; ``SolverConfig.method`` names the one
+#: that solves a batch (``solve_qp`` picks it, :func:`torchcbf.qp.solve._config`)
+SOLVERS: dict[str, Callable[[QPData, SolverConfig, Tensor | None], Forward]] = {
+    "closed_form": _forward_closed_form,
+    "active_set": _forward_dual,
+    "eliminate": _forward_eliminated,
+    "enumerate": _forward_enum,
+    "ipm": _forward_ipm,
+    "auto_proxsuite": _forward_routed,
+    "outside": _forward_outside,
+}
 
 
 #: objectives whose largest entry lies within ``[1 / SCALE_BAND, SCALE_BAND]`` are solved
@@ -878,7 +893,8 @@ def data_scaling(P: Tensor, q: Tensor) -> Scaling:
 
 
 class QPFunction(torch.autograd.Function):
-    """``(P, q, G, h, A, b) -> (x, z, y, status, iterations)``, batched ``[B, ...]``.
+    """``(P, q, G, h, A, b) -> (x, z, y, status, iterations, method)``, batched ``[B, ...]``
+    (``method``: the :data:`ANSWERED_BY` code of each row).
 
     The torch backend solves the problem with its objective scaled (:func:`data_scaling`)
     and scales the multipliers (and the gradients) back; the other backends get the data
@@ -887,26 +903,27 @@ class QPFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, P, q, G, h, A, b, cfg: SolverConfig, x0):  # noqa: D102
         dtype = q.dtype
-        f64 = [t.detach().to(torch.float64) for t in (P, q, G, h, A, b)]
+        data = QPData(P, q, G, h, A, b).to_float64()
         x0d = None if x0 is None else x0.detach().to(torch.float64)
-        scaling = data_scaling(f64[0], f64[1]) if cfg.backend == "torch" else None
+        scaling = data_scaling(data.P, data.q) if cfg.backend == "torch" else None
         if scaling is not None and q.device.type == "cpu" and bool((scaling.c == 1.0).all()):
             scaling = None  # nothing to scale (asking costs no device synchronisation here)
         if scaling is not None:
-            f64[0], f64[1] = scaling.apply(f64[0], f64[1])
-        x, z, y, status, iters, fac = _forward(*f64, cfg, x0d)
+            Ps, qs = scaling.apply(data.P, data.q)
+            data = data._replace(P=Ps, q=qs)
+        x, z, y, status, iters, method, fac = _forward(data, cfg, x0d)
         ctx.fac = fac
         ctx.scaling = scaling
         ctx.save_for_backward(x, z, y, status)
         ctx.dtype = dtype
-        ctx.mark_non_differentiable(status, iters)
+        ctx.mark_non_differentiable(status, iters, method)
         if scaling is not None:
             inv_c = (1.0 / scaling.c).unsqueeze(-1)
             z, y = z * inv_c, y * inv_c
-        return x.to(dtype), z.to(dtype), y.to(dtype), status, iters
+        return x.to(dtype), z.to(dtype), y.to(dtype), status, iters, method
 
     @staticmethod
-    def backward(ctx, gx, gz, gy, _gs, _gi):  # noqa: D102
+    def backward(ctx, gx, gz, gy, _gs, _gi, _gm):  # noqa: D102
         x, z, y, status = ctx.saved_tensors
         gx, gz, gy = (g.to(torch.float64) for g in (gx, gz, gy))
         scaling = ctx.scaling

@@ -31,6 +31,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchcbf.qp._data import QPData
 from torchcbf.qp.status import Status
 
 
@@ -150,9 +151,7 @@ def _pow2(v: Tensor) -> Tensor:
     return torch.exp2(torch.round(torch.log2(v)))
 
 
-def _equilibrate(
-    P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor
-) -> tuple[tuple[Tensor, ...], _Scaling]:
+def _equilibrate(data: QPData) -> tuple[QPData, _Scaling]:
     """Ruiz equilibration of ``[[P, G', A'], [G, 0, 0], [A, 0, 0]]``: variables and rows
     scaled (powers of two) until every column of the variables and every row has largest
     entry near one, then the objective scaled so that ``P``'s mean column and ``q`` are
@@ -160,6 +159,7 @@ def _equilibrate(
     Degenerate problems whose rows and curvatures span many orders of magnitude (linear
     programs in a QP's clothes) otherwise leave the normal equations unsolvable to the
     precision the stopping tests ask for."""
+    P, q, G, h, A, b = data
     B, n = q.shape
     D = q.new_ones(B, n)
     Eg = q.new_ones(B, G.shape[-2])
@@ -187,7 +187,7 @@ def _equilibrate(
     cost = torch.maximum(mean_col, _inf_norm(qs))
     c = torch.where(cost > 0, 1.0 / cost.clamp(1e-4, 1e4), torch.ones_like(cost))
     c = _pow2(c)
-    scaled = (
+    scaled = QPData(
         c.view(-1, 1, 1) * Ps,
         c.unsqueeze(-1) * qs,
         Eg.unsqueeze(-1) * G * D.unsqueeze(-2),
@@ -317,12 +317,7 @@ def _step_length(
 
 
 def solve_ipm(
-    P: Tensor,
-    q: Tensor,
-    G: Tensor,
-    h: Tensor,
-    A: Tensor,
-    b: Tensor,
+    data: QPData,
     *,
     eps: float,
     eps_inf: float,
@@ -333,10 +328,11 @@ def solve_ipm(
     """Solve a batch of QPs (see module docstring). Shapes: ``P [B,n,n], q [B,n],
     G [B,M,n], h [B,M], A [B,me,n], b [B,me]``; ``x0 [B,n]`` optionally seeds the primal
     iterate. Inputs must be finite; no gradient flows through this function."""
+    P, q, G, h, A, b = data
     B, n = q.shape
     M = h.shape[-1]
     dtype, device = q.dtype, q.device
-    (P, q, G, h, A, b), scaling = _equilibrate(P, q, G, h, A, b)
+    (P, q, G, h, A, b), scaling = _equilibrate(data)
     if x0 is not None:
         x0 = x0 / scaling.D
     reg_rel = 1e-12 if dtype == torch.float64 else 1e-6

@@ -28,6 +28,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchcbf.qp._data import QPData
 from torchcbf.qp.status import Status
 
 #: steps of iterative refinement on the regularised factor: the polished answer needs eight
@@ -176,12 +177,7 @@ def row_scale(R: Tensor, r: Tensor, x: Tensor) -> Tensor:
 
 
 def polish(
-    P: Tensor,
-    q: Tensor,
-    G: Tensor,
-    h: Tensor,
-    A: Tensor,
-    b: Tensor,
+    data: QPData,
     x: Tensor,
     s: Tensor,
     z: Tensor,
@@ -198,6 +194,7 @@ def polish(
     ``verified [B]``. ``exact [B]`` marks the verified rows whose polished point is a KKT
     point to rounding (:func:`kkt_point`). Near nearly parallel active rows a wrong active
     set can pass the ``eps`` checks but not these."""
+    P, q, G, h, A, b = data
     M = h.shape[-1]
     candidate = (
         (status == int(Status.SOLVED))
@@ -222,28 +219,23 @@ def polish(
     act = torch.zeros_like(guesses[0])
     for guess in guesses:
         trial = guess & candidate.unsqueeze(-1)
-        ok_g = _verified(P, q, G, h, A, b, trial, eps) & candidate & ~chosen
+        ok_g = _verified(data, trial, eps) & candidate & ~chosen
         act = torch.where(ok_g.unsqueeze(-1), trial, act)
         chosen = chosen | ok_g
     act = torch.where(chosen.unsqueeze(-1), act, guesses[0] & candidate.unsqueeze(-1))
-    xp, zp, yp, solved = solve_active(P, q, G, h, A, b, act, POLISH_REFINE_STEPS)
+    xp, zp, yp, solved = solve_active(data, act, POLISH_REFINE_STEPS)
     ok = chosen & solved
     keep = ok.unsqueeze(-1)
     x = torch.where(keep, xp, x)
     z = torch.where(keep, zp.clamp_min(0.0), z)
     y = torch.where(keep, yp, y)
     status = torch.where(ok, int(Status.SOLVED), status)
-    exact = ok & kkt_point(P, q, G, h, A, b, xp, zp, yp)
+    exact = ok & kkt_point(data, xp, zp, yp)
     return x, z, y, status, act, ok, exact
 
 
 def solve_active(
-    P: Tensor,
-    q: Tensor,
-    G: Tensor,
-    h: Tensor,
-    A: Tensor,
-    b: Tensor,
+    data: QPData,
     act: Tensor,
     steps: int = REFINE_STEPS,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -256,6 +248,7 @@ def solve_active(
     ``n + max|act| + E``, not ``n + M + E``: a problem with thousands of rows and a handful
     active costs about what the active rows cost. Finding the largest active set is one
     host synchronisation."""
+    P, q, G, h, A, b = data
     n, M = q.shape[-1], h.shape[-1]
     counts = act.sum(-1)
     Ka = int(counts.max()) if act.numel() else 0
@@ -287,12 +280,7 @@ def scaled_violation(G: Tensor, h: Tensor, A: Tensor, b: Tensor, x: Tensor) -> T
 
 
 def kkt_point(
-    P: Tensor,
-    q: Tensor,
-    G: Tensor,
-    h: Tensor,
-    A: Tensor,
-    b: Tensor,
+    data: QPData,
     x: Tensor,
     z: Tensor,
     y: Tensor,
@@ -302,6 +290,7 @@ def kkt_point(
     multiplier tight, each row judged on its own scale (:func:`row_scale`), and stationary
     (:func:`stationarity_error`). A convex QP's KKT point is its minimiser, so this
     certifies an answer whatever method produced it."""
+    P, q, G, h, A, b = data
     rounding = 1e4 * torch.finfo(x.dtype).eps
     slack = (h - torch.einsum("bmn,bn->bm", G, x)) / row_scale(G, h, x).clamp_min(
         torch.finfo(x.dtype).tiny
@@ -318,12 +307,7 @@ def kkt_point(
 
 
 def kkt_residuals_ok(
-    P: Tensor,
-    q: Tensor,
-    G: Tensor,
-    h: Tensor,
-    A: Tensor,
-    b: Tensor,
+    data: QPData,
     x: Tensor,
     z: Tensor,
     y: Tensor,
@@ -335,6 +319,7 @@ def kkt_residuals_ok(
     terms, the interior point method's own test) and complementary (duality gap
     ``z'(h - Gx) + y'(b - Ax)`` at most ``eps`` of its terms). The test an outside solver's
     answer passes before it is reported solved; finite values only."""
+    P, q, G, h, A, b = data
     finite = torch.isfinite(x).all(-1) & torch.isfinite(z).all(-1) & torch.isfinite(y).all(-1)
     x, z, y = (torch.nan_to_num(t, nan=0.0, posinf=0.0, neginf=0.0) for t in (x, z, y))
     za = torch.cat((z, z.new_zeros(len(z), 1)), -1)
@@ -391,13 +376,12 @@ def stationarity_error(
     return (r.abs() / s.clamp_min(torch.finfo(x.dtype).tiny)).amax(-1)
 
 
-def _verified(
-    P: Tensor, q: Tensor, G: Tensor, h: Tensor, A: Tensor, b: Tensor, act: Tensor, eps: float
-) -> Tensor:
+def _verified(data: QPData, act: Tensor, eps: float) -> Tensor:
     """Rows whose equality-constrained solution on ``act`` is primal and dual feasible and
     stationary to ``eps``."""
+    P, q, G, h, A, b = data
     M = h.shape[-1]
-    xp, zp, yp, ok = solve_active(P, q, G, h, A, b, act)
+    xp, zp, yp, ok = solve_active(data, act)
     ok = ok & (stationarity_error(P, q, G, A, xp, zp, yp) <= eps)
     viol = torch.cat(
         (

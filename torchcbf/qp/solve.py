@@ -19,9 +19,11 @@ from torchcbf.qp._enum import (
     num_candidates,
 )
 from torchcbf.qp._function import (
+    ANSWERED_BY,
     QPFunction,
     SolverConfig,
     dual_applies,
+    method_code,
 )
 from torchcbf.qp._ipm import default_tolerances, not_positive_definite
 from torchcbf.qp.status import Status
@@ -39,13 +41,18 @@ class QPSolution(NamedTuple):
       the bound is infinite or absent), so that ``Qx + p + G'lam + A'nu - lam_lb + lam_ub = 0``.
     - ``slack [..., m]``: elastic violation ``t >= 0`` of each softened row (``Gx <= h + t``);
       zero for hard rows and when ``soft`` is not given.
-    - ``path``: what solved the batch (see :data:`PATHS`): ``"small_native"`` (a few small
-      problems in one call of the dual C kernel, :mod:`torchcbf.qp.realtime`),
-      ``"active_set_native"`` (the dual active set method in C), ``"active_set"``,
-      ``"enumerate"``, ``"closed_form"``, ``"ipm"`` (in torch), ``"proxsuite"``,
-      ``"qpsolvers:<solver>"``, or ``"empty"`` (no rows). Rows an exact method cannot
-      certify are solved again by the interior point method (their ``status`` says how that
-      ended).
+    - ``path``: the route the batch took (see :data:`PATHS`): ``"small_native"`` (a few
+      small problems in one call of the dual C kernel, :mod:`torchcbf.qp.realtime`),
+      ``"small_proxsuite"`` (a few problems straight to proxsuite's dense solver),
+      ``"active_set_native"`` (the dual active set method in C, equality rows eliminated
+      first where there are any), ``"active_set"``, ``"enumerate"``, ``"closed_form"``,
+      ``"ipm"`` (in torch), ``"auto_proxsuite"`` (proxsuite's dense solver, then the interior
+      point method), ``"proxsuite"``, ``"qpsolvers:<solver>"``, or ``"empty"`` (no rows).
+    - ``method [...]`` int64: the algorithm that answered each row, an index into
+      :data:`METHODS_ANSWERED` (``"closed_form"``, ``"active_set"``, ``"enumerate"``,
+      ``"ipm"``, ``"proxsuite"``, ``"qpsolvers"``): rows an exact method cannot certify are
+      solved again by another (enumeration for a few, else the interior point method), and
+      this says which one's answer and status the row holds.
     """
 
     x: Tensor
@@ -57,8 +64,17 @@ class QPSolution(NamedTuple):
     lam_ub: Tensor
     slack: Tensor
     path: str = "ipm"
+    method: Tensor | None = None
+
+    def method_names(self) -> list[str]:
+        """:attr:`method` as names, row-major over the batch shape."""
+        if self.method is None:
+            return []
+        return [METHODS_ANSWERED[i] for i in self.method.reshape(-1).tolist()]
 
 
+#: the names of :attr:`QPSolution.method`'s codes
+METHODS_ANSWERED = ANSWERED_BY
 #: the values of :attr:`QPSolution.path` (besides ``"qpsolvers:<solver>"``)
 PATHS = ("small_native", "small_proxsuite", "active_set_native", "active_set", "enumerate",
          "closed_form", "ipm", "auto_proxsuite", "proxsuite", "empty")  # fmt: skip
@@ -281,29 +297,26 @@ def solve_qp(
             inp.batch_shape,
         )  # fmt: skip
         if direct is not None:
-            return QPSolution(*direct, path="small_proxsuite")
+            return QPSolution(*direct, "small_proxsuite", _answered(inp, "proxsuite"))
     flat = _flatten(inp)
     std = _standard_form(flat, inp)
     cfg = _config(inp, std, backend, method, polish, max_iter, check_every, need_grad)
-    xs, z, y, status, iters = QPFunction.apply(
+    xs, z, y, status, iters, answered = QPFunction.apply(
         std.P, std.q, std.G, std.h, std.A, flat.b, cfg, std.x0
     )
-    return _unpack(inp, flat, std, xs, z, y, status, iters)._replace(path=_path(cfg, std.q))
+    sol = _unpack(inp, flat, std, xs, z, y, status, iters)
+    return sol._replace(path=_path(cfg, std.q), method=answered.reshape(inp.batch_shape))
 
 
 def _path(cfg: SolverConfig, q: Tensor) -> str:
     """:attr:`QPSolution.path` of a batch solved with ``cfg`` (linear terms ``q [B, N]``)."""
-    if cfg.backend != "torch":
+    if cfg.method == "outside":
         return cfg.backend
-    if cfg.closed_form:
-        return "closed_form"
-    if cfg.eliminate:  # the reduced problem goes to the C kernel
+    if cfg.method == "eliminate":  # the reduced problem goes to the C kernel
         return "active_set_native"
-    if cfg.active_set:
+    if cfg.method == "active_set":
         return "active_set_native" if _dual_native.applies(q.double()) else "active_set"
-    if cfg.enumerate:
-        return "enumerate"
-    return "auto_proxsuite" if cfg.route else "ipm"
+    return cfg.method
 
 
 _NAMES = ("Q", "p", "G", "h", "A", "b", "lb", "ub", "soft", "warm_start")
@@ -430,7 +443,13 @@ def _empty_solution(inp: _Inputs) -> QPSolution:
     given = [t for t in inp.given()[:9] if t is not None]
     link = sum((t.sum() for t in given if t.requires_grad), Q.new_zeros(())) * 0.0
     x, lam, nu, slack = (link + empty(k) for k in (n, m, me, m))
-    return QPSolution(x, none, lam, nu, none, link + empty(n), link + empty(n), slack, "empty")
+    return QPSolution(x, none, lam, nu, none, link + empty(n), link + empty(n), slack, "empty",
+                      none)  # fmt: skip
+
+
+def _answered(inp: _Inputs, name: str) -> Tensor:
+    """:attr:`QPSolution.method` of a batch that one method answered entirely."""
+    return torch.full(inp.batch_shape, method_code(name), dtype=torch.int64, device=inp.Q.device)
 
 
 def _rows(t: Tensor | None, inp: _Inputs, trailing: tuple[int, ...]) -> Tensor | None:
@@ -479,7 +498,9 @@ def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
         # a refusal, so the common call pays nothing for it
         free = torch.isposinf(h)
         sol = solve(torch.where(free.unsqueeze(-1), 0.0 * G, G), torch.where(free, 1.0, h))
-    return None if sol is None else QPSolution(*sol, path="small_native")
+    if sol is None:
+        return None
+    return QPSolution(*sol, "small_native", _answered(inp, "active_set"))
 
 
 def _solve_small_eliminated(inp: _Inputs, max_iter: int) -> QPSolution | None:
@@ -543,7 +564,7 @@ def _solve_small_eliminated(inp: _Inputs, max_iter: int) -> QPSolution | None:
     iters = iters if shape == lead else iters.reshape(shape)
     return QPSolution(
         out_(x), torch.zeros_like(iters), out_(z[..., :m]), out_(y), iters, out_(lam_lb),
-        out_(lam_ub), out_(np.zeros((*lead, m))), "small_native",
+        out_(lam_ub), out_(np.zeros((*lead, m))), "small_native", _answered(inp, "active_set"),
     )  # fmt: skip
 
 
@@ -743,60 +764,67 @@ def _config(
     check_every: int,
     need_grad: bool,
 ) -> SolverConfig:
-    """Pick the algorithm (see :func:`solve_qp`, ``method``) and collect the options."""
-    me, N, B = inp.me, std.N, inp.B
+    """Pick the entry of :data:`torchcbf.qp._function.SOLVERS` that solves the batch (see
+    :func:`solve_qp`, ``method``) and collect the options."""
+    me, N = inp.me, std.N
     M = std.G.shape[-2]
-    kernel = inp.Q.device.type == "cpu" and _dual_native.available()
-    one_row = inp.m == 1 and me == 0 and inp.lb is None and inp.ub is None and inp.soft is None
-    closed_form = backend == "torch" and one_row and not kernel
-    exact = backend == "torch" and not closed_form and M + me > 0
-    use_dual = exact and method == "active_set" and me == 0
-    use_enum = exact and method == "enumerate"
     C = num_candidates(M, me, N, std.pairs, cap=MAX_CANDIDATES_EXPLICIT) if me <= N else 0
-    if use_enum and C > MAX_CANDIDATES_EXPLICIT:
+    if method == "enumerate" and backend == "torch" and C > MAX_CANDIDATES_EXPLICIT:
         raise ValueError(
             f"method='enumerate' would try more than {MAX_CANDIDATES_EXPLICIT} candidate active "
             f"sets (N={N} variables, M={M} inequality rows incl. bounds, k={me} equalities); "
             "use method='auto', 'active_set' or 'ipm'"
         )
-    route = (
-        exact
-        and method == "auto"
-        and B <= ROUTE_MAX_BATCH
-        and _beyond_kernel(inp)
-        and inp.Q.device.type == "cpu"
-        and _proxsuite_available()
-    )
-    # equality rows eliminated where the reduced problem fits the dual method's C kernel
-    eliminate = exact and method == "auto" and kernel and 0 < me < N and dual_applies(N - me, True)
-    if exact and method == "auto":
-        dual = me == 0 and dual_applies(N, kernel)
-        if dual and kernel:
-            use_dual = True
-        elif route:
-            pass  # the interior point method's path, which routes to proxsuite first
-        elif B <= SMALL_BATCH and 0 < C <= MAX_CANDIDATES_SMALL_BATCH:
-            use_enum = True
-        elif dual:
-            use_dual = True
-        else:
-            use_enum = 0 < C <= MAX_CANDIDATES
+    chosen, fallback = _choose(inp, std, backend, method, C)
     return SolverConfig(
+        method=chosen,
         backend=backend,
         eps=inp.eps,
         eps_inf=inp.eps_inf,
         max_iter=max_iter,
         check_every=check_every,
-        closed_form=closed_form and method != "ipm",
         polish=backend == "torch" if polish is None else bool(polish),
-        enumerate=use_enum and me <= N,
-        active_set=use_dual,
+        fallback=fallback,
         pairs=std.pairs,
         need_factor=need_grad,
         rounding=torch.finfo(inp.Q.dtype).eps,
-        route=route,
-        eliminate=eliminate,
     )
+
+
+def _choose(inp: _Inputs, std: _Standard, backend: str, method: str, C: int) -> tuple[str, str]:
+    """``(method, fallback)``: the solver table's entry for the batch, and the one for the
+    rows ``"eliminate"`` cannot reduce (see :func:`solve_qp`, ``method``)."""
+    if backend != "torch":
+        return "outside", "ipm"
+    me, N, B = inp.me, std.N, inp.B
+    cpu = inp.Q.device.type == "cpu"
+    kernel = cpu and _dual_native.available()
+    one_row = inp.m == 1 and me == 0 and inp.lb is None and inp.ub is None and inp.soft is None
+    if one_row and not kernel:
+        return ("ipm" if method == "ipm" else "closed_form"), "ipm"
+    if std.G.shape[-2] + me == 0 or method == "ipm":
+        return "ipm", "ipm"
+    if method == "active_set":
+        return "active_set", "ipm"
+    if method == "enumerate":
+        return ("enumerate" if me <= N else "ipm"), "ipm"
+    # auto
+    if me == 0 and dual_applies(N, kernel) and kernel:
+        return "active_set", "ipm"
+    if B <= ROUTE_MAX_BATCH and _beyond_kernel(inp) and cpu and _proxsuite_available():
+        rest = "auto_proxsuite"
+    elif B <= SMALL_BATCH and 0 < C <= MAX_CANDIDATES_SMALL_BATCH:
+        rest = "enumerate"
+    elif me == 0 and dual_applies(N, kernel):
+        rest = "active_set"
+    elif 0 < C <= MAX_CANDIDATES:
+        rest = "enumerate"
+    else:
+        rest = "ipm"
+    # equality rows eliminated where the reduced problem fits the dual method's C kernel
+    if kernel and 0 < me < N and dual_applies(N - me, True):
+        return "eliminate", rest
+    return rest, "ipm"
 
 
 #: largest batch ``method="auto"`` routes to proxsuite's dense solver (see :func:`solve_qp`)
