@@ -3,15 +3,18 @@ import subprocess
 import sys
 
 import pytest
+import torch
 
-from torchcbf._compile import _trust_reported_isa
+from torchcbf._compile import Traced, _trust_reported_isa
 
 inductor = pytest.importorskip("torch._inductor.cpu_vec_isa")
 
 _PICK = """
 import sys
 from torch._inductor import cpu_vec_isa
-from torchcbf._compile import _trust_reported_isa
+import torch
+
+from torchcbf._compile import Traced, _trust_reported_isa
 if sys.argv[1] == "trust":
     with _trust_reported_isa():
         isa = cpu_vec_isa.pick_vec_isa()
@@ -43,3 +46,87 @@ def test_trusted_isa_matches_the_probed_one(tmp_path):
         for mode in ("probe", "trust")
     ]
     assert picked[0] == picked[1]
+
+
+class _Scaled(torch.nn.Module):
+    """A buffer, a plain number and a submodule, all read by ``forward``."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.register_buffer("w", torch.tensor([1.0, 2.0]))
+        self.gain = 3.0
+        self.inner = torch.nn.Linear(2, 2)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.gain * self.inner(x * self.w)
+
+
+def test_traced_reads_new_values_and_traces_again_for_what_it_baked_in():
+    mod = _Scaled().double()
+
+    def fn(x):
+        y = mod(x)
+        return y, torch.func.vmap(torch.func.jacrev(mod))(x).sum(-1)
+
+    traced = Traced(fn, [mod])
+    x = torch.randn(4, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+
+    def check(compiles: int) -> None:
+        for got, want in zip(traced(x), fn(x), strict=True):
+            torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+        assert traced.compiles == compiles
+
+    with torch.no_grad():
+        check(1)
+        mod.w.mul_(2.0)  # new values, in place: the same code
+        mod.inner.weight.add_(1.0)
+        check(1)
+        mod.gain = 0.5  # a plain number is baked in: traced again
+        check(2)
+        mod.inner = torch.nn.Linear(2, 2).double()  # a new submodule: traced again
+        check(3)
+        mod.gain = 3.0
+        mod.inner.bias.zero_()
+        x = x[:3]  # a new batch size
+        check(4)
+
+
+def test_traced_follows_a_dtype_change_and_a_copy():
+    import copy
+    import pickle
+
+    mod = _Scaled().double()
+    traced = Traced(lambda x: (mod(x),), [mod])
+    x = torch.ones(2, 2, dtype=torch.float64)
+    with torch.no_grad():
+        (got,) = traced(x)
+        torch.testing.assert_close(got, mod(x))
+        mod.float()  # .to() replaces the tensors: the same names are read
+        (got,) = traced(x.float())
+        assert got.dtype == torch.float32
+        torch.testing.assert_close(got, mod(x.float()))
+        assert traced.compiles == 2
+        holder = torch.nn.ModuleDict({"mod": mod})
+        holder.traced_call = Traced(holder.mod.forward, [holder])
+        twin = copy.deepcopy(holder)
+        twin.mod.w.fill_(-1.0)
+        (a,), (b,) = holder.traced_call(x.float()), twin.traced_call(x.float())
+        torch.testing.assert_close(b, twin.mod(x.float()))
+        assert not torch.equal(a, b)
+        loaded = pickle.loads(pickle.dumps(holder))
+        assert loaded.traced_call.compiles == 0  # compiled again where it is loaded
+        torch.testing.assert_close(loaded.traced_call(x.float())[0], a)
+
+
+def test_traced_raises_where_the_function_cannot_be_traced():
+    def branchy(x):
+        return (x * 2.0,) if bool(x.sum() > 0) else (x,)
+
+    with torch.no_grad(), pytest.raises(RuntimeError):
+        Traced(branchy, [])(torch.ones(2))
+
+
+def test_traced_refuses_a_tensor_it_cannot_lift():
+    w = torch.tensor([1.0, 2.0])
+    with torch.no_grad(), pytest.raises(AssertionError, match="FakeTensor"):
+        Traced(lambda x: (x * w,), [])(torch.ones(2))

@@ -119,6 +119,41 @@ def test_the_filter_takes_the_compiled_terms_outside_grad_mode_only() -> None:
     assert xg.grad is not None and torch.isfinite(xg.grad).all()
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
+@pytest.mark.parametrize("mode", ["vanilla", "stochastic"])
+def test_compile_true_traces_the_conditions_into_one_graph(
+    dtype: torch.dtype, mode: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    from torchcbf.barriers import QuadraticLyapunov
+
+    model = (Glider(sigma=0.3) if mode == "stochastic" else Glider()).to(dtype)
+    fns = [fn.to(dtype) for fn in _functions()]
+    clf = QuadraticLyapunov([4.0, 1.0]).to(dtype)
+    kw = {"u_min": -2.0, "u_max": 2.0, "alpha": 1.5}
+    traced = SafetyFilter(model, fns, [clf], mode, compile=True, **kw).to(dtype)
+    general = SafetyFilter(model, fns, [clf], mode, backend="torch", **kw).to(dtype)
+    gen = torch.Generator().manual_seed(1)
+    x = (torch.randn(6, 3, generator=gen, dtype=torch.float64) - 2.0).to(dtype)
+    u = torch.randn(6, 2, generator=gen, dtype=torch.float64).to(dtype)
+    t = torch.linspace(0.0, 1.0, 6, dtype=dtype)
+    tol = 1e-9 if dtype == torch.float64 else 1e-4
+    with torch.no_grad(), caplog.at_level(logging.INFO, logger="torchcbf"):
+        for rows in (slice(0, 1), slice(0, 6)):
+            a = traced(x[rows], u[rows], t[rows])
+            b = general(x[rows], u[rows], t[rows])
+            assert a.path.startswith("compiled/") and b.path.startswith("torch/")
+            torch.testing.assert_close(a.status, b.status)
+            for name in ("u", "h", "clf_value", "constraint_value"):
+                want = getattr(b, name)
+                torch.testing.assert_close(getattr(a, name), want, atol=tol, rtol=tol, msg=name)
+        fns[0].center.add_(0.25)  # a new value: the same graph reads it
+        general.barriers[0].center.add_(0.25)
+        a, b = traced(x, u, t), general(x, u, t)
+    assert not caplog.records  # traced: no fallback to torch.compile
+    torch.testing.assert_close(a.h, b.h, atol=tol, rtol=tol)
+    torch.testing.assert_close(a.u, b.u, atol=tol, rtol=tol)
+
+
 def test_new_constants_are_read_without_a_recompile() -> None:
     model = Unicycle().double()
     shape = SuperEllipse([2.0, 0.5], [0.6, 0.4]).double()
@@ -183,3 +218,25 @@ def test_a_compiled_filter_pickles_and_compiles_again_where_loaded() -> None:
         got = pickle.loads(pickle.dumps(filt))(x, u)
     assert got.path == want.path == "compiled/realtime"
     torch.testing.assert_close(got.u, want.u)
+
+
+def test_compile_true_falls_back_in_order_where_tracing_fails(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    from torchcbf.barriers import rectify
+    from torchcbf.dynamics import DoubleIntegrator
+
+    model = DoubleIntegrator(2).double()
+    hocbf = rectify(SuperEllipse([2.0, 0.5], [0.6, 0.4]).double(), model, form="high_order")
+    filt = SafetyFilter(model, [hocbf], compile=True).double()
+    general = SafetyFilter(model, [hocbf], backend="torch").double()
+    x = torch.tensor([[0.0, 0.3, 0.5, 0.1]], dtype=torch.float64)
+    u = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
+    with caplog.at_level(logging.INFO, logger="torchcbf"), torch.no_grad():
+        a, b = filt(x, u), filt(x, u)
+    messages = [r.getMessage() for r in caplog.records]
+    assert sum("cannot be traced" in m for m in messages) == 1
+    assert sum("cannot be compiled" in m for m in messages) == 1
+    assert a.path.startswith("torch/") and b.path.startswith("torch/")
+    with torch.no_grad():
+        torch.testing.assert_close(a.u, general(x, u).u, atol=1e-9, rtol=1e-9)

@@ -62,6 +62,13 @@ class CompiledLie:
         self.timed = any(fn.time_varying for fn in fns)
         self._call: Compiled | None = Compiled(self._terms, {"dynamic": False, **(options or {})})
 
+    def evaluate(self, x: Tensor, t: Tensor) -> tuple[LieTerms, list[int]]:
+        """The uncompiled function: ``(LieTerms, sizes)`` at ``x [B, n]``, ``t [B]``, for a
+        caller that compiles more around it (``vmap`` and ``jacrev``: no graph to ``x``)."""
+        sizes = [torch.atleast_1d(fn(x[0], t[0])).shape[-1] for fn in self.fns]
+        h, lfh, lgh, dhdt, dhdx, *trace = self._terms(x, t)
+        return LieTerms(h, lfh, lgh, dhdt, trace[0] if trace else None, dhdx), sizes
+
     def _values(self, x: Tensor, t: Tensor) -> Tensor:
         """``[K]`` outputs of all functions at one state ``x [n]``, time ``t []``."""
         return torch.cat([torch.atleast_1d(fn(x, t)) for fn in self.fns])

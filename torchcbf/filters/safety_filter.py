@@ -56,6 +56,7 @@ from torchcbf._checks import (
     check_last_dim,
     check_number,
 )
+from torchcbf._compile import Traced, logger
 from torchcbf.barriers import native
 from torchcbf.barriers.compiled import CompiledLie
 from torchcbf.barriers.lie import LieFunction, LieTerms, stacked_lie_derivatives
@@ -233,13 +234,19 @@ class SafetyFilter(nn.Module):
             its dual C kernel: ``qp_options={"method": "ipm"}`` or ``"enumerate"`` keeps it
             all in torch). :attr:`FilterOutput.path` says which answered.
         compile: ``True`` or a dict of ``torch.compile`` keyword arguments: outside grad
-            mode (``torch.no_grad()``, ``torch.inference_mode()``), the Lie terms of the
-            functions no C kernel evaluates (a user's own barriers and models) come from one
-            compiled call (:class:`torchcbf.barriers.compiled.CompiledLie`; path
-            ``compiled/...``), with ``lie_method="auto"``. The first call compiles
-            (seconds; again for a new batch size or dtype); where compiling fails it warns
-            and runs eager. In grad mode the autograd path answers, whose terms carry the
-            graph.
+            mode (``torch.no_grad()``, ``torch.inference_mode()``), with
+            ``lie_method="auto"``, the conditions of the functions no C kernel evaluates (a
+            user's own barriers and models) come from compiled code (path
+            ``compiled/...``). ``True``: the Lie terms, class-K functions and the mode's
+            conditions are traced into one graph, compiled by inductor with a C++ wrapper
+            (:class:`torchcbf._compile.Traced`: new values of states and constants reuse
+            it; a new batch size, dtype, plain-number attribute or submodule traces again);
+            where that fails, the Lie terms go through ``torch.compile``. A dict: the Lie
+            terms through ``torch.compile(**compile)``
+            (:class:`torchcbf.barriers.compiled.CompiledLie`). The first call compiles
+            (about a second with a warm compile cache, several with a cold one); where
+            compiling fails it warns and runs eager. In grad mode the autograd path answers,
+            whose terms carry the graph.
         qp_options: keyword arguments for :func:`torchcbf.qp.solve_qp`.
         check_relative_degree: at construction, evaluate ``L_g h`` of every barrier output on
             16 sample states (``N(0, 4 I)``, seeded) and raise ``ValueError`` if it vanishes
@@ -293,15 +300,18 @@ class SafetyFilter(nn.Module):
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         self.backend = backend
         self._compiled_lie: tuple[CompiledLie | None, CompiledLie | None] | None = None
+        self._traced: Traced | None = None
         if compile:
             if not isinstance(compile, (bool, dict)):
                 raise TypeError(f"compile must be a bool or a dict, got {type(compile).__name__}")
-            opts = compile if isinstance(compile, dict) else {}
+            opts = compile if isinstance(compile, dict) else None
             hess = self.condition.needs_hessian
             self._compiled_lie = tuple(
                 CompiledLie(list(fns), dynamics, hessian=hess, options=opts) if fns else None
                 for fns in (self.barriers, self.lyapunovs)
             )  # type: ignore[assignment]
+            if opts is None:
+                self._traced = Traced(self._compiled_conditions, [self])
         m = dynamics.control_dim
         self.alpha = _alphas("alpha", alpha, len(self.barriers))
         self.clf_rate = _alphas("clf_rate", clf_rate, len(self.lyapunovs))
@@ -536,6 +546,15 @@ class SafetyFilter(nn.Module):
         With ``prepare``, the CBF conditions may be a prepared native call (see
         :meth:`_native_cbf`), for the real-time path."""
         native_cbf = self._native_cbf(x, prepare)
+        if (
+            native_cbf is None
+            and self._traced is not None
+            and self.lie_method == "auto"
+            and not torch.is_grad_enabled()
+        ):
+            found = self._traced_conditions(x, t)
+            if found is not None:
+                return found
         compiled = self._compiled_lie or (None, None)
         if native_cbf:
             cbf_terms, cbf_sizes, cbf_from = None, [], "native"
@@ -557,6 +576,56 @@ class SafetyFilter(nn.Module):
             clf = tuple(self.condition.clf(clf_terms, rate, self.dynamics, x))
             V = clf_terms.h
         return cbf, clf, h, V, lie  # type: ignore[return-value]
+
+    def _compiled_conditions(self, x: Tensor, t: Tensor) -> tuple[Tensor, ...]:
+        """``(h, a, b)`` of the CBF rows, then ``(V, a, b)`` of the CLF rows (where there are
+        functions) from the compiled Lie terms' own function: what ``compile=True`` traces
+        into one graph (:class:`torchcbf._compile.Traced`)."""
+        assert self._compiled_lie is not None
+        out: list[Tensor] = []
+        parts = (
+            (self._compiled_lie[0], self.alpha, "alpha", self.condition.cbf),
+            (self._compiled_lie[1], self.clf_rate, "clf_rate", self.condition.clf),
+        )
+        for lie, gains, name, condition in parts:
+            if lie is None:
+                continue
+            terms, sizes = lie.evaluate(x, t)
+            k = lambda v, g=gains, s=sizes, n=name: self._class_k(g, v, s, n)  # noqa: E731
+            a, b = condition(terms, k, self.dynamics, x)
+            out += [terms.h, a, b]
+        return tuple(out)
+
+    def _traced_conditions(
+        self, x: Tensor, t: Tensor
+    ) -> tuple[Any, Any, Tensor, Tensor, str] | None:
+        """:meth:`_conditions` by one call of the traced graph (``None`` where it cannot be
+        traced: the Lie terms' own compiled call answers from then on)."""
+        assert self._traced is not None
+        try:
+            flat = iter(self._traced(x, t))
+        except Exception as err:  # noqa: BLE001 - torch.compile may still manage
+            logger.info(
+                "torchcbf: the filter's conditions cannot be traced into one graph (%s: %s); "
+                "torch.compile answers",
+                type(err).__name__,
+                str(err).splitlines()[0] if str(err) else "",
+            )
+            self._traced = None
+            return None
+        cbf = clf = None
+        h = V = x.new_zeros(x.shape[0], 0)
+        if self.barriers:
+            h, *cbf = next(flat), next(flat), next(flat)
+        if self.lyapunovs:
+            V, *clf = next(flat), next(flat), next(flat)
+        return (
+            None if cbf is None else tuple(cbf),
+            None if clf is None else tuple(clf),
+            h,
+            V,
+            "compiled",
+        )  # type: ignore[return-value]
 
     def _limit_tensors(self) -> tuple[Tensor | None, Tensor | None]:
         """The filter's own limits ``[m]``, else the dynamics' (``None``: no limit)."""
