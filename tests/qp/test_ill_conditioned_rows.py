@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchcbf.qp import Status, solve_qp
+from torchcbf.qp import Status, _dual_native, solve_qp
 from torchcbf.qp import _function as qp_function
 
 F64 = torch.float64
@@ -76,3 +76,62 @@ def test_hard_rows_in_float32_and_with_gradients(cvx):
         assert abs(float(fd) / (2 * step) - float(grad[i, j])) <= 1e-4 * (
             1 + abs(float(grad[i, j]))
         )
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_kernel_certification_agrees_with_the_torch_certification(cvx, monkeypatch, dtype):
+    """The C kernel certifies the hard rows of a float64 batch itself (the torch steps do not
+    run); its statuses equal those of the torch certification and both answers match
+    Clarabel."""
+    if not _dual_native.can_certify():
+        pytest.skip("the C kernel of the dual method was not built")
+    hard = (3, 17, 18, 40)
+    Q, p, G, h = (t.to(dtype) for t in _batch(48, 1e8, hard, seed=5))
+    torch_steps = qp_function._kkt.solve_active
+    with torch.no_grad():
+        monkeypatch.setattr(_dual_native, "can_certify", lambda: False)
+        ref = solve_qp(Q, p, G, h)
+        monkeypatch.undo()
+        if dtype == F64:
+            # in float32 such a P is singular to the inputs' rounding: the torch steps decide
+            # whether a point is a direction of unbounded descent
+            monkeypatch.setattr(qp_function._kkt, "solve_active", _no_interior_point)
+        monkeypatch.setattr(qp_function, "solve_ipm", _no_interior_point)
+        sol = solve_qp(Q, p, G, h)
+        monkeypatch.undo()
+    assert qp_function._kkt.solve_active is torch_steps
+    assert torch.equal(sol.status, ref.status)
+    assert bool((sol.status == Status.SOLVED).all())
+    assert sol.method_names() == ["active_set"] * 48
+    tol = 1e-6 if dtype == F64 else 2e-4
+    for i in hard:
+        Qi, pi, Gi, hi = (t[i].double().numpy() for t in (Q, p, G, h))
+        x_ref, _, status = cvx(Qi, pi, Gi, hi)
+        assert status == "optimal"
+        scale = 1 + np.abs(x_ref).max()
+        assert np.abs(sol.x[i].double().numpy() - x_ref).max() <= tol * scale
+        assert np.abs(ref.x[i].double().numpy() - x_ref).max() <= tol * scale
+
+
+def test_rows_the_kernel_leaves_take_the_torch_certification(monkeypatch):
+    """A row the kernel cannot certify (it returns uncertified) is certified by the torch
+    steps, with the answer it would have had without the kernel."""
+    if not _dual_native.can_certify():
+        pytest.skip("the C kernel of the dual method was not built")
+    Q, p, G, h = _batch(16, 1e9, (2, 9), seed=6)
+    real = _dual_native.certify
+
+    def leaves_row_9(*args, **kwargs):
+        x, z, done = real(*args, **kwargs)
+        done = done.clone()
+        done[9] = False
+        return x, z, done
+
+    with torch.no_grad():
+        monkeypatch.setattr(_dual_native, "can_certify", lambda: False)
+        ref = solve_qp(Q, p, G, h)
+        monkeypatch.undo()
+        monkeypatch.setattr(_dual_native, "certify", leaves_row_9)
+        sol = solve_qp(Q, p, G, h)
+    assert bool((sol.status == Status.SOLVED).all()) and torch.equal(sol.status, ref.status)
+    torch.testing.assert_close(sol.x[9], ref.x[9], atol=1e-12, rtol=1e-12)

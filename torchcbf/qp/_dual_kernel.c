@@ -700,3 +700,272 @@ int torchcbf_dual_tight_rows(int64_t B, int N, int M, const double *G, const dou
     }
     return 0;
 }
+
+/* ---- Certification of the rows the dual method leaves (torch reference:
+ * torchcbf.qp._function._certify_ill_conditioned, torchcbf.qp._kkt.solve_active and
+ * kkt_point). A row is certified where a point is a KKT point to rounding and no certificate
+ * of unboundedness can exist (P - tau I positive definite, or q'x >= 0). */
+
+#define CERT_ROUNDING (1e4 * 2.220446049250313e-16)
+#define CERT_REFINED (4.0 * 2.220446049250313e-16)
+#define CERT_TINY 2.2250738585072014e-308
+
+/* Whether (x, z) is a KKT point of the row's problem to rounding: no row violated and no
+ * row with a positive multiplier loose, each on its own scale |h_i| + max|G_i| (1 + max|x|),
+ * multipliers nonnegative and stationarity |Px + q + G'z| within rounding of its terms. */
+static int kkt_point_row(int N, int M, const double *P, const double *q, const double *G,
+                         const double *h, const double *x, const double *z) {
+    const double r = CERT_ROUNDING;
+    double xmax = 0.0, zmax = 0.0, zmin = 0.0, viol = 0.0;
+    for (int c = 0; c < N; ++c) {
+        if (!isfinite(x[c])) return 0;
+        xmax = dmax(xmax, fabs(x[c]));
+    }
+    for (int i = 0; i < M; ++i) {
+        if (!isfinite(z[i])) return 0;
+        zmax = dmax(zmax, fabs(z[i]));
+        zmin = dmin(zmin, z[i]);
+    }
+    zmax += 1.0;
+    if (!(zmin >= -r * zmax)) return 0;
+    for (int i = 0; i < M; ++i) {
+        const double *g = G + (size_t)i * N;
+        double gx = 0.0, gmax = 0.0;
+        for (int c = 0; c < N; ++c) {
+            gx += g[c] * x[c];
+            gmax = dmax(gmax, fabs(g[c]));
+        }
+        double scale = dmax(fabs(h[i]) + gmax * (1.0 + xmax), CERT_TINY);
+        double slack = (h[i] - gx) / scale;
+        viol = dmax(viol, -slack);
+        if (z[i] > r * zmax && slack > r) return 0;
+    }
+    if (!(viol <= r)) return 0;
+    double res[NMAX], terms[NMAX], smax = 0.0;
+    for (int c = 0; c < N; ++c) {
+        double s = q[c], t = fabs(q[c]);
+        for (int j = 0; j < N; ++j) {
+            s += P[c * N + j] * x[j];
+            t += fabs(P[c * N + j]) * fabs(x[j]);
+        }
+        res[c] = s, terms[c] = t;
+    }
+    for (int i = 0; i < M; ++i) {
+        if (z[i] == 0.0) continue;
+        const double *g = G + (size_t)i * N;
+        for (int c = 0; c < N; ++c) {
+            res[c] += g[c] * z[i];
+            terms[c] += fabs(g[c]) * fabs(z[i]);
+        }
+    }
+    for (int c = 0; c < N; ++c) smax = dmax(smax, terms[c]);
+    for (int c = 0; c < N; ++c) {
+        double s = dmax(terms[c] + r * smax, CERT_TINY);
+        if (!(fabs(res[c]) <= r * s)) return 0;
+    }
+    return 1;
+}
+
+/* LU factorisation with partial pivoting of A [n,n] in place; 0 on a zero or non-finite
+ * pivot. */
+static int lu_factor(int n, double *A, int *piv) {
+    for (int j = 0; j < n; ++j) {
+        int p = j;
+        double best = fabs(A[j * n + j]);
+        for (int i = j + 1; i < n; ++i)
+            if (fabs(A[i * n + j]) > best) best = fabs(A[i * n + j]), p = i;
+        if (!(best > 0.0) || !isfinite(best)) return 0;
+        piv[j] = p;
+        if (p != j)
+            for (int k = 0; k < n; ++k) {
+                double t = A[j * n + k];
+                A[j * n + k] = A[p * n + k], A[p * n + k] = t;
+            }
+        double inv = 1.0 / A[j * n + j];
+        for (int i = j + 1; i < n; ++i) {
+            double f = (A[i * n + j] *= inv);
+            if (f != 0.0)
+                for (int k = j + 1; k < n; ++k) A[i * n + k] -= f * A[j * n + k];
+        }
+    }
+    return 1;
+}
+
+static void lu_solve(int n, const double *LU, const int *piv, double *b) {
+    for (int j = 0; j < n; ++j)
+        if (piv[j] != j) {
+            double t = b[j];
+            b[j] = b[piv[j]], b[piv[j]] = t;
+        }
+    for (int i = 0; i < n; ++i) {
+        double s = b[i];
+        for (int k = 0; k < i; ++k) s -= LU[i * n + k] * b[k];
+        b[i] = s;
+    }
+    for (int i = n - 1; i >= 0; --i) {
+        double s = b[i];
+        for (int k = i + 1; k < n; ++k) s -= LU[i * n + k] * b[k];
+        b[i] = s / LU[i * n + i];
+    }
+}
+
+/* The solution with the rows act [M] held tight: x [N], z [M] (zero off act), the KKT
+ * system [[P, G_a'], [G_a, 0]] solved on its equilibrated, regularised factor with up to
+ * `steps` refinement steps on the system itself, as torchcbf.qp._kkt.solve_active. work
+ * holds 3 K^2 + 6 K doubles, K = N + |act| <= 2 N (more active rows: 0, not solved). */
+static int solve_active_row(int N, int M, const double *P, const double *q, const double *G,
+                            const double *h, const uint8_t *act, int steps, double *work,
+                            double *x, double *z) {
+    int rows[NMAX], k = 0;
+    for (int i = 0; i < M; ++i)
+        if (act[i]) {
+            if (k == N) return 0;
+            rows[k++] = i;
+        }
+    const int K = N + k;
+    double *Km = work, *LU = Km + K * K, *d = LU + K * K, *rhs = d + K, *w = rhs + K;
+    double *res = w + K, *step = res + K;
+    int *piv = (int *)(step + K);
+    memset(Km, 0, sizeof(double) * K * K);
+    for (int i = 0; i < N; ++i)
+        for (int j = 0; j < N; ++j) Km[i * K + j] = P[i * N + j];
+    for (int a = 0; a < k; ++a)
+        for (int c = 0; c < N; ++c) {
+            double g = G[(size_t)rows[a] * N + c];
+            Km[(N + a) * K + c] = g, Km[c * K + N + a] = g;
+        }
+    for (int i = 0; i < K; ++i) d[i] = 1.0;
+    for (int sweep = 0; sweep < 3; ++sweep) {
+        for (int i = 0; i < K; ++i) {
+            double row = 0.0;
+            for (int j = 0; j < K; ++j) row = dmax(row, fabs(d[i] * Km[i * K + j] * d[j]));
+            res[i] = row > 0.0 ? exp2(round(log2(1.0 / sqrt(row)))) : 1.0;
+        }
+        for (int i = 0; i < K; ++i) d[i] *= res[i];
+    }
+    double big = 1.0;
+    for (int i = 0; i < K; ++i)
+        for (int j = 0; j < K; ++j) {
+            double v = d[i] * Km[i * K + j] * d[j];
+            LU[i * K + j] = v;
+            big = dmax(big, fabs(v));
+        }
+    for (int i = 0; i < K; ++i) LU[i * K + i] += (i < N ? 1e-11 : -1e-11) * big;
+    if (!lu_factor(K, LU, piv)) return 0;
+    for (int c = 0; c < N; ++c) rhs[c] = -q[c];
+    for (int a = 0; a < k; ++a) rhs[N + a] = h[rows[a]];
+    for (int i = 0; i < K; ++i) w[i] = d[i] * rhs[i];
+    lu_solve(K, LU, piv, w);
+    for (int i = 0; i < K; ++i) w[i] *= d[i];
+    for (int s = 0; s < steps; ++s) {
+        for (int i = 0; i < K; ++i) {
+            double v = rhs[i];
+            for (int j = 0; j < K; ++j) v -= Km[i * K + j] * w[j];
+            step[i] = d[i] * v;
+        }
+        lu_solve(K, LU, piv, step);
+        double smax = 0.0, wmax = 0.0;
+        for (int i = 0; i < K; ++i) {
+            w[i] += (step[i] *= d[i]);
+            smax = dmax(smax, fabs(step[i]));
+        }
+        for (int i = 0; i < K; ++i) wmax = dmax(wmax, fabs(w[i]));
+        if (!(smax > CERT_REFINED * wmax)) break;
+    }
+    for (int i = 0; i < K; ++i)
+        if (!isfinite(w[i])) return 0;
+    memcpy(x, w, sizeof(double) * N);
+    memset(z, 0, sizeof(double) * M);
+    for (int a = 0; a < k; ++a) z[rows[a]] = dmax(w[N + a], 0.0);
+    return 1;
+}
+
+/* Whether a point x can stand: q'x >= 0, or P - tau I positive definite with tau = 2 N
+ * rounding max_i sum_j |P_ij| (no direction of unbounded descent can exist). Otherwise the
+ * caller's torch test decides (an eigendecomposition). */
+static int no_descent_direction(int N, const double *P, const double *q, const double *x,
+                                double rounding, double *L, double *Pt) {
+    double qx = 0.0, rowmax = 0.0, dinv[NMAX];
+    for (int c = 0; c < N; ++c) qx += q[c] * x[c];
+    if (qx >= 0.0) return 1;
+    for (int i = 0; i < N; ++i) {
+        double s = 0.0;
+        for (int j = 0; j < N; ++j) s += fabs(P[i * N + j]);
+        rowmax = dmax(rowmax, s);
+    }
+    double tau = 2.0 * N * rounding * rowmax;
+    memcpy(Pt, P, sizeof(double) * N * N);
+    for (int i = 0; i < N; ++i) Pt[i * N + i] -= tau;
+    return cholesky(N, Pt, L, dinv);
+}
+
+/* Rows [0, B) with todo[b]: certify the dual method's answer (x, z, active, converged
+ * conv[b]) as in torchcbf.qp._function._certify_ill_conditioned: the method's own point,
+ * then its active set, then the active sets of up to prox_steps proximal steps (the dual
+ * method on P + rho I, q - rho c, rho = prox_weight max_i P_ii, c the last step's point).
+ * x [B,N] and z [B,M] are overwritten on the rows certified (certified[b] = 1); rounding is
+ * the inputs' unit roundoff (the unboundedness test's threshold). Returns -1 when memory
+ * ran out or the sizes are invalid. */
+int torchcbf_dual_certify(int64_t B, int N, int M, const double *P, const double *q,
+                          const double *G, const double *h, const uint8_t *todo,
+                          const uint8_t *active, const uint8_t *conv, double eps, int max_iter,
+                          double prox_weight, int prox_steps, double rounding, double *x,
+                          double *z, uint8_t *certified) {
+    if (N < 1 || N > NMAX || M < 1) return -1;
+    const int K = 2 * N;
+    size_t need = (size_t)3 * K * K + 7 * K + 4 * (size_t)N * N + 2 * (size_t)N + 2 * (size_t)M;
+    double *work = malloc(sizeof(double) * need);
+    uint8_t *pact = malloc((size_t)M);
+    if (!work || !pact) {
+        free(work), free(pact);
+        return -1;
+    }
+    double *kkt = work, *Pr = kkt + 3 * K * K + 7 * K, *Lr = Pr + N * N, *Pt = Lr + N * N;
+    double *Lt = Pt + N * N, *xp = Lt + N * N, *center = xp + N, *zp = center + N;
+    double *zprox = zp + M;
+    int code = 0;
+    for (int64_t b = 0; b < B && code == 0; ++b) {
+        certified[b] = 0;
+        if (!todo[b]) continue;
+        const double *Pb = P + b * N * N, *qb = q + b * N, *Gb = G + b * M * N, *hb = h + b * M;
+        double *xb = x + b * N, *zb = z + b * M;
+        int good = 0;
+        if (conv[b]) {
+            if (kkt_point_row(N, M, Pb, qb, Gb, hb, xb, zb)) {
+                if (!no_descent_direction(N, Pb, qb, xb, rounding, Lt, Pt)) continue;
+                good = 1;
+            } else if (solve_active_row(N, M, Pb, qb, Gb, hb, active + b * M, 8, kkt, xp, zp) &&
+                       kkt_point_row(N, M, Pb, qb, Gb, hb, xp, zp)) {
+                if (!no_descent_direction(N, Pb, qb, xp, rounding, Lt, Pt)) continue;
+                memcpy(xb, xp, sizeof(double) * N), memcpy(zb, zp, sizeof(double) * M);
+                good = 1;
+            }
+        }
+        double rho = 0.0;
+        for (int c = 0; c < N; ++c) rho = dmax(rho, Pb[c * N + c]);
+        rho *= prox_weight;
+        memcpy(Pr, Pb, sizeof(double) * N * N);
+        for (int c = 0; c < N; ++c) Pr[c * N + c] += rho, center[c] = 0.0;
+        for (int s = 0; s < prox_steps && !good; ++s) {
+            double qr[NMAX], xr[NMAX];
+            int64_t slots[NMAX], iters;
+            uint8_t ok, infeasible;
+            for (int c = 0; c < N; ++c) qr[c] = qb[c] - rho * center[c];
+            if (torchcbf_dual_forward(1, N, M, Pr, qr, Gb, hb, eps, max_iter, xr, zprox, pact,
+                                      slots, Lr, &ok, &iters, &infeasible) != 0) {
+                code = -1;
+                break;
+            }
+            if (ok) memcpy(center, xr, sizeof(double) * N);
+            if (solve_active_row(N, M, Pb, qb, Gb, hb, pact, 8, kkt, xp, zp) &&
+                kkt_point_row(N, M, Pb, qb, Gb, hb, xp, zp)) {
+                if (!no_descent_direction(N, Pb, qb, xp, rounding, Lt, Pt)) break;
+                memcpy(xb, xp, sizeof(double) * N), memcpy(zb, zp, sizeof(double) * M);
+                good = 1;
+            }
+        }
+        certified[b] = (uint8_t)good;
+    }
+    free(work), free(pact);
+    return code;
+}

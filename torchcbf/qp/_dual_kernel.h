@@ -42,4 +42,9 @@ int torchcbf_dual_check_condition(int64_t B, int N, const double *L, double max_
 int torchcbf_dual_tight_rows(int64_t B, int N, int M, const double *G, const double *h,
                              const double *x, const uint8_t *solved, double tight,
                              uint8_t *active);
+int torchcbf_dual_certify(int64_t B, int N, int M, const double *P, const double *q,
+                          const double *G, const double *h, const uint8_t *todo,
+                          const uint8_t *active, const uint8_t *conv, double eps, int max_iter,
+                          double prox_weight, int prox_steps, double rounding, double *x,
+                          double *z, uint8_t *certified);
 #endif

@@ -42,6 +42,10 @@ _SMALL_ARGS = [_I64, _INT, _INT] + [_P] * 6 + [ctypes.c_double, _INT, ctypes.c_d
 _SMALL_ARGS += [_P] * 5
 _COND_ARGS = [_I64, _INT, _P, ctypes.c_double, _P]
 _TIGHT_ARGS = [_I64, _INT, _INT, _P, _P, _P, _P, ctypes.c_double, _P]
+# B, N, M; P, q, G, h, todo, active, conv; eps, max_iter, prox_weight, prox_steps, rounding;
+# x, z, certified
+_CERTIFY_ARGS = [_I64, _INT, _INT] + [_P] * 7 + [ctypes.c_double, _INT, ctypes.c_double, _INT]
+_CERTIFY_ARGS += [ctypes.c_double] + [_P] * 3
 
 
 @functools.lru_cache(maxsize=1)
@@ -60,6 +64,22 @@ def _library() -> ctypes.CDLL | None:
             "torchcbf_dual_tight_rows": _TIGHT_ARGS,
         },
     )
+
+
+@functools.lru_cache(maxsize=1)
+def _certify_function() -> Callable[..., int] | None:
+    """The kernel's certification of uncertified rows, or ``None`` where the built library
+    predates it (an editable install not rebuilt: the torch certification then runs)."""
+    lib = _library()
+    fn = None if lib is None else getattr(lib, "torchcbf_dual_certify", None)
+    if fn is not None:
+        fn.argtypes, fn.restype = _CERTIFY_ARGS, ctypes.c_int
+    return fn
+
+
+def can_certify() -> bool:
+    """Whether :func:`certify` runs (the kernel is built with it)."""
+    return _certify_function() is not None
 
 
 def available() -> bool:
@@ -173,3 +193,51 @@ def tight_rows(
     rows = [(G, M * N), (h, M), (x, N), (solved, 1), (out, M)]
     _run(lambda n, g, hh, xx, s, o: fn(n, N, M, g, hh, xx, s, tight, o), B, rows, M * N)
     return out
+
+
+def certify(
+    P: Tensor,
+    q: Tensor,
+    G: Tensor,
+    h: Tensor,
+    todo: Tensor,
+    x: Tensor,
+    z: Tensor,
+    active: Tensor,
+    converged: Tensor,
+    *,
+    eps: float,
+    max_iter: int,
+    prox_weight: float,
+    prox_steps: int,
+    rounding: float,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``(x [B,N], z [B,M], certified [B])``: the rows ``todo [B]`` the dual method left
+    (its answer ``x, z``, active set ``active [B,M]``, ``converged [B]``) certified as in
+    :func:`torchcbf.qp._function._certify_ill_conditioned` for ``P [B,N,N], q [B,N],
+    G [B,M,N], h [B,M]`` float64 on the CPU: the method's own point, the solution on its
+    active set, or on the active set of up to ``prox_steps`` proximal steps, kept where it
+    is a KKT point to rounding and ``P - tau I`` is positive definite or ``q'x >= 0`` (no
+    certificate of unboundedness can exist; ``rounding``: the inputs' unit roundoff). Rows
+    not certified keep ``x, z`` as given."""
+    B, N = q.shape
+    M = h.shape[-1]
+    _check_sizes(N, M)
+    fn = _certify_function()
+    if fn is None:
+        raise RuntimeError("torchcbf: the QP kernel was built without its certification")
+    P, q, G, h, todo, active, converged = (
+        t.contiguous() for t in (P, q, G, h, todo, active, converged)
+    )
+    x = x.clone(memory_format=torch.contiguous_format)
+    z = z.clone(memory_format=torch.contiguous_format)
+    certified = torch.zeros(B, dtype=torch.bool)
+    steps = min(max_iter, 2**31 - 1)
+    rows = [(P, N * N), (q, N), (G, M * N), (h, M), (todo, 1), (active, M), (converged, 1)]
+    outs = [(x, N), (z, M), (certified, 1)]
+
+    def call(n: int, *a: int) -> int:
+        return fn(n, N, M, *a[:7], eps, steps, prox_weight, prox_steps, rounding, *a[7:])
+
+    _run(call, B, rows + outs, N * N + M * N)
+    return x, z, certified

@@ -744,6 +744,24 @@ def _certify_ill_conditioned(
     rows = ~ok & ~res.infeasible
     if not bool(rows.any()):
         return res.x, res.z, rows
+    x, z = res.x, res.z
+    N, M, _ = data.sizes
+    steps = dual_budget(cfg.max_iter, M, N)
+    if isinstance(res.factor, NativeFactor) and _dual_native.can_certify():
+        # the same steps in the C kernel, on the whole batch (no gathers); the rows it leaves
+        # (a possible direction of unbounded descent, more active rows than variables) take
+        # the steps below
+        x, z, done = _dual_native.certify(
+            *data[:4], rows, x, z, res.active, res.ok, eps=cfg.eps, max_iter=steps,
+            prox_weight=PROX_WEIGHT, prox_steps=PROX_STEPS, rounding=cfg.rounding,
+        )  # fmt: skip
+        left = rows & ~done
+        if not bool(left.any()):
+            return x, z, done
+        res = res._replace(x=x, z=z)
+        rows, certified = left, done
+    else:
+        certified = torch.zeros_like(rows)
     idx = rows.nonzero().squeeze(-1)
     sub = data.rows(idx)
     xs, zs, guess, conv = (t.index_select(0, idx) for t in (res.x, res.z, res.active, res.ok))
@@ -755,8 +773,6 @@ def _certify_ill_conditioned(
     rho = PROX_WEIGHT * sub.P.diagonal(dim1=-2, dim2=-1).amax(-1)
     Pr = sub.P + torch.diag_embed(rho.unsqueeze(-1).expand_as(sub.q))
     center = torch.zeros_like(xs)
-    N, M, _ = data.sizes
-    steps = dual_budget(cfg.max_iter, M, N)
     for step in range(PROX_STEPS + 1):
         if bool(good.all()):
             break
@@ -776,7 +792,7 @@ def _certify_ill_conditioned(
         keep = new.unsqueeze(-1)
         xs, zs = torch.where(keep, xp, xs), torch.where(keep, zp, zs)
         good = good | new
-    return res.x.index_copy(0, idx, xs), res.z.index_copy(0, idx, zs), rows.index_copy(0, idx, good)
+    return x.index_copy(0, idx, xs), z.index_copy(0, idx, zs), certified.index_copy(0, idx, good)
 
 
 def _ipm_fallback(
