@@ -423,3 +423,61 @@ def test_a_changed_cost_is_read_again(change):
         a, b = fused(x), by_torch(x)
         assert fused.path == "fused" and by_torch.path == "rollout"
         torch.testing.assert_close(a.plan, b.plan, rtol=1e-9, atol=1e-9)
+
+
+def _reference_normals(key: int, k: int, j: int, i: int, H: int, m: int) -> float:
+    """The counter-based normal of sample ``k``, step ``j``, component ``i`` written out in
+    Python integers (docs/mppi.md, "Randomness")."""
+    mask = (1 << 64) - 1
+    pairs = (m + 1) // 2
+    c = (k * H + j) * pairs + i // 2
+    z = (key + (c + 1) * 0x9E3779B97F4A7C15) & mask
+    z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & mask
+    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & mask
+    h = z ^ (z >> 31)
+    u1 = ((h >> 33) + 0.5) * 2.0**-31
+    u2 = ((h >> 2) & 0x7FFFFFFF) * 2.0**-31
+    r, a = math.sqrt(-2.0 * math.log(u1)), 2.0 * math.pi * u2
+    return r * (math.cos(a) if i % 2 == 0 else math.sin(a))
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("layout", ["component", "sample"])
+@pytest.mark.parametrize("m", [1, 3])
+def test_normals_equal_the_written_out_generator(dtype, layout, m):
+    B, K, H = 2, 70, 3  # more samples than a block of lanes
+    keys = torch.tensor([12345, 2**62 + 7], dtype=torch.int64)
+    out = _rollout.rollout_buffer(torch.empty(0, dtype=dtype), B, K, H, m, layout)
+    _rollout.normals(keys, out, std=2.0)
+    picks = [(0, 0, 0, 0), (0, 69, 2, m - 1), (1, 64, 1, 0), (1, 5, 0, m - 1), (1, 33, 2, m // 2)]
+    got = torch.tensor([float(out[p]) for p in picks], dtype=torch.float64)
+    want = torch.tensor(
+        [2.0 * _reference_normals(int(keys[b]), k, j, i, H, m) for b, k, j, i in picks],
+        dtype=torch.float64,
+    )
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    torch.testing.assert_close(got, want, atol=tol, rtol=tol)
+    with pytest.raises(ValueError, match="keys must be int64"):
+        _rollout.normals(keys[:1], out)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("model", [SingleIntegrator(2, u_min=-1.0, u_max=1.0), Unicycle()])
+def test_torch_path_draws_the_kernels_noise(dtype, model):
+    """For one seed the torch path and the kernel paths give the same plans."""
+    goal = QuadraticGoal((2.0, 1.0), 1.0, (0, 1), 5.0)
+    x = _x0(model, 2, dtype)
+    plans = {}
+    for name, cost, backend in (
+        ("fused", goal, "auto"),
+        ("rollout", Capture(goal), "auto"),
+        ("torch", goal, "torch"),
+    ):
+        planner = MPPI(model, cost, 8, 200, 0.1, SIGMA, 0.5, 0.1, seed=3, backend=backend)
+        planner = planner.to(dtype)
+        outs = [planner(x), planner(x + 0.1)]
+        assert planner.path == name
+        plans[name] = torch.stack([o.plan for o in outs])
+    tol = 1e-10 if dtype == torch.float64 else 2e-5
+    torch.testing.assert_close(plans["torch"], plans["fused"], atol=tol, rtol=tol)
+    torch.testing.assert_close(plans["rollout"], plans["fused"], atol=tol, rtol=tol)

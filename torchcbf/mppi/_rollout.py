@@ -31,7 +31,7 @@ from torchcbf.barriers import LieFunction
 logger = logging.getLogger(__name__)
 
 #: ``KERNEL_VERSION`` of the C source this module calls
-KERNEL_VERSION = 4
+KERNEL_VERSION = 5
 #: the file name of the built kernel, without its extension suffix
 KERNEL_STEM = "_rollout_kernel"
 #: limits of the kernel (``NMAX``, ``MMAX``, ``DMAX``, ``TMAX``, ``SMAX`` in the C source)
@@ -50,6 +50,8 @@ INTEGRATOR_CODES = {"euler": 0, "rk4": 1}
 _P = ctypes.c_void_p
 _I64 = ctypes.c_int64
 _RUN_ARGS = [_P, _I64, _I64] + [_P] * 11 + [ctypes.c_int]
+# keys, b_lo, b_hi, k_lo, k_hi, H, m, std, out, and out's four strides (elements)
+_NORMALS_ARGS = [_P] + [_I64] * 6 + [ctypes.c_double, _P] + [_I64] * 4
 
 
 @functools.lru_cache(maxsize=1)
@@ -60,7 +62,12 @@ def _library() -> ctypes.CDLL | None:
         "torchcbf_mppi_version",
         KERNEL_VERSION,
         "MPPI runs in torch",
-        signatures={"torchcbf_mppi_run_f32": _RUN_ARGS, "torchcbf_mppi_run_f64": _RUN_ARGS},
+        signatures={
+            "torchcbf_mppi_run_f32": _RUN_ARGS,
+            "torchcbf_mppi_run_f64": _RUN_ARGS,
+            "torchcbf_mppi_normals_f32": _NORMALS_ARGS,
+            "torchcbf_mppi_normals_f64": _NORMALS_ARGS,
+        },
     )
 
 
@@ -418,6 +425,47 @@ def _expect(
         raise ValueError(f"{name} must be in component-major storage")
     if not by_component and not t.is_contiguous():
         raise ValueError(f"{name} must be contiguous")
+
+
+def normals(keys: Tensor, out: Tensor, *, std: float = 1.0) -> None:
+    """Fill ``out [B, K, H, m]`` (CPU, float32 or float64, any strides) with the kernel's
+    counter-based standard normals times ``std``, from ``keys [B]`` (int64): the noise the
+    kernel draws for those keys before the zero-noise samples, the covariance factor and
+    the limits are applied (module docstring). Threads split the samples."""
+    lib = _library()
+    if lib is None:
+        raise RuntimeError("torchcbf: the MPPI kernel was not built (no C compiler at install)")
+    if out.dim() != 4 or not 1 <= out.shape[-1] <= MAX_CONTROL:
+        raise ValueError(f"out must be [B, K, H, m] with m <= {MAX_CONTROL}, got {list(out.shape)}")
+    if out.dtype not in (torch.float32, torch.float64) or out.device.type != "cpu":
+        raise ValueError(
+            f"out must be a float32 or float64 CPU tensor, got {out.dtype} on {out.device}"
+        )
+    B, K, H, m = out.shape
+    keys = keys.contiguous()
+    if keys.dtype != torch.int64 or keys.shape != (B,) or keys.device.type != "cpu":
+        raise ValueError(
+            f"keys must be int64 [{B}] on the CPU, got {keys.dtype} {list(keys.shape)}"
+        )
+    fn = (
+        lib.torchcbf_mppi_normals_f64
+        if out.dtype == torch.float64
+        else lib.torchcbf_mppi_normals_f32
+    )
+    threads = update_threads(B * K)
+    bounds = [K * i // threads for i in range(threads + 1)]
+    args = (keys.data_ptr(), 0, B)
+    tail = (H, m, float(std), out.data_ptr(), *out.stride())
+
+    def call(i: int) -> int:
+        return fn(*args, bounds[i], bounds[i + 1], *tail)
+
+    if threads == 1:
+        codes = [call(0)]
+    else:
+        codes = list(thread_pool(threads, "torchcbf-mppi").map(call, range(threads)))
+    if any(codes):
+        raise RuntimeError(f"torchcbf: the MPPI kernel refused the noise call (code {codes})")
 
 
 def update_threads(count: int) -> int:

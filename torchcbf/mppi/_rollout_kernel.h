@@ -387,5 +387,56 @@ int SUFFIX(torchcbf_mppi_run)(const double *cfg, int64_t p_lo, int64_t p_hi,
     return 0;
 }
 
+/*
+ * The standard normals of the counter-based noise (the same as the block's, before the
+ * zero-noise samples are zeroed and the Cholesky factor is applied), times `std`, for
+ * environments [b_lo, b_hi) and samples [k_lo, k_hi): element (b, k, j, i) goes to
+ * out[b * sb + k * sk + j * sj + i * si]. Sample-contiguous outputs (sk = 1) vectorise.
+ */
+CLONES static void SUFFIX(normals_block)(uint64_t key, int64_t k0, int count, int H, int m,
+                                         REAL std, REAL *out, int64_t sk, int64_t sj,
+                                         int64_t si) {
+    const int P = (m + 1) / 2;
+    const uint64_t stride = (uint64_t)H * (uint64_t)P;
+    const REAL scale = (REAL)4.656612873077393e-10; /* 2^-31 */
+    const REAL two_pi = (REAL)6.283185307179586;
+    REAL R[LANES], A[LANES], z0[LANES], z1[LANES];
+    for (int j = 0; j < H; ++j) {
+        for (int q = 0; q < P; ++q) {
+            const uint64_t base = (uint64_t)j * (uint64_t)P + (uint64_t)q;
+            LOOP {
+                uint64_t h = mix64(key + (((uint64_t)k0 + l) * stride + base + 1) * GOLDEN);
+                REAL u1 = ((REAL)(int32_t)(h >> 33) + (REAL)0.5) * scale;
+                REAL u2 = (REAL)(int32_t)((h >> 2) & 0x7fffffffu) * scale;
+                R[l] = std * SQRT((REAL)-2 * LOG(u1));
+                A[l] = two_pi * u2;
+            }
+            LOOP z0[l] = R[l] * COS(A[l]);
+            LOOP z1[l] = R[l] * SIN(A[l]);
+            REAL *o0 = out + k0 * sk + j * sj + 2 * q * si;
+            for (int l = 0; l < count; ++l) o0[l * sk] = z0[l];
+            if (2 * q + 1 < m) {
+                REAL *o1 = o0 + si;
+                for (int l = 0; l < count; ++l) o1[l * sk] = z1[l];
+            }
+        }
+    }
+}
+
+int SUFFIX(torchcbf_mppi_normals)(const int64_t *keys, int64_t b_lo, int64_t b_hi,
+                                  int64_t k_lo, int64_t k_hi, int64_t H, int64_t m, double std,
+                                  REAL *out, int64_t sb, int64_t sk, int64_t sj, int64_t si) {
+    if (H < 1 || m < 1 || m > MMAX || k_lo < 0 || k_hi < k_lo || b_lo < 0 || b_hi < b_lo)
+        return -1;
+    for (int64_t b = b_lo; b < b_hi; ++b) {
+        for (int64_t k = k_lo; k < k_hi; k += LANES) {
+            const int count = k_hi - k < LANES ? (int)(k_hi - k) : LANES;
+            SUFFIX(normals_block)((uint64_t)keys[b], k, count, (int)H, (int)m, (REAL)std,
+                                  out + b * sb, sk, sj, si);
+        }
+    }
+    return 0;
+}
+
 #undef LOOP
 #undef INL
