@@ -1,7 +1,8 @@
 """Experiment: a risk-aware MPPI for scenario B worth choosing (tuning seeds only).
 
-Scenario B's ``mppi_rascbf`` filters MPPI with the risk-aware CBF on the rectified radius
-form ``h_i = L_f r_i + k r_i`` of the ellipses (``r_i = |q_i| - 1``). Its margin ``Delta_i``
+Scenario B's ``mppi_rascbf`` filters MPPI with the risk-aware CBF built on the radius form
+``r_i = |q_i| - 1`` of the ellipses, rectified as ``h_i = L_f r_i + k r_i`` (or the smooth
+minimum of that and ``k r_i``, ``--forms``). Its margin ``Delta_i``
 holds the robot, at rest, on ``r_i >= Delta_i / k``: the ellipse scaled by
 ``1 + Delta_i / k`` in its own coordinates, a berth as wide in ``r`` along the long axes as
 along the short ones, so in metres up to ``a_max / a_min`` (8 for the flat ellipse at
@@ -26,7 +27,14 @@ Variants (each on 32 tuning seeds from ``--seed``, never the evaluation seeds 0-
   taken over (3 m/s by default; its robots reach 6-7 m/s), and ``--inflations``: the
   scenario's ``risk_inflation``, metres added to every semi-axis of the ellipses the
   filter keeps the robot out of (a berth the same in every direction, where the radius
-  form's margin is proportional to the semi-axis).
+  form's margin is proportional to the semi-axis), ``--forms``: the scenario's
+  ``risk_form`` (``rectified``: ``L_f r_i + k r_i``; ``inside``: its smooth minimum with
+  ``k r_i``, a safe set inside the obstacle-free set), ``--temperatures``: that minimum's
+  ``risk_temperature``, ``--omega-weights``: the filter's QP weight on ``omega``, and
+``--rhos``: the risk level ``rho``.
+
+``--cost`` instead times the filters of ``mppi_scbf``, ``mppi_rascbf`` (both forms) and
+``shield_mppi`` on the same states, their closed loops, and counts filter calls per step.
 
 Per variant: collisions, goals reached, robots leaving the field ``[-2.5, 5] x [-2, 6.5]``,
 relaxed filter steps, and the risk-aware check (windows from ``h >= Delta`` that leave the
@@ -37,6 +45,8 @@ Usage::
     python scripts/risk_mppi_experiment.py                           # K = 1,000, seeds 10,000+
     python scripts/risk_mppi_experiment.py --variants margin+shield --horizons 0.1 --seed 10032
     python scripts/risk_mppi_experiment.py --variants baseline --inflations 0 0.1 --max-speeds 8
+    python scripts/risk_mppi_experiment.py --variants baseline --forms rectified inside
+    python scripts/risk_mppi_experiment.py --cost --samples 1000
 """
 
 from __future__ import annotations
@@ -55,6 +65,7 @@ from torchcbf.scenarios.unicycle_mppi_cbf import (
     AXES,
     CENTERS,
     GOAL,
+    RISK_FORMS,
     ROLLOUT_DT,
     SIGMA,
     mppi_cbf,
@@ -108,6 +119,10 @@ def build(
     speed: float | None = None,
     max_speed: float | None = None,
     inflation: float | None = None,
+    form: str | None = None,
+    temperature: float | None = None,
+    omega_weight: float | None = None,
+    rho: float | None = None,
 ):
     sc = mppi_cbf(
         "mppi_rascbf",
@@ -118,6 +133,10 @@ def build(
         rectify_gain=gain,
         risk_max_speed=max_speed,
         risk_inflation=inflation,
+        risk_form=form,
+        risk_temperature=temperature,
+        control_weight=None if omega_weight is None else (1.0, omega_weight),
+        rho=rho,
     )
     if speed is not None:
         sc = with_filter(sc, speed_limited(sc, speed))
@@ -141,6 +160,70 @@ def build(
     return replace(sc, planner=planner, safety_filter=safety_filter)
 
 
+def filter_cost(seeds: int, samples: int, repeat: int) -> None:
+    """Per-step cost of the filters of ``mppi_scbf``, ``mppi_rascbf`` (both forms) and
+    ``shield_mppi``, each method's whole closed loop (the planner included) and its filter
+    calls per control step. The filters are timed on the same inputs: the states and MPPI
+    controls of ``mppi_scbf``'s run at every tenth step (calls interleaved, after a
+    warm-up)."""
+    setups = {
+        "mppi_scbf": {"method": "mppi_scbf"},
+        "mppi_rascbf rectified": {"method": "mppi_rascbf", "risk_form": "rectified"},
+        "mppi_rascbf inside": {"method": "mppi_rascbf", "risk_form": "inside"},
+        "shield_mppi": {"method": "shield_mppi"},
+    }
+    loops: dict[str, tuple[float, float]] = {}
+    scenarios = {}
+    inputs: list[tuple[torch.Tensor, torch.Tensor]] = []
+    for name, kw in setups.items():
+        sc = mppi_cbf(seed=10_000, num_seeds=seeds, num_samples=samples, **kw)
+        flt = sc.safety_filter
+        target = flt.shield.safety_filter if hasattr(flt, "shield") else flt
+        calls = 0
+
+        def count(*_: object) -> None:
+            nonlocal calls
+            calls += 1
+
+        handle = target.register_forward_hook(count)
+        start = time.perf_counter()
+        traj, _ = sc.run(progress=False)
+        loops[name] = (time.perf_counter() - start, calls / sc.steps)
+        handle.remove()
+        scenarios[name] = sc
+        if not inputs:
+            inputs = [(traj.x[:, j], traj.u_nom[:, j]) for j in range(0, sc.steps, 10)]
+    times: dict[str, list[float]] = {name: [] for name in scenarios}
+    paths = {}
+    with torch.no_grad():
+        for name, sc in scenarios.items():
+            for x, u in inputs[:5]:
+                paths[name] = sc.safety_filter(x, u, 0.0).path
+        for _ in range(max(repeat // len(inputs), 1)):
+            for x, u in inputs:
+                for name, sc in scenarios.items():
+                    start = time.perf_counter()
+                    sc.safety_filter(x, u, 0.0)
+                    times[name].append(time.perf_counter() - start)
+    count_calls = len(times["mppi_scbf"])
+    print(f"filter call on {seeds} states of a run (median of {count_calls}, interleaved);")
+    print(f"closed loop of {seeds} seeds, K = {samples}, 500 steps; one torch thread")
+    print(
+        f"{'method':<24}{'path':<26}{'filter us':>10}{'ratio':>7}{'loop s':>8}{'ratio':>7}"
+        f"{'calls/step':>11}"
+    )
+    base_call, base_loop = None, None
+    for name in scenarios:
+        call = sorted(times[name])[len(times[name]) // 2] * 1e6
+        loop, per_step = loops[name]
+        base_call = base_call or call
+        base_loop = base_loop or loop
+        print(
+            f"{name:<24}{paths[name]:<26}{call:>10.0f}{call / base_call:>7.2f}{loop:>8.1f}"
+            f"{loop / base_loop:>7.2f}{per_step:>11.2f}"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seed", type=int, default=10_000)
@@ -152,24 +235,48 @@ def main() -> None:
     parser.add_argument("--speeds", nargs="+", type=float, default=[None])
     parser.add_argument("--max-speeds", nargs="+", type=float, default=[None])
     parser.add_argument("--inflations", nargs="+", type=float, default=[None])
+    parser.add_argument("--cost", action="store_true", help="time the filters and loops instead")
+    parser.add_argument("--repeat", type=int, default=200)
+    parser.add_argument("--forms", nargs="+", choices=RISK_FORMS, default=[None])
+    parser.add_argument("--temperatures", nargs="+", type=float, default=[None])
+    parser.add_argument("--omega-weights", nargs="+", type=float, default=[None])
+    parser.add_argument("--rhos", nargs="+", type=float, default=[None])
     args = parser.parse_args()
     if args.seed < 10_000:
         parser.error("tune on seeds >= 10,000 (0-31 are the evaluation seeds)")
     torch.set_num_threads(1)
+    if args.cost:
+        filter_cost(args.seeds, args.samples, args.repeat)
+        return
     print(f"seeds {args.seed}..{args.seed + args.seeds - 1}, K = {args.samples}")
     print(
-        f"{'variant':<15}{'speed':>6}{'vmax':>5}{'infl':>5}{'k':>5}{'T s':>6}{'collide':>8}"
+        f"{'rho':>5}{'R_w':>6} {'form':<10}{'temp':>5}  {'variant':<15}{'speed':>6}{'vmax':>5}"
+        f"{'infl':>5}{'k':>5}{'T s':>6}{'collide':>8}"
         f"{'goal':>6}{'leave':>6}{'relaxed':>8}{'windows':>9}{'fail':>6}{'rate':>8}"
         f"{'v top':>6}{'wall s':>8}  colliding seeds"
     )
     grid = itertools.product(
-        args.inflations, args.max_speeds, args.speeds, args.gains, args.horizons, args.variants
+        args.rhos,
+        args.omega_weights,
+        args.forms,
+        args.temperatures,
+        args.inflations,
+        args.max_speeds,
+        args.speeds,
+        args.gains,
+        args.horizons,
+        args.variants,
     )
-    for inflation, max_speed, speed, gain, horizon, variant in grid:
+    for options in grid:
+        rho, omega_weight, form, temperature, inflation, max_speed, speed, gain, horizon = options[
+            :-1
+        ]
+        variant = options[-1]
         start = time.perf_counter()
         sc = build(
-            variant, args.seed, args.seeds, args.samples, horizon, gain, speed, max_speed, inflation
-        )
+            variant, args.seed, args.seeds, args.samples, horizon, gain, speed, max_speed,
+            inflation, form, temperature, omega_weight, rho,
+        )  # fmt: skip
         traj, m = sc.run(progress=False)
         x = traj.x
         (x0, x1), (y0, y1) = FIELD
@@ -178,6 +285,9 @@ def main() -> None:
         fails = int(m["risk_window_failures"].sum())
         colliding = (torch.nonzero(m["collision"]).flatten() + args.seed).tolist()
         print(
+            f"{sc.params['rho']:>5g}{sc.params['control_weight'][1]:>6g} "
+            f"{sc.params['risk_form']:<10}"
+            f"{sc.params['risk_temperature']:>5g}  "
             f"{variant:<15}{'-' if speed is None else f'{speed:g}':>6}"
             f"{sc.params['risk_max_speed']:>5g}{sc.params['risk_inflation']:>5g}"
             f"{sc.params['rectify_gain']:>5.0f}"

@@ -57,6 +57,7 @@ def test_risk_filter_noise_bound_covers_its_speeds_on_the_inflated_ellipses() ->
         dtype=torch.float64,
         risk_inflation=m,
         risk_max_speed=v_max,
+        risk_form="rectified",
     )
     p = sc.params
     assert p["risk_inflation"] == m and p["risk_max_speed"] == v_max
@@ -81,3 +82,36 @@ def test_risk_filter_noise_bound_covers_its_speeds_on_the_inflated_ellipses() ->
     for name, bad in (("risk_inflation", -0.1), ("risk_max_speed", 0.0)):
         with pytest.raises(ValueError, match=name):
             mppi_cbf("mppi_rascbf", num_seeds=1, num_samples=8, horizon=4, **{name: bad})
+
+
+def test_inside_form_lies_inside_the_obstacle_free_set() -> None:
+    """The inside form is the smooth minimum of the rectified form and k r_i: at most k r_i
+    (so negative in every ellipse, whatever the velocity), -tau log 2 on the boundary at
+    rest, and within tau log 2 of the rectified form where that is the smaller by far."""
+    tau, k = 0.5, 20.0
+    kw = {"num_seeds": 1, "num_samples": 8, "horizon": 4, "dtype": torch.float64}
+    inside = mppi_cbf("mppi_rascbf", risk_form="inside", risk_temperature=tau, **kw)
+    rectified = mppi_cbf("mppi_rascbf", risk_form="rectified", **kw)
+    assert inside.params["risk_form"] == "inside" and inside.params["risk_temperature"] == tau
+    assert inside.safety_filter.barriers[0].has_analytic
+    (h_in,) = inside.safety_filter.barriers
+    (h_re,) = rectified.safety_filter.barriers
+    gen = torch.Generator().manual_seed(7)
+    lo = torch.tensor([-2.5, -2.0, -0.5, -math.pi], dtype=torch.float64)
+    hi = torch.tensor([5.0, 6.5, 8.0, math.pi], dtype=torch.float64)
+    x = lo + (hi - lo) * torch.rand(4000, 4, generator=gen, dtype=torch.float64)
+    r = torch.sqrt(obstacles().double()(x) + 1) - 1
+    hi_, hr = h_in(x), h_re(x)
+    assert bool((hi_ <= k * r + 1e-9).all()) and bool((hi_ <= hr + 1e-9).all())
+    collided = r < 0
+    assert bool(collided.any()) and bool((hr[collided] > 0).any())  # the rectified form: not
+    assert bool((hi_[collided] < 0).all())
+    far = (k * r - hr) > 20 * tau
+    torch.testing.assert_close(hi_[far], hr[far], atol=tau * math.log(2) + 1e-9, rtol=0)
+    (cx, cy), (a1, _) = CENTERS[0], AXES[0]
+    at_rest = torch.tensor([[cx - a1, cy, 0.0, 0.0]], dtype=torch.float64)
+    assert float(h_in(at_rest)[0, 0]) == pytest.approx(-tau * math.log(2), abs=1e-5)
+    with pytest.raises(ValueError, match="risk_form"):
+        mppi_cbf("mppi_rascbf", risk_form="box", **kw)
+    with pytest.raises(ValueError, match="risk_temperature"):
+        mppi_cbf("mppi_rascbf", risk_temperature=0.0, **kw)

@@ -253,7 +253,11 @@ class _Reduction(Barrier):
     mode: Mode
 
     def __init__(
-        self, *barriers: LieFunction, smooth: bool = False, temperature: float = 0.1
+        self,
+        *barriers: LieFunction,
+        smooth: bool = False,
+        temperature: float = 0.1,
+        elementwise: bool = False,
     ) -> None:
         super().__init__()
         if not barriers:
@@ -264,28 +268,75 @@ class _Reduction(Barrier):
         self.time_varying = self.stack.time_varying
         self.smooth = bool(smooth)
         self.temperature = float(temperature)
+        self.elementwise = bool(elementwise)
+
+    def _columns(self, values: list[Tensor], x: Tensor) -> tuple[Tensor, bool]:
+        """The children's values ``[..., k_i]`` as one tensor ``[..., c]`` (``[..., k, c]``
+        when elementwise), and whether every child is scalar (elementwise output ``[...]``)."""
+        cols = [_as_columns(v, x) for v in values]
+        if not self.elementwise:
+            return torch.cat(cols, -1), False
+        counts = [c.shape[-1] for c in cols]
+        if len(set(counts)) != 1:
+            raise ValueError(
+                f"{type(self).__name__}(elementwise=True) needs barriers with one output count, "
+                f"got {counts}"
+            )
+        return torch.stack(cols, -1), all(v.shape == x.shape[:-1] for v in values)
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
-        """``x [..., n] -> h [...]``."""
-        return reduce(self.stack(x, t), self.mode, self.smooth, self.temperature)
+        """``x [..., n] -> h [...]`` (elementwise: ``[..., k]``, or ``[...]`` for scalar
+        barriers)."""
+        if not self.elementwise:
+            return reduce(self.stack(x, t), self.mode, self.smooth, self.temperature)
+        values, scalar = self._columns([b(x, t) for b in self.stack.barriers], x)
+        h = reduce(values, self.mode, self.smooth, self.temperature)
+        return h.squeeze(-1) if scalar else h
 
     @property
     def has_analytic(self) -> bool:
         return self.stack.has_analytic
 
     def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
-        d = self.stack.derivatives(x, t)
-        return combine(d.h, d.dhdx, d.dhdt, d.hess_quad, self.mode, self.smooth, self.temperature)
+        if not self.elementwise:
+            d = self.stack.derivatives(x, t)
+            return combine(
+                d.h, d.dhdx, d.dhdt, d.hess_quad, self.mode, self.smooth, self.temperature
+            )
+        parts = [b.derivatives(x, t) for b in self.stack.barriers]
+        h, scalar = self._columns([p.h for p in parts], x)  # [..., k, c]
+        dhdx = torch.stack([gradient_rows(p, x)[1] for p in parts], -2)  # [..., k, c, n]
+        dhdt = self._columns([p.dhdt for p in parts], x)[0]
+
+        def columns_quad(s: Tensor) -> Tensor:  # s [..., 1, n, q] from the reduction
+            return self._columns([p.hess_quad(s.squeeze(-3)) for p in parts], x)[0]
+
+        d = combine(h, dhdx, dhdt, columns_quad, self.mode, self.smooth, self.temperature)
+        reduced_quad = d.hess_quad
+
+        def quad(s: Tensor) -> Tensor:
+            out = reduced_quad(s.unsqueeze(-3))
+            return out.squeeze(-1) if scalar else out
+
+        if scalar:
+            return AnalyticDerivatives(
+                d.h.squeeze(-1), d.dhdx.squeeze(-2), d.dhdt.squeeze(-1), quad
+            )
+        return AnalyticDerivatives(d.h, d.dhdx, d.dhdt, quad)
 
     def extra_repr(self) -> str:
-        return f"smooth={self.smooth}, temperature={self.temperature}"
+        return f"smooth={self.smooth}, temperature={self.temperature}" + (
+            ", elementwise=True" if self.elementwise else ""
+        )
 
 
 class Intersection(_Reduction):
     """Safe where every barrier is: ``h = min_i h_i`` (hard, default) or the smooth
     under-approximation ``h = -T logsumexp(-h_i / T)`` (``smooth=True``, ``temperature=T``),
     which is ``<= min_i h_i`` so its safe set lies inside the intersection.
-    Multi-output children contribute every output."""
+    Multi-output children contribute every output to one minimum; with
+    ``elementwise=True`` children with ``k`` outputs each give ``k`` outputs, output ``j``
+    the minimum of the children's outputs ``j`` (``k`` intersections at once)."""
 
     mode: Mode = "min"
 
@@ -293,6 +344,7 @@ class Intersection(_Reduction):
 class Union(_Reduction):
     """Safe where any barrier is: ``h = max_i h_i`` (hard) or ``T logsumexp(h_i / T)``
     (``smooth=True``; ``>= max_i h_i``, so the smooth safe set slightly over-approximates the
-    union by at most ``T log(c)`` in ``h``)."""
+    union by at most ``T log(c)`` in ``h``). ``elementwise=True`` as for
+    :class:`Intersection`."""
 
     mode: Mode = "max"

@@ -7,7 +7,8 @@ Methods (:data:`METHODS`), each run over a batch of noise seeds:
 - ``"mppi"``: MPPI alone;
 - ``"mppi_scbf"``: MPPI whose control is filtered by the stochastic CBF-QP;
 - ``"mppi_rascbf"``: MPPI filtered by the risk-aware stochastic CBF (probability ``rho`` of
-  leaving the rectified safe set within the horizon ``T``);
+  leaving its safe set within the horizon ``T``; in the default configuration a safe set
+  inside the obstacle-free set, ``risk_form="inside"``);
 - ``"shield_mppi"``: a barrier-aware MPPI (:class:`~torchcbf.mppi.ShieldMPPI`): its rollouts
   pay a steep penalty for breaking the discrete-time CBF condition of the obstacles over
   their first ``shield_steps`` steps, and
@@ -52,7 +53,7 @@ import torch
 from torch import Tensor
 
 from torchcbf._checks import check_number, check_positive_int
-from torchcbf.barriers import Barrier, Ellipse, Scaled, Transformed, rectify
+from torchcbf.barriers import Barrier, Ellipse, Intersection, Scaled, Transformed, rectify
 from torchcbf.dynamics import AccelUnicycle
 from torchcbf.filters import FilterStatus, RiskAware, SafetyFilter, Stochastic
 from torchcbf.filters.risk import noise_bound
@@ -65,6 +66,7 @@ from torchcbf.sim import Goal, Trajectory
 
 METHODS = ("scbf", "mppi", "mppi_scbf", "mppi_rascbf", "shield_mppi")
 CONFIGS = ("default", "paper", "cbfkit")
+RISK_FORMS = ("rectified", "inside")
 GOAL = (2.0, 4.0)
 CENTERS = ((1.0, 2.0), (3.0, 2.0), (2.0, 5.0), (-1.0, 1.0), (0.5, -1.0))
 AXES = ((0.5, 1.5), (0.75, 2.0), (2.0, 0.25), (1.0, 0.75), (0.75, 0.5))
@@ -109,6 +111,13 @@ class FilterParams:
             noise bound ``eta`` is taken over (:func:`operating_states`); the bound holds
             only while the robot is no faster (8 m/s in the default configuration, 3 m/s in
             the others).
+        risk_form: risk-aware method: its barriers, from the radius form ``r_i`` of the
+            ellipses: ``"rectified"``, ``h_i = L_f r_i + k r_i``, or ``"inside"``, the smooth
+            minimum ``-tau log(exp(-(L_f r_i + k r_i) / tau) + exp(-k r_i / tau))`` of that
+            and ``k r_i``, which is ``<= k r_i``: its safe set lies inside the obstacle-free
+            set, so a collision leaves it (the rectified form is positive inside an ellipse
+            for a robot moving outwards).
+        risk_temperature: ``tau`` of the ``"inside"`` form.
         shield_weight: weight of the shield's discrete-time CBF penalty.
         shield_steps: rollout steps the shield's penalty covers (``None`` or at least the
             horizon: all of them; 10 by the sweep of docs/scenarios.md).
@@ -127,6 +136,8 @@ class FilterParams:
     risk_horizon: float | None = None
     risk_inflation: float = 0.0
     risk_max_speed: float = 3.0
+    risk_form: str = "rectified"
+    risk_temperature: float = 0.5
     shield_weight: float = 1e3
     shield_steps: int | None = 10
 
@@ -135,8 +146,9 @@ CONFIG_PARAMS: dict[str, FilterParams] = {
     # T = 0.1 s: the chosen horizon (0.21 s) made the risk margin a berth that sent robots
     # around the outside of the field; eta over speeds up to 8 m/s: the robots reach 6-7 m/s,
     # and a bound taken up to 3 m/s left the filter's margin short at those speeds
-    # (scripts/risk_mppi_experiment.py, tuning seeds only)
-    "default": FilterParams(risk_horizon=0.1, risk_max_speed=8.0),
+    # (scripts/risk_mppi_experiment.py, tuning seeds only); the "inside" form: a collision
+    # leaves the filter's safe set (the rectified form stays positive for a robot moving out)
+    "default": FilterParams(risk_horizon=0.1, risk_max_speed=8.0, risk_form="inside"),
     "paper": FilterParams(
         alpha=1.0,
         beta=1.0,
@@ -187,9 +199,9 @@ class MppiCbfParams:
         planner_every: replan every this many loop steps (2: once per rollout step of
             0.02 s); between replans the loop follows the plan.
         alpha, beta, rectify_gain, margin, goal_wall_margin, blocking_margin, control_weight,
-            control_limit, rho, risk_horizon, risk_inflation, risk_max_speed, shield_weight,
-            shield_steps: override the configuration's value (:class:`FilterParams`;
-            ``None``: the configuration's).
+            control_limit, rho, risk_horizon, risk_inflation, risk_max_speed, risk_form,
+            risk_temperature, shield_weight, shield_steps: override the configuration's value
+            (:class:`FilterParams`; ``None``: the configuration's).
         barrier_scale: the scales ``c_i`` of the exponential form (one number or five),
             overriding the ones ``margin`` sets.
         noise_sigma, cost_normalization, zero_noise_samples, shift_fill: MPPI's (the noise
@@ -214,6 +226,8 @@ class MppiCbfParams:
     risk_horizon: float | None = None
     risk_inflation: float | None = None
     risk_max_speed: float | None = None
+    risk_form: str | None = None
+    risk_temperature: float | None = None
     shield_weight: float | None = None
     shield_steps: int | None = None
     noise_sigma: float = 4.0
@@ -264,6 +278,7 @@ def build(
     control_weight, control_limit, rho = p.control_weight, p.control_limit, p.rho
     risk_horizon, shield_weight, shield_steps = p.risk_horizon, p.shield_weight, p.shield_steps
     risk_inflation, risk_max_speed = p.risk_inflation, p.risk_max_speed
+    risk_form, risk_temperature = p.risk_form, p.risk_temperature
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if config not in CONFIGS:
@@ -278,6 +293,7 @@ def build(
         "rho": rho,
         "risk_horizon": risk_horizon,
         "risk_max_speed": risk_max_speed,
+        "risk_temperature": risk_temperature,
         "shield_weight": shield_weight,
     }
     params = CONFIG_PARAMS[config]
@@ -289,6 +305,10 @@ def build(
         params = replace(
             params, risk_inflation=check_number("risk_inflation", risk_inflation, low=0.0)
         )
+    if risk_form is not None:
+        if risk_form not in RISK_FORMS:
+            raise ValueError(f"risk_form must be one of {RISK_FORMS}, got {risk_form!r}")
+        params = replace(params, risk_form=risk_form)
     if shield_steps is not None:
         params = replace(params, shield_steps=check_positive_int("shield_steps", shield_steps))
     check_positive_int("planner_every", planner_every)
@@ -504,13 +524,21 @@ def _risk_aware_filter(
     plant: AccelUnicycle, model: AccelUnicycle, params: FilterParams
 ) -> tuple[SafetyFilter, dict[str, Any]]:
     """The risk-aware filter on ``h_i = L_f r_i + k r_i`` with ``r_i`` the ellipse radius
-    form (bounded gradient); ``eta_i`` over :func:`operating_states`, ``T`` by
-    :func:`risk_horizon`."""
+    form (bounded gradient), or on its smooth minimum with ``k r_i`` (``risk_form``);
+    ``eta_i`` over :func:`operating_states`, ``T`` by :func:`risk_horizon`."""
     k = params.rectify_gain
     f64 = copy.deepcopy(plant).double()
     # |q| - 1: a bounded gradient
     radius = Transformed(obstacles(inflation=params.risk_inflation), "radius")
     barrier = rectify(radius, model, form="exponential", gains=[k])
+    if params.risk_form == "inside":
+        barrier = Intersection(
+            barrier,
+            Scaled(radius, k),
+            smooth=True,
+            temperature=params.risk_temperature,
+            elementwise=True,
+        )
     barrier64 = copy.deepcopy(barrier).double()
     x0 = torch.tensor(X0, dtype=torch.float64)
     with torch.enable_grad():
@@ -604,7 +632,7 @@ ENTRY = register(
         ),
         figures=figures,
         variant="method",
-        choices={"method": METHODS, "config": CONFIGS},
+        choices={"method": METHODS, "config": CONFIGS, "risk_form": RISK_FORMS},
         options={"samples": "num_samples", "horizon": "horizon", "config": "config"},
         units={
             "min_h": "ellipse value b_i (dimensionless; < 0 inside)",
