@@ -111,6 +111,8 @@ def test_inside_form_lies_inside_the_obstacle_free_set() -> None:
     (cx, cy), (a1, _) = CENTERS[0], AXES[0]
     at_rest = torch.tensor([[cx - a1, cy, 0.0, 0.0]], dtype=torch.float64)
     assert float(h_in(at_rest)[0, 0]) == pytest.approx(-tau * math.log(2), abs=1e-5)
+    assert mppi_cbf("mppi_rascbf", risk_form=None, **kw).params["risk_form"] == "inside"
+    assert mppi_cbf("mppi_rascbf", config="paper", **kw).params["risk_form"] == "rectified"
     with pytest.raises(ValueError, match="risk_form"):
         mppi_cbf("mppi_rascbf", risk_form="box", **kw)
     with pytest.raises(ValueError, match="risk_temperature"):

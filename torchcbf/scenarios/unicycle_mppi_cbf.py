@@ -632,7 +632,7 @@ ENTRY = register(
         ),
         figures=figures,
         variant="method",
-        choices={"method": METHODS, "config": CONFIGS, "risk_form": RISK_FORMS},
+        choices={"method": METHODS, "config": CONFIGS},
         options={"samples": "num_samples", "horizon": "horizon", "config": "config"},
         units={
             "min_h": "ellipse value b_i (dimensionless; < 0 inside)",
