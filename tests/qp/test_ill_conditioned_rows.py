@@ -5,6 +5,8 @@ iterations; answers against Clarabel, alone and in the batch."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -135,3 +137,45 @@ def test_rows_the_kernel_leaves_take_the_torch_certification(monkeypatch):
         sol = solve_qp(Q, p, G, h)
     assert bool((sol.status == Status.SOLVED).all()) and torch.equal(sol.status, ref.status)
     torch.testing.assert_close(sol.x[9], ref.x[9], atol=1e-12, rtol=1e-12)
+
+
+def _filter_qp() -> tuple[torch.Tensor, ...]:
+    """An elastic filter QP (two controls of weights 1 and 1e-3, a slack of weight 1.8e5)
+    whose optimum has the second control on its lower bound with a multiplier of 5e7."""
+    Q = torch.diag(torch.tensor([1.0, 1e-3, 1.8e5], dtype=F64))
+    p = torch.tensor([15.2, 0.0693, 1.8e5], dtype=F64)
+    G = torch.tensor(
+        [
+            [-0.5714, 0.8207, -1.0],
+            [-0.5636, 0.8260, -1.0],
+            [-0.4414, -0.8973, -1.0],
+            [-0.4255, 0.9050, -1.0],
+            [0.1436, 0.9896, -1.0],
+        ],
+        dtype=F64,
+    )
+    h = torch.tensor([1025.9, 1743.1, 1360.3, -385.35, 732.16], dtype=F64)
+    lb = torch.tensor([-40.0, -40.0, 0.0], dtype=F64)
+    ub = torch.tensor([40.0, 40.0, math.inf], dtype=F64)
+    return Q, p, G, h, lb, ub
+
+
+def test_active_rows_hold_to_rounding_under_a_large_multiplier(cvx):
+    """The dual method's point lies on its active rows to rounding although a multiplier of
+    5e7 over a curvature of 1e-3 leaves its Schur complement 1e-5 off: one state alone, a
+    few, and a batch give the same controls."""
+    Q, p, G, h, lb, ub = _filter_qp()
+    ref, _, status = cvx(*(t.numpy() for t in (Q, p, G, h)), lb=lb.numpy(), ub=ub.numpy())
+    assert status == "optimal"
+    answers = []
+    for B in (1, 3, 200):
+        with torch.no_grad():
+            Qb, pb, Gb, hb, lbb, ubb = (t.expand(B, *t.shape) for t in (Q, p, G, h, lb, ub))
+            sol = solve_qp(Qb, pb, Gb, hb, lb=lbb, ub=ubb)
+        assert bool((sol.status == Status.SOLVED).all())
+        assert float(sol.lam_lb[0, 1]) > 1e7
+        answers.append(sol.x[0])
+    for x in answers:
+        assert abs(float(x[1]) + 40.0) <= 1e-12 * 40.0
+        assert np.abs(x.numpy() - ref).max() <= 1e-6 * (1 + np.abs(ref).max())
+        torch.testing.assert_close(x, answers[0], atol=1e-9, rtol=0)

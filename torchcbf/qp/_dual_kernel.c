@@ -346,6 +346,23 @@ INLINE int solve_one(int N, int M, const double *RESTRICT P, const double *RESTR
     }
     int nonsing = slot_solve(N, M, G, US, S, rhs, 1e-12, mu, W);
     for (int c = 0; c < N; ++c) x[c] = xu[c] - dot(N, US + c * N, mu);
+    if (nonsing) {
+        /* one refinement step on the active rows' residual G_S x - h_S: the Schur complement
+         * loses the digits of a large multiplier over a weak curvature (x then lies off its
+         * active rows by about |mu| mach / P_jj, a filter's slack weight over a control's);
+         * the correction W_SS dmu = G_S x - h_S, x -= P^{-1} G_S' dmu, of small numbers,
+         * restores them and keeps x stationary */
+        double res_S[NMAX], dmu[NMAX], worst = 0.0;
+        for (int k = 0; k < N; ++k) {
+            res_S[k] = S[k] == M ? 0.0 : dot(N, G + S[k] * N, x) - h[S[k]];
+            if (S[k] != M)
+                worst = dmax(worst, fabs(res_S[k]) / dmax(row_scale[S[k]], 2.2250738585072014e-308));
+        }
+        if (worst > 1e4 * mach && slot_solve(N, M, G, US, S, res_S, 1e-12, dmu, W)) {
+            for (int c = 0; c < N; ++c) x[c] -= dot(N, US + c * N, dmu);
+            for (int k = 0; k < N; ++k) mu[k] += dmu[k];
+        }
+    }
     double pviol = 0.0;
     for (int i = 0; i < M; ++i) {
         double vi = (dot(N, G + i * N, x) - h[i]) / dmax(row_scale[i], 2.2250738585072014e-308);
