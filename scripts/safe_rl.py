@@ -30,6 +30,15 @@ noise alone moves the robot), ``random`` (Gaussian actions, half the bounds) and
 ``go-to-goal + noise`` (scenario B's proportional controller plus Gaussian noise of a fifth
 of the bounds, which presses the robot along the ellipses).
 
+``--risk-check`` computes, for the same filter's ellipse barriers without a margin on the
+plant with process noise ``--sigma``, the risk-aware CBF's noise bound ``eta = max |dh/dx
+sigma|`` (:func:`~torchcbf.filters.noise_bound`, over 20,000 random states of the arena with
+``|v| <= SPEED_BOUND``) and its margin ``Delta`` (:func:`~torchcbf.filters.risk_margin`) for
+risks ``rho`` and horizons ``T``: the risk-aware filter bounds the probability of entering an
+ellipse within ``T`` by ``rho`` only from states with ``h >= Delta``. Printed with the barrier
+values at the start and the fraction of resting positions of the arena where ``h >= Delta``
+holds for every ellipse.
+
 Figures taken while the machine is loaded (the load average is printed) vary between runs;
 compare ratios within one run.
 """
@@ -56,6 +65,7 @@ from torchcbf._io import save_figure, write_json, write_text
 from torchcbf.envs.filter_transform import SafetyFilterTransform
 from torchcbf.envs.safe_ppo import (
     METHODS,
+    SPEED_BOUND,
     SUMMARY_FIELDS,
     PPOConfig,
     RunResult,
@@ -65,7 +75,8 @@ from torchcbf.envs.safe_ppo import (
     train,
 )
 from torchcbf.envs.torchrl import TorchRLEnv
-from torchcbf.envs.unicycle_ellipses import UnicycleEllipsesVectorEnv
+from torchcbf.envs.unicycle_ellipses import START, UnicycleEllipsesVectorEnv
+from torchcbf.filters import noise_bound, risk_margin
 from torchcbf.scenarios.unicycle_mppi_cbf import proportional_controller
 from torchcbf.sim.records import run_info, strict
 
@@ -261,6 +272,38 @@ def shield_check(args: argparse.Namespace) -> None:
             )
 
 
+def risk_check(args: argparse.Namespace) -> None:
+    """The risk-aware CBF's noise bound and margins on scenario B (see the module docstring)."""
+    env = TorchRLEnv(ENV_ID, 1, seed=0, sigma=args.sigma, dtype=torch.float64)
+    ellipses = scenario_filter(env, margin=0.0).barriers[0]
+    generator = torch.Generator().manual_seed(args.seed)
+    low = torch.tensor([-2.0, -2.0, -SPEED_BOUND, -math.pi], dtype=torch.float64)
+    high = torch.tensor([5.0, 7.0, SPEED_BOUND, math.pi], dtype=torch.float64)
+    states = low + (high - low) * torch.rand(20_000, 4, generator=generator, dtype=low.dtype)
+    eta = noise_bound(ellipses, env.dynamics, states)
+    start = ellipses(torch.tensor(START, dtype=torch.float64))
+    resting = states.clone()
+    resting[:, 2] = 0.0
+    h = ellipses(resting)
+    free = (h >= 0).all(-1)
+    print(f"scenario B, sigma = {args.sigma}; the exponential CBFs of the five ellipses, no margin")
+    print("eta = max |dh/dx sigma|: " + ", ".join(f"{v:.1f}" for v in eta.tolist()))
+    print("h at the start: " + ", ".join(f"{v:.1f}" for v in start.tolist()))
+    columns = ("rho", "T (s)", "Delta per ellipse", "start has h >= Delta", "free resting "
+               "positions with h >= Delta")  # fmt: skip
+    print("| " + " | ".join(columns) + " |")
+    print("|---|---|---|---|---|")
+    for rho in (0.1, 0.01):
+        for horizon in (1.0, 5.0):
+            delta = risk_margin(eta, rho, horizon)
+            inside = ((h >= delta).all(-1) & free).sum() / free.sum()
+            print(
+                f"| {rho:g} | {horizon:g} | "
+                + ", ".join(f"{v:.1f}" for v in delta.tolist())
+                + f" | {bool((start >= delta).all())} | {float(inside):.3f} |"
+            )
+
+
 def _train_one(method: str, config: PPOConfig, seed: int, threads: int) -> RunResult:
     torch.set_num_threads(threads)
     return train(method, config, seed=seed)
@@ -305,6 +348,12 @@ def main() -> None:
         "--margin", type=float, default=None, help="scenario B's filter margin (m; default 3 sigma)"
     )
     parser.add_argument(
+        "--shield-penalty",
+        type=float,
+        default=PPOConfig.shield_penalty,
+        help="weight of the shield's squared correction in the shielded learner's reward",
+    )
+    parser.add_argument(
         "--shaping",
         action=argparse.BooleanOptionalAction,
         default=PPOConfig.shaping,
@@ -324,6 +373,11 @@ def main() -> None:
         action="store_true",
         help="count the shield's collisions on scenario B's plant (--sigma) only",
     )
+    parser.add_argument(
+        "--risk-check",
+        action="store_true",
+        help="the risk-aware CBF's noise bound and margins on scenario B's plant (--sigma) only",
+    )
     parser.add_argument("--check-margins", default="0,0.15", help="--shield-check: margins (m)")
     parser.add_argument("--check-envs", type=int, default=2048, help="--shield-check: robots")
     parser.add_argument("--check-steps", type=int, default=1500, help="--shield-check: steps")
@@ -338,6 +392,9 @@ def main() -> None:
         return
     if args.shield_check:
         shield_check(args)
+        return
+    if args.risk_check:
+        risk_check(args)
         return
     env_kwargs: dict[str, float | bool] = {"start_noise": args.start_noise}
     if args.env == PPOConfig.env_id:
@@ -354,6 +411,7 @@ def main() -> None:
         eval_episodes=args.eval_episodes,
         shaping=args.shaping,
         filter_margin=args.margin,
+        shield_penalty=args.shield_penalty,
     )
     print(f"load average {os.getloadavg()}, torch threads {torch.get_num_threads()}")
     print(json.dumps(config_dict(config)))

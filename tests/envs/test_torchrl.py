@@ -27,6 +27,8 @@ from torchcbf.envs.safe_ppo import (  # noqa: E402
     METHODS,
     PPOConfig,
     RunResult,
+    _penalize_shield,
+    make_env,
     mean_ci,
     scenario_filter,
     summarize,
@@ -355,7 +357,7 @@ def test_ppo_smoke_run_is_reproducible():
         minibatch_size=32,
         eval_episodes=2,
     )
-    for method in ("ppo_lagrangian", "ppo_filter_layer"):
+    for method in ("ppo_lagrangian", "ppo_shield", "ppo_filter_layer"):
         a = train(method, config, seed=0)
         b = train(method, config, seed=0)
         assert a.eval == b.eval
@@ -366,6 +368,30 @@ def test_ppo_smoke_run_is_reproducible():
     assert a.eval["collisions"] == 0  # the filter layer on the shielded env
     with pytest.raises(ValueError, match="method"):
         train("sac", config, seed=0)
+
+
+def test_shield_penalty_lowers_the_learning_reward_by_the_correction():
+    config = PPOConfig(env_id="torchcbf/ReachAvoid-v0", env_kwargs=())
+    env = make_env(config, "ppo_shield", num_envs=16, seed=3)
+    bound = env.full_action_spec["action"].space.high[0]
+    torch.manual_seed(0)
+    batch = env.rollout(40, break_when_any_done=False)  # random actions, some unsafe
+    nxt = batch["next"]
+    reward = nxt["reward"].double().clone()
+    returns = nxt["episode_reward"].clone()
+    nominal = nxt["action_nominal"].double().numpy().reshape(-1, 2)
+    filtered = nxt["action_filtered"].double().numpy().reshape(-1, 2)
+    scale = bound.double().numpy()
+    expected = reward.numpy().reshape(-1).copy()
+    for i in range(expected.shape[0]):
+        expected[i] -= 0.5 * sum(((nominal[i] - filtered[i]) / scale) ** 2)
+    assert bool(nxt["filter_intervention"].any())
+    _penalize_shield(batch, bound, 0.5)
+    got = batch["next", "reward"].double().numpy().reshape(-1)
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-6)
+    untouched = ~nxt["filter_intervention"].reshape(-1).numpy()
+    np.testing.assert_allclose(got[untouched], reward.numpy().reshape(-1)[untouched], atol=1e-8)
+    assert torch.equal(batch["next", "episode_reward"], returns)
 
 
 def test_mean_ci_and_summary():
@@ -458,3 +484,12 @@ def test_safe_rl_script_runs_at_tiny_sizes(tmp_path):
     )
     assert check.returncode == 0, check.stderr
     assert check.stdout.count("| 0.15 |") == 3
+    risk = subprocess.run(
+        [sys.executable, str(script), "--risk-check", "--sigma", "0.28"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert risk.returncode == 0, risk.stderr
+    rows = [line for line in risk.stdout.splitlines() if line.startswith("| 0.")]
+    assert len(rows) == 4

@@ -8,7 +8,11 @@
   ``J_c`` the batch's cost per step times the episode length (the cost of an episode at the
   batch's rate);
 - ``"ppo_shield"``: PPO on the environment wrapped in a
-  :class:`~torchcbf.envs.filter_transform.SafetyFilterTransform` (the filter as a shield);
+  :class:`~torchcbf.envs.filter_transform.SafetyFilterTransform` (the filter as a shield),
+  the reward it learns from lowered by ``shield_penalty`` times the squared correction of
+  the sampled action by the shield (scaled by the action bounds): the shield's penalty for
+  an unsafe action, so the policy's own action carries the learning signal where the
+  shield would otherwise take over;
 - ``"ppo_filter_layer"``: the policy's mean is a
   :class:`~torchcbf.envs.filter_policy.FilteredPolicy` (the QP layer last), so PPO's gradient
   passes through the QP, plus ``intervention_weight`` times the squared correction of the
@@ -89,6 +93,8 @@ class PPOConfig:
         cost_limit, lagrangian_lr: PPO-Lagrangian's bound on the cost of an episode (steps
             inside an obstacle) and the multiplier's step.
         intervention_weight: weight of the filter layer's correction penalty.
+        shield_penalty: weight of the shield's correction in the reward ``"ppo_shield"``
+            learns from (the reported returns are the environment's).
         eval_episodes: deterministic evaluation episodes (one per environment).
         shaping: the progress reward measured along the shortest collision-free path
             (:func:`scenario_shaping`) instead of the straight line.
@@ -117,6 +123,7 @@ class PPOConfig:
     cost_limit: float = 0.0
     lagrangian_lr: float = 0.05
     intervention_weight: float = 1.0
+    shield_penalty: float = 0.01
     eval_episodes: int = 256
     shaping: bool = True
     filter_margin: float | None = None
@@ -450,6 +457,8 @@ def _train(
     for index in range(batches):
         with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
             batch, td = _collect(env, policy, td, config.rollout_steps)
+            if method == "ppo_shield" and config.shield_penalty:
+                _penalize_shield(batch, bound, config.shield_penalty)
             gae(batch)
             if cost_gae is not None:
                 cost_gae(batch)
@@ -483,6 +492,16 @@ def _train(
     )
     evaluation = evaluate(eval_env, policy)
     return RunResult(method, seed, curve, train_stats, evaluation, wall, frames / wall)
+
+
+def _penalize_shield(batch: TensorDictBase, bound: Tensor, weight: float) -> None:
+    """Lower ``("next", "reward")`` of ``batch`` by ``weight`` times the squared correction of
+    each action by the shield, scaled by the action bounds (``"episode_reward"`` keeps the
+    environment's return)."""
+    nxt = batch["next"]
+    change = (nxt["action_nominal"] - nxt["action_filtered"]) / bound
+    penalty = weight * change.square().sum(-1, keepdim=True)
+    nxt.set("reward", nxt["reward"] - penalty.to(nxt["reward"].dtype))
 
 
 def _update(
