@@ -2,9 +2,11 @@
 the C library's heap settings that large torch workloads on the CPU depend on.
 
 Each kernel is a plain C library next to the module that calls it through ctypes, with a
-``<prefix>_version()`` function. A library that is missing, does not load, or was built from
-another version of its source (an editable install not rebuilt after an edit) is refused
-with a warning naming what runs instead, and the caller falls back to its torch code.
+``<prefix>_version()`` function; the argument and return types of its exported functions
+are read from its C source (:func:`prototypes`). A library that is missing, does not
+load, or was built from another version of its source (an editable install not rebuilt
+after an edit) is refused with a warning naming what runs instead, and the caller falls
+back to its torch code.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import importlib.machinery
 import logging
 import os
 import platform
+import re
 from collections.abc import Iterable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -44,18 +47,60 @@ def model_code(dynamics: object) -> tuple[int, int] | None:
     return MODEL_CODES[found.kind], int(found.dim)
 
 
+#: C types of the kernels' exported signatures; every pointer is a ``c_void_p``
+_C_TYPES: dict[str, Any] = {
+    "int": ctypes.c_int,
+    "int64_t": ctypes.c_int64,
+    "uint64_t": ctypes.c_uint64,
+    "double": ctypes.c_double,
+    "float": ctypes.c_float,
+}
+#: what ``REAL`` stands for in a function named ``SUFFIX(name)`` (a body included once per
+#: precision, as the rollout kernel's)
+_PRECISIONS = {"_f32": "float", "_f64": "double"}
+_EXPORT = re.compile(
+    r"^(int|double)\s+(SUFFIX\()?(torchcbf_\w+)\)?\s*\(([^)]*)\)\s*\{", re.MULTILINE
+)
+
+
+def prototypes(sources: Iterable[Path]) -> dict[str, tuple[list[Any], Any]]:
+    """The ctypes ``(argtypes, restype)`` of every function a kernel exports (a definition
+    ``int torchcbf_...(...) {`` or ``double torchcbf_...(...) {`` at the start of a line of
+    its C ``sources``): the C source is the one statement of each interface. A function
+    named ``SUFFIX(name)`` gives ``name_f32`` and ``name_f64`` with ``REAL`` as ``float``
+    and ``double``. Pointers, and types defined by the kernel, are ``c_void_p``."""
+    found: dict[str, tuple[list[Any], Any]] = {}
+    for source in sources:
+        for ret, suffixed, name, params in _EXPORT.findall(source.read_text()):
+            variants = _PRECISIONS.items() if suffixed else [("", "REAL")]
+            for suffix, real in variants:
+                types = []
+                for param in (p.strip() for p in params.split(",")):
+                    if param in ("", "void"):
+                        continue
+                    decl = param.rsplit(None, 1)[0] if "*" not in param else "*"
+                    base = decl.replace("const", "").strip()
+                    base = real if base == "REAL" else base
+                    types.append(_C_TYPES.get(base, ctypes.c_void_p))
+                found[name + suffix] = (types, _C_TYPES[ret])
+    return found
+
+
 def load_kernel(
     directory: Path,
     stem: str,
     version_symbol: str,
     version: int,
     fallback: str,
+    sources: Iterable[str] = (),
     signatures: dict[str, list[Any]] | None = None,
 ):
     """The ctypes library ``directory/stem<extension suffix>`` if it exists, loads and
     reports ``version``, else ``None`` with a warning ending in ``fallback`` (e.g. "MPPI runs
-    in torch"); callers cache the answer, so each kernel warns once per process.
-    ``signatures`` maps each exported function to its argument types; all return ``int``."""
+    in torch"); callers cache the answer, so each kernel warns once per process. The
+    exported functions get their argument and return types from the C ``sources`` (file
+    names in ``directory``, :func:`prototypes`); a library whose sources cannot be read is
+    refused the same way."""
     path = kernel_file(directory, stem)
     if path is None:
         logger.warning(
@@ -81,9 +126,26 @@ def load_kernel(
             fallback,
         )
         return None
-    for name, argtypes in (signatures or {}).items():
+    try:
+        interface = prototypes(directory / name for name in sources)
+    except OSError as err:
+        logger.warning("torchcbf: cannot read the interface of %s (%s); %s", path, err, fallback)
+        return None
+    for name, (argtypes, restype) in interface.items():
+        function = getattr(lib, name, None)
+        if function is None:
+            logger.warning(
+                "torchcbf: %s does not export %s, which its source defines; %s (reinstall to "
+                "rebuild it)",
+                path,
+                name,
+                fallback,
+            )
+            return None
+        function.argtypes, function.restype = argtypes, restype
+    for name, types in (signatures or {}).items():
         function = getattr(lib, name)
-        function.argtypes, function.restype = argtypes, ctypes.c_int
+        function.argtypes, function.restype = types, ctypes.c_int
     return lib
 
 

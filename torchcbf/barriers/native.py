@@ -65,7 +65,7 @@ def _library() -> ctypes.CDLL | None:
         "torchcbf_lie_version",
         KERNEL_VERSION,
         "quadric barriers take their torch closed forms",
-        signatures={"torchcbf_lie_quadrics": [ctypes.c_void_p] * 3},  # meta, reals, ptrs
+        sources=("_lie_kernel.c",),
     )
 
 

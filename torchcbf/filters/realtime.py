@@ -36,15 +36,6 @@ MAX_BATCH = 1024
 #: the kernel's codes of the CBF slack modes
 SLACK_CODES = {"none": 0, "shared": 1, "per_row": 2}
 
-_P = ctypes.c_void_p
-_D = ctypes.c_double
-_INT = ctypes.c_int
-# B, m, k, c, slack, two_pass; a_cbf, b_cbf, a_clf, b_clf, u_nom, R, lo, hi;
-# cbf_weight, clf_weight, eps, max_iter, slack_tol, max_condition; u, slack, value, status
-_ARGS = [ctypes.c_int64] + [_INT] * 5 + [_P] * 8 + [_D] * 3 + [_INT] + [_D] * 2 + [_P] * 4
-# the Lie-term kernel, its version, meta, reals, pointers; then _ARGS without a_cbf, b_cbf
-_QUADRIC_ARGS = [_P, _INT, _P, _P, _P] + _ARGS[:6] + _ARGS[8:]
-
 
 @functools.lru_cache(maxsize=1)
 def _library() -> ctypes.CDLL | None:
@@ -54,11 +45,7 @@ def _library() -> ctypes.CDLL | None:
         "torchcbf_filter_version",
         KERNEL_VERSION,
         "the safety filter takes its general path on every batch",
-        signatures={
-            "torchcbf_filter_solve": _ARGS,
-            "torchcbf_filter_quadrics": _QUADRIC_ARGS,
-            "torchcbf_filter_inputs_finite": [ctypes.c_int64, _P] * 3,
-        },
+        sources=("_filter_kernel.c",),
     )
 
 

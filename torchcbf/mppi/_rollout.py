@@ -47,12 +47,6 @@ TERM_GOAL, TERM_OBSTACLE, TERM_BARRIER, TERM_DISCRETE_BARRIER = 0, 1, 2, 3
 SHAPE_ELLIPSE, SHAPE_BALL = 0, 1
 INTEGRATOR_CODES = {"euler": 0, "rk4": 1}
 
-_P = ctypes.c_void_p
-_I64 = ctypes.c_int64
-_RUN_ARGS = [_P, _I64, _I64] + [_P] * 11 + [ctypes.c_int]
-# keys, b_lo, b_hi, k_lo, k_hi, H, m, std, out, and out's four strides (elements)
-_NORMALS_ARGS = [_P] + [_I64] * 6 + [ctypes.c_double, _P] + [_I64] * 4
-
 
 @functools.lru_cache(maxsize=1)
 def _library() -> ctypes.CDLL | None:
@@ -62,12 +56,7 @@ def _library() -> ctypes.CDLL | None:
         "torchcbf_mppi_version",
         KERNEL_VERSION,
         "MPPI runs in torch",
-        signatures={
-            "torchcbf_mppi_run_f32": _RUN_ARGS,
-            "torchcbf_mppi_run_f64": _RUN_ARGS,
-            "torchcbf_mppi_normals_f32": _NORMALS_ARGS,
-            "torchcbf_mppi_normals_f64": _NORMALS_ARGS,
-        },
+        sources=("_rollout_kernel.c", "_rollout_kernel.h"),
     )
 
 

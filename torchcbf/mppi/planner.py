@@ -61,9 +61,10 @@ Paths (``MPPI.path`` says which one the last call took):
   parameters, and the options the kernel does not express: ``step=``, ``noise_abs_cost``,
   ``noise_mu``, ``action_sampler``, ``sample_null_action`` and the variants that sample
   otherwise, :class:`~torchcbf.mppi.SMPPI` and :class:`~torchcbf.mppi.KMPPI`): on the CPU
-  the kernel's counter-based normals (where the kernel is built; about 2.5x faster than
-  ``normal_``), on other devices ``normal_`` from each environment's generator; rollouts
-  with :mod:`torchcbf.integrators` (or ``step``), buffers allocated once and reused.
+  the kernel's counter-based normals (where the kernel is built, up to 4 controls; about
+  2.5x faster than ``normal_``), otherwise ``normal_`` from each environment's generator;
+  rollouts with :mod:`torchcbf.integrators` (or ``step``), buffers allocated once and
+  reused.
 
 Every path hands a torch cost ``states [B, K, H+1, n]`` and ``controls [B, K, H, m]``,
 sliced over the samples (``cost_chunk``), as views of component-major storage (``[B, n,
@@ -728,7 +729,11 @@ class MPPI(ExactConstants):
     # -- torch path ----------------------------------------------------------------------------
     def _sample_noise(self, eps: Tensor) -> None:
         std = self._isotropic_std
-        if eps.device.type == "cpu" and _rollout.available():
+        if (
+            eps.device.type == "cpu"
+            and eps.shape[-1] <= _rollout.MAX_CONTROL
+            and _rollout.available()
+        ):
             keys = _rollout.draw_keys(self._generators)
             _rollout.normals(keys, eps, std=1.0 if std is None else float(std))
             self._scale_noise(eps, std)
