@@ -536,7 +536,7 @@ def main() -> None:
                 filt(x[i : i + 1], u_nom[i : i + 1])
 
         rows.append(("filter (loop, B=1, extrapolated)", _timeit(loop, 1) / sub))
-        hard = SafetyFilter(dyn, ball, alpha=1.0, cbf_slack="none").to(device=device, dtype=dtype)
+        hard = SafetyFilter(dyn, ball, alpha=1.0, slack="none").to(device=device, dtype=dtype)
         rows.append(
             (
                 "filter (batched, elastic=False: hard QP only)",

@@ -287,7 +287,7 @@ def _filter_case(rng: random.Random, i: int) -> Case:
         model = _model(kind, size, sigma)
         barrier = _barriers(kind, model, k, g, shape)
         m = model.control_dim
-        opts = {} if slack is None else {"cbf_slack": slack}
+        opts = {} if slack is None else {"slack": slack}
         if limits is not None:
             opts.update(u_min=-limits, u_max=limits)
         filt = SafetyFilter(model, barrier, **opts).to(F32 if dtype == "f32" else F64)

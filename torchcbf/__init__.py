@@ -36,7 +36,7 @@ from torchcbf.dynamics import (
     VanDerPol,
 )
 from torchcbf.estimation import EKF, UKF, GaussianSensor, HybridEKFUKF, Perfect
-from torchcbf.filters import FilterOutput, FilterStatus, SafetyFilter
+from torchcbf.filters import FilterOutput, FilterStatus, SafetyFilter, Slack
 from torchcbf.integrators import step
 from torchcbf.mppi import MPPI, Always, And, Avoid, Eventually, MPPIOutput, Or, Reach
 from torchcbf.qp import QPSolution, Status, solve_qp
@@ -81,6 +81,7 @@ __all__ = [
     "Reach",
     "SafetyFilter",
     "SingleIntegrator",
+    "Slack",
     "Status",
     "Trajectory",
     "Unicycle",

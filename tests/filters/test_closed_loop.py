@@ -11,7 +11,7 @@ import torch
 
 from torchcbf.barriers import Ball, QuadraticLyapunov, rectify
 from torchcbf.dynamics import ControlAffine, DoubleIntegrator, SingleIntegrator, Unicycle
-from torchcbf.filters import FilterStatus, SafetyFilter
+from torchcbf.filters import FilterStatus, SafetyFilter, Slack
 from torchcbf.sim import Trajectory, simulate
 
 F64 = torch.float64
@@ -140,7 +140,7 @@ def _double_integrator_clf(goal: list[float]) -> QuadraticLyapunov:
 def test_clf_drives_double_integrator_to_goal() -> None:
     dyn = DoubleIntegrator(2, u_min=-2.0, u_max=2.0).double()
     clf = _double_integrator_clf([1.0, -2.0])
-    filt = SafetyFilter(dyn, lyapunovs=clf, clf_rate=1.0, clf_slack_weight=1e4).double()
+    filt = SafetyFilter(dyn, lyapunovs=clf, clf_rate=1.0, slack=Slack(clf_weight=1e4)).double()
     gen = torch.Generator().manual_seed(3)
     x0 = torch.cat([4 * torch.rand(16, 2, generator=gen, dtype=F64) - 2, torch.zeros(16, 2)], -1)
     zero = lambda x, t: torch.zeros_like(x[:, :2])  # noqa: E731

@@ -13,6 +13,7 @@ from torchcbf.filters import (
     FilterMode,
     Robust,
     SafetyFilter,
+    Slack,
     Stochastic,
     Vanilla,
 )
@@ -31,13 +32,13 @@ def test_mode_objects_and_names(mode: str) -> None:
         by_name = SafetyFilter(
             filt.dynamics, list(filt.barriers), list(filt.lyapunovs), mode=mode,
             alpha=filt.alpha[0], clf_rate=filt.clf_rate[0], R=filt.R,
-            clf_slack_weight=filt.clf_slack_weight,
+            slack=filt.slack,
         )  # fmt: skip
         plain = {"vanilla": Vanilla(), "robust": Robust(), "stochastic": Stochastic()}[mode]
         by_object = SafetyFilter(
             filt.dynamics, list(filt.barriers), list(filt.lyapunovs), mode=plain,
             alpha=filt.alpha[0], clf_rate=filt.clf_rate[0], R=filt.R,
-            clf_slack_weight=filt.clf_slack_weight,
+            slack=filt.slack,
         )  # fmt: skip
         for a, b in zip(by_name(x, u)[:-1], by_object(x, u)[:-1], strict=True):
             torch.testing.assert_close(a, b, equal_nan=True)
@@ -49,10 +50,18 @@ def test_mode_objects_and_names(mode: str) -> None:
 def test_slack_modes_and_unknown_keywords() -> None:
     dyn = SingleIntegrator(2, u_min=-1.0, u_max=1.0)
     ball = Ball([1.0, 0.0], 0.5)
-    assert SafetyFilter(dyn, ball).cbf_slack == "shared"
-    assert SafetyFilter(dyn, ball, cbf_slack="per_row").cbf_slack == "per_row"
-    with pytest.raises(ValueError, match="cbf_slack must be one of"):
-        SafetyFilter(dyn, ball, cbf_slack="some")
+    assert SafetyFilter(dyn, ball).slack == Slack("shared", cbf_weight=1e3, exact=False)
+    per_row = SafetyFilter(dyn, ball, slack="per_row").slack
+    assert per_row.mode == "per_row" and per_row.cbf_weight == 1e2
+    assert SafetyFilter(dyn, ball, slack=Slack(exact=True)).slack.two_pass
+    with pytest.raises(ValueError, match="slack must be a Slack or one of"):
+        SafetyFilter(dyn, ball, slack="some")
+    with pytest.raises(ValueError, match="slack mode must be one of"):
+        Slack("some")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="slack cbf_weight"):
+        Slack(cbf_weight=-1.0)
+    with pytest.raises(TypeError, match="slack exact must be a bool"):
+        Slack(exact=1)  # type: ignore[arg-type]
     for keyword in ("elastic", "relax_cbf", "beta", "gamma"):  # options of the mode object
         with pytest.raises(TypeError, match=keyword):
             SafetyFilter(dyn, ball, **{keyword: 1.0})

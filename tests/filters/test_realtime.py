@@ -80,7 +80,7 @@ def test_realtime_path_matches_general_path(
     mode: str, clf: bool, dtype: torch.dtype, slack: str
 ) -> None:
     xs, us = random_states(FEW, seed=20 + MODES.index(mode))
-    filt = scene(mode, dtype, clf=clf, cbf_slack=slack, fallback="brake")
+    filt = scene(mode, dtype, clf=clf, slack=slack, fallback="brake")
     x, u = torch.tensor(xs, dtype=dtype), torch.tensor(us, dtype=dtype)
     tol = 1e-9 if dtype == torch.float64 else 1e-4
     with torch.no_grad():
@@ -125,7 +125,7 @@ def test_non_finite_state_and_infeasible_hard_qp_take_the_general_path() -> None
     assert _qp(out) != "realtime", out.path
     _same(out, _general(filt, x, u), 1e-12)
     assert out.status[1] == FilterStatus.NON_FINITE
-    hard = scene("vanilla", cbf_slack="none", fallback="brake")
+    hard = scene("vanilla", slack="none", fallback="brake")
     xs, us = random_states(16, seed=1)
     with torch.no_grad():
         out = hard(torch.tensor(xs), torch.tensor(us))
@@ -472,8 +472,8 @@ def test_a_users_mode_with_an_affine_form_takes_the_kernel(dtype: torch.dtype) -
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
 def test_the_fused_call_takes_clf_rows_from_torch(slack: str, dtype: torch.dtype) -> None:
     goal = QuadraticLyapunov(torch.tensor([3.0, -2.0]))
-    filt = balls_scene("vanilla", dtype, lyapunovs=goal, cbf_slack=slack)
-    closed = balls_scene("vanilla", dtype, lyapunovs=goal, cbf_slack=slack, lie_method="analytic")
+    filt = balls_scene("vanilla", dtype, lyapunovs=goal, slack=slack)
+    closed = balls_scene("vanilla", dtype, lyapunovs=goal, slack=slack, lie_method="analytic")
     xs, us = balls_states(FEW, seed=8)
     x, u = torch.tensor(xs, dtype=dtype), torch.tensor(us, dtype=dtype)
     with torch.no_grad():

@@ -14,6 +14,7 @@ from torchcbf.filters import (
     FilterMode,
     RiskAware,
     SafetyFilter,
+    Slack,
     Stochastic,
     noise_bound,
     risk_margin,
@@ -110,7 +111,7 @@ def _filters(mode: str | FilterMode, **kw) -> SafetyFilter:
     dyn = SingleIntegrator(1, sigma=SIGMA)
     wall = HalfSpace([1.0], 1.0)  # |dh/dx sigma| = sigma exactly
     # a single CBF without CLF: the elastic QP alone is exact (checked against cvxpy)
-    return SafetyFilter(dyn, wall, mode=mode, exact=False, **kw).double()
+    return SafetyFilter(dyn, wall, mode=mode, slack=Slack(exact=False), **kw).double()
 
 
 H0 = float(risk_margin(torch.tensor(SIGMA, dtype=F64), 0.1, T))  # ~0.82

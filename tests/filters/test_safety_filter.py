@@ -41,6 +41,7 @@ from torchcbf.filters import (
     RiskAware,
     Robust,
     SafetyFilter,
+    Slack,
     Stochastic,
     Vanilla,
 )
@@ -81,7 +82,7 @@ def scene(
         alpha=torch.tensor(GAINS),
         clf_rate=CLF_RATE,
         R=torch.tensor(R),
-        clf_slack_weight=CLF_W,
+        slack=Slack(clf_weight=CLF_W),
     )
     options.update(overrides)
     lyap = [QuadraticLyapunov(GOAL)] if clf else []
@@ -104,7 +105,7 @@ def test_matches_cvxpy_hard_qp(mode: str, clf: bool, dtype: torch.dtype) -> None
     xs, us = random_states(24, seed=MODES.index(mode))
     filt = scene(mode, dtype, clf=clf)
     # with a CLF the hard and elastic QPs are solved together, without one the elastic alone
-    assert filt.exact == clf
+    assert filt.slack.exact == clf
     out = filt(torch.tensor(xs, dtype=dtype), torch.tensor(us, dtype=dtype))
     feasible = infeasible = 0
     for i in range(len(xs)):
@@ -272,7 +273,7 @@ def test_soft_cbf_and_per_barrier_class_k() -> None:
     hard = SafetyFilter(dyn, wall, alpha=2.0).double()(x, u)
     assert torch.allclose(hard.u, torch.tensor([[2.0]], dtype=torch.float64))
     # soft: min 1/2 (u-3)^2 + 1/2 w s^2, u - s <= 2  ->  u = 2 + (1/(1+w))
-    soft = SafetyFilter(dyn, wall, alpha=2.0, cbf_slack="per_row", cbf_slack_weight=4.0).double()
+    soft = SafetyFilter(dyn, wall, alpha=2.0, slack=Slack("per_row", cbf_weight=4.0)).double()
     out = soft(x, u)
     assert torch.allclose(out.u, torch.tensor([[2.2]], dtype=torch.float64), atol=1e-8)
     assert out.status[0] == FilterStatus.RELAXED
@@ -333,7 +334,7 @@ def test_errors_name_the_argument() -> None:
 @pytest.mark.parametrize("mode", ["vanilla", "robust"])
 def test_hard_only_qp_matches_cvxpy_and_falls_back_when_infeasible(mode: str) -> None:
     xs, us = random_states(24, seed=1)
-    filt = scene(mode, cbf_slack="none")
+    filt = scene(mode, slack="none")
     out = filt(torch.tensor(xs), torch.tensor(us))
     lo, hi = torch.tensor(U_MIN), torch.tensor(U_MAX)
     for i in range(len(xs)):
@@ -346,7 +347,7 @@ def test_hard_only_qp_matches_cvxpy_and_falls_back_when_infeasible(mode: str) ->
             assert np.allclose(out.u[i].numpy(), ref, atol=1e-6, rtol=0)
     # an infeasible row (two walls leaving no room) takes the fallback, never a NaN
     walls = HalfSpace(torch.tensor([[1.0], [-1.0]]), torch.tensor([-1.0, -1.0]))
-    hard = SafetyFilter(SingleIntegrator(1), walls, cbf_slack="none", fallback="brake").double()
+    hard = SafetyFilter(SingleIntegrator(1), walls, slack="none", fallback="brake").double()
     out = hard(torch.zeros(1, 1, dtype=torch.float64), torch.ones(1, 1, dtype=torch.float64))
     assert out.status[0] == FilterStatus.FALLBACK and out.u[0, 0] == 0.0
 
@@ -366,7 +367,7 @@ def _dense_scene() -> tuple[SingleIntegrator, Ball, torch.Tensor, torch.Tensor]:
 
 def _ipm_vs_enumeration(elastic: bool) -> float:
     dyn, ball, x, u_nom = _dense_scene()
-    kw = {"alpha": 1.0, "cbf_slack": "shared" if elastic else "none"}
+    kw = {"alpha": 1.0, "slack": "shared" if elastic else "none"}
     ipm = SafetyFilter(dyn, ball, qp_options={"method": "ipm"}, **kw).double()
     exact = SafetyFilter(dyn, ball, qp_options={"method": "enumerate"}, **kw).double()
     with torch.no_grad():

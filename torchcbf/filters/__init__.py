@@ -10,6 +10,7 @@ from torchcbf.filters.class_k import (
 from torchcbf.filters.conditions import Condition, cbf_condition, clf_condition
 from torchcbf.filters.fallback import Fallback
 from torchcbf.filters.modes import FilterMode, RiskAware, Robust, Stochastic, Vanilla
+from torchcbf.filters.qp_data import Slack
 from torchcbf.filters.risk import noise_bound, risk_margin
 from torchcbf.filters.safety_filter import FilterOutput, FilterStatus, SafetyFilter
 
@@ -25,6 +26,7 @@ __all__ = [
     "RiskAware",
     "Robust",
     "SafetyFilter",
+    "Slack",
     "Stochastic",
     "Vanilla",
     "as_class_k",

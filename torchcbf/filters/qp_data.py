@@ -17,11 +17,14 @@ limits and ``s, delta >= 0`` as rows (the tests compare the two paths' answers).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Literal, NamedTuple
 
 import torch
 from torch import Tensor
+
+from torchcbf._checks import check_number
 
 SlackMode = Literal["shared", "per_row", "none"]
 SLACK_MODES: tuple[str, ...] = ("shared", "per_row", "none")
@@ -29,6 +32,60 @@ SLACK_MODES: tuple[str, ...] = ("shared", "per_row", "none")
 MIN_ROW_NORM = 1e-6
 #: cap of the estimate ``v`` of the hard QP's multipliers in the shared slack's weight
 MAX_PENALTY_SCALE = 1e3
+
+
+@dataclasses.dataclass(frozen=True)
+class Slack:
+    """How the filter's QP relaxes its conditions (the QP above).
+
+    Args:
+        mode: ``"shared"`` (default: one slack for every CBF row, exact penalty; where the
+            hard QP is infeasible the least-violating control, status ``RELAXED``),
+            ``"per_row"`` (soft CBF rows, one slack each) or ``"none"`` (hard rows only:
+            an infeasible row gets the fallback).
+        cbf_weight: weight ``w`` of the CBF slack (default 1e3 shared, 1e2 per row).
+        clf_weight: weight ``w_clf`` of the CLF relaxation ``delta`` (default 1e2).
+        tol: normalised CBF slack (control units) above which a row is ``RELAXED``
+            (default 1e-6 in float64, 1e-3 in float32).
+        exact: with the shared slack, also solve the hard QP (stacked in the same call)
+            and prefer its solution where it is solved (default: when the filter has
+            Lyapunov functions, which can pull against a barrier harder than ``w``).
+
+    ``SafetyFilter(..., slack="none")`` is short for ``slack=Slack("none")``.
+    """
+
+    mode: SlackMode = "shared"
+    cbf_weight: float | None = None
+    clf_weight: float = 1e2
+    tol: float | None = None
+    exact: bool | None = None
+
+    def __post_init__(self) -> None:
+        if self.mode not in SLACK_MODES:
+            raise ValueError(f"slack mode must be one of {SLACK_MODES}, got {self.mode!r}")
+        for name in ("cbf_weight", "tol"):
+            value = getattr(self, name)
+            if value is not None:
+                value = check_number(f"slack {name}", value, low=0.0, strict=True)
+                object.__setattr__(self, name, value)
+        clf = check_number("slack clf_weight", self.clf_weight, low=0.0, strict=True)
+        object.__setattr__(self, "clf_weight", clf)
+        if self.exact is not None and not isinstance(self.exact, bool):
+            raise TypeError(f"slack exact must be a bool or None, got {self.exact!r}")
+
+    def resolved(self, *, lyapunovs: bool) -> Slack:
+        """The options with the defaults that depend on the filter filled in (``tol``
+        depends on the dtype and stays as given)."""
+        weight = self.cbf_weight
+        if weight is None:
+            weight = 1e2 if self.mode == "per_row" else 1e3
+        exact = lyapunovs if self.exact is None else self.exact
+        return dataclasses.replace(self, cbf_weight=weight, exact=exact)
+
+    @property
+    def two_pass(self) -> bool:
+        """Whether the hard QP is solved beside the elastic one."""
+        return bool(self.exact) and self.mode == "shared"
 
 
 class FilterQP(NamedTuple):

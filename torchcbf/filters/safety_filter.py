@@ -6,20 +6,21 @@ assembles the QP over ``z = [u; s; delta]`` (its docstring states it); the fallb
 (:mod:`torchcbf.filters.fallback`) serves rows whose QP failed. This module ties them
 together in :class:`SafetyFilter`.
 
-CBF slacks (``cbf_slack``). ``"shared"`` (default): ONE slack ``s`` for all barrier rows
-with the exact penalty ``w rbar (s + s^2/2)``: where the hard QP is infeasible, the elastic
-QP returns the least-violating control (in the box, minimising the largest normalised
-violation, then the distance to ``u_nom``), with status ``RELAXED``. ``w =
-cbf_slack_weight * (1 + v)`` (default 1e3), with ``v`` (detached, capped) an estimate of the
-hard multipliers; where the hard QP is feasible and its multipliers stay below ``w`` the two
-solutions are equal (``s = 0``). A CLF can pull against a CBF harder than that, so with
-Lyapunov functions (``exact=None`` default, or ``exact=True``) the hard QP is stacked into
-the SAME :func:`~torchcbf.qp.solve_qp` call and a row takes the hard solution wherever that
-one is ``SOLVED``. ``"none"``: hard rows only (infeasible rows fall back). ``"per_row"``:
-soft CBF rows, one slack each, ``1/2 w rbar |s|^2`` (``w`` default 1e2).
+CBF slacks (``slack``, a :class:`~torchcbf.filters.Slack` or its mode). ``"shared"``
+(default): ONE slack ``s`` for all barrier rows with the exact penalty ``w rbar (s +
+s^2/2)``: where the hard QP is infeasible, the elastic QP returns the least-violating
+control (in the box, minimising the largest normalised violation, then the distance to
+``u_nom``), with status ``RELAXED``. ``w = Slack.cbf_weight * (1 + v)`` (default 1e3), with
+``v`` (detached, capped) an estimate of the hard multipliers; where the hard QP is feasible
+and its multipliers stay below ``w`` the two solutions are equal (``s = 0``). A CLF can
+pull against a CBF harder than that, so with Lyapunov functions (``Slack.exact=None``
+default, or ``True``) the hard QP is stacked into the SAME :func:`~torchcbf.qp.solve_qp`
+call and a row takes the hard solution wherever that one is ``SOLVED``. ``"none"``: hard
+rows only (infeasible rows fall back). ``"per_row"``: soft CBF rows, one slack each, ``1/2
+w rbar |s|^2`` (``w`` default 1e2).
 
 Statuses (:class:`FilterStatus`) per row: ``SOLVED`` (every hard constraint met),
-``RELAXED`` (some CBF slack above ``slack_tol``), ``FALLBACK`` (the QP did not return
+``RELAXED`` (some CBF slack above ``Slack.tol``), ``FALLBACK`` (the QP did not return
 ``SOLVED``, or its data were non-finite: the fallback control is used), ``NON_FINITE``
 (non-finite ``x``, ``u_nom`` or ``t`` in the row: fallback used; the row is sanitised
 before any computation so the other rows and the gradients are untouched).
@@ -54,7 +55,6 @@ from torchcbf._checks import (
     broadcast_shapes,
     check_bounds,
     check_last_dim,
-    check_number,
 )
 from torchcbf._compile import Traced, logger
 from torchcbf.barriers import native
@@ -66,7 +66,7 @@ from torchcbf.filters.class_k import ClassKSpec, _GainClassK, as_class_k
 from torchcbf.filters.conditions import as_columns, concat_terms
 from torchcbf.filters.fallback import Fallback, FallbackSpec
 from torchcbf.filters.modes import FilterMode, make_mode
-from torchcbf.filters.qp_data import SLACK_MODES, SlackMode, assemble
+from torchcbf.filters.qp_data import SLACK_MODES, Slack, SlackMode, assemble
 from torchcbf.qp import Status
 from torchcbf.qp import realtime as qp_realtime
 from torchcbf.qp.solve import check_options
@@ -191,10 +191,14 @@ def _check_qp_options(opts: dict[str, Any]) -> dict[str, Any]:
     return opts
 
 
-def _slack_mode(cbf_slack: str) -> str:
-    if cbf_slack not in SLACK_MODES:
-        raise ValueError(f"cbf_slack must be one of {SLACK_MODES}, got {cbf_slack!r}")
-    return cbf_slack
+def _slack(slack: Slack | str) -> Slack:
+    if isinstance(slack, Slack):
+        return slack
+    if isinstance(slack, str):
+        if slack not in SLACK_MODES:
+            raise ValueError(f"slack must be a Slack or one of {SLACK_MODES}, got {slack!r}")
+        return Slack(slack)  # type: ignore[arg-type]
+    raise TypeError(f"slack must be a Slack or one of {SLACK_MODES}, got {type(slack).__name__}")
 
 
 class SafetyFilter(nn.Module):
@@ -217,15 +221,11 @@ class SafetyFilter(nn.Module):
         clf_rate: decay rate ``c(V)`` of the CLF conditions, same forms (default ``V``).
         R: control weight: scalar, ``[m]`` (diagonal) or ``[m, m]`` SPD (default identity).
         u_min, u_max: override the dynamics' control limits (scalar or ``[m]``).
-        cbf_slack: ``"shared"`` (default), ``"per_row"`` or ``"none"`` (see the module).
-        cbf_slack_weight: CBF slack weight (default 1e3 shared, 1e2 per row).
-        clf_slack_weight: weight of the CLF relaxation ``delta`` (default 1e2).
+        slack: how the QP relaxes its conditions: a :class:`Slack` (mode, weights, the
+            ``RELAXED`` tolerance, the hard QP beside the elastic one), or its mode
+            ``"shared"`` (default), ``"per_row"`` or ``"none"`` (see the module).
         fallback: control of rows whose QP failed (see :class:`Fallback`): ``"clip"``
             (default), ``"brake"``, a tensor ``[m]`` or a callable ``(x, u_nom) -> u``.
-        slack_tol: normalised CBF slack (control units) above which a row is ``RELAXED``
-            (default 1e-6 in float64, 1e-3 in float32).
-        exact: with the shared slack, also solve the hard QP (stacked in the same call) and
-            prefer its solution. Default: ``True`` when there are Lyapunov functions.
         lie_method: ``"auto"`` (closed forms when a function has them, else autograd),
             ``"autograd"`` or ``"analytic"``.
         backend: ``"auto"`` (default: the C kernels where they apply, see the module) or
@@ -267,12 +267,8 @@ class SafetyFilter(nn.Module):
         R: Tensor | float | Sequence[float] | None = None,
         u_min: Tensor | float | Sequence[float] | None = None,
         u_max: Tensor | float | Sequence[float] | None = None,
-        cbf_slack: SlackMode = "shared",
-        cbf_slack_weight: float | None = None,
-        clf_slack_weight: float = 1e2,
+        slack: Slack | SlackMode = "shared",
         fallback: FallbackSpec = "clip",
-        slack_tol: float | None = None,
-        exact: bool | None = None,
         lie_method: Literal["auto", "autograd", "analytic"] = "auto",
         backend: Literal["auto", "torch"] = "auto",
         compile: bool | dict[str, Any] = False,
@@ -321,20 +317,8 @@ class SafetyFilter(nn.Module):
         self.register_buffer("u_max", as_limit("u_max", u_max, m))
         lo, hi = self._limit_tensors()
         check_bounds("u_min", lo, "u_max", hi)
-        self.cbf_slack = _slack_mode(cbf_slack)
-        if cbf_slack_weight is None:
-            cbf_slack_weight = 1e2 if self.cbf_slack == "per_row" else 1e3
-        self.cbf_slack_weight = check_number(
-            "cbf_slack_weight", cbf_slack_weight, low=0.0, strict=True
-        )
-        self.clf_slack_weight = check_number(
-            "clf_slack_weight", clf_slack_weight, low=0.0, strict=True
-        )
+        self.slack = _slack(slack).resolved(lyapunovs=bool(self.lyapunovs))
         self.fallback = Fallback(fallback, m)
-        if slack_tol is not None:
-            slack_tol = check_number("slack_tol", slack_tol, low=0.0, strict=True)
-        self.slack_tol = slack_tol
-        self.exact = bool(self.lyapunovs) if exact is None else bool(exact)
         self.qp_options = _check_qp_options(dict(qp_options or {}))
 
     # -- read-only views of the condition --------------------------------------------------
@@ -385,8 +369,9 @@ class SafetyFilter(nn.Module):
             conditions = self._conditions(xs, ts)
         cbf, clf, h, V, lie = conditions
         lo, hi = self._limits(xs)
-        weights = {"cbf_weight": self.cbf_slack_weight, "clf_weight": self.clf_slack_weight}
-        qp = assemble(cbf, clf, us, self.R.to(us), lo, hi, slack=self.cbf_slack, **weights)
+        sl = self.slack
+        weights = {"cbf_weight": sl.cbf_weight, "clf_weight": sl.clf_weight}
+        qp = assemble(cbf, clf, us, self.R.to(us), lo, hi, slack=sl.mode, **weights)
         z, qp_status, qp_ok, qp_path = self._solve(qp, finite)
         m = us.shape[-1]
         u = torch.where(qp_ok.unsqueeze(-1), z[:, :m], self.fallback(xb, ub, lo, hi))
@@ -641,12 +626,12 @@ class SafetyFilter(nn.Module):
         return lo, hi
 
     def _slack_tol(self, x: Tensor) -> float:
-        if self.slack_tol is not None:
-            return self.slack_tol
+        if self.slack.tol is not None:
+            return self.slack.tol
         return 1e-6 if x.dtype == torch.float64 else 1e-3
 
     def _two_pass(self, ks: int) -> bool:
-        return bool(ks) and self.exact and self.cbf_slack == "shared"
+        return bool(ks) and self.slack.two_pass
 
     def _solve(self, qp: Any, finite: Tensor) -> tuple[Tensor, Tensor, Tensor, str]:
         """Solve the filter QP: ``(z [B, nz], qp_status [B], qp_ok [B], path)``. Rows with
@@ -710,10 +695,10 @@ class SafetyFilter(nn.Module):
         eps = opts.get("eps")
         res = realtime.solve(
             cbf, clf, ub, self.R, *limits,
-            slack=self.cbf_slack,
-            two_pass=self.exact and self.cbf_slack == "shared",
-            cbf_weight=self.cbf_slack_weight,
-            clf_weight=self.clf_slack_weight,
+            slack=self.slack.mode,
+            two_pass=self.slack.two_pass,
+            cbf_weight=self.slack.cbf_weight,
+            clf_weight=self.slack.clf_weight,
             eps=float(qp_realtime.default_eps(xb.dtype) if eps is None else eps),
             max_iter=opts.get("max_iter", 50),
             slack_tol=self._slack_tol(xb),
