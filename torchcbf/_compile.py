@@ -101,13 +101,14 @@ _PRIMITIVES = (bool, int, float, complex, str, type(None))
 class Traced:
     """``fn(*args)`` of tensors, compiled per input signature with low call overhead.
 
-    ``fn`` is traced once per signature (shapes, dtypes and devices of ``args``) into one graph
-    of ATen operations (``make_fx``, so ``torch.func`` transforms such as ``vmap`` and
+    ``fn`` is traced once per signature (shapes, dtypes and devices of ``args``) into one
+    graph of ATen operations (``make_fx``, so ``torch.func`` transforms such as ``vmap`` and
     ``jacrev`` are resolved at trace time), with every tensor of ``modules`` (parameters,
     buffers and plain tensor attributes, submodules included) lifted to an input; inductor
-    compiles the graph with a C++ wrapper. A call then costs a look at the modules' state
-    (the same objects as the last call's: the same code) and the compiled code, without
-    ``torch.compile``'s frame evaluation and guards (tens of microseconds on one state).
+    compiles the graph (with a C++ wrapper on the CPU; ``options``: inductor settings). A
+    call then costs a look at the modules' state (the same objects as the last call's: the
+    same code) and the compiled code, without ``torch.compile``'s frame evaluation and
+    guards (tens of microseconds on one state).
 
     The key of the cache holds what the graph bakes in: the modules' attributes that are
     plain numbers or strings (a new value traces again; ``module.temp = 0.2`` is seen), the
@@ -131,7 +132,7 @@ class Traced:
     ) -> None:
         self.fn = fn
         self.modules = list(modules)
-        self.options = {"cpp_wrapper": True, **(options or {})}
+        self.options = dict(options or {})
         self._graphs: dict[tuple[Any, ...], tuple[Callable[..., Any], list[int]]] = {}
         self._slots: list[tuple[dict[str, Any], str]] | None = None
         self._last: tuple[list[Any], tuple[Any, ...], torch.device, Any] | None = None
@@ -246,7 +247,9 @@ class Traced:
                     graph.graph.erase_node(node)
             graph.recompile()
             inputs = [values[i].detach() for i in used]
-            patch = self.options
+            # the C++ wrapper cuts the call overhead on the CPU; on an accelerator the
+            # kernels' launch dominates and the Python wrapper builds without a toolkit
+            patch = {"cpp_wrapper": values[0].device.type == "cpu", **self.options}
             if self._first and config.cpp.vec_isa_ok is None:
                 with _trust_reported_isa():
                     compiled = compile_fx(graph, inputs, config_patches=patch)
