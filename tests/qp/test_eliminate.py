@@ -229,3 +229,40 @@ def test_one_sided_bounds_with_equalities(cvx, which, B):
         ref, _, status = cvx(*row)
         assert status == "optimal"
         assert np.abs(sol.x[i].numpy() - ref).max() <= 1e-7 * (1.0 + np.abs(ref).max())
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("B", [1, 4])
+def test_the_kernels_elimination_equals_the_torch_elimination(dtype, B):
+    """A few problems without gradients are eliminated in the C kernel, with gradients by
+    the torch elimination of the general path: the same statuses, answers and multipliers
+    (rows with ``h = +inf``, one-sided and two-sided bounds included)."""
+    g = torch.Generator().manual_seed(11 + B)
+    n, m, k = 9, 7, 3
+    L = torch.randn(B, n, n, generator=g, dtype=F64)
+    Q = L @ L.mT / n + 0.5 * torch.eye(n, dtype=F64)
+    p = 3.0 * torch.randn(B, n, generator=g, dtype=F64)
+    x0 = torch.randn(B, n, generator=g, dtype=F64)
+    G = torch.randn(B, m, n, generator=g, dtype=F64)
+    h = (G @ x0.unsqueeze(-1)).squeeze(-1) + 0.1 * torch.rand(B, m, generator=g, dtype=F64)
+    h[:, 2] = torch.inf
+    A = torch.randn(B, k, n, generator=g, dtype=F64)
+    b = (A @ x0.unsqueeze(-1)).squeeze(-1)
+    lb = torch.full((n,), -1.5, dtype=F64)
+    lb[1] = -torch.inf
+    ub = torch.full((n,), 1.5, dtype=F64)
+    ub[4] = torch.inf
+    lb, ub = torch.minimum(lb, x0.amin(0)), torch.maximum(ub, x0.amax(0))
+    data = [t.to(dtype) for t in (Q, p, G, h, A, b, lb, ub)]
+    with torch.no_grad():
+        fast = solve_qp(*data[:6], lb=data[6], ub=data[7])
+    general = solve_qp(data[0], data[1].clone().requires_grad_(), *data[2:6], lb=data[6],
+                       ub=data[7])  # fmt: skip
+    assert fast.path == "small_native" and general.path == "active_set_native"
+    assert torch.equal(fast.status, general.status)
+    assert bool((fast.status == Status.SOLVED).all())
+    tol = 1e-9 if dtype == F64 else 1e-4
+    for name in ("x", "lam", "nu", "lam_lb", "lam_ub"):
+        a, c = getattr(fast, name).double(), getattr(general, name).detach().double()
+        assert float((a - c).abs().max()) <= tol * (1 + float(c.abs().max())), name
+    assert float((fast.lam[:, 2]).abs().max()) == 0.0

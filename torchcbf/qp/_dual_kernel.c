@@ -986,3 +986,220 @@ int torchcbf_dual_certify(int64_t B, int N, int M, const double *P, const double
     free(work), free(pact);
     return code;
 }
+
+/* ---- A few QPs with equality rows Ax = b (the real-time path; torch reference:
+ * reduce_equalities, reduced_objective, reduced_rows and equality_multipliers of
+ * torchcbf/qp/_eliminate.py): x = xp + Z w with A' = [Y Z] [R; 0] (Householder QR), the
+ * reduced problem in w solved by torchcbf_dual_solve_small. */
+
+/* Householder QR of At [n,k] (row-major, n > k): Qf [n,n] orthogonal (columns: Y, then Z)
+ * and R [k,k] upper triangular with At = Y R. work: 2 n k doubles. */
+static void householder_qr(int n, int k, const double *At, double *Qf, double *R,
+                           double *work) {
+    double *V = work, *H = work + (size_t)n * k; /* At reduced in place; reflectors [k][n] */
+    double beta[NMAX];
+    memcpy(V, At, sizeof(double) * n * k);
+    for (int j = 0; j < k; ++j) {
+        double *v = H + (size_t)j * n, norm = 0.0;
+        for (int i = j; i < n; ++i) norm += V[i * k + j] * V[i * k + j];
+        norm = sqrt(norm);
+        double alpha = V[j * k + j] > 0.0 ? -norm : norm;
+        for (int i = 0; i < n; ++i) v[i] = i < j ? 0.0 : V[i * k + j];
+        v[j] -= alpha;
+        double vv = 0.0;
+        for (int i = j; i < n; ++i) vv += v[i] * v[i];
+        beta[j] = vv > 0.0 ? 2.0 / vv : 0.0;
+        for (int c = j; c < k; ++c) { /* V <- (I - beta v v') V */
+            double t = 0.0;
+            for (int i = j; i < n; ++i) t += v[i] * V[i * k + c];
+            t *= beta[j];
+            for (int i = j; i < n; ++i) V[i * k + c] -= t * v[i];
+        }
+    }
+    for (int i = 0; i < k; ++i)
+        for (int c = 0; c < k; ++c) R[i * k + c] = c < i ? 0.0 : V[i * k + c];
+    /* Qf = H_0 H_1 ... H_{k-1}, applied to the identity from the last reflector on */
+    for (int i = 0; i < n; ++i)
+        for (int c = 0; c < n; ++c) Qf[i * n + c] = i == c ? 1.0 : 0.0;
+    for (int j = k - 1; j >= 0; --j) {
+        const double *v = H + (size_t)j * n;
+        for (int c = 0; c < n; ++c) {
+            double t = 0.0;
+            for (int i = j; i < n; ++i) t += v[i] * Qf[i * n + c];
+            t *= beta[j];
+            for (int i = j; i < n; ++i) Qf[i * n + c] -= t * v[i];
+        }
+    }
+}
+
+/* A few QPs with equality rows (the real-time path of solve_qp): P [B,n,n] (symmetrised
+ * here), q [B,n], G [B,m,n] and h [B,m] (m = 0: both NULL; h_i = +inf bounds nothing),
+ * A [B,k,n], b [B,k] with 0 < k < n, bounds lb, ub [B,n] (NULL: none; infinite entries:
+ * none), turned into rows (upper, then lower) as in torchcbf_dual_solve_small. Each problem
+ * is reduced to x = xp + Z w (A' = [Y Z] [R; 0]; a row of A within rank_tol of the span of
+ * the rows before it, |R_ii| <= rank_tol |A_i|, refuses the batch), rows of G Z at most
+ * span_tol of |G_i| made exactly zero (their right-hand side rounded up to zero where it is
+ * negative by at most eps of its scale), and the reduced problem solved by
+ * torchcbf_dual_solve_small. Outputs: x [B,n], z [B,m], y [B,k] (A'y = -(Px + q + G'z + ...)),
+ * z_lb, z_ub [B,n], iters [B]. Returns as torchcbf_dual_solve_small: 0 when every problem
+ * is solved and certified, 1 otherwise (the caller takes its general path), -1 when memory
+ * ran out or the sizes are invalid. */
+int torchcbf_dual_solve_small_eq(int64_t B, int n, int m, int k, const double *P,
+                                 const double *q, const double *G, const double *h,
+                                 const double *A, const double *b, const double *lb,
+                                 const double *ub, double eps, int max_iter,
+                                 double max_condition, double rank_tol, double span_tol,
+                                 double *x, double *z, double *y, double *z_lb, double *z_ub,
+                                 int64_t *iters) {
+    if (n < 2 || n > NMAX || k < 1 || k >= n || m < 0 || B < 1) return -1;
+    const int Mt = m + (ub ? n : 0) + (lb ? n : 0), nr = n - k;
+    if (Mt < 1) return 1;
+    size_t need = (size_t)Mt * n + Mt + (size_t)n * n * 2 + (size_t)k * k + 2 * (size_t)n * k +
+                  (size_t)nr * nr + (size_t)Mt * nr + Mt + 3 * (size_t)n + Mt + 2 * (size_t)nr +
+                  (size_t)n * k;
+    double *buf = malloc(sizeof(double) * need);
+    if (!buf) return -1;
+    double *Gt = buf, *ht = Gt + (size_t)Mt * n, *Ps = ht + Mt, *Qf = Ps + n * n;
+    double *R = Qf + n * n, *qrw = R + k * k, *Pr = qrw + 2 * n * k, *Gr = Pr + nr * nr;
+    double *hr = Gr + (size_t)Mt * nr, *xp = hr + Mt, *tmp = xp + n, *grad = tmp + n;
+    double *zt = grad + n, *w = zt + Mt, *unused = w + nr, *At = unused + nr;
+    int code = 0;
+    for (int64_t bi = 0; bi < B && code == 0; ++bi) {
+        const double *Pb = P + bi * n * n, *qb = q + bi * n, *Ab = A + bi * k * n;
+        const double *bb = b + bi * k;
+        /* rows: G (h = +inf: a zero row, 0 * G keeping a NaN for the finiteness test), then
+         * the finite bounds */
+        for (int i = 0; i < m; ++i) {
+            double hi = h[bi * m + i];
+            int free_row = hi == INFINITY;
+            for (int c = 0; c < n; ++c)
+                Gt[i * n + c] = (free_row ? 0.0 : 1.0) * G[(bi * m + i) * n + c];
+            ht[i] = free_row ? 1.0 : hi;
+        }
+        memset(Gt + (size_t)m * n, 0, sizeof(double) * (Mt - m) * n);
+        int r = m;
+        for (int pass = 0; pass < 2; ++pass) {
+            const double *bound = pass == 0 ? ub : lb;
+            double sign = pass == 0 ? 1.0 : -1.0;
+            if (!bound) continue;
+            for (int j = 0; j < n; ++j, ++r) {
+                double v = bound[bi * n + j];
+                if (isnan(v) || v == -sign * INFINITY) code = 1;
+                int finite = isfinite(v);
+                Gt[r * n + j] = finite ? sign : 0.0;
+                ht[r] = finite ? sign * v : 1.0;
+            }
+        }
+        for (int i = 0; i < n; ++i)
+            for (int j = 0; j < n; ++j) Ps[i * n + j] = 0.5 * (Pb[i * n + j] + Pb[j * n + i]);
+        if (code != 0 || !(torchcbf_dual_all_finite(n * n, Ps) && torchcbf_dual_all_finite(n, qb) &&
+                           torchcbf_dual_all_finite((int64_t)Mt * n, Gt) &&
+                           torchcbf_dual_all_finite(Mt, ht) &&
+                           torchcbf_dual_all_finite((int64_t)k * n, Ab) &&
+                           torchcbf_dual_all_finite(k, bb))) {
+            code = 1;
+            break;
+        }
+        /* A' = [Y Z] [R; 0]; full row rank to rank_tol */
+        for (int i = 0; i < n; ++i)
+            for (int j = 0; j < k; ++j) At[i * k + j] = Ab[j * n + i];
+        householder_qr(n, k, At, Qf, R, qrw);
+        for (int j = 0; j < k; ++j) {
+            double row = 0.0;
+            for (int c = 0; c < n; ++c) row += Ab[j * n + c] * Ab[j * n + c];
+            if (!(R[j * k + j] * R[j * k + j] > rank_tol * rank_tol * row)) code = 1;
+        }
+        if (code) break;
+        /* xp = Y R^{-T} b */
+        double u[NMAX];
+        for (int i = 0; i < k; ++i) {
+            double s = bb[i];
+            for (int l = 0; l < i; ++l) s -= R[l * k + i] * u[l];
+            u[i] = s / R[i * k + i];
+        }
+        double xp_max = 0.0;
+        for (int c = 0; c < n; ++c) {
+            double s = 0.0;
+            for (int l = 0; l < k; ++l) s += Qf[c * n + l] * u[l];
+            xp[c] = s;
+            xp_max = dmax(xp_max, fabs(s));
+        }
+        /* Pr = Z' P Z, qr = Z' (P xp + q), Gr = G Z, hr = h - G xp, with Z [n, nr] copied
+         * row-major so that the inner loops run over contiguous rows (axpy form) */
+        double qr[NMAX], Zr[NMAX * NMAX], PZ[NMAX * NMAX];
+        for (int c = 0; c < n; ++c) {
+            memcpy(Zr + c * nr, Qf + c * n + k, sizeof(double) * nr);
+            tmp[c] = dot(n, Ps + c * n, xp) + qb[c];
+        }
+        memset(qr, 0, sizeof(double) * nr);
+        memset(PZ, 0, sizeof(double) * n * nr);
+        memset(Pr, 0, sizeof(double) * nr * nr);
+        for (int c = 0; c < n; ++c) {
+            const double *zc = Zr + c * nr;
+            for (int a = 0; a < nr; ++a) qr[a] += tmp[c] * zc[a];
+            for (int d = 0; d < n; ++d) {
+                const double pcd = Ps[c * n + d], *zd = Zr + d * nr;
+                double *row = PZ + c * nr;
+                for (int a = 0; a < nr; ++a) row[a] += pcd * zd[a];
+            }
+        }
+        for (int c = 0; c < n; ++c) {
+            const double *pz = PZ + c * nr;
+            for (int a = 0; a < nr; ++a) {
+                const double zca = Zr[c * nr + a];
+                double *row = Pr + a * nr;
+                for (int e = 0; e < nr; ++e) row[e] += zca * pz[e];
+            }
+        }
+        for (int i = 0; i < Mt; ++i) {
+            const double *g = Gt + (size_t)i * n;
+            double *gr = Gr + (size_t)i * nr, gmax = 0.0, rmax = 0.0;
+            memset(gr, 0, sizeof(double) * nr);
+            for (int c = 0; c < n; ++c) {
+                gmax = dmax(gmax, fabs(g[c]));
+                if (g[c] == 0.0) continue;
+                const double gc = g[c], *zc = Zr + c * nr;
+                for (int a = 0; a < nr; ++a) gr[a] += gc * zc[a];
+            }
+            for (int a = 0; a < nr; ++a) rmax = dmax(rmax, fabs(gr[a]));
+            hr[i] = ht[i] - dot(n, g, xp);
+            if (rmax <= span_tol * gmax) { /* in the span of A's rows */
+                double scale = fabs(ht[i]) + gmax * (1.0 + xp_max);
+                if (hr[i] >= -eps * scale) hr[i] = dmax(hr[i], 0.0);
+                for (int a = 0; a < nr; ++a) Gr[(size_t)i * nr + a] = 0.0;
+            }
+        }
+        code = torchcbf_dual_solve_small(1, nr, Mt, Pr, qr, Gr, hr, NULL, NULL, eps, max_iter,
+                                         max_condition, w, zt, unused, unused, iters + bi);
+        if (code) break;
+        /* x = xp + Z w; y = -R^{-1} Y' (P x + q + G' z) */
+        double *xb = x + bi * n;
+        for (int c = 0; c < n; ++c) xb[c] = xp[c] + dot(nr, Zr + c * nr, w);
+        for (int c = 0; c < n; ++c) grad[c] = dot(n, Ps + c * n, xb) + qb[c];
+        for (int i = 0; i < Mt; ++i)
+            if (zt[i] != 0.0)
+                for (int c = 0; c < n; ++c) grad[c] += Gt[(size_t)i * n + c] * zt[i];
+        for (int l = 0; l < k; ++l) {
+            double s = 0.0;
+            for (int c = 0; c < n; ++c) s += Qf[c * n + l] * grad[c];
+            u[l] = s;
+        }
+        for (int i = k - 1; i >= 0; --i) {
+            double s = u[i];
+            for (int l = i + 1; l < k; ++l) s -= R[i * k + l] * y[bi * k + l];
+            y[bi * k + i] = s / R[i * k + i];
+        }
+        for (int i = 0; i < k; ++i) y[bi * k + i] = -y[bi * k + i];
+        if (m) memcpy(z + bi * m, zt, sizeof(double) * m);
+        r = m;
+        for (int pass = 0; pass < 2; ++pass) {
+            const double *bound = pass == 0 ? ub : lb;
+            double *out = pass == 0 ? z_ub : z_lb;
+            for (int j = 0; j < n; ++j)
+                out[bi * n + j] = bound && isfinite(bound[bi * n + j]) ? zt[r + j] : 0.0;
+            if (bound) r += n;
+        }
+    }
+    free(buf);
+    return code;
+}

@@ -47,4 +47,11 @@ int torchcbf_dual_certify(int64_t B, int N, int M, const double *P, const double
                           const uint8_t *active, const uint8_t *conv, double eps, int max_iter,
                           double prox_weight, int prox_steps, double rounding, double *x,
                           double *z, uint8_t *certified);
+int torchcbf_dual_solve_small_eq(int64_t B, int n, int m, int k, const double *P,
+                                 const double *q, const double *G, const double *h,
+                                 const double *A, const double *b, const double *lb,
+                                 const double *ub, double eps, int max_iter,
+                                 double max_condition, double rank_tol, double span_tol,
+                                 double *x, double *z, double *y, double *z_lb, double *z_ub,
+                                 int64_t *iters);
 #endif

@@ -40,6 +40,10 @@ _BWD_ARGS = [_I64, _INT, _INT] + [_P] * 8
 # B, N, M; P, q, G, h, lb, ub; eps, max_iter, max_condition; x, z, z_lb, z_ub, iters
 _SMALL_ARGS = [_I64, _INT, _INT] + [_P] * 6 + [ctypes.c_double, _INT, ctypes.c_double]
 _SMALL_ARGS += [_P] * 5
+# B, n, m, k; P, q, G, h, A, b, lb, ub; eps, max_iter, max_condition, rank_tol, span_tol;
+# x, z, y, z_lb, z_ub, iters
+_SMALL_EQ_ARGS = [_I64, _INT, _INT, _INT] + [_P] * 8 + [ctypes.c_double, _INT]
+_SMALL_EQ_ARGS += [ctypes.c_double] * 3 + [_P] * 6
 _COND_ARGS = [_I64, _INT, _P, ctypes.c_double, _P]
 _TIGHT_ARGS = [_I64, _INT, _INT, _P, _P, _P, _P, ctypes.c_double, _P]
 # B, N, M; P, q, G, h, todo, active, conv; eps, max_iter, prox_weight, prox_steps, rounding;
@@ -66,20 +70,25 @@ def _library() -> ctypes.CDLL | None:
     )
 
 
-@functools.lru_cache(maxsize=1)
-def _certify_function() -> Callable[..., int] | None:
-    """The kernel's certification of uncertified rows, or ``None`` where the built library
-    predates it (an editable install not rebuilt: the torch certification then runs)."""
+@functools.lru_cache(maxsize=4)
+def optional_function(name: str) -> Callable[..., int] | None:
+    """The kernel's function ``name`` (``torchcbf_dual_certify`` or
+    ``torchcbf_dual_solve_small_eq``), or ``None`` where the built library predates it (an
+    editable install not rebuilt: the torch code it stands for then runs)."""
     lib = _library()
-    fn = None if lib is None else getattr(lib, "torchcbf_dual_certify", None)
+    fn = None if lib is None else getattr(lib, name, None)
     if fn is not None:
-        fn.argtypes, fn.restype = _CERTIFY_ARGS, ctypes.c_int
+        args = {
+            "torchcbf_dual_certify": _CERTIFY_ARGS,
+            "torchcbf_dual_solve_small_eq": _SMALL_EQ_ARGS,
+        }
+        fn.argtypes, fn.restype = args[name], ctypes.c_int
     return fn
 
 
 def can_certify() -> bool:
     """Whether :func:`certify` runs (the kernel is built with it)."""
-    return _certify_function() is not None
+    return optional_function("torchcbf_dual_certify") is not None
 
 
 def available() -> bool:
@@ -223,7 +232,7 @@ def certify(
     B, N = q.shape
     M = h.shape[-1]
     _check_sizes(N, M)
-    fn = _certify_function()
+    fn = optional_function("torchcbf_dual_certify")
     if fn is None:
         raise RuntimeError("torchcbf: the QP kernel was built without its certification")
     P, q, G, h, todo, active, converged = (

@@ -17,15 +17,14 @@ orthonormal columns, so ``Z'PZ`` is no worse conditioned than ``P``, and the equ
 hold at ``x_p + Z w`` to rounding for every ``w``. A row whose ``A`` is rank deficient or
 nearly so (some row of ``A`` within :data:`RANK_TOL` of the span of the rows before it,
 relative to its own norm) is not reduced (``ok`` false): its caller solves it with the
-equalities kept.
+equalities kept. The C kernel applies the same rules to a few problems without gradients
+(``torchcbf_dual_solve_small_eq``, :func:`torchcbf.qp.realtime.solve_small`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import NamedTuple
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -98,60 +97,3 @@ def equality_multipliers(red: Reduction, grad: Tensor) -> Tensor:
     ``grad`` outside the row space of ``A`` is zero at a solution of the reduced problem)."""
     rhs = -(red.Y.mT @ grad.unsqueeze(-1))
     return torch.linalg.solve_triangular(red.R, rhs, upper=True).squeeze(-1)
-
-
-def _mT(a: np.ndarray) -> np.ndarray:
-    return a.swapaxes(-1, -2)
-
-
-def _mv(M: np.ndarray, v: np.ndarray) -> np.ndarray:
-    return (M @ v[..., None])[..., 0]
-
-
-def solve_small(
-    Q: np.ndarray,
-    p: np.ndarray,
-    G: np.ndarray,
-    h: np.ndarray,
-    A: np.ndarray,
-    b: np.ndarray,
-    eps: float,
-    inner: Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray] | None],
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """The elimination of this module for a few small problems, in numpy (float64 arrays
-    with the same leading dimensions ``[...]``: ``Q [..., n, n]``, ``p [..., n]``,
-    ``G [..., m, n]``, ``h [..., m]`` (box bounds as rows, ``h`` finite), ``A [..., k, n]``,
-    ``b [..., k]``, ``0 < k < n``): one problem costs a few microseconds of array calls, where
-    the batched tensor operations of the functions above would cost several times the solve.
-    ``inner(P, q, G, h)`` solves the reduced inequality-only problem and returns
-    ``(w, z, iterations)`` or ``None``. Returns ``(x, z, y, iterations)``, or ``None`` where
-    some ``A`` is rank deficient (:data:`RANK_TOL`) or ``inner`` gives up. The rules are those
-    of :func:`reduce_equalities`, :func:`reduced_rows` and :func:`equality_multipliers`."""
-    k = A.shape[-2]
-    Qf, Rf = (t.numpy() for t in torch.linalg.qr(torch.from_numpy(_mT(A)), mode="complete"))
-    Y, Z, R = Qf[..., :k], Qf[..., k:], Rf[..., :k, :]
-    diag = np.diagonal(R, axis1=-2, axis2=-1)
-    if not (diag * diag > RANK_TOL**2 * (A * A).sum(-1)).all():
-        return None
-    R_inv = np.linalg.inv(R)  # k x k, well conditioned by the test above
-    xp = _mv(Y, _mv(_mT(R_inv), b))
-    P = 0.5 * (Q + _mT(Q))
-    Zt = _mT(Z)
-    Pr = Zt @ (P @ Z)
-    qr = _mv(Zt, _mv(P, xp) + p)
-    Gr = G @ Z
-    hr = h - _mv(G, xp)
-    g_max = np.abs(G).max(-1, initial=0.0)
-    gone = np.abs(Gr).max(-1, initial=0.0) <= SPAN_TOL * g_max
-    if gone.any():
-        scale = np.abs(h) + g_max * (1.0 + np.abs(xp).max(-1, keepdims=True))
-        hr = np.where(gone & (hr >= -eps * scale), np.maximum(hr, 0.0), hr)
-        Gr = np.where(gone[..., None], 0.0, Gr)
-    out = inner(Pr, qr, Gr, hr)
-    if out is None:
-        return None
-    w, z, iters = out
-    x = xp + _mv(Z, w)
-    grad = _mv(P, x) + p + _mv(_mT(G), z)
-    y = -_mv(R_inv, _mv(_mT(Y), grad))
-    return x, z, y, iters

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from torchcbf._native import float64_pointers
-from torchcbf.qp import _dual_native
+from torchcbf.qp import _dual_native, _eliminate
 from torchcbf.qp._function import MAX_DUAL_CONDITION, dual_budget
 from torchcbf.qp._ipm import default_tolerances
 
@@ -54,7 +54,8 @@ def default_eps(dtype: torch.dtype) -> float:
 
 class SmallSolution(NamedTuple):
     """The kernel's answer, every field a tensor with the batch shape ``[...]`` asked for:
-    ``x [..., N]``, multipliers ``z [..., m]`` (rows of ``G``), ``nu [..., 0]``,
+    ``x [..., N]``, multipliers ``z [..., m]`` (rows of ``G``), ``nu [..., k]`` (equality
+    rows; ``k = 0`` without them),
     ``z_lb, z_ub [..., N]`` (zeros where a bound is absent), ``slack [..., m]`` zeros; int64
     ``status [...]`` (zeros: every row solved) and ``iterations [...]``. The field order is
     that of :class:`torchcbf.qp.QPSolution`."""
@@ -80,42 +81,54 @@ def solve_small(
     max_iter: int,
     shape: tuple[int, ...],
     dtype: torch.dtype = torch.float64,
+    *,
+    A: Tensor | None = None,
+    b: Tensor | None = None,
 ) -> SmallSolution | None:
-    """Solve ``min 1/2 x'Px + q'x  s.t.  Gx <= h, lb <= x <= ub`` for CPU tensors
-    ``P [...,N,N]``, ``q [...,N]``, ``G [...,m,N]``, ``h [...,m]``, ``lb, ub [...,N]`` with the
-    batch shape ``shape`` (``B`` entries; only their values are read, no gradient flows;
-    ``G, h`` or bounds may be ``None``; bounds may be infinite) in at most ``max_iter``
-    steps, raised to the dual method's budget (:func:`~torchcbf.qp._function.dual_budget`);
-    the answer has the batch shape ``shape`` and the float ``dtype``.
+    """Solve ``min 1/2 x'Px + q'x  s.t.  Gx <= h, Ax = b, lb <= x <= ub`` for CPU tensors
+    ``P [...,N,N]``, ``q [...,N]``, ``G [...,m,N]``, ``h [...,m]``, ``A [...,k,N]``,
+    ``b [...,k]`` (``0 < k < N``), ``lb, ub [...,N]`` with the batch shape ``shape`` (``B``
+    entries; only their values are read, no gradient flows; ``G, h``, ``A, b`` or bounds
+    may be ``None``; bounds may be infinite) in at most ``max_iter`` steps, raised to the
+    dual method's budget (:func:`~torchcbf.qp._function.dual_budget`); the answer has the
+    batch shape ``shape`` and the float ``dtype``. Equality rows are eliminated in the
+    kernel (``x = xp + Z w``, the rules of :mod:`torchcbf.qp._eliminate`), where rows with
+    ``h = +inf`` bound nothing.
 
-    Returns ``None`` when the kernel does not apply (``N > 64``, no rows), when some datum is
-    not finite (or ``lb = +inf``, ``ub = -inf``), when the kernel does not certify every row,
-    or when some ``P`` is too ill-conditioned for the dual method; the caller then solves the
-    batch by the general path, which also sets those rows' statuses."""
+    Returns ``None`` when the kernel does not apply (``N > 64``, no rows, ``k >= N``), when
+    some datum is not finite (or ``lb = +inf``, ``ub = -inf``), when some ``A`` is rank
+    deficient, when the kernel does not certify every row, or when some ``P`` is too
+    ill-conditioned for the dual method; the caller then solves the batch by the general
+    path, which also sets those rows' statuses."""
     B, N = math.prod(shape), q.shape[-1]
     m = 0 if h is None else h.shape[-1]
+    k = 0 if b is None else b.shape[-1]
     rows = m + (N if ub is not None else 0) + (N if lb is not None else 0)
-    if N > _dual_native.MAX_VARS or rows < 1:
+    fn = _dual_native.optional_function("torchcbf_dual_solve_small_eq") if k else None
+    if N > _dual_native.MAX_VARS or rows < 1 or k >= N or (k and fn is None):
         return None
-    pointers, held = float64_pointers((P, q, G, h, lb, ub))  # held: alive through the call
+    pointers, held = float64_pointers((P, q, G, h, A, b, lb, ub))  # held: alive through the call
     f64 = torch.float64
-    x = torch.empty(*shape, N, dtype=f64)
-    z = torch.empty(*shape, m, dtype=f64)
-    z_lb = torch.empty(*shape, N, dtype=f64)
-    z_ub = torch.empty(*shape, N, dtype=f64)
+    x, z, nu = (torch.empty(*shape, c, dtype=f64) for c in (N, m, k))
+    z_lb, z_ub = torch.empty(*shape, N, dtype=f64), torch.empty(*shape, N, dtype=f64)
     iters = torch.empty(shape, dtype=torch.int64)
-    code = _dual_native._kernel().torchcbf_dual_solve_small(
-        B, N, m, *pointers, eps,
-        min(dual_budget(max_iter, rows, N), 2**31 - 1), MAX_DUAL_CONDITION,
-        x.data_ptr(), z.data_ptr(), z_lb.data_ptr(), z_ub.data_ptr(), iters.data_ptr(),
-    )  # fmt: skip
+    budget = min(dual_budget(max_iter, rows, N - k), 2**31 - 1)
+    if k:
+        code = fn(
+            B, N, m, k, *pointers, eps, budget, MAX_DUAL_CONDITION, _eliminate.RANK_TOL,
+            _eliminate.SPAN_TOL, x.data_ptr(), z.data_ptr(), nu.data_ptr(), z_lb.data_ptr(),
+            z_ub.data_ptr(), iters.data_ptr(),
+        )  # fmt: skip
+    else:
+        code = _dual_native._kernel().torchcbf_dual_solve_small(
+            B, N, m, *pointers[:4], *pointers[6:], eps, budget, MAX_DUAL_CONDITION,
+            x.data_ptr(), z.data_ptr(), z_lb.data_ptr(), z_ub.data_ptr(), iters.data_ptr(),
+        )  # fmt: skip
     if code < 0:
         raise MemoryError("torchcbf: the QP kernel could not allocate its workspace")
     if code:
         return None
     if dtype != f64:
-        x, z, z_lb, z_ub = (v.to(dtype) for v in (x, z, z_lb, z_ub))
+        x, z, nu, z_lb, z_ub = (v.to(dtype) for v in (x, z, nu, z_lb, z_ub))
     status = torch.zeros_like(iters)
-    return SmallSolution(
-        x, status, z, x.new_zeros(*shape, 0), iters, z_lb, z_ub, torch.zeros_like(z)
-    )
+    return SmallSolution(x, status, z, nu, iters, z_lb, z_ub, torch.zeros_like(z))

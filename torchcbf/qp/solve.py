@@ -6,12 +6,11 @@ import functools
 import math
 from typing import NamedTuple
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from torchcbf._checks import broadcast_shapes
-from torchcbf.qp import _direct, _dual_native, _eliminate, realtime
+from torchcbf.qp import _direct, _dual_native, realtime
 from torchcbf.qp._enum import (
     MAX_CANDIDATES,
     MAX_CANDIDATES_SMALL_BATCH,
@@ -504,68 +503,20 @@ def _solve_small(inp: _Inputs, max_iter: int) -> QPSolution | None:
 
 
 def _solve_small_eliminated(inp: _Inputs, max_iter: int) -> QPSolution | None:
-    """:func:`_solve_small` for problems with equality rows: the equalities eliminated
-    (:func:`torchcbf.qp._eliminate.solve_small`, in numpy), box bounds turned into rows of
-    the reduced problem, which the C kernel solves; ``None`` where some ``A`` is rank
+    """:func:`_solve_small` for problems with equality rows: eliminated in the C kernel
+    (:func:`torchcbf.qp.realtime.solve_small` with ``A, b``); ``None`` where some ``A`` is rank
     deficient, some datum is not finite (``h = +inf`` aside) or the kernel does not certify
     every row."""
-    n, m, k, B = inp.n, inp.m, inp.me, inp.B
-    # one problem as matrices and vectors (cheaper calls than a stack of one)
-    lead = () if B == 1 else (B,)
-
-    def flat(t: Tensor, trailing: tuple[int, ...]) -> np.ndarray:
-        t = t.detach()
-        if t.shape != (*lead, *trailing):
-            t = t.expand(*inp.batch_shape, *trailing).reshape(*lead, *trailing)
-        return (t if t.dtype == torch.float64 else t.double()).numpy()
-
-    parts_G, parts_h = [], []
-    if m:
-        parts_G.append(flat(inp.G, (m, n)))
-        parts_h.append(flat(inp.h, (m,)))
-    finite: dict[float, np.ndarray] = {}
-    for bound, sign in ((inp.ub, 1.0), (inp.lb, -1.0)):
-        if bound is not None:
-            v = flat(bound, (n,))
-            fin = finite[sign] = np.isfinite(v)
-            parts_G.append(sign * (np.eye(n) * fin[..., None, :]))
-            parts_h.append(np.where(fin, sign * v, 1.0))
-    if not parts_G:
-        return None
-    G_all = parts_G[0] if len(parts_G) == 1 else np.concatenate(parts_G, -2)
-    h_all = parts_h[0] if len(parts_h) == 1 else np.concatenate(parts_h, -1)
-    if m and np.isposinf(parts_h[0]).any():
-        # rows with h = +inf bound nothing (the kernel refuses them): zero rows
-        free = np.isposinf(h_all)
-        G_all = np.where(free[..., None], 0.0 * G_all, G_all)
-        h_all = np.where(free, 1.0, h_all)
-
-    def inner(P, q, G, h):
-        sol = realtime.solve_small(*(torch.from_numpy(v) for v in (P, q, G, h)), None, None,
-                                   inp.eps, max_iter, lead)  # fmt: skip
-        return None if sol is None else (sol.x.numpy(), sol.z.numpy(), sol.iterations)
-
-    Q, p, A, b = flat(inp.Q, (n, n)), flat(inp.p, (n,)), flat(inp.A, (k, n)), flat(inp.b, (k,))
-    out = _eliminate.solve_small(Q, p, G_all, h_all, A, b, inp.eps, inner)
-    if out is None:
-        return None
-    x, z, y, iters = out
-    zeros = np.zeros_like(x)
-    lam_ub = np.where(finite[1.0], z[..., m : m + n], 0.0) if inp.ub is not None else zeros
-    off = m + (n if inp.ub is not None else 0)
-    lam_lb = np.where(finite[-1.0], z[..., off : off + n], 0.0) if inp.lb is not None else zeros
-    dt, shape = inp.Q.dtype, inp.batch_shape
-
-    def out_(v: np.ndarray) -> Tensor:
-        t = torch.from_numpy(v)
-        t = t if dt == torch.float64 else t.to(dt)
-        return t if shape == lead else t.reshape(*shape, v.shape[-1])
-
-    iters = iters if shape == lead else iters.reshape(shape)
-    return QPSolution(
-        out_(x), torch.zeros_like(iters), out_(z[..., :m]), out_(y), iters, out_(lam_lb),
-        out_(lam_ub), out_(np.zeros((*lead, m))), "small_native", _answered(inp, "active_set"),
+    n, m, k = inp.n, inp.m, inp.me
+    sol = realtime.solve_small(
+        _rows(inp.Q, inp, (n, n)), _rows(inp.p, inp, (n,)), _rows(inp.G, inp, (m, n)),
+        _rows(inp.h, inp, (m,)), _rows(inp.lb, inp, (n,)), _rows(inp.ub, inp, (n,)), inp.eps,
+        max_iter, inp.batch_shape, inp.Q.dtype, A=_rows(inp.A, inp, (k, n)),
+        b=_rows(inp.b, inp, (k,)),
     )  # fmt: skip
+    if sol is None:
+        return None
+    return QPSolution(*sol, "small_native", _answered(inp, "active_set"))
 
 
 def _beyond_kernel(inp: _Inputs) -> bool:
