@@ -33,6 +33,9 @@ Variants (each on 32 tuning seeds from ``--seed``, never the evaluation seeds 0-
   ``risk_temperature``, ``--omega-weights``: the filter's QP weight on ``omega``, and
 ``--rhos``: the risk level ``rho``.
 
+``--evaluate`` runs the scenario's ``mppi_rascbf`` as configured on any seed block (the
+evaluation seeds included) and prints the same columns.
+
 ``--cost`` instead times the filters of ``mppi_scbf``, ``mppi_rascbf`` (both forms) and
 ``shield_mppi`` on the same states, their closed loops, and counts filter calls per step.
 
@@ -46,6 +49,7 @@ Usage::
     python scripts/risk_mppi_experiment.py --variants margin+shield --horizons 0.1 --seed 10032
     python scripts/risk_mppi_experiment.py --variants baseline --inflations 0 0.1 --max-speeds 8
     python scripts/risk_mppi_experiment.py --variants baseline --forms rectified inside
+    python scripts/risk_mppi_experiment.py --evaluate --seed 0 --seeds 32
     python scripts/risk_mppi_experiment.py --cost --samples 1000
 """
 
@@ -241,9 +245,20 @@ def main() -> None:
     parser.add_argument("--temperatures", nargs="+", type=float, default=[None])
     parser.add_argument("--omega-weights", nargs="+", type=float, default=[None])
     parser.add_argument("--rhos", nargs="+", type=float, default=[None])
+    parser.add_argument(
+        "--evaluate",
+        action="store_true",
+        help="run the scenario's own mppi_rascbf (no options) on any seeds, e.g. 0-31",
+    )
     args = parser.parse_args()
-    if args.seed < 10_000:
-        parser.error("tune on seeds >= 10,000 (0-31 are the evaluation seeds)")
+    if args.evaluate:
+        tuned = ("horizons", "gains", "speeds", "max_speeds", "inflations", "forms")
+        tuned += ("temperatures", "omega_weights", "rhos")
+        if any(getattr(args, name) != [None] for name in tuned) or args.cost:
+            parser.error("--evaluate runs the configured method: no tuning options, no --cost")
+        args.variants = ["baseline"]
+    elif args.seed < 10_000:
+        parser.error("tune on seeds >= 10,000 (0-31 are the evaluation seeds; --evaluate)")
     torch.set_num_threads(1)
     if args.cost:
         filter_cost(args.seeds, args.samples, args.repeat)
