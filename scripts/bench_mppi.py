@@ -325,6 +325,37 @@ def profile(device: str) -> None:
         for label, s in phases.items():
             print(f"   {label:<45} {s:8.4f} s")
         print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12))
+    noise_draws(device)
+
+
+def noise_draws(device: str, reps: int = 5) -> None:
+    """The torch path's noise of B = 32 x K = 2,000 x H = 80 x m = 2 (component-major):
+    the kernel's counter-based normals against ``normal_`` from one generator per
+    environment (what the torch path drew before, and still draws off the CPU)."""
+    from torchcbf.mppi import _rollout
+
+    B, K, H, m = 32, 2000, 80, 2
+    buf = torch.empty(B, m, H, K, device=device)
+    gens = [torch.Generator(device=device).manual_seed(b) for b in range(B)]
+
+    def torch_normal() -> None:
+        for b, gen in enumerate(gens):
+            buf[b].normal_(generator=gen)
+
+    lines = [("normal_, one generator per environment", torch_normal)]
+    if device == "cpu" and _rollout.available():
+        keys = _rollout.draw_keys(gens)
+        eps = buf.permute(0, 3, 2, 1)
+        lines.insert(0, ("kernel counter-based normals", lambda: _rollout.normals(keys, eps)))
+    print(f"\n== noise of B={B} x K={K} x H={H} x m={m} ({B * K * H * m / 1e6:.2f} M normals)")
+    for label, draw in lines:
+        draw()
+        t = time.perf_counter()
+        for _ in range(reps):
+            draw()
+        if device != "cpu":
+            torch.cuda.synchronize()
+        print(f"   {label:<45} {(time.perf_counter() - t) / reps * 1e3:8.1f} ms")
 
 
 def fmt(res: dict) -> str:
@@ -417,7 +448,9 @@ def main() -> None:
     parser.add_argument("--reps", type=int, default=5)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--only", nargs="+", choices=LINES, help="lines to run")
-    parser.add_argument("--profile", action="store_true", help="profile one call per path")
+    parser.add_argument(
+        "--profile", action="store_true", help="profile one call per path, and the noise draws"
+    )
     parser.add_argument(
         "--quick",
         action="store_true",
