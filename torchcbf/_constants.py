@@ -15,7 +15,9 @@ The rules every module built from numbers or tensors follows (:func:`store`):
   ``0.1`` and not ``float32(0.1)``. A constant changed since construction (trained, loaded,
   edited) is cast as usual.
 
-Modules using :func:`store` or :func:`remember` derive from :class:`ExactConstants`.
+Modules using :func:`store` or :func:`remember` derive from :class:`ExactConstants`. Models
+store theirs in float64 (``store(..., dtype=torch.float64)``, through
+:func:`torchcbf.dynamics.base.register_constant`) and cast them to the input's dtype on use.
 """
 
 from __future__ import annotations
@@ -91,16 +93,18 @@ def store(
     *,
     learnable: bool = False,
     allow_inf: bool = False,
+    dtype: torch.dtype | None = None,
 ) -> Tensor:
     """Register ``value`` on ``module`` as ``name`` following the module docstring's rules;
-    return the stored tensor. NaN (and ``inf`` unless ``allow_inf``) raises ``ValueError``
-    naming ``name``."""
+    return the stored tensor. ``dtype``: store numbers and tensors in it (default: numbers
+    in the default dtype, tensors as given). NaN (and ``inf`` unless ``allow_inf``) raises
+    ``ValueError`` naming ``name``."""
     if isinstance(value, nn.Parameter):
         check_finite(name, value, allow_inf=allow_inf)
         module.register_parameter(name, value)
         return value
     if isinstance(value, Tensor):
-        t = as_tensor(name, value)
+        t = as_tensor(name, value, dtype=dtype)
         check_finite(name, t, allow_inf=allow_inf)
         if learnable:
             module.register_parameter(name, nn.Parameter(t.detach().clone()))
@@ -115,7 +119,7 @@ def store(
         module.register_parameter(name, nn.Parameter(exact.to(torch.get_default_dtype())))
         _exact_values(module)[name] = exact
         return getattr(module, name)
-    return remember(module, name, exact)
+    return remember(module, name, exact, dtype=dtype)
 
 
 def reshape(module: nn.Module, name: str, fn: Callable[[Tensor], Tensor]) -> Tensor:

@@ -24,6 +24,7 @@ from torchcbf._checks import (
     clamp_control,
     honour_overrides,
 )
+from torchcbf._constants import store
 
 SigmaSpec = float | Tensor | Callable[[Tensor], Tensor] | None
 LimitSpec = float | Tensor | list[float] | tuple[float, ...] | None
@@ -242,19 +243,14 @@ class ControlAffine(nn.Module):
 def register_constant(
     module: nn.Module, name: str, value: float | Tensor, *, positive: bool = False
 ) -> Tensor:
-    """Store a model constant (scalar or tensor) on ``module``: a number becomes a float64
+    """Store a model constant (scalar or tensor) on ``module`` by the rules of
+    :func:`torchcbf._constants.store`, in float64: a number or a tensor becomes a float64
     buffer (exact under ``.double()``), an ``nn.Parameter`` is registered as given (trained
     with the model), a tensor that requires grad keeps its gradient. NaN or inf (and, with
     ``positive``, a value ``<= 0``) raises ``ValueError`` naming ``name``."""
     if isinstance(value, bool):
         raise TypeError(f"{name} must be a number or a tensor, got bool")
-    if isinstance(value, nn.Parameter):
-        module.register_parameter(name, value)
-    else:
-        t = as_tensor(name, value, dtype=torch.float64)
-        module.register_buffer(name, t if t.requires_grad else t.detach().clone())
-    t = getattr(module, name)
-    check_finite(name, t)
+    t = store(module, name, value, dtype=torch.float64)
     if positive and t.device.type != "meta" and bool((t.detach() <= 0).any()):
         raise ValueError(f"{name} must be positive, got {t.detach().tolist()}")
     return t
