@@ -91,6 +91,24 @@ def test_traced_reads_new_values_and_traces_again_for_what_it_baked_in():
         check(4)
 
 
+def test_traced_reads_mutated_containers_and_replaced_data():
+    mod = _Scaled().double()
+    mod.offsets = [0.5, 1.0]  # a plain list the code reads
+
+    def fn(x):
+        return (mod(x) + torch.tensor(mod.offsets, dtype=x.dtype),)
+
+    traced = Traced(fn, [mod])
+    x = torch.ones(3, 2, dtype=torch.float64)
+    with torch.no_grad():
+        torch.testing.assert_close(traced(x)[0], fn(x)[0])
+        mod.offsets[1] = -2.0  # mutated in place: the same object, new contents
+        torch.testing.assert_close(traced(x)[0], fn(x)[0])
+        mod.w.data = torch.tensor([3.0, 4.0], dtype=torch.float32)  # the same Parameter
+        torch.testing.assert_close(traced(x)[0], fn(x)[0])
+        assert traced.compiles == 3
+
+
 def test_traced_follows_a_dtype_change_and_a_copy():
     import copy
     import pickle

@@ -93,27 +93,52 @@ def _trust_reported_isa() -> Iterator[None]:
 
 
 #: entries of an ``nn.Module``'s ``__dict__`` that are its own bookkeeping, not user state
-_MODULE_INTERNALS = frozenset(vars(torch.nn.Module())) - {"training"}
+_MODULE_INTERNALS = (frozenset(vars(torch.nn.Module())) - {"training"}) | {
+    "_exact_constants"  # torchcbf._constants' float64 copies, which no forward reads
+}
 #: values a traced graph bakes in as constants and that key its cache by value
 _PRIMITIVES = (bool, int, float, complex, str, type(None))
+#: containers keyed by their contents, compared again on every call (mutable in place)
+_MUTABLE = (list, dict, set, bytearray)
+
+
+def _freeze(value: Any) -> Any:
+    """A hashable stand-in of ``value`` for a cache key: numbers and strings by value,
+    tensors by shape, dtype and device, containers by their contents, anything else by
+    identity."""
+    if isinstance(value, Tensor):
+        return (value.shape, value.dtype, value.device)
+    if isinstance(value, _PRIMITIVES):
+        return value
+    if isinstance(value, (list, tuple)):
+        return (type(value), tuple(_freeze(v) for v in value))
+    if isinstance(value, dict):
+        return (dict, tuple((k, _freeze(v)) for k, v in value.items()))
+    if isinstance(value, (set, frozenset)):
+        return (type(value), frozenset(_freeze(v) for v in value))
+    if isinstance(value, bytearray):
+        return bytes(value)
+    return id(value)
 
 
 class Traced:
     """``fn(*args)`` of tensors, compiled per input signature with low call overhead.
 
-    ``fn`` is traced once per signature (shapes, dtypes and devices of ``args``) into one
-    graph of ATen operations (``make_fx``, so ``torch.func`` transforms such as ``vmap`` and
-    ``jacrev`` are resolved at trace time), with every tensor of ``modules`` (parameters,
-    buffers and plain tensor attributes, submodules included) lifted to an input; inductor
-    compiles the graph (with a C++ wrapper on the CPU; ``options``: inductor settings). A
-    call then costs a look at the modules' state (the same objects as the last call's: the
-    same code) and the compiled code, without ``torch.compile``'s frame evaluation and
-    guards (tens of microseconds on one state).
+        ``fn`` is traced once per signature (shapes, dtypes and devices of ``args``) into one
+        graph of ATen operations (``make_fx``, so ``torch.func`` transforms such as ``vmap`` and
+        ``jacrev`` are resolved at trace time), with every tensor of ``modules`` (parameters,
+        buffers and plain tensor attributes, submodules included) lifted to an input; inductor
+        compiles the graph (with a C++ wrapper on the CPU; ``options``: inductor settings). A
+        call then costs a look at the modules' state (the same objects as the last call's: the
+        same code) and the compiled code, without ``torch.compile``'s frame evaluation and
+        guards (tens of microseconds on one state).
 
     The key of the cache holds what the graph bakes in: the modules' attributes that are
     plain numbers or strings (a new value traces again; ``module.temp = 0.2`` is seen), the
-    identity of every other attribute and submodule (a replaced function or network traces
-    again), and the shape, dtype and device of every lifted tensor. New tensor values, in
+    contents of lists, tuples, dicts and sets among them (compared on every call, so one
+    mutated in place is seen), the identity of every other attribute and submodule (a
+    replaced function or network traces again), and the shape, dtype and device of every
+    lifted tensor (``.data =`` with a new shape or dtype is seen). New tensor values, in
     place or by ``.to()``, reuse the code. A tensor that ``fn`` reaches other than through
     ``modules`` (a closure's) makes the trace fail.
 
@@ -135,7 +160,7 @@ class Traced:
         self.options = dict(options or {})
         self._graphs: dict[tuple[Any, ...], tuple[Callable[..., Any], list[int]]] = {}
         self._slots: list[tuple[dict[str, Any], str]] | None = None
-        self._last: tuple[list[Any], tuple[Any, ...], torch.device, Any] | None = None
+        self._last: tuple[Any, ...] | None = None
         self._first = True
 
     def __getstate__(self) -> dict[str, Any]:
@@ -172,41 +197,50 @@ class Traced:
 
     def __call__(self, *args: Tensor) -> tuple[Tensor, ...]:
         state = [] if self._slots is None else [store.get(k) for store, k in self._slots]
-        last = self._last
-        if (
-            last is not None
-            and all(map(operator.is_, state, last[0]))
-            and all(a.shape == s and a.dtype is d for a, (s, d) in zip(args, last[1], strict=True))
-            and args[0].device == last[2]
-        ):
-            graph, used = last[3]  # the same objects as the last call: its key
-        else:  # something changed: find the state again (a new submodule has its own)
-            self._slots = self._find_slots()
-            state = [store.get(k) for store, k in self._slots]
-            graph, used = self._lookup(args, state)
         values = (*args, *state)
+        last = self._last
+        if last is None or not self._same(values, last):
+            # something changed: find the state again (a new submodule has its own)
+            self._slots = self._find_slots()
+            values = (*args, *[store.get(k) for store, k in self._slots])
+            last = self._lookup(values, len(args))
+        graph, used = last[3]
         return graph(*[values[i] for i in used])
 
-    def _lookup(
-        self, args: tuple[Tensor, ...], state: list[Any]
-    ) -> tuple[Callable[..., Any], list[int]]:
-        """The graph for ``args`` and the modules' ``state`` (compiled where it is new) and
-        the positions in ``(*args, *state)`` of the tensors it reads."""
-        key = tuple(
-            (v.shape, v.dtype, v.device)
-            if isinstance(v, Tensor)
-            else v
-            if isinstance(v, _PRIMITIVES)
-            else id(v)
-            for v in (*args, *state)
+    @staticmethod
+    def _same(values: tuple[Any, ...], last: tuple[Any, ...]) -> bool:
+        """Whether ``values`` (arguments, then the modules' state) have the last call's key:
+        the same state objects, the same contents of mutable containers, the same shape and
+        dtype of the arguments and of every tensor the graph reads (``.data =`` keeps the
+        object) and the arguments' device (the state's follows the module's by ``.to()``,
+        which replaces the objects)."""
+        objects, containers, metas, _, n_args = last
+        return (
+            len(values) == len(objects) + n_args
+            and all(map(operator.is_, values[n_args:], objects))
+            and values[0].device == metas[0][3]
+            and all(
+                values[i].shape == shape and values[i].dtype is dtype
+                for i, shape, dtype, _ in metas
+            )
+            and all(_freeze(values[i]) == frozen for i, frozen in containers)
         )
+
+    def _lookup(self, values: tuple[Any, ...], n_args: int) -> tuple[Any, ...]:
+        """The last-call record for ``values`` (arguments, then the modules' state), its
+        graph compiled where its key is new: ``(state objects, containers, metas, (graph,
+        used), n_args)`` with ``used`` the positions in ``values`` of the tensors the graph
+        reads."""
+        key = tuple(_freeze(v) for v in values)
         found = self._graphs.get(key)
         if found is None:
-            found = self._compile(args, state)
+            found = self._compile(values[:n_args], list(values[n_args:]))
             self._graphs[key] = found
-        metas = tuple((a.shape, a.dtype) for a in args)
-        self._last = (state, metas, args[0].device, found)
-        return found
+        containers = [(i, key[i]) for i, v in enumerate(values) if isinstance(v, _MUTABLE)]
+        checked = sorted(set(range(n_args)) | set(found[1]))
+        metas = [(i, values[i].shape, values[i].dtype, values[i].device) for i in checked]
+        self._last = (values[n_args:], containers, metas, found, n_args)
+        return self._last
 
     def _compile(
         self, args: tuple[Tensor, ...], state: list[Any]

@@ -43,6 +43,7 @@ __all__ = [
     "KERNEL_VERSION",
     "TRANSFORM_CODES",
     "available",
+    "describes",
     "cbf_conditions",
     "lie_terms",
 ]
@@ -190,6 +191,17 @@ class Affine(NamedTuple):
     gain_scale: float = 1.0
     offset: Tensor | float | None = None
     offset_scale: float = 1.0
+
+
+def describes(fns: Sequence[LieFunction], dynamics: ControlAffine) -> bool:
+    """Whether the kernel is built and can evaluate every function of ``fns`` along
+    ``dynamics`` by what they declare (``quadric()``, the compositions, ``native_model()``);
+    the states of a call decide the rest (their number, dtype and device)."""
+    return (
+        _library() is not None
+        and model_code(dynamics) is not None
+        and all(_blocks(fn) is not None for fn in fns)
+    )
 
 
 def lie_terms(

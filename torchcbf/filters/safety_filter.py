@@ -297,6 +297,7 @@ class SafetyFilter(nn.Module):
         self.backend = backend
         self._compiled_lie: tuple[CompiledLie | None, CompiledLie | None] | None = None
         self._traced: Traced | None = None
+        self._native_known: tuple[tuple[int, ...], bool] | None = None
         if compile:
             if not isinstance(compile, (bool, dict)):
                 raise TypeError(f"compile must be a bool or a dict, got {type(compile).__name__}")
@@ -478,7 +479,7 @@ class SafetyFilter(nn.Module):
         written when the filter's kernel makes it). ``None`` where that does not apply."""
         barriers, alphas, mode = self.barriers, self.alpha, self.condition
         # asked first: on another device an affine form might read a number off it
-        if not barriers or not self._native_applies(x):
+        if not barriers or not self._native_applies(x) or not self._native_describes():
             return None
         alpha, *others = alphas  # iterating a ModuleList is cheaper than its len()
         if others:
@@ -492,6 +493,15 @@ class SafetyFilter(nn.Module):
             return None if call is None else (call.h, call)
         found = native.cbf_conditions(*args, hessian=mode.needs_hessian)
         return None if found is None else (found[0], found[1:3])
+
+    def _native_describes(self) -> bool:
+        """:func:`native.describes` of the barriers along the dynamics, kept until one of
+        them is replaced (what they declare does not change with their values)."""
+        key = (*map(id, self.barriers), id(self.dynamics))
+        found = self._native_known
+        if found is None or found[0] != key:
+            found = self._native_known = (key, native.describes(self.barriers, self.dynamics))
+        return found[1]
 
     def _native_applies(self, x: Tensor) -> bool:
         """Whether the native Lie terms may answer for ``x [B, n]``: ``lie_method="auto"``
