@@ -93,7 +93,6 @@ def load_kernel(
     version: int,
     fallback: str,
     sources: Iterable[str] = (),
-    signatures: dict[str, list[Any]] | None = None,
 ):
     """The ctypes library ``directory/stem<extension suffix>`` if it exists, loads and
     reports ``version``, else ``None`` with a warning ending in ``fallback`` (e.g. "MPPI runs
@@ -143,9 +142,6 @@ def load_kernel(
             )
             return None
         function.argtypes, function.restype = argtypes, restype
-    for name, types in (signatures or {}).items():
-        function = getattr(lib, name)
-        function.argtypes, function.restype = types, ctypes.c_int
     return lib
 
 

@@ -28,29 +28,9 @@ MIN_WORK_PER_THREAD = 1024 * (4 * 4 + 8 * 4)
 #: most variables the kernel handles (``NMAX`` in the C source)
 MAX_VARS = 64
 #: ``TORCHCBF_DUAL_KERNEL_VERSION`` of the C source this module calls (_dual_kernel.h)
-KERNEL_VERSION = 6
+KERNEL_VERSION = 7
 #: the file name of the built kernel, without its extension suffix
 KERNEL_STEM = "_dual_kernel"
-
-_P = ctypes.c_void_p
-_I64 = ctypes.c_int64
-_INT = ctypes.c_int
-_FWD_ARGS = [_I64, _INT, _INT, _P, _P, _P, _P, ctypes.c_double, _INT] + [_P] * 8
-_BWD_ARGS = [_I64, _INT, _INT] + [_P] * 8
-# B, N, M; P, q, G, h, lb, ub; eps, max_iter, max_condition; x, z, z_lb, z_ub, iters
-_SMALL_ARGS = [_I64, _INT, _INT] + [_P] * 6 + [ctypes.c_double, _INT, ctypes.c_double]
-_SMALL_ARGS += [_P] * 5
-# B, n, m, k; P, q, G, h, A, b, lb, ub; eps, max_iter, max_condition, rank_tol, span_tol;
-# x, z, y, z_lb, z_ub, iters
-_SMALL_EQ_ARGS = [_I64, _INT, _INT, _INT] + [_P] * 8 + [ctypes.c_double, _INT]
-_SMALL_EQ_ARGS += [ctypes.c_double] * 3 + [_P] * 6
-_COND_ARGS = [_I64, _INT, _P, ctypes.c_double, _P]
-_TIGHT_ARGS = [_I64, _INT, _INT, _P, _P, _P, _P, ctypes.c_double, _P]
-# B, N, M; P, q, G, h, todo, active, conv; eps, max_iter, prox_weight, prox_steps, rounding;
-# x, z, certified
-_CERTIFY_ARGS = [_I64, _INT, _INT] + [_P] * 7 + [ctypes.c_double, _INT, ctypes.c_double, _INT]
-_CERTIFY_ARGS += [ctypes.c_double] + [_P] * 3
-
 
 @functools.lru_cache(maxsize=1)
 def _library() -> ctypes.CDLL | None:
@@ -60,35 +40,20 @@ def _library() -> ctypes.CDLL | None:
         "torchcbf_dual_version",
         KERNEL_VERSION,
         "using the torch solver",
-        signatures={
-            "torchcbf_dual_forward": _FWD_ARGS,
-            "torchcbf_dual_backward": _BWD_ARGS,
-            "torchcbf_dual_solve_small": _SMALL_ARGS,
-            "torchcbf_dual_check_condition": _COND_ARGS,
-            "torchcbf_dual_tight_rows": _TIGHT_ARGS,
-        },
+        sources=("_dual_kernel.c",),
     )
 
 
-@functools.lru_cache(maxsize=4)
-def optional_function(name: str) -> Callable[..., int] | None:
-    """The kernel's function ``name`` (``torchcbf_dual_certify`` or
-    ``torchcbf_dual_solve_small_eq``), or ``None`` where the built library predates it (an
-    editable install not rebuilt: the torch code it stands for then runs)."""
+def function(name: str) -> Callable[..., int] | None:
+    """The kernel's exported function ``name`` (its types from the C source), or ``None``
+    where the kernel is not built."""
     lib = _library()
-    fn = None if lib is None else getattr(lib, name, None)
-    if fn is not None:
-        args = {
-            "torchcbf_dual_certify": _CERTIFY_ARGS,
-            "torchcbf_dual_solve_small_eq": _SMALL_EQ_ARGS,
-        }
-        fn.argtypes, fn.restype = args[name], ctypes.c_int
-    return fn
+    return None if lib is None else getattr(lib, name)
 
 
 def can_certify() -> bool:
-    """Whether :func:`certify` runs (the kernel is built with it)."""
-    return optional_function("torchcbf_dual_certify") is not None
+    """Whether :func:`certify` runs (the kernel is built)."""
+    return available()
 
 
 def available() -> bool:
@@ -232,9 +197,9 @@ def certify(
     B, N = q.shape
     M = h.shape[-1]
     _check_sizes(N, M)
-    fn = optional_function("torchcbf_dual_certify")
+    fn = function("torchcbf_dual_certify")
     if fn is None:
-        raise RuntimeError("torchcbf: the QP kernel was built without its certification")
+        raise RuntimeError("torchcbf: the QP kernel was not built (no C compiler at install)")
     P, q, G, h, todo, active, converged = (
         t.contiguous() for t in (P, q, G, h, todo, active, converged)
     )

@@ -104,7 +104,7 @@ def solve_small(
     m = 0 if h is None else h.shape[-1]
     k = 0 if b is None else b.shape[-1]
     rows = m + (N if ub is not None else 0) + (N if lb is not None else 0)
-    fn = _dual_native.optional_function("torchcbf_dual_solve_small_eq") if k else None
+    fn = _dual_native.function("torchcbf_dual_solve_small_eq") if k else None
     if N > _dual_native.MAX_VARS or rows < 1 or k >= N or (k and fn is None):
         return None
     pointers, held = float64_pointers((P, q, G, h, A, b, lb, ub))  # held: alive through the call
