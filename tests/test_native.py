@@ -64,11 +64,14 @@ def test_keep_freed_heap_is_once_per_process():
 _SOURCE = """
 static int helper(int n) { return n; }
 int torchcbf_demo_version(void) { return 3; }
-int torchcbf_demo_solve(int64_t B, int m, const double *x, double eps,
-                        lie_kernel fn, void *const *ptrs) {
+int torchcbf_demo_declared(int n);
+int torchcbf_demo_solve(int64_t B /* rows */, int m, // controls
+                        const double *x, double eps,
+                        lie_kernel fn, void *const *ptrs, const double w[3]) /* c */ {
     return 0;
 }
 double torchcbf_demo_norm(int n, const float *v) { return 0.0; }
+void torchcbf_demo_clear(size_t n, double *v) { }
 int SUFFIX(torchcbf_demo_fill)(const REAL *a, REAL scale, uint64_t key) { return 0; }
 """
 
@@ -80,32 +83,40 @@ def test_prototypes_read_every_exported_definition(tmp_path: Path) -> None:
     P, D, F, I64 = ctypes.c_void_p, ctypes.c_double, ctypes.c_float, ctypes.c_int64
     assert found == {
         "torchcbf_demo_version": ([], ctypes.c_int),
-        "torchcbf_demo_solve": ([I64, ctypes.c_int, P, D, P, P], ctypes.c_int),
+        "torchcbf_demo_solve": ([I64, ctypes.c_int, P, D, P, P, P], ctypes.c_int),
         "torchcbf_demo_norm": ([ctypes.c_int, P], D),
+        "torchcbf_demo_clear": ([ctypes.c_size_t, P], None),
         "torchcbf_demo_fill_f32": ([P, F, ctypes.c_uint64], ctypes.c_int),
         "torchcbf_demo_fill_f64": ([P, D, ctypes.c_uint64], ctypes.c_int),
     }
+    src.write_text("int torchcbf_demo_odd(unsigned short n) { return 0; }\n")
+    with pytest.raises(ValueError, match="unsigned short"):
+        prototypes([src])
 
 
-@pytest.mark.parametrize(
-    ("module", "attribute"),
-    [
-        ("torchcbf.filters.realtime", "_library"),
-        ("torchcbf.mppi._rollout", "_library"),
-        ("torchcbf.barriers.native", "_library"),
-    ],
-)
-def test_each_built_kernel_has_its_sources_interface(module: str, attribute: str) -> None:
+def test_every_exported_symbol_has_its_sources_types() -> None:
+    """Every ``torchcbf_*`` function a built library exports (``nm -D``) is read from the
+    sources beside it, with the types the library's functions were given."""
     import importlib
+    import shutil
 
-    lib = getattr(importlib.import_module(module), attribute)()
-    if lib is None:
-        pytest.skip("the kernel was not built")
-    directory = Path(lib._name).parent
-    sources = sorted(directory.glob("_*_kernel.[ch]"))
-    for name, (argtypes, restype) in prototypes(sources).items():
-        function = getattr(lib, name)
-        assert function.argtypes == argtypes and function.restype is restype, name
+    if shutil.which("nm") is None:
+        pytest.skip("nm is not installed")
+    for module in ("torchcbf.qp._dual_native", "torchcbf.barriers.native",
+                   "torchcbf.mppi._rollout"):  # fmt: skip
+        lib = importlib.import_module(module)._library()
+        if lib is None:
+            continue
+        path = Path(lib._name)
+        listed = subprocess.run(
+            ["nm", "-D", "--defined-only", str(path)], capture_output=True, text=True, check=True
+        ).stdout.split()
+        exported = {name for name in listed if name.startswith("torchcbf_")}
+        found = prototypes(sorted(path.parent.glob("_*_kernel.[ch]")))
+        assert exported == set(found), module
+        for name, (argtypes, restype) in found.items():
+            function = getattr(lib, name)
+            assert function.argtypes == argtypes and function.restype is restype, name
 
 
 def test_a_kernel_whose_source_cannot_be_read_is_refused(

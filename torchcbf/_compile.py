@@ -23,6 +23,7 @@ import contextlib
 import copy
 import logging
 import operator
+import types
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
@@ -98,18 +99,42 @@ _MODULE_INTERNALS = (frozenset(vars(torch.nn.Module())) - {"training"}) | {
 }
 #: values a traced graph bakes in as constants and that key its cache by value
 _PRIMITIVES = (bool, int, float, complex, str, type(None))
-#: containers keyed by their contents, compared again on every call (mutable in place)
-_MUTABLE = (list, dict, set, bytearray)
+#: values keyed by their contents, compared again on every call (they change in place)
+_MUTABLE = (list, dict, set, bytearray, types.FunctionType)
+
+
+class TraceError(RuntimeError):
+    """A function :class:`Traced` could not trace or compile (the cause is chained)."""
+
+
+class _Ref:
+    """An object in a cache key by identity, held so that its id is not reused."""
+
+    __slots__ = ("obj",)
+
+    def __init__(self, obj: object) -> None:
+        self.obj = obj
+
+    def __hash__(self) -> int:
+        return id(self.obj)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, _Ref) and other.obj is self.obj
 
 
 def _freeze(value: Any) -> Any:
-    """A hashable stand-in of ``value`` for a cache key: numbers and strings by value,
-    tensors by shape, dtype and device, containers by their contents, anything else by
-    identity."""
+    """A hashable stand-in of ``value`` for a cache key: numbers and strings by type and
+    value (``-0.0`` is not ``0.0``, ``True`` is not ``1``), tensors by shape, strides, dtype
+    and device, containers by their contents, a function by itself, its closure's contents
+    and the numbers and tensors among the globals it names, anything else by identity."""
     if isinstance(value, Tensor):
-        return (value.shape, value.dtype, value.device)
+        return (value.shape, value.stride(), value.dtype, value.device)
+    if isinstance(value, float):
+        return (float, value.hex())
+    if isinstance(value, complex):
+        return (complex, value.real.hex(), value.imag.hex())
     if isinstance(value, _PRIMITIVES):
-        return value
+        return (type(value), value)
     if isinstance(value, (list, tuple)):
         return (type(value), tuple(_freeze(v) for v in value))
     if isinstance(value, dict):
@@ -118,7 +143,20 @@ def _freeze(value: Any) -> Any:
         return (type(value), frozenset(_freeze(v) for v in value))
     if isinstance(value, bytearray):
         return bytes(value)
-    return id(value)
+    if isinstance(value, types.FunctionType):
+        cells = tuple(_shallow(c.cell_contents) for c in value.__closure__ or ())
+        named = value.__globals__
+        found = tuple((n, _shallow(named[n])) for n in value.__code__.co_names if n in named)
+        return (_Ref(value), cells, found)
+    return _Ref(value)
+
+
+def _shallow(value: Any) -> Any:
+    """A function's captured value in its key: numbers, strings and tensors as
+    :func:`_freeze` has them, anything else by identity (not followed further)."""
+    if isinstance(value, (Tensor, *_PRIMITIVES)):
+        return _freeze(value)
+    return _Ref(value)
 
 
 class Traced:
@@ -143,7 +181,12 @@ class Traced:
     ``modules`` (a closure's) makes the trace fail.
 
     Where tracing or compiling fails (data-dependent control flow, an operation without a
-    decomposition), :meth:`__call__` raises; the caller decides the fallback. Outputs are a
+    decomposition), :meth:`__call__` raises :class:`TraceError`; the caller decides the
+    fallback. Not seen: hooks registered on the modules after the first call, and
+    attributes added after it (a forward that reads one with ``getattr(self, name,
+    default)``); values captured deeper than a function's own closure and globals. The
+    first call of each signature swaps the modules' tensors for tracing placeholders: do
+    not call the modules from another thread meanwhile. Outputs are a
     tuple of tensors (of one where ``fn`` returns a tensor), computed without a graph (call
     it under ``torch.no_grad()``).
     """
@@ -161,7 +204,7 @@ class Traced:
         self._graphs: dict[tuple[Any, ...], tuple[Callable[..., Any], list[int]]] = {}
         self._slots: list[tuple[dict[str, Any], str]] | None = None
         self._last: tuple[Any, ...] | None = None
-        self._first = True
+        self._compiled_on: set[str] = set()
 
     def __getstate__(self) -> dict[str, Any]:
         return {"fn": self.fn, "modules": self.modules, "options": self.options}
@@ -218,10 +261,10 @@ class Traced:
         return (
             len(values) == len(objects) + n_args
             and all(map(operator.is_, values[n_args:], objects))
-            and values[0].device == metas[0][3]
+            and values[0].device == metas[0][4]
             and all(
-                values[i].shape == shape and values[i].dtype is dtype
-                for i, shape, dtype, _ in metas
+                values[i].shape == shape and values[i].stride() == st and values[i].dtype is dt
+                for i, shape, st, dt, _ in metas
             )
             and all(_freeze(values[i]) == frozen for i, frozen in containers)
         )
@@ -234,11 +277,17 @@ class Traced:
         key = tuple(_freeze(v) for v in values)
         found = self._graphs.get(key)
         if found is None:
-            found = self._compile(values[:n_args], list(values[n_args:]))
+            try:
+                found = self._compile(values[:n_args], list(values[n_args:]))
+            except Exception as err:  # noqa: BLE001 - any failure of make_fx or inductor
+                raise TraceError(f"{type(err).__name__}: {err}") from err
             self._graphs[key] = found
         containers = [(i, key[i]) for i, v in enumerate(values) if isinstance(v, _MUTABLE)]
         checked = sorted(set(range(n_args)) | set(found[1]))
-        metas = [(i, values[i].shape, values[i].dtype, values[i].device) for i in checked]
+        metas = [
+            (i, values[i].shape, values[i].stride(), values[i].dtype, values[i].device)
+            for i in checked
+        ]
         self._last = (values[n_args:], containers, metas, found, n_args)
         return self._last
 
@@ -284,10 +333,11 @@ class Traced:
             # the C++ wrapper cuts the call overhead on the CPU; on an accelerator the
             # kernels' launch dominates and the Python wrapper builds without a toolkit
             patch = {"cpp_wrapper": values[0].device.type == "cpu", **self.options}
-            if self._first and config.cpp.vec_isa_ok is None:
+            cpu = values[0].device.type == "cpu"
+            if cpu and "cpu" not in self._compiled_on and config.cpp.vec_isa_ok is None:
                 with _trust_reported_isa():
                     compiled = compile_fx(graph, inputs, config_patches=patch)
             else:
                 compiled = compile_fx(graph, inputs, config_patches=patch)
-        self._first = False
+        self._compiled_on.add(values[0].device.type)
         return compiled, used

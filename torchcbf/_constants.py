@@ -16,8 +16,9 @@ The rules every module built from numbers or tensors follows (:func:`store`):
   edited) is cast as usual.
 
 Modules using :func:`store` or :func:`remember` derive from :class:`ExactConstants`. Models
-store theirs in float64 (``store(..., dtype=torch.float64)``, through
-:func:`torchcbf.dynamics.base.register_constant`) and cast them to the input's dtype on use.
+store theirs as float64 buffers instead (``store(..., dtype=torch.float64)``, through
+:func:`torchcbf.dynamics.base.register_constant`) and cast them to the input's dtype on use;
+a model cast to float32 and back keeps the float32 rounding.
 """
 
 from __future__ import annotations
@@ -97,7 +98,8 @@ def store(
 ) -> Tensor:
     """Register ``value`` on ``module`` as ``name`` following the module docstring's rules;
     return the stored tensor. ``dtype``: store numbers and tensors in it (default: numbers
-    in the default dtype, tensors as given). NaN (and ``inf`` unless ``allow_inf``) raises
+    in the default dtype, tensors as given; a parameter, given or ``learnable``, is not
+    cast). NaN (and ``inf`` unless ``allow_inf``) raises
     ``ValueError`` naming ``name``."""
     if isinstance(value, nn.Parameter):
         check_finite(name, value, allow_inf=allow_inf)

@@ -47,42 +47,67 @@ def model_code(dynamics: object) -> tuple[int, int] | None:
     return MODEL_CODES[found.kind], int(found.dim)
 
 
-#: C types of the kernels' exported signatures; every pointer is a ``c_void_p``
+#: C types of the kernels' exported signatures (pointers and arrays are ``c_void_p``)
 _C_TYPES: dict[str, Any] = {
     "int": ctypes.c_int,
+    "int32_t": ctypes.c_int32,
     "int64_t": ctypes.c_int64,
     "uint64_t": ctypes.c_uint64,
+    "size_t": ctypes.c_size_t,
     "double": ctypes.c_double,
     "float": ctypes.c_float,
 }
 #: what ``REAL`` stands for in a function named ``SUFFIX(name)`` (a body included once per
 #: precision, as the rollout kernel's)
 _PRECISIONS = {"_f32": "float", "_f64": "double"}
-_EXPORT = re.compile(
-    r"^(int|double)\s+(SUFFIX\()?(torchcbf_\w+)\)?\s*\(([^)]*)\)\s*\{", re.MULTILINE
-)
+#: the start of an exported definition: its return type and name, up to its ``(``
+_EXPORT = re.compile(r"^(\w+)\s+(SUFFIX\()?(torchcbf_\w+)\)?\s*\(", re.MULTILINE)
+_COMMENTS = re.compile(r"/\*.*?\*/|//[^\n]*", re.DOTALL)
+
+
+def _c_type(decl: str, real: str, where: str) -> Any:
+    """The ctypes type of one parameter or return declaration (without its name)."""
+    if "*" in decl or "[" in decl:
+        return ctypes.c_void_p
+    base = " ".join(w for w in decl.split() if w != "const")
+    base = real if base == "REAL" else base
+    if base in _C_TYPES:
+        return _C_TYPES[base]
+    if base.endswith("_kernel"):  # a function-pointer typedef of the sources
+        return ctypes.c_void_p
+    raise ValueError(f"{where}: the C type {decl!r} has no ctypes mapping in torchcbf._native")
 
 
 def prototypes(sources: Iterable[Path]) -> dict[str, tuple[list[Any], Any]]:
     """The ctypes ``(argtypes, restype)`` of every function a kernel exports (a definition
-    ``int torchcbf_...(...) {`` or ``double torchcbf_...(...) {`` at the start of a line of
-    its C ``sources``): the C source is the one statement of each interface. A function
-    named ``SUFFIX(name)`` gives ``name_f32`` and ``name_f64`` with ``REAL`` as ``float``
-    and ``double``. Pointers, and types defined by the kernel, are ``c_void_p``."""
+    ``<type> torchcbf_...(...) {`` at the start of a line of its C ``sources``, comments
+    aside): the C source is the one statement of each interface. A function named
+    ``SUFFIX(name)`` gives ``name_f32`` and ``name_f64`` with ``REAL`` as ``float`` and
+    ``double``. Pointers, arrays and the sources' ``*_kernel`` function-pointer types are
+    ``c_void_p``; any other type without a mapping raises ``ValueError``."""
     found: dict[str, tuple[list[Any], Any]] = {}
     for source in sources:
-        for ret, suffixed, name, params in _EXPORT.findall(source.read_text()):
+        text = _COMMENTS.sub(" ", source.read_text())
+        for match in _EXPORT.finditer(text):
+            ret, suffixed, name = match.groups()
+            depth, end = 1, match.end()
+            while depth:  # the parameters, to their closing parenthesis
+                depth += {"(": 1, ")": -1}.get(text[end], 0)
+                end += 1
+            if not text[end:].lstrip().startswith("{"):
+                continue  # a declaration, not the definition
+            params = text[match.end() : end - 1]
+            where = f"{source.name}: {name}"
             variants = _PRECISIONS.items() if suffixed else [("", "REAL")]
             for suffix, real in variants:
                 types = []
                 for param in (p.strip() for p in params.split(",")):
                     if param in ("", "void"):
                         continue
-                    decl = param.rsplit(None, 1)[0] if "*" not in param else "*"
-                    base = decl.replace("const", "").strip()
-                    base = real if base == "REAL" else base
-                    types.append(_C_TYPES.get(base, ctypes.c_void_p))
-                found[name + suffix] = (types, _C_TYPES[ret])
+                    decl = param if "*" in param or "[" in param else param.rsplit(None, 1)[0]
+                    types.append(_c_type(decl, real, where))
+                restype = None if ret == "void" else _c_type(ret, real, where)
+                found[name + suffix] = (types, restype)
     return found
 
 

@@ -222,3 +222,44 @@ def test_a_compiled_filter_pickles_and_compiles_again_where_loaded() -> None:
         got = pickle.loads(pickle.dumps(filt))(x, u)
     assert got.path == want.path == "compiled/realtime"
     torch.testing.assert_close(got.u, want.u)
+
+
+GAIN = 1.0
+
+
+def test_compile_true_sees_changed_globals_strides_and_empty_batches(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    global GAIN
+    model = Unicycle(u_min=-2.0, u_max=2.0).double()
+    moving = MovingBall(lambda t: torch.stack([t, 0.5 * t], -1), 0.3).double()
+    shape = SuperEllipse([2.0, 0.5], [0.6, 0.4]).double()
+    kw = {"alpha": lambda h: GAIN * h}
+    traced = SafetyFilter(model, [shape, moving], compile=True, **kw).double()
+    general = SafetyFilter(model, [shape, moving], backend="torch", **kw).double()
+    x = torch.tensor([[1.0, 0.4, 0.1], [0.0, -0.5, 2.0]], dtype=torch.float64)
+    u = torch.tensor([[1.0, 0.0], [2.0, 1.0]], dtype=torch.float64)
+    with torch.no_grad(), caplog.at_level(logging.INFO, logger="torchcbf"):
+        calls = [
+            {},
+            {"t": torch.tensor(0.5, dtype=torch.float64)},  # broadcast: a stride-0 time
+            {"t": torch.tensor([0.1, 0.2], dtype=torch.float64)},
+        ]
+        for gain in (1.0, 10.0):  # a global the class-K function reads
+            GAIN = gain
+            for extra in calls:
+                a, b = traced(x, u, **extra), general(x, u, **extra)
+                assert a.path.startswith("compiled/")
+                torch.testing.assert_close(a.u, b.u, atol=1e-9, rtol=1e-9)
+        GAIN = 1.0
+        empty = traced(x[:0], u[:0])
+        assert empty.u.shape == (0, 2)
+        assert traced(x, u).path.startswith("compiled/")  # still traced after all that
+    assert not any("cannot be traced" in r.getMessage() for r in caplog.records)
+
+
+def test_an_empty_compile_dict_compiles() -> None:
+    empty = SafetyFilter(Unicycle(), [SuperEllipse([2.0, 0.5], [0.6, 0.4])], compile={})
+    x, u = torch.tensor([[0.0, 0.3, 0.1]]), torch.tensor([[1.0, 0.0]])
+    with torch.no_grad():
+        assert empty(x, u).path.startswith("compiled/")  # torch.compile's defaults

@@ -245,8 +245,9 @@ def register_constant(
 ) -> Tensor:
     """Store a model constant (scalar or tensor) on ``module`` by the rules of
     :func:`torchcbf._constants.store`, in float64: a number or a tensor becomes a float64
-    buffer (exact under ``.double()``), an ``nn.Parameter`` is registered as given (trained
-    with the model), a tensor that requires grad keeps its gradient. NaN or inf (and, with
+    buffer (a number exact in it; a model cast to float32 and back keeps the float32
+    rounding), an ``nn.Parameter`` is registered as given (trained with the model), a tensor
+    that requires grad keeps its gradient. NaN or inf (and, with
     ``positive``, a value ``<= 0``) raises ``ValueError`` naming ``name``."""
     if isinstance(value, bool):
         raise TypeError(f"{name} must be a number or a tensor, got bool")

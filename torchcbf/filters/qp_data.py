@@ -80,7 +80,8 @@ class Slack:
         if weight is None:
             weight = 1e2 if self.mode == "per_row" else 1e3
         exact = lyapunovs if self.exact is None else self.exact
-        return dataclasses.replace(self, cbf_weight=weight, exact=exact)
+        # the hard QP beside the elastic one exists only with the shared slack
+        return dataclasses.replace(self, cbf_weight=weight, exact=exact and self.mode == "shared")
 
     @property
     def two_pass(self) -> bool:

@@ -56,7 +56,7 @@ from torchcbf._checks import (
     check_bounds,
     check_last_dim,
 )
-from torchcbf._compile import Traced, logger
+from torchcbf._compile import Traced, TraceError, logger
 from torchcbf.barriers import native
 from torchcbf.barriers.compiled import CompiledLie
 from torchcbf.barriers.lie import LieFunction, LieTerms, stacked_lie_derivatives
@@ -240,7 +240,9 @@ class SafetyFilter(nn.Module):
             ``compiled/...``). ``True``: the Lie terms, class-K functions and the mode's
             conditions are traced into one graph, compiled by inductor with a C++ wrapper
             (:class:`torchcbf._compile.Traced`: new values of states and constants reuse
-            it; a new batch size, dtype, plain-number attribute or submodule traces again);
+            it; a new batch size, dtype, plain-number attribute, container content,
+            submodule, or a changed number a function captures or reads as a global traces
+            again; hooks and attributes added after the first call are not seen);
             where that fails, the Lie terms go through ``torch.compile``. A dict: the Lie
             terms through ``torch.compile(**compile)``
             (:class:`torchcbf.barriers.compiled.CompiledLie`). The first call compiles
@@ -298,9 +300,9 @@ class SafetyFilter(nn.Module):
         self._compiled_lie: tuple[CompiledLie | None, CompiledLie | None] | None = None
         self._traced: Traced | None = None
         self._native_known: tuple[tuple[int, ...], bool] | None = None
-        if compile:
-            if not isinstance(compile, (bool, dict)):
-                raise TypeError(f"compile must be a bool or a dict, got {type(compile).__name__}")
+        if not isinstance(compile, (bool, dict)):
+            raise TypeError(f"compile must be a bool or a dict, got {type(compile).__name__}")
+        if compile is not False:
             opts = compile if isinstance(compile, dict) else None
             hess = self.condition.needs_hessian
             self._compiled_lie = tuple(
@@ -454,7 +456,8 @@ class SafetyFilter(nn.Module):
             found = native.lie_terms(fns, x, self.dynamics, hessian=hessian)
             if found is not None:
                 return *found, "native"
-        if compiled is not None and self.lie_method == "auto" and not torch.is_grad_enabled():
+        usable = self.lie_method == "auto" and not torch.is_grad_enabled() and x.shape[0] > 0
+        if compiled is not None and usable:
             found = compiled(x, t)
             if found is not None:
                 return *found, "compiled"
@@ -597,16 +600,20 @@ class SafetyFilter(nn.Module):
         """:meth:`_conditions` by one call of the traced graph (``None`` where it cannot be
         traced: the Lie terms' own compiled call answers from then on)."""
         assert self._traced is not None
+        if x.shape[0] == 0:
+            return None
         try:
             flat = iter(self._traced(x, t))
-        except Exception as err:  # noqa: BLE001 - torch.compile may still manage
+        except TraceError as err:
             logger.info(
-                "torchcbf: the filter's conditions cannot be traced into one graph (%s: %s); "
+                "torchcbf: the filter's conditions cannot be traced into one graph (%s); "
                 "torch.compile answers",
-                type(err).__name__,
                 str(err).splitlines()[0] if str(err) else "",
             )
             self._traced = None
+            return None
+        except Exception as err:  # noqa: BLE001 - this call only: the next path answers
+            logger.debug("torchcbf: the traced conditions failed on this call (%s)", err)
             return None
         cbf = clf = None
         h = V = x.new_zeros(x.shape[0], 0)
