@@ -25,7 +25,7 @@ import logging
 import operator
 import types
 from collections.abc import Callable, Iterator, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -101,6 +101,19 @@ _MODULE_INTERNALS = (frozenset(vars(torch.nn.Module())) - {"training"}) | {
 _PRIMITIVES = (bool, int, float, complex, str, type(None))
 #: values keyed by their contents, compared again on every call (they change in place)
 _MUTABLE = (list, dict, set, bytearray, types.FunctionType)
+
+
+class _Record(NamedTuple):
+    """What a :class:`Traced` call checks against the last call's key, and its graph."""
+
+    objects: tuple[Any, ...]  # the modules' state values, by identity
+    containers: list[tuple[int, Any]]  # (position, frozen contents) of mutable values
+    args: list[tuple[int, torch.Size, tuple[int, ...], torch.dtype]]
+    dtypes: list[tuple[int, torch.dtype]]  # of the state tensors the graph reads
+    device: torch.device  # of the first argument
+    graph: Callable[..., Any]
+    used: list[int]  # positions in (*args, *state) of the tensors the graph reads
+    n_args: int
 
 
 class TraceError(RuntimeError):
@@ -182,13 +195,14 @@ class Traced:
 
     Where tracing or compiling fails (data-dependent control flow, an operation without a
     decomposition), :meth:`__call__` raises :class:`TraceError`; the caller decides the
-    fallback. Not seen: hooks registered on the modules after the first call, and
-    attributes added after it (a forward that reads one with ``getattr(self, name,
-    default)``); values captured deeper than a function's own closure and globals. The
-    first call of each signature swaps the modules' tensors for tracing placeholders: do
-    not call the modules from another thread meanwhile. Outputs are a
-    tuple of tensors (of one where ``fn`` returns a tensor), computed without a graph (call
-    it under ``torch.no_grad()``).
+    fallback. ``ignore``: names of the modules' own attributes that are bookkeeping, which
+    ``fn`` reads as fixed objects or not at all (the owner's caches). Not seen: hooks
+    registered on the modules after the first call, and attributes added after it (a forward
+    that reads one with ``getattr(self, name, default)``); values captured deeper than a
+    function's own closure and globals. The first call of each signature swaps the modules'
+    tensors for tracing placeholders: do not call the modules from another thread meanwhile.
+    Outputs are a tuple of tensors (of one where ``fn`` returns a tensor), computed without
+    a graph (call it under ``torch.no_grad()``).
     """
 
     def __init__(
@@ -197,24 +211,34 @@ class Traced:
         modules: Sequence[torch.nn.Module],
         *,
         options: dict[str, Any] | None = None,
+        ignore: Sequence[str] = (),
     ) -> None:
         self.fn = fn
         self.modules = list(modules)
+        self.ignore = frozenset(ignore)
         self.options = dict(options or {})
         self._graphs: dict[tuple[Any, ...], tuple[Callable[..., Any], list[int]]] = {}
         self._slots: list[tuple[dict[str, Any], str]] | None = None
-        self._last: tuple[Any, ...] | None = None
+        self._last: _Record | None = None
+        self.lookups = 0  # calls that found the modules' state changed
         self._compiled_on: set[str] = set()
 
     def __getstate__(self) -> dict[str, Any]:
-        return {"fn": self.fn, "modules": self.modules, "options": self.options}
+        return {
+            "fn": self.fn,
+            "modules": self.modules,
+            "options": self.options,
+            "ignore": self.ignore,
+        }
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__init__(state["fn"], state["modules"], options=state["options"])
+        self.__init__(
+            state["fn"], state["modules"], options=state["options"], ignore=state["ignore"]
+        )
 
     def __deepcopy__(self, memo: dict[int, Any]) -> Traced:
         fn, modules = copy.deepcopy((self.fn, self.modules), memo)
-        return Traced(fn, modules, options=self.options)
+        return Traced(fn, modules, options=self.options, ignore=self.ignore)
 
     @property
     def compiles(self) -> int:
@@ -234,7 +258,8 @@ class Traced:
             for store in (mod._parameters, mod._buffers, mod._modules):
                 slots.extend((store, k) for k in store)
             own = mod.__dict__
-            slots.extend((own, k) for k in own if k not in _MODULE_INTERNALS)
+            skip = _MODULE_INTERNALS | self.ignore
+            slots.extend((own, k) for k in own if k not in skip)
             stack.extend(m for m in mod._modules.values() if m is not None)
         return slots
 
@@ -247,33 +272,32 @@ class Traced:
             self._slots = self._find_slots()
             values = (*args, *[store.get(k) for store, k in self._slots])
             last = self._lookup(values, len(args))
-        graph, used = last[3]
-        return graph(*[values[i] for i in used])
+        return last.graph(*[values[i] for i in last.used])
 
     @staticmethod
-    def _same(values: tuple[Any, ...], last: tuple[Any, ...]) -> bool:
+    def _same(values: tuple[Any, ...], last: _Record) -> bool:
         """Whether ``values`` (arguments, then the modules' state) have the last call's key:
-        the same state objects, the same contents of mutable containers, the same shape and
-        dtype of the arguments and of every tensor the graph reads (``.data =`` keeps the
-        object) and the arguments' device (the state's follows the module's by ``.to()``,
-        which replaces the objects)."""
-        objects, containers, metas, _, n_args = last
+        the same state objects, the same contents of mutable containers, the same shape,
+        strides, dtype and device of the arguments, and the same dtype of every state tensor
+        the graph reads (``.data =`` keeps the object; the compiled code itself asserts the
+        shapes and strides of its inputs)."""
+        n_args = last.n_args
         return (
-            len(values) == len(objects) + n_args
-            and all(map(operator.is_, values[n_args:], objects))
-            and values[0].device == metas[0][4]
+            len(values) == len(last.objects) + n_args
+            and all(map(operator.is_, values[n_args:], last.objects))
             and all(
                 values[i].shape == shape and values[i].stride() == st and values[i].dtype is dt
-                for i, shape, st, dt, _ in metas
+                for i, shape, st, dt in last.args
             )
-            and all(_freeze(values[i]) == frozen for i, frozen in containers)
+            and values[0].device == last.device
+            and all(values[i].dtype is dt for i, dt in last.dtypes)
+            and all(_freeze(values[i]) == frozen for i, frozen in last.containers)
         )
 
-    def _lookup(self, values: tuple[Any, ...], n_args: int) -> tuple[Any, ...]:
-        """The last-call record for ``values`` (arguments, then the modules' state), its
-        graph compiled where its key is new: ``(state objects, containers, metas, (graph,
-        used), n_args)`` with ``used`` the positions in ``values`` of the tensors the graph
-        reads."""
+    def _lookup(self, values: tuple[Any, ...], n_args: int) -> _Record:
+        """The record of a call with ``values`` (arguments, then the modules' state), its
+        graph compiled where its key is new."""
+        self.lookups += 1
         key = tuple(_freeze(v) for v in values)
         found = self._graphs.get(key)
         if found is None:
@@ -282,13 +306,17 @@ class Traced:
             except Exception as err:  # noqa: BLE001 - any failure of make_fx or inductor
                 raise TraceError(f"{type(err).__name__}: {err}") from err
             self._graphs[key] = found
-        containers = [(i, key[i]) for i, v in enumerate(values) if isinstance(v, _MUTABLE)]
-        checked = sorted(set(range(n_args)) | set(found[1]))
-        metas = [
-            (i, values[i].shape, values[i].stride(), values[i].dtype, values[i].device)
-            for i in checked
-        ]
-        self._last = (values[n_args:], containers, metas, found, n_args)
+        graph, used = found
+        self._last = _Record(
+            objects=values[n_args:],
+            containers=[(i, key[i]) for i, v in enumerate(values) if isinstance(v, _MUTABLE)],
+            args=[(i, values[i].shape, values[i].stride(), values[i].dtype) for i in range(n_args)],
+            dtypes=[(i, values[i].dtype) for i in used if i >= n_args],
+            device=values[0].device,
+            graph=graph,
+            used=used,
+            n_args=n_args,
+        )
         return self._last
 
     def _compile(

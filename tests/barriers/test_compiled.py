@@ -146,9 +146,12 @@ def test_compile_true_traces_the_conditions_into_one_graph(
             for name in ("u", "h", "clf_value", "constraint_value"):
                 want = getattr(b, name)
                 torch.testing.assert_close(getattr(a, name), want, atol=tol, rtol=tol, msg=name)
-        fns[0].center.add_(0.25)  # a new value: the same graph reads it
-        general.barriers[0].center.add_(0.25)
-        a, b = traced(x, u, t), general(x, u, t)
+        compiles = traced._traced.compiles  # one per batch size met
+        for _ in range(3):  # repeated calls, new states and constants: no new graph
+            fns[0].center.add_(0.25)  # a new value: the same graph reads it
+            general.barriers[0].center.add_(0.25)
+            a, b = traced(x + 0.01, u, t), general(x + 0.01, u, t)
+        assert traced._traced.compiles == compiles == 2
     assert not caplog.records  # traced: no fallback to torch.compile
     torch.testing.assert_close(a.h, b.h, atol=tol, rtol=tol)
     torch.testing.assert_close(a.u, b.u, atol=tol, rtol=tol)

@@ -300,6 +300,7 @@ class SafetyFilter(nn.Module):
         self._compiled_lie: tuple[CompiledLie | None, CompiledLie | None] | None = None
         self._traced: Traced | None = None
         self._native_known: tuple[tuple[int, ...], bool] | None = None
+        self._traced_lookups = 0
         if not isinstance(compile, (bool, dict)):
             raise TypeError(f"compile must be a bool or a dict, got {type(compile).__name__}")
         if compile is not False:
@@ -310,7 +311,9 @@ class SafetyFilter(nn.Module):
                 for fns in (self.barriers, self.lyapunovs)
             )  # type: ignore[assignment]
             if opts is None:
-                self._traced = Traced(self._compiled_conditions, [self])
+                # the filter's caches change between calls and are not read by the graph
+                ignore = ("_traced", "_traced_lookups", "_native_known", "_compiled_lie")
+                self._traced = Traced(self._compiled_conditions, [self], ignore=ignore)
         m = dynamics.control_dim
         self.alpha = _alphas("alpha", alpha, len(self.barriers))
         self.clf_rate = _alphas("clf_rate", clf_rate, len(self.lyapunovs))
@@ -543,13 +546,14 @@ class SafetyFilter(nn.Module):
         ``V [B,c]`` and where the Lie terms came from (``native``, ``torch`` or ``mixed``).
         With ``prepare``, the CBF conditions may be a prepared native call (see
         :meth:`_native_cbf`), for the real-time path."""
-        native_cbf = self._native_cbf(x, prepare)
-        if (
-            native_cbf is None
-            and self._traced is not None
-            and self.lie_method == "auto"
-            and not torch.is_grad_enabled()
-        ):
+        traced = (
+            self._traced is not None and self.lie_method == "auto" and not torch.is_grad_enabled()
+        )
+        known = self._native_known
+        # barriers the kernel did not describe last time: the traced graph first (it sees
+        # a replaced barrier, and the kernel is asked again after one)
+        native_cbf = None if traced and known and not known[1] else self._native_cbf(x, prepare)
+        if native_cbf is None and traced:
             found = self._traced_conditions(x, t)
             if found is not None:
                 return found
@@ -615,6 +619,8 @@ class SafetyFilter(nn.Module):
         except Exception as err:  # noqa: BLE001 - this call only: the next path answers
             logger.debug("torchcbf: the traced conditions failed on this call (%s)", err)
             return None
+        if self._traced.lookups != self._traced_lookups:  # something changed: ask again
+            self._traced_lookups, self._native_known = self._traced.lookups, None
         cbf = clf = None
         h = V = x.new_zeros(x.shape[0], 0)
         if self.barriers:
