@@ -288,12 +288,13 @@ def profile(device: str) -> None:
     from torchcbf.mppi import _rollout
 
     cases = [
-        ("all-torch path, user cost, B=1 K=20000 H=80", 1, 20000, "user", "torch"),
-        ("kernel rollout + user cost, B=1 K=20000 H=80", 1, 20000, "user", "auto"),
-        ("fused, B=32 K=20000 H=80", 32, 20000, "builtin", "auto"),
+        ("all-torch path, user cost, B=1 K=20000 H=80", 1, 20000, "user", "torch", "accel"),
+        ("kernel rollout + user cost, B=1 K=20000 H=80", 1, 20000, "user", "auto", "accel"),
+        ("fused, B=32 K=20000 H=80", 32, 20000, "builtin", "auto", "accel"),
+        ("user model + user cost, B=32 K=2000 H=80", 32, 2000, "user", "auto", "user"),
     ]
-    for title, B, K, cost, backend in cases:
-        planner = torchcbf(B, K, 80, cost, device, backend=backend, keep_rollouts=512)
+    for title, B, K, cost, backend, model in cases:
+        planner = torchcbf(B, K, 80, cost, device, model=model, backend=backend, keep_rollouts=512)
         x = x0(B if B > 1 else 0, 4, device)
         with torch.no_grad():
             planner(x)
