@@ -32,6 +32,7 @@ KERNEL_VERSION = 7
 #: the file name of the built kernel, without its extension suffix
 KERNEL_STEM = "_dual_kernel"
 
+
 @functools.lru_cache(maxsize=1)
 def _library() -> ctypes.CDLL | None:
     return load_kernel(
