@@ -59,14 +59,9 @@ class Compiled:
         if self.compiled is None:
             return self.eager(*args)
         from torch._dynamo.exc import BackendCompilerFailed
-        from torch._inductor import config
 
         try:
-            # the ISA list is computed once per process, on the first CPU compile
-            if self._first and config.cpp.vec_isa_ok is None:
-                with _trust_reported_isa():
-                    out = self.compiled(*args)
-            else:
+            with _trusting_isa(self._first):
                 out = self.compiled(*args)
         except BackendCompilerFailed as err:
             logger.warning("torchcbf: torch.compile failed (%s); running eager", err)
@@ -74,6 +69,17 @@ class Compiled:
             return self.eager(*args)
         self._first = False
         return out
+
+
+def _trusting_isa(first: bool) -> contextlib.AbstractContextManager[None]:
+    """:func:`_trust_reported_isa` around a first compile (the ISA list is computed once per
+    process, on the first CPU compile) where the user has not set the option; else
+    nothing."""
+    from torch._inductor import config
+
+    if first and config.cpp.vec_isa_ok is None:
+        return _trust_reported_isa()
+    return contextlib.nullcontext()
 
 
 @contextlib.contextmanager
@@ -175,14 +181,14 @@ def _shallow(value: Any) -> Any:
 class Traced:
     """``fn(*args)`` of tensors, compiled per input signature with low call overhead.
 
-        ``fn`` is traced once per signature (shapes, dtypes and devices of ``args``) into one
-        graph of ATen operations (``make_fx``, so ``torch.func`` transforms such as ``vmap`` and
-        ``jacrev`` are resolved at trace time), with every tensor of ``modules`` (parameters,
-        buffers and plain tensor attributes, submodules included) lifted to an input; inductor
-        compiles the graph (with a C++ wrapper on the CPU; ``options``: inductor settings). A
-        call then costs a look at the modules' state (the same objects as the last call's: the
-        same code) and the compiled code, without ``torch.compile``'s frame evaluation and
-        guards (tens of microseconds on one state).
+    ``fn`` is traced once per signature (shapes, dtypes and devices of ``args``) into one
+    graph of ATen operations (``make_fx``, so ``torch.func`` transforms such as ``vmap`` and
+    ``jacrev`` are resolved at trace time), with every tensor of ``modules`` (parameters,
+    buffers and plain tensor attributes, submodules included) lifted to an input; inductor
+    compiles the graph (with a C++ wrapper on the CPU; ``options``: inductor settings). A
+    call then costs a look at the modules' state (the same objects as the last call's: the
+    same code) and the compiled code, without ``torch.compile``'s frame evaluation and
+    guards (tens of microseconds on one state).
 
     The key of the cache holds what the graph bakes in: the modules' attributes that are
     plain numbers or strings (a new value traces again; ``module.temp = 0.2`` is seen), the
@@ -249,6 +255,7 @@ class Traced:
         """Every place of the modules' state a trace can read: ``(dict, key)`` pairs."""
         slots: list[tuple[dict[str, Any], str]] = []
         seen: set[int] = set()
+        skip = _MODULE_INTERNALS | self.ignore
         stack = list(self.modules)
         while stack:
             mod = stack.pop()
@@ -258,7 +265,6 @@ class Traced:
             for store in (mod._parameters, mod._buffers, mod._modules):
                 slots.extend((store, k) for k in store)
             own = mod.__dict__
-            skip = _MODULE_INTERNALS | self.ignore
             slots.extend((own, k) for k in own if k not in skip)
             stack.extend(m for m in mod._modules.values() if m is not None)
         return slots
@@ -322,7 +328,6 @@ class Traced:
     def _compile(
         self, args: tuple[Tensor, ...], state: list[Any]
     ) -> tuple[Callable[..., Any], list[int]]:
-        from torch._inductor import config
         from torch._inductor.compile_fx import compile_fx
         from torch.fx.experimental.proxy_tensor import make_fx
 
@@ -358,14 +363,11 @@ class Traced:
                     graph.graph.erase_node(node)
             graph.recompile()
             inputs = [values[i].detach() for i in used]
+            device = values[0].device.type
             # the C++ wrapper cuts the call overhead on the CPU; on an accelerator the
             # kernels' launch dominates and the Python wrapper builds without a toolkit
-            patch = {"cpp_wrapper": values[0].device.type == "cpu", **self.options}
-            cpu = values[0].device.type == "cpu"
-            if cpu and "cpu" not in self._compiled_on and config.cpp.vec_isa_ok is None:
-                with _trust_reported_isa():
-                    compiled = compile_fx(graph, inputs, config_patches=patch)
-            else:
+            patch = {"cpp_wrapper": device == "cpu", **self.options}
+            with _trusting_isa(device == "cpu" and "cpu" not in self._compiled_on):
                 compiled = compile_fx(graph, inputs, config_patches=patch)
-        self._compiled_on.add(values[0].device.type)
+        self._compiled_on.add(device)
         return compiled, used

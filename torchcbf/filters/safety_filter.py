@@ -299,7 +299,9 @@ class SafetyFilter(nn.Module):
         self.backend = backend
         self._compiled_lie: tuple[CompiledLie | None, CompiledLie | None] | None = None
         self._traced: Traced | None = None
-        self._native_known: tuple[tuple[int, ...], bool] | None = None
+        # whether the C Lie kernel describes the barriers (the traced path's guide; asked
+        # again after the traced state changed)
+        self._native_known: bool | None = None
         self._traced_lookups = 0
         if not isinstance(compile, (bool, dict)):
             raise TypeError(f"compile must be a bool or a dict, got {type(compile).__name__}")
@@ -485,7 +487,7 @@ class SafetyFilter(nn.Module):
         written when the filter's kernel makes it). ``None`` where that does not apply."""
         barriers, alphas, mode = self.barriers, self.alpha, self.condition
         # asked first: on another device an affine form might read a number off it
-        if not barriers or not self._native_applies(x) or not self._native_describes():
+        if not barriers or not self._native_applies(x):
             return None
         alpha, *others = alphas  # iterating a ModuleList is cheaper than its len()
         if others:
@@ -499,15 +501,6 @@ class SafetyFilter(nn.Module):
             return None if call is None else (call.h, call)
         found = native.cbf_conditions(*args, hessian=mode.needs_hessian)
         return None if found is None else (found[0], found[1:3])
-
-    def _native_describes(self) -> bool:
-        """:func:`native.describes` of the barriers along the dynamics, kept until one of
-        them is replaced (what they declare does not change with their values)."""
-        key = (*map(id, self.barriers), id(self.dynamics))
-        found = self._native_known
-        if found is None or found[0] != key:
-            found = self._native_known = (key, native.describes(self.barriers, self.dynamics))
-        return found[1]
 
     def _native_applies(self, x: Tensor) -> bool:
         """Whether the native Lie terms may answer for ``x [B, n]``: ``lie_method="auto"``
@@ -549,10 +542,11 @@ class SafetyFilter(nn.Module):
         traced = (
             self._traced is not None and self.lie_method == "auto" and not torch.is_grad_enabled()
         )
-        known = self._native_known
-        # barriers the kernel did not describe last time: the traced graph first (it sees
-        # a replaced barrier, and the kernel is asked again after one)
-        native_cbf = None if traced and known and not known[1] else self._native_cbf(x, prepare)
+        if traced and self._native_known is None:
+            self._native_known = native.describes(self.barriers, self.dynamics)
+        # barriers the kernel does not describe go straight to the traced graph (it sees a
+        # replaced barrier, and the kernel is asked again after one)
+        native_cbf = None if traced and not self._native_known else self._native_cbf(x, prepare)
         if native_cbf is None and traced:
             found = self._traced_conditions(x, t)
             if found is not None:

@@ -736,22 +736,16 @@ class MPPI(ExactConstants):
         ):
             keys = _rollout.draw_keys(self._generators)
             _rollout.normals(keys, eps, std=1.0 if std is None else float(std))
-            self._scale_noise(eps, std)
-            return
-        storage = eps.permute(0, 3, 2, 1)  # [B, m, H, K]: contiguous in the component layout
-        scratch = None if storage.is_contiguous() else eps.new_empty(storage.shape[1:])
-        for b, gen in enumerate(self._generators):
-            # Sigma = s^2 I: drawn scaled in one pass; otherwise standard, scaled below; the
-            # same draws in [m, H, K] order in either layout
-            target = storage[b] if scratch is None else scratch
-            target.normal_(0.0, 1.0 if std is None else std, generator=gen)
-            if scratch is not None:
-                storage[b].copy_(scratch)
-        self._scale_noise(eps, std)
-
-    def _scale_noise(self, eps: Tensor, std: Tensor | float | None) -> None:
-        """Standard normals ``eps`` (already times ``std`` where the covariance is ``std^2
-        I``) to the noise distribution, in place."""
+        else:
+            storage = eps.permute(0, 3, 2, 1)  # [B, m, H, K]: contiguous, component layout
+            scratch = None if storage.is_contiguous() else eps.new_empty(storage.shape[1:])
+            for b, gen in enumerate(self._generators):
+                # Sigma = s^2 I: drawn scaled in one pass; otherwise standard, scaled below;
+                # the same draws in [m, H, K] order in either layout
+                target = storage[b] if scratch is None else scratch
+                target.normal_(0.0, 1.0 if std is None else std, generator=gen)
+                if scratch is not None:
+                    storage[b].copy_(scratch)
         if std is None and self._diagonal:
             eps.mul_(torch.diagonal(self.noise_cov).to(eps).sqrt())
         elif std is None:

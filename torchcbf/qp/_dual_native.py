@@ -198,9 +198,7 @@ def certify(
     B, N = q.shape
     M = h.shape[-1]
     _check_sizes(N, M)
-    fn = function("torchcbf_dual_certify")
-    if fn is None:
-        raise RuntimeError("torchcbf: the QP kernel was not built (no C compiler at install)")
+    fn = _kernel().torchcbf_dual_certify
     P, q, G, h, todo, active, converged = (
         t.contiguous() for t in (P, q, G, h, todo, active, converged)
     )
