@@ -199,3 +199,28 @@ def test_ray_sweep_interrupted_then_resumed_equals_an_uninterrupted_run(
     _run(SWEEP, out, "--resume")  # the engine may change: its numbers are the same
     assert _json(out / "sweep.json")["rows"] == _json(sweep_reference / "sweep.json")["rows"]
     assert _csv(out / "sweep.csv") == _csv(sweep_reference / "sweep.csv")
+
+
+def test_ctrl_c_between_creating_and_guarding_a_temporary_file_leaves_none(
+    tmp_path, monkeypatch
+) -> None:
+    import tempfile
+
+    from torchcbf import _io
+
+    created = []
+    mkstemp = tempfile.mkstemp
+
+    def mkstemp_then_ctrl_c(*args: Any, **kwargs: Any) -> tuple[int, str]:
+        fd, name = mkstemp(*args, **kwargs)
+        created.append(Path(name))
+        if len(created) == 3:  # the signal lands before atomic_path can guard the file
+            os.close(fd)
+            raise KeyboardInterrupt
+        return fd, name
+
+    monkeypatch.setattr(_io.tempfile, "mkstemp", mkstemp_then_ctrl_c)
+    out = tmp_path / "run"
+    assert main([*SWEEP, "--out", str(out), "--no-progress"]) == 130
+    assert len(created) == 3 and not created[-1].exists()
+    assert not [p for p in out.rglob("*") if is_temporary(p)]
