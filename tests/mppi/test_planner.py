@@ -9,7 +9,7 @@ import math
 import pytest
 import torch
 
-from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, SingleIntegrator
+from torchcbf.dynamics import AccelUnicycle, ControlAffine, DoubleIntegrator, SingleIntegrator
 from torchcbf.integrators import rk4
 from torchcbf.mppi import MPPI, QuadraticGoal, Reach, StageCost
 
@@ -340,6 +340,45 @@ def test_compiled_planner_deep_copies_with_its_own_compiled_cost():
     assert twin._score_fn.eager.__self__ is twin
     x = _x0(2)
     torch.testing.assert_close(twin(x).plan, planner(x).plan)
+
+
+class _UserUnicycle(ControlAffine):
+    """AccelUnicycle written with ``f`` and ``g`` only (torch integrates ``f + g u``)."""
+
+    def __init__(self) -> None:
+        super().__init__(4, 2)
+
+    def f(self, x):
+        v, th = x[..., 2], x[..., 3]
+        zero = torch.zeros_like(v)
+        return torch.stack([v * torch.cos(th), v * torch.sin(th), zero, zero], -1)
+
+    def g(self, x):
+        g = x.new_zeros(*x.shape[:-1], 4, 2)
+        g[..., 2, 0] = 1.0
+        g[..., 3, 1] = 1.0
+        return g
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize(
+    "compile",
+    [True, {"options": {"force_pointwise_cat": False}}, {"mode": "default"}],
+    ids=["default", "user options", "mode"],
+)
+def test_compiled_user_model_matches_eager(dtype, compile):
+    pytest.importorskip("torch._dynamo")
+
+    def planner(**kw):
+        return MPPI(_UserUnicycle(), _goal_cost, 6, 48, 0.02, 1.0, 0.5, 0.1, seed=3, **kw)
+
+    eager, compiled = planner().to(dtype), planner(compile=compile).to(dtype)
+    x = _x0(3, dtype)
+    tol = 1e-10 if dtype == torch.float64 else 1e-4
+    for step in range(2):
+        a, b = eager(x, 0.1 * step), compiled(x, 0.1 * step)
+        torch.testing.assert_close(a.plan, b.plan, atol=tol, rtol=tol)
+        torch.testing.assert_close(a.cost_min, b.cost_min, atol=tol, rtol=tol)
 
 
 def test_compile_failure_runs_eager(caplog):

@@ -234,6 +234,19 @@ def _resized(seq: Tensor, horizon: int, fill: str) -> Tensor:
     return torch.cat([seq, last.expand(-1, horizon - H, -1)], 1)
 
 
+def _step_options(kwargs: dict[str, Any]) -> dict[str, Any]:
+    """``torch.compile`` keyword arguments for a component-major step: the user's, with
+    inductor building a model's ``torch.stack`` of state components as a pointwise
+    expression unless they say otherwise. By default inductor on the CPU writes each stacked
+    component into a sample-major buffer, so ``cos``/``sin`` of the components run one
+    scalar at a time (strided stores); as an expression, each component's samples are
+    computed contiguously and vectorise (1.4x faster steps for a unicycle)."""
+    if kwargs.get("backend", "inductor") != "inductor" or kwargs.get("mode") is not None:
+        return kwargs  # torch.compile takes either a mode or options
+    options = {"force_pointwise_cat": True, **kwargs.get("options", {})}
+    return {**kwargs, "options": options}
+
+
 class MPPI(ExactConstants):
     """MPPI planner (see the module docstring for the algorithm, the paths and the RNG).
 
@@ -479,7 +492,7 @@ class MPPI(ExactConstants):
         if compile:
             kwargs = compile if isinstance(compile, dict) else {}
             self._step_fn = Compiled(self._step, kwargs)
-            self._component_fn = Compiled(self._component_step_contiguous, kwargs)
+            self._component_fn = Compiled(self._component_step_contiguous, _step_options(kwargs))
             self._score_fn = Compiled(self._score, kwargs)
         if backend == "triton" and not _triton.available():
             raise ValueError("backend='triton' needs Triton, which does not import here")
