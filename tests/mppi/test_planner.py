@@ -366,10 +366,18 @@ class _UserUnicycle(ControlAffine):
     [True, {"options": {"force_pointwise_cat": False}}, {"mode": "default"}],
     ids=["default", "user options", "mode"],
 )
-def test_compiled_user_model_matches_eager(dtype, compile):
+@pytest.mark.parametrize("form", ["f and g", "step function"])
+def test_compiled_user_model_matches_eager(dtype, compile, form):
     pytest.importorskip("torch._dynamo")
 
+    def step(x, u, j):
+        v, th = x[..., 2], x[..., 3]
+        xdot = torch.stack([v * torch.cos(th), v * torch.sin(th), u[..., 0], u[..., 1]], -1)
+        return x + 0.02 * xdot
+
     def planner(**kw):
+        if form == "step function":
+            kw["step"] = step
         return MPPI(_UserUnicycle(), _goal_cost, 6, 48, 0.02, 1.0, 0.5, 0.1, seed=3, **kw)
 
     eager, compiled = planner().to(dtype), planner(compile=compile).to(dtype)
