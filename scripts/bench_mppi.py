@@ -30,6 +30,8 @@ Lines (each planner runs in its own subprocess, so that memory and thread pools 
   (:class:`UserUnicycle`: ``f`` and ``g`` only), so everything runs in torch: K = 1,000,
   H = 50; K = 20,000, H = 80; and B = 32 x K = 2,000, H = 80 against pytorch-mppi's
   throughput at K = 20,000; each eager and under ``compile=True`` (one step and the cost).
+  The ``step`` lines give torchcbf the model as pytorch-mppi gets it, the Euler step
+  :func:`unicycle` (``MPPI(..., step=...)``).
 - ``compiled``: one environment, K = 20,000, H = 80, the Python cost under
   ``torch.compile`` (kernel rollouts), twice: in a process with a cold compile cache (the
   first call a user sees on a new machine) and in a second process sharing that cache.
@@ -130,6 +132,14 @@ def builtin_cost() -> SumCost:
     return SumCost(goal, BarrierCost(ellipses, 2.0, 0.01))
 
 
+def unicycle(x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """The unicycle's Euler step as a pytorch-mppi user writes it: pytorch-mppi's dynamics,
+    and torchcbf's ``step`` on the ``:step`` lines."""
+    v, th = x[..., 2], x[..., 3]
+    xdot = torch.stack([v * torch.cos(th), v * torch.sin(th), u[..., 0], u[..., 1]], -1)
+    return x + DT * xdot
+
+
 def pytorch_mppi(K: int, H: int, nx: int, device: str) -> Callable[[torch.Tensor], object] | None:
     try:
         from pytorch_mppi import MPPI as PMPPI
@@ -138,11 +148,6 @@ def pytorch_mppi(K: int, H: int, nx: int, device: str) -> Callable[[torch.Tensor
     goal = torch.tensor(GOAL, device=device)
     centers = torch.tensor(CENTERS, device=device)
     axes = torch.tensor(AXES, device=device)
-
-    def unicycle(x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        v, th = x[:, 2], x[:, 3]
-        xdot = torch.stack([v * torch.cos(th), v * torch.sin(th), u[:, 0], u[:, 1]], -1)
-        return x + DT * xdot
 
     def integrator(x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         return x + DT * u
@@ -266,8 +271,10 @@ def run_one(name: str, reps: int, device: str, quick: bool = False) -> dict:
             kw["backend"] = "torch"
         if who == "sample":
             kw["layout"] = "sample"
-        if "compiled" in (which, who):
+        if which == "compiled" or who.endswith("compiled"):
             kw["compile"] = True
+        if who.startswith("step"):
+            kw["step"] = lambda x, u, j: unicycle(x, u)
         builtin = which in ("fused", "realtime", "paper") or who == "fused"
         cost = "builtin" if builtin else "user"
         step = torchcbf(B, K, H, cost, device, model=model, **kw)
@@ -502,16 +509,22 @@ def main() -> None:
             ("model:pytorch-mppi", "pytorch-mppi"),
             ("model:auto", "torchcbf user model"),
             ("model:compiled", "torchcbf user model comp."),
+            ("model:step", "torchcbf user step"),
+            ("model:stepcompiled", "torchcbf user step comp."),
         ],
         "model20k": [
             ("model20k:pytorch-mppi", "pytorch-mppi"),
             ("model20k:auto", "torchcbf user model"),
             ("model20k:compiled", "torchcbf user model comp."),
+            ("model20k:step", "torchcbf user step"),
+            ("model20k:stepcompiled", "torchcbf user step comp."),
         ],
         "modelbatch": [
             ("modelbatch:pytorch-mppi", "pytorch-mppi K=20000 (B=1)"),
             ("modelbatch:auto", "torchcbf B=32 x K=2000"),
             ("modelbatch:compiled", "torchcbf B=32 x K=2000 comp."),
+            ("modelbatch:step", "torchcbf B=32 x K=2000 step"),
+            ("modelbatch:stepcompiled", "torchcbf B=32 x K=2000 step comp."),
         ],
         "compiled": [
             ("user:pytorch-mppi", "pytorch-mppi"),
