@@ -11,7 +11,8 @@ apart.
 One state (the real-time path, float64): ``SafetyFilter`` on one state under
 ``torch.no_grad()`` and with grad enabled, the stochastic filter of scenario B (5 rectified
 ellipses, Hessian traces) on one and two states and with grad enabled, scenario B's
-risk-aware filter (the ellipses in radius form) on one state, and the jitted filters of
+risk-aware filter (the smooth minimum of the rectified radius form of the ellipses and a
+multiple of the radius form, per ellipse) on one state, and the jitted filters of
 cbfpy and CBFJAX (both JAX, qpax) on the same scene; the control agreement with each is
 printed too (cbfpy solves to 1e-6; CBFJAX calls qpax at its default tolerance 1e-5 and
 iteration cap, which it does not expose: the interior point can stop about 1e-3 inside an
@@ -35,7 +36,8 @@ Batched, reported per state:
   (``u`` only, CBF rows and the box as ``l <= G u <= u``), and ``proxsuite whole``: Lie
   terms computed once with the barrier's closed forms, rows built, then QPFunction.
 
-Run: ``python scripts/bench_filters.py`` (``--quick`` for a short run). Figures taken while
+Run: ``python scripts/bench_filters.py`` (``--quick`` for a short run, ``--one-state`` for
+the real-time one-state lines alone). Figures taken while
 the machine is loaded (the load average is printed) vary between runs; compare ratios
 within one run.
 """
@@ -506,6 +508,9 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="batch 512, subset 16, repeat 1")
     parser.add_argument("--device", default="cpu", help="device of torchcbf (proxsuite: CPU)")
     parser.add_argument("--calls", type=int, default=2000, help="calls per one-state line")
+    parser.add_argument(
+        "--one-state", action="store_true", help="the real-time one-state lines alone"
+    )
     args = parser.parse_args()
     if args.quick:
         args.batch, args.loop_subset, args.repeat = 512, 16, 1
@@ -517,6 +522,8 @@ def main() -> None:
         f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} cores"
     )
     _single_state(args.calls if not args.quick else 300)
+    if args.one_state:
+        return
     _user_state(args.calls if not args.quick else 300)
     dtype = getattr(torch, args.dtype)
     dyn, ball, filt, x_cpu, u_nom_cpu = _scene(args.batch, args.barriers, dtype, seed=0)

@@ -172,7 +172,11 @@ def _model(kind: str, size: int, sigma: float | None):
 
 
 def _barriers(kind: str, model, k: int, g: torch.Generator, shape: str):
-    from torchcbf.barriers import Ball, Ellipse, ExponentialBarrier, Scaled
+    """``k`` quadrics (``shape``: balls, ellipses, scaled balls), rectified where the model
+    is of relative degree two; ``"intersection"``: the smooth elementwise minimum of those and
+    the rescaled shapes, rectified with another gain (``k`` outputs); ``"union"``: the
+    maximum of all their outputs (one)."""
+    from torchcbf.barriers import Ball, Ellipse, ExponentialBarrier, Intersection, Scaled, Union
 
     pos = 1 if model.state_dim == 1 else 2
     if kind == "double" and model.state_dim // 2 == 1:
@@ -187,9 +191,20 @@ def _barriers(kind: str, model, k: int, g: torch.Generator, shape: str):
         barrier = Ball(centers, torch.rand(k, generator=g, dtype=F64) + 0.2, index=index)
     if shape == "scaled":
         barrier = Scaled(barrier, torch.rand(k, generator=g, dtype=F64) + 0.5)
+    other = Scaled(barrier, torch.rand(k, generator=g, dtype=F64) + 0.5)
     if kind in ("double", "accel_unicycle"):
         barrier = ExponentialBarrier(barrier, model, 2, (1.5,))
+        other = ExponentialBarrier(other, model, 2, (4.0,))
+    if shape == "intersection":
+        barrier = Intersection(barrier, other, smooth=True, temperature=0.3, elementwise=True)
+    elif shape == "union":
+        barrier = Union(barrier, other)
     return barrier
+
+
+def _outputs(shape: str, k: int) -> int:
+    """The number of outputs of :func:`_barriers`'s barrier."""
+    return 1 if shape == "union" else k
 
 
 def _states(model, B: int, g: torch.Generator) -> Tensor:
@@ -206,7 +221,7 @@ def _lie_setup(rng: random.Random):
         size = min(size, 17)
     k = rng.choice([1, 2, 3, 17, 40])
     sigma = rng.choice([None, None, 0.3])
-    shape = rng.choice(["ball", "ellipse", "scaled"])
+    shape = rng.choice(["ball", "ellipse", "scaled", "intersection", "union"])
     return kind, size, k, sigma, shape
 
 
@@ -236,6 +251,8 @@ def _lie_case(rng: random.Random, i: int) -> Case:
             x[0, 0] = torch.nan
         elif odd == "huge":
             x = x * (1e150 if dtype == "f64" else 1e15)
+        if dtype == "f32":  # the kernel reads the float32 states: the reference does too
+            x = x.to(F32).to(F64)
         ref = lie_derivatives(barrier, x, model, method="analytic")
         xin = x.to(F32) if dtype == "f32" else x
         if dtype == "f32_model":
@@ -246,15 +263,16 @@ def _lie_case(rng: random.Random, i: int) -> Case:
         if found is None:
             return  # the kernel declined: the torch path answers
         terms, sizes = found
-        _check(list(sizes) == [k], f"sizes {sizes}")
+        k_out = _outputs(shape, k)
+        _check(list(sizes) == [k_out], f"sizes {sizes}")
         tol = 1e-9 if xin.dtype == F64 and dtype != "f32_model" else 1e-3
         if odd == "huge":
             tol = max(tol, 1e-6)
         rows = torch.isfinite(x).all(-1)  # a NaN state's terms: any NaN pattern
-        _check(terms.h.shape == (B, k), f"h shape {tuple(terms.h.shape)}")
+        _check(terms.h.shape == (B, k_out), f"h shape {tuple(terms.h.shape)}")
         _close(terms.h[rows], ref.h.reshape(B, -1)[rows], tol, "h")
         _close(terms.lfh[rows], ref.lfh.reshape(B, -1)[rows], tol, "lfh")
-        _close(terms.lgh[rows], ref.lgh.reshape(B, k, -1)[rows], tol, "lgh")
+        _close(terms.lgh[rows], ref.lgh.reshape(B, k_out, -1)[rows], tol, "lgh")
         if terms.hess_trace is not None and ref.hess_trace is not None:
             trace = ref.hess_trace.reshape(B, -1)[rows]
             _close(terms.hess_trace[rows], trace, tol, "hess_trace")

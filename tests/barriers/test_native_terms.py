@@ -1,10 +1,12 @@
 """The native Lie terms (torchcbf.barriers.native): the same terms as the torch closed forms
 and as autograd for every model x shape (balls, ellipses, scaled and transformed) x form
-(plain, exponential CBF), and None wherever the torch path must answer (a gradient to carry,
-an unsupported function, model or input, no kernel)."""
+(plain, exponential CBF), and for hard and smooth intersections and unions of them; None
+wherever the torch path must answer (a gradient to carry, an unsupported function, model or
+input, no kernel)."""
 
 from __future__ import annotations
 
+import copy
 import logging
 from pathlib import Path
 
@@ -20,9 +22,12 @@ from torchcbf.barriers import (
     Ellipse,
     ExponentialBarrier,
     HalfSpace,
+    Intersection,
+    LieFunction,
     MovingBall,
     Scaled,
     Transformed,
+    Union,
     native,
 )
 from torchcbf.barriers.lie import LieTerms, lie_derivatives
@@ -291,3 +296,205 @@ def test_a_missing_or_stale_kernel_is_refused(
     assert not native.available()
     x = _states(1, 2, seed=6)
     assert native.lie_terms([Ball([0.5, 0.2], 0.4).double()], x, SingleIntegrator(2)) is None
+
+
+# -- intersections and unions --------------------------------------------------------------------
+ELLIPSE_CENTERS = [[1.0, 2.0], [3.0, 2.0], [-1.0, 1.0]]
+ELLIPSE_AXES = [[0.5, 1.5], [0.75, 2.0], [1.0, 0.75]]
+
+
+def _radius_children(model: nn.Module, k: float = 20.0) -> list[nn.Module]:
+    """The rectified radius form of three ellipses and ``k`` times the radius form."""
+    radius = Transformed(Ellipse(ELLIPSE_CENTERS, ELLIPSE_AXES, index=(0, 1)), "radius")
+    return [ExponentialBarrier(radius, model, 2, [k]), Scaled(radius, k)]
+
+
+def _reductions(model: nn.Module) -> dict[str, tuple[dict, list[nn.Module]]]:
+    """Reductions (options, children) the kernel describes."""
+    balls = Ball([[0.5, 0.2], [1.0, 1.0]], [0.4, 0.3])
+    ellipse = Ellipse([0.2, -0.3], [0.5, 1.5], angle=0.4)
+    stack = BarrierStack(Ball([1.5, 0.0], 0.6), Transformed(ellipse, "exp", rate=0.5))
+    return {
+        "radius_elementwise": ({"elementwise": True}, _radius_children(model)),
+        "all_outputs": ({}, [balls, ellipse, ExponentialBarrier(ellipse, model, 2, [1.5])]),
+        "stacked_children_elementwise": ({"elementwise": True}, [stack, Scaled(balls, [2.0, 0.5])]),
+        "scalar_children_elementwise": ({"elementwise": True}, [Ball([0.5, 0.2], 0.4), ellipse]),
+        "one_child": ({}, [Scaled(balls, 0.5)]),
+    }
+
+
+@pytest.mark.parametrize("batch", [1, 6])
+@pytest.mark.parametrize("dtype", [F64, torch.float32], ids=["float64", "float32"])
+@pytest.mark.parametrize("sigma", ["none", "matrix"])
+@pytest.mark.parametrize("smooth", [True, False], ids=["smooth", "hard"])
+@pytest.mark.parametrize("case", list(_reductions(AccelUnicycle())))
+@pytest.mark.parametrize("cls", [Intersection, Union])
+def test_reductions_match_closed_forms_and_autograd(
+    cls: type, case: str, smooth: bool, sigma: str, dtype: torch.dtype, batch: int
+) -> None:
+    dyn = _model("accel_unicycle", sigma)
+    options, children = _reductions(dyn)[case]
+    barrier = cls(*children, smooth=smooth, temperature=0.7, **options)
+    dyn, barrier = dyn.to(dtype), barrier.to(dtype)
+    assert barrier.has_analytic and native.describes([barrier], dyn)
+    x = _states(batch, 4, seed=len(case) + batch, dtype=dtype)
+    with torch.no_grad():
+        found = native.lie_terms([barrier], x, dyn)
+    assert found is not None
+    terms, sizes = found
+    closed = _columns(lie_derivatives(barrier, x, dyn, method="analytic"), x)
+    assert sizes == [closed.h.shape[1]]
+    _assert_terms(terms, closed, dtype)
+    auto = _columns(lie_derivatives(barrier.double(), x.double(), dyn.double(),
+                                    method="autograd"), x)  # fmt: skip
+    _assert_terms(terms, LieTerms(*(None if v is None else v.to(dtype) for v in auto)), dtype)
+
+
+def test_hard_reductions_take_the_first_active_column_at_ties() -> None:
+    dyn = AccelUnicycle(sigma=0.2).double()
+    ball = Ball([0.5, 0.2], 0.4)
+    x = _states(4, 4, seed=11)
+    x[:, 2] = 0.0  # at rest the rectified ball equals the ball, with another gradient
+    for cls in (Intersection, Union):
+        barrier = cls(ball, ExponentialBarrier(ball, dyn, 2, [1.0])).double()
+        terms, _ = native.lie_terms([barrier], x, dyn)
+        want = _columns(lie_derivatives(barrier, x, dyn, method="analytic"), x)
+        _assert_terms(terms, want, F64)
+        first = _columns(lie_derivatives(ball.double(), x, dyn), x)
+        assert torch.equal(terms.h, first.h)
+        torch.testing.assert_close(terms.lgh, first.lgh, atol=1e-14, rtol=0)
+
+
+def test_a_nan_state_gives_nan_terms_as_the_closed_forms() -> None:
+    dyn = AccelUnicycle(sigma=0.2).double()
+    x = _states(3, 4, seed=12)
+    x[1, 0] = torch.nan
+    for smooth in (True, False):
+        barrier = Intersection(*_radius_children(dyn), smooth=smooth, elementwise=True).double()
+        terms, _ = native.lie_terms([barrier], x, dyn)
+        want = _columns(lie_derivatives(barrier, x, dyn, method="analytic"), x)
+        for name in ("h", "lfh", "lgh", "hess_trace"):
+            got, ref = getattr(terms, name), getattr(want, name)
+            assert torch.equal(got.isnan(), ref.isnan()), name
+            torch.testing.assert_close(got.nan_to_num(), ref.nan_to_num(), msg=name)
+
+
+def test_the_temperature_is_read_at_every_call() -> None:
+    dyn = AccelUnicycle(sigma=0.28).double()
+    barrier = Intersection(*_radius_children(dyn), smooth=True, temperature=0.5,
+                           elementwise=True).double()  # fmt: skip
+    x = _states(3, 4, seed=13)
+    before = native.lie_terms([barrier], x, dyn)[0]
+    barrier.temperature = 2.0
+    after = native.lie_terms([barrier], x, dyn)[0]
+    assert not torch.equal(before.h, after.h)
+    assert not torch.equal(before.hess_trace, after.hess_trace)
+    _assert_terms(after, _columns(lie_derivatives(barrier, x, dyn, method="analytic"), x), F64)
+    barrier.temperature = 0.0  # the kernel declines; the torch path answers as it does
+    assert native.lie_terms([barrier], x, dyn) is None
+
+
+def test_reductions_in_stacks_and_lists_concatenate_in_order() -> None:
+    dyn = AccelUnicycle(sigma=0.2).double()
+    inside = Intersection(*_radius_children(dyn), smooth=True, temperature=0.5, elementwise=True)
+    union = Union(Ball([0.5, 0.2], 0.4), Ball([[1.0, 1.0], [2.0, 0.0]], [0.3, 0.2]))
+    fns = [
+        Ball([[0.5, 0.2], [1.0, 1.0]], [0.4, 0.3]),
+        inside,
+        BarrierStack(Ball([0.5, 0.2], 0.4), union, inside, Scaled(Ball([1.0, 1.0], 0.3), 2.0)),
+        union,
+    ]
+    fns = [f.double() for f in fns]
+    x = _states(3, 4, seed=14)
+    with torch.no_grad():
+        terms, sizes = native.lie_terms(fns, x, dyn)
+    assert sizes == [2, 3, 6, 1]
+    parts = [_columns(lie_derivatives(f, x, dyn, method="analytic"), x) for f in fns]
+    want = LieTerms(*(torch.cat([getattr(p, n) for p in parts], 1) for n in LieTerms._fields))
+    _assert_terms(terms, want, F64)
+
+
+class _RewrittenIntersection(Intersection):
+    """A subclass with its own ``forward``: the kernel's reduction is not its own."""
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        return super().forward(x, t) - 0.1
+
+
+class _OwnColumns(Union):
+    """A subclass that changes how ``forward`` gathers the children's values."""
+
+    def _columns(self, values: list[Tensor], x: Tensor) -> tuple[Tensor, bool]:
+        cols, scalar = super()._columns(values, x)
+        return 2.0 * cols, scalar
+
+
+def _unsupported_reductions() -> dict[str, LieFunction]:
+    acc = AccelUnicycle(sigma=0.2).double()
+    ball, two = Ball([0.5, 0.2], 0.4), Ball([[0.5, 0.2], [1.0, 1.0]], [0.4, 0.3])
+    smooth = Intersection(ball, two, smooth=True)
+    return {
+        "own_forward": _RewrittenIntersection(*_radius_children(acc), elementwise=True),
+        "own_columns": _OwnColumns(two, Scaled(two, 2.0), elementwise=True),
+        "nested": Intersection(smooth, ball),
+        "nested_in_a_child_stack": Union(BarrierStack(ball, smooth), two),
+        "scaled": Scaled(smooth, 2.0),
+        "transformed": Transformed(smooth, "exp"),
+        "rectified": ExponentialBarrier(smooth, acc, 2, [1.0]),
+        "unsupported_child": Intersection(ball, HalfSpace([1.0, 0.0], 2.0, index=(0, 1))),
+        "output_counts_differ": Intersection(ball, two, elementwise=True),
+    }
+
+
+@pytest.mark.parametrize("case", list(_unsupported_reductions()))
+def test_unsupported_reductions_return_none(case: str) -> None:
+    barrier = _unsupported_reductions()[case].double()
+    dyn = AccelUnicycle(sigma=0.2).double()
+    with torch.no_grad():
+        assert not native.describes([barrier], dyn)
+        assert native.lie_terms([barrier], _states(2, 4, seed=15), dyn) is None
+
+
+@pytest.fixture(scope="module")
+def risk_filter() -> nn.Module:
+    """Scenario B's risk-aware filter in its default configuration (float64)."""
+    from torchcbf.scenarios.unicycle_mppi_cbf import mppi_cbf
+
+    scenario = mppi_cbf("mppi_rascbf", num_seeds=1, num_samples=8, horizon=4, dtype=F64)
+    assert scenario.params["risk_form"] == "inside"
+    return scenario.safety_filter
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32], ids=["float64", "float32"])
+def test_scenario_b_risk_aware_filter_runs_in_the_kernels(
+    risk_filter: nn.Module, dtype: torch.dtype
+) -> None:
+    from torchcbf.filters import RiskAware, SafetyFilter
+
+    filt = copy.deepcopy(risk_filter)
+    (barrier,) = filt.barriers
+    assert isinstance(barrier, Intersection) and barrier.elementwise and barrier.smooth
+    assert native.describes(filt.barriers, filt.dynamics)
+    filt = filt.to(dtype)
+    x = _states(4, 4, seed=16, dtype=dtype)
+    x[:, 2] = x[:, 2].abs() + 0.5
+    u = 5 * torch.randn(4, 2, generator=torch.Generator().manual_seed(17)).to(dtype)
+    rewritten = _RewrittenIntersection(
+        *barrier.stack.barriers, smooth=True, temperature=barrier.temperature, elementwise=True
+    )
+    for rows in (slice(0, 1), slice(None)):
+        with torch.no_grad():
+            fast = filt(x[rows], u[rows])
+        assert fast.path == "native/realtime"
+        with torch.enable_grad():
+            ref = filt(x[rows].clone().requires_grad_(), u[rows])  # the general path
+        assert ref.path != "native/realtime"
+        tol = {"rtol": 1e-4, "atol": 1e-3} if dtype == torch.float32 else {}
+        torch.testing.assert_close(fast.h, ref.h.detach(), **tol)
+        torch.testing.assert_close(fast.u, ref.u.detach(), **tol)
+        torch.testing.assert_close(fast.status, ref.status)
+    mode = filt.condition
+    again = RiskAware(rho=mode.rho, horizon=float(mode.horizon), eta=mode.eta)
+    other = SafetyFilter(filt.dynamics, barriers=rewritten, mode=again, R=filt.R).to(dtype)
+    with torch.no_grad():
+        assert other(x, u).path != "native/realtime"  # a subclass's forward: not the kernel's

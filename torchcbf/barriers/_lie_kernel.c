@@ -22,13 +22,23 @@
  *                          + sum_i (grad h)_i tr(S' hess f_i S).
  * The Lie terms follow along the model "outer": L_f = grad . f, L_g = grad' g and, with a
  * diffusion S = sigma [n, q], the Hessian trace tr(S' hess S).
+ *
+ * A group of blocks either gives their outputs as they are or reduces them, as compose.py's
+ * Intersection (min) and Union (max): its c columns (the blocks' outputs concatenated) make
+ * K outputs, output j the reduction of the columns j, j + K, j + 2 K, ... (K = 1: one
+ * reduction of every column; K = k: k reductions of children with k outputs each). The
+ * hard reduction takes the active column's terms (the first at ties, a NaN first of all);
+ * the smooth one, with z_i = +-v_i / T (+ for max) and weights w = softmax(z),
+ *     h = +-T logsumexp(z),  grad h = sum_i w_i grad_i,
+ *     tr(S' hess h S) = sum_i w_i tr_i +- (sum_i w_i |S' grad_i|^2 - |S' grad h|^2) / T
+ * (_minmax.py's combine), accumulated over the columns with a running maximum of z.
  */
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
 
 /* Bumped whenever an exported signature or its meaning changes (see _native.py). */
-#define LIE_KERNEL_VERSION 2
+#define LIE_KERNEL_VERSION 3
 
 /* largest state, control, position and noise sizes (larger problems: torch) */
 #define LIE_NMAX 32
@@ -47,6 +57,14 @@ enum {
     M_INNER, M_INNER_DIM, M_FIXED
 };
 enum { P_CENTER, P_AXES, P_RADIUS, P_ANGLE, P_SCALE, P_OUTER, P_K0, P_FIXED };
+
+/* A group's integers in `meta`: its reduction (as REDUCTION_CODES in native.py), whether it
+ * is smooth, its number of blocks and of outputs. */
+enum { G_MODE, G_SMOOTH, G_BLOCKS, G_OUTPUTS, G_FIXED };
+enum { NO_REDUCTION = 0, REDUCE_MIN = 1, REDUCE_MAX = 2 };
+
+/* the header of `meta` and of `reals` */
+enum { META_HEADER = 10, REALS_HEADER = 3 };
 
 int torchcbf_lie_version(void) { return LIE_KERNEL_VERSION; }
 
@@ -172,18 +190,205 @@ static double quadric(int d, const double *p, const double *c, const double *a, 
     return w * (value - r * r);
 }
 
+/* A block's integers after `mb`'s (its d indices included). */
+static const int64_t *next_block(const int64_t *mb) { return mb + M_FIXED + mb[M_D]; }
+
+/* What the columns of one state share: the sizes, the diffusion (SS = sigma sigma' [n, n];
+ * both NULL without one), the state, the outer model's f and g and the inner model's f and J
+ * (evaluated at its first rectified column). */
+typedef struct {
+    int n, m, q;
+    const double *sigma, *SS, *x;
+    double f_out[LIE_NMAX], g_out[LIE_NMAX * LIE_NMAX];
+    double f_in[LIE_NMAX], J_in[LIE_NMAX * LIE_NMAX];
+    int inner_done, inner_done_dim;
+} Point;
+
+/* Output j of the block (integers mb, pointers pb, rate of its transform) at the point: its
+ * value, its gradient over the state (grad [n]) and tr(S' hess S) in *trace_out (0 without
+ * a diffusion). */
+static double column(Point *pt, const int64_t *mb, void *const *pb, double rate, int j,
+                     double *grad, double *trace_out) {
+    int n = pt->n, q = pt->q;
+    const double *SS = pt->SS, *xs = pt->x, *f_in = pt->f_in, *J_in = pt->J_in;
+    const double *center = pb[P_CENTER], *axes = pb[P_AXES], *radius = pb[P_RADIUS];
+    const double *angle = pb[P_ANGLE], *scale = pb[P_SCALE], *outer_scale = pb[P_OUTER];
+    int d = (int)mb[M_D], inner = (int)mb[M_INNER], code = (int)mb[M_TRANSFORM];
+    const int64_t *index = mb + M_FIXED;
+    double p[LIE_NMAX], gb_p[LIE_NMAX], Bp[LIE_NMAX * LIE_NMAX], gb[LIE_NMAX], gh[LIE_NMAX];
+    double H[LIE_NMAX * LIE_NMAX], Bf[LIE_NMAX];
+    if (inner >= 0 && (inner != pt->inner_done || mb[M_INNER_DIM] != pt->inner_done_dim)) {
+        model_eval(inner, (int)mb[M_INNER_DIM], n, pt->m, xs, pt->f_in, pt->J_in, NULL);
+        pt->inner_done = inner, pt->inner_done_dim = (int)mb[M_INNER_DIM];
+    }
+    for (int i = 0; i < d; ++i) p[i] = xs[index[i]];
+    double w = (double)mb[M_SIGN] * (scale ? scale[j * mb[M_SCALE]] : 1.0);
+    double sj = outer_scale ? outer_scale[j * mb[M_OUTER]] : 1.0;
+    double b0 = quadric(d, p, center + j * mb[M_CENTER], axes ? axes + j * mb[M_AXES] : NULL,
+                        radius ? radius[j * mb[M_RADIUS]] : 1.0,
+                        angle ? angle + j * mb[M_ANGLE] : NULL, w, gb_p, Bp);
+    double phi[4];
+    transform(code, rate, b0, phi);
+    /* grad b, grad h and H over the whole state */
+    memset(gb, 0, sizeof(double) * n);
+    for (int i = 0; i < d; ++i) gb[index[i]] += gb_p[i];
+    for (int i = 0; i < n; ++i) gh[i] = sj * phi[1] * gb[i];
+    for (int i = 0; i < n; ++i)
+        for (int l = 0; l < n; ++l) H[i * n + l] = sj * phi[2] * gb[i] * gb[l];
+    for (int i = 0; i < d; ++i)
+        for (int l = 0; l < d; ++l) H[index[i] * n + index[l]] += sj * phi[1] * Bp[i * d + l];
+    double value = sj * phi[0], trace = 0.0;
+    if (inner < 0) {
+        memcpy(grad, gh, sizeof(double) * n);
+        if (SS)
+            for (int i = 0; i < n * n; ++i) trace += H[i] * SS[i];
+        *trace_out = trace;
+        return value;
+    }
+    double k0 = *(const double *)pb[P_K0];
+    value *= k0;
+    for (int i = 0; i < n; ++i) {
+        double e = k0 * gh[i];
+        for (int l = 0; l < n; ++l) e += H[i * n + l] * f_in[l] + J_in[l * n + i] * gh[l];
+        value += gh[i] * f_in[i];
+        grad[i] = e;
+    }
+    if (SS) {
+        /* sum(H S * (2 J + k0 I) S) = sum_il H_il ((2 J + k0 I) SS)_li */
+        for (int i = 0; i < n; ++i)
+            for (int l = 0; l < n; ++l) {
+                double e = k0 * SS[l * n + i];
+                for (int t = 0; t < n; ++t) e += 2.0 * J_in[l * n + t] * SS[t * n + i];
+                trace += H[i * n + l] * e;
+            }
+        trace += model_hess_quad(inner, q, xs, gh, pt->sigma);
+    }
+    if (SS && code != NO_TRANSFORM) { /* tr(S' dH[f] S) */
+        double gf = 0.0, gSSg = 0.0, BfSSg = 0.0, trBSS = 0.0;
+        memset(Bf, 0, sizeof(double) * n);
+        for (int i = 0; i < d; ++i)
+            for (int l = 0; l < d; ++l) {
+                Bf[index[i]] += Bp[i * d + l] * f_in[index[l]];
+                trBSS += Bp[i * d + l] * SS[index[l] * n + index[i]];
+            }
+        for (int i = 0; i < n; ++i) {
+            gf += gb[i] * f_in[i];
+            for (int l = 0; l < n; ++l) {
+                gSSg += gb[i] * SS[i * n + l] * gb[l];
+                BfSSg += Bf[i] * SS[i * n + l] * gb[l];
+            }
+        }
+        trace += sj * (phi[3] * gf * gSSg + phi[2] * (2.0 * BfSSg + gf * trBSS));
+    }
+    *trace_out = trace;
+    return value;
+}
+
+/* |S' g|^2 = g' SS g */
+static double noise_norm2(int n, const double *SS, const double *g) {
+    double out = 0.0;
+    for (int i = 0; i < n; ++i) {
+        double e = 0.0;
+        for (int l = 0; l < n; ++l) e += SS[i * n + l] * g[l];
+        out += g[i] * e;
+    }
+    return out;
+}
+
+/* Output j of a reducing group (`mode`, `smooth`, temperature T) whose first block's integers,
+ * pointers and rates are mb, pb and rates, with `columns` columns and K outputs: its value,
+ * its gradient (grad [n]) and its trace (*trace_out). */
+static double reduced(Point *pt, const int64_t *mb, void *const *pb, const double *rates,
+                      int64_t columns, int64_t K, int64_t j, int mode, int smooth, double T,
+                      double *grad, double *trace_out) {
+    int n = pt->n, found = 0, nan = 0;
+    double g[LIE_NMAX], tr, sign = mode == REDUCE_MAX ? 1.0 : -1.0;
+    /* hard: the active column so far; smooth: sums weighted by exp(z_i - zmax) */
+    double best = 0.0, zmax = -INFINITY, s = 0.0, tr_sum = 0.0, gg_sum = 0.0;
+    int64_t first = 0; /* the first column of block b */
+    int b = 0;
+    memset(grad, 0, sizeof(double) * n);
+    *trace_out = 0.0;
+    for (int64_t c = j; c < columns; c += K) {
+        while (c >= first + mb[M_K]) first += mb[M_K], mb = next_block(mb), ++b;
+        double v = column(pt, mb, pb + P_FIXED * b, rates[b], (int)(c - first), g, &tr);
+        if (!smooth) {
+            int better = isnan(v) || (mode == REDUCE_MIN ? v < best : v > best);
+            if (!found || (!isnan(best) && better)) {
+                best = v, found = 1, *trace_out = tr;
+                memcpy(grad, g, sizeof(double) * n);
+            }
+            continue;
+        }
+        double z = sign * v / T;
+        if (isnan(z)) nan = 1;
+        if (z > zmax) {
+            double r = exp(zmax - z);
+            s *= r, tr_sum *= r, gg_sum *= r;
+            for (int i = 0; i < n; ++i) grad[i] *= r;
+            zmax = z;
+        }
+        double e = z == -INFINITY ? 0.0 : exp(z - zmax); /* softmax gives it no weight */
+        s += e, tr_sum += e * tr;
+        for (int i = 0; i < n; ++i) grad[i] += e * g[i];
+        if (pt->SS) gg_sum += e * noise_norm2(n, pt->SS, g);
+    }
+    if (!smooth) return best;
+    for (int i = 0; i < n; ++i) grad[i] /= s;
+    if (pt->SS)
+        *trace_out = tr_sum / s + sign * (gg_sum / s - noise_norm2(n, pt->SS, grad)) / T;
+    if (nan) return NAN;
+    return isinf(zmax) ? sign * T * zmax : sign * T * (zmax + log(s));
+}
+
+/* Where the terms go: the outputs of torchcbf_lie_quadrics (NULL: not written) and the
+ * condition's constants. */
+typedef struct {
+    double *h, *lfh, *dhdt, *lgh, *hess, *dhdx, *b;
+    const double *gain, *offset;
+    int64_t gain_stride, offset_stride;
+    double trace_weight, gain_scale, offset_scale;
+} Sink;
+
+/* Writes the terms of output `col` at `row` (s K + col for state s) from its value, gradient
+ * and trace. */
+static void emit(const Sink *o, const Point *pt, int64_t row, int64_t col, double value,
+                 const double *grad, double trace) {
+    int n = pt->n, m = pt->m;
+    double lf = 0.0;
+    for (int i = 0; i < n; ++i) lf += grad[i] * pt->f_out[i];
+    o->h[row] = value;
+    if (o->lfh) o->lfh[row] = lf;
+    if (o->dhdt) o->dhdt[row] = 0.0;
+    for (int l = 0; l < m; ++l) {
+        double e = 0.0;
+        for (int i = 0; i < n; ++i) e += grad[i] * pt->g_out[i * m + l];
+        o->lgh[row * m + l] = e;
+    }
+    if (o->dhdx) memcpy(o->dhdx + row * n, grad, sizeof(double) * n);
+    if (pt->sigma && o->hess) o->hess[row] = trace;
+    if (o->b) {
+        double gj = o->gain ? o->gain[col * o->gain_stride] : 1.0;
+        double oj = o->offset ? o->offset[col * o->offset_stride] : 0.0;
+        o->b[row] =
+            lf + o->trace_weight * trace + o->gain_scale * gj * value + o->offset_scale * oj;
+    }
+}
+
 /*
- * Lie terms of the blocks at B states, the outputs of all blocks concatenated (K in all).
- * `meta` holds B, n, m, q, the outer model's code and size, the number of blocks, the strides
- * per output of the condition's gain and offset (below), then per block M_FIXED integers and
- * its d indices; `reals` holds the condition's trace weight, gain scale and offset scale, then
- * one number per block (the rate of the "exp" transform). `ptrs` holds x [B, n] (float64,
- * C-contiguous), sigma [n, q] (NULL: no Hessian trace), the outputs h, lfh, dhdt (zeros: the
- * blocks are time-invariant) [B, K], lgh [B, K, m], hess [B, K] (written where sigma is given),
- * dhdx [B, K, n] and the condition b [B, K], then the condition's gain and offset, then per
- * block P_FIXED pointers: center [k or 1, d], axes (NULL: unit), radius (NULL: 1), angle
- * (NULL: none), scale w and outer scale s (NULL: 1), and k0 (rectified blocks). Every output
- * but h and lgh may be NULL (not written). The affine CBF condition, where b is given, is
+ * Lie terms of the groups of blocks at B states, the outputs of all groups concatenated (K in
+ * all). `meta` holds B, n, m, q, the outer model's code and size, the number of blocks, the
+ * strides per output of the condition's gain and offset (below) and the number of groups, then
+ * per block M_FIXED integers and its d indices, then per group G_FIXED integers (the groups
+ * take the blocks in order); `reals` holds the condition's trace weight, gain scale and offset
+ * scale, then one number per block (the rate of the "exp" transform), then one per group (the
+ * temperature of a smooth reduction). `ptrs` holds x [B, n] (float64, C-contiguous), sigma
+ * [n, q] (NULL: no Hessian trace), the outputs h, lfh, dhdt (zeros: the blocks are
+ * time-invariant) [B, K], lgh [B, K, m], hess [B, K] (written where sigma is given), dhdx
+ * [B, K, n] and the condition b [B, K], then the condition's gain and offset, then per block
+ * P_FIXED pointers: center [k or 1, d], axes (NULL: unit), radius (NULL: 1), angle (NULL:
+ * none), scale w and outer scale s (NULL: 1), and k0 (rectified blocks). Every output but h and
+ * lgh may be NULL (not written). The affine CBF condition, where b is given, is
  *     b = lfh + dhdt + trace_weight tr + gain_scale gain h + offset_scale offset
  * (gain, offset: NULL for 1 and 0). The outer model (code, size) is the one of the Lie terms;
  * a rectified block (inner code >= 0) takes the drift of its inner model.
@@ -192,23 +397,21 @@ static double quadric(int d, const double *p, const double *c, const double *a, 
 int torchcbf_lie_quadrics(const int64_t *meta, const double *reals, void *const *ptrs) {
     int64_t B = meta[0];
     int n = (int)meta[1], m = (int)meta[2], q = (int)meta[3];
-    int outer = (int)meta[4], outer_dim = (int)meta[5], blocks = (int)meta[6];
-    int64_t gain_stride = meta[7], offset_stride = meta[8];
-    double trace_weight = reals[0], gain_scale = reals[1], offset_scale = reals[2];
+    int outer = (int)meta[4], outer_dim = (int)meta[5];
+    int64_t blocks = meta[6], groups = meta[9];
     const double *x = ptrs[0], *sigma = ptrs[1];
-    double *h_out = ptrs[2], *lfh_out = ptrs[3], *dhdt_out = ptrs[4], *lgh_out = ptrs[5];
-    double *hess_out = ptrs[6], *dhdx_out = ptrs[7], *b_out = ptrs[8];
-    const double *gain = ptrs[9], *offset = ptrs[10];
+    Sink out = {ptrs[2], ptrs[3], ptrs[4], ptrs[5], ptrs[6], ptrs[7], ptrs[8], ptrs[9],
+                ptrs[10], meta[7], meta[8], reals[0], reals[1], reals[2]};
     void *const *params = ptrs + 11;
-    meta += 9;
-    reals += 3;
+    const int64_t *block_meta = meta + META_HEADER;
+    const double *rates = reals + REALS_HEADER;
     if (B < 0 || n < 1 || n > LIE_NMAX || m < 1 || m > LIE_NMAX || q < 0 || q > LIE_NMAX ||
-        !h_out || !lgh_out || (sigma && q < 1) || gain_stride < 0 || offset_stride < 0 ||
-        model_size(outer, outer_dim) != n || model_controls(outer, outer_dim) != m)
+        blocks < 0 || groups < 0 || !out.h || !out.lgh || (sigma && q < 1) ||
+        out.gain_stride < 0 || out.offset_stride < 0 || model_size(outer, outer_dim) != n ||
+        model_controls(outer, outer_dim) != m)
         return 1;
-    int64_t K = 0;
-    for (int b = 0, at = 0; b < blocks; ++b) {
-        const int64_t *mb = meta + at;
+    const int64_t *mb = block_meta;
+    for (int64_t b = 0; b < blocks; ++b, mb = next_block(mb)) {
         void *const *pb = params + P_FIXED * b;
         int64_t d = mb[M_D];
         if (mb[M_K] < 1 || d < 1 || d > n || !pb[P_CENTER] || (pb[P_ANGLE] && d != 2) ||
@@ -219,9 +422,25 @@ int torchcbf_lie_quadrics(const int64_t *meta, const double *reals, void *const 
             return 1;
         for (int i = 0; i < d; ++i)
             if (mb[M_FIXED + i] < 0 || mb[M_FIXED + i] >= n) return 1;
-        K += mb[M_K];
-        at += M_FIXED + (int)d;
     }
+    const int64_t *group_meta = mb;
+    const double *temperatures = rates + blocks;
+    int64_t K = 0, taken = 0;
+    mb = block_meta;
+    for (int64_t g = 0; g < groups; ++g) {
+        const int64_t *gm = group_meta + G_FIXED * g;
+        int64_t columns = 0, outputs = gm[G_OUTPUTS];
+        if (gm[G_BLOCKS] < 1 || gm[G_BLOCKS] > blocks - taken || gm[G_MODE] < NO_REDUCTION ||
+            gm[G_MODE] > REDUCE_MAX || outputs < 1)
+            return 1;
+        for (int64_t b = 0; b < gm[G_BLOCKS]; ++b, mb = next_block(mb)) columns += mb[M_K];
+        if (gm[G_MODE] == NO_REDUCTION ? outputs != columns : columns % outputs != 0)
+            return 1;
+        if (gm[G_MODE] != NO_REDUCTION && gm[G_SMOOTH] && !(temperatures[g] > 0.0)) return 1;
+        taken += gm[G_BLOCKS];
+        K += outputs;
+    }
+    if (taken != blocks) return 1;
     double SS[LIE_NMAX * LIE_NMAX]; /* sigma sigma' [n, n]: tr(S' H S) = sum(H * SS) */
     if (sigma)
         for (int i = 0; i < n; ++i)
@@ -230,111 +449,38 @@ int torchcbf_lie_quadrics(const int64_t *meta, const double *reals, void *const 
                 for (int t = 0; t < q; ++t) e += sigma[i * q + t] * sigma[l * q + t];
                 SS[i * n + l] = e;
             }
-    double f_out[LIE_NMAX], g_out[LIE_NMAX * LIE_NMAX], f_in[LIE_NMAX], J_in[LIE_NMAX * LIE_NMAX];
-    double p[LIE_NMAX], gb_p[LIE_NMAX], Bp[LIE_NMAX * LIE_NMAX], gb[LIE_NMAX], gh[LIE_NMAX];
-    double H[LIE_NMAX * LIE_NMAX], grad[LIE_NMAX], Bf[LIE_NMAX];
+    Point pt;
+    pt.n = n, pt.m = m, pt.q = q, pt.sigma = sigma, pt.SS = sigma ? SS : NULL;
+    double grad[LIE_NMAX];
     for (int64_t s = 0; s < B; ++s) {
-        const double *xs = x + s * n;
-        model_eval(outer, outer_dim, n, m, xs, f_out, NULL, g_out);
-        int64_t col = 0; /* the output being written */
-        int inner_done = -1, inner_done_dim = -1;
-        for (int b = 0, at = 0; b < blocks; ++b) {
-            const int64_t *mb = meta + at;
-            void *const *pb = params + P_FIXED * b;
-            const double *center = pb[P_CENTER], *axes = pb[P_AXES], *radius = pb[P_RADIUS];
-            const double *angle = pb[P_ANGLE], *scale = pb[P_SCALE], *outer_scale = pb[P_OUTER];
-            const double *k0_ptr = pb[P_K0];
-            int k = (int)mb[M_K], d = (int)mb[M_D], inner = (int)mb[M_INNER];
-            int code = (int)mb[M_TRANSFORM];
-            const int64_t *index = mb + M_FIXED;
-            at += M_FIXED + d;
-            if (inner >= 0 && (inner != inner_done || mb[M_INNER_DIM] != inner_done_dim)) {
-                model_eval(inner, (int)mb[M_INNER_DIM], n, m, xs, f_in, J_in, NULL);
-                inner_done = inner, inner_done_dim = (int)mb[M_INNER_DIM];
-            }
-            for (int i = 0; i < d; ++i) p[i] = xs[index[i]];
-            for (int j = 0; j < k; ++j, ++col) {
-                double w = (double)mb[M_SIGN] * (scale ? scale[j * mb[M_SCALE]] : 1.0);
-                double sj = outer_scale ? outer_scale[j * mb[M_OUTER]] : 1.0;
-                double b0 = quadric(d, p, center + j * mb[M_CENTER],
-                                    axes ? axes + j * mb[M_AXES] : NULL,
-                                    radius ? radius[j * mb[M_RADIUS]] : 1.0,
-                                    angle ? angle + j * mb[M_ANGLE] : NULL, w, gb_p, Bp);
-                double phi[4];
-                transform(code, reals[b], b0, phi);
-                /* grad b, grad h and H over the whole state */
-                memset(gb, 0, sizeof(double) * n);
-                for (int i = 0; i < d; ++i) gb[index[i]] += gb_p[i];
-                for (int i = 0; i < n; ++i) gh[i] = sj * phi[1] * gb[i];
-                for (int i = 0; i < n; ++i)
-                    for (int l = 0; l < n; ++l) H[i * n + l] = sj * phi[2] * gb[i] * gb[l];
-                for (int i = 0; i < d; ++i)
-                    for (int l = 0; l < d; ++l)
-                        H[index[i] * n + index[l]] += sj * phi[1] * Bp[i * d + l];
-                double value = sj * phi[0], trace = 0.0;
-                if (inner < 0) {
-                    memcpy(grad, gh, sizeof(double) * n);
-                    if (sigma)
-                        for (int i = 0; i < n * n; ++i) trace += H[i] * SS[i];
-                } else {
-                    double k0 = *k0_ptr;
-                    value *= k0;
-                    for (int i = 0; i < n; ++i) {
-                        double e = k0 * gh[i];
-                        for (int l = 0; l < n; ++l)
-                            e += H[i * n + l] * f_in[l] + J_in[l * n + i] * gh[l];
-                        value += gh[i] * f_in[i];
-                        grad[i] = e;
+        pt.x = x + s * n;
+        pt.inner_done = pt.inner_done_dim = -1;
+        model_eval(outer, outer_dim, n, m, pt.x, pt.f_out, NULL, pt.g_out);
+        int64_t col = 0, b = 0; /* the output being written, the group's first block */
+        mb = block_meta;
+        for (int64_t g = 0; g < groups; ++g) {
+            const int64_t *gm = group_meta + G_FIXED * g;
+            const int64_t *first = mb;
+            int64_t columns = 0, nb = gm[G_BLOCKS];
+            if (gm[G_MODE] == NO_REDUCTION) {
+                for (int64_t i = 0; i < nb; ++i, mb = next_block(mb))
+                    for (int j = 0; j < (int)mb[M_K]; ++j, ++col) {
+                        double trace;
+                        double value = column(&pt, mb, params + P_FIXED * (b + i), rates[b + i],
+                                              j, grad, &trace);
+                        emit(&out, &pt, s * K + col, col, value, grad, trace);
                     }
-                    if (sigma) {
-                        /* sum(H S * (2 J + k0 I) S) = sum_il H_il ((2 J + k0 I) SS)_li */
-                        for (int i = 0; i < n; ++i)
-                            for (int l = 0; l < n; ++l) {
-                                double e = k0 * SS[l * n + i];
-                                for (int t = 0; t < n; ++t)
-                                    e += 2.0 * J_in[l * n + t] * SS[t * n + i];
-                                trace += H[i * n + l] * e;
-                            }
-                        trace += model_hess_quad(inner, q, xs, gh, sigma);
-                    }
-                    if (sigma && code != NO_TRANSFORM) { /* tr(S' dH[f] S) */
-                        double gf = 0.0, gSSg = 0.0, BfSSg = 0.0, trBSS = 0.0;
-                        memset(Bf, 0, sizeof(double) * n);
-                        for (int i = 0; i < d; ++i)
-                            for (int l = 0; l < d; ++l) {
-                                Bf[index[i]] += Bp[i * d + l] * f_in[index[l]];
-                                trBSS += Bp[i * d + l] * SS[index[l] * n + index[i]];
-                            }
-                        for (int i = 0; i < n; ++i) {
-                            gf += gb[i] * f_in[i];
-                            for (int l = 0; l < n; ++l) {
-                                gSSg += gb[i] * SS[i * n + l] * gb[l];
-                                BfSSg += Bf[i] * SS[i * n + l] * gb[l];
-                            }
-                        }
-                        trace += sj * (phi[3] * gf * gSSg + phi[2] * (2.0 * BfSSg + gf * trBSS));
-                    }
-                }
-                int64_t row = s * K + col;
-                double lf = 0.0;
-                for (int i = 0; i < n; ++i) lf += grad[i] * f_out[i];
-                h_out[row] = value;
-                if (lfh_out) lfh_out[row] = lf;
-                if (dhdt_out) dhdt_out[row] = 0.0;
-                for (int l = 0; l < m; ++l) {
-                    double e = 0.0;
-                    for (int i = 0; i < n; ++i) e += grad[i] * g_out[i * m + l];
-                    lgh_out[row * m + l] = e;
-                }
-                if (dhdx_out) memcpy(dhdx_out + row * n, grad, sizeof(double) * n);
-                if (sigma && hess_out) hess_out[row] = trace;
-                if (b_out) {
-                    double gj = gain ? gain[col * gain_stride] : 1.0;
-                    double oj = offset ? offset[col * offset_stride] : 0.0;
-                    b_out[row] = lf + trace_weight * trace + gain_scale * gj * value +
-                                 offset_scale * oj;
+            } else {
+                for (int64_t i = 0; i < nb; ++i, mb = next_block(mb)) columns += mb[M_K];
+                for (int64_t j = 0; j < gm[G_OUTPUTS]; ++j, ++col) {
+                    double trace;
+                    double value = reduced(&pt, first, params + P_FIXED * b, rates + b, columns,
+                                           gm[G_OUTPUTS], j, (int)gm[G_MODE], (int)gm[G_SMOOTH],
+                                           temperatures[g], grad, &trace);
+                    emit(&out, &pt, s * K + col, col, value, grad, trace);
                 }
             }
+            b += nb;
         }
     }
     return 0;

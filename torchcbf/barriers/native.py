@@ -6,10 +6,11 @@ the arithmetic. :func:`lie_terms` hands the same formulas to ``_lie_kernel.c``. 
 functions whose :meth:`~torchcbf.barriers.LieFunction.quadric` is known (``Ball``,
 ``Ellipse``, ``Scaled`` of them), :class:`~torchcbf.barriers.Transformed` and ``Scaled`` of
 those, exponential CBFs of relative degree two of any of these
-(:class:`~torchcbf.barriers.ExponentialBarrier`, time-invariant) and
-:class:`~torchcbf.barriers.BarrierStack` of them, along the built-in models with closed-form
-drift derivatives (a :meth:`~torchcbf.dynamics.ControlAffine.native_model`) with a
-constant diffusion or none.
+(:class:`~torchcbf.barriers.ExponentialBarrier`, time-invariant),
+:class:`~torchcbf.barriers.Intersection` and :class:`~torchcbf.barriers.Union` (hard or
+smooth, elementwise or not) of them and :class:`~torchcbf.barriers.BarrierStack` of all
+these, along the built-in models with closed-form drift derivatives (a
+:meth:`~torchcbf.dynamics.ControlAffine.native_model`) with a constant diffusion or none.
 
 It answers ``None`` wherever the torch path must run instead: a function or model outside
 that list, a tensor on another device, a gradient to carry (grad mode on and the state or a
@@ -33,7 +34,7 @@ from torch import Tensor
 
 from torchcbf._checks import behaves_as
 from torchcbf._native import float64_pointers, load_kernel, model_code
-from torchcbf.barriers.compose import BarrierStack, Scaled, Transformed
+from torchcbf.barriers.compose import BarrierStack, Intersection, Scaled, Transformed, Union
 from torchcbf.barriers.lie import LieFunction, LieTerms, Quadric
 from torchcbf.barriers.rectify import ExponentialBarrier
 from torchcbf.dynamics.base import ControlAffine
@@ -41,6 +42,7 @@ from torchcbf.dynamics.base import ControlAffine
 __all__ = [
     "Affine",
     "KERNEL_VERSION",
+    "REDUCTION_CODES",
     "TRANSFORM_CODES",
     "available",
     "describes",
@@ -49,11 +51,13 @@ __all__ = [
 ]
 
 #: version of ``_lie_kernel.c`` this module calls (``LIE_KERNEL_VERSION``)
-KERNEL_VERSION = 2
+KERNEL_VERSION = 3
 #: the file name of the built kernel, without its extension suffix
 KERNEL_STEM = "_lie_kernel"
 #: the kernel's code of each transform of :class:`~torchcbf.barriers.Transformed`
 TRANSFORM_CODES: dict[str | None, int] = {None: 0, "radius": 1, "exp": 2}
+#: the kernel's code of each reduction of a group of blocks (``None``: the outputs as they are)
+REDUCTION_CODES: dict[str | None, int] = {None: 0, "min": 1, "max": 2}
 #: the kernel's largest state, control, position and noise sizes
 MAX_SIZE = 32
 
@@ -81,7 +85,11 @@ _WRAPPERS: dict[type, tuple[str, ...]] = {
     ExponentialBarrier: ("forward", "value", "parts"),
     Transformed: ("forward",),
     Scaled: ("forward",),
+    Intersection: ("forward", "_columns"),
+    Union: ("forward", "_columns"),
 }
+#: the wrappers whose encoding is a group of blocks (:class:`_Group`), not a block
+_REDUCTIONS = (Intersection, Union)
 
 
 def _wrapper(fn: LieFunction) -> type | None:
@@ -116,7 +124,7 @@ def _blocks(fn: LieFunction) -> list[_Block] | None:
                 return None
             out.extend(part)
         return out
-    if cls is None:
+    if cls is None or cls in _REDUCTIONS:
         return None
     inner = _blocks(fn.barrier)
     if inner is None or any(b.inner is not None for b in inner):
@@ -137,6 +145,65 @@ def _blocks(fn: LieFunction) -> list[_Block] | None:
     (block,) = inner
     outer = fn.scale if block.outer is None else fn.scale * block.outer
     return [block._replace(outer=outer)]
+
+
+def _outputs(block: _Block) -> int:
+    """The number of outputs of ``block`` (where :func:`_encode` takes it)."""
+    center = block.quadric.center
+    return center.shape[0] if center.dim() == 2 else 1
+
+
+class _Group(NamedTuple):
+    """Blocks whose outputs ``fn`` gives as they are (``reduction`` ``None``) or reduces, as
+    :class:`~torchcbf.barriers.Intersection` (``"min"``) or
+    :class:`~torchcbf.barriers.Union` (``"max"``), to ``outputs`` outputs: output ``j`` the
+    reduction of the columns ``j, j + outputs, ...`` of the blocks' outputs concatenated."""
+
+    blocks: list[_Block]
+    reduction: str | None = None
+    smooth: bool = False
+    temperature: float = 1.0
+    outputs: int = 1
+
+
+def _groups(fn: LieFunction) -> list[_Group] | None:
+    """``fn`` as the kernel's groups of blocks (their outputs concatenated are ``fn``'s), or
+    ``None``."""
+    cls = None if fn.quadric() is not None else _wrapper(fn)
+    if cls is BarrierStack:
+        out: list[_Group] = []
+        for child in fn.barriers:
+            part = _groups(child)
+            if part is None:
+                return None
+            out.extend(part)
+        return out
+    if cls in _REDUCTIONS:
+        return _reduction(fn)
+    blocks = _blocks(fn)
+    return None if blocks is None else [_Group(blocks)]
+
+
+def _reduction(fn: Intersection | Union) -> list[_Group] | None:
+    """An intersection or union of functions the kernel describes as blocks, as one group."""
+    temperature = float(fn.temperature)
+    if fn.mode not in ("min", "max") or not 0.0 < temperature < float("inf"):
+        return None
+    if not fn.elementwise:
+        blocks = _blocks(fn.stack)
+        return None if blocks is None else [_Group(blocks, fn.mode, fn.smooth, temperature)]
+    blocks = []
+    counts = set()
+    for child in fn.stack.barriers:
+        part = _blocks(child)
+        if part is None:
+            return None
+        counts.add(sum(_outputs(b) for b in part))
+        blocks.extend(part)
+    if len(counts) != 1:
+        return None  # the torch path raises
+    (k,) = counts
+    return [_Group(blocks, fn.mode, fn.smooth, temperature, k)]
 
 
 def _encode(
@@ -200,7 +267,7 @@ def describes(fns: Sequence[LieFunction], dynamics: ControlAffine) -> bool:
     return (
         _library() is not None
         and model_code(dynamics) is not None
-        and all(_blocks(fn) is not None for fn in fns)
+        and all(_groups(fn) is not None for fn in fns)
     )
 
 
@@ -347,22 +414,41 @@ def _arguments(
     q = 0 if sigma is None else sigma.shape[-1]
     if q > MAX_SIZE:
         return None
-    meta = [B, n, m, q, *outer, 0, 0, 0]
+    meta = [B, n, m, q, *outer, 0, 0, 0, 0]  # then: blocks, two strides, groups
     reals: list[float] = [0.0, 1.0, 1.0]
     tensors: list[Tensor | None] = []
     sizes: list[int] = []
+    # per group: its reduction, smooth, blocks and outputs (as G_MODE... in the kernel)
+    groups: list[list[int]] = []
+    temperatures: list[float] = []
     for fn in fns:
-        blocks = _blocks(fn)
-        if blocks is None:
+        found = _groups(fn)
+        if found is None:
             return None
         total = 0
-        for block in blocks:
-            k = _encode(block, meta, reals, tensors)
-            if k is None:
-                return None
-            total += k
+        for group in found:
+            columns = 0
+            for block in group.blocks:
+                k = _encode(block, meta, reals, tensors)
+                if k is None:
+                    return None
+                columns += k
+            if group.reduction is None:
+                total += columns
+                if groups and groups[-1][0] == 0:  # one group for consecutive plain blocks
+                    groups[-1][2:] = groups[-1][2] + len(group.blocks), groups[-1][3] + columns
+                    continue
+                outputs = columns
+            else:
+                outputs = group.outputs
+                total += outputs
+            code = REDUCTION_CODES[group.reduction]
+            groups.append([code, int(group.smooth), len(group.blocks), outputs])
+            temperatures.append(group.temperature)
         sizes.append(total)
-    meta[6] = len(reals) - 3
+    meta[6], meta[9] = len(reals) - 3, len(groups)
+    meta += (v for g in groups for v in g)
+    reals += temperatures
     condition: tuple[Tensor | None, Tensor | None] = (None, None)
     if affine is not None:
         trace_weight, gain, gain_scale, offset, offset_scale = affine

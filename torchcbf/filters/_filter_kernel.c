@@ -225,9 +225,9 @@ int torchcbf_filter_solve(int64_t B, int m, int k, int c, int slack, int two_pas
 
 /* The Lie-term kernel of torchcbf/barriers/_lie_kernel.c (its torchcbf_lie_quadrics) and the
  * slots of its pointer array this file fills: the outputs lgh [B, K, m] and the condition b
- * [B, K] (LIE_KERNEL_VERSION 2). */
+ * [B, K] (LIE_KERNEL_VERSION 3). */
 typedef int (*lie_kernel)(const int64_t *meta, const double *reals, void *const *ptrs);
-#define LIE_KERNEL_VERSION_USED 2
+#define LIE_KERNEL_VERSION_USED 3
 enum { LIE_LGH = 5, LIE_B = 8 };
 
 /*
