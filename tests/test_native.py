@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from torchcbf._native import keep_freed_heap, load_kernel, prototypes
+from torchcbf._native import constants, keep_freed_heap, load_kernel, prototypes
 
 CHURN = """
 import resource, sys, torch
@@ -92,6 +92,38 @@ def test_prototypes_read_every_exported_definition(tmp_path: Path) -> None:
     src.write_text("int torchcbf_demo_odd(unsigned short n) { return 0; }\n")
     with pytest.raises(ValueError, match="unsigned short"):
         prototypes([src])
+
+
+def test_constants_read_defines_and_enums(tmp_path: Path) -> None:
+    src = tmp_path / "demo.c"
+    src.write_text(
+        "#define WIDTH 4  /* lanes */\n"
+        "#define NAME_ONLY\n"
+        "enum { A, B, C = 7, D };  // D = 8\n"
+        "/* enum { HIDDEN = 99 }; */\n"
+        "enum { F_HEAD, F_IDX, F_CENTER = F_IDX + WIDTH, F_AXES = F_CENTER + 2 * WIDTH,\n"
+        "       F_SIZE = 20 };\n"
+    )
+    assert constants([src]) == {
+        "WIDTH": 4, "A": 0, "B": 1, "C": 7, "D": 8,
+        "F_HEAD": 0, "F_IDX": 1, "F_CENTER": 5, "F_AXES": 13, "F_SIZE": 20,
+    }  # fmt: skip
+    src.write_text("enum { BAD = sizeof(double) };\n")
+    with pytest.raises(ValueError, match="sizeof"):
+        constants([src])
+
+
+def test_the_rollout_configuration_fields_are_the_c_sources() -> None:
+    from torchcbf.mppi import _rollout
+
+    layout = _rollout.LAYOUT
+    terms = [layout[n] for n in ("TR_TYPE", "TR_D", "TR_IDX", "TR_CENTER", "TR_RADIUS")]
+    shapes = [layout[n] for n in ("SR_KIND", "SR_IDX", "SR_CENTER", "SR_AXES", "SR_ANGLE")]
+    assert max(terms) < layout["TREC"] and max(shapes) < layout["SREC"]
+    assert layout["TR_CENTER"] - layout["TR_IDX"] == layout["DMAX"] == _rollout.MAX_DIM
+    rec = _rollout.record("SREC", SR_D=2, SR_IDX=[0, 1], SR_ANGLE=0.5)
+    assert _rollout.field(rec, "SR_IDX", 2) == [0.0, 1.0] and _rollout.field(rec, "SR_ANGLE") == 0.5
+    assert len(rec) == layout["SREC"] and sum(rec) == 3.5
 
 
 def test_every_exported_symbol_has_its_sources_types() -> None:

@@ -11,6 +11,7 @@ back to its torch code.
 
 from __future__ import annotations
 
+import ast
 import ctypes
 import functools
 import importlib.machinery
@@ -108,6 +109,54 @@ def prototypes(sources: Iterable[Path]) -> dict[str, tuple[list[Any], Any]]:
                     types.append(_c_type(decl, real, where))
                 restype = None if ret == "void" else _c_type(ret, real, where)
                 found[name + suffix] = (types, restype)
+    return found
+
+
+_DEFINE = re.compile(r"^\s*#define\s+(\w+)\s+(\d+)\s*$", re.MULTILINE)
+_ENUM = re.compile(r"\benum\s*\{([^}]*)\}")
+
+
+def _integer(expression: str, names: dict[str, int], where: str) -> int:
+    """The value of a C integer expression of literals, known names, ``+`` and ``*``."""
+
+    def value(node: ast.AST) -> int:
+        if isinstance(node, ast.Constant) and type(node.value) is int:
+            return node.value
+        if isinstance(node, ast.Name) and node.id in names:
+            return names[node.id]
+        if isinstance(node, ast.BinOp) and isinstance(node.op, (ast.Add, ast.Mult)):
+            left, right = value(node.left), value(node.right)
+            return left + right if isinstance(node.op, ast.Add) else left * right
+        raise ValueError(f"{where}: cannot evaluate {expression!r}")
+
+    try:
+        tree = ast.parse(expression, mode="eval")
+    except SyntaxError:
+        raise ValueError(f"{where}: cannot evaluate {expression!r}") from None
+    return value(tree.body)
+
+
+def constants(sources: Iterable[Path]) -> dict[str, int]:
+    """The integer constants of C ``sources``: each ``#define NAME <integer>`` and each
+    member of an ``enum { ... }`` (comments aside), an enum member's value given as an
+    integer expression of ``+``, ``*`` and earlier names, or one more than the member
+    before it. What a kernel's configuration vector holds where (its field offsets, record
+    sizes and codes) is read from here, so the C source is its one statement."""
+    found: dict[str, int] = {}
+    for source in sources:
+        text = _COMMENTS.sub(" ", source.read_text())
+        found.update((name, int(value)) for name, value in _DEFINE.findall(text))
+        for body in _ENUM.findall(text):
+            value = -1
+            for item in (part.strip() for part in body.split(",")):
+                if not item:
+                    continue
+                name, _, expression = (w.strip() for w in item.partition("="))
+                if expression:
+                    value = _integer(expression, found, f"{source.name}: {item!r}")
+                else:
+                    value += 1
+                found[name] = value
     return found
 
 

@@ -18,14 +18,15 @@ from __future__ import annotations
 import ctypes
 import functools
 import logging
+from collections.abc import Sequence
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor, nn
 
 from torchcbf._checks import behaves_as
-from torchcbf._native import load_kernel, model_code, thread_pool
+from torchcbf._native import constants, load_kernel, model_code, thread_pool
 from torchcbf.barriers import LieFunction
 
 logger = logging.getLogger(__name__)
@@ -34,18 +35,26 @@ logger = logging.getLogger(__name__)
 KERNEL_VERSION = 5
 #: the file name of the built kernel, without its extension suffix
 KERNEL_STEM = "_rollout_kernel"
+#: the kernel's C sources
+SOURCES = ("_rollout_kernel.c", "_rollout_kernel.h")
+#: the integer constants of the C sources: the kernel's limits, its codes and the layout of
+#: its configuration vector (offsets of the fields, sizes of the records), read from there
+LAYOUT: dict[str, int] = constants(Path(__file__).parent / name for name in SOURCES)
 #: limits of the kernel (``NMAX``, ``MMAX``, ``DMAX``, ``TMAX``, ``SMAX`` in the C source)
-MAX_STATE, MAX_CONTROL, MAX_DIM, MAX_TERMS, MAX_SHAPES = 8, 4, 4, 16, 32
-_HDR, _TREC, _SREC = 16, 16, 20
+MAX_STATE, MAX_CONTROL, MAX_DIM, MAX_TERMS, MAX_SHAPES = (
+    LAYOUT[name] for name in ("NMAX", "MMAX", "DMAX", "TMAX", "SMAX")
+)
 #: fewest samples a thread is given
 MIN_SAMPLES_PER_THREAD = 256
 
 #: the methods whose formulas the kernel evaluates for a built-in cost term (a subclass that
 #: changes one is scored by torch)
 _COST_METHODS = ("forward", "stage", "terminal")
-TERM_GOAL, TERM_OBSTACLE, TERM_BARRIER, TERM_DISCRETE_BARRIER = 0, 1, 2, 3
-SHAPE_ELLIPSE, SHAPE_BALL = 0, 1
-INTEGRATOR_CODES = {"euler": 0, "rk4": 1}
+TERM_GOAL, TERM_OBSTACLE, TERM_BARRIER, TERM_DISCRETE_BARRIER = (
+    LAYOUT[name] for name in ("T_GOAL", "T_OBSTACLE", "T_BARRIER", "T_DISCRETE_BARRIER")
+)
+SHAPE_ELLIPSE, SHAPE_BALL = LAYOUT["S_ELLIPSE"], LAYOUT["S_BALL"]
+INTEGRATOR_CODES = {"euler": LAYOUT["I_EULER"], "rk4": LAYOUT["I_RK4"]}
 
 
 @functools.lru_cache(maxsize=1)
@@ -56,7 +65,7 @@ def _library() -> ctypes.CDLL | None:
         "torchcbf_mppi_version",
         KERNEL_VERSION,
         "MPPI runs in torch",
-        sources=("_rollout_kernel.c", "_rollout_kernel.h"),
+        sources=SOURCES,
     )
 
 
@@ -76,6 +85,23 @@ def encode_model(dynamics: nn.Module) -> tuple[int, int] | None:
     if dynamics.state_dim > MAX_STATE or dynamics.control_dim > MAX_CONTROL:
         return None
     return found
+
+
+def record(size: str, **fields: float | Sequence[float]) -> list[float]:
+    """A record of ``LAYOUT[size]`` values with each field (a name of :data:`LAYOUT`: its
+    offset) set, a sequence from its offset on; the rest zero."""
+    rec = [0.0] * LAYOUT[size]
+    for name, value in fields.items():
+        values = value if isinstance(value, Sequence) else [value]
+        at = LAYOUT[name]
+        rec[at : at + len(values)] = [float(v) for v in values]
+    return rec
+
+
+def field(rec: Sequence[float], name: str, count: int | None = None) -> Any:
+    """The field ``name`` of a record: one value, or the ``count`` values from its offset."""
+    at = LAYOUT[name]
+    return rec[at] if count is None else list(rec[at : at + count])
 
 
 def _values(t: Tensor) -> list[float]:
@@ -121,35 +147,36 @@ def _shape_records(barrier: object) -> list[list[float]] | None:
     axes = axes.reshape(-1, d)
     records = []
     for j in range(k):
-        rec = [0.0] * _SREC
-        rec[0], rec[1] = (SHAPE_BALL if ball else SHAPE_ELLIPSE), d
         r = radius[j]
-        c = _values(centers[j])
         a = _values(axes[j]) if ball else [v * abs(r) for v in _values(axes[j])]
-        for i in range(d):
-            rec[2 + i], rec[6 + i], rec[10 + i] = index[i], c[i], a[i]
-        rec[14] = r if ball else 0.0
-        rec[15] = quadric.sign * scale[j] * (1.0 if ball else r * r)
-        if angles is not None:
-            rec[16], rec[17] = 1.0, angles[j]
+        rec = record(
+            "SREC",
+            SR_KIND=SHAPE_BALL if ball else SHAPE_ELLIPSE,
+            SR_D=d,
+            SR_IDX=index,
+            SR_CENTER=_values(centers[j]),
+            SR_AXES=a,
+            SR_RADIUS=r if ball else 0.0,
+            SR_SIGN=quadric.sign * scale[j] * (1.0 if ball else r * r),
+            SR_ROTATED=float(angles is not None),
+            SR_ANGLE=0.0 if angles is None else angles[j],
+        )
         records.append(rec)
     return records
 
 
-def _term(kind: int, weight: float, extra: float, eps: float) -> list[float]:
-    rec = [0.0] * _TREC
-    rec[0], rec[1], rec[2], rec[3] = kind, weight, extra, eps
-    return rec
+def _term(kind: int, weight: float, extra: float, eps: float, **fields: Any) -> list[float]:
+    return record("TREC", TR_TYPE=kind, TR_WEIGHT=weight, TR_EXTRA=extra, TR_EPS=eps, **fields)
 
 
-def _point_term(rec: list[float], index: object, point: Tensor) -> list[float] | None:
+def _point_term(
+    kind: int, weight: float, extra: float, eps: float, index: object, point: Tensor, **fields: Any
+) -> list[float] | None:
     idx = list(range(index.start, index.stop)) if isinstance(index, slice) else list(index)
-    if len(idx) > MAX_DIM:
+    center = _values(point)
+    if len(idx) > MAX_DIM or len(center) != len(idx):
         return None
-    rec[4] = len(idx)
-    for i, (at, c) in enumerate(zip(idx, _values(point), strict=True)):
-        rec[5 + i], rec[9 + i] = at, c
-    return rec
+    return _term(kind, weight, extra, eps, TR_D=len(idx), TR_IDX=idx, TR_CENTER=center, **fields)
 
 
 def encode_cost(cost: object, state_dim: int) -> tuple[list[list[float]], list[list[float]]] | None:
@@ -178,14 +205,18 @@ def encode_cost(cost: object, state_dim: int) -> tuple[list[list[float]], list[l
         kind = next((c for c in built_in if behaves_as(part, c, _COST_METHODS)), None)
         if kind is QuadraticGoal:
             rec = _point_term(
-                _term(TERM_GOAL, part.weight, part.terminal_weight, 0.0), part.index, part.goal
+                TERM_GOAL, part.weight, part.terminal_weight, 0.0, part.index, part.goal
             )
         elif kind is ObstacleCost:
             rec = _point_term(
-                _term(TERM_OBSTACLE, 0.0, part.k_o, part.eps), part.index, part.center
+                TERM_OBSTACLE,
+                0.0,
+                part.k_o,
+                part.eps,
+                part.index,
+                part.center,
+                TR_RADIUS=float(part.radius),
             )
-            if rec is not None:
-                rec[13] = part.radius
         elif kind in (BarrierCost, DiscreteBarrierCost):
             if id(part.barrier) not in shared:
                 recs = _shape_records(part.barrier)
@@ -193,12 +224,13 @@ def encode_cost(cost: object, state_dim: int) -> tuple[list[list[float]], list[l
                     return None
                 shared[id(part.barrier)] = (len(shapes), len(recs))
                 shapes.extend(recs)
+            shape0, nshape = shared[id(part.barrier)]
             if kind is BarrierCost:
-                rec = _term(TERM_BARRIER, part.weight, 0.0, part.eps)
+                kind_code, extra, eps = TERM_BARRIER, 0.0, part.eps
             else:
-                steps = -1 if part.steps is None else part.steps
-                rec = _term(TERM_DISCRETE_BARRIER, part.weight, part.gamma, steps)
-            rec[14], rec[15] = shared[id(part.barrier)]
+                kind_code, extra = TERM_DISCRETE_BARRIER, part.gamma
+                eps = -1 if part.steps is None else part.steps
+            rec = _term(kind_code, part.weight, extra, eps, TR_SHAPE0=shape0, TR_NSHAPE=nshape)
         else:
             return None
         if rec is None:
@@ -206,10 +238,10 @@ def encode_cost(cost: object, state_dim: int) -> tuple[list[list[float]], list[l
         terms.append(rec)
     # an index outside the state is left to torch, which raises the usual error
     for rec in terms:
-        if any(not 0 <= int(rec[5 + i]) < state_dim for i in range(int(rec[4]))):
+        if any(not 0 <= i < state_dim for i in field(rec, "TR_IDX", int(field(rec, "TR_D")))):
             return None
     for rec in shapes:
-        if any(not 0 <= int(rec[2 + i]) < state_dim for i in range(int(rec[1]))):
+        if any(not 0 <= i < state_dim for i in field(rec, "SR_IDX", int(field(rec, "SR_D")))):
             return None
     if len(terms) > MAX_TERMS or len(shapes) > MAX_SHAPES:
         return None
@@ -244,24 +276,24 @@ def configuration(
 ) -> Configuration:
     """The kernel's configuration (layout of its float64 vector in ``_rollout_kernel.c``)."""
     terms, shapes = cost if cost is not None else ([], [])
-    head = [0.0] * _HDR
-    head[:15] = [
-        KERNEL_VERSION,
-        model[0],
-        INTEGRATOR_CODES[integrator],
-        n,
-        m,
-        horizon,
-        num_samples,
-        model[1],
-        zero_noise,
-        float(u_min is not None),
-        float(u_max is not None),
-        len(terms),
-        len(shapes),
-        dt,
-        gamma,
-    ]
+    head = record(
+        "HDR",
+        H_VERSION=KERNEL_VERSION,
+        H_MODEL=model[0],
+        H_INTEGRATOR=INTEGRATOR_CODES[integrator],
+        H_N=n,
+        H_M=m,
+        H_H=horizon,
+        H_K=num_samples,
+        H_DIM=model[1],
+        H_ZERO_NOISE=zero_noise,
+        H_HAS_LO=float(u_min is not None),
+        H_HAS_HI=float(u_max is not None),
+        H_NTERMS=len(terms),
+        H_NSHAPES=len(shapes),
+        H_DT=dt,
+        H_GAMMA=gamma,
+    )
     lo = [0.0] * MAX_CONTROL
     hi = [0.0] * MAX_CONTROL
     if u_min is not None:

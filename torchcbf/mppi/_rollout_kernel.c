@@ -60,16 +60,17 @@ enum { T_GOAL = 0, T_OBSTACLE = 1, T_BARRIER = 2, T_DISCRETE_BARRIER = 3 };
 /* shapes */
 enum { S_ELLIPSE = 0, S_BALL = 1 };
 
-/* Configuration layout (float64 array, see _rollout.py):
- *   header  [0..HDR): version, model, integrator, n, m, H, K, dim, zero_noise, has_lo,
- *                     has_hi, nterms, nshapes, dt, gamma, (pad)
- *   then lo[MMAX], hi[MMAX], chol[MMAX*MMAX], ctrl-cost on/off is gamma > 0
- *   then nterms records of TREC doubles and nshapes records of SREC doubles. A term's
- *   record: type, weight, extra, eps (for a discrete-time barrier term: the number of steps
- *   it penalises, -1 for every step), d, idx[DMAX], center[DMAX], radius, shape0, nshape. */
-#define HDR 16
-#define TREC 16
-#define SREC 20
+/* The configuration is one float64 vector, built by _rollout.py from the names below (it
+ * reads them from this file): the header's fields, lo[MMAX], hi[MMAX] and chol[MMAX*MMAX]
+ * from HDR on, then nterms term records of TREC values and nshapes shape records of SREC.
+ * A term's eps is, for a discrete-time barrier term, the number of steps it penalises (-1:
+ * every step). Changing a layout changes KERNEL_VERSION. */
+enum { H_VERSION, H_MODEL, H_INTEGRATOR, H_N, H_M, H_H, H_K, H_DIM, H_ZERO_NOISE, H_HAS_LO,
+       H_HAS_HI, H_NTERMS, H_NSHAPES, H_DT, H_GAMMA, HDR = 16 };
+enum { TR_TYPE, TR_WEIGHT, TR_EXTRA, TR_EPS, TR_D, TR_IDX, TR_CENTER = TR_IDX + DMAX,
+       TR_RADIUS = TR_CENTER + DMAX, TR_SHAPE0, TR_NSHAPE, TREC };
+enum { SR_KIND, SR_D, SR_IDX, SR_CENTER = SR_IDX + DMAX, SR_AXES = SR_CENTER + DMAX,
+       SR_RADIUS = SR_AXES + DMAX, SR_SIGN, SR_ROTATED, SR_ANGLE, SREC = 20 };
 
 typedef struct {
     int type, d, idx[DMAX], shape0, nshape, steps;
@@ -96,21 +97,21 @@ typedef struct {
 /* 0 on success, else a negative code (bad configuration). */
 static int parse(const double *cfg, problem_t *pr) {
     memset(pr, 0, sizeof(*pr));
-    if ((int)cfg[0] != KERNEL_VERSION) return -1;
-    pr->model = (int)cfg[1];
-    pr->integrator = (int)cfg[2];
-    pr->n = (int)cfg[3];
-    pr->m = (int)cfg[4];
-    pr->H = (int)cfg[5];
-    pr->K = (int64_t)cfg[6];
-    pr->dim = (int)cfg[7];
-    pr->zero_noise = (int64_t)cfg[8];
-    pr->has_lo = (int)cfg[9];
-    pr->has_hi = (int)cfg[10];
-    pr->nterms = (int)cfg[11];
-    pr->nshapes = (int)cfg[12];
-    pr->dt = cfg[13];
-    pr->gamma = cfg[14];
+    if ((int)cfg[H_VERSION] != KERNEL_VERSION) return -1;
+    pr->model = (int)cfg[H_MODEL];
+    pr->integrator = (int)cfg[H_INTEGRATOR];
+    pr->n = (int)cfg[H_N];
+    pr->m = (int)cfg[H_M];
+    pr->H = (int)cfg[H_H];
+    pr->K = (int64_t)cfg[H_K];
+    pr->dim = (int)cfg[H_DIM];
+    pr->zero_noise = (int64_t)cfg[H_ZERO_NOISE];
+    pr->has_lo = (int)cfg[H_HAS_LO];
+    pr->has_hi = (int)cfg[H_HAS_HI];
+    pr->nterms = (int)cfg[H_NTERMS];
+    pr->nshapes = (int)cfg[H_NSHAPES];
+    pr->dt = cfg[H_DT];
+    pr->gamma = cfg[H_GAMMA];
     if (pr->n < 1 || pr->n > NMAX || pr->m < 1 || pr->m > MMAX || pr->H < 1 || pr->K < 1)
         return -2;
     if (pr->nterms < 0 || pr->nterms > TMAX || pr->nshapes < 0 || pr->nshapes > SMAX) return -3;
@@ -121,25 +122,25 @@ static int parse(const double *cfg, problem_t *pr) {
     p += 2 * MMAX + MMAX * MMAX;
     for (int t = 0; t < pr->nterms; ++t, p += TREC) {
         term_t *T = &pr->terms[t];
-        T->type = (int)p[0];
-        T->weight = p[1];
-        T->extra = p[2];
-        T->eps = p[3];
-        T->d = (int)p[4];
+        T->type = (int)p[TR_TYPE];
+        T->weight = p[TR_WEIGHT];
+        T->extra = p[TR_EXTRA];
+        T->eps = p[TR_EPS];
+        T->d = (int)p[TR_D];
         if (T->d < 0 || T->d > DMAX) return -4;
         for (int i = 0; i < DMAX; ++i) {
-            T->idx[i] = (int)p[5 + i];
-            T->center[i] = p[9 + i];
+            T->idx[i] = (int)p[TR_IDX + i];
+            T->center[i] = p[TR_CENTER + i];
             if (i < T->d && (T->idx[i] < 0 || T->idx[i] >= pr->n)) return -4;
         }
-        T->radius = p[13];
-        T->shape0 = (int)p[14];
-        T->nshape = (int)p[15];
+        T->radius = p[TR_RADIUS];
+        T->shape0 = (int)p[TR_SHAPE0];
+        T->nshape = (int)p[TR_NSHAPE];
         if (T->shape0 < 0 || T->nshape < 0 || T->shape0 + T->nshape > pr->nshapes) return -5;
         T->pair = -1;
         if (T->type == T_DISCRETE_BARRIER) {
-            if (p[3] != -1 && !(p[3] >= 0 && p[3] == floor(p[3]))) return -8;
-            T->steps = p[3] == -1 || p[3] > pr->H ? pr->H : (int)p[3];
+            if (T->eps != -1 && !(T->eps >= 0 && T->eps == floor(T->eps))) return -8;
+            T->steps = T->eps == -1 || T->eps > pr->H ? pr->H : (int)T->eps;
         }
     }
     /* the next discrete-time term after a barrier term, over the same shapes: its sum goes
@@ -157,19 +158,19 @@ static int parse(const double *cfg, problem_t *pr) {
     }
     for (int s = 0; s < pr->nshapes; ++s, p += SREC) {
         shape_t *S = &pr->shapes[s];
-        S->kind = (int)p[0];
-        S->d = (int)p[1];
+        S->kind = (int)p[SR_KIND];
+        S->d = (int)p[SR_D];
         if (S->d < 1 || S->d > DMAX) return -6;
         for (int i = 0; i < DMAX; ++i) {
-            S->idx[i] = (int)p[2 + i];
-            S->center[i] = p[6 + i];
-            S->axes[i] = p[10 + i];
+            S->idx[i] = (int)p[SR_IDX + i];
+            S->center[i] = p[SR_CENTER + i];
+            S->axes[i] = p[SR_AXES + i];
             if (i < S->d && (S->idx[i] < 0 || S->idx[i] >= pr->n)) return -6;
         }
-        S->radius = p[14];
-        S->sign = p[15];
-        S->rotated = (int)p[16];
-        S->angle = p[17];
+        S->radius = p[SR_RADIUS];
+        S->sign = p[SR_SIGN];
+        S->rotated = (int)p[SR_ROTATED];
+        S->angle = p[SR_ANGLE];
         if (S->rotated && S->d != 2) return -6;
     }
     return 0;

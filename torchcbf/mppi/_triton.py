@@ -90,10 +90,14 @@ def tables(cfg: _rollout.Configuration, dtype: torch.dtype, device: torch.device
     """Parse the C kernel's configuration vector (its layout in ``_rollout_kernel.c``) into
     the Triton kernel's dense tables, in ``dtype`` on ``device``."""
     v = cfg.values.tolist()
-    hdr, mmax = _rollout._HDR, _rollout.MAX_CONTROL
-    model, integrator, n, m, H = (int(x) for x in v[1:6])
-    dim, zero_noise, has_lo, has_hi, nterms, nshapes = (int(x) for x in v[7:13])
-    dt, gamma = v[13], v[14]
+    L, field = _rollout.LAYOUT, _rollout.field
+    hdr, mmax, trec, srec = L["HDR"], L["MMAX"], L["TREC"], L["SREC"]
+    model, integrator, n, m, H, dim, zero_noise, has_lo, has_hi, nterms, nshapes = (
+        int(field(v, name))
+        for name in ("H_MODEL", "H_INTEGRATOR", "H_N", "H_M", "H_H", "H_DIM", "H_ZERO_NOISE",
+                     "H_HAS_LO", "H_HAS_HI", "H_NTERMS", "H_NSHAPES")
+    )  # fmt: skip
+    dt, gamma = field(v, "H_DT"), field(v, "H_GAMMA")
     lo, hi = v[hdr : hdr + mmax], v[hdr + mmax : hdr + 2 * mmax]
     chol = v[hdr + 2 * mmax : hdr + 2 * mmax + mmax * mmax]
     par = [dt, 0.5 * dt, dt / 6.0, gamma, 2.0 * math.pi, *lo, *hi, *chol]
@@ -104,46 +108,51 @@ def tables(cfg: _rollout.Configuration, dtype: torch.dtype, device: torch.device
     tval = torch.zeros(max(nterms, 1), _TVAL, dtype=torch.float64)
     types = 0
     for t in range(nterms):
-        rec = v[base + t * _rollout._TREC : base + (t + 1) * _rollout._TREC]
-        kind, d = int(rec[0]), int(rec[4])
+        rec = v[base + t * trec : base + (t + 1) * trec]
+        kind, d = int(field(rec, "TR_TYPE")), int(field(rec, "TR_D"))
+        weight, extra, eps = (field(rec, name) for name in ("TR_WEIGHT", "TR_EXTRA", "TR_EPS"))
         types |= kind << (2 * t)
-        for i in range(d):
-            c = int(rec[5 + i])
+        for c, center in zip(field(rec, "TR_IDX", d), field(rec, "TR_CENTER", d), strict=True):
+            c = int(c)
             if tmask[t, c] != 0:  # a repeated component: the dense tables cannot say it
                 raise ValueError("a cost term's index repeats a state component")
-            tmask[t, c], tcent[t, c] = 1.0, rec[9 + i]
+            tmask[t, c], tcent[t, c] = 1.0, center
         steps = 0.0
         if kind == _rollout.TERM_DISCRETE_BARRIER:
-            steps = H if rec[3] == -1 or rec[3] > H else rec[3]
+            steps = H if eps == -1 or eps > H else eps
+        radius, shape0, nshape = (
+            field(rec, name) for name in ("TR_RADIUS", "TR_SHAPE0", "TR_NSHAPE")
+        )
         tval[t] = torch.tensor(
-            [rec[1], rec[2], rec[3], rec[13], rec[14], rec[15], steps, 1.0 - rec[2]],
-            dtype=torch.float64,
+            [weight, extra, eps, radius, shape0, nshape, steps, 1.0 - extra], dtype=torch.float64
         )
     sa = torch.zeros(SP, 4, NP, dtype=torch.float64)
     sc = torch.zeros(SP, NP, dtype=torch.float64)
     sval = torch.zeros(SP, 2, dtype=torch.float64)
-    shapes0 = base + nterms * _rollout._TREC
+    shapes0 = base + nterms * trec
     rows_used = 1
     for s in range(nshapes):
-        rec = v[shapes0 + s * _rollout._SREC : shapes0 + (s + 1) * _rollout._SREC]
-        kind, d = int(rec[0]), int(rec[1])
-        idx = [int(rec[2 + i]) for i in range(d)]
+        rec = v[shapes0 + s * srec : shapes0 + (s + 1) * srec]
+        kind, d = int(field(rec, "SR_KIND")), int(field(rec, "SR_D"))
+        idx = [int(i) for i in field(rec, "SR_IDX", d)]
         if len(set(idx)) != d:
             raise ValueError("a barrier's index repeats a state component")
         ball = kind == _rollout.SHAPE_BALL
         rows_used = max(rows_used, d)
-        for i, c in enumerate(idx):
-            sc[s, c] = rec[6 + i]
-        if int(rec[16]):  # a rotated 2-D ellipse
-            co, si = math.cos(rec[17]), math.sin(rec[17])
-            ax, ay = rec[10], rec[11]
+        axes = field(rec, "SR_AXES", d)
+        for c, center in zip(idx, field(rec, "SR_CENTER", d), strict=True):
+            sc[s, c] = center
+        if int(field(rec, "SR_ROTATED")):  # a rotated 2-D ellipse
+            angle = field(rec, "SR_ANGLE")
+            co, si = math.cos(angle), math.sin(angle)
+            ax, ay = axes
             sa[s, 0, idx[0]], sa[s, 0, idx[1]] = co / ax, si / ax
             sa[s, 1, idx[0]], sa[s, 1, idx[1]] = -si / ay, co / ay
         else:
             for i, c in enumerate(idx):
-                sa[s, i, c] = 1.0 if ball else 1.0 / rec[10 + i]
-        r = rec[14]
-        sval[s] = torch.tensor([rec[15], r * r if ball else 1.0], dtype=torch.float64)
+                sa[s, i, c] = 1.0 if ball else 1.0 / axes[i]
+        r = field(rec, "SR_RADIUS")
+        sval[s] = torch.tensor([field(rec, "SR_SIGN"), r * r if ball else 1.0], dtype=torch.float64)
     meta = dict(
         MODEL=model,
         RK4=integrator == _rollout.INTEGRATOR_CODES["rk4"],
@@ -172,7 +181,7 @@ def tables(cfg: _rollout.Configuration, dtype: torch.dtype, device: torch.device
         put(sc),
         put(sval),
         meta,
-        int(v[6]),
+        int(field(v, "H_K")),
         zero_noise,
     )
 
