@@ -365,18 +365,29 @@ def test_hard_reductions_take_the_first_active_column_at_ties() -> None:
         torch.testing.assert_close(terms.lgh, first.lgh, atol=1e-14, rtol=0)
 
 
-def test_a_nan_state_gives_nan_terms_as_the_closed_forms() -> None:
+def test_non_finite_values_give_the_closed_forms_values() -> None:
     dyn = AccelUnicycle(sigma=0.2).double()
-    x = _states(3, 4, seed=12)
+    x = _states(4, 4, seed=12)
     x[1, 0] = torch.nan
-    for smooth in (True, False):
-        barrier = Intersection(*_radius_children(dyn), smooth=smooth, elementwise=True).double()
-        terms, _ = native.lie_terms([barrier], x, dyn)
-        want = _columns(lie_derivatives(barrier, x, dyn, method="analytic"), x)
-        for name in ("h", "lfh", "lgh", "hess_trace"):
-            got, ref = getattr(terms, name), getattr(want, name)
-            assert torch.equal(got.isnan(), ref.isnan()), name
-            torch.testing.assert_close(got.nan_to_num(), ref.nan_to_num(), msg=name)
+    huge = x.clone()
+    huge[2, :] = 1e200  # both balls' values infinite (their gradients finite)
+    huge[3, 2] = 1e200  # the second ball's value infinite, the first's finite
+    near, far = Ball([0.5, 0.2], 0.4), Ball([1.0, 0.5], 0.3, index=(2, 3))
+    for cls in (Intersection, Union):
+        for smooth in (True, False):
+            cases = [
+                (cls(*_radius_children(dyn), smooth=smooth, elementwise=True).double(), x),
+                (cls(near, far, smooth=smooth, temperature=0.2).double(), huge),
+            ]
+            for fn, states in cases:
+                terms, _ = native.lie_terms([fn], states, dyn)
+                want = _columns(lie_derivatives(fn, states, dyn, method="analytic"), states)
+                assert bool(terms.h[1].isnan().all() and want.h[1].isnan().all())
+                rows = [0, 2, 3]  # a NaN state's other terms: NaN or not, as it comes
+                for name in ("h", "lfh", "lgh", "hess_trace"):
+                    got, ref = getattr(terms, name)[rows], getattr(want, name)[rows]
+                    assert torch.equal(got.isnan(), ref.isnan()), (cls, smooth, name)
+                    torch.testing.assert_close(got.nan_to_num(), ref.nan_to_num(), msg=name)
 
 
 def test_the_temperature_is_read_at_every_call() -> None:

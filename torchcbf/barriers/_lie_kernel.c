@@ -126,25 +126,27 @@ static void model_eval(int code, int dim, int n, int m, const double *x, double 
     }
 }
 
-/* sum_i w_i tr(S' hess f_i S) for S [n, q] (zero for the drifts linear in x). */
-static double model_hess_quad(int code, int q, const double *x, const double *w,
-                              const double *S) {
-    if (code != ACCEL_UNICYCLE) return 0.0;
+/* t [n] with t_i = tr(S' hess f_i S) for S [n, q] (zero for the drifts linear in x). */
+static void model_hess_traces(int code, int n, int q, const double *x, const double *S,
+                              double *t) {
+    memset(t, 0, sizeof(double) * n);
+    if (code != ACCEL_UNICYCLE) return;
     /* d2f/dv dtheta = (-sin, cos), d2f/dtheta2 = -v (cos, sin) on the rows (x, y) */
     double v = x[2], c = cos(x[3]), s = sin(x[3]), sv_st = 0.0, st2 = 0.0;
     for (int l = 0; l < q; ++l) {
         sv_st += S[2 * q + l] * S[3 * q + l];
         st2 += S[3 * q + l] * S[3 * q + l];
     }
-    return w[0] * (-2.0 * sv_st * s - v * st2 * c) + w[1] * (2.0 * sv_st * c - v * st2 * s);
+    t[0] = -2.0 * sv_st * s - v * st2 * c;
+    t[1] = 2.0 * sv_st * c - v * st2 * s;
 }
 
 /* phi and its first three derivatives at b (compose.py's Transformed._phi and _phi3). */
 static void transform(int code, double rate, double b, double *phi) {
     if (code == RADIUS) {
-        double r = sqrt(b + 1.0);
-        phi[0] = r - 1.0, phi[1] = 0.5 / r, phi[2] = -0.25 / (r * r * r);
-        phi[3] = 0.375 * pow(b + 1.0, -2.5);
+        double r = sqrt(b + 1.0), r3 = r * r * r;
+        phi[0] = r - 1.0, phi[1] = 0.5 / r, phi[2] = -0.25 / r3;
+        phi[3] = 0.375 / (r3 * r * r); /* (b + 1)^-2.5 */
     } else if (code == EXP) {
         double e = exp(-rate * b);
         phi[0] = -expm1(-rate * b), phi[1] = rate * e, phi[2] = -rate * rate * e;
@@ -193,15 +195,42 @@ static double quadric(int d, const double *p, const double *c, const double *a, 
 /* A block's integers after `mb`'s (its d indices included). */
 static const int64_t *next_block(const int64_t *mb) { return mb + M_FIXED + mb[M_D]; }
 
+/* The constants of one quadric output, as column() reads them. */
+typedef struct {
+    const double *center, *axes, *angle; /* [d] each (axes, angle: NULL for none) */
+    const int64_t *index;                 /* [d] */
+    double radius, w, rate;
+    int d, code;
+} Shape;
+
+/* Whether a and b are the same function of the state. */
+static int same_shape(const Shape *a, const Shape *b) {
+    if (a->center != b->center || a->axes != b->axes || a->angle != b->angle ||
+        a->radius != b->radius || a->w != b->w || a->rate != b->rate || a->d != b->d ||
+        a->code != b->code)
+        return 0;
+    for (int i = 0; i < a->d; ++i)
+        if (a->index[i] != b->index[i]) return 0;
+    return 1;
+}
+
 /* What the columns of one state share: the sizes, the diffusion (SS = sigma sigma' [n, n];
- * both NULL without one), the state, the outer model's f and g and the inner model's f and J
- * (evaluated at its first rectified column). */
+ * both NULL without one), the state, the outer model's f and g, the inner model's f, J
+ * and, with a diffusion, J SS and the traces tr(S' hess f_i S) (evaluated at its first
+ * rectified column), and the last quadric output evaluated (`shape`, valid where `has_shape`:
+ * its value b0, gradient gb_p [d] and Hessian Bp [d, d] over the position and phi), which
+ * the next column reuses when it is the same (two blocks on one shape, as the children of
+ * an intersection are). */
 typedef struct {
     int n, m, q;
     const double *sigma, *SS, *x;
     double f_out[LIE_NMAX], g_out[LIE_NMAX * LIE_NMAX];
-    double f_in[LIE_NMAX], J_in[LIE_NMAX * LIE_NMAX];
+    double f_in[LIE_NMAX], J_in[LIE_NMAX * LIE_NMAX], JSS[LIE_NMAX * LIE_NMAX];
+    double hess_in[LIE_NMAX];
     int inner_done, inner_done_dim;
+    Shape shape;
+    int has_shape;
+    double b0, gb_p[LIE_NMAX], Bp[LIE_NMAX * LIE_NMAX], phi[4];
 } Point;
 
 /* Output j of the block (integers mb, pointers pb, rate of its transform) at the point: its
@@ -215,20 +244,33 @@ static double column(Point *pt, const int64_t *mb, void *const *pb, double rate,
     const double *angle = pb[P_ANGLE], *scale = pb[P_SCALE], *outer_scale = pb[P_OUTER];
     int d = (int)mb[M_D], inner = (int)mb[M_INNER], code = (int)mb[M_TRANSFORM];
     const int64_t *index = mb + M_FIXED;
-    double p[LIE_NMAX], gb_p[LIE_NMAX], Bp[LIE_NMAX * LIE_NMAX], gb[LIE_NMAX], gh[LIE_NMAX];
-    double H[LIE_NMAX * LIE_NMAX], Bf[LIE_NMAX];
+    double p[LIE_NMAX], gb[LIE_NMAX], gh[LIE_NMAX], H[LIE_NMAX * LIE_NMAX], Bf[LIE_NMAX];
     if (inner >= 0 && (inner != pt->inner_done || mb[M_INNER_DIM] != pt->inner_done_dim)) {
         model_eval(inner, (int)mb[M_INNER_DIM], n, pt->m, xs, pt->f_in, pt->J_in, NULL);
         pt->inner_done = inner, pt->inner_done_dim = (int)mb[M_INNER_DIM];
+        if (SS) {
+            for (int i = 0; i < n; ++i)
+                for (int l = 0; l < n; ++l) {
+                    double e = 0.0;
+                    for (int t = 0; t < n; ++t) e += J_in[i * n + t] * SS[t * n + l];
+                    pt->JSS[i * n + l] = e;
+                }
+            model_hess_traces(inner, n, q, xs, pt->sigma, pt->hess_in);
+        }
     }
-    for (int i = 0; i < d; ++i) p[i] = xs[index[i]];
-    double w = (double)mb[M_SIGN] * (scale ? scale[j * mb[M_SCALE]] : 1.0);
     double sj = outer_scale ? outer_scale[j * mb[M_OUTER]] : 1.0;
-    double b0 = quadric(d, p, center + j * mb[M_CENTER], axes ? axes + j * mb[M_AXES] : NULL,
-                        radius ? radius[j * mb[M_RADIUS]] : 1.0,
-                        angle ? angle + j * mb[M_ANGLE] : NULL, w, gb_p, Bp);
-    double phi[4];
-    transform(code, rate, b0, phi);
+    Shape shape = {center + j * mb[M_CENTER], axes ? axes + j * mb[M_AXES] : NULL,
+                   angle ? angle + j * mb[M_ANGLE] : NULL, index,
+                   radius ? radius[j * mb[M_RADIUS]] : 1.0,
+                   (double)mb[M_SIGN] * (scale ? scale[j * mb[M_SCALE]] : 1.0), rate, d, code};
+    if (!pt->has_shape || !same_shape(&shape, &pt->shape)) {
+        for (int i = 0; i < d; ++i) p[i] = xs[index[i]];
+        pt->b0 = quadric(d, p, shape.center, shape.axes, shape.radius, shape.angle, shape.w,
+                         pt->gb_p, pt->Bp);
+        transform(code, rate, pt->b0, pt->phi);
+        pt->shape = shape, pt->has_shape = 1;
+    }
+    const double *gb_p = pt->gb_p, *Bp = pt->Bp, *phi = pt->phi;
     /* grad b, grad h and H over the whole state */
     memset(gb, 0, sizeof(double) * n);
     for (int i = 0; i < d; ++i) gb[index[i]] += gb_p[i];
@@ -254,14 +296,12 @@ static double column(Point *pt, const int64_t *mb, void *const *pb, double rate,
         grad[i] = e;
     }
     if (SS) {
-        /* sum(H S * (2 J + k0 I) S) = sum_il H_il ((2 J + k0 I) SS)_li */
+        /* sum(H S * (2 J + k0 I) S) = sum_il H_il (2 (J SS)_li + k0 SS_li) */
+        const double *JSS = pt->JSS;
         for (int i = 0; i < n; ++i)
-            for (int l = 0; l < n; ++l) {
-                double e = k0 * SS[l * n + i];
-                for (int t = 0; t < n; ++t) e += 2.0 * J_in[l * n + t] * SS[t * n + i];
-                trace += H[i * n + l] * e;
-            }
-        trace += model_hess_quad(inner, q, xs, gh, pt->sigma);
+            for (int l = 0; l < n; ++l)
+                trace += H[i * n + l] * (2.0 * JSS[l * n + i] + k0 * SS[l * n + i]);
+        for (int i = 0; i < n; ++i) trace += gh[i] * pt->hess_in[i];
     }
     if (SS && code != NO_TRANSFORM) { /* tr(S' dH[f] S) */
         double gf = 0.0, gSSg = 0.0, BfSSg = 0.0, trBSS = 0.0;
@@ -320,15 +360,19 @@ static double reduced(Point *pt, const int64_t *mb, void *const *pb, const doubl
             }
             continue;
         }
-        double z = sign * v / T;
+        double z = sign * v / T, e = 1.0;
         if (isnan(z)) nan = 1;
-        if (z > zmax) {
-            double r = exp(zmax - z);
-            s *= r, tr_sum *= r, gg_sum *= r;
-            for (int i = 0; i < n; ++i) grad[i] *= r;
+        if (z > zmax) { /* the new largest term: the sums so far scaled down to it */
+            if (zmax > -INFINITY) {
+                double r = exp(zmax - z);
+                s *= r, tr_sum *= r, gg_sum *= r;
+                for (int i = 0; i < n; ++i) grad[i] *= r;
+            }
             zmax = z;
+            if (isinf(z)) e = NAN; /* softmax: exp(inf - inf) */
+        } else {
+            e = z == -INFINITY ? 0.0 : exp(z - zmax); /* softmax gives -inf no weight */
         }
-        double e = z == -INFINITY ? 0.0 : exp(z - zmax); /* softmax gives it no weight */
         s += e, tr_sum += e * tr;
         for (int i = 0; i < n; ++i) grad[i] += e * g[i];
         if (pt->SS) gg_sum += e * noise_norm2(n, pt->SS, g);
@@ -454,7 +498,7 @@ int torchcbf_lie_quadrics(const int64_t *meta, const double *reals, void *const 
     double grad[LIE_NMAX];
     for (int64_t s = 0; s < B; ++s) {
         pt.x = x + s * n;
-        pt.inner_done = pt.inner_done_dim = -1;
+        pt.inner_done = pt.inner_done_dim = -1, pt.has_shape = 0;
         model_eval(outer, outer_dim, n, m, pt.x, pt.f_out, NULL, pt.g_out);
         int64_t col = 0, b = 0; /* the output being written, the group's first block */
         mb = block_meta;

@@ -93,8 +93,13 @@ _REDUCTIONS = (Intersection, Union)
 
 
 def _wrapper(fn: LieFunction) -> type | None:
-    """The wrapper of :data:`_WRAPPERS` that ``fn`` behaves as, else ``None``."""
-    return next((w for w, names in _WRAPPERS.items() if behaves_as(fn, w, names)), None)
+    """The wrapper of :data:`_WRAPPERS` nearest ``fn``'s class (in its method resolution
+    order) if ``fn`` behaves as that wrapper, else ``None``."""
+    for kind in type(fn).__mro__:
+        names = _WRAPPERS.get(kind)
+        if names is not None:
+            return kind if behaves_as(fn, kind, names) else None
+    return None
 
 
 class _Block(NamedTuple):
@@ -110,8 +115,23 @@ class _Block(NamedTuple):
     k0: Tensor | None = None
 
 
-def _blocks(fn: LieFunction) -> list[_Block] | None:
-    """``fn`` as the kernel's blocks (their outputs concatenated are ``fn``'s), or ``None``."""
+#: the blocks of each module met so far while one function is described, by ``id``
+_Seen = dict[int, "list[_Block] | None"]
+
+
+def _blocks(fn: LieFunction, seen: _Seen | None = None) -> list[_Block] | None:
+    """``fn`` as the kernel's blocks (their outputs concatenated are ``fn``'s), or ``None``;
+    ``seen`` holds the answers for the modules described already (a module shared by two
+    parts, as a shape under both children of an intersection, is read once)."""
+    if seen is None:
+        return _new_blocks(fn, {})
+    key = id(fn)
+    if key not in seen:
+        seen[key] = _new_blocks(fn, seen)
+    return seen[key]
+
+
+def _new_blocks(fn: LieFunction, seen: _Seen) -> list[_Block] | None:
     quadric = fn.quadric()
     if quadric is not None:
         return [_Block(quadric)]
@@ -119,14 +139,14 @@ def _blocks(fn: LieFunction) -> list[_Block] | None:
     if cls is BarrierStack:
         out: list[_Block] = []
         for child in fn.barriers:
-            part = _blocks(child)
+            part = _blocks(child, seen)
             if part is None:
                 return None
             out.extend(part)
         return out
     if cls is None or cls in _REDUCTIONS:
         return None
-    inner = _blocks(fn.barrier)
+    inner = _blocks(fn.barrier, seen)
     if inner is None or any(b.inner is not None for b in inner):
         return None
     if cls is ExponentialBarrier:
@@ -189,13 +209,14 @@ def _reduction(fn: Intersection | Union) -> list[_Group] | None:
     temperature = float(fn.temperature)
     if fn.mode not in ("min", "max") or not 0.0 < temperature < float("inf"):
         return None
+    seen: _Seen = {}
     if not fn.elementwise:
-        blocks = _blocks(fn.stack)
+        blocks = _blocks(fn.stack, seen)
         return None if blocks is None else [_Group(blocks, fn.mode, fn.smooth, temperature)]
     blocks = []
     counts = set()
     for child in fn.stack.barriers:
-        part = _blocks(child)
+        part = _blocks(child, seen)
         if part is None:
             return None
         counts.add(sum(_outputs(b) for b in part))
