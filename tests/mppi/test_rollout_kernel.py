@@ -462,6 +462,78 @@ def test_normals_equal_the_written_out_generator(dtype, layout, m):
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("layout", ["component", "sample"])
+@pytest.mark.parametrize(("m", "limits"), [(1, "both"), (2, "upper"), (3, "none")])
+def test_perturb_is_clamped_plan_plus_factored_normals(dtype, layout, m, limits):
+    B, K, H = 2, 70, 3
+    keys = torch.tensor([99, 2**61 + 5], dtype=torch.int64)
+    gen = torch.Generator().manual_seed(0)
+    plan = torch.randn(B, H, m, generator=gen, dtype=torch.float64).to(dtype)
+    chol = torch.linalg.cholesky(torch.eye(m, dtype=torch.float64) + 0.3)
+    lo = None if limits in ("none", "upper") else -0.8 * torch.ones(m, dtype=dtype)
+    hi = None if limits == "none" else torch.linspace(0.2, 1.0, m, dtype=dtype)
+    eps = _rollout.rollout_buffer(torch.empty(0, dtype=dtype), B, K, H, m, layout)
+    controls = _rollout.rollout_buffer(torch.empty(0, dtype=dtype), B, K, H, m, layout)
+    _rollout.perturb(keys, eps, controls, plan, chol, lo, hi)
+    z = _rollout.rollout_buffer(torch.empty(0, dtype=torch.float64), B, K, H, m, layout)
+    _rollout.normals(keys, z)
+    want = plan.double().unsqueeze(1) + z @ chol.mT
+    if limits != "none":
+        want = want.clamp(None if lo is None else lo.double(), hi.double())
+    tol = 1e-12 if dtype == torch.float64 else 2e-6
+    torch.testing.assert_close(controls.double(), want, atol=tol, rtol=tol)
+    torch.testing.assert_close(eps.double(), want - plan.double().unsqueeze(1), atol=tol, rtol=tol)
+    with pytest.raises(ValueError, match="plan must be"):
+        _rollout.perturb(keys, eps, controls, plan[:, :1], chol, lo, hi)
+    with pytest.raises(ValueError, match="controls must be"):
+        _rollout.perturb(
+            keys,
+            eps,
+            controls.double() if dtype == torch.float32 else controls.float(),
+            plan,
+            chol,
+            lo,
+            hi,
+        )
+
+
+class _OwnPerturb(MPPI):
+    """MPPI whose sampling is its own method (the same formulas): the two-pass torch path."""
+
+    def _perturb(self, x, t0, eps, controls):
+        return super()._perturb(x, t0, eps, controls)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize(
+    "options",
+    [
+        {},
+        {"zero_noise_samples": 3, "sample_null_action": True},
+        {"action_sampler": lambda x, t0: torch.ones(2, 6, 2, dtype=x.dtype)},
+        {"noise_sigma": torch.tensor([[0.5, 0.2], [0.2, 0.3]])},
+    ],
+    ids=["plain", "zero noise and null action", "sampler", "covariance"],
+)
+def test_one_pass_sampling_equals_the_two_pass_torch_sampling(dtype, options):
+    def planner(cls):
+        kw = {"noise_sigma": 0.4, **options}
+        dyn = Unicycle(u_min=torch.tensor([-1.0, -2.0]), u_max=torch.tensor([1.5, 2.0]))
+        goal = QuadraticGoal((2.0, 1.0), 1.0, (0, 1), 5.0)
+        return cls(dyn, goal, 6, 90, 0.05, kw.pop("noise_sigma"), 0.5, 0.1, seed=4,
+                   backend="torch", **kw).to(dtype)  # fmt: skip
+
+    one, two = planner(MPPI), planner(_OwnPerturb)
+    x = _x0(Unicycle(), 2, dtype)
+    tol = 1e-10 if dtype == torch.float64 else 1e-5
+    for step in range(3):
+        a, b = one(x, 0.1 * step), two(x, 0.1 * step)
+        assert one.path == two.path == "torch"
+        torch.testing.assert_close(a.plan, b.plan, atol=tol, rtol=tol)
+        torch.testing.assert_close(a.cost_min, b.cost_min, atol=tol, rtol=tol)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("model", [SingleIntegrator(2, u_min=-1.0, u_max=1.0), Unicycle()])
 def test_torch_path_draws_the_kernels_noise(dtype, model):
     """For one seed the torch path and the kernel paths give the same plans."""

@@ -32,7 +32,7 @@ from torchcbf.barriers import LieFunction
 logger = logging.getLogger(__name__)
 
 #: ``KERNEL_VERSION`` of the C source this module calls
-KERNEL_VERSION = 5
+KERNEL_VERSION = 6
 #: the file name of the built kernel, without its extension suffix
 KERNEL_STEM = "_rollout_kernel"
 #: the kernel's C sources
@@ -72,6 +72,13 @@ def _library() -> ctypes.CDLL | None:
 def available() -> bool:
     """Whether the C kernel was built and loads."""
     return _library() is not None
+
+
+def _kernel() -> ctypes.CDLL:
+    lib = _library()
+    if lib is None:
+        raise RuntimeError("torchcbf: the MPPI kernel was not built (no C compiler at install)")
+    return lib
 
 
 # -- configuration ---------------------------------------------------------------------------
@@ -344,9 +351,7 @@ def run(
     C-contiguous rows; without, they are ``[B, K, H+1, n]`` and ``[B, K, H, m]`` stored as
     ``layout`` says (:func:`rollout_buffer`).
     """
-    lib = _library()
-    if lib is None:
-        raise RuntimeError("torchcbf: the MPPI kernel was not built (no C compiler at install)")
+    lib = _kernel()
     # inputs are read row-major: their layout is made so (outputs must already be)
     pairs, x0, plan, wctrl, keys, weights = (
         None if t is None else t.contiguous() for t in (pairs, x0, plan, wctrl, keys, weights)
@@ -448,45 +453,117 @@ def _expect(
         raise ValueError(f"{name} must be contiguous")
 
 
-def normals(keys: Tensor, out: Tensor, *, std: float = 1.0) -> None:
-    """Fill ``out [B, K, H, m]`` (CPU, float32 or float64, any strides) with the kernel's
-    counter-based standard normals times ``std``, from ``keys [B]`` (int64): the noise the
-    kernel draws for those keys before the zero-noise samples, the covariance factor and
-    the limits are applied (module docstring). Threads split the samples."""
-    lib = _library()
-    if lib is None:
-        raise RuntimeError("torchcbf: the MPPI kernel was not built (no C compiler at install)")
-    if out.dim() != 4 or not 1 <= out.shape[-1] <= MAX_CONTROL:
-        raise ValueError(f"out must be [B, K, H, m] with m <= {MAX_CONTROL}, got {list(out.shape)}")
-    if out.dtype not in (torch.float32, torch.float64) or out.device.type != "cpu":
+def _noise_target(name: str, t: Tensor) -> None:
+    """Check a ``[B, K, H, m]`` noise-shaped output of :func:`normals` or :func:`perturb`."""
+    if t.dim() != 4 or not 1 <= t.shape[-1] <= MAX_CONTROL:
         raise ValueError(
-            f"out must be a float32 or float64 CPU tensor, got {out.dtype} on {out.device}"
+            f"{name} must be [B, K, H, m] with m <= {MAX_CONTROL}, got {list(t.shape)}"
         )
-    B, K, H, m = out.shape
+    if t.dtype not in (torch.float32, torch.float64) or t.device.type != "cpu":
+        raise ValueError(
+            f"{name} must be a float32 or float64 CPU tensor, got {t.dtype} on {t.device}"
+        )
+
+
+def _over_samples(name: str, keys: Tensor, shape: torch.Size, call: Any) -> None:
+    """``call(keys pointer, k_lo, k_hi)`` over slices of the ``K`` samples of ``shape [B, K,
+    H, m]``, one per thread, for ``keys [B]`` (int64, CPU); a refusal raises."""
+    B, K = shape[0], shape[1]
     keys = keys.contiguous()
     if keys.dtype != torch.int64 or keys.shape != (B,) or keys.device.type != "cpu":
         raise ValueError(
             f"keys must be int64 [{B}] on the CPU, got {keys.dtype} {list(keys.shape)}"
         )
+    threads = update_threads(B * K)
+    bounds = [K * i // threads for i in range(threads + 1)]
+
+    def one(i: int) -> int:
+        return call(keys.data_ptr(), bounds[i], bounds[i + 1])
+
+    if threads == 1:
+        codes = [one(0)]
+    else:
+        codes = list(thread_pool(threads, "torchcbf-mppi").map(one, range(threads)))
+    if any(codes):
+        raise RuntimeError(f"torchcbf: the MPPI kernel refused the {name} call (code {codes})")
+
+
+def normals(keys: Tensor, out: Tensor, *, std: float = 1.0) -> None:
+    """Fill ``out [B, K, H, m]`` (CPU, float32 or float64, any strides) with the kernel's
+    counter-based standard normals times ``std``, from ``keys [B]`` (int64): the noise the
+    kernel draws for those keys before the zero-noise samples, the covariance factor and
+    the limits are applied (module docstring). Threads split the samples."""
+    lib = _kernel()
+    _noise_target("out", out)
+    B, K, H, m = out.shape
     fn = (
         lib.torchcbf_mppi_normals_f64
         if out.dtype == torch.float64
         else lib.torchcbf_mppi_normals_f32
     )
-    threads = update_threads(B * K)
-    bounds = [K * i // threads for i in range(threads + 1)]
-    args = (keys.data_ptr(), 0, B)
     tail = (H, m, float(std), out.data_ptr(), *out.stride())
+    _over_samples("noise", keys, out.shape, lambda key, lo, hi: fn(key, 0, B, lo, hi, *tail))
 
-    def call(i: int) -> int:
-        return fn(*args, bounds[i], bounds[i + 1], *tail)
 
-    if threads == 1:
-        codes = [call(0)]
-    else:
-        codes = list(thread_pool(threads, "torchcbf-mppi").map(call, range(threads)))
-    if any(codes):
-        raise RuntimeError(f"torchcbf: the MPPI kernel refused the noise call (code {codes})")
+def perturb(
+    keys: Tensor,
+    eps: Tensor,
+    controls: Tensor,
+    plan: Tensor,
+    chol: Tensor,
+    u_min: Tensor | None,
+    u_max: Tensor | None,
+) -> None:
+    """The sampled controls of the torch path in one pass: ``controls = clamp(plan + L z,
+    u_min, u_max)`` and ``eps = controls - plan`` for ``eps``, ``controls [B, K, H, m]`` (CPU,
+    float32 or float64, any strides), ``plan [B, H, m]``, the lower-triangular factor ``L =
+    chol [m, m]``, limits ``[m]`` or ``None``, and ``z`` the normals :func:`normals` draws for
+    ``keys [B]`` (the kernel's own arithmetic: the fused path's samples). Threads split the
+    samples."""
+    lib = _kernel()
+    _noise_target("eps", eps)
+    B, K, H, m = eps.shape
+    if controls.shape != eps.shape or controls.dtype != eps.dtype or not controls.is_cpu:
+        raise ValueError(
+            f"controls must be {eps.dtype} {list(eps.shape)} on the CPU like eps, got "
+            f"{controls.dtype} {list(controls.shape)} on {controls.device}"
+        )
+    if plan.shape != (B, H, m) or plan.dtype != eps.dtype or not plan.is_cpu:
+        raise ValueError(
+            f"plan must be {eps.dtype} [{B}, {H}, {m}] on the CPU, got {plan.dtype} "
+            f"{list(plan.shape)} on {plan.device}"
+        )
+    if chol.shape != (m, m):
+        raise ValueError(f"chol must be [{m}, {m}], got {list(chol.shape)}")
+    L = torch.zeros(MAX_CONTROL, MAX_CONTROL, dtype=torch.float64)
+    L[:m, :m] = chol.detach().to("cpu", torch.float64).tril()
+    limits = []
+    for limit in (u_min, u_max):
+        padded = torch.zeros(MAX_CONTROL, dtype=torch.float64)
+        if limit is not None:
+            padded[:m] = limit.detach().to("cpu", torch.float64).expand(m)
+        limits.append(padded)
+    plan = plan.contiguous()
+    fn = (
+        lib.torchcbf_mppi_perturb_f64
+        if eps.dtype == torch.float64
+        else lib.torchcbf_mppi_perturb_f32
+    )
+    tail = (
+        H,
+        m,
+        L.data_ptr(),
+        plan.data_ptr(),
+        limits[0].data_ptr(),
+        limits[1].data_ptr(),
+        int(u_min is not None),
+        int(u_max is not None),
+        eps.data_ptr(),
+        *eps.stride(),
+        controls.data_ptr(),
+        *controls.stride(),
+    )
+    _over_samples("perturb", keys, eps.shape, lambda key, lo, hi: fn(key, 0, B, lo, hi, *tail))
 
 
 def update_threads(count: int) -> int:

@@ -25,7 +25,7 @@
 
 /* Bumped whenever an exported signature or the meaning of the configuration changes;
  * _rollout.py refuses a built library of another version. */
-#define KERNEL_VERSION 5
+#define KERNEL_VERSION 6
 
 #define LANES 64
 #define NMAX 8

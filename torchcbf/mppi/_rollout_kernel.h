@@ -387,54 +387,121 @@ int SUFFIX(torchcbf_mppi_run)(const double *cfg, int64_t p_lo, int64_t p_hi,
     return 0;
 }
 
-/*
- * The standard normals of the counter-based noise (the same as the block's, before the
- * zero-noise samples are zeroed and the Cholesky factor is applied), times `std`, for
- * environments [b_lo, b_hi) and samples [k_lo, k_hi): element (b, k, j, i) goes to
- * out[b * sb + k * sk + j * sj + i * si]. Sample-contiguous outputs (sk = 1) vectorise.
- */
-CLONES static void SUFFIX(normals_block)(uint64_t key, int64_t k0, int count, int H, int m,
-                                         REAL std, REAL *out, int64_t sk, int64_t sj,
-                                         int64_t si) {
-    const int P = (m + 1) / 2;
+/* Box-Muller pairs q of step j for the LANES samples from k0 of the environment with
+ * `key`: Z[2q] and Z[2q + 1] (the counter-based normals of the block). */
+INL void SUFFIX(pairs)(uint64_t key, int64_t k0, int j, int H, int P, REAL (*Z)[LANES]) {
     const uint64_t stride = (uint64_t)H * (uint64_t)P;
     const REAL scale = (REAL)4.656612873077393e-10; /* 2^-31 */
     const REAL two_pi = (REAL)6.283185307179586;
-    REAL R[LANES], A[LANES], z0[LANES], z1[LANES];
-    for (int j = 0; j < H; ++j) {
-        for (int q = 0; q < P; ++q) {
-            const uint64_t base = (uint64_t)j * (uint64_t)P + (uint64_t)q;
-            LOOP {
-                uint64_t h = mix64(key + (((uint64_t)k0 + l) * stride + base + 1) * GOLDEN);
-                REAL u1 = ((REAL)(int32_t)(h >> 33) + (REAL)0.5) * scale;
-                REAL u2 = (REAL)(int32_t)((h >> 2) & 0x7fffffffu) * scale;
-                R[l] = std * SQRT((REAL)-2 * LOG(u1));
-                A[l] = two_pi * u2;
-            }
-            LOOP z0[l] = R[l] * COS(A[l]);
-            LOOP z1[l] = R[l] * SIN(A[l]);
-            REAL *o0 = out + k0 * sk + j * sj + 2 * q * si;
-            for (int l = 0; l < count; ++l) o0[l * sk] = z0[l];
-            if (2 * q + 1 < m) {
-                REAL *o1 = o0 + si;
-                for (int l = 0; l < count; ++l) o1[l * sk] = z1[l];
+    REAL R[LANES], A[LANES];
+    for (int q = 0; q < P; ++q) {
+        const uint64_t base = (uint64_t)j * (uint64_t)P + (uint64_t)q;
+        LOOP {
+            uint64_t h = mix64(key + (((uint64_t)k0 + l) * stride + base + 1) * GOLDEN);
+            REAL u1 = ((REAL)(int32_t)(h >> 33) + (REAL)0.5) * scale;
+            REAL u2 = (REAL)(int32_t)((h >> 2) & 0x7fffffffu) * scale;
+            R[l] = SQRT((REAL)-2 * LOG(u1));
+            A[l] = two_pi * u2;
+        }
+        LOOP Z[2 * q][l] = R[l] * COS(A[l]);
+        LOOP Z[2 * q + 1][l] = R[l] * SIN(A[l]);
+    }
+}
+
+/* The `count` lanes of V as elements k0.. of a row with sample stride sk. */
+INL void SUFFIX(put)(REAL *row, int64_t sk, const REAL *V, int count) {
+    if (sk == 1)
+        memcpy(row, V, (size_t)count * sizeof(REAL));
+    else
+        for (int l = 0; l < count; ++l) row[l * sk] = V[l];
+}
+
+/*
+ * The torch path's noise for environment `key`, samples [k_lo, k_hi): with `ctrl` NULL,
+ * the standard normals of the counter-based noise times L[0] into eps (the same as the
+ * block's, before the zero-noise samples, the factor and the limits are applied); else
+ * the sampled controls ctrl = clamp(plan + L z) (plan[j * m + i], L row-major lower
+ * triangular MMAX x MMAX, limits lo/hi where has_lo/has_hi) and eps = ctrl - plan.
+ * Element (k, j, i) goes to k * sk + j * sj + i * si (ck, cj, ci for ctrl). With
+ * sample-contiguous rows (sk = 1) the steps are the outer loop, so the writes stream along
+ * the rows; otherwise the samples are, so each sample's values are written together.
+ */
+CLONES static void SUFFIX(noise_rows)(uint64_t key, int64_t k_lo, int64_t k_hi, int H, int m,
+                                      const double *L, const REAL *plan, const double *lo,
+                                      const double *hi, int has_lo, int has_hi, REAL *eps,
+                                      int64_t sk, int64_t sj, int64_t si, REAL *ctrl,
+                                      int64_t ck, int64_t cj, int64_t ci) {
+    const int P = (m + 1) / 2, steps_outer = sk == 1 && (ctrl == NULL || ck == 1);
+    const int64_t nblocks = (k_hi - k_lo + LANES - 1) / LANES;
+    const int64_t outer = steps_outer ? H : nblocks, inner = steps_outer ? nblocks : H;
+    REAL Z[MMAX + 1][LANES], E[LANES], U[LANES], Lr[MMAX * MMAX], lo_r[MMAX], hi_r[MMAX];
+    for (int i = 0; i < MMAX * MMAX; ++i) Lr[i] = (REAL)L[i];
+    for (int i = 0; i < MMAX; ++i) lo_r[i] = (REAL)lo[i], hi_r[i] = (REAL)hi[i];
+    for (int64_t o = 0; o < outer; ++o) {
+        for (int64_t in = 0; in < inner; ++in) {
+            const int j = (int)(steps_outer ? o : in);
+            const int64_t k0 = k_lo + (steps_outer ? in : o) * LANES;
+            const int count = k_hi - k0 < LANES ? (int)(k_hi - k0) : LANES;
+            SUFFIX(pairs)(key, k0, j, H, P, Z);
+            for (int i = 0; i < m; ++i) {
+                REAL *e = eps + k0 * sk + j * sj + i * si;
+                if (ctrl == NULL) {
+                    LOOP E[l] = Lr[0] * Z[i][l];
+                    SUFFIX(put)(e, sk, E, count);
+                    continue;
+                }
+                const REAL pj = plan[j * m + i];
+                LOOP E[l] = Lr[i * MMAX] * Z[0][l];
+                for (int c = 1; c <= i; ++c) LOOP E[l] += Lr[i * MMAX + c] * Z[c][l];
+                LOOP {
+                    REAL u = pj + E[l];
+                    if (has_lo) u = u < lo_r[i] ? lo_r[i] : u;
+                    if (has_hi) u = u > hi_r[i] ? hi_r[i] : u;
+                    U[l] = u;
+                    E[l] = u - pj;
+                }
+                SUFFIX(put)(e, sk, E, count);
+                SUFFIX(put)(ctrl + k0 * ck + j * cj + i * ci, ck, U, count);
             }
         }
     }
 }
 
+/*
+ * The standard normals of the counter-based noise times `std` (see noise_rows) for
+ * environments [b_lo, b_hi) and samples [k_lo, k_hi): element (b, k, j, i) goes to
+ * out[b * sb + k * sk + j * sj + i * si].
+ */
 int SUFFIX(torchcbf_mppi_normals)(const int64_t *keys, int64_t b_lo, int64_t b_hi,
                                   int64_t k_lo, int64_t k_hi, int64_t H, int64_t m, double std,
                                   REAL *out, int64_t sb, int64_t sk, int64_t sj, int64_t si) {
     if (H < 1 || m < 1 || m > MMAX || k_lo < 0 || k_hi < k_lo || b_lo < 0 || b_hi < b_lo)
         return -1;
-    for (int64_t b = b_lo; b < b_hi; ++b) {
-        for (int64_t k = k_lo; k < k_hi; k += LANES) {
-            const int count = k_hi - k < LANES ? (int)(k_hi - k) : LANES;
-            SUFFIX(normals_block)((uint64_t)keys[b], k, count, (int)H, (int)m, (REAL)std,
-                                  out + b * sb, sk, sj, si);
-        }
-    }
+    double L[MMAX * MMAX] = {0}, none[MMAX] = {0};
+    L[0] = std;
+    for (int64_t b = b_lo; b < b_hi; ++b)
+        SUFFIX(noise_rows)((uint64_t)keys[b], k_lo, k_hi, (int)H, (int)m, L, NULL, none, none,
+                           0, 0, out + b * sb, sk, sj, si, NULL, 0, 0, 0);
+    return 0;
+}
+
+/*
+ * The torch path's sampled controls in one pass (see noise_rows) for environments
+ * [b_lo, b_hi) and samples [k_lo, k_hi): plan[b * H * m + j * m + i]; element (b, k, j, i)
+ * of eps and ctrl goes to b * sb + k * sk + j * sj + i * si (cb, ck, cj, ci for ctrl).
+ */
+int SUFFIX(torchcbf_mppi_perturb)(const int64_t *keys, int64_t b_lo, int64_t b_hi,
+                                  int64_t k_lo, int64_t k_hi, int64_t H, int64_t m,
+                                  const double *L, const REAL *plan, const double *lo,
+                                  const double *hi, int has_lo, int has_hi, REAL *eps,
+                                  int64_t sb, int64_t sk, int64_t sj, int64_t si, REAL *ctrl,
+                                  int64_t cb, int64_t ck, int64_t cj, int64_t ci) {
+    if (H < 1 || m < 1 || m > MMAX || k_lo < 0 || k_hi < k_lo || b_lo < 0 || b_hi < b_lo)
+        return -1;
+    for (int64_t b = b_lo; b < b_hi; ++b)
+        SUFFIX(noise_rows)((uint64_t)keys[b], k_lo, k_hi, (int)H, (int)m, L, plan + b * H * m,
+                           lo, hi, has_lo, has_hi, eps + b * sb, sk, sj, si, ctrl + b * cb, ck,
+                           cj, ci);
     return 0;
 }
 

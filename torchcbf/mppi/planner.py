@@ -98,6 +98,7 @@ from torchcbf._autograd import needs_graph
 from torchcbf._checks import (
     as_limit,
     as_matrix,
+    behaves_as,
     check_bounds,
     check_last_dim,
     check_positive,
@@ -232,6 +233,11 @@ def _resized(seq: Tensor, horizon: int, fill: str) -> Tensor:
         return seq[:, :horizon].clone()
     last = seq[:, -1:] if fill == "last" else torch.zeros_like(seq[:, -1:])
     return torch.cat([seq, last.expand(-1, horizon - H, -1)], 1)
+
+
+#: the methods that say how the torch path samples: the kernel samples for a planner that
+#: keeps MPPI's
+_SAMPLING = ("_sample_noise", "_perturb", "_candidates", "_clamp")
 
 
 def _step_options(kwargs: dict[str, Any]) -> dict[str, Any]:
@@ -643,8 +649,7 @@ class MPPI(ExactConstants):
         else:
             self.path = "torch"
             assert eps is not None
-            self._sample_noise(eps)
-            ctrl_eps = self._perturb(xb, t0, eps, controls)
+            ctrl_eps = self._sample(xb, t0, eps, controls)
             self._rollout(xb, controls, states)
             cost = self._score_fn(states, controls, ctrl_eps, self._cost_plan(), t0, history)
             extra = self._extra_cost(controls)
@@ -741,6 +746,35 @@ class MPPI(ExactConstants):
         return states[0] if x.dim() == 1 else states
 
     # -- torch path ----------------------------------------------------------------------------
+    def _sample(self, x: Tensor, t0: Tensor, eps: Tensor, controls: Tensor) -> Tensor:
+        """The noise into ``eps`` and the sampled controls into ``controls`` (both ``[B, K, H,
+        m]``); return the noise the control cost reads. On the CPU the C kernel draws, scales,
+        adds and clamps in one pass where the planner samples as this class does; the rows of
+        the zero-noise samples and of the candidates are then redone as :meth:`_perturb`
+        does."""
+        if not (
+            eps.device.type == "cpu"
+            and self.noise_mu is None
+            and eps.shape[-1] <= _rollout.MAX_CONTROL
+            and behaves_as(self, MPPI, _SAMPLING)
+            and not any(name in vars(self) for name in _SAMPLING)  # nor replaced on self
+            and _rollout.available()
+        ):
+            self._sample_noise(eps)
+            return self._perturb(x, t0, eps, controls)
+        keys = _rollout.draw_keys(self._generators)
+        _rollout.perturb(keys, eps, controls, self._plan, self.noise_chol, self.u_min, self.u_max)
+        first = self.zero_noise_samples
+        rows = self._candidates(x, t0, controls)
+        if first or rows is not None:
+            redo = slice(0, first if rows is None else rows.stop)
+            nominal = self._plan.unsqueeze(1)
+            if first:
+                controls[:, :first] = nominal
+            self._clamp(controls[:, redo])
+            torch.sub(controls[:, redo], nominal, out=eps[:, redo])
+        return eps
+
     def _sample_noise(self, eps: Tensor) -> None:
         std = self._isotropic_std
         if (
