@@ -11,7 +11,9 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import signal
 import tempfile
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -24,21 +26,55 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """A temporary path beside ``path``; renamed to ``path`` when the block ends without an
     exception, removed otherwise. Write to it with any library (``savefig``, ``torch.save``)."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(
-        prefix=f".{path.name}.", suffix=TMP_SUFFIX + path.suffix, dir=path.parent
-    )
-    os.close(fd)
-    tmp_path = Path(tmp)
+    tmp_path = None
+    deferred = _DeferredCtrlC()
     try:
+        fd, tmp = tempfile.mkstemp(
+            prefix=f".{path.name}.", suffix=TMP_SUFFIX + path.suffix, dir=path.parent
+        )
+        os.close(fd)
+        tmp_path = Path(tmp)
+        deferred.deliver()  # a Ctrl-C from now on raises here, where the file is removed
         yield tmp_path
         os.chmod(tmp_path, 0o666 & ~_umask())  # as open() would create it, not mkstemp's 0600
         with open(tmp_path, "rb+") as f:
             os.fsync(f.fileno())
         os.replace(tmp_path, path)
     except BaseException:
-        with contextlib.suppress(OSError):
-            tmp_path.unlink()
+        deferred.deliver()
+        if tmp_path is not None:
+            with contextlib.suppress(OSError):
+                tmp_path.unlink()
         raise
+
+
+class _DeferredCtrlC:
+    """SIGINT held back while a temporary file is created, so that a Ctrl-C cannot land
+    between its creation and the handler that removes it; :meth:`deliver` puts the
+    previous handler back and hands it a signal that arrived meanwhile. Only the main
+    thread can change handlers, and only a handler set from Python can be put back;
+    otherwise nothing is held back."""
+
+    def __init__(self) -> None:
+        self.previous: Any = None
+        self.received: list[tuple[int, Any]] = []
+        main = threading.current_thread() is threading.main_thread()
+        if main and signal.getsignal(signal.SIGINT) is not None:
+            self.previous = signal.signal(signal.SIGINT, self._record)
+
+    def _record(self, signum: int, frame: Any) -> None:
+        self.received.append((signum, frame))
+
+    def deliver(self) -> None:
+        previous, self.previous = self.previous, None
+        if previous is None:
+            return
+        signal.signal(signal.SIGINT, previous)
+        if self.received:
+            if callable(previous):
+                previous(*self.received[0])
+            elif previous == signal.SIG_DFL:
+                os.kill(os.getpid(), signal.SIGINT)
 
 
 def _umask() -> int:

@@ -369,10 +369,6 @@ def _resume_hint(argv: Sequence[str]) -> str:
 
 
 def _interrupted(command: str, argv: Sequence[str], out: Path, saved: str) -> int:
-    # Ctrl-C can land between creating a temporary file and the handler that removes it;
-    # nothing writes any more, so what is left there is debris of a cut write
-    for folder in (out, *(p for p in out.glob(".*") if p.is_dir())):
-        _io.remove_stale(folder)
     print(
         f"\ntorchcbf {command}: interrupted; {saved} saved in {out}. Continue with:\n  "
         f"{_resume_hint(argv)}",
