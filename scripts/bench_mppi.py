@@ -543,7 +543,7 @@ def main() -> None:
         "load: 1-min load average; faults: minor page faults per call (median); ratio: wall "
         "(CPU time)"
     )
-    head = f"{'line':<9} {'planner':<27} {'path':<12} {'s/call':>9} {'[range]':<15}"
+    head = f"{'line':<10} {'planner':<34} {'path':<12} {'s/call':>9} {'[range]':<15}"
     print(
         head + f" {'cpu s':>8} {'M/s':>7} {'first s':>7} {'cpu':>5} {'load':>5} {'faults':>7}  "
         f"{'flags':<12} ratio"
@@ -571,7 +571,7 @@ def main() -> None:
                 out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
                 res = json.loads(out.stdout.strip().splitlines()[-1])
                 if not res:
-                    print(f"{line:<9} {label:<27} not installed, skipped")
+                    print(f"{line:<10} {label:<34} not installed, skipped")
                     continue
                 ratio = ""
                 if res["path"] == "pytorch-mppi":
@@ -585,7 +585,7 @@ def main() -> None:
                         ratio = f"throughput {wall:.2f}x ({cpu:.2f}x) pytorch-mppi's"
                     else:
                         ratio = f"time {1 / wall:.3f}x ({1 / cpu:.3f}x) pytorch-mppi's"
-                print(f"{line:<9} {label:<27} {res['path']:<12} {fmt(res)}  {ratio}")
+                print(f"{line:<10} {label:<34} {res['path']:<12} {fmt(res)}  {ratio}")
                 if line == "paper" and not args.quick:
                     total = res["median"] * PAPER_CALLS
                     print(

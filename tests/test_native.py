@@ -100,12 +100,14 @@ def test_constants_read_defines_and_enums(tmp_path: Path) -> None:
         "#define WIDTH 4  /* lanes */\n"
         "#define NAME_ONLY\n"
         "enum { A, B, C = 7, D };  // D = 8\n"
+        "#define OCTAL 010\n"
+        "enum named { E = D + 2 };\n"
         "/* enum { HIDDEN = 99 }; */\n"
         "enum { F_HEAD, F_IDX, F_CENTER = F_IDX + WIDTH, F_AXES = F_CENTER + 2 * WIDTH,\n"
         "       F_SIZE = 20 };\n"
     )
     assert constants([src]) == {
-        "WIDTH": 4, "A": 0, "B": 1, "C": 7, "D": 8,
+        "WIDTH": 4, "A": 0, "B": 1, "C": 7, "D": 8, "E": 10,
         "F_HEAD": 0, "F_IDX": 1, "F_CENTER": 5, "F_AXES": 13, "F_SIZE": 20,
     }  # fmt: skip
     src.write_text("enum { BAD = sizeof(double) };\n")
@@ -124,6 +126,10 @@ def test_the_rollout_configuration_fields_are_the_c_sources() -> None:
     rec = _rollout.record("SREC", SR_D=2, SR_IDX=[0, 1], SR_ANGLE=0.5)
     assert _rollout.field(rec, "SR_IDX", 2) == [0.0, 1.0] and _rollout.field(rec, "SR_ANGLE") == 0.5
     assert len(rec) == layout["SREC"] and sum(rec) == 3.5
+    with pytest.raises(ValueError, match="SR_IDX"):
+        _rollout.record("SREC", SR_IDX=list(range(layout["DMAX"] + 1)))
+    with pytest.raises(ValueError, match="TR_NSHAPE"):
+        _rollout.record("TREC", TR_NSHAPE=[1, 2, 3])
 
 
 def test_every_exported_symbol_has_its_sources_types() -> None:

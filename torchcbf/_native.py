@@ -112,8 +112,8 @@ def prototypes(sources: Iterable[Path]) -> dict[str, tuple[list[Any], Any]]:
     return found
 
 
-_DEFINE = re.compile(r"^\s*#define\s+(\w+)\s+(\d+)\s*$", re.MULTILINE)
-_ENUM = re.compile(r"\benum\s*\{([^}]*)\}")
+_DEFINE = re.compile(r"^\s*#define\s+(\w+)\s+(0|[1-9]\d*)\s*$", re.MULTILINE)
+_ENUM = re.compile(r"\benum\s*(?:\w+\s*)?\{([^}]*)\}")
 
 
 def _integer(expression: str, names: dict[str, int], where: str) -> int:
@@ -137,11 +137,12 @@ def _integer(expression: str, names: dict[str, int], where: str) -> int:
 
 
 def constants(sources: Iterable[Path]) -> dict[str, int]:
-    """The integer constants of C ``sources``: each ``#define NAME <integer>`` and each
-    member of an ``enum { ... }`` (comments aside), an enum member's value given as an
-    integer expression of ``+``, ``*`` and earlier names, or one more than the member
-    before it. What a kernel's configuration vector holds where (its field offsets, record
-    sizes and codes) is read from here, so the C source is its one statement."""
+    """The integer constants of C ``sources``: each ``#define NAME <decimal integer>`` and
+    each member of an ``enum [name] { ... }`` (comments aside), an enum member's value given
+    as an expression of decimal integers, ``+``, ``*`` and earlier names, or one more than
+    the member before it (anything else in an enum raises ``ValueError``). What a kernel's
+    configuration vector holds where (its field offsets, record sizes and codes) is read
+    from here, so the C source is its one statement."""
     found: dict[str, int] = {}
     for source in sources:
         text = _COMMENTS.sub(" ", source.read_text())

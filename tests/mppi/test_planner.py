@@ -363,8 +363,8 @@ class _UserUnicycle(ControlAffine):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize(
     "compile",
-    [True, {"options": {"force_pointwise_cat": False}}, {"mode": "default"}],
-    ids=["default", "user options", "mode"],
+    [True, {"options": {"force_pointwise_cat": False}}, {"mode": "default"}, {"options": None}],
+    ids=["default", "user options", "mode", "no options"],
 )
 @pytest.mark.parametrize("form", ["f and g", "step function"])
 def test_compiled_user_model_matches_eager(dtype, compile, form):

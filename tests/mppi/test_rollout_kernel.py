@@ -474,7 +474,7 @@ def test_perturb_is_clamped_plan_plus_factored_normals(dtype, layout, m, limits)
     hi = None if limits == "none" else torch.linspace(0.2, 1.0, m, dtype=dtype)
     eps = _rollout.rollout_buffer(torch.empty(0, dtype=dtype), B, K, H, m, layout)
     controls = _rollout.rollout_buffer(torch.empty(0, dtype=dtype), B, K, H, m, layout)
-    _rollout.perturb(keys, eps, controls, plan, chol, lo, hi)
+    _rollout.perturb(keys, eps, controls, plan, chol, u_min=lo, u_max=hi)
     z = _rollout.rollout_buffer(torch.empty(0, dtype=torch.float64), B, K, H, m, layout)
     _rollout.normals(keys, z)
     want = plan.double().unsqueeze(1) + z @ chol.mT
@@ -484,17 +484,10 @@ def test_perturb_is_clamped_plan_plus_factored_normals(dtype, layout, m, limits)
     torch.testing.assert_close(controls.double(), want, atol=tol, rtol=tol)
     torch.testing.assert_close(eps.double(), want - plan.double().unsqueeze(1), atol=tol, rtol=tol)
     with pytest.raises(ValueError, match="plan must be"):
-        _rollout.perturb(keys, eps, controls, plan[:, :1], chol, lo, hi)
+        _rollout.perturb(keys, eps, controls, plan[:, :1], chol, u_min=lo, u_max=hi)
     with pytest.raises(ValueError, match="controls must be"):
-        _rollout.perturb(
-            keys,
-            eps,
-            controls.double() if dtype == torch.float32 else controls.float(),
-            plan,
-            chol,
-            lo,
-            hi,
-        )
+        other = controls.double() if dtype == torch.float32 else controls.float()
+        _rollout.perturb(keys, eps, other, plan, chol, u_min=lo, u_max=hi)
 
 
 class _OwnPerturb(MPPI):

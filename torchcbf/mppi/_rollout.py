@@ -18,7 +18,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -101,6 +101,10 @@ def record(size: str, **fields: float | Sequence[float]) -> list[float]:
     for name, value in fields.items():
         values = value if isinstance(value, Sequence) else [value]
         at = LAYOUT[name]
+        prefix = name.split("_", 1)[0] + "_"  # the record's fields: TR_*, SR_*, H_*
+        ends = [v for k, v in LAYOUT.items() if k.startswith(prefix) and v > at]
+        if at + len(values) > min([*ends, len(rec)]):
+            raise ValueError(f"{len(values)} values do not fit the field {name} of {size}")
         rec[at : at + len(values)] = [float(v) for v in values]
     return rec
 
@@ -465,7 +469,9 @@ def _noise_target(name: str, t: Tensor) -> None:
         )
 
 
-def _over_samples(name: str, keys: Tensor, shape: torch.Size, call: Any) -> None:
+def _over_samples(
+    name: str, keys: Tensor, shape: torch.Size, call: Callable[[int, int, int], int]
+) -> None:
     """``call(keys pointer, k_lo, k_hi)`` over slices of the ``K`` samples of ``shape [B, K,
     H, m]``, one per thread, for ``keys [B]`` (int64, CPU); a refusal raises."""
     B, K = shape[0], shape[1]
@@ -511,6 +517,7 @@ def perturb(
     controls: Tensor,
     plan: Tensor,
     chol: Tensor,
+    *,
     u_min: Tensor | None,
     u_max: Tensor | None,
 ) -> None:

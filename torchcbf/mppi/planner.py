@@ -237,21 +237,26 @@ def _resized(seq: Tensor, horizon: int, fill: str) -> Tensor:
 
 #: the methods that say how the torch path samples: the kernel samples for a planner that
 #: keeps MPPI's
-_SAMPLING = ("_sample_noise", "_perturb", "_candidates", "_clamp")
+_SAMPLING = ("_sample_noise", "_perturb", "_candidates", "_settle", "_clamp")
 
 
 def _step_options(kwargs: dict[str, Any]) -> dict[str, Any]:
     """``torch.compile`` keyword arguments for a component-major step: the user's, with two
-    inductor options of its own unless the user sets them. By default inductor on the CPU
-    writes each component of a model's ``torch.stack`` into a sample-major buffer (so
-    ``cos``/``sin`` run one scalar at a time) and vectorises the short loop over the
-    components with masked tails; building the stack as a pointwise expression and
-    vectorising over the samples only makes a unicycle step 2.6-2.9x faster (written as
-    ``f``/``g`` or as a ``step`` function)."""
+    inductor options of its own unless the user sets them (or names a ``mode``, or another
+    backend, or the installed inductor lacks them). By default inductor on the CPU writes
+    each component of a model's ``torch.stack`` into a sample-major buffer (so ``cos``/
+    ``sin`` run one scalar at a time) and vectorises the short loop over the components
+    with masked tails; building the stack as a pointwise expression and vectorising over
+    the samples only made a compiled unicycle step 2.2-2.7x faster written as ``f``/``g``
+    and 1.3x as a ``step`` function (measured on the CPU)."""
     if kwargs.get("backend", "inductor") != "inductor" or kwargs.get("mode") is not None:
         return kwargs  # torch.compile takes either a mode or options
+    from torch._inductor import config
+
+    known = config.get_config_copy()
     own = {"force_pointwise_cat": True, "cpp.enable_loop_tail_vec": False}
-    return {**kwargs, "options": {**own, **kwargs.get("options", {})}}
+    own = {name: value for name, value in own.items() if name in known}
+    return {**kwargs, "options": {**own, **(kwargs.get("options") or {})}}
 
 
 class MPPI(ExactConstants):
@@ -748,40 +753,44 @@ class MPPI(ExactConstants):
     # -- torch path ----------------------------------------------------------------------------
     def _sample(self, x: Tensor, t0: Tensor, eps: Tensor, controls: Tensor) -> Tensor:
         """The noise into ``eps`` and the sampled controls into ``controls`` (both ``[B, K, H,
-        m]``); return the noise the control cost reads. On the CPU the C kernel draws, scales,
-        adds and clamps in one pass where the planner samples as this class does; the rows of
-        the zero-noise samples and of the candidates are then redone as :meth:`_perturb`
-        does."""
+        m]``); return the noise the control cost reads. Where the C kernel draws the noise
+        (:meth:`_kernel_draws`) and the planner samples as this class does, the kernel also
+        scales, adds and clamps in the same pass; the rows of the zero-noise samples and of
+        the candidates are then redone as :meth:`_perturb` does."""
         if not (
-            eps.device.type == "cpu"
+            self._kernel_draws(eps)
             and self.noise_mu is None
-            and eps.shape[-1] <= _rollout.MAX_CONTROL
             and behaves_as(self, MPPI, _SAMPLING)
             and not any(name in vars(self) for name in _SAMPLING)  # nor replaced on self
-            and _rollout.available()
         ):
             self._sample_noise(eps)
             return self._perturb(x, t0, eps, controls)
         keys = _rollout.draw_keys(self._generators)
-        _rollout.perturb(keys, eps, controls, self._plan, self.noise_chol, self.u_min, self.u_max)
+        _rollout.perturb(
+            keys, eps, controls, self._plan, self.noise_chol, u_min=self.u_min, u_max=self.u_max
+        )
         first = self.zero_noise_samples
         rows = self._candidates(x, t0, controls)
         if first or rows is not None:
             redo = slice(0, first if rows is None else rows.stop)
-            nominal = self._plan.unsqueeze(1)
             if first:
-                controls[:, :first] = nominal
-            self._clamp(controls[:, redo])
-            torch.sub(controls[:, redo], nominal, out=eps[:, redo])
+                controls[:, :first] = self._plan.unsqueeze(1)
+            self._settle(controls[:, redo], eps[:, redo])
         return eps
+
+    def _kernel_draws(self, eps: Tensor) -> bool:
+        """Whether the C kernel draws the noise of ``eps`` (float32 or float64 on the CPU,
+        at most its number of controls); else ``normal_`` does."""
+        return (
+            eps.device.type == "cpu"
+            and eps.dtype in (torch.float32, torch.float64)
+            and eps.shape[-1] <= _rollout.MAX_CONTROL
+            and _rollout.available()
+        )
 
     def _sample_noise(self, eps: Tensor) -> None:
         std = self._isotropic_std
-        if (
-            eps.device.type == "cpu"
-            and eps.shape[-1] <= _rollout.MAX_CONTROL
-            and _rollout.available()
-        ):
+        if self._kernel_draws(eps):
             keys = _rollout.draw_keys(self._generators)
             _rollout.normals(keys, eps, std=1.0 if std is None else float(std))
         else:
@@ -820,12 +829,16 @@ class MPPI(ExactConstants):
         """Fill ``controls [B, K, H, m]`` with the samples ``clamp(U + eps)`` (candidates from
         ``action_sampler`` and the null action in their rows) and recompute ``eps`` from them
         in place; return the noise the control cost reads (``eps`` here)."""
-        nominal = self._plan.unsqueeze(1)
-        torch.add(eps, nominal, out=controls)
+        torch.add(eps, self._plan.unsqueeze(1), out=controls)
         self._candidates(x, t0, controls)
-        self._clamp(controls)
-        torch.sub(controls, nominal, out=eps)
+        self._settle(controls, eps)
         return eps
+
+    def _settle(self, controls: Tensor, eps: Tensor) -> None:
+        """Clamp sampled ``controls [B, S, H, m]`` in place and write their noise around the
+        plan into ``eps`` (the same rows)."""
+        self._clamp(controls)
+        torch.sub(controls, self._plan.unsqueeze(1), out=eps)
 
     def _candidates(self, x: Tensor, t0: Tensor, controls: Tensor) -> slice | None:
         """Write the null action and the ``action_sampler``'s sequences into their rows of
