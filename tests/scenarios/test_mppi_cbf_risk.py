@@ -11,7 +11,9 @@ import torch
 from torchcbf.scenarios.unicycle_mppi_cbf import (
     AXES,
     CENTERS,
+    DT,
     SIGMA,
+    STEPS,
     mppi_cbf,
     obstacles,
     operating_states,
@@ -117,3 +119,27 @@ def test_inside_form_lies_inside_the_obstacle_free_set() -> None:
         mppi_cbf("mppi_rascbf", risk_form="box", **kw)
     with pytest.raises(ValueError, match="risk_temperature"):
         mppi_cbf("mppi_rascbf", risk_temperature=0.0, **kw)
+
+
+def test_risk_budget_shares_the_run_over_windows_of_the_horizon() -> None:
+    """With a budget for the whole run, rho = budget T / (STEPS DT), the filter's condition
+    uses it (Delta = sqrt(2T) eta erfinv(1 - rho)) and the record reports it; rho given alone
+    replaces the budget; a budget needs a fixed T and lies in (0, 1)."""
+    kw = {"num_seeds": 1, "num_samples": 8, "horizon": 4, "dtype": torch.float64}
+    sc = mppi_cbf("mppi_rascbf", risk_budget=0.05, risk_horizon=0.03, **kw)
+    p = sc.params
+    assert p["risk_budget"] == 0.05 and p["risk_horizon"] == 0.03
+    assert p["rho"] == pytest.approx(0.05 * 0.03 / (STEPS * DT))
+    assert sc.safety_filter.condition.rho == pytest.approx(p["rho"])
+    eta = torch.tensor(p["eta"], dtype=torch.float64)
+    z = torch.erfinv(torch.tensor(1 - p["rho"], dtype=torch.float64))
+    torch.testing.assert_close(
+        sc.safety_filter.cbf_margin.double(), math.sqrt(2 * 0.03) * eta * z, rtol=1e-6, atol=0
+    )
+    plain = mppi_cbf("mppi_rascbf", rho=0.02, risk_horizon=0.03, **kw).params
+    assert plain["risk_budget"] is None and plain["rho"] == 0.02
+    with pytest.raises(ValueError, match="risk_horizon"):
+        mppi_cbf("mppi_rascbf", config="paper", risk_budget=0.05, **kw)
+    for bad in (0.0, 1.0, -0.1):
+        with pytest.raises(ValueError, match="risk_budget"):
+            mppi_cbf("mppi_rascbf", risk_budget=bad, risk_horizon=0.03, **kw)

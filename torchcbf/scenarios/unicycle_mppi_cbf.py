@@ -7,8 +7,9 @@ Methods (:data:`METHODS`), each run over a batch of noise seeds:
 - ``"mppi"``: MPPI alone;
 - ``"mppi_scbf"``: MPPI whose control is filtered by the stochastic CBF-QP;
 - ``"mppi_rascbf"``: MPPI filtered by the risk-aware stochastic CBF (probability ``rho`` of
-  leaving its safe set within the horizon ``T``; in the default configuration a safe set
-  inside the obstacle-free set, ``risk_form="inside"``);
+  leaving its safe set within the horizon ``T``; in the default configuration 5% for the
+  whole run shared by its windows of ``T = 0.03 s``, ``risk_budget``, and a safe set inside
+  the obstacle-free set, ``risk_form="inside"``);
 - ``"shield_mppi"``: a barrier-aware MPPI (:class:`~torchcbf.mppi.ShieldMPPI`): its rollouts
   pay a steep penalty for breaking the discrete-time CBF condition of the obstacles over
   their first ``shield_steps`` steps, and
@@ -100,10 +101,15 @@ class FilterParams:
             along whose long side a robot led by the proportional controller slides.
         control_weight: diagonal of the QP weight ``R`` on ``(a, omega)``.
         control_limit: bound on ``|a|`` and ``|omega|`` (``None``: unbounded).
-        rho: risk-aware methods: probability of leaving the safe set within ``T``.
+        rho: risk-aware methods: probability of leaving the safe set within ``T`` (used when
+            ``risk_budget`` is ``None``).
+        risk_budget: risk-aware method: a probability for the whole run (``STEPS * DT``)
+            shared by its ``STEPS * DT / T`` windows of length ``T``: ``rho = risk_budget T /
+            (STEPS * DT)`` (a union bound over consecutive windows; ``None``: ``rho``). Needs a
+            fixed ``risk_horizon``.
         risk_horizon: ``T`` (s) of the risk-aware condition; ``None`` chooses it (see
-            :func:`risk_horizon`; the paper and cbfkit configurations), 0.1 s in the default
-            configuration.
+            :func:`risk_horizon`; the paper and cbfkit configurations), 0.03 s in the default
+            configuration (with ``risk_budget = 0.05``: ``rho = 3e-4``).
         risk_inflation: risk-aware method: metres added to every semi-axis of the ellipses
             its filter keeps the robot out of (a berth the same in every direction; the
             margin ``Delta`` holds the robot off by a multiple of each semi-axis).
@@ -133,6 +139,7 @@ class FilterParams:
     control_weight: tuple[float, float] = (1.0, 1e-3)
     control_limit: tuple[float, float] | None = (40.0, 40.0)
     rho: float = 0.05
+    risk_budget: float | None = None
     risk_horizon: float | None = None
     risk_inflation: float = 0.0
     risk_max_speed: float = 3.0
@@ -143,12 +150,15 @@ class FilterParams:
 
 
 CONFIG_PARAMS: dict[str, FilterParams] = {
-    # T = 0.1 s: the chosen horizon (0.21 s) made the risk margin a berth that sent robots
-    # around the outside of the field; eta over speeds up to 8 m/s: the robots reach 6-7 m/s,
-    # and a bound taken up to 3 m/s left the filter's margin short at those speeds
+    # rho = 5% for the whole run, shared by its windows of T = 0.03 s (rho = 3e-4 per window):
+    # the margin Delta of T = 0.1 s with rho = 5% per window (a berth that fits the passages),
+    # held 5.1 noise band-widths from the boundary instead of 2.8; eta over speeds up to
+    # 8 m/s: a bound taken up to 3 m/s left the margin short at the speeds reached
     # (scripts/risk_mppi_experiment.py, tuning seeds only); the "inside" form: a collision
     # leaves the filter's safe set (the rectified form stays positive for a robot moving out)
-    "default": FilterParams(risk_horizon=0.1, risk_max_speed=8.0, risk_form="inside"),
+    "default": FilterParams(
+        risk_budget=0.05, risk_horizon=0.03, risk_max_speed=8.0, risk_form="inside"
+    ),
     "paper": FilterParams(
         alpha=1.0,
         beta=1.0,
@@ -199,9 +209,10 @@ class MppiCbfParams:
         planner_every: replan every this many loop steps (2: once per rollout step of
             0.02 s); between replans the loop follows the plan.
         alpha, beta, rectify_gain, margin, goal_wall_margin, blocking_margin, control_weight,
-            control_limit, rho, risk_horizon, risk_inflation, risk_max_speed, risk_form,
-            risk_temperature, shield_weight, shield_steps: override the configuration's value
-            (:class:`FilterParams`; ``None``: the configuration's).
+            control_limit, rho, risk_budget, risk_horizon, risk_inflation, risk_max_speed,
+            risk_form, risk_temperature, shield_weight, shield_steps: override the
+            configuration's value (:class:`FilterParams`; ``None``: the configuration's; a
+            ``rho`` given alone replaces the configuration's ``risk_budget``).
         barrier_scale: the scales ``c_i`` of the exponential form (one number or five),
             overriding the ones ``margin`` sets.
         noise_sigma, cost_normalization, zero_noise_samples, shift_fill: MPPI's (the noise
@@ -223,6 +234,7 @@ class MppiCbfParams:
     control_weight: float | tuple[float, float] | None = None
     control_limit: float | tuple[float, float] | None = None
     rho: float | None = None
+    risk_budget: float | None = None
     risk_horizon: float | None = None
     risk_inflation: float | None = None
     risk_max_speed: float | None = None
@@ -278,7 +290,7 @@ def build(
     control_weight, control_limit, rho = p.control_weight, p.control_limit, p.rho
     risk_horizon, shield_weight, shield_steps = p.risk_horizon, p.shield_weight, p.shield_steps
     risk_inflation, risk_max_speed = p.risk_inflation, p.risk_max_speed
-    risk_form, risk_temperature = p.risk_form, p.risk_temperature
+    risk_form, risk_temperature, risk_budget = p.risk_form, p.risk_temperature, p.risk_budget
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if config not in CONFIGS:
@@ -301,6 +313,15 @@ def build(
         if value is not None:  # beta > 0 too: the scales c_i set by the margin are prop. to it
             value = check_number(name, value, low=0.0, strict=True)
             params = replace(params, **{name: value})
+    if rho is not None and risk_budget is None:
+        params = replace(params, risk_budget=None)
+    if risk_budget is not None:
+        budget = check_number("risk_budget", risk_budget, low=0.0, strict=True)
+        if not budget < 1.0:
+            raise ValueError(f"risk_budget must be in (0, 1), got {risk_budget}")
+        params = replace(params, risk_budget=budget)
+    if params.risk_budget is not None and params.risk_horizon is None:
+        raise ValueError("risk_budget needs a fixed risk_horizon (T); got risk_horizon=None")
     if risk_inflation is not None:
         params = replace(
             params, risk_inflation=check_number("risk_inflation", risk_inflation, low=0.0)
@@ -544,15 +565,21 @@ def _risk_aware_filter(
     with torch.enable_grad():
         eta = noise_bound(barrier64, f64, operating_states(max_speed=params.risk_max_speed))
     h0 = barrier64(x0).detach()
-    T = params.risk_horizon or risk_horizon(h0, eta, params.rho, params.margin)
+    rho = params.rho
+    if params.risk_budget is not None:
+        T = params.risk_horizon
+        rho = params.risk_budget * T / (STEPS * DT)
+    else:
+        T = params.risk_horizon or risk_horizon(h0, eta, rho, params.margin)
     safety_filter = SafetyFilter(
         plant,
         barriers=barrier,
-        mode=RiskAware(rho=params.rho, horizon=T, eta=eta),
+        mode=RiskAware(rho=rho, horizon=T, eta=eta),
         R=torch.diag(torch.tensor(params.control_weight, dtype=torch.float64)),
     )
     margins = safety_filter.cbf_margin.tolist()
-    info = {"risk_horizon": T, "eta": eta.tolist(), "h0": h0.tolist(), "delta": margins}
+    info = {"rho": rho, "risk_horizon": T, "eta": eta.tolist(), "h0": h0.tolist()}
+    info["delta"] = margins
     return safety_filter, info
 
 
