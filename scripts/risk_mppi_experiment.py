@@ -18,6 +18,9 @@ Variants (each on 32 tuning seeds from ``--seed``, never the evaluation seeds 0-
   penalty on the margin set over the first 10 rollout steps (scenario B's shield on the
   risk margin), the filter's control fed back into the plan;
 - ``margin+shield``: both;
+- ``wall``: the planner's own costs plus a penalty on entering the margin set (weight 1e3
+  on ``relu(-b)`` of the ellipses scaled by ``1 + Delta_i / k``, every rollout step): zero
+  outside it, so the cost's minimum near the goal stays where it was;
 - each with ``--horizons``: the risk horizon ``T`` (s) instead of the scenario's choice
   (``Delta ~ sqrt(T)``: a shorter horizon, a narrower berth, a bound over a shorter time),
   ``--gains``: the rectification gain ``k`` (the approach speed ``h >= 0`` allows near
@@ -83,7 +86,7 @@ from torchcbf.scenarios.unicycle_mppi_cbf import (
     risk_failures,
 )
 
-VARIANTS = ("baseline", "margin", "shield", "margin+shield")
+VARIANTS = ("baseline", "margin", "shield", "margin+shield", "wall")
 FIELD = ((-2.5, 5.0), (-2.0, 6.5))
 
 
@@ -171,6 +174,8 @@ def build(
     terms = [QuadraticGoal(GOAL, weight=2.0, index=(0, 1), terminal_weight=10.0)]
     barrier = inflated if "margin" in variant else sc.barriers[0]
     terms.append(BarrierCost(barrier, weight=2.0, eps=0.01))
+    if variant == "wall":  # relu(0 b_k - b_{k+1}): the penetration of the margin set
+        terms.append(DiscreteBarrierCost(inflated, gamma=1.0, weight=1e3))
     if "shield" in variant:
         gamma = min(k * ROLLOUT_DT, 1.0)
         terms.append(DiscreteBarrierCost(inflated, gamma=gamma, weight=1e3, steps=10))
