@@ -115,6 +115,17 @@ def _assert_terms(got: LieTerms, want: LieTerms, dtype: torch.dtype) -> None:
                                    msg=name)  # fmt: skip
 
 
+def _assert_list_matches(fns, x, dyn, sizes):
+    """One kernel call on the list ``fns`` gives each function's sizes and the closed forms
+    of each, concatenated."""
+    with torch.no_grad():
+        terms, found = native.lie_terms(fns, x, dyn)
+    assert found == sizes
+    parts = [_columns(lie_derivatives(f, x, dyn, method="analytic"), x) for f in fns]
+    want = LieTerms(*(torch.cat([getattr(p, n) for p in parts], 1) for n in LieTerms._fields))
+    _assert_terms(terms, want, F64)
+
+
 @pytest.mark.parametrize("dtype", [F64, torch.float32], ids=["float64", "float32"])
 @pytest.mark.parametrize("sigma", list(SIGMAS))
 @pytest.mark.parametrize("form", ["plain", "exponential"])
@@ -155,12 +166,7 @@ def test_several_functions_and_stacks_concatenate_in_order() -> None:
     ]
     fns = [f.double() for f in fns]
     x = _states(3, 4, seed=7)
-    with torch.no_grad():
-        terms, sizes = native.lie_terms(fns, x, dyn)
-    assert sizes == [2, 2, 2, 3]
-    parts = [_columns(lie_derivatives(f, x, dyn, method="analytic"), x) for f in fns]
-    want = LieTerms(*(torch.cat([getattr(p, n) for p in parts], 1) for n in LieTerms._fields))
-    _assert_terms(terms, want, F64)
+    _assert_list_matches(fns, x, dyn, [2, 2, 2, 3])
 
 
 def test_without_a_hessian_the_trace_is_none() -> None:
@@ -417,12 +423,7 @@ def test_reductions_in_stacks_and_lists_concatenate_in_order() -> None:
     ]
     fns = [f.double() for f in fns]
     x = _states(3, 4, seed=14)
-    with torch.no_grad():
-        terms, sizes = native.lie_terms(fns, x, dyn)
-    assert sizes == [2, 3, 6, 1]
-    parts = [_columns(lie_derivatives(f, x, dyn, method="analytic"), x) for f in fns]
-    want = LieTerms(*(torch.cat([getattr(p, n) for p in parts], 1) for n in LieTerms._fields))
-    _assert_terms(terms, want, F64)
+    _assert_list_matches(fns, x, dyn, [2, 3, 6, 1])
 
 
 class _RewrittenIntersection(Intersection):
