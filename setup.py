@@ -24,6 +24,7 @@ setup(
         Extension(  # closed-form Lie terms of quadric barriers on a few states
             "torchcbf.barriers._lie_kernel",
             ["torchcbf/barriers/_lie_kernel.c"],
+            depends=["torchcbf/barriers/_lie_kernel.h"],
             extra_compile_args=["-O3", "-std=c99"],
             libraries=["m"],
             optional=True,
@@ -31,7 +32,7 @@ setup(
         Extension(  # the safety filter's real-time path, linked with the QP kernel
             "torchcbf.filters._filter_kernel",
             ["torchcbf/filters/_filter_kernel.c", "torchcbf/qp/_dual_kernel.c"],
-            depends=["torchcbf/qp/_dual_kernel.h"],
+            depends=["torchcbf/qp/_dual_kernel.h", "torchcbf/barriers/_lie_kernel.h"],
             extra_compile_args=["-O3", "-std=c99"],
             libraries=["m"],
             optional=True,

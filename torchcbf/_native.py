@@ -19,7 +19,7 @@ import logging
 import os
 import platform
 import re
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -159,6 +159,36 @@ def constants(sources: Iterable[Path]) -> dict[str, int]:
                     value += 1
                 found[name] = value
     return found
+
+
+class Layout(dict[str, int]):
+    """The integer constants of a kernel's C sources (:func:`constants`), with the records
+    they describe: a record's size is one constant and its fields are the constants named
+    with one prefix (``TR_TYPE``, ``TR_IDX``, ...), each the offset where it starts."""
+
+    @classmethod
+    def read(cls, sources: Iterable[Path]) -> Layout:
+        return cls(constants(sources))
+
+    def record(self, size: str, **fields: float | Sequence[float]) -> list[float]:
+        """A record of ``self[size]`` values with each field set (a sequence from its offset
+        on), the rest zero; ``ValueError`` for a field that runs into the next one."""
+        rec = [0.0] * self[size]
+        for name, value in fields.items():
+            values = value if isinstance(value, Sequence) else [value]
+            at = self[name]
+            prefix = name.split("_", 1)[0] + "_"
+            ends = [v for k, v in self.items() if k.startswith(prefix) and v > at]
+            if at + len(values) > min([*ends, len(rec)]):
+                raise ValueError(f"{len(values)} values do not fit the field {name} of {size}")
+            rec[at : at + len(values)] = [float(v) for v in values]
+        return rec
+
+    def field(self, rec: Sequence[float], name: str, count: int | None = None) -> Any:
+        """The field ``name`` of a record: one value, or the ``count`` values from its
+        offset."""
+        at = self[name]
+        return rec[at] if count is None else list(rec[at : at + count])
 
 
 def load_kernel(

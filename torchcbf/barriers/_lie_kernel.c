@@ -37,34 +37,13 @@
 #include <stdint.h>
 #include <string.h>
 
-/* Bumped whenever an exported signature or its meaning changes (see _native.py). */
-#define LIE_KERNEL_VERSION 3
+#include "_lie_kernel.h"
 
 /* largest state, control, position and noise sizes (larger problems: torch) */
 #define LIE_NMAX 32
 
 /* the models, as MODEL_CODES in torchcbf/_native.py */
 enum { SINGLE_INTEGRATOR = 0, DOUBLE_INTEGRATOR = 1, UNICYCLE = 2, ACCEL_UNICYCLE = 3 };
-
-/* the transforms phi, as TRANSFORM_CODES in native.py */
-enum { NO_TRANSFORM = 0, RADIUS = 1, EXP = 2 };
-
-/* A block's integers in `meta` (then its d indices) and its pointers in `params`; M_CENTER to
- * M_SCALE and M_OUTER are the strides per output of the constants of those names (0: one
- * value shared by all outputs). */
-enum {
-    M_K, M_D, M_CENTER, M_AXES, M_RADIUS, M_ANGLE, M_SCALE, M_SIGN, M_TRANSFORM, M_OUTER,
-    M_INNER, M_INNER_DIM, M_FIXED
-};
-enum { P_CENTER, P_AXES, P_RADIUS, P_ANGLE, P_SCALE, P_OUTER, P_K0, P_FIXED };
-
-/* A group's integers in `meta`: its reduction (as REDUCTION_CODES in native.py), whether it
- * is smooth, its number of blocks and of outputs. */
-enum { G_MODE, G_SMOOTH, G_BLOCKS, G_OUTPUTS, G_FIXED };
-enum { NO_REDUCTION = 0, REDUCE_MIN = 1, REDUCE_MAX = 2 };
-
-/* the header of `meta` and of `reals` */
-enum { META_HEADER = 10, REALS_HEADER = 3 };
 
 int torchcbf_lie_version(void) { return LIE_KERNEL_VERSION; }
 
@@ -439,14 +418,16 @@ static void emit(const Sink *o, const Point *pt, int64_t row, int64_t col, doubl
  * Returns 0, or 1 when the sizes are out of range (the caller takes its torch path).
  */
 int torchcbf_lie_quadrics(const int64_t *meta, const double *reals, void *const *ptrs) {
-    int64_t B = meta[0];
-    int n = (int)meta[1], m = (int)meta[2], q = (int)meta[3];
-    int outer = (int)meta[4], outer_dim = (int)meta[5];
-    int64_t blocks = meta[6], groups = meta[9];
-    const double *x = ptrs[0], *sigma = ptrs[1];
-    Sink out = {ptrs[2], ptrs[3], ptrs[4], ptrs[5], ptrs[6], ptrs[7], ptrs[8], ptrs[9],
-                ptrs[10], meta[7], meta[8], reals[0], reals[1], reals[2]};
-    void *const *params = ptrs + 11;
+    int64_t B = meta[L_B];
+    int n = (int)meta[L_N], m = (int)meta[L_M], q = (int)meta[L_Q];
+    int outer = (int)meta[L_OUTER], outer_dim = (int)meta[L_OUTER_DIM];
+    int64_t blocks = meta[L_BLOCKS], groups = meta[L_GROUPS];
+    const double *x = ptrs[PT_X], *sigma = ptrs[PT_SIGMA];
+    Sink out = {ptrs[PT_H],    ptrs[PT_LFH],  ptrs[PT_DHDT],         ptrs[PT_LGH],
+                ptrs[PT_HESS], ptrs[PT_DHDX], ptrs[PT_B],            ptrs[PT_GAIN],
+                ptrs[PT_OFFSET], meta[L_GAIN_STRIDE], meta[L_OFFSET_STRIDE],
+                reals[R_TRACE_WEIGHT], reals[R_GAIN_SCALE], reals[R_OFFSET_SCALE]};
+    void *const *params = ptrs + PTRS_HEADER;
     const int64_t *block_meta = meta + META_HEADER;
     const double *rates = reals + REALS_HEADER;
     if (B < 0 || n < 1 || n > LIE_NMAX || m < 1 || m > LIE_NMAX || q < 0 || q > LIE_NMAX ||

@@ -33,7 +33,7 @@ import torch
 from torch import Tensor
 
 from torchcbf._checks import behaves_as
-from torchcbf._native import float64_pointers, load_kernel, model_code
+from torchcbf._native import Layout, float64_pointers, load_kernel, model_code
 from torchcbf.barriers.compose import BarrierStack, Intersection, Scaled, Transformed, Union
 from torchcbf.barriers.lie import LieFunction, LieTerms, Quadric
 from torchcbf.barriers.rectify import ExponentialBarrier
@@ -54,10 +54,22 @@ __all__ = [
 KERNEL_VERSION = 3
 #: the file name of the built kernel, without its extension suffix
 KERNEL_STEM = "_lie_kernel"
+#: the kernel's sources (``_lie_kernel.h`` names its arguments' fields and codes)
+SOURCES = ("_lie_kernel.c", "_lie_kernel.h")
+#: the integer constants of ``_lie_kernel.h``: the layout of the kernel's arguments
+LAYOUT = Layout.read([Path(__file__).parent / "_lie_kernel.h"])
 #: the kernel's code of each transform of :class:`~torchcbf.barriers.Transformed`
-TRANSFORM_CODES: dict[str | None, int] = {None: 0, "radius": 1, "exp": 2}
+TRANSFORM_CODES: dict[str | None, int] = {
+    None: LAYOUT["NO_TRANSFORM"],
+    "radius": LAYOUT["RADIUS"],
+    "exp": LAYOUT["EXP"],
+}
 #: the kernel's code of each reduction of a group of blocks (``None``: the outputs as they are)
-REDUCTION_CODES: dict[str | None, int] = {None: 0, "min": 1, "max": 2}
+REDUCTION_CODES: dict[str | None, int] = {
+    None: LAYOUT["NO_REDUCTION"],
+    "min": LAYOUT["REDUCE_MIN"],
+    "max": LAYOUT["REDUCE_MAX"],
+}
 #: the kernel's largest state, control, position and noise sizes
 MAX_SIZE = 32
 
@@ -70,7 +82,7 @@ def _library() -> ctypes.CDLL | None:
         "torchcbf_lie_version",
         KERNEL_VERSION,
         "quadric barriers take their torch closed forms",
-        sources=("_lie_kernel.c",),
+        sources=SOURCES,
     )
 
 
@@ -259,10 +271,13 @@ def _encode(
             return None
         strides.append(1 if shape == (k,) and k > 1 else 0)
     code, dim = (-1, 0) if inner is None else model_code(inner)  # type: ignore[misc]
-    meta += (
-        k, d, *strides[:5], int(sign), TRANSFORM_CODES[transform], strides[5], code, dim,
-        *index,
-    )  # fmt: skip
+    fields = dict(
+        zip(("M_CENTER", "M_AXES", "M_RADIUS", "M_ANGLE", "M_SCALE"), strides[:5], strict=True)
+    )
+    meta += _integers("M_FIXED", M_K=k, M_D=d, M_SIGN=int(sign), M_OUTER=strides[5],
+                      M_TRANSFORM=TRANSFORM_CODES[transform], M_INNER=code, M_INNER_DIM=dim,
+                      **fields)  # fmt: skip
+    meta += index
     reals.append(rate)
     tensors += (center, axes, radius, angle, scale, outer, k0)
     return k
@@ -395,7 +410,7 @@ def _evaluate(
     h, lgh = torch.empty(B, K, dtype=f64), torch.empty(B, K, m, dtype=f64)
     if affine is None:
         lfh, dhdt = torch.empty(B, K, dtype=f64), torch.empty(B, K, dtype=f64)
-        trace = None if pointers[1] == 0 else torch.empty(B, K, dtype=f64)
+        trace = None if pointers[LAYOUT["PT_SIGMA"]] == 0 else torch.empty(B, K, dtype=f64)
         dhdx, b = torch.empty(B, K, n, dtype=f64), None
     else:
         lfh = dhdt = trace = dhdx = None
@@ -416,8 +431,8 @@ def _arguments(
     hessian: bool,
     affine: Affine | None,
 ) -> tuple[list[int], list[float], list[int], list[Tensor], list[int]] | None:
-    """The kernel's ``meta``, ``reals`` and pointers (all but the seven outputs, which go
-    at index 2), the tensors those point into (keep them alive through the call) and each
+    """The kernel's ``meta``, ``reals`` and pointers (all but the seven outputs' slots, from
+    ``PT_H``), the tensors those point into (keep them alive through the call) and each
     function's number of outputs; ``None`` where the kernel does not apply."""
     outer = model_code(dynamics)
     if _library() is None or outer is None or not fns or x.dim() != 2 or not x.is_cpu:
@@ -435,11 +450,11 @@ def _arguments(
     q = 0 if sigma is None else sigma.shape[-1]
     if q > MAX_SIZE:
         return None
-    meta = [B, n, m, q, *outer, 0, 0, 0, 0]  # then: blocks, two strides, groups
-    reals: list[float] = [0.0, 1.0, 1.0]
+    blocks: list[int] = []  # the blocks' integers, then the groups'
+    rates: list[float] = []
     tensors: list[Tensor | None] = []
     sizes: list[int] = []
-    # per group: its reduction, smooth, blocks and outputs (as G_MODE... in the kernel)
+    # per group: its reduction, smooth, blocks and outputs (G_MODE... in the kernel)
     groups: list[list[int]] = []
     temperatures: list[float] = []
     for fn in fns:
@@ -450,7 +465,7 @@ def _arguments(
         for group in found:
             columns = 0
             for block in group.blocks:
-                k = _encode(block, meta, reals, tensors)
+                k = _encode(block, blocks, rates, tensors)
                 if k is None:
                     return None
                 columns += k
@@ -467,9 +482,13 @@ def _arguments(
             groups.append([code, int(group.smooth), len(group.blocks), outputs])
             temperatures.append(group.temperature)
         sizes.append(total)
-    meta[6], meta[9] = len(reals) - 3, len(groups)
-    meta += (v for g in groups for v in g)
-    reals += temperatures
+    for mode, smooth, count, outputs in groups:
+        blocks += _integers(
+            "G_FIXED", G_MODE=mode, G_SMOOTH=smooth, G_BLOCKS=count, G_OUTPUTS=outputs
+        )
+    header = dict(L_B=B, L_N=n, L_M=m, L_Q=q, L_OUTER=outer[0], L_OUTER_DIM=outer[1],
+                  L_BLOCKS=len(rates), L_GROUPS=len(groups))  # fmt: skip
+    scales = dict(R_GAIN_SCALE=1.0, R_OFFSET_SCALE=1.0)
     condition: tuple[Tensor | None, Tensor | None] = (None, None)
     if affine is not None:
         trace_weight, gain, gain_scale, offset, offset_scale = affine
@@ -480,9 +499,15 @@ def _arguments(
         strides = [_output_stride(v, sum(sizes)) for v in (gain, offset)]
         if None in strides:
             return None
-        meta[7:9] = strides
-        reals[:3] = float(trace_weight), float(gain_scale), float(offset_scale)
+        header.update(L_GAIN_STRIDE=strides[0], L_OFFSET_STRIDE=strides[1])
+        scales = dict(
+            R_TRACE_WEIGHT=float(trace_weight),
+            R_GAIN_SCALE=float(gain_scale),
+            R_OFFSET_SCALE=float(offset_scale),
+        )
         condition = gain, offset
+    meta = _integers("META_HEADER", **header) + blocks
+    reals = LAYOUT.record("REALS_HEADER", **scales) + rates + temperatures
     inputs = (x, sigma, *condition, *tensors)
     grads = torch.is_grad_enabled()
     for v in inputs:
@@ -499,9 +524,16 @@ def _kernel_arrays(
     outputs: tuple[Tensor | None, ...],
 ) -> tuple[array.array, array.array, array.array]:
     """The kernel's three argument arrays, with the seven ``outputs`` (``h, lfh, dhdt, lgh,
-    hess_trace, dhdx, b``; ``None``: not written) put into the pointers at index 2."""
-    pointers[2:2] = [0 if v is None else v.data_ptr() for v in outputs]
+    hess_trace, dhdx, b``; ``None``: not written) put into their pointer slots (from
+    ``PT_H``)."""
+    at = LAYOUT["PT_H"]
+    pointers[at:at] = [0 if v is None else v.data_ptr() for v in outputs]
     return array.array("q", meta), array.array("d", reals), array.array("Q", pointers)
+
+
+def _integers(size: str, **fields: int) -> list[int]:
+    """An integer record of the kernel's ``meta`` (:meth:`~torchcbf._native.Layout.record`)."""
+    return [int(v) for v in LAYOUT.record(size, **fields)]
 
 
 def _output_stride(value: Tensor | None, K: int) -> int | None:

@@ -14,6 +14,7 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "../barriers/_lie_kernel.h"
 #include "../qp/_dual_kernel.h"
 
 /* Bumped whenever an exported signature or its meaning changes (see _native.py); the version
@@ -223,18 +224,16 @@ int torchcbf_filter_solve(int64_t B, int m, int k, int c, int slack, int two_pas
     return code;
 }
 
-/* The Lie-term kernel of torchcbf/barriers/_lie_kernel.c (its torchcbf_lie_quadrics) and the
- * slots of its pointer array this file fills: the outputs lgh [B, K, m] and the condition b
- * [B, K] (LIE_KERNEL_VERSION 3). */
+/* The Lie-term kernel of torchcbf/barriers/_lie_kernel.c (its torchcbf_lie_quadrics), whose
+ * arguments _lie_kernel.h names; this file fills the slots of its outputs lgh [B, K, m] and
+ * of the condition b [B, K]. */
 typedef int (*lie_kernel)(const int64_t *meta, const double *reals, void *const *ptrs);
-#define LIE_KERNEL_VERSION_USED 3
-enum { LIE_LGH = 5, LIE_B = 8 };
 
 /*
  * torchcbf_filter_solve with the CBF conditions of quadric barriers computed first by the
  * Lie-term kernel `lie` (version `lie_version`) from its arguments lie_meta, lie_reals and
  * lie_ptrs (prepared by torchcbf/barriers/native.py for B states and m controls, with an
- * affine condition and the h output set; the LIE_LGH and LIE_B slots are filled here with a
+ * affine condition and the h output set; the PT_LGH and PT_B slots are filled here with a
  * workspace), so no tensor holds the conditions.
  * Returns as torchcbf_filter_solve; 1 also when the Lie kernel declines, is another version
  * or was prepared for other sizes.
@@ -247,19 +246,19 @@ int torchcbf_filter_quadrics(lie_kernel lie, int lie_version, const int64_t *lie
                              double clf_weight, double eps, int max_iter, double slack_tol,
                              double max_condition, double *u_out, double *slack_out,
                              double *value_out, int64_t *status) {
-    if (!lie || lie_version != LIE_KERNEL_VERSION_USED || B < 1 || m < 1 || k < 1 ||
-        lie_meta[0] != B || lie_meta[2] != m)
+    if (!lie || lie_version != LIE_KERNEL_VERSION || B < 1 || m < 1 || k < 1 ||
+        lie_meta[L_B] != B || lie_meta[L_M] != m)
         return 1;
     double *ab = malloc(sizeof(double) * (size_t)(B * k * (m + 1)));
     if (!ab) return -1;
-    lie_ptrs[LIE_LGH] = ab, lie_ptrs[LIE_B] = ab + B * k * m;
+    lie_ptrs[PT_LGH] = ab, lie_ptrs[PT_B] = ab + B * k * m;
     int code = lie(lie_meta, lie_reals, lie_ptrs) ? 1 : 0;
     if (code == 0)
         code = torchcbf_filter_solve(B, m, k, c, slack, two_pass, ab, ab + B * k * m, a_clf,
                                      b_clf, u_nom, R, lo, hi, cbf_weight, clf_weight, eps,
                                      max_iter, slack_tol, max_condition, u_out, slack_out,
                                      value_out, status);
-    lie_ptrs[LIE_LGH] = lie_ptrs[LIE_B] = NULL;
+    lie_ptrs[PT_LGH] = lie_ptrs[PT_B] = NULL;
     free(ab);
     return code;
 }

@@ -45,7 +45,7 @@ def _library() -> ctypes.CDLL | None:
         "torchcbf_filter_version",
         KERNEL_VERSION,
         "the safety filter takes its general path on every batch",
-        sources=("_filter_kernel.c",),
+        sources=("_filter_kernel.c", "../barriers/_lie_kernel.h"),
     )
 
 

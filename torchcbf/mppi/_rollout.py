@@ -18,7 +18,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -26,7 +26,7 @@ import torch
 from torch import Tensor, nn
 
 from torchcbf._checks import behaves_as
-from torchcbf._native import constants, load_kernel, model_code, thread_pool
+from torchcbf._native import Layout, load_kernel, model_code, thread_pool
 from torchcbf.barriers import LieFunction
 
 logger = logging.getLogger(__name__)
@@ -39,7 +39,8 @@ KERNEL_STEM = "_rollout_kernel"
 SOURCES = ("_rollout_kernel.c", "_rollout_kernel.h")
 #: the integer constants of the C sources: the kernel's limits, its codes and the layout of
 #: its configuration vector (offsets of the fields, sizes of the records), read from there
-LAYOUT: dict[str, int] = constants(Path(__file__).parent / name for name in SOURCES)
+LAYOUT = Layout.read(Path(__file__).parent / name for name in SOURCES)
+record, field = LAYOUT.record, LAYOUT.field
 #: limits of the kernel (``NMAX``, ``MMAX``, ``DMAX``, ``TMAX``, ``SMAX`` in the C source)
 MAX_STATE, MAX_CONTROL, MAX_DIM, MAX_TERMS, MAX_SHAPES = (
     LAYOUT[name] for name in ("NMAX", "MMAX", "DMAX", "TMAX", "SMAX")
@@ -92,27 +93,6 @@ def encode_model(dynamics: nn.Module) -> tuple[int, int] | None:
     if dynamics.state_dim > MAX_STATE or dynamics.control_dim > MAX_CONTROL:
         return None
     return found
-
-
-def record(size: str, **fields: float | Sequence[float]) -> list[float]:
-    """A record of ``LAYOUT[size]`` values with each field (a name of :data:`LAYOUT`: its
-    offset) set, a sequence from its offset on; the rest zero."""
-    rec = [0.0] * LAYOUT[size]
-    for name, value in fields.items():
-        values = value if isinstance(value, Sequence) else [value]
-        at = LAYOUT[name]
-        prefix = name.split("_", 1)[0] + "_"  # the record's fields: TR_*, SR_*, H_*
-        ends = [v for k, v in LAYOUT.items() if k.startswith(prefix) and v > at]
-        if at + len(values) > min([*ends, len(rec)]):
-            raise ValueError(f"{len(values)} values do not fit the field {name} of {size}")
-        rec[at : at + len(values)] = [float(v) for v in values]
-    return rec
-
-
-def field(rec: Sequence[float], name: str, count: int | None = None) -> Any:
-    """The field ``name`` of a record: one value, or the ``count`` values from its offset."""
-    at = LAYOUT[name]
-    return rec[at] if count is None else list(rec[at : at + count])
 
 
 def _values(t: Tensor) -> list[float]:
