@@ -115,15 +115,24 @@ def _assert_terms(got: LieTerms, want: LieTerms, dtype: torch.dtype) -> None:
                                    msg=name)  # fmt: skip
 
 
-def _assert_list_matches(fns, x, dyn, sizes):
-    """One kernel call on the list ``fns`` gives each function's sizes and the closed forms
-    of each, concatenated."""
+def _kernel_matches_closed_forms(fns, x, dyn, dtype=F64, sizes=None) -> LieTerms:
+    """One kernel call on the list ``fns`` gives each function's number of outputs
+    (``sizes``, or those of the closed forms) and the closed forms of each, concatenated;
+    returns the kernel's terms."""
     with torch.no_grad():
-        terms, found = native.lie_terms(fns, x, dyn)
-    assert found == sizes
+        found = native.lie_terms(fns, x, dyn)
+    assert found is not None
+    terms, counts = found
     parts = [_columns(lie_derivatives(f, x, dyn, method="analytic"), x) for f in fns]
-    want = LieTerms(*(torch.cat([getattr(p, n) for p in parts], 1) for n in LieTerms._fields))
-    _assert_terms(terms, want, F64)
+    assert counts == (sizes if sizes is not None else [p.h.shape[1] for p in parts])
+    want = LieTerms(
+        *(
+            None if parts[0][i] is None else torch.cat([p[i] for p in parts], 1)
+            for i in range(len(LieTerms._fields))
+        )
+    )
+    _assert_terms(terms, want, dtype)
+    return terms
 
 
 @pytest.mark.parametrize("dtype", [F64, torch.float32], ids=["float64", "float32"])
@@ -140,13 +149,7 @@ def test_native_terms_match_closed_forms_and_autograd(
         barrier = ExponentialBarrier(barrier, dyn, 2, [2.5]).to(dtype)
         assert barrier.has_analytic
     x = _states(5, dyn.state_dim, seed=len(model) + len(shape), dtype=dtype)
-    with torch.no_grad():
-        found = native.lie_terms([barrier], x, dyn)
-    assert found is not None
-    terms, sizes = found
-    closed = _columns(lie_derivatives(barrier, x, dyn, method="analytic"), x)
-    assert sizes == [closed.h.shape[1]]
-    _assert_terms(terms, closed, dtype)
+    terms = _kernel_matches_closed_forms([barrier], x, dyn, dtype)
     # autograd in float64, the reference of both
     dyn64, barrier64 = dyn.double(), barrier.double()
     auto = _columns(lie_derivatives(barrier64, x.double(), dyn64, method="autograd"), x)
@@ -166,7 +169,7 @@ def test_several_functions_and_stacks_concatenate_in_order() -> None:
     ]
     fns = [f.double() for f in fns]
     x = _states(3, 4, seed=7)
-    _assert_list_matches(fns, x, dyn, [2, 2, 2, 3])
+    _kernel_matches_closed_forms(fns, x, dyn, sizes=[2, 2, 2, 3])
 
 
 def test_without_a_hessian_the_trace_is_none() -> None:
@@ -344,13 +347,7 @@ def test_reductions_match_closed_forms_and_autograd(
     dyn, barrier = dyn.to(dtype), barrier.to(dtype)
     assert barrier.has_analytic and native.describes([barrier], dyn)
     x = _states(batch, 4, seed=len(case) + batch, dtype=dtype)
-    with torch.no_grad():
-        found = native.lie_terms([barrier], x, dyn)
-    assert found is not None
-    terms, sizes = found
-    closed = _columns(lie_derivatives(barrier, x, dyn, method="analytic"), x)
-    assert sizes == [closed.h.shape[1]]
-    _assert_terms(terms, closed, dtype)
+    terms = _kernel_matches_closed_forms([barrier], x, dyn, dtype)
     auto = _columns(lie_derivatives(barrier.double(), x.double(), dyn.double(),
                                     method="autograd"), x)  # fmt: skip
     _assert_terms(terms, LieTerms(*(None if v is None else v.to(dtype) for v in auto)), dtype)
@@ -423,7 +420,7 @@ def test_reductions_in_stacks_and_lists_concatenate_in_order() -> None:
     ]
     fns = [f.double() for f in fns]
     x = _states(3, 4, seed=14)
-    _assert_list_matches(fns, x, dyn, [2, 3, 6, 1])
+    _kernel_matches_closed_forms(fns, x, dyn, sizes=[2, 3, 6, 1])
 
 
 class _RewrittenIntersection(Intersection):
