@@ -16,10 +16,11 @@ import ctypes
 import functools
 import importlib.machinery
 import logging
+import operator
 import os
 import platform
 import re
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -164,25 +165,62 @@ def constants(sources: Iterable[Path]) -> dict[str, int]:
 class Layout(dict[str, int]):
     """The integer constants of a kernel's C sources (:func:`constants`), with the records
     they describe: a record's size is one constant and its fields are the constants named
-    with one prefix (``TR_TYPE``, ``TR_IDX``, ...), each the offset where it starts."""
+    with one prefix (``TR_TYPE``, ``TR_IDX``, ...), each the offset where it starts and
+    running to the next field of that prefix."""
+
+    def __init__(self, values: dict[str, int]) -> None:
+        super().__init__(values)
+        offsets: dict[str, list[int]] = {}
+        for name, at in self.items():
+            offsets.setdefault(name.split("_", 1)[0], []).append(at)
+        #: each name's offset and the offset of the next field with its prefix (None: last)
+        self.spans: dict[str, tuple[int, int | None]] = {
+            name: (at, min((v for v in offsets[name.split("_", 1)[0]] if v > at), default=None))
+            for name, at in self.items()
+        }
 
     @classmethod
     def read(cls, sources: Iterable[Path]) -> Layout:
         return cls(constants(sources))
 
-    def record(self, size: str, **fields: float | Sequence[float]) -> list[float]:
-        """A record of ``self[size]`` values with each field set (a sequence from its offset
-        on), the rest zero; ``ValueError`` for a field that runs into the next one."""
-        rec = [0.0] * self[size]
+    def record(
+        self, size: str, *, cast: type = float, **fields: float | Sequence[float]
+    ) -> list[Any]:
+        """A record of ``self[size]`` values (``cast`` of each) with each field set (a list or
+        tuple from its offset on), the rest zero; ``ValueError`` for a field that runs into
+        the next one."""
+        rec = [cast(0)] * self[size]
+        spans = self.spans
         for name, value in fields.items():
-            values = value if isinstance(value, Sequence) else [value]
-            at = self[name]
-            prefix = name.split("_", 1)[0] + "_"
-            ends = [v for k, v in self.items() if k.startswith(prefix) and v > at]
-            if at + len(values) > min([*ends, len(rec)]):
-                raise ValueError(f"{len(values)} values do not fit the field {name} of {size}")
-            rec[at : at + len(values)] = [float(v) for v in values]
+            at, end = spans[name]
+            limit = len(rec) if end is None or end > len(rec) else end
+            if not isinstance(value, (list, tuple)):  # one value (the common case, quick)
+                if at >= limit:
+                    raise ValueError(f"the field {name} does not fit in {size}")
+                rec[at] = cast(value)
+                continue
+            if at + len(value) > limit:
+                raise ValueError(f"{len(value)} values do not fit the field {name} of {size}")
+            rec[at : at + len(value)] = [cast(v) for v in value]
         return rec
+
+    def packer(self, size: str, *names: str) -> Callable[..., list[Any]]:
+        """A quick ``pack(*values)``: the record of ``self[size]`` slots with the one-slot
+        field ``names[i]`` set to ``values[i]`` and the other slots 0 (for records built on
+        a hot path)."""
+        n = self[size]
+        slots = [len(names)] * n  # the index of the 0 appended to the values
+        for i, name in enumerate(names):
+            at, end = self.spans[name]
+            if at >= n or (n if end is None else end) - at != 1:
+                raise ValueError(f"{name} is not a one-slot field of {size}")
+            slots[at] = i
+        get = operator.itemgetter(*slots, len(names))  # two items at least: always a tuple
+
+        def pack(*values: Any) -> list[Any]:
+            return list(get((*values, 0)))[:n]
+
+        return pack
 
     def field(self, rec: Sequence[float], name: str, count: int | None = None) -> Any:
         """The field ``name`` of a record: one value, or the ``count`` values from its

@@ -58,6 +58,16 @@ KERNEL_STEM = "_lie_kernel"
 SOURCES = ("_lie_kernel.c", "_lie_kernel.h")
 #: the integer constants of ``_lie_kernel.h``: the layout of the kernel's arguments
 LAYOUT = Layout.read([Path(__file__).parent / "_lie_kernel.h"])
+_pack_header = LAYOUT.packer(
+    "META_HEADER", "L_B", "L_N", "L_M", "L_Q", "L_OUTER", "L_OUTER_DIM", "L_BLOCKS",
+    "L_GAIN_STRIDE", "L_OFFSET_STRIDE", "L_GROUPS",
+)  # fmt: skip
+_pack_reals = LAYOUT.packer("REALS_HEADER", "R_TRACE_WEIGHT", "R_GAIN_SCALE", "R_OFFSET_SCALE")
+_pack_block = LAYOUT.packer(
+    "M_FIXED", "M_K", "M_D", "M_CENTER", "M_AXES", "M_RADIUS", "M_ANGLE", "M_SCALE", "M_SIGN",
+    "M_TRANSFORM", "M_OUTER", "M_INNER", "M_INNER_DIM",
+)  # fmt: skip
+_pack_group = LAYOUT.packer("G_FIXED", "G_MODE", "G_SMOOTH", "G_BLOCKS", "G_OUTPUTS")
 #: the kernel's code of each transform of :class:`~torchcbf.barriers.Transformed`
 TRANSFORM_CODES: dict[str | None, int] = {
     None: LAYOUT["NO_TRANSFORM"],
@@ -271,12 +281,8 @@ def _encode(
             return None
         strides.append(1 if shape == (k,) and k > 1 else 0)
     code, dim = (-1, 0) if inner is None else model_code(inner)  # type: ignore[misc]
-    fields = dict(
-        zip(("M_CENTER", "M_AXES", "M_RADIUS", "M_ANGLE", "M_SCALE"), strides[:5], strict=True)
-    )
-    meta += _integers("M_FIXED", M_K=k, M_D=d, M_SIGN=int(sign), M_OUTER=strides[5],
-                      M_TRANSFORM=TRANSFORM_CODES[transform], M_INNER=code, M_INNER_DIM=dim,
-                      **fields)  # fmt: skip
+    meta += _pack_block(k, d, *strides[:5], int(sign), TRANSFORM_CODES[transform], strides[5],
+                        code, dim)  # fmt: skip
     meta += index
     reals.append(rate)
     tensors += (center, axes, radius, angle, scale, outer, k0)
@@ -482,13 +488,10 @@ def _arguments(
             groups.append([code, int(group.smooth), len(group.blocks), outputs])
             temperatures.append(group.temperature)
         sizes.append(total)
-    for mode, smooth, count, outputs in groups:
-        blocks += _integers(
-            "G_FIXED", G_MODE=mode, G_SMOOTH=smooth, G_BLOCKS=count, G_OUTPUTS=outputs
-        )
-    header = dict(L_B=B, L_N=n, L_M=m, L_Q=q, L_OUTER=outer[0], L_OUTER_DIM=outer[1],
-                  L_BLOCKS=len(rates), L_GROUPS=len(groups))  # fmt: skip
-    scales = dict(R_GAIN_SCALE=1.0, R_OFFSET_SCALE=1.0)
+    for group in groups:
+        blocks += _pack_group(*group)
+    strides: list[int | None] = [0, 0]
+    scales = (0.0, 1.0, 1.0)
     condition: tuple[Tensor | None, Tensor | None] = (None, None)
     if affine is not None:
         trace_weight, gain, gain_scale, offset, offset_scale = affine
@@ -499,15 +502,10 @@ def _arguments(
         strides = [_output_stride(v, sum(sizes)) for v in (gain, offset)]
         if None in strides:
             return None
-        header.update(L_GAIN_STRIDE=strides[0], L_OFFSET_STRIDE=strides[1])
-        scales = dict(
-            R_TRACE_WEIGHT=float(trace_weight),
-            R_GAIN_SCALE=float(gain_scale),
-            R_OFFSET_SCALE=float(offset_scale),
-        )
+        scales = (float(trace_weight), float(gain_scale), float(offset_scale))
         condition = gain, offset
-    meta = _integers("META_HEADER", **header) + blocks
-    reals = LAYOUT.record("REALS_HEADER", **scales) + rates + temperatures
+    meta = _pack_header(B, n, m, q, *outer, len(rates), *strides, len(groups)) + blocks
+    reals = _pack_reals(*scales) + rates + temperatures
     inputs = (x, sigma, *condition, *tensors)
     grads = torch.is_grad_enabled()
     for v in inputs:
@@ -529,11 +527,6 @@ def _kernel_arrays(
     at = LAYOUT["PT_H"]
     pointers[at:at] = [0 if v is None else v.data_ptr() for v in outputs]
     return array.array("q", meta), array.array("d", reals), array.array("Q", pointers)
-
-
-def _integers(size: str, **fields: int) -> list[int]:
-    """An integer record of the kernel's ``meta`` (:meth:`~torchcbf._native.Layout.record`)."""
-    return [int(v) for v in LAYOUT.record(size, **fields)]
 
 
 def _output_stride(value: Tensor | None, K: int) -> int | None:
