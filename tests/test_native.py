@@ -173,3 +173,16 @@ def test_a_kernel_whose_source_cannot_be_read_is_refused(
             sources=("_lie_kernel.c",),
         )  # fmt: skip
     assert got is None and "cannot read the interface" in caplog.text
+
+
+def test_a_packer_places_values_by_name() -> None:
+    from torchcbf.barriers import native
+
+    layout = native.LAYOUT
+    pack = layout.packer("G_FIXED", "G_OUTPUTS", "G_MODE")  # any order, missing slots 0
+    rec = pack(7, 2)
+    assert len(rec) == layout["G_FIXED"] and sum(rec) == 9
+    assert rec[layout["G_OUTPUTS"]] == 7 and rec[layout["G_MODE"]] == 2
+    assert rec == layout.record("G_FIXED", cast=int, G_OUTPUTS=7, G_MODE=2)
+    with pytest.raises(ValueError, match="M_INNER"):
+        layout.packer("G_FIXED", "M_INNER")  # past this record's slots
