@@ -163,3 +163,47 @@ def test_public_integrators_check_inputs_and_run_forward_hooks() -> None:
     )
     with pytest.raises(ValueError, match="method must be 'euler' or 'rk4'"):
         unchecked("heun")
+
+
+class _OwnRate(_Rotation):
+    """A closed-form ``xdot`` of its own, not ``f + g u``."""
+
+    def xdot(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        return super().xdot(x, u) + 0.5
+
+
+class _Pendulum(ControlAffine):
+    """Two controls, a state-dependent ``g``: the column sums of ``f + g u`` matter."""
+
+    def __init__(self) -> None:
+        super().__init__(2, 2)
+
+    def f(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.stack([x[..., 1], -torch.sin(x[..., 0])], -1)
+
+    def g(self, x: torch.Tensor) -> torch.Tensor:
+        col = torch.stack([torch.cos(x[..., 0]), 1.0 + x[..., 1] ** 2], -1)
+        return torch.stack([0.3 * col, col], -1)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("method", ["euler", "rk4"])
+@pytest.mark.parametrize("model", ["plain", "own xdot", "hooked"])
+def test_unchecked_step_in_both_layouts_matches_the_public_step(dtype, method, model) -> None:
+    from torchcbf.integrators import rate_form, unchecked_step
+
+    dyn = _OwnRate() if model == "own xdot" else _Pendulum()
+    if model == "hooked":
+        dyn.register_forward_hook(lambda module, args, out: 0.5 * out)
+    form = rate_form(dyn)
+    assert form == {"plain": "plain", "own xdot": "xdot", "hooked": "module"}[model]
+    gen = torch.Generator().manual_seed(1)
+    x = torch.randn(3, 7, dyn.state_dim, generator=gen, dtype=dtype)
+    u = torch.randn(3, 7, dyn.control_dim, generator=gen, dtype=dtype)
+    ref = step(dyn, x, u, 0.05, method=method)
+    tol = {"atol": 1e-12, "rtol": 1e-12} if dtype == torch.float64 else {}
+    torch.testing.assert_close(unchecked_step(dyn, method, x, u, 0.05, form=form), ref, **tol)
+    xc, uc = x.mT.contiguous(), u.mT.contiguous()  # [3, n, 7]: each component's samples
+    out = unchecked_step(dyn, method, xc, uc, 0.05, form=form, component=True)
+    assert out.shape == xc.shape
+    torch.testing.assert_close(out.mT, ref, **tol)

@@ -19,18 +19,30 @@ from torchcbf._checks import (
     check_positive,
     check_same,
 )
-from torchcbf.dynamics.base import ControlAffine
+from torchcbf.dynamics.base import MATVEC_COLUMNS_UP_TO, ControlAffine
 
 Method = Literal["euler", "rk4", "euler_maruyama"]
 METHODS: tuple[str, ...] = ("euler", "rk4", "euler_maruyama")
 
 
-def _rate(dynamics: ControlAffine, w: Tensor | None) -> Callable[[Tensor, Tensor], Tensor]:
-    """``(x, u) -> xdot`` of checked inputs: the model's ``xdot`` directly (no module call,
-    no input checks), with ``M w`` added where ``w`` is given; the module call where a
-    subclass rewrote ``forward`` itself or forward hooks are registered."""
+def rate_form(dynamics: ControlAffine) -> str:
+    """How ``dynamics``' rate is evaluated: ``"module"`` (the module call, where a subclass
+    rewrote ``forward`` itself or forward hooks are registered), ``"plain"`` (``xdot`` is
+    ``f + g u``, not rewritten: a caller may form the sum in any layout) or ``"xdot"`` (the
+    model's own ``xdot``)."""
     hooked = dynamics._forward_hooks or dynamics._forward_pre_hooks
     if hooked or type(dynamics).forward is not ControlAffine.forward:
+        return "module"
+    return "plain" if getattr(dynamics.xdot, "__func__", None) is ControlAffine.xdot else "xdot"
+
+
+def _rate(
+    dynamics: ControlAffine, w: Tensor | None, form: str | None = None
+) -> Callable[[Tensor, Tensor], Tensor]:
+    """``(x, u) -> xdot`` of checked inputs by :func:`rate_form` (``form``, when the caller
+    has it): the model's ``xdot`` directly (no module call, no input checks), with ``M w``
+    added where ``w`` is given, or the module call."""
+    if (rate_form(dynamics) if form is None else form) == "module":
         return lambda x, u: dynamics(x, u, w)
     if w is None:
         return dynamics.xdot
@@ -40,18 +52,66 @@ def _rate(dynamics: ControlAffine, w: Tensor | None) -> Callable[[Tensor, Tensor
 def _euler(
     dynamics: ControlAffine, x: Tensor, u: Tensor, dt: float, w: Tensor | None = None
 ) -> Tensor:
-    return x + dt * _rate(dynamics, w)(x, u)
+    return _euler_of(_rate(dynamics, w), x, u, dt)
 
 
 def _rk4(
     dynamics: ControlAffine, x: Tensor, u: Tensor, dt: float, w: Tensor | None = None
 ) -> Tensor:
-    rate = _rate(dynamics, w)
+    return _rk4_of(_rate(dynamics, w), x, u, dt)
+
+
+Rate = Callable[[Tensor, Tensor], Tensor]
+
+
+def _euler_of(rate: Rate, x: Tensor, u: Tensor, dt: float) -> Tensor:
+    return x + dt * rate(x, u)
+
+
+def _rk4_of(rate: Rate, x: Tensor, u: Tensor, dt: float) -> Tensor:
     k1 = rate(x, u)
     k2 = rate(x + 0.5 * dt * k1, u)
     k3 = rate(x + 0.5 * dt * k2, u)
     k4 = rate(x + dt * k3, u)
     return x + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def unchecked_step(
+    dynamics: ControlAffine,
+    method: str,
+    x: Tensor,
+    u: Tensor,
+    dt: float,
+    *,
+    form: str,
+    component: bool = False,
+) -> Tensor:
+    """``euler`` or ``rk4`` without input checks, the rate evaluated as ``form`` says
+    (:func:`rate_form`, computed once by the caller: a compiled caller passes it so that
+    its graphs differ where the forms do). ``x [..., n]``, ``u [..., m]``; with
+    ``component``, component-major ``x [..., n, K]``, ``u [..., m, K]`` (each component's
+    ``K`` samples along the last axis; the model is handed ``[..., K, n]`` views) ->
+    ``[..., n, K]``: for a ``"plain"`` rate the sum ``f + g u`` is then formed over the
+    components directly, so compiled code runs its loops over contiguous samples instead of
+    one short state vector at a time."""
+    rate = model_rate = _rate(dynamics, None, form)
+    if component:
+        plain = form == "plain"
+
+        def component_rate(xc: Tensor, uc: Tensor) -> Tensor:
+            x = xc.mT
+            if not plain:
+                return model_rate(x, uc.mT).mT
+            g = dynamics.g(x)
+            if g.shape[-1] > MATVEC_COLUMNS_UP_TO:
+                return (dynamics.f(x) + (g @ uc.mT.unsqueeze(-1)).squeeze(-1)).mT
+            xdot = dynamics.f(x).mT
+            for j in range(g.shape[-1]):
+                xdot = xdot + g[..., j].mT * uc[..., j : j + 1, :]
+            return xdot
+
+        rate = component_rate
+    return (_euler_of if method == "euler" else _rk4_of)(rate, x, u, dt)
 
 
 def _checked(dynamics: ControlAffine, x: Tensor, u: Tensor, w: Tensor | None) -> None:

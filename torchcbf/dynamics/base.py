@@ -51,6 +51,8 @@ class NativeModel(NamedTuple):
 
 #: rows of a batch from which :func:`matvec` sums columns instead of calling ``matmul``
 MATVEC_COLUMNS_FROM = 256
+#: columns up to which :func:`matvec` sums them (wider ``g`` goes to ``matmul``)
+MATVEC_COLUMNS_UP_TO = 8
 
 
 def matvec(g: Tensor, u: Tensor) -> Tensor:
@@ -58,7 +60,7 @@ def matvec(g: Tensor, u: Tensor) -> Tensor:
     ``[..., n]``. For a batch of many small matrices it sums ``m`` scaled columns (CPU
     matmul of ``[n, m] x [m, 1]`` blocks is several times slower); a few use ``matmul``."""
     rows = max(g.numel() // max(g.shape[-1] * g.shape[-2], 1), u.numel() // max(u.shape[-1], 1))
-    if rows < MATVEC_COLUMNS_FROM or g.shape[-1] > 8:
+    if rows < MATVEC_COLUMNS_FROM or g.shape[-1] > MATVEC_COLUMNS_UP_TO:
         return (g @ u.unsqueeze(-1)).squeeze(-1)
     out = g[..., 0] * u[..., 0:1]
     for j in range(1, g.shape[-1]):
