@@ -148,3 +148,27 @@ def test_traced_refuses_a_tensor_it_cannot_lift():
     w = torch.tensor([1.0, 2.0])
     with torch.no_grad(), pytest.raises(TraceError, match="FakeTensor"):
         Traced(lambda x: (x * w,), [])(torch.ones(2))
+
+
+class _Doubled(torch.nn.Module):
+    def forward(self, x):
+        return 2.0 * x
+
+    def double(self, x):
+        return self(x) + 1.0
+
+
+def test_compiled_instances_keep_graphs_of_their_own():
+    """Modules of one class: the hooked one's compiled method runs its hook, although
+    torch.compile does not guard on hooks (each Compiled has its own code object, so its
+    own graphs and its own limit on their number), and an unhooked one after it does not."""
+    from torchcbf._compile import Compiled
+
+    plain, hooked = _Doubled(), _Doubled()
+    hooked.register_forward_hook(lambda module, args, out: out * 10.0)
+    x = torch.ones(3)
+    first, second = Compiled(plain.double, {}), Compiled(hooked.double, {})
+    torch.testing.assert_close(first(x), torch.full((3,), 3.0))
+    torch.testing.assert_close(second(x), torch.full((3,), 21.0))
+    assert first.compiled.__wrapped__.__code__ is not second.compiled.__wrapped__.__code__
+    torch.testing.assert_close(Compiled(_Doubled().double, {})(x), torch.full((3,), 3.0))

@@ -41,7 +41,7 @@ class Compiled:
     def __init__(self, fn: Callable[..., Any], options: dict[str, Any]) -> None:
         self.eager = fn
         self.options = dict(options)
-        self.compiled: Callable[..., Any] | None = torch.compile(fn, **options)
+        self.compiled: Callable[..., Any] | None = torch.compile(_own_code(fn), **options)
         self._first = True
 
     def __getstate__(self) -> dict[str, Any]:
@@ -69,6 +69,26 @@ class Compiled:
             return self.eager(*args)
         self._first = False
         return out
+
+
+def _own_code(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``fn`` (a function or bound method) with a code object of its own. torch.compile
+    keeps its graphs, and its limit on their number, per code object: without a copy every
+    instance of a class (each planner, say) shares one cache, so a graph traced for one
+    instance is reused for another wherever its guards do not tell them apart (a module's
+    forward hooks, which torch.compile does not guard on), and a process with several
+    instances soon exceeds the limit and runs eager."""
+    bound = isinstance(fn, types.MethodType)
+    func = fn.__func__ if bound else fn
+    if not isinstance(func, types.FunctionType):
+        return fn
+    own = types.FunctionType(
+        func.__code__.replace(), func.__globals__, func.__name__, func.__defaults__,
+        func.__closure__,
+    )  # fmt: skip
+    own.__kwdefaults__ = func.__kwdefaults__
+    own.__qualname__ = func.__qualname__
+    return types.MethodType(own, fn.__self__) if bound else own
 
 
 def _trusting_isa(first: bool) -> contextlib.AbstractContextManager[None]:
