@@ -9,6 +9,7 @@ import math
 import pytest
 import torch
 
+from torchcbf import integrators
 from torchcbf.dynamics import AccelUnicycle, ControlAffine, DoubleIntegrator, SingleIntegrator
 from torchcbf.integrators import rk4
 from torchcbf.mppi import MPPI, QuadraticGoal, Reach, StageCost
@@ -387,6 +388,61 @@ def test_compiled_user_model_matches_eager(dtype, compile, form):
         a, b = eager(x, 0.1 * step), compiled(x, 0.1 * step)
         torch.testing.assert_close(a.plan, b.plan, atol=tol, rtol=tol)
         torch.testing.assert_close(a.cost_min, b.cost_min, atol=tol, rtol=tol)
+
+
+class _DriftedUnicycle(_UserUnicycle):
+    """A closed-form ``xdot`` of its own (not ``f + g u``) with a drift ``f`` does not have."""
+
+    def xdot(self, x, u):
+        return super().xdot(x, u) + 0.1
+
+
+@pytest.mark.parametrize("layout", ["component", "sample"])
+@pytest.mark.parametrize(
+    "model",
+    ["f and g, euler", "f and g, rk4", "own xdot", "hooked", "timed step function"],
+)
+def test_compiled_rollouts_match_a_loop_and_compile_once(layout, model):
+    """The rollouts equal the model integrated step by step in a Python loop, eager and
+    compiled; the compiled step is one graph for every step index (at most one more where
+    the step reads it), so later calls compile nothing."""
+    pytest.importorskip("torch._dynamo")
+    dyn = _DriftedUnicycle() if model == "own xdot" else _UserUnicycle()
+    if model == "hooked":
+        dyn.register_forward_hook(lambda module, args, out: out * 0.5)
+    integrator = "rk4" if model.endswith("rk4") else "euler"
+
+    def timed(x, u, j):  # time-dependent dynamics: the step reads its index
+        return integrators.euler(dyn, x, u, 0.02) + 0.01 * j
+
+    H, K = 5, 24
+    seqs = torch.randn(K, H, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    kw = {"step": timed} if model == "timed step function" else {}
+
+    def planner(**extra):
+        return MPPI(dyn, _goal_cost, H, K, 0.02, 1.0, 0.5, 0.1, seed=3, layout=layout,
+                    integrator=integrator, keep_rollouts=K, action_sampler=lambda x, t: seqs,
+                    **kw, **extra)  # fmt: skip
+
+    def loop(x):
+        states = [x.unsqueeze(1).expand(2, K, 4)]
+        for j in range(H):
+            u = seqs[:, j].expand(2, K, 2)
+            if kw:
+                states.append(timed(states[-1], u, j))
+            else:
+                states.append(integrators.step(dyn, states[-1], u, 0.02, method=integrator))
+        return torch.stack(states, 2)
+
+    x = _x0(2)
+    eager, compiled = planner(), planner(compile=True)
+    torch.testing.assert_close(eager(x).rollouts, loop(x), atol=1e-12, rtol=1e-12)
+    torch.testing.assert_close(compiled(x).rollouts, loop(x), atol=1e-10, rtol=1e-10)
+    with torch.compiler.set_stance("fail_on_recompile"):
+        for step in range(1, 3):
+            y = x + 0.1 * step
+            torch.testing.assert_close(compiled(y, 0.1 * step).rollouts, loop(y), atol=1e-10,
+                                       rtol=1e-10)  # fmt: skip
 
 
 def test_compile_failure_runs_eager(caplog):

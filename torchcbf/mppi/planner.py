@@ -74,8 +74,10 @@ H+1, K]``, ``[B, m, H, K]``: each component's samples contiguous) or, with
 
 Compilation: ``MPPI(..., compile=True)`` (or a dict of ``torch.compile`` keyword arguments)
 compiles the evaluation of a torch cost (cost + control cost, called once on all samples)
-and, on the torch path, one integration step; the loop over the horizon, noise sampling,
-weights and the plan update stay eager, and a fused cost is not affected. The first call
+and, on the torch path, one integration step that reads and writes the rollout buffers
+itself (one graph for every step index); the loop over the horizon, noise sampling,
+weights and the plan update stay eager, and a fused cost is not affected. Each planner
+compiles its own graphs (:class:`torchcbf._compile.Compiled`). The first call
 compiles (3.5-6 s on a 2-core CPU with a cold compile cache, under 1 s with a warm one; see
 :mod:`torchcbf._compile`); later calls with the same ``B`` reuse the code, whatever the
 values of the state, time and plan. Where the backend fails to build, the planner warns and
@@ -498,13 +500,11 @@ class MPPI(ExactConstants):
         self._needs_history = bool(getattr(cost, "needs_history", False))
         self._integrate = integrators.unchecked(integrator)
         self._compiled = bool(compile)
-        self._step_fn: Callable[..., Tensor] = self._step
-        self._component_fn: Callable[..., Tensor] = self._component_step
+        self._step_into_fn: Callable[..., None] = self._step_into
         self._score_fn: Callable[..., Tensor] = self._score
         if compile:
             kwargs = compile if isinstance(compile, dict) else {}
-            self._step_fn = Compiled(self._step, kwargs)
-            self._component_fn = Compiled(self._component_step_contiguous, _step_options(kwargs))
+            self._step_into_fn = Compiled(self._step_into, _step_options(kwargs))
             self._score_fn = Compiled(self._score, kwargs)
         if backend == "triton" and not _triton.available():
             raise ValueError("backend='triton' needs Triton, which does not import here")
@@ -897,27 +897,34 @@ class MPPI(ExactConstants):
     def _rollout(self, x: Tensor, controls: Tensor, states: Tensor) -> None:
         """Roll the sampled controls out into the state buffer."""
         states[:, :, 0] = x.unsqueeze(1)
-        if self.layout == "component":
+        component = self.layout == "component"
+        if component:
             # each step reads and writes each component's samples contiguously
-            cs, cu = states.permute(0, 3, 2, 1), controls.permute(0, 3, 2, 1)
-            for j in range(self.horizon):
-                cs[:, :, j + 1] = self._component_fn(cs[:, :, j], cu[:, :, j], j)
-            return
-        state = states[:, :, 0]
+            states, controls = states.permute(0, 3, 2, 1), controls.permute(0, 3, 2, 1)
+        # the rate's form is an argument of the compiled step, so a graph traced for one
+        # model is not reused for a model of the same class that is evaluated otherwise
+        # (hooks, say: torch.compile does not guard on a module's hooks)
+        rate = integrators.rate_form(self.dynamics)
         for j in range(self.horizon):
-            state = self._step_fn(state, controls[:, :, j], j)
-            states[:, :, j + 1] = state
+            self._step_into_fn(states, controls, j, component, rate)
 
-    def _component_step(self, xc: Tensor, uc: Tensor, j: int) -> Tensor:
-        """:meth:`_step` of component-major states ``[B, n, K]`` and controls ``[B, m, K]``:
-        ``[B, n, K]`` (the model is given ``[B, K, n]`` views whose components are
-        contiguous over the samples)."""
-        return self._step(xc.mT, uc.mT, j).mT
-
-    def _component_step_contiguous(self, xc: Tensor, uc: Tensor, j: int) -> Tensor:
-        # compiled: the code writes the next states in component-major order, so its loops
-        # run over contiguous samples
-        return self._component_step(xc, uc, j).contiguous()
+    def _step_into(
+        self, states: Tensor, controls: Tensor, j: int, component: bool, rate: str
+    ) -> None:
+        """Step ``j`` of the rollout in place: from ``states[:, :, j]`` and ``controls[:, :,
+        j]`` into ``states[:, :, j + 1]``, the buffers ``[B, K, H+1, n]`` and ``[B, K, H, m]``,
+        or ``[B, n, H+1, K]`` and ``[B, m, H, K]`` where ``component``; ``rate``: the model's
+        :func:`~torchcbf.integrators.rate_form`. Compiled, the code reads and writes the
+        buffers directly, one graph for every ``j``."""
+        x, u = states.select(2, j), controls.select(2, j)
+        if self.step is not None:
+            new = self.step(x.mT, u.mT, j).mT if component else self.step(x, u, j)
+        else:
+            dyn, method = self.dynamics, self.integrator
+            new = integrators.unchecked_step(
+                dyn, method, x, u, self.dt, form=rate, component=component
+            )
+        states.select(2, j + 1).copy_(new)
 
     def _score(
         self,
