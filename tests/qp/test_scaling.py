@@ -130,3 +130,44 @@ def test_multipliers_and_gradients_of_a_scaled_problem():
 
     args = [t.clone().requires_grad_(True) for t in (Qm, pm, Gm, hm, A, b)]
     assert torch.autograd.gradcheck(loss, args, eps=1e-7, atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.parametrize("scale", [1e-150, 1e-10, 1e10])
+@pytest.mark.parametrize(
+    "route",
+    ["auto", "proxsuite", "qpsolvers:clarabel", "qpsolvers:proxqp", "qpsolvers:highs"],
+)
+def test_outside_solvers_see_an_objective_of_any_magnitude(route, scale):
+    """Q and p of 1e-150 .. 1e10 on the routes to outside solvers (``"auto"`` with 65
+    variables goes to proxsuite straight from the inputs): the minimiser of the unscaled
+    problem, multipliers in the problem's own units (these solvers' tolerances are absolute:
+    they "solved" ``1e-10 (Q, p)`` at ``x = 0``)."""
+    pytest.importorskip("proxsuite")
+    if route.startswith("qpsolvers:"):
+        qpsolvers = pytest.importorskip("qpsolvers")
+        if route.split(":")[1] not in qpsolvers.available_solvers:
+            pytest.skip(f"{route} is not installed")
+    g = torch.Generator().manual_seed(5)
+    B, n, m = 2, 65, 2
+    L = torch.randn(B, n, n, generator=g, dtype=F64)
+    Q = L @ L.mT / n + 0.2 * torch.eye(n, dtype=F64)
+    p = 3.0 * torch.randn(B, n, generator=g, dtype=F64)
+    G = torch.randn(B, m, n, generator=g, dtype=F64)
+    h = torch.rand(B, m, generator=g, dtype=F64) + 0.1
+    lb, ub = -torch.ones(B, n, dtype=F64), torch.ones(B, n, dtype=F64)
+    ref_x, ref_ok = _reference(Q, p, G, h, None, None, lb, ub)
+    assert ref_ok.all()
+    kw = {"backend": route} if route != "auto" else {}
+    with torch.no_grad():
+        sol = solve_qp(Q * scale, p * scale, G, h, lb=lb, ub=ub, **kw)
+    if route == "auto":
+        assert sol.path == "small_proxsuite"
+    solved = (sol.status == int(Status.SOLVED)).numpy()
+    if route != "qpsolvers:proxqp":  # which stops at its iteration limit on one row: a status
+        assert solved.all(), sol.status
+    err = np.abs(sol.x.numpy() - ref_x).max(-1)
+    assert (err[solved] <= 1e-5).all(), err
+    # stationarity of (Q, p) with the multipliers as returned
+    grad = scale * (Q @ sol.x.unsqueeze(-1) + p.unsqueeze(-1)).squeeze(-1)
+    grad = grad + (G.mT @ sol.lam.unsqueeze(-1)).squeeze(-1) + sol.lam_ub - sol.lam_lb
+    assert (grad.abs().amax(-1)[solved] <= 1e-5 * scale * p.abs().max()).all()
