@@ -16,6 +16,7 @@ from torchcbf.filters import (
     SafetyFilter,
     Slack,
     Stochastic,
+    local_margin,
     noise_bound,
     risk_margin,
 )
@@ -145,3 +146,121 @@ def test_risk_aware_exit_probability_several_rho(rho: float) -> None:
     vanilla = _exit_rate(_filters("vanilla", alpha=1.0), h0, seed=3, dt=0.01)
     assert rate <= rho, (rho, rate)
     assert vanilla > rate + 0.1, (vanilla, rate)
+
+
+def _radius_scene(dtype: torch.dtype, eta: object = "local") -> SafetyFilter:
+    """Two radius-form ellipses rectified for the noisy unicycle (scenario B's risk-aware
+    barrier): the gradient, so the local noise, changes along each ellipse."""
+    model = AccelUnicycle(sigma=0.25)
+    shapes = Ellipse(
+        torch.tensor([[1.0, 2.0], [2.5, -0.5]]), torch.tensor([[0.4, 1.6], [1.2, 0.3]])
+    )
+    barrier = rectify(Transformed(shapes, "radius"), model, "exponential", gains=[5.0])
+    mode = RiskAware(rho=0.05, horizon=0.2, eta=eta)
+    return SafetyFilter(model, barrier, mode=mode, R=torch.diag(torch.tensor([1.0, 0.1]))).to(dtype)
+
+
+def _unicycle_states(dtype: torch.dtype, rows: int = 24, seed: int = 3) -> torch.Tensor:
+    gen = torch.Generator().manual_seed(seed)
+    lo = torch.tensor([-1.0, -1.5, -0.5, -math.pi], dtype=dtype)
+    hi = torch.tensor([4.0, 4.5, 3.0, math.pi], dtype=dtype)
+    return lo + (hi - lo) * torch.rand(rows, 4, generator=gen, dtype=dtype)
+
+
+def test_local_margin_matches_autograd_per_row(dtype: torch.dtype) -> None:
+    filt = _radius_scene(dtype)
+    (barrier,) = filt.barriers
+    model = filt.dynamics
+    x = _unicycle_states(dtype)
+    got = filt.condition.margin_at(barrier, model, x).detach()  # [B, 2]
+    scale = math.sqrt(2 * 0.2) * float(erfinv(0.95))
+    sigma = model.sigma_matrix.double()
+    for row in range(x.shape[0]):
+        xr = x[row].double().clone().requires_grad_(True)
+        h = barrier.double()(xr)
+        for i in range(h.shape[-1]):
+            (grad,) = torch.autograd.grad(h[i], xr, retain_graph=True)
+            ref = scale * float(torch.linalg.vector_norm(grad @ sigma))
+            tol = 1e-10 if dtype == F64 else 1e-4
+            assert abs(float(got[row, i]) - ref) <= tol * max(1.0, ref)
+    # the function itself on hand-made gradients, batched over leading dimensions
+    dhdx = torch.tensor([[[3.0, 4.0], [0.0, 0.0]]], dtype=dtype).expand(5, 2, 2, 2)
+    sig = (0.5 * torch.eye(2, dtype=dtype)).expand(5, 2, 2, 2)
+    out = local_margin(dhdx, sig, 0.1, 2.0)
+    assert out.shape == (5, 2, 2)
+    expected = torch.tensor([2.5, 0.0], dtype=dtype) * 2.0 * float(erfinv(0.9))
+    torch.testing.assert_close(out[0, 0], expected)
+
+
+def test_local_margin_gradient_is_finite_at_zero() -> None:
+    dhdx = torch.zeros(3, 1, 2, dtype=F64, requires_grad=True)
+    sig = torch.eye(2, dtype=F64).expand(3, 2, 2)
+    local_margin(dhdx, sig, 0.1, 1.0).sum().backward()
+    assert torch.equal(dhdx.grad, torch.zeros_like(dhdx))
+    x = torch.tensor([[0.3, -0.2]], dtype=F64, requires_grad=True)
+    d = torch.cat([x, 2 * x], 0).unsqueeze(0)  # [1, 2, 2]: gradient of the norm
+    assert torch.autograd.gradcheck(
+        lambda d: local_margin(d, sig[:1], 0.1, 1.0), (d.detach().requires_grad_(True),)
+    )
+
+
+def test_local_eta_filter_equals_constant_eta_filter_row_by_row(dtype: torch.dtype) -> None:
+    """At each state the local filter answers what a filter whose constant eta is that
+    state's own ``|dh/dx sigma|`` answers (a loop of one-row filters as the reference)."""
+    filt = _radius_scene(dtype)
+    (barrier,) = filt.barriers
+    model = filt.dynamics
+    x = _unicycle_states(dtype)
+    gen = torch.Generator().manual_seed(4)
+    u_nom = 4.0 * torch.randn(x.shape[0], 2, generator=gen, dtype=dtype)
+    out = filt(x, u_nom)
+    # the C condition kernel declines local eta (its conditions are affine in the Lie terms)
+    assert filt.condition.affine_cbf(filt.alpha[0]) is None
+    with torch.no_grad():
+        terms = barrier.lie(x, model, hessian=False)
+    eta = torch.linalg.vector_norm(terms.dhdx @ model.sigma(x), dim=-1)
+    tol = 1e-7 if dtype == F64 else 2e-3
+    for row in range(x.shape[0]):
+        ref = _radius_scene(dtype, eta=eta[row].double())
+        one = ref(x[row : row + 1], u_nom[row : row + 1])
+        torch.testing.assert_close(out.u[row], one.u[0], rtol=tol, atol=tol)
+        assert int(out.status[row]) == int(one.status[0])
+
+
+def test_local_eta_differentiable_and_constant_eta_keeps_native_path() -> None:
+    filt = _radius_scene(F64)
+    x = _unicycle_states(F64, rows=6, seed=8)
+    u_nom = torch.full((6, 2), 3.0, dtype=F64)
+    # gradients through the local margin (the general path answers in grad mode)
+    xg = x.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda z: filt(z, u_nom).u, (xg,), atol=1e-6, rtol=1e-5)
+    # a constant bound keeps the C condition kernel; the mode says which it is
+    fixed = _radius_scene(F64, eta=[2.0, 2.0])
+    assert fixed.condition.affine_cbf(fixed.alpha[0]) is not None
+    assert "local" in repr(filt.condition) and fixed.condition.local is False
+
+
+def test_local_eta_errors() -> None:
+    with pytest.raises(ValueError, match="eta"):
+        RiskAware(rho=0.1, horizon=1.0, eta="global")
+    mode = RiskAware(rho=0.1, horizon=1.0, eta=[0.5])
+    ball = Ball([0.0, 0.0], 1.0)
+    with pytest.raises(ValueError, match="binds"):
+        mode.margin_at(ball, SingleIntegrator(2, sigma=0.1), torch.zeros(1, 2))
+    with pytest.raises(ValueError, match="sigma"):
+        SafetyFilter(SingleIntegrator(2), ball, mode=RiskAware(0.1, 1.0, eta="local"))
+
+
+def test_local_eta_horizon_with_gradient_gives_the_same_margin() -> None:
+    filt = _radius_scene(F64)
+    x = _unicycle_states(F64, rows=5, seed=9)
+    u_nom = torch.full((5, 2), 2.0, dtype=F64)
+    with torch.no_grad():
+        before = filt(x, u_nom).u
+    mode = filt.condition
+    mode.horizon.requires_grad_(True)
+    out = filt(x, u_nom)
+    torch.testing.assert_close(out.u.detach(), before)
+    (grad,) = torch.autograd.grad(out.u.sum(), mode.horizon)
+    assert torch.isfinite(grad)
+    assert "local_scale" not in filt.state_dict()  # derived from rho and T, not saved

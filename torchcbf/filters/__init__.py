@@ -11,7 +11,7 @@ from torchcbf.filters.conditions import Condition, cbf_condition, clf_condition
 from torchcbf.filters.fallback import Fallback
 from torchcbf.filters.modes import FilterMode, RiskAware, Robust, Stochastic, Vanilla
 from torchcbf.filters.qp_data import Slack
-from torchcbf.filters.risk import noise_bound, risk_margin
+from torchcbf.filters.risk import local_margin, noise_bound, risk_margin
 from torchcbf.filters.safety_filter import FilterOutput, FilterStatus, SafetyFilter
 
 __all__ = [
@@ -32,6 +32,7 @@ __all__ = [
     "as_class_k",
     "cbf_condition",
     "clf_condition",
+    "local_margin",
     "noise_bound",
     "risk_margin",
 ]

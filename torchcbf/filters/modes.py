@@ -30,7 +30,7 @@ from torchcbf.barriers.native import Affine
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.filters.class_k import LinearClassK
 from torchcbf.filters.conditions import Condition, cbf_condition, clf_condition
-from torchcbf.filters.risk import noise_bound, risk_margin
+from torchcbf.filters.risk import local_margin, noise_bound, risk_margin
 
 Gain = Callable[[Tensor], Tensor]
 
@@ -184,6 +184,17 @@ class RiskAware(FilterMode):
         rho: probability bound in ``(0, 1)``.
         horizon: ``T > 0``.
         eta: noise bound ``|dh/dx sigma| <= eta`` on the safe set, scalar or ``[k]``; or
+            ``"local"``: each row's own ``|dh/dx(x) sigma(x)|`` at its state, so the margin
+            ``Delta(x) = sqrt(2 T) |dh/dx(x) sigma(x)| erfinv(1 - rho)`` follows the noise
+            the barrier feels where the robot is (a berth of the same width in state units
+            wherever the barrier's gradient changes, where one constant ``eta`` sized by the
+            steepest point widens it elsewhere). The bound on leaving ``{h >= 0}`` within
+            ``T`` then holds for the windows in which ``|dh/dx sigma|`` stays at most its value
+            at the window's start (:func:`~torchcbf.filters.risk.local_margin`); it is a
+            local approximation, not the global guarantee of a constant ``eta``. The CBF
+            conditions are then not affine in the Lie terms, so the C condition kernel
+            declines them (:meth:`affine_cbf`): they are computed in torch from the Lie
+            terms (which the C Lie kernel may still give). Or
         safe_states: ``[N, n]`` sample states to compute it with :func:`noise_bound` (when
             the filter binds the mode; one of the two is required with barriers).
         clf_rho, clf_eta, clf_gamma: risk-aware CLF: risk (default ``rho``), noise bound of
@@ -213,7 +224,14 @@ class RiskAware(FilterMode):
         self.rho = float(rho)
         T = check_number("horizon", horizon, low=0.0, strict=True)
         self.register_buffer("horizon", torch.tensor(T, dtype=torch.float64))
-        self.eta = eta
+        one = torch.ones((), dtype=torch.float64)
+        scale = risk_margin(one, self.rho, self.horizon)
+        self.register_buffer("local_scale", scale, persistent=False)
+        if isinstance(eta, str) and eta != "local":
+            raise ValueError(f"eta must be a bound (number or [k]) or 'local', got {eta!r}")
+        #: each row's margin from its own ``|dh/dx sigma|`` (``eta="local"``)
+        self.local = isinstance(eta, str)
+        self.eta = None if self.local else eta
         self.safe_states = safe_states
         self.clf_rho = self.rho if clf_rho is None else float(clf_rho)
         if not 0 < self.clf_rho < 1:
@@ -233,7 +251,7 @@ class RiskAware(FilterMode):
         states = self.safe_states
         if states is not None:
             check_last_dim("safe_states", states, dynamics.state_dim)
-        if barriers:
+        if barriers and not self.local:
             self.cbf_margin = self._margin(
                 "eta",
                 self.eta,
@@ -288,16 +306,36 @@ class RiskAware(FilterMode):
         return risk_margin(bound, rho, self.horizon)
 
     def cbf(self, terms: LieTerms, alpha: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
-        _check_k("eta", self.cbf_margin, terms.h.shape[-1])
+        if self.local:
+            # the scale sqrt(2T) erfinv(1 - rho) once per call, the norm per row
+            noise = torch.linalg.vector_norm(terms.dhdx @ dynamics.sigma(x), dim=-1)
+            margin = noise * self._local_scale(x)
+        else:
+            _check_k("eta", self.cbf_margin, terms.h.shape[-1])
+            margin = _like(self.cbf_margin, x)
         return cbf_condition(
-            terms,
-            "risk_aware",
-            alpha,
-            dynamics,
-            x,
-            margin=_like(self.cbf_margin, x),
-            horizon=_like(self.horizon, x),
+            terms, "risk_aware", alpha, dynamics, x, margin=margin, horizon=_like(self.horizon, x)
         )
+
+    def _local_scale(self, x: Tensor) -> Tensor:
+        """``sqrt(2 T) erfinv(1 - rho)`` in the dtype and device of ``x`` (the buffer, or
+        computed where ``T`` carries a gradient)."""
+        if self.horizon.requires_grad:
+            return risk_margin(x.new_ones(()), self.rho, self.horizon.to(x))
+        return self.local_scale.to(x)
+
+    def margin_at(
+        self, barrier: LieFunction, dynamics: ControlAffine, x: Tensor, t: Tensor | float = 0.0
+    ) -> Tensor:
+        """The CBF margin ``Delta`` of ``barrier`` (the filter's barriers, one module) at states
+        ``x [..., n]``: ``[..., k]`` (the constant margin broadcast, or the local one)."""
+        if not self.local:
+            if self.cbf_margin is None:
+                raise ValueError("the mode has no CBF margin until a filter binds it")
+            return self.cbf_margin.to(x).expand(*x.shape[:-1], -1)
+        terms = barrier.lie(x, dynamics, t, hessian=False)
+        dhdx = terms.dhdx if terms.dhdx.dim() == x.dim() + 1 else terms.dhdx.unsqueeze(-2)
+        return local_margin(dhdx, dynamics.sigma(x), self.rho, self.horizon.to(x))
 
     def clf(self, terms: LieTerms, rate: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
         _check_k("clf_eta", self.clf_margin, terms.h.shape[-1])
@@ -313,14 +351,15 @@ class RiskAware(FilterMode):
         )
 
     def affine_cbf(self, alpha: nn.Module) -> Affine | None:
-        if self.cbf_margin is None or self.horizon.requires_grad:
+        if self.local or self.cbf_margin is None or self.horizon.requires_grad:
             return None
         rate = 1.0 / float(self.horizon)
         return Affine(trace_weight=0.5, gain_scale=rate, offset=self.cbf_margin,
                       offset_scale=-rate)  # fmt: skip
 
     def extra_repr(self) -> str:
-        return f"rho={self.rho}, horizon={float(self.horizon)}"
+        local = ", eta='local'" if self.local else ""
+        return f"rho={self.rho}, horizon={float(self.horizon)}{local}"
 
 
 #: the names ``SafetyFilter(mode=...)`` takes for a mode with its default options

@@ -80,3 +80,16 @@ def risk_margin(eta: Tensor, rho: float | Tensor, horizon: float | Tensor) -> Te
     rho_t = torch.as_tensor(rho, dtype=eta.dtype, device=eta.device)
     T = torch.as_tensor(horizon, dtype=eta.dtype, device=eta.device)
     return torch.sqrt(2 * T) * eta * torch.erfinv(1 - rho_t)
+
+
+def local_margin(
+    dhdx: Tensor, sigma: Tensor, rho: float | Tensor, horizon: float | Tensor
+) -> Tensor:
+    """The risk-aware margin from each state's own noise: ``Delta = sqrt(2 T) |dh/dx sigma|
+    erfinv(1 - rho)`` with ``dhdx [..., k, n]`` and ``sigma [..., n, q]``; returns ``[..., k]``.
+
+    The bound of a constant ``eta`` holds over a window in which ``|dh/dx sigma|`` stays at
+    most its value at the window's start; elsewhere this margin is an approximation. Its
+    gradient where ``dh/dx sigma = 0`` is zero (the norm's subgradient), not NaN.
+    """
+    return risk_margin(torch.linalg.vector_norm(dhdx @ sigma, dim=-1), rho, horizon)

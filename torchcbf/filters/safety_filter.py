@@ -337,7 +337,9 @@ class SafetyFilter(nn.Module):
 
     @property
     def cbf_margin(self) -> Tensor | None:
-        """Risk-aware margin ``Delta`` of the CBF rows (``None`` in other modes)."""
+        """Risk-aware margin ``Delta`` of the CBF rows (``None`` in other modes, and with
+        ``RiskAware(eta="local")``, whose margin depends on the state:
+        :meth:`~torchcbf.filters.RiskAware.margin_at`)."""
         return getattr(self.condition, "cbf_margin", None)
 
     @property
