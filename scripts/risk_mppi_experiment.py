@@ -36,13 +36,17 @@ Variants (each on 32 tuning seeds from ``--seed``, never the evaluation seeds 0-
   ``risk_temperature``, ``--omega-weights``: the filter's QP weight on ``omega``, and
 ``--rhos``: the risk level ``rho``, ``--budgets``: the scenario's ``risk_budget``, a
 probability for the whole 5 s run shared by its windows of length ``T`` (``rho = budget T /
-5 s``; needs ``--horizons``).
+5 s``; needs ``--horizons``), ``--etas``: the scenario's ``risk_eta``, ``sup`` (one noise
+bound per ellipse over the operating states: a constant margin) or ``local`` (each step's
+own ``|dh/dx sigma|``: a margin that follows the barrier's gradient, a berth about as wide
+in metres at the long axes' tips as at the flat sides).
 
 ``--evaluate`` runs the scenario's ``mppi_rascbf`` as configured on any seed block (the
 evaluation seeds included) and prints the same columns.
 
-``--cost`` instead times the filters of ``mppi_scbf``, ``mppi_rascbf`` (both forms) and
-``shield_mppi`` on the same states, their closed loops, and counts filter calls per step.
+``--cost`` instead times the filters of ``mppi_scbf``, ``mppi_rascbf`` (both forms; the
+inside form with both noise bounds) and ``shield_mppi`` on the same states, their closed
+loops, and counts filter calls per step.
 
 Per variant: collisions, goals reached, robots leaving the field ``[-2.5, 5] x [-2, 6.5]``,
 relaxed filter steps, the risk-aware check (windows from ``h >= Delta`` that leave the
@@ -58,6 +62,7 @@ Usage::
     python scripts/risk_mppi_experiment.py --variants baseline --inflations 0 0.1 --max-speeds 8
     python scripts/risk_mppi_experiment.py --variants baseline --forms rectified inside
     python scripts/risk_mppi_experiment.py --variants baseline --horizons 0.1 0.03 --budgets 0.05
+    python scripts/risk_mppi_experiment.py --variants baseline --etas sup local --horizons 0.07
     python scripts/risk_mppi_experiment.py --evaluate --seed 0 --seeds 32
     python scripts/risk_mppi_experiment.py --cost --samples 1000
 """
@@ -78,6 +83,7 @@ from torchcbf.scenarios.unicycle_mppi_cbf import (
     AXES,
     CENTERS,
     GOAL,
+    RISK_ETAS,
     RISK_FORMS,
     ROLLOUT_DT,
     SIGMA,
@@ -147,6 +153,7 @@ def build(
     omega_weight: float | None = None,
     rho: float | None = None,
     budget: float | None = None,
+    eta: str | None = None,
 ):
     sc = mppi_cbf(
         "mppi_rascbf",
@@ -162,6 +169,7 @@ def build(
         control_weight=None if omega_weight is None else (1.0, omega_weight),
         rho=rho,
         risk_budget=budget,
+        risk_eta=eta,
     )
     if speed is not None:
         sc = with_filter(sc, speed_limited(sc, speed))
@@ -188,15 +196,24 @@ def build(
 
 
 def filter_cost(seeds: int, samples: int, repeat: int) -> None:
-    """Per-step cost of the filters of ``mppi_scbf``, ``mppi_rascbf`` (both forms) and
-    ``shield_mppi``, each method's whole closed loop (the planner included) and its filter
-    calls per control step. The filters are timed on the same inputs: the states and MPPI
-    controls of ``mppi_scbf``'s run at every tenth step (calls interleaved, after a
-    warm-up)."""
+    """Per-step cost of the filters of ``mppi_scbf``, ``mppi_rascbf`` (both forms, the inside
+    one with both noise bounds) and ``shield_mppi``, each method's whole closed loop (the
+    planner included) and its filter calls per control step. The filters are timed on the
+    same inputs: the states and MPPI controls of ``mppi_scbf``'s run at every tenth step
+    (calls interleaved, after a warm-up)."""
     setups = {
         "mppi_scbf": {"method": "mppi_scbf"},
         "mppi_rascbf rectified": {"method": "mppi_rascbf", "risk_form": "rectified"},
-        "mppi_rascbf inside": {"method": "mppi_rascbf", "risk_form": "inside"},
+        "mppi_rascbf inside sup": {
+            "method": "mppi_rascbf",
+            "risk_form": "inside",
+            "risk_eta": "sup",
+        },
+        "mppi_rascbf inside local": {
+            "method": "mppi_rascbf",
+            "risk_form": "inside",
+            "risk_eta": "local",
+        },
         "shield_mppi": {"method": "shield_mppi"},
     }
     loops: dict[str, tuple[float, float]] = {}
@@ -269,6 +286,7 @@ def main() -> None:
     parser.add_argument("--omega-weights", nargs="+", type=float, default=[None])
     parser.add_argument("--rhos", nargs="+", type=float, default=[None])
     parser.add_argument("--budgets", nargs="+", type=float, default=[None])
+    parser.add_argument("--etas", nargs="+", choices=RISK_ETAS, default=[None])
     parser.add_argument(
         "--evaluate",
         action="store_true",
@@ -277,7 +295,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.evaluate:
         tuned = ("horizons", "gains", "speeds", "max_speeds", "inflations", "forms")
-        tuned += ("temperatures", "omega_weights", "rhos", "budgets")
+        tuned += ("temperatures", "omega_weights", "rhos", "budgets", "etas")
         if any(getattr(args, name) != [None] for name in tuned) or args.cost:
             parser.error("--evaluate runs the configured method: no tuning options, no --cost")
         args.variants = ["baseline"]
@@ -289,12 +307,13 @@ def main() -> None:
         return
     print(f"seeds {args.seed}..{args.seed + args.seeds - 1}, K = {args.samples}")
     print(
-        f"{'rho':>8}{'R_w':>6} {'form':<10}{'temp':>5}  {'variant':<15}{'speed':>6}{'vmax':>5}"
-        f"{'infl':>5}{'k':>5}{'T s':>6}{'collide':>8}"
+        f"{'eta':<6}{'rho':>8}{'R_w':>6} {'form':<10}{'temp':>5}  {'variant':<15}"
+        f"{'speed':>6}{'vmax':>5}{'infl':>5}{'k':>5}{'T s':>6}{'collide':>8}"
         f"{'goal':>6}{'leave':>6}{'relaxed':>8}{'windows':>9}{'fail':>6}{'rate':>8}"
         f"{'<2cm':>5}{'<5cm':>5}{'v top':>6}{'wall s':>8}  colliding seeds"
     )
     grid = itertools.product(
+        args.etas,
         args.budgets,
         args.rhos,
         args.omega_weights,
@@ -308,12 +327,12 @@ def main() -> None:
         args.variants,
     )
     for options in grid:
-        budget, rho, omega_weight, form, temperature, inflation = options[:6]
-        max_speed, speed, gain, horizon, variant = options[6:]
+        eta, budget, rho, omega_weight, form, temperature, inflation = options[:7]
+        max_speed, speed, gain, horizon, variant = options[7:]
         start = time.perf_counter()
         sc = build(
             variant, args.seed, args.seeds, args.samples, horizon, gain, speed, max_speed,
-            inflation, form, temperature, omega_weight, rho, budget,
+            inflation, form, temperature, omega_weight, rho, budget, eta,
         )  # fmt: skip
         traj, m = sc.run(progress=False)
         x = traj.x
@@ -324,7 +343,8 @@ def main() -> None:
         colliding = (torch.nonzero(m["collision"]).flatten() + args.seed).tolist()
         closest = closest_approach(x)
         print(
-            f"{sc.params['rho']:>8.2g}{sc.params['control_weight'][1]:>6g} "
+            f"{sc.params['risk_eta']:<6}{sc.params['rho']:>8.2g}"
+            f"{sc.params['control_weight'][1]:>6g} "
             f"{sc.params['risk_form']:<10}"
             f"{sc.params['risk_temperature']:>5g}  "
             f"{variant:<15}{'-' if speed is None else f'{speed:g}':>6}"

@@ -503,7 +503,8 @@ def test_scenario_b_risk_aware_filter_runs_in_the_kernels(
         torch.testing.assert_close(fast.u, ref.u.detach(), **tol)
         torch.testing.assert_close(fast.status, ref.status)
     mode = filt.condition
-    again = RiskAware(rho=mode.rho, horizon=float(mode.horizon), eta=mode.eta)
+    eta = "local" if mode.local else mode.eta
+    again = RiskAware(rho=mode.rho, horizon=float(mode.horizon), eta=eta)
     other = SafetyFilter(filt.dynamics, barriers=rewritten, mode=again, R=filt.R).to(dtype)
     with torch.no_grad():
         assert other(x, u).path != "native/realtime"  # a subclass's forward: not the kernel's

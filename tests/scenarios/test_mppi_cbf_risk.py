@@ -17,6 +17,7 @@ from torchcbf.scenarios.unicycle_mppi_cbf import (
     mppi_cbf,
     obstacles,
     operating_states,
+    risk_failures,
 )
 
 
@@ -126,7 +127,7 @@ def test_risk_budget_shares_the_run_over_windows_of_the_horizon() -> None:
     uses it (Delta = sqrt(2T) eta erfinv(1 - rho)) and the record reports it; rho given alone
     replaces the budget; a budget needs a fixed T and lies in (0, 1)."""
     kw = {"num_seeds": 1, "num_samples": 8, "horizon": 4, "dtype": torch.float64}
-    sc = mppi_cbf("mppi_rascbf", risk_budget=0.05, risk_horizon=0.03, **kw)
+    sc = mppi_cbf("mppi_rascbf", risk_budget=0.05, risk_horizon=0.03, risk_eta="sup", **kw)
     p = sc.params
     assert p["risk_budget"] == 0.05 and p["risk_horizon"] == 0.03
     assert p["rho"] == pytest.approx(0.05 * 0.03 / (STEPS * DT))
@@ -143,3 +144,79 @@ def test_risk_budget_shares_the_run_over_windows_of_the_horizon() -> None:
     for bad in (0.0, 1.0, -0.1):
         with pytest.raises(ValueError, match="risk_budget"):
             mppi_cbf("mppi_rascbf", risk_budget=bad, risk_horizon=0.03, **kw)
+
+
+def test_local_noise_bound_margin_follows_the_state() -> None:
+    """``risk_eta="local"``: the filter's margin at a state is sqrt(2T) |dh_i/dx sigma|
+    erfinv(1 - rho) there (autograd), the record's ``delta`` is the one at the start, and the
+    run's window check uses each step's own margin."""
+    kw = {"num_seeds": 2, "num_samples": 8, "horizon": 4, "dtype": torch.float64}
+    sc = mppi_cbf("mppi_rascbf", risk_eta="local", **kw)
+    p = sc.params
+    assert p["risk_eta"] == "local" and sc.safety_filter.condition.local
+    assert sc.safety_filter.cbf_margin is None
+    (barrier,) = sc.safety_filter.barriers
+    rho = torch.tensor(1 - p["rho"], dtype=torch.float64)
+    z = math.sqrt(2 * p["risk_horizon"]) * float(torch.erfinv(rho))
+    x0 = torch.tensor([0.0, 0.0, 0.0, math.pi / 4], dtype=torch.float64, requires_grad=True)
+    h0 = barrier(x0)
+    for i in range(h0.shape[-1]):
+        (grad,) = torch.autograd.grad(h0[i], x0, retain_graph=True)
+        ref = z * SIGMA * float(grad.norm())
+        assert p["delta"][i] == pytest.approx(ref, rel=1e-6)
+    # along the long axis of the thin ellipse at (2, 5) the sup margin widens the berth:
+    # there the local margin is far smaller than the constant one
+    sup = mppi_cbf("mppi_rascbf", risk_eta="sup", **kw)
+    tip = torch.tensor([[4.3, 5.0, 0.0, 0.0]], dtype=torch.float64)
+    local = sc.safety_filter.condition.margin_at(barrier, sc.dynamics, tip)[0, 2].detach()
+    assert float(local) < 0.25 * float(sup.safety_filter.cbf_margin[2])
+    traj, m = sc.run(progress=False)
+    delta = sc.safety_filter.condition.margin_at(barrier, sc.dynamics, traj.x[:, :-1])
+    ref = risk_failures(traj.h, delta.detach(), round(p["risk_horizon"] / DT))
+    for key in ("risk_windows", "risk_window_failures"):
+        torch.testing.assert_close(m[key], ref[key])
+    with pytest.raises(ValueError, match="risk_eta"):
+        mppi_cbf("mppi_rascbf", risk_eta="max", **kw)
+
+
+def test_risk_failures_takes_a_margin_per_step() -> None:
+    gen = torch.Generator().manual_seed(6)
+    h = torch.randn(3, 25, 2, generator=gen, dtype=torch.float64) + 0.6
+    delta = 0.4 * torch.rand(3, 25, 2, generator=gen, dtype=torch.float64)
+    window = 3
+    got = risk_failures(h, delta, window)
+    for b in range(3):
+        windows = failures = 0
+        for j in range(25 - window):
+            if bool((h[b, j] >= delta[b, j]).all()):
+                windows += 1
+                failures += bool((h[b, j : j + window + 1] < 0).any())
+        assert int(got["risk_windows"][b]) == windows
+        assert int(got["risk_window_failures"][b]) == failures
+    with pytest.raises(ValueError, match="delta"):
+        risk_failures(h, delta[:, :5], window)
+
+
+def test_goal_wall_inflation_grows_only_that_ellipse() -> None:
+    """``risk_goal_wall_inflation`` adds metres to the semi-axes of the ellipse at (2, 5)
+    only (on top of ``risk_inflation``): the filter's barrier is zero on the grown ellipse's
+    boundary at rest, and the other ellipses keep theirs."""
+    kw = {"num_seeds": 1, "num_samples": 8, "horizon": 4, "dtype": torch.float64}
+    sc = mppi_cbf("mppi_rascbf", risk_goal_wall_inflation=0.15, risk_form="rectified", **kw)
+    assert sc.params["risk_goal_wall_inflation"] == 0.15
+    (barrier,) = sc.safety_filter.barriers
+    (wx, wy), (_, wb) = CENTERS[2], AXES[2]
+    (cx, cy), (a1, _) = CENTERS[0], AXES[0]
+    rest = torch.tensor(
+        [[wx, wy - wb - 0.15, 0.0, 0.0], [cx - a1, cy, 0.0, 0.0]], dtype=torch.float64
+    )
+    h = barrier(rest)
+    assert float(h[0, 2]) == pytest.approx(0.0, abs=1e-5)
+    assert float(h[1, 0]) == pytest.approx(0.0, abs=1e-5)
+    grown = obstacles(inflation=[0.0, 0.0, 0.15, 0.0, 0.0])
+    torch.testing.assert_close(grown.axes[2], torch.tensor(AXES[2]) + 0.15)
+    torch.testing.assert_close(grown.axes[0], torch.tensor(AXES[0]))
+    with pytest.raises(ValueError, match="inflation"):
+        obstacles(inflation=[0.1, 0.2])
+    with pytest.raises(ValueError, match="risk_goal_wall_inflation"):
+        mppi_cbf("mppi_rascbf", risk_goal_wall_inflation=-0.1, **kw)

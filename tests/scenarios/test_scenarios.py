@@ -170,8 +170,8 @@ def test_mppi_cbf_risk_aware_horizon_starts_inside_the_margin() -> None:
     """T makes h_i(x0) >= Delta_i = sqrt(2T) eta_i erfinv(1 - rho) for every ellipse, and eta_i
     bounds |dh_i/dx sigma| at safe operating states (checked by autograd on fresh points)."""
     fixed = mppi_cbf("mppi_rascbf", num_seeds=1, num_samples=8, horizon=4, dtype=torch.float64)
-    assert fixed.params["risk_horizon"] == 0.03  # the default configuration's T
-    assert fixed.params["rho"] == pytest.approx(0.05 * 0.03 / 5.0)  # its run budget shared
+    assert fixed.params["risk_horizon"] == 0.07  # the default configuration's T
+    assert fixed.params["rho"] == pytest.approx(0.05 * 0.07 / 5.0)  # its run budget shared
     assert all(h >= d for h, d in zip(fixed.params["h0"], fixed.params["delta"], strict=True))
     scenario = mppi_cbf(
         "mppi_rascbf", config="paper", num_seeds=1, num_samples=8, horizon=4, dtype=torch.float64

@@ -8,8 +8,9 @@ Methods (:data:`METHODS`), each run over a batch of noise seeds:
 - ``"mppi_scbf"``: MPPI whose control is filtered by the stochastic CBF-QP;
 - ``"mppi_rascbf"``: MPPI filtered by the risk-aware stochastic CBF (probability ``rho`` of
   leaving its safe set within the horizon ``T``; in the default configuration 5% for the
-  whole run shared by its windows of ``T = 0.03 s``, ``risk_budget``, and a safe set inside
-  the obstacle-free set, ``risk_form="inside"``);
+  whole run shared by its windows of ``T = 0.07 s``, ``risk_budget``, a safe set inside
+  the obstacle-free set, ``risk_form="inside"``, and a margin from each state's own noise,
+  ``risk_eta="local"``);
 - ``"shield_mppi"``: a barrier-aware MPPI (:class:`~torchcbf.mppi.ShieldMPPI`): its rollouts
   pay a steep penalty for breaking the discrete-time CBF condition of the obstacles over
   their first ``shield_steps`` steps, and
@@ -68,6 +69,7 @@ from torchcbf.sim import Goal, Trajectory
 METHODS = ("scbf", "mppi", "mppi_scbf", "mppi_rascbf", "shield_mppi")
 CONFIGS = ("default", "paper", "cbfkit")
 RISK_FORMS = ("rectified", "inside")
+RISK_ETAS = ("sup", "local")
 GOAL = (2.0, 4.0)
 CENTERS = ((1.0, 2.0), (3.0, 2.0), (2.0, 5.0), (-1.0, 1.0), (0.5, -1.0))
 AXES = ((0.5, 1.5), (0.75, 2.0), (2.0, 0.25), (1.0, 0.75), (0.75, 0.5))
@@ -108,11 +110,15 @@ class FilterParams:
             (STEPS * DT)`` (a union bound over consecutive windows; ``None``: ``rho``). Needs a
             fixed ``risk_horizon``.
         risk_horizon: ``T`` (s) of the risk-aware condition; ``None`` chooses it (see
-            :func:`risk_horizon`; the paper and cbfkit configurations), 0.03 s in the default
-            configuration (with ``risk_budget = 0.05``: ``rho = 3e-4``).
+            :func:`risk_horizon`; the paper and cbfkit configurations), 0.07 s in the default
+            configuration (with ``risk_budget = 0.05``: ``rho = 7e-4``).
         risk_inflation: risk-aware method: metres added to every semi-axis of the ellipses
             its filter keeps the robot out of (a berth the same in every direction; the
             margin ``Delta`` holds the robot off by a multiple of each semi-axis).
+        risk_goal_wall_inflation: risk-aware method: metres added, on top of
+            ``risk_inflation``, to the semi-axes of the ellipse :data:`GOAL_WALL` (a robot that
+            has reached the goal hovers between it and the goal, at rest, where a unicycle
+            parallel to the wall cannot move away from it within a step).
         risk_max_speed: risk-aware method: the top speed (m/s) of the operating states the
             noise bound ``eta`` is taken over (:func:`operating_states`); the bound holds
             only while the robot is no faster (8 m/s in the default configuration, 3 m/s in
@@ -124,6 +130,11 @@ class FilterParams:
             set, so a collision leaves it (the rectified form is positive inside an ellipse
             for a robot moving outwards).
         risk_temperature: ``tau`` of the ``"inside"`` form.
+        risk_eta: risk-aware method: ``"sup"``, one noise bound ``eta_i`` per ellipse over
+            :func:`operating_states` (a margin ``Delta_i`` that is constant), or ``"local"``,
+            each step's own ``|dh_i/dx sigma|`` (:class:`~torchcbf.filters.RiskAware`'s
+            ``eta="local"``): a margin that follows the barrier's gradient, so the berth is
+            about as wide in metres at the long axes' tips as at the flat sides.
         shield_weight: weight of the shield's discrete-time CBF penalty.
         shield_steps: rollout steps the shield's penalty covers (``None`` or at least the
             horizon: all of them; 10 by the sweep of docs/scenarios.md).
@@ -142,22 +153,29 @@ class FilterParams:
     risk_budget: float | None = None
     risk_horizon: float | None = None
     risk_inflation: float = 0.0
+    risk_goal_wall_inflation: float = 0.0
     risk_max_speed: float = 3.0
     risk_form: str = "rectified"
     risk_temperature: float = 0.5
+    risk_eta: str = "sup"
     shield_weight: float = 1e3
     shield_steps: int | None = 10
 
 
 CONFIG_PARAMS: dict[str, FilterParams] = {
-    # rho = 5% for the whole run, shared by its windows of T = 0.03 s (rho = 3e-4 per window):
-    # the margin Delta of T = 0.1 s with rho = 5% per window (a berth that fits the passages),
-    # held 5.1 noise band-widths from the boundary instead of 2.8; eta over speeds up to
-    # 8 m/s: a bound taken up to 3 m/s left the margin short at the speeds reached
-    # (scripts/risk_mppi_experiment.py, tuning seeds only); the "inside" form: a collision
-    # leaves the filter's safe set (the rectified form stays positive for a robot moving out)
+    # rho = 5% for the whole run, shared by its windows of T = 0.07 s (rho = 7e-4 per
+    # window); the margin from each state's own |dh/dx sigma| ("local"): a berth of about
+    # 0.25 m from every side of every ellipse, where one eta per ellipse, set by its flat
+    # sides, made it up to 8 times wider at the long axes' tips and sent robots around the
+    # outside of the field (scripts/risk_mppi_experiment.py, tuning seeds only); the "inside"
+    # form: a collision leaves the filter's safe set (the rectified form stays positive for a
+    # robot moving out); risk_max_speed: the speeds of the recorded sup bound ("sup")
     "default": FilterParams(
-        risk_budget=0.05, risk_horizon=0.03, risk_max_speed=8.0, risk_form="inside"
+        risk_budget=0.05,
+        risk_horizon=0.07,
+        risk_max_speed=8.0,
+        risk_form="inside",
+        risk_eta="local",
     ),
     "paper": FilterParams(
         alpha=1.0,
@@ -179,10 +197,17 @@ CONFIG_PARAMS: dict[str, FilterParams] = {
 }
 
 
-def obstacles(*, inflation: float = 0.0) -> Ellipse:
+def obstacles(*, inflation: float | Sequence[float] = 0.0) -> Ellipse:
     """The five ellipses as one barrier ``b(x) -> [..., 5]`` on the position ``(x, y)``;
-    ``inflation`` (m) is added to every semi-axis."""
-    return Ellipse(torch.tensor(CENTERS), torch.tensor(AXES) + inflation, index=(0, 1))
+    ``inflation`` (m; one number, or one per ellipse) is added to their semi-axes."""
+    grow = torch.as_tensor(inflation, dtype=torch.float32)
+    if grow.dim() == 1:
+        if grow.shape[0] != len(AXES):
+            raise ValueError(
+                f"inflation must be a number or {len(AXES)} numbers, got {list(inflation)}"
+            )
+        grow = grow.unsqueeze(-1)
+    return Ellipse(torch.tensor(CENTERS), torch.tensor(AXES) + grow, index=(0, 1))
 
 
 def proportional_controller(goal: tuple[float, float] = GOAL):
@@ -209,8 +234,9 @@ class MppiCbfParams:
         planner_every: replan every this many loop steps (2: once per rollout step of
             0.02 s); between replans the loop follows the plan.
         alpha, beta, rectify_gain, margin, goal_wall_margin, blocking_margin, control_weight,
-            control_limit, rho, risk_budget, risk_horizon, risk_inflation, risk_max_speed,
-            risk_form, risk_temperature, shield_weight, shield_steps: override the
+            control_limit, rho, risk_budget, risk_horizon, risk_inflation,
+            risk_goal_wall_inflation, risk_max_speed,
+            risk_form, risk_temperature, risk_eta, shield_weight, shield_steps: override the
             configuration's value (:class:`FilterParams`; ``None``: the configuration's; a
             ``rho`` given alone replaces the configuration's ``risk_budget``).
         barrier_scale: the scales ``c_i`` of the exponential form (one number or five),
@@ -237,9 +263,11 @@ class MppiCbfParams:
     risk_budget: float | None = None
     risk_horizon: float | None = None
     risk_inflation: float | None = None
+    risk_goal_wall_inflation: float | None = None
     risk_max_speed: float | None = None
     risk_form: str | None = None
     risk_temperature: float | None = None
+    risk_eta: str | None = None
     shield_weight: float | None = None
     shield_steps: int | None = None
     noise_sigma: float = 4.0
@@ -322,6 +350,9 @@ def build(
         params = replace(params, risk_budget=budget)
     if params.risk_budget is not None and params.risk_horizon is None:
         raise ValueError("risk_budget needs a fixed risk_horizon (T); got risk_horizon=None")
+    if p.risk_goal_wall_inflation is not None:
+        wall = check_number("risk_goal_wall_inflation", p.risk_goal_wall_inflation, low=0.0)
+        params = replace(params, risk_goal_wall_inflation=wall)
     if risk_inflation is not None:
         params = replace(
             params, risk_inflation=check_number("risk_inflation", risk_inflation, low=0.0)
@@ -330,6 +361,10 @@ def build(
         if risk_form not in RISK_FORMS:
             raise ValueError(f"risk_form must be one of {RISK_FORMS}, got {risk_form!r}")
         params = replace(params, risk_form=risk_form)
+    if p.risk_eta is not None:
+        if p.risk_eta not in RISK_ETAS:
+            raise ValueError(f"risk_eta must be one of {RISK_ETAS}, got {p.risk_eta!r}")
+        params = replace(params, risk_eta=p.risk_eta)
     if shield_steps is not None:
         params = replace(params, shield_steps=check_positive_int("shield_steps", shield_steps))
     check_positive_int("planner_every", planner_every)
@@ -394,10 +429,11 @@ def build(
         if method == "mppi_rascbf":
             safety_filter, risk = _risk_aware_filter(plant, nominal_model, params)
             record.update(risk)
-            delta, window = torch.tensor(risk["delta"]), round(risk["risk_horizon"] / DT)
+            window = round(risk["risk_horizon"] / DT)
+            margin_of = _margins(safety_filter, risk)
 
             def extra(traj: Trajectory) -> dict[str, Tensor]:
-                return risk_failures(traj.h, delta.to(traj.h), window)
+                return risk_failures(traj.h, margin_of(traj.x[:, :-1]).to(traj.h), window)
 
         else:
             barriers, scales = _rectified(nominal_model, params, barrier_scale)
@@ -511,7 +547,9 @@ def risk_horizon(h0: Tensor, eta: Tensor, rho: float, margin: float) -> float:
 
 
 def risk_failures(h: Tensor, delta: Tensor, window: int) -> dict[str, Tensor]:
-    """Empirical check of the risk-aware bound on the filter's barrier values ``h [B, S, k]``.
+    """Empirical check of the risk-aware bound on the filter's barrier values ``h [B, S, k]``
+    with the margins ``delta`` (``[k]``, or ``[B, S, k]``: each step's own margin, for a local
+    noise bound).
 
     A window starts at every step where ``h_i >= delta_i`` for all ``i`` and spans the next
     ``window`` steps (the horizon ``T``); it fails if some ``h_i < 0`` inside it. Windows that
@@ -523,6 +561,10 @@ def risk_failures(h: Tensor, delta: Tensor, window: int) -> dict[str, Tensor]:
         ``risk_failure_rate``: their ratio (nan without windows).
     """
     B, S, _ = h.shape
+    if delta.dim() == 3 and delta.shape != h.shape:
+        raise ValueError(
+            f"delta must be [k] or shaped like h {tuple(h.shape)}, got {tuple(delta.shape)}"
+        )
     unsafe = (h < 0).any(-1).to(torch.int64)  # [B, S]
     eligible = (h >= delta).all(-1)
     csum = torch.cat([unsafe.new_zeros(B, 1), unsafe.cumsum(-1)], -1)  # [B, S+1]
@@ -550,7 +592,9 @@ def _risk_aware_filter(
     k = params.rectify_gain
     f64 = copy.deepcopy(plant).double()
     # |q| - 1: a bounded gradient
-    radius = Transformed(obstacles(inflation=params.risk_inflation), "radius")
+    inflation = [params.risk_inflation] * len(AXES)
+    inflation[GOAL_WALL] += params.risk_goal_wall_inflation
+    radius = Transformed(obstacles(inflation=inflation), "radius")
     barrier = rectify(radius, model, form="exponential", gains=[k])
     if params.risk_form == "inside":
         barrier = Intersection(
@@ -571,16 +615,36 @@ def _risk_aware_filter(
         rho = params.risk_budget * T / (STEPS * DT)
     else:
         T = params.risk_horizon or risk_horizon(h0, eta, rho, params.margin)
+    local = params.risk_eta == "local"
     safety_filter = SafetyFilter(
         plant,
         barriers=barrier,
-        mode=RiskAware(rho=rho, horizon=T, eta=eta),
+        mode=RiskAware(rho=rho, horizon=T, eta="local" if local else eta),
         R=torch.diag(torch.tensor(params.control_weight, dtype=torch.float64)),
     )
-    margins = safety_filter.cbf_margin.tolist()
     info = {"rho": rho, "risk_horizon": T, "eta": eta.tolist(), "h0": h0.tolist()}
-    info["delta"] = margins
+    if local:  # the margin at the start (at rest, pointing at the goal)
+        mode = safety_filter.condition
+        info["delta"] = mode.margin_at(barrier64, f64, x0.unsqueeze(0))[0].tolist()
+    else:
+        info["delta"] = safety_filter.cbf_margin.tolist()
     return safety_filter, info
+
+
+def _margins(safety_filter: SafetyFilter, risk: Mapping[str, Any]):
+    """``x [B, S, n] -> Delta [B, S, k]`` (or ``[k]``): the risk-aware margins the filter
+    used at those states, for :func:`risk_failures`."""
+    mode = safety_filter.condition
+    if not mode.local:
+        delta = torch.tensor(risk["delta"])
+        return lambda x: delta
+    (barrier,) = safety_filter.barriers
+
+    def margin_of(x: Tensor) -> Tensor:
+        with torch.no_grad():
+            return mode.margin_at(barrier, safety_filter.dynamics, x)
+
+    return margin_of
 
 
 def _pair(name: str, value: float | Sequence[float]) -> tuple[float, float]:
