@@ -1,9 +1,10 @@
 """A few QPs without gradients, straight from the tensors' memory into proxsuite's dense
 solver, verified (and, where small, polished) in numpy.
 
-The objective is divided by its largest entry first (its minimiser does not change, its
-multipliers scale back), so that proxsuite's absolute tolerances and the checks mean the
-same for ``(P, q)`` of any magnitude.
+The objective is scaled first as on every other route
+(:func:`torchcbf.qp._function.data_scaling`: its minimiser does not change, its multipliers
+scale back), so that proxsuite's absolute tolerances and the checks mean the same for
+``(P, q)`` of any magnitude.
 
 One mid-size QP (or a handful) costs proxsuite well under a millisecond where it is small;
 the general path's tensor operations around it would cost more than the solve. This path
@@ -23,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchcbf.qp._function import ROUTE_EPS, ROUTE_MAX_ITER
+from torchcbf.qp._function import ROUTE_EPS, ROUTE_MAX_ITER, data_scaling
 
 _BIG = 1e20
 
@@ -78,11 +79,9 @@ def solve_direct(
         or (ubn == -np.inf).any()
     ):
         return None
-    # the objective's own scale: the minimiser of (P, q) is that of (P, q) / c, and the
-    # solver's tolerances and the checks below are absolute where the terms are small
-    c = np.maximum(np.abs(P).max((-1, -2), initial=0.0), np.abs(q).max(-1, initial=0.0))
-    c = np.where(c > 0.0, c, 1.0)[:, None]
-    P, q = P / c[..., None], q / c
+    # the objective scaled as every other route scales it (data_scaling)
+    c = data_scaling(torch.from_numpy(P), torch.from_numpy(q)).c.numpy()[:, None]
+    P, q = P * c[..., None], q * c
     free = hn == np.inf
     lo_box = np.maximum(lbn, -_BIG)
     hi_box = np.minimum(ubn, _BIG)
@@ -102,7 +101,7 @@ def solve_direct(
                                         lam_lb, lam_ub)  # fmt: skip
     if _descent(P, q, Gn, An, lbn, ubn, free, x, eps_inf):
         return None
-    lam, y, lam_lb, lam_ub = lam * c, y * c, lam_lb * c, lam_ub * c  # of (P, q) again
+    lam, y, lam_lb, lam_ub = lam / c, y / c, lam_lb / c, lam_ub / c  # of (P, q) again
     dtype = Q.dtype
 
     def out(v: np.ndarray) -> Tensor:

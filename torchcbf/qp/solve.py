@@ -300,26 +300,11 @@ def solve_qp(
     flat = _flatten(inp)
     std = _standard_form(flat, inp)
     cfg = _config(inp, std, backend, method, polish, max_iter, check_every, need_grad)
-    scale = objective_scale(std.P, std.q)
     xs, z, y, status, iters, answered = QPFunction.apply(
-        std.P / scale.unsqueeze(-1), std.q / scale, std.G, std.h, std.A, flat.b, cfg, std.x0
+        std.P, std.q, std.G, std.h, std.A, flat.b, cfg, std.x0
     )
-    z, y = z * scale, y * scale  # the multipliers of (P, q)
     sol = _unpack(inp, flat, std, xs, z, y, status, iters)
     return sol._replace(path=_path(cfg, std.q), method=answered.reshape(inp.batch_shape))
-
-
-def objective_scale(P: Tensor, q: Tensor) -> Tensor:
-    """``[B, 1]``: the largest entry of each row's ``P [B, N, N]`` and ``q [B, N]`` (1 where
-    that is zero or not finite). The minimiser of ``(P, q) / c`` is that of ``(P, q)`` for
-    any ``c > 0`` and its multipliers are those of ``(P, q)`` over ``c``; solvers get the
-    problem divided by it, so that their tolerances, which are absolute where the terms
-    are small, and the checks of their answers mean the same for an objective of any
-    magnitude (``1e-10 (P, q)`` was "solved" at ``x = 0`` by proxsuite, OSQP, HiGHS and
-    Clarabel). Differentiable: the minimiser's gradient does not depend on ``c``, the
-    multipliers' does."""
-    c = torch.maximum(P.abs().amax((-1, -2)), q.abs().amax(-1)).unsqueeze(-1)
-    return torch.where(torch.isfinite(c) & (c > 0), c, torch.ones_like(c))
 
 
 def _path(cfg: SolverConfig, q: Tensor) -> str:
