@@ -231,6 +231,13 @@ def test_local_eta_differentiable_and_constant_eta_keeps_native_path() -> None:
     filt = _radius_scene(F64)
     x = _unicycle_states(F64, rows=6, seed=8)
     u_nom = torch.full((6, 2), 3.0, dtype=F64)
+    # the real-time path (no grad) and the general path (grad mode) give the same answers
+    with torch.no_grad():
+        fast = filt(x, u_nom)
+    slow = filt(x.clone().requires_grad_(True), u_nom)
+    assert fast.path.endswith("realtime") and not slow.path.endswith("realtime")
+    torch.testing.assert_close(fast.u, slow.u.detach(), rtol=1e-7, atol=1e-7)
+    torch.testing.assert_close(fast.status, slow.status)
     # gradients through the local margin (the general path answers in grad mode)
     xg = x.clone().requires_grad_(True)
     assert torch.autograd.gradcheck(lambda z: filt(z, u_nom).u, (xg,), atol=1e-6, rtol=1e-5)
