@@ -912,10 +912,12 @@ class QPFunction(torch.autograd.Function):
     """``(P, q, G, h, A, b) -> (x, z, y, status, iterations, method)``, batched ``[B, ...]``
     (``method``: the :data:`ANSWERED_BY` code of each row).
 
-    Every backend solves the problem with its objective scaled (:func:`data_scaling`), and
-    the multipliers (and the gradients) are scaled back: outside solvers' tolerances are
-    absolute too (proxsuite, OSQP, HiGHS and Clarabel reported an objective of 1e-10
-    solved at ``x = 0``)."""
+    The torch backend solves the problem with its objective scaled (:func:`data_scaling`),
+    the other backends with a small objective scaled up (their tolerances are absolute:
+    proxsuite, OSQP, HiGHS and Clarabel reported an objective of 1e-10 solved at ``x = 0``)
+    but a large one as given (scaled down, proxsuite called a feasible safety-filter QP of
+    an arm, objective entries up to 1e3, primal infeasible); the multipliers (and the
+    gradients) are scaled back."""
 
     @staticmethod
     def forward(ctx, P, q, G, h, A, b, cfg: SolverConfig, x0):  # noqa: D102
@@ -923,6 +925,8 @@ class QPFunction(torch.autograd.Function):
         data = QPData(P, q, G, h, A, b).to_float64()
         x0d = None if x0 is None else x0.detach().to(torch.float64)
         scaling = data_scaling(data.P, data.q)
+        if cfg.backend != "torch":  # outside solvers: small objectives only (class docstring)
+            scaling = Scaling(scaling.c.clamp_min(1.0))
         if q.device.type == "cpu" and bool((scaling.c == 1.0).all()):
             scaling = None  # nothing to scale (asking costs no device synchronisation here)
         if scaling is not None:
