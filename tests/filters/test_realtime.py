@@ -555,3 +555,26 @@ def test_plain_numbers_in_an_affine_form_and_a_mismatched_prepared_call() -> Non
         with pytest.raises(ValueError, match="prepared condition call"):
             realtime.solve(call, None, one, torch.eye(2, dtype=torch.float64), None, None,
                            **options)  # fmt: skip
+
+
+@pytest.mark.skipif(not native.available(), reason="Lie kernel not built")
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
+def test_noise_scale_of_an_affine_form(dtype) -> None:
+    """``b + noise_scale |sigma' dh/dx|`` against the torch Lie terms; without a diffusion the
+    kernel declines the form."""
+    filt = balls_scene("stochastic").to(dtype)
+    x = torch.tensor(balls_states(5, seed=3)[0], dtype=dtype)
+    args = filt.barriers, x, filt.dynamics
+    plain = native.Affine(trace_weight=0.5, gain=2.0, offset=0.3, offset_scale=-1.0)
+    noisy = plain._replace(noise_scale=-1.7)
+    with torch.no_grad():
+        h, a, b, _ = native.cbf_conditions(*args, plain)
+        h2, a2, b2, _ = native.cbf_conditions(*args, noisy)
+        (barrier,) = filt.barriers
+        terms = barrier.lie(x, filt.dynamics, hessian=False)
+    noise = torch.linalg.vector_norm(terms.dhdx @ filt.dynamics.sigma(x), dim=-1)
+    tol = {"atol": 1e-12, "rtol": 1e-12} if dtype == torch.float64 else {}
+    torch.testing.assert_close(h2, h, **tol)
+    torch.testing.assert_close(a2, a, **tol)
+    torch.testing.assert_close(b2, b - 1.7 * noise, **tol)
+    assert native.cbf_conditions(*args, noisy, hessian=False) is None

@@ -370,7 +370,7 @@ typedef struct {
     double *h, *lfh, *dhdt, *lgh, *hess, *dhdx, *b;
     const double *gain, *offset;
     int64_t gain_stride, offset_stride;
-    double trace_weight, gain_scale, offset_scale;
+    double trace_weight, gain_scale, offset_scale, noise_scale;
 } Sink;
 
 /* Writes the terms of output `col` at `row` (s K + col for state s) from its value, gradient
@@ -393,8 +393,9 @@ static void emit(const Sink *o, const Point *pt, int64_t row, int64_t col, doubl
     if (o->b) {
         double gj = o->gain ? o->gain[col * o->gain_stride] : 1.0;
         double oj = o->offset ? o->offset[col * o->offset_stride] : 0.0;
-        o->b[row] =
-            lf + o->trace_weight * trace + o->gain_scale * gj * value + o->offset_scale * oj;
+        double noise = o->noise_scale != 0.0 ? sqrt(noise_norm2(n, pt->SS, grad)) : 0.0;
+        o->b[row] = lf + o->trace_weight * trace + o->gain_scale * gj * value +
+                    o->offset_scale * oj + o->noise_scale * noise;
     }
 }
 
@@ -403,17 +404,20 @@ static void emit(const Sink *o, const Point *pt, int64_t row, int64_t col, doubl
  * all). `meta` holds B, n, m, q, the outer model's code and size, the number of blocks, the
  * strides per output of the condition's gain and offset (below) and the number of groups, then
  * per block M_FIXED integers and its d indices, then per group G_FIXED integers (the groups
- * take the blocks in order); `reals` holds the condition's trace weight, gain scale and offset
- * scale, then one number per block (the rate of the "exp" transform), then one per group (the
- * temperature of a smooth reduction). `ptrs` holds x [B, n] (float64, C-contiguous), sigma
- * [n, q] (NULL: no Hessian trace), the outputs h, lfh, dhdt (zeros: the blocks are
- * time-invariant) [B, K], lgh [B, K, m], hess [B, K] (written where sigma is given), dhdx
- * [B, K, n] and the condition b [B, K], then the condition's gain and offset, then per block
- * P_FIXED pointers: center [k or 1, d], axes (NULL: unit), radius (NULL: 1), angle (NULL:
- * none), scale w and outer scale s (NULL: 1), and k0 (rectified blocks). Every output but h and
- * lgh may be NULL (not written). The affine CBF condition, where b is given, is
+ * take the blocks in order); `reals` holds the condition's trace weight, gain scale, offset
+ * scale and noise scale, then one number per block (the rate of the "exp" transform), then
+ * one per group (the temperature of a smooth reduction). `ptrs` holds x [B, n] (float64,
+ * C-contiguous), sigma [n, q] (NULL: no Hessian trace), the outputs h, lfh, dhdt (zeros: the
+ * blocks are time-invariant) [B, K], lgh [B, K, m], hess [B, K] (written where sigma is
+ * given), dhdx [B, K, n] and the condition b [B, K], then the condition's gain and offset,
+ * then per block P_FIXED pointers: center [k or 1, d], axes (NULL: unit), radius (NULL: 1),
+ * angle (NULL: none), scale w and outer scale s (NULL: 1), and k0 (rectified blocks). Every
+ * output but h and lgh may be NULL (not written). The affine CBF condition, where b is
+ * given, is
  *     b = lfh + dhdt + trace_weight tr + gain_scale gain h + offset_scale offset
- * (gain, offset: NULL for 1 and 0). The outer model (code, size) is the one of the Lie terms;
+ *         + noise_scale |sigma' dh/dx|
+ * (gain, offset: NULL for 1 and 0; a noise scale other than 0 needs sigma). The outer model
+ * (code, size) is the one of the Lie terms;
  * a rectified block (inner code >= 0) takes the drift of its inner model.
  * Returns 0, or 1 when the sizes are out of range (the caller takes its torch path).
  */
@@ -426,12 +430,14 @@ int torchcbf_lie_quadrics(const int64_t *meta, const double *reals, void *const 
     Sink out = {ptrs[PT_H],    ptrs[PT_LFH],  ptrs[PT_DHDT],         ptrs[PT_LGH],
                 ptrs[PT_HESS], ptrs[PT_DHDX], ptrs[PT_B],            ptrs[PT_GAIN],
                 ptrs[PT_OFFSET], meta[L_GAIN_STRIDE], meta[L_OFFSET_STRIDE],
-                reals[R_TRACE_WEIGHT], reals[R_GAIN_SCALE], reals[R_OFFSET_SCALE]};
+                reals[R_TRACE_WEIGHT], reals[R_GAIN_SCALE], reals[R_OFFSET_SCALE],
+                reals[R_NOISE_SCALE]};
     void *const *params = ptrs + PTRS_HEADER;
     const int64_t *block_meta = meta + META_HEADER;
     const double *rates = reals + REALS_HEADER;
     if (B < 0 || n < 1 || n > LIE_NMAX || m < 1 || m > LIE_NMAX || q < 0 || q > LIE_NMAX ||
         blocks < 0 || groups < 0 || !out.h || !out.lgh || (sigma && q < 1) ||
+        (out.noise_scale != 0.0 && !sigma) ||
         out.gain_stride < 0 || out.offset_stride < 0 || model_size(outer, outer_dim) != n ||
         model_controls(outer, outer_dim) != m)
         return 1;

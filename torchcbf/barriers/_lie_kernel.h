@@ -7,7 +7,7 @@
 #define TORCHCBF_LIE_KERNEL_H
 
 /* Bumped whenever an exported signature or its meaning changes (see _native.py). */
-#define LIE_KERNEL_VERSION 3
+#define LIE_KERNEL_VERSION 4
 
 /* The header of `meta`: the number of states, n, m, q, the outer model's code and size, the
  * number of blocks, the strides per output of the condition's gain and offset, the number of
@@ -16,7 +16,7 @@ enum { L_B, L_N, L_M, L_Q, L_OUTER, L_OUTER_DIM, L_BLOCKS, L_GAIN_STRIDE, L_OFFS
        L_GROUPS, META_HEADER };
 /* The header of `reals`: the condition's trace weight, gain scale and offset scale; then one
  * rate per block and one temperature per group. */
-enum { R_TRACE_WEIGHT, R_GAIN_SCALE, R_OFFSET_SCALE, REALS_HEADER };
+enum { R_TRACE_WEIGHT, R_GAIN_SCALE, R_OFFSET_SCALE, R_NOISE_SCALE, REALS_HEADER };
 /* The pointers before the blocks' own: the state and diffusion, the seven outputs, the
  * condition's gain and offset. */
 enum { PT_X, PT_SIGMA, PT_H, PT_LFH, PT_DHDT, PT_LGH, PT_HESS, PT_DHDX, PT_B, PT_GAIN,

@@ -51,7 +51,7 @@ __all__ = [
 ]
 
 #: version of ``_lie_kernel.c`` this module calls (``LIE_KERNEL_VERSION``)
-KERNEL_VERSION = 3
+KERNEL_VERSION = 4
 #: the file name of the built kernel, without its extension suffix
 KERNEL_STEM = "_lie_kernel"
 #: the kernel's sources (``_lie_kernel.h`` names its arguments' fields and codes)
@@ -62,7 +62,9 @@ _pack_header = LAYOUT.packer(
     "META_HEADER", "L_B", "L_N", "L_M", "L_Q", "L_OUTER", "L_OUTER_DIM", "L_BLOCKS",
     "L_GAIN_STRIDE", "L_OFFSET_STRIDE", "L_GROUPS",
 )  # fmt: skip
-_pack_reals = LAYOUT.packer("REALS_HEADER", "R_TRACE_WEIGHT", "R_GAIN_SCALE", "R_OFFSET_SCALE")
+_pack_reals = LAYOUT.packer(
+    "REALS_HEADER", "R_TRACE_WEIGHT", "R_GAIN_SCALE", "R_OFFSET_SCALE", "R_NOISE_SCALE"
+)
 _pack_block = LAYOUT.packer(
     "M_FIXED", "M_K", "M_D", "M_CENTER", "M_AXES", "M_RADIUS", "M_ANGLE", "M_SCALE", "M_SIGN",
     "M_TRANSFORM", "M_OUTER", "M_INNER", "M_INNER_DIM",
@@ -292,14 +294,16 @@ def _encode(
 class Affine(NamedTuple):
     """A CBF condition ``a . u + b >= 0`` affine in the Lie terms, as the kernel evaluates
     it: ``a = L_g h`` and ``b = L_f h + dh/dt + trace_weight tr + gain_scale gain h +
-    offset_scale offset`` (``tr`` the Hessian trace; ``gain`` and ``offset`` numbers, scalar
-    tensors or one per output ``[K]``, ``None`` for 1 and 0)."""
+    offset_scale offset + noise_scale |sigma' dh/dx|`` (``tr`` the Hessian trace; ``gain``
+    and ``offset`` numbers, scalar tensors or one per output ``[K]``, ``None`` for 1 and 0;
+    a ``noise_scale`` other than 0 needs the diffusion ``sigma``)."""
 
     trace_weight: float = 0.0
     gain: Tensor | float | None = None
     gain_scale: float = 1.0
     offset: Tensor | float | None = None
     offset_scale: float = 1.0
+    noise_scale: float = 0.0
 
 
 def describes(fns: Sequence[LieFunction], dynamics: ControlAffine) -> bool:
@@ -491,10 +495,12 @@ def _arguments(
     for group in groups:
         blocks += _pack_group(*group)
     strides: list[int | None] = [0, 0]
-    scales = (0.0, 1.0, 1.0)
+    scales = (0.0, 1.0, 1.0, 0.0)
     condition: tuple[Tensor | None, Tensor | None] = (None, None)
     if affine is not None:
-        trace_weight, gain, gain_scale, offset, offset_scale = affine
+        trace_weight, gain, gain_scale, offset, offset_scale, noise_scale = affine
+        if noise_scale != 0.0 and sigma is None:
+            return None
         if isinstance(gain, (int, float)):  # a plain number folds into its scale
             gain, gain_scale = None, gain_scale * gain
         if isinstance(offset, (int, float)):
@@ -502,7 +508,7 @@ def _arguments(
         strides = [_output_stride(v, sum(sizes)) for v in (gain, offset)]
         if None in strides:
             return None
-        scales = (float(trace_weight), float(gain_scale), float(offset_scale))
+        scales = (float(trace_weight), float(gain_scale), float(offset_scale), float(noise_scale))
         condition = gain, offset
     meta = _pack_header(B, n, m, q, *outer, len(rates), *strides, len(groups)) + blocks
     reals = _pack_reals(*scales) + rates + temperatures

@@ -191,10 +191,10 @@ class RiskAware(FilterMode):
             steepest point widens it elsewhere). The bound on leaving ``{h >= 0}`` within
             ``T`` then holds for the windows in which ``|dh/dx sigma|`` stays at most its value
             at the window's start (:func:`~torchcbf.filters.risk.local_margin`); it is a
-            local approximation, not the global guarantee of a constant ``eta``. The CBF
-            conditions are then not affine in the Lie terms, so the C condition kernel
-            declines them (:meth:`affine_cbf`): they are computed in torch from the Lie
-            terms (which the C Lie kernel may still give). Or
+            local approximation, not the global guarantee of a constant ``eta``. The C
+            condition kernel evaluates the margin with the conditions (the norm of
+            ``sigma' dh/dx`` it has, :attr:`~torchcbf.barriers.native.Affine.noise_scale`).
+            Or
         safe_states: ``[N, n]`` sample states to compute it with :func:`noise_bound` (when
             the filter binds the mode; one of the two is required with barriers).
         clf_rho, clf_eta, clf_gamma: risk-aware CLF: risk (default ``rho``), noise bound of
@@ -351,9 +351,12 @@ class RiskAware(FilterMode):
         )
 
     def affine_cbf(self, alpha: nn.Module) -> Affine | None:
-        if self.local or self.cbf_margin is None or self.horizon.requires_grad:
+        if self.horizon.requires_grad or (self.cbf_margin is None and not self.local):
             return None
         rate = 1.0 / float(self.horizon)
+        if self.local:  # Delta(x) = scale |sigma' dh/dx|
+            noise = -rate * float(self.local_scale)
+            return Affine(trace_weight=0.5, gain_scale=rate, noise_scale=noise)
         return Affine(trace_weight=0.5, gain_scale=rate, offset=self.cbf_margin,
                       offset_scale=-rate)  # fmt: skip
 
