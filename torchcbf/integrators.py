@@ -94,6 +94,8 @@ def unchecked_step(
     ``[..., n, K]``: for a ``"plain"`` rate the sum ``f + g u`` is then formed over the
     components directly, so compiled code runs its loops over contiguous samples instead of
     one short state vector at a time."""
+    if method not in ("euler", "rk4"):
+        raise ValueError(f"method must be 'euler' or 'rk4', got {method!r}")
     rate = model_rate = _rate(dynamics, None, form)
     if component:
         plain = form == "plain"
@@ -102,10 +104,12 @@ def unchecked_step(
             x = xc.mT
             if not plain:
                 return model_rate(x, uc.mT).mT
-            g = dynamics.g(x)
+            rows = x.shape[:-1]  # f and g may broadcast (a constant g [n, m], say)
+            g = dynamics.g(x).expand(*rows, x.shape[-1], uc.shape[-2])
+            f = dynamics.f(x).expand(*rows, x.shape[-1])
             if g.shape[-1] > MATVEC_COLUMNS_UP_TO:
-                return (dynamics.f(x) + (g @ uc.mT.unsqueeze(-1)).squeeze(-1)).mT
-            xdot = dynamics.f(x).mT
+                return (f + (g @ uc.mT.unsqueeze(-1)).squeeze(-1)).mT
+            xdot = f.mT
             for j in range(g.shape[-1]):
                 xdot = xdot + g[..., j].mT * uc[..., j : j + 1, :]
             return xdot

@@ -274,3 +274,36 @@ def test_local_eta_horizon_with_gradient_gives_the_same_margin() -> None:
     (grad,) = torch.autograd.grad(out.u.sum(), mode.horizon)
     assert torch.isfinite(grad)
     assert "local_scale" not in filt.state_dict()  # derived from rho and T, not saved
+
+
+def test_local_margin_where_the_noise_of_h_vanishes() -> None:
+    """A correlated diffusion orthogonal to dh/dx along a ray: |sigma' dh/dx|^2 rounds below
+    zero in the kernel at some of its states; one state at a time (the real-time path)
+    answers what the general path answers (no NaN, no fallback)."""
+    sigma = torch.tensor([[0.1], [0.3]])
+    ball = Ball(torch.tensor([[0.0, 0.0]]), torch.tensor([0.5]))
+    filt = SafetyFilter(SingleIntegrator(2, sigma=sigma), ball,
+                        mode=RiskAware(0.05, 0.2, eta="local")).double()  # fmt: skip
+    direction = torch.tensor([[0.3, -0.1]]).double()
+    u = torch.tensor([[-1.5, 0.5]], dtype=torch.float64)
+    for scale in (1.7, 1.8, 1.9, 2.0, 2.5):
+        x = scale * direction
+        with torch.no_grad():
+            fast = filt(x, u)
+        slow = filt(x.clone().requires_grad_(), u)
+        assert int(fast.status) == int(slow.status) == 0, (scale, fast.status, fast.path)
+        torch.testing.assert_close(fast.u, slow.u.detach(), rtol=1e-7, atol=1e-7)
+
+
+def test_local_margin_follows_a_loaded_horizon() -> None:
+    """The local margin's scale comes from the mode's current horizon: a filter that loads
+    another's state answers as that filter does (on both paths)."""
+    x = _unicycle_states(F64, rows=8, seed=5)
+    u_nom = torch.full((8, 2), 3.0, dtype=F64)
+    src, dst = _radius_scene(F64), _radius_scene(F64)
+    dst.condition.horizon.fill_(1.0)
+    with torch.no_grad():
+        dst(x, u_nom)  # the scale of T = 1 in use
+        dst.load_state_dict(src.state_dict())
+        torch.testing.assert_close(dst(x, u_nom).u, src(x, u_nom).u)
+    torch.testing.assert_close(dst(x.clone().requires_grad_(), u_nom).u, src(x, u_nom).u)

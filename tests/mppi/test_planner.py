@@ -538,3 +538,27 @@ def test_batched_update_and_torch_noise_against_formulas(backend):
     torch.testing.assert_close(out.plan, first.plan + torch.einsum("bk,bkhm->bhm", w, eps))
     torch.testing.assert_close(out.cost_min, S.min(-1).values)
     torch.testing.assert_close(out.best_states, states[torch.arange(B), S.argmin(-1)])
+
+
+class _ConstantInput(ControlAffine):
+    """A double integrator whose ``g`` is one constant ``[n, m]`` matrix (it broadcasts)."""
+
+    def __init__(self) -> None:
+        super().__init__(2, 1)
+
+    def f(self, x):
+        return torch.stack([x[..., 1], torch.zeros_like(x[..., 0])], -1)
+
+    def g(self, x):
+        return torch.tensor([[0.0], [1.0]], dtype=x.dtype)
+
+
+def test_model_whose_g_broadcasts_plans_in_both_layouts():
+    def planner(layout):
+        return MPPI(_ConstantInput(), lambda s, u, t: (s**2).sum((-1, -2)), 5, 16, 0.1, 1.0,
+                    1.0, seed=2, backend="torch", layout=layout, keep_rollouts=16)  # fmt: skip
+
+    x = torch.tensor([1.0, 0.0], dtype=torch.float64)
+    a, b = planner("component").double()(x), planner("sample").double()(x)
+    torch.testing.assert_close(a.rollouts, b.rollouts, atol=1e-12, rtol=1e-12)
+    torch.testing.assert_close(a.plan, b.plan, atol=1e-12, rtol=1e-12)

@@ -393,7 +393,8 @@ static void emit(const Sink *o, const Point *pt, int64_t row, int64_t col, doubl
     if (o->b) {
         double gj = o->gain ? o->gain[col * o->gain_stride] : 1.0;
         double oj = o->offset ? o->offset[col * o->offset_stride] : 0.0;
-        double noise = o->noise_scale != 0.0 ? sqrt(noise_norm2(n, pt->SS, grad)) : 0.0;
+        /* |sigma' g|^2 rounds below zero where it vanishes */
+        double noise = o->noise_scale != 0.0 ? sqrt(fmax(noise_norm2(n, pt->SS, grad), 0.0)) : 0.0;
         o->b[row] = lf + o->trace_weight * trace + o->gain_scale * gj * value +
                     o->offset_scale * oj + o->noise_scale * noise;
     }

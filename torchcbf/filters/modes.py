@@ -224,9 +224,7 @@ class RiskAware(FilterMode):
         self.rho = float(rho)
         T = check_number("horizon", horizon, low=0.0, strict=True)
         self.register_buffer("horizon", torch.tensor(T, dtype=torch.float64))
-        one = torch.ones((), dtype=torch.float64)
-        scale = risk_margin(one, self.rho, self.horizon)
-        self.register_buffer("local_scale", scale, persistent=False)
+        self._scale_of: tuple[float, float, float] | None = None  # (rho, T, local scale)
         if isinstance(eta, str) and eta != "local":
             raise ValueError(f"eta must be a bound (number or [k]) or 'local', got {eta!r}")
         #: each row's margin from its own ``|dh/dx sigma|`` (``eta="local"``)
@@ -318,11 +316,17 @@ class RiskAware(FilterMode):
         )
 
     def _local_scale(self, x: Tensor) -> Tensor:
-        """``sqrt(2 T) erfinv(1 - rho)`` in the dtype and device of ``x`` (the buffer, or
-        computed where ``T`` carries a gradient)."""
-        if self.horizon.requires_grad:
-            return risk_margin(x.new_ones(()), self.rho, self.horizon.to(x))
-        return self.local_scale.to(x)
+        """``sqrt(2 T) erfinv(1 - rho)`` in the dtype and device of ``x`` (from the current
+        ``rho`` and ``horizon``, differentiable in the latter)."""
+        return risk_margin(x.new_ones(()), self.rho, self.horizon.to(x))
+
+    def _local_scale_number(self, T: float) -> float:
+        """:meth:`_local_scale` as a number for horizon ``T``, kept until ``rho`` or ``T``
+        changes (a loaded state or a new value in place)."""
+        if self._scale_of is None or self._scale_of[:2] != (self.rho, T):
+            one = torch.ones((), dtype=torch.float64)
+            self._scale_of = (self.rho, T, float(risk_margin(one, self.rho, T)))
+        return self._scale_of[2]
 
     def margin_at(
         self, barrier: LieFunction, dynamics: ControlAffine, x: Tensor, t: Tensor | float = 0.0
@@ -353,9 +357,10 @@ class RiskAware(FilterMode):
     def affine_cbf(self, alpha: nn.Module) -> Affine | None:
         if self.horizon.requires_grad or (self.cbf_margin is None and not self.local):
             return None
-        rate = 1.0 / float(self.horizon)
+        T = float(self.horizon)
+        rate = 1.0 / T
         if self.local:  # Delta(x) = scale |sigma' dh/dx|
-            noise = -rate * float(self.local_scale)
+            noise = -rate * self._local_scale_number(T)
             return Affine(trace_weight=0.5, gain_scale=rate, noise_scale=noise)
         return Affine(trace_weight=0.5, gain_scale=rate, offset=self.cbf_margin,
                       offset_scale=-rate)  # fmt: skip
