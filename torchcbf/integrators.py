@@ -94,8 +94,7 @@ def unchecked_step(
     ``[..., n, K]``: for a ``"plain"`` rate the sum ``f + g u`` is then formed over the
     components directly, so compiled code runs its loops over contiguous samples instead of
     one short state vector at a time."""
-    if method not in ("euler", "rk4"):
-        raise ValueError(f"method must be 'euler' or 'rk4', got {method!r}")
+    stepper = _stepper(method)
     rate = model_rate = _rate(dynamics, None, form)
     if component:
         plain = form == "plain"
@@ -115,7 +114,7 @@ def unchecked_step(
             return xdot
 
         rate = component_rate
-    return (_euler_of if method == "euler" else _rk4_of)(rate, x, u, dt)
+    return stepper(rate, x, u, dt)
 
 
 def _checked(dynamics: ControlAffine, x: Tensor, u: Tensor, w: Tensor | None) -> None:
@@ -143,12 +142,17 @@ def rk4(
     return _rk4(dynamics, x, u, dt, w)
 
 
+def _stepper(method: str) -> Callable[[Rate, Tensor, Tensor, float], Tensor]:
+    """``euler`` or ``rk4`` of a rate function; ``ValueError`` for another method."""
+    if method not in ("euler", "rk4"):
+        raise ValueError(f"method must be 'euler' or 'rk4', got {method!r}")
+    return _euler_of if method == "euler" else _rk4_of
+
+
 def unchecked(method: str) -> Callable[..., Tensor]:
     """``euler`` or ``rk4`` without input checks, ``(dynamics, x, u, dt, w=None) -> x'``: for
     a loop over time steps whose inputs were checked once (MPPI's rollouts)."""
-    if method not in ("euler", "rk4"):
-        raise ValueError(f"method must be 'euler' or 'rk4', got {method!r}")
-    return _euler if method == "euler" else _rk4
+    return _euler if _stepper(method) is _euler_of else _rk4
 
 
 def euler_maruyama(

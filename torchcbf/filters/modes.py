@@ -305,9 +305,7 @@ class RiskAware(FilterMode):
 
     def cbf(self, terms: LieTerms, alpha: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
         if self.local:
-            # the scale sqrt(2T) erfinv(1 - rho) once per call, the norm per row
-            noise = torch.linalg.vector_norm(terms.dhdx @ dynamics.sigma(x), dim=-1)
-            margin = noise * self._local_scale(x)
+            margin = local_margin(terms.dhdx, dynamics.sigma(x), self.rho, self.horizon.to(x))
         else:
             _check_k("eta", self.cbf_margin, terms.h.shape[-1])
             margin = _like(self.cbf_margin, x)
@@ -315,14 +313,10 @@ class RiskAware(FilterMode):
             terms, "risk_aware", alpha, dynamics, x, margin=margin, horizon=_like(self.horizon, x)
         )
 
-    def _local_scale(self, x: Tensor) -> Tensor:
-        """``sqrt(2 T) erfinv(1 - rho)`` in the dtype and device of ``x`` (from the current
-        ``rho`` and ``horizon``, differentiable in the latter)."""
-        return risk_margin(x.new_ones(()), self.rho, self.horizon.to(x))
-
     def _local_scale_number(self, T: float) -> float:
-        """:meth:`_local_scale` as a number for horizon ``T``, kept until ``rho`` or ``T``
-        changes (a loaded state or a new value in place)."""
+        """``sqrt(2 T) erfinv(1 - rho)`` (:func:`~torchcbf.filters.risk.local_margin` per unit
+        of noise) as a number for horizon ``T``, kept until ``rho`` or ``T`` changes (a
+        loaded state or a new value in place)."""
         if self._scale_of is None or self._scale_of[:2] != (self.rho, T):
             one = torch.ones((), dtype=torch.float64)
             self._scale_of = (self.rho, T, float(risk_margin(one, self.rho, T)))

@@ -498,7 +498,6 @@ class MPPI(ExactConstants):
                 self.register_buffer(name, None if value is None else value.clone())
 
         self._needs_history = bool(getattr(cost, "needs_history", False))
-        self._integrate = integrators.unchecked(integrator)
         self._compiled = bool(compile)
         self._step_into_fn: Callable[..., None] = self._step_into
         self._score_fn: Callable[..., Tensor] = self._score
@@ -812,10 +811,19 @@ class MPPI(ExactConstants):
         if self.zero_noise_samples:
             eps[:, : self.zero_noise_samples].zero_()
 
-    def _step(self, x: Tensor, u: Tensor, j: int) -> Tensor:
+    def _step(
+        self, x: Tensor, u: Tensor, j: int, *, rate: str | None = None, component: bool = False
+    ) -> Tensor:
+        """Step ``j`` of the model (``step``, or the integrator with the model's
+        :func:`~torchcbf.integrators.rate_form` ``rate``, found here where not given) from
+        states ``x [B, K, n]`` and controls ``u [B, K, m]``, or ``[B, n, K]`` and ``[B, m,
+        K]`` where ``component``."""
         if self.step is not None:
-            return self.step(x, u, j)
-        return self._integrate(self.dynamics, x, u, self.dt)
+            return self.step(x.mT, u.mT, j).mT if component else self.step(x, u, j)
+        form = integrators.rate_form(self.dynamics) if rate is None else rate
+        return integrators.unchecked_step(
+            self.dynamics, self.integrator, x, u, self.dt, form=form, component=component
+        )
 
     def _clamp(self, u: Tensor) -> Tensor:
         """``u`` clamped to the control limits, in place."""
@@ -917,14 +925,7 @@ class MPPI(ExactConstants):
         :func:`~torchcbf.integrators.rate_form`. Compiled, the code reads and writes the
         buffers directly, one graph for every ``j``."""
         x, u = states.select(2, j), controls.select(2, j)
-        if self.step is not None:
-            new = self.step(x.mT, u.mT, j).mT if component else self.step(x, u, j)
-        else:
-            dyn, method = self.dynamics, self.integrator
-            new = integrators.unchecked_step(
-                dyn, method, x, u, self.dt, form=rate, component=component
-            )
-        states.select(2, j + 1).copy_(new)
+        states.select(2, j + 1).copy_(self._step(x, u, j, rate=rate, component=component))
 
     def _score(
         self,

@@ -1,10 +1,11 @@
 """A few QPs without gradients, straight from the tensors' memory into proxsuite's dense
 solver, verified (and, where small, polished) in numpy.
 
-The objective is scaled first as on every other route
+The objective is scaled first as the torch backend's methods scale it
 (:func:`torchcbf.qp._function.data_scaling`: its minimiser does not change, its multipliers
-scale back), so that proxsuite's absolute tolerances and the checks mean the same for
-``(P, q)`` of any magnitude.
+scale back; an answer this route cannot verify goes to the general path), so that
+proxsuite's absolute tolerances and the checks mean the same for ``(P, q)`` of any
+magnitude.
 
 One mid-size QP (or a handful) costs proxsuite well under a millisecond where it is small;
 the general path's tensor operations around it would cost more than the solve. This path
@@ -79,7 +80,7 @@ def solve_direct(
         or (ubn == -np.inf).any()
     ):
         return None
-    # the objective scaled as every other route scales it (data_scaling)
+    # the objective scaled as the torch backend's methods scale it (data_scaling)
     c = data_scaling(torch.from_numpy(P), torch.from_numpy(q)).c.numpy()[:, None]
     P, q = P * c[..., None], q * c
     free = hn == np.inf

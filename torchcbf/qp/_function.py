@@ -896,8 +896,9 @@ def _inverse_power_of_two(v: Tensor) -> Tensor:
 
 
 def data_scaling(P: Tensor, q: Tensor) -> Scaling:
-    """The :class:`Scaling` every method and backend solves a batch under: the objective's largest
-    entry (of ``P`` and ``q``) brought near one, where it lies outside
+    """The :class:`Scaling` a batch is solved under (:class:`QPFunction`; for the outside
+    backends only where it scales up): the objective's largest entry (of ``P`` and ``q``)
+    brought near one, where it lies outside
     ``[1 / SCALE_BAND, SCALE_BAND]``. The interior point method's residual and gap tests
     and the polish's and the exact methods' multiplier tests carry absolute terms
     (``1 + scale``), which an objective of 1e-15 passes at a wrong point and one of 1e15
