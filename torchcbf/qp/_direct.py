@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from torchcbf.qp._function import ROUTE_EPS, ROUTE_MAX_ITER, data_scaling
+from torchcbf.qp._lu import lu_factor_ex
 
 _BIG = 1e20
 
@@ -234,7 +235,7 @@ def _polish(
     rhs = torch.from_numpy(np.concatenate((-q, ra, b), 1)[..., None])
     Kt = torch.from_numpy(K)
     # torch's LU (its thread setting, not numpy's BLAS pool), factored once for the refinement
-    LU, pivots, info = torch.linalg.lu_factor_ex(Kt)
+    LU, pivots, info = lu_factor_ex(Kt)
     if bool((info != 0).any()):
         return x, lam, y, lam_lb, lam_ub
     wt = torch.linalg.lu_solve(LU, pivots, rhs)

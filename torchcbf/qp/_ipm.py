@@ -32,6 +32,7 @@ import torch
 from torch import Tensor
 
 from torchcbf.qp._data import QPData
+from torchcbf.qp._lu import lu_factor_ex
 from torchcbf.qp.status import Status
 
 
@@ -229,7 +230,7 @@ class _KKT:
         delta = EQ_REG * A.abs().amax((-2, -1)).clamp_min(1.0)
         shift = torch.cat((K.new_zeros(K.shape[0], n), -delta.unsqueeze(-1).expand(-1, E)), -1)
         self.K = K
-        self.LU, self.pivots, info = torch.linalg.lu_factor_ex(K + torch.diag_embed(shift))
+        self.LU, self.pivots, info = lu_factor_ex(K + torch.diag_embed(shift))
         self.ok = (info == 0) & torch.isfinite(self.LU).flatten(-2).all(-1)
         eye = torch.eye(n + E, dtype=K.dtype, device=K.device)
         self.LU = torch.where(self.ok.view(-1, 1, 1), self.LU, eye)

@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from torchcbf.qp._data import QPData
+from torchcbf.qp._lu import lu_factor_ex
 from torchcbf.qp.status import Status
 
 #: steps of iterative refinement on the regularised factor: the polished answer needs eight
@@ -99,13 +100,12 @@ def _checked_lu(K: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """``(LU, pivots, ok [B])`` of ``K [B, N, N]``, where ``ok`` says the factor is usable.
 
     A batched LU of the linear algebra library can come back broken without saying so
-    (seen with MKL's batched ``getrf`` on a CPU after ``torch.set_num_threads``, N >= ~130:
-    pivots out of range, which make ``lu_solve`` raise, or a factor that does not reproduce
-    ``K``). Each row is checked: pivots in range, a finite factor, and the solve of
-    ``K 1`` giving back ``1`` to within 0.5 (far above the rounding of any factor the
-    regularisation allows). A broken row gets the identity permutation, so that solving
-    with it never raises, and ``ok = False``: its status says so, not an exception."""
-    LU, pivots, info = torch.linalg.lu_factor_ex(K)
+    (:mod:`torchcbf.qp._lu` works around the case known); each row is checked: pivots in
+    range, a finite factor, and the solve of ``K 1`` giving back ``1`` to within 0.5 (far
+    above the rounding of any factor the regularisation allows). A broken row gets the
+    identity permutation, so that solving with it never raises, and ``ok = False``: its
+    status says so, not an exception."""
+    LU, pivots, info = lu_factor_ex(K)
     N = K.shape[-1]
     in_range = ((pivots >= 1) & (pivots <= N)).all(-1)
     ok = (info == 0) & in_range & torch.isfinite(LU).flatten(-2).all(-1)
