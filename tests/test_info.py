@@ -11,12 +11,13 @@ import pytest
 import torch
 
 import torchcbf
+from torchcbf import _triton
 from torchcbf._info import format_info, kernels
 from torchcbf._native import load_kernel
 from torchcbf.barriers import native
 from torchcbf.filters import realtime
-from torchcbf.mppi import _rollout, _triton
-from torchcbf.qp import _dual_native
+from torchcbf.mppi import _rollout
+from torchcbf.qp import _dual_native, _dual_triton
 
 
 def test_info_reports_versions_devices_and_every_kernel() -> None:
@@ -27,15 +28,17 @@ def test_info_reports_versions_devices_and_every_kernel() -> None:
     cuda = torch.cuda.device_count() if torch.cuda.is_available() else 0
     assert len(report["devices"]) == 1 + cuda
     names = [k["name"] for k in report["kernels"]]
-    assert len(names) == 5 and len(set(names)) == 5
+    assert len(names) == 6 and len(set(names)) == 6
     modules = (_dual_native, native, realtime, _rollout)
     found = kernels()
     for k, module in zip(found[:4], modules, strict=True):
         assert k.loaded == module.available() and k.version == module.KERNEL_VERSION
         assert not k.loaded or Path(k.path).name.startswith(module.KERNEL_STEM)
-    gpu = found[4]
-    assert gpu.devices == ("cuda",) and gpu.loaded == _triton.available()
-    assert gpu.version == _rollout.KERNEL_VERSION  # it reads the C kernel's configuration
+    mppi_gpu, qp_gpu = found[4:]
+    for gpu in (mppi_gpu, qp_gpu):
+        assert gpu.devices == ("cuda",) and gpu.loaded == _triton.available()
+    assert mppi_gpu.version == _rollout.KERNEL_VERSION  # it reads the C kernel's configuration
+    assert qp_gpu.version == _dual_triton.KERNEL_VERSION
     text = format_info(report)
     assert all(name in text for name in names)
 
@@ -55,6 +58,6 @@ def test_the_info_command_prints_the_report(capsys: pytest.CaptureFixture[str]) 
 
     assert main(["info", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
-    assert report["torchcbf"] == torchcbf.__version__ and len(report["kernels"]) == 5
+    assert report["torchcbf"] == torchcbf.__version__ and len(report["kernels"]) == 6
     assert main(["info"]) == 0
     assert "kernels:" in capsys.readouterr().out

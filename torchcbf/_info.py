@@ -43,7 +43,7 @@ def _kernels() -> list[tuple[str, ModuleType, str]]:
 
 
 def kernels() -> list[KernelInfo]:
-    """The four C kernels and the Triton kernel, and their state (loading each one, so a
+    """The four C kernels and the two Triton kernels, and their state (loading each one, so a
     missing or stale build gives its warning here)."""
     found = []
     for name, module, fallback in _kernels():
@@ -58,18 +58,26 @@ def kernels() -> list[KernelInfo]:
                 fallback=fallback,
             )
         )
-    from torchcbf.mppi import _triton
+    from torchcbf import _triton
+    from torchcbf.mppi import _triton as mppi_triton
+    from torchcbf.qp import _dual_triton
 
-    found.append(
-        KernelInfo(
-            name="mppi: rollouts and built-in costs (Triton)",
-            version=int(_triton.KERNEL_VERSION),
-            loaded=_triton.available(),
-            path=_triton.location(),
-            devices=("cuda",),
-            fallback="MPPI's torch path on CUDA",
+    for name, version, fallback in (
+        ("mppi: rollouts and built-in costs (Triton)", mppi_triton.KERNEL_VERSION,
+         "MPPI's torch path on CUDA"),
+        ("qp: dual active-set steps (Triton)", _dual_triton.KERNEL_VERSION,
+         "the dual method's torch steps on CUDA"),
+    ):  # fmt: skip
+        found.append(
+            KernelInfo(
+                name=name,
+                version=int(version),
+                loaded=_triton.available(),
+                path=_triton.location(),
+                devices=("cuda",),
+                fallback=fallback,
+            )
         )
-    )
     return found
 
 

@@ -22,7 +22,7 @@ from torchcbf.barriers import (
     Transformed,
     native,
 )
-from torchcbf.dynamics import AccelUnicycle, SingleIntegrator
+from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, SingleIntegrator
 from torchcbf.filters import (
     CubicClassK,
     FilterMode,
@@ -578,3 +578,28 @@ def test_noise_scale_of_an_affine_form(dtype) -> None:
     torch.testing.assert_close(a2, a, **tol)
     torch.testing.assert_close(b2, b - 1.7 * noise, **tol)
     assert native.cbf_conditions(*args, noisy, hessian=False) is None
+
+
+@pytest.mark.parametrize("scale", [1e3, 1e20, 1e100])
+def test_a_nominal_control_far_beyond_the_limits_gets_no_false_answer(scale: float) -> None:
+    """Far outside its limits, ``u_nom`` puts the QP's unconstrained minimiser orders of
+    magnitude from the feasible set: every row stays in the limits, a row called SOLVED meets
+    its conditions, and the real-time and general paths agree."""
+    g = torch.Generator().manual_seed(5)
+    dyn = DoubleIntegrator(8, u_min=-1.0, u_max=1.0)
+    balls = Ball(torch.randn(6, 2, generator=g, dtype=torch.float64) * 2 + 1,
+                 torch.rand(6, generator=g, dtype=torch.float64) + 0.2)  # fmt: skip
+    filt = SafetyFilter(dyn, ExponentialBarrier(balls, dyn, 2, (1.5,))).double()
+    x = torch.randn(3, 16, generator=g, dtype=torch.float64)
+    u_nom = scale * torch.randn(3, 8, generator=g, dtype=torch.float64)
+    with torch.no_grad():
+        out = filt(x, u_nom)
+    with torch.enable_grad():
+        gen = filt(x.clone().requires_grad_(), u_nom)
+    assert not gen.path.endswith("realtime")
+    assert torch.equal(out.status, gen.status)
+    for o in (out, gen):
+        assert float(o.u.detach().abs().max()) <= 1.0 + 1e-6
+        solved = (o.status == FilterStatus.SOLVED).unsqueeze(-1)
+        assert bool((o.constraint_value.detach() >= -1e-6).logical_or(~solved).all())
+    torch.testing.assert_close(out.u, gen.u.detach(), atol=1e-6, rtol=1e-6)

@@ -10,11 +10,11 @@ CPU's, so there a batched planner is compared with one planner per environment).
 from __future__ import annotations
 
 import copy
-import os
 
 import pytest
 import torch
 
+from torchcbf._triton import available, interpreted
 from torchcbf.barriers import Ball, Ellipse
 from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, SingleIntegrator, Unicycle
 from torchcbf.mppi import (
@@ -30,14 +30,14 @@ from torchcbf.mppi import (
 
 if torch.cuda.is_available():
     TARGET = torch.device("cuda")
-elif os.environ.get("TRITON_INTERPRET") == "1":
+elif interpreted():
     TARGET = torch.device("cpu")
 else:
     TARGET = None
 
 pytestmark = [
     pytest.mark.device,
-    pytest.mark.skipif(not _triton.available(), reason="Triton is not installed"),
+    pytest.mark.skipif(not available(), reason="Triton is not installed"),
     pytest.mark.skipif(TARGET is None, reason="no CUDA device and TRITON_INTERPRET is not 1"),
     pytest.mark.skipif(
         not _rollout.available(), reason="the C kernel (the reference) is not built"

@@ -32,8 +32,8 @@ def _problems(B: int, n: int, m: int, seed: int, frac_infeasible: float = 0.25):
 
 
 def _both(P, q, G, h, **kw):
-    ref = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, native=False, **kw)
-    out = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, native=True, **kw)
+    ref = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, engine="torch", **kw)
+    out = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, engine="c", **kw)
     return ref, out
 
 
@@ -84,9 +84,9 @@ def test_batch_split_over_threads_gives_identical_answers(shape):
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(1)
-        one = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, native=True)
+        one = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, engine="c")
         torch.set_num_threads(3)
-        three = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, native=True)
+        three = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, engine="c")
     finally:
         torch.set_num_threads(threads)
     for a, b in zip(one[:5], three[:5], strict=True):
@@ -118,8 +118,8 @@ def test_transposed_and_expanded_g_give_the_right_gradients():
     torch.testing.assert_close(grads[1], torch.tensor([0.0, -1.0], dtype=F64))
     P, q, G, h = _problems(6, 3, 5, seed=3, frac_infeasible=0.0)
     G1, h1 = G[:1].expand(6, -1, -1), h[:1].expand(6, -1)
-    out = solve_dual(P, q, G1, h1, eps=1e-9, max_iter=100, native=True)
-    ref = solve_dual(P, q, G1.contiguous(), h1.contiguous(), eps=1e-9, max_iter=100, native=True)
+    out = solve_dual(P, q, G1, h1, eps=1e-9, max_iter=100, engine="c")
+    ref = solve_dual(P, q, G1.contiguous(), h1.contiguous(), eps=1e-9, max_iter=100, engine="c")
     gx = torch.ones(6, 3, dtype=F64)
     gz = torch.zeros(6, G.shape[1], dtype=F64)
     for a, b in zip(
@@ -152,8 +152,8 @@ def test_nearly_dependent_final_active_set_is_not_accepted():
 
 def test_max_iter_beyond_a_c_int_is_clamped():
     P, q, G, h = _problems(20, 3, 5, seed=4, frac_infeasible=0.0)
-    big = solve_dual(P, q, G, h, eps=1e-9, max_iter=2**32 + 3, native=True)
-    ref = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, native=True)
+    big = solve_dual(P, q, G, h, eps=1e-9, max_iter=2**32 + 3, engine="c")
+    ref = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, engine="c")
     assert big.ok.all() and torch.equal(big.iterations, ref.iterations)
 
 
@@ -177,7 +177,7 @@ def test_infeasible_rows_are_proved_by_a_farkas_certificate(shape):
     most infeasible rows; solve_qp then reports them without re-solving them."""
     n, m = shape
     P, q, G, h = _problems(400, n, m, seed=90 + n, frac_infeasible=0.3)
-    out = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, native=True)
+    out = solve_dual(P, q, G, h, eps=1e-9, max_iter=100, engine="c")
     ref = solve_qp(P, q, G, h, method="ipm")
     truly = ref.status == Status.PRIMAL_INFEASIBLE
     assert not bool((out.ok & out.infeasible).any())

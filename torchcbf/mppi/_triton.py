@@ -14,28 +14,21 @@ generators, which draw other numbers on CUDA than on the CPU). Each pass is one 
 - :func:`buffers`: every sample's states and controls in the component-major buffers a
   torch cost reads, and the control cost.
 
-Triton is optional (it ships with CUDA builds of torch); :func:`available` says whether it
-imports. On the CPU the kernel runs only under ``TRITON_INTERPRET=1`` (the tests use it).
+Triton is optional (:mod:`torchcbf._triton`; :func:`available` says whether it imports). On
+the CPU the kernel runs only under ``TRITON_INTERPRET=1`` (the tests use it).
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from pathlib import Path
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
+from torchcbf._triton import tl, triton
 from torchcbf.mppi import _rollout
-
-try:  # Triton is optional: the planner uses torch where it is missing
-    import triton
-    import triton.language as tl
-except ImportError:  # pragma: no cover - depends on the installation
-    triton = None
-    tl = None
 
 #: samples per program: one warp, one sample per thread (K = 16,384 gives 512 programs,
 #: enough to occupy every multiprocessor of a large GPU)
@@ -52,18 +45,6 @@ _TVAL = 8
 
 #: the configuration this kernel reads (:data:`torchcbf.mppi._rollout.KERNEL_VERSION`)
 KERNEL_VERSION = _rollout.KERNEL_VERSION
-
-
-def available() -> bool:
-    """Whether Triton imports."""
-    return triton is not None
-
-
-def location() -> str | None:
-    """Triton's version and where it is installed, or ``None`` where it does not import."""
-    if triton is None:
-        return None
-    return f"triton {triton.__version__} at {Path(triton.__file__).parent}"
 
 
 class Tables(NamedTuple):

@@ -87,7 +87,6 @@ runs eager.
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable
 from typing import Any, ClassVar, NamedTuple
 
@@ -108,6 +107,8 @@ from torchcbf._checks import (
 from torchcbf._compile import Compiled
 from torchcbf._constants import ExactConstants, remember
 from torchcbf._native import keep_freed_heap
+from torchcbf._triton import available as triton_available
+from torchcbf._triton import interpreted as triton_interpreted
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.mppi import _rollout, _triton
 from torchcbf.mppi.history import History, HistoryBuffer
@@ -505,7 +506,7 @@ class MPPI(ExactConstants):
             kwargs = compile if isinstance(compile, dict) else {}
             self._step_into_fn = Compiled(self._step_into, _step_options(kwargs))
             self._score_fn = Compiled(self._score, kwargs)
-        if backend == "triton" and not _triton.available():
+        if backend == "triton" and not triton_available():
             raise ValueError("backend='triton' needs Triton, which does not import here")
         self._key: tuple[Any, ...] | None = None
         self._kernel_cache: tuple[Any, _rollout.Kernel | _triton.Kernel | None] | None = None
@@ -989,7 +990,7 @@ class MPPI(ExactConstants):
         ):
             return None
         if self.backend == "triton":
-            if x.device.type == "cpu" and os.environ.get("TRITON_INTERPRET") != "1":
+            if x.device.type == "cpu" and not triton_interpreted():
                 raise ValueError(
                     "backend='triton' plans on CUDA tensors (on the CPU only under "
                     "TRITON_INTERPRET=1); x is on the CPU"
@@ -997,7 +998,7 @@ class MPPI(ExactConstants):
             return "triton"
         if x.device.type == "cpu":
             return "c" if _rollout.available() else None
-        return "triton" if x.device.type == "cuda" and _triton.available() else None
+        return "triton" if x.device.type == "cuda" and triton_available() else None
 
     def _kernel(self, x: Tensor) -> _rollout.Kernel | _triton.Kernel | None:
         """The kernel bound to this planner's configuration, or ``None`` where torch runs:

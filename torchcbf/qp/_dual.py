@@ -40,7 +40,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchcbf.qp import _dual_native, _kkt
+from torchcbf.qp import _dual_native, _dual_triton, _kkt
 from torchcbf.qp._enum import _eliminate
 
 
@@ -62,6 +62,19 @@ class NativeFactor(NamedTuple):
     L: Tensor  # [B, N, N] lower Cholesky factor of P
     slots: Tensor  # [B, N] int64 row index per slot (M: empty)
     ok: Tensor  # [B] rows solved by this method
+
+
+#: implementations of the method's steps (:func:`dual_engine` picks one)
+ENGINES = ("c", "triton", "torch")
+
+
+def dual_engine(q: Tensor, M: int) -> str:
+    """The implementation :func:`solve_dual` runs for ``q [B, N]`` with ``M`` rows: the C
+    kernel for float64 on the CPU (where built), the Triton kernel on CUDA (where Triton
+    imports and the problem fits its tiles), else torch."""
+    if _dual_native.applies(q):
+        return "c"
+    return "triton" if _dual_triton.applies(q, M) else "torch"
 
 
 class DualResult(NamedTuple):
@@ -242,28 +255,37 @@ def solve_dual(
     eps: float,
     max_iter: int,
     check_every: int = 5,
-    native: bool | None = None,
+    engine: str | None = None,
 ) -> DualResult:
     """Solve ``min 1/2 x'Px + q'x s.t. Gx <= h`` for ``P [B,N,N], q [B,N], G [B,M,N],
     h [B,M]`` (finite, ``M >= 1``, float64 recommended). See the module docstring; rows with
     ``ok = False`` hold zeros and must be solved by another method.
 
-    ``native`` picks the C kernel of :mod:`torchcbf.qp._dual_native` (same algorithm, one
-    problem at a time); ``None`` uses it wherever it applies (float64 on the CPU, when built).
+    ``engine`` picks the implementation (:data:`ENGINES`; ``None``: :func:`dual_engine`):
+    ``"c"`` the C kernel of :mod:`torchcbf.qp._dual_native` (the same algorithm, one problem
+    at a time), ``"triton"`` the steps in one Triton launch (:mod:`torchcbf.qp._dual_triton`,
+    on CUDA, or on the CPU under ``TRITON_INTERPRET=1``), ``"torch"`` tensor operations.
 
     When the host checks progress (every step on a CPU, every ``check_every`` steps
     elsewhere) and at most a third of the rows still run, the iteration continues on those rows
     only (finished rows are written back first), so the long tail of a few hard rows costs
     little."""
-    if native is None:
-        native = _dual_native.applies(q)
-    if native:
+    B, N = q.shape
+    M = h.shape[-1]
+    engine = dual_engine(q, M) if engine is None else engine
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {ENGINES} or None, got {engine!r}")
+    if engine == "triton" and not _dual_triton.applies(q, M, explicit=True):
+        raise ValueError(
+            "engine='triton' needs Triton, data on CUDA (on the CPU: TRITON_INTERPRET=1) and "
+            f"at most {_dual_triton.MAX_TILE} entries in the padded [N, M] tile; got N={N}, "
+            f"M={M} on {q.device}"
+        )
+    if engine == "c":
         x, z, active, slots, L, ok, iters, infeasible = _dual_native.forward(
             P, q, G, h, eps, max_iter
         )
         return DualResult(x, z, active, ok, iters, NativeFactor(G, L, slots, ok), infeasible)
-    B, N = q.shape
-    M = h.shape[-1]
     dtype, device = q.dtype, q.device
     Pp = P.permute(1, 2, 0).contiguous()
     L, pd = _cholesky(Pp)
@@ -281,12 +303,78 @@ def solve_dual(
     w_diag = _contract(sol[:, :M], Rc)
     inv_norm = torch.where(w_diag > 0, w_diag.clamp_min(1e-300).rsqrt(), 0.0)
     data = _Data(Rc, hr, UR, add_tol, slots, (N - slots).to(dtype), inv_norm)
+    if engine == "triton":
+        run = _dual_triton.steps(
+            Rc, sol[:, :M], hr, add_tol, inv_norm, xu, ~pd, min(max_iter, 2**31 - 1)
+        )
+        S, fail, done, iters = run.S, ~pd, run.done, run.iters
+    else:
+        S, fail, done, iters = _iterate(data, xu, pd, max_iter, check_every)
+
+    # exact multipliers and primal point on the final active set (the iterates accumulate
+    # rounding), then the KKT check with per-row tolerances
+    UR_S = UR.gather(1, S.unsqueeze(0).expand(2 * N, N, B))
+    U_S, R_S = UR_S[:N], UR_S[N:]
+    empty = S == M
+    hr_ext = torch.cat((hr, hr.new_zeros(1, B)), 0)
+    rhs_S = _contract(R_S, xu.unsqueeze(1)) - hr_ext.gather(0, S)  # R_S x_u - r_S
+    piv_tol = 1e-12 if dtype == torch.float64 else 1e-6
+    W_SS = _slot_system(R_S, U_S, empty)
+    lam_S, nonsing = _eliminate(W_SS, rhs_S, piv_tol)
+    lam_S = torch.where(empty, 0.0, lam_S)
+    x = xu - _contract(U_S.transpose(0, 1), lam_S.unsqueeze(1))
+    # rows are judged on the scale of the point found, not of xu: far outside the feasible
+    # set (|xu| >> |x|) x keeps errors of about |xu| mach, which xu's scale passes as rounding
+    tiny = torch.finfo(dtype).tiny
+    r_S = hr_ext.gather(0, S)
+    res_S = torch.where(empty, 0.0, _contract(R_S, x.unsqueeze(1)) - r_S)
+    scale_S = r_S.abs() + R_S.abs().amax(0) * (1.0 + x.abs().amax(0))
+    worst = (res_S.abs() / scale_S.clamp_min(tiny)).amax(0)
+    # one refinement step on the active rows' residual (the C kernel's): W_SS dmu = G_S x -
+    # h_S, x -= P^{-1} G_S' dmu, computed from small numbers, restores the lost digits
+    dmu, solvable = _eliminate(W_SS, res_S, piv_tol)
+    refine = nonsing & solvable & (worst > 1e4 * torch.finfo(dtype).eps)
+    dmu = torch.where(refine & ~empty, dmu, 0.0)
+    x = x - _contract(U_S.transpose(0, 1), dmu.unsqueeze(1))
+    lam_S = lam_S + dmu
+    scale = _kkt.row_scale(G, h, x.T).T  # [M, B]
+    v = (_contract(Rc, x.unsqueeze(1)) - hr) / scale.clamp_min(tiny)
+    v_S = torch.cat((v, v.new_zeros(1, B)), 0).gather(0, S)
+    pviol = torch.maximum(v.amax(0), v_S.abs().amax(0))
+    stat = _contract(Pp, x.unsqueeze(1)) + q.T + _contract(R_S.transpose(0, 1), lam_S.unsqueeze(1))
+    dscale = 1.0 + q.abs().amax(-1) + (R_S.abs().amax(0) * lam_S.abs()).amax(0)
+    ok = (
+        ~fail
+        & done
+        & nonsing
+        & (pviol <= eps)
+        & (lam_S.amin(0) >= -eps * (1.0 + lam_S.abs().amax(0)))
+        & (stat.abs().amax(0) <= eps * dscale)
+        & torch.isfinite(x).all(0)
+    )
+    okc = ok.unsqueeze(-1)
+    lam = q.new_zeros(M + 1, B).scatter_(0, S, lam_S)
+    x_out = torch.where(okc, x.T, 0.0)
+    z_out = torch.where(okc, lam[:M].T.clamp_min(0.0), 0.0)
+    active = torch.zeros(M + 1, B, dtype=torch.bool, device=device).scatter_(0, S, True)
+    active = active[:M].T & okc
+    factor = DualFactor(L, S, R_S, U_S, ok)
+    return DualResult(x_out, z_out, active, ok, iters, factor, torch.zeros_like(ok))
+
+
+def _iterate(data: _Data, xu: Tensor, pd: Tensor, max_iter: int, check_every: int) -> _Outcome:
+    """The torch steps of :func:`solve_dual` from the unconstrained minimisers ``xu [N, B]``
+    (rows where ``pd`` is false do not iterate); the final active slots, failures, finished
+    rows and step counts."""
+    N, B = xu.shape
+    dtype, device = xu.dtype, xu.device
+    M = data.hr.shape[0]
     st = _State(
         x=xu.clone(),
-        lam_S=q.new_zeros(N, B),
-        lam_p=q.new_zeros(B),
+        lam_S=xu.new_zeros(N, B),
+        lam_p=xu.new_zeros(B),
         S=torch.full((N, B), M, dtype=torch.int64, device=device),
-        U_S=q.new_zeros(N, N, B),
+        U_S=xu.new_zeros(N, N, B),
         Hs=torch.eye(N, dtype=dtype, device=device).unsqueeze(-1).repeat(1, 1, B),
         p=torch.zeros(B, dtype=torch.int64, device=device),
         pending=torch.zeros(B, dtype=torch.bool, device=device),
@@ -318,41 +406,7 @@ def solve_dual(
             st = _State(*(t.index_select(-1, keep) for t in st))
     else:
         final = _write_back(final, st, rows)
-    S, fail, done, iters = final
-
-    # exact multipliers and primal point on the final active set (the iterates accumulate
-    # rounding), then the KKT check with per-row tolerances
-    UR_S = UR.gather(1, S.unsqueeze(0).expand(2 * N, N, B))
-    U_S, R_S = UR_S[:N], UR_S[N:]
-    empty = S == M
-    hr_ext = torch.cat((hr, hr.new_zeros(1, B)), 0)
-    rhs_S = _contract(R_S, xu.unsqueeze(1)) - hr_ext.gather(0, S)  # R_S x_u - r_S
-    piv_tol = 1e-12 if dtype == torch.float64 else 1e-6
-    lam_S, nonsing = _eliminate(_slot_system(R_S, U_S, empty), rhs_S, piv_tol)
-    lam_S = torch.where(empty, 0.0, lam_S)
-    x = xu - _contract(U_S.transpose(0, 1), lam_S.unsqueeze(1))
-    v = (_contract(Rc, x.unsqueeze(1)) - hr) / row_scale.clamp_min(torch.finfo(dtype).tiny)
-    v_S = torch.cat((v, v.new_zeros(1, B)), 0).gather(0, S)
-    pviol = torch.maximum(v.amax(0), v_S.abs().amax(0))
-    stat = _contract(Pp, x.unsqueeze(1)) + q.T + _contract(R_S.transpose(0, 1), lam_S.unsqueeze(1))
-    dscale = 1.0 + q.abs().amax(-1) + (R_S.abs().amax(0) * lam_S.abs()).amax(0)
-    ok = (
-        ~fail
-        & done
-        & nonsing
-        & (pviol <= eps)
-        & (lam_S.amin(0) >= -eps * (1.0 + lam_S.abs().amax(0)))
-        & (stat.abs().amax(0) <= eps * dscale)
-        & torch.isfinite(x).all(0)
-    )
-    okc = ok.unsqueeze(-1)
-    lam = q.new_zeros(M + 1, B).scatter_(0, S, lam_S)
-    x_out = torch.where(okc, x.T, 0.0)
-    z_out = torch.where(okc, lam[:M].T.clamp_min(0.0), 0.0)
-    active = torch.zeros(M + 1, B, dtype=torch.bool, device=device).scatter_(0, S, True)
-    active = active[:M].T & okc
-    factor = DualFactor(L, S, R_S, U_S, ok)
-    return DualResult(x_out, z_out, active, ok, iters, factor, torch.zeros_like(ok))
+    return final
 
 
 class _Outcome(NamedTuple):

@@ -85,6 +85,14 @@ INLINE double dot(int n, const double *a, const double *b) {
     return s;
 }
 
+/* The scale |h_i| + max|g_i| (1 + x_max) of row g [n], h_i's residual at a point of
+ * largest entry x_max (torchcbf/qp/_kkt.py's row_scale). */
+INLINE double scale_at(int n, const double *g, double hi, double x_max) {
+    double gmax = 0.0;
+    for (int c = 0; c < n; ++c) gmax = dmax(gmax, fabs(g[c]));
+    return fabs(hi) + gmax * (1.0 + x_max);
+}
+
 /* Solve W mu = r for symmetric W [K,K] (upper triangle read) by symmetric Gaussian
  * elimination without pivoting, as _enum._eliminate; returns 0 when a pivot is below
  * piv_tol times its diagonal entry. W and r are overwritten. */
@@ -346,26 +354,37 @@ INLINE int solve_one(int N, int M, const double *RESTRICT P, const double *RESTR
     }
     int nonsing = slot_solve(N, M, G, US, S, rhs, 1e-12, mu, W);
     for (int c = 0; c < N; ++c) x[c] = xu[c] - dot(N, US + c * N, mu);
+    /* Rows are judged on the scale of the point found, not of xu: far outside the feasible
+     * set (|xu| >> |x|) x = xu - P^{-1} G_S' mu keeps errors of about |xu| mach, which xu's
+     * scale would pass as rounding (a control far outside its limits, say) */
+    const double tiny = 2.2250738585072014e-308;
+    double x_max = 0.0;
+    for (int c = 0; c < N; ++c) x_max = dmax(x_max, fabs(x[c]));
     if (nonsing) {
         /* one refinement step on the active rows' residual G_S x - h_S: the Schur complement
          * loses the digits of a large multiplier over a weak curvature (x then lies off its
-         * active rows by about |mu| mach / P_jj, a filter's slack weight over a control's);
-         * the correction W_SS dmu = G_S x - h_S, x -= P^{-1} G_S' dmu, of small numbers,
-         * restores them and keeps x stationary */
+         * active rows by about |mu| mach / P_jj, a filter's slack weight over a control's),
+         * or of a large xu; the correction W_SS dmu = G_S x - h_S, x -= P^{-1} G_S' dmu, of
+         * small numbers, restores them and keeps x stationary */
         double res_S[NMAX], dmu[NMAX], worst = 0.0;
         for (int k = 0; k < N; ++k) {
             res_S[k] = S[k] == M ? 0.0 : dot(N, G + S[k] * N, x) - h[S[k]];
-            if (S[k] != M)
-                worst = dmax(worst, fabs(res_S[k]) / dmax(row_scale[S[k]], 2.2250738585072014e-308));
+            if (S[k] != M) {
+                double sc = scale_at(N, G + S[k] * N, h[S[k]], x_max);
+                worst = dmax(worst, fabs(res_S[k]) / dmax(sc, tiny));
+            }
         }
         if (worst > 1e4 * mach && slot_solve(N, M, G, US, S, res_S, 1e-12, dmu, W)) {
             for (int c = 0; c < N; ++c) x[c] -= dot(N, US + c * N, dmu);
             for (int k = 0; k < N; ++k) mu[k] += dmu[k];
+            x_max = 0.0;
+            for (int c = 0; c < N; ++c) x_max = dmax(x_max, fabs(x[c]));
         }
     }
     double pviol = 0.0;
     for (int i = 0; i < M; ++i) {
-        double vi = (dot(N, G + i * N, x) - h[i]) / dmax(row_scale[i], 2.2250738585072014e-308);
+        double sc = scale_at(N, G + i * N, h[i], x_max);
+        double vi = (dot(N, G + i * N, x) - h[i]) / dmax(sc, tiny);
         pviol = dmax(pviol, member[i] != 0.0 ? fabs(vi) : vi);
     }
     double lam_min = INFINITY, lam_abs = 0.0, qmax = 0.0, rl = 0.0, stat = 0.0;

@@ -11,6 +11,7 @@ from torch import Tensor
 
 from torchcbf._checks import broadcast_shapes
 from torchcbf.qp import _direct, _dual_native, realtime
+from torchcbf.qp._dual import dual_engine
 from torchcbf.qp._enum import (
     MAX_CANDIDATES,
     MAX_CANDIDATES_SMALL_BATCH,
@@ -44,7 +45,8 @@ class QPSolution(NamedTuple):
       small problems in one call of the dual C kernel, :mod:`torchcbf.qp.realtime`),
       ``"small_proxsuite"`` (a few problems straight to proxsuite's dense solver),
       ``"active_set_native"`` (the dual active set method in C, equality rows eliminated
-      first where there are any), ``"active_set"``, ``"enumerate"``, ``"closed_form"``,
+      first where there are any), ``"active_set_triton"`` (its steps in one Triton launch
+      on CUDA), ``"active_set"``, ``"enumerate"``, ``"closed_form"``,
       ``"ipm"`` (in torch), ``"auto_proxsuite"`` (proxsuite's dense solver, then the interior
       point method), ``"proxsuite"``, ``"qpsolvers:<solver>"``, or ``"empty"`` (no rows).
     - ``method [...]`` int64: the algorithm that answered each row, an index into
@@ -75,8 +77,9 @@ class QPSolution(NamedTuple):
 #: the names of :attr:`QPSolution.method`'s codes
 METHODS_ANSWERED = ANSWERED_BY
 #: the values of :attr:`QPSolution.path` (besides ``"qpsolvers:<solver>"``)
-PATHS = ("small_native", "small_proxsuite", "active_set_native", "active_set", "enumerate",
-         "closed_form", "ipm", "auto_proxsuite", "proxsuite", "empty")  # fmt: skip
+PATHS = ("small_native", "small_proxsuite", "active_set_native", "active_set_triton",
+         "active_set", "enumerate", "closed_form", "ipm", "auto_proxsuite", "proxsuite",
+         "empty")  # fmt: skip
 _FLOAT = (torch.float32, torch.float64)
 METHODS = ("auto", "active_set", "enumerate", "ipm")
 #: most candidate active sets ``method="enumerate"`` accepts when asked for explicitly (its
@@ -235,8 +238,11 @@ def solve_qp(
 
       On the CPU the dual method runs a C kernel (:mod:`torchcbf.qp._dual_native`, the
       same algorithm problem by problem, built at install when a C compiler is present;
-      a large batch is split over ``torch.get_num_threads()`` threads). Without it, and on
-      other devices, it runs in torch. A few small QPs (at most ``realtime.MAX_BATCH`` rows)
+      a large batch is split over ``torch.get_num_threads()`` threads). On CUDA, where
+      Triton imports, its steps run in one Triton launch (:mod:`torchcbf.qp._dual_triton`,
+      problems of up to 256 entries in the ``[N, M]`` tile padded to powers of two); the
+      factorisation before and the exact check after stay in torch. Otherwise it runs in
+      torch. A few small QPs (at most ``realtime.MAX_BATCH`` rows)
       that need no gradient go straight from numpy arrays into the kernel
       (:mod:`torchcbf.qp.realtime`); a batch the kernel does not certify completely takes
       the general path. ``method="enumerate"`` asked for explicitly refuses problems with
@@ -304,17 +310,20 @@ def solve_qp(
         std.P, std.q, std.G, std.h, std.A, flat.b, cfg, std.x0
     )
     sol = _unpack(inp, flat, std, xs, z, y, status, iters)
-    return sol._replace(path=_path(cfg, std.q), method=answered.reshape(inp.batch_shape))
+    path = _path(cfg, std.q, std.G.shape[-2])
+    return sol._replace(path=path, method=answered.reshape(inp.batch_shape))
 
 
-def _path(cfg: SolverConfig, q: Tensor) -> str:
-    """:attr:`QPSolution.path` of a batch solved with ``cfg`` (linear terms ``q [B, N]``)."""
+def _path(cfg: SolverConfig, q: Tensor, M: int) -> str:
+    """:attr:`QPSolution.path` of a batch solved with ``cfg`` (linear terms ``q [B, N]``,
+    ``M`` inequality rows; the solve runs in float64)."""
     if cfg.method == "outside":
         return cfg.backend
     if cfg.method == "eliminate":  # the reduced problem goes to the C kernel
         return "active_set_native"
     if cfg.method == "active_set":
-        return "active_set_native" if _dual_native.applies(q.double()) else "active_set"
+        engine = dual_engine(q.double(), M)
+        return {"c": "active_set_native", "triton": "active_set_triton"}.get(engine, "active_set")
     return cfg.method
 
 

@@ -1,0 +1,149 @@
+"""The Triton kernel of the dual active-set method's steps against the torch steps (the same
+active sets, step counts and answers) and the known optimum of each problem, on CUDA, or on
+the CPU in Triton's interpreter (``TRITON_INTERPRET=1`` set before Python starts); and its
+compilation for a GPU (no GPU needed), which catches what the interpreter accepts and the
+compiler refuses. Skipped where Triton does not import."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from _problems import make_batch
+
+from torchcbf._triton import available, interpreted
+from torchcbf.qp import _dual_triton, solve_qp
+from torchcbf.qp._dual import dual_engine, solve_dual
+
+if torch.cuda.is_available():
+    TARGET = torch.device("cuda")
+elif interpreted():
+    TARGET = torch.device("cpu")
+else:
+    TARGET = None
+
+pytestmark = [
+    pytest.mark.device,
+    pytest.mark.skipif(not available(), reason="Triton is not installed"),
+]
+runs = pytest.mark.skipif(TARGET is None, reason="no CUDA device and TRITON_INTERPRET is not 1")
+
+F64 = torch.float64
+
+
+def _problems(B: int, n: int, m: int, seed: int, dtype: torch.dtype = F64):
+    """Random QPs with known optima, box rows folded into ``G``, some infeasible, a duplicated
+    row and all-zero rows (every seventh problem: its known optimum no longer holds); on the
+    target device."""
+    batch = make_batch(B, n, m, 0, True, seed=seed, frac_infeasible=0.2)
+    eye = torch.eye(n, dtype=F64).expand(B, n, n)
+    G = torch.cat((batch.G, eye, -eye), -2)
+    h = torch.cat((batch.h, batch.ub, -batch.lb), -1)
+    G[:, -1] = G[:, 0]
+    h[:, -1] = h[:, 0]
+    G[::7, 1] = 0.0
+    data = (0.5 * (batch.Q + batch.Q.mT), batch.p, G, h, batch.x_star)
+    return [t.to(TARGET, dtype) for t in data], batch.kind
+
+
+def _eps(dtype: torch.dtype) -> float:
+    return 1e-9 if dtype == F64 else 1e-5
+
+
+@runs
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+@pytest.mark.parametrize("shape", [(1, 37, 1, 2), (2, 70, 2, 6), (3, 33, 3, 5), (4, 64, 4, 8)])
+def test_steps_match_the_torch_steps_and_the_known_optimum(shape, dtype):
+    _, B, n, m = shape
+    (P, q, G, h, x_star), kind = _problems(B, n, m, seed=40 + n, dtype=dtype)
+    eps = _eps(dtype)
+    ref = solve_dual(P, q, G, h, eps=eps, max_iter=100, engine="torch")
+    out = solve_dual(P, q, G, h, eps=eps, max_iter=100, engine="triton")
+    assert ref.ok.any() and not ref.ok.all()
+    assert torch.equal(out.ok, ref.ok)
+    assert torch.equal(out.active, ref.active)
+    # rows that end unsolved may stop a step apart (rounding of the sums)
+    assert torch.equal(out.iterations[ref.ok], ref.iterations[ref.ok])
+    tol = 1e-10 if dtype == F64 else 1e-4
+    torch.testing.assert_close(out.x, ref.x, atol=tol, rtol=tol)
+    torch.testing.assert_close(out.z, ref.z, atol=10 * tol, rtol=10 * tol)
+    kept = [k in ("active", "inactive") and i % 7 for i, k in enumerate(kind)]
+    known = out.ok & torch.tensor(kept, dtype=torch.bool, device=TARGET)
+    assert known.sum() >= B // 2
+    ref_tol = 1e-7 if dtype == F64 else 2e-3
+    torch.testing.assert_close(out.x[known], x_star[known], atol=ref_tol, rtol=ref_tol)
+
+
+@runs
+def test_rows_that_do_not_iterate_or_run_out_of_steps():
+    (P, q, G, h, _), _ = _problems(40, 3, 6, seed=3)
+    P = P.clone()
+    P[4] = torch.diag(torch.tensor([1.0, 0.0, 1.0], dtype=F64, device=TARGET))
+    solved = {}
+    for max_iter in (1, 100):
+        ref = solve_dual(P, q, G, h, eps=1e-9, max_iter=max_iter, engine="torch")
+        out = solve_dual(P, q, G, h, eps=1e-9, max_iter=max_iter, engine="triton")
+        assert not out.ok[4]
+        assert torch.equal(out.ok, ref.ok)
+        assert torch.equal(out.iterations[ref.ok], ref.iterations[ref.ok])
+        assert int(out.iterations.max()) <= max_iter
+        solved[max_iter] = int(out.ok.sum())
+    assert 0 < solved[1] < solved[100]  # some rows need more than one step
+
+
+@runs
+def test_one_row_and_gradients_through_solve_qp():
+    (P, q, G, h, _), kind = _problems(3, 2, 4, seed=9)
+    row = kind.index("active")
+    args = [t[row : row + 1].clone().requires_grad_() for t in (P, q, G, h)]
+    out = solve_dual(*(a.detach() for a in args), eps=1e-9, max_iter=50, engine="triton")
+    ref = solve_dual(*(a.detach() for a in args), eps=1e-9, max_iter=50, engine="torch")
+    assert out.ok.all() and torch.equal(out.x, ref.x)
+    if TARGET.type == "cuda":  # solve_qp runs the kernel by itself only on CUDA
+        sol = solve_qp(*args)
+        assert sol.path == "active_set_triton"
+        cpu = solve_qp(*(a.detach().cpu() for a in args))
+        torch.testing.assert_close(sol.x.detach().cpu(), cpu.x, atol=1e-9, rtol=1e-9)
+        sol.x.sum().backward()
+        assert all(torch.isfinite(a.grad).all() for a in args)
+
+
+@runs
+def test_engine_choice_and_errors():
+    (P, q, G, h, _), _ = _problems(4, 2, 3, seed=1)
+    M = G.shape[-2]
+    expected = "triton" if TARGET.type == "cuda" else "c"
+    assert dual_engine(q, M) in (expected, "torch")
+    assert not _dual_triton.applies(q, 1024)  # a tile too large for the registers
+    with pytest.raises(ValueError, match="engine must be one of"):
+        solve_dual(P, q, G, h, eps=1e-9, max_iter=10, engine="cuda")
+    big_G = G.repeat(1, 40, 1)[:, :257]
+    big_h = h.repeat(1, 40)[:, :257]
+    with pytest.raises(ValueError, match="engine='triton' needs"):
+        solve_dual(P, q, big_G, big_h, eps=1e-9, max_iter=10, engine="triton")
+    Rc = G.permute(2, 1, 0).contiguous()
+    done = torch.zeros(4, dtype=torch.bool, device=TARGET)
+    with pytest.raises(ValueError, match="hr must be"):
+        _dual_triton.steps(Rc, Rc, h, h.T, h.T, q.T, done, 5)
+
+
+@pytest.mark.skipif(interpreted(), reason="the interpreter does not compile")
+@pytest.mark.parametrize("real", ["fp32", "fp64"])
+def test_kernel_compiles_for_a_gpu(real):
+    from triton import compile as triton_compile
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    pointers = ("rc_ptr", "u_ptr", "hr_ptr", "tol_ptr", "inv_ptr", "xu_ptr")
+    signature = {name: f"*{real}" for name in pointers}
+    signature.update(done_ptr="*i8", s_ptr="*i64", done_out_ptr="*i8", iters_ptr="*i64")
+    signature.update(B="i32", max_iter="i32")
+    sizes = {"N": 2, "M": 12, "NP": 2, "MP": 16, "BLOCK": _dual_triton.BLOCK}
+    signature.update(dict.fromkeys(sizes, "constexpr"))
+    src = ASTSource(_dual_triton._dual_steps_kernel, signature, constexprs=sizes)
+    try:
+        compiled = triton_compile(src, target=GPUTarget("cuda", 90, 32), options={"num_warps": 1})
+    except RuntimeError as err:  # a Triton without its CUDA tool chain
+        if "ptxas" in str(err) or "backend" in str(err):
+            pytest.skip(f"Triton cannot compile for CUDA here: {err}")
+        raise
+    assert "_dual_steps_kernel" in compiled.asm["ptx"] and compiled.asm["cubin"]
