@@ -1,8 +1,8 @@
-"""The Triton kernel of the dual active-set method's steps against the torch steps (the same
-active sets, step counts and answers) and the known optimum of each problem, on CUDA, or on
-the CPU in Triton's interpreter (``TRITON_INTERPRET=1`` set before Python starts); and its
-compilation for a GPU (no GPU needed), which catches what the interpreter accepts and the
-compiler refuses. Skipped where Triton does not import."""
+"""The Triton kernel of the dual active-set method against its torch implementation (the
+same active sets, step counts, answers and backward) and the known optimum of each problem,
+on CUDA, or on the CPU in Triton's interpreter (``TRITON_INTERPRET=1`` set before Python
+starts); and its compilation for a GPU (no GPU needed), which catches what the interpreter
+accepts and the compiler refuses. Skipped where Triton does not import."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from _problems import make_batch
 
 from torchcbf._triton import available, interpreted
 from torchcbf.qp import _dual_triton, solve_qp
-from torchcbf.qp._dual import dual_engine, solve_dual
+from torchcbf.qp._dual import dual_adjoints, dual_engine, solve_dual
 
 if torch.cuda.is_available():
     TARGET = torch.device("cuda")
@@ -66,6 +66,13 @@ def test_steps_match_the_torch_steps_and_the_known_optimum(shape, dtype):
     tol = 1e-10 if dtype == F64 else 1e-4
     torch.testing.assert_close(out.x, ref.x, atol=tol, rtol=tol)
     torch.testing.assert_close(out.z, ref.z, atol=10 * tol, rtol=10 * tol)
+    # the backward's factors: the same KKT adjoints
+    g = torch.Generator().manual_seed(n)
+    gx = torch.randn(B, n, generator=g, dtype=F64).to(TARGET, dtype)
+    gz = torch.randn(B, G.shape[-2], generator=g, dtype=F64).to(TARGET, dtype)
+    for a, b in zip(dual_adjoints(out.factor, out.x, gx, gz),
+                    dual_adjoints(ref.factor, ref.x, gx, gz), strict=True):  # fmt: skip
+        torch.testing.assert_close(a, b, atol=10 * tol, rtol=10 * tol)
     kept = [k in ("active", "inactive") and i % 7 for i, k in enumerate(kind)]
     known = out.ok & torch.tensor(kept, dtype=torch.bool, device=TARGET)
     assert known.sum() >= B // 2
@@ -97,7 +104,8 @@ def test_one_row_and_gradients_through_solve_qp():
     args = [t[row : row + 1].clone().requires_grad_() for t in (P, q, G, h)]
     out = solve_dual(*(a.detach() for a in args), eps=1e-9, max_iter=50, engine="triton")
     ref = solve_dual(*(a.detach() for a in args), eps=1e-9, max_iter=50, engine="torch")
-    assert out.ok.all() and torch.equal(out.x, ref.x)
+    assert out.ok.all()
+    torch.testing.assert_close(out.x, ref.x, atol=1e-12, rtol=1e-12)
     if TARGET.type == "cuda":  # solve_qp runs the kernel by itself only on CUDA
         sol = solve_qp(*args)
         assert sol.path == "active_set_triton"
@@ -120,10 +128,8 @@ def test_engine_choice_and_errors():
     big_h = h.repeat(1, 40)[:, :257]
     with pytest.raises(ValueError, match="engine='triton' needs"):
         solve_dual(P, q, big_G, big_h, eps=1e-9, max_iter=10, engine="triton")
-    Rc = G.permute(2, 1, 0).contiguous()
-    done = torch.zeros(4, dtype=torch.bool, device=TARGET)
-    with pytest.raises(ValueError, match="hr must be"):
-        _dual_triton.steps(Rc, Rc, h, h.T, h.T, q.T, done, 5)
+    with pytest.raises(ValueError, match="h must be"):
+        _dual_triton.solve(P, q, G, h.T, eps=1e-9, max_iter=5)
 
 
 @pytest.mark.skipif(interpreted(), reason="the interpreter does not compile")
@@ -133,17 +139,18 @@ def test_kernel_compiles_for_a_gpu(real):
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
 
-    pointers = ("rc_ptr", "u_ptr", "hr_ptr", "tol_ptr", "inv_ptr", "xu_ptr")
-    signature = {name: f"*{real}" for name in pointers}
-    signature.update(done_ptr="*i8", s_ptr="*i64", done_out_ptr="*i8", iters_ptr="*i64")
-    signature.update(B="i32", max_iter="i32")
+    names = ("p", "q", "rc", "hr", "x", "z", "active", "ok", "iters", "l", "s", "rs", "us")
+    kinds = [f"*{real}"] * 6 + ["*i8", "*i8", "*i64", f"*{real}", "*i64", f"*{real}", f"*{real}"]
+    signature = {f"{name}_ptr": kind for name, kind in zip(names, kinds, strict=True)}
+    signature.update(B="i32", max_iter="i32", eps="fp64", mach="fp64", piv_tol="fp64")
+    signature.update(tiny="fp64")
     sizes = {"N": 2, "M": 12, "NP": 2, "MP": 16, "BLOCK": _dual_triton.BLOCK}
     signature.update(dict.fromkeys(sizes, "constexpr"))
-    src = ASTSource(_dual_triton._dual_steps_kernel, signature, constexprs=sizes)
+    src = ASTSource(_dual_triton._dual_solve_kernel, signature, constexprs=sizes)
     try:
         compiled = triton_compile(src, target=GPUTarget("cuda", 90, 32), options={"num_warps": 1})
     except RuntimeError as err:  # a Triton without its CUDA tool chain
         if "ptxas" in str(err) or "backend" in str(err):
             pytest.skip(f"Triton cannot compile for CUDA here: {err}")
         raise
-    assert "_dual_steps_kernel" in compiled.asm["ptx"] and compiled.asm["cubin"]
+    assert "_dual_solve_kernel" in compiled.asm["ptx"] and compiled.asm["cubin"]

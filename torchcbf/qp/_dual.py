@@ -263,8 +263,9 @@ def solve_dual(
 
     ``engine`` picks the implementation (:data:`ENGINES`; ``None``: :func:`dual_engine`):
     ``"c"`` the C kernel of :mod:`torchcbf.qp._dual_native` (the same algorithm, one problem
-    at a time), ``"triton"`` the steps in one Triton launch (:mod:`torchcbf.qp._dual_triton`,
-    on CUDA, or on the CPU under ``TRITON_INTERPRET=1``), ``"torch"`` tensor operations.
+    at a time), ``"triton"`` one Triton launch (:mod:`torchcbf.qp._dual_triton`, one
+    problem per lane; on CUDA, or on the CPU under ``TRITON_INTERPRET=1``), ``"torch"``
+    tensor operations.
 
     When the host checks progress (every step on a CPU, every ``check_every`` steps
     elsewhere) and at most a third of the rows still run, the iteration continues on those rows
@@ -277,15 +278,20 @@ def solve_dual(
         raise ValueError(f"engine must be one of {ENGINES} or None, got {engine!r}")
     if engine == "triton" and not _dual_triton.applies(q, M, explicit=True):
         raise ValueError(
-            "engine='triton' needs Triton, data on CUDA (on the CPU: TRITON_INTERPRET=1) and "
-            f"at most {_dual_triton.MAX_TILE} entries in the padded [N, M] tile; got N={N}, "
-            f"M={M} on {q.device}"
+            "engine='triton' needs Triton, data on CUDA (on the CPU: TRITON_INTERPRET=1), at "
+            f"most {_dual_triton.MAX_VARS} variables and {_dual_triton.MAX_TILE} entries in "
+            f"the [N, M] tile padded to powers of two; got N={N}, M={M} on {q.device}"
         )
     if engine == "c":
         x, z, active, slots, L, ok, iters, infeasible = _dual_native.forward(
             P, q, G, h, eps, max_iter
         )
         return DualResult(x, z, active, ok, iters, NativeFactor(G, L, slots, ok), infeasible)
+    if engine == "triton":
+        sol = _dual_triton.solve(P, q, G, h, eps=eps, max_iter=max_iter)
+        factor = DualFactor(sol.L, sol.S, sol.R_S, sol.U_S, sol.ok)
+        none = torch.zeros_like(sol.ok)
+        return DualResult(sol.x.T, sol.z.T, sol.active.T, sol.ok, sol.iters, factor, none)
     dtype, device = q.dtype, q.device
     Pp = P.permute(1, 2, 0).contiguous()
     L, pd = _cholesky(Pp)
@@ -303,13 +309,7 @@ def solve_dual(
     w_diag = _contract(sol[:, :M], Rc)
     inv_norm = torch.where(w_diag > 0, w_diag.clamp_min(1e-300).rsqrt(), 0.0)
     data = _Data(Rc, hr, UR, add_tol, slots, (N - slots).to(dtype), inv_norm)
-    if engine == "triton":
-        run = _dual_triton.steps(
-            Rc, sol[:, :M], hr, add_tol, inv_norm, xu, ~pd, min(max_iter, 2**31 - 1)
-        )
-        S, fail, done, iters = run.S, ~pd, run.done, run.iters
-    else:
-        S, fail, done, iters = _iterate(data, xu, pd, max_iter, check_every)
+    S, fail, done, iters = _iterate(data, xu, pd, max_iter, check_every)
 
     # exact multipliers and primal point on the final active set (the iterates accumulate
     # rounding), then the KKT check with per-row tolerances

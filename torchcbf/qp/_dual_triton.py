@@ -1,22 +1,25 @@
-"""GPU path of the dual active-set method: the steps of :mod:`torchcbf.qp._dual` in Triton.
+"""GPU path of the dual active-set method: :func:`torchcbf.qp._dual.solve_dual` in Triton.
 
-The torch implementation takes one pass of some sixty tensor operations per step over the
-whole batch, and the host checks every few steps whether every row is done. This kernel runs
-the same add-or-drop steps (:func:`torchcbf.qp._dual._step`, the same formulas in the same
-order) for one problem per lane, with the loop over the steps inside the kernel: one launch
-for the iteration, no host synchronisation. Its inputs are the data planes the torch
-implementation builds (batch last, so the lanes of a program read consecutive addresses) and
-it returns what the torch code after the iteration reads: each row's active slots, whether
-it finished and its step count. The exact re-solve on the final active set and the KKT check
-that decide each row stay in torch (shared with the torch path).
+The torch implementation takes a pass of some sixty tensor operations per step over the
+whole batch (and as many again to factor before the steps and to check after them), and the
+host checks every few steps whether every row is done. This kernel solves one problem per
+lane in one launch, with no host synchronisation: the Cholesky factor of ``P``, ``P^{-1}
+R'`` and the unconstrained minimiser, the add-or-drop steps (:func:`torchcbf.qp._dual._step`)
+until the row is done, the exact multipliers on the final active set with one refinement
+step, and the KKT check that decides the row, by the torch implementation's formulas in its
+order of operations. It reads and writes planes with the batch last (the lanes of a program
+touch consecutive addresses) and returns what the torch implementation returns, the
+backward's factors included.
 
 Each lane holds its problem in registers (``R'`` and ``P^{-1} R'`` as ``[N, M]`` tiles), so
-the kernel serves problems up to :data:`MAX_TILE` entries (padded to powers of two); larger
-ones take the torch steps. On the CPU it runs only under ``TRITON_INTERPRET=1`` (the tests).
+the kernel serves problems of up to :data:`MAX_VARS` variables and :data:`MAX_TILE` entries
+(padded to powers of two); larger ones take the torch implementation. On the CPU it runs
+only under ``TRITON_INTERPRET=1`` (the tests).
 """
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import torch
@@ -24,14 +27,17 @@ from torch import Tensor
 
 from torchcbf._triton import available, interpreted, tl, triton
 
-#: most entries of a padded ``[N, M]`` tile (each lane holds two of them in registers)
-MAX_TILE = 256
+#: most variables, and most entries of a padded ``[N, M]`` tile (each lane holds two of them
+#: in registers; beyond these the registers spill heavily and a first call compiles for tens
+#: of seconds: at N = 8, M = 16, 22 kB of spills and 21 s on this project's CPU)
+MAX_VARS = 4
+MAX_TILE = 64
 #: problems per program: one warp, one problem per thread
 BLOCK = 32
 #: warps per program
 WARPS = 1
 #: the kernel's version (its inputs and outputs, for ``torchcbf info``)
-KERNEL_VERSION = 1
+KERNEL_VERSION = 2
 
 
 def _pow2(v: int) -> int:
@@ -39,22 +45,33 @@ def _pow2(v: int) -> int:
 
 
 def applies(q: Tensor, M: int, *, explicit: bool = False) -> bool:
-    """Whether the kernel iterates a batch with linear terms ``q [B, N]`` and ``M`` rows:
+    """Whether the kernel solves a batch with linear terms ``q [B, N]`` and ``M`` rows:
     Triton imports, the data are on CUDA (or, where the kernel is asked for ``explicit``ly,
-    on the CPU under ``TRITON_INTERPRET=1``) and the padded tiles fit :data:`MAX_TILE`."""
+    on the CPU under ``TRITON_INTERPRET=1``) and the problem fits :data:`MAX_VARS` and
+    :data:`MAX_TILE`."""
     interpreter = explicit and q.device.type == "cpu" and interpreted()
     on_device = q.device.type == "cuda" or interpreter
-    fits = _pow2(q.shape[-1]) * _pow2(M) <= MAX_TILE
+    N = q.shape[-1]
+    fits = N <= MAX_VARS and _pow2(N) * _pow2(M) <= MAX_TILE
     return available() and on_device and fits and q.dtype in (torch.float32, torch.float64)
 
 
-class Steps(NamedTuple):
-    """The iteration's outcome, batch last: ``S [N, B]`` int64 row per slot (``M``: empty),
-    ``done [B]`` bool, ``iters [B]`` int64."""
+class Solution(NamedTuple):
+    """The kernel's outputs, batch last: ``x [N, B]`` and ``z [M, B]`` (zeros on rows not
+    ``ok``), ``active [M, B]`` and ``ok [B]`` bool, ``iters [B]`` int64, and the backward's
+    factors: ``L [N, N, B]`` (Cholesky factor of ``P``), ``S [N, B]`` int64 row per slot
+    (``M``: empty), ``R_S`` and ``U_S`` ``[N(component), N(slot), B]`` (the slots' rows of
+    ``R'`` and ``P^{-1} R'``, zero on empty slots)."""
 
-    S: Tensor
-    done: Tensor
+    x: Tensor
+    z: Tensor
+    active: Tensor
+    ok: Tensor
     iters: Tensor
+    L: Tensor
+    S: Tensor
+    R_S: Tensor
+    U_S: Tensor
 
 
 if triton is not None:
@@ -62,23 +79,86 @@ if triton is not None:
     @triton.jit
     def _pick(X, idx, j, AXIS: tl.constexpr):
         """The entries of ``X`` at per-lane index ``j [BLOCK]`` along ``AXIS`` (``idx``: that
-        axis' indices, shaped to broadcast against ``X``)."""
+        axis' indices, shaped to broadcast against ``X``); one term is not zero, so exact."""
         return tl.sum(tl.where(idx == j, X, 0.0), axis=AXIS)
 
     @triton.jit
-    def _dual_steps_kernel(
+    def _cho_solve(L, R, NP: tl.constexpr):
+        """``L L' Y = R`` for ``L [NP, NP, BLOCK]`` and ``R [NP, X, BLOCK]`` (components
+        first), the torch implementation's substitutions in its order."""
+        ci = tl.arange(0, NP)
+        r3 = ci[:, None, None]
+        c2 = ci[:, None]
+        Y = tl.zeros_like(R)
+        for i in tl.static_range(NP):
+            acc = _pick(R, r3, i, 0)
+            Li = _pick(L, r3, i, 0)  # row i [NP, BLOCK]
+            for k in tl.static_range(i):
+                acc = acc - _pick(Li, c2, k, 0)[None, :] * _pick(Y, r3, k, 0)
+            Y = tl.where(r3 == i, (acc / _pick(Li, c2, i, 0)[None, :])[None, :, :], Y)
+        X = tl.zeros_like(R)
+        for ii in tl.static_range(NP):
+            acc = _pick(Y, r3, NP - 1 - ii, 0)
+            Lc = _pick(L, ci[None, :, None], NP - 1 - ii, 1)  # column [NP, BLOCK]
+            for k in tl.static_range(NP - ii, NP):
+                acc = acc - _pick(Lc, c2, k, 0)[None, :] * _pick(X, r3, k, 0)
+            diag = _pick(Lc, c2, NP - 1 - ii, 0)
+            X = tl.where(r3 == NP - 1 - ii, (acc / diag[None, :])[None, :, :], X)
+        return X
+
+    @triton.jit
+    def _solve_sym(W, rhs, piv_tol, NP: tl.constexpr):
+        """``W mu = rhs`` for symmetric ``W [NP, NP, BLOCK]``, ``rhs [NP, BLOCK]`` by
+        symmetric elimination without pivoting (:func:`torchcbf.qp._enum._eliminate`);
+        ``(mu, nonsingular)``: a pivot at most ``piv_tol`` times its diagonal entry is
+        singular."""
+        ci = tl.arange(0, NP)
+        r2 = ci[:, None]
+        r3 = ci[:, None, None]
+        diag = tl.sum(tl.where(r3 == ci[None, :, None], W, 0.0), axis=1)  # [NP, BLOCK]
+        A = W
+        b = rhs
+        pivots = tl.zeros_like(rhs)
+        for j in tl.static_range(NP):
+            row = _pick(A, r3, j, 0)  # A[j, :]
+            piv = _pick(row, r2, j, 0)
+            pivots = tl.where(r2 == j, piv[None, :], pivots)
+            f = row * (1.0 / piv)[None, :]
+            bj = _pick(b, r2, j, 0)
+            A = A - tl.where(r3 > j, f[:, None, :] * row[None, :, :], 0.0)
+            b = b - tl.where(r2 > j, f * bj[None, :], 0.0)
+        nonsing = tl.min((pivots > piv_tol * diag).to(tl.int32), axis=0) > 0
+        mu = tl.zeros_like(rhs)
+        for ii in tl.static_range(NP):
+            row = _pick(A, r3, NP - 1 - ii, 0)
+            acc = _pick(b, r2, NP - 1 - ii, 0)
+            for k in tl.static_range(NP - ii, NP):
+                acc = acc - _pick(row, r2, k, 0) * _pick(mu, r2, k, 0)
+            piv = _pick(pivots, r2, NP - 1 - ii, 0)
+            mu = tl.where(r2 == NP - 1 - ii, (acc / piv)[None, :], mu)
+        return mu, nonsing
+
+    @triton.jit
+    def _dual_solve_kernel(
+        p_ptr,  # [N, N, B]
+        q_ptr,  # [N, B]
         rc_ptr,  # [N, M, B] R' by components
-        u_ptr,  # [N, M, B] P^{-1} R'
         hr_ptr,  # [M, B]
-        tol_ptr,  # [M, B]
-        inv_ptr,  # [M, B]
-        xu_ptr,  # [N, B] unconstrained minimiser
-        done_ptr,  # [B] int8: rows that start done
-        s_ptr,  # out [N, B] int64
-        done_out_ptr,  # out [B] int8
+        x_ptr,  # out [N, B]
+        z_ptr,  # out [M, B]
+        active_ptr,  # out [M, B] int8
+        ok_ptr,  # out [B] int8
         iters_ptr,  # out [B] int64
+        l_ptr,  # out [N, N, B]
+        s_ptr,  # out [N, B] int64
+        rs_ptr,  # out [N, N, B]
+        us_ptr,  # out [N, N, B]
         B,
         max_iter,
+        eps,
+        mach,
+        piv_tol,
+        tiny,
         N: tl.constexpr,
         M: tl.constexpr,
         NP: tl.constexpr,
@@ -92,27 +172,59 @@ if triton is not None:
         cm = tl.arange(0, MP)
         n_ok = cn < N
         m_ok = cm < M
+        r2 = cn[:, None]  # [NP, 1]
+        r3 = cn[:, None, None]
+        c3 = cn[None, :, None]
+        eye = r3 == c3  # [NP, NP, 1]
+        row_idx = cm[:, None]  # [MP, 1]
+        valid = m_ok[:, None]
+        nn = (cn[:, None] * N + cn[None, :]).to(tl.int64)
+        nn_mask = (n_ok[:, None] & n_ok[None, :])[:, :, None] & live[None, None, :]
+        nn_off = nn[:, :, None] * B + lane[None, None, :]
         nm = (cn[:, None] * M + cm[None, :]).to(tl.int64)
         nm_mask = (n_ok[:, None] & m_ok[None, :])[:, :, None] & live[None, None, :]
         nm_off = nm[:, :, None] * B + lane[None, None, :]
-        Rc = tl.load(rc_ptr + nm_off, mask=nm_mask, other=0.0)  # [NP, MP, BLOCK]
-        Ui = tl.load(u_ptr + nm_off, mask=nm_mask, other=0.0)
         m_off = cm.to(tl.int64)[:, None] * B + lane[None, :]
         m_mask = m_ok[:, None] & live[None, :]
-        hr = tl.load(hr_ptr + m_off, mask=m_mask, other=0.0)  # [MP, BLOCK]
-        tol = tl.load(tol_ptr + m_off, mask=m_mask, other=0.0)
-        inv = tl.load(inv_ptr + m_off, mask=m_mask, other=0.0)
         n_off = cn.to(tl.int64)[:, None] * B + lane[None, :]
         n_mask = n_ok[:, None] & live[None, :]
-        x = tl.load(xu_ptr + n_off, mask=n_mask, other=0.0)  # [NP, BLOCK]
-        real = x.dtype
-        done = (tl.load(done_ptr + lane, mask=live, other=1) != 0) | ~live
 
-        slot = cn[:, None]  # [NP, 1]
+        # padded components: an identity block of P, zero data (they stay zero)
+        P = tl.load(p_ptr + nn_off, mask=nn_mask, other=0.0)
+        P = P + tl.where(eye & (r3 >= N), 1.0, 0.0)
+        q = tl.load(q_ptr + n_off, mask=n_mask, other=0.0)  # [NP, BLOCK]
+        Rc = tl.load(rc_ptr + nm_off, mask=nm_mask, other=0.0)  # [NP, MP, BLOCK]
+        hr = tl.load(hr_ptr + m_off, mask=m_mask, other=0.0)  # [MP, BLOCK]
+        real = q.dtype
+
+        # Cholesky factor of P, column by column; a pivot at most 1e-13 of its diagonal
+        # entry marks the row not positive definite
+        L = tl.zeros_like(P)
+        pd = live
+        for j in tl.static_range(NP):
+            Pj = _pick(P, c3, j, 1)  # column j [NP, BLOCK]
+            col = Pj
+            for k in tl.static_range(j):
+                Lk = _pick(L, c3, k, 1)
+                col = col - Lk * _pick(Lk, r2, j, 0)[None, :]
+            piv = _pick(col, r2, j, 0)
+            pd = pd & (piv > 1e-13 * tl.abs(_pick(Pj, r2, j, 0)))
+            root = tl.sqrt(tl.where(pd, piv, 1.0))
+            L = tl.where(c3 == j, tl.where(r2 >= j, col / root[None, :], 0.0)[:, None, :], L)
+        Ui = _cho_solve(L, Rc, NP)  # P^{-1} R' [NP, MP, BLOCK]
+        xu = tl.sum(_cho_solve(L, -q[:, None, :], NP), axis=1)  # [NP, BLOCK]
+
+        xu_max = tl.max(tl.abs(xu), axis=0)
+        gmax = tl.max(tl.abs(Rc), axis=0)  # [MP, BLOCK]
+        tol = 1e4 * mach * (tl.abs(hr) + gmax * (1.0 + xu_max)[None, :])
+        w_diag = tl.sum(Ui * Rc, axis=0)
+        inv = tl.where(w_diag > 0, 1.0 / tl.sqrt(tl.maximum(w_diag, 1e-300)), 0.0)
+
+        # the add-or-drop steps (torchcbf.qp._dual._step)
+        done = ~pd
+        x = xu
+        slot = r2
         rank = tl.where(n_ok, N - cn, 0).to(real)[:, None]
-        eye = (cn[:, None] == cn[None, :])[:, :, None]  # [NP, NP, 1]
-        row_idx = cm[:, None]  # [MP, 1]
-        valid = m_ok[:, None]
         lam_S = tl.zeros([NP, BLOCK], dtype=real)
         lam_p = tl.zeros([BLOCK], dtype=real)
         S = tl.full([NP, BLOCK], M, dtype=tl.int32)
@@ -121,11 +233,10 @@ if triton is not None:
         p = tl.zeros([BLOCK], dtype=tl.int32)
         pending = tl.zeros([BLOCK], dtype=tl.int1)
         iters = tl.zeros([BLOCK], dtype=tl.int32)
-
         it = tl.full([], 0, dtype=tl.int32)
         running = tl.sum((~done).to(tl.int32), axis=0)
         while (it < max_iter) & (running > 0):
-            free = (S == M).to(real)  # [NP, BLOCK]
+            free = (S == M).to(real)
             v = tl.sum(Rc * x[:, None, :], axis=0) - hr  # [MP, BLOCK]
             member = tl.max((S[:, None, :] == row_idx[None, :, :]).to(tl.int32), axis=0)
             score = tl.where((v > tol) & (member == 0) & valid, v * inv, -INF)
@@ -164,7 +275,7 @@ if triton is not None:
             e_add = full[None, :] & (slot == first_free[None, :])
             f_drop = e_drop.to(real)
             f_add = e_add.to(real)
-            Hk = _pick(Hs, slot[:, :, None], k_drop[None, None, :], 0)  # row k_drop [NP, BLOCK]
+            Hk = _pick(Hs, r3, k_drop[None, None, :], 0)  # row k_drop [NP, BLOCK]
             Hkk = _pick(Hk, slot, k_drop[None, :], 0)
             a_coef = tl.where(full, 1.0 / z, 0.0)
             b_coef = tl.where(part, 1.0 / Hkk, 0.0)
@@ -185,42 +296,98 @@ if triton is not None:
             it += 1
             running = tl.sum((~done).to(tl.int32), axis=0)
 
-        tl.store(s_ptr + n_off, S.to(tl.int64), mask=n_mask)
-        tl.store(done_out_ptr + lane, done.to(tl.int8), mask=live)
+        # exact multipliers and point on the final active set, one refinement step on the
+        # active rows' residual, then the KKT check on the answer's scale
+        empty = S == M  # [NP, BLOCK]
+        sel = S[None, :, :] == row_idx[:, None, :]  # [MP, NP(slot), BLOCK]
+        R_S = tl.zeros([NP, NP, BLOCK], dtype=real)
+        U_S = tl.zeros([NP, NP, BLOCK], dtype=real)
+        for k in tl.static_range(NP):
+            pick = _pick(sel.to(tl.int32), c3, k, 1)[None, :, :] != 0  # [1, MP, BLOCK]
+            R_S = tl.where(c3 == k, tl.sum(tl.where(pick, Rc, 0.0), axis=1)[:, None, :], R_S)
+            U_S = tl.where(c3 == k, tl.sum(tl.where(pick, Ui, 0.0), axis=1)[:, None, :], U_S)
+        r_S = tl.sum(tl.where(sel, hr[:, None, :], 0.0), axis=0)  # [NP, BLOCK]
+        W = tl.zeros([NP, NP, BLOCK], dtype=real)  # W_SS = R_S' U_S, component by component
+        for c in tl.static_range(NP):
+            W = W + _pick(R_S, r3, c, 0)[:, None, :] * _pick(U_S, r3, c, 0)[None, :, :]
+        W = W + tl.where(eye, empty.to(real)[None, :, :], 0.0)
+        rhs_S = tl.sum(R_S * xu[:, None, :], axis=0) - r_S
+        lam_S, nonsing = _solve_sym(W, rhs_S, piv_tol, NP)
+        lam_S = tl.where(empty, 0.0, lam_S)
+        x = xu - tl.sum(U_S * lam_S[None, :, :], axis=1)
+        res_S = tl.where(empty, 0.0, tl.sum(R_S * x[:, None, :], axis=0) - r_S)
+        x_max = tl.max(tl.abs(x), axis=0)
+        scale_S = tl.abs(r_S) + tl.max(tl.abs(R_S), axis=0) * (1.0 + x_max)[None, :]
+        worst = tl.max(tl.abs(res_S) / tl.maximum(scale_S, tiny), axis=0)
+        dmu, solvable = _solve_sym(W, res_S, piv_tol, NP)
+        refine = nonsing & solvable & (worst > 1e4 * mach)
+        dmu = tl.where(refine[None, :] & ~empty, dmu, 0.0)
+        x = x - tl.sum(U_S * dmu[None, :, :], axis=1)
+        lam_S = lam_S + dmu
+        x_max = tl.max(tl.abs(x), axis=0)
+        scale = tl.abs(hr) + gmax * (1.0 + x_max)[None, :]
+        v = (tl.sum(Rc * x[:, None, :], axis=0) - hr) / tl.maximum(scale, tiny)
+        v_S = tl.sum(tl.where(sel, v[:, None, :], 0.0), axis=0)
+        pviol = tl.maximum(tl.max(tl.where(valid, v, -INF), axis=0), tl.max(tl.abs(v_S), axis=0))
+        stat = tl.sum(P * x[:, None, :], axis=0) + q + tl.sum(R_S * lam_S[None, :, :], axis=1)
+        lam_abs = tl.max(tl.abs(lam_S), axis=0)
+        rl = tl.max(tl.max(tl.abs(R_S), axis=0) * tl.abs(lam_S), axis=0)
+        dscale = 1.0 + tl.max(tl.abs(q), axis=0) + rl
+        finite = tl.min(((x == x) & (tl.abs(x) < INF)).to(tl.int32), axis=0) > 0
+        ok = (
+            pd
+            & done
+            & nonsing
+            & (pviol <= eps)
+            & (tl.min(lam_S, axis=0) >= -eps * (1.0 + lam_abs))
+            & (tl.max(tl.abs(stat), axis=0) <= eps * dscale)
+            & finite
+        )
+
+        tl.store(x_ptr + n_off, tl.where(ok[None, :], x, 0.0), mask=n_mask)
+        z_m = tl.sum(tl.where(sel, lam_S[None, :, :], 0.0), axis=1)  # [MP, BLOCK]
+        tl.store(z_ptr + m_off, tl.where(ok[None, :], tl.maximum(z_m, 0.0), 0.0), mask=m_mask)
+        act = tl.max(sel.to(tl.int32), axis=1) > 0
+        tl.store(active_ptr + m_off, (act & ok[None, :]).to(tl.int8), mask=m_mask)
+        tl.store(ok_ptr + lane, ok.to(tl.int8), mask=live)
         tl.store(iters_ptr + lane, iters.to(tl.int64), mask=live)
+        tl.store(l_ptr + nn_off, L, mask=nn_mask)
+        tl.store(s_ptr + n_off, S.to(tl.int64), mask=n_mask)
+        tl.store(rs_ptr + nn_off, R_S, mask=nn_mask)
+        tl.store(us_ptr + nn_off, U_S, mask=nn_mask)
 
 
-def steps(
-    Rc: Tensor, U: Tensor, hr: Tensor, tol: Tensor, inv_norm: Tensor, xu: Tensor,
-    done: Tensor, max_iter: int,
-) -> Steps:  # fmt: skip
-    """Run up to ``max_iter`` steps of the dual method on every row: ``Rc`` (``R'``) and
-    ``U`` (``P^{-1} R'``) ``[N, M, B]``, ``hr``, ``tol``, ``inv_norm`` ``[M, B]`` (the
-    fields of :class:`torchcbf.qp._dual._Data`), ``xu [N, B]`` the unconstrained minimisers
-    and ``done [B]`` the rows that do not iterate (``P`` not positive definite)."""
+def solve(P: Tensor, q: Tensor, G: Tensor, h: Tensor, *, eps: float, max_iter: int) -> Solution:
+    """Solve ``min 1/2 x'Px + q'x s.t. Gx <= h`` for ``P [B, N, N]``, ``q [B, N]``,
+    ``G [B, M, N]``, ``h [B, M]`` (finite, one dtype and device) as
+    :func:`torchcbf.qp._dual.solve_dual` does; see :class:`Solution`."""
     if triton is None:
         raise RuntimeError("torchcbf: the QP's GPU kernel needs Triton, which does not import")
-    N, M, B = Rc.shape
-    for name, t, shape in (
-        ("Rc", Rc, (N, M, B)), ("U", U, (N, M, B)), ("hr", hr, (M, B)), ("tol", tol, (M, B)),
-        ("inv_norm", inv_norm, (M, B)), ("xu", xu, (N, B)),
-    ):  # fmt: skip
-        if t.device != Rc.device or t.dtype != Rc.dtype or tuple(t.shape) != shape:
+    B, M, N = G.shape
+    for name, t, shape in (("P", P, (B, N, N)), ("q", q, (B, N)), ("h", h, (B, M))):
+        if t.device != G.device or t.dtype != G.dtype or tuple(t.shape) != shape:
             raise ValueError(
-                f"{name} must be a {Rc.dtype} tensor of shape {list(shape)} on {Rc.device}, "
+                f"{name} must be a {G.dtype} tensor of shape {list(shape)} on {G.device}, "
                 f"got {t.dtype} {list(t.shape)} on {t.device}"
             )
-    if done.shape != (B,) or done.device != Rc.device:
-        raise ValueError(f"done must have shape [{B}] on {Rc.device}, got {list(done.shape)}")
-    S = torch.empty(N, B, dtype=torch.int64, device=Rc.device)
-    done_out = torch.empty(B, dtype=torch.int8, device=Rc.device)
-    iters = torch.empty(B, dtype=torch.int64, device=Rc.device)
+    planes = (
+        P.permute(1, 2, 0).contiguous(),
+        q.T.contiguous(),
+        G.permute(2, 1, 0).contiguous(),
+        h.T.contiguous(),
+    )
+    new = functools.partial(torch.empty, device=G.device)
+    x, z = new(N, B, dtype=G.dtype), new(M, B, dtype=G.dtype)
+    active, ok = new(M, B, dtype=torch.int8), new(B, dtype=torch.int8)
+    iters, S = new(B, dtype=torch.int64), new(N, B, dtype=torch.int64)
+    L, R_S, U_S = (new(N, N, B, dtype=G.dtype) for _ in range(3))
     if B > 0:
+        info = torch.finfo(G.dtype)
+        piv_tol = 1e-12 if G.dtype == torch.float64 else 1e-6
         grid = (triton.cdiv(B, BLOCK),)
-        _dual_steps_kernel[grid](
-            Rc.contiguous(), U.contiguous(), hr.contiguous(), tol.contiguous(),
-            inv_norm.contiguous(), xu.contiguous(), done.to(torch.int8).contiguous(),
-            S, done_out, iters, B, max_iter,
+        _dual_solve_kernel[grid](
+            *planes, x, z, active, ok, iters, L, S, R_S, U_S,
+            B, min(max_iter, 2**31 - 1), eps, info.eps, piv_tol, info.tiny,
             N=N, M=M, NP=_pow2(N), MP=_pow2(M), BLOCK=BLOCK, num_warps=WARPS,
         )  # fmt: skip
-    return Steps(S, done_out.bool(), iters)
+    return Solution(x, z, active.bool(), ok.bool(), iters, L, S, R_S, U_S)

@@ -239,11 +239,11 @@ def solve_qp(
       On the CPU the dual method runs a C kernel (:mod:`torchcbf.qp._dual_native`, the
       same algorithm problem by problem, built at install when a C compiler is present;
       a large batch is split over ``torch.get_num_threads()`` threads). On CUDA, where
-      Triton imports, its steps run in one Triton launch (:mod:`torchcbf.qp._dual_triton`,
-      problems of up to 256 entries in the ``[N, M]`` tile padded to powers of two); the
-      factorisation before and the exact check after stay in torch. Otherwise it runs in
-      torch. A few small QPs (at most ``realtime.MAX_BATCH`` rows)
-      that need no gradient go straight from numpy arrays into the kernel
+      Triton imports, it runs in one Triton launch, one problem per lane
+      (:mod:`torchcbf.qp._dual_triton`: at most 4 variables and 64 entries in the ``[N,
+      M]`` tile padded to powers of two). Otherwise it runs in torch. A few small QPs (at
+      most ``realtime.MAX_BATCH`` rows) that need no gradient go straight from numpy
+      arrays into the kernel
       (:mod:`torchcbf.qp.realtime`); a batch the kernel does not certify completely takes
       the general path. ``method="enumerate"`` asked for explicitly refuses problems with
       more than ``MAX_CANDIDATES_EXPLICIT`` candidate sets (``ValueError`` naming the sizes).
