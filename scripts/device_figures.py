@@ -216,6 +216,7 @@ def qp_figure(device: torch.device, dtype: torch.dtype, B: int, reps: int) -> Ca
 
         Q, p, G, h = (t.to(dtype) for t in bench_qp.make_problems(B, 4, 8, str(device), seed=0))
         status: list[torch.Tensor] = []
+        paths: list[str] = []
 
         def fwd_bwd() -> None:
             pr = p.detach().requires_grad_(True)
@@ -223,6 +224,7 @@ def qp_figure(device: torch.device, dtype: torch.dtype, B: int, reps: int) -> Ca
             sol = solve_qp(Q, pr, G, hr)
             sol.x.sum().backward()
             status[:] = [sol.status]
+            paths[:] = [sol.path]
 
         t = _time(fwd_bwd, device, warmup=1, reps=reps, max_seconds=10.0)
         solved = float((status[0] == 0).double().mean())
@@ -235,6 +237,7 @@ def qp_figure(device: torch.device, dtype: torch.dtype, B: int, reps: int) -> Ca
                 "label": f"solve_qp forward+backward, B={B}, n=4, m=8, {name}",
                 "B": B,
                 "solved_fraction": solved,
+                "path": paths[0],
                 "timing": t,
             }
         ]
@@ -266,6 +269,7 @@ def filter_figure(device: torch.device, dtype: torch.dtype, B: int, reps: int) -
                 "label": f"SafetyFilter, {B} states x 8 balls + box, {name}",
                 "B": B,
                 "status0_fraction": ok,
+                "path": outs[0].path,
                 "timing": t,
             }
         ]
