@@ -7,8 +7,11 @@ not defined and their callers run torch code. On the CPU a kernel runs only unde
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
+
+import torch
 
 try:
     import triton
@@ -17,7 +20,7 @@ except ImportError:  # pragma: no cover - depends on the installation
     triton = None
     tl = None
 
-__all__ = ["available", "interpreted", "location", "tl", "triton"]
+__all__ = ["available", "interpreted", "location", "on_device", "tile", "tl", "triton"]
 
 
 def available() -> bool:
@@ -35,3 +38,15 @@ def location() -> str | None:
     if triton is None:
         return None
     return f"triton {triton.__version__} at {Path(triton.__file__).parent}"
+
+
+def tile(v: int) -> int:
+    """The size of a kernel's tile axis holding ``v`` entries: the next power of two, at
+    least 2."""
+    return max(2, 1 << (max(v, 1) - 1).bit_length())
+
+
+def on_device(t: torch.Tensor) -> contextlib.AbstractContextManager:
+    """A context in which a kernel launched on ``t``'s data runs on ``t``'s CUDA device
+    (Triton launches on the current device)."""
+    return torch.cuda.device(t.device) if t.is_cuda else contextlib.nullcontext()

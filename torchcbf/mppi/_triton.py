@@ -27,7 +27,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchcbf._triton import tl, triton
+from torchcbf._triton import on_device, tile, tl, triton
 from torchcbf.mppi import _rollout
 
 #: samples per program: one warp, one sample per thread (K = 16,384 gives 512 programs,
@@ -63,10 +63,6 @@ class Tables(NamedTuple):
     zero_noise: int
 
 
-def _pow2(v: int) -> int:
-    return max(2, 1 << (max(v, 1) - 1).bit_length())
-
-
 def tables(cfg: _rollout.Configuration, dtype: torch.dtype, device: torch.device) -> Tables:
     """Parse the C kernel's configuration vector (its layout in ``_rollout_kernel.c``) into
     the Triton kernel's dense tables, in ``dtype`` on ``device``."""
@@ -82,7 +78,7 @@ def tables(cfg: _rollout.Configuration, dtype: torch.dtype, device: torch.device
     lo, hi = v[hdr : hdr + mmax], v[hdr + mmax : hdr + 2 * mmax]
     chol = v[hdr + 2 * mmax : hdr + 2 * mmax + mmax * mmax]
     par = [dt, 0.5 * dt, dt / 6.0, gamma, 2.0 * math.pi, *lo, *hi, *chol]
-    NP, SP = _pow2(n), _pow2(nshapes)
+    NP, SP = tile(n), tile(nshapes)
     base = hdr + 2 * mmax + mmax * mmax
     tmask = torch.zeros(max(nterms, 1), NP, dtype=torch.float64)
     tcent = torch.zeros_like(tmask)
@@ -141,7 +137,7 @@ def tables(cfg: _rollout.Configuration, dtype: torch.dtype, device: torch.device
         M=m,
         DIM=dim,
         NP=NP,
-        MP=_pow2(m),
+        MP=tile(m),
         SP=SP,
         DQ=rows_used,
         NT=nterms,
@@ -440,16 +436,17 @@ def _launch(
         raise RuntimeError("torchcbf: the MPPI GPU kernel needs Triton, which does not import")
     H = plan.shape[1]
     dummy = x0  # pointers the pass does not read (never dereferenced)
-    _rollout_kernel[grid](
-        tab.par, tab.tmask, tab.tcent, tab.tval, tab.sa, tab.sc, tab.sval,
-        x0, plan, dummy if wctrl is None else wctrl, keys,
-        keys if pairs is None else pairs, dummy if weights is None else weights,
-        dummy if cost is None else cost, dummy if states is None else states,
-        dummy if controls is None else controls, dummy if part is None else part,
-        count, K, tab.zero_noise,
-        H=H, HAS_WCTRL=wctrl is not None, MODE=mode, PAIRS=pairs is not None, BLOCK=BLOCK,
-        num_warps=WARPS, **tab.meta,
-    )  # fmt: skip
+    with on_device(x0):
+        _rollout_kernel[grid](
+            tab.par, tab.tmask, tab.tcent, tab.tval, tab.sa, tab.sc, tab.sval,
+            x0, plan, dummy if wctrl is None else wctrl, keys,
+            keys if pairs is None else pairs, dummy if weights is None else weights,
+            dummy if cost is None else cost, dummy if states is None else states,
+            dummy if controls is None else controls, dummy if part is None else part,
+            count, K, tab.zero_noise,
+            H=H, HAS_WCTRL=wctrl is not None, MODE=mode, PAIRS=pairs is not None, BLOCK=BLOCK,
+            num_warps=WARPS, **tab.meta,
+        )  # fmt: skip
 
 
 def _check(tab: Tables, x0: Tensor, plan: Tensor, keys: Tensor, K: int) -> None:

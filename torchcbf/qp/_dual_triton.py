@@ -7,12 +7,15 @@ lane in one launch, with no host synchronisation: the Cholesky factor of ``P``, 
 R'`` and the unconstrained minimiser, the add-or-drop steps (:func:`torchcbf.qp._dual._step`)
 until the row is done, the exact multipliers on the final active set with one refinement
 step, and the KKT check that decides the row, by the torch implementation's formulas in its
-order of operations. It reads and writes planes with the batch last (the lanes of a program
-touch consecutive addresses) and returns what the torch implementation returns, the
-backward's factors included.
+order of operations (rounding still differs where one side fuses a multiply and an add, so
+on a degenerate row the two may end on different active sets of the same point). It reads
+and writes planes with the batch last (the lanes of a program touch consecutive addresses)
+and returns what the torch implementation returns, the backward's factors included.
 
-Each lane holds its problem in registers (``R'`` and ``P^{-1} R'`` as ``[N, M]`` tiles), so
-the kernel serves problems of up to :data:`MAX_VARS` variables and :data:`MAX_TILE` entries
+Each lane holds its problem as tiles (``R'`` and ``P^{-1} R'`` as ``[N, M]``): in float64 they
+fill the 255 registers of a thread from ``N = 2``, ``M = 12`` and spill to local memory
+beyond (0.5 kB at that size, 2.7 kB at ``N = 4``, ``M = 16``, compiled for sm_90), so the
+kernel serves problems of up to :data:`MAX_VARS` variables and :data:`MAX_TILE` entries
 (padded to powers of two); larger ones take the torch implementation. On the CPU it runs
 only under ``TRITON_INTERPRET=1`` (the tests).
 """
@@ -25,7 +28,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchcbf._triton import available, interpreted, tl, triton
+from torchcbf._triton import available, interpreted, on_device, tile, tl, triton
 
 #: most variables, and most entries of a padded ``[N, M]`` tile (each lane holds two of them
 #: in registers; beyond these the registers spill heavily and a first call compiles for tens
@@ -40,10 +43,6 @@ WARPS = 1
 KERNEL_VERSION = 2
 
 
-def _pow2(v: int) -> int:
-    return max(2, 1 << (max(v, 1) - 1).bit_length())
-
-
 def applies(q: Tensor, M: int, *, explicit: bool = False) -> bool:
     """Whether the kernel solves a batch with linear terms ``q [B, N]`` and ``M`` rows:
     Triton imports, the data are on CUDA (or, where the kernel is asked for ``explicit``ly,
@@ -52,7 +51,7 @@ def applies(q: Tensor, M: int, *, explicit: bool = False) -> bool:
     interpreter = explicit and q.device.type == "cpu" and interpreted()
     on_device = q.device.type == "cuda" or interpreter
     N = q.shape[-1]
-    fits = N <= MAX_VARS and _pow2(N) * _pow2(M) <= MAX_TILE
+    fits = N <= MAX_VARS and tile(N) * tile(M) <= MAX_TILE
     return available() and on_device and fits and q.dtype in (torch.float32, torch.float64)
 
 
@@ -250,7 +249,7 @@ if triton is not None:
 
             W_Sp = tl.sum(U_S * R_p[:, None, :], axis=0)  # [NP(slot), BLOCK]
             W_pp = tl.sum(U_p * R_p, axis=0)
-            d = tl.sum(Hs * W_Sp[None, :, :], axis=1) * (1.0 - free)
+            d = tl.sum(Hs * W_Sp[:, None, :], axis=0) * (1.0 - free)  # as torch: by columns
             z = W_pp - tl.sum(W_Sp * d, axis=0)
             dx = tl.sum(U_S * d[None, :, :], axis=1) - U_p
 
@@ -385,9 +384,10 @@ def solve(P: Tensor, q: Tensor, G: Tensor, h: Tensor, *, eps: float, max_iter: i
         info = torch.finfo(G.dtype)
         piv_tol = 1e-12 if G.dtype == torch.float64 else 1e-6
         grid = (triton.cdiv(B, BLOCK),)
-        _dual_solve_kernel[grid](
-            *planes, x, z, active, ok, iters, L, S, R_S, U_S,
-            B, min(max_iter, 2**31 - 1), eps, info.eps, piv_tol, info.tiny,
-            N=N, M=M, NP=_pow2(N), MP=_pow2(M), BLOCK=BLOCK, num_warps=WARPS,
-        )  # fmt: skip
+        with on_device(G):
+            _dual_solve_kernel[grid](
+                *planes, x, z, active, ok, iters, L, S, R_S, U_S,
+                B, min(max_iter, 2**31 - 1), eps, info.eps, piv_tol, info.tiny,
+                N=N, M=M, NP=tile(N), MP=tile(M), BLOCK=BLOCK, num_warps=WARPS,
+            )  # fmt: skip
     return Solution(x, z, active.bool(), ok.bool(), iters, L, S, R_S, U_S)
