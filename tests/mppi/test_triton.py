@@ -13,8 +13,8 @@ import copy
 
 import pytest
 import torch
+from _devices import NEEDS_TRITON, RUNS_TRITON, triton_target
 
-from torchcbf._triton import available, interpreted
 from torchcbf.barriers import Ball, Ellipse
 from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, SingleIntegrator, Unicycle
 from torchcbf.mppi import (
@@ -28,17 +28,11 @@ from torchcbf.mppi import (
     _triton,
 )
 
-if torch.cuda.is_available():
-    TARGET = torch.device("cuda")
-elif interpreted():
-    TARGET = torch.device("cpu")
-else:
-    TARGET = None
-
+TARGET = triton_target()
 pytestmark = [
     pytest.mark.device,
-    pytest.mark.skipif(not available(), reason="Triton is not installed"),
-    pytest.mark.skipif(TARGET is None, reason="no CUDA device and TRITON_INTERPRET is not 1"),
+    NEEDS_TRITON,
+    RUNS_TRITON,
     pytest.mark.skipif(
         not _rollout.available(), reason="the C kernel (the reference) is not built"
     ),

@@ -8,24 +8,16 @@ from __future__ import annotations
 
 import pytest
 import torch
+from _devices import NEEDS_TRITON, RUNS_TRITON, triton_target
 from _problems import make_batch
 
-from torchcbf._triton import available, interpreted
+from torchcbf._triton import interpreted
 from torchcbf.qp import _dual_native, _dual_triton, solve_qp
 from torchcbf.qp._dual import dual_adjoints, dual_engine, solve_dual
 
-if torch.cuda.is_available():
-    TARGET = torch.device("cuda")
-elif interpreted():
-    TARGET = torch.device("cpu")
-else:
-    TARGET = None
-
-pytestmark = [
-    pytest.mark.device,
-    pytest.mark.skipif(not available(), reason="Triton is not installed"),
-]
-runs = pytest.mark.skipif(TARGET is None, reason="no CUDA device and TRITON_INTERPRET is not 1")
+TARGET = triton_target()
+pytestmark = [pytest.mark.device, NEEDS_TRITON]
+runs = RUNS_TRITON
 
 F64 = torch.float64
 
