@@ -64,7 +64,7 @@ class NativeFactor(NamedTuple):
     ok: Tensor  # [B] rows solved by this method
 
 
-#: implementations of the method's steps (:func:`dual_engine` picks one)
+#: implementations of the method (:func:`dual_engine` picks one)
 ENGINES = ("c", "triton", "torch")
 
 
