@@ -328,7 +328,7 @@ def solve_dual(
     tiny = torch.finfo(dtype).tiny
     r_S = hr_ext.gather(0, S)
     res_S = torch.where(empty, 0.0, _contract(R_S, x.unsqueeze(1)) - r_S)
-    scale_S = r_S.abs() + R_S.abs().amax(0) * (1.0 + x.abs().amax(0))
+    scale_S = _kkt.row_scale(R_S.permute(2, 1, 0), r_S.T, x.T).T  # [N(slot), B]
     worst = (res_S.abs() / scale_S.clamp_min(tiny)).amax(0)
     # one refinement step on the active rows' residual (the C kernel's): W_SS dmu = G_S x -
     # h_S, x -= P^{-1} G_S' dmu, computed from small numbers, restores the lost digits

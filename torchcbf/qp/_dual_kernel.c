@@ -230,12 +230,9 @@ INLINE int solve_one(int N, int M, const double *RESTRICT P, const double *RESTR
         for (int i = 0; i < M; ++i) u[i] *= dinv[c];
     }
     for (int i = 0; i < M; ++i) {
-        double gmax = 0.0, w = 0.0;
-        for (int c = 0; c < N; ++c) {
-            gmax = dmax(gmax, fabs(G[i * N + c]));
-            w += G[i * N + c] * Ut[(size_t)c * M + i];
-        }
-        row_scale[i] = fabs(h[i]) + gmax * (1.0 + xu_max);
+        double w = 0.0;
+        for (int c = 0; c < N; ++c) w += G[i * N + c] * Ut[(size_t)c * M + i];
+        row_scale[i] = scale_at(N, G + i * N, h[i], xu_max);
         tol[i] = 1e4 * mach * row_scale[i];
         inv_norm[i] = w > 0 ? 1.0 / sqrt(dmax(w, 1e-300)) : 0.0;
         member[i] = 0.0;
