@@ -144,7 +144,7 @@ def test_public_integrators_check_inputs_and_run_forward_hooks() -> None:
     import pytest
 
     from torchcbf.dynamics import SingleIntegrator
-    from torchcbf.integrators import euler, rk4, unchecked
+    from torchcbf.integrators import euler, rate_form, rk4, unchecked_step
 
     model = SingleIntegrator(2)
     x = torch.zeros(2)
@@ -158,11 +158,13 @@ def test_public_integrators_check_inputs_and_run_forward_hooks() -> None:
     rk4(model, x, torch.ones(2), 0.1)
     handle.remove()
     assert len(calls) == 4  # the hook runs at every stage
+    form = rate_form(model)
     torch.testing.assert_close(
-        unchecked("rk4")(model, x, torch.ones(2), 0.1), rk4(model, x, torch.ones(2), 0.1)
+        unchecked_step(model, "rk4", x, torch.ones(2), 0.1, form=form),
+        rk4(model, x, torch.ones(2), 0.1),
     )
     with pytest.raises(ValueError, match="method must be 'euler' or 'rk4'"):
-        unchecked("heun")
+        unchecked_step(model, "heun", x, torch.ones(2), 0.1, form=form)
 
 
 class _OwnRate(_Rotation):

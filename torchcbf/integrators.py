@@ -149,12 +149,6 @@ def _stepper(method: str) -> Callable[[Rate, Tensor, Tensor, float], Tensor]:
     return _euler_of if method == "euler" else _rk4_of
 
 
-def unchecked(method: str) -> Callable[..., Tensor]:
-    """``euler`` or ``rk4`` without input checks, ``(dynamics, x, u, dt, w=None) -> x'``: for
-    a loop over time steps whose inputs were checked once (MPPI's rollouts)."""
-    return _euler if _stepper(method) is _euler_of else _rk4
-
-
 def euler_maruyama(
     dynamics: ControlAffine,
     x: Tensor,
