@@ -14,6 +14,9 @@ from typing import Any
 import pytest
 import torch
 
+from torchcbf._triton import available as triton_available
+from torchcbf._triton import interpreted as triton_interpreted
+
 
 def _present(name: str) -> bool:
     if name == "cpu":
@@ -112,21 +115,13 @@ def device_matches_cpu(
 def triton_target() -> torch.device | None:
     """Where the Triton kernels' tests run: CUDA where present, else the CPU in Triton's
     interpreter (``TRITON_INTERPRET=1`` set before Python starts), else nowhere."""
-    from torchcbf._triton import interpreted
-
     if torch.cuda.is_available():
         return torch.device("cuda")
-    return torch.device("cpu") if interpreted() else None
-
-
-def _triton_available() -> bool:
-    from torchcbf._triton import available
-
-    return available()
+    return torch.device("cpu") if triton_interpreted() else None
 
 
 #: marks of a Triton kernel's tests: Triton imports, and a device runs the kernel
-NEEDS_TRITON = pytest.mark.skipif(not _triton_available(), reason="Triton is not installed")
+NEEDS_TRITON = pytest.mark.skipif(not triton_available(), reason="Triton is not installed")
 RUNS_TRITON = pytest.mark.skipif(
     triton_target() is None, reason="no CUDA device and TRITON_INTERPRET is not 1"
 )

@@ -65,8 +65,8 @@ def kernels() -> list[KernelInfo]:
     for name, version, fallback in (
         ("mppi: rollouts and built-in costs (Triton)", mppi_triton.KERNEL_VERSION,
          "MPPI's torch path on CUDA"),
-        ("qp: dual active-set steps (Triton)", _dual_triton.KERNEL_VERSION,
-         "the dual method's torch steps on CUDA"),
+        ("qp: dual active set (Triton)", _dual_triton.KERNEL_VERSION,
+         "the dual method in torch on CUDA"),
     ):  # fmt: skip
         found.append(
             KernelInfo(

@@ -45,8 +45,8 @@ class QPSolution(NamedTuple):
       small problems in one call of the dual C kernel, :mod:`torchcbf.qp.realtime`),
       ``"small_proxsuite"`` (a few problems straight to proxsuite's dense solver),
       ``"active_set_native"`` (the dual active set method in C, equality rows eliminated
-      first where there are any), ``"active_set_triton"`` (its steps in one Triton launch
-      on CUDA), ``"active_set"``, ``"enumerate"``, ``"closed_form"``,
+      first where there are any), ``"active_set_triton"`` (the dual method in one Triton
+      launch on CUDA), ``"active_set"``, ``"enumerate"``, ``"closed_form"``,
       ``"ipm"`` (in torch), ``"auto_proxsuite"`` (proxsuite's dense solver, then the interior
       point method), ``"proxsuite"``, ``"qpsolvers:<solver>"``, or ``"empty"`` (no rows).
     - ``method [...]`` int64: the algorithm that answered each row, an index into
