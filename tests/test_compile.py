@@ -109,6 +109,22 @@ def test_traced_reads_mutated_containers_and_replaced_data():
         assert traced.compiles == 3
 
 
+def test_traced_sees_hooks_registered_and_removed_after_its_first_call():
+    mod = _Scaled().double()
+    traced = Traced(lambda x: (mod(x),), [mod])
+    x = torch.ones(3, 2, dtype=torch.float64)
+    with torch.no_grad():
+        torch.testing.assert_close(traced(x)[0], mod(x))
+        outer = mod.register_forward_hook(lambda module, args, out: out - 0.3)
+        torch.testing.assert_close(traced(x)[0], mod(x))
+        inner = mod.inner.register_forward_pre_hook(lambda module, args: (2.0 * args[0],))
+        torch.testing.assert_close(traced(x)[0], mod(x))
+        outer.remove()
+        inner.remove()
+        torch.testing.assert_close(traced(x)[0], mod(x))
+        assert traced.compiles == 3  # the last call is the first one's key again
+
+
 def test_traced_follows_a_dtype_change_and_a_copy():
     import copy
     import pickle

@@ -24,7 +24,7 @@ import copy
 import logging
 import operator
 import types
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any, NamedTuple
 
 import torch
@@ -69,6 +69,46 @@ class Compiled:
             return self.eager(*args)
         self._first = False
         return out
+
+
+def _hook_dicts(modules: Iterable[torch.nn.Module]) -> list[dict[int, Any]]:
+    """The dicts of forward and forward-pre hooks that a call of ``modules`` runs: the
+    global module hooks' and each module's own (keyed by the hooks' handle ids)."""
+    from torch.nn.modules import module as _module
+
+    dicts = [_module._global_forward_pre_hooks, _module._global_forward_hooks]
+    for mod in modules:
+        dicts.append(mod._forward_pre_hooks)
+        dicts.append(mod._forward_hooks)
+    return dicts
+
+
+def _hook_count(dicts: list[dict[int, Any]]) -> tuple[int, int]:
+    """A cheap token of the hooks in ``dicts``: their number and their largest handle id.
+    Handle ids only grow, so a hook registered or removed changes it."""
+    count, top = 0, -1
+    for d in dicts:
+        if d:
+            count += len(d)
+            top = max(top, max(d))
+    return count, top
+
+
+def hook_key(*objs: object) -> str:
+    """The forward hooks that run when ``objs`` are called, as a string that changes when one
+    is registered or removed: the handle ids of the forward and forward-pre hooks of every
+    module of ``objs`` (none for an object that is not a module) and of the global module
+    hooks. torch.compile does not guard on hooks, so a compiled function takes this as an
+    argument and reads it (:func:`read_key`)."""
+    modules = [m for obj in objs if isinstance(obj, torch.nn.Module) for m in obj.modules()]
+    return ",".join(str(k) for d in _hook_dicts(modules) for k in d)
+
+
+def read_key(key: str) -> None:
+    """Read ``key`` (an argument of a function under torch.compile), so that the compiled
+    code is guarded on its value: torch.compile guards only on the arguments the code
+    reads, and a new value of one it guards traces again. Nothing is done eagerly."""
+    len(key)
 
 
 def _own_code(fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -120,6 +160,7 @@ def _trust_reported_isa() -> Iterator[None]:
 
 
 #: entries of an ``nn.Module``'s ``__dict__`` that are its own bookkeeping, not user state
+#: (its forward hooks are keyed apart: :func:`_hook_dicts`)
 _MODULE_INTERNALS = (frozenset(vars(torch.nn.Module())) - {"training"}) | {
     "_exact_constants"  # torchcbf._constants' float64 copies, which no forward reads
 }
@@ -140,6 +181,7 @@ class _Record(NamedTuple):
     graph: Callable[..., Any]
     used: list[int]  # positions in (*args, *state) of the tensors the graph reads
     n_args: int
+    hooks: tuple[int, int]  # the modules' hooks (:func:`_hook_count`)
 
 
 class TraceError(RuntimeError):
@@ -222,10 +264,11 @@ class Traced:
     Where tracing or compiling fails (data-dependent control flow, an operation without a
     decomposition), :meth:`__call__` raises :class:`TraceError`; the caller decides the
     fallback. ``ignore``: names of the modules' own attributes that are bookkeeping, which
-    ``fn`` reads as fixed objects or not at all (the owner's caches). Not seen: hooks
-    registered on the modules after the first call, and attributes added after it (a forward
-    that reads one with ``getattr(self, name, default)``); values captured deeper than a
-    function's own closure and globals. The first call of each signature swaps the modules'
+    ``fn`` reads as fixed objects or not at all (the owner's caches). The forward hooks of
+    the modules and the global ones are part of the key (one registered or removed traces
+    again). Not seen: attributes added after the first call (a forward that reads one with
+    ``getattr(self, name, default)``), values captured deeper than a function's own closure
+    and globals. The first call of each signature swaps the modules'
     tensors for tracing placeholders: do not call the modules from another thread meanwhile.
     Outputs are a tuple of tensors (of one where ``fn`` returns a tensor), computed without
     a graph (call it under ``torch.no_grad()``).
@@ -245,6 +288,7 @@ class Traced:
         self.options = dict(options or {})
         self._graphs: dict[tuple[Any, ...], tuple[Callable[..., Any], list[int]]] = {}
         self._slots: list[tuple[dict[str, Any], str]] | None = None
+        self._hooks: list[dict[int, Any]] = []
         self._last: _Record | None = None
         self.lookups = 0  # calls that found the modules' state changed
         self._compiled_on: set[str] = set()
@@ -271,9 +315,11 @@ class Traced:
         """How many graphs were compiled (one per signature met)."""
         return len(self._graphs)
 
-    def _find_slots(self) -> list[tuple[dict[str, Any], str]]:
-        """Every place of the modules' state a trace can read: ``(dict, key)`` pairs."""
+    def _find_state(self) -> tuple[list[tuple[dict[str, Any], str]], list[dict[int, Any]]]:
+        """Every place of the modules' state a trace can read, ``(dict, key)`` pairs, and the
+        dicts of the hooks a call runs (:func:`_hook_dicts`)."""
         slots: list[tuple[dict[str, Any], str]] = []
+        found: list[torch.nn.Module] = []
         seen: set[int] = set()
         skip = _MODULE_INTERNALS | self.ignore
         stack = list(self.modules)
@@ -282,20 +328,21 @@ class Traced:
             if id(mod) in seen:
                 continue
             seen.add(id(mod))
+            found.append(mod)
             for store in (mod._parameters, mod._buffers, mod._modules):
                 slots.extend((store, k) for k in store)
             own = mod.__dict__
             slots.extend((own, k) for k in own if k not in skip)
             stack.extend(m for m in mod._modules.values() if m is not None)
-        return slots
+        return slots, _hook_dicts(found)
 
     def __call__(self, *args: Tensor) -> tuple[Tensor, ...]:
         state = [] if self._slots is None else [store.get(k) for store, k in self._slots]
         values = (*args, *state)
         last = self._last
-        if last is None or not self._same(values, last):
+        if last is None or last.hooks != _hook_count(self._hooks) or not self._same(values, last):
             # something changed: find the state again (a new submodule has its own)
-            self._slots = self._find_slots()
+            self._slots, self._hooks = self._find_state()
             values = (*args, *[store.get(k) for store, k in self._slots])
             last = self._lookup(values, len(args))
         return last.graph(*[values[i] for i in last.used])
@@ -324,7 +371,7 @@ class Traced:
         """The record of a call with ``values`` (arguments, then the modules' state), its
         graph compiled where its key is new."""
         self.lookups += 1
-        key = tuple(_freeze(v) for v in values)
+        key = (*(_freeze(v) for v in values), *(_freeze(d) for d in self._hooks))
         found = self._graphs.get(key)
         if found is None:
             try:
@@ -342,6 +389,7 @@ class Traced:
             graph=graph,
             used=used,
             n_args=n_args,
+            hooks=_hook_count(self._hooks),
         )
         return self._last
 

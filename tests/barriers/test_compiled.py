@@ -266,3 +266,23 @@ def test_an_empty_compile_dict_compiles() -> None:
     x, u = torch.tensor([[0.0, 0.3, 0.1]]), torch.tensor([[1.0, 0.0]])
     with torch.no_grad():
         assert empty(x, u).path.startswith("compiled/")  # torch.compile's defaults
+
+
+@pytest.mark.parametrize("compile", [True, TRACED], ids=["traced", "torch.compile"])
+def test_a_hook_registered_after_the_first_call_is_seen(compile) -> None:
+    fns = [SuperEllipse([2.0, 0.5], [0.8, 0.5]), SmoothPolygon()]
+    model = Glider()
+    kw = {"u_min": -2.0, "u_max": 2.0, "alpha": 1.5}
+    compiled = SafetyFilter(model, fns, compile=compile, **kw).double()
+    general = SafetyFilter(model, fns, backend="torch", **kw).double()
+    x = torch.tensor([[0.5, 0.2, 0.3], [3.5, -1.0, 1.0]], dtype=torch.float64)
+    u = torch.tensor([[1.0, 0.5], [-0.5, 0.2]], dtype=torch.float64)
+    with torch.no_grad():
+        compiled(x, u)
+        handle = fns[0].register_forward_hook(lambda module, args, out: out - 0.3)
+        for _ in range(2):  # with the pad, then without it again
+            a, b = compiled(x, u), general(x, u)
+            assert a.path.startswith("compiled/")
+            torch.testing.assert_close(a.h, b.h, atol=1e-9, rtol=1e-9)
+            torch.testing.assert_close(a.u, b.u, atol=1e-9, rtol=1e-9)
+            handle.remove()

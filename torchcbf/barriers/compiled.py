@@ -25,7 +25,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcbf._compile import Compiled, logger
+from torchcbf._compile import Compiled, hook_key, logger, read_key
 from torchcbf.barriers.lie import LieFunction, LieTerms
 from torchcbf.dynamics.base import ControlAffine
 
@@ -66,14 +66,17 @@ class CompiledLie:
         """The uncompiled function: ``(LieTerms, sizes)`` at ``x [B, n]``, ``t [B]``, for a
         caller that compiles more around it (``vmap`` and ``jacrev``: no graph to ``x``)."""
         sizes = [torch.atleast_1d(fn(x[0], t[0])).shape[-1] for fn in self.fns]
-        h, lfh, lgh, dhdt, dhdx, *trace = self._terms(x, t)
+        h, lfh, lgh, dhdt, dhdx, *trace = self._terms(x, t, "")
         return LieTerms(h, lfh, lgh, dhdt, trace[0] if trace else None, dhdx), sizes
 
     def _values(self, x: Tensor, t: Tensor) -> Tensor:
         """``[K]`` outputs of all functions at one state ``x [n]``, time ``t []``."""
         return torch.cat([torch.atleast_1d(fn(x, t)) for fn in self.fns])
 
-    def _terms(self, x: Tensor, t: Tensor) -> tuple[Tensor, ...]:
+    def _terms(self, x: Tensor, t: Tensor, hooks: str) -> tuple[Tensor, ...]:
+        """The terms at ``x [B, n]``, ``t [B]``; ``hooks``: the functions'
+        :func:`~torchcbf._compile.hook_key` (compiled, a new value traces again)."""
+        read_key(hooks)
         values = torch.func.vmap(self._values)
         h = values(x, t)
         if self.timed:
@@ -103,7 +106,7 @@ class CompiledLie:
             if self.sizes is None:  # once, eager: a Python int per function
                 self.sizes = [torch.atleast_1d(fn(x[0], t[0])).shape[-1] for fn in self.fns]
             try:
-                out = self._call(x, t)
+                out = self._call(x, t, hook_key(*self.fns))
             except Exception as err:  # noqa: BLE001 - any failure: the general path answers
                 names = ", ".join(type(fn).__name__ for fn in self.fns)
                 logger.warning(

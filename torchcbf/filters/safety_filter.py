@@ -242,7 +242,8 @@ class SafetyFilter(nn.Module):
             (:class:`torchcbf._compile.Traced`: new values of states and constants reuse
             it; a new batch size, dtype, plain-number attribute, container content,
             submodule, or a changed number a function captures or reads as a global traces
-            again; hooks and attributes added after the first call are not seen);
+            again, as does a forward hook registered or removed; attributes added after the
+            first call are not seen);
             where that fails, the Lie terms go through ``torch.compile``. A dict: the Lie
             terms through ``torch.compile(**compile)``
             (:class:`torchcbf.barriers.compiled.CompiledLie`). The first call compiles
