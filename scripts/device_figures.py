@@ -6,7 +6,9 @@ Each figure is one problem of the benchmark scripts, built with their own helper
 after warm-up calls, with the device synchronised around every call:
 
 - ``mppi.builtin``: scenario B's planner with the cost built from torchcbf's terms, one
-  environment, K = 16,384, H = 100 and K = 20,000, H = 80 (s per planning call);
+  environment, K = 16,384, H = 100 and K = 20,000, H = 80 (s per planning call), also with
+  ``cuda_graph=True`` (``.graph``: the call replayed from a CUDA graph) and on the general
+  torch path (``.torch``);
 - ``mppi.user``: the same cost written in torch by a user, K = 20,000, H = 80, eager and
   with ``compile=True``; ``mppi.pytorch_mppi``: pytorch-mppi on that problem (skipped, and
   said so, where it is not installed);
@@ -146,15 +148,19 @@ def _mppi(device: torch.device, K: int, H: int, cost: str, reps: int, **kw: Any)
 def mppi_figures(device: torch.device, quick: bool, reps: int) -> list[tuple[str, Callable]]:
     scale = 16 if quick else 1
 
-    def builtin(K: int, H: int, backend: str = "auto") -> Callable[[], list[dict]]:
+    def builtin(
+        K: int, H: int, backend: str = "auto", graph: bool = False
+    ) -> Callable[[], list[dict]]:
         def measure() -> list[dict]:
-            row = _mppi(device, K // scale, H, "builtin", reps, backend=backend)
-            path = "" if backend == "auto" else f".{backend}"
-            row.update(
-                name=f"mppi.builtin{path}.K{K}.H{H}",
-                label=f"MPPI, built-in model and cost terms, K={K // scale}, H={H}"
-                + ("" if backend == "auto" else f", backend={backend!r} (the general path)"),
-            )
+            kw: dict[str, Any] = {"backend": backend, "cuda_graph": graph}
+            row = _mppi(device, K // scale, H, "builtin", reps, **kw)
+            tag = ("" if backend == "auto" else f".{backend}") + (".graph" if graph else "")
+            label = f"MPPI, built-in model and cost terms, K={K // scale}, H={H}"
+            if backend != "auto":
+                label += f", backend={backend!r} (the general path)"
+            if graph:
+                label += ", cuda_graph=True"
+            row.update(name=f"mppi.builtin{tag}.K{K}.H{H}", label=label)
             return [row]
 
         return measure
@@ -201,6 +207,8 @@ def mppi_figures(device: torch.device, quick: bool, reps: int) -> list[tuple[str
     return [
         ("mppi.builtin.K16384.H100", builtin(16384, 100)),
         ("mppi.builtin.K20000.H80", builtin(20000, 80)),
+        ("mppi.builtin.graph.K16384.H100", builtin(16384, 100, graph=True)),
+        ("mppi.builtin.graph.K20000.H80", builtin(20000, 80, graph=True)),
         ("mppi.builtin.torch.K16384.H100", builtin(16384, 100, "torch")),
         ("mppi.user.eager.K20000.H80", user(False)),
         ("mppi.user.compiled.K20000.H80", user(True)),

@@ -77,10 +77,12 @@ def main() -> int:
     import bench_qp
 
     parts = []
-    planner = bench_mppi.torchcbf(1, 16384, 100, "builtin", str(device))
-    call = functools.partial(_mppi_call, planner, bench_mppi.x0(0, 4, str(device)))
-    parts.append("## MPPI, built-in model and cost terms, K=16384, H=100, float32\n")
-    parts.append(_table(call, device, args.rows))
+    for graph in (False, True):
+        planner = bench_mppi.torchcbf(1, 16384, 100, "builtin", str(device), cuda_graph=graph)
+        call = functools.partial(_mppi_call, planner, bench_mppi.x0(0, 4, str(device)))
+        title = "MPPI, built-in model and cost terms, K=16384, H=100, float32"
+        parts.append(f"## {title}{', cuda_graph=True' if graph else ''}\n")
+        parts.append(_table(call, device, args.rows))
     for dtype in (torch.float32, torch.float64):
         _, _, filt, x, u_nom = bench_filters._scene(args.states, 8, dtype, seed=0)
         call = functools.partial(_filter_call, filt.to(device), x.to(device), u_nom.to(device))

@@ -445,6 +445,40 @@ def test_compiled_rollouts_match_a_loop_and_compile_once(layout, model):
                                        rtol=1e-10)  # fmt: skip
 
 
+class _GoalCost(torch.nn.Module):
+    def forward(self, states, controls, t0):
+        return _goal_cost(states, controls, t0)
+
+
+def test_hooks_added_after_compiling_are_seen():
+    """A forward hook registered on the model or the cost after the compiled planner ran
+    changes its plans as it changes the eager planner's."""
+    pytest.importorskip("torch._dynamo")
+    H, K = 5, 24
+
+    def planner(**extra):
+        return MPPI(_UserUnicycle(), _GoalCost(), H, K, 0.02, 1.0, 0.5, 0.1, seed=3,
+                    keep_rollouts=K, **extra)  # fmt: skip
+
+    eager, compiled = planner(), planner(compile=True)
+    x = _x0(2)
+    handles = []
+    for step in range(5):
+        for p in (eager, compiled):
+            if step == 1:  # the model's rate halved
+                p.dynamics.register_forward_hook(lambda module, args, out: out * 0.5)
+            if step == 2:  # a cost that prefers the other side
+                handles.append(p.cost.register_forward_hook(lambda module, args, out: -out))
+            if step == 3:  # a second hook on the hooked model
+                p.dynamics.register_forward_hook(lambda module, args, out: out + 0.1)
+        if step == 4:
+            for handle in handles:
+                handle.remove()
+        a, b = eager(x), compiled(x)
+        torch.testing.assert_close(b.rollouts, a.rollouts, atol=1e-10, rtol=1e-10)
+        torch.testing.assert_close(b.plan, a.plan, atol=1e-10, rtol=1e-10)
+
+
 def test_compile_failure_runs_eager(caplog):
     pytest.importorskip("torch._dynamo")
 
@@ -562,3 +596,16 @@ def test_model_whose_g_broadcasts_plans_in_both_layouts():
     a, b = planner("component").double()(x), planner("sample").double()(x)
     torch.testing.assert_close(a.rollouts, b.rollouts, atol=1e-12, rtol=1e-12)
     torch.testing.assert_close(a.plan, b.plan, atol=1e-12, rtol=1e-12)
+
+
+def test_cuda_graph_is_a_flag_that_changes_nothing_on_the_cpu():
+    def make(**kw):
+        return MPPI(SingleIntegrator(2), QuadraticGoal([1.0, 1.0]), 10, 64, 0.1, 0.5, 0.3, **kw)
+
+    with pytest.raises(TypeError, match="cuda_graph"):
+        make(cuda_graph=1)
+    a, b = make(), make(cuda_graph=True)
+    x = torch.zeros(2)
+    for _ in range(3):
+        pa, pb = a(x), b(x)
+        assert torch.equal(pa.plan, pb.plan) and pb.path == pa.path

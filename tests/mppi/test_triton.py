@@ -224,3 +224,53 @@ def test_boundary_checks_name_the_argument():
         kernel.costs(x, plan, keys, None)
     with pytest.raises(ValueError, match="keys"):
         kernel.costs(x.float(), plan, keys.int(), None)
+
+
+on_cuda_only = pytest.mark.skipif(
+    TARGET is None or TARGET.type != "cuda", reason="CUDA graphs need a CUDA device"
+)
+
+
+@on_cuda_only
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_a_captured_planner_plans_as_the_uncaptured_one(dtype):
+    x = torch.tensor([[0.0, 0.0, 0.5, 0.1], [1.0, -1.0, 0.0, 2.0]], dtype=dtype, device=TARGET)
+    plain = _planner(AccelUnicycle, "rk4", dtype, "triton", keep_rollouts=3).to(TARGET)
+    graphed = _planner(
+        AccelUnicycle, "rk4", dtype, "triton", keep_rollouts=3, cuda_graph=True
+    ).to(TARGET)
+    u = torch.tensor([0.3, -0.2], dtype=dtype, device=TARGET)
+    outs, paths = [], []
+    for i in range(8):
+        if i == 3:  # a new goal: new tables, so the next call runs uncaptured, then captures
+            for planner in (plain, graphed):
+                with torch.no_grad():
+                    planner.cost.terms[0].goal.copy_(torch.tensor([-2.0, 1.0]))
+        if i == 5:  # the plan changed in place: the graph reads it
+            plain.correct(u)
+            graphed.correct(u)
+        xi = x[0] if i >= 6 else x  # one environment: new state, captured again
+        outs.append((plain(xi), graphed(xi)))
+        paths.append(graphed.path)
+    assert paths == ["fused", "fused_graph", "fused_graph", "fused", "fused_graph",
+                     "fused_graph", "fused", "fused_graph"]  # fmt: skip
+    rtol, atol = (1e-12, 1e-12) if dtype == torch.float64 else (1e-6, 1e-6)
+    for a, b in outs:  # earlier outputs are not overwritten by later replays
+        for name in ("u", "plan", "cost_min", "cost_mean", "ess", "best_states", "rollouts",
+                     "rollout_weights"):  # fmt: skip
+            torch.testing.assert_close(getattr(b, name), getattr(a, name), rtol=rtol, atol=atol)
+        assert torch.equal(a.status, b.status) and torch.equal(a.nonfinite, b.nonfinite)
+        assert b.u.shape == a.u.shape
+
+
+@on_cuda_only
+def test_cuda_graph_changes_nothing_on_other_paths():
+    def cost(states, controls, t):
+        return states[..., :2].square().sum((-1, -2))
+
+    planner = _planner(Unicycle, "euler", torch.float32, "triton", cost=cost, cuda_graph=True)
+    planner = planner.to(TARGET)
+    x = torch.zeros(3, device=TARGET)
+    for _ in range(3):
+        out = planner(x)
+    assert out.path == "rollout" and planner.path == "rollout"

@@ -86,6 +86,7 @@ runs eager.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable
 from typing import Any, ClassVar, NamedTuple
@@ -104,8 +105,9 @@ from torchcbf._checks import (
     check_last_dim,
     check_positive,
 )
-from torchcbf._compile import Compiled
+from torchcbf._compile import Compiled, hook_key, read_key
 from torchcbf._constants import ExactConstants, remember
+from torchcbf._graphs import CapturedCall
 from torchcbf._native import keep_freed_heap
 from torchcbf._triton import available as triton_available
 from torchcbf._triton import interpreted as triton_interpreted
@@ -124,6 +126,8 @@ AUTO_CHUNK_ELEMENTS = 2**17
 #: samples, which are contiguous in the rollout buffers)
 MIN_CHUNK_SAMPLES = 16
 
+logger = logging.getLogger("torchcbf")
+
 
 class MPPIOutput(NamedTuple):
     """Result of one planning call (``B`` dimension absent when ``x`` was ``[n]``).
@@ -139,7 +143,8 @@ class MPPIOutput(NamedTuple):
         rollouts: ``[B, R, H+1, n]`` the first ``R = keep_rollouts`` sampled rollouts, or None.
         rollout_weights: ``[B, R]`` their weights, or None.
         nonfinite: ``[B]`` int64, samples whose cost was NaN or infinite (weight zero).
-        path: the path that planned (``"fused"``, ``"rollout"`` or ``"torch"``, see
+        path: the path that planned (``"fused"``, ``"fused_graph"`` (the fused call
+            replayed from a CUDA graph), ``"rollout"`` or ``"torch"``, see
             :mod:`torchcbf.mppi.planner`).
     """
 
@@ -210,6 +215,20 @@ class _Weights(NamedTuple):
     best: Tensor
     ok: Tensor
     finite: Tensor
+
+
+class _Capture(NamedTuple):
+    """A planner's captured fused call and what it was captured for."""
+
+    kernel: Any  # the kernel object of the configuration
+    plan: Tensor  # the plan tensor the graph updates
+    shape: torch.Size  # of x
+    call: CapturedCall | bool | None  # None: not captured yet; False: the capture failed
+
+
+def _unbatched(out: MPPIOutput) -> MPPIOutput:
+    """``out`` of one environment without its batch axis."""
+    return MPPIOutput(*(v.squeeze(0) if isinstance(v, Tensor) else v for v in out))
 
 
 def _weighted_sum(z: Tensor, w: Tensor) -> Tensor:
@@ -342,6 +361,16 @@ class MPPI(ExactConstants):
         noise_mu: mean of the sampled noise (scalar or ``[m]``, in the units of
             ``noise_sigma``; pytorch-mppi's ``noise_mu``): biases the samples. Runs on the
             torch path.
+        cuda_graph: capture the fused path's planning call on CUDA (built-in model and cost
+            terms, the Triton kernel) in a CUDA graph and replay it: one launch instead of
+            about sixty and the planner's Python between them. The first call of a
+            configuration runs uncaptured, the second captures; the graph is captured
+            again when the configuration (any tensor or number of the planner, its model
+            or its cost), ``B``, the dtype or the plan's storage changes. The plans are the
+            uncaptured path's (the same kernels on the same inputs); the output's ``path``
+            says ``"fused_graph"``. Elsewhere (the CPU, the rollout and torch paths) it
+            changes nothing. Where the capture fails the planner logs a warning and runs
+            uncaptured.
 
     Control limits are one-sided when one side is given: ``u_max`` alone bounds the control
     from above only (pytorch-mppi mirrors it into ``u_min = -u_max``); write ``u_min=-b,
@@ -382,6 +411,7 @@ class MPPI(ExactConstants):
         action_sampler: Callable[[Tensor, Tensor], Tensor] | None = None,
         sample_null_action: bool = False,
         noise_mu: float | Tensor | None = None,
+        cuda_graph: bool = False,
     ) -> None:
         super().__init__()
         if not isinstance(dynamics, ControlAffine):
@@ -431,7 +461,8 @@ class MPPI(ExactConstants):
                 f"action_sampler must be callable or None, got {type(action_sampler).__name__}"
             )
         for name, flag in (("noise_abs_cost", noise_abs_cost),
-                           ("sample_null_action", sample_null_action)):  # fmt: skip
+                           ("sample_null_action", sample_null_action),
+                           ("cuda_graph", cuda_graph)):  # fmt: skip
             if not isinstance(flag, bool):
                 raise TypeError(f"{name} must be a bool, got {type(flag).__name__}")
         if sample_null_action and zero_noise_samples + 1 > num_samples:
@@ -462,6 +493,7 @@ class MPPI(ExactConstants):
         self.noise_abs_cost = noise_abs_cost
         self.action_sampler = action_sampler
         self.sample_null_action = sample_null_action
+        self.cuda_graph = cuda_graph
         given = isinstance(noise_sigma, Tensor)
         cov = as_matrix("noise_sigma", noise_sigma, m, dtype=None if given else torch.float64)
         scale = _scale(u_scale, m, cov)
@@ -510,6 +542,7 @@ class MPPI(ExactConstants):
             raise ValueError("backend='triton' needs Triton, which does not import here")
         self._key: tuple[Any, ...] | None = None
         self._kernel_cache: tuple[Any, _rollout.Kernel | _triton.Kernel | None] | None = None
+        self._captured: _Capture | None = None
         self._fresh = True
 
     # -- state -------------------------------------------------------------------------------
@@ -517,6 +550,7 @@ class MPPI(ExactConstants):
         """Forget the plan, the history and re-seed the generators (next call starts afresh)."""
         self._key = None
         self._kernel_cache = None
+        self._captured = None
         self._fresh = True
 
     def _ensure_state(self, B: int, device: torch.device, dtype: torch.dtype) -> None:
@@ -646,7 +680,7 @@ class MPPI(ExactConstants):
             xc = xb.contiguous()
             wctrl = self._control_weights(plan)
             ctrl = kernel.buffers(xc, plan, keys, states, controls, wctrl, self.layout)
-            cost = self._score_fn(states, controls, None, plan, t0, history)
+            cost = self._score_fn(states, controls, None, plan, t0, history, hook_key(self.cost))
             if ctrl is not None:
                 cost = cost + ctrl
             weights = self._weights(cost)
@@ -656,7 +690,9 @@ class MPPI(ExactConstants):
             assert eps is not None
             ctrl_eps = self._sample(xb, t0, eps, controls)
             self._rollout(xb, controls, states)
-            cost = self._score_fn(states, controls, ctrl_eps, self._cost_plan(), t0, history)
+            cost = self._score_fn(
+                states, controls, ctrl_eps, self._cost_plan(), t0, history, hook_key(self.cost)
+            )
             extra = self._extra_cost(controls)
             if extra is not None:
                 cost = cost + extra
@@ -666,7 +702,8 @@ class MPPI(ExactConstants):
         rollouts = None
         if self.keep_rollouts:
             rollouts = states[:, : self.keep_rollouts].clone(memory_format=torch.contiguous_format)
-        return self._output(cost, weights, delta, best_states, rollouts, unbatched)
+        out = self._output(cost, weights, delta, best_states, rollouts)
+        return _unbatched(out) if unbatched else out
 
     def _from_numpy(self, x: np.ndarray) -> Tensor:
         dtype = x.dtype if x.dtype in (np.float32, np.float64) else None
@@ -910,21 +947,23 @@ class MPPI(ExactConstants):
         if component:
             # each step reads and writes each component's samples contiguously
             states, controls = states.permute(0, 3, 2, 1), controls.permute(0, 3, 2, 1)
-        # the rate's form is an argument of the compiled step, so a graph traced for one
-        # model is not reused for a model of the same class that is evaluated otherwise
-        # (hooks, say: torch.compile does not guard on a module's hooks)
-        rate = integrators.rate_form(self.dynamics)
+        # the rate's form and the model's hooks are arguments of the compiled step, so a
+        # graph traced for one model is not reused for a model of the same class that is
+        # evaluated otherwise (torch.compile does not guard on a module's hooks)
+        rate, hooks = integrators.rate_form(self.dynamics), hook_key(self.dynamics)
         for j in range(self.horizon):
-            self._step_into_fn(states, controls, j, component, rate)
+            self._step_into_fn(states, controls, j, component, rate, hooks)
 
     def _step_into(
-        self, states: Tensor, controls: Tensor, j: int, component: bool, rate: str
+        self, states: Tensor, controls: Tensor, j: int, component: bool, rate: str, hooks: str
     ) -> None:
         """Step ``j`` of the rollout in place: from ``states[:, :, j]`` and ``controls[:, :,
         j]`` into ``states[:, :, j + 1]``, the buffers ``[B, K, H+1, n]`` and ``[B, K, H, m]``,
         or ``[B, n, H+1, K]`` and ``[B, m, H, K]`` where ``component``; ``rate``: the model's
-        :func:`~torchcbf.integrators.rate_form`. Compiled, the code reads and writes the
-        buffers directly, one graph for every ``j``."""
+        :func:`~torchcbf.integrators.rate_form`; ``hooks``: its
+        :func:`~torchcbf._compile.hook_key` (compiled, a new value traces again). Compiled,
+        the code reads and writes the buffers directly, one graph for every ``j``."""
+        read_key(hooks)
         x, u = states.select(2, j), controls.select(2, j)
         states.select(2, j + 1).copy_(self._step(x, u, j, rate=rate, component=component))
 
@@ -936,10 +975,13 @@ class MPPI(ExactConstants):
         plan: Tensor,
         t0: Tensor,
         history: History | None,
+        hooks: str,
     ) -> Tensor:
         """Cost ``[B, K]`` of the rollouts (``[B, K, H+1, n]``, ``[B, K, H, m]``), checked and
         cast by :meth:`_check_cost`, plus the control cost of the noise ``eps`` (none where
-        ``eps`` is ``None``: the kernel adds it)."""
+        ``eps`` is ``None``: the kernel adds it). ``hooks``: the cost's
+        :func:`~torchcbf._compile.hook_key` (as in :meth:`_step_into`)."""
+        read_key(hooks)
         chunk = self._chunk(states)
         K = states.shape[1]
         if chunk >= K:
@@ -1072,10 +1114,21 @@ class MPPI(ExactConstants):
     def _fused(
         self, kernel: _rollout.Kernel | _triton.Kernel, x: Tensor, unbatched: bool
     ) -> MPPIOutput:
+        x = x.contiguous()
+        keys = _rollout.draw_keys(self._generators)
+        out = self._replayed(kernel, x, keys) if self.cuda_graph and x.is_cuda else None
+        if out is None:
+            out = self._fused_call(kernel, x, keys)
+        return _unbatched(out) if unbatched else out
+
+    def _fused_call(
+        self, kernel: _rollout.Kernel | _triton.Kernel, x: Tensor, keys: Tensor
+    ) -> MPPIOutput:
+        """One fused planning call from ``x [B, n]`` with the noise ``keys [B]``: the plan
+        updated in place, the batched output returned."""
         B, H, _ = self._plan.shape
         n = self.dynamics.state_dim
-        plan, x = self._plan, x.contiguous()
-        keys = _rollout.draw_keys(self._generators)
+        plan = self._plan
         cost = kernel.costs(x, plan, keys, self._control_weights(plan))
         weights = self._weights(cost)
         delta = kernel.update(x, plan, keys, weights.w)
@@ -1087,7 +1140,31 @@ class MPPI(ExactConstants):
             picks.append(torch.cartesian_prod(self._rows, ks))
         rolled = kernel.rows(x, plan, keys, torch.cat(picks))
         rollouts = rolled[B:].view(B, R, H + 1, n) if R else None
-        return self._output(cost, weights, delta, rolled[:B], rollouts, unbatched)
+        return self._output(cost, weights, delta, rolled[:B], rollouts)
+
+    def _replayed(
+        self, kernel: _rollout.Kernel | _triton.Kernel, x: Tensor, keys: Tensor
+    ) -> MPPIOutput | None:
+        """The fused call replayed from its CUDA graph (``cuda_graph=True``), or ``None``
+        where this call runs uncaptured: the first call of a configuration (it compiles
+        the kernel: the capture needs it done) and every call after a failed capture."""
+        cap = self._captured
+        if cap is None or not (
+            cap.kernel is kernel and cap.plan is self._plan and cap.shape == x.shape
+        ):
+            self._captured = _Capture(kernel, self._plan, x.shape, None)
+            return None
+        if cap.call is None:
+            try:
+                call = CapturedCall(lambda x, k: self._fused_call(kernel, x, k)[:-1], (x, keys))
+            except Exception as err:  # noqa: BLE001 - any failure: the call runs uncaptured
+                logger.warning("torchcbf: MPPI's CUDA graph capture failed (%s); eager", err)
+                call = False
+            cap = self._captured = cap._replace(call=call)
+        if cap.call is False:
+            return None
+        self.path = "fused_graph"
+        return MPPIOutput(*cap.call(x, keys), path=self.path)
 
     # -- weights and update --------------------------------------------------------------------
     def _check_cost(self, cost: Tensor, count: int | None = None) -> Tensor:
@@ -1139,7 +1216,6 @@ class MPPI(ExactConstants):
         delta: Tensor,
         best_states: Tensor,
         rollouts: Tensor | None,
-        unbatched: bool,
     ) -> MPPIOutput:
         self._update_plan(delta)
         plan = self._plan
@@ -1149,7 +1225,7 @@ class MPPI(ExactConstants):
         ess = torch.where(
             ok, 1.0 / w.square().sum(-1).clamp_min(1e-30), torch.zeros_like(weights.cost_min)
         )
-        out = MPPIOutput(
+        return MPPIOutput(
             u=plan[:, 0].clone(),
             plan=plan.clone(),
             cost_min=weights.cost_min,
@@ -1162,9 +1238,6 @@ class MPPI(ExactConstants):
             nonfinite=self.num_samples - count,
             path=self.path,
         )
-        if unbatched:
-            out = MPPIOutput(*(v.squeeze(0) if isinstance(v, Tensor) else v for v in out))
-        return out
 
     def extra_repr(self) -> str:
         return (
