@@ -11,9 +11,42 @@ argument. The caller recaptures when one of those changes.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
+
+
+class _Slot(NamedTuple):
+    """Where one output lies in its dtype's flat buffer."""
+
+    dtype: torch.dtype
+    start: int
+    shape: torch.Size
+
+
+def pack(outputs: Sequence[Tensor | None]) -> tuple[dict[torch.dtype, Tensor], list]:
+    """``outputs`` concatenated into one flat tensor per dtype, and where each lies
+    (``None`` for a ``None`` output): a copy of the outputs is then one copy per dtype."""
+    parts: dict[torch.dtype, list[Tensor]] = {}
+    sizes: dict[torch.dtype, int] = {}
+    slots: list[_Slot | None] = []
+    for t in outputs:
+        if t is None:
+            slots.append(None)
+            continue
+        slots.append(_Slot(t.dtype, sizes.get(t.dtype, 0), t.shape))
+        parts.setdefault(t.dtype, []).append(t.reshape(-1))
+        sizes[t.dtype] = sizes.get(t.dtype, 0) + t.numel()
+    return {dtype: torch.cat(ts) for dtype, ts in parts.items()}, slots
+
+
+def unpack(flat: dict[torch.dtype, Tensor], slots: list) -> tuple[Tensor | None, ...]:
+    """The outputs of :func:`pack` as views of ``flat``."""
+    return tuple(
+        None if s is None else flat[s.dtype].narrow(0, s.start, s.shape.numel()).view(s.shape)
+        for s in slots
+    )
 
 
 class CapturedCall:
@@ -22,10 +55,10 @@ class CapturedCall:
     The capture runs ``fn`` once on static copies of ``inputs`` without executing it (run
     ``fn`` once uncaptured before, so that lazy set-up such as compiling a Triton kernel is
     done). Each call copies its tensors into the static inputs, replays the graph and
-    returns clones of the outputs (a later replay overwrites the graph's own). ``fn`` may
-    change tensors other than its inputs in place (a planner's plan, say): a replay does the
-    same to the same storage. Raises what the capture raises (an operation that cannot be
-    captured, such as a host synchronisation).
+    returns copies of the outputs (a later replay overwrites the graph's own), made in one
+    copy per dtype. ``fn`` may change tensors other than its inputs in place (a planner's
+    plan, say): a replay does the same to the same storage. Raises what the capture raises
+    (an operation that cannot be captured, such as a host synchronisation).
     """
 
     def __init__(self, fn: Callable[..., Sequence[Tensor | None]], inputs: Sequence[Tensor]):
@@ -36,7 +69,7 @@ class CapturedCall:
         # "thread_local": other threads' CUDA calls during the capture are theirs to make
         capture = torch.cuda.graph(self._graph, capture_error_mode="thread_local")
         with torch.cuda.device(inputs[0].device), capture:
-            self._outputs = tuple(fn(*self._inputs))
+            self._flat, self._slots = pack(fn(*self._inputs))
 
     def __call__(self, *inputs: Tensor) -> tuple[Tensor | None, ...]:
         if len(inputs) != len(self._inputs):
@@ -49,4 +82,4 @@ class CapturedCall:
                 )
             static.copy_(t)
         self._graph.replay()
-        return tuple(None if t is None else t.clone() for t in self._outputs)
+        return unpack({dtype: t.clone() for dtype, t in self._flat.items()}, self._slots)
