@@ -72,3 +72,31 @@ def test_gradient_is_zero_where_constraint_inactive_and_flows_to_parameters() ->
     # row 1: u_x = alpha h / (2 |x|) = (4 - r^2) / 4 with r = 1: d u_x / d r = -r / 2
     grads = torch.autograd.grad(out.u[1, 0], [ball.radius])
     assert torch.allclose(grads[0], torch.tensor(-0.5, dtype=F64), atol=1e-8)
+
+
+def test_a_batch_of_gradients_on_the_device_equals_the_cpus(device, dtype) -> None:
+    """300 states (the batched QP's large-batch path on a GPU): the filtered controls and the
+    gradients to the barrier's parameters and to ``u_nom`` equal the CPU's."""
+    from _devices import device_matches_cpu
+
+    gen = torch.Generator().manual_seed(5)
+    angle = torch.rand(300, generator=gen, dtype=F64) * 6.28
+    radius = 1.2 + 2.0 * torch.rand(300, generator=gen, dtype=F64)
+    x = torch.stack([radius * angle.cos(), radius * angle.sin()], -1)
+    u_nom = -2.0 * x / radius.unsqueeze(-1) + 0.3 * torch.randn(300, 2, generator=gen, dtype=F64)
+
+    def run(dev: torch.device):
+        ball = Ball(nn.Parameter(torch.tensor([0.0, 0.1])), nn.Parameter(torch.tensor(1.0)))
+        filt = SafetyFilter(SingleIntegrator(2, u_min=-3.0, u_max=3.0), ball, alpha=0.8)
+        filt = filt.to(device=dev, dtype=dtype)
+        un = u_nom.to(device=dev, dtype=dtype).requires_grad_(True)
+        out = filt(x.to(device=dev, dtype=dtype), un)
+        loss = (out.u * torch.tensor([1.0, -0.5], dtype=dtype, device=dev)).sum()
+        grads = torch.autograd.grad(loss, [un, *filt.parameters()])
+        return out.u, out.status, grads
+
+    loose = {} if dtype == F64 else {"rtol": 1e-3, "atol": 1e-3}
+    u, status, _ = device_matches_cpu(run, device, dtype, **loose)
+    assert int((status == FilterStatus.SOLVED).sum()) > 250
+    changed = (u.cpu().double() - u_nom).abs().amax(-1) > 0.1  # the barrier row is active
+    assert int(changed.sum()) > 100

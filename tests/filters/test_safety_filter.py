@@ -127,9 +127,12 @@ def test_matches_cvxpy_hard_qp(mode: str, clf: bool, dtype: torch.dtype) -> None
     assert (out.u - torch.tensor(us, dtype=dtype)).abs().amax() > 0.1
 
 
+@pytest.mark.parametrize("states", [32, 300])  # 300: past the batched QP's small-batch path
 @pytest.mark.parametrize("mode", MODES)
-def test_device_answers_equal_cpu_answers(mode: str, dtype: torch.dtype, device) -> None:
-    xs, us = random_states(32, seed=11 + MODES.index(mode))
+def test_device_answers_equal_cpu_answers(
+    mode: str, states: int, dtype: torch.dtype, device
+) -> None:
+    xs, us = random_states(states, seed=11 + MODES.index(mode))
 
     def run(dev: torch.device):
         filt = scene(mode, dtype).to(dev)
