@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from _devices import device_matches_cpu
 
 from torchcbf.barriers import Ball, Ellipse
 from torchcbf.dynamics import SingleIntegrator
@@ -175,3 +176,83 @@ def test_in_loop_shield_feeds_the_loop_filters_control_back() -> None:
     assert shield.loop_filter.barriers is filt.barriers  # the filter's attributes read through
     with pytest.raises(ValueError, match="in_loop"):
         _ = ShieldMPPI(_planner(), filt).loop_filter
+
+
+# -- on the device fixture's device ------------------------------------------------------------
+
+
+@pytest.mark.parametrize("steps", [None, 3])
+def test_barrier_costs_and_gradients_on_device_equal_cpu(dtype, device, steps) -> None:
+    """Both barrier costs of rollouts drawn on the CPU, and their gradients to the states,
+    on the device equal the CPU's."""
+    gen = torch.Generator().manual_seed(2)
+    states = 2.0 * torch.randn(3, 5, 7, 2, generator=gen, dtype=torch.float64)
+    centers, axes = [[1.0, 0.0], [0.0, 2.0]], [[0.5, 1.0], [1.0, 0.3]]
+
+    def run(dev: torch.device):
+        ellipses = Ellipse(torch.tensor(centers), torch.tensor(axes)).to(device=dev, dtype=dtype)
+        balls = Ball(torch.tensor(centers), torch.tensor([0.5, 0.3])).to(device=dev, dtype=dtype)
+        x = states.to(device=dev, dtype=dtype).requires_grad_()
+        discrete = DiscreteBarrierCost(ellipses, gamma=0.3, weight=7.0, steps=steps)(
+            x, x[..., :6, :]
+        )
+        smooth = BarrierCost(balls, weight=2.0, eps=0.01)(x, x[..., :6, :])
+        grads = torch.autograd.grad((discrete + smooth).sum(), x)
+        return discrete.detach(), smooth.detach(), grads[0]
+
+    discrete, smooth, grad = device_matches_cpu(run, device, dtype)
+    assert bool((discrete > 0).any()) and bool((grad != 0).any())
+
+
+def _shielded(device: torch.device, dtype: torch.dtype, *, in_loop: bool = False, seed: int = 0):
+    dyn = SingleIntegrator(2).to(device=device, dtype=dtype)
+    ball = Ball([1.0, 0.0], 0.5).to(device=device, dtype=dtype)
+    filt = SafetyFilter(dyn, [ball], alpha=1.0).to(device=device, dtype=dtype)
+    cost = SumCost(
+        QuadraticGoal([2.0, 0.0], weight=1.0), DiscreteBarrierCost(ball, gamma=0.2, weight=1e3)
+    )
+    planner = MPPI(dyn, cost, horizon=6, num_samples=64, dt=0.1, noise_sigma=1.0,
+                   temperature=0.1, seed=seed).to(device=device, dtype=dtype)  # fmt: skip
+    return ShieldMPPI(planner, filt, in_loop=in_loop), filt
+
+
+def test_shield_on_device_filters_and_feeds_back_over_calls(dtype, device) -> None:
+    """On the device, each call's control is the filter's answer to the control of an
+    unshielded planner with the same seed that was corrected the same way, the plan starts
+    with it and the planner keeps it, over calls that shift the corrected plan."""
+    shield, filt = _shielded(device, dtype)
+    reference, _ = _shielded(device, dtype)
+    x = torch.tensor([[0.45, 0.0], [-1.0, 0.5], [0.4, 0.1]], dtype=torch.float64)
+    x = x.to(device=device, dtype=dtype)
+    tol = {"rtol": 1e-9, "atol": 1e-9} if dtype == torch.float64 else {"rtol": 1e-4, "atol": 1e-5}
+    for k in range(3):
+        out = shield(x, 0.1 * k)
+        raw = reference.planner(x, 0.1 * k)
+        expected = filt(x, raw.u, 0.1 * k).u
+        reference.planner.correct(expected)
+        assert out.u.device.type == device.type
+        torch.testing.assert_close(out.u, expected, **tol)
+        torch.testing.assert_close(out.plan[:, 0], expected, **tol)
+        torch.testing.assert_close(out.plan[:, 1:], raw.plan[:, 1:], **tol)
+        torch.testing.assert_close(shield.planner._plan, reference.planner._plan, **tol)
+        x = x + 0.1 * out.u
+    assert not torch.equal(raw.u, expected)  # the filter changed the control
+
+
+def test_loop_filter_of_given_controls_on_device_equals_cpu(dtype, device) -> None:
+    """An in-loop shield's filter, given controls drawn on the CPU, gives the CPU's filtered
+    controls, statuses and barrier values on the device and writes them into the plan."""
+    x = torch.tensor([[0.45, 0.0], [-1.0, 0.5], [0.52, -0.2], [2.0, 2.0]], dtype=torch.float64)
+    u = torch.tensor([[1.0, 0.0], [0.5, -0.5], [-2.0, 0.3], [0.0, 0.0]], dtype=torch.float64)
+
+    def run(dev: torch.device):
+        shield, _ = _shielded(dev, dtype, in_loop=True)
+        f = {"device": dev, "dtype": dtype}
+        out = shield(x.to(**f), 0.0)
+        filtered = shield.loop_filter(x.to(**f), u.to(**f), 0.0)
+        return filtered.u, filtered.status, filtered.h, out.plan[:, 0], shield.planner._plan[:, 0]
+
+    loose = {} if dtype == torch.float64 else {"rtol": 1e-3, "atol": 1e-4}
+    u_f, status, h, plan0, kept = device_matches_cpu(run, device, dtype, **loose)
+    assert torch.equal(plan0, u_f) and torch.equal(kept, u_f)
+    assert not torch.equal(u_f.cpu(), u.to(dtype))  # the filter acted on some row

@@ -7,8 +7,10 @@ import math
 
 import pytest
 import torch
+from _devices import device_matches_cpu
 
 from torchcbf.mppi import Always, And, Avoid, Eventually, History, Or, Reach
+from torchcbf.mppi.history import HistoryBuffer
 
 G1, G2, OBST = (4.0, 4.0), (6.0, 9.0), (3.0, 3.0)
 
@@ -223,3 +225,97 @@ def test_bad_specs():
         And(Reach(G1, 0.5), lambda s, u, t: s)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="dt"):
         Reach(G1, 0.5)(torch.zeros(1, 2, 3, 2))
+
+
+# -- on the device fixture's device against the CPU ---------------------------------------------
+
+
+def _spec_zoo() -> dict[str, object]:
+    """Every kind of node: discs, a barrier predicate, urgency, generic Eventually/Always, Or."""
+    wall = lambda x: x[..., 1] + 0.5 * x[..., 0] - 1.0  # noqa: E731
+    ring = lambda x: 2.0 - ((x[..., :2] - 4.0) ** 2).sum(-1).sqrt()  # noqa: E731
+    return {
+        "a": _spec_a(),
+        "urgent": Reach(G1, 0.5, (0.0, 0.9), weight=3.0, urgency=0.7),
+        "barrier": Avoid(barrier=wall, weight=0.3, eps=0.02, interval=(0.2, 0.8)),
+        "generic": Or(Eventually(ring, (0.3, 0.6), urgency=0.2), Always(wall, (0.0, 0.5))),
+    }
+
+
+@pytest.mark.parametrize("name", ["a", "urgent", "barrier", "generic"])
+def test_robustness_and_gradient_on_device_equal_cpu(name, dtype, device):
+    """Robustness of trajectories drawn on the CPU, and its gradient to the states, on the
+    device equal the CPU's (times given per trajectory, with windows that cut the horizon)."""
+    gen = torch.Generator().manual_seed(3)
+    trajs = 5.0 * torch.rand(16, 41, 2, generator=gen, dtype=torch.float64)
+    times = (torch.arange(41, dtype=torch.float64) * 0.25).expand(16, 41).clone()
+    times[::2] -= 0.3  # some trajectories start earlier: other samples fall in each window
+
+    def run(dev: torch.device):
+        spec = _spec_zoo()[name].to(dev)
+        x = trajs.to(device=dev, dtype=dtype).requires_grad_()
+        rob = spec.robustness(x, times.to(device=dev, dtype=dtype))
+        (grad,) = torch.autograd.grad(rob.clamp(-1e3, 1e3).sum(), x)
+        return rob.detach(), grad
+
+    rob, grad = device_matches_cpu(run, device, dtype)
+    assert bool(torch.isfinite(rob).any()) and bool((grad != 0).any())
+
+
+@pytest.mark.parametrize("name", ["a", "urgent", "barrier", "generic"])
+def test_plan_cost_reading_a_device_history_equals_cpu(name, dtype, device):
+    """The MPPI cost of rollouts against a history recorded in a ring buffer on the device
+    (wrapped around: more states recorded than slots), with per-environment ``t0``, equals
+    the CPU's, and so do its gradients to the rollout states."""
+    gen = torch.Generator().manual_seed(4)
+    B, K, T = 3, 8, 12
+    states = 2.0 + 4.0 * torch.rand(B, K, T, 2, generator=gen, dtype=torch.float64)
+    past = 2.0 + 4.0 * torch.rand(7, B, 2, generator=gen, dtype=torch.float64)
+    t0 = torch.tensor([0.35, 0.6, 1.2], dtype=torch.float64)
+
+    def run(dev: torch.device):
+        f = {"device": dev, "dtype": dtype}
+        spec = _spec_zoo()[name].to(dev)
+        buffer = HistoryBuffer(5, B, 2, **f)
+        for j in range(7):  # two more than the slots: the oldest are overwritten
+            buffer.record(past[j].to(**f), (t0 - 0.1 * (6 - j)).to(**f))
+        x = states.to(**f).requires_grad_()
+        cost = spec(x, None, t0.to(**f), dt=0.1, history=buffer.view())
+        (grad,) = torch.autograd.grad(cost.clamp(-1e3, 1e3).sum(), x)
+        history = buffer.view()
+        return cost.detach(), grad, history.states, history.times, history.valid, buffer.count
+
+    cost, grad, _, _, valid, count = device_matches_cpu(run, device, dtype)
+    assert cost.shape == (B, K) and bool(valid.all()) and int(count) == 7
+    assert bool(torch.isfinite(cost).all())
+
+
+def test_spec_cost_planner_batch_equals_per_environment_planners(dtype, device):
+    """A planner whose cost is a specification reads each environment's own history on the
+    device: a batch of three plans as three one-environment planners seeded ``seed + b`` on
+    the same device, over calls whose history fills the goal's window."""
+    from torchcbf.dynamics import SingleIntegrator
+    from torchcbf.mppi import MPPI
+
+    def planner(seed: int) -> MPPI:
+        spec = And(Avoid(OBST, 0.6, weight=0.3), Reach(G1, 0.5, (0.0, 0.4), weight=5.0))
+        return MPPI(SingleIntegrator(2), spec, horizon=6, num_samples=32, dt=0.1,
+                    noise_sigma=1.0, temperature=0.5, u_min=-2.0, u_max=2.0, seed=seed,
+                    history_size=4).to(device=device, dtype=dtype)  # fmt: skip
+
+    gen = torch.Generator().manual_seed(5)
+    xs = 3.0 + torch.rand(5, 3, 2, generator=gen, dtype=torch.float64)
+    xs[2, 1] = torch.tensor(G1)  # environment 1 reaches the goal inside its window
+    xs = xs.to(device=device, dtype=dtype)
+    batched = planner(11)
+    singles = [planner(11 + b) for b in range(3)]
+    tol = {"rtol": 1e-9, "atol": 1e-9} if dtype == torch.float64 else {"rtol": 2e-4, "atol": 2e-4}
+    for k in range(5):
+        out = batched(xs[k], t=0.1 * k)
+        for b in range(3):
+            one = singles[b](xs[k, b], t=0.1 * k)
+            torch.testing.assert_close(out.plan[b], one.plan, **tol)
+            torch.testing.assert_close(out.u[b], one.u, **tol)
+    hist = batched.history
+    assert hist.states.device.type == device.type and bool(hist.valid.all())
+    torch.testing.assert_close(hist.states[1], singles[1].history.states[0])
