@@ -90,7 +90,8 @@ class Sensor(ExactConstants, nn.Module):
     def _wrap(self, y: Tensor) -> Tensor:
         if self.angle_mask is None:
             return y
-        return torch.where(self.angle_mask, wrap_angle(y), y)
+        # like C, R_sqrt and the landmarks, the mask follows the input's device
+        return torch.where(self.angle_mask.to(y.device), wrap_angle(y), y)
 
     def residual(self, y: Tensor, y_pred: Tensor) -> Tensor:
         """Innovation ``y - y_pred`` ``[..., p]``, angle components wrapped to ``[-pi, pi)``."""
