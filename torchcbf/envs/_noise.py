@@ -24,8 +24,11 @@ def _fmix(h: Tensor) -> Tensor:
 
 
 def row_keys(seeds: Tensor, episodes: Tensor, steps: Tensor | int) -> Tensor:
-    """One 32-bit key per row ``[B]`` (int64) from its seed, episode and step counters."""
-    steps = torch.as_tensor(steps, dtype=torch.int64, device=seeds.device)
+    """One 32-bit key per row ``[B]`` (int64) from its seed, episode and step counters
+    (``steps``: ``[B]`` or one int for every row, kept a Python number: no copy to the
+    device)."""
+    if isinstance(steps, Tensor):
+        steps = steps.to(torch.int64)
     h = _fmix(seeds.to(torch.int64) & _MASK)
     h = _fmix((h ^ (episodes.to(torch.int64) * 0x9E3779B9)) & _MASK)
     return _fmix((h ^ (steps * 0x632BE5AB + 0x165667B1)) & _MASK)

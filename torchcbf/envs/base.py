@@ -37,6 +37,18 @@ from torchcbf.envs import _noise
 _SEED_RANGE = 2**31
 
 
+def check_finite_action(name: str, action: Tensor) -> None:
+    """Refuse a non-finite ``action`` (``ValueError`` naming ``name``). On the CPU at once; on
+    an accelerator asynchronously (``torch._assert_async``: the failure surfaces at a later
+    synchronisation), so that a step never waits for the device."""
+    finite = torch.isfinite(action).all()
+    if action.device.type == "cpu":
+        if not bool(finite):  # a CPU reduction: nothing to wait for
+            raise ValueError(f"{name} must be finite")
+    else:
+        torch._assert_async(finite, f"{name} must be finite")
+
+
 class TorchVectorEnv(gymnasium.vector.VectorEnv):
     """Base of the batched environments: ``num_envs`` rows stepped as one tensor batch.
 
@@ -202,8 +214,7 @@ class TorchVectorEnv(gymnasium.vector.VectorEnv):
 
     def _actions(self, actions: Any) -> Tensor:
         if isinstance(actions, Tensor):
-            if not bool(torch.isfinite(actions).all()):  # as for a NumPy action: refused
-                raise ValueError("actions must be finite")
+            check_finite_action("actions", actions)  # as for a NumPy action: refused
             u = actions.to(device=self.device, dtype=self.dtype)
         else:
             array = np.asarray(actions, dtype=np.float64)

@@ -45,7 +45,7 @@ class DistanceField(nn.Module):
 
     def forward(self, p: Tensor) -> Tensor:
         """The field at ``p [..., 2]`` (bilinear), ``[...]``."""
-        values = self.values.to(p.dtype)
+        values = self.values.to(p)  # a field left on the CPU serves points on any device
         nx, ny = values.shape
         u = (p - self.low.to(p)) / self.spacing
         ux = u[..., 0].clamp(0, nx - 1)

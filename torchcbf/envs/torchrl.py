@@ -35,7 +35,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from torchcbf.dynamics.base import ControlAffine
-from torchcbf.envs.base import TorchVectorEnv
+from torchcbf.envs.base import TorchVectorEnv, check_finite_action
 
 __all__ = ["TorchRLEnv"]
 
@@ -235,12 +235,7 @@ class TorchRLEnv(EnvBase):
         if tuple(action.shape) != shape:
             raise ValueError(f"action must have shape {shape}, got {tuple(action.shape)}")
         u = action.to(device=vec.device, dtype=vec.dtype)
-        finite = torch.isfinite(u).all()
-        if u.device.type == "cpu":
-            if not bool(finite):  # a CPU reduction: nothing to wait for
-                raise ValueError("action must be finite")
-        else:
-            torch._assert_async(finite, "TorchRLEnv: action must be finite")
+        check_finite_action("action", u)
         return torch.minimum(torch.maximum(u, vec._u_low), vec._u_high)
 
     def _output(
