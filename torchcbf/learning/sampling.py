@@ -18,6 +18,7 @@ from torch import Tensor
 from torchcbf._checks import (
     as_tensor,
     check_finite,
+    check_generator,
     check_index,
     check_positive,
     check_positive_int,
@@ -90,11 +91,13 @@ def uniform_box(
     """``num`` states uniform in the box ``[low, high]`` (``[n]`` each): ``[num, n]``.
 
     Device and dtype: those of ``low`` when it is a tensor, unless given. Randomness from
-    ``generator`` (on that device) or a new one seeded with ``seed`` (default 0).
+    ``generator`` (on that device, else ``ValueError``) or a new one seeded with ``seed``
+    (default 0).
     """
     lo, hi = _box(low, high, dtype, device)
     num = check_positive_int("num", num)
     gen = make_generator(generator, seed, lo.device)
+    check_generator(gen, "low", lo)
     r = torch.rand(num, lo.shape[0], generator=gen, device=lo.device, dtype=lo.dtype)
     return lo + (hi - lo) * r
 
