@@ -267,9 +267,11 @@ class _Features(nn.Module):
     def forward(self, observation: Tensor) -> Tensor:
         if not self.angles:
             return observation
-        keep = [i for i in range(observation.shape[-1]) if i not in self.angles]
-        angle = observation[..., list(self.angles)]
-        return torch.cat([observation[..., keep], angle.cos(), angle.sin()], dim=-1)
+        # columns one by one: a list index would copy the indices to the device each call
+        keep = [observation[..., i] for i in range(observation.shape[-1]) if i not in self.angles]
+        angle = torch.stack([observation[..., i] for i in self.angles], dim=-1)
+        kept = [torch.stack(keep, dim=-1)] if keep else []
+        return torch.cat([*kept, angle.cos(), angle.sin()], dim=-1)
 
     def size(self, obs_dim: int) -> int:
         """Entries of the features of an observation of ``obs_dim`` entries."""

@@ -324,7 +324,8 @@ class RangeBearing(Sensor):
         )
         if x.dim() == 0 or x.shape[-1] <= need:
             raise ValueError(f"x must have shape [..., n] with n > {need}, got {tuple(x.shape)}")
-        pos = x[..., list(self.position_index)]
+        i, j = self.position_index  # two columns, not a list index (a copy to the device)
+        pos = torch.stack([x[..., i], x[..., j]], dim=-1)
         d = self.landmarks.to(x) - pos.unsqueeze(-2)  # [..., L, 2]
         rng = torch.linalg.vector_norm(d, dim=-1)
         bearing = torch.atan2(d[..., 1], d[..., 0])

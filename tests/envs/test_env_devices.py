@@ -251,3 +251,27 @@ def test_filtered_policy_and_its_gradients_on_device_equal_cpu(dtype, device) ->
     loose = {} if dtype == torch.float64 else {"rtol": 1e-3, "atol": 1e-4}
     u, u_nom, status, *_ = device_matches_cpu(run, device, dtype, **loose)
     assert not torch.allclose(u[:2], u_nom[:2])  # the constraint is active in the first rows
+
+
+def test_policy_features_on_device_equal_cpu_without_host_sync(dtype, device) -> None:
+    """The PPO policy's features (angles replaced by their cosine and sine) equal a
+    reference on the CPU, on the device without a host synchronisation."""
+    pytest.importorskip("torchrl")
+    from torchcbf.envs.safe_ppo import _Features
+
+    obs = torch.randn(7, 5, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    for angles in ((3,), (1, 4)):
+        keep = [i for i in range(5) if i not in angles]
+        want = torch.cat([obs[:, keep], obs[:, angles].cos(), obs[:, angles].sin()], -1)
+        features = _Features(angles)
+        x = obs.to(device=device, dtype=dtype)
+        if device.type != "cpu":
+            torch.cuda.synchronize()
+            torch.cuda.set_sync_debug_mode("error")
+        try:
+            got = features(x)
+        finally:
+            if device.type != "cpu":
+                torch.cuda.set_sync_debug_mode(0)
+        assert got.shape == (7, features.size(5))
+        torch.testing.assert_close(got.cpu(), want.to(dtype), rtol=1e-6, atol=1e-6)

@@ -176,3 +176,22 @@ def test_sensor_left_on_the_cpu_follows_its_input(name, dtype, device) -> None:
     loose = {} if dtype == torch.float64 else {"rtol": 1e-3, "atol": 1e-4}
     device_matches_cpu(run, device, dtype, **loose)
     assert all(buffer.device.type == "cpu" for buffer in sensor.buffers())  # not moved
+
+
+def test_sensor_calls_never_wait_for_the_device(device) -> None:
+    """Measuring (drawn or given noise), the noise-free output and the residual make no host
+    synchronisation on an accelerator (its sync debug mode raises on one)."""
+    if device.type == "cpu":
+        pytest.skip("host synchronisations exist only on an accelerator")
+    sensors = [s.to(device) for s in _sensors().values()]
+    x = torch.randn(32, 4, generator=torch.Generator().manual_seed(0)).to(device)
+    noises = [torch.zeros_like(s.expected(x)) for s in sensors]
+    gen = torch.Generator(device=device).manual_seed(0)
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for sensor, z in zip(sensors, noises, strict=True):
+            y = sensor.measure(x, gen)
+            sensor.residual(sensor.measure(x, noise=z), y)
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
