@@ -358,3 +358,101 @@ def test_a_shape_overriding_lie_takes_no_kernel() -> None:
             return terms._replace(h=terms.h - 0.5)
 
     assert Shifted([0.0, 0.0], 0.5).quadric() is None
+
+
+def _pad(module, args, out):
+    """A forward hook: the same safety pad as :func:`padded`."""
+    return 1.5 * out - 0.3
+
+
+@pytest.mark.parametrize("name", [*SHAPES, *WRAPPERS])
+def test_a_shape_with_a_forward_hook_answers_as_its_hooked_call(name: str) -> None:
+    """A hook changes what a call computes: the instance gets no closed forms, parts or
+    kernels while it has one, and all of them again once it is removed."""
+    dyn = SingleIntegrator(2).double()
+    make = SHAPES[name] if name in SHAPES else lambda: WRAPPERS[name](Ball([0.0, 0.0], 0.5))
+    fn, base = make().double(), make().double()
+    handle = fn.register_forward_hook(_pad)
+    ref = Reference(base)
+    assert not fn.has_analytic and not fn.has_second_order
+    assert fn.quadric() is None and fn.parts() is None
+    x = _states(16, 2)
+    torch.testing.assert_close(fn(x), ref(x))
+    got, want = fn.lie(x, dyn), ref.lie(x, dyn)
+    for field in ("h", "lfh", "lgh", "dhdt", "dhdx"):
+        torch.testing.assert_close(getattr(got, field), getattr(want, field), msg=field)
+    if not isinstance(base, QuadraticLyapunov):
+        u = torch.tensor([[-1.0, 0.3]], dtype=F64).expand(16, 2)
+        fast = SafetyFilter(dyn, [fn], check_relative_degree=False).double()
+        general = SafetyFilter(dyn, [ref], backend="torch", check_relative_degree=False).double()
+        with torch.no_grad():
+            for rows in (slice(0, 1), slice(0, 16)):
+                a, b = fast(x[rows], u[rows]), general(x[rows], u[rows])
+                torch.testing.assert_close(a.h, b.h)
+                torch.testing.assert_close(a.u, b.u, atol=1e-7, rtol=1e-7)
+    handle.remove()
+    assert fn.quadric() is None if base.quadric() is None else fn.quadric() is not None
+    assert fn.has_analytic == base.has_analytic and (fn.parts() is None) == (base.parts() is None)
+
+
+def test_a_global_forward_hook_turns_every_fast_form_off() -> None:
+    ball = Ball([0.0, 0.0], 0.5)
+    handle = torch.nn.modules.module.register_module_forward_hook(lambda m, a, out: out)
+    try:
+        assert ball.quadric() is None and not ball.has_analytic
+        assert SingleIntegrator(2).native_model() is None
+    finally:
+        handle.remove()
+    assert ball.quadric() is not None and ball.has_analytic
+    assert SingleIntegrator(2).native_model() is not None
+
+
+def test_a_shape_with_a_pre_hook_answers_as_its_hooked_call() -> None:
+    dyn = SingleIntegrator(2).double()
+    ball, ref_ball = Ball([0.0, 0.0], 0.5).double(), Ball([0.5, 0.0], 0.5).double()
+    ball.register_forward_pre_hook(lambda module, args: (args[0] - torch.tensor([0.5, 0.0]),))
+    x = _states(8, 2)
+    u = torch.tensor([[-1.0, 0.3]], dtype=F64).expand(8, 2)
+    with torch.no_grad():
+        a = SafetyFilter(dyn, [ball]).double()(x, u)
+        b = SafetyFilter(dyn, [ref_ball]).double()(x, u)
+    torch.testing.assert_close(a.h, b.h)
+    torch.testing.assert_close(a.u, b.u, atol=1e-9, rtol=1e-9)
+
+
+def test_a_hooked_class_k_function_is_called() -> None:
+    from torchcbf.filters import LinearClassK
+
+    dyn = SingleIntegrator(2).double()
+    alpha = LinearClassK(1.0)
+    alpha.register_forward_hook(lambda module, args, out: 3.0 * out)
+    x = _states(8, 2)
+    u = torch.tensor([[-1.0, 0.3]], dtype=F64).expand(8, 2)
+    with torch.no_grad():
+        a = SafetyFilter(dyn, [Ball([0.0, 0.0], 0.5)], alpha=alpha).double()(x, u)
+        b = SafetyFilter(dyn, [Ball([0.0, 0.0], 0.5)], alpha=3.0).double()(x, u)
+    torch.testing.assert_close(a.u, b.u, atol=1e-9, rtol=1e-9)
+
+
+def test_mppi_runs_a_hooked_model_or_cost_in_torch_and_sees_a_hook_added_later() -> None:
+    def planner(model, cost):
+        return MPPI(model, cost, horizon=5, num_samples=64, dt=0.1, noise_sigma=0.5,
+                    temperature=1.0, keep_rollouts=2, seed=1)  # fmt: skip
+
+    x0 = torch.tensor([1.0, -1.0], dtype=F64)
+    model = SingleIntegrator(2).double()
+    goal = QuadraticGoal([2.0, 1.0], weight=1.0, terminal_weight=5.0)
+    hooked_plan = planner(model, goal)
+    assert hooked_plan(x0).path == "fused"
+    handle = model.register_forward_hook(lambda module, args, out: 0.0 * out)  # a frozen plant
+    out = hooked_plan(x0)
+    assert out.path == "torch"
+    torch.testing.assert_close(out.rollouts[:, -1], x0.expand(2, 2))  # the plant did not move
+    handle.remove()
+    goal.register_forward_hook(lambda module, args, out: -out)  # a cost that pushes away
+    out = hooked_plan(x0)
+    assert out.path == "rollout"
+    states = out.best_states[None, None]
+    want = goal(states, states.new_zeros(1, 1, 5, 2), torch.zeros(1, dtype=F64))[0, 0]
+    assert want < 0  # the call ran the hook: the planner scored with it
+    torch.testing.assert_close(out.cost_min, want)

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import functools
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
+from torch.nn.modules.module import _global_forward_hooks as _GLOBAL_HOOKS
+from torch.nn.modules.module import _global_forward_pre_hooks as _GLOBAL_PRE_HOOKS
 
 #: fast form -> (the methods it stands for, the flags reset with it); see honour_overrides
 ClosedForms = Mapping[str, tuple[tuple[str, ...], tuple[str, ...]]]
@@ -269,6 +272,52 @@ def honour_overrides(cls: type, base: type, rules: ClosedForms) -> None:
     for fast in stale_closed_forms(cls, rules):
         for name in (fast, *rules[fast][1]):
             setattr(cls, name, base.__dict__[name])
+
+
+def hook_dicts(modules: Iterable[torch.nn.Module]) -> list[dict[int, Any]]:
+    """The dicts of forward and forward-pre hooks that calls of ``modules`` run: the global
+    module hooks' and each module's own (keyed by the hooks' handle ids)."""
+    dicts = [_GLOBAL_PRE_HOOKS, _GLOBAL_HOOKS]
+    for mod in modules:
+        dicts.append(mod._forward_pre_hooks)
+        dicts.append(mod._forward_hooks)
+    return dicts
+
+
+def hooked(obj: object) -> bool:
+    """Whether calling ``obj`` (a module) runs forward or forward-pre hooks: its own or the
+    global module hooks (``torch.nn.modules.module.register_module_forward_hook``)."""
+    return bool(
+        _GLOBAL_HOOKS
+        or _GLOBAL_PRE_HOOKS
+        or (isinstance(obj, torch.nn.Module) and (obj._forward_hooks or obj._forward_pre_hooks))
+    )
+
+
+def unless_hooked(cls: type, fast_forms: Mapping[str, object]) -> None:
+    """Make each fast form class ``cls`` defines in its own body (a method or a property
+    of ``self`` alone) answer ``fast_forms[name]`` (its "none": ``None``, ``False``) for an
+    instance whose calls run hooks (:func:`hooked`). A fast form stands for ``forward`` as
+    the class wrote it; a hook changes what a call computes, so a hooked instance takes the
+    general path, which calls it. Called from ``__init_subclass__`` next to
+    :func:`honour_overrides`; a hook registered or removed at any time is seen at the next
+    question."""
+    for name, none in fast_forms.items():
+        attr = cls.__dict__.get(name)
+        is_property = isinstance(attr, property)
+        fn = attr.fget if is_property else attr
+        if not callable(fn) or getattr(fn, "_unless_hooked", False):
+            continue
+
+        def guarded(self: torch.nn.Module, _fn=fn, _none=none) -> object:
+            # hooked(self), inline: some fast forms are asked several times per filter call
+            if _GLOBAL_HOOKS or _GLOBAL_PRE_HOOKS or self._forward_hooks or self._forward_pre_hooks:
+                return _none
+            return _fn(self)
+
+        functools.update_wrapper(guarded, fn)
+        guarded._unless_hooked = True  # type: ignore[attr-defined]
+        setattr(cls, name, property(guarded, doc=attr.__doc__) if is_property else guarded)
 
 
 def behaves_as(obj: object, cls: type, methods: Sequence[str]) -> bool:

@@ -24,11 +24,13 @@ import copy
 import logging
 import operator
 import types
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
+
+from torchcbf._checks import hook_dicts
 
 logger = logging.getLogger("torchcbf")
 
@@ -71,18 +73,6 @@ class Compiled:
         return out
 
 
-def _hook_dicts(modules: Iterable[torch.nn.Module]) -> list[dict[int, Any]]:
-    """The dicts of forward and forward-pre hooks that a call of ``modules`` runs: the
-    global module hooks' and each module's own (keyed by the hooks' handle ids)."""
-    from torch.nn.modules import module as _module
-
-    dicts = [_module._global_forward_pre_hooks, _module._global_forward_hooks]
-    for mod in modules:
-        dicts.append(mod._forward_pre_hooks)
-        dicts.append(mod._forward_hooks)
-    return dicts
-
-
 def _hook_count(dicts: list[dict[int, Any]]) -> tuple[int, int]:
     """A cheap token of the hooks in ``dicts``: their number and their largest handle id.
     Handle ids only grow, so a hook registered or removed changes it."""
@@ -101,7 +91,7 @@ def hook_key(*objs: object) -> str:
     hooks. torch.compile does not guard on hooks, so a compiled function takes this as an
     argument and reads it (:func:`read_key`)."""
     modules = [m for obj in objs if isinstance(obj, torch.nn.Module) for m in obj.modules()]
-    return ",".join(str(k) for d in _hook_dicts(modules) for k in d)
+    return ",".join(str(k) for d in hook_dicts(modules) for k in d)
 
 
 def read_key(key: str) -> None:
@@ -160,7 +150,7 @@ def _trust_reported_isa() -> Iterator[None]:
 
 
 #: entries of an ``nn.Module``'s ``__dict__`` that are its own bookkeeping, not user state
-#: (its forward hooks are keyed apart: :func:`_hook_dicts`)
+#: (its forward hooks are keyed apart: :func:`hook_dicts`)
 _MODULE_INTERNALS = (frozenset(vars(torch.nn.Module())) - {"training"}) | {
     "_exact_constants"  # torchcbf._constants' float64 copies, which no forward reads
 }
@@ -317,7 +307,7 @@ class Traced:
 
     def _find_state(self) -> tuple[list[tuple[dict[str, Any], str]], list[dict[int, Any]]]:
         """Every place of the modules' state a trace can read, ``(dict, key)`` pairs, and the
-        dicts of the hooks a call runs (:func:`_hook_dicts`)."""
+        dicts of the hooks a call runs (:func:`hook_dicts`)."""
         slots: list[tuple[dict[str, Any], str]] = []
         found: list[torch.nn.Module] = []
         seen: set[int] = set()
@@ -334,7 +324,7 @@ class Traced:
             own = mod.__dict__
             slots.extend((own, k) for k in own if k not in skip)
             stack.extend(m for m in mod._modules.values() if m is not None)
-        return slots, _hook_dicts(found)
+        return slots, hook_dicts(found)
 
     def __call__(self, *args: Tensor) -> tuple[Tensor, ...]:
         state = [] if self._slots is None else [store.get(k) for store, k in self._slots]

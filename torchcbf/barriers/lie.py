@@ -23,7 +23,13 @@ from typing import Any, ClassVar, Literal, NamedTuple
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import ClosedForms, as_tensor, check_tensor, honour_overrides
+from torchcbf._checks import (
+    ClosedForms,
+    as_tensor,
+    check_tensor,
+    honour_overrides,
+    unless_hooked,
+)
 from torchcbf._constants import ExactConstants, store
 from torchcbf.dynamics.base import ControlAffine
 
@@ -119,9 +125,19 @@ class LieFunction(ExactConstants):
         "parts": (("forward",), ()),
     }
 
+    #: each fast form's answer for an instance with forward hooks, which takes the general
+    #: path (a hook changes what ``forward`` computes; see :func:`torchcbf._checks.unless_hooked`)
+    hooked_forms: ClassVar[dict[str, object]] = {
+        "has_analytic": False,
+        "has_second_order": False,
+        "quadric": None,
+        "parts": None,
+    }
+
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         honour_overrides(cls, LieFunction, cls.closed_forms)
+        unless_hooked(cls, cls.hooked_forms)
 
     def register_constant(
         self, name: str, value: object, *, learnable: bool = False, allow_inf: bool = False

@@ -23,6 +23,7 @@ from torchcbf._checks import (
     check_same,
     clamp_control,
     honour_overrides,
+    unless_hooked,
 )
 from torchcbf._constants import store
 
@@ -100,9 +101,14 @@ class ControlAffine(nn.Module):
         "native_model": (("f", "g", "xdot", "forward", "sigma", "drift_derivatives"), ()),
     }
 
+    #: each fast form's answer for a model with forward hooks (a hook changes ``xdot``;
+    #: see :func:`torchcbf._checks.unless_hooked`): it runs on no native kernel
+    hooked_forms: ClassVar[dict[str, object]] = {"native_model": None}
+
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         honour_overrides(cls, ControlAffine, cls.closed_forms)
+        unless_hooked(cls, cls.hooked_forms)
 
     def __init__(
         self,

@@ -105,7 +105,7 @@ from torchcbf._checks import (
     check_last_dim,
     check_positive,
 )
-from torchcbf._compile import Compiled, hook_key, read_key
+from torchcbf._compile import Compiled, hook_dicts, hook_key, read_key
 from torchcbf._constants import ExactConstants, remember
 from torchcbf._graphs import CapturedCall
 from torchcbf._native import keep_freed_heap
@@ -166,12 +166,13 @@ _PLAIN = (bool, int, float, str, slice, tuple, type(None))
 
 def _state_signature(module: nn.Module) -> tuple[Any, ...]:
     """What a kernel configuration read from ``module`` depends on, read without a host
-    sync: the storage and in-place version of each parameter and buffer of its modules, and
+    sync: the storage and in-place version of each parameter and buffer of its modules,
     their public number, string and tuple attributes (``path`` and ``engine`` report, they
-    configure nothing)."""
-    out: list[Any] = []
+    configure nothing) and their forward hooks (a hooked model or cost runs in torch)."""
+    modules = list(module.modules())
+    out: list[Any] = [tuple(k for hooks in hook_dicts(modules) for k in hooks)]
     add = out.append
-    for mod in module.modules():
+    for mod in modules:
         for group in (mod._parameters, mod._buffers):
             for t in group.values():
                 add(None if t is None else (t.data_ptr(), t._version))
