@@ -123,6 +123,11 @@ def test_traced_sees_hooks_registered_and_removed_after_its_first_call():
         inner.remove()
         torch.testing.assert_close(traced(x)[0], mod(x))
         assert traced.compiles == 3  # the last call is the first one's key again
+        shift = 0.5
+        mod.register_forward_hook(lambda module, args, out: out + shift)
+        torch.testing.assert_close(traced(x)[0], mod(x))
+        shift = -1.0  # the hook's captured number changed: traced again
+        torch.testing.assert_close(traced(x)[0], mod(x))
 
 
 def test_traced_follows_a_dtype_change_and_a_copy():

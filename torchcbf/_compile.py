@@ -73,15 +73,20 @@ class Compiled:
         return out
 
 
-def _hook_count(dicts: list[dict[int, Any]]) -> tuple[int, int]:
-    """A cheap token of the hooks in ``dicts``: their number and their largest handle id.
-    Handle ids only grow, so a hook registered or removed changes it."""
+def _hook_state(dicts: list[dict[int, Any]]) -> tuple[Any, ...]:
+    """What a call's hooks in ``dicts`` are, cheaply where there are none: their number and
+    largest handle id (handle ids only grow, so a hook registered or removed changes them)
+    and, where there are hooks, the hooks as :func:`_freeze` sees a function (itself, its
+    closure's contents and the numbers and tensors among its globals), so a hook whose
+    captured value changed is seen too."""
     count, top = 0, -1
     for d in dicts:
         if d:
             count += len(d)
             top = max(top, max(d))
-    return count, top
+    if not count:
+        return count, top
+    return count, top, tuple(_freeze(d) for d in dicts if d)
 
 
 def hook_key(*objs: object) -> str:
@@ -171,7 +176,7 @@ class _Record(NamedTuple):
     graph: Callable[..., Any]
     used: list[int]  # positions in (*args, *state) of the tensors the graph reads
     n_args: int
-    hooks: tuple[int, int]  # the modules' hooks (:func:`_hook_count`)
+    hooks: tuple[Any, ...]  # the modules' hooks (:func:`_hook_state`)
 
 
 class TraceError(RuntimeError):
@@ -330,7 +335,7 @@ class Traced:
         state = [] if self._slots is None else [store.get(k) for store, k in self._slots]
         values = (*args, *state)
         last = self._last
-        if last is None or last.hooks != _hook_count(self._hooks) or not self._same(values, last):
+        if last is None or last.hooks != _hook_state(self._hooks) or not self._same(values, last):
             # something changed: find the state again (a new submodule has its own)
             self._slots, self._hooks = self._find_state()
             values = (*args, *[store.get(k) for store, k in self._slots])
@@ -379,7 +384,7 @@ class Traced:
             graph=graph,
             used=used,
             n_args=n_args,
-            hooks=_hook_count(self._hooks),
+            hooks=_hook_state(self._hooks),
         )
         return self._last
 

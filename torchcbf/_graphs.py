@@ -5,73 +5,81 @@ few microseconds of Python and driver time, for kernels that finish sooner. Capt
 (:class:`CapturedCall`), the same work is one replay. What a graph fixes at capture: the
 kernels, their launch shapes, the addresses of every tensor they read (the static inputs
 and any tensor ``fn`` reads beside them) and every Python value ``fn`` turned into a kernel
-argument. The caller recaptures when one of those changes.
+argument. The caller captures again when one of those changes.
 """
 
 from __future__ import annotations
 
+import contextlib
+import threading
 from collections.abc import Callable, Sequence
-from typing import NamedTuple
+from typing import ClassVar
 
 import torch
 from torch import Tensor
 
 
-class _Slot(NamedTuple):
-    """Where one output lies in its dtype's flat buffer."""
-
-    dtype: torch.dtype
-    start: int
-    shape: torch.Size
-
-
-def pack(outputs: Sequence[Tensor | None]) -> tuple[dict[torch.dtype, Tensor], list]:
-    """``outputs`` concatenated into one flat tensor per dtype, and where each lies
-    (``None`` for a ``None`` output): a copy of the outputs is then one copy per dtype."""
-    parts: dict[torch.dtype, list[Tensor]] = {}
-    sizes: dict[torch.dtype, int] = {}
-    slots: list[_Slot | None] = []
-    for t in outputs:
-        if t is None:
-            slots.append(None)
-            continue
-        slots.append(_Slot(t.dtype, sizes.get(t.dtype, 0), t.shape))
-        parts.setdefault(t.dtype, []).append(t.reshape(-1))
-        sizes[t.dtype] = sizes.get(t.dtype, 0) + t.numel()
-    return {dtype: torch.cat(ts) for dtype, ts in parts.items()}, slots
-
-
-def unpack(flat: dict[torch.dtype, Tensor], slots: list) -> tuple[Tensor | None, ...]:
-    """The outputs of :func:`pack` as views of ``flat``."""
-    return tuple(
-        None if s is None else flat[s.dtype].narrow(0, s.start, s.shape.numel()).view(s.shape)
-        for s in slots
-    )
+def _copies(outputs: Sequence[Tensor | None]) -> tuple[Tensor | None, ...]:
+    return tuple(None if t is None else t.clone() for t in outputs)
 
 
 class CapturedCall:
-    """``fn(*inputs) -> sequence of tensors (or None)`` captured in a CUDA graph.
+    """``fn(*inputs) -> sequence of tensors (or None)``, run once and captured in a CUDA
+    graph.
 
-    The capture runs ``fn`` once on static copies of ``inputs`` without executing it (run
-    ``fn`` once uncaptured before, so that lazy set-up such as compiling a Triton kernel is
-    done). Each call copies its tensors into the static inputs, replays the graph and
-    returns copies of the outputs (a later replay overwrites the graph's own), made in one
-    copy per dtype. ``fn`` may change tensors other than its inputs in place (a planner's
-    plan, say): a replay does the same to the same storage. Raises what the capture raises
-    (an operation that cannot be captured, such as a host synchronisation).
+    The constructor copies ``inputs`` into static tensors and, on a stream of its own on
+    their device, runs ``fn`` on them for real (the warm-up PyTorch's recipe asks for: lazy
+    set-up such as a Triton kernel's compilation for these exact inputs happens here; its
+    outputs are this call's answer, :attr:`first`), then captures it. A capture that fails
+    (an operation a graph cannot hold, such as a host synchronisation) leaves
+    :attr:`error` set and the call unusable; the warm-up's answer stands. Each later call
+    copies its tensors into the static inputs, replays the graph on the current stream and
+    returns copies of the outputs (a later replay overwrites the graph's own). ``fn`` may
+    change tensors other than its inputs in place (a planner's plan, say): a replay does the
+    same to the same storage. One capture runs at a time in a process.
     """
+
+    #: captures share process-wide state (the allocator's capture mode): one at a time
+    _capturing: ClassVar[threading.Lock] = threading.Lock()
 
     def __init__(self, fn: Callable[..., Sequence[Tensor | None]], inputs: Sequence[Tensor]):
         if not inputs or any(not t.is_cuda for t in inputs):
             raise ValueError("CapturedCall captures a function of CUDA tensors")
-        self._inputs = tuple(t.clone() for t in inputs)
-        self._graph = torch.cuda.CUDAGraph()
-        # "thread_local": other threads' CUDA calls during the capture are theirs to make
-        capture = torch.cuda.graph(self._graph, capture_error_mode="thread_local")
-        with torch.cuda.device(inputs[0].device), capture:
-            self._flat, self._slots = pack(fn(*self._inputs))
+        self.error: Exception | None = None
+        self._graph: torch.cuda.CUDAGraph | None = None
+        device = inputs[0].device
+        with self._capturing, torch.cuda.device(device), torch.inference_mode(False):
+            current = torch.cuda.current_stream()
+            stream = torch.cuda.Stream()
+            self._inputs = tuple(t.clone() for t in inputs)
+            stream.wait_stream(current)
+            with torch.cuda.stream(stream):
+                warm = tuple(fn(*self._inputs))
+            current.wait_stream(stream)
+            self.first = _copies(warm)
+            del warm
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.stream(stream):
+                # "thread_local": other threads' CUDA calls during the capture are theirs
+                graph.capture_begin(capture_error_mode="thread_local")
+                try:
+                    outputs = tuple(fn(*self._inputs))
+                except Exception as err:  # noqa: BLE001 - reported through self.error
+                    with contextlib.suppress(Exception):
+                        graph.capture_end()
+                    self.error = err
+                    return
+                try:
+                    graph.capture_end()
+                except Exception as err:  # noqa: BLE001 - reported through self.error
+                    self.error = err
+                    return
+            current.wait_stream(stream)
+        self._graph, self._outputs = graph, outputs
 
     def __call__(self, *inputs: Tensor) -> tuple[Tensor | None, ...]:
+        if self._graph is None:
+            raise RuntimeError(f"the capture failed: {self.error}")
         if len(inputs) != len(self._inputs):
             raise ValueError(f"expected {len(self._inputs)} inputs, got {len(inputs)}")
         for i, (static, t) in enumerate(zip(self._inputs, inputs, strict=True)):
@@ -81,5 +89,6 @@ class CapturedCall:
                     f"{static.device} (as captured), got {t.dtype} {list(t.shape)} on {t.device}"
                 )
             static.copy_(t)
-        self._graph.replay()
-        return unpack({dtype: t.clone() for dtype, t in self._flat.items()}, self._slots)
+        with torch.cuda.device(self._inputs[0].device):
+            self._graph.replay()
+        return _copies(self._outputs)

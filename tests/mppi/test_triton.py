@@ -236,24 +236,25 @@ on_cuda_only = pytest.mark.skipif(
 def test_a_captured_planner_plans_as_the_uncaptured_one(dtype):
     x = torch.tensor([[0.0, 0.0, 0.5, 0.1], [1.0, -1.0, 0.0, 2.0]], dtype=dtype, device=TARGET)
     plain = _planner(AccelUnicycle, "rk4", dtype, "triton", keep_rollouts=3).to(TARGET)
-    graphed = _planner(
-        AccelUnicycle, "rk4", dtype, "triton", keep_rollouts=3, cuda_graph=True
-    ).to(TARGET)
+    graphed = _planner(AccelUnicycle, "rk4", dtype, "triton", keep_rollouts=3, cuda_graph=True).to(
+        TARGET
+    )
     u = torch.tensor([0.3, -0.2], dtype=dtype, device=TARGET)
     outs, paths = [], []
-    for i in range(8):
-        if i == 3:  # a new goal: new tables, so the next call runs uncaptured, then captures
-            for planner in (plain, graphed):
+    for i in range(11):
+        for planner in (plain, graphed):
+            if i == 3:  # a new goal: new tables, one uncaptured call, then a capture
                 with torch.no_grad():
                     planner.cost.terms[0].goal.copy_(torch.tensor([-2.0, 1.0]))
-        if i == 5:  # the plan changed in place: the graph reads it
-            plain.correct(u)
-            graphed.correct(u)
-        xi = x[0] if i >= 6 else x  # one environment: new state, captured again
+            if i == 5:  # the plan changed in place: the graph reads it
+                planner.correct(u)
+            if i == 6:  # a number the graph holds: captured again
+                planner.temperature = 0.25
+        xi = x[0] if i >= 8 else x  # one environment: a new plan tensor, captured again
         outs.append((plain(xi), graphed(xi)))
         paths.append(graphed.path)
-    assert paths == ["fused", "fused_graph", "fused_graph", "fused", "fused_graph",
-                     "fused_graph", "fused", "fused_graph"]  # fmt: skip
+    G, F = "fused_graph", "fused"
+    assert paths == [F, F, G, F, F, G, F, F, F, F, G]
     rtol, atol = (1e-12, 1e-12) if dtype == torch.float64 else (1e-6, 1e-6)
     for a, b in outs:  # earlier outputs are not overwritten by later replays
         for name in ("u", "plan", "cost_min", "cost_mean", "ess", "best_states", "rollouts",
@@ -261,6 +262,10 @@ def test_a_captured_planner_plans_as_the_uncaptured_one(dtype):
             torch.testing.assert_close(getattr(b, name), getattr(a, name), rtol=rtol, atol=atol)
         assert torch.equal(a.status, b.status) and torch.equal(a.nonfinite, b.nonfinite)
         assert b.u.shape == a.u.shape
+    twin = copy.deepcopy(graphed)  # a copy captures its own graph
+    for _ in range(3):
+        torch.testing.assert_close(twin(x[0]).plan, plain(x[0]).plan, rtol=rtol, atol=atol)
+    assert twin.path == G
 
 
 @on_cuda_only

@@ -74,7 +74,7 @@ class CompiledLie:
         return torch.cat([torch.atleast_1d(fn(x, t)) for fn in self.fns])
 
     def _terms(self, x: Tensor, t: Tensor, hooks: str) -> tuple[Tensor, ...]:
-        """The terms at ``x [B, n]``, ``t [B]``; ``hooks``: the functions'
+        """The terms at ``x [B, n]``, ``t [B]``; ``hooks``: the functions' and the model's
         :func:`~torchcbf._compile.hook_key` (compiled, a new value traces again)."""
         read_key(hooks)
         values = torch.func.vmap(self._values)
@@ -106,7 +106,7 @@ class CompiledLie:
             if self.sizes is None:  # once, eager: a Python int per function
                 self.sizes = [torch.atleast_1d(fn(x[0], t[0])).shape[-1] for fn in self.fns]
             try:
-                out = self._call(x, t, hook_key(*self.fns))
+                out = self._call(x, t, hook_key(*self.fns, self.dynamics))
             except Exception as err:  # noqa: BLE001 - any failure: the general path answers
                 names = ", ".join(type(fn).__name__ for fn in self.fns)
                 logger.warning(

@@ -209,7 +209,8 @@ def closed_loop_loss(
         if g.shape != (len(idx),):
             raise ValueError(f"goal must have shape [{len(idx)}], got {tuple(g.shape)}")
         # a smoothed norm: differentiable at the goal itself
-        goal_term = torch.sqrt(((x[..., idx] - g) ** 2).sum(-1) + 1e-12).mean()
+        p = torch.stack([x[..., i] for i in idx], dim=-1)  # no list index: no copy to the device
+        goal_term = torch.sqrt(((p - g) ** 2).sum(-1) + 1e-12).mean()
     total = (
         intervention_weight * intervention + collision_weight * collision + goal_weight * goal_term
     )

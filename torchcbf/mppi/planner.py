@@ -363,11 +363,14 @@ class MPPI(ExactConstants):
             ``noise_sigma``; pytorch-mppi's ``noise_mu``): biases the samples. Runs on the
             torch path.
         cuda_graph: capture the fused path's planning call on CUDA (built-in model and cost
-            terms, the Triton kernel) in a CUDA graph and replay it: one launch instead of
-            about sixty and the planner's Python between them. The first call of a
-            configuration runs uncaptured, the second captures; the graph is captured
-            again when the configuration (any tensor or number of the planner, its model
-            or its cost), ``B``, the dtype or the plan's storage changes. The plans are the
+            terms, the Triton kernel) in a CUDA graph and replay it: the kernels, torch's
+            weights, the plan update and the outputs become one replay (what stays per
+            call: drawing the noise keys, the warm-start shift, the history record and
+            copying the state in and the outputs out). The first call of a configuration
+            runs uncaptured; the second runs once for real on a stream of its own and
+            captures; later calls replay. The graph is captured again when the
+            configuration (any tensor or number of the planner, its model or its cost, or
+            their hooks), ``B``, the dtype or the plan's storage changes. The plans are the
             uncaptured path's (the same kernels on the same inputs); the output's ``path``
             says ``"fused_graph"``. Elsewhere (the CPU, the rollout and torch paths) it
             changes nothing. Where the capture fails the planner logs a warning and runs
@@ -681,7 +684,7 @@ class MPPI(ExactConstants):
             xc = xb.contiguous()
             wctrl = self._control_weights(plan)
             ctrl = kernel.buffers(xc, plan, keys, states, controls, wctrl, self.layout)
-            cost = self._score_fn(states, controls, None, plan, t0, history, hook_key(self.cost))
+            cost = self._score_fn(states, controls, None, plan, t0, history, self._cost_hooks())
             if ctrl is not None:
                 cost = cost + ctrl
             weights = self._weights(cost)
@@ -692,7 +695,7 @@ class MPPI(ExactConstants):
             ctrl_eps = self._sample(xb, t0, eps, controls)
             self._rollout(xb, controls, states)
             cost = self._score_fn(
-                states, controls, ctrl_eps, self._cost_plan(), t0, history, hook_key(self.cost)
+                states, controls, ctrl_eps, self._cost_plan(), t0, history, self._cost_hooks()
             )
             extra = self._extra_cost(controls)
             if extra is not None:
@@ -951,7 +954,8 @@ class MPPI(ExactConstants):
         # the rate's form and the model's hooks are arguments of the compiled step, so a
         # graph traced for one model is not reused for a model of the same class that is
         # evaluated otherwise (torch.compile does not guard on a module's hooks)
-        rate, hooks = integrators.rate_form(self.dynamics), hook_key(self.dynamics)
+        rate = integrators.rate_form(self.dynamics)
+        hooks = hook_key(self.dynamics) if self._compiled else ""
         for j in range(self.horizon):
             self._step_into_fn(states, controls, j, component, rate, hooks)
 
@@ -1003,6 +1007,11 @@ class MPPI(ExactConstants):
             ctrl = (weighted.reshape(B, 1, m * H) @ by_component).squeeze(1)
             cost = cost + self.control_cost_weight * ctrl
         return cost
+
+    def _cost_hooks(self) -> str:
+        """The cost's :func:`~torchcbf._compile.hook_key` where the cost is compiled (the
+        argument that makes a new hook trace again), else ``""``."""
+        return hook_key(self.cost) if self._compiled else ""
 
     def _rollout_cost(
         self, states: Tensor, controls: Tensor, t0: Tensor, history: History | None
@@ -1147,25 +1156,33 @@ class MPPI(ExactConstants):
         self, kernel: _rollout.Kernel | _triton.Kernel, x: Tensor, keys: Tensor
     ) -> MPPIOutput | None:
         """The fused call replayed from its CUDA graph (``cuda_graph=True``), or ``None``
-        where this call runs uncaptured: the first call of a configuration (it compiles
-        the kernel: the capture needs it done) and every call after a failed capture."""
+        where this call runs uncaptured: the first call of a configuration (so that a
+        configuration that changes every call is never captured), and every call after a
+        failed capture. The second call runs once for real and captures
+        (:class:`~torchcbf._graphs.CapturedCall`)."""
         cap = self._captured
         if cap is None or not (
             cap.kernel is kernel and cap.plan is self._plan and cap.shape == x.shape
         ):
             self._captured = _Capture(kernel, self._plan, x.shape, None)
             return None
-        if cap.call is None:
-            try:
-                call = CapturedCall(lambda x, k: self._fused_call(kernel, x, k)[:-1], (x, keys))
-            except Exception as err:  # noqa: BLE001 - any failure: the call runs uncaptured
-                logger.warning("torchcbf: MPPI's CUDA graph capture failed (%s); eager", err)
-                call = False
-            cap = self._captured = cap._replace(call=call)
         if cap.call is False:
             return None
+        if cap.call is None:
+            call = CapturedCall(lambda x, k: self._fused_call(kernel, x, k)[:-1], (x, keys))
+            if call.error is not None:
+                logger.warning(
+                    "torchcbf: MPPI's CUDA graph capture failed (%s); the planner runs uncaptured",
+                    call.error,
+                )
+            self._captured = cap._replace(call=False if call.error is not None else call)
+            return MPPIOutput(*call.first, path=self.path)
         self.path = "fused_graph"
         return MPPIOutput(*cap.call(x, keys), path=self.path)
+
+    def __getstate__(self) -> dict[str, Any]:
+        # a CUDA graph neither copies nor pickles: a copy captures its own
+        return {**super().__getstate__(), "_captured": None}
 
     # -- weights and update --------------------------------------------------------------------
     def _check_cost(self, cost: Tensor, count: int | None = None) -> Tensor:
