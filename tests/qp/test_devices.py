@@ -24,15 +24,13 @@ CASES = [("auto", 1), ("auto", 0), ("active_set", 0), ("enumerate", 1), ("ipm", 
 def _solve(batch, device, method, **kw):
     """The batch on ``device`` with gradients to every input, solved; ``x``, the status,
     the multipliers and the gradients of a weighted sum of the solved rows' ``x``."""
-    names = ("Q", "p", "G", "h", "A", "b")
+    names = ("Q", "p", "G", "h", "A", "b", "lb", "ub")
     inputs = {
         name: getattr(batch, name).to(device).requires_grad_(True)
         for name in names
         if getattr(batch, name) is not None and getattr(batch, name).numel()
     }
-    lb = None if batch.lb is None else batch.lb.to(device)
-    ub = None if batch.ub is None else batch.ub.to(device)
-    sol = solve_qp(**inputs, lb=lb, ub=ub, method=method, **kw)
+    sol = solve_qp(**inputs, method=method, **kw)
     weights = torch.linspace(-1.0, 2.0, sol.x.shape[-1], dtype=sol.x.dtype, device=device)
     solved = (sol.status == 0).unsqueeze(-1)
     loss = torch.where(solved, sol.x * weights, 0.0).sum()
