@@ -96,27 +96,27 @@ def _subclassed(make: Callable[[], LieFunction], subclass: Callable[[type], type
     return obj, base
 
 
-@pytest.mark.parametrize("name", [*SHAPES, *WRAPPERS])
-def test_a_shape_overriding_forward_alone_answers_as_its_forward(name: str) -> None:
+def _make(name: str) -> Callable[[], LieFunction]:
+    """A constructor of the shape or composition ``name``."""
+    return SHAPES[name] if name in SHAPES else lambda: WRAPPERS[name](Ball([0.0, 0.0], 0.5))
+
+
+def _answers_as_reference(fn: LieFunction, base: LieFunction) -> None:
+    """``fn`` (``base`` padded as :class:`Reference` pads it) has no fast form, and its
+    values, Lie terms and filtered controls are the reference's."""
     dyn = SingleIntegrator(2).double()
-    if name in SHAPES:
-        make = SHAPES[name]
-    else:
-        make = lambda: WRAPPERS[name](Ball([0.0, 0.0], 0.5))  # noqa: E731
-    sub, base = _subclassed(make, padded)
-    sub, base = sub.double(), base.double()
     ref = Reference(base)
-    assert not sub.has_analytic and not sub.has_second_order
-    assert sub.quadric() is None and sub.parts() is None
+    assert not fn.has_analytic and not fn.has_second_order
+    assert fn.quadric() is None and fn.parts() is None
     x = _states(16, 2)
-    torch.testing.assert_close(sub(x), ref(x))
-    got, want = sub.lie(x, dyn), ref.lie(x, dyn)
+    torch.testing.assert_close(fn(x), ref(x))
+    got, want = fn.lie(x, dyn), ref.lie(x, dyn)
     for field in ("h", "lfh", "lgh", "dhdt", "dhdx"):
         torch.testing.assert_close(getattr(got, field), getattr(want, field), msg=field)
     if isinstance(base, QuadraticLyapunov):
         return
     u = torch.tensor([[-1.0, 0.3]], dtype=F64).expand(16, 2)
-    fast = SafetyFilter(dyn, [sub], check_relative_degree=False).double()
+    fast = SafetyFilter(dyn, [fn], check_relative_degree=False).double()
     general = SafetyFilter(dyn, [ref], backend="torch", check_relative_degree=False).double()
     with torch.no_grad():
         for rows in (slice(0, 1), slice(0, 16)):
@@ -125,6 +125,12 @@ def test_a_shape_overriding_forward_alone_answers_as_its_forward(name: str) -> N
             torch.testing.assert_close(a.h, b.h)
             torch.testing.assert_close(a.u, b.u, atol=1e-7, rtol=1e-7)
             assert torch.equal(a.status, b.status)
+
+
+@pytest.mark.parametrize("name", [*SHAPES, *WRAPPERS])
+def test_a_shape_overriding_forward_alone_answers_as_its_forward(name: str) -> None:
+    sub, base = _subclassed(_make(name), padded)
+    _answers_as_reference(sub.double(), base.double())
 
 
 @pytest.mark.parametrize("name", ["ball", "balls", "ellipse", "ellipses"])
@@ -369,29 +375,11 @@ def _pad(module, args, out):
 def test_a_shape_with_a_forward_hook_answers_as_its_hooked_call(name: str) -> None:
     """A hook changes what a call computes: the instance gets no closed forms, parts or
     kernels while it has one, and all of them again once it is removed."""
-    dyn = SingleIntegrator(2).double()
-    make = SHAPES[name] if name in SHAPES else lambda: WRAPPERS[name](Ball([0.0, 0.0], 0.5))
-    fn, base = make().double(), make().double()
+    fn, base = _make(name)().double(), _make(name)().double()
     handle = fn.register_forward_hook(_pad)
-    ref = Reference(base)
-    assert not fn.has_analytic and not fn.has_second_order
-    assert fn.quadric() is None and fn.parts() is None
-    x = _states(16, 2)
-    torch.testing.assert_close(fn(x), ref(x))
-    got, want = fn.lie(x, dyn), ref.lie(x, dyn)
-    for field in ("h", "lfh", "lgh", "dhdt", "dhdx"):
-        torch.testing.assert_close(getattr(got, field), getattr(want, field), msg=field)
-    if not isinstance(base, QuadraticLyapunov):
-        u = torch.tensor([[-1.0, 0.3]], dtype=F64).expand(16, 2)
-        fast = SafetyFilter(dyn, [fn], check_relative_degree=False).double()
-        general = SafetyFilter(dyn, [ref], backend="torch", check_relative_degree=False).double()
-        with torch.no_grad():
-            for rows in (slice(0, 1), slice(0, 16)):
-                a, b = fast(x[rows], u[rows]), general(x[rows], u[rows])
-                torch.testing.assert_close(a.h, b.h)
-                torch.testing.assert_close(a.u, b.u, atol=1e-7, rtol=1e-7)
+    _answers_as_reference(fn, base)
     handle.remove()
-    assert fn.quadric() is None if base.quadric() is None else fn.quadric() is not None
+    assert (fn.quadric() is None) == (base.quadric() is None)
     assert fn.has_analytic == base.has_analytic and (fn.parts() is None) == (base.parts() is None)
 
 
