@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 from _devices import device_matches_cpu
+from _host_traffic import HostTraffic
 
 gym = pytest.importorskip("gymnasium")
 envs = pytest.importorskip("torchcbf.envs")
@@ -275,3 +276,21 @@ def test_policy_features_on_device_equal_cpu_without_host_sync(dtype, device) ->
                 torch.cuda.set_sync_debug_mode(0)
         assert got.shape == (7, features.size(5))
         torch.testing.assert_close(got.cpu(), want.to(dtype), rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("env_id", list(VECTOR))
+@pytest.mark.parametrize("mode", list(AutoresetMode), ids=lambda m: m.name.lower())
+def test_vector_env_steps_make_no_host_traffic(env_id, mode) -> None:
+    """Steps with tensors in and out, through autoresets, run on the meta device (no value
+    is read back) and copy nothing from the host (no list index, no Python data)."""
+    options, _ = OPTIONS[env_id]
+    meta = torch.device("meta")
+    env = VECTOR[env_id](3, max_episode_steps=2, device=meta, return_tensors=True,
+                         autoreset_mode=mode, **options)  # fmt: skip
+    env.reset(seed=0)
+    u = torch.zeros(3, 2, device=meta)
+    with HostTraffic() as traffic:
+        for _ in range(5):
+            obs, reward, *_ = env.step(u)
+    assert not traffic.events, dict(traffic.events)
+    assert obs.device.type == "meta" and reward.shape == (3,)

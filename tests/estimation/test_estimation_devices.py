@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 from _devices import device_matches_cpu
+from _host_traffic import HostTraffic
 
 from torchcbf.dynamics import AccelUnicycle
 from torchcbf.estimation import (
@@ -18,6 +19,7 @@ from torchcbf.estimation import (
     FunctionSensor,
     GaussianSensor,
     HybridEKFUKF,
+    HybridState,
     RangeBearing,
 )
 
@@ -195,3 +197,26 @@ def test_sensor_calls_never_wait_for_the_device(device) -> None:
             sensor.residual(sensor.measure(x, noise=z), y)
     finally:
         torch.cuda.set_sync_debug_mode(0)
+
+
+@pytest.mark.parametrize("cls", FILTERS, ids=lambda c: c.__name__)
+@pytest.mark.parametrize("name", ["gaussian", "function", "range_bearing"])
+def test_filter_steps_make_no_host_traffic(cls, name) -> None:
+    """Predict and update with each sensor run on the meta device (no value is read back)
+    and copy nothing from the host (no list index, no Python data)."""
+    meta = torch.device("meta")
+    sensor = _sensors()[name].to(meta)
+    est = cls(AccelUnicycle(sigma=0.1), sensor).to(meta)
+    inner = EstimatorState(
+        torch.zeros(3, 4, device=meta),
+        torch.eye(4, device=meta).expand(3, 4, 4),
+        torch.zeros(3, dtype=torch.long, device=meta),
+    )
+    # built by hand: init checks that P0 is positive definite, which reads values
+    state = HybridState(*inner, inner, inner) if cls is HybridEKFUKF else inner
+    y = torch.zeros(3, sensor.output_dim, device=meta)
+    with HostTraffic() as traffic:
+        state = est.update(est.predict(state, torch.zeros(3, 2, device=meta), 0.1), y)
+        sensor.residual(sensor.measure(inner.mean, noise=y), y)
+    assert not traffic.events, dict(traffic.events)
+    assert state.mean.device.type == "meta" and state.cov.shape == (3, 4, 4)

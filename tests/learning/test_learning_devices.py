@@ -5,10 +5,12 @@ rollouts, and the occupancy labels; inputs drawn on the CPU and moved."""
 from __future__ import annotations
 
 import copy
+from typing import NamedTuple
 
 import pytest
 import torch
 from _devices import device_matches_cpu
+from _host_traffic import HostTraffic
 
 from torchcbf.barriers import Ball, Ellipse, NeuralBarrier
 from torchcbf.dynamics import SingleIntegrator
@@ -133,3 +135,27 @@ def test_device_sampling_repeats_and_refuses_a_generator_elsewhere(dtype, device
     if device.type != "cpu":
         with pytest.raises(ValueError, match="generator is on device cpu"):
             uniform_box(low, high, 10, generator=make_generator(seed=0, device="cpu"))
+
+
+def test_training_losses_make_no_host_traffic() -> None:
+    """A learned barrier's values, the classification loss and the closed-loop loss (goal
+    term included) run on the meta device (no value is read back) and copy nothing from the
+    host (no list index, no Python data)."""
+    meta = torch.device("meta")
+    barrier = NeuralBarrier(MLP(2, (8,), low=LOW, high=HIGH)).to(meta)
+    x = torch.zeros(16, 2, device=meta)
+    safe = torch.zeros(16, dtype=torch.bool, device=meta)
+
+    class Rollouts(NamedTuple):
+        x: torch.Tensor
+        u: torch.Tensor
+        u_nom: torch.Tensor
+
+    rollouts = Rollouts(torch.zeros(4, 6, 3, device=meta), *torch.zeros(2, 4, 5, 2, device=meta))
+    goal = torch.zeros(2, device=meta)
+    truth = _truth().to(meta)
+    with HostTraffic() as traffic:
+        l_cls = classification_loss(barrier(x), safe, margin=0.1, temperature=0.1, balanced=True)
+        loss = closed_loop_loss(rollouts, truth, goal=goal, goal_weight=1.0, index=(0, 2))
+    assert not traffic.events, dict(traffic.events)
+    assert l_cls.shape == () and loss.total.device.type == "meta"

@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 from _devices import device_matches_cpu
+from _host_traffic import HostTraffic
 
 from torchcbf.mppi import Always, And, Avoid, Eventually, History, Or, Reach
 from torchcbf.mppi.history import HistoryBuffer
@@ -319,3 +320,19 @@ def test_spec_cost_planner_batch_equals_per_environment_planners(dtype, device):
     hist = batched.history
     assert hist.states.device.type == device.type and bool(hist.valid.all())
     torch.testing.assert_close(hist.states[1], singles[1].history.states[0])
+
+
+def test_spec_cost_and_history_make_no_host_traffic() -> None:
+    """Recording the history and the MPPI cost of every kind of node run on the meta device
+    (no value is read back) and copy nothing from the host (no list index, no Python data)."""
+    meta = torch.device("meta")
+    specs = [spec.to(meta) for spec in _spec_zoo().values()]
+    buffer = HistoryBuffer(4, 2, 2, device=meta, dtype=torch.float64)
+    states = torch.zeros(2, 5, 7, 2, device=meta, dtype=torch.float64)
+    t0 = torch.zeros(2, device=meta, dtype=torch.float64)
+    with HostTraffic() as traffic:
+        for _ in range(5):  # past the slots: the ring wraps
+            buffer.record(states[:, 0, 0], t0)
+        costs = [spec(states, None, t0, dt=0.1, history=buffer.view()) for spec in specs]
+    assert not traffic.events, dict(traffic.events)
+    assert all(cost.shape == (2, 5) for cost in costs)

@@ -8,6 +8,7 @@ from typing import NamedTuple
 
 import torch
 from _devices import device_matches_cpu
+from _host_traffic import HostTraffic
 
 from torchcbf.barriers import Ball, rectify
 from torchcbf.dynamics import DoubleIntegrator
@@ -75,3 +76,33 @@ def test_stochastic_loop_with_every_part_and_its_metrics_on_device_equal_cpu(dty
     assert not bool(failed.any()) and bool((x != x_hat).any())  # noisy estimates
     assert bool((u - u_nom).abs().amax() > 0.05)  # the filter acted
     assert set(found) >= {"collision", "min_h", "goal_reached", "spec_robustness"}
+
+
+def test_loop_steps_make_no_host_traffic() -> None:
+    """The steps of a loop with a planner every few steps, a nominal, a noisy sensor, process
+    noise and a disturbance run on the meta device (no value is read back) and copy nothing
+    from the host."""
+    meta = torch.device("meta")
+    dyn = DoubleIntegrator(dim=2, sigma=0.05, u_min=-1.5, u_max=1.5, disturbance_bound=0.1)
+    dyn = dyn.to(meta)
+    sensor = GaussianSensor(std=0.02, state_dim=4).to(meta)
+
+    def nominal(x: torch.Tensor, t: float, u_plan: torch.Tensor) -> torch.Tensor:
+        return u_plan - 0.5 * x[:, 2:]
+
+    def disturbance(x: torch.Tensor, t: float) -> torch.Tensor:
+        return torch.sin(x)
+
+    class Plan:
+        dt = 0.1
+
+        def __call__(self, x: torch.Tensor, t: float) -> _Plan:
+            plan = torch.zeros(x.shape[0], 4, 2, device=x.device, dtype=x.dtype)
+            return _Plan(plan[:, 0], plan)
+
+    with HostTraffic() as traffic:
+        traj = simulate(dyn, torch.zeros(3, 4, device=meta), 5, 0.05, planner=Plan(),
+                        nominal=nominal, sensor=sensor, seed=4, planner_every=2,
+                        disturbance=disturbance, progress=False)  # fmt: skip
+    assert not traffic.events, dict(traffic.events)
+    assert traj.x.shape == (3, 6, 4) and traj.x.device.type == "meta"
