@@ -444,3 +444,22 @@ def test_mppi_runs_a_hooked_model_or_cost_in_torch_and_sees_a_hook_added_later()
     want = goal(states, states.new_zeros(1, 1, 5, 2), torch.zeros(1, dtype=F64))[0, 0]
     assert want < 0  # the call ran the hook: the planner scored with it
     torch.testing.assert_close(out.cost_min, want)
+
+
+def test_a_flag_set_as_a_class_value_is_turned_off_by_a_hook_too() -> None:
+    class Line(Barrier):
+        has_analytic = True  # a flag as a plain class value, with closed forms
+
+        def forward(self, x, t=None):
+            return x[..., 0] - 1.0
+
+        def derivatives(self, x, t):
+            raise AssertionError("a hooked instance must not use its closed forms")
+
+    line = Line().double()
+    assert line.has_analytic
+    line.register_forward_hook(lambda module, args, out: 2.0 * out)
+    assert not line.has_analytic
+    x = _states(4, 2)
+    out = SafetyFilter(SingleIntegrator(2), [line]).double()(x, torch.zeros(4, 2, dtype=F64))
+    torch.testing.assert_close(out.h[:, 0], 2.0 * (x[:, 0] - 1.0))

@@ -303,7 +303,16 @@ def unless_hooked(cls: type, fast_forms: Mapping[str, object]) -> None:
     :func:`honour_overrides`; a hook registered or removed at any time is seen at the next
     question."""
     for name, none in fast_forms.items():
-        attr = cls.__dict__.get(name)
+        if name not in cls.__dict__:
+            continue
+        attr = cls.__dict__[name]
+        inherited = next((c.__dict__[name] for c in cls.__mro__[1:] if name in c.__dict__), None)
+        if (
+            not isinstance(attr, property)
+            and not callable(attr)
+            and isinstance(inherited, property)
+        ):
+            attr = property(lambda self, _value=attr: _value)  # a flag set as a class value
         is_property = isinstance(attr, property)
         fn = attr.fget if is_property else attr
         if not callable(fn) or getattr(fn, "_unless_hooked", False):
