@@ -463,3 +463,27 @@ def test_a_flag_set_as_a_class_value_is_turned_off_by_a_hook_too() -> None:
     x = _states(4, 2)
     out = SafetyFilter(SingleIntegrator(2), [line]).double()(x, torch.zeros(4, 2, dtype=F64))
     torch.testing.assert_close(out.h[:, 0], 2.0 * (x[:, 0] - 1.0))
+
+
+def test_a_hooked_term_of_a_sum_of_costs_is_called_with_its_hook() -> None:
+    """A sum adds its terms' stage costs pointwise; a term with a forward hook is called
+    instead, so its hook runs, on every path."""
+    g = torch.Generator().manual_seed(0)
+    states = torch.randn(2, 3, 6, 2, generator=g, dtype=F64)
+    controls = torch.randn(2, 3, 5, 2, generator=g, dtype=F64)
+    goal = QuadraticGoal([1.0, 1.0], weight=1.0, terminal_weight=2.0)
+    barrier = BarrierCost(Ball([3.0, 3.0], 0.5))
+    plain = (goal(states, controls) + barrier(states, controls)).clone()
+    goal.register_forward_hook(lambda module, args, out: 10.0 * out)
+    total = goal + barrier
+    hooked_goal = goal(states, controls)  # the call runs the hook
+    torch.testing.assert_close(hooked_goal, 10.0 * (plain - barrier(states, controls)))
+    torch.testing.assert_close(total(states, controls), hooked_goal + barrier(states, controls))
+    assert not torch.allclose(total(states, controls), plain)
+    planner = MPPI(SingleIntegrator(2).double(), total, horizon=5, num_samples=32, dt=0.1,
+                   noise_sigma=0.5, temperature=1.0, seed=2)  # fmt: skip
+    out = planner(torch.zeros(2, dtype=F64))
+    assert out.path == "rollout"
+    best = out.best_states[None, None]
+    want = total(best, best.new_zeros(1, 1, 5, 2))[0, 0]
+    torch.testing.assert_close(out.cost_min, want)

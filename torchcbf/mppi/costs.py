@@ -18,7 +18,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor, check_finite, check_index, check_positive_int
+from torchcbf._checks import as_tensor, check_finite, check_index, check_positive_int, hooked
 from torchcbf.mppi.history import History
 
 Stage = Callable[[Tensor, Tensor], Tensor]
@@ -257,14 +257,15 @@ class SumCost(RolloutCost):
         self._whole = [c for c in self.terms if not isinstance(c, RolloutCost)] + self._plain
 
     def stage(self, states: Tensor, controls: Tensor | None) -> Tensor:
-        total = self._stepwise[0].stage(states, controls)
-        for c in self._stepwise[1:]:
+        stepwise = self.stepwise_terms
+        total = stepwise[0].stage(states, controls)
+        for c in stepwise[1:]:
             total = total + c.stage(states, controls)
         return total
 
     def terminal(self, states: Tensor) -> Tensor | None:
         total: Tensor | None = None
-        for c in self._stepwise:
+        for c in self.stepwise_terms:
             term = c.terminal(states)
             if term is not None:
                 total = term if total is None else total + term
@@ -272,13 +273,14 @@ class SumCost(RolloutCost):
 
     @property
     def stepwise_terms(self) -> list[RolloutCost]:
-        """The :class:`RolloutCost` terms (stage and terminal parts added pointwise)."""
-        return list(self._stepwise)
+        """The :class:`RolloutCost` terms (stage and terminal parts added pointwise), but
+        those with forward hooks (called whole, so that their hooks run)."""
+        return [c for c in self._stepwise if not hooked(c)]
 
     @property
     def whole_terms(self) -> list[Callable[..., Tensor]]:
         """The other terms, each called on the whole rollout and added after."""
-        return list(self._whole)
+        return [c for c in self._stepwise if hooked(c)] + self._whole
 
     @property
     def needs_history(self) -> bool:
@@ -293,8 +295,9 @@ class SumCost(RolloutCost):
         dt: float | None = None,
         history: History | None = None,
     ) -> Tensor:
-        total: Tensor | None = super().forward(states, controls, t0) if self._stepwise else None
-        for c in self._whole:
+        stepwise, whole = self.stepwise_terms, self.whole_terms
+        total: Tensor | None = super().forward(states, controls, t0) if stepwise else None
+        for c in whole:
             if getattr(c, "needs_history", False):
                 value = c(states, controls, t0, dt=dt, history=history)
             else:
