@@ -95,8 +95,12 @@ def as_tensor(name: str, value: object, *, dtype: torch.dtype | None = None, dev
         if dtype is not None or device is not None:
             out = out.to(device=device, dtype=dtype)
         return out
+    dtype = dtype or torch.get_default_dtype()
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        # filled on the device: no copy from the host to wait for
+        return torch.full((), value, dtype=dtype, device=device)
     try:
-        return torch.as_tensor(value, dtype=dtype or torch.get_default_dtype(), device=device)
+        return torch.as_tensor(value, dtype=dtype, device=device)
     except (TypeError, ValueError, RuntimeError) as err:
         raise TypeError(f"{name} must be a number, sequence or tensor, got {value!r}") from err
 

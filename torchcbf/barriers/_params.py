@@ -9,7 +9,21 @@ from torch import Tensor, nn
 
 from torchcbf._checks import check_index, check_tensor
 
-__all__ = ["StateIndex", "check_state", "float_spec"]
+__all__ = ["StateIndex", "check_state", "float_spec", "take"]
+
+
+def take(x: Tensor, index: Sequence[int], dim: int = -1) -> Tensor:
+    """``x`` at the positions ``index`` along ``dim < 0``, as one stack of views (indexing
+    with a list copies the list to the device, and waits for the copy, on every call)."""
+    return torch.stack([x.select(dim, i) for i in index], dim)
+
+
+def embed(part: Tensor, index: Sequence[int], n: int, dim: int = -1) -> Tensor:
+    """``part`` (size ``len(index)`` along ``dim < 0``) placed at the positions ``index`` of
+    a size-``n`` axis, zeros elsewhere (the inverse of :func:`take`, without a list index)."""
+    where = {i: k for k, i in enumerate(index)}
+    zero = torch.zeros_like(part.select(dim, 0))
+    return torch.stack([part.select(dim, where[i]) if i in where else zero for i in range(n)], dim)
 
 
 def check_state(name: str, x: object, index: tuple[int, ...], state_dim: int | None) -> Tensor:
@@ -46,19 +60,17 @@ class StateIndex:
         check_state("x", x, self.index, self.state_dim)
         if self._slice is not None:
             return x[..., self._slice]
-        return x[..., list(self.index)]
+        return take(x, self.index)
 
     def scatter(self, grad_p: Tensor, n: int) -> Tensor:
         """Embed a gradient w.r.t. the selected components ``[..., size]`` into ``[..., n]``."""
-        out = grad_p.new_zeros(*grad_p.shape[:-1], n)
-        out[..., list(self.index)] = grad_p
-        return out
+        return embed(grad_p, self.index, n)
 
     def rows(self, s: Tensor) -> Tensor:
         """Selected rows of a matrix ``[..., n, q] -> [..., size, q]``."""
         if self._slice is not None:
             return s[..., self._slice, :]
-        return s[..., list(self.index), :]
+        return take(s, self.index, -2)
 
 
 def float_spec(module: nn.Module) -> tuple[torch.device, torch.dtype]:

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from torchcbf._checks import check_number
 from torchcbf.barriers._minmax import combine, reduce
-from torchcbf.barriers._params import StateIndex
+from torchcbf.barriers._params import StateIndex, embed
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.lie import (
     AnalyticDerivatives,
@@ -85,9 +85,7 @@ def _embed_rows(sel: StateIndex, rows_p: Tensor, n: int) -> Tensor:
     ``[..., n, q]`` (zero rows elsewhere)."""
     span = sel._slice
     if span is None:
-        out = rows_p.new_zeros(*rows_p.shape[:-2], n, rows_p.shape[-1])
-        out[..., list(sel.index), :] = rows_p
-        return out
+        return embed(rows_p, sel.index, n, -2)
     if span.start == 0 and span.stop == n:
         return rows_p
     return torch.nn.functional.pad(rows_p, (0, 0, span.start, n - span.stop))

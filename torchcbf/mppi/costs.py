@@ -19,6 +19,7 @@ import torch
 from torch import Tensor, nn
 
 from torchcbf._checks import as_tensor, check_finite, check_index, check_positive_int, hooked
+from torchcbf.barriers._params import take
 from torchcbf.mppi.history import History
 
 Stage = Callable[[Tensor, Tensor], Tensor]
@@ -27,7 +28,7 @@ Terminal = Callable[[Tensor], Tensor]
 
 def select(x: Tensor, index: tuple[int, ...] | slice) -> Tensor:
     """``x[..., index]`` for an index made by :func:`state_index` (a view for a slice)."""
-    return x[..., index] if isinstance(index, slice) else x[..., list(index)]
+    return x[..., index] if isinstance(index, slice) else take(x, index)
 
 
 def state_index(index: Sequence[int], name: str = "index") -> tuple[int, ...] | slice:

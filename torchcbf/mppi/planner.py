@@ -100,12 +100,14 @@ from torchcbf._autograd import needs_graph
 from torchcbf._checks import (
     as_limit,
     as_matrix,
+    as_tensor,
     behaves_as,
     check_bounds,
     check_last_dim,
     check_positive,
+    hook_dicts,
 )
-from torchcbf._compile import Compiled, hook_dicts, hook_key, read_key
+from torchcbf._compile import Compiled, hook_key, read_key
 from torchcbf._constants import ExactConstants, remember
 from torchcbf._graphs import CapturedCall
 from torchcbf._native import keep_freed_heap
@@ -656,7 +658,7 @@ class MPPI(ExactConstants):
         xb = x.unsqueeze(0) if unbatched else x
         B = xb.shape[0]
         self._ensure_state(B, xb.device, xb.dtype)
-        t0 = torch.as_tensor(t, device=xb.device, dtype=xb.dtype)
+        t0 = as_tensor("t", t, device=xb.device, dtype=xb.dtype)  # a number: no host copy
         if t0.dim() > 1 or (t0.dim() == 1 and t0.shape[0] not in (1, B)):
             raise ValueError(f"t must be a scalar or have shape [{B}], got {tuple(t0.shape)}")
         t0 = t0.reshape(-1).expand(B)

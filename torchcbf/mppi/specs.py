@@ -47,7 +47,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import check_positive
+from torchcbf._checks import as_tensor, check_positive
 from torchcbf.mppi.costs import constant, squared_distance, state_index
 from torchcbf.mppi.history import History
 
@@ -82,8 +82,7 @@ class Spec(nn.Module):
             raise ValueError(f"{type(self).__name__} as a cost needs dt= (the rollout step)")
         if states.dim() != 4:
             raise ValueError(f"states must have shape [B, K, T, n], got {tuple(states.shape)}")
-        t0_t = torch.zeros((), device=states.device, dtype=states.dtype) if t0 is None else t0
-        t0_t = torch.as_tensor(t0_t, device=states.device, dtype=states.dtype)
+        t0_t = as_tensor("t0", 0.0 if t0 is None else t0, device=states.device, dtype=states.dtype)
         steps = torch.arange(states.shape[-2], device=states.device, dtype=states.dtype)
         times = t0_t.reshape(-1, 1) * 1.0 + dt * steps
         times = times.expand(states.shape[0], states.shape[-2])
