@@ -335,9 +335,14 @@ def unless_hooked(cls: type, fast_forms: Mapping[str, object]) -> None:
 
 def behaves_as(obj: object, cls: type, methods: Sequence[str]) -> bool:
     """Whether ``obj`` is an instance of ``cls`` whose class keeps ``cls``'s ``methods`` (a
-    subclass may add to them, not change them): the test for handing ``obj`` to a kernel
-    that evaluates ``cls``'s formulas."""
-    return isinstance(obj, cls) and _keeps(type(obj), cls, tuple(methods))
+    subclass may add to them, not change them) and, where ``forward`` is among them, whose
+    calls run no hooks (:func:`hooked`: a hook changes what a call computes): the test for
+    handing ``obj`` to a kernel that evaluates ``cls``'s formulas."""
+    return (
+        isinstance(obj, cls)
+        and _keeps(type(obj), cls, tuple(methods))
+        and not ("forward" in methods and hooked(obj))
+    )
 
 
 @functools.lru_cache(maxsize=512)

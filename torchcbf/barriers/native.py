@@ -32,7 +32,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchcbf._checks import behaves_as, hooked
+from torchcbf._checks import behaves_as
 from torchcbf._native import Layout, float64_pointers, load_kernel, model_code
 from torchcbf.barriers.compose import BarrierStack, Intersection, Scaled, Transformed, Union
 from torchcbf.barriers.lie import LieFunction, LieTerms, Quadric
@@ -118,9 +118,7 @@ _REDUCTIONS = (Intersection, Union)
 
 def _wrapper(fn: LieFunction) -> type | None:
     """The wrapper of :data:`_WRAPPERS` nearest ``fn``'s class (in its method resolution
-    order) if ``fn`` behaves as that wrapper (and has no forward hooks), else ``None``."""
-    if hooked(fn):
-        return None
+    order) if ``fn`` behaves as that wrapper, else ``None``."""
     for kind in type(fn).__mro__:
         names = _WRAPPERS.get(kind)
         if names is not None:

@@ -24,7 +24,6 @@ from torchcbf._checks import (
     check_last_dim,
     check_number,
     honour_overrides,
-    hooked,
 )
 from torchcbf.barriers.lie import LieFunction, LieTerms
 from torchcbf.barriers.native import Affine
@@ -133,10 +132,8 @@ class Robust(FilterMode):
 
 
 def _linear_gain(alpha: nn.Module) -> Tensor | None:
-    """The gain of ``alpha`` where it behaves as :class:`LinearClassK` (without forward
-    hooks), else ``None``."""
-    linear = behaves_as(alpha, LinearClassK, ("forward", "_phi", "gain")) and not hooked(alpha)
-    return alpha.gain if linear else None
+    """The gain of ``alpha`` where it behaves as :class:`LinearClassK`, else ``None``."""
+    return alpha.gain if behaves_as(alpha, LinearClassK, ("forward", "_phi", "gain")) else None
 
 
 def _needs_diffusion(name: str, dynamics: ControlAffine) -> None:

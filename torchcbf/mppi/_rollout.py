@@ -25,7 +25,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import behaves_as, hooked
+from torchcbf._checks import behaves_as
 from torchcbf._native import Layout, load_kernel, model_code, thread_pool
 from torchcbf.barriers import LieFunction
 
@@ -185,8 +185,6 @@ def encode_cost(cost: object, state_dim: int) -> tuple[list[list[float]], list[l
 
     built_in = (QuadraticGoal, ObstacleCost, BarrierCost, DiscreteBarrierCost)
 
-    if hooked(cost):  # a hook changes what the cost computes: torch calls it
-        return None
     if behaves_as(cost, SumCost, _COST_METHODS):
         parts = cost.stepwise_terms + cost.whole_terms
     else:
@@ -196,8 +194,6 @@ def encode_cost(cost: object, state_dim: int) -> tuple[list[list[float]], list[l
     shared: dict[int, tuple[int, int]] = {}  # id(barrier) -> its shape records (evaluated once)
     for part in parts:
         kind = next((c for c in built_in if behaves_as(part, c, _COST_METHODS)), None)
-        if hooked(part):
-            kind = None
         if kind is QuadraticGoal:
             rec = _point_term(
                 TERM_GOAL, part.weight, part.terminal_weight, 0.0, part.index, part.goal
