@@ -45,6 +45,7 @@ from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 from torchrl.objectives.value import GAE
 
 from torchcbf.barriers import Ellipse, HalfSpace, rectify
+from torchcbf.barriers._params import take
 from torchcbf.envs.filter_policy import FilteredPolicy
 from torchcbf.envs.filter_transform import SafetyFilterTransform, barrier_values
 from torchcbf.envs.shaping import GeodesicProgress, geodesic_distance
@@ -267,10 +268,9 @@ class _Features(nn.Module):
     def forward(self, observation: Tensor) -> Tensor:
         if not self.angles:
             return observation
-        # columns one by one: a list index would copy the indices to the device each call
-        keep = [observation[..., i] for i in range(observation.shape[-1]) if i not in self.angles]
-        angle = torch.stack([observation[..., i] for i in self.angles], dim=-1)
-        kept = [torch.stack(keep, dim=-1)] if keep else []
+        keep = [i for i in range(observation.shape[-1]) if i not in self.angles]
+        angle = take(observation, self.angles)
+        kept = [take(observation, keep)] if keep else []
         return torch.cat([*kept, angle.cos(), angle.sin()], dim=-1)
 
     def size(self, obs_dim: int) -> int:

@@ -30,6 +30,7 @@ from torchcbf._checks import (
     check_tensor,
 )
 from torchcbf._constants import ExactConstants, remember, store
+from torchcbf.barriers._params import take
 from torchcbf.estimation._linalg import wrap_angle
 
 __all__ = ["FunctionSensor", "GaussianSensor", "Perfect", "RangeBearing", "Sensor", "wrap_angle"]
@@ -324,8 +325,7 @@ class RangeBearing(Sensor):
         )
         if x.dim() == 0 or x.shape[-1] <= need:
             raise ValueError(f"x must have shape [..., n] with n > {need}, got {tuple(x.shape)}")
-        i, j = self.position_index  # two columns, not a list index (a copy to the device)
-        pos = torch.stack([x[..., i], x[..., j]], dim=-1)
+        pos = take(x, self.position_index)
         d = self.landmarks.to(x) - pos.unsqueeze(-2)  # [..., L, 2]
         rng = torch.linalg.vector_norm(d, dim=-1)
         bearing = torch.atan2(d[..., 1], d[..., 0])

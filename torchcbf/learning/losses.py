@@ -22,6 +22,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchcbf._checks import as_tensor, check_tensor
+from torchcbf.barriers._params import take
 
 
 class ConditionOutput(Protocol):
@@ -209,7 +210,7 @@ def closed_loop_loss(
         if g.shape != (len(idx),):
             raise ValueError(f"goal must have shape [{len(idx)}], got {tuple(g.shape)}")
         # a smoothed norm: differentiable at the goal itself
-        p = torch.stack([x[..., i] for i in idx], dim=-1)  # no list index: no copy to the device
+        p = take(x, idx)
         goal_term = torch.sqrt(((p - g) ** 2).sum(-1) + 1e-12).mean()
     total = (
         intervention_weight * intervention + collision_weight * collision + goal_weight * goal_term
