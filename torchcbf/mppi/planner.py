@@ -678,6 +678,7 @@ class MPPI(ExactConstants):
         if xb.device.type == "cpu":
             keep_freed_heap()  # a torch cost's intermediates are reused, not faulted in again
         history = self._history.view() if self._needs_history else None
+        cost_key = self._compile_key(self.cost)
         if kernel is not None:
             # the kernel stores the rollouts for the torch cost and adds the control cost;
             # the update regenerates the noise of the weighted samples (as on the fused path)
@@ -686,7 +687,7 @@ class MPPI(ExactConstants):
             xc = xb.contiguous()
             wctrl = self._control_weights(plan)
             ctrl = kernel.buffers(xc, plan, keys, states, controls, wctrl, self.layout)
-            cost = self._score_fn(states, controls, None, plan, t0, history, self._cost_hooks())
+            cost = self._score_fn(states, controls, None, plan, t0, history, cost_key)
             if ctrl is not None:
                 cost = cost + ctrl
             weights = self._weights(cost)
@@ -697,7 +698,7 @@ class MPPI(ExactConstants):
             ctrl_eps = self._sample(xb, t0, eps, controls)
             self._rollout(xb, controls, states)
             cost = self._score_fn(
-                states, controls, ctrl_eps, self._cost_plan(), t0, history, self._cost_hooks()
+                states, controls, ctrl_eps, self._cost_plan(), t0, history, cost_key
             )
             extra = self._extra_cost(controls)
             if extra is not None:
@@ -957,7 +958,7 @@ class MPPI(ExactConstants):
         # graph traced for one model is not reused for a model of the same class that is
         # evaluated otherwise (torch.compile does not guard on a module's hooks)
         rate = integrators.rate_form(self.dynamics)
-        hooks = hook_key(self.dynamics) if self._compiled else ""
+        hooks = self._compile_key(self.dynamics)
         for j in range(self.horizon):
             self._step_into_fn(states, controls, j, component, rate, hooks)
 
@@ -1010,10 +1011,11 @@ class MPPI(ExactConstants):
             cost = cost + self.control_cost_weight * ctrl
         return cost
 
-    def _cost_hooks(self) -> str:
-        """The cost's :func:`~torchcbf._compile.hook_key` where the cost is compiled (the
-        argument that makes a new hook trace again), else ``""``."""
-        return hook_key(self.cost) if self._compiled else ""
+    def _compile_key(self, obj: object) -> str:
+        """``obj``'s :func:`~torchcbf._compile.hook_key` where the planner compiles (the
+        argument of a compiled step or cost that makes a new hook trace again), else
+        ``""``."""
+        return hook_key(obj) if self._compiled else ""
 
     def _rollout_cost(
         self, states: Tensor, controls: Tensor, t0: Tensor, history: History | None
