@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from _problems import make_batch
@@ -102,3 +103,55 @@ def test_soft_exact_penalty_when_feasible():
         batch.Q, batch.p, batch.G, batch.h, soft=torch.full((4,), float("inf"), dtype=F64)
     )
     torch.testing.assert_close(inf_w.x, hard.x, atol=1e-7, rtol=0)
+
+
+def _watched_problem(eps_abs: float, P, q, G, h):
+    """proxsuite's dense problem ``min x'Px/2 + q'x`` s.t. ``Gx <= h`` to ``eps_abs``."""
+    proxqp = pytest.importorskip("proxsuite").proxqp
+    n, m = q.shape[-1], h.shape[-1]
+    qp = proxqp.dense.QP(n, 0, m, False)
+    qp.settings.eps_abs = eps_abs
+    qp.settings.eps_rel = 0.0
+    qp.settings.verbose = False
+    qp.init(P, q, None, None, G, np.full(m, -1e20), h)
+    return qp
+
+
+def test_a_watched_solve_stops_where_the_iterates_run_along_a_direction_of_descent():
+    """Unbounded to float32's rounding (``Q``'s zero eigenvalue rounded): proxsuite runs its
+    whole budget on it; the watched solve stops after its two short runs."""
+    from test_unbounded import recession
+
+    from torchcbf.qp._backends import WATCH_ITER, descends, solve_watched
+
+    Q, p, G, h = (t[0].float().double().numpy() for t in recession(1, seed=0))
+    qp = _watched_problem(1e-9, Q, p, G, h)
+    inf = np.full((1, 4), np.inf)
+
+    def descending(d):
+        return descends(Q[None], p[None], G[None], np.zeros((1, 0, 4)), -inf, inf,
+                        np.zeros((1, 6), bool), d[None], 1e-5)  # fmt: skip
+
+    assert solve_watched(qp, 10_000, descending) is None
+    assert qp.results.info.iter_ext <= WATCH_ITER  # outer iterations of the second run
+
+
+def test_a_watched_solve_goes_on_to_the_answer_of_one_solve():
+    """A problem that needs more iterations than the watch (a tolerance near rounding): the
+    watched solve ends where one plain solve does, and counts the iterations of all its runs."""
+    from torchcbf.qp._backends import WATCH_ITER, solve_watched
+
+    rng = np.random.default_rng(0)
+    n, m = 30, 60
+    U = np.linalg.qr(rng.standard_normal((n, n)))[0]
+    P = U @ np.diag(np.logspace(-7, 0, n)) @ U.T
+    q, G, h = 10 * rng.standard_normal(n), rng.standard_normal((m, n)), rng.random(m)
+    plain = _watched_problem(1e-14, P, q, G, h)
+    plain.settings.max_iter = 10_000
+    plain.solve()
+    watched = _watched_problem(1e-14, P, q, G, h)
+    seen = []
+    taken = solve_watched(watched, 10_000, lambda d: seen.append(d) or False)
+    assert len(seen) == 1  # both short runs ended unsolved, and it went on
+    assert taken is not None and taken >= 2 * WATCH_ITER
+    np.testing.assert_allclose(watched.results.x, plain.results.x, atol=1e-9, rtol=0)

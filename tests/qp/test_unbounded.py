@@ -140,3 +140,14 @@ def test_random_strictly_convex_problems_stay_solved(cvx, method, dtype):
     Q, p, G, h = (t.to(dtype) for t in (Q, p, G, h))
     sol = solve_qp(Q, p, G, h, method=method)
     _check_against_clarabel(cvx, sol, Q, p, G, h, tol=_tol(dtype))
+
+
+@pytest.mark.parametrize("n, m", [(4, 6), (100, 150)])
+def test_unbounded_to_float32_rounding_one_problem_at_a_time(n, m):
+    """The routes to proxsuite for one problem (its small-batch route, and the large
+    problems' route beyond the C kernel) hand an unbounded problem on to the certificate."""
+    for seed in range(2):
+        Q, p, G, h = (t[0].float() for t in recession(1, n=n, m=m, seed=seed))
+        sol = solve_qp(Q, p, G, h)
+        assert int(sol.status) == Status.DUAL_INFEASIBLE, sol.path
+        assert (sol.x == 0).all()

@@ -5,6 +5,7 @@ and return ``(x, s, z, y, status, iterations)`` as float64 CPU tensors."""
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -14,6 +15,9 @@ from torchcbf.qp._data import QPData
 from torchcbf.qp.status import Status
 
 _BIG = 1e20
+#: iterations of each of the two short runs in which :func:`solve_watched` watches proxsuite's
+#: iterates for a direction of unbounded descent
+WATCH_ITER = 100
 
 
 def _verify(
@@ -86,6 +90,88 @@ class _BoxSplit:
         return z
 
 
+def descends(
+    P: np.ndarray,
+    q: np.ndarray,
+    G: np.ndarray,
+    A: np.ndarray,
+    lb: np.ndarray,
+    ub: np.ndarray,
+    free: np.ndarray,
+    x: np.ndarray,
+    eps_inf: float,
+) -> bool:
+    """Whether some row's ``x [B, n]`` is a direction of unbounded descent of
+    ``x'Px/2 + q'x`` under ``Gx <= h`` (rows ``free`` left out), ``Ax = b`` and the bounds
+    (the test of :func:`torchcbf.qp._ipm._descent_direction`, in numpy): a minimiser far along
+    a direction where ``P`` is singular to the inputs' rounding, or the step between
+    iterates running out along one; the general path reports such rows
+    ``DUAL_INFEASIBLE``."""
+    qx = (q * x).sum(-1)
+    xn = eps_inf * np.abs(x).max(-1)
+    thr = -eps_inf * qx
+    cand = (qx < 0) & (qx <= -np.abs(q).max(-1) * xn)
+    if not cand.any():
+        return False
+    px = np.abs(np.einsum("bij,bj->bi", P, x)).max(-1)
+    cand &= px <= np.minimum(thr, np.abs(P).max((-2, -1)) * xn)
+    if A.shape[1]:
+        ax = np.abs(np.einsum("ben,bn->be", A, x)).max(-1)
+        cand &= ax <= np.minimum(thr, np.abs(A).max((-2, -1)) * xn)
+    Gf = np.where(free[..., None], 0.0, G)
+    parts = [np.where(np.isfinite(ub), x, -np.inf), np.where(np.isfinite(lb), -x, -np.inf)]
+    g_max = (
+        np.ones(len(x)) if (np.isfinite(ub).any() or np.isfinite(lb).any()) else np.zeros(len(x))
+    )
+    if G.shape[1]:
+        parts.append(np.einsum("bmn,bn->bm", Gf, x))
+        g_max = np.maximum(g_max, np.abs(Gf).max((-2, -1)))
+    gx = np.concatenate(parts, -1).max(-1, initial=-np.inf)
+    cand &= gx <= np.minimum(thr, g_max * xn)
+    return bool(cand.any())
+
+
+def solve_watched(
+    qp: object,
+    max_iter: int,
+    descending: Callable[[np.ndarray], bool],
+    x0: np.ndarray | None = None,
+) -> int | None:
+    """Solve the initialised proxsuite problem ``qp`` in at most ``max_iter`` iterations (from
+    ``x0`` where given) and return the iterations taken, or ``None`` where its iterates run
+    along a direction ``d`` with ``descending(d)``.
+
+    proxsuite does not detect every unbounded problem: with ``P`` singular only to rounding it
+    runs its whole budget (tens of seconds for a few variables, at up to 1,500 inner
+    iterations each), its iterates growing along the recession direction. So it runs
+    ``WATCH_ITER`` iterations, then ``WATCH_ITER`` more from where it stopped; where both end
+    unsolved and the step between them is a direction of descent it stops there, otherwise it
+    goes on from there for the rest of ``max_iter``."""
+    from proxsuite import proxqp
+
+    first = min(WATCH_ITER, max_iter)
+    second = min(WATCH_ITER, max_iter - first)
+    taken = 0
+    for run, budget in enumerate((first, second, max_iter - first - second)):
+        if budget == 0:
+            break
+        before = np.array(qp.results.x)
+        qp.settings.max_iter = budget
+        if run == 0 and x0 is not None:
+            qp.solve(x0, None, None)
+        elif run == 0:
+            qp.solve()
+        else:
+            qp.settings.initial_guess = proxqp.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT
+            qp.solve()
+        taken += qp.results.info.iter
+        if qp.results.info.status != proxqp.PROXQP_MAX_ITER_REACHED:
+            break
+        if run == 1 and descending(qp.results.x - before):
+            return None
+    return taken
+
+
 def solve_proxsuite(
     data: QPData,
     *,
@@ -93,10 +179,13 @@ def solve_proxsuite(
     max_iter: int,
     x0: Tensor | None = None,
     box: bool = False,
+    eps_inf: float | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Solve every row with ``proxsuite.proxqp.dense``, in parallel (OpenMP threads) where
     there are several rows and threads. With ``box``, rows of ``G`` with one nonzero entry
-    go to proxsuite as box constraints (:class:`_BoxSplit`)."""
+    go to proxsuite as box constraints (:class:`_BoxSplit`). With ``eps_inf``, rows are
+    solved one at a time, each watched for a direction of unbounded descent to that
+    tolerance (:func:`solve_watched`); a row that finds one ends ``MAX_ITER``."""
     P, q, G, h, A, b = data
     from proxsuite import proxqp
 
@@ -104,8 +193,10 @@ def solve_proxsuite(
     M, me = h.shape[-1], b.shape[-1]
     Pn, qn, Gn, hn, An, bn = (t.detach().cpu().double().numpy() for t in (P, q, G, h, A, b))
     x0n = None if x0 is None else x0.detach().cpu().double().numpy()
-    parallel = x0n is None and B > 1 and torch.get_num_threads() > 1
+    parallel = x0n is None and B > 1 and torch.get_num_threads() > 1 and eps_inf is None
     qps = proxqp.dense.VectorQP() if parallel else []
+    it = np.zeros(B, dtype=np.int64)
+    no_bounds = np.full((1, n), np.inf)
     splits = []
     for i in range(B):
         split = _BoxSplit(Gn[i], hn[i]) if box else None
@@ -129,7 +220,17 @@ def solve_proxsuite(
             hn[i][gen] if m_in > 0 else None,
             *((split.lb, split.ub) if box else ()),
         )
-        if x0n is not None:
+        if eps_inf is not None:
+            row = slice(i, i + 1)
+
+            def descending(d: np.ndarray, row: slice = row) -> bool:
+                return descends(Pn[row], qn[row], Gn[row], An[row], -no_bounds, no_bounds,
+                                np.isinf(hn[row]), d[None], eps_inf)  # fmt: skip
+
+            x0i = None if x0n is None else x0n[i]
+            taken = solve_watched(qp, max_iter, descending, x0i)
+            it[i] = max_iter if taken is None else taken
+        elif x0n is not None:
             qp.solve(x0n[i], None, None)
         elif not parallel:
             qp.solve()  # no thread pool to start for one problem or one thread
@@ -147,7 +248,6 @@ def solve_proxsuite(
     z = np.zeros((B, M))
     y = np.zeros((B, me))
     st = np.zeros(B, dtype=np.int64)
-    it = np.zeros(B, dtype=np.int64)
     for i in range(B):
         res = qps[i].results
         x[i] = res.x
@@ -161,7 +261,8 @@ def solve_proxsuite(
         if me > 0:
             y[i] = res.y
         st[i] = int(codes.get(res.info.status, Status.MAX_ITER))
-        it[i] = res.info.iter
+        if eps_inf is None:
+            it[i] = res.info.iter
     return _finish(x, z, y, st, it, G, h, A, b, eps)
 
 

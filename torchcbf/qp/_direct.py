@@ -20,11 +20,13 @@ general path, which sets every status.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from torchcbf.qp._backends import descends, solve_watched
 from torchcbf.qp._function import ROUTE_EPS, ROUTE_MAX_ITER, data_scaling
 from torchcbf.qp._lu import lu_factor_ex
 
@@ -87,8 +89,18 @@ def solve_direct(
     free = hn == np.inf
     lo_box = np.maximum(lbn, -_BIG)
     hi_box = np.minimum(ubn, _BIG)
+
+    def descending(i: int, d: np.ndarray) -> bool:
+        rows = slice(i, i + 1)
+        return descends(P[rows], q[rows], Gn[rows], An[rows], lbn[rows], ubn[rows], free[rows],
+                        d[None], eps_inf)  # fmt: skip
+
     for box in (False, True):
-        out = _proxsuite(P, q, Gn, hn, An, bn, lo_box, hi_box, free, box=box)
+        try:
+            out = _proxsuite(P, q, Gn, hn, An, bn, lo_box, hi_box, free, box=box,
+                             descending=descending)  # fmt: skip
+        except _Descending:
+            return None
         if out is None:
             continue
         x, z, zb, y, iters = out
@@ -101,7 +113,7 @@ def solve_direct(
         return None
     x, lam, y, lam_lb, lam_ub = _polish(P, q, Gn, hn, An, bn, lbn, ubn, free, x, lam, y,
                                         lam_lb, lam_ub)  # fmt: skip
-    if _descent(P, q, Gn, An, lbn, ubn, free, x, eps_inf):
+    if descends(P, q, Gn, An, lbn, ubn, free, x, eps_inf):
         return None
     lam, y, lam_lb, lam_ub = lam / c, y / c, lam_lb / c, lam_ub / c  # of (P, q) again
     dtype = Q.dtype
@@ -116,6 +128,10 @@ def solve_direct(
     )  # fmt: skip
 
 
+class _Descending(Exception):
+    """proxsuite's iterates on a row run along a direction of unbounded descent."""
+
+
 def _proxsuite(
     P: np.ndarray,
     q: np.ndarray,
@@ -128,11 +144,14 @@ def _proxsuite(
     free: np.ndarray,
     *,
     box: bool,
+    descending: Callable[[int, np.ndarray], bool],
 ) -> tuple[np.ndarray, ...] | None:
     """proxsuite's dense solver on every row: ``(x, z, z_bounds, y, iterations)``, or
     ``None`` where some row is not solved. The bounds go in as proxsuite's box (``box``) or
     as identity rows of its double-sided inequalities: the rows are often faster, the box
-    more robust (with the rows it has called problems with an optimum infeasible)."""
+    more robust (with the rows it has called problems with an optimum infeasible). A row
+    whose iterates run along a direction ``d`` with ``descending(i, d)`` raises
+    :class:`_Descending` (:func:`~torchcbf.qp._backends.solve_watched`)."""
     from proxsuite import proxqp
 
     B, n = q.shape
@@ -153,14 +172,15 @@ def _proxsuite(
         qp = proxqp.dense.QP(n, k, len(lo_i), box)
         qp.settings.eps_abs = ROUTE_EPS
         qp.settings.eps_rel = 0.0
-        qp.settings.max_iter = ROUTE_MAX_ITER
         qp.settings.verbose = False
         qp.init(
             P[i], q[i], A[i] if k else None, b[i] if k else None,
             C if len(lo_i) else None, lo_i if len(lo_i) else None, hi_i if len(lo_i) else None,
             *((lo[i], hi[i]) if box else ()),
         )  # fmt: skip
-        qp.solve()
+        taken = solve_watched(qp, ROUTE_MAX_ITER, lambda d, i=i: descending(i, d))
+        if taken is None:
+            raise _Descending
         res = qp.results
         if res.info.status != proxqp.PROXQP_SOLVED:
             return None
@@ -170,7 +190,7 @@ def _proxsuite(
         zb[i] = zr[r:]
         if k:
             y[i] = res.y
-        iters[i] = res.info.iter
+        iters[i] = taken
     return x, z, zb, y, iters
 
 
@@ -297,45 +317,6 @@ def _exact(
     )
     scale = scale + tol * scale.max(-1, keepdims=True)
     return bool((np.abs(res) <= tol * np.maximum(scale, tiny)).all())
-
-
-def _descent(
-    P: np.ndarray,
-    q: np.ndarray,
-    G: np.ndarray,
-    A: np.ndarray,
-    lb: np.ndarray,
-    ub: np.ndarray,
-    free: np.ndarray,
-    x: np.ndarray,
-    eps_inf: float,
-) -> bool:
-    """Whether some row's ``x`` is a direction of unbounded descent (the test of
-    :func:`torchcbf.qp._ipm._descent_direction`): a minimiser far along a direction where
-    ``P`` is singular to the inputs' rounding, which the general path reports
-    ``DUAL_INFEASIBLE``."""
-    qx = (q * x).sum(-1)
-    xn = eps_inf * np.abs(x).max(-1)
-    thr = -eps_inf * qx
-    cand = (qx < 0) & (qx <= -np.abs(q).max(-1) * xn)
-    if not cand.any():
-        return False
-    px = np.abs(np.einsum("bij,bj->bi", P, x)).max(-1)
-    cand &= px <= np.minimum(thr, np.abs(P).max((-2, -1)) * xn)
-    if A.shape[1]:
-        ax = np.abs(np.einsum("ben,bn->be", A, x)).max(-1)
-        cand &= ax <= np.minimum(thr, np.abs(A).max((-2, -1)) * xn)
-    Gf = np.where(free[..., None], 0.0, G)
-    parts = [np.where(np.isfinite(ub), x, -np.inf), np.where(np.isfinite(lb), -x, -np.inf)]
-    g_max = (
-        np.ones(len(x)) if (np.isfinite(ub).any() or np.isfinite(lb).any()) else np.zeros(len(x))
-    )
-    if G.shape[1]:
-        parts.append(np.einsum("bmn,bn->bm", Gf, x))
-        g_max = np.maximum(g_max, np.abs(Gf).max((-2, -1)))
-    gx = np.concatenate(parts, -1).max(-1, initial=-np.inf)
-    cand &= gx <= np.minimum(thr, g_max * xn)
-    return bool(cand.any())
 
 
 def _verified(

@@ -302,7 +302,9 @@ def _ipm_routed(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> _IPMOut:
     the status. Returns what :func:`_ipm` returns."""
     from torchcbf.qp import _backends
 
-    out = _backends.solve_proxsuite(data, eps=ROUTE_EPS, max_iter=ROUTE_MAX_ITER, x0=x0, box=True)
+    out = _backends.solve_proxsuite(
+        data, eps=ROUTE_EPS, max_iter=ROUTE_MAX_ITER, x0=x0, box=True, eps_inf=cfg.eps_inf
+    )
     x, s, z, y, st, iters = (t.to(data.q.device) for t in out)
     ok = (st == int(Status.SOLVED)) & _kkt.kkt_residuals_ok(data, x, z, y, cfg.eps)
     # a minimiser far along a direction where P is singular to the inputs' rounding

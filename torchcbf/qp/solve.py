@@ -792,7 +792,6 @@ ROUTE_MAX_BATCH = 4
 
 
 @functools.cache
-@functools.cache
 def _proxsuite_available() -> bool:
     """Whether proxsuite's dense solver imports (an installed but broken proxsuite counts
     as missing: ``auto`` then keeps every problem on torchcbf's own methods)."""
