@@ -142,6 +142,49 @@ def test_a_row_proxsuite_leaves_is_solved_by_the_interior_point_method(monkeypat
     assert torch.isfinite(p.grad).all()
 
 
+def _badly_scaled(seed: int, n: int = 70, m: int = 90, k: int = 4):
+    """A feasible QP whose rows are scaled by factors from 1e-6 to 1e6 (their slacks at a
+    known point likewise): more than 64 variables and equality rows, so that a small batch
+    is routed to proxsuite; ``P`` of rank ``n / 3`` plus 1e-9 I."""
+    g = torch.Generator().manual_seed(seed)
+    L = torch.randn(n, n // 3, generator=g, dtype=F64)
+    P = L @ L.mT + 1e-9 * torch.eye(n, dtype=F64)
+    p = torch.randn(n, generator=g, dtype=F64)
+    G = torch.randn(m, n, generator=g, dtype=F64)
+    G = G * torch.exp(torch.empty(m, 1, dtype=F64).uniform_(-6, 6, generator=g))
+    x0 = torch.randn(n, generator=g, dtype=F64)
+    slack = torch.rand(m, generator=g, dtype=F64)
+    h = G @ x0 + slack * torch.exp(torch.empty(m, dtype=F64).uniform_(-6, 6, generator=g))
+    A = torch.randn(k, n, generator=g, dtype=F64)
+    return P, p, G, h, A, A @ x0
+
+
+@pytest.mark.filterwarnings("ignore:Solution may be inaccurate")  # Clarabel on the scaling
+def test_a_row_the_tighter_run_leaves_is_solved_to_the_callers_tolerance(monkeypatch, cvx):
+    """Where proxsuite fails (simulated) the interior point method runs to a tolerance tighter
+    than the caller's; on a problem it cannot reach that on (rows scaled over twelve decades)
+    the row is solved again to the caller's, as ``method="ipm"`` solves it."""
+    from torchcbf.qp import _backends
+
+    real = _backends.solve_proxsuite
+
+    def failing(*args, **kwargs):
+        x, s, z, y, st, it = real(*args, **kwargs)
+        return x, s, z, y, torch.full_like(st, int(Status.MAX_ITER)), it
+
+    monkeypatch.setattr(_backends, "solve_proxsuite", failing)
+    P, p, G, h, A, b = _badly_scaled(22)
+    tight = solve_qp(P, p, G, h, A, b, method="ipm", eps=qp_function.ROUTE_FALLBACK_EPS)
+    assert int(tight.status) != Status.SOLVED  # the case this test is about
+    sol = solve_qp(P, p.clone().requires_grad_(), G, h, A, b)
+    assert sol.path == "auto_proxsuite" and int(sol.status) == Status.SOLVED
+    own = solve_qp(P, p, G, h, A, b, method="ipm")
+    _, ref, _ = cvx(*(t.numpy() for t in (P, p, G, h, A, b)))
+    for x in (sol.x.detach(), own.x):
+        objective = float(0.5 * x @ P @ x + p @ x)
+        assert abs(objective - ref) <= 1e-6 * max(1.0, abs(ref))
+
+
 def test_routing_applies_to_small_batches_only():
     data = _mid_size(6)
     big = [t.expand(5, *t.shape) for t in data]
