@@ -487,3 +487,122 @@ def test_a_hooked_term_of_a_sum_of_costs_is_called_with_its_hook() -> None:
     best = out.best_states[None, None]
     want = total(best, best.new_zeros(1, 1, 5, 2))[0, 0]
     torch.testing.assert_close(out.cost_min, want)
+
+
+def _called_padded(cls: type) -> type:
+    """``cls`` with ``__call__`` overridden alone (the pad of :func:`padded`)."""
+
+    def __call__(self, *args, **kwargs):
+        return 1.5 * super(sub, self).__call__(*args, **kwargs) - 0.3
+
+    sub = type(f"CallPadded{cls.__name__}", (cls,), {"__call__": __call__})
+    return sub
+
+
+@pytest.mark.parametrize("name", [*SHAPES, *WRAPPERS])
+def test_a_shape_overriding_call_or_patched_on_the_instance_answers_as_its_call(name) -> None:
+    sub, base = _subclassed(_make(name), _called_padded)
+    _answers_as_reference(sub.double(), base.double())
+    patched, base = _make(name)().double(), _make(name)().double()
+    plain = patched.forward
+    patched.forward = lambda x, t=None: 1.5 * plain(x, t) - 0.3
+    _answers_as_reference(patched, base)
+    del patched.forward
+    assert (patched.quadric() is None) == (base.quadric() is None)
+
+
+@pytest.mark.parametrize("how", ["call", "instance", "global_hook"])
+def test_a_model_whose_call_changes_integrates_its_call(how: str) -> None:
+    """A rewritten ``__call__``, a ``forward`` set on the instance or a global forward hook:
+    every integrator, the simulator's step and MPPI's rollouts integrate the call."""
+    shift = torch.tensor([0.3, -0.2], dtype=F64)
+
+    class Called(SingleIntegrator):
+        def __call__(self, *args, **kwargs):
+            return super().__call__(*args, **kwargs) + shift
+
+    handle = None
+    if how == "call":
+        model = Called(2).double()
+    else:
+        model = SingleIntegrator(2).double()
+        if how == "instance":
+            plain = model.forward
+            model.forward = lambda x, u, w=None: plain(x, u, w) + shift
+        else:
+            handle = torch.nn.modules.module.register_module_forward_hook(
+                lambda m, a, out: out + shift if m is model else out
+            )
+    try:
+        assert model.native_model() is None
+        x = _states(4, 2)
+        u = torch.tensor([[-1.0, 0.5]], dtype=F64).expand(4, 2)
+        for method in ("euler", "rk4"):
+            want = x + 0.1 * model(x, u) if method == "euler" else _rk4(model, x, u, 0.1)
+            torch.testing.assert_close(integrators.step(model, x, u, 0.1, method), want)
+        # the controls pinned by the limits, so that every rollout is known
+        c = [-1.0, 0.5]
+        planner = MPPI(model, QuadraticGoal([1.0, 1.0]), horizon=3, num_samples=8, dt=0.1,
+                       noise_sigma=0.5, temperature=1.0, keep_rollouts=8, seed=0, u_min=c,
+                       u_max=c)  # fmt: skip
+        out = planner(x[0])
+        assert out.path == "torch"
+        states = out.rollouts
+        ctrl = torch.tensor(c, dtype=F64).expand_as(states[:, :-1])
+        torch.testing.assert_close(
+            states[:, 1:], states[:, :-1] + 0.1 * model(states[:, :-1], ctrl)
+        )
+    finally:
+        if handle is not None:
+            handle.remove()
+
+
+def test_a_joint_limit_barrier_follows_the_arms_own_joint_map() -> None:
+    pytest.importorskip("pytorch_kinematics")
+    from torchcbf.barriers import JointLimitBarrier
+    from torchcbf.dynamics import Manipulator
+
+    class Geared(Manipulator):
+        def joint_positions(self, x):
+            return 2.0 * super().joint_positions(x)
+
+    arm = Geared("planar3").double()
+    barrier = JointLimitBarrier(arm, margin=0.1)
+    assert not barrier.has_analytic
+    assert JointLimitBarrier(Manipulator("planar3"), margin=0.1).has_analytic
+    x = 0.2 * torch.ones(3, arm.state_dim, dtype=F64)
+    u = torch.full((3, arm.control_dim), -5.0, dtype=F64)
+    terms = barrier.lie(x, arm)
+    assert torch.equal(terms.lgh[:, 0], torch.tensor([[2.0, 0.0, 0.0]] * 3, dtype=F64))
+    with torch.no_grad():
+        a = SafetyFilter(arm, [barrier], check_relative_degree=False).double()(x, u)
+        b = SafetyFilter(arm, [barrier], lie_method="autograd", backend="torch",
+                         check_relative_degree=False).double()(x, u)  # fmt: skip
+    torch.testing.assert_close(a.u, b.u, atol=1e-9, rtol=1e-9)
+
+
+class _OwnLie(Ball):
+    """A ball whose own ``lie`` reports ``h - 1`` (and the terms of ``h`` otherwise)."""
+
+    def lie(self, x, dynamics, t=None, *, method="autograd", hessian=True):
+        terms = super().lie(x, dynamics, t, method=method, hessian=hessian)
+        return terms._replace(h=terms.h - 1.0, lfh=terms.lfh + 0.5)
+
+
+def test_a_function_with_its_own_lie_is_asked_for_its_terms_beside_others() -> None:
+    dyn = SingleIntegrator(2).double()
+    mine, far = _OwnLie([0.0, 0.0], 0.5).double(), Ball([40.0, 40.0], 0.5).double()
+    x = _states(6, 2)
+    u = torch.tensor([[-2.0, 0.3]], dtype=F64).expand(6, 2)
+    with torch.no_grad():
+        alone = SafetyFilter(dyn, [mine]).double()(x, u)
+        both = SafetyFilter(dyn, [mine, far]).double()(x, u)
+    torch.testing.assert_close(both.h[:, 0], mine.lie(x, dyn).h)
+    torch.testing.assert_close(both.u, alone.u, atol=1e-9, rtol=1e-9)
+    # an exponential barrier of relative degree two is built from the function's own terms
+    on_position = _OwnLie([0.0, 0.0], 0.5, index=(0, 1)).double()
+    double = DoubleIntegrator(2).double()
+    rect = rectify(on_position, double, form="exponential", gains=[2.0])
+    z = torch.cat([x, torch.randn(6, 2, generator=torch.Generator().manual_seed(1))], -1)
+    own = on_position.lie(z, double)
+    torch.testing.assert_close(rect(z), own.lfh + own.dhdt + 2.0 * own.h)

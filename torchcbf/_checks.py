@@ -289,12 +289,17 @@ def hook_dicts(modules: Iterable[torch.nn.Module]) -> list[dict[int, Any]]:
 
 
 def hooked(obj: object) -> bool:
-    """Whether calling ``obj`` (a module) runs forward or forward-pre hooks: its own or the
-    global module hooks (``torch.nn.modules.module.register_module_forward_hook``)."""
+    """Whether calling ``obj`` (a module) runs more than its class's ``forward``: forward or
+    forward-pre hooks (its own or the global module hooks,
+    ``torch.nn.modules.module.register_module_forward_hook``), or a ``forward`` set on the
+    instance itself (``obj.forward = ...``)."""
     return bool(
         _GLOBAL_HOOKS
         or _GLOBAL_PRE_HOOKS
-        or (isinstance(obj, torch.nn.Module) and (obj._forward_hooks or obj._forward_pre_hooks))
+        or (
+            isinstance(obj, torch.nn.Module)
+            and (obj._forward_hooks or obj._forward_pre_hooks or "forward" in obj.__dict__)
+        )
     )
 
 
@@ -324,7 +329,13 @@ def unless_hooked(cls: type, fast_forms: Mapping[str, object]) -> None:
 
         def guarded(self: torch.nn.Module, _fn=fn, _none=none) -> object:
             # hooked(self), inline: some fast forms are asked several times per filter call
-            if _GLOBAL_HOOKS or _GLOBAL_PRE_HOOKS or self._forward_hooks or self._forward_pre_hooks:
+            if (
+                _GLOBAL_HOOKS
+                or _GLOBAL_PRE_HOOKS
+                or self._forward_hooks
+                or self._forward_pre_hooks
+                or "forward" in self.__dict__
+            ):
                 return _none
             return _fn(self)
 
@@ -337,12 +348,13 @@ def behaves_as(obj: object, cls: type, methods: Sequence[str]) -> bool:
     """Whether ``obj`` is an instance of ``cls`` whose class keeps ``cls``'s ``methods`` (a
     subclass may add to them, not change them) and, where ``forward`` is among them, whose
     calls run no hooks (:func:`hooked`: a hook changes what a call computes): the test for
-    handing ``obj`` to a kernel that evaluates ``cls``'s formulas."""
-    return (
-        isinstance(obj, cls)
-        and _keeps(type(obj), cls, tuple(methods))
-        and not ("forward" in methods and hooked(obj))
-    )
+    handing ``obj`` to a kernel that evaluates ``cls``'s formulas. A class that rewrites
+    ``__call__`` changes ``forward`` too."""
+    if "forward" in methods:  # a call runs __call__, its hooks and the instance's forward
+        methods = (*methods, "__call__")
+        if hooked(obj):
+            return False
+    return isinstance(obj, cls) and _keeps(type(obj), cls, tuple(methods))
 
 
 @functools.lru_cache(maxsize=512)

@@ -18,6 +18,7 @@ from torchcbf._checks import (
     check_last_dim,
     check_positive,
     check_same,
+    hooked,
 )
 from torchcbf.dynamics.base import MATVEC_COLUMNS_UP_TO, ControlAffine
 
@@ -27,11 +28,16 @@ METHODS: tuple[str, ...] = ("euler", "rk4", "euler_maruyama")
 
 def rate_form(dynamics: ControlAffine) -> str:
     """How ``dynamics``' rate is evaluated: ``"module"`` (the module call, where a subclass
-    rewrote ``forward`` itself or forward hooks are registered), ``"plain"`` (``xdot`` is
+    rewrote ``forward`` or ``__call__`` itself, or its calls run hooks or an instance's own
+    ``forward``: :func:`~torchcbf._checks.hooked`), ``"plain"`` (``xdot`` is
     ``f + g u``, not rewritten: a caller may form the sum in any layout) or ``"xdot"`` (the
     model's own ``xdot``)."""
-    hooked = dynamics._forward_hooks or dynamics._forward_pre_hooks
-    if hooked or type(dynamics).forward is not ControlAffine.forward:
+    cls = type(dynamics)
+    if (
+        hooked(dynamics)
+        or cls.forward is not ControlAffine.forward
+        or cls.__call__ is not torch.nn.Module.__call__
+    ):
         return "module"
     return "plain" if getattr(dynamics.xdot, "__func__", None) is ControlAffine.xdot else "xdot"
 

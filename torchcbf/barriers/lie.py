@@ -120,9 +120,9 @@ class LieFunction(ExactConstants):
     #: calls another public method of its own extends this table (and its subclasses are
     #: checked against it).
     closed_forms: ClassVar[ClosedForms] = {
-        "derivatives": (("forward",), ("has_analytic", "has_second_order")),
-        "quadric": (("forward", "lie"), ()),
-        "parts": (("forward",), ()),
+        "derivatives": (("forward", "__call__"), ("has_analytic", "has_second_order")),
+        "quadric": (("forward", "__call__", "lie"), ()),
+        "parts": (("forward", "__call__"), ()),
     }
 
     #: each fast form's answer for an instance with forward hooks, which takes the general
@@ -193,6 +193,30 @@ class LieFunction(ExactConstants):
     ) -> LieTerms:
         """Lie derivatives at ``x [..., n]`` (see :func:`lie_derivatives`)."""
         return lie_derivatives(self, x, dynamics, t, method=method, hessian=hessian)
+
+
+def own_lie(fn: LieFunction) -> bool:
+    """Whether ``fn``'s class rewrites :meth:`LieFunction.lie` (the user's own Lie terms):
+    then every path takes its terms from ``fn.lie``, none from a stacked or compiled
+    evaluation of ``fn``'s calls."""
+    return type(fn).lie is not LieFunction.lie
+
+
+def terms_of(
+    fn: LieFunction,
+    x: Tensor,
+    dynamics: ControlAffine,
+    t: Tensor | float | None = None,
+    *,
+    method: LieMethod = "autograd",
+    hessian: bool = True,
+    control: bool = True,
+) -> LieTerms:
+    """``fn``'s Lie terms (:func:`lie_derivatives`), from ``fn.lie`` where its class
+    rewrites it (:func:`own_lie`; it computes every term, ``control`` or not)."""
+    if own_lie(fn):
+        return fn.lie(x, dynamics, t, method=method, hessian=hessian)
+    return lie_derivatives(fn, x, dynamics, t, method=method, hessian=hessian, control=control)
 
 
 def time_tensor(t: Tensor | float | None, x: Tensor) -> Tensor:

@@ -29,8 +29,8 @@ from torchcbf.barriers.lie import (
     LieMethod,
     flat_parts,
     gradient_rows,
-    lie_derivatives,
     per_output,
+    terms_of,
 )
 from torchcbf.dynamics.base import ControlAffine
 
@@ -60,7 +60,7 @@ class LieDerivative(Barrier):
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """``x [..., n] -> D h [...]`` (or ``[..., k]``)."""
-        terms = lie_derivatives(
+        terms = terms_of(
             self.barrier, x, self.dynamics, t, method=_method(self.barrier), hessian=False,
             control=False,
         )  # fmt: skip
@@ -147,7 +147,7 @@ class HighOrderBarrier(Barrier):
         if order == 0:
             return base(x, t)
         step = _Psi(self, order - 1, base)
-        terms = lie_derivatives(step, x, self.dynamics, t, hessian=False, control=False)
+        terms = terms_of(step, x, self.dynamics, t, hessian=False, control=False)
         return terms.lfh + terms.dhdt + self.gains[order - 1].to(x) * terms.h
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
@@ -239,7 +239,7 @@ class ExponentialBarrier(Barrier):
         chain = [self.barrier if base is None else base]  # D^0 h .. D^{r-2} h
         for _ in range(r - 2):
             chain.append(LieDerivative(chain[-1], self.dynamics))
-        terms = lie_derivatives(
+        terms = terms_of(
             chain[-1], x, self.dynamics, t, method=_method(chain[-1]), hessian=False,
             control=False,
         )  # fmt: skip
@@ -370,7 +370,7 @@ def find_relative_degree(
     with torch.no_grad():
         g_max = dynamics.g(x).abs().amax().clamp_min(1.0)
         for k in range(1, n + 1):
-            terms = lie_derivatives(psi, x, dynamics, time, hessian=False)
+            terms = terms_of(psi, x, dynamics, time, hessian=False)
             lgh = terms.lgh.nan_to_num(0.0, 0.0, 0.0).abs()
             grad = terms.dhdx.nan_to_num(0.0, 0.0, 0.0).abs()
             rows = tuple(range(x.dim() - 1))

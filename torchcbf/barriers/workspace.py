@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from torchcbf._checks import check_number
+from torchcbf._checks import behaves_as, check_number
 from torchcbf._constants import reshape
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.lie import AnalyticDerivatives, LieFunction
@@ -349,7 +349,11 @@ class JointLimitBarrier(Barrier):
 
     @property
     def has_analytic(self) -> bool:
-        return True
+        # the closed form is of the built-in joint map: an arm whose class rewrites it (a
+        # gear ratio, an offset) is differentiated by autograd
+        from torchcbf.dynamics.manipulator import Manipulator
+
+        return behaves_as(self.arm, Manipulator, ("joint_positions",))
 
     def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         h = self(x)

@@ -98,7 +98,10 @@ class ControlAffine(nn.Module):
     closed_forms: ClassVar[ClosedForms] = {
         "xdot": (("f", "g"), ()),
         "drift_derivatives": (("f",), ()),
-        "native_model": (("f", "g", "xdot", "forward", "sigma", "drift_derivatives"), ()),
+        "native_model": (
+            ("f", "g", "xdot", "forward", "__call__", "sigma", "drift_derivatives"),
+            (),
+        ),
     }
 
     #: each fast form's answer for a model with forward hooks (a hook changes ``xdot``;

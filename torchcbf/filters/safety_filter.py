@@ -59,7 +59,7 @@ from torchcbf._checks import (
 from torchcbf._compile import Traced, TraceError, logger
 from torchcbf.barriers import native
 from torchcbf.barriers.compiled import CompiledLie
-from torchcbf.barriers.lie import LieFunction, LieTerms, stacked_lie_derivatives
+from torchcbf.barriers.lie import LieFunction, LieTerms, own_lie, stacked_lie_derivatives
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.filters import realtime
 from torchcbf.filters.class_k import ClassKSpec, _GainClassK, as_class_k
@@ -464,13 +464,15 @@ class SafetyFilter(nn.Module):
             found = native.lie_terms(fns, x, self.dynamics, hessian=hessian)
             if found is not None:
                 return *found, "native"
+        # a function with its own lie gives its terms itself: no stacked or compiled call
+        own = any(own_lie(fn) for fn in fns)
         usable = self.lie_method == "auto" and not torch.is_grad_enabled() and x.shape[0] > 0
-        if compiled is not None and usable:
+        if compiled is not None and usable and not own:
             found = compiled(x, t)
             if found is not None:
                 return *found, "compiled"
         methods = [self._lie_method(fn) for fn in fns]
-        if len(fns) > 1 and all(m == "autograd" for m in methods):
+        if len(fns) > 1 and not own and all(m == "autograd" for m in methods):
             terms, sizes = stacked_lie_derivatives(list(fns), x, self.dynamics, t, hessian=hessian)
             return terms, sizes, "torch"
         parts = []
