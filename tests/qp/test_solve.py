@@ -307,3 +307,31 @@ def test_kernel_is_built_where_a_c_compiler_is_present():
     """``pip install`` compiles the kernel; its build is optional, so a broken build would
     otherwise only show as skipped kernel tests."""
     assert _dual_native.available(), "reinstall (pip install -e .) to build _dual_kernel.c"
+
+
+@pytest.mark.parametrize("B", [1, 5])
+@pytest.mark.parametrize("grad", [False, True])
+def test_equality_constraints_alone(B: int, grad: bool) -> None:
+    """No inequality rows and no bounds: the KKT system of the equalities, at every batch
+    size, with and without gradients (against its linear solve and finite differences)."""
+    g = torch.Generator().manual_seed(B)
+    f64 = torch.float64
+    L = torch.randn(B, 3, 3, generator=g, dtype=f64)
+    Q = L @ L.mT + torch.eye(3, dtype=f64)
+    p = torch.randn(B, 3, generator=g, dtype=f64).requires_grad_(grad)
+    A = torch.randn(B, 1, 3, generator=g, dtype=f64)
+    b = torch.randn(B, 1, generator=g, dtype=f64)
+    sol = solve_qp(Q, p, A=A, b=b)
+    K = torch.cat(
+        [torch.cat([Q, A.mT], -1), torch.cat([A, torch.zeros(B, 1, 1, dtype=f64)], -1)], -2
+    )
+    want = torch.linalg.solve(K, torch.cat([-p.detach(), b], -1))
+    assert (sol.status == 0).all()
+    torch.testing.assert_close(sol.x.detach(), want[:, :3], atol=1e-9, rtol=1e-9)
+    torch.testing.assert_close(sol.nu.detach(), want[:, 3:], atol=1e-9, rtol=1e-9)
+    if grad:
+        sol.x.sum().backward()
+        dx_dp = torch.linalg.solve(
+            K, torch.cat([-torch.ones(B, 3, dtype=f64), torch.zeros(B, 1, dtype=f64)], -1)
+        )
+        torch.testing.assert_close(p.grad, dx_dp[:, :3], atol=1e-9, rtol=1e-9)

@@ -18,6 +18,9 @@ _BIG = 1e20
 #: iterations of each of the two short runs in which :func:`solve_watched` watches proxsuite's
 #: iterates for a direction of unbounded descent
 WATCH_ITER = 100
+#: tolerance of the watch's descent test: the step between two iterates is an approximate
+#: direction, and a row handed on is certified (or solved) by the general path
+WATCH_TOL = 1e-3
 
 
 def _verify(
@@ -179,13 +182,13 @@ def solve_proxsuite(
     max_iter: int,
     x0: Tensor | None = None,
     box: bool = False,
-    eps_inf: float | None = None,
+    watch: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Solve every row with ``proxsuite.proxqp.dense``, in parallel (OpenMP threads) where
     there are several rows and threads. With ``box``, rows of ``G`` with one nonzero entry
-    go to proxsuite as box constraints (:class:`_BoxSplit`). With ``eps_inf``, rows are
-    solved one at a time, each watched for a direction of unbounded descent to that
-    tolerance (:func:`solve_watched`); a row that finds one ends ``MAX_ITER``."""
+    go to proxsuite as box constraints (:class:`_BoxSplit`). With ``watch``, rows are
+    solved one at a time, each watched for a direction of unbounded descent
+    (:func:`solve_watched`); a row that finds one ends ``MAX_ITER``."""
     P, q, G, h, A, b = data
     from proxsuite import proxqp
 
@@ -193,7 +196,7 @@ def solve_proxsuite(
     M, me = h.shape[-1], b.shape[-1]
     Pn, qn, Gn, hn, An, bn = (t.detach().cpu().double().numpy() for t in (P, q, G, h, A, b))
     x0n = None if x0 is None else x0.detach().cpu().double().numpy()
-    parallel = x0n is None and B > 1 and torch.get_num_threads() > 1 and eps_inf is None
+    parallel = x0n is None and B > 1 and torch.get_num_threads() > 1 and not watch
     qps = proxqp.dense.VectorQP() if parallel else []
     it = np.zeros(B, dtype=np.int64)
     no_bounds = np.full((1, n), np.inf)
@@ -220,12 +223,12 @@ def solve_proxsuite(
             hn[i][gen] if m_in > 0 else None,
             *((split.lb, split.ub) if box else ()),
         )
-        if eps_inf is not None:
+        if watch:
             row = slice(i, i + 1)
 
             def descending(d: np.ndarray, row: slice = row) -> bool:
                 return descends(Pn[row], qn[row], Gn[row], An[row], -no_bounds, no_bounds,
-                                np.isinf(hn[row]), d[None], eps_inf)  # fmt: skip
+                                np.isinf(hn[row]), d[None], WATCH_TOL)  # fmt: skip
 
             x0i = None if x0n is None else x0n[i]
             taken = solve_watched(qp, max_iter, descending, x0i)
@@ -261,7 +264,7 @@ def solve_proxsuite(
         if me > 0:
             y[i] = res.y
         st[i] = int(codes.get(res.info.status, Status.MAX_ITER))
-        if eps_inf is None:
+        if not watch:
             it[i] = res.info.iter
     return _finish(x, z, y, st, it, G, h, A, b, eps)
 

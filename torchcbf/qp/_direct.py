@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchcbf.qp._backends import descends, solve_watched
+from torchcbf.qp._backends import WATCH_TOL, descends, solve_watched
 from torchcbf.qp._function import ROUTE_EPS, ROUTE_MAX_ITER, data_scaling
 from torchcbf.qp._lu import lu_factor_ex
 
@@ -93,7 +93,7 @@ def solve_direct(
     def descending(i: int, d: np.ndarray) -> bool:
         rows = slice(i, i + 1)
         return descends(P[rows], q[rows], Gn[rows], An[rows], lbn[rows], ubn[rows], free[rows],
-                        d[None], eps_inf)  # fmt: skip
+                        d[None], WATCH_TOL)  # fmt: skip
 
     for box in (False, True):
         try:

@@ -1056,7 +1056,10 @@ static void householder_qr(int n, int k, const double *At, double *Qf, double *R
  * the rows before it, |R_ii| <= rank_tol |A_i|, refuses the batch), rows of G Z at most
  * span_tol of |G_i| made exactly zero (their right-hand side rounded up to zero where it is
  * negative by at most eps of its scale), and the reduced problem solved by
- * torchcbf_dual_solve_small. Outputs: x [B,n], z [B,m], y [B,k] (A'y = -(Px + q + G'z + ...)),
+ * torchcbf_dual_solve_small; a reduced Hessian Z'PZ that is not positive definite by more
+ * than the inputs' rounding of P (Z'PZ - tau I, tau = 2 n rounding max_i sum_j |P_ij|, has no
+ * Cholesky factor) refuses the batch: its minimiser would lie far along a direction of
+ * unbounded descent. Outputs: x [B,n], z [B,m], y [B,k] (A'y = -(Px + q + G'z + ...)),
  * z_lb, z_ub [B,n], iters [B]. Returns as torchcbf_dual_solve_small: 0 when every problem
  * is solved and certified, 1 otherwise (the caller takes its general path), -1 when memory
  * ran out or the sizes are invalid. */
@@ -1065,8 +1068,8 @@ int torchcbf_dual_solve_small_eq(int64_t B, int n, int m, int k, const double *P
                                  const double *A, const double *b, const double *lb,
                                  const double *ub, double eps, int max_iter,
                                  double max_condition, double rank_tol, double span_tol,
-                                 double *x, double *z, double *y, double *z_lb, double *z_ub,
-                                 int64_t *iters) {
+                                 double rounding, double *x, double *z, double *y,
+                                 double *z_lb, double *z_ub, int64_t *iters) {
     if (n < 2 || n > NMAX || k < 1 || k >= n || m < 0 || B < 1) return -1;
     const int Mt = m + (ub ? n : 0) + (lb ? n : 0), nr = n - k;
     if (Mt < 1) return 1;
@@ -1165,6 +1168,20 @@ int torchcbf_dual_solve_small_eq(int64_t B, int n, int m, int k, const double *P
                 const double zca = Zr[c * nr + a];
                 double *row = Pr + a * nr;
                 for (int e = 0; e < nr; ++e) row[e] += zca * pz[e];
+            }
+        }
+        {
+            double rowsum = 0.0, S[NMAX * NMAX], Ls[NMAX * NMAX], dinv_s[NMAX];
+            for (int i = 0; i < n; ++i) {
+                double r = 0.0;
+                for (int j = 0; j < n; ++j) r += fabs(Ps[i * n + j]);
+                rowsum = dmax(rowsum, r);
+            }
+            memcpy(S, Pr, sizeof(double) * nr * nr);
+            for (int a = 0; a < nr; ++a) S[a * nr + a] -= 2.0 * n * rounding * rowsum;
+            if (!cholesky(nr, S, Ls, dinv_s)) {
+                code = 1;
+                break;
             }
         }
         for (int i = 0; i < Mt; ++i) {

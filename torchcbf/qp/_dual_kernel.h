@@ -52,6 +52,6 @@ int torchcbf_dual_solve_small_eq(int64_t B, int n, int m, int k, const double *P
                                  const double *A, const double *b, const double *lb,
                                  const double *ub, double eps, int max_iter,
                                  double max_condition, double rank_tol, double span_tol,
-                                 double *x, double *z, double *y, double *z_lb, double *z_ub,
-                                 int64_t *iters);
+                                 double rounding, double *x, double *z, double *y,
+                                 double *z_lb, double *z_ub, int64_t *iters);
 #endif

@@ -221,14 +221,18 @@ def _forward_outside(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> Forw
 def _forward_eliminated(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> Forward:
     """Equality rows eliminated (:mod:`torchcbf.qp._eliminate`) and the reduced problem
     solved by the dual active-set method (its rows it cannot certify by the interior point
-    method, as in :func:`_forward_dual`); the rows whose ``A`` is rank deficient are solved
-    with their equalities kept, by ``cfg.fallback``. The backward factor is the active-set
-    KKT system of the full problem. Finding the rank-deficient rows is one host
-    synchronisation."""
+    method, as in :func:`_forward_dual`); the rows whose ``A`` is rank deficient, or whose
+    reduced Hessian is singular to the inputs' rounding of ``P``, are solved with their
+    equalities kept, by ``cfg.fallback``. The backward factor is the active-set KKT system
+    of the full problem. Finding those rows is one host synchronisation."""
     P, q, G, h, A, b = data
     B, N = q.shape
     k = b.shape[-1]
     red = eliminate.reduce_equalities(A, b)
+    Pr, qr = eliminate.reduced_objective(red, P, q)
+    # a reduced Hessian singular to the inputs' rounding of P: the dual method would answer
+    # far along a direction of unbounded descent, so such rows keep their equalities
+    red = red._replace(ok=red.ok & ~singular_to_rounding(Pr, P, cfg.rounding))
     base = replace(cfg, method=cfg.fallback, need_factor=False)
     all_ok = bool(red.ok.all())
     idx = None if all_ok else red.ok.nonzero().squeeze(-1)
@@ -236,9 +240,8 @@ def _forward_eliminated(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> F
     def rows(t: Tensor) -> Tensor:
         return t if idx is None else t.index_select(0, idx)
 
-    Pk, qk, Gk, hk = (rows(t) for t in (P, q, G, h))
+    Pk, qk, Gk, hk, Pr, qr = (rows(t) for t in (P, q, G, h, Pr, qr))
     red_k = eliminate.Reduction(*(rows(t) for t in red))
-    Pr, qr = eliminate.reduced_objective(red_k, Pk, qk)
     Gr, hr = eliminate.reduced_rows(red_k, Gk, hk, cfg.eps)
     w0 = None
     if x0 is not None:
@@ -303,7 +306,7 @@ def _ipm_routed(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> _IPMOut:
     from torchcbf.qp import _backends
 
     out = _backends.solve_proxsuite(
-        data, eps=ROUTE_EPS, max_iter=ROUTE_MAX_ITER, x0=x0, box=True, eps_inf=cfg.eps_inf
+        data, eps=ROUTE_EPS, max_iter=ROUTE_MAX_ITER, x0=x0, box=True, watch=True
     )
     x, s, z, y, st, iters = (t.to(data.q.device) for t in out)
     ok = (st == int(Status.SOLVED)) & _kkt.kkt_residuals_ok(data, x, z, y, cfg.eps)
@@ -521,6 +524,15 @@ def _exact_applies(data: QPData, cfg: SolverConfig) -> bool:
     return num_candidates(M, E, N, cfg.pairs, cap=cap) <= cap
 
 
+def singular_to_rounding(M: Tensor, P: Tensor, rounding: float) -> Tensor:
+    """Rows ``[B]`` whose symmetric ``M [B, r, r]`` is not positive definite by more than
+    the rounding of ``P [B, n, n]`` (``M - tau I``, ``tau = 2 n rounding max_i sum_j
+    |P_ij|``, has no Cholesky factor): ``M`` is ``P`` itself or its reduction ``Z'PZ``."""
+    n, r = P.shape[-1], M.shape[-1]
+    tau = 2.0 * n * rounding * P.abs().sum(-1).amax(-1)
+    return not_positive_definite(M - torch.diag_embed(tau.unsqueeze(-1).expand(-1, r)))
+
+
 def unbounded_solved(data: QPData, x: Tensor, solved: Tensor, cfg: SolverConfig) -> Tensor:
     """Rows ``[B]`` among ``solved`` whose ``x`` certifies that the problem is unbounded
     (:func:`~torchcbf.qp._ipm.unbounded_rows`, ``P`` singular to the inputs' rounding).
@@ -538,9 +550,7 @@ def unbounded_solved(data: QPData, x: Tensor, solved: Tensor, cfg: SolverConfig)
     # P - tau I positive definite, for tau at least the test's singularity threshold
     # (n units of rounding of the largest eigenvalue, bounded by the largest row sum), rules
     # the row out without an eigendecomposition
-    n = P.shape[-1]
-    tau = 2.0 * n * cfg.rounding * P.abs().sum(-1).amax(-1)
-    cand = cand & not_positive_definite(P - torch.diag_embed(tau.unsqueeze(-1).expand(-1, n)))
+    cand = cand & singular_to_rounding(P, P, cfg.rounding)
     if not bool(cand.any()):
         return cand
     idx = cand.nonzero().squeeze(-1)

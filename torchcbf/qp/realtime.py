@@ -116,8 +116,8 @@ def solve_small(
     if k:
         code = fn(
             B, N, m, k, *pointers, eps, budget, MAX_DUAL_CONDITION, _eliminate.RANK_TOL,
-            _eliminate.SPAN_TOL, x.data_ptr(), z.data_ptr(), nu.data_ptr(), z_lb.data_ptr(),
-            z_ub.data_ptr(), iters.data_ptr(),
+            _eliminate.SPAN_TOL, torch.finfo(dtype).eps, x.data_ptr(), z.data_ptr(),
+            nu.data_ptr(), z_lb.data_ptr(), z_ub.data_ptr(), iters.data_ptr(),
         )  # fmt: skip
     else:
         code = _dual_native._kernel().torchcbf_dual_solve_small(

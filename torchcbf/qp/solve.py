@@ -781,8 +781,9 @@ def _choose(inp: _Inputs, std: _Standard, backend: str, method: str, C: int) -> 
         rest = "enumerate"
     else:
         rest = "ipm"
-    # equality rows eliminated where the reduced problem fits the dual method's C kernel
-    if kernel and 0 < me < N and dual_applies(N - me, True):
+    # equality rows eliminated where the reduced problem (with some inequality row) fits the
+    # dual method's C kernel
+    if kernel and std.G.shape[-2] > 0 and 0 < me < N and dual_applies(N - me, True):
         return "eliminate", rest
     return rest, "ipm"
 
