@@ -351,9 +351,10 @@ def behaves_as(obj: object, cls: type, methods: Sequence[str]) -> bool:
     handing ``obj`` to a kernel that evaluates ``cls``'s formulas. A class that rewrites
     ``__call__`` changes ``forward`` too."""
     if "forward" in methods:  # a call runs __call__, its hooks and the instance's forward
-        methods = (*methods, "__call__")
         if hooked(obj):
             return False
+        if isinstance(obj, torch.nn.Module):
+            methods = (*methods, "__call__")
     return isinstance(obj, cls) and _keeps(type(obj), cls, tuple(methods))
 
 
