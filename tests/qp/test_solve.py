@@ -335,3 +335,25 @@ def test_equality_constraints_alone(B: int, grad: bool) -> None:
             K, torch.cat([-torch.ones(B, 3, dtype=f64), torch.zeros(B, 1, dtype=f64)], -1)
         )
         torch.testing.assert_close(p.grad, dx_dp[:, :3], atol=1e-9, rtol=1e-9)
+
+
+def test_a_diverging_last_iterate_stays_finite_in_float32() -> None:
+    """A float32 LP whose equalities fix ``x`` where one row is violated by rounding alone:
+    not SOLVED, and every output finite (the float64 iterate reaches 1e53)."""
+    t = lambda rows: torch.tensor(rows, dtype=torch.float32)  # noqa: E731
+    p = t([-0.15712, -2.11132, -0.73333, -0.36815])
+    G = t([[-0.17358209, 0.77721763, -0.01454346, 1.60137808],
+           [0.63277680, 0.59003025, 1.02774477, 0.49774244],
+           [0.33232301, -0.55805767, -0.35314232, 0.37488523],
+           [-0.09961575, 0.29993618, 0.23115881, -0.18528463]])  # fmt: skip
+    h = t([-0.1788944006, 0.8543500304, 0.4622353315, 0.1784370393])
+    A = t([[1.36802411, -0.45046702, -0.02873789, 0.38856354],
+           [1.23441339, -1.97315657, 0.36609548, 1.43809950],
+           [-0.21949653, 1.09724844, -0.09881322, -1.64447427],
+           [-0.19473398, 0.97503000, 0.16447799, -0.23382339]])  # fmt: skip
+    b = t([-0.5710104108, -1.2860493660, 0.8510959744, 0.4178529084])
+    sol = solve_qp(torch.zeros(4, 4), p, G, h, A, b, lb=torch.full((4,), -2.4605),
+                   ub=torch.full((4,), 2.97974))  # fmt: skip
+    assert int(sol.status) != Status.SOLVED
+    for field in (sol.x, sol.lam, sol.nu, sol.lam_lb, sol.lam_ub):
+        assert torch.isfinite(field).all()

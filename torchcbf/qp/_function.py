@@ -932,6 +932,15 @@ def data_scaling(P: Tensor, q: Tensor) -> Scaling:
     return Scaling(torch.where(band, 1.0, _inverse_power_of_two(big)))
 
 
+def _cast(t: Tensor, dtype: torch.dtype) -> Tensor:
+    """``t`` (float64) in ``dtype``, clamped to its finite range: a diverging last iterate
+    (``MAX_ITER``) of 1e53 would become ``inf`` in float32."""
+    if dtype == torch.float64:
+        return t
+    big = torch.finfo(dtype).max
+    return t.clamp(-big, big).to(dtype)
+
+
 class QPFunction(torch.autograd.Function):
     """``(P, q, G, h, A, b) -> (x, z, y, status, iterations, method)``, batched ``[B, ...]``
     (``method``: the :data:`ANSWERED_BY` code of each row).
@@ -965,7 +974,7 @@ class QPFunction(torch.autograd.Function):
         if scaling is not None:
             inv_c = (1.0 / scaling.c).unsqueeze(-1)
             z, y = z * inv_c, y * inv_c
-        return x.to(dtype), z.to(dtype), y.to(dtype), status, iters, method
+        return _cast(x, dtype), _cast(z, dtype), _cast(y, dtype), status, iters, method
 
     @staticmethod
     def backward(ctx, gx, gz, gy, _gs, _gi, _gm):  # noqa: D102

@@ -13,7 +13,8 @@ class Status(IntEnum):
       (box rows included) was found; ``x`` is zero-filled.
     - ``DUAL_INFEASIBLE``: an unbounded descent direction ``d`` (``Qd = 0, Ad = 0, Gd <= 0,
       p'd < 0``) was found; ``x`` is zero-filled.
-    - ``MAX_ITER``: the iteration budget ran out first; ``x`` is the last iterate (finite).
+    - ``MAX_ITER``: the iteration budget ran out first; ``x`` is the last iterate (finite:
+      clamped to the dtype's range).
     - ``NON_FINITE``: the row's data held NaN/inf (other than infinite box bounds); ``x`` is zero.
     - ``NUMERICAL_ERROR``: a factorisation broke down (e.g. an indefinite ``Q``), or the
       interior point's answer could not be verified as a KKT point to tolerance by any exact
