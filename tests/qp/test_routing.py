@@ -84,16 +84,17 @@ def test_equality_problems_one_at_a_time_equal_the_batch():
 
 
 def test_infinite_rows_are_ignored_on_the_direct_path():
-    Q = torch.eye(3, dtype=F64)
+    # Q singular (which the dual method never takes), so proxsuite takes the problem:
+    # x1 = x2, x3 <= 1 - 2 x1 leaves x1^2 - 1, least at x = (0, 0, 1)
+    Q = torch.diag(torch.tensor([1.0, 1.0, 0.0], dtype=F64))
     p = -torch.ones(3, dtype=F64)
     G = torch.tensor([[1.0, 1.0, 1.0], [1.0, 0.0, 0.0]], dtype=F64)
     h = torch.tensor([1.0, torch.inf], dtype=F64)
-    # dependent equality rows: not eliminated, so proxsuite takes the problem
-    A = torch.tensor([[1.0, -1.0, 0.0], [2.0, -2.0, 0.0]], dtype=F64)
-    b = torch.zeros(2, dtype=F64)
+    A = torch.tensor([[1.0, -1.0, 0.0]], dtype=F64)
+    b = torch.zeros(1, dtype=F64)
     sol = solve_qp(Q, p, G, h, A, b)
     assert sol.path == "small_proxsuite" and int(sol.status) == Status.SOLVED
-    torch.testing.assert_close(sol.x, torch.full((3,), 1.0 / 3.0, dtype=F64))
+    torch.testing.assert_close(sol.x, torch.tensor([0.0, 0.0, 1.0], dtype=F64))
     assert float(sol.lam[1]) == 0.0
 
 
@@ -216,3 +217,26 @@ def test_problems_the_kernel_fits_are_not_routed():
     sol = solve_qp(singular, p, G, h)
     assert sol.path == "small_proxsuite" and int(sol.status) == Status.SOLVED
     torch.testing.assert_close(sol.x, torch.tensor([1.0, 1.0], dtype=F64))
+
+
+def test_dependent_equality_rows_are_never_solved_wrong(cvx):
+    """Seven equality rows of rank six (one row a combination of two others), a ``Q`` of rank
+    ``n - 1``: the multipliers are free along the dependence, and proxsuite's answer with
+    multipliers of 1e18 passed a stationarity test scaled by them. Every SOLVED answer has
+    Clarabel's objective."""
+    n, k = 8, 7
+    for seed in range(40):
+        g = torch.Generator().manual_seed(seed)
+        L = torch.randn(n, n - 1, generator=g, dtype=F64)
+        p = 10 * torch.randn(n, generator=g, dtype=F64)
+        A = torch.randn(k, n, generator=g, dtype=F64)
+        A[-1] = A[0] + 2 * A[1]
+        x0 = torch.randn(n, generator=g, dtype=F64)
+        G = torch.randn(1, n, generator=g, dtype=F64)
+        G = torch.cat([G, G + 1e-9 * torch.randn(1, n, generator=g, dtype=F64)])
+        Q, b, h = L @ L.mT, A @ x0, G @ x0 + 0.1
+        sol = solve_qp(Q, p, G, h, A, b)
+        assert int(sol.status) == Status.SOLVED, (seed, sol.path)
+        _, ref, _ = cvx(*(t.numpy() for t in (Q, p, G, h, A, b)))
+        objective = float(0.5 * sol.x @ Q @ sol.x + p @ sol.x)
+        assert abs(objective - ref) <= 1e-6 * max(1.0, abs(ref)), (seed, sol.path)

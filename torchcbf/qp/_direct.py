@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from torchcbf.qp._backends import WATCH_TOL, descends, solve_watched
+from torchcbf.qp._eliminate import RANK_TOL
 from torchcbf.qp._function import ROUTE_EPS, ROUTE_MAX_ITER, data_scaling
 from torchcbf.qp._lu import lu_factor_ex
 
@@ -83,6 +84,10 @@ def solve_direct(
         or (ubn == -np.inf).any()
     ):
         return None
+    if k and _rank_deficient(An):
+        # multipliers free along the dependence of A's rows (1e18 seen) would scale the
+        # stationarity test up until a wrong point passes it
+        return None
     # the objective scaled as the torch backend's methods scale it (data_scaling)
     c = data_scaling(torch.from_numpy(P), torch.from_numpy(q)).c.numpy()[:, None]
     P, q = P * c[..., None], q * c
@@ -126,6 +131,13 @@ def solve_direct(
         out(x), status, out(lam), out(y), torch.from_numpy(iters).reshape(shape),
         out(lam_lb), out(lam_ub), out(np.zeros((B, m))),
     )  # fmt: skip
+
+
+def _rank_deficient(A: np.ndarray) -> bool:
+    """Whether some row's ``A [k, n]`` has a singular value within ``RANK_TOL`` of its
+    largest (:mod:`torchcbf.qp._eliminate`'s rank rule, in numpy)."""
+    sv = np.linalg.svd(A, compute_uv=False)
+    return bool((sv[:, -1] <= RANK_TOL * sv[:, 0]).any()) if A.shape[1] <= A.shape[2] else True
 
 
 class _Descending(Exception):
