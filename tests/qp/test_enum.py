@@ -233,3 +233,24 @@ def test_explicit_enumeration_refuses_too_many_candidate_sets():
         solve_qp(Q, p, G, h, method="enumerate")
     # the default method solves the same problem
     assert int(solve_qp(Q, p, G, h).status) == Status.SOLVED
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_enumeration_takes_the_minimiser_not_a_saddle_where_q_is_indefinite(dtype, cvx):
+    """``Q = vv'`` rounded to float32 has an eigenvalue of -7e-9: the stationary point of the
+    empty active set (far out, objective +3.4e6) is a KKT point too, a saddle. Enumeration
+    takes the least objective among its KKT points, the minimiser's (Clarabel's, -9.82)."""
+    Q = torch.tensor([[2.4199635982513428, 0.4243291914463043],
+                      [0.4243291914463043, 0.07440411299467087]])  # fmt: skip
+    assert torch.linalg.eigvalsh(Q.double())[0] < 0
+    p = torch.tensor([-7.168409824371338, -1.4811828136444092])
+    G = torch.tensor([[-0.012977631762623787, 1.6278356313705444],
+                      [3.0782575607299805, 0.9077008962631226],
+                      [0.6727232933044434, 1.4134207963943481]])  # fmt: skip
+    h = torch.tensor([1.064685344696045, 6.616869926452637, 1.065529465675354])
+    sol = solve_qp(*(t.to(dtype) for t in (Q, p, G, h)), method="enumerate")
+    assert int(sol.status) == Status.SOLVED
+    x = sol.x.double()
+    objective = float(0.5 * x @ Q.double() @ x + p.double() @ x)
+    _, ref, _ = cvx(*(t.double().numpy() for t in (Q, p, G, h)))
+    assert abs(objective - ref) <= 1e-4 * abs(ref), (objective, ref)

@@ -292,7 +292,9 @@ def solve_enum_kkt(
     ill-conditioned for :func:`solve_enum`, whose Schur complement works around
     ``x_u = -P^{-1} q`` and loses the digits a weak curvature costs (``x_u ~ 1e8`` for a
     ``P`` of condition 1e9). Each candidate is judged on its own point (rows on their own
-    scale, multipliers against their largest); the best one within ``eps`` is kept (``ok``).
+    scale, multipliers against their largest); the best one within ``eps`` is kept (``ok``),
+    and where ``P`` is not positive definite (a saddle is a KKT point too) the one of least
+    objective among those within ``eps``.
     Its cost is about ``B C`` small LU factorisations for ``C`` candidates: meant for a few
     rows (the caller's ``SMALL_BATCH``)."""
     P, q, G, h, A, b = data
@@ -308,7 +310,17 @@ def solve_enum_kkt(
     zmax = 1.0 + z.abs().amax(-1) if M > 0 else x.new_ones(B * C)
     dviol = (-z.amin(-1)).clamp_min(0.0) / zmax if M > 0 else x.new_zeros(B * C)
     score = torch.where(solved, torch.maximum(pviol, dviol), math.inf).view(B, C)
-    best_score, best = score.nan_to_num(nan=math.inf).min(-1)
+    score = score.nan_to_num(nan=math.inf)
+    best_score, best = score.min(-1)
+    # where P is not positive definite a KKT point may be a saddle: of the candidates within
+    # eps, the one of least objective (the minimiser, where one exists, is among them)
+    indefinite = torch.linalg.cholesky_ex(P).info != 0
+    objective = ((0.5 * (each.P @ x.unsqueeze(-1)).squeeze(-1) + each.q) * x).sum(-1)
+    valid = (score <= eps) & torch.isfinite(objective.view(B, C))
+    least = torch.where(valid, objective.view(B, C), math.inf).argmin(-1)
+    take = indefinite & valid.any(-1)
+    best = torch.where(take, least, best)
+    best_score = torch.where(take, score.gather(-1, least.unsqueeze(-1)).squeeze(-1), best_score)
     pick = (torch.arange(B, device=q.device) * C + best).view(B)
     x, z, y, active = x[pick], z[pick].clamp_min(0.0), y[pick], act[pick]
     ok = best_score <= eps
