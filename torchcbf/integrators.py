@@ -13,12 +13,12 @@ import torch
 from torch import Tensor
 
 from torchcbf._checks import (
+    behaves_as,
     broadcast_shapes,
     check_generator,
     check_last_dim,
     check_positive,
     check_same,
-    hooked,
 )
 from torchcbf.dynamics.base import MATVEC_COLUMNS_UP_TO, ControlAffine
 
@@ -29,15 +29,10 @@ METHODS: tuple[str, ...] = ("euler", "rk4", "euler_maruyama")
 def rate_form(dynamics: ControlAffine) -> str:
     """How ``dynamics``' rate is evaluated: ``"module"`` (the module call, where a subclass
     rewrote ``forward`` or ``__call__`` itself, or its calls run hooks or an instance's own
-    ``forward``: :func:`~torchcbf._checks.hooked`), ``"plain"`` (``xdot`` is
+    ``forward``: :func:`~torchcbf._checks.behaves_as`), ``"plain"`` (``xdot`` is
     ``f + g u``, not rewritten: a caller may form the sum in any layout) or ``"xdot"`` (the
     model's own ``xdot``)."""
-    cls = type(dynamics)
-    if (
-        hooked(dynamics)
-        or cls.forward is not ControlAffine.forward
-        or cls.__call__ is not torch.nn.Module.__call__
-    ):
+    if not behaves_as(dynamics, ControlAffine, ("forward",)):
         return "module"
     return "plain" if getattr(dynamics.xdot, "__func__", None) is ControlAffine.xdot else "xdot"
 

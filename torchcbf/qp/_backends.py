@@ -158,7 +158,7 @@ def solve_watched(
     for run, budget in enumerate((first, second, max_iter - first - second)):
         if budget == 0:
             break
-        before = np.array(qp.results.x)
+        before = np.array(qp.results.x) if run == 1 else None
         qp.settings.max_iter = budget
         if run == 0 and x0 is not None:
             qp.solve(x0, None, None)
@@ -170,7 +170,7 @@ def solve_watched(
         taken += qp.results.info.iter
         if qp.results.info.status != proxqp.PROXQP_MAX_ITER_REACHED:
             break
-        if run == 1 and descending(qp.results.x - before):
+        if before is not None and descending(qp.results.x - before):
             return None
     return taken
 

@@ -134,8 +134,10 @@ def solve_direct(
 
 
 def _rank_deficient(A: np.ndarray) -> bool:
-    """Whether some row's ``A [k, n]`` has a singular value within ``RANK_TOL`` of its
-    largest (:mod:`torchcbf.qp._eliminate`'s rank rule, in numpy)."""
+    """Whether some row's ``A [k, n]`` is rank deficient: more rows than columns, or a
+    singular value within ``RANK_TOL`` of its largest (the tolerance of
+    :mod:`torchcbf.qp._eliminate`'s rank rule, which measures each row's distance to the
+    span of the rows before it)."""
     sv = np.linalg.svd(A, compute_uv=False)
     return bool((sv[:, -1] <= RANK_TOL * sv[:, 0]).any()) if A.shape[1] <= A.shape[2] else True
 
