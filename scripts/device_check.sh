@@ -12,10 +12,10 @@
 # (8 files: the device tool brings back at most 8)
 #
 # Steps, in order of value, each bounded by its own time budget (seconds, flags below):
-#   install (150) -> figures (150, a figure started in time may run on up to 60 more)
-#   -> tests (120) -> bench (100, shared by the scripts) -> scenario A (45) -> profile (40)
-#   -> scenario B (90)
-# about 10 minutes if every step runs to its budget (the JSON is kept up to date, so the
+#   install (120) -> figures (150, a figure started in time may run on up to 60 more)
+#   -> tests (100) -> scenario A (45) -> scenario B (120) -> bench (80, shared by the
+#   scripts) -> profile (30)
+# about 11 minutes if every step runs to its budget (the JSON is kept up to date, so the
 # call's limit loses only the step it stops), far less where the steps end early. A step
 # that fails does not stop the others; the script ends with a list of the failed steps and
 # exit status 1 if there is any.
@@ -25,7 +25,8 @@
 #   bash scripts/device_check.sh --prepare
 #
 # copies the pure-Python packages the device image lacks (pytorch-mppi and its helpers,
-# pytorch-kinematics, gymnasium) from .venv into build/device-carry/site, and records the
+# pytorch-kinematics, gymnasium, qpsolvers, qpth, cbfpy, qpax) from .venv, and unpacks
+# CPython 3.12 wheels of proxsuite and clarabel (pip download), into build/device-carry/site, and records the
 # commit in build/device-carry/commit.txt (the device gets no .git). build/ is git-ignored,
 # so the run call must carry it. The device call (one; what is under $OUT comes back even at the limit):
 #
@@ -33,8 +34,8 @@
 #
 # Then: python scripts/device_report.py <files_at>/device_check.json --cpu <cpu json>.
 # Rehearsal on a CPU (every step, small sizes): bash scripts/device_check.sh --device cpu
-# --quick --out /tmp/device-check. Packages absent on the device (proxsuite, qpsolvers,
-# cvxpy, clarabel, cbfpy, qpth) make their tests and benchmark lines skip.
+# --quick --out /tmp/device-check. Packages absent on the device and not carried (cvxpy)
+# make their tests and benchmark lines skip.
 #
 # Flags: --device cuda|cpu (default cuda), --out DIR (default $OUT), --quick (small sizes),
 # --python PY (default python3 on the device, .venv/bin/python here), --no-install,
@@ -50,11 +51,11 @@ QUICK=0
 INSTALL=1
 PREPARE=0
 FIGURES_BUDGET=150
-TESTS_BUDGET=120
-BENCH_BUDGET=100
+TESTS_BUDGET=100
+BENCH_BUDGET=80
 SCENARIO_BUDGET=45
-SCENARIO_B_BUDGET=90
-PROFILE_BUDGET=40
+SCENARIO_B_BUDGET=120
+PROFILE_BUDGET=30
 SKIP=" "
 PY=""
 DEST="${OUT:-}"
@@ -90,12 +91,28 @@ if [ "$PREPARE" = 1 ]; then
     [ -x "$PY" ] || die "--prepare: no python at $PY (--python PY)"
     rm -rf "$CARRY" && mkdir -p "$CARRY/site" || die "cannot create $CARRY"
     for pkg in pytorch_mppi arm_pytorch_utilities pytorch_seed pytorch_kinematics gymnasium \
-               farama_notifications; do
+               farama_notifications qpsolvers qpth cbfpy qpax; do
         src="$("$PY" -c "import importlib.util as u, os; s = u.find_spec('$pkg'); \
 print(os.path.dirname(s.origin) if s and s.origin else '')" 2>/dev/null)"
         [ -n "$src" ] && [ -d "$src" ] || die "--prepare: $pkg is not installed in $PY"
         cp -r "$src" "$CARRY/site/" || die "--prepare: copying $src failed"
     done
+    # compiled peers and references the device image lacks: their CPython 3.12 wheels,
+    # unpacked (proxsuite's from its cmeel prefix); without network here they skip there
+    wheels="$(mktemp -d)"
+    if "$PY" -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 \
+        --implementation cp --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 \
+        --platform manylinux2014_x86_64 -d "$wheels" proxsuite==0.8.0 clarabel==0.11.1 \
+        >/dev/null 2>&1; then
+        for w in "$wheels"/*.whl; do
+            "$PY" -m zipfile -e "$w" "$wheels/x" || die "--prepare: unpacking $w failed"
+        done
+        cp -r "$wheels"/x/cmeel.prefix/lib/python3.12/site-packages/proxsuite "$wheels"/x/clarabel \
+            "$CARRY/site/" || die "--prepare: copying the unpacked wheels failed"
+    else
+        echo "device_check: WARNING: no proxsuite/clarabel wheels (no network?); their lines will skip" >&2
+    fi
+    rm -rf "$wheels"
     find "$CARRY/site" -name __pycache__ -type d -prune -exec rm -rf {} +
     commit="$(git rev-parse HEAD)" || die "--prepare: not a git checkout"
     dirty=""; [ -n "$(git status --porcelain --untracked-files=no)" ] && dirty=" dirty"
@@ -114,6 +131,8 @@ if [ -z "$PY" ]; then
 fi
 command -v "$PY" >/dev/null || die "no python '$PY'"
 export PYTHONUNBUFFERED=1 MPLBACKEND=Agg
+# JAX peers (cbfpy, qpax) share the card with torch: no 75% preallocation
+export XLA_PYTHON_CLIENT_PREALLOCATE=false
 if [ -d "$CARRY/site" ]; then
     export PYTHONPATH="$CARRY/site${PYTHONPATH:+:$PYTHONPATH}"
 elif [ "$DEVICE" = cuda ]; then
@@ -153,14 +172,14 @@ command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version,m
 # --- install ------------------------------------------------------------------------------
 t0=$(now)
 if [ "$INSTALL" = 1 ]; then
-    timeout 150 "$PY" -m pip install --no-deps --no-build-isolation --no-index -e . \
+    timeout 120 "$PY" -m pip install --no-deps --no-build-isolation --no-index -e . \
         >>"$DEST/install.log" 2>&1
     rc=$?
     if [ "$rc" = 0 ]; then
         step install 0 "$(since "$t0")" "pip install -e . (no deps, no index)"
     elif [ "$rc" = 124 ]; then
         # the build itself is slow here: a second build would be too
-        step install 1 "$(since "$t0")" "pip install -e . stopped after 150 s (install.log); running from PYTHONPATH with whatever C kernels it built"
+        step install 1 "$(since "$t0")" "pip install -e . stopped after 120 s (install.log); running from PYTHONPATH with whatever C kernels it built"
     else
         # an older setuptools rejects pyproject.toml's metadata: build the C kernels (CPU
         # only) in place from setup.py alone, in a folder without pyproject.toml whose
@@ -207,6 +226,32 @@ if ! skipped tests; then
     step tests "$rc" "$(since "$t0")" "$note"
 fi
 
+# --- scenario A ----------------------------------------------------------------------------
+if ! skipped scenarios; then
+    t0=$(now)
+    if [ "$QUICK" = 1 ]; then size=(--seeds 2 --samples 500); else size=(--seeds 10 --samples 10000); fi
+    tmp="$(mktemp -d)"
+    timeout -s INT -k 10 "$SCENARIO_BUDGET" "$PY" -m torchcbf.cli reach-avoid "${size[@]}" \
+        --device "$DEVICE" --out "$tmp/reach-avoid" --no-gif --no-progress >"$DEST/scenarios.log" 2>&1
+    rc=$?
+    cp "$tmp/reach-avoid/metrics.json" "$WORK/scenario_a.json" 2>/dev/null
+    step scenario_a "$rc" "$(since "$t0")" "torchcbf reach-avoid ${size[*]} --device $DEVICE --no-gif (wall seconds: start, run and figures)"
+    rm -rf "$tmp"
+fi
+
+# --- scenario B at the paper's size -----------------------------------------------------------
+if ! skipped scenario_b; then
+    t0=$(now)
+    if [ "$QUICK" = 1 ]; then size=(--seeds 2 --samples 500); else size=(--seeds 32 --samples 20000); fi
+    tmp="$(mktemp -d)"
+    timeout -s INT -k 10 "$SCENARIO_B_BUDGET" "$PY" -m torchcbf.cli mppi-cbf "${size[@]}" \
+        --device "$DEVICE" --out "$tmp/mppi-cbf" --no-gif --no-progress >>"$DEST/scenarios.log" 2>&1
+    rc=$?
+    cp "$tmp/mppi-cbf/metrics.json" "$WORK/scenario_b.json" 2>/dev/null
+    step scenario_b "$rc" "$(since "$t0")" "torchcbf mppi-cbf ${size[*]} --device $DEVICE --no-gif (wall seconds: start, run and figures; all five methods)"
+    rm -rf "$tmp"
+fi
+
 # --- benchmark scripts ------------------------------------------------------------------------
 if ! skipped bench; then
     # one script at a time, each with its share of the budget, so that one slow script does
@@ -228,19 +273,6 @@ if ! skipped bench; then
     done
 fi
 
-# --- scenario A ----------------------------------------------------------------------------
-if ! skipped scenarios; then
-    t0=$(now)
-    if [ "$QUICK" = 1 ]; then size=(--seeds 2 --samples 500); else size=(--seeds 10 --samples 10000); fi
-    tmp="$(mktemp -d)"
-    timeout -s INT -k 10 "$SCENARIO_BUDGET" "$PY" -m torchcbf.cli reach-avoid "${size[@]}" \
-        --device "$DEVICE" --out "$tmp/reach-avoid" --no-gif --no-progress >"$DEST/scenarios.log" 2>&1
-    rc=$?
-    cp "$tmp/reach-avoid/metrics.json" "$WORK/scenario_a.json" 2>/dev/null
-    step scenario_a "$rc" "$(since "$t0")" "torchcbf reach-avoid ${size[*]} --device $DEVICE --no-gif (wall seconds: start, run and figures)"
-    rm -rf "$tmp"
-fi
-
 # --- where the filter's and the QP's time goes (torch.profiler tables) ------------------------
 if ! skipped profile; then
     t0=$(now)
@@ -250,19 +282,6 @@ if ! skipped profile; then
     rc=$?
     [ "$rc" = 0 ] || cat "$WORK/profile.err" >>"$DEST/scenarios.log"
     step profile "$rc" "$(since "$t0")" "scripts/device_profile.py --states $states (profile.log)"
-fi
-
-# --- scenario B at the paper's size -----------------------------------------------------------
-if ! skipped scenario_b; then
-    t0=$(now)
-    if [ "$QUICK" = 1 ]; then size=(--seeds 2 --samples 500); else size=(--seeds 32 --samples 20000); fi
-    tmp="$(mktemp -d)"
-    timeout -s INT -k 10 "$SCENARIO_B_BUDGET" "$PY" -m torchcbf.cli mppi-cbf "${size[@]}" \
-        --device "$DEVICE" --out "$tmp/mppi-cbf" --no-gif --no-progress >>"$DEST/scenarios.log" 2>&1
-    rc=$?
-    cp "$tmp/mppi-cbf/metrics.json" "$WORK/scenario_b.json" 2>/dev/null
-    step scenario_b "$rc" "$(since "$t0")" "torchcbf mppi-cbf ${size[*]} --device $DEVICE --no-gif (wall seconds: start, run and figures; all five methods)"
-    rm -rf "$tmp"
 fi
 
 # --- the JSON and the report ---------------------------------------------------------------
