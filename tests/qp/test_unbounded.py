@@ -6,6 +6,8 @@ box, and random strictly convex problems), which stay ``SOLVED`` and equal Clara
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -176,3 +178,61 @@ def test_recession_direction_inside_the_equalities_is_dual_infeasible(B):
         sol = solve_qp(args[0], p_in, *args[2:])
         assert (sol.status == int(Status.DUAL_INFEASIBLE)).all(), (sol.path, sol.status)
         assert (sol.x == 0).all()
+
+
+def saddle_family(B: int, n: int, m: int, seed: int):
+    """``Q`` of rank ``n - 1`` rounded to float32 (its zero eigenvalue lands a little either
+    side of zero), ``p`` rising along the null direction ``d``, and rows that leave the ray
+    along ``d`` open and close the one against it: bounded, with the minimiser on a row, and
+    where the eigenvalue went negative a stationary point far along ``d`` (a saddle)."""
+    g = torch.Generator().manual_seed(seed)
+    f64 = torch.float64
+    L = torch.randn(B, n, n - 1, generator=g, dtype=f64)
+    Q = (L @ L.mT).float().double()
+    d = torch.linalg.eigh(Q).eigenvectors[..., 0]
+    p = torch.randn(B, n, generator=g, dtype=f64)
+    d = d * torch.sign((p * d).sum(-1, keepdim=True))
+    G = torch.randn(B, m, n, generator=g, dtype=f64)
+    target = -(torch.rand(B, m, generator=g, dtype=f64) + 0.2)
+    G = G + (target - (G @ d.unsqueeze(-1)).squeeze(-1)).unsqueeze(-1) * d.unsqueeze(-2)
+    h = torch.rand(B, m, generator=g, dtype=f64) + 0.5
+    return tuple(t.float().double() for t in (Q, p, G, h))
+
+
+def least_stationary_objective(Q, p, G, h) -> float:
+    """The least objective over the feasible stationary points of every face of ``G x <=
+    h`` (numpy, float64): the minimum of a bounded QP, convex or not."""
+    import itertools
+
+    import numpy as np
+
+    Q, p, G, h = (t.numpy() for t in (Q, p, G, h))
+    n, best = len(p), math.inf
+    for k in range(n + 1):
+        for face in map(list, itertools.combinations(range(len(h)), k)):
+            K = np.block([[Q, G[face].T], [G[face], np.zeros((k, k))]])
+            rhs = np.concatenate([-p, h[face]])
+            sol = np.linalg.lstsq(K, rhs, rcond=1e-12)[0]
+            x = sol[:n]
+            stationary = np.abs(K @ sol - rhs).max() <= 1e-8 * (1 + np.abs(rhs).max())
+            if stationary and (G @ x - h).max() <= 1e-9 * (1 + np.abs(h).max()):
+                best = min(best, 0.5 * x @ Q @ x + p @ x)
+    return best
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f64", "f32"])
+@pytest.mark.parametrize("method", ("auto", "active_set", "ipm"))
+def test_a_saddle_of_a_rounded_singular_q_is_never_solved(kernel, method, dtype, seed):
+    """Where rounding leaves ``Q`` a little indefinite, every row is SOLVED at the minimiser
+    (the least objective of the brute-force reference), never at the far saddle that a
+    proximal step or the polish can converge to."""
+    n = 2 + seed % 3
+    Q, p, G, h = saddle_family(5, n, 6, seed)
+    sol = solve_qp(*(t.to(dtype) for t in (Q, p, G, h)), method=method)
+    assert (sol.status == Status.SOLVED).all(), sol.status
+    x = sol.x.double()
+    got = 0.5 * torch.einsum("bi,bij,bj->b", x, Q, x) + (p * x).sum(-1)
+    for i in range(5):
+        ref = least_stationary_objective(Q[i], p[i], G[i], h[i])
+        assert abs(float(got[i]) - ref) <= 1e-4 * (1 + abs(ref)), (i, float(got[i]), ref)

@@ -441,7 +441,8 @@ def _polish_and_resolve(
     kept only near the interior point's own point (within :data:`POLISH_MOVE` ``sqrt(eps)``,
     relative): nearly dependent rows let a wrong active-set guess pass those checks far
     away. Farther off, the row keeps the interior point's answer where that converged, and
-    is ``NUMERICAL_ERROR`` otherwise. A row the polish cannot verify at all is
+    is ``NUMERICAL_ERROR`` otherwise. A polished point that is a saddle
+    (:func:`saddle_solved`) counts as not converged. A row the polish cannot verify at all is
     ``NUMERICAL_ERROR``, except where no exact method applies (:func:`_exact_applies`): there
     it keeps the interior point's answer where that converged and is a KKT point to ``eps``
     on the given data (:func:`torchcbf.qp._kkt.kkt_residuals_ok`)."""
@@ -450,6 +451,9 @@ def _polish_and_resolve(
     x, z, y, status, polished_active, verified, exact = _kkt.polish(
         data, x, s, z, y, status, eps=cfg.eps
     )
+    # a saddle is no answer: the row is re-solved like one the method gave up on
+    saddle = saddle_solved(data, x, status == int(Status.SOLVED), cfg)
+    status = torch.where(saddle, int(Status.NUMERICAL_ERROR), status)
     solved = status == int(Status.SOLVED)
     failed = (status == int(Status.NUMERICAL_ERROR)) | (status == int(Status.MAX_ITER))
     suspect = (solved & ~exact) | failed
@@ -556,6 +560,61 @@ def unbounded_solved(data: QPData, x: Tensor, solved: Tensor, cfg: SolverConfig)
     idx = cand.nonzero().squeeze(-1)
     sub = [t.index_select(0, idx) for t in (P, q, data.G, data.A, x)]
     found = unbounded_rows(*sub, cfg.eps_inf, cfg.rounding)
+    return torch.zeros_like(cand).index_copy(0, idx, found)
+
+
+def saddle_solved(data: QPData, x: Tensor, solved: Tensor, cfg: SolverConfig) -> Tensor:
+    """Rows ``[B]`` among ``solved`` whose ``x`` is a stationary point but no minimiser: ``P``
+    is not positive definite, and along a direction of negative curvature in the null space
+    of the rows tight at ``x`` (equality rows included) the objective falls, inside the
+    feasible set, by more than ``eps (1 + |f(x)|)``.
+
+    For a convex problem every KKT point is a minimiser; where ``P`` is indefinite (float32
+    rounding of a singular ``P`` is enough) a KKT point can be a saddle far out, with the
+    minimiser elsewhere. Each eigenvector ``d`` of the reduced Hessian with an eigenvalue
+    ``mu`` below the rounding of ``P`` is followed both ways to the first row it would
+    cross: ``f(x + t d) - f(x) = t g'd + mu t^2 / 2``, ``g = P x + q``, is least at that end
+    (a ray without such a row is unbounded descent). The test (an SVD and an
+    eigendecomposition) runs only on rows whose ``P`` has no Cholesky factor, after one host
+    synchronisation."""
+    P, q, G, h, A, b = data
+    cand = solved & not_positive_definite(P)
+    if not bool(cand.any()):
+        return cand
+    idx = cand.nonzero().squeeze(-1)
+    P, q, G, h, A = (t.index_select(0, idx) for t in (P, q, G, h, A))
+    x = x.index_select(0, idx)
+    n = P.shape[-1]
+    Gx = G @ x.unsqueeze(-1)
+    slack = h - Gx.squeeze(-1)
+    tight = slack <= cfg.eps * (1.0 + Gx.squeeze(-1).abs())
+    C = torch.cat([A, G * tight.unsqueeze(-1)], dim=-2)
+    eye = torch.eye(n, dtype=P.dtype, device=P.device)
+    if C.shape[-2] > 0:
+        _, sv, Vh = torch.linalg.svd(C, full_matrices=False)
+        keep = sv > 1e-9 * sv.amax(-1, keepdim=True).clamp_min(torch.finfo(P.dtype).tiny)
+        V = Vh.mT * keep.unsqueeze(-2)
+        Z = eye - V @ V.mT  # projector on the null space of the tight rows
+    else:
+        Z = eye.expand_as(P)
+    mu, D = torch.linalg.eigh(Z @ (0.5 * (P + P.mT)) @ Z)
+    tau = 2.0 * n * torch.finfo(P.dtype).eps * P.abs().sum(-1).amax(-1, keepdim=True)
+    neg = mu < -tau  # [b, n]: directions (columns of D) of negative curvature
+    g = (P @ x.unsqueeze(-1)).squeeze(-1) + q
+    f = 0.5 * (x * (g + q)).sum(-1)
+    gd = (g.unsqueeze(-1) * D).sum(-2)  # [b, n]
+    Gd = G @ D  # [b, M, n]
+    free = ~tight.unsqueeze(-1) & torch.isfinite(slack).unsqueeze(-1)
+    worst = torch.zeros_like(f)
+    for sign in (1.0, -1.0):
+        rate = sign * Gd
+        crosses = free & (rate > 1e-12 * Gd.abs().amax(-2, keepdim=True))
+        ratio = torch.where(crosses, slack.clamp_min(0.0).unsqueeze(-1) / rate, torch.inf)
+        t = ratio.amin(-2)  # [b, n]
+        fall = -(sign * t * gd + 0.5 * mu * t * t)
+        fall = torch.where(neg, torch.nan_to_num(fall, posinf=torch.inf), 0.0)
+        worst = torch.maximum(worst, torch.where(neg & torch.isinf(t), torch.inf, fall).amax(-1))
+    found = worst > cfg.eps * (1.0 + f.abs())
     return torch.zeros_like(cand).index_copy(0, idx, found)
 
 
@@ -778,6 +837,7 @@ def _certify_ill_conditioned(
             *data[:4], rows, x, z, res.active, res.ok, eps=cfg.eps, max_iter=steps,
             prox_weight=PROX_WEIGHT, prox_steps=PROX_STEPS, rounding=cfg.rounding,
         )  # fmt: skip
+        done = done & ~saddle_solved(data, x, done, cfg)
         left = rows & ~done
         if not bool(left.any()):
             return x, z, done
@@ -792,7 +852,7 @@ def _certify_ill_conditioned(
     good = conv
     if bool(conv.any()):
         good = conv & _kkt.kkt_point(sub, xs, zs, ys)
-        good = good & ~unbounded_solved(sub, xs, good, cfg)
+        good = good & ~unbounded_solved(sub, xs, good, cfg) & ~saddle_solved(sub, xs, good, cfg)
     rho = PROX_WEIGHT * sub.P.diagonal(dim1=-2, dim2=-1).amax(-1)
     Pr = sub.P + torch.diag_embed(rho.unsqueeze(-1).expand_as(sub.q))
     center = torch.zeros_like(xs)
@@ -809,9 +869,9 @@ def _certify_ill_conditioned(
         xp, zp, yp, solved = _kkt.solve_active(sub, guess, _kkt.POLISH_REFINE_STEPS)
         zp = zp.clamp_min(0.0)
         new = ~good & solved & _kkt.kkt_point(sub, xp, zp, yp)
-        # a point far along a direction where P is singular to rounding is no answer: the
-        # interior point method certifies such a row unbounded
-        new = new & ~unbounded_solved(sub, xp, new, cfg)
+        # a point far along a direction where P is singular to rounding is no answer (the
+        # interior point method certifies such a row unbounded), nor a saddle
+        new = new & ~unbounded_solved(sub, xp, new, cfg) & ~saddle_solved(sub, xp, new, cfg)
         keep = new.unsqueeze(-1)
         xs, zs = torch.where(keep, xp, xs), torch.where(keep, zp, zs)
         good = good | new
