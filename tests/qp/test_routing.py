@@ -240,3 +240,56 @@ def test_dependent_equality_rows_are_never_solved_wrong(cvx):
         _, ref, _ = cvx(*(t.numpy() for t in (Q, p, G, h, A, b)))
         objective = float(0.5 * sol.x @ Q @ sol.x + p @ sol.x)
         assert abs(objective - ref) <= 1e-6 * max(1.0, abs(ref)), (seed, sol.path)
+
+
+def test_dependent_equality_rows_in_a_batch_are_solved_on_an_independent_set(cvx):
+    """A batch of twelve: rows 0-5 with seven equality rows of rank six (b in their range,
+    row 3 excepted), rows 6-11 of full rank, two nearly equal inequality rows. Every
+    consistent row is SOLVED with Clarabel's objective (dependent rows left the KKT systems
+    of enumeration and the interior point method singular: NUMERICAL_ERROR), the
+    inconsistent one is PRIMAL_INFEASIBLE, a row solved alone equals its answer in the
+    batch, and the gradients equal central differences."""
+    g = torch.Generator().manual_seed(3)
+    B, n, k = 12, 8, 7
+    L = torch.randn(B, n, n - 1, generator=g, dtype=F64)
+    p = 10 * torch.randn(B, n, generator=g, dtype=F64)
+    A = torch.randn(B, k, n, generator=g, dtype=F64)
+    A[:6, -1] = A[:6, 0] + 2 * A[:6, 1]
+    x0 = torch.randn(B, n, generator=g, dtype=F64)
+    G = torch.randn(B, 1, n, generator=g, dtype=F64)
+    G = torch.cat([G, G + 1e-9 * torch.randn(B, 1, n, generator=g, dtype=F64)], dim=1)
+    Q = L @ L.mT
+    shift = torch.zeros(B, k, dtype=F64)
+    shift[3, -1] = 1.0
+
+    def solve(p, x0, rows=slice(None)):
+        b = (A[rows] @ x0.unsqueeze(-1)).squeeze(-1) + shift[rows]
+        h = (G[rows] @ x0.unsqueeze(-1)).squeeze(-1) + 0.1
+        return solve_qp(Q[rows], p, G[rows], h, A[rows], b), b, h
+
+    pr, x0r = p.clone().requires_grad_(True), x0.clone().requires_grad_(True)
+    sol, b, h = solve(pr, x0r)
+    consistent = torch.arange(B) != 3
+    assert (sol.status[consistent] == Status.SOLVED).all(), sol.status
+    assert int(sol.status[3]) == Status.PRIMAL_INFEASIBLE
+    for i in consistent.nonzero().flatten().tolist():
+        data = (t[i].detach().numpy() for t in (Q, p, G, h, A, b))
+        _, ref, _ = cvx(*data)
+        x = sol.x[i].detach()
+        objective = float(0.5 * x @ Q[i] @ x + p[i] @ x)
+        assert abs(objective - ref) <= 1e-6 * max(1.0, abs(ref)), (i, objective, ref)
+    alone, _, _ = solve(p[1:2], x0[1:2], slice(1, 2))
+    torch.testing.assert_close(alone.x[0], sol.x[1].detach(), rtol=1e-8, atol=1e-8)
+    weights = torch.randn(B, n, generator=g, dtype=F64) * consistent.unsqueeze(-1)
+    (sol.x * weights).sum().backward()
+    for value, grad, which in ((p, pr.grad, 0), (x0, x0r.grad, 1)):
+        d = torch.randn(B, n, generator=g, dtype=F64) * consistent.unsqueeze(-1)
+        e = 1e-6
+        args = [p, x0]
+        args[which] = value + e * d
+        up = (solve(*args)[0].x * weights).sum()
+        args[which] = value - e * d
+        down = (solve(*args)[0].x * weights).sum()
+        assert abs(float((up - down) / (2 * e)) - float((grad * d).sum())) <= 1e-5 * (
+            1.0 + abs(float((grad * d).sum()))
+        )

@@ -31,6 +31,10 @@ from torch import Tensor
 #: a row of ``A`` whose distance to the span of the rows before it is at most this fraction of
 #: its own norm counts as dependent (the row is then solved with its equalities kept)
 RANK_TOL = 1e-7
+#: singular values of ``A`` at most this fraction of its largest are zero, to float64
+#: rounding, for :func:`numerical_rank`: a float32 ``A`` made of dependent rows is
+#: independent to about 1e-8, and is then solved as given (nearly dependent, not dependent)
+DEPENDENT_TOL = 1e-12
 #: a row of ``G`` whose part outside the span of ``A``'s rows is at most this fraction of its
 #: own largest entry lies in that span (rounding of the projection, see :func:`reduced_rows`)
 SPAN_TOL = 1e-12
@@ -61,6 +65,26 @@ def reduce_equalities(A: Tensor, b: Tensor) -> Reduction:
     ok = (R.diagonal(dim1=-2, dim2=-1).abs() > RANK_TOL * A.norm(dim=-1)).all(-1)
     xp = Y @ torch.linalg.solve_triangular(R.mT, b.unsqueeze(-1), upper=False)
     return Reduction(Y, Z, R, xp.squeeze(-1), ok)
+
+
+def numerical_rank(A: Tensor) -> Tensor:
+    """Rank ``[B]`` of ``A [B, k, n]``: its singular values above :data:`DEPENDENT_TOL` of
+    the largest."""
+    sv = torch.linalg.svdvals(A)
+    return (sv > DEPENDENT_TOL * sv[..., :1]).sum(-1)
+
+
+def independent_rows(A: Tensor, b: Tensor, rank: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``(A_r [B, r, n], b_r [B, r], U [B, k, r], residual [B])`` for ``A [B, k, n]`` of rank
+    ``r = rank``: ``A_r = U'A`` has full row rank and ``A = U A_r`` (``U`` the leading left
+    singular vectors), ``b_r = U'b``; ``Ax = b`` holds exactly where ``A_r x = b_r`` does
+    if ``b`` lies in the range of ``A``, whose distance is ``residual = |b - U b_r|_inf``.
+    Multipliers ``y_r`` of ``A_r x = b_r`` give ``y = U y_r`` of ``Ax = b``."""
+    U = torch.linalg.svd(A, full_matrices=False).U[..., :rank]
+    A_r = U.mT @ A
+    b_r = (U.mT @ b.unsqueeze(-1)).squeeze(-1)
+    residual = (b - (U @ b_r.unsqueeze(-1)).squeeze(-1)).abs().amax(-1)
+    return A_r, b_r, U, residual
 
 
 def reduced_objective(red: Reduction, P: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:

@@ -218,11 +218,15 @@ def _forward_outside(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> Forw
     return Forward(x, z, y, status, iters, _codes(data.batch, name, x.device), fac)
 
 
-def _forward_eliminated(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> Forward:
+def _forward_eliminated(
+    data: QPData, cfg: SolverConfig, x0: Tensor | None, *, dependent: bool = True
+) -> Forward:
     """Equality rows eliminated (:mod:`torchcbf.qp._eliminate`) and the reduced problem
     solved by the dual active-set method (its rows it cannot certify by the interior point
-    method, as in :func:`_forward_dual`); the rows whose ``A`` is rank deficient, or whose
-    reduced Hessian is singular to the inputs' rounding of ``P``, are solved with their
+    method, as in :func:`_forward_dual`). A row whose ``A`` is rank deficient but whose
+    ``b`` lies in its range (to ``eps``) is solved on an independent set of its equalities
+    (:func:`_forward_dependent`, where ``dependent``); the rows left (an inconsistent ``A``,
+    or a reduced Hessian singular to the inputs' rounding of ``P``) are solved with their
     equalities kept, by ``cfg.fallback``. The backward factor is the active-set KKT system
     of the full problem. Finding those rows is one host synchronisation."""
     P, q, G, h, A, b = data
@@ -232,6 +236,7 @@ def _forward_eliminated(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> F
     Pr, qr = eliminate.reduced_objective(red, P, q)
     # a reduced Hessian singular to the inputs' rounding of P: the dual method would answer
     # far along a direction of unbounded descent, so such rows keep their equalities
+    full_rank = red.ok
     red = red._replace(ok=red.ok & ~singular_to_rounding(Pr, P, cfg.rounding))
     base = replace(cfg, method=cfg.fallback, need_factor=False)
     all_ok = bool(red.ok.all())
@@ -261,17 +266,61 @@ def _forward_eliminated(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> F
     else:
         bad = (~red.ok).nonzero().squeeze(-1)
         x0b = None if x0 is None else x0.index_select(0, bad)
-        out = _forward(data.rows(bad), base, x0b)
+        sub = data.rows(bad)
+        if dependent:
+            out = _forward_dependent(sub, base, x0b, ~full_rank.index_select(0, bad))
+        else:
+            out = _forward(sub, base, x0b)[:6]
         x, z, y, status, iters, codes = (
             t.new_zeros(B, *t.shape[1:]).index_copy(0, idx, tk).index_copy(0, bad, tb)
             for t, tk, tb in zip(
-                (q, h, b, st, it, codes_k), (xk, zk, yk, st, it, codes_k), out[:6], strict=True
+                (q, h, b, st, it, codes_k), (xk, zk, yk, st, it, codes_k), out, strict=True
             )
         )
     fac = None
     if cfg.need_factor:
         fac = _factor(data, x, _kkt.active_set(z, data.slack(x)), status)
     return Forward(x, z, y, status, iters, codes, fac)
+
+
+def _forward_dependent(
+    data: QPData, cfg: SolverConfig, x0: Tensor | None, deficient: Tensor
+) -> tuple[Tensor, ...]:
+    """``(x, z, y, status, iterations, method)`` of rows that :func:`_forward_eliminated`
+    could not reduce. A ``deficient [B]`` row (``A`` rank deficient, also to float64
+    rounding: :func:`torchcbf.qp._eliminate.numerical_rank`) whose ``b`` lies in the
+    range of ``A`` to ``eps (1 + |b|)`` is solved, by elimination, on the independent
+    equalities ``U'A x = U'b`` (:func:`torchcbf.qp._eliminate.independent_rows`; one pass per
+    rank present), its multipliers mapped back (``y = U y_r``): dependent rows leave the KKT
+    systems of the other methods singular. Every other row is solved by ``cfg.method`` with its
+    equalities kept."""
+    rank = eliminate.numerical_rank(data.A)
+    deficient = deficient & (rank < data.A.shape[-2])
+    left = torch.ones_like(deficient)
+    pieces: list[tuple[Tensor, tuple[Tensor, ...]]] = []
+    for r in torch.unique(rank[deficient]).tolist():
+        if r == 0:
+            continue
+        group = (deficient & (rank == r)).nonzero().squeeze(-1)
+        sub = data.rows(group)
+        A_r, b_r, U, residual = eliminate.independent_rows(sub.A, sub.b, r)
+        consistent = residual <= cfg.eps * (1.0 + sub.b.abs().amax(-1))
+        if not bool(consistent.any()):
+            continue
+        group, U = group[consistent], U[consistent]
+        sub = QPData(*(t[consistent] for t in sub[:4]), A_r[consistent], b_r[consistent])
+        x0g = None if x0 is None else x0.index_select(0, group)
+        x, z, y_r, st, it, codes = _forward_eliminated(sub, cfg, x0g, dependent=False)[:6]
+        pieces.append((group, (x, z, (U @ y_r.unsqueeze(-1)).squeeze(-1), st, it, codes)))
+        left[group] = False
+    if bool(left.any()):
+        idx = left.nonzero().squeeze(-1)
+        x0l = None if x0 is None else x0.index_select(0, idx)
+        pieces.append((idx, tuple(_forward(data.rows(idx), cfg, x0l)[:6])))
+    out = [v.new_zeros(data.batch, *v.shape[1:]) for v in pieces[0][1]]
+    for group, values in pieces:
+        out = [t.index_copy(0, group, v) for t, v in zip(out, values, strict=True)]
+    return tuple(out)
 
 
 def _factor(data: QPData, x: Tensor, active: Tensor, status: Tensor) -> _kkt.KKTFactor:
