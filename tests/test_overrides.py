@@ -606,3 +606,63 @@ def test_a_function_with_its_own_lie_is_asked_for_its_terms_beside_others() -> N
     z = torch.cat([x, torch.randn(6, 2, generator=torch.Generator().manual_seed(1))], -1)
     own = on_position.lie(z, double)
     torch.testing.assert_close(rect(z), own.lfh + own.dhdt + 2.0 * own.h)
+
+
+@pytest.mark.parametrize("which", ["f", "g"])
+@pytest.mark.parametrize("name", MODELS)
+def test_a_model_with_f_or_g_set_on_the_instance_integrates_its_own_dynamics(
+    name: str, which: str
+) -> None:
+    model = MODELS[name]().double()
+    native = model.native_model()
+    cls = type(model)
+    if which == "f":
+        model.f = lambda z: cls.f(model, z) + 0.7
+    else:
+        model.g = lambda z: 2.0 * cls.g(model, z)
+    n, m = model.state_dim, model.control_dim
+    x, u = _states(8, n, seed=1), 0.3 * _states(8, m, seed=2)
+
+    def reference(z: Tensor, v: Tensor) -> Tensor:
+        return model.f(z) + (model.g(z) @ v.unsqueeze(-1)).squeeze(-1)
+
+    torch.testing.assert_close(model(x, u), reference(x, u))
+    for method in ("euler", "rk4"):
+        got = integrators.step(model, x, u, 0.05, method=method)
+        want = x + 0.05 * reference(x, u) if method == "euler" else _rk4(reference, x, u, 0.05)
+        torch.testing.assert_close(got, want)
+    assert model.native_model() is None
+    if which == "f":
+        assert not model.has_drift_derivatives
+    goal = QuadraticGoal([1.0, 1.0], index=(0, 1))
+    planner = MPPI(model, goal, horizon=4, num_samples=32, dt=0.05, noise_sigma=0.5,
+                   temperature=1.0, keep_rollouts=4, integrator="euler")  # fmt: skip
+    out = planner(x[0])
+    assert out.path == "torch"
+    v = out.rollouts[:, 1] - x[0]  # one Euler step of each kept rollout's first control
+    assert v.shape == (4, n)
+    delattr(model, which)  # the class's own forms are back
+    assert model.native_model() == native
+    torch.testing.assert_close(model(x, u), cls.xdot(model, x, u))
+
+
+def test_a_shape_with_lie_set_on_the_instance_is_asked_for_its_terms() -> None:
+    """``ball.lie = ...`` is taken as a class's own ``lie`` is (a pad of 0.3 on ``h``)."""
+
+    class PaddedLie(Ball):
+        def lie(self, x, dynamics, t=None, **kw):
+            terms = Ball.lie(self, x, dynamics, t, **kw)
+            return terms._replace(h=terms.h - 0.3)
+
+    dyn = SingleIntegrator(2).double()
+    ball, far = Ball([1.0, 0.0], 0.5).double(), Ball([40.0, 40.0], 0.5).double()
+    ball.lie = lambda x, dynamics, t=None, **kw: PaddedLie.lie(ball, x, dynamics, t, **kw)
+    assert ball.quadric() is None
+    x = _states(6, 2)
+    u = torch.tensor([[1.0, 0.3]], dtype=F64).expand(6, 2)
+    with torch.no_grad():
+        got = SafetyFilter(dyn, [ball, far]).double()(x, u)
+        want = SafetyFilter(dyn, [PaddedLie([1.0, 0.0], 0.5).double(), far]).double()(x, u)
+    torch.testing.assert_close(got.h[:, 0], ball.lie(x, dyn).h)
+    torch.testing.assert_close(got.h, want.h)
+    torch.testing.assert_close(got.u, want.u, atol=1e-9, rtol=1e-9)

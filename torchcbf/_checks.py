@@ -303,14 +303,46 @@ def hooked(obj: object) -> bool:
     )
 
 
-def unless_hooked(cls: type, fast_forms: Mapping[str, object]) -> None:
+def shadowed(obj: object, names: Sequence[str]) -> bool:
+    """Whether the instance ``obj`` holds an attribute of its own named in ``names``
+    (``model.f = ...``): it shadows the class's method, as a subclass's override would."""
+    own = getattr(obj, "__dict__", None)
+    return bool(own) and any(name in own for name in names)
+
+
+def stale_on(obj: object, fast: str, rules: ClosedForms) -> bool:
+    """Whether the fast form ``fast`` of ``rules`` is stale on the instance ``obj``: ``obj``
+    shadows a method it stands for (:func:`shadowed`) and not ``fast`` itself. The instance
+    counterpart of :func:`honour_overrides`: ``model.f = ...`` makes a closed-form ``xdot``
+    of the class's ``f`` as stale as a subclass's ``f`` does."""
+    own = getattr(obj, "__dict__", None)
+    if not own or fast in own:
+        return False
+    return any(name in own for name in rules[fast][0])
+
+
+def _stands_for(rules: ClosedForms) -> dict[str, tuple[str, ...]]:
+    """Each fast form of ``rules`` and each of its companions, mapped to what it stands for."""
+    out: dict[str, tuple[str, ...]] = {}
+    for fast, (stands, companions) in rules.items():
+        for name in (fast, *companions):
+            out[name] = tuple(stands)
+    return out
+
+
+def unless_hooked(
+    cls: type, fast_forms: Mapping[str, object], rules: ClosedForms | None = None
+) -> None:
     """Make each fast form class ``cls`` defines in its own body (a method or a property
     of ``self`` alone) answer ``fast_forms[name]`` (its "none": ``None``, ``False``) for an
     instance whose calls run hooks (:func:`hooked`). A fast form stands for ``forward`` as
     the class wrote it; a hook changes what a call computes, so a hooked instance takes the
-    general path, which calls it. Called from ``__init_subclass__`` next to
-    :func:`honour_overrides`; a hook registered or removed at any time is seen at the next
-    question."""
+    general path, which calls it. Likewise for an instance that shadows a method the form
+    stands for in ``rules`` (:func:`stale_on`: ``obj.lie = ...``, ``model.f = ...``; an
+    instance ``forward`` for a form ``rules`` does not name). Called from
+    ``__init_subclass__`` next to :func:`honour_overrides`; a hook registered or removed, or
+    an instance attribute set or deleted, at any time is seen at the next question."""
+    stands = _stands_for(rules or {})
     for name, none in fast_forms.items():
         if name not in cls.__dict__:
             continue
@@ -327,15 +359,22 @@ def unless_hooked(cls: type, fast_forms: Mapping[str, object]) -> None:
         if not callable(fn) or getattr(fn, "_unless_hooked", False):
             continue
 
-        def guarded(self: torch.nn.Module, _fn=fn, _none=none) -> object:
-            # hooked(self), inline: some fast forms are asked several times per filter call
+        # an instance's __call__ is never called (Python looks it up on the class)
+        extra = tuple(n for n in stands.get(name, ()) if n not in ("forward", "__call__"))
+
+        def guarded(self: torch.nn.Module, _fn=fn, _none=none, _extra=extra) -> object:
+            # hooked(self) and shadowed(self, ...), inline: some fast forms are asked several
+            # times per filter call
+            own = self.__dict__
             if (
                 _GLOBAL_HOOKS
                 or _GLOBAL_PRE_HOOKS
                 or self._forward_hooks
                 or self._forward_pre_hooks
-                or "forward" in self.__dict__
+                or "forward" in own
             ):
+                return _none
+            if _extra and any(n in own for n in _extra):
                 return _none
             return _fn(self)
 
@@ -346,7 +385,8 @@ def unless_hooked(cls: type, fast_forms: Mapping[str, object]) -> None:
 
 def behaves_as(obj: object, cls: type, methods: Sequence[str]) -> bool:
     """Whether ``obj`` is an instance of ``cls`` whose class keeps ``cls``'s ``methods`` (a
-    subclass may add to them, not change them) and, where ``forward`` is among them, whose
+    subclass may add to them, not change them), which shadows none of them
+    (:func:`shadowed`) and, where ``forward`` is among them, whose
     calls run no hooks (:func:`hooked`: a hook changes what a call computes): the test for
     handing ``obj`` to a kernel that evaluates ``cls``'s formulas. A class that rewrites
     ``__call__`` changes ``forward`` too."""
@@ -355,6 +395,8 @@ def behaves_as(obj: object, cls: type, methods: Sequence[str]) -> bool:
             return False
         if isinstance(obj, torch.nn.Module):
             methods = (*methods, "__call__")
+    if shadowed(obj, methods):
+        return False
     return isinstance(obj, cls) and _keeps(type(obj), cls, tuple(methods))
 
 

@@ -5,6 +5,7 @@ All methods are batched over any leading dimensions of ``x [..., n]`` and ``u [.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from typing import Literal
@@ -19,6 +20,7 @@ from torchcbf._checks import (
     check_last_dim,
     check_positive,
     check_same,
+    stale_on,
 )
 from torchcbf.dynamics.base import MATVEC_COLUMNS_UP_TO, ControlAffine
 
@@ -30,10 +32,13 @@ def rate_form(dynamics: ControlAffine) -> str:
     """How ``dynamics``' rate is evaluated: ``"module"`` (the module call, where a subclass
     rewrote ``forward`` or ``__call__`` itself, or its calls run hooks or an instance's own
     ``forward``: :func:`~torchcbf._checks.behaves_as`), ``"plain"`` (``xdot`` is
-    ``f + g u``, not rewritten: a caller may form the sum in any layout) or ``"xdot"`` (the
+    ``f + g u``, not rewritten, or an instance's own ``f`` or ``g`` leaves a closed form stale:
+    a caller may form the sum in any layout) or ``"xdot"`` (the
     model's own ``xdot``)."""
     if not behaves_as(dynamics, ControlAffine, ("forward",)):
         return "module"
+    if stale_on(dynamics, "xdot", dynamics.closed_forms):  # the instance's own f or g
+        return "plain"
     return "plain" if getattr(dynamics.xdot, "__func__", None) is ControlAffine.xdot else "xdot"
 
 
@@ -43,11 +48,14 @@ def _rate(
     """``(x, u) -> xdot`` of checked inputs by :func:`rate_form` (``form``, when the caller
     has it): the model's ``xdot`` directly (no module call, no input checks), with ``M w``
     added where ``w`` is given, or the module call."""
-    if (rate_form(dynamics) if form is None else form) == "module":
+    form = rate_form(dynamics) if form is None else form
+    if form == "module":
         return lambda x, u: dynamics(x, u, w)
+    # "plain": f + g u, also where the class's closed-form xdot is stale on this instance
+    xdot = functools.partial(ControlAffine.xdot, dynamics) if form == "plain" else dynamics.xdot
     if w is None:
-        return dynamics.xdot
-    return lambda x, u: dynamics.xdot(x, u) + dynamics.disturbance(x, w)
+        return xdot
+    return lambda x, u: xdot(x, u) + dynamics.disturbance(x, w)
 
 
 def _euler(

@@ -28,6 +28,7 @@ from torchcbf._checks import (
     as_tensor,
     check_tensor,
     honour_overrides,
+    shadowed,
     unless_hooked,
 )
 from torchcbf._constants import ExactConstants, store
@@ -137,7 +138,7 @@ class LieFunction(ExactConstants):
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         honour_overrides(cls, LieFunction, cls.closed_forms)
-        unless_hooked(cls, cls.hooked_forms)
+        unless_hooked(cls, cls.hooked_forms, cls.closed_forms)
 
     def register_constant(
         self, name: str, value: object, *, learnable: bool = False, allow_inf: bool = False
@@ -196,10 +197,10 @@ class LieFunction(ExactConstants):
 
 
 def own_lie(fn: LieFunction) -> bool:
-    """Whether ``fn``'s class rewrites :meth:`LieFunction.lie` (the user's own Lie terms):
-    then every path takes its terms from ``fn.lie``, none from a stacked or compiled
-    evaluation of ``fn``'s calls."""
-    return type(fn).lie is not LieFunction.lie
+    """Whether ``fn``'s class rewrites :meth:`LieFunction.lie`, or ``fn`` holds its own
+    (``fn.lie = ...``; the user's own Lie terms): then every path takes its terms from
+    ``fn.lie``, none from a stacked or compiled evaluation of ``fn``'s calls."""
+    return type(fn).lie is not LieFunction.lie or shadowed(fn, ("lie",))
 
 
 def terms_of(

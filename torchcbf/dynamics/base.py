@@ -23,6 +23,7 @@ from torchcbf._checks import (
     check_same,
     clamp_control,
     honour_overrides,
+    stale_on,
     unless_hooked,
 )
 from torchcbf._constants import store
@@ -111,7 +112,7 @@ class ControlAffine(nn.Module):
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         honour_overrides(cls, ControlAffine, cls.closed_forms)
-        unless_hooked(cls, cls.hooked_forms)
+        unless_hooked(cls, cls.hooked_forms, cls.closed_forms)
 
     def __init__(
         self,
@@ -178,7 +179,9 @@ class ControlAffine(nn.Module):
         (closed-form exponential CBFs of relative degree two use them; otherwise those run by
         autograd): a subclass that changes ``f`` does not inherit its parent's derivatives
         (see :attr:`closed_forms`)."""
-        return type(self).drift_derivatives is not ControlAffine.drift_derivatives
+        return type(self).drift_derivatives is not ControlAffine.drift_derivatives and not (
+            stale_on(self, "drift_derivatives", self.closed_forms)
+        )
 
     def native_model(self) -> NativeModel | None:
         """This model as the native kernels know it, or ``None`` (the default: torch code
@@ -201,7 +204,10 @@ class ControlAffine(nn.Module):
     def forward(self, x: Tensor, u: Tensor, w: Tensor | None = None) -> Tensor:
         """``xdot = f(x) + g(x) u (+ M w)`` for ``x [..., n]``, ``u [..., m]``, ``w [..., p]``."""
         self.check_inputs(x, u)
-        xdot = self.xdot(x, u)
+        if stale_on(self, "xdot", self.closed_forms):  # the instance's own f or g
+            xdot = ControlAffine.xdot(self, x, u)
+        else:
+            xdot = self.xdot(x, u)
         if w is not None:
             xdot = xdot + self.disturbance(x, w)
         return xdot
