@@ -307,7 +307,11 @@ def shadowed(obj: object, names: Sequence[str]) -> bool:
     """Whether the instance ``obj`` holds an attribute of its own named in ``names``
     (``model.f = ...``): it shadows the class's method, as a subclass's override would."""
     own = getattr(obj, "__dict__", None)
-    return bool(own) and any(name in own for name in names)
+    if own:
+        for name in names:
+            if name in own:
+                return True
+    return False
 
 
 def stale_on(obj: object, fast: str, rules: ClosedForms) -> bool:
@@ -374,8 +378,9 @@ def unless_hooked(
                 or "forward" in own
             ):
                 return _none
-            if _extra and any(n in own for n in _extra):
-                return _none
+            for n in _extra:
+                if n in own:
+                    return _none
             return _fn(self)
 
         functools.update_wrapper(guarded, fn)
