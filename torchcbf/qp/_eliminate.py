@@ -67,24 +67,24 @@ def reduce_equalities(A: Tensor, b: Tensor) -> Reduction:
     return Reduction(Y, Z, R, xp.squeeze(-1), ok)
 
 
-def numerical_rank(A: Tensor) -> Tensor:
-    """Rank ``[B]`` of ``A [B, k, n]``: its singular values above :data:`DEPENDENT_TOL` of
-    the largest."""
-    sv = torch.linalg.svdvals(A)
-    return (sv > DEPENDENT_TOL * sv[..., :1]).sum(-1)
+def numerical_rank(A: Tensor) -> tuple[Tensor, Tensor]:
+    """``(rank [B], U [B, k, min(k, n)])`` of ``A [B, k, n]``: its singular values above
+    :data:`DEPENDENT_TOL` of the largest, and its left singular vectors (largest first)."""
+    U, sv, _ = torch.linalg.svd(A, full_matrices=False)
+    return (sv > DEPENDENT_TOL * sv[..., :1]).sum(-1), U
 
 
-def independent_rows(A: Tensor, b: Tensor, rank: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """``(A_r [B, r, n], b_r [B, r], U [B, k, r], residual [B])`` for ``A [B, k, n]`` of rank
-    ``r = rank``: ``A_r = U'A`` has full row rank and ``A = U A_r`` (``U`` the leading left
-    singular vectors), ``b_r = U'b``; ``Ax = b`` holds exactly where ``A_r x = b_r`` does
-    if ``b`` lies in the range of ``A``, whose distance is ``residual = |b - U b_r|_inf``.
-    Multipliers ``y_r`` of ``A_r x = b_r`` give ``y = U y_r`` of ``Ax = b``."""
-    U = torch.linalg.svd(A, full_matrices=False).U[..., :rank]
+def independent_rows(A: Tensor, b: Tensor, U: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``(A_r [B, r, n], b_r [B, r], residual [B])`` for ``A [B, k, n]`` of rank ``r`` with
+    leading left singular vectors ``U [B, k, r]`` (:func:`numerical_rank`): ``A_r = U'A`` has
+    full row rank and ``A = U A_r``, ``b_r = U'b``; ``Ax = b`` holds exactly where
+    ``A_r x = b_r`` does if ``b`` lies in the range of ``A``, whose distance is
+    ``residual = |b - U b_r|_inf``. Multipliers ``y_r`` of ``A_r x = b_r`` give ``y = U y_r``
+    of ``Ax = b``."""
     A_r = U.mT @ A
     b_r = (U.mT @ b.unsqueeze(-1)).squeeze(-1)
     residual = (b - (U @ b_r.unsqueeze(-1)).squeeze(-1)).abs().amax(-1)
-    return A_r, b_r, U, residual
+    return A_r, b_r, residual
 
 
 def reduced_objective(red: Reduction, P: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:

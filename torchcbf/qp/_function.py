@@ -294,7 +294,7 @@ def _forward_dependent(
     rank present), its multipliers mapped back (``y = U y_r``): dependent rows leave the KKT
     systems of the other methods singular. Every other row is solved by ``cfg.method`` with its
     equalities kept."""
-    rank = eliminate.numerical_rank(data.A)
+    rank, U_all = eliminate.numerical_rank(data.A)
     deficient = deficient & (rank < data.A.shape[-2])
     left = torch.ones_like(deficient)
     pieces: list[tuple[Tensor, tuple[Tensor, ...]]] = []
@@ -303,7 +303,8 @@ def _forward_dependent(
             continue
         group = (deficient & (rank == r)).nonzero().squeeze(-1)
         sub = data.rows(group)
-        A_r, b_r, U, residual = eliminate.independent_rows(sub.A, sub.b, r)
+        U = U_all.index_select(0, group)[..., :r]
+        A_r, b_r, residual = eliminate.independent_rows(sub.A, sub.b, U)
         consistent = residual <= cfg.eps * (1.0 + sub.b.abs().amax(-1))
         if not bool(consistent.any()):
             continue
