@@ -582,9 +582,14 @@ def singular_to_rounding(M: Tensor, P: Tensor, rounding: float) -> Tensor:
     """Rows ``[B]`` whose symmetric ``M [B, r, r]`` is not positive definite by more than
     the rounding of ``P [B, n, n]`` (``M - tau I``, ``tau = 2 n rounding max_i sum_j
     |P_ij|``, has no Cholesky factor): ``M`` is ``P`` itself or its reduction ``Z'PZ``."""
-    n, r = P.shape[-1], M.shape[-1]
-    tau = 2.0 * n * rounding * P.abs().sum(-1).amax(-1)
-    return not_positive_definite(M - torch.diag_embed(tau.unsqueeze(-1).expand(-1, r)))
+    tau = rounding_scale(P, rounding)
+    return not_positive_definite(M - torch.diag_embed(tau.unsqueeze(-1).expand(-1, M.shape[-1])))
+
+
+def rounding_scale(P: Tensor, rounding: float) -> Tensor:
+    """``tau [B] = 2 n rounding max_i sum_j |P_ij|``: an eigenvalue of ``P [B, n, n]`` (or of
+    a reduction of it) within ``tau`` of zero is zero to ``rounding``."""
+    return 2.0 * P.shape[-1] * rounding * P.abs().sum(-1).amax(-1)
 
 
 def unbounded_solved(data: QPData, x: Tensor, solved: Tensor, cfg: SolverConfig) -> Tensor:
@@ -648,7 +653,7 @@ def saddle_solved(data: QPData, x: Tensor, solved: Tensor, cfg: SolverConfig) ->
     else:
         Z = eye.expand_as(P)
     mu, D = torch.linalg.eigh(Z @ (0.5 * (P + P.mT)) @ Z)
-    tau = 2.0 * n * torch.finfo(P.dtype).eps * P.abs().sum(-1).amax(-1, keepdim=True)
+    tau = rounding_scale(P, torch.finfo(P.dtype).eps).unsqueeze(-1)
     neg = mu < -tau  # [b, n]: directions (columns of D) of negative curvature
     g = (P @ x.unsqueeze(-1)).squeeze(-1) + q
     f = 0.5 * (x * (g + q)).sum(-1)
@@ -660,10 +665,9 @@ def saddle_solved(data: QPData, x: Tensor, solved: Tensor, cfg: SolverConfig) ->
         rate = sign * Gd
         crosses = free & (rate > 1e-12 * Gd.abs().amax(-2, keepdim=True))
         ratio = torch.where(crosses, slack.clamp_min(0.0).unsqueeze(-1) / rate, torch.inf)
-        t = ratio.amin(-2)  # [b, n]
-        fall = -(sign * t * gd + 0.5 * mu * t * t)
-        fall = torch.where(neg, torch.nan_to_num(fall, posinf=torch.inf), 0.0)
-        worst = torch.maximum(worst, torch.where(neg & torch.isinf(t), torch.inf, fall).amax(-1))
+        t = ratio.amin(-2)  # [b, n]; inf: a ray without a row
+        fall = torch.where(torch.isinf(t), torch.inf, -(sign * t * gd + 0.5 * mu * t * t))
+        worst = torch.maximum(worst, torch.where(neg, fall, 0.0).amax(-1))
     found = worst > cfg.eps * (1.0 + f.abs())
     return torch.zeros_like(cand).index_copy(0, idx, found)
 
