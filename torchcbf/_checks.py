@@ -319,10 +319,7 @@ def stale_on(obj: object, fast: str, rules: ClosedForms) -> bool:
     shadows a method it stands for (:func:`shadowed`) and not ``fast`` itself. The instance
     counterpart of :func:`honour_overrides`: ``model.f = ...`` makes a closed-form ``xdot``
     of the class's ``f`` as stale as a subclass's ``f`` does."""
-    own = getattr(obj, "__dict__", None)
-    if not own or fast in own:
-        return False
-    return any(name in own for name in rules[fast][0])
+    return fast not in getattr(obj, "__dict__", ()) and shadowed(obj, rules[fast][0])
 
 
 def _stands_for(rules: ClosedForms) -> dict[str, tuple[str, ...]]:
