@@ -606,6 +606,9 @@ def test_a_function_with_its_own_lie_is_asked_for_its_terms_beside_others() -> N
     z = torch.cat([x, torch.randn(6, 2, generator=torch.Generator().manual_seed(1))], -1)
     own = on_position.lie(z, double)
     torch.testing.assert_close(rect(z), own.lfh + own.dhdt + 2.0 * own.h)
+    # and so is a high-order barrier's psi_1
+    high = rectify(on_position, double, form="high_order", gains=[2.0])
+    torch.testing.assert_close(high(z), own.lfh + own.dhdt + 2.0 * own.h)
 
 
 @pytest.mark.parametrize("which", ["f", "g"])

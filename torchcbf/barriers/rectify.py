@@ -146,7 +146,8 @@ class HighOrderBarrier(Barrier):
         base = self.barrier if base is None else base
         if order == 0:
             return base(x, t)
-        step = _Psi(self, order - 1, base)
+        # psi_0 is the barrier itself, whose own ``lie`` (where it has one) gives its terms
+        step = base if order == 1 else _Psi(self, order - 1, base)
         terms = terms_of(step, x, self.dynamics, t, hessian=False, control=False)
         return terms.lfh + terms.dhdt + self.gains[order - 1].to(x) * terms.h
 
