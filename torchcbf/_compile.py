@@ -38,24 +38,32 @@ logger = logging.getLogger("torchcbf")
 class Compiled:
     """``fn`` under ``torch.compile(fn, **options)``; eager ``fn`` from the first call on
     whose compilation fails in the backend (a C++ compiler that cannot build the generated
-    code, say), with a warning. Errors of ``fn`` itself are raised as they are."""
+    code, say), with a warning. Errors of ``fn`` itself are raised as they are.
 
-    def __init__(self, fn: Callable[..., Any], options: dict[str, Any]) -> None:
+    ``unbacked``: names of ``fn``'s integer arguments that take a new value on each call
+    (a step index): traced as unbacked symbols, so one graph serves every value. torch
+    otherwise traces the first value as a constant, and 0 and 1 always, before it makes
+    the argument dynamic: two or three compiles on the first call of a loop over steps."""
+
+    def __init__(
+        self, fn: Callable[..., Any], options: dict[str, Any], *, unbacked: Sequence[str] = ()
+    ) -> None:
         self.eager = fn
         self.options = dict(options)
+        self.unbacked = tuple(unbacked)
         self.compiled: Callable[..., Any] | None = torch.compile(_own_code(fn), **options)
         self._first = True
 
     def __getstate__(self) -> dict[str, Any]:
         # the compiled function does not pickle: compile again where it is loaded
-        return {"eager": self.eager, "options": self.options}
+        return {"eager": self.eager, "options": self.options, "unbacked": self.unbacked}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__init__(state["eager"], state["options"])
+        self.__init__(state["eager"], state["options"], unbacked=state.get("unbacked", ()))
 
     def __deepcopy__(self, memo: dict[int, Any]) -> Compiled:
         # compile the copy's function (a bound method: of the copied module)
-        return Compiled(copy.deepcopy(self.eager, memo), self.options)
+        return Compiled(copy.deepcopy(self.eager, memo), self.options, unbacked=self.unbacked)
 
     def __call__(self, *args: Any) -> Any:
         if self.compiled is None:
@@ -63,7 +71,7 @@ class Compiled:
         from torch._dynamo.exc import BackendCompilerFailed
 
         try:
-            with _trusting_isa(self._first):
+            with _trusting_isa(self._first), _unbacked_arguments(self.unbacked, self._first):
                 out = self.compiled(*args)
         except BackendCompilerFailed as err:
             logger.warning("torchcbf: torch.compile failed (%s); running eager", err)
@@ -124,6 +132,25 @@ def _own_code(fn: Callable[..., Any]) -> Callable[..., Any]:
     own.__kwdefaults__ = func.__kwdefaults__
     own.__qualname__ = func.__qualname__
     return types.MethodType(own, fn.__self__) if bound else own
+
+
+@contextlib.contextmanager
+def _unbacked_arguments(names: tuple[str, ...], first: bool) -> Iterator[None]:
+    """torch.compile told to trace the arguments ``names`` as unbacked symbols (beside any
+    the user names in ``TORCH_COMPILE_UNBACKED_SOURCES``) during a first call, where this
+    torch has the option. Later calls reuse that graph without the option (setting it
+    costs about 5 us a call, ``config.patch`` 250 us)."""
+    from torch.compiler import config
+
+    if not (first and names and hasattr(config, "unbacked_sources")):
+        yield
+        return
+    before = config.unbacked_sources
+    config.unbacked_sources = ",".join([before] * bool(before) + [f"L['{n}']" for n in names])
+    try:
+        yield
+    finally:
+        config.unbacked_sources = before
 
 
 def _trusting_isa(first: bool) -> contextlib.AbstractContextManager[None]:

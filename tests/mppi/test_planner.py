@@ -8,6 +8,7 @@ import math
 
 import pytest
 import torch
+from torch._dynamo.utils import counters
 
 from torchcbf import integrators
 from torchcbf.dynamics import AccelUnicycle, ControlAffine, DoubleIntegrator, SingleIntegrator
@@ -397,15 +398,22 @@ class _DriftedUnicycle(_UserUnicycle):
         return super().xdot(x, u) + 0.1
 
 
-@pytest.mark.parametrize("layout", ["component", "sample"])
+_COMPILED_MODELS = ["f and g, euler", "f and g, rk4", "own xdot", "hooked", "timed step function"]
+
+
 @pytest.mark.parametrize(
-    "model",
-    ["f and g, euler", "f and g, rk4", "own xdot", "hooked", "timed step function"],
+    ("model", "layout"),
+    [pytest.param(model, "component", id=f"{model}-component") for model in _COMPILED_MODELS]
+    + [
+        # a compile each: the sample layout of all but the first in the slow suite
+        pytest.param(model, "sample", id=f"{model}-sample", marks=[pytest.mark.slow] if i else [])
+        for i, model in enumerate(_COMPILED_MODELS)
+    ],
 )
-def test_compiled_rollouts_match_a_loop_and_compile_once(layout, model):
+def test_compiled_rollouts_match_a_loop_and_compile_once(model, layout):
     """The rollouts equal the model integrated step by step in a Python loop, eager and
-    compiled; the compiled step is one graph for every step index (at most one more where
-    the step reads it), so later calls compile nothing."""
+    compiled; the compiled step is one graph for every step index, traced once, so later
+    calls compile nothing."""
     pytest.importorskip("torch._dynamo")
     dyn = _DriftedUnicycle() if model == "own xdot" else _UserUnicycle()
     if model == "hooked":
@@ -437,7 +445,12 @@ def test_compiled_rollouts_match_a_loop_and_compile_once(layout, model):
     x = _x0(2)
     eager, compiled = planner(), planner(compile=True)
     torch.testing.assert_close(eager(x).rollouts, loop(x), atol=1e-12, rtol=1e-12)
+    graphs = counters["stats"]["unique_graphs"]
     torch.testing.assert_close(compiled(x).rollouts, loop(x), atol=1e-10, rtol=1e-10)
+    if model not in ("hooked", "timed step function"):  # those two break their graphs
+        # one graph for the step at every index (the first index is not traced apart) and
+        # one for the cost
+        assert counters["stats"]["unique_graphs"] - graphs == 2
     with torch.compiler.set_stance("fail_on_recompile"):
         for step in range(1, 3):
             y = x + 0.1 * step

@@ -542,7 +542,7 @@ class MPPI(ExactConstants):
         self._score_fn: Callable[..., Tensor] = self._score
         if compile:
             kwargs = compile if isinstance(compile, dict) else {}
-            self._step_into_fn = Compiled(self._step_into, _step_options(kwargs))
+            self._step_into_fn = Compiled(self._step_into, _step_options(kwargs), unbacked=("j",))
             self._score_fn = Compiled(self._score, kwargs)
         if backend == "triton" and not triton_available():
             raise ValueError("backend='triton' needs Triton, which does not import here")
