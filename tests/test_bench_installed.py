@@ -36,6 +36,7 @@ def test_bench_finds_its_scripts_outside_the_checkout(tmp_path) -> None:
     assert names == ["qp", "barriers", "filters", "mppi"]
 
 
+@pytest.mark.slow
 def test_bench_quick_filters_runs_outside_the_checkout(tmp_path) -> None:
     done = _bench(tmp_path, "--quick", "--only", "filters", hide_peers=True)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]

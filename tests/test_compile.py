@@ -35,6 +35,7 @@ def test_trusted_isa_is_restored_after_the_call():
     assert config.cpp.vec_isa_ok is None
 
 
+@pytest.mark.slow
 def test_trusted_isa_matches_the_probed_one(tmp_path):
     # each choice in a fresh process: inductor computes the list once per process
     env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": str(tmp_path)}

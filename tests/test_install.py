@@ -29,6 +29,7 @@ def test_package_list_covers_the_source_tree() -> None:
     assert config["package-dir"] == {"torchcbf.scripts": "scripts"}
 
 
+@pytest.mark.slow
 def test_wheel_ships_the_benchmarks_and_bench_finds_them_outside_a_checkout(tmp_path) -> None:
     src = tmp_path / "src"
     ignore = shutil.ignore_patterns("__pycache__", "*.so", "*.egg-info", "build")

@@ -65,6 +65,7 @@ def test_reach_past_obstacle_is_safe() -> None:
     assert bool((err[result["reached"]] < 0.02).all())
 
 
+@pytest.mark.slow
 def test_joint_nominal_reaches_target_configurations() -> None:
     """Joint-space CLF nominal along roadmap paths toward the generating configurations:
     safe, and reaches every target (measured 24/24)."""
@@ -79,6 +80,7 @@ def test_joint_nominal_reaches_target_configurations() -> None:
     assert bool((q_err[result["reached"]] < 0.02).all())
 
 
+@pytest.mark.slow
 def test_roadmap_paths_are_clear(ik_scenario: arm_reach.ArmReachScenario) -> None:
     """Every planned waypoint path ends at the goal configuration and keeps its segments
     clear on a finer check (128 points per segment) than the planner's; the controller's
@@ -103,6 +105,7 @@ def test_roadmap_paths_are_clear(ik_scenario: arm_reach.ArmReachScenario) -> Non
     assert float(worst.min()) > 0.0
 
 
+@pytest.mark.slow
 def test_ik_goals_solve_the_point_targets(ik_scenario: arm_reach.ArmReachScenario) -> None:
     """The IK pipeline's goal configurations put the end effector on the target point,
     clear the obstacle by the path clearance and stay inside the joint limits."""
@@ -118,6 +121,7 @@ def test_ik_goals_solve_the_point_targets(ik_scenario: arm_reach.ArmReachScenari
     assert float(near) < float((sc.q_target - sc.q0).norm(dim=-1).median())
 
 
+@pytest.mark.slow
 def test_ik_pipeline_reaches_point_targets(ik_scenario: arm_reach.ArmReachScenario) -> None:
     """Point targets through IK, roadmap and filter: safe, and every reachable target is
     reached (measured 40/40)."""
@@ -144,6 +148,7 @@ def _via_rows(
     return sub, roadmap
 
 
+@pytest.mark.slow
 def test_escape_resolves_deadlocks(ik_scenario: arm_reach.ArmReachScenario) -> None:
     """Rows sent straight toward their goal configuration where the straight C-space
     segment is blocked: without the escape the filter holds some of them in front of the

@@ -116,7 +116,7 @@ def sweep_reference(tmp_path_factory) -> Path:
     ("sig", "when"),
     [
         (signal.SIGINT, "after one point"),
-        (signal.SIGKILL, "after two points"),
+        pytest.param(signal.SIGKILL, "after two points", marks=pytest.mark.slow),
     ],
 )
 def test_sweep_killed_then_resumed_equals_an_uninterrupted_run(
@@ -146,6 +146,7 @@ TUNE = ["tune", "reach-avoid", "--trials", "4", "--seeds", "2", "--set", "num_sa
         "--params", "horizon"]  # fmt: skip
 
 
+@pytest.mark.slow
 def test_tune_killed_then_resumed_equals_an_uninterrupted_run(tmp_path) -> None:
     pytest.importorskip("optuna")
     reference = _reference(TUNE, tmp_path / "reference")
@@ -170,6 +171,7 @@ def _figures(out: Path) -> set[str]:
     return {p.name for p in out.glob("*.png")}
 
 
+@pytest.mark.slow
 def test_mppi_cbf_killed_then_resumed_equals_an_uninterrupted_run(tmp_path) -> None:
     reference = _reference(MPPI_CBF, tmp_path / "reference")
     out = tmp_path / "run"
@@ -186,6 +188,7 @@ def test_mppi_cbf_killed_then_resumed_equals_an_uninterrupted_run(tmp_path) -> N
     assert _figures(out) == _figures(reference) and len(_figures(out)) >= 3
 
 
+@pytest.mark.slow
 def test_ray_sweep_interrupted_then_resumed_equals_an_uninterrupted_run(
     tmp_path, sweep_reference
 ) -> None:

@@ -258,6 +258,7 @@ def _strict_load(path) -> dict:
     return json.loads(path.read_text(), parse_constant=refuse)
 
 
+@pytest.mark.slow
 def test_cli_writes_metrics_and_figures(tmp_path, capsys) -> None:
     args = ["--seeds", "2", "--samples", "256", "--horizon", "20", "--out", str(tmp_path)]
     assert main(["reach-avoid", *args, "--no-progress"]) == 0
