@@ -492,6 +492,32 @@ def test_hooks_added_after_compiling_are_seen():
         torch.testing.assert_close(b.plan, a.plan, atol=1e-10, rtol=1e-10)
 
 
+def test_a_drift_set_on_the_model_after_compiling_is_integrated():
+    """``model.f = ...`` after the compiled planner ran (and ``del model.f`` later) changes
+    its rollouts as it changes the eager planner's."""
+    pytest.importorskip("torch._dynamo")
+    H, K = 5, 24
+
+    def planner(**extra):
+        return MPPI(_UserUnicycle(), _GoalCost(), H, K, 0.02, 1.0, 0.5, 0.1, seed=3,
+                    keep_rollouts=K, **extra)  # fmt: skip
+
+    eager, compiled = planner(), planner(compile=True)
+    x = _x0(2)
+    for step in range(3):
+        for p in (eager, compiled):
+            model = p.dynamics
+            if step == 1:
+                model.f = lambda z, model=model: _UserUnicycle.f(model, z) + 0.7
+            if step == 2:
+                del model.f
+        a, b = eager(x), compiled(x)
+        torch.testing.assert_close(b.rollouts, a.rollouts, atol=1e-10, rtol=1e-10)
+        if step == 1:  # the drift moves every component of the first step by dt * 0.7
+            moved = a.rollouts[..., 1, :] - a.rollouts[..., 0, :]
+            assert bool((moved[..., :2].abs() > 0.0139).all())
+
+
 def test_compile_failure_runs_eager(caplog):
     pytest.importorskip("torch._dynamo")
 
