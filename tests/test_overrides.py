@@ -101,6 +101,29 @@ def _make(name: str) -> Callable[[], LieFunction]:
     return SHAPES[name] if name in SHAPES else lambda: WRAPPERS[name](Ball([0.0, 0.0], 0.5))
 
 
+def _private_helpers(name: str) -> list[str]:
+    """The private methods of shape ``name`` that torchcbf's classes define (not torch's)."""
+    mro = type(_make(name)()).__mro__
+    ours = [c for c in mro if c.__module__.startswith("torchcbf")]
+    theirs = [c for c in mro if not c.__module__.startswith("torchcbf")]
+    found = {n for c in ours for n in vars(c) if n.startswith("_") and not n.startswith("__")}
+    return sorted(
+        n for n in found if callable(getattr(mro[0], n)) and not any(n in vars(c) for c in theirs)
+    )
+
+
+def _rewriting(helper: str) -> Callable[[type], type]:
+    """A subclass of ``cls`` that rewrites the private ``helper`` as a call of its own."""
+
+    def subclass(cls: type) -> type:
+        def rewritten(self, *args, **kwargs):
+            return getattr(cls, helper)(self, *args, **kwargs)
+
+        return type(f"Own{helper}{cls.__name__}", (cls,), {helper: rewritten})
+
+    return subclass
+
+
 def _answers_as_reference(fn: LieFunction, base: LieFunction) -> None:
     """``fn`` (``base`` padded as :class:`Reference` pads it) has no fast form, and its
     values, Lie terms and filtered controls are the reference's."""
@@ -667,5 +690,48 @@ def test_a_shape_with_lie_set_on_the_instance_is_asked_for_its_terms() -> None:
         got = SafetyFilter(dyn, [ball, far]).double()(x, u)
         want = SafetyFilter(dyn, [PaddedLie([1.0, 0.0], 0.5).double(), far]).double()(x, u)
     torch.testing.assert_close(got.h[:, 0], ball.lie(x, dyn).h)
+    torch.testing.assert_close(got.h, want.h)
+    torch.testing.assert_close(got.u, want.u, atol=1e-9, rtol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("name", "helper"),
+    [(name, helper) for name in [*SHAPES, *WRAPPERS] for helper in _private_helpers(name)],
+)
+def test_a_shape_rewriting_a_private_helper_answers_by_autograd(name: str, helper: str) -> None:
+    """The closed forms and parts do not call a shape's private helpers (``_diff``,
+    ``_one``, ...): a subclass that rewrites one has none of them, and its filter answers as
+    autograd of its ``forward`` does."""
+    fn, base = _subclassed(_make(name), _rewriting(helper))
+    assert not fn.has_analytic and fn.quadric() is None and fn.parts() is None
+    dyn = SingleIntegrator(2).double()
+    x = _states(8, 2)
+    u = torch.tensor([[-1.0, 0.3]], dtype=F64).expand(8, 2)
+    got, want = fn.lie(x, dyn), base.lie(x, dyn, method="autograd")
+    torch.testing.assert_close(got.lgh, want.lgh)
+    if isinstance(base, QuadraticLyapunov):
+        return
+    general = SafetyFilter(dyn, [base], lie_method="autograd", backend="torch",
+                           check_relative_degree=False).double()  # fmt: skip
+    with torch.no_grad():
+        a = SafetyFilter(dyn, [fn], check_relative_degree=False).double()(x, u)
+        b = general(x, u)
+    assert a.path.startswith("torch/")
+    torch.testing.assert_close(a.u, b.u, atol=1e-7, rtol=1e-7)
+
+
+def test_a_ball_with_its_own_offset_is_filtered_as_that_ball() -> None:
+    """``Ball._diff`` rewritten to move the centre: every path sees the moved ball."""
+
+    class Offset(Ball):
+        def _diff(self, x, t):
+            return super()._diff(x, t) - 0.25
+
+    dyn = SingleIntegrator(2).double()
+    x = _states(8, 2) - 1.0
+    u = torch.tensor([[-1.0, 0.3]], dtype=F64).expand(8, 2)
+    with torch.no_grad():
+        got = SafetyFilter(dyn, [Offset([0.0, 0.0], 0.5)]).double()(x, u)
+        want = SafetyFilter(dyn, [Ball([0.25, 0.25], 0.5)]).double()(x, u)
     torch.testing.assert_close(got.h, want.h)
     torch.testing.assert_close(got.u, want.u, atol=1e-9, rtol=1e-9)

@@ -260,6 +260,32 @@ def stale_closed_forms(cls: type, rules: ClosedForms) -> list[str]:
     ]
 
 
+def rewritten_helpers(cls: type) -> list[str]:
+    """The private methods (one leading underscore) that ``cls``, a class written outside
+    torchcbf, rewrites from a torchcbf class above it (``Ball._diff``, say; not those of
+    ``nn.Module``, such as ``_apply``): the closed forms of the torchcbf class do not call
+    them, so none of them can be trusted."""
+    if _ours(cls):
+        return []
+    above = cls.__mro__[1:]
+    return [
+        name
+        for name in vars(cls)
+        if name.startswith("_")
+        and not name.startswith("__")
+        and any(_ours(c) and _is_method(vars(c).get(name)) for c in above)
+        and not any(not _ours(c) and name in vars(c) for c in above)  # torch's (``_apply``)
+    ]
+
+
+def _ours(cls: type) -> bool:
+    return cls.__module__.partition(".")[0] == "torchcbf"
+
+
+def _is_method(value: object) -> bool:
+    return callable(value) or isinstance(value, (property, staticmethod, classmethod))
+
+
 def honour_overrides(cls: type, base: type, rules: ClosedForms) -> None:
     """Give class ``cls`` (a new subclass of ``base``) ``base``'s general version of every
     fast form it would inherit stale.
@@ -270,10 +296,15 @@ def honour_overrides(cls: type, base: type, rules: ClosedForms) -> None:
     when the class defining it is the class defining each method it stands for, or a
     subclass of it: a subclass that overrides ``f`` alone does not inherit a closed-form
     ``xdot`` of the old ``f``; it gets ``f + g u``. A subclass restores an inherited fast
-    form by naming it in its own body (``xdot = Parent.xdot``). Called from
+    form by naming it in its own body (``xdot = Parent.xdot``). A class written outside
+    torchcbf that rewrites a private helper of a torchcbf class (:func:`rewritten_helpers`)
+    gets the general version of every fast form it does not define itself. Called from
     ``__init_subclass__``, so the rule holds for every path that asks the object.
     """
-    for fast in stale_closed_forms(cls, rules):
+    stale = stale_closed_forms(cls, rules)
+    if rewritten_helpers(cls):
+        stale = [fast for fast in rules if fast not in vars(cls)]
+    for fast in stale:
         for name in (fast, *rules[fast][1]):
             setattr(cls, name, base.__dict__[name])
 
@@ -391,7 +422,8 @@ def behaves_as(obj: object, cls: type, methods: Sequence[str]) -> bool:
     (:func:`shadowed`) and, where ``forward`` is among them, whose
     calls run no hooks (:func:`hooked`: a hook changes what a call computes): the test for
     handing ``obj`` to a kernel that evaluates ``cls``'s formulas. A class that rewrites
-    ``__call__`` changes ``forward`` too."""
+    ``__call__`` changes ``forward`` too, and one that rewrites a private helper of
+    torchcbf's (:func:`rewritten_helpers`) changes them all."""
     if "forward" in methods:  # a call runs __call__, its hooks and the instance's forward
         if hooked(obj):
             return False
@@ -404,4 +436,5 @@ def behaves_as(obj: object, cls: type, methods: Sequence[str]) -> bool:
 
 @functools.lru_cache(maxsize=512)
 def _keeps(kind: type, cls: type, methods: tuple[str, ...]) -> bool:
-    return all(getattr(kind, name, None) is getattr(cls, name, None) for name in methods)
+    same = all(getattr(kind, name, None) is getattr(cls, name, None) for name in methods)
+    return same and not rewritten_helpers(kind)
