@@ -254,3 +254,45 @@ def test_enumeration_takes_the_minimiser_not_a_saddle_where_q_is_indefinite(dtyp
     objective = float(0.5 * x @ Q.double() @ x + p.double() @ x)
     _, ref, _ = cvx(*(t.double().numpy() for t in (Q, p, G, h)))
     assert abs(objective - ref) <= 1e-4 * abs(ref), (objective, ref)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_an_lp_vertex_of_nearly_parallel_rows_is_solved_on_its_feasible_row(seed):
+    """An LP whose vertex is cut by copies of one row, a few 1e-10 apart (and a multiple of
+    it): the candidates of the copies are a rounding apart in objective, the lowest one
+    slightly infeasible. The minimiser is the least ratio ``h_i / g_i``, solved."""
+    gen = torch.Generator().manual_seed(seed)
+    g = 0.5 + torch.rand(1, generator=gen, dtype=F64)
+    vertex = 1.0 + 3.0 * torch.rand(1, generator=gen, dtype=F64)
+    scale = torch.tensor([1.0, 1.0, 1.0, 2.5, 1.0, 1.0], dtype=F64)
+    shift = torch.tensor([7e-10, 0.0, 7e-10, 0.0, 0.0, 7e-10], dtype=F64)
+    G = (scale * g).view(6, 1)
+    h = scale * g * vertex * (1.0 + shift)
+    p = -(0.2 + torch.rand(1, generator=gen, dtype=F64))
+    sol = solve_qp(torch.zeros(1, 1, dtype=F64), p, G, h)
+    assert int(sol.status) == Status.SOLVED, sol.method_names()
+    want = (h / G.squeeze(-1)).min()  # to the solver's eps (1e-9 relative)
+    torch.testing.assert_close(sol.x.squeeze(), want, atol=1e-9, rtol=1e-9)
+
+
+def test_a_feasible_point_of_a_zero_objective_is_a_kkt_point_whatever_the_noise():
+    """``P = 0``, ``q = 0``: every feasible point is a minimiser, and multipliers computed as
+    rounding noise (1e-27) leave a stationarity residual of the same noise, which is no
+    reason to refuse the point (the certificate enumeration's answers pass)."""
+    from torchcbf.qp._data import QPData
+    from torchcbf.qp._kkt import kkt_point
+
+    G = torch.tensor([[-0.97], [-2.41], [-1.28], [0.0058], [-0.97]], dtype=F64)
+    x = torch.tensor([[0.4]], dtype=F64)
+    h = (G @ x.T).squeeze(-1)  # rows 0, 1 and 4 tight at x, the others loose
+    h[2:4] += 0.5
+    zero = torch.zeros(1, 0, 1, dtype=F64)
+    data = QPData(zero[:, :1, :1].new_zeros(1, 1, 1), zero.new_zeros(1, 1), G[None], h[None],
+                  zero, zero[..., 0])  # fmt: skip
+    y = torch.zeros(1, 0, dtype=F64)
+    for noise in (0.0, 7.6e-28, 1e-25):
+        z = torch.tensor([[0.0, noise, 0.0, 0.0, 0.0]], dtype=F64)
+        assert bool(kkt_point(data, x, z, y)), noise
+    # a multiplier of real size on a loose row is still refused
+    z = torch.tensor([[0.0, 0.0, 0.3, 0.0, 0.0]], dtype=F64)
+    assert not bool(kkt_point(data, x, z, y))

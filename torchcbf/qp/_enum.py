@@ -313,11 +313,16 @@ def solve_enum_kkt(
     score = score.nan_to_num(nan=math.inf)
     best_score, best = score.min(-1)
     # where P is not positive definite a KKT point may be a saddle: of the candidates within
-    # eps, the one of least objective (the minimiser, where one exists, is among them)
+    # eps, one of least objective (the minimiser, where one exists, is among them); objectives
+    # within eps of the least tie (nearly parallel rows give candidates a rounding apart, the
+    # lower one slightly infeasible), and of those the one with the smallest violation wins
     indefinite = torch.linalg.cholesky_ex(P).info != 0
     objective = ((0.5 * (each.P @ x.unsqueeze(-1)).squeeze(-1) + each.q) * x).sum(-1)
     valid = (score <= eps) & torch.isfinite(objective.view(B, C))
-    least = torch.where(valid, objective.view(B, C), math.inf).argmin(-1)
+    objective = torch.where(valid, objective.view(B, C), math.inf)
+    lowest = objective.amin(-1, keepdim=True)
+    tied = valid & (objective <= lowest + eps * (1.0 + lowest.abs()))
+    least = torch.where(tied, score, math.inf).argmin(-1)
     take = indefinite & valid.any(-1)
     best = torch.where(take, least, best)
     best_score = torch.where(take, score.gather(-1, least.unsqueeze(-1)).squeeze(-1), best_score)

@@ -371,8 +371,11 @@ def stationarity_error(
         + torch.einsum("ben,be->bn", A.abs(), y.abs())
     )
     # a component whose terms are all rounding noise (a zero multiplier computed as 1e-27)
-    # is judged against the largest component's scale
-    s = s + 1e4 * torch.finfo(x.dtype).eps * s.amax(-1, keepdim=True)
+    # is judged against the largest component's scale, and against the terms multipliers of
+    # unit size would give (where every term is noise: P = 0, q = 0, any feasible x)
+    rounding = 1e4 * torch.finfo(x.dtype).eps
+    unit = G.abs().sum(-2) + A.abs().sum(-2)
+    s = s + rounding * (s.amax(-1, keepdim=True) + unit)
     return (r.abs() / s.clamp_min(torch.finfo(x.dtype).tiny)).amax(-1)
 
 
