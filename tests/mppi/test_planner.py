@@ -463,17 +463,21 @@ class _GoalCost(torch.nn.Module):
         return _goal_cost(states, controls, t0)
 
 
+def _eager_and_compiled() -> tuple[MPPI, MPPI]:
+    """Two planners of a user model and cost, the second compiled (5 steps, 24 samples)."""
+    pytest.importorskip("torch._dynamo")
+
+    def planner(**extra):
+        return MPPI(_UserUnicycle(), _GoalCost(), 5, 24, 0.02, 1.0, 0.5, 0.1, seed=3,
+                    keep_rollouts=24, **extra)  # fmt: skip
+
+    return planner(), planner(compile=True)
+
+
 def test_hooks_added_after_compiling_are_seen():
     """A forward hook registered on the model or the cost after the compiled planner ran
     changes its plans as it changes the eager planner's."""
-    pytest.importorskip("torch._dynamo")
-    H, K = 5, 24
-
-    def planner(**extra):
-        return MPPI(_UserUnicycle(), _GoalCost(), H, K, 0.02, 1.0, 0.5, 0.1, seed=3,
-                    keep_rollouts=K, **extra)  # fmt: skip
-
-    eager, compiled = planner(), planner(compile=True)
+    eager, compiled = _eager_and_compiled()
     x = _x0(2)
     handles = []
     for step in range(5):
@@ -495,14 +499,7 @@ def test_hooks_added_after_compiling_are_seen():
 def test_a_drift_set_on_the_model_after_compiling_is_integrated():
     """``model.f = ...`` after the compiled planner ran (and ``del model.f`` later) changes
     its rollouts as it changes the eager planner's."""
-    pytest.importorskip("torch._dynamo")
-    H, K = 5, 24
-
-    def planner(**extra):
-        return MPPI(_UserUnicycle(), _GoalCost(), H, K, 0.02, 1.0, 0.5, 0.1, seed=3,
-                    keep_rollouts=K, **extra)  # fmt: skip
-
-    eager, compiled = planner(), planner(compile=True)
+    eager, compiled = _eager_and_compiled()
     x = _x0(2)
     for step in range(3):
         for p in (eager, compiled):
