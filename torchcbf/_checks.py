@@ -301,9 +301,10 @@ def honour_overrides(cls: type, base: type, rules: ClosedForms) -> None:
     gets the general version of every fast form it does not define itself. Called from
     ``__init_subclass__``, so the rule holds for every path that asks the object.
     """
-    stale = stale_closed_forms(cls, rules)
     if rewritten_helpers(cls):
         stale = [fast for fast in rules if fast not in vars(cls)]
+    else:
+        stale = stale_closed_forms(cls, rules)
     for fast in stale:
         for name in (fast, *rules[fast][1]):
             setattr(cls, name, base.__dict__[name])
