@@ -26,7 +26,8 @@
 #
 # copies the pure-Python packages the device image lacks (pytorch-mppi and its helpers,
 # pytorch-kinematics, gymnasium, qpsolvers, qpth, cbfpy, qpax) from .venv, and unpacks
-# CPython 3.12 wheels of proxsuite and clarabel (pip download), into build/device-carry/site, and records the
+# CPython 3.12 wheels of proxsuite and clarabel (pip download) into build/device-carry/site and
+# site-cp312 (used under Python 3.12 only), and records the
 # commit in build/device-carry/commit.txt (the device gets no .git). build/ is git-ignored,
 # so the run call must carry it. The device call (one; what is under $OUT comes back even at the limit):
 #
@@ -107,8 +108,9 @@ print(os.path.dirname(s.origin) if s and s.origin else '')" 2>/dev/null)"
         for w in "$wheels"/*.whl; do
             "$PY" -m zipfile -e "$w" "$wheels/x" || die "--prepare: unpacking $w failed"
         done
+        mkdir -p "$CARRY/site-cp312"
         cp -r "$wheels"/x/cmeel.prefix/lib/python3.12/site-packages/proxsuite "$wheels"/x/clarabel \
-            "$CARRY/site/" || die "--prepare: copying the unpacked wheels failed"
+            "$CARRY/site-cp312/" || die "--prepare: copying the unpacked wheels failed"
     else
         echo "device_check: WARNING: no proxsuite/clarabel wheels (no network?); their lines will skip" >&2
     fi
@@ -135,6 +137,11 @@ export PYTHONUNBUFFERED=1 MPLBACKEND=Agg
 export XLA_PYTHON_CLIENT_PREALLOCATE=false
 if [ -d "$CARRY/site" ]; then
     export PYTHONPATH="$CARRY/site${PYTHONPATH:+:$PYTHONPATH}"
+    # the compiled wheels are CPython 3.12's: elsewhere (a rehearsal here) they would shadow
+    # the installed packages and fail to import
+    if [ -d "$CARRY/site-cp312" ] && "$PY" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 12))'; then
+        export PYTHONPATH="$CARRY/site-cp312:$PYTHONPATH"
+    fi
 elif [ "$DEVICE" = cuda ]; then
     echo "device_check: WARNING: $CARRY/site is missing (run --prepare here and carry" \
          "build/device-carry): pytorch-mppi, arm and gymnasium tests and lines will skip" >&2
