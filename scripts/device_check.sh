@@ -221,7 +221,7 @@ fi
 if ! skipped tests; then
     t0=$(now)
     par=()
-    if [ "$DEVICE" = cuda ] && "$PY" -c "import xdist" 2>/dev/null; then par=(-n 4); fi
+    if [ "$DEVICE" = cuda ] && "$PY" -c "import xdist" 2>/dev/null; then par=(-n 8); fi
     # SIGINT at the budget: pytest stops and still writes the JUnit file of what ran
     TORCHCBF_TEST_DEVICES="$DEVICE" timeout -s INT -k 30 "$TESTS_BUDGET" "$PY" -m pytest \
         -m "device and not slow" -q -p no:cacheprovider "${par[@]}" --durations=15 \

@@ -1,11 +1,11 @@
-"""Where the time of a device figure goes: torch.profiler tables of one MPPI planning call
-(built-in model and cost terms, K = 16,384, H = 100), of the safety filter on ``B`` states x
-8 balls + box, and of the batched QP forward + backward (n = 4, m = 8).
+"""Where the time of a device figure goes: torch.profiler tables of the safety filter on
+``B`` states x 8 balls + box, of one MPPI planning call (built-in model and cost terms,
+K = 16,384, H = 100), and of the batched QP forward + backward (n = 4, m = 8).
 
     python scripts/device_profile.py --device cuda --out profile.log
 
-Prints (and writes to ``--out``) one table per call, sorted by device time (CPU time on the
-CPU), after warm-up calls, with the number of kernel launches of one call.
+Prints (and writes to ``--out``, table by table) one table per call, sorted by device time
+(CPU time on the CPU), after warm-up calls, with the number of kernel launches of one call.
 """
 
 from __future__ import annotations
@@ -76,26 +76,30 @@ def main() -> int:
     import bench_mppi
     import bench_qp
 
-    parts = []
+    if args.out is not None:
+        args.out.write_text("")
+
+    def emit(title: str, call: Callable[[], object]) -> None:
+        # written table by table: a run stopped at its budget keeps the tables it finished
+        text = f"## {title}\n\n{_table(call, device, args.rows)}\n"
+        sys.stdout.write(text)
+        if args.out is not None:
+            with args.out.open("a") as fh:
+                fh.write(text)
+
+    for dtype in (torch.float32, torch.float64):
+        _, _, filt, x, u_nom = bench_filters._scene(args.states, 8, dtype, seed=0)
+        call = functools.partial(_filter_call, filt.to(device), x.to(device), u_nom.to(device))
+        emit(f"filter, {args.states} states x 8 balls + box, {dtype}", call)
     for graph in (False, True):
         planner = bench_mppi.torchcbf(1, 16384, 100, "builtin", str(device), cuda_graph=graph)
         call = functools.partial(_mppi_call, planner, bench_mppi.x0(0, 4, str(device)))
         title = "MPPI, built-in model and cost terms, K=16384, H=100, float32"
-        parts.append(f"## {title}{', cuda_graph=True' if graph else ''}\n")
-        parts.append(_table(call, device, args.rows))
+        emit(title + (", cuda_graph=True" if graph else ""), call)
     for dtype in (torch.float32, torch.float64):
-        _, _, filt, x, u_nom = bench_filters._scene(args.states, 8, dtype, seed=0)
-        call = functools.partial(_filter_call, filt.to(device), x.to(device), u_nom.to(device))
-        parts.append(f"## filter, {args.states} states x 8 balls + box, {dtype}\n")
-        parts.append(_table(call, device, args.rows))
         problem = bench_qp.make_problems(args.states, 4, 8, str(device), seed=0)
         call = functools.partial(_qp_call, *(t.to(dtype) for t in problem))
-        parts.append(f"## solve_qp forward + backward, B={args.states}, n=4, m=8, {dtype}\n")
-        parts.append(_table(call, device, args.rows))
-    text = "\n".join(parts)
-    sys.stdout.write(text + "\n")
-    if args.out is not None:
-        args.out.write_text(text)
+        emit(f"solve_qp forward + backward, B={args.states}, n=4, m=8, {dtype}", call)
     return 0
 
 

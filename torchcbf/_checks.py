@@ -62,6 +62,33 @@ def check_batch_match(name_a: str, a: Tensor, name_b: str, b: Tensor, trailing: 
         ) from None
 
 
+def placement(module: torch.nn.Module) -> tuple[torch.device, torch.dtype]:
+    """Device and dtype of ``module``'s first floating parameter or buffer (the CPU and the
+    default dtype when it has none)."""
+    for tensor in (*module.parameters(), *module.buffers()):
+        if tensor.is_floating_point():
+            return tensor.device, tensor.dtype
+    return torch.device("cpu"), torch.get_default_dtype()
+
+
+def follow_parts(module: torch.nn.Module, parts: Iterable[object]) -> None:
+    """Move ``module`` to the device its module ``parts`` share when their floating tensors
+    all lie on one accelerator: a filter or planner built from modules on a GPU lives there
+    too, its own buffers included. Parts on the CPU, or on several devices, leave it as
+    built (a call then names the devices that differ)."""
+    devices = {
+        t.device
+        for part in parts
+        if isinstance(part, torch.nn.Module)
+        for t in (*part.parameters(), *part.buffers())
+        if t.is_floating_point()
+    }
+    if len(devices) == 1:
+        (device,) = devices
+        if device.type not in ("cpu", "meta"):
+            module.to(device)
+
+
 def check_positive(name: str, value: float) -> float:
     """A finite Python number ``> 0`` as a float (:func:`check_number`)."""
     return check_number(name, value, low=0.0, strict=True)

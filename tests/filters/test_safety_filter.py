@@ -149,6 +149,20 @@ def test_device_answers_equal_cpu_answers(
     assert bool((h > 0).all())  # random_states draws safe states
 
 
+def test_a_filter_of_modules_on_a_device_lives_there(dtype, device) -> None:
+    """A filter built from a model and barriers already on the device takes its own buffers
+    there (no ``.to`` needed) and answers as one built on the CPU and moved."""
+    f = {"device": device, "dtype": dtype}
+    dyn = SingleIntegrator(2, u_min=-1.0, u_max=1.0).to(**f)
+    filt = SafetyFilter(dyn, Ball(torch.zeros(2, **f), torch.tensor(0.5, **f)), alpha=2.0)
+    assert {t.device for t in filt.buffers()} == {torch.device(device)}
+    moved = SafetyFilter(SingleIntegrator(2, u_min=-1.0, u_max=1.0), Ball([0.0, 0.0], 0.5),
+                         alpha=2.0).to(**f)  # fmt: skip
+    x = torch.tensor([[-1.0, 0.1], [0.2, -0.9]], **f)
+    u = torch.tensor([[1.0, 0.0], [0.0, 1.0]], **f)
+    torch.testing.assert_close(filt(x, u).u, moved(x, u).u)
+
+
 def test_constraint_values_and_outputs() -> None:
     xs, us = random_states(16, seed=7)
     filt = scene("vanilla")

@@ -112,6 +112,18 @@ def test_batch_equals_loop(device, dtype, backend):
         assert out.plan.shape == (B, 8, 2) and out.u.shape == (B, 2)
 
 
+def test_a_planner_of_modules_on_a_device_lives_there(device, dtype):
+    """A planner built from a model and cost already on the device takes its own buffers
+    there and plans as one built on the CPU and moved."""
+    dyn = AccelUnicycle(u_min=-2.0, u_max=2.0).to(device)
+    cost = QuadraticGoal((2.0, 4.0), 2.0, (0, 1), 10.0).to(device)
+    sigma = torch.tensor([[1.0, 0.3], [0.3, 0.5]], device=device)
+    there = MPPI(dyn, cost, 8, 64, 0.02, sigma, 0.5, 0.1, seed=3)
+    assert {t.device for t in there.buffers()} == {torch.device(device)}
+    x = _x0(2, dtype, device)
+    torch.testing.assert_close(there(x).plan, _planner(seed=3).to(device)(x).plan)
+
+
 def test_seeds_and_global_rng():
     x = _x0(1)[0]
     state = torch.random.get_rng_state()

@@ -41,6 +41,38 @@ def _eps(dtype: torch.dtype) -> float:
     return 1e-9 if dtype == F64 else 1e-5
 
 
+def _active_conditioning(P, G, active):
+    """``[B]`` condition number of each row's active-set matrix ``G_A P^-1 G_A'`` (1 where
+    no row is active): how much a different rounding (a fused multiply-add) may move the
+    multipliers and the adjoints."""
+    P, G = P.double(), G.double()
+    M = G @ torch.linalg.solve(P, G.mT)
+    a = active.to(M.dtype)
+    fill = (torch.diagonal(M, dim1=-2, dim2=-1) * a).amax(-1, keepdim=True).clamp_min(1e-300)
+    M = M * a.unsqueeze(-1) * a.unsqueeze(-2) + torch.diag_embed((1 - a) * fill)
+    return torch.linalg.cond(M)
+
+
+def _kkt_error(P, q, G, h, x, z):
+    """``[B]`` largest KKT residual of ``(x, z)`` (stationarity, primal and dual feasibility,
+    complementarity), relative to the size of the terms."""
+    x, z, P, q, G, h = (t.double() for t in (x, z, P, q, G, h))
+    slack = h - (G @ x.unsqueeze(-1)).squeeze(-1)
+    grad = (P @ x.unsqueeze(-1)).squeeze(-1) + q + (G.mT @ z.unsqueeze(-1)).squeeze(-1)
+    scale = 1 + q.abs().amax(-1) + h.abs().amax(-1) + z.abs().amax(-1)
+    parts = (grad.abs().amax(-1), (-slack).clamp_min(0).amax(-1), (-z).clamp_min(0).amax(-1),
+             (z * slack).abs().amax(-1))  # fmt: skip
+    return torch.stack(parts).amax(0) / scale
+
+
+def _assert_rows_close(a, b, bound, rows):
+    """``a`` and ``b`` agree on ``rows`` within ``bound [B]`` times ``1 + |b|`` per row."""
+    err = (a - b).abs().flatten(1).amax(-1).double()
+    size = 1 + b.abs().flatten(1).amax(-1).double()
+    bad = rows & (err > bound * size)
+    assert not bool(bad.any()), (bad.nonzero().flatten().tolist(), err[bad], (bound * size)[bad])
+
+
 @runs
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
 @pytest.mark.parametrize("shape", [(1, 37, 1, 2), (2, 70, 2, 6), (3, 33, 3, 5), (4, 64, 4, 8)])
@@ -58,9 +90,15 @@ def test_answers_match_the_torch_implementation_and_the_known_optimum(shape, dty
     assert int((out.ok != ref.ok).sum()) <= max(1, B // 50)
     tol = 1e-10 if dtype == F64 else 1e-4
     torch.testing.assert_close(out.x[both], ref.x[both], atol=tol, rtol=tol)
+    # a row that ends on another active set (a tie broken otherwise) is still optimal with
+    # its own multipliers
     same = both & (out.active == ref.active).all(-1)
-    assert int(same.sum()) >= int(both.sum()) - max(1, B // 50)
-    torch.testing.assert_close(out.z[same], ref.z[same], atol=10 * tol, rtol=10 * tol)
+    other = both & ~same
+    assert bool((_kkt_error(P, q, G, h, out.x, out.z)[other] <= 10 * eps).all())
+    # where the sets agree: the same multipliers, steps and backward, to the rounding that
+    # the active-set matrix's conditioning amplifies
+    bound = tol + torch.finfo(dtype).eps * _active_conditioning(P, G, ref.active)
+    _assert_rows_close(out.z, ref.z, 10 * bound, same)
     assert torch.equal(out.iterations[same], ref.iterations[same])
     g = torch.Generator().manual_seed(n)
     gx = torch.randn(B, n, generator=g, dtype=F64).to(TARGET, dtype)
@@ -68,7 +106,7 @@ def test_answers_match_the_torch_implementation_and_the_known_optimum(shape, dty
     adjoints = zip(dual_adjoints(out.factor, out.x, gx, gz),
                    dual_adjoints(ref.factor, ref.x, gx, gz), strict=True)  # fmt: skip
     for a, b in adjoints:
-        torch.testing.assert_close(a[same], b[same], atol=10 * tol, rtol=10 * tol)
+        _assert_rows_close(a, b, 10 * bound, same)
     kept = [k in ("active", "inactive") and i % 7 for i, k in enumerate(kind)]
     known = out.ok & torch.tensor(kept, dtype=torch.bool, device=TARGET)
     assert known.sum() >= B // 2

@@ -32,6 +32,8 @@ from torch import Tensor, nn
 from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import Transform
 
+from torchcbf._checks import placement
+
 __all__ = ["FILTER_KEYS", "SafetyFilterTransform", "barrier_values"]
 
 #: the keys the transform writes into ``"next"``
@@ -54,13 +56,6 @@ def barrier_values(barriers: nn.ModuleList, x: Tensor, t: Tensor | None = None) 
         h = barrier(x) if t is None else barrier(x, t)
         values.append(h.unsqueeze(-1) if h.dim() == x.dim() - 1 else h)
     return torch.cat(values, dim=-1)
-
-
-def _placement(module: nn.Module) -> tuple[torch.device, torch.dtype]:
-    for tensor in (*module.parameters(), *module.buffers()):
-        if tensor.is_floating_point():
-            return tensor.device, tensor.dtype
-    return torch.device("cpu"), torch.get_default_dtype()
 
 
 class SafetyFilterTransform(Transform):
@@ -110,7 +105,7 @@ class SafetyFilterTransform(Transform):
     # -- reading the state -----------------------------------------------------------------
 
     def _state(self, tensordict: TensorDictBase) -> tuple[Tensor, Tensor | None]:
-        device, dtype = _placement(self.safety_filter)
+        device, dtype = placement(self.safety_filter)
         obs = tensordict.get(self.observation_key)
         fn = self.state_fn
         if fn is None:
@@ -209,7 +204,7 @@ class SafetyFilterTransform(Transform):
         return observation_spec
 
     def _num_barrier_values(self) -> int:
-        device, dtype = _placement(self.safety_filter)
+        device, dtype = placement(self.safety_filter)
         n = self.safety_filter.dynamics.state_dim
         x = torch.zeros(n, device=device, dtype=dtype)
         with torch.no_grad():

@@ -20,14 +20,9 @@ import torch
 from gymnasium.vector import VectorEnv, VectorWrapper
 from torch import Tensor, nn
 
+from torchcbf._checks import placement
+
 StateFn = Callable[[Any], Any]
-
-
-def _placement(safety_filter: nn.Module) -> tuple[torch.device, torch.dtype]:
-    for tensor in (*safety_filter.parameters(), *safety_filter.buffers()):
-        if tensor.is_floating_point():
-            return tensor.device, tensor.dtype
-    return torch.device("cpu"), torch.get_default_dtype()
 
 
 def _state_fn(env: Any, state_fn: StateFn | None) -> StateFn:
@@ -65,7 +60,7 @@ class _Filtering:
         self.safety_filter = safety_filter
         self.state_fn = _state_fn(env, state_fn)
         self.time_fn = time_fn
-        own_device, own_dtype = _placement(safety_filter)
+        own_device, own_dtype = placement(safety_filter)
         self.filter_device = torch.device(device) if device is not None else own_device
         self.filter_dtype = dtype if dtype is not None else own_dtype
         self._last_obs: Any = None

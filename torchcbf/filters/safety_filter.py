@@ -55,6 +55,7 @@ from torchcbf._checks import (
     broadcast_shapes,
     check_bounds,
     check_last_dim,
+    follow_parts,
 )
 from torchcbf._compile import Traced, TraceError, logger
 from torchcbf.barriers import native
@@ -329,6 +330,7 @@ class SafetyFilter(nn.Module):
         self.slack = _slack(slack).resolved(lyapunovs=bool(self.lyapunovs))
         self.fallback = Fallback(fallback, m)
         self.qp_options = _check_qp_options(dict(qp_options or {}))
+        follow_parts(self, [dynamics, *self.barriers, *self.lyapunovs])
 
     # -- read-only views of the condition --------------------------------------------------
     @property

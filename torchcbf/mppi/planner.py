@@ -105,6 +105,7 @@ from torchcbf._checks import (
     check_bounds,
     check_last_dim,
     check_positive,
+    follow_parts,
     hook_dicts,
 )
 from torchcbf._compile import Compiled, hook_key, read_key
@@ -550,6 +551,7 @@ class MPPI(ExactConstants):
         self._kernel_cache: tuple[Any, _rollout.Kernel | _triton.Kernel | None] | None = None
         self._captured: _Capture | None = None
         self._fresh = True
+        follow_parts(self, [dynamics, cost])
 
     # -- state -------------------------------------------------------------------------------
     def reset(self) -> None:
