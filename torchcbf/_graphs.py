@@ -57,6 +57,11 @@ class CapturedCall:
                 warm = tuple(fn(*self._inputs))
             current.wait_stream(stream)
             self.first = _copies(warm)
+            for t in warm:
+                if t is not None:
+                    # the copies read it on the current stream: its memory must not go back
+                    # to the side stream's pool (and the capture's work) before they ran
+                    t.record_stream(current)
             del warm
             graph = torch.cuda.CUDAGraph()
             with torch.cuda.stream(stream):

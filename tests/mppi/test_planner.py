@@ -119,7 +119,7 @@ def test_a_planner_of_modules_on_a_device_lives_there(device, dtype):
     cost = QuadraticGoal((2.0, 4.0), 2.0, (0, 1), 10.0).to(device)
     sigma = torch.tensor([[1.0, 0.3], [0.3, 0.5]], device=device)
     there = MPPI(dyn, cost, 8, 64, 0.02, sigma, 0.5, 0.1, seed=3)
-    assert {t.device for t in there.buffers()} == {torch.device(device)}
+    assert all(t.device.type == torch.device(device).type for t in there.buffers())
     x = _x0(2, dtype, device)
     torch.testing.assert_close(there(x).plan, _planner(seed=3).to(device)(x).plan)
 
