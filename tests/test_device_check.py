@@ -166,6 +166,7 @@ def test_collect_reads_figures_steps_and_junit(tmp_path: Path) -> None:
     assert report.strict_json({"a": [float("nan"), 1.0]}) == {"a": [None, 1.0]}
 
 
+@pytest.mark.slow
 def test_device_figures_quick_on_the_cpu(tmp_path: Path) -> None:
     """One small figure end to end: the JSON names the device, the commit and the figure."""
     out = tmp_path / "figures.json"

@@ -119,7 +119,11 @@ def test_soft_rows_with_infinite_h(cvx, method):
     torch.testing.assert_close(sol.x, hard.x, atol=1e-6, rtol=1e-6)
 
 
-@pytest.mark.parametrize("method", ["auto", "enumerate", "ipm"])
+# the interior point's gradcheck takes 9 s: in the slow suite
+SLOW_IPM = pytest.param("ipm", marks=pytest.mark.slow)
+
+
+@pytest.mark.parametrize("method", ["auto", "enumerate", SLOW_IPM])
 def test_gradcheck_through_infinite_rows(method):
     Q, p, G, h, lb, ub = _problem(3, seed=1)
     # make the finite rows bind: a large linear term pushes x against them

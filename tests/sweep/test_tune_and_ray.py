@@ -121,6 +121,7 @@ def ray_cluster():
     ray.shutdown()
 
 
+@pytest.mark.slow  # a local Ray cluster: 7 s to start
 def test_ray_sweep_equals_local(ray_cluster) -> None:
     grid = {"num_samples": [32, 64], "horizon": [8]}
     local = run_sweep("reach-avoid", grid, num_seeds=2, seed=3, progress=False)
@@ -128,6 +129,7 @@ def test_ray_sweep_equals_local(ray_cluster) -> None:
     assert _without_wall(remote) == _without_wall(local)
 
 
+@pytest.mark.slow  # a local Ray cluster: 7 s to start
 def test_ray_tune_equals_local(ray_cluster, study) -> None:
     local = study
     remote = _tune(engine="ray")
@@ -135,6 +137,7 @@ def test_ray_tune_equals_local(ray_cluster, study) -> None:
     assert remote["best"] == local["best"]
 
 
+@pytest.mark.slow  # a local Ray cluster: 7 s to start
 def test_cli_sweep_on_ray(ray_cluster, tmp_path) -> None:
     args = ["sweep", "reach-avoid", "--grid", "num_samples=32", "--grid", "horizon=8",
             "--seeds", "2", "--no-progress"]  # fmt: skip
@@ -178,6 +181,7 @@ def test_a_failing_trial_is_recorded_and_the_study_goes_on(monkeypatch, tmp_path
     assert (tmp_path / "study.csv").read_text().count("failed") == len(result["failed_trials"])
 
 
+@pytest.mark.slow  # a local Ray cluster: 7 s to start
 def test_ray_records_a_failing_point_and_runs_the_rest(ray_cluster, monkeypatch) -> None:
     import sys
 
