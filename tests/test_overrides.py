@@ -720,6 +720,40 @@ def test_a_shape_rewriting_a_private_helper_answers_by_autograd(name: str, helpe
     torch.testing.assert_close(a.u, b.u, atol=1e-7, rtol=1e-7)
 
 
+def test_an_arm_rewriting_its_transforms_moves_its_link_spheres() -> None:
+    """``Manipulator._transforms`` rewritten to shift every frame: link-sphere barriers and
+    the filter on that arm answer as on the plain arm with the obstacle shifted back."""
+    pytest.importorskip("pytorch_kinematics")
+    from torchcbf.barriers import LinkSphereBarrier
+    from torchcbf.dynamics import Manipulator
+
+    shift = torch.tensor([0.1, -0.2, 0.05], dtype=F64)
+
+    class Shifted(Manipulator):
+        def _transforms(self, x):
+            T, batch = super()._transforms(x)
+            T = T.clone()
+            T[..., :3, 3] = T[..., :3, 3] + shift.to(T)
+            return T, batch
+
+    arm, plain = Shifted("planar3").double(), Manipulator("planar3").double()
+    center = torch.tensor([0.9, 0.4, 0.0], dtype=F64)
+    moved = LinkSphereBarrier(arm, ["link2", "link3"], 0.05, center, 0.2).double()
+    back = LinkSphereBarrier(plain, ["link2", "link3"], 0.05, center - shift, 0.2).double()
+    gen = torch.Generator().manual_seed(5)
+    x = 0.8 * torch.rand(6, arm.state_dim, generator=gen, dtype=F64) - 0.4
+    u = torch.full((6, arm.control_dim), 0.7, dtype=F64)
+    a, b = moved.lie(x, arm), back.lie(x, plain)
+    torch.testing.assert_close(a.h, b.h)
+    torch.testing.assert_close(a.lgh, b.lgh)
+    torch.testing.assert_close(arm(x, u), plain(x, u))
+    with torch.no_grad():
+        got = SafetyFilter(arm, [moved], check_relative_degree=False).double()(x, u)
+        want = SafetyFilter(plain, [back], check_relative_degree=False).double()(x, u)
+    assert bool((got.u != u).any())  # the spheres are near the obstacle: the filter acts
+    torch.testing.assert_close(got.u, want.u, atol=1e-9, rtol=1e-9)
+
+
 def test_a_ball_with_its_own_offset_is_filtered_as_that_ball() -> None:
     """``Ball._diff`` rewritten to move the centre: every path sees the moved ball."""
 
