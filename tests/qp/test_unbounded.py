@@ -155,13 +155,16 @@ def test_unbounded_to_float32_rounding_one_problem_at_a_time(n, m):
         assert (sol.x == 0).all()
 
 
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f64", "f32"])
+@pytest.mark.parametrize("method", ("auto", "enumerate", "ipm"))
 @pytest.mark.parametrize("B", [1, 5, 64])
-def test_recession_direction_inside_the_equalities_is_dual_infeasible(B):
+def test_recession_direction_inside_the_equalities_is_dual_infeasible(B, method, dtype):
     """``Q = vv'``, ``v'x = 0.5`` and a loose row ``v'x <= 100``: the null direction ``d`` of
     ``Q`` keeps every row, and ``p'd < 0``. Eliminating the equality leaves a reduced Hessian
-    that is rounding alone, which the dual method must not take for curvature. (In float32
-    the rounding makes ``Q`` indefinite and the far stationary point a saddle, which
-    enumeration and the interior point method's polish still take: not covered here.)"""
+    that is rounding alone, which the dual method must not take for curvature. In float32
+    the rounding makes ``Q`` indefinite on about half the rows and the far stationary point
+    a saddle (``p'x > 0``: the objective falls along ``-x``), which no method may take for a
+    minimiser either."""
     g = torch.Generator().manual_seed(B)
     v = torch.randn(B, 2, generator=g, dtype=torch.float64) * 0.2
     d = torch.stack([-v[:, 1], v[:, 0]], -1)
@@ -172,10 +175,10 @@ def test_recession_direction_inside_the_equalities_is_dual_infeasible(B):
         torch.full((B, 1), 0.5, dtype=torch.float64),
         torch.full((B, 1), 100.0, dtype=torch.float64),
     )
-    args = [Q, p, G, h, A, b]
+    args = [t.to(dtype) for t in (Q, p, G, h, A, b)]
     for grad in (False, True):
         p_in = args[1].clone().requires_grad_(grad)
-        sol = solve_qp(args[0], p_in, *args[2:])
+        sol = solve_qp(args[0], p_in, *args[2:], method=method)
         assert (sol.status == int(Status.DUAL_INFEASIBLE)).all(), (sol.path, sol.status)
         assert (sol.x == 0).all()
 

@@ -598,14 +598,18 @@ def unbounded_solved(data: QPData, x: Tensor, solved: Tensor, cfg: SolverConfig)
 
     A singular ``P`` rounded to a tiny positive eigenvalue turns a descent direction into a
     minimiser far along it (``|x| ~ 1e11``), which the tolerances of every method accept as a
-    KKT point; the point itself is then the certificate. On a problem with an optimum no
-    minimiser passes (``x``, ``2x``, ... would all be feasible with a falling objective).
-    Only rows with ``q'x < 0`` can pass; the test (an eigendecomposition) runs on those, after
-    one host synchronisation."""
+    KKT point; the point itself is then the certificate. Rounded to a tiny negative
+    eigenvalue, it turns the descent direction into a stationary point far along the other
+    way (``q'x > 0``, a maximum along ``x``), and ``-x`` is the certificate. On a problem with
+    an optimum no point passes (``d``, ``2d``, ... would all be feasible directions with a
+    falling objective). The test (an eigendecomposition) runs on the rows with ``q'x != 0``
+    whose ``P`` is singular to rounding, after one host synchronisation."""
     P, q = data.P, data.q
-    cand = solved & ((q * x).sum(-1) < 0)
+    qx = (q * x).sum(-1)
+    cand = solved & (qx != 0)
     if not bool(cand.any()):
         return cand
+    x = torch.where((qx > 0).unsqueeze(-1), -x, x)  # the way the objective falls
     # P - tau I positive definite, for tau at least the test's singularity threshold
     # (n units of rounding of the largest eigenvalue, bounded by the largest row sum), rules
     # the row out without an eigendecomposition
@@ -679,10 +683,13 @@ def _drop_unbounded(
     status: Tensor,
     cfg: SolverConfig,
 ) -> tuple[Tensor, ...]:
-    """``(x, *others, status)`` with the ``SOLVED`` rows that :func:`unbounded_solved` finds
-    reported ``DUAL_INFEASIBLE`` and ``x`` and ``others`` (multipliers, active sets) zeroed
-    there."""
-    unb = unbounded_solved(data, x, status == int(Status.SOLVED), cfg)
+    """``(x, *others, status)`` with the rows whose ``x`` :func:`unbounded_solved` finds a
+    certificate of unboundedness reported ``DUAL_INFEASIBLE`` and ``x`` and ``others``
+    (multipliers, active sets) zeroed there: ``SOLVED`` rows, and rows left
+    ``NUMERICAL_ERROR`` or ``MAX_ITER`` (a method stopped on a saddle far out, rejected as an
+    answer, ends there; the certificate holds whichever way ``x`` was found)."""
+    unfinished = (status == int(Status.NUMERICAL_ERROR)) | (status == int(Status.MAX_ITER))
+    unb = unbounded_solved(data, x, (status == int(Status.SOLVED)) | unfinished, cfg)
     if not bool(unb.any()):
         return (x, *others, status)
     u = unb.unsqueeze(-1)
@@ -891,7 +898,11 @@ def _certify_ill_conditioned(
             *data[:4], rows, x, z, res.active, res.ok, eps=cfg.eps, max_iter=steps,
             prox_weight=PROX_WEIGHT, prox_steps=PROX_STEPS, rounding=cfg.rounding,
         )  # fmt: skip
-        done = done & ~saddle_solved(data, x, done, cfg)
+        # a saddle, or a point far along a direction where P is singular to rounding, is no
+        # answer; both need P singular to rounding, which one factorisation rules out
+        odd = done & singular_to_rounding(data.P, data.P, cfg.rounding)
+        if bool(odd.any()):
+            done = done & ~saddle_solved(data, x, odd, cfg) & ~unbounded_solved(data, x, odd, cfg)
         left = rows & ~done
         if not bool(left.any()):
             return x, z, done
