@@ -58,7 +58,7 @@ class CapturedCall:
             current.wait_stream(stream)
             self.first = _copies(warm)
             for t in warm:
-                if t is not None:
+                if t is not None and t.is_cuda:
                     # the copies read it on the current stream: its memory must not go back
                     # to the side stream's pool (and the capture's work) before they ran
                     t.record_stream(current)
