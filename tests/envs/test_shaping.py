@@ -150,6 +150,23 @@ def test_scenario_b_shaping_path_keeps_clear_of_the_ellipses():
     assert float((p - torch.tensor(GOAL, dtype=torch.float64)).norm()) <= 0.25
 
 
+@pytest.mark.parametrize("env_id", ["torchcbf/UnicycleEllipses-v0", "torchcbf/ReachAvoid-v0"])
+def test_shaping_and_filter_leave_the_environments_modules_as_they_were(env_id):
+    """Building the scenario's shaping (on a float64 grid) and filter does not cast the
+    float32 environment's barriers or plant."""
+    base = TorchRLEnv(env_id, 1, seed=0)
+    vec = base.vector_env
+    before = {k: v.clone() for k, v in (*vec.barriers.state_dict().items(),
+                                        *vec.dynamics.state_dict().items())}  # fmt: skip
+    scenario_shaping(base)
+    scenario_filter(base)
+    after = {**vec.barriers.state_dict(), **vec.dynamics.state_dict()}
+    assert before.keys() == after.keys() and before
+    for key, value in before.items():
+        assert after[key].dtype == value.dtype == torch.float32, key
+        assert torch.equal(after[key], value), key
+
+
 def test_scenario_filter_margin_inflates_the_ellipses():
     base = TorchRLEnv("torchcbf/UnicycleEllipses-v0", 1, seed=0, sigma=0.1)
     noisy = scenario_filter(base)  # default: 3 sigma

@@ -29,6 +29,7 @@ forked and restored).
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections.abc import Callable
@@ -195,7 +196,9 @@ def scenario_filter(env: TorchRLEnv, *, margin: float | None = None) -> SafetyFi
 def _free(env: TorchRLEnv) -> Callable[[Tensor], Tensor]:
     """Points ``[..., 2]`` -> outside every obstacle of ``env`` (the position is the first two
     state entries, the rest zero)."""
-    barriers, n = env.barriers, env.dynamics.state_dim
+    # a copy: the points' dtype may differ from the environment's, whose barriers stay as
+    # they are
+    barriers, n = copy.deepcopy(env.barriers), env.dynamics.state_dim
 
     def free(p: Tensor) -> Tensor:
         x = torch.nn.functional.pad(p, (0, n - 2))
