@@ -220,3 +220,24 @@ def test_filter_steps_make_no_host_traffic(cls, name) -> None:
         sensor.residual(sensor.measure(inner.mean, noise=y), y)
     assert not traffic.events, dict(traffic.events)
     assert state.mean.device.type == "meta" and state.cov.shape == (3, 4, 4)
+
+
+@pytest.mark.parametrize("cls", FILTERS, ids=lambda c: c.__name__)
+def test_filter_steps_never_wait_for_the_device(cls, device) -> None:
+    """Predict (its matrix exponential included) and update make no host synchronisation on
+    an accelerator (its sync debug mode raises on one)."""
+    if device.type == "cpu":
+        pytest.skip("host synchronisations exist only on an accelerator")
+    sensor = _sensors()["range_bearing"].to(device)
+    est = cls(AccelUnicycle(sigma=0.1), sensor).to(device)
+    gen = torch.Generator().manual_seed(2)
+    x0 = torch.randn(16, 4, generator=gen).to(device)
+    state = est.init(x0, torch.eye(4, device=device).expand(16, 4, 4) * 0.1)
+    u = torch.zeros(16, 2, device=device)
+    y = sensor.expected(x0)
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        est.update(est.predict(state, u, 0.1), y)
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
