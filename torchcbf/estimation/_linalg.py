@@ -94,7 +94,9 @@ def pade_matrix_exp(A: Tensor) -> Tensor:
              + b[3] * A2 + b[1] * eye)  # fmt: skip
     V = A6 @ (b[12] * A6 + b[10] * A4 + b[8] * A2) + b[6] * A6 + b[4] * A4 + b[2] * A2
     V = V + b[0] * eye
-    E = torch.linalg.solve(V - U, V + U)
+    # solve_ex: torch.linalg.solve reads its error code back to raise (V - U is well
+    # conditioned once the norm is below theta)
+    E = torch.linalg.solve_ex(V - U, V + U).result
     for i in range(_MAX_SQUARINGS):
         E = torch.where((s > i)[:, None, None], E @ E, E)
     return E
