@@ -486,6 +486,7 @@ def _eager_and_compiled() -> tuple[MPPI, MPPI]:
     return planner(), planner(compile=True)
 
 
+@pytest.mark.slow  # 7-10 s on 2 cores: in the slow suite, which CI runs too
 def test_hooks_added_after_compiling_are_seen():
     """A forward hook registered on the model or the cost after the compiled planner ran
     changes its plans as it changes the eager planner's."""

@@ -87,6 +87,7 @@ def test_risk_filter_noise_bound_covers_its_speeds_on_the_inflated_ellipses() ->
             mppi_cbf("mppi_rascbf", num_seeds=1, num_samples=8, horizon=4, **{name: bad})
 
 
+@pytest.mark.slow  # 7-10 s on 2 cores: in the slow suite, which CI runs too
 def test_inside_form_lies_inside_the_obstacle_free_set() -> None:
     """The inside form is the smooth minimum of the rectified form and k r_i: at most k r_i
     (so negative in every ellipse, whatever the velocity), -tau log 2 on the boundary at
@@ -146,6 +147,7 @@ def test_risk_budget_shares_the_run_over_windows_of_the_horizon() -> None:
             mppi_cbf("mppi_rascbf", risk_budget=bad, risk_horizon=0.03, **kw)
 
 
+@pytest.mark.slow  # 7-10 s on 2 cores: in the slow suite, which CI runs too
 def test_local_noise_bound_margin_follows_the_state() -> None:
     """``risk_eta="local"``: the filter's margin at a state is sqrt(2T) |dh_i/dx sigma|
     erfinv(1 - rho) there (autograd), the record's ``delta`` is the one at the start, and the

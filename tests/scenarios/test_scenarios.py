@@ -274,6 +274,7 @@ def test_cli_writes_metrics_and_figures(tmp_path, capsys) -> None:
     assert "min clearance [m]" in out and "num_samples=256" in out
 
 
+@pytest.mark.slow  # 7-10 s on 2 cores: in the slow suite, which CI runs too
 def test_cli_scenario_b_config_methods_and_strict_json(tmp_path, capsys, monkeypatch) -> None:
     from torchcbf.scenarios import unicycle_mppi_cbf
 
