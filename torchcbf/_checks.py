@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import functools
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
 import torch
@@ -62,13 +62,18 @@ def check_batch_match(name_a: str, a: Tensor, name_b: str, b: Tensor, trailing: 
         ) from None
 
 
+def _floating(module: torch.nn.Module) -> Iterator[Tensor]:
+    """``module``'s floating parameters and buffers, parameters first."""
+    return (t for t in (*module.parameters(), *module.buffers()) if t.is_floating_point())
+
+
 def placement(module: torch.nn.Module) -> tuple[torch.device, torch.dtype]:
     """Device and dtype of ``module``'s first floating parameter or buffer (the CPU and the
     default dtype when it has none)."""
-    for tensor in (*module.parameters(), *module.buffers()):
-        if tensor.is_floating_point():
-            return tensor.device, tensor.dtype
-    return torch.device("cpu"), torch.get_default_dtype()
+    tensor = next(_floating(module), None)
+    if tensor is None:
+        return torch.device("cpu"), torch.get_default_dtype()
+    return tensor.device, tensor.dtype
 
 
 def follow_parts(module: torch.nn.Module, parts: Iterable[object]) -> None:
@@ -77,11 +82,7 @@ def follow_parts(module: torch.nn.Module, parts: Iterable[object]) -> None:
     too, its own buffers included. Parts on the CPU, or on several devices, leave it as
     built (a call then names the devices that differ)."""
     devices = {
-        t.device
-        for part in parts
-        if isinstance(part, torch.nn.Module)
-        for t in (*part.parameters(), *part.buffers())
-        if t.is_floating_point()
+        t.device for part in parts if isinstance(part, torch.nn.Module) for t in _floating(part)
     }
     if len(devices) == 1:
         (device,) = devices

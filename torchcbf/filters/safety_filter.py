@@ -56,6 +56,7 @@ from torchcbf._checks import (
     check_bounds,
     check_last_dim,
     follow_parts,
+    placement,
 )
 from torchcbf._compile import Traced, TraceError, logger
 from torchcbf.barriers import native
@@ -155,9 +156,7 @@ def _require_control_authority(
     """Raise if some barrier output has ``L_g h = 0`` at every sample state (see the
     ``check_relative_degree`` argument of :class:`SafetyFilter`)."""
     for i, barrier in enumerate(barriers):
-        ref = next((t for t in barrier.state_dict().values() if t.is_floating_point()), None)
-        dtype = torch.get_default_dtype() if ref is None else ref.dtype
-        device = torch.device("cpu") if ref is None else ref.device
+        device, dtype = placement(barrier)
         if device.type == "meta":
             continue
         gen = torch.Generator(device=device).manual_seed(0)
