@@ -8,18 +8,21 @@
 #                      after every step, so a run stopped at its limit still leaves one)
 #   report.md          the same as Markdown tables (scripts/device_report.py)
 #   install.log figures.log tests.log bench.log scenarios.log   the raw logs
-#   profile.log        torch.profiler tables of the filter and the QP (scripts/device_profile.py)
+#   profile.log        torch.profiler tables of the filter and the QP (scripts/device_profile.py),
+#                      then the QP kernel's launch settings (scripts/device_kernels.py; also in
+#                      the JSON) and Nsight Compute's sections of one launch where ncu runs
 # (8 files: the device tool brings back at most 8)
 #
 # Steps, in order of value, each bounded by its own time budget (seconds, flags below):
 #   install (120) -> figures (150, a figure started in time may run on up to 60 more)
 #   -> tests (100) -> scenario A (45) -> scenario B (120) -> bench (160, shared by the
-#   scripts) -> profile (60)
-# about 14 minutes if every step runs to its budget (the JSON is kept up to date, so the
-# call's limit loses only the step it stops); on an H200 the steps took 54, 79, 75 (8
-# test workers), 9, 61 and 41 s, so about 8.5 minutes with the bench's budget. A step
-# that fails does not stop the others; the script ends with a list of the failed steps and
-# exit status 1 if there is any.
+#   scripts) -> profile (60) -> kernels (120) -> ncu (60)
+# about 16 minutes if every step runs to its budget (the JSON is kept up to date, so the
+# call's limit loses only the step it stops); on an H200 the first six steps took 54, 79,
+# 75 (8 test workers), 9, 61 and 41 s, so about 8.5 minutes with the bench's budget: the
+# last two steps fit one 600 s call only with others skipped, so a session runs them in a
+# second call (below). A step that fails does not stop the others; the script ends with a
+# list of the failed steps and exit status 1 if there is any.
 #
 # Right before the device call, HERE (the machine with the project's .venv; it records the commit):
 #
@@ -32,7 +35,13 @@
 # commit in build/device-carry/commit.txt (the device gets no .git). build/ is git-ignored,
 # so the run call must carry it. The device call (one; what is under $OUT comes back even at the limit):
 #
-#   run(command="bash scripts/device_check.sh", carry=["build/device-carry"], timeout_s=600)
+#   run(command="bash scripts/device_check.sh --skip kernels --skip ncu",
+#       carry=["build/device-carry"], timeout_s=600)
+#
+# and, for the QP kernel's launch settings, a second call (about 3 minutes):
+#
+#   run(command="bash scripts/device_check.sh --skip figures --skip tests --skip scenarios
+#       --skip scenario_b --skip bench --skip profile", carry=["build/device-carry"], timeout_s=300)
 #
 # Then: python scripts/device_report.py <files_at>/device_check.json --cpu <cpu json>.
 # Rehearsal on a CPU (every step, small sizes): bash scripts/device_check.sh --device cpu
@@ -42,8 +51,8 @@
 # Flags: --device cuda|cpu (default cuda), --out DIR (default $OUT), --quick (small sizes),
 # --python PY (default python3 on the device, .venv/bin/python here), --no-install,
 # --figures-budget S, --tests-budget S, --bench-budget S, --scenario-budget S,
-# --scenario-b-budget S, --profile-budget S,
-# --skip STEP (figures|tests|bench|scenarios|profile|scenario_b; repeatable),
+# --scenario-b-budget S, --profile-budget S, --kernels-budget S, --ncu-budget S,
+# --skip STEP (figures|tests|bench|scenarios|profile|scenario_b|kernels|ncu; repeatable),
 # --prepare.
 
 set -uo pipefail
@@ -58,6 +67,8 @@ BENCH_BUDGET=160
 SCENARIO_BUDGET=45
 SCENARIO_B_BUDGET=120
 PROFILE_BUDGET=60
+KERNELS_BUDGET=120
+NCU_BUDGET=60
 SKIP=" "
 PY=""
 DEST="${OUT:-}"
@@ -78,8 +89,10 @@ while [ $# -gt 0 ]; do
         --scenario-budget) SCENARIO_BUDGET="$2"; shift 2 ;;
         --scenario-b-budget) SCENARIO_B_BUDGET="$2"; shift 2 ;;
         --profile-budget) PROFILE_BUDGET="$2"; shift 2 ;;
+        --kernels-budget) KERNELS_BUDGET="$2"; shift 2 ;;
+        --ncu-budget) NCU_BUDGET="$2"; shift 2 ;;
         --skip) SKIP="$SKIP$2 "; shift 2 ;;
-        -h|--help) sed -n '2,40p' "$0"; exit 0 ;;
+        -h|--help) sed -n '2,/^$/p' "$0"; exit 0 ;;
         *) die "unknown argument '$1' (see --help)" ;;
     esac
 done
@@ -290,6 +303,38 @@ if ! skipped profile; then
     rc=$?
     [ "$rc" = 0 ] || cat "$WORK/profile.err" >>"$DEST/scenarios.log"
     step profile "$rc" "$(since "$t0")" "scripts/device_profile.py --states $states (profile.log)"
+fi
+
+# --- the QP kernel's launch settings, timed (appended to profile.log) -----------------------
+if ! skipped kernels; then
+    t0=$(now)
+    if [ "$QUICK" = 1 ]; then size=(--states 64 --reps 1 --settings 32x1 16x1); else size=(--states 1000000 --compile-jobs 8); fi
+    if [ "$DEVICE" = cuda ] || [ "${TRITON_INTERPRET:-0}" = 1 ]; then
+        echo "## QP kernel launch settings (scripts/device_kernels.py ${size[*]})" >>"$DEST/profile.log"
+        timeout -s INT -k 10 "$KERNELS_BUDGET" "$PY" scripts/device_kernels.py --device "$DEVICE" \
+            "${size[@]}" --out "$WORK/kernels.json" >>"$DEST/profile.log" 2>&1
+        step kernels "$?" "$(since "$t0")" "scripts/device_kernels.py ${size[*]} (profile.log, JSON)"
+    else
+        step kernels 0 0 "skipped: the kernel runs on the CPU only under TRITON_INTERPRET=1"
+    fi
+fi
+
+# --- Nsight Compute's view of one launch of the QP kernel (appended to profile.log) ---------
+if ! skipped ncu; then
+    t0=$(now)
+    if [ "$DEVICE" = cuda ] && command -v ncu >/dev/null; then
+        echo "## ncu: one launch of the QP kernel, the filter's QP on 200000 states, float32" >>"$DEST/profile.log"
+        # the clocks as they are (the device tool's rule); the second launch (after a warm-up)
+        timeout -s INT -k 10 "$NCU_BUDGET" ncu --clock-control none \
+            --kernel-name regex:_dual_solve_kernel --launch-skip 1 --launch-count 1 \
+            --section SpeedOfLight --section Occupancy --section LaunchStats \
+            --section WarpStateStats --section SchedulerStats --section ComputeWorkloadAnalysis \
+            "$PY" scripts/device_kernels.py --device cuda --states 200000 --reps 1 \
+            --dtypes float32 --settings 32x1 >>"$DEST/profile.log" 2>&1
+        step ncu "$?" "$(since "$t0")" "ncu sections of the QP kernel (profile.log)"
+    else
+        step ncu 0 0 "skipped: no ncu here (or not on CUDA)"
+    fi
 fi
 
 # --- the JSON and the report ---------------------------------------------------------------

@@ -103,6 +103,23 @@ def render(data: dict[str, Any], ref: dict[str, Any] | None = None) -> str:
     if steps:
         lines += ["", "| step | exit | seconds | what |", "|---|---:|---:|---|"]
         lines += [f"| {s['step']} | {s['rc']} | {s['seconds']:.1f} | {s['note']} |" for s in steps]
+    kernels = data.get("kernels") or []
+    if kernels:
+        lines += [
+            "",
+            "QP kernel launch settings (scripts/device_kernels.py, the filter's QP):",
+            "",
+            "| dtype | states | block | warps | maxnreg | median ms | regs | spills | solved "
+            "| max dx |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        ]
+        for k in kernels:
+            median = "-" if k.get("median_ms") is None else f"{k['median_ms']:.3f}"
+            lines.append(
+                f"| {k['dtype']} | {k['states']} | {k['block']} | {k['warps']} | "
+                f"{k['maxnreg'] or '-'} | {median} | {k.get('regs', '-')} | "
+                f"{k.get('spills', '-')} | {k['solved']} | {k['max_dx']:.1e} |"
+            )
     tests = data.get("tests") or {}
     if tests.get("present"):
         lines += [
@@ -151,8 +168,9 @@ def junit_summary(path: Path) -> dict[str, Any]:
 
 def collect(work: Path, out: Path) -> int:
     """``out`` (device_check.json) from ``work``'s ``figures.json`` (scripts/device_figures.py),
-    pytest's JUnit file ``tests.xml`` and the step table ``steps.tsv`` (one line per step:
-    name, exit status, seconds, note; tab-separated), each where present."""
+    pytest's JUnit file ``tests.xml``, ``kernels.json`` (scripts/device_kernels.py) and the
+    step table ``steps.tsv`` (one line per step: name, exit status, seconds, note;
+    tab-separated), each where present."""
     figures_path = work / "figures.json"
     result: dict[str, Any] = (
         json.loads(figures_path.read_text()) if figures_path.is_file() else {"figures": []}
@@ -167,6 +185,9 @@ def collect(work: Path, out: Path) -> int:
             )
     result["steps"] = steps
     result["tests"] = junit_summary(work / "tests.xml")
+    kernels_path = work / "kernels.json"  # scripts/device_kernels.py
+    if kernels_path.is_file():
+        result["kernels"] = json.loads(kernels_path.read_text())
     for path in sorted(work.glob("scenario_*.json")):  # a scenario run's metrics.json
         for name, res in json.loads(path.read_text()).get("results", {}).items():
             settings = res.get("settings", {})

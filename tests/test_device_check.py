@@ -166,6 +166,33 @@ def test_collect_reads_figures_steps_and_junit(tmp_path: Path) -> None:
     assert report.strict_json({"a": [float("nan"), 1.0]}) == {"a": [None, 1.0]}
 
 
+def test_collect_and_report_the_kernel_launch_settings(tmp_path: Path) -> None:
+    report = _script("device_report")
+    settings = [
+        {"block": 32, "warps": 1, "maxnreg": None, "first_s": 9.0, "median_ms": 21.7,
+         "regs": 255, "spills": 0, "card": "H", "dtype": "float32", "states": 1000000,
+         "solved": 999990, "solved_default": 999990, "max_dx": 0.0},
+        {"block": 16, "warps": 1, "maxnreg": 128, "first_s": 9.0, "median_ms": None,
+         "card": "H", "dtype": "float64", "states": 1000000, "solved": 5,
+         "solved_default": 5, "max_dx": 2.5e-9},
+    ]  # fmt: skip
+    (tmp_path / "kernels.json").write_text(json.dumps(settings))
+    out = tmp_path / "device_check.json"
+    assert report.collect(tmp_path, out) == 0
+    data = json.loads(out.read_text())
+    assert data["kernels"] == settings
+    text = report.render(data)
+    assert "| float32 | 1000000 | 32 | 1 | - | 21.700 | 255 | 0 | 999990 | 0.0e+00 |" in text
+    assert "| float64 | 1000000 | 16 | 1 | 128 | - | - | - | 5 | 2.5e-09 |" in text
+
+
+def test_kernel_settings_from_their_names() -> None:
+    kernels = _script("device_kernels")
+    assert kernels.parse_settings(None) == kernels.SETTINGS
+    assert kernels.parse_settings(["16x1", "32x1x128"]) == ((16, 1, None), (32, 1, 128))
+    assert all(kernels.parse_settings([kernels._name(s)]) == (s,) for s in kernels.SETTINGS)
+
+
 @pytest.mark.slow
 def test_device_figures_quick_on_the_cpu(tmp_path: Path) -> None:
     """One small figure end to end: the JSON names the device, the commit and the figure."""

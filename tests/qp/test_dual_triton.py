@@ -152,6 +152,27 @@ def test_one_row_and_gradients_through_solve_qp():
 
 
 @runs
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+@pytest.mark.parametrize("setting", [(16, 1, None), (32, 2, None), (64, 2, None), (32, 1, 128)])
+def test_launch_settings_give_the_default_answers(setting, dtype):
+    # fewer problems than threads in a program: a problem's tiles spread over threads, and
+    # the sums across them may round otherwise; a register cap only spills
+    (P, q, G, h, _), _ = _problems(70, 3, 10, seed=12, dtype=dtype)
+    eps = _eps(dtype)
+    ref = _dual_triton.solve(P, q, G, h, eps=eps, max_iter=100)
+    block, warps, maxnreg = setting
+    out = _dual_triton.solve(
+        P, q, G, h, eps=eps, max_iter=100, block=block, warps=warps, maxnreg=maxnreg
+    )
+    assert ref.ok.any()
+    assert int((out.ok != ref.ok).sum()) <= 1
+    both = out.ok & ref.ok
+    tol = 1e-10 if dtype == F64 else 1e-4
+    torch.testing.assert_close(out.x[:, both], ref.x[:, both], atol=tol, rtol=tol)
+    assert bool((_kkt_error(P, q, G, h, out.x.T, out.z.T)[out.ok] <= 10 * eps).all())
+
+
+@runs
 def test_engine_choice_and_errors():
     (P, q, G, h, _), _ = _problems(4, 2, 3, seed=1)
     M = G.shape[-2]

@@ -12,12 +12,15 @@ on a degenerate row the two may end on different active sets of the same point).
 and writes planes with the batch last (the lanes of a program touch consecutive addresses)
 and returns what the torch implementation returns, the backward's factors included.
 
-Each lane holds its problem as tiles (``R'`` and ``P^{-1} R'`` as ``[N, M]``): in float64 they
-fill the 255 registers of a thread from ``N = 2``, ``M = 12`` and spill to local memory
-beyond (0.5 kB at that size, 2.7 kB at ``N = 4``, ``M = 16``, compiled for sm_90), so the
-kernel serves problems of up to :data:`MAX_VARS` variables and :data:`MAX_TILE` entries
-(padded to powers of two); larger ones take the torch implementation. On the CPU it runs
-only under ``TRITON_INTERPRET=1`` (the tests).
+Each lane holds its problem as tiles (``R'`` as ``[N, M]``; ``P^{-1} R'`` only while the
+rows' scales are formed, then one column per step). Compiled for sm_90 (255 registers a
+thread), float32 runs without spilling at ``N = 4``, ``M = 8`` and at the filter's ``N = 3``,
+``M = 13``, and spills 0.3 kB to local memory at ``N = 4``, ``M = 16``; float64 spills from
+``N = 2``, ``M = 12`` on (0.2 kB there, 0.9 kB at ``N = 3``, ``M = 13``, 1.4 kB at ``N = 4``,
+``M = 16``; ``scripts/kernel_resources.py`` reads these on any machine). The kernel serves
+problems of up to :data:`MAX_VARS` variables and :data:`MAX_TILE` entries (padded to powers
+of two); larger ones take the torch implementation. On the CPU it runs only under
+``TRITON_INTERPRET=1`` (the tests).
 """
 
 from __future__ import annotations
@@ -30,9 +33,9 @@ from torch import Tensor
 
 from torchcbf._triton import available, interpreted, on_device, tile, tl, triton
 
-#: most variables, and most entries of a padded ``[N, M]`` tile (each lane holds two of them
-#: in registers; beyond these the registers spill heavily and a first call compiles for tens
-#: of seconds: at N = 8, M = 16, 22 kB of spills and 21 s on this project's CPU)
+#: most variables, and most entries of a padded ``[N, M]`` tile (beyond these the registers
+#: spill heavily and a first call compiles for tens of seconds: at N = 8, M = 16, 22 kB of
+#: spills and 21 s on this project's CPU)
 MAX_VARS = 4
 MAX_TILE = 64
 #: problems per program: one warp, one problem per thread
@@ -210,7 +213,10 @@ if triton is not None:
             pd = pd & (piv > 1e-13 * tl.abs(_pick(Pj, r2, j, 0)))
             root = tl.sqrt(tl.where(pd, piv, 1.0))
             L = tl.where(c3 == j, tl.where(r2 >= j, col / root[None, :], 0.0)[:, None, :], L)
-        Ui = _cho_solve(L, Rc, NP)  # P^{-1} R' [NP, MP, BLOCK]
+        # P^{-1} R' [NP, MP, BLOCK] for the rows' scales only: the steps and the end solve
+        # for the columns they use (the same operations per column, so the same values),
+        # which keeps a second [NP, MP] tile out of the registers of the loop
+        Ui = _cho_solve(L, Rc, NP)
         xu = tl.sum(_cho_solve(L, -q[:, None, :], NP), axis=1)  # [NP, BLOCK]
 
         xu_max = tl.max(tl.abs(xu), axis=0)
@@ -244,8 +250,8 @@ if triton is not None:
             done = done | ~(pending | (best > -INF))
             p = tl.where(pending, p, p_new)
             v_p = _pick(v, row_idx, p[None, :], 0)
-            U_p = _pick(Ui, row_idx[None, :, :], p[None, None, :], 1)  # [NP, BLOCK]
-            R_p = _pick(Rc, row_idx[None, :, :], p[None, None, :], 1)
+            R_p = _pick(Rc, row_idx[None, :, :], p[None, None, :], 1)  # [NP, BLOCK]
+            U_p = tl.sum(_cho_solve(L, R_p[:, None, :], NP), axis=1)
 
             W_Sp = tl.sum(U_S * R_p[:, None, :], axis=0)  # [NP(slot), BLOCK]
             W_pp = tl.sum(U_p * R_p, axis=0)
@@ -300,11 +306,10 @@ if triton is not None:
         empty = S == M  # [NP, BLOCK]
         sel = S[None, :, :] == row_idx[:, None, :]  # [MP, NP(slot), BLOCK]
         R_S = tl.zeros([NP, NP, BLOCK], dtype=real)
-        U_S = tl.zeros([NP, NP, BLOCK], dtype=real)
         for k in tl.static_range(NP):
             pick = _pick(sel.to(tl.int32), c3, k, 1)[None, :, :] != 0  # [1, MP, BLOCK]
             R_S = tl.where(c3 == k, tl.sum(tl.where(pick, Rc, 0.0), axis=1)[:, None, :], R_S)
-            U_S = tl.where(c3 == k, tl.sum(tl.where(pick, Ui, 0.0), axis=1)[:, None, :], U_S)
+        U_S = _cho_solve(L, R_S, NP)  # P^{-1} R_S (zero on empty slots)
         r_S = tl.sum(tl.where(sel, hr[:, None, :], 0.0), axis=0)  # [NP, BLOCK]
         W = tl.zeros([NP, NP, BLOCK], dtype=real)  # W_SS = R_S' U_S, component by component
         for c in tl.static_range(NP):
@@ -356,10 +361,24 @@ if triton is not None:
         tl.store(us_ptr + nn_off, U_S, mask=nn_mask)
 
 
-def solve(P: Tensor, q: Tensor, G: Tensor, h: Tensor, *, eps: float, max_iter: int) -> Solution:
+def solve(
+    P: Tensor,
+    q: Tensor,
+    G: Tensor,
+    h: Tensor,
+    *,
+    eps: float,
+    max_iter: int,
+    block: int = BLOCK,
+    warps: int = WARPS,
+    maxnreg: int | None = None,
+) -> Solution:
     """Solve ``min 1/2 x'Px + q'x s.t. Gx <= h`` for ``P [B, N, N]``, ``q [B, N]``,
     ``G [B, M, N]``, ``h [B, M]`` (finite, one dtype and device) as
-    :func:`torchcbf.qp._dual.solve_dual` does; see :class:`Solution`."""
+    :func:`torchcbf.qp._dual.solve_dual` does; see :class:`Solution`. ``block`` (problems
+    per program, a power of two), ``warps`` and ``maxnreg`` (registers per thread, ``None``:
+    the compiler's choice) set the launch; the answers do not depend on them
+    (``scripts/device_kernels.py`` times them)."""
     if triton is None:
         raise RuntimeError("torchcbf: the QP's GPU kernel needs Triton, which does not import")
     B, M, N = G.shape
@@ -383,11 +402,12 @@ def solve(P: Tensor, q: Tensor, G: Tensor, h: Tensor, *, eps: float, max_iter: i
     if B > 0:
         info = torch.finfo(G.dtype)
         piv_tol = 1e-12 if G.dtype == torch.float64 else 1e-6
-        grid = (triton.cdiv(B, BLOCK),)
+        grid = (triton.cdiv(B, block),)
+        launch = {} if maxnreg is None else {"maxnreg": maxnreg}
         with on_device(G):
             _dual_solve_kernel[grid](
                 *planes, x, z, active, ok, iters, L, S, R_S, U_S,
                 B, min(max_iter, 2**31 - 1), eps, info.eps, piv_tol, info.tiny,
-                N=N, M=M, NP=tile(N), MP=tile(M), BLOCK=BLOCK, num_warps=WARPS,
+                N=N, M=M, NP=tile(N), MP=tile(M), BLOCK=block, num_warps=warps, **launch,
             )  # fmt: skip
     return Solution(x, z, active.bool(), ok.bool(), iters, L, S, R_S, U_S)

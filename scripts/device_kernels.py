@@ -1,0 +1,229 @@
+"""Launch settings of the QP's Triton kernel (:mod:`torchcbf.qp._dual_triton`), timed on the
+device: problems per program, warps per program and a cap on registers per thread.
+
+The problem is the safety filter's QP of ``scripts/device_profile.py`` (``--states`` states
+of a single integrator among 8 balls, controls boxed in [-2, 2], a slack: 3 variables and
+13 rows with the box as rows), in float32 and float64. Each setting is timed (median of
+``--reps`` launches after a first one that compiles, synchronised around each) and its
+answers are compared with the default setting's (rows solved, largest difference of ``x``).
+A program of fewer problems than threads splits each problem's tiles over several threads
+(fewer registers per thread, reductions across threads); a register cap trades registers
+for spills and more resident warps.
+
+    python scripts/device_kernels.py --device cuda --out kernels.json
+    TRITON_INTERPRET=1 python scripts/device_kernels.py --device cpu --states 64 --reps 1
+
+Prints one line per setting as it finishes (and rewrites ``--out``, a JSON list, after each),
+so a run stopped at its time limit keeps what it measured. The registers and spills are
+read from the compiled kernel where Triton reports them (not under its interpreter).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+SCRIPTS = Path(__file__).resolve().parent
+if str(SCRIPTS) not in sys.path:
+    sys.path.insert(0, str(SCRIPTS))
+
+#: (problems per program, warps, register cap): the default first, then by expected value
+SETTINGS: tuple[tuple[int, int, int | None], ...] = (
+    (32, 1, None),
+    (16, 1, None),
+    (8, 1, None),
+    (32, 2, None),
+    (32, 4, None),
+    (32, 1, 128),
+    (64, 2, None),
+)
+
+#: the smallest batch whose QP is captured from the filter
+CAPTURED = 4096
+
+
+def filter_qp(states: int, dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, ...]:
+    """``P [B, 3, 3], q [B, 3], G [B, 13, 3], h [B, 13]``: the filter's QP on ``states``
+    states with its box bounds written as rows (captured from a batch of at least
+    :data:`CAPTURED` states: a smaller one takes the filter's one-call C path on the CPU)."""
+    import bench_filters
+
+    _, _, filt, x, u_nom = bench_filters._scene(max(states, CAPTURED), 8, dtype, seed=0)
+    captured = bench_filters._capture_qp(filt, x, u_nom)
+    if captured is None:
+        raise RuntimeError("the filter answered without solve_qp: no QP to time")
+    args, kw = captured
+    P, q, G, h = (t[:states] for t in args[:4])
+    kw = {k: v[:states] if isinstance(v, torch.Tensor) else v for k, v in kw.items()}
+    B, _, n = G.shape
+    eye = torch.eye(n, dtype=dtype).expand(B, n, n)
+    rows, rhs = [G], [h]
+    for i in range(n):
+        for sign, bound in ((1.0, kw.get("ub")), (-1.0, kw.get("lb"))):
+            if bound is not None and bool(torch.isfinite(bound[:, i]).all()):
+                rows.append(sign * eye[:, i : i + 1])
+                rhs.append(sign * bound[:, i : i + 1])
+    return tuple(t.contiguous().to(device) for t in (P, q, torch.cat(rows, 1), torch.cat(rhs, 1)))
+
+
+def _synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def measure(
+    problem: tuple[torch.Tensor, ...], setting: tuple[int, int, int | None], reps: int
+) -> tuple[dict, object]:
+    """One setting on one problem: first call and median time (s), registers and spills."""
+    from torchcbf.qp import _dual_triton
+
+    block, warps, maxnreg = setting
+    device = problem[0].device
+    eps = 1e-6 if problem[0].dtype == torch.float32 else 1e-9
+
+    def call() -> _dual_triton.Solution:
+        return _dual_triton.solve(
+            *problem, eps=eps, max_iter=50, block=block, warps=warps, maxnreg=maxnreg
+        )
+
+    _synchronize(device)
+    t = time.perf_counter()
+    sol = call()
+    _synchronize(device)
+    first = time.perf_counter() - t
+    times = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        call()
+        _synchronize(device)
+        times.append(time.perf_counter() - t)
+    row = {"block": block, "warps": warps, "maxnreg": maxnreg, "first_s": first}
+    row["median_ms"] = 1e3 * statistics.median(times) if times else None
+    row.update(_resources(_dual_triton._dual_solve_kernel, device))
+    return row, sol
+
+
+def _resources(kernel: object, device: torch.device) -> dict:
+    """Registers and spills of the kernel's most recently compiled variant (Triton's cache
+    of compiled kernels; empty where it keeps none, as under the interpreter)."""
+    cache = getattr(kernel, "device_caches", None)
+    if not cache or device.type != "cuda":
+        return {}
+    try:
+        compiled = list(cache[torch.cuda.current_device()][0].values())[-1]
+        compiled._init_handles()
+        return {"regs": compiled.n_regs, "spills": compiled.n_spills}
+    except (AttributeError, IndexError, KeyError, RuntimeError, TypeError):
+        return {}
+
+
+def parse_settings(names: list[str] | None) -> tuple[tuple[int, int, int | None], ...]:
+    """Settings from ``BLOCKxWARPS`` or ``BLOCKxWARPSxMAXNREG`` names (``None``: all of
+    :data:`SETTINGS`)."""
+    if not names:
+        return SETTINGS
+    parsed = [tuple(int(v) for v in name.split("x")) for name in names]
+    return tuple((p[0], p[1], p[2] if len(p) > 2 else None) for p in parsed)
+
+
+def _name(setting: tuple[int, int, int | None]) -> str:
+    return "x".join(str(v) for v in setting if v is not None)
+
+
+def compile_all(
+    device: str, dtypes: list[str], settings: tuple[tuple[int, int, int | None], ...], jobs: int
+) -> None:
+    """Compile each (dtype, setting) in a process of its own, ``jobs`` at a time: one call on
+    32 states, which Triton specialises as it does a batch of 1e6 (both divisible by 16), so
+    its disk cache holds the kernels the timed runs launch."""
+    started = time.perf_counter()
+    todo = [(d, s) for d in dtypes for s in settings]
+    running: list[subprocess.Popen] = []
+    failed = 0
+    while todo or running:
+        while todo and len(running) < jobs:
+            dtype, setting = todo.pop(0)
+            cmd = [sys.executable, __file__, "--device", device, "--states", "32", "--reps", "0"]
+            cmd += ["--dtypes", dtype, "--settings", _name(setting)]
+            running.append(subprocess.Popen(cmd, stdout=subprocess.DEVNULL))
+        time.sleep(0.2)
+        for proc in [p for p in running if p.poll() is not None]:
+            failed += proc.returncode != 0
+            running.remove(proc)
+    count = len(dtypes) * len(settings)
+    print(
+        f"compiled {count - failed} of {count} settings in {jobs} processes "
+        f"({time.perf_counter() - started:.1f} s)",
+        flush=True,
+    )
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cuda", choices=("cpu", "cuda"))
+    parser.add_argument("--states", type=int, default=1_000_000)
+    parser.add_argument("--reps", type=int, default=10)
+    parser.add_argument("--dtypes", nargs="+", default=["float32", "float64"])
+    parser.add_argument(
+        "--settings",
+        nargs="+",
+        help="BLOCKxWARPS or BLOCKxWARPSxMAXNREG (default: all of SETTINGS)",
+    )
+    parser.add_argument(
+        "--compile-jobs",
+        type=int,
+        default=0,
+        help="compile every setting first in this many processes at once (Triton's disk "
+        "cache then serves the timed runs; 0: compile in the first call of each)",
+    )
+    parser.add_argument("--out", type=Path)
+    args = parser.parse_args()
+    device = torch.device(args.device)
+    settings = parse_settings(args.settings)
+    if args.compile_jobs > 0:
+        compile_all(args.device, args.dtypes, settings, args.compile_jobs)
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+    results: list[dict] = []
+    print(f"{name}: the filter's QP, {args.states} states, 3 variables, 13 rows")
+    for dtype_name in args.dtypes:
+        dtype = getattr(torch, dtype_name)
+        problem = filter_qp(args.states, dtype, device)
+        reference = None
+        for setting in settings:
+            row, sol = measure(problem, setting, args.reps)
+            if reference is None:
+                reference = sol
+            both = reference.ok & sol.ok
+            dx = (reference.x - sol.x).abs().amax(0)[both]
+            row.update(
+                card=name,
+                dtype=dtype_name,
+                states=args.states,
+                solved=int(sol.ok.sum()),
+                solved_default=int(reference.ok.sum()),
+                max_dx=float(dx.max()) if dx.numel() else 0.0,
+            )
+            results.append(row)
+            median = "-" if row["median_ms"] is None else f"{row['median_ms']:.3f} ms"
+            print(
+                f"{dtype_name} block={row['block']} warps={row['warps']} "
+                f"maxnreg={row['maxnreg']}: {median} (first {row['first_s']:.1f} s), "
+                f"regs {row.get('regs', '-')}, spills {row.get('spills', '-')}, solved "
+                f"{row['solved']}/{args.states} (default {row['solved_default']}), "
+                f"max |dx| {row['max_dx']:.2e}",
+                flush=True,
+            )
+            if args.out is not None:
+                args.out.write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
