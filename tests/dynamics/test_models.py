@@ -217,3 +217,21 @@ def test_matvec_gradients_on_the_column_path():
     g = torch.randn(MATVEC_COLUMNS_FROM, 2, 2, generator=gen, dtype=torch.float64)
     u = torch.randn(MATVEC_COLUMNS_FROM, 2, generator=gen, dtype=torch.float64)
     torch.autograd.gradcheck(matvec, (g.requires_grad_(True), u.requires_grad_(True)))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize(
+    ("a_shape", "b_shape"),
+    [((3, 2), (5, 2, 4)), ((300, 8, 2), (300, 2, 2)), ((8, 3), (2, 300, 3, 1)),
+     ((40, 5, 9), (40, 9, 2))],
+)  # fmt: skip
+def test_matmat_equals_matmul_and_differentiates(a_shape, b_shape, dtype):
+    from torchcbf.dynamics.base import matmat
+
+    gen = torch.Generator().manual_seed(2)
+    a = torch.randn(a_shape, generator=gen, dtype=dtype)
+    b = torch.randn(b_shape, generator=gen, dtype=dtype)
+    torch.testing.assert_close(matmat(a, b), a @ b)
+    if dtype == torch.float64:
+        a, b = a[..., :4, :].requires_grad_(True), b.requires_grad_(True)
+        torch.autograd.gradcheck(matmat, (a, b))

@@ -32,7 +32,7 @@ from torchcbf._checks import (
     unless_hooked,
 )
 from torchcbf._constants import ExactConstants, store
-from torchcbf.dynamics.base import ControlAffine
+from torchcbf.dynamics.base import ControlAffine, matmat, matvec
 
 LieMethod = Literal["autograd", "analytic"]
 #: states x components up to which L_f h and L_g h are formed by broadcasting (fewer ops on a
@@ -521,6 +521,12 @@ def _assemble(
         lfh = (dhdx * f.unsqueeze(-2)).sum(-1) if multi else (dhdx * f).sum(-1)
         if g is not None:
             lgh = dhdx @ g if multi else (dhdx.unsqueeze(-1) * g).sum(-2)
+    elif x.device.type != "cpu":
+        # many states on a GPU: sums of scaled columns (batched matmuls of [k, n] blocks
+        # took 4.6 ms of a filter call on 1e6 states on an H200; CPU matmul is faster)
+        lfh = matvec(dhdx, f) if multi else (dhdx * f).sum(-1)
+        if g is not None:
+            lgh = matmat(dhdx, g) if multi else matvec(g.mT, dhdx)
     else:
         f = f.unsqueeze(-1)
         lfh = (dhdx @ f).squeeze(-1) if multi else (dhdx.unsqueeze(-2) @ f)[..., 0, 0]

@@ -70,6 +70,19 @@ def matvec(g: Tensor, u: Tensor) -> Tensor:
     return out
 
 
+def matmat(a: Tensor, b: Tensor) -> Tensor:
+    """``a b`` for ``a [..., k, n]`` and ``b [..., n, m]`` (batch dimensions broadcast):
+    ``[..., k, m]``, as a sum of ``n`` outer products of columns and rows where ``n`` is at
+    most :data:`MATVEC_COLUMNS_UP_TO` (a GPU's batched matmul of many tiny blocks runs far
+    below its memory bandwidth), else ``matmul``."""
+    if a.shape[-1] > MATVEC_COLUMNS_UP_TO:
+        return a @ b
+    out = a[..., 0:1] * b[..., None, 0, :]
+    for j in range(1, a.shape[-1]):
+        out = out + a[..., j : j + 1] * b[..., None, j, :]
+    return out
+
+
 class ControlAffine(nn.Module):
     """Control-affine system ``xdot = f(x) + g(x) u (+ M w)``, optionally an SDE.
 

@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 from torchcbf._checks import check_number
+from torchcbf.dynamics.base import matvec
 
 SlackMode = Literal["shared", "per_row", "none"]
 SLACK_MODES: tuple[str, ...] = ("shared", "per_row", "none")
@@ -117,7 +118,7 @@ def penalty_scale(
     units of ``rbar``) by how far ``u_nom`` is from the box and the CBF half-spaces
     (normalised violation), capped at ``MAX_PENALTY_SCALE``."""
     with torch.no_grad():
-        viol = (-((a @ u_nom.unsqueeze(-1)).squeeze(-1) + b) / norms).clamp_min(0)
+        viol = (-(matvec(a, u_nom) + b) / norms).clamp_min(0)
         box = (u_nom - torch.clamp(u_nom, lo, hi)).abs()
         v = viol.amax(-1, keepdim=True) + box.amax(-1, keepdim=True)
         v = torch.nan_to_num(v, nan=0.0, posinf=MAX_PENALTY_SCALE).clamp_max(MAX_PENALTY_SCALE)

@@ -62,7 +62,7 @@ from torchcbf._compile import Traced, TraceError, logger
 from torchcbf.barriers import native
 from torchcbf.barriers.compiled import CompiledLie
 from torchcbf.barriers.lie import LieFunction, LieTerms, own_lie, stacked_lie_derivatives
-from torchcbf.dynamics.base import ControlAffine
+from torchcbf.dynamics.base import ControlAffine, matvec
 from torchcbf.filters import realtime
 from torchcbf.filters.class_k import ClassKSpec, _GainClassK, as_class_k
 from torchcbf.filters.conditions import as_columns, concat_terms
@@ -776,12 +776,12 @@ def _residuals(
     ``[B, k + c]`` at ``u`` (``>= 0`` where a condition holds without slack)."""
     slack_parts, value_parts = [], []
     if cbf is not None:
-        value = (cbf[0] @ u.unsqueeze(-1)).squeeze(-1) + cbf[1]
+        value = matvec(cbf[0], u) + cbf[1]
         value_parts.append(value)
         slack_parts.append((-value).clamp_min(0))
     if clf is not None:
         slack_parts.append(delta.clamp_min(0))
-        value_parts.append(-((clf[0] @ u.unsqueeze(-1)).squeeze(-1) + clf[1]))
+        value_parts.append(-(matvec(clf[0], u) + clf[1]))
     return torch.cat(slack_parts, -1), torch.cat(value_parts, -1)
 
 
