@@ -1,5 +1,6 @@
 """Registers, stack (spills) and SASS instructions of the QP's Triton kernel for a GPU
-architecture, compiled on a machine without a GPU (Triton's own ptxas and cuobjdump).
+architecture, compiled on a machine without a GPU (Triton's own ptxas and cuobjdump), with
+the size of its longest loop (the active-set steps) and the spills inside it.
 
 The figures a device session would read from a launch, before it: how each launch setting
 of ``scripts/device_kernels.py`` compiles for the filter's QP (3 variables, 13 rows) or any
@@ -73,13 +74,28 @@ def resources(cubin: bytes) -> dict[str, int]:
             [tools / "cuobjdump", "-sass", fh.name], capture_output=True, text=True
         ).stdout
     found = dict(re.findall(r"(REG|STACK):(\d+)", usage))
-    code = [line for line in sass.splitlines() if re.match(r"\s+/\*[0-9a-f]{4,}\*/", line)]
+    code = []  # (address, instruction) of each SASS line
+    for line in sass.splitlines():
+        at = re.match(r"\s+/\*([0-9a-f]{4,})\*/", line)
+        if at:
+            code.append((int(at.group(1), 16), line))
+    # the longest loop: the span from a backward branch's target to the branch
+    loop: list[str] = []
+    for address, line in code:
+        target = re.search(r"BRA.*?0x([0-9a-f]+)", line)
+        if target and int(target.group(1), 16) < address:
+            body = [ln for a, ln in code if int(target.group(1), 16) <= a <= address]
+            loop = body if len(body) > len(loop) else loop
+    lines = [line for _, line in code]
     return {
         "regs": int(found.get("REG", -1)),
         "stack": int(found.get("STACK", -1)),
-        "sass": len(code),
-        "ldl": sum("LDL" in line for line in code),
-        "stl": sum("STL" in line for line in code),
+        "sass": len(lines),
+        "ldl": sum("LDL" in line for line in lines),
+        "stl": sum("STL" in line for line in lines),
+        "loop": len(loop),
+        "loop_ldl": sum("LDL" in line for line in loop),
+        "loop_stl": sum("STL" in line for line in loop),
     }
 
 
@@ -103,7 +119,9 @@ def main() -> int:
             print(
                 f"{dtype} block={block} warps={warps} maxnreg={maxnreg}: {r['regs']} registers, "
                 f"{r['stack']} B stack, {r['sass']} SASS instructions ({r['ldl']} local loads, "
-                f"{r['stl']} stores), compiled in {time.perf_counter() - started:.1f} s",
+                f"{r['stl']} stores); its longest loop {r['loop']} instructions ({r['loop_ldl']} "
+                f"local loads, {r['loop_stl']} stores); compiled in "
+                f"{time.perf_counter() - started:.1f} s",
                 flush=True,
             )
     return 0
