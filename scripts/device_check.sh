@@ -33,15 +33,17 @@
 # CPython 3.12 wheels of proxsuite and clarabel (pip download) into build/device-carry/site and
 # site-cp312 (used under Python 3.12 only), and records the
 # commit in build/device-carry/commit.txt (the device gets no .git). build/ is git-ignored,
-# so the run call must carry it. The device call (one; what is under $OUT comes back even at the limit):
+# so the run call must carry it. The device calls (what is under $OUT comes back even at the limit):
 #
 #   run(command="bash scripts/device_check.sh --skip kernels --skip ncu",
 #       carry=["build/device-carry"], timeout_s=600)
 #
-# and, for the QP kernel's launch settings, a second call (about 3 minutes):
+# and, for the QP kernel's launch settings, a second call (about 3 minutes; the kernel runs
+# from the tree, so no install):
 #
-#   run(command="bash scripts/device_check.sh --skip figures --skip tests --skip scenarios
-#       --skip scenario_b --skip bench --skip profile", carry=["build/device-carry"], timeout_s=300)
+#   run(command="bash scripts/device_check.sh --no-install --skip figures --skip tests
+#       --skip scenarios --skip scenario_b --skip bench --skip profile",
+#       carry=["build/device-carry"], timeout_s=300)
 #
 # Then: python scripts/device_report.py <files_at>/device_check.json --cpu <cpu json>.
 # Rehearsal on a CPU (every step, small sizes): bash scripts/device_check.sh --device cpu
@@ -134,7 +136,8 @@ print(os.path.dirname(s.origin) if s and s.origin else '')" 2>/dev/null)"
     dirty=""; [ -n "$(git status --porcelain --untracked-files=no)" ] && dirty=" dirty"
     echo "$commit$dirty" >"$CARRY/commit.txt"
     echo "prepared $CARRY ($(du -sh "$CARRY" | cut -f1)), commit $commit$dirty"
-    echo "device call: run(command=\"bash scripts/device_check.sh\", carry=[\"build/device-carry\"], timeout_s=600)"
+    echo "device call 1: run(command=\"bash scripts/device_check.sh --skip kernels --skip ncu\", carry=[\"build/device-carry\"], timeout_s=600)"
+    echo "device call 2: run(command=\"bash scripts/device_check.sh --no-install --skip figures --skip tests --skip scenarios --skip scenario_b --skip bench --skip profile\", carry=[\"build/device-carry\"], timeout_s=300)"
     exit 0
 fi
 

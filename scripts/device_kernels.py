@@ -5,7 +5,8 @@ The problem is the safety filter's QP of ``scripts/device_profile.py`` (``--stat
 of a single integrator among 8 balls, controls boxed in [-2, 2], a slack: 3 variables and
 13 rows with the box as rows), in float32 and float64. Each setting is timed (median of
 ``--reps`` launches after a first one that compiles, synchronised around each) and its
-answers are compared with the default setting's (rows solved, largest difference of ``x``).
+answers are compared with the first setting's (the default, unless ``--settings`` says
+otherwise: rows solved, largest difference of ``x``).
 A program of fewer problems than threads splits each problem's tiles over several threads
 (fewer registers per thread, reductions across threads); a register cap trades registers
 for spills and more resident warps.
@@ -81,7 +82,8 @@ def _synchronize(device: torch.device) -> None:
 def measure(
     problem: tuple[torch.Tensor, ...], setting: tuple[int, int, int | None], reps: int
 ) -> tuple[dict, object]:
-    """One setting on one problem: first call and median time (s), registers and spills."""
+    """One setting on one problem: the first call's seconds, the median of ``reps`` more in
+    ms, and the registers and spills of the variant the first call compiled."""
     from torchcbf.qp import _dual_triton
 
     block, warps, maxnreg = setting
@@ -93,6 +95,7 @@ def measure(
             *problem, eps=eps, max_iter=50, block=block, warps=warps, maxnreg=maxnreg
         )
 
+    before = _compiled(device)
     _synchronize(device)
     t = time.perf_counter()
     sol = call()
@@ -106,21 +109,32 @@ def measure(
         times.append(time.perf_counter() - t)
     row = {"block": block, "warps": warps, "maxnreg": maxnreg, "first_s": first}
     row["median_ms"] = 1e3 * statistics.median(times) if times else None
-    row.update(_resources(_dual_triton._dual_solve_kernel, device))
+    new = [k for k in _compiled(device) if all(k is not b for b in before)]
+    if len(new) == 1:  # a setting seen before in this process reuses its variant: not read
+        row.update(_resources(new[0]))
     return row, sol
 
 
-def _resources(kernel: object, device: torch.device) -> dict:
-    """Registers and spills of the kernel's most recently compiled variant (Triton's cache
-    of compiled kernels; empty where it keeps none, as under the interpreter)."""
-    cache = getattr(kernel, "device_caches", None)
-    if not cache or device.type != "cuda":
-        return {}
+def _compiled(device: torch.device) -> list:
+    """The QP kernel's compiled variants in Triton's in-memory cache for ``device`` (none on
+    the CPU, where the interpreter compiles nothing)."""
+    from torchcbf.qp import _dual_triton
+
+    caches = getattr(_dual_triton._dual_solve_kernel, "device_caches", None)
+    if device.type != "cuda" or not caches:
+        return []
     try:
-        compiled = list(cache[torch.cuda.current_device()][0].values())[-1]
+        return list(caches[torch.cuda.current_device()][0].values())
+    except (IndexError, KeyError, TypeError):
+        return []
+
+
+def _resources(compiled: object) -> dict:
+    """Registers and spills of one compiled variant (empty where Triton does not say)."""
+    try:
         compiled._init_handles()
-        return {"regs": compiled.n_regs, "spills": compiled.n_spills}
-    except (AttributeError, IndexError, KeyError, RuntimeError, TypeError):
+        return {"regs": int(compiled.n_regs), "spills": int(compiled.n_spills)}
+    except (AttributeError, RuntimeError, TypeError, ValueError):
         return {}
 
 
@@ -138,29 +152,47 @@ def _name(setting: tuple[int, int, int | None]) -> str:
 
 
 def compile_all(
-    device: str, dtypes: list[str], settings: tuple[tuple[int, int, int | None], ...], jobs: int
+    device: str,
+    dtypes: list[str],
+    settings: tuple[tuple[int, int, int | None], ...],
+    jobs: int,
+    deadline: float = 90.0,
 ) -> None:
-    """Compile each (dtype, setting) in a process of its own, ``jobs`` at a time: one call on
-    32 states, which Triton specialises as it does a batch of 1e6 (both divisible by 16), so
-    its disk cache holds the kernels the timed runs launch."""
+    """Compile each (dtype, setting) in a process of its own, ``jobs`` at a time, within
+    ``deadline`` seconds (then the rest are stopped): one call on 32 states, which Triton
+    compiles as a call on 10^6 (the kernel leaves the batch size unspecialised), so its disk
+    cache holds the kernels the timed runs launch. Prints what failed or was stopped."""
     started = time.perf_counter()
     todo = [(d, s) for d in dtypes for s in settings]
-    running: list[subprocess.Popen] = []
-    failed = 0
+    running: list[tuple[subprocess.Popen, str]] = []
+    failed: list[str] = []
     while todo or running:
         while todo and len(running) < jobs:
             dtype, setting = todo.pop(0)
             cmd = [sys.executable, __file__, "--device", device, "--states", "32", "--reps", "0"]
             cmd += ["--dtypes", dtype, "--settings", _name(setting)]
-            running.append(subprocess.Popen(cmd, stdout=subprocess.DEVNULL))
+            proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            running.append((proc, f"{dtype} {_name(setting)}"))
         time.sleep(0.2)
-        for proc in [p for p in running if p.poll() is not None]:
-            failed += proc.returncode != 0
-            running.remove(proc)
+        late = time.perf_counter() - started > deadline
+        for proc, name in list(running):
+            if late and proc.poll() is None:
+                proc.kill()
+                proc.wait()
+                failed.append(f"{name} (stopped at {deadline:.0f} s)")
+            elif proc.poll() is not None and proc.returncode != 0:
+                failed.append(f"{name} (exit {proc.returncode})")
+            if proc.poll() is not None:
+                running.remove((proc, name))
+        if late:
+            failed += [f"{d} {_name(s)} (not started)" for d, s in todo]
+            todo = []
     count = len(dtypes) * len(settings)
+    note = f"; failed: {', '.join(failed)}" if failed else ""
+    elapsed = time.perf_counter() - started
     print(
-        f"compiled {count - failed} of {count} settings in {jobs} processes "
-        f"({time.perf_counter() - started:.1f} s)",
+        f"compiled {count - len(failed)} of {count} settings in {jobs} processes "
+        f"({elapsed:.1f} s){note}",
         flush=True,
     )
 

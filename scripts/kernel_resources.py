@@ -28,8 +28,13 @@ if str(SCRIPTS) not in sys.path:
 _INTS = {"active_ptr": "*i8", "ok_ptr": "*i8", "iters_ptr": "*i64", "s_ptr": "*i64"}
 
 
-def compile_kernel(dtype: str, N: int, M: int, setting: tuple, arch: int):  # noqa: ANN201
-    """Triton's compiled kernel (its ``asm`` holds ``cubin``) for one size and setting."""
+def compile_kernel(
+    dtype: str, N: int, M: int, setting: tuple, arch: int, *, batch: int, max_iter: int = 50
+):  # noqa: ANN201
+    """Triton's compiled kernel (its ``asm`` holds ``cubin``) for one size and setting, as a
+    launch on ``batch`` problems compiles it: Triton's launcher marks a pointer aligned to 16
+    bytes (torch's allocations are) and an integer divisible by 16 (where the kernel lets it
+    specialise that argument) as such, and the compiler lays out its loads by these hints."""
     import triton
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
@@ -38,12 +43,17 @@ def compile_kernel(dtype: str, N: int, M: int, setting: tuple, arch: int):  # no
 
     fn = _dual_triton._dual_solve_kernel
     real = {"float32": "fp32", "float64": "fp64"}[dtype]
-    signature = {}
-    for name in fn.arg_names:
+    ints = {"B": batch, "max_iter": max_iter}
+    signature, attrs = {}, {}
+    for i, param in enumerate(fn.params):
+        name = param.name
         if name.endswith("_ptr"):
             signature[name] = _INTS.get(name, "*" + real)
-        elif name in ("B", "max_iter"):
+            attrs[(i,)] = [["tt.divisibility", 16]]
+        elif name in ints:
             signature[name] = "i32"
+            if not param.do_not_specialize and ints[name] % 16 == 0:
+                attrs[(i,)] = [["tt.divisibility", 16]]
         elif name in ("eps", "mach", "piv_tol", "tiny"):
             signature[name] = real
         else:
@@ -55,7 +65,7 @@ def compile_kernel(dtype: str, N: int, M: int, setting: tuple, arch: int):  # no
     options: dict[str, int] = {"num_warps": warps}
     if maxnreg is not None:
         options["maxnreg"] = maxnreg
-    source = ASTSource(fn=fn, signature=signature, constexprs=constexprs)
+    source = ASTSource(fn=fn, signature=signature, constexprs=constexprs, attrs=attrs)
     return triton.compile(source, target=GPUTarget("cuda", arch, 32), options=options)
 
 
@@ -68,10 +78,10 @@ def resources(cubin: bytes) -> dict[str, int]:
         fh.write(cubin)
         fh.flush()
         usage = subprocess.run(
-            [tools / "cuobjdump", "-res-usage", fh.name], capture_output=True, text=True
+            [tools / "cuobjdump", "-res-usage", fh.name], capture_output=True, text=True, check=True
         ).stdout
         sass = subprocess.run(
-            [tools / "cuobjdump", "-sass", fh.name], capture_output=True, text=True
+            [tools / "cuobjdump", "-sass", fh.name], capture_output=True, text=True, check=True
         ).stdout
     found = dict(re.findall(r"(REG|STACK):(\d+)", usage))
     code = []  # (address, instruction) of each SASS line
@@ -108,12 +118,20 @@ def main() -> int:
     parser.add_argument("--rows", type=int, default=13)
     parser.add_argument("--dtypes", nargs="+", default=["float32", "float64"])
     parser.add_argument("--settings", nargs="+", help="as scripts/device_kernels.py's")
+    parser.add_argument(
+        "--batch", type=int, default=1_000_000, help="problems of the launch modelled"
+    )
     args = parser.parse_args()
-    print(f"QP kernel, {args.vars} variables, {args.rows} rows, sm_{args.arch}")
+    print(
+        f"QP kernel, {args.vars} variables, {args.rows} rows, sm_{args.arch}, as launched on "
+        f"{args.batch} problems"
+    )
     for dtype in args.dtypes:
         for setting in parse_settings(args.settings):
             started = time.perf_counter()
-            kernel = compile_kernel(dtype, args.vars, args.rows, setting, args.arch)
+            kernel = compile_kernel(
+                dtype, args.vars, args.rows, setting, args.arch, batch=args.batch
+            )
             r = resources(kernel.asm["cubin"])
             block, warps, maxnreg = setting
             print(

@@ -193,19 +193,27 @@ def test_engine_choice_and_errors():
 
 @pytest.mark.skipif(interpreted(), reason="the interpreter does not compile")
 @pytest.mark.parametrize("real", ["fp32", "fp64"])
-def test_kernel_compiles_for_a_gpu(real):
+def test_kernel_compiles_for_a_gpu_one_problem_per_thread(real):
+    import re
+
     from triton import compile as triton_compile
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
 
+    fn = _dual_triton._dual_solve_kernel
     names = ("p", "q", "rc", "hr", "x", "z", "active", "ok", "iters", "l", "s", "rs", "us")
     kinds = [f"*{real}"] * 6 + ["*i8", "*i8", "*i64", f"*{real}", "*i64", f"*{real}", f"*{real}"]
     signature = {f"{name}_ptr": kind for name, kind in zip(names, kinds, strict=True)}
     signature.update(B="i32", max_iter="i32", eps="fp64", mach="fp64", piv_tol="fp64")
     signature.update(tiny="fp64")
-    sizes = {"N": 2, "M": 12, "NP": 2, "MP": 16, "BLOCK": _dual_triton.BLOCK}
+    sizes = {"N": 3, "M": 13, "NP": 4, "MP": 16, "BLOCK": _dual_triton.BLOCK}
     signature.update(dict.fromkeys(sizes, "constexpr"))
-    src = ASTSource(_dual_triton._dual_solve_kernel, signature, constexprs=sizes)
+    # the hints a launch on 10^6 problems gives: pointers aligned to 16 bytes, and B
+    # divisible by 16 unless the kernel keeps it unspecialised
+    hinted = [p.num for p in fn.params if p.name.endswith("_ptr")]
+    hinted += [p.num for p in fn.params if p.name == "B" and not p.do_not_specialize]
+    attrs = {(i,): [["tt.divisibility", 16]] for i in hinted}
+    src = ASTSource(fn, signature, constexprs=sizes, attrs=attrs)
     try:
         compiled = triton_compile(src, target=GPUTarget("cuda", 90, 32), options={"num_warps": 1})
     except RuntimeError as err:  # a Triton without its CUDA tool chain
@@ -213,3 +221,7 @@ def test_kernel_compiles_for_a_gpu(real):
             pytest.skip(f"Triton cannot compile for CUDA here: {err}")
         raise
     assert "_dual_solve_kernel" in compiled.asm["ptx"] and compiled.asm["cubin"]
+    # each thread holds one problem: a layout with several problems per thread (vectorised
+    # loads along the batch) multiplies the registers a thread needs and spills them
+    per_thread = re.findall(r"sizePerThread = \[([\d, ]+)\]", compiled.asm["ttgir"])
+    assert per_thread and all(set(p.replace(" ", "").split(",")) == {"1"} for p in per_thread)
