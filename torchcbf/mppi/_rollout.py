@@ -562,9 +562,8 @@ def update_threads(count: int) -> int:
 def draw_keys(generators: list[torch.Generator]) -> Tensor:
     """One 63-bit noise key per environment ``[B]`` (int64, on the generators' device)."""
     high = 2**63 - 1
-    return torch.cat(
-        [torch.randint(0, high, (1,), generator=g, device=g.device) for g in generators]
-    )
+    keys = [torch.randint(0, high, (1,), generator=g, device=g.device) for g in generators]
+    return keys[0] if len(keys) == 1 else torch.cat(keys)
 
 
 class Kernel:

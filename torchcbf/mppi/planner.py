@@ -96,7 +96,6 @@ import torch
 from torch import Tensor, nn
 
 from torchcbf import integrators
-from torchcbf._autograd import needs_graph
 from torchcbf._checks import (
     as_limit,
     as_matrix,
@@ -165,28 +164,37 @@ class MPPIOutput(NamedTuple):
 
 
 _PLAIN = (bool, int, float, str, slice, tuple, type(None))
+_SCALARS = frozenset((bool, int, float, str, type(None)))  # exact types: the common case
 
 
-def _state_signature(module: nn.Module) -> tuple[Any, ...]:
+def _state_signature(module: nn.Module) -> tuple[tuple[Any, ...], bool]:
     """What a kernel configuration read from ``module`` depends on, read without a host
     sync: the storage and in-place version of each parameter and buffer of its modules,
     their public number, string and tuple attributes (``path`` and ``engine`` report, they
-    configure nothing) and their forward hooks (a hooked model or cost runs in torch)."""
+    configure nothing) and their forward hooks (a hooked model or cost runs in torch); and
+    whether one of those parameters and buffers requires grad."""
     modules = list(module.modules())
     out: list[Any] = [tuple(k for hooks in hook_dicts(modules) for k in hooks)]
     add = out.append
+    grad = False
     for mod in modules:
         for group in (mod._parameters, mod._buffers):
             for t in group.values():
-                add(None if t is None else (t.data_ptr(), t._version))
+                if t is None:
+                    add(None)
+                else:
+                    add((t.data_ptr(), t._version))
+                    grad = grad or t.requires_grad
         for name, value in mod.__dict__.items():
             if name[0] == "_" or name in ("path", "engine"):
                 continue
-            if isinstance(value, Tensor):
+            if type(value) in _SCALARS:
+                add((name, value))
+            elif isinstance(value, Tensor):
                 add((name, value.data_ptr(), value._version))
             elif isinstance(value, _PLAIN):
                 add((name, value))
-    return tuple(out)
+    return tuple(out), grad
 
 
 def _limit(name: str, value: object, m: int) -> Tensor | None:
@@ -227,6 +235,7 @@ class _Capture(NamedTuple):
     kernel: Any  # the kernel object of the configuration
     plan: Tensor  # the plan tensor the graph updates
     shape: torch.Size  # of x
+    shifting: bool  # whether the captured call shifts the plan first
     call: CapturedCall | bool | None  # None: not captured yet; False: the capture failed
 
 
@@ -367,11 +376,12 @@ class MPPI(ExactConstants):
             torch path.
         cuda_graph: capture the fused path's planning call on CUDA (built-in model and cost
             terms, the Triton kernel) in a CUDA graph and replay it: the kernels, torch's
-            weights, the plan update and the outputs become one replay (what stays per
-            call: drawing the noise keys, the warm-start shift, the history record and
-            copying the state in and the outputs out). The first call of a configuration
-            runs uncaptured; the second runs once for real on a stream of its own and
-            captures; later calls replay. The graph is captured again when the
+            weights, the plan update, the history record, the warm-start shift and the
+            outputs become one replay (what stays per call: drawing the noise keys,
+            copying the state and time in and the outputs out). The first call of a
+            configuration runs uncaptured; the second runs once for real on a stream of
+            its own and captures; later calls replay (a call that shifts where the capture
+            did not, or the reverse, runs uncaptured). The graph is captured again when the
             configuration (any tensor or number of the planner, its model or its cost, or
             their hooks), ``B``, the dtype or the plan's storage changes. The plans are the
             uncaptured path's (the same kernels on the same inputs); the output's ``path``
@@ -664,18 +674,16 @@ class MPPI(ExactConstants):
         if t0.dim() > 1 or (t0.dim() == 1 and t0.shape[0] not in (1, B)):
             raise ValueError(f"t must be a scalar or have shape [{B}], got {tuple(t0.shape)}")
         t0 = t0.reshape(-1).expand(B)
-        self._history.record(xb, t0)
-
-        plan = self._plan
-        if shift and not self._fresh:
-            self._shift()
+        shifting = shift and not self._fresh
         self._fresh = False
 
         kernel = self._kernel(xb)
         self.engine = None if kernel is None else kernel.name
         if kernel is not None and kernel.fused:
             self.path = "fused"
-            return self._fused(kernel, xb, unbatched)
+            return self._fused(kernel, xb, t0, shifting, unbatched)
+        self._advance(xb, t0, shifting)
+        plan = self._plan
         eps, controls, states = self._rollout_buffers(noise=kernel is None)
         if xb.device.type == "cpu":
             keep_freed_heap()  # a torch cost's intermediates are reused, not faulted in again
@@ -718,6 +726,14 @@ class MPPI(ExactConstants):
         dtype = x.dtype if x.dtype in (np.float32, np.float64) else None
         t = torch.as_tensor(x, dtype=None if dtype is not None else torch.get_default_dtype())
         return t.to(self.noise_cov.device)
+
+    def _advance(self, x: Tensor, t0: Tensor, shifting: bool) -> None:
+        """What every call does before it samples: record ``x [B, n]`` at ``t0 [B]`` in the
+        history and, where ``shifting``, shift the plan (device work only: a CUDA graph of
+        the fused call holds it)."""
+        self._history.record(x, t0)
+        if shifting:
+            self._shift()
 
     def _shift(self) -> None:
         """The warm start: the plan moves one step, the last control is ``shift_fill``'s."""
@@ -1037,14 +1053,15 @@ class MPPI(ExactConstants):
         return max(MIN_CHUNK_SAMPLES, AUTO_CHUNK_ELEMENTS // per_sample)
 
     # -- kernel paths --------------------------------------------------------------------------
-    def _engine(self, x: Tensor) -> str | None:
+    def _engine(self, x: Tensor, grad: bool) -> str | None:
         """The kernel that plans for ``x``: ``"c"`` on the CPU, ``"triton"`` on CUDA (or
-        with ``backend="triton"``), ``None`` where torch runs."""
+        with ``backend="triton"``), ``None`` where torch runs (``grad``: a parameter or
+        buffer of the planner requires grad)."""
         if (
             self.backend == "torch"
             or x.dtype not in (torch.float32, torch.float64)
             or not self._kernel_expresses()
-            or needs_graph(self, x)
+            or (torch.is_grad_enabled() and (grad or x.requires_grad))
         ):
             return None
         if self.backend == "triton":
@@ -1063,10 +1080,11 @@ class MPPI(ExactConstants):
         fused where the cost is made of built-in terms, else for the rollouts alone. The
         kernel and its configuration are kept until a tensor or number of the planner, its
         model or its cost changes (checked without reading the device: no host sync)."""
-        engine = self._engine(x)
+        state, grad = _state_signature(self)
+        engine = self._engine(x, grad)
         if engine is None:
             return None
-        signature = (engine, x.device, x.dtype, self.backend, _state_signature(self))
+        signature = (engine, x.device, x.dtype, self.backend, state)
         cached = self._kernel_cache
         if cached is not None and cached[0] == signature:
             return cached[1]
@@ -1128,20 +1146,34 @@ class MPPI(ExactConstants):
         return (plan @ self.noise_cov_inv.to(plan)).contiguous()
 
     def _fused(
-        self, kernel: _rollout.Kernel | _triton.Kernel, x: Tensor, unbatched: bool
+        self,
+        kernel: _rollout.Kernel | _triton.Kernel,
+        x: Tensor,
+        t0: Tensor,
+        shifting: bool,
+        unbatched: bool,
     ) -> MPPIOutput:
         x = x.contiguous()
         keys = _rollout.draw_keys(self._generators)
-        out = self._replayed(kernel, x, keys) if self.cuda_graph and x.is_cuda else None
+        out = None
+        if self.cuda_graph and x.is_cuda:
+            out = self._replayed(kernel, x, t0, keys, shifting)
         if out is None:
-            out = self._fused_call(kernel, x, keys)
+            out = self._fused_call(kernel, x, t0, keys, shifting)
         return _unbatched(out) if unbatched else out
 
     def _fused_call(
-        self, kernel: _rollout.Kernel | _triton.Kernel, x: Tensor, keys: Tensor
+        self,
+        kernel: _rollout.Kernel | _triton.Kernel,
+        x: Tensor,
+        t0: Tensor,
+        keys: Tensor,
+        shifting: bool,
     ) -> MPPIOutput:
-        """One fused planning call from ``x [B, n]`` with the noise ``keys [B]``: the plan
-        updated in place, the batched output returned."""
+        """One fused planning call from ``x [B, n]`` at ``t0 [B]`` with the noise ``keys
+        [B]`` (:meth:`_advance` first): the plan updated in place, the batched output
+        returned."""
+        self._advance(x, t0, shifting)
         B, H, _ = self._plan.shape
         n = self.dynamics.state_dim
         plan = self._plan
@@ -1159,32 +1191,43 @@ class MPPI(ExactConstants):
         return self._output(cost, weights, delta, rolled[:B], rollouts)
 
     def _replayed(
-        self, kernel: _rollout.Kernel | _triton.Kernel, x: Tensor, keys: Tensor
+        self,
+        kernel: _rollout.Kernel | _triton.Kernel,
+        x: Tensor,
+        t0: Tensor,
+        keys: Tensor,
+        shifting: bool,
     ) -> MPPIOutput | None:
         """The fused call replayed from its CUDA graph (``cuda_graph=True``), or ``None``
         where this call runs uncaptured: the first call of a configuration (so that a
-        configuration that changes every call is never captured), and every call after a
-        failed capture. The second call runs once for real and captures
-        (:class:`~torchcbf._graphs.CapturedCall`)."""
+        configuration that changes every call is never captured), a call that shifts the
+        plan where the capture did not or the reverse (the graph holds the history record
+        and the shift, :meth:`_advance`), and every call after a failed capture. The second
+        call runs once for real and captures (:class:`~torchcbf._graphs.CapturedCall`)."""
         cap = self._captured
         if cap is None or not (
             cap.kernel is kernel and cap.plan is self._plan and cap.shape == x.shape
         ):
-            self._captured = _Capture(kernel, self._plan, x.shape, None)
+            self._captured = _Capture(kernel, self._plan, x.shape, shifting, None)
             return None
         if cap.call is False:
             return None
         if cap.call is None:
-            call = CapturedCall(lambda x, k: self._fused_call(kernel, x, k)[:-1], (x, keys))
+            call = CapturedCall(
+                lambda x, t, k: self._fused_call(kernel, x, t, k, shifting)[:-1], (x, t0, keys)
+            )
             if call.error is not None:
                 logger.warning(
                     "torchcbf: MPPI's CUDA graph capture failed (%s); the planner runs uncaptured",
                     call.error,
                 )
-            self._captured = cap._replace(call=False if call.error is not None else call)
+            call_or_failed = False if call.error is not None else call
+            self._captured = cap._replace(shifting=shifting, call=call_or_failed)
             return MPPIOutput(*call.first, path=self.path)
+        if cap.shifting != shifting:
+            return None
         self.path = "fused_graph"
-        return MPPIOutput(*cap.call(x, keys), path=self.path)
+        return MPPIOutput(*cap.call(x, t0, keys), path=self.path)
 
     def __getstate__(self) -> dict[str, Any]:
         # a CUDA graph neither copies nor pickles: a copy captures its own
