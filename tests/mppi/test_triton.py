@@ -241,7 +241,7 @@ def test_a_captured_planner_plans_as_the_uncaptured_one(dtype):
     )
     u = torch.tensor([0.3, -0.2], dtype=dtype, device=TARGET)
     outs, paths = [], []
-    for i in range(11):
+    for i in range(13):
         for planner in (plain, graphed):
             if i == 3:  # a new goal: new tables, one uncaptured call, then a capture
                 with torch.no_grad():
@@ -251,10 +251,13 @@ def test_a_captured_planner_plans_as_the_uncaptured_one(dtype):
             if i == 6:  # a number the graph holds: captured again
                 planner.temperature = 0.25
         xi = x[0] if i >= 8 else x  # one environment: a new plan tensor, captured again
-        outs.append((plain(xi), graphed(xi)))
+        shift = i != 11  # a call without the shift runs uncaptured; the graph stays
+        outs.append((plain(xi, 0.1 * i, shift), graphed(xi, 0.1 * i, shift)))
         paths.append(graphed.path)
+        for a, b in zip(plain.history, graphed.history, strict=True):  # recorded in the graph
+            assert torch.equal(a, b)
     G, F = "fused_graph", "fused"
-    assert paths == [F, F, G, F, F, G, F, F, F, F, G]
+    assert paths == [F, F, G, F, F, G, F, F, F, F, G, F, G]
     rtol, atol = (1e-12, 1e-12) if dtype == torch.float64 else (1e-6, 1e-6)
     for a, b in outs:  # earlier outputs are not overwritten by later replays
         for name in ("u", "plan", "cost_min", "cost_mean", "ess", "best_states", "rollouts",
