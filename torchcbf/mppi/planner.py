@@ -130,6 +130,8 @@ MIN_CHUNK_SAMPLES = 16
 
 logger = logging.getLogger("torchcbf")
 
+_AnyKernel = _rollout.Kernel | _triton.Kernel
+
 
 class MPPIOutput(NamedTuple):
     """Result of one planning call (``B`` dimension absent when ``x`` was ``[n]``).
@@ -558,7 +560,7 @@ class MPPI(ExactConstants):
         if backend == "triton" and not triton_available():
             raise ValueError("backend='triton' needs Triton, which does not import here")
         self._key: tuple[Any, ...] | None = None
-        self._kernel_cache: tuple[Any, _rollout.Kernel | _triton.Kernel | None] | None = None
+        self._kernel_cache: tuple[Any, _AnyKernel | None] | None = None
         self._captured: _Capture | None = None
         self._fresh = True
         follow_parts(self, [dynamics, cost])
@@ -1075,7 +1077,7 @@ class MPPI(ExactConstants):
             return "c" if _rollout.available() else None
         return "triton" if x.device.type == "cuda" and triton_available() else None
 
-    def _kernel(self, x: Tensor) -> _rollout.Kernel | _triton.Kernel | None:
+    def _kernel(self, x: Tensor) -> _AnyKernel | None:
         """The kernel bound to this planner's configuration, or ``None`` where torch runs:
         fused where the cost is made of built-in terms, else for the rollouts alone. The
         kernel and its configuration are kept until a tensor or number of the planner, its
@@ -1092,7 +1094,7 @@ class MPPI(ExactConstants):
         cost = None
         if model is not None and not self._needs_history:
             cost = _rollout.encode_cost(self.cost, self.dynamics.state_dim)
-        kernel: _rollout.Kernel | _triton.Kernel | None = None
+        kernel: _AnyKernel | None = None
         if model is not None:
             cfg = self._configuration(model, cost)
             if engine == "c":
@@ -1146,12 +1148,7 @@ class MPPI(ExactConstants):
         return (plan @ self.noise_cov_inv.to(plan)).contiguous()
 
     def _fused(
-        self,
-        kernel: _rollout.Kernel | _triton.Kernel,
-        x: Tensor,
-        t0: Tensor,
-        shifting: bool,
-        unbatched: bool,
+        self, kernel: _AnyKernel, x: Tensor, t0: Tensor, shifting: bool, unbatched: bool
     ) -> MPPIOutput:
         x = x.contiguous()
         keys = _rollout.draw_keys(self._generators)
@@ -1163,12 +1160,7 @@ class MPPI(ExactConstants):
         return _unbatched(out) if unbatched else out
 
     def _fused_call(
-        self,
-        kernel: _rollout.Kernel | _triton.Kernel,
-        x: Tensor,
-        t0: Tensor,
-        keys: Tensor,
-        shifting: bool,
+        self, kernel: _AnyKernel, x: Tensor, t0: Tensor, keys: Tensor, shifting: bool
     ) -> MPPIOutput:
         """One fused planning call from ``x [B, n]`` at ``t0 [B]`` with the noise ``keys
         [B]`` (:meth:`_advance` first): the plan updated in place, the batched output
@@ -1191,12 +1183,7 @@ class MPPI(ExactConstants):
         return self._output(cost, weights, delta, rolled[:B], rollouts)
 
     def _replayed(
-        self,
-        kernel: _rollout.Kernel | _triton.Kernel,
-        x: Tensor,
-        t0: Tensor,
-        keys: Tensor,
-        shifting: bool,
+        self, kernel: _AnyKernel, x: Tensor, t0: Tensor, keys: Tensor, shifting: bool
     ) -> MPPIOutput | None:
         """The fused call replayed from its CUDA graph (``cuda_graph=True``), or ``None``
         where this call runs uncaptured: the first call of a configuration (so that a
