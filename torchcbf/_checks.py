@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
@@ -467,3 +468,16 @@ def behaves_as(obj: object, cls: type, methods: Sequence[str]) -> bool:
 def _keeps(kind: type, cls: type, methods: tuple[str, ...]) -> bool:
     same = all(getattr(kind, name, None) is getattr(cls, name, None) for name in methods)
     return same and not rewritten_helpers(kind)
+
+
+def rows_nonfinite(t: Tensor | None, trailing: int, batch: int) -> Tensor | None:
+    """``[batch]`` bool: which rows of ``t`` (``batch`` rows of ``trailing`` dimensions each)
+    hold a NaN or an infinity (``None`` for no tensor)."""
+    if t is None:
+        return None
+    flat = t.reshape(batch, math.prod(t.shape[t.dim() - trailing :]))
+    if flat.shape[-1] == 0:
+        return torch.zeros(batch, dtype=torch.bool, device=t.device)
+    # the largest magnitude is NaN or inf exactly when some entry is (and is much faster
+    # than isfinite().all() on a CPU)
+    return ~torch.isfinite(flat.detach().abs().amax(-1))

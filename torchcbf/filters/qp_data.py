@@ -157,21 +157,24 @@ def assemble(
     Q = torch.diag_embed(torch.cat(diag, -1))
     Q[:, :m, :m] = R
     p = torch.cat([-(u_nom @ R.mT), lin_s.expand(B, ks), u_nom.new_zeros(B, c)], -1)
-    G_parts, h_parts = [], []
+    # G and h written block by block into one buffer each (one pass over the rows' data)
+    G = u_nom.new_empty(B, k + c, nz)
+    h = u_nom.new_empty(B, k + c)
+    G[:, :, m:] = 0.0
     if cbf is not None:
         a, b = cbf
+        G[:, :k, :m] = a / -norms.unsqueeze(-1)  # -a / norms: the signs are exact
         if ks == k:
-            eye = torch.eye(k, dtype=u_nom.dtype, device=u_nom.device).expand(B, k, k)
+            G[:, :k, m : m + ks].diagonal(dim1=-2, dim2=-1).fill_(-1.0)
         else:  # one shared slack (ks = 1) or none (ks = 0)
-            eye = u_nom.new_ones(B, k, ks)
-        G_parts.append(torch.cat([-a / norms.unsqueeze(-1), -eye, u_nom.new_zeros(B, k, c)], -1))
-        h_parts.append(b / norms)
+            G[:, :k, m : m + ks] = -1.0
+        h[:, :k] = b / norms
     if clf is not None:
         a, b = clf
-        eye = torch.eye(c, dtype=u_nom.dtype, device=u_nom.device).expand(B, c, c)
-        G_parts.append(torch.cat([a, u_nom.new_zeros(B, c, ks), -eye], -1))
-        h_parts.append(-b)
+        G[:, k:, :m] = a
+        G[:, k:, m + ks :].diagonal(dim1=-2, dim2=-1).fill_(-1.0)
+        h[:, k:] = -b
     inf = u_nom.new_full((ks + c,), math.inf)
     lb = torch.cat([lo, torch.zeros_like(inf)]).expand(B, nz)
     ub = torch.cat([hi, inf]).expand(B, nz)
-    return FilterQP(Q, p, torch.cat(G_parts, 1), torch.cat(h_parts, 1), lb, ub, ks, norms)
+    return FilterQP(Q, p, G, h, lb, ub, ks, norms)

@@ -57,6 +57,7 @@ from torchcbf._checks import (
     check_last_dim,
     follow_parts,
     placement,
+    rows_nonfinite,
 )
 from torchcbf._compile import Traced, TraceError, logger
 from torchcbf.barriers import native
@@ -661,9 +662,11 @@ class SafetyFilter(nn.Module):
         non-finite data get a harmless problem and ``qp_ok = False``."""
         G, hq = qp.G, qp.h
         B = hq.shape[0]
-        data_ok = torch.isfinite(G).flatten(1).all(-1) & torch.isfinite(hq).all(-1) & finite
-        G = torch.where(data_ok[:, None, None], G, torch.zeros_like(G))
-        hq = torch.where(data_ok[:, None], hq, torch.ones_like(hq))
+        data_ok = finite & ~rows_nonfinite(G, 2, B) & ~rows_nonfinite(hq, 1, B)
+        # on a CPU, asking whether every row is fine costs no device synchronisation
+        if G.device.type != "cpu" or not bool(data_ok.all()):
+            G = G.masked_fill(~data_ok[:, None, None], 0.0)
+            hq = hq.masked_fill(~data_ok[:, None], 1.0)
         if not self._two_pass(qp.ks):
             sol = qp_layer.solve_qp(qp.Q, qp.p, G, hq, lb=qp.lb, ub=qp.ub, **self.qp_options)
             ok = data_ok & (sol.status == Status.SOLVED) & torch.isfinite(sol.x).all(-1)

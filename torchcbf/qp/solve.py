@@ -9,7 +9,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchcbf._checks import broadcast_shapes
+from torchcbf._checks import broadcast_shapes, rows_nonfinite
 from torchcbf.qp import _direct, _dual_native, realtime
 from torchcbf.qp._dual import dual_engine
 from torchcbf.qp._enum import (
@@ -141,17 +141,6 @@ def _row_block(
     vec = _tensor(vec_name, vec, dtype, device)
     _check_trailing(vec_name, vec, (rows,), str(rows))
     return mat, vec, rows
-
-
-def _row_nonfinite(t: Tensor | None, trailing: int, batch: int) -> Tensor | None:
-    if t is None:
-        return None
-    flat = t.reshape(batch, math.prod(t.shape[t.dim() - trailing :]))
-    if flat.shape[-1] == 0:
-        return torch.zeros(batch, dtype=torch.bool, device=t.device)
-    # the largest magnitude is NaN or inf exactly when some entry is (and is much faster
-    # than isfinite().all() on a CPU)
-    return ~torch.isfinite(flat.detach().abs().amax(-1))
 
 
 def check_options(max_iter: object, eps: object, *, where: str = "{}") -> None:
@@ -595,7 +584,7 @@ def _flatten(inp: _Inputs) -> _Flat:
     bad = torch.zeros(B, dtype=torch.bool, device=device)
     for t, k in ((Qf, 2), (pf, 1), (Gf, 2), (Af, 2), (bf, 1)):
         if t.numel() > 0:
-            bad = bad | _row_nonfinite(t, k, B)
+            bad = bad | rows_nonfinite(t, k, B)
     infeasible_bound = torch.zeros_like(bad)
     if hf.numel() > 0:
         Gf, hf, nan_h, empty_row = _free_rows(Gf, hf, B)
@@ -640,7 +629,7 @@ def _free_rows(G: Tensor, h: Tensor, B: int) -> tuple[Tensor, Tensor, Tensor | N
     empty [B])``: rows with a NaN in ``h``, and rows with ``h = -inf`` (nothing satisfies them);
     both ``None`` where every ``h`` is finite (known without a device synchronisation only on
     a CPU; elsewhere the masks always run)."""
-    if h.device.type == "cpu" and not bool(_row_nonfinite(h, 1, B).any()):
+    if h.device.type == "cpu" and not bool(rows_nonfinite(h, 1, B).any()):
         return G, h, None, None
     free = h == math.inf
     empty = h == -math.inf
@@ -694,20 +683,21 @@ def _standard_form(f: _Flat, inp: _Inputs) -> _Standard:
         if x0 is not None:
             t0 = (torch.einsum("bmn,bn->bm", f.G, x0) - f.h).clamp_min(0.0) * is_soft
             x0 = torch.cat((x0, t0), -1)
-    box_rows, box_h = [], []
     box_start = Gs.shape[-2]
-    for bound, sign in ((f.ub, 1.0), (f.lb, -1.0)):
-        if bound is None:
-            continue
-        finite = torch.isfinite(bound)
-        rows = sign * torch.diag_embed(finite.to(dtype))
-        if N > n:
-            rows = torch.cat((rows, P.new_zeros(B, n, N - n)), -1)
-        box_rows.append(rows)
-        box_h.append(torch.where(finite, sign * bound, torch.ones_like(bound)))
-    if box_rows:
-        Gs = torch.cat((Gs, *box_rows), -2)
-        hs = torch.cat((hs, *box_h), -1)
+    bounds = [(bound, sign) for bound, sign in ((f.ub, 1.0), (f.lb, -1.0)) if bound is not None]
+    if bounds:  # one row per bounded variable and side, written into one buffer
+        rows = box_start + n * len(bounds)
+        G_all, h_all = Gs.new_empty(B, rows, N), hs.new_empty(B, rows)
+        G_all[:, :box_start] = Gs
+        h_all[:, :box_start] = hs
+        G_all[:, box_start:] = 0.0
+        for i, (bound, sign) in enumerate(bounds):
+            finite = torch.isfinite(bound)
+            r = box_start + i * n
+            box = G_all[:, r : r + n, :n].diagonal(dim1=-2, dim2=-1)
+            box.copy_(torch.where(finite, sign, 0.0))
+            h_all[:, r : r + n] = torch.where(finite, sign * bound, 1.0)
+        Gs, hs = G_all, h_all
     pairs: tuple[tuple[int, int], ...] = ()
     if f.lb is not None and f.ub is not None:
         pairs = tuple((box_start + j, box_start + n + j) for j in range(n))
