@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchcbf._graphs import CapturedCall, pack, unpack
+from torchcbf._graphs import CapturedCall
 
 
 def test_capture_needs_cuda_tensors():
@@ -63,25 +63,3 @@ def test_a_capture_that_fails_keeps_the_warm_up_and_the_stream():
     torch.testing.assert_close(x * 2.0, torch.full((4,), 2.0, device="cuda"))  # CUDA still works
     with pytest.raises(RuntimeError, match="capture failed"):
         call(x)
-
-
-def test_packed_outputs_unpack_to_equal_contiguous_tensors(device):
-    grid = torch.arange(12.0, dtype=torch.float64, device=device).reshape(3, 4)
-    outputs = (
-        grid.mT,  # not contiguous
-        None,
-        torch.tensor([1, 2, 3], device=device),
-        torch.tensor(2.5, dtype=torch.float64, device=device),  # 0-d
-        torch.zeros(0, 3, dtype=torch.float64, device=device),
-        torch.tensor([True, False], device=device),
-        torch.tensor([7], device=device),
-    )
-    buffers, slots = pack(outputs)
-    assert [b.dtype for b in buffers] == [torch.float64, torch.int64, torch.bool]
-    back = unpack(tuple(b.clone() for b in buffers), slots)
-    assert back[1] is None
-    for a, b in zip(outputs, back, strict=True):
-        if a is not None:
-            assert b.is_contiguous() and b.dtype == a.dtype and torch.equal(a, b)
-    back[0].add_(1.0)  # each output has its own elements of the copy
-    assert torch.equal(back[3], outputs[3]) and torch.equal(back[0], outputs[0] + 1.0)

@@ -9,14 +9,19 @@ import torch
 from torch import Tensor, nn
 
 
-def needs_graph(module: nn.Module, *tensors: Tensor | None) -> bool:
+def needs_graph(
+    module: nn.Module, *tensors: Tensor | None, module_grad: bool | None = None
+) -> bool:
     """Whether an output computed from ``module`` and ``tensors`` can carry a gradient: grad
     mode is on and one of the tensors, or a parameter or buffer of ``module`` (a buffer may
-    be a tensor given with ``requires_grad``), requires grad."""
+    be a tensor given with ``requires_grad``), requires grad. ``module_grad``: whether one
+    of those parameters and buffers requires grad, where the caller knows (no walk)."""
     if not torch.is_grad_enabled():
         return False
     if any(t is not None and t.requires_grad for t in tensors):
         return True
+    if module_grad is not None:
+        return module_grad
     for sub in module.modules():
         for group in (sub._parameters, sub._buffers):
             for t in group.values():

@@ -23,38 +23,6 @@ def _copies(outputs: Sequence[Tensor | None]) -> tuple[Tensor | None, ...]:
     return tuple(None if t is None else t.clone() for t in outputs)
 
 
-#: where an output lies in its packed buffer: (buffer, offset, shape); None for no output
-_Slot = tuple[int, int, torch.Size] | None
-
-
-def pack(outputs: Sequence[Tensor | None]) -> tuple[tuple[Tensor, ...], tuple[_Slot, ...]]:
-    """``outputs`` flattened into one buffer per dtype and device (in order of first
-    appearance), and where each lies: one copy per buffer then copies them all."""
-    groups: dict[tuple[torch.dtype, torch.device], list[Tensor]] = {}
-    ends: list[int] = []  # elements in each buffer so far
-    slots: list[_Slot] = []
-    for t in outputs:
-        if t is None:
-            slots.append(None)
-            continue
-        key = (t.dtype, t.device)
-        if key not in groups:
-            groups[key] = []
-            ends.append(0)
-        index = list(groups).index(key)
-        groups[key].append(t.reshape(-1))
-        slots.append((index, ends[index], t.shape))
-        ends[index] += t.numel()
-    return tuple(torch.cat(group) for group in groups.values()), tuple(slots)
-
-
-def unpack(buffers: Sequence[Tensor], slots: Sequence[_Slot]) -> tuple[Tensor | None, ...]:
-    """The outputs :func:`pack` stored: contiguous views of ``buffers``."""
-    return tuple(
-        None if s is None else buffers[s[0]].narrow(0, s[1], s[2].numel()).view(s[2]) for s in slots
-    )
-
-
 class CapturedCall:
     """``fn(*inputs) -> sequence of tensors (or None)``, run once and captured in a CUDA
     graph.
@@ -66,9 +34,7 @@ class CapturedCall:
     (an operation a graph cannot hold, such as a host synchronisation) leaves
     :attr:`error` set and the call unusable; the warm-up's answer stands. Each later call
     copies its tensors into the static inputs, replays the graph on the current stream and
-    returns copies of the outputs (a later replay overwrites the graph's own): the graph
-    packs them into one buffer per dtype (:func:`pack`), a call copies each buffer once and
-    returns contiguous views of the copies (:func:`unpack`). ``fn`` may
+    returns copies of the outputs (a later replay overwrites the graph's own). ``fn`` may
     change tensors other than its inputs in place (a planner's plan, say): a replay does the
     same to the same storage. One capture runs at a time in a process.
     """
@@ -102,8 +68,7 @@ class CapturedCall:
                 # "thread_local": other threads' CUDA calls during the capture are theirs
                 graph.capture_begin(capture_error_mode="thread_local")
                 try:
-                    # packed inside the graph: a replay's answer is then one copy per dtype
-                    outputs = pack(tuple(fn(*self._inputs)))
+                    outputs = tuple(fn(*self._inputs))
                 except Exception as err:  # noqa: BLE001 - reported through self.error
                     with contextlib.suppress(Exception):
                         graph.capture_end()
@@ -131,5 +96,4 @@ class CapturedCall:
             static.copy_(t)
         with torch.cuda.device(self._inputs[0].device):
             self._graph.replay()
-        buffers, slots = self._outputs
-        return unpack(tuple(b.clone() for b in buffers), slots)
+        return _copies(self._outputs)

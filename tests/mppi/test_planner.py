@@ -658,3 +658,36 @@ def test_cuda_graph_is_a_flag_that_changes_nothing_on_the_cpu():
     for _ in range(3):
         pa, pb = a(x), b(x)
         assert torch.equal(pa.plan, pb.plan) and pb.path == pa.path
+
+
+class _CostWithoutStorage(torch.nn.Module):
+    """A torch cost holding tensors without storage of their own: a sparse matrix and a
+    lazy layer's uninitialised parameters."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.W = torch.eye(2).to_sparse()
+        self.net = torch.nn.LazyLinear(1)
+
+    def forward(self, states, controls, t0):
+        p = states[..., :2]
+        return (p - torch.tensor([1.0, 0.5])).square().sum((-1, -2))
+
+
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+@pytest.mark.parametrize("grad", [False, True])
+def test_a_cost_holding_tensors_without_storage_plans(backend, grad):
+    x = torch.tensor([0.0, 0.0])
+    plain = lambda s, c, t: _CostWithoutStorage.forward(None, s, c, t)  # noqa: E731
+    outs, paths = [], []
+    # in grad mode the lazy layer's parameters send the planner to torch: the function cost
+    # is asked to plan there too
+    for cost, own in ((_CostWithoutStorage(), backend), (plain, "torch" if grad else backend)):
+        planner = MPPI(SingleIntegrator(2), cost, 8, 64, 0.1, 1.0, 0.5, seed=3, backend=own)
+        with torch.set_grad_enabled(grad):
+            outs.append([planner(x).u for _ in range(3)])
+        paths.append(planner.path)
+    expected = "torch" if grad or backend == "torch" else "rollout"
+    assert paths == [expected, expected]
+    for a, b in zip(*outs, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)

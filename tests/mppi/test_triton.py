@@ -252,7 +252,10 @@ def test_a_captured_planner_plans_as_the_uncaptured_one(dtype):
                 planner.temperature = 0.25
         xi = x[0] if i >= 8 else x  # one environment: a new plan tensor, captured again
         shift = i != 11  # a call without the shift runs uncaptured; the graph stays
-        outs.append((plain(xi, 0.1 * i, shift), graphed(xi, 0.1 * i, shift)))
+        B = 1 if xi.dim() == 1 else xi.shape[0]
+        t = [0.1 * i, torch.tensor(0.1 * i), torch.full((B,), 0.1 * i)][i % 3]  # copied in
+        t = t.to(dtype=dtype, device=TARGET) if isinstance(t, torch.Tensor) else t
+        outs.append((plain(xi, t, shift), graphed(xi, t, shift)))
         paths.append(graphed.path)
         for a, b in zip(plain.history, graphed.history, strict=True):  # recorded in the graph
             assert torch.equal(a, b)

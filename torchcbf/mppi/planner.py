@@ -94,8 +94,10 @@ from typing import Any, ClassVar, NamedTuple
 import numpy as np
 import torch
 from torch import Tensor, nn
+from torch.nn.parameter import UninitializedTensorMixin
 
 from torchcbf import integrators
+from torchcbf._autograd import needs_graph
 from torchcbf._checks import (
     as_limit,
     as_matrix,
@@ -169,6 +171,15 @@ _PLAIN = (bool, int, float, str, slice, tuple, type(None))
 _SCALARS = frozenset((bool, int, float, str, type(None)))  # exact types: the common case
 
 
+def _stamp(t: Tensor) -> tuple[Any, ...]:
+    """The storage and in-place version of ``t``; its identity for a tensor without
+    storage of its own (sparse, or a lazy module's uninitialised parameter: no kernel
+    configuration reads one)."""
+    if t.layout != torch.strided or isinstance(t, UninitializedTensorMixin):
+        return (id(t),)
+    return (t.data_ptr(), t._version)
+
+
 def _state_signature(module: nn.Module) -> tuple[tuple[Any, ...], bool]:
     """What a kernel configuration read from ``module`` depends on, read without a host
     sync: the storage and in-place version of each parameter and buffer of its modules,
@@ -185,7 +196,7 @@ def _state_signature(module: nn.Module) -> tuple[tuple[Any, ...], bool]:
                 if t is None:
                     add(None)
                 else:
-                    add((t.data_ptr(), t._version))
+                    add(_stamp(t))
                     grad = grad or t.requires_grad
         for name, value in mod.__dict__.items():
             if name[0] == "_" or name in ("path", "engine"):
@@ -193,7 +204,7 @@ def _state_signature(module: nn.Module) -> tuple[tuple[Any, ...], bool]:
             if type(value) in _SCALARS:
                 add((name, value))
             elif isinstance(value, Tensor):
-                add((name, value.data_ptr(), value._version))
+                add((name, _stamp(value)))
             elif isinstance(value, _PLAIN):
                 add((name, value))
     return tuple(out), grad
@@ -239,6 +250,12 @@ class _Capture(NamedTuple):
     shape: torch.Size  # of x
     shifting: bool  # whether the captured call shifts the plan first
     call: CapturedCall | bool | None  # None: not captured yet; False: the capture failed
+
+
+def _keeps_advance(cls: type) -> bool:
+    """Whether ``cls`` records and shifts as :class:`MPPI` does (device work a graph holds;
+    a variant's own shift may rebind its tensors, which a replay would not)."""
+    return all(getattr(cls, name) is getattr(MPPI, name) for name in ("_advance", "_shift"))
 
 
 def _unbatched(out: MPPIOutput) -> MPPIOutput:
@@ -677,9 +694,8 @@ class MPPI(ExactConstants):
             raise ValueError(f"t must be a scalar or have shape [{B}], got {tuple(t0.shape)}")
         t0 = t0.reshape(-1).expand(B)
         shifting = shift and not self._fresh
-        self._fresh = False
-
         kernel = self._kernel(xb)
+        self._fresh = False
         self.engine = None if kernel is None else kernel.name
         if kernel is not None and kernel.fused:
             self.path = "fused"
@@ -731,8 +747,8 @@ class MPPI(ExactConstants):
 
     def _advance(self, x: Tensor, t0: Tensor, shifting: bool) -> None:
         """What every call does before it samples: record ``x [B, n]`` at ``t0 [B]`` in the
-        history and, where ``shifting``, shift the plan (device work only: a CUDA graph of
-        the fused call holds it)."""
+        history and, where ``shifting``, shift the plan (a CUDA graph of the fused call
+        holds it where the planner's class keeps MPPI's ``_advance`` and ``_shift``)."""
         self._history.record(x, t0)
         if shifting:
             self._shift()
@@ -1055,16 +1071,20 @@ class MPPI(ExactConstants):
         return max(MIN_CHUNK_SAMPLES, AUTO_CHUNK_ELEMENTS // per_sample)
 
     # -- kernel paths --------------------------------------------------------------------------
+    def _kernel_may_plan(self, x: Tensor) -> bool:
+        """Whether a kernel may plan for ``x`` as far as the options and dtype say (read
+        without walking the modules)."""
+        return (
+            self.backend != "torch"
+            and x.dtype in (torch.float32, torch.float64)
+            and self._kernel_expresses()
+        )
+
     def _engine(self, x: Tensor, grad: bool) -> str | None:
-        """The kernel that plans for ``x``: ``"c"`` on the CPU, ``"triton"`` on CUDA (or
-        with ``backend="triton"``), ``None`` where torch runs (``grad``: a parameter or
-        buffer of the planner requires grad)."""
-        if (
-            self.backend == "torch"
-            or x.dtype not in (torch.float32, torch.float64)
-            or not self._kernel_expresses()
-            or (torch.is_grad_enabled() and (grad or x.requires_grad))
-        ):
+        """The kernel that plans for ``x`` where :meth:`_kernel_may_plan`: ``"c"`` on the
+        CPU, ``"triton"`` on CUDA (or with ``backend="triton"``), ``None`` where torch runs
+        (``grad``: a parameter or buffer of the planner requires grad)."""
+        if needs_graph(self, x, module_grad=grad):
             return None
         if self.backend == "triton":
             if x.device.type == "cpu" and not triton_interpreted():
@@ -1082,6 +1102,8 @@ class MPPI(ExactConstants):
         fused where the cost is made of built-in terms, else for the rollouts alone. The
         kernel and its configuration are kept until a tensor or number of the planner, its
         model or its cost changes (checked without reading the device: no host sync)."""
+        if not self._kernel_may_plan(x):
+            return None
         state, grad = _state_signature(self)
         engine = self._engine(x, grad)
         if engine is None:
@@ -1153,7 +1175,7 @@ class MPPI(ExactConstants):
         x = x.contiguous()
         keys = _rollout.draw_keys(self._generators)
         out = None
-        if self.cuda_graph and x.is_cuda:
+        if self.cuda_graph and x.is_cuda and _keeps_advance(type(self)):
             out = self._replayed(kernel, x, t0, keys, shifting)
         if out is None:
             out = self._fused_call(kernel, x, t0, keys, shifting)
