@@ -63,3 +63,25 @@ def test_a_capture_that_fails_keeps_the_warm_up_and_the_stream():
     torch.testing.assert_close(x * 2.0, torch.full((4,), 2.0, device="cuda"))  # CUDA still works
     with pytest.raises(RuntimeError, match="capture failed"):
         call(x)
+
+
+def test_copies_of_outputs_have_storage_of_their_own(device):
+    from torchcbf._graphs import _copies
+
+    grid = torch.arange(12.0, dtype=torch.float64, device=device).reshape(3, 4)
+    outputs = (
+        grid.mT,  # not contiguous
+        None,
+        torch.tensor([1, 2, 3], device=device),
+        torch.tensor(2.5, dtype=torch.float64, device=device),
+        torch.zeros(0, 3, device=device),
+        torch.tensor([True, False], device=device),
+    )
+    copies = _copies(outputs)
+    assert copies[1] is None
+    for t, c in zip(outputs, copies, strict=True):
+        if t is not None:
+            assert torch.equal(c, t) and c.dtype == t.dtype and c.is_contiguous()
+            own = c.untyped_storage()
+            assert c.numel() == 0 or own.data_ptr() != t.untyped_storage().data_ptr()
+            assert own.nbytes() == c.numel() * c.element_size()

@@ -20,7 +20,22 @@ from torch import Tensor
 
 
 def _copies(outputs: Sequence[Tensor | None]) -> tuple[Tensor | None, ...]:
-    return tuple(None if t is None else t.clone() for t in outputs)
+    """Contiguous copies of ``outputs`` (``None`` kept), each with storage of its own, made
+    by one multi-tensor copy per dtype and device (on a GPU a launch each, not one per
+    output)."""
+    copies = [
+        None if t is None else torch.empty_like(t, memory_format=torch.contiguous_format)
+        for t in outputs
+    ]
+    groups: dict[tuple[torch.dtype, torch.device], tuple[list[Tensor], list[Tensor]]] = {}
+    for t, c in zip(outputs, copies, strict=True):
+        if t is not None and c is not None:
+            dst, src = groups.setdefault((t.dtype, t.device), ([], []))
+            dst.append(c)
+            src.append(t)
+    for dst, src in groups.values():
+        torch._foreach_copy_(dst, src)
+    return tuple(copies)
 
 
 class CapturedCall:
