@@ -168,7 +168,6 @@ class MPPIOutput(NamedTuple):
 
 
 _PLAIN = (bool, int, float, str, slice, tuple, type(None))
-_SCALARS = frozenset((bool, int, float, str, type(None)))  # exact types: the common case
 
 
 def _stamp(t: Tensor) -> tuple[Any, ...]:
@@ -201,9 +200,7 @@ def _state_signature(module: nn.Module) -> tuple[tuple[Any, ...], bool]:
         for name, value in mod.__dict__.items():
             if name[0] == "_" or name in ("path", "engine"):
                 continue
-            if type(value) in _SCALARS:
-                add((name, value))
-            elif isinstance(value, Tensor):
+            if isinstance(value, Tensor):
                 add((name, _stamp(value)))
             elif isinstance(value, _PLAIN):
                 add((name, value))
