@@ -1257,29 +1257,32 @@ class MPPI(ExactConstants):
         return cost if cost.dtype == plan.dtype else cost.to(plan.dtype)
 
     def _weights(self, cost: Tensor) -> _Weights:
-        finite = torch.isfinite(cost)
-        clean = torch.where(finite, cost, torch.full_like(cost, math.inf))
+        # one launch per line where it can (a GPU call is bound by its launches): |c| < inf
+        # is isfinite in two, and a row without a finite cost needs no branch of its own
+        finite = cost.abs() < math.inf
+        clean = torch.where(finite, cost, math.inf)
         cost_min, best = clean.min(-1)
-        ok = torch.isfinite(cost_min)
+        ok = cost_min < math.inf
         lam = max(self.temperature, torch.finfo(cost.dtype).tiny)
-        shifted = torch.where(ok.unsqueeze(-1), clean - cost_min.unsqueeze(-1), clean)
+        # NaN (inf - inf) on the rows without a finite cost: every weight there is 0 below
+        shifted = clean - cost_min.unsqueeze(-1)
         if self.cost_normalization != "none":
-            kept = torch.where(finite, shifted, torch.zeros_like(shifted))
+            kept = torch.where(finite, shifted, 0.0)
             if self.cost_normalization == "range":
                 span = kept.amax(-1, keepdim=True)
             else:  # "std": standard deviation of the finite costs
                 n_fin = finite.sum(-1, keepdim=True).clamp_min(1)
                 mean = kept.sum(-1, keepdim=True) / n_fin
-                dev = torch.where(finite, kept - mean, torch.zeros_like(kept))
+                dev = torch.where(finite, kept - mean, 0.0)
                 span = (dev.square().sum(-1, keepdim=True) / n_fin).sqrt()
             shifted = shifted / span.clamp_min(torch.finfo(cost.dtype).tiny)
         # exponents below log(tiny) give weight 0 (their exp would be subnormal: no
         # difference to the weights); exp runs on 0 there instead, since results at the
         # bottom of the normal range take a slow path of the vectorised exp (10x slower)
         expo = shifted.mul_(-1.0 / lam)
-        kept = expo >= math.log(torch.finfo(cost.dtype).tiny)
-        w = torch.where(kept, torch.exp(expo.masked_fill_(~kept, 0.0)), 0.0)
-        w = w / w.sum(-1, keepdim=True).clamp_min(1.0)  # the best sample has weight 1 before
+        live = expo >= math.log(torch.finfo(cost.dtype).tiny)  # false for NaN
+        w = torch.where(live, torch.exp(torch.where(live, expo, 0.0)), 0.0)
+        w = w.div_(w.sum(-1, keepdim=True).clamp_min(1.0))  # the best sample has weight 1 before
         return _Weights(w, cost_min, best, ok, finite)
 
     def _output(
@@ -1294,17 +1297,15 @@ class MPPI(ExactConstants):
         plan = self._plan
         finite, ok, w = weights.finite, weights.ok, weights.w
         count = finite.sum(-1)
-        cost_mean = torch.where(finite, cost, torch.zeros_like(cost)).sum(-1) / count.clamp_min(1)
-        ess = torch.where(
-            ok, 1.0 / w.square().sum(-1).clamp_min(1e-30), torch.zeros_like(weights.cost_min)
-        )
+        cost_mean = torch.where(finite, cost, 0.0).sum(-1) / count.clamp_min(1)
+        ess = ok / w.square().sum(-1).clamp_min(1e-30)  # 0 where no cost is finite
         return MPPIOutput(
             u=plan[:, 0].clone(),
             plan=plan.clone(),
             cost_min=weights.cost_min,
             cost_mean=cost_mean,
             ess=ess,
-            status=(~ok).long(),
+            status=torch.where(ok, 0, 1),
             best_states=best_states,
             rollouts=rollouts,
             rollout_weights=w[:, : self.keep_rollouts].clone() if self.keep_rollouts else None,
