@@ -162,11 +162,13 @@ def test_fused_plans_match_the_c_kernel(make, integrator, dtype):
     for a, b in zip(_plans(ref, x), _plans(tri, x.to(TARGET)), strict=True):
         assert ref.path == "fused" and tri.path == "fused"
         assert ref.engine == "c" and tri.engine == "triton"
-        for name in ("u", "plan", "cost_min", "cost_mean", "best_states", "rollouts"):
+        for name in ("u", "plan", "cost_min", "cost_mean", "ess", "best_states", "rollouts",
+                     "rollout_weights"):  # fmt: skip
             torch.testing.assert_close(
                 getattr(b, name).cpu(), getattr(a, name), rtol=rtol, atol=atol, msg=name
             )
         assert torch.equal(a.status, b.status.cpu())
+        assert torch.equal(a.nonfinite, b.nonfinite.cpu())
 
 
 @on_cpu_only
@@ -183,6 +185,46 @@ def test_rollout_path_with_a_torch_cost_matches_the_c_kernel(dtype):
         assert ref.path == "rollout" and tri.path == "rollout"
         torch.testing.assert_close(b.plan.cpu(), a.plan, rtol=rtol, atol=atol)
         torch.testing.assert_close(b.best_states.cpu(), a.best_states, rtol=rtol, atol=atol)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize(("K", "temperature"), [(5000, 0.03), (300, 0.5), (7, 1e-45), (1, 2.0)])
+def test_weights_pass_matches_the_torch_weights(dtype, K, temperature):
+    gen = torch.Generator().manual_seed(K)
+    planner = _planner(Unicycle, "euler", dtype, "torch")
+    planner.temperature = temperature
+    cost = torch.randn(6, K, generator=gen, dtype=dtype) * 10.0
+    pick = torch.rand(6, K, generator=gen)
+    cost[pick < 0.1] = float("nan")
+    cost[(pick > 0.1) & (pick < 0.15)] = float("inf")
+    cost[(pick > 0.15) & (pick < 0.18)] = -float("inf")
+    cost[1] = float("nan")  # no finite cost: status 1, weights 0
+    cost[2] = 3.0  # all tied: the first sample is the best
+    cost[3] = float("inf")
+    cost[3, K // 2] = 1.0  # one finite cost
+    want = planner._weights(cost.clone())
+    lam = max(temperature, torch.finfo(dtype).tiny)
+    got = _triton.weights(cost.to(TARGET), lam)
+    assert len(got) == len(want)
+    rtol = 1e-12 if dtype == torch.float64 else 1e-5
+    for name, a, b in zip(want._fields, want, got, strict=True):
+        assert b.dtype == a.dtype and b.shape == a.shape and b.device == TARGET, name
+        if a.is_floating_point():
+            torch.testing.assert_close(b.cpu(), a, rtol=rtol, atol=0.0, msg=name)
+        else:
+            assert torch.equal(b.cpu(), a), name
+    assert want.status.tolist() == [0, 1, 0, 0, 0, 0] and want.best[2] == 0
+
+
+@on_cpu_only
+def test_normalised_costs_on_the_triton_path_are_weighted_by_torch():
+    ref = _planner(AccelUnicycle, "rk4", torch.float64, "auto", cost_normalization="std")
+    tri = _planner(AccelUnicycle, "rk4", torch.float64, "triton", cost_normalization="std")
+    x = torch.tensor([[0.0, 0.0, 0.5, 0.1], [1.0, -1.0, 0.0, 2.0]], dtype=torch.float64)
+    for a, b in zip(_plans(ref, x, 2), _plans(tri.to(TARGET), x.to(TARGET), 2), strict=True):
+        assert tri.path == "fused" and tri.engine == "triton"
+        torch.testing.assert_close(b.plan.cpu(), a.plan, rtol=1e-9, atol=1e-9)
+        torch.testing.assert_close(b.ess.cpu(), a.ess, rtol=1e-9, atol=1e-9)
 
 
 def test_tables_follow_a_changed_goal():

@@ -595,6 +595,11 @@ class Kernel:
             run(self.cfg, count, x, plan, keys, pairs=pairs, weights=w_sel, wsum=wsum)
         return wsum.sum(0).to(plan.dtype)
 
+    def weights(self, cost: Tensor, temperature: float) -> None:
+        """No weights pass: on the CPU the planner's torch weights are as fast (the Triton
+        kernel has one, :meth:`torchcbf.mppi._triton.Kernel.weights`)."""
+        return None
+
     def rows(self, x: Tensor, plan: Tensor, keys: Tensor, pairs: Tensor) -> Tensor:
         """The rollouts ``[P, H+1, n]`` of the samples ``pairs [P, 2]`` of ``(b, k)``."""
         states = plan.new_empty(pairs.shape[0], plan.shape[1] + 1, self.cfg.n)

@@ -12,7 +12,10 @@ generators, which draw other numbers on CUDA than on the CPU). Each pass is one 
 - :func:`rows`: the rollouts ``[P, H+1, n]`` of chosen ``(b, k)`` pairs (the best sample,
   the kept samples);
 - :func:`buffers`: every sample's states and controls in the component-major buffers a
-  torch cost reads, and the control cost.
+  torch cost reads, and the control cost;
+- :func:`weights`: the samples' weights from their costs and the output's figures per
+  environment (two launches, a fill and the kernel, instead of the 25 torch operations of
+  the planner's own weights).
 
 Triton is optional (:mod:`torchcbf._triton`; :func:`available` says whether it imports). On
 the CPU the kernel runs only under ``TRITON_INTERPRET=1`` (the tests use it).
@@ -412,6 +415,78 @@ if triton is not None:
                 c = c + tl.load(par_ptr + 3) * ctrl
             tl.store(cost_ptr + p, c, mask=live)
 
+    @triton.jit
+    def _weights_kernel(
+        cost_ptr,
+        scale_ptr,
+        w_ptr,
+        min_ptr,
+        best_ptr,
+        mean_ptr,
+        ess_ptr,
+        status_ptr,
+        nonfinite_ptr,
+        K,
+        LOG_TINY: tl.constexpr,
+        BLOCK: tl.constexpr,
+        STEPS: tl.constexpr,
+    ):
+        """One environment per program: the planner's torch weights (``MPPI._weights``,
+        ``cost_normalization="none"``) in three passes over its ``K`` costs, ``STEPS`` blocks
+        each (a number known when compiling: the interpreter loops only over those)."""
+        b = tl.program_id(0).to(tl.int64)
+        lane = tl.arange(0, BLOCK)
+        row = cost_ptr + b * K
+        real = cost_ptr.dtype.element_ty
+        inf = float("inf")
+        # the smallest finite cost and its first index; the finite costs' count and sum
+        low = tl.full([BLOCK], inf, real)
+        at = lane
+        count = tl.zeros([BLOCK], tl.int32)
+        total = tl.zeros([BLOCK], real)
+        for step in range(STEPS):
+            k = step * BLOCK + lane
+            c = tl.load(row + k, mask=k < K, other=inf)
+            finite = tl.abs(c) < inf
+            clean = tl.where(finite, c, inf)
+            better = clean < low  # strict: a lane keeps its first index of a tie
+            low = tl.where(better, clean, low)
+            at = tl.where(better, k, at)
+            count += finite.to(tl.int32)
+            total += tl.where(finite, c, 0.0)
+        cmin = tl.min(low, 0)
+        best = tl.min(tl.where(low == cmin, at, K), 0)
+        ok = cmin < inf
+        # exp(-(c - min) / lambda) where that is a normal number (else 0), summed, then
+        # written normalised; the exponent is recomputed rather than read back
+        scale = tl.load(scale_ptr)  # -1 / lambda
+        floor = tl.full([], LOG_TINY, real)
+        acc = tl.zeros([BLOCK], real)
+        for step in range(STEPS):
+            k = step * BLOCK + lane
+            c = tl.load(row + k, mask=k < K, other=inf)
+            expo = (tl.where(tl.abs(c) < inf, c, inf) - cmin) * scale
+            live = expo >= floor  # false for NaN (a row without a finite cost)
+            acc += tl.where(live, tl.exp(tl.where(live, expo, 0.0)), 0.0)
+        norm = tl.maximum(tl.sum(acc, 0), tl.full([], 1.0, real))
+        squares = tl.zeros([BLOCK], real)
+        for step in range(STEPS):
+            k = step * BLOCK + lane
+            c = tl.load(row + k, mask=k < K, other=inf)
+            expo = (tl.where(tl.abs(c) < inf, c, inf) - cmin) * scale
+            live = expo >= floor
+            w = tl.where(live, tl.exp(tl.where(live, expo, 0.0)), 0.0) / norm
+            tl.store(w_ptr + b * K + k, w, mask=k < K)
+            squares += w * w
+        n = tl.sum(count, 0)
+        ssq = tl.maximum(tl.sum(squares, 0), tl.full([], 1e-30, real))
+        tl.store(min_ptr + b, cmin)
+        tl.store(best_ptr + b, best.to(tl.int64))
+        tl.store(mean_ptr + b, tl.sum(total, 0) / tl.maximum(n, 1).to(real))
+        tl.store(ess_ptr + b, tl.where(ok, 1.0 / ssq, 0.0))
+        tl.store(status_ptr + b, tl.where(ok, 0, 1).to(tl.int64))
+        tl.store(nonfinite_ptr + b, (K - n).to(tl.int64))
+
 
 # -- calls -----------------------------------------------------------------------------------
 def _launch(
@@ -487,6 +562,10 @@ class Kernel:
 
     def rows(self, x: Tensor, plan: Tensor, keys: Tensor, pairs: Tensor) -> Tensor:
         return rows(self.tab, x, plan, keys, self.tab.samples, pairs)
+
+    def weights(self, cost: Tensor, temperature: float) -> tuple[Tensor, ...]:
+        """:func:`weights` (the C kernel has no such pass)."""
+        return weights(cost, temperature)
 
     def buffers(
         self,
@@ -564,3 +643,38 @@ def buffers(
         states=states, controls=controls,
     )  # fmt: skip
     return cost
+
+
+#: most costs one program of :func:`weights` reads per step of its loops
+WEIGHTS_BLOCK = 2048
+
+
+def weights(cost: Tensor, temperature: float) -> tuple[Tensor, ...]:
+    """The planner's weights of ``cost [B, K]`` (float32 or float64) at ``temperature``
+    (already floored at the dtype's smallest normal number), for
+    ``cost_normalization="none"``: ``w [B, K]``, and per environment the smallest finite
+    cost, its first index, the mean finite cost, the effective sample size, the status
+    (1: no finite cost) and the number of non-finite costs (the fields of the planner's
+    ``_Weights``). Equal to the torch weights up to rounding (other summation order)."""
+    if triton is None:
+        raise RuntimeError("torchcbf: the MPPI GPU kernel needs Triton, which does not import")
+    if cost.dim() != 2 or cost.dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"cost must be a float32 or float64 [B, K] tensor, got {cost.dtype} "
+                         f"{list(cost.shape)}")  # fmt: skip
+    B, K = cost.shape
+    cost = cost.contiguous()
+    # -1/lambda in the cost's dtype, on the device (a kernel's float argument is float32);
+    # filled, not copied from the host, so a CUDA graph can hold it
+    scale = cost.new_full((1,), -1.0 / temperature)
+    w = torch.empty_like(cost)
+    stats = cost.new_empty(3, B)  # cost_min, cost_mean, ess
+    ints = torch.empty(3, B, dtype=torch.int64, device=cost.device)  # best, status, nonfinite
+    block = min(tile(K), WEIGHTS_BLOCK)
+    if B:
+        with on_device(cost):
+            _weights_kernel[(B,)](
+                cost, scale, w, stats[0], ints[0], stats[1], stats[2], ints[1], ints[2], K,
+                LOG_TINY=math.log(torch.finfo(cost.dtype).tiny), BLOCK=block,
+                STEPS=triton.cdiv(K, block), num_warps=max(1, min(8, block // 256)),
+            )  # fmt: skip
+    return w, stats[0], ints[0], stats[1], stats[2], ints[1], ints[2]

@@ -232,11 +232,15 @@ def _scale(value: object, m: int, like: Tensor) -> Tensor | None:
 
 
 class _Weights(NamedTuple):
+    """The samples' weights and the per-environment figures of :class:`MPPIOutput`."""
+
     w: Tensor  # [B, K] normalised weights (0 for non-finite costs)
-    cost_min: Tensor
-    best: Tensor
-    ok: Tensor
-    finite: Tensor
+    cost_min: Tensor  # [B]
+    best: Tensor  # [B] int64
+    cost_mean: Tensor  # [B]
+    ess: Tensor  # [B]
+    status: Tensor  # [B] int64
+    nonfinite: Tensor  # [B] int64
 
 
 class _Capture(NamedTuple):
@@ -715,7 +719,7 @@ class MPPI(ExactConstants):
             cost = self._score_fn(states, controls, None, plan, t0, history, cost_key)
             if ctrl is not None:
                 cost = cost + ctrl
-            weights = self._weights(cost)
+            weights = self._weights(cost, kernel)
             delta = kernel.update(xc, plan, keys, weights.w)
         else:
             self.path = "torch"
@@ -734,7 +738,7 @@ class MPPI(ExactConstants):
         rollouts = None
         if self.keep_rollouts:
             rollouts = states[:, : self.keep_rollouts].clone(memory_format=torch.contiguous_format)
-        out = self._output(cost, weights, delta, best_states, rollouts)
+        out = self._output(weights, delta, best_states, rollouts)
         return _unbatched(out) if unbatched else out
 
     def _from_numpy(self, x: np.ndarray) -> Tensor:
@@ -1189,7 +1193,7 @@ class MPPI(ExactConstants):
         n = self.dynamics.state_dim
         plan = self._plan
         cost = kernel.costs(x, plan, keys, self._control_weights(plan))
-        weights = self._weights(cost)
+        weights = self._weights(cost, kernel)
         delta = kernel.update(x, plan, keys, weights.w)
         # re-roll the best sample and the kept samples
         R = self.keep_rollouts
@@ -1199,7 +1203,7 @@ class MPPI(ExactConstants):
             picks.append(torch.cartesian_prod(self._rows, ks))
         rolled = kernel.rows(x, plan, keys, torch.cat(picks))
         rollouts = rolled[B:].view(B, R, H + 1, n) if R else None
-        return self._output(cost, weights, delta, rolled[:B], rollouts)
+        return self._output(weights, delta, rolled[:B], rollouts)
 
     def _replayed(
         self, kernel: _AnyKernel, x: Tensor, t0: Tensor, keys: Tensor, shifting: bool
@@ -1256,14 +1260,21 @@ class MPPI(ExactConstants):
             )
         return cost if cost.dtype == plan.dtype else cost.to(plan.dtype)
 
-    def _weights(self, cost: Tensor) -> _Weights:
+    def _weights(self, cost: Tensor, kernel: _AnyKernel | None = None) -> _Weights:
+        """The weights of the samples' costs ``[B, K]`` and the figures of the output: in one
+        launch by ``kernel`` where it has a weights pass for this call
+        (:meth:`torchcbf.mppi._triton.Kernel.weights`), else in torch."""
+        lam = max(self.temperature, torch.finfo(cost.dtype).tiny)
+        if kernel is not None and self.cost_normalization == "none":
+            fused = kernel.weights(cost, lam)
+            if fused is not None:
+                return _Weights(*fused)
         # one launch per line where it can (a GPU call is bound by its launches): |c| < inf
         # is isfinite in two, and a row without a finite cost needs no branch of its own
         finite = cost.abs() < math.inf
         clean = torch.where(finite, cost, math.inf)
         cost_min, best = clean.min(-1)
         ok = cost_min < math.inf
-        lam = max(self.temperature, torch.finfo(cost.dtype).tiny)
         # NaN (inf - inf) on the rows without a finite cost: every weight there is 0 below
         shifted = clean - cost_min.unsqueeze(-1)
         if self.cost_normalization != "none":
@@ -1283,11 +1294,19 @@ class MPPI(ExactConstants):
         live = expo >= math.log(torch.finfo(cost.dtype).tiny)  # false for NaN
         w = torch.where(live, torch.exp(torch.where(live, expo, 0.0)), 0.0)
         w = w.div_(w.sum(-1, keepdim=True).clamp_min(1.0))  # the best sample has weight 1 before
-        return _Weights(w, cost_min, best, ok, finite)
+        count = finite.sum(-1)
+        return _Weights(
+            w,
+            cost_min,
+            best,
+            cost_mean=torch.where(finite, cost, 0.0).sum(-1) / count.clamp_min(1),
+            ess=ok / w.square().sum(-1).clamp_min(1e-30),  # 0 where no cost is finite
+            status=torch.where(ok, 0, 1),
+            nonfinite=cost.shape[-1] - count,
+        )
 
     def _output(
         self,
-        cost: Tensor,
         weights: _Weights,
         delta: Tensor,
         best_states: Tensor,
@@ -1295,21 +1314,18 @@ class MPPI(ExactConstants):
     ) -> MPPIOutput:
         self._update_plan(delta)
         plan = self._plan
-        finite, ok, w = weights.finite, weights.ok, weights.w
-        count = finite.sum(-1)
-        cost_mean = torch.where(finite, cost, 0.0).sum(-1) / count.clamp_min(1)
-        ess = ok / w.square().sum(-1).clamp_min(1e-30)  # 0 where no cost is finite
+        w = weights.w
         return MPPIOutput(
             u=plan[:, 0].clone(),
             plan=plan.clone(),
             cost_min=weights.cost_min,
-            cost_mean=cost_mean,
-            ess=ess,
-            status=torch.where(ok, 0, 1),
+            cost_mean=weights.cost_mean,
+            ess=weights.ess,
+            status=weights.status,
             best_states=best_states,
             rollouts=rollouts,
             rollout_weights=w[:, : self.keep_rollouts].clone() if self.keep_rollouts else None,
-            nonfinite=self.num_samples - count,
+            nonfinite=weights.nonfinite,
             path=self.path,
         )
 
