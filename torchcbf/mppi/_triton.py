@@ -348,8 +348,10 @@ if triton is not None:
                 ctrl += tl.sum(E * wc, 0)
             if MODE == 1:
                 part = tl.sum((w[None, :] * E).to(tl.float64), 1)
-                blk = tl.program_id(0).to(tl.int64) * tl.num_programs(1) + tl.program_id(1)
-                tl.store(part_ptr + ((blk * H + j) * M + ucols), part, mask=ucols < M)
+                # [B, H, m, blocks]: torch's sum over the blocks then reads contiguous rows
+                env = tl.program_id(0).to(tl.int64)
+                slot = ((env * H + j) * M + ucols) * tl.num_programs(1) + tl.program_id(1)
+                tl.store(part_ptr + slot, part, mask=ucols < M)
             else:
                 if MODE == 3:
                     cidx = (b[None, :] * M + ucols[:, None]) * H * K + j * K + k[None, :]
@@ -601,10 +603,10 @@ def update(tab: Tables, x0: Tensor, plan: Tensor, keys: Tensor, weights: Tensor)
     K = weights.shape[1]
     _check(tab, x0, plan, keys, K)
     blocks = triton.cdiv(K, BLOCK)
-    part = torch.empty(B, blocks, H, m, dtype=torch.float64, device=plan.device)
+    part = torch.empty(B, H, m, blocks, dtype=torch.float64, device=plan.device)
     weights = weights.to(plan.dtype).contiguous()
     _launch(tab, _UPDATE, (B, blocks), x0, plan, keys, K=K, weights=weights, part=part)
-    return part.sum(1).to(plan.dtype)
+    return part.sum(-1).to(plan.dtype)
 
 
 def rows(tab: Tables, x0: Tensor, plan: Tensor, keys: Tensor, K: int, pairs: Tensor) -> Tensor:
