@@ -1,8 +1,10 @@
-"""The shared input checks: ``broadcast_shapes`` against ``torch.broadcast_shapes``."""
+"""The shared input checks: ``broadcast_shapes`` against ``torch.broadcast_shapes``, the
+finiteness checks against ``torch.isfinite``."""
 
 from __future__ import annotations
 
 import itertools
+import math
 import random
 
 import pytest
@@ -14,6 +16,8 @@ from torchcbf._checks import (
     check_batch_match,
     check_positive_int,
     honour_overrides,
+    isfinite,
+    rows_finite,
     stale_closed_forms,
 )
 
@@ -205,3 +209,23 @@ def test_behaves_as_needs_every_named_method_unchanged() -> None:
     assert not behaves_as(NewStage(), Term, ("forward", "stage"))
     assert behaves_as(NewStage(), Term, ("forward",))
     assert not behaves_as(object(), Term, ("forward",))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16])
+def test_finiteness_checks_match_torch_isfinite(device, dtype):
+    gen = torch.Generator().manual_seed(0)
+    t = torch.randn(40, 5, 3, generator=gen).to(dtype)
+    info = torch.finfo(dtype)
+    t[1, 2, 0], t[2, 0, 1], t[3, 4, 2] = math.nan, math.inf, -math.inf
+    t[4] = math.nan
+    t[5, 0, 0], t[6, 1, 1] = info.max, -info.max  # finite, and their sum is not
+    t[7, 2, 2] = info.tiny / 4  # subnormal
+    t = t.to(device)
+    want = torch.isfinite(t)
+    assert torch.equal(isfinite(t), want)
+    assert torch.equal(rows_finite(t, 2, 40), want.flatten(1).all(-1))
+    assert torch.equal(rows_finite(t, 1, 200), want.reshape(200, 3).all(-1))
+    assert torch.equal(
+        rows_finite(t[:, :, :0], 1, 200), torch.ones(200, dtype=torch.bool, device=device)
+    )
+    assert rows_finite(None, 1, 3) is None

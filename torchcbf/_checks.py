@@ -470,14 +470,20 @@ def _keeps(kind: type, cls: type, methods: tuple[str, ...]) -> bool:
     return same and not rewritten_helpers(kind)
 
 
-def rows_nonfinite(t: Tensor | None, trailing: int, batch: int) -> Tensor | None:
+def isfinite(t: Tensor) -> Tensor:
+    """``torch.isfinite(t)`` in two kernels instead of four (``|t| < inf`` is false for NaN
+    and both infinities): on a GPU a small tensor's check is its launches."""
+    return t.abs() < math.inf
+
+
+def rows_finite(t: Tensor | None, trailing: int, batch: int) -> Tensor | None:
     """``[batch]`` bool: which rows of ``t`` (``batch`` rows of ``trailing`` dimensions each)
-    hold a NaN or an infinity (``None`` for no tensor)."""
+    hold neither a NaN nor an infinity (``None`` for no tensor)."""
     if t is None:
         return None
-    flat = t.reshape(batch, math.prod(t.shape[t.dim() - trailing :]))
+    flat = t.detach().reshape(batch, math.prod(t.shape[t.dim() - trailing :]))
     if flat.shape[-1] == 0:
-        return torch.zeros(batch, dtype=torch.bool, device=t.device)
-    # the largest magnitude is NaN or inf exactly when some entry is (and is much faster
-    # than isfinite().all() on a CPU)
-    return ~torch.isfinite(flat.detach().abs().amax(-1))
+        return torch.ones(batch, dtype=torch.bool, device=t.device)
+    # a row's largest and smallest entries are finite exactly when all are (NaN propagates):
+    # two reading passes, against isfinite's four passes and four launches
+    return (flat.amax(-1) < math.inf) & (flat.amin(-1) > -math.inf)

@@ -57,7 +57,7 @@ from torchcbf._checks import (
     check_last_dim,
     follow_parts,
     placement,
-    rows_nonfinite,
+    rows_finite,
 )
 from torchcbf._compile import Traced, TraceError, logger
 from torchcbf.barriers import native
@@ -375,9 +375,9 @@ class SafetyFilter(nn.Module):
                 conditions = None
         finite = torch.isfinite(xb).all(-1) & torch.isfinite(ub).all(-1) & torch.isfinite(tb)
         fin = finite.unsqueeze(-1)
-        xs = torch.where(fin, xb, torch.zeros_like(xb))
-        us = torch.where(fin, ub, torch.zeros_like(ub))
-        ts = torch.where(finite, tb, torch.zeros_like(tb))
+        xs = torch.where(fin, xb, 0.0)
+        us = torch.where(fin, ub, 0.0)
+        ts = torch.where(finite, tb, 0.0)
         if conditions is None:
             conditions = self._conditions(xs, ts)
         cbf, clf, h, V, lie = conditions
@@ -391,17 +391,17 @@ class SafetyFilter(nn.Module):
         s = z[:, m : m + qp.ks]
         delta = z[:, m + qp.ks :]
         relaxed = (s > self._slack_tol(xs)).any(-1) if qp.ks else torch.zeros_like(finite)
-        status = torch.full_like(qp_status, FilterStatus.SOLVED)
-        status = torch.where(relaxed, torch.full_like(status, FilterStatus.RELAXED), status)
-        status = torch.where(qp_ok, status, torch.full_like(status, FilterStatus.FALLBACK))
-        status = torch.where(finite, status, torch.full_like(status, FilterStatus.NON_FINITE))
+        # a number, not a filled tensor, as where's other branch: one launch each
+        status = torch.where(relaxed, int(FilterStatus.RELAXED), int(FilterStatus.SOLVED))
+        status = torch.where(qp_ok, status, int(FilterStatus.FALLBACK))
+        status = torch.where(finite, status, int(FilterStatus.NON_FINITE))
         # the QP of a non-finite row was a zero stand-in: report the input's trouble
-        qp_status = torch.where(finite, qp_status, torch.full_like(qp_status, Status.NON_FINITE))
+        qp_status = torch.where(finite, qp_status, int(Status.NON_FINITE))
         slack, cval = _residuals(cbf, clf, u, delta)
-        slack = torch.where(qp_ok.unsqueeze(-1), slack, torch.zeros_like(slack))
-        cval = torch.where(fin, cval, torch.full_like(cval, math.nan))
-        h = torch.where(fin, h, torch.full_like(h, math.nan))
-        V = torch.where(fin, V, torch.full_like(V, math.nan))
+        slack = torch.where(qp_ok.unsqueeze(-1), slack, 0.0)
+        cval = torch.where(fin, cval, math.nan)
+        h = torch.where(fin, h, math.nan)
+        V = torch.where(fin, V, math.nan)
         return _output(batch, u, status, h, slack, V, qp_status, cval, f"{lie}/{qp_path}")
 
     # -- the steps of forward --------------------------------------------------------------
@@ -662,7 +662,7 @@ class SafetyFilter(nn.Module):
         non-finite data get a harmless problem and ``qp_ok = False``."""
         G, hq = qp.G, qp.h
         B = hq.shape[0]
-        data_ok = finite & ~rows_nonfinite(G, 2, B) & ~rows_nonfinite(hq, 1, B)
+        data_ok = finite & rows_finite(G, 2, B) & rows_finite(hq, 1, B)
         # on a CPU, asking whether every row is fine costs no device synchronisation
         if G.device.type != "cpu" or not bool(data_ok.all()):
             G = G.masked_fill(~data_ok[:, None, None], 0.0)

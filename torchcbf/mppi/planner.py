@@ -108,6 +108,7 @@ from torchcbf._checks import (
     check_positive,
     follow_parts,
     hook_dicts,
+    isfinite,
 )
 from torchcbf._compile import Compiled, hook_key, read_key
 from torchcbf._constants import ExactConstants, remember
@@ -1269,9 +1270,9 @@ class MPPI(ExactConstants):
             fused = kernel.weights(cost, lam)
             if fused is not None:
                 return _Weights(*fused)
-        # one launch per line where it can (a GPU call is bound by its launches): |c| < inf
-        # is isfinite in two, and a row without a finite cost needs no branch of its own
-        finite = cost.abs() < math.inf
+        # one launch per line where it can (a GPU call is bound by its launches); a row
+        # without a finite cost needs no branch of its own
+        finite = isfinite(cost)
         clean = torch.where(finite, cost, math.inf)
         cost_min, best = clean.min(-1)
         ok = cost_min < math.inf

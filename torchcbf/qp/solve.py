@@ -9,7 +9,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchcbf._checks import broadcast_shapes, rows_nonfinite
+from torchcbf._checks import broadcast_shapes, isfinite, rows_finite
 from torchcbf.qp import _direct, _dual_native, realtime
 from torchcbf.qp._dual import dual_engine
 from torchcbf.qp._enum import (
@@ -581,10 +581,11 @@ def _flatten(inp: _Inputs) -> _Flat:
     lbf, ubf = flat(inp.lb, (n,)), flat(inp.ub, (n,))
     softf, x0f = flat(inp.soft, (m,)), flat(inp.x0, (n,))
 
-    bad = torch.zeros(B, dtype=torch.bool, device=device)
+    finite = torch.ones(B, dtype=torch.bool, device=device)
     for t, k in ((Qf, 2), (pf, 1), (Gf, 2), (Af, 2), (bf, 1)):
         if t.numel() > 0:
-            bad = bad | rows_nonfinite(t, k, B)
+            finite = finite & rows_finite(t, k, B)
+    bad = ~finite
     infeasible_bound = torch.zeros_like(bad)
     if hf.numel() > 0:
         Gf, hf, nan_h, empty_row = _free_rows(Gf, hf, B)
@@ -629,7 +630,7 @@ def _free_rows(G: Tensor, h: Tensor, B: int) -> tuple[Tensor, Tensor, Tensor | N
     empty [B])``: rows with a NaN in ``h``, and rows with ``h = -inf`` (nothing satisfies them);
     both ``None`` where every ``h`` is finite (known without a device synchronisation only on
     a CPU; elsewhere the masks always run)."""
-    if h.device.type == "cpu" and not bool(rows_nonfinite(h, 1, B).any()):
+    if h.device.type == "cpu" and bool(rows_finite(h, 1, B).all()):
         return G, h, None, None
     free = h == math.inf
     empty = h == -math.inf
@@ -692,11 +693,11 @@ def _standard_form(f: _Flat, inp: _Inputs) -> _Standard:
         h_all[:, :box_start] = hs
         G_all[:, box_start:] = 0.0
         for i, (bound, sign) in enumerate(bounds):
-            finite = torch.isfinite(bound)
+            bounded = isfinite(bound)
             r = box_start + i * n
             box = G_all[:, r : r + n, :n].diagonal(dim1=-2, dim2=-1)
-            box.copy_(torch.where(finite, sign, 0.0))
-            h_all[:, r : r + n] = torch.where(finite, sign * bound, 1.0)
+            box.copy_(torch.where(bounded, sign, 0.0))
+            h_all[:, r : r + n] = torch.where(bounded, sign * bound, 1.0)
         Gs, hs = G_all, h_all
     pairs: tuple[tuple[int, int], ...] = ()
     if f.lb is not None and f.ub is not None:
