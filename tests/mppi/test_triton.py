@@ -227,6 +227,35 @@ def test_normalised_costs_on_the_triton_path_are_weighted_by_torch():
         torch.testing.assert_close(b.ess.cpu(), a.ess, rtol=1e-9, atol=1e-9)
 
 
+@pytest.mark.parametrize(
+    ("normalization", "own_cost", "path", "weighed"),
+    [
+        ("none", False, "fused", True),
+        ("none", True, "rollout", True),
+        ("std", False, "fused", False),
+    ],
+)
+def test_the_kernel_weighs_the_samples_where_it_can(
+    monkeypatch, normalization, own_cost, path, weighed
+):
+    calls = []
+    kernel_weights = _triton.Kernel.weights
+
+    def spy(self, cost, temperature):
+        calls.append(tuple(cost.shape))
+        return kernel_weights(self, cost, temperature)
+
+    monkeypatch.setattr(_triton.Kernel, "weights", spy)
+    cost = (
+        (lambda states, controls, t: states[..., :2].square().sum((-1, -2))) if own_cost else None
+    )
+    planner = _planner(Unicycle, "euler", torch.float64, "triton", cost=cost,
+                       cost_normalization=normalization).to(TARGET)  # fmt: skip
+    planner(torch.zeros(2, 3, dtype=torch.float64, device=TARGET))
+    assert planner.path == path and planner.engine == "triton"
+    assert calls == ([(2, planner.num_samples)] if weighed else [])
+
+
 def test_tables_follow_a_changed_goal():
     goal = QuadraticGoal(goal=[6.0, 0.0], index=[0, 1], weight=1.0)
     planner = _planner(Unicycle, "euler", torch.float64, "triton", cost=goal).to(TARGET)

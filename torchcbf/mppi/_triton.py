@@ -3,8 +3,9 @@
 It reads the C kernel's configuration (:func:`torchcbf.mppi._rollout.configuration`) and
 evaluates the same formulas with the same counter-based noise: given the same keys it gives
 the C kernel's samples, rollouts and costs to rounding (the keys come from the planner's
-generators, which draw other numbers on CUDA than on the CPU). Each pass is one launch over the
-``B x K`` samples, one lane per sample, with the loop over the horizon inside the kernel:
+generators, which draw other numbers on CUDA than on the CPU). Each rollout pass is one launch
+over the ``B x K`` samples, one lane per sample, with the loop over the horizon inside the
+kernel; the weights pass is one program per environment, looping over its samples:
 
 - :func:`costs`: noise, rollout, built-in cost terms and the control cost; nothing stored;
 - :func:`update`: ``sum_k w_k eps_k`` with the noise regenerated, as float64 partial sums per
@@ -14,8 +15,7 @@ generators, which draw other numbers on CUDA than on the CPU). Each pass is one 
 - :func:`buffers`: every sample's states and controls in the component-major buffers a
   torch cost reads, and the control cost;
 - :func:`weights`: the samples' weights from their costs and the output's figures per
-  environment (two launches, a fill and the kernel, instead of the 25 torch operations of
-  the planner's own weights).
+  environment (two launches: a fill of ``-1/lambda`` and the kernel).
 
 Triton is optional (:mod:`torchcbf._triton`; :func:`available` says whether it imports). On
 the CPU the kernel runs only under ``TRITON_INTERPRET=1`` (the tests use it).
@@ -669,14 +669,17 @@ def weights(cost: Tensor, temperature: float) -> tuple[Tensor, ...]:
     # filled, not copied from the host, so a CUDA graph can hold it
     scale = cost.new_full((1,), -1.0 / temperature)
     w = torch.empty_like(cost)
-    stats = cost.new_empty(3, B)  # cost_min, cost_mean, ess
-    ints = torch.empty(3, B, dtype=torch.int64, device=cost.device)  # best, status, nonfinite
+    # each output has storage of its own, as the torch weights' have
+    cost_min, cost_mean, ess = (cost.new_empty(B) for _ in range(3))
+    best, status, nonfinite = (
+        torch.empty(B, dtype=torch.int64, device=cost.device) for _ in range(3)
+    )
     block = min(tile(K), WEIGHTS_BLOCK)
     if B:
         with on_device(cost):
             _weights_kernel[(B,)](
-                cost, scale, w, stats[0], ints[0], stats[1], stats[2], ints[1], ints[2], K,
+                cost, scale, w, cost_min, best, cost_mean, ess, status, nonfinite, K,
                 LOG_TINY=math.log(torch.finfo(cost.dtype).tiny), BLOCK=block,
                 STEPS=triton.cdiv(K, block), num_warps=max(1, min(8, block // 256)),
             )  # fmt: skip
-    return w, stats[0], ints[0], stats[1], stats[2], ints[1], ints[2]
+    return w, cost_min, best, cost_mean, ess, status, nonfinite
