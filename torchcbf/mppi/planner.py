@@ -1262,8 +1262,8 @@ class MPPI(ExactConstants):
         return cost if cost.dtype == plan.dtype else cost.to(plan.dtype)
 
     def _weights(self, cost: Tensor, kernel: _AnyKernel | None = None) -> _Weights:
-        """The weights of the samples' costs ``[B, K]`` and the figures of the output: in one
-        launch by ``kernel`` where it has a weights pass for this call
+        """The weights of the samples' costs ``[B, K]`` and the figures of the output: by
+        ``kernel``'s weights pass where it has one for this call
         (:meth:`torchcbf.mppi._triton.Kernel.weights`), else in torch."""
         lam = max(self.temperature, torch.finfo(cost.dtype).tiny)
         if kernel is not None and self.cost_normalization == "none":
