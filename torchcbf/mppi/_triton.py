@@ -418,6 +418,14 @@ if triton is not None:
             tl.store(cost_ptr + p, c, mask=live)
 
     @triton.jit
+    def _exp_weight(c, cmin, scale, floor):
+        """``exp((c - cmin) * scale)`` (``scale = -1/lambda``) where the exponent is at least
+        ``floor`` (a normal result), else 0; a non-finite cost is +inf (weight 0)."""
+        expo = (tl.where(tl.abs(c) < float("inf"), c, float("inf")) - cmin) * scale
+        live = expo >= floor  # false for NaN (a row without a finite cost)
+        return tl.where(live, tl.exp(tl.where(live, expo, 0.0)), 0.0)
+
+    @triton.jit
     def _weights_kernel(
         cost_ptr,
         scale_ptr,
@@ -459,25 +467,20 @@ if triton is not None:
         cmin = tl.min(low, 0)
         best = tl.min(tl.where(low == cmin, at, K), 0)
         ok = cmin < inf
-        # exp(-(c - min) / lambda) where that is a normal number (else 0), summed, then
-        # written normalised; the exponent is recomputed rather than read back
+        # the weights summed, then written normalised (recomputed rather than read back)
         scale = tl.load(scale_ptr)  # -1 / lambda
         floor = tl.full([], LOG_TINY, real)
         acc = tl.zeros([BLOCK], real)
         for step in range(STEPS):
             k = step * BLOCK + lane
             c = tl.load(row + k, mask=k < K, other=inf)
-            expo = (tl.where(tl.abs(c) < inf, c, inf) - cmin) * scale
-            live = expo >= floor  # false for NaN (a row without a finite cost)
-            acc += tl.where(live, tl.exp(tl.where(live, expo, 0.0)), 0.0)
+            acc += _exp_weight(c, cmin, scale, floor)
         norm = tl.maximum(tl.sum(acc, 0), tl.full([], 1.0, real))
         squares = tl.zeros([BLOCK], real)
         for step in range(STEPS):
             k = step * BLOCK + lane
             c = tl.load(row + k, mask=k < K, other=inf)
-            expo = (tl.where(tl.abs(c) < inf, c, inf) - cmin) * scale
-            live = expo >= floor
-            w = tl.where(live, tl.exp(tl.where(live, expo, 0.0)), 0.0) / norm
+            w = _exp_weight(c, cmin, scale, floor) / norm
             tl.store(w_ptr + b * K + k, w, mask=k < K)
             squares += w * w
         n = tl.sum(count, 0)
