@@ -473,7 +473,7 @@ def _keeps(kind: type, cls: type, methods: tuple[str, ...]) -> bool:
 def isfinite(t: Tensor) -> Tensor:
     """``torch.isfinite(t)`` as ``|t| < inf`` (false for NaN and both infinities): two
     kernels, where ``torch.isfinite`` launches four."""
-    return t.abs() < math.inf
+    return t.detach().abs() < math.inf
 
 
 def rows_finite(t: Tensor | None, trailing: int, batch: int) -> Tensor | None:

@@ -56,6 +56,7 @@ from torchcbf._checks import (
     check_bounds,
     check_last_dim,
     follow_parts,
+    isfinite,
     placement,
     rows_finite,
 )
@@ -373,7 +374,8 @@ class SafetyFilter(nn.Module):
                     return out
             if isinstance(conditions[0], native.ConditionCall):
                 conditions = None
-        finite = torch.isfinite(xb).all(-1) & torch.isfinite(ub).all(-1) & torch.isfinite(tb)
+        B = xb.shape[0]
+        finite = rows_finite(xb, 1, B) & rows_finite(ub, 1, B) & isfinite(tb)
         fin = finite.unsqueeze(-1)
         xs = torch.where(fin, xb, 0.0)
         us = torch.where(fin, ub, 0.0)
@@ -669,7 +671,7 @@ class SafetyFilter(nn.Module):
             hq = hq.masked_fill(~data_ok[:, None], 1.0)
         if not self._two_pass(qp.ks):
             sol = qp_layer.solve_qp(qp.Q, qp.p, G, hq, lb=qp.lb, ub=qp.ub, **self.qp_options)
-            ok = data_ok & (sol.status == Status.SOLVED) & torch.isfinite(sol.x).all(-1)
+            ok = data_ok & (sol.status == Status.SOLVED) & rows_finite(sol.x, 1, B)
             return sol.x, sol.status, ok, sol.path
         # rows [B:2B]: the hard QP (the slack columns of the CBF rows zeroed; s then
         # decouples and sits at its bound 0), solved in the same call as the elastic one
@@ -679,7 +681,7 @@ class SafetyFilter(nn.Module):
         cat = lambda v: torch.cat([v, v], 0)  # noqa: E731
         sol = qp_layer.solve_qp(cat(qp.Q), cat(qp.p), torch.cat([G, G_hard], 0), cat(hq),
                        lb=cat(qp.lb), ub=cat(qp.ub), **self.qp_options)  # fmt: skip
-        good = (sol.status == Status.SOLVED) & torch.isfinite(sol.x).all(-1) & cat(data_ok)
+        good = (sol.status == Status.SOLVED) & rows_finite(sol.x, 1, 2 * B) & cat(data_ok)
         el_ok, hard_ok = good[:B], good[B:]
         z = torch.where(hard_ok.unsqueeze(-1), sol.x[B:], sol.x[:B])
         qp_status = torch.where(hard_ok, sol.status[B:], sol.status[:B])

@@ -620,7 +620,7 @@ def _flatten(inp: _Inputs) -> _Flat:
         if softf is not None:
             softf = torch.where(sk1, 0.0, softf)
     if x0f is not None:
-        x0f = torch.where(skip.view(B, 1) | ~torch.isfinite(x0f), 0.0, x0f)
+        x0f = torch.where(skip.view(B, 1) | ~isfinite(x0f), 0.0, x0f)
     return _Flat(Qf, pf, Gf, hf, Af, bf, lbf, ubf, softf, x0f, bad, infeasible_bound, masked)
 
 
@@ -663,7 +663,7 @@ def _standard_form(f: _Flat, inp: _Inputs) -> _Standard:
     N = n
     is_soft = None
     if f.soft is not None:
-        is_soft = (f.soft > 0) & torch.isfinite(f.soft)
+        is_soft = (f.soft > 0) & isfinite(f.soft)
         w = torch.where(is_soft, f.soft, torch.ones_like(f.soft))
         zeros_nm = P.new_zeros(B, n, m)
         P = torch.cat(
