@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -404,12 +405,15 @@ def test_cost_slices_are_component_major(backend):
     assert sum(k for k, _, _ in shapes) == 64
 
 
-@pytest.mark.parametrize("change", ["in place", "attribute"])
+@pytest.mark.parametrize("change", ["in place", "attribute", "through .data", "numpy memory"])
 def test_a_changed_cost_is_read_again(change):
-    # the kernel's configuration is kept between calls: a change of the cost must reach it
+    # the kernel's configuration is kept between calls: a change of the cost must reach it,
+    # also one that leaves the tensor's in-place version alone (.data, a NumPy array's memory)
     dyn = AccelUnicycle(u_min=-3.0, u_max=3.0)
     x = _x0(dyn, 1, torch.float64)[0]
-    goal = QuadraticGoal((2.0, 4.0), 2.0, (0, 1)).double()
+    shared = np.array([2.0, 4.0])
+    goal = QuadraticGoal(torch.from_numpy(shared), 2.0, (0, 1)).double()
+    assert np.shares_memory(goal.goal.numpy(), shared)
     fused = MPPI(dyn, goal, 10, 300, 0.02, 4.0, 0.03, 0.1).double()
     by_torch = MPPI(dyn, Capture(goal), 10, 300, 0.02, 4.0, 0.03, 0.1).double()
     for _ in range(2):
@@ -417,6 +421,10 @@ def test_a_changed_cost_is_read_again(change):
     if change == "in place":
         with torch.no_grad():
             goal.goal.copy_(torch.tensor([-1.0, 3.0]))
+    elif change == "through .data":
+        goal.goal.data.copy_(torch.tensor([-1.0, 3.0]))
+    elif change == "numpy memory":
+        shared[:] = (-1.0, 3.0)
     else:
         goal.weight = 7.0
     for _ in range(2):

@@ -127,6 +127,10 @@ BACKENDS = ("auto", "torch", "triton")
 LAYOUTS = ("component", "sample")
 #: state elements (``B x slice x (H+1) x n``) per cost call when ``cost_chunk`` is automatic
 AUTO_CHUNK_ELEMENTS = 2**17
+#: CPU tensors of the planner, its model and its cost up to this many elements are compared
+#: by value before a kept kernel configuration is used again (a configuration reads only
+#: small ones: a few goals, shapes, bounds and an ``m x m`` covariance)
+VALUE_CHECK = 1024
 #: fewest samples per automatic slice (the inner loops of a torch cost run over a slice's
 #: samples, which are contiguous in the rollout buffers)
 MIN_CHUNK_SAMPLES = 16
@@ -180,15 +184,16 @@ def _stamp(t: Tensor) -> tuple[Any, ...]:
     return (t.data_ptr(), t._version)
 
 
-def _state_signature(module: nn.Module) -> tuple[tuple[Any, ...], bool]:
+def _state_signature(module: nn.Module) -> tuple[tuple[Any, ...], bool, list[Tensor]]:
     """What a kernel configuration read from ``module`` depends on, read without a host
     sync: the storage and in-place version of each parameter and buffer of its modules,
     their public number, string and tuple attributes (``path`` and ``engine`` report, they
-    configure nothing) and their forward hooks (a hooked model or cost runs in torch); and
-    whether one of those parameters and buffers requires grad."""
+    configure nothing) and their forward hooks (a hooked model or cost runs in torch);
+    whether one of those parameters and buffers requires grad; and the tensors stamped."""
     modules = list(module.modules())
     out: list[Any] = [tuple(k for hooks in hook_dicts(modules) for k in hooks)]
     add = out.append
+    tensors: list[Tensor] = []
     grad = False
     for mod in modules:
         for group in (mod._parameters, mod._buffers):
@@ -197,15 +202,48 @@ def _state_signature(module: nn.Module) -> tuple[tuple[Any, ...], bool]:
                     add(None)
                 else:
                     add(_stamp(t))
+                    tensors.append(t)
                     grad = grad or t.requires_grad
         for name, value in mod.__dict__.items():
             if name[0] == "_" or name in ("path", "engine"):
                 continue
             if isinstance(value, Tensor):
                 add((name, _stamp(value)))
+                tensors.append(value)
             elif isinstance(value, _PLAIN):
                 add((name, value))
-    return tuple(out), grad
+    return tuple(out), grad, tensors
+
+
+class _Values:
+    """The values of the small CPU tensors among ``tensors`` (a kernel configuration reads
+    only small ones): a write that leaves a tensor's in-place version alone (through
+    ``.data``, or into a NumPy array sharing its memory) still shows. Compared bit for bit,
+    so a NaN equals itself."""
+
+    def __init__(self, tensors: list[Tensor]) -> None:
+        self._kept: list[tuple[Any, Any]] = []
+        for t in tensors:
+            if t.device.type != "cpu" or t.layout != torch.strided or t.numel() > VALUE_CHECK:
+                continue
+            if isinstance(t, UninitializedTensorMixin):
+                continue
+            live = t.detach()
+            try:
+                view = live.numpy()  # shares the memory: reading it later costs no copy
+            except (TypeError, RuntimeError):  # no NumPy dtype (bfloat16), conjugate bit
+                self._kept.append((live, live.clone()))
+            else:
+                self._kept.append((view, view.tobytes()))
+
+    def unchanged(self) -> bool:
+        for live, kept in self._kept:
+            if isinstance(kept, bytes):
+                if live.tobytes() != kept:
+                    return False
+            elif not torch.equal(live, kept):
+                return False
+        return True
 
 
 def _limit(name: str, value: object, m: int) -> Tensor | None:
@@ -579,7 +617,7 @@ class MPPI(ExactConstants):
         if backend == "triton" and not triton_available():
             raise ValueError("backend='triton' needs Triton, which does not import here")
         self._key: tuple[Any, ...] | None = None
-        self._kernel_cache: tuple[Any, _AnyKernel | None] | None = None
+        self._kernel_cache: tuple[Any, _AnyKernel | None, _Values] | None = None
         self._captured: _Capture | None = None
         self._fresh = True
         follow_parts(self, [dynamics, cost])
@@ -1103,16 +1141,17 @@ class MPPI(ExactConstants):
         """The kernel bound to this planner's configuration, or ``None`` where torch runs:
         fused where the cost is made of built-in terms, else for the rollouts alone. The
         kernel and its configuration are kept until a tensor or number of the planner, its
-        model or its cost changes (checked without reading the device: no host sync)."""
+        model or its cost changes (checked by in-place versions, without reading the device:
+        no host sync; small CPU tensors also by value, :class:`_Values`)."""
         if not self._kernel_may_plan(x):
             return None
-        state, grad = _state_signature(self)
+        state, grad, tensors = _state_signature(self)
         engine = self._engine(x, grad)
         if engine is None:
             return None
         signature = (engine, x.device, x.dtype, self.backend, state)
         cached = self._kernel_cache
-        if cached is not None and cached[0] == signature:
+        if cached is not None and cached[0] == signature and cached[2].unchanged():
             return cached[1]
         model = _rollout.encode_model(self.dynamics)
         cost = None
@@ -1126,7 +1165,7 @@ class MPPI(ExactConstants):
             elif cost is not None or self.layout == "component":
                 tab = _triton.tables(cfg, x.dtype, x.device)
                 kernel = _triton.Kernel(tab, fused=cost is not None)
-        self._kernel_cache = (signature, kernel)
+        self._kernel_cache = (signature, kernel, _Values(tensors))
         return kernel
 
     def _kernel_expresses(self) -> bool:
