@@ -98,6 +98,20 @@ def test_moving_ball_dhdt(dtype, device):
     torch.testing.assert_close(t0, -2 * ((x - c0) * ball.velocity).sum(-1), **tol)
 
 
+@pytest.mark.parametrize("method", ["autograd", "analytic"])
+def test_a_velocity_set_after_construction_moves_the_ball(dtype, device, method):
+    dyn = SingleIntegrator().to(device, dtype)
+    built = Ball([0.5, -1.0], 0.4, velocity=[0.3, -0.7]).to(device, dtype)
+    later = Ball([0.5, -1.0], 0.4).to(device, dtype)
+    assert not later.time_varying
+    later.velocity = torch.tensor([0.3, -0.7], dtype=dtype, device=device)
+    assert later.time_varying
+    x = _states(2, 100, dtype, device, seed=5)
+    ref, got = built.lie(x, dyn, 2.0, method=method), later.lie(x, dyn, 2.0, method=method)
+    for name in ("h", "lfh", "lgh", "dhdt"):
+        torch.testing.assert_close(getattr(got, name), getattr(ref, name), **_tol(dtype))
+
+
 def test_moving_ball_trajectory_dhdt(dtype, device):
     dyn = SingleIntegrator().to(device, dtype)
     ball = MovingBall(lambda t: torch.stack([torch.cos(t), torch.sin(2 * t)], -1), 0.3).to(

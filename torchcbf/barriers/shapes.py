@@ -164,9 +164,13 @@ class Ball(_SignedShapeStack):
                 raise ValueError(
                     f"velocity must have the shape of center {tuple(c.shape)}, got {tuple(v.shape)}"
                 )
-        self.time_varying = velocity is not None
         self.keep_in = bool(keep_in)
         self._sel = StateIndex(index, c.shape[-1], state_dim)
+
+    @property
+    def time_varying(self) -> bool:  # type: ignore[override]
+        """Whether the centre moves (``velocity`` set, at construction or later)."""
+        return self.velocity is not None
 
     def _diff(self, x: Tensor, t: Tensor | float | None) -> Tensor:
         p = self._sel(x)
