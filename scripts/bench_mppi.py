@@ -352,7 +352,7 @@ def noise_draws(device: str, reps: int = 5) -> None:
 
     lines = [("normal_, one generator per environment", torch_normal)]
     if device == "cpu" and _rollout.available():
-        keys = _rollout.draw_keys(gens)
+        keys = _rollout.draw_keys(gens, buf.device)
         eps = buf.permute(0, 3, 2, 1)
         lines.insert(0, ("kernel counter-based normals", lambda: _rollout.normals(keys, eps)))
     print(f"\n== noise of B={B} x K={K} x H={H} x m={m} ({B * K * H * m / 1e6:.2f} M normals)")

@@ -112,6 +112,27 @@ def test_batch_equals_loop(device, dtype, backend):
         assert out.plan.shape == (B, 8, 2) and out.u.shape == (B, 2)
 
 
+@pytest.mark.parametrize("path", ["fused", "rollout", "torch"])
+def test_an_empty_batch_plans_nothing(device, dtype, path):
+    """x [0, n] gives outputs with B = 0 on every path, and the next batch plans as usual."""
+    backend = "torch" if path == "torch" else "auto"
+    planner = _planner(keep_rollouts=2, backend=backend).to(device)
+    if path != "fused":
+        planner = MPPI(
+            planner.dynamics, lambda s, u, t: (s[..., -1, :2] ** 2).sum(-1), 8, 64, 0.02, 1.0,
+            0.5, 0.1, keep_rollouts=2, backend=backend,
+        ).to(device)  # fmt: skip
+    for _ in range(2):
+        out = planner(_x0(0, dtype, device))
+        assert out.u.shape == (0, 2) and out.plan.shape == (0, 8, 2)
+        assert out.best_states.shape == (0, 9, 4) and out.rollouts.shape == (0, 2, 9, 4)
+        assert out.cost_min.shape == out.ess.shape == out.status.shape == (0,)
+    if device == "cpu":
+        assert planner.path == path
+    out = planner(_x0(2, dtype, device))
+    assert out.u.shape == (2, 2) and bool(torch.isfinite(out.u).all())
+
+
 def test_a_planner_of_modules_on_a_device_lives_there(device, dtype):
     """A planner built from a model and cost already on the device takes its own buffers
     there and plans as one built on the CPU and moved."""

@@ -382,7 +382,7 @@ def test_rollout_buffers_threads_and_layout():
     for t in planner._rollout_buffers(noise=True):
         assert t.permute(0, 3, 2, 1).is_contiguous() and t.stride(1) == 1
     cfg = planner._configuration(_rollout.encode_model(dyn), None)
-    keys = _rollout.draw_keys(planner._generators)
+    keys = _rollout.draw_keys(planner._generators, x.device)
     with pytest.raises(ValueError, match="component-major"):
         _rollout.run(cfg, 750, x, planner._plan, keys, states=torch.empty(3, 250, 7, 4))
 

@@ -559,10 +559,12 @@ def update_threads(count: int) -> int:
     return max(1, min(torch.get_num_threads(), count // MIN_SAMPLES_PER_THREAD))
 
 
-def draw_keys(generators: list[torch.Generator]) -> Tensor:
-    """One 63-bit noise key per environment ``[B]`` (int64, on the generators' device)."""
+def draw_keys(generators: list[torch.Generator], device: torch.device) -> Tensor:
+    """One 63-bit noise key per environment ``[B]`` (int64, on ``device``, the generators')."""
     high = 2**63 - 1
     keys = [torch.randint(0, high, (1,), generator=g, device=g.device) for g in generators]
+    if not keys:  # an empty batch
+        return torch.empty(0, dtype=torch.int64, device=device)
     return keys[0] if len(keys) == 1 else torch.cat(keys)
 
 

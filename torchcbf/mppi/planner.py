@@ -751,7 +751,7 @@ class MPPI(ExactConstants):
             # the kernel stores the rollouts for the torch cost and adds the control cost;
             # the update regenerates the noise of the weighted samples (as on the fused path)
             self.path = "rollout"
-            keys = _rollout.draw_keys(self._generators)
+            keys = _rollout.draw_keys(self._generators, self._plan.device)
             xc = xb.contiguous()
             wctrl = self._control_weights(plan)
             ctrl = kernel.buffers(xc, plan, keys, states, controls, wctrl, self.layout)
@@ -885,7 +885,7 @@ class MPPI(ExactConstants):
         ):
             self._sample_noise(eps)
             return self._perturb(x, t0, eps, controls)
-        keys = _rollout.draw_keys(self._generators)
+        keys = _rollout.draw_keys(self._generators, self._plan.device)
         _rollout.perturb(
             keys, eps, controls, self._plan, self.noise_chol, u_min=self.u_min, u_max=self.u_max
         )
@@ -911,7 +911,7 @@ class MPPI(ExactConstants):
     def _sample_noise(self, eps: Tensor) -> None:
         std = self._isotropic_std
         if self._kernel_draws(eps):
-            keys = _rollout.draw_keys(self._generators)
+            keys = _rollout.draw_keys(self._generators, self._plan.device)
             _rollout.normals(keys, eps, std=1.0 if std is None else float(std))
         else:
             storage = eps.permute(0, 3, 2, 1)  # [B, m, H, K]: contiguous, component layout
@@ -1107,7 +1107,7 @@ class MPPI(ExactConstants):
             return self.cost_chunk or K
         if self._compiled or states.device.type != "cpu":
             return K
-        per_sample = states.shape[0] * states.shape[2] * states.shape[3]
+        per_sample = max(states.shape[0] * states.shape[2] * states.shape[3], 1)
         return max(MIN_CHUNK_SAMPLES, AUTO_CHUNK_ELEMENTS // per_sample)
 
     # -- kernel paths --------------------------------------------------------------------------
@@ -1214,7 +1214,7 @@ class MPPI(ExactConstants):
         self, kernel: _AnyKernel, x: Tensor, t0: Tensor, shifting: bool, unbatched: bool
     ) -> MPPIOutput:
         x = x.contiguous()
-        keys = _rollout.draw_keys(self._generators)
+        keys = _rollout.draw_keys(self._generators, self._plan.device)
         out = None
         if self.cuda_graph and x.is_cuda and _keeps_advance(type(self)):
             out = self._replayed(kernel, x, t0, keys, shifting)
