@@ -103,6 +103,19 @@ def test_noise_free_loop_matches_hand_written_loop(dtype: torch.dtype, device) -
     assert traj.h is None and traj.status is None and not bool(traj.failed.any())
 
 
+@pytest.mark.parametrize("barriers", [1, 2])
+def test_an_empty_batch_simulates_nothing(barriers: int) -> None:
+    dyn = SingleIntegrator(2, u_min=-0.5, u_max=0.5)
+    balls = [Ball([1.0, 0.0], 0.3), Ball([0.0, 1.0], 0.2)][:barriers]
+    filt = SafetyFilter(dyn, balls)
+    traj = simulate(
+        dyn, torch.zeros(0, 2), 5, 0.1, nominal=lambda x, t: -x, safety_filter=filt, progress=False
+    )
+    assert traj.x.shape == (0, 6, 2) and traj.u.shape == (0, 5, 2)
+    assert traj.h.shape == (0, 5, barriers) and traj.status.shape == (0, 5)
+    assert traj.failed.shape == (0,)
+
+
 def test_non_finite_scenario_is_flagged_and_isolated() -> None:
     dyn = SingleIntegrator(2).double()
     x0 = torch.tensor([[1.0, 1.0], [float("nan"), 0.0], [2.0, 0.0]], dtype=torch.float64)

@@ -21,6 +21,7 @@ the library are; so are plain functions):
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
@@ -290,7 +291,7 @@ class _Run:
             out = safety_filter(x_hat, u_nom, tk)
             u = out.u
             _check_shape("safety_filter(x_hat, u_nom, t).u", u, (self.B, self.m))
-            h = out.h.reshape(self.B, -1)
+            h = out.h.reshape(self.B, math.prod(out.h.shape[1:]))  # an empty batch too
             if self.hs is None:
                 self.hs = self.x.new_zeros(self.B, self.steps, h.shape[-1])
                 self.statuses = torch.zeros(
