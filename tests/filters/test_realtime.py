@@ -15,14 +15,16 @@ from test_safety_filter import MODES, random_states, scene
 
 from torchcbf.barriers import (
     Ball,
+    Barrier,
     Ellipse,
     ExponentialBarrier,
     QuadraticLyapunov,
     Scaled,
     Transformed,
     native,
+    rectify,
 )
-from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, SingleIntegrator
+from torchcbf.dynamics import AccelUnicycle, ControlAffine, DoubleIntegrator, SingleIntegrator
 from torchcbf.filters import (
     CubicClassK,
     FilterMode,
@@ -140,6 +142,76 @@ def test_grad_mode_without_gradients_takes_the_realtime_path() -> None:
         out = filt(x, u)
     assert _qp(out) == "realtime" and not out.u.requires_grad, out.path
     _same(out, _general(filt, x, u), 1e-9)
+
+
+class _Superellipse(Barrier):
+    """A user's barrier without closed forms (its Lie terms come from autograd); ``scale``:
+    a tensor it reads that no module holds, where given."""
+
+    def __init__(self, scale: torch.Tensor | None = None, learnable: bool = False) -> None:
+        super().__init__()
+        self.register_constant("center", [2.0, 0.5], learnable=learnable)
+        self.scale = scale
+
+    def forward(self, x: torch.Tensor, t=None) -> torch.Tensor:
+        d = x[..., :2] - self.center.to(x)
+        h = d[..., 0] ** 4 + (d[..., 1] / 0.6) ** 4 - 1.0
+        return h if self.scale is None else self.scale * h
+
+
+class _PointMass(ControlAffine):
+    """A user's planar double integrator (``f`` and ``g`` only)."""
+
+    def __init__(self) -> None:
+        super().__init__(state_dim=4, control_dim=2, u_min=-2.0, u_max=2.0)
+
+    def f(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.cat([x[..., 2:], torch.zeros_like(x[..., 2:])], -1)
+
+    def g(self, x: torch.Tensor) -> torch.Tensor:
+        g = x.new_zeros(*x.shape[:-1], 4, 2)
+        g[..., 2, 0] = g[..., 3, 1] = 1.0
+        return g
+
+
+def _users_filter(rectified: bool, **kw) -> tuple[SafetyFilter, torch.Tensor, torch.Tensor]:
+    gen = torch.Generator().manual_seed(4)
+    dyn = SingleIntegrator(2, u_min=-2.0, u_max=2.0) if not rectified else _PointMass()
+    barrier = _Superellipse(**kw)
+    if rectified:
+        barrier = rectify(barrier, dyn, form="exponential", gains=[2.0])
+    filt = SafetyFilter(dyn, [barrier]).double()
+    n = dyn.state_dim
+    x = torch.randn(6, n, generator=gen, dtype=torch.float64) + torch.tensor([0.0, 0.5, 0, 0][:n])
+    return filt, x, 3.0 * torch.randn(6, 2, generator=gen, dtype=torch.float64)
+
+
+@pytest.mark.parametrize("rectified", [False, True])
+def test_autograd_lie_terms_in_grad_mode_without_gradients_take_the_realtime_path(
+    rectified: bool,
+) -> None:
+    filt, x, u = _users_filter(rectified)
+    with torch.enable_grad():
+        out = filt(x, u)
+    assert out.path == "torch/realtime" and not out.u.requires_grad
+    assert not out.h.requires_grad
+    with torch.no_grad():
+        _same(out, filt(x, u), 0.0)
+    _same(out, _general(filt, x, u), 1e-9)
+
+
+@pytest.mark.parametrize("rectified", [False, True])
+@pytest.mark.parametrize("source", ["captured", "parameter"])
+def test_autograd_lie_terms_keep_a_gradient_the_barrier_carries(
+    rectified: bool, source: str
+) -> None:
+    scale = torch.tensor(1.5, dtype=torch.float64, requires_grad=source == "captured")
+    filt, x, u = _users_filter(rectified, scale=scale, learnable=source == "parameter")
+    out = filt(x, u)
+    assert _qp(out) != "realtime" and out.u.requires_grad, out.path
+    leaf = scale if source == "captured" else next(filt.parameters())
+    (grad,) = torch.autograd.grad((out.u**2).sum() + out.h.sum(), leaf)
+    assert torch.isfinite(grad).all() and grad.abs().sum() > 0
 
 
 @pytest.mark.parametrize("source", ["x", "u_nom", "parameter", "buffer", "closure"])

@@ -23,6 +23,7 @@ from typing import Any, ClassVar, Literal, NamedTuple
 import torch
 from torch import Tensor, nn
 
+from torchcbf._autograd import needs_graph
 from torchcbf._checks import (
     ClosedForms,
     as_tensor,
@@ -273,10 +274,12 @@ def lie_derivatives(
         control: compute ``lgh`` (otherwise it is returned as zeros ``[..., (k,) m]``).
 
     Returns:
-        :class:`LieTerms`. When grad mode is on, the graph is kept (``create_graph=True``):
-        every term differentiates w.r.t. ``x``, ``t`` and the parameters of ``fn`` and
-        ``dynamics``. Under ``torch.no_grad()``/``torch.inference_mode()`` the terms are
-        computed all the same and returned detached.
+        :class:`LieTerms`. When grad mode is on and something the derivatives depend on
+        requires grad (:func:`derivatives_need_graph`), the graph is kept
+        (``create_graph=True``): every term differentiates w.r.t. ``x``, ``t`` and the
+        parameters of ``fn`` and ``dynamics``. Otherwise (``torch.no_grad()``,
+        ``torch.inference_mode()``, or nothing requires grad) the terms are computed all the
+        same and returned without a graph (``f`` and ``g`` keep theirs, if any).
     """
     if not isinstance(dynamics, ControlAffine):
         raise TypeError(f"dynamics must be a ControlAffine model, got {type(dynamics).__name__}")
@@ -295,7 +298,8 @@ def lie_derivatives(
         if inference:
             x = x.clone()
             t = t.clone() if isinstance(t, Tensor) else t
-        terms = _autograd_terms(fn, x, dynamics, t, diffusion, control, grad_mode)
+        keep = grad_mode and derivatives_need_graph(flat_parts(fn), x, t)
+        terms = _autograd_terms(fn, x, dynamics, t, diffusion, control, keep)
     if not grad_mode:
         terms = LieTerms(*(None if v is None else v.detach() for v in terms))
     return terms
@@ -326,7 +330,8 @@ def stacked_lie_derivatives(
         split = [flat_parts(fn) for fn in fns]
         sigma = dynamics.sigma(x) if diffusion else None
         parts = [p for ps in split for p in ps]
-        h, dhdx, dhdt, hess, sizes, _ = stacked_terms(parts, x, t, sigma, grad_mode or diffusion)
+        keep = grad_mode and derivatives_need_graph(parts, x, t)
+        h, dhdx, dhdt, hess, sizes, _ = stacked_terms(parts, x, t, sigma, keep)
         terms = _assemble(h, dhdx, dhdt, hess, x, dynamics, True, True)
     if not grad_mode:
         terms = LieTerms(*(None if v is None else v.detach() for v in terms))
@@ -348,7 +353,7 @@ def _autograd_terms(
 ) -> LieTerms:
     sigma = dynamics.sigma(x) if diffusion else None
     parts = flat_parts(fn)
-    h, dhdx, dhdt, hess, _, flags = stacked_terms(parts, x, t, sigma, grad_mode or diffusion)
+    h, dhdx, dhdt, hess, _, flags = stacked_terms(parts, x, t, sigma, grad_mode)
     # one scalar function keeps the shape [...]; a split or k-output one is [..., k]
     multi = parts[0] is not fn or flags[0]
     if not multi:
@@ -372,7 +377,7 @@ def stacked_terms(
     output and per column of ``sigma``; a part with ``k`` outputs runs once on ``k`` copies
     and its diagonal is kept), so ONE backward pass gives every gradient and a second one
     every Hessian-vector product ``H_j s_l``, whatever the number of parts and outputs.
-    ``create`` keeps the graph of the gradients."""
+    ``create`` keeps the graph of the outputs (otherwise they are returned detached)."""
     n = x.shape[-1]
     Q = 1 if sigma is None else sigma.shape[-1]
     batch = x.shape[:-1]
@@ -427,14 +432,29 @@ def stacked_terms(
     for hd, tl in zip(values, t_leaves, strict=True):
         dhdt.append(g_t.pop(0)[..., 0] if tl is not None else torch.zeros_like(hd[..., 0]))
     sizes = [hd.shape[-2] for hd in values]
-    return (
+    out = (
         torch.cat([hd[..., 0] for hd in values], -1),
         torch.cat([g[..., 0, :] for g in g_x], -2),
         torch.cat(dhdt, -1),
         None if hess is None else torch.cat(hess, -1),
-        sizes,
-        multi,
     )
+    if not create:  # their graph leads only to the copies of the state made here
+        out = tuple(None if v is None else v.detach() for v in out)
+    return (*out, sizes, multi)
+
+
+def derivatives_need_graph(parts: list[LieFunction], x: Tensor, t: Tensor | float | None) -> bool:
+    """Whether the derivatives of ``parts`` at ``x`` can carry a gradient (in grad mode):
+    ``x`` or ``t`` requires grad, a parameter or buffer of a part does, or a part's value at
+    a constant ``x`` does (a tensor it captures, a nested derivative that keeps a graph).
+    Where none does, the terms are computed without one: a robot loop in grad mode gets
+    plain tensors, as under ``torch.no_grad()``."""
+    if x.requires_grad or (isinstance(t, Tensor) and t.requires_grad):
+        return True
+    if any(needs_graph(part) for part in parts):
+        return True
+    tt = time_tensor(t, x)
+    return any(part(x, tt).requires_grad for part in parts)
 
 
 def gradient_rows(d: AnalyticDerivatives, x: Tensor) -> tuple[bool, Tensor]:
