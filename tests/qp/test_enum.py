@@ -123,6 +123,29 @@ def test_fallback_rows_use_ipm_and_infeasible_flagged():
     assert (sol.x[1] == 0).all()
 
 
+def test_more_equality_rows_than_variables_leave_enumeration_no_candidate():
+    """k > n consistent equality rows of rank n - 1: enumeration has no candidate set (each
+    would hold dependent rows) and hands every row on, without an error."""
+    from torchcbf.qp._data import QPData
+    from torchcbf.qp._enum import solve_enum
+
+    g = torch.Generator().manual_seed(2)
+    B, n, k = 3, 3, 4
+    A = torch.randn(B, k, 2, generator=g, dtype=F64) @ torch.randn(B, 2, n, generator=g, dtype=F64)
+    x0 = torch.randn(B, n, generator=g, dtype=F64)
+    G = torch.randn(B, 5, n, generator=g, dtype=F64)
+    P = torch.eye(n, dtype=F64).expand(B, n, n)
+    data = QPData(P, torch.ones(B, n, dtype=F64), G, (G @ x0[..., None])[..., 0] + 1.0,
+                  A, (A @ x0[..., None])[..., 0])  # fmt: skip
+    assert num_candidates(5, k, n) == 0
+    out = solve_enum(data, eps=1e-9)
+    assert not out.ok.any() and out.x.shape == (B, n) and out.y.shape == (B, k)
+    for method in ("enumerate", "auto"):
+        sol = solve_qp(P, data.q, G, data.h, A, data.b, method=method)
+        assert sol.x.shape == (B, n) and torch.isfinite(sol.x).all()
+        assert method == "enumerate" or (sol.status == Status.SOLVED).all()
+
+
 def test_forced_enumeration_and_method_errors():
     batch = make_batch(10, 5, 7, 0, False, seed=4, frac_infeasible=0.0)
     assert num_candidates(7, 0, 5) > 0

@@ -242,19 +242,24 @@ def test_dependent_equality_rows_are_never_solved_wrong(cvx):
         assert abs(objective - ref) <= 1e-6 * max(1.0, abs(ref)), (seed, sol.path)
 
 
-def test_dependent_equality_rows_in_a_batch_are_solved_on_an_independent_set(cvx):
-    """A batch of twelve: rows 0-5 with seven equality rows of rank six (b in their range,
-    row 3 excepted), rows 6-11 of full rank, two nearly equal inequality rows. Every
-    consistent row is SOLVED with Clarabel's objective (dependent rows left the KKT systems
-    of enumeration and the interior point method singular: NUMERICAL_ERROR), the
-    inconsistent one is PRIMAL_INFEASIBLE, a row solved alone equals its answer in the
-    batch, and the gradients equal central differences."""
+@pytest.mark.parametrize("k", [7, 8, 10])
+def test_dependent_equality_rows_in_a_batch_are_solved_on_an_independent_set(cvx, k):
+    """A batch of twelve with ``k`` equality rows in 8 variables: for ``k = 7`` rows 0-5 of
+    rank six (b in their range, row 3 excepted) and rows 6-11 of full rank; for ``k >= 8``
+    every row of rank six; two nearly equal inequality rows. Every consistent row is SOLVED
+    with Clarabel's objective (dependent rows left the KKT systems of enumeration and the
+    interior point method singular: NUMERICAL_ERROR), the inconsistent one is
+    PRIMAL_INFEASIBLE, a row solved alone equals its answer in the batch, and the gradients
+    equal central differences."""
     g = torch.Generator().manual_seed(3)
-    B, n, k = 12, 8, 7
+    B, n = 12, 8
     L = torch.randn(B, n, n - 1, generator=g, dtype=F64)
     p = 10 * torch.randn(B, n, generator=g, dtype=F64)
     A = torch.randn(B, k, n, generator=g, dtype=F64)
-    A[:6, -1] = A[:6, 0] + 2 * A[:6, 1]
+    if k < n:
+        A[:6, -1] = A[:6, 0] + 2 * A[:6, 1]
+    else:
+        A = A[..., :6] @ torch.randn(B, 6, n, generator=g, dtype=F64)
     x0 = torch.randn(B, n, generator=g, dtype=F64)
     G = torch.randn(B, 1, n, generator=g, dtype=F64)
     G = torch.cat([G, G + 1e-9 * torch.randn(B, 1, n, generator=g, dtype=F64)], dim=1)

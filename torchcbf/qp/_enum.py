@@ -254,6 +254,12 @@ def solve_enum(
     P, q, G, h, A, b = data
     B, N = q.shape
     M, E = G.shape[-2], A.shape[-2]
+    if E > N:  # no candidate set (its rows would be dependent): every row is left to the caller
+        return EnumResult(
+            q.new_zeros(B, N), h.new_zeros(B, M), b.new_zeros(B, E),
+            torch.zeros(B, M, dtype=torch.bool, device=q.device),
+            torch.zeros(B, dtype=torch.bool, device=q.device),
+        )  # fmt: skip
     L, info = torch.linalg.cholesky_ex(P)
     pd = info == 0
     L = torch.where(pd.view(B, 1, 1), L, torch.eye(N, dtype=P.dtype, device=P.device))

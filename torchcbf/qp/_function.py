@@ -232,13 +232,17 @@ def _forward_eliminated(
     P, q, G, h, A, b = data
     B, N = q.shape
     k = b.shape[-1]
+    base = replace(cfg, method=cfg.fallback, need_factor=False)
+    if k >= N:  # no null space to reduce to: independent sets where they are consistent
+        every = torch.ones(B, dtype=torch.bool, device=q.device)
+        out = _forward_dependent(data, base, x0, every) if dependent else _forward(data, base, x0)
+        return _with_factor(data, cfg, *out[:6])
     red = eliminate.reduce_equalities(A, b)
     Pr, qr = eliminate.reduced_objective(red, P, q)
     # a reduced Hessian singular to the inputs' rounding of P: the dual method would answer
     # far along a direction of unbounded descent, so such rows keep their equalities
     full_rank = red.ok
     red = red._replace(ok=red.ok & ~singular_to_rounding(Pr, P, cfg.rounding))
-    base = replace(cfg, method=cfg.fallback, need_factor=False)
     all_ok = bool(red.ok.all())
     idx = None if all_ok else red.ok.nonzero().squeeze(-1)
 
@@ -277,10 +281,23 @@ def _forward_eliminated(
                 (q, h, b, st, it, codes_k), (xk, zk, yk, st, it, codes_k), out, strict=True
             )
         )
-    fac = None
-    if cfg.need_factor:
-        fac = _factor(data, x, _kkt.active_set(z, data.slack(x)), status)
-    return Forward(x, z, y, status, iters, codes, fac)
+    return _with_factor(data, cfg, x, z, y, status, iters, codes)
+
+
+def _with_factor(
+    data: QPData,
+    cfg: SolverConfig,
+    x: Tensor,
+    z: Tensor,
+    y: Tensor,
+    status: Tensor,
+    iterations: Tensor,
+    method: Tensor,
+) -> Forward:
+    """The :class:`Forward` of an answer, with the active-set KKT factor of the full problem
+    where ``cfg`` asks for one."""
+    fac = _factor(data, x, _kkt.active_set(z, data.slack(x)), status) if cfg.need_factor else None
+    return Forward(x, z, y, status, iterations, method, fac)
 
 
 def _forward_dependent(
@@ -299,7 +316,7 @@ def _forward_dependent(
     left = torch.ones_like(deficient)
     pieces: list[tuple[Tensor, tuple[Tensor, ...]]] = []
     for r in torch.unique(rank[deficient]).tolist():
-        if r == 0:
+        if r == 0 or r >= data.q.shape[-1]:  # a single feasible point: solved as given
             continue
         group = (deficient & (rank == r)).nonzero().squeeze(-1)
         sub = data.rows(group)

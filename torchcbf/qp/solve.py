@@ -773,8 +773,9 @@ def _choose(inp: _Inputs, std: _Standard, backend: str, method: str, C: int) -> 
     else:
         rest = "ipm"
     # equality rows eliminated where the reduced problem (with some inequality row) fits the
-    # dual method's C kernel
-    if kernel and std.G.shape[-2] > 0 and 0 < me < N and dual_applies(N - me, True):
+    # dual method's C kernel; at least N of them can only be dependent, and are eliminated
+    # on an independent set where b lies in their range
+    if kernel and std.G.shape[-2] > 0 and me > 0 and dual_applies(max(N - me, 1), True):
         return "eliminate", rest
     return rest, "ipm"
 
