@@ -1,6 +1,8 @@
+import dataclasses
 import os
 import subprocess
 import sys
+import types
 
 import pytest
 import torch
@@ -108,6 +110,49 @@ def test_traced_reads_mutated_containers_and_replaced_data():
         mod.w.data = torch.tensor([3.0, 4.0], dtype=torch.float32)  # the same Parameter
         torch.testing.assert_close(traced(x)[0], fn(x)[0])
         assert traced.compiles == 3
+
+
+SHIFT = 1.0
+
+
+@dataclasses.dataclass
+class _Gains:
+    slope: float = 2.0
+
+
+class _Configured(torch.nn.Module):
+    """Numbers read from a global, a ``SimpleNamespace`` and a dataclass, and a tensor
+    field of the record."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.cfg = types.SimpleNamespace(gain=1.5, weight=torch.tensor(2.0, dtype=torch.float64))
+        self.gains = _Gains()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        scale = self.cfg.gain * self.gains.slope * self.cfg.weight
+        return scale * (x + SHIFT) ** 2
+
+
+def test_traced_sees_globals_and_record_fields_its_modules_read():
+    global SHIFT
+    mod = _Configured()
+    traced = Traced(lambda x: mod(x), [mod])
+    x = torch.linspace(-1.0, 1.0, 5, dtype=torch.float64)
+    try:
+        with torch.no_grad():
+            for change, compiles in (
+                (lambda: None, 1),
+                (lambda: mod.cfg.weight.fill_(3.0), 1),  # a lifted tensor: its new value
+                (lambda: setattr(mod.cfg, "gain", 0.5), 2),
+                (lambda: setattr(mod.gains, "slope", -1.0), 3),
+                (lambda: globals().__setitem__("SHIFT", 4.0), 4),
+            ):
+                change()
+                torch.testing.assert_close(traced(x)[0], mod(x), rtol=1e-12, atol=1e-12)
+                assert traced.compiles == compiles
+    finally:
+        SHIFT = 1.0
 
 
 def test_traced_sees_hooks_registered_and_removed_after_its_first_call():

@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import dataclasses
+import functools
 import logging
 import operator
 import types
@@ -262,6 +264,47 @@ def _shallow(value: Any) -> Any:
     return _Ref(value)
 
 
+def _is_record(value: object) -> bool:
+    """Whether ``value`` is a plain record whose fields a trace may read as numbers: a
+    ``SimpleNamespace`` or a dataclass instance."""
+    return isinstance(value, types.SimpleNamespace) or (
+        dataclasses.is_dataclass(value) and not isinstance(value, type)
+    )
+
+
+@functools.cache
+def _class_globals(cls: type) -> tuple[tuple[dict[str, Any], str], ...]:
+    """``(globals, name)`` of the plain values (numbers, strings) that the methods of a
+    user's module class read as globals (``SCALE * h`` in a ``forward``); torch's and
+    torchcbf's own classes read none that changes."""
+    found: dict[tuple[int, str], tuple[dict[str, Any], str]] = {}
+    for klass in cls.__mro__:
+        if klass.__module__.split(".")[0] in ("torch", "torchcbf", "builtins"):
+            continue
+        for attr in vars(klass).values():
+            if isinstance(attr, (staticmethod, classmethod)):
+                attr = attr.__func__
+            elif isinstance(attr, property):
+                attr = attr.fget
+            if not isinstance(attr, types.FunctionType):
+                continue
+            named = attr.__globals__
+            for name in _code_names(attr.__code__):
+                if name in named and isinstance(named[name], _PRIMITIVES):
+                    found[(id(named), name)] = (named, name)
+    return tuple(found.values())
+
+
+def _code_names(code: types.CodeType) -> set[str]:
+    """The global names ``code`` and the functions nested in it (lambdas, comprehensions)
+    read."""
+    names = set(code.co_names)
+    for const in code.co_consts:
+        if isinstance(const, types.CodeType):
+            names |= _code_names(const)
+    return names
+
+
 class Traced:
     """``fn(*args)`` of tensors, compiled per input signature with low call overhead.
 
@@ -277,11 +320,14 @@ class Traced:
     The key of the cache holds what the graph bakes in: the modules' attributes that are
     plain numbers or strings (a new value traces again; ``module.temp = 0.2`` is seen), the
     contents of lists, tuples, dicts and sets among them (compared on every call, so one
-    mutated in place is seen), the identity of every other attribute and submodule (a
-    replaced function or network traces again), and the shape, dtype and device of every
-    lifted tensor (``.data =`` with a new shape or dtype is seen). New tensor values, in
-    place or by ``.to()``, reuse the code. A tensor that ``fn`` reaches other than through
-    ``modules`` (a closure's) makes the trace fail.
+    mutated in place is seen), the fields of a ``SimpleNamespace`` or dataclass among them
+    (``module.cfg.gain = 2.0`` is seen; a tensor field is lifted like an attribute), the
+    numbers and strings that the methods of a user's module class read as globals, the
+    identity of every other attribute and submodule (a replaced function or network traces
+    again), and the shape, dtype and device of every lifted tensor (``.data =`` with a new
+    shape or dtype is seen). New tensor values, in place or by ``.to()``, reuse the code. A
+    tensor that ``fn`` reaches other than through ``modules`` (a closure's) makes the trace
+    fail.
 
     Where tracing or compiling fails (data-dependent control flow, an operation without a
     decomposition), :meth:`__call__` raises :class:`TraceError`; the caller decides the
@@ -289,8 +335,9 @@ class Traced:
     ``fn`` reads as fixed objects or not at all (the owner's caches). The forward hooks of
     the modules and the global ones are part of the key (one registered or removed traces
     again). Not seen: attributes added after the first call (a forward that reads one with
-    ``getattr(self, name, default)``), values captured deeper than a function's own closure
-    and globals. The first call of each signature swaps the modules'
+    ``getattr(self, name, default)``), values captured deeper than a function's own closure,
+    globals read by the helper functions a method calls, and the attributes of objects other
+    than modules and records. The first call of each signature swaps the modules'
     tensors for tracing placeholders: do not call the modules from another thread meanwhile.
     Outputs are a tuple of tensors (of one where ``fn`` returns a tensor), computed without
     a graph (call it under ``torch.no_grad()``).
@@ -355,6 +402,12 @@ class Traced:
                 slots.extend((store, k) for k in store)
             own = mod.__dict__
             slots.extend((own, k) for k in own if k not in skip)
+            # a plain record's fields (``self.cfg = SimpleNamespace(gain=1.0)``)
+            for k in own:
+                if k not in skip and _is_record(own[k]):
+                    fields = vars(own[k])
+                    slots.extend((fields, name) for name in fields)
+            slots.extend(_class_globals(type(mod)))
             stack.extend(m for m in mod._modules.values() if m is not None)
         return slots, hook_dicts(found)
 

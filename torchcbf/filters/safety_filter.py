@@ -243,9 +243,10 @@ class SafetyFilter(nn.Module):
             conditions are traced into one graph, compiled by inductor with a C++ wrapper
             (:class:`torchcbf._compile.Traced`: new values of states and constants reuse
             it; a new batch size, dtype, plain-number attribute, container content,
-            submodule, or a changed number a function captures or reads as a global traces
-            again, as does a forward hook registered or removed; attributes added after the
-            first call are not seen);
+            submodule, or a changed number that a function captures, a method of a user's
+            barrier or model reads as a global, or a ``SimpleNamespace``/dataclass attribute
+            holds traces again, as does a forward hook registered or removed; attributes
+            added after the first call, and globals read by helper functions, are not seen);
             where that fails, the Lie terms go through ``torch.compile``. A dict: the Lie
             terms through ``torch.compile(**compile)``
             (:class:`torchcbf.barriers.compiled.CompiledLie`). The first call compiles
