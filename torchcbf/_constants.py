@@ -77,12 +77,17 @@ def remember(
     *,
     dtype: torch.dtype | None = None,
     device: torch.device | None = None,
+    learnable: bool = False,
 ) -> Tensor:
-    """Register the buffer ``name`` holding ``exact`` (float64, from Python numbers) in
-    ``dtype`` (default: the default dtype) on ``device``, and remember ``exact`` for
-    :class:`ExactConstants`; return the buffer."""
+    """Register the buffer (``learnable``: the parameter) ``name`` holding ``exact``
+    (float64, from Python numbers) in ``dtype`` (default: the default dtype) on ``device``,
+    and remember ``exact`` for :class:`ExactConstants`; return the tensor."""
     exact = exact.detach().to(torch.float64)
-    module.register_buffer(name, exact.to(device=device, dtype=dtype or torch.get_default_dtype()))
+    value = exact.to(device=device, dtype=dtype or torch.get_default_dtype())
+    if learnable:
+        module.register_parameter(name, nn.Parameter(value))
+    else:
+        module.register_buffer(name, value)
     _exact_values(module)[name] = exact
     return getattr(module, name)
 
@@ -117,11 +122,8 @@ def store(
         return getattr(module, name)
     exact = as_tensor(name, value, dtype=torch.float64)
     check_finite(name, exact, allow_inf=allow_inf)
-    if learnable:
-        module.register_parameter(name, nn.Parameter(exact.to(torch.get_default_dtype())))
-        _exact_values(module)[name] = exact
-        return getattr(module, name)
-    return remember(module, name, exact, dtype=dtype)
+    # a parameter is not cast (see above): the default dtype, as nn.Parameter(number) would
+    return remember(module, name, exact, dtype=None if learnable else dtype, learnable=learnable)
 
 
 def reshape(module: nn.Module, name: str, fn: Callable[[Tensor], Tensor]) -> Tensor:

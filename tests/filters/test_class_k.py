@@ -32,6 +32,19 @@ def test_learnable_gain_stays_positive_and_trains() -> None:
     assert bool((k.gain > 0).all())
 
 
+@pytest.mark.parametrize("gain", [1.5, [0.1, 3.0]])
+def test_a_learnable_gain_of_python_numbers_is_exact_in_float64(gain) -> None:
+    k = LinearClassK(gain, learnable=True).double()
+    assert k.log_gain.dtype == torch.float64 and isinstance(k.log_gain, nn.Parameter)
+    exact = torch.tensor(gain, dtype=torch.float64)
+    assert torch.equal(k.log_gain.detach(), exact.log())
+    torch.testing.assert_close(k.gain.detach(), exact, rtol=1e-15, atol=0.0)
+    with torch.no_grad():  # a trained gain is kept under a dtype change
+        k.log_gain.add_(0.25)
+    trained = k.log_gain.detach().clone()
+    torch.testing.assert_close(k.float().double().log_gain.detach(), trained, rtol=1e-7, atol=0.0)
+
+
 def test_as_class_k_specifications() -> None:
     h = torch.tensor([1.0, 2.0])
     assert torch.allclose(as_class_k(3.0)(h), 3 * h)

@@ -41,8 +41,11 @@ class _GainClassK(ExactConstants):
         super().__init__()
         value = _gain("gain", gain)
         self.learnable = bool(learnable)
-        if learnable:
+        if learnable and isinstance(gain, Tensor):
             self.log_gain = nn.Parameter(value.detach().log())
+        elif learnable:  # log of the Python numbers, exact under .double()
+            exact = as_tensor("gain", gain, dtype=torch.float64).log()
+            remember(self, "log_gain", exact, learnable=True)
         elif isinstance(gain, Tensor):
             self.register_buffer("_gain", value)
         else:
