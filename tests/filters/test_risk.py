@@ -87,6 +87,25 @@ def test_safe_states_give_the_same_filter_as_eta() -> None:
     assert torch.allclose(a(x, u).u, b(x, u).u)
 
 
+def test_filters_sharing_one_mode_object_keep_their_own_margins() -> None:
+    """Binding stores a filter's margins: a second filter given the same mode object binds
+    its own copy, and the first filter's margins and answers stay."""
+    states = torch.linspace(-3, 1, 50).unsqueeze(-1)
+    mode = RiskAware(rho=0.1, horizon=1.0, safe_states=states)
+    wall = HalfSpace([1.0], 1.0)
+    a = SafetyFilter(SingleIntegrator(1, sigma=0.4), wall, mode=mode)
+    x, u = torch.tensor([[0.2]]), torch.tensor([[3.0]])
+    margin, answer = a.cbf_margin.clone(), a(x, u).u
+    walls = HalfSpace(torch.tensor([[1.0], [2.0]]), torch.tensor([1.0, 3.0]))
+    for other in (
+        SafetyFilter(SingleIntegrator(1, sigma=0.4), walls, mode=mode),  # two outputs
+        SafetyFilter(SingleIntegrator(1, sigma=2.0), wall, mode=mode),  # another noise
+    ):
+        assert other.condition is not mode and a.condition is mode
+        assert torch.equal(a.cbf_margin, margin) and torch.equal(a(x, u).u, answer)
+    assert other.cbf_margin.shape == (1,) and float(other.cbf_margin) > float(margin)
+
+
 def _exit_rate(
     filt: SafetyFilter, h0: float, seed: int, dt: float = 0.02, rows: int = 2000
 ) -> float:

@@ -11,6 +11,7 @@ A new mode subclasses :class:`FilterMode` and writes :meth:`~FilterMode.cbf` (an
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar
 
@@ -53,6 +54,8 @@ class FilterMode(nn.Module):
 
     name: str = ""
     needs_hessian: bool = False
+    #: a filter has bound it (:func:`bind_mode`)
+    _bound: bool = False
     #: :meth:`affine_cbf` is trusted only where the class defining it also defines
     #: :meth:`cbf` (see :func:`torchcbf._checks.honour_overrides`)
     closed_forms: ClassVar[ClosedForms] = {"affine_cbf": (("cbf",), ())}
@@ -366,6 +369,25 @@ class RiskAware(FilterMode):
 
 #: the names ``SafetyFilter(mode=...)`` takes for a mode with its default options
 MODE_NAMES = ("vanilla", "robust", "stochastic", "risk_aware")
+
+
+def bind_mode(
+    spec: str | FilterMode,
+    dynamics: ControlAffine,
+    barriers: Sequence[LieFunction],
+    lyapunovs: Sequence[LieFunction],
+) -> FilterMode:
+    """The mode of ``spec`` (:func:`make_mode`) bound to a filter's model and functions
+    (:meth:`FilterMode.bind`). Binding may store what it derives on the mode (the margins of
+    :class:`RiskAware`), so a mode another filter holds is copied first; the copy shares the
+    original's tensors that require grad."""
+    mode = make_mode(spec)
+    if mode._bound:
+        shared = {id(t): t for t in (*mode.parameters(), *mode.buffers()) if t.requires_grad}
+        mode = copy.deepcopy(mode, shared)
+    mode.bind(dynamics, barriers, lyapunovs)
+    mode._bound = True
+    return mode
 
 
 def make_mode(mode: str | FilterMode) -> FilterMode:

@@ -69,7 +69,7 @@ from torchcbf.filters import realtime
 from torchcbf.filters.class_k import ClassKSpec, _GainClassK, as_class_k
 from torchcbf.filters.conditions import as_columns, concat_terms
 from torchcbf.filters.fallback import Fallback, FallbackSpec
-from torchcbf.filters.modes import FilterMode, make_mode
+from torchcbf.filters.modes import FilterMode, bind_mode
 from torchcbf.filters.qp_data import SLACK_MODES, Slack, SlackMode, assemble
 from torchcbf.qp import Status
 from torchcbf.qp import realtime as qp_realtime
@@ -291,8 +291,7 @@ class SafetyFilter(nn.Module):
             raise ValueError("barriers and lyapunovs are both empty: nothing to filter")
         if check_relative_degree:
             _require_control_authority(list(self.barriers), dynamics)
-        self.condition = make_mode(mode)
-        self.condition.bind(dynamics, list(self.barriers), list(self.lyapunovs))
+        self.condition = bind_mode(mode, dynamics, list(self.barriers), list(self.lyapunovs))
         if lie_method not in ("auto", "autograd", "analytic"):
             raise ValueError(
                 f"lie_method must be 'auto', 'autograd' or 'analytic', got {lie_method!r}"
