@@ -40,8 +40,10 @@ class Slack:
     """How the filter's QP relaxes its conditions (the QP above).
 
     Args:
-        mode: ``"shared"`` (default: one slack for every CBF row, exact penalty; where the
-            hard QP is infeasible the least-violating control, status ``RELAXED``),
+        mode: ``"shared"`` (default: one slack for every CBF row, exact penalty: the hard
+            QP's answer where its multipliers stay below ``w``; where the hard QP is
+            infeasible, or needs larger multipliers (barriers whose safe controls form a
+            narrow wedge), the least-violating control, status ``RELAXED``),
             ``"per_row"`` (soft CBF rows, one slack each) or ``"none"`` (hard rows only:
             an infeasible row gets the fallback).
         cbf_weight: weight ``w`` of the CBF slack (default 1e3 shared, 1e2 per row).
