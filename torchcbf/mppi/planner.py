@@ -224,9 +224,9 @@ class _Values:
     def __init__(self, tensors: list[Tensor]) -> None:
         self._kept: list[tuple[Any, Any]] = []
         for t in tensors:
-            if t.device.type != "cpu" or t.layout != torch.strided or t.numel() > VALUE_CHECK:
-                continue
-            if isinstance(t, UninitializedTensorMixin):
+            if isinstance(t, UninitializedTensorMixin) or t.layout != torch.strided:
+                continue  # no storage of its own: no kernel configuration reads it
+            if t.device.type != "cpu" or t.numel() > VALUE_CHECK:
                 continue
             live = t.detach()
             try:
