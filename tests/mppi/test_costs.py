@@ -94,3 +94,34 @@ def test_bad_costs():
         BarrierCost(3.0)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="stage"):
         StageCost(None)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("kind", ["BarrierCost", "DiscreteBarrierCost", "Avoid"])
+def test_a_time_varying_barrier_in_a_cost_without_time_is_refused(kind: str) -> None:
+    """These costs evaluate b(x) without the rollout's times: a moving obstacle would be read
+    at t = 0, so it is refused at construction and, made time-varying later, at the call."""
+    from torchcbf.barriers import Ball, MovingBall
+    from torchcbf.mppi import Avoid, DiscreteBarrierCost
+
+    build = {
+        "BarrierCost": lambda b: BarrierCost(b),
+        "DiscreteBarrierCost": lambda b: DiscreteBarrierCost(b, gamma=0.1),
+        "Avoid": lambda b: Avoid(barrier=b),
+    }[kind]
+    moving = MovingBall(lambda t: torch.stack([t, torch.zeros_like(t)], -1), 0.5)
+    for barrier in (moving, Ball([0.0, 0.0], 0.5, velocity=[1.0, 0.0])):
+        with pytest.raises(ValueError, match="time-varying"):
+            build(barrier)
+    ball = Ball([0.0, 0.0], 0.5)
+    cost = build(ball)
+    states, controls = torch.ones(1, 3, 5, 2), torch.zeros(1, 3, 4, 2)
+    t0 = torch.zeros(1)
+    call = (
+        (lambda: cost(states, controls, t0, dt=0.1))
+        if kind == "Avoid"
+        else (lambda: cost(states, controls, t0))
+    )
+    assert call().shape == (1, 3)
+    ball.velocity = torch.tensor([1.0, 0.0])
+    with pytest.raises(ValueError, match="time-varying"):
+        call()

@@ -53,6 +53,17 @@ def squared_distance(x: Tensor, index: tuple[int, ...] | slice, center: Tensor) 
     return diff.square_().sum(-1)
 
 
+def untimed(name: str, barrier: object) -> None:
+    """Refuse a time-varying barrier in a cost that evaluates ``b(x)`` without the rollout's
+    times (it would be read at ``t = 0`` on every step of every call)."""
+    if getattr(barrier, "time_varying", False):
+        raise ValueError(
+            f"{name} evaluates its barrier without time, and {type(barrier).__name__} is "
+            "time-varying: it would be read at t = 0. Write the cost as a function of "
+            "(states, controls, t0) that times step k at t0 + k dt"
+        )
+
+
 class RolloutCost(nn.Module):
     """Base of the stage + terminal costs. Subclasses write ``stage`` (and ``terminal``).
 
@@ -162,6 +173,7 @@ class BarrierCost(RolloutCost):
     weight 2, eps 0.01.
 
     A barrier whose output has as many dimensions as its input is taken as multi-output.
+    The barrier is evaluated without time: a time-varying one is refused (:func:`untimed`).
     """
 
     def __init__(
@@ -175,10 +187,12 @@ class BarrierCost(RolloutCost):
             raise TypeError(f"barrier must be callable, got {type(barrier).__name__}")
         if not eps > 0:
             raise ValueError(f"eps must be > 0, got {eps}")
+        untimed("BarrierCost", barrier)
         self.barrier = barrier
         self.weight, self.eps = float(weight), float(eps)
 
     def stage(self, states: Tensor, controls: Tensor | None) -> Tensor:
+        untimed("BarrierCost", self.barrier)
         h = self.barrier(states)
         cost = self.weight / h.clamp_min(self.eps)
         return cost.sum(-1) if h.dim() == states.dim() else cost
@@ -220,6 +234,7 @@ class DiscreteBarrierCost(nn.Module):
             raise ValueError(f"gamma must be in (0, 1], got {gamma!r}")
         if not isinstance(weight, (int, float)) or not weight >= 0.0:
             raise ValueError(f"weight must be >= 0, got {weight!r}")
+        untimed("DiscreteBarrierCost", barrier)
         self.barrier = barrier
         self.gamma, self.weight = float(gamma), float(weight)
         self.steps = None if steps is None else check_positive_int("steps", steps)
@@ -227,6 +242,7 @@ class DiscreteBarrierCost(nn.Module):
     def forward(self, states: Tensor, controls: Tensor, t0: Tensor | None = None) -> Tensor:
         if self.steps is not None:
             states = states[..., : self.steps + 1, :]
+        untimed("DiscreteBarrierCost", self.barrier)
         h = self.barrier(states)
         if h.dim() < states.dim():
             h = h.unsqueeze(-1)
@@ -320,4 +336,5 @@ __all__ = [
     "select",
     "squared_distance",
     "state_index",
+    "untimed",
 ]

@@ -48,7 +48,7 @@ import torch
 from torch import Tensor, nn
 
 from torchcbf._checks import as_tensor, check_positive
-from torchcbf.mppi.costs import constant, squared_distance, state_index
+from torchcbf.mppi.costs import constant, squared_distance, state_index, untimed
 from torchcbf.mppi.history import History
 
 Predicate = Callable[[Tensor], Tensor]
@@ -315,6 +315,7 @@ class Avoid(Always):
         if barrier is not None:
             if not callable(barrier):
                 raise TypeError(f"barrier must be callable, got {type(barrier).__name__}")
+            untimed("Avoid", barrier)
         else:
             if radius is None or radius < 0:
                 raise ValueError(f"Avoid with a center needs radius >= 0, got {radius}")
@@ -326,6 +327,7 @@ class Avoid(Always):
 
     def predicate(self, states: Tensor) -> Tensor:
         if self.barrier is not None:
+            untimed("Avoid", self.barrier)
             return self.barrier(states)
         return squared_distance(states, self.index, self.center).sqrt() - self.radius
 
@@ -336,7 +338,7 @@ class Avoid(Always):
         # c is decreasing in rho: reduce rho (or |p - o|^2), transform [B, K] only
         outside = ~window.unsqueeze(1)
         if self.barrier is not None:
-            rho_min = self.barrier(states).masked_fill(outside, math.inf).amin(-1)
+            rho_min = self.predicate(states).masked_fill(outside, math.inf).amin(-1)
         else:
             d2 = squared_distance(states, self.index, self.center)
             rho_min = d2.masked_fill_(outside, math.inf).amin(-1).sqrt() - self.radius
