@@ -57,7 +57,8 @@ Usage::
     python scripts/bench_mppi.py --filtered            # scenario B's filtered closed loops
     python scripts/bench_mppi.py --quick               # a short run: K / 10, 2 calls, no compile
 
-``--quick`` runs every line but ``compiled`` with a tenth of the samples and 2 timed calls: a
+``--quick`` runs every line but ``compiled`` (and no compiled planner of the other lines)
+with a tenth of the samples and 2 timed calls: a
 check that every path runs, not figures to quote.
 """
 
@@ -552,6 +553,8 @@ def main() -> None:
         ref: dict | None = None
         with tempfile.TemporaryDirectory(prefix="bench-mppi-inductor-") as cache:  # starts cold
             for name, label in plan[line]:
+                if args.quick and name.endswith("compiled"):
+                    continue  # --quick compiles nothing
                 cmd = [
                     sys.executable,
                     __file__,

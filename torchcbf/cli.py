@@ -93,9 +93,7 @@ def _variants(entry: Any, text: str | None) -> list[Any]:
     names = list(allowed) if text == "all" else [v.strip() for v in text.split(",") if v.strip()]
     unknown = [v for v in names if allowed and v not in allowed]
     if unknown or not names:
-        raise SystemExit(
-            f"torchcbf: --{entry.variant}s must be 'all' or a list from {allowed}, got {text!r}"
-        )
+        raise ValueError(f"--{entry.variant}s must be 'all' or a list from {allowed}, got {text!r}")
     return names
 
 
@@ -113,9 +111,7 @@ def _plan(
     text = getattr(args, "variants", None) or "all"
     if entry.variant is not None and entry.variant in params:
         if text != "all":
-            raise SystemExit(
-                f"torchcbf: give --{entry.variant}s or --set {entry.variant}=..., not both"
-            )
+            raise ValueError(f"give --{entry.variant}s or --set {entry.variant}=..., not both")
         return num_seeds, params, _variants(entry, str(params.pop(entry.variant)))
     return num_seeds, params, _variants(entry, text)
 
@@ -208,11 +204,11 @@ def _parameters(entry: Any, args: argparse.Namespace) -> dict[str, Any]:
     for item in getattr(args, "set", None) or []:
         key, sep, value = item.partition("=")
         if not sep:
-            raise SystemExit(f"torchcbf: --set takes KEY=VALUE, got {item!r}")
+            raise ValueError(f"--set takes KEY=VALUE, got {item!r}")
         try:
             params[key.strip()] = parse_value(entry, key.strip(), value)
         except ValueError as error:
-            raise SystemExit(f"torchcbf {entry.name}: --set {item}: {error}") from None
+            raise ValueError(f"--set {item}: {error}") from None
     return params
 
 

@@ -295,8 +295,7 @@ def test_cli_scenario_b_config_methods_and_strict_json(tmp_path, capsys, monkeyp
     assert "mppi_cbf_paper.gif" in names
     out = capsys.readouterr().out
     assert "config=paper" in out and "collisions [95% CI]" in out
-    with pytest.raises(SystemExit):
-        main(["mppi-cbf", "--methods", "cbf", *args])
+    assert main(["mppi-cbf", "--methods", "cbf", *args]) == 2
 
 
 def test_cli_help_shows_descriptions_and_defaults(capsys) -> None:
