@@ -169,6 +169,22 @@ def test_new_constants_are_read_without_a_recompile() -> None:
     torch.testing.assert_close(moved, shape(x)[..., None])
 
 
+@pytest.mark.parametrize("compile", [True, {}])
+def test_a_velocity_set_after_the_first_call_is_seen(compile) -> None:
+    model = Unicycle(u_min=-2.0, u_max=2.0).double()
+    ball = Ball([1.0, 0.5], 0.4).double()
+    filt = SafetyFilter(model, [ball], compile=compile).double()
+    general = SafetyFilter(model, [ball], backend="torch").double()
+    x = torch.tensor([[0.2, 0.1, 0.3], [0.9, 0.0, -1.0]], dtype=torch.float64)
+    u = torch.tensor([[1.5, 1.0], [1.0, -1.0]], dtype=torch.float64)
+    with torch.no_grad():
+        filt(x, u, 0.5)
+        ball.velocity = torch.tensor([0.8, -0.7], dtype=torch.float64)
+        a, b = filt(x, u, 0.5), general(x, u, 0.5)
+    assert a.path.startswith("compiled/")
+    torch.testing.assert_close(a.u, b.u, atol=1e-9, rtol=1e-9)
+
+
 def test_a_backend_that_fails_warns_and_runs_eager(caplog: pytest.LogCaptureFixture) -> None:
     def failing(gm, example_inputs):
         raise RuntimeError("no compiler here")

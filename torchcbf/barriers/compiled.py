@@ -59,8 +59,13 @@ class CompiledLie:
         self.dynamics = dynamics
         self.sizes: list[int] | None = None
         self.hessian = bool(hessian) and dynamics.has_diffusion
-        self.timed = any(fn.time_varying for fn in fns)
         self._call: Compiled | None = Compiled(self._terms, {"dynamic": False, **(options or {})})
+
+    @property
+    def timed(self) -> bool:
+        """Whether a function depends on time (read at each trace: a ``Ball`` given a
+        ``velocity`` later is)."""
+        return any(fn.time_varying for fn in self.fns)
 
     def evaluate(self, x: Tensor, t: Tensor) -> tuple[LieTerms, list[int]]:
         """The uncompiled function: ``(LieTerms, sizes)`` at ``x [B, n]``, ``t [B]``, for a
