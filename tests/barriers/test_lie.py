@@ -15,6 +15,8 @@ from torchcbf.barriers import (
     MovingBall,
     NeuralBarrier,
     QuadraticLyapunov,
+    Scaled,
+    rectify,
 )
 from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, SingleIntegrator, Unicycle
 
@@ -110,6 +112,30 @@ def test_a_velocity_set_after_construction_moves_the_ball(dtype, device, method)
     ref, got = built.lie(x, dyn, 2.0, method=method), later.lie(x, dyn, 2.0, method=method)
     for name in ("h", "lfh", "lgh", "dhdt"):
         torch.testing.assert_close(getattr(got, name), getattr(ref, name), **_tol(dtype))
+
+
+@pytest.mark.parametrize("wrap", ["scaled", "stack", "rectified"])
+def test_wrappers_follow_a_velocity_set_later(dtype, device, wrap):
+    """A barrier built on a Ball is time-varying as soon as the ball is."""
+    dyn = (DoubleIntegrator(2) if wrap == "rectified" else SingleIntegrator()).to(device, dtype)
+
+    def build(ball):
+        if wrap == "scaled":
+            return Scaled(ball, 2.0)
+        if wrap == "stack":
+            return BarrierStack(ball, Ball([0.0, 0.0], 0.3))
+        return rectify(ball, dyn, form="exponential", gains=[2.0])
+
+    ref = build(Ball([0.5, -1.0], 0.4, velocity=[0.3, -0.7])).to(device, dtype)
+    ball = Ball([0.5, -1.0], 0.4)
+    later = build(ball).to(device, dtype)
+    assert not later.time_varying
+    ball.velocity = torch.tensor([0.3, -0.7], dtype=dtype, device=device)
+    assert later.time_varying
+    x = _states(dyn.state_dim, 50, dtype, device, seed=6)
+    got, want = later.lie(x, dyn, 1.5), ref.lie(x, dyn, 1.5)
+    for name in ("h", "lfh", "lgh", "dhdt"):
+        torch.testing.assert_close(getattr(got, name), getattr(want, name), **_tol(dtype))
 
 
 def test_moving_ball_trajectory_dhdt(dtype, device):

@@ -42,7 +42,10 @@ class BarrierStack(Barrier):
             if not isinstance(b, LieFunction):
                 raise TypeError(f"barriers[{i}] must be a Barrier, got {type(b).__name__}")
         self.barriers = nn.ModuleList(barriers)
-        self.time_varying = any(b.time_varying for b in barriers)
+
+    @property
+    def time_varying(self) -> bool:  # type: ignore[override]
+        return any(b.time_varying for b in self.barriers)
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """``x [..., n] -> h [..., k]``."""
@@ -100,7 +103,10 @@ class _OfOne(Barrier):
         if not isinstance(barrier, LieFunction):
             raise TypeError(f"barrier must be a Barrier, got {type(barrier).__name__}")
         self.barrier = barrier
-        self.time_varying = barrier.time_varying
+
+    @property
+    def time_varying(self) -> bool:  # type: ignore[override]
+        return self.barrier.time_varying
 
     @property
     def has_analytic(self) -> bool:
@@ -265,10 +271,13 @@ class _Reduction(Barrier):
         if not temperature > 0:
             raise ValueError(f"temperature must be positive, got {temperature}")
         self.stack = BarrierStack(*barriers)
-        self.time_varying = self.stack.time_varying
         self.smooth = bool(smooth)
         self.temperature = float(temperature)
         self.elementwise = bool(elementwise)
+
+    @property
+    def time_varying(self) -> bool:  # type: ignore[override]
+        return self.stack.time_varying
 
     def _columns(self, values: list[Tensor], x: Tensor) -> tuple[Tensor, bool]:
         """The children's values ``[..., k_i]`` as one tensor ``[..., c]`` (``[..., k, c]``

@@ -25,6 +25,10 @@ class NeuralBarrier(Barrier):
             barrier.
     """
 
+    @property
+    def time_varying(self) -> bool:  # type: ignore[override]
+        return self.time_input or (self.offset is not None and self.offset.time_varying)
+
     def __init__(
         self,
         net: nn.Module,
@@ -48,7 +52,6 @@ class NeuralBarrier(Barrier):
         else:
             self.scale = check_number("scale", scale)
         self.time_input = bool(time_input)
-        self.time_varying = self.time_input or (offset is not None and offset.time_varying)
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """``x [..., n] -> h [...]`` (or ``[..., k]``)."""

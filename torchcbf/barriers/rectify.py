@@ -52,11 +52,14 @@ class LieDerivative(Barrier):
     Shapes follow the inner barrier (``[...]`` or ``[..., k]``).
     """
 
+    @property
+    def time_varying(self) -> bool:  # type: ignore[override]
+        return self.barrier.time_varying
+
     def __init__(self, barrier: LieFunction, dynamics: ControlAffine) -> None:
         super().__init__()
         self.barrier = barrier
         self.dynamics = dynamics
-        self.time_varying = barrier.time_varying
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """``x [..., n] -> D h [...]`` (or ``[..., k]``)."""
@@ -119,6 +122,10 @@ class HighOrderBarrier(Barrier):
             numbers / a tensor / an ``nn.Parameter`` (then learnable).
     """
 
+    @property
+    def time_varying(self) -> bool:  # type: ignore[override]
+        return self.barrier.time_varying
+
     def __init__(
         self,
         barrier: LieFunction,
@@ -137,7 +144,6 @@ class HighOrderBarrier(Barrier):
         g = _gain_tensor(self, "gains", gains, relative_degree - 1, 1.0)
         if bool((g.detach() <= 0).any()):
             raise ValueError(f"gains must be positive, got {g.detach().tolist()}")
-        self.time_varying = barrier.time_varying
 
     def psi(
         self, x: Tensor, t: Tensor | float | None, order: int, base: LieFunction | None = None
@@ -168,12 +174,15 @@ class HighOrderBarrier(Barrier):
 class _Psi(LieFunction):
     """``psi_order`` of a :class:`HighOrderBarrier` as a function (a view, not a copy)."""
 
+    @property
+    def time_varying(self) -> bool:  # type: ignore[override]
+        return self._parent.time_varying
+
     def __init__(self, parent: HighOrderBarrier, order: int, base: LieFunction) -> None:
         super().__init__()
         object.__setattr__(self, "_parent", parent)  # not a submodule: no cycle
         object.__setattr__(self, "_base", base)
         self.order = order
-        self.time_varying = parent.time_varying
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         return self._parent.psi(x, t, self.order, self._base)
@@ -198,6 +207,10 @@ class ExponentialBarrier(Barrier):
         "derivatives": (("forward", "value"), ("has_analytic", "has_second_order")),
         "parts": (("forward", "value"), ()),
     }
+
+    @property
+    def time_varying(self) -> bool:  # type: ignore[override]
+        return self.barrier.time_varying
 
     def __init__(
         self,
@@ -232,7 +245,6 @@ class ExponentialBarrier(Barrier):
                 f"got shape {tuple(k.shape)}"
             )
         _check_hurwitz(k.detach())
-        self.time_varying = barrier.time_varying
 
     def value(self, x: Tensor, t: Tensor | float | None, base: LieFunction | None = None) -> Tensor:
         """``h_e(x, t)`` of ``base`` (default the barrier)."""

@@ -289,6 +289,10 @@ class PointBarrier(Barrier):
         link: the link (default ``arm.end_link``); ``offset`` a point in its frame ``[3]``.
     """
 
+    @property
+    def time_varying(self) -> bool:  # type: ignore[override]
+        return self.shape.time_varying
+
     def __init__(
         self,
         arm: Manipulator,
@@ -303,7 +307,6 @@ class PointBarrier(Barrier):
             raise TypeError(f"shape must be a Barrier, got {type(shape).__name__}")
         self.arm = arm
         self.shape = shape
-        self.time_varying = shape.time_varying
         self.link = arm.check_links([link or arm.end_link])[0]
         _register_offset(self, offset)
 
