@@ -9,6 +9,7 @@ import torch
 
 from torchcbf.barriers import (
     Ball,
+    Barrier,
     BarrierStack,
     Ellipse,
     LieTerms,
@@ -136,6 +137,42 @@ def test_wrappers_follow_a_velocity_set_later(dtype, device, wrap):
     got, want = later.lie(x, dyn, 1.5), ref.lie(x, dyn, 1.5)
     for name in ("h", "lfh", "lgh", "dhdt"):
         torch.testing.assert_close(getattr(got, name), getattr(want, name), **_tol(dtype))
+
+
+class _Quartic(Barrier):
+    """A user's barrier without closed forms: ``h = sum x^4 - 1``."""
+
+    def forward(self, x, t=None):
+        return (x**4).sum(-1) - 1.0
+
+
+class _GradientNorm(Barrier):
+    """``h = 1 - |grad V|^2`` for ``V = sum x^4 / 4``, differentiating its own input."""
+
+    def forward(self, x, t=None):
+        (dV,) = torch.autograd.grad((x**4).sum() / 4, x, create_graph=True)
+        return 1.0 - (dV**2).sum(-1)
+
+
+def test_grad_mode_keeps_the_graph_where_only_the_diffusion_requires_grad():
+    s = torch.tensor(0.7, dtype=torch.float64, requires_grad=True)
+    dyn = SingleIntegrator(2, sigma=lambda x: s * torch.eye(2, dtype=x.dtype).expand(
+        *x.shape[:-1], 2, 2)).double()  # fmt: skip
+    x = _states(2, 5, torch.float64, "cpu", seed=7)
+    terms = _Quartic().lie(x, dyn)
+    (grad,) = torch.autograd.grad(terms.hess_trace.sum(), s)
+    # hess_trace = s^2 tr(H), H = diag(12 x^2)
+    torch.testing.assert_close(grad, 2 * s.detach() * (12 * x**2).sum())
+
+
+def test_grad_mode_takes_a_barrier_that_differentiates_its_own_input():
+    dyn = SingleIntegrator(2)
+    x = torch.tensor([[0.5, 0.2], [0.9, -0.1]], dtype=torch.float64)
+    with torch.no_grad():
+        plain = _GradientNorm().lie(x, dyn)
+    got = _GradientNorm().lie(x, dyn)
+    torch.testing.assert_close(got.lgh, plain.lgh)
+    torch.testing.assert_close(got.lgh, -6.0 * x**5)  # d/dx (1 - sum x^6)
 
 
 def test_moving_ball_trajectory_dhdt(dtype, device):

@@ -298,8 +298,7 @@ def lie_derivatives(
         if inference:
             x = x.clone()
             t = t.clone() if isinstance(t, Tensor) else t
-        keep = grad_mode and derivatives_need_graph(flat_parts(fn), x, t)
-        terms = _autograd_terms(fn, x, dynamics, t, diffusion, control, keep)
+        terms = _autograd_terms(fn, x, dynamics, t, diffusion, control, grad_mode)
     if not grad_mode:
         terms = LieTerms(*(None if v is None else v.detach() for v in terms))
     return terms
@@ -330,7 +329,7 @@ def stacked_lie_derivatives(
         split = [flat_parts(fn) for fn in fns]
         sigma = dynamics.sigma(x) if diffusion else None
         parts = [p for ps in split for p in ps]
-        keep = grad_mode and derivatives_need_graph(parts, x, t)
+        keep = grad_mode and derivatives_need_graph(parts, x, t, sigma)
         h, dhdx, dhdt, hess, sizes, _ = stacked_terms(parts, x, t, sigma, keep)
         terms = _assemble(h, dhdx, dhdt, hess, x, dynamics, True, True)
     if not grad_mode:
@@ -353,7 +352,8 @@ def _autograd_terms(
 ) -> LieTerms:
     sigma = dynamics.sigma(x) if diffusion else None
     parts = flat_parts(fn)
-    h, dhdx, dhdt, hess, _, flags = stacked_terms(parts, x, t, sigma, grad_mode)
+    keep = grad_mode and derivatives_need_graph(parts, x, t, sigma)
+    h, dhdx, dhdt, hess, _, flags = stacked_terms(parts, x, t, sigma, keep)
     # one scalar function keeps the shape [...]; a split or k-output one is [..., k]
     multi = parts[0] is not fn or flags[0]
     if not multi:
@@ -443,18 +443,25 @@ def stacked_terms(
     return (*out, sizes, multi)
 
 
-def derivatives_need_graph(parts: list[LieFunction], x: Tensor, t: Tensor | float | None) -> bool:
-    """Whether the derivatives of ``parts`` at ``x`` can carry a gradient (in grad mode):
-    ``x`` or ``t`` requires grad, a parameter or buffer of a part does, or a part's value at
-    a constant ``x`` does (a tensor it captures, a nested derivative that keeps a graph).
-    Where none does, the terms are computed without one: a robot loop in grad mode gets
-    plain tensors, as under ``torch.no_grad()``."""
+def derivatives_need_graph(
+    parts: list[LieFunction], x: Tensor, t: Tensor | float | None, sigma: Tensor | None
+) -> bool:
+    """Whether the derivatives of ``parts`` at ``x`` (and their Hessian terms along
+    ``sigma``) can carry a gradient, in grad mode: ``x``, ``t`` or ``sigma`` requires grad, a
+    parameter or buffer of a part does, or a part's value at a constant ``x`` does (a tensor
+    it captures, a nested derivative that keeps a graph; a part that cannot be evaluated
+    there, one differentiating its own input, counts as one that does). Where none does,
+    the terms are computed without a graph: a robot loop in grad mode gets plain tensors, as
+    under ``torch.no_grad()``."""
     if x.requires_grad or (isinstance(t, Tensor) and t.requires_grad):
         return True
-    if any(needs_graph(part) for part in parts):
+    if (sigma is not None and sigma.requires_grad) or any(needs_graph(p) for p in parts):
         return True
     tt = time_tensor(t, x)
-    return any(part(x, tt).requires_grad for part in parts)
+    try:
+        return any(part(x, tt).requires_grad for part in parts)
+    except RuntimeError:
+        return True
 
 
 def gradient_rows(d: AnalyticDerivatives, x: Tensor) -> tuple[bool, Tensor]:
