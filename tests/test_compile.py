@@ -1,4 +1,5 @@
 import dataclasses
+import functools
 import os
 import subprocess
 import sys
@@ -115,20 +116,34 @@ def test_traced_reads_mutated_containers_and_replaced_data():
 SHIFT = 1.0
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(slots=True)
 class _Gains:
     slope: float = 2.0
 
 
+CALLS = 0
+
+
+def _counted(forward):
+    @functools.wraps(forward)
+    def wrapper(self, x):
+        global CALLS
+        CALLS += 1  # a global the method assigns: not part of the key
+        return forward(self, x)
+
+    return wrapper
+
+
 class _Configured(torch.nn.Module):
-    """Numbers read from a global, a ``SimpleNamespace`` and a dataclass, and a tensor
-    field of the record."""
+    """Numbers read from a global (by a decorated method), a ``SimpleNamespace`` and a
+    dataclass with slots, and a tensor field of the record."""
 
     def __init__(self) -> None:
         super().__init__()
         self.cfg = types.SimpleNamespace(gain=1.5, weight=torch.tensor(2.0, dtype=torch.float64))
         self.gains = _Gains()
 
+    @_counted
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         scale = self.cfg.gain * self.gains.slope * self.cfg.weight
         return scale * (x + SHIFT) ** 2
@@ -143,6 +158,7 @@ def test_traced_sees_globals_and_record_fields_its_modules_read():
         with torch.no_grad():
             for change, compiles in (
                 (lambda: None, 1),
+                (lambda: None, 1),  # CALLS changed: the same code
                 (lambda: mod.cfg.weight.fill_(3.0), 1),  # a lifted tensor: its new value
                 (lambda: setattr(mod.cfg, "gain", 0.5), 2),
                 (lambda: setattr(mod.gains, "slope", -1.0), 3),

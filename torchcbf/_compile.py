@@ -22,7 +22,8 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
-import functools
+import dis
+import inspect
 import logging
 import operator
 import types
@@ -272,37 +273,75 @@ def _is_record(value: object) -> bool:
     )
 
 
-@functools.cache
-def _class_globals(cls: type) -> tuple[tuple[dict[str, Any], str], ...]:
+class _Fields:
+    """The fields of a record without a ``__dict__`` (a dataclass with ``slots``) as the
+    mapping :meth:`Traced._find_state` keeps its places in."""
+
+    def __init__(self, record: object) -> None:
+        self.record = record
+
+    def keys(self) -> list[str]:
+        return [f.name for f in dataclasses.fields(self.record)]  # type: ignore[arg-type]
+
+    def get(self, key: str) -> Any:
+        return getattr(self.record, key, None)
+
+    def __getitem__(self, key: str) -> Any:
+        return getattr(self.record, key)
+
+    def __setitem__(self, key: str, value: Any) -> None:
+        setattr(self.record, key, value)
+
+
+def _record_fields(record: object) -> Any:
+    """The places of a record's fields: its ``__dict__``, else :class:`_Fields`."""
+    return vars(record) if hasattr(record, "__dict__") else _Fields(record)
+
+
+def _class_globals(cls: type) -> list[tuple[dict[str, Any], str]]:
     """``(globals, name)`` of the plain values (numbers, strings) that the methods of a
-    user's module class read as globals (``SCALE * h`` in a ``forward``); torch's and
-    torchcbf's own classes read none that changes."""
-    found: dict[tuple[int, str], tuple[dict[str, Any], str]] = {}
+    user's module class read as globals and never assign (``SCALE * h`` in a ``forward``;
+    a counter the method increments would key every call anew); torch's and torchcbf's own
+    classes read none that changes."""
+    found: list[tuple[dict[str, Any], str]] = []
     for klass in cls.__mro__:
-        if klass.__module__.split(".")[0] in ("torch", "torchcbf", "builtins"):
+        if (getattr(klass, "__module__", None) or "").split(".")[0] in _LIBRARY_MODULES:
             continue
         for attr in vars(klass).values():
             if isinstance(attr, (staticmethod, classmethod)):
                 attr = attr.__func__
             elif isinstance(attr, property):
                 attr = attr.fget
+            attr = inspect.unwrap(attr) if callable(attr) else attr
             if not isinstance(attr, types.FunctionType):
                 continue
             named = attr.__globals__
-            for name in _code_names(attr.__code__):
-                if name in named and isinstance(named[name], _PRIMITIVES):
-                    found[(id(named), name)] = (named, name)
-    return tuple(found.values())
+            read, written = _global_names(attr.__code__)
+            found.extend(
+                (named, name)
+                for name in sorted(read - written)
+                if name in named and isinstance(named[name], _PRIMITIVES)
+            )
+    return found
 
 
-def _code_names(code: types.CodeType) -> set[str]:
-    """The global names ``code`` and the functions nested in it (lambdas, comprehensions)
-    read."""
-    names = set(code.co_names)
+#: top-level modules whose classes' methods read no global that changes
+_LIBRARY_MODULES = frozenset({"torch", "torchcbf", "builtins", ""})
+
+
+def _global_names(code: types.CodeType) -> tuple[set[str], set[str]]:
+    """The global names that ``code`` and the functions nested in it (lambdas,
+    comprehensions) read, and those they assign."""
+    read, written = set(code.co_names), set()
+    for ins in dis.get_instructions(code):
+        if ins.opname in ("STORE_GLOBAL", "DELETE_GLOBAL"):
+            written.add(ins.argval)
     for const in code.co_consts:
         if isinstance(const, types.CodeType):
-            names |= _code_names(const)
-    return names
+            r, w = _global_names(const)
+            read |= r
+            written |= w
+    return read, written
 
 
 class Traced:
@@ -322,7 +361,8 @@ class Traced:
     contents of lists, tuples, dicts and sets among them (compared on every call, so one
     mutated in place is seen), the fields of a ``SimpleNamespace`` or dataclass among them
     (``module.cfg.gain = 2.0`` is seen; a tensor field is lifted like an attribute), the
-    numbers and strings that the methods of a user's module class read as globals, the
+    numbers and strings that the methods of a user's module class read as globals (not
+    those they assign: a call counter does not trace again), the
     identity of every other attribute and submodule (a replaced function or network traces
     again), and the shape, dtype and device of every lifted tensor (``.data =`` with a new
     shape or dtype is seen). New tensor values, in place or by ``.to()``, reuse the code. A
@@ -356,7 +396,7 @@ class Traced:
         self.ignore = frozenset(ignore)
         self.options = dict(options or {})
         self._graphs: dict[tuple[Any, ...], tuple[Callable[..., Any], list[int]]] = {}
-        self._slots: list[tuple[dict[str, Any], str]] | None = None
+        self._slots: list[tuple[Any, str]] | None = None
         self._hooks: list[dict[int, Any]] = []
         self._last: _Record | None = None
         self.lookups = 0  # calls that found the modules' state changed
@@ -387,9 +427,10 @@ class Traced:
     def _find_state(self) -> tuple[list[tuple[dict[str, Any], str]], list[dict[int, Any]]]:
         """Every place of the modules' state a trace can read, ``(dict, key)`` pairs, and the
         dicts of the hooks a call runs (:func:`hook_dicts`)."""
-        slots: list[tuple[dict[str, Any], str]] = []
+        slots: list[tuple[Any, str]] = []
         found: list[torch.nn.Module] = []
         seen: set[int] = set()
+        classes: list[type] = []
         skip = _MODULE_INTERNALS | self.ignore
         stack = list(self.modules)
         while stack:
@@ -405,9 +446,11 @@ class Traced:
             # a plain record's fields (``self.cfg = SimpleNamespace(gain=1.0)``)
             for k in own:
                 if k not in skip and _is_record(own[k]):
-                    fields = vars(own[k])
-                    slots.extend((fields, name) for name in fields)
-            slots.extend(_class_globals(type(mod)))
+                    fields = _record_fields(own[k])
+                    slots.extend((fields, name) for name in fields.keys())
+            if not any(c is type(mod) for c in classes):  # each class once
+                classes.append(type(mod))
+                slots.extend(_class_globals(type(mod)))
             stack.extend(m for m in mod._modules.values() if m is not None)
         return slots, hook_dicts(found)
 
