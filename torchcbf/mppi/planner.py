@@ -218,8 +218,10 @@ def _state_signature(module: nn.Module) -> tuple[tuple[Any, ...], bool, list[Ten
 class _Values:
     """The values of the small CPU tensors among ``tensors`` (a kernel configuration reads
     only small ones): a write that leaves a tensor's in-place version alone (through
-    ``.data``, or into a NumPy array sharing its memory) still shows. Compared bit for bit,
-    so a NaN equals itself."""
+    ``.data``, or into a NumPy array sharing its memory) still shows. Compared bit for bit
+    through NumPy (a NaN equals itself); a tensor NumPy cannot view (bfloat16, a conjugate
+    view) by ``torch.equal``, so a NaN there reads as a change (the configuration is read
+    again: slower, never stale)."""
 
     def __init__(self, tensors: list[Tensor]) -> None:
         self._kept: list[tuple[Any, Any]] = []

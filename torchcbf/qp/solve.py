@@ -773,9 +773,9 @@ def _choose(inp: _Inputs, std: _Standard, backend: str, method: str, C: int) -> 
     else:
         rest = "ipm"
     # equality rows eliminated where the reduced problem (with some inequality row) fits the
-    # dual method's C kernel; at least N of them can only be dependent, and are eliminated
-    # on an independent set where b lies in their range
-    if kernel and std.G.shape[-2] > 0 and me > 0 and dual_applies(max(N - me, 1), True):
+    # dual method's C kernel; N or more of them can only be dependent, and are eliminated on
+    # an independent set (at most N - 1 rows) where b lies in their range
+    if kernel and std.G.shape[-2] > 0 and me > 0 and dual_applies(N - min(me, N - 1), True):
         return "eliminate", rest
     return rest, "ipm"
 
