@@ -362,12 +362,11 @@ class Traced:
     mutated in place is seen), the fields of a ``SimpleNamespace`` or dataclass among them
     (``module.cfg.gain = 2.0`` is seen; a tensor field is lifted like an attribute), the
     numbers and strings that the methods of a user's module class read as globals (not
-    those they assign: a call counter does not trace again), the
-    identity of every other attribute and submodule (a replaced function or network traces
-    again), and the shape, dtype and device of every lifted tensor (``.data =`` with a new
-    shape or dtype is seen). New tensor values, in place or by ``.to()``, reuse the code. A
-    tensor that ``fn`` reaches other than through ``modules`` (a closure's) makes the trace
-    fail.
+    those they assign: a call counter does not trace again), the identity of every other
+    attribute and submodule (a replaced function or network traces again), and the shape,
+    dtype and device of every lifted tensor (``.data =`` with a new shape or dtype is seen).
+    New tensor values, in place or by ``.to()``, reuse the code. A tensor that ``fn``
+    reaches other than through ``modules`` (a closure's) makes the trace fail.
 
     Where tracing or compiling fails (data-dependent control flow, an operation without a
     decomposition), :meth:`__call__` raises :class:`TraceError`; the caller decides the
@@ -424,9 +423,10 @@ class Traced:
         """How many graphs were compiled (one per signature met)."""
         return len(self._graphs)
 
-    def _find_state(self) -> tuple[list[tuple[dict[str, Any], str]], list[dict[int, Any]]]:
-        """Every place of the modules' state a trace can read, ``(dict, key)`` pairs, and the
-        dicts of the hooks a call runs (:func:`hook_dicts`)."""
+    def _find_state(self) -> tuple[list[tuple[Any, str]], list[dict[int, Any]]]:
+        """Every place of the modules' state a trace can read, ``(mapping, key)`` pairs (a
+        ``__dict__``, a parameter or buffer dict, a module's globals, :class:`_Fields`), and
+        the dicts of the hooks a call runs (:func:`hook_dicts`)."""
         slots: list[tuple[Any, str]] = []
         found: list[torch.nn.Module] = []
         seen: set[int] = set()
