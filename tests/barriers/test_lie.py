@@ -19,6 +19,7 @@ from torchcbf.barriers import (
     Scaled,
     rectify,
 )
+from torchcbf.barriers.lie import time_tensor
 from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, SingleIntegrator, Unicycle
 
 
@@ -173,6 +174,25 @@ def test_grad_mode_takes_a_barrier_that_differentiates_its_own_input():
     got = _GradientNorm().lie(x, dyn)
     torch.testing.assert_close(got.lgh, plain.lgh)
     torch.testing.assert_close(got.lgh, -6.0 * x**5)  # d/dx (1 - sum x^6)
+
+
+def test_a_subclass_may_still_declare_itself_time_varying():
+    """A time-varying subclass sets ``time_varying = True`` (LieFunction's contract), also
+    on a class whose flag follows its state."""
+
+    class Pulsing(Ball):
+        def __init__(self):
+            super().__init__([0.0, 0.0], 0.5)
+            self.time_varying = True
+
+        def forward(self, x, t=None):
+            return super().forward(x, t) - 0.1 * torch.sin(time_tensor(t, x))
+
+    ball = Pulsing()
+    assert ball.time_varying and Scaled(ball, 2.0).time_varying
+    x = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
+    terms = ball.double().lie(x, SingleIntegrator(), torch.zeros(1, dtype=torch.float64))
+    torch.testing.assert_close(terms.dhdt, torch.tensor([-0.1], dtype=torch.float64))
 
 
 def test_moving_ball_trajectory_dhdt(dtype, device):

@@ -13,6 +13,7 @@ from torchcbf.barriers._minmax import Mode, combine, reduce
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.lie import (
     AnalyticDerivatives,
+    FollowsTime,
     LieFunction,
     Quadric,
     gradient_rows,
@@ -43,9 +44,7 @@ class BarrierStack(Barrier):
                 raise TypeError(f"barriers[{i}] must be a Barrier, got {type(b).__name__}")
         self.barriers = nn.ModuleList(barriers)
 
-    @property
-    def time_varying(self) -> bool:  # type: ignore[override]
-        return any(b.time_varying for b in self.barriers)
+    time_varying = FollowsTime(lambda self: any(b.time_varying for b in self.barriers))
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """``x [..., n] -> h [..., k]``."""
@@ -104,9 +103,7 @@ class _OfOne(Barrier):
             raise TypeError(f"barrier must be a Barrier, got {type(barrier).__name__}")
         self.barrier = barrier
 
-    @property
-    def time_varying(self) -> bool:  # type: ignore[override]
-        return self.barrier.time_varying
+    time_varying = FollowsTime(lambda self: self.barrier.time_varying)
 
     @property
     def has_analytic(self) -> bool:
@@ -275,9 +272,7 @@ class _Reduction(Barrier):
         self.temperature = float(temperature)
         self.elementwise = bool(elementwise)
 
-    @property
-    def time_varying(self) -> bool:  # type: ignore[override]
-        return self.stack.time_varying
+    time_varying = FollowsTime(lambda self: self.stack.time_varying)
 
     def _columns(self, values: list[Tensor], x: Tensor) -> tuple[Tensor, bool]:
         """The children's values ``[..., k_i]`` as one tensor ``[..., c]`` (``[..., k, c]``

@@ -103,6 +103,25 @@ class Quadric(NamedTuple):
     sign: float = 1.0
 
 
+class FollowsTime:
+    """A class's ``time_varying`` derived from its own state at each read (a wrapper is
+    time-varying when the function it wraps is; a ``Ball`` when it has a ``velocity``),
+    unless an instance sets it (``self.time_varying = True``, as any time-varying subclass
+    may)."""
+
+    def __init__(self, derive: Callable[[Any], bool]) -> None:
+        self.derive = derive
+
+    def __get__(self, obj: Any, owner: type | None = None) -> Any:
+        if obj is None:
+            return self
+        given = obj.__dict__.get("_time_varying")
+        return bool(self.derive(obj)) if given is None else given
+
+    def __set__(self, obj: Any, value: bool) -> None:
+        obj.__dict__["_time_varying"] = bool(value)
+
+
 class LieFunction(ExactConstants):
     """Base of :class:`~torchcbf.barriers.Barrier` and :class:`~torchcbf.barriers.Lyapunov`.
 

@@ -7,7 +7,7 @@ from torch import Tensor, nn
 
 from torchcbf._checks import check_number
 from torchcbf.barriers.base import Barrier
-from torchcbf.barriers.lie import LieFunction, time_tensor
+from torchcbf.barriers.lie import FollowsTime, LieFunction, time_tensor
 
 
 class NeuralBarrier(Barrier):
@@ -25,9 +25,9 @@ class NeuralBarrier(Barrier):
             barrier.
     """
 
-    @property
-    def time_varying(self) -> bool:  # type: ignore[override]
-        return self.time_input or (self.offset is not None and self.offset.time_varying)
+    time_varying = FollowsTime(
+        lambda self: self.time_input or (self.offset is not None and self.offset.time_varying)
+    )
 
     def __init__(
         self,

@@ -24,6 +24,7 @@ from torchcbf.barriers._params import float_spec
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.lie import (
     AnalyticDerivatives,
+    FollowsTime,
     FunctionPart,
     LieFunction,
     LieMethod,
@@ -52,9 +53,7 @@ class LieDerivative(Barrier):
     Shapes follow the inner barrier (``[...]`` or ``[..., k]``).
     """
 
-    @property
-    def time_varying(self) -> bool:  # type: ignore[override]
-        return self.barrier.time_varying
+    time_varying = FollowsTime(lambda self: self.barrier.time_varying)
 
     def __init__(self, barrier: LieFunction, dynamics: ControlAffine) -> None:
         super().__init__()
@@ -122,9 +121,7 @@ class HighOrderBarrier(Barrier):
             numbers / a tensor / an ``nn.Parameter`` (then learnable).
     """
 
-    @property
-    def time_varying(self) -> bool:  # type: ignore[override]
-        return self.barrier.time_varying
+    time_varying = FollowsTime(lambda self: self.barrier.time_varying)
 
     def __init__(
         self,
@@ -174,9 +171,7 @@ class HighOrderBarrier(Barrier):
 class _Psi(LieFunction):
     """``psi_order`` of a :class:`HighOrderBarrier` as a function (a view, not a copy)."""
 
-    @property
-    def time_varying(self) -> bool:  # type: ignore[override]
-        return self._parent.time_varying
+    time_varying = FollowsTime(lambda self: self._parent.time_varying)
 
     def __init__(self, parent: HighOrderBarrier, order: int, base: LieFunction) -> None:
         super().__init__()
@@ -208,9 +203,7 @@ class ExponentialBarrier(Barrier):
         "parts": (("forward", "value"), ()),
     }
 
-    @property
-    def time_varying(self) -> bool:  # type: ignore[override]
-        return self.barrier.time_varying
+    time_varying = FollowsTime(lambda self: self.barrier.time_varying)
 
     def __init__(
         self,

@@ -23,6 +23,7 @@ from torchcbf.barriers._params import StateIndex, embed
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.lie import (
     AnalyticDerivatives,
+    FollowsTime,
     FunctionPart,
     LieFunction,
     Quadric,
@@ -167,10 +168,8 @@ class Ball(_SignedShapeStack):
         self.keep_in = bool(keep_in)
         self._sel = StateIndex(index, c.shape[-1], state_dim)
 
-    @property
-    def time_varying(self) -> bool:  # type: ignore[override]
-        """Whether the centre moves (``velocity`` set, at construction or later)."""
-        return self.velocity is not None
+    #: whether the centre moves (``velocity`` set, at construction or later)
+    time_varying = FollowsTime(lambda self: self.velocity is not None)
 
     def _diff(self, x: Tensor, t: Tensor | float | None) -> Tensor:
         p = self._sel(x)

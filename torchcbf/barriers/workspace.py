@@ -23,7 +23,7 @@ from torch import Tensor
 from torchcbf._checks import behaves_as, check_number
 from torchcbf._constants import reshape
 from torchcbf.barriers.base import Barrier
-from torchcbf.barriers.lie import AnalyticDerivatives, LieFunction
+from torchcbf.barriers.lie import AnalyticDerivatives, FollowsTime, LieFunction
 
 if TYPE_CHECKING:
     from torchcbf.dynamics.manipulator import Manipulator
@@ -289,9 +289,7 @@ class PointBarrier(Barrier):
         link: the link (default ``arm.end_link``); ``offset`` a point in its frame ``[3]``.
     """
 
-    @property
-    def time_varying(self) -> bool:  # type: ignore[override]
-        return self.shape.time_varying
+    time_varying = FollowsTime(lambda self: self.shape.time_varying)
 
     def __init__(
         self,
