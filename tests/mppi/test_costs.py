@@ -96,11 +96,68 @@ def test_bad_costs():
         StageCost(None)  # type: ignore[arg-type]
 
 
-@pytest.mark.parametrize("kind", ["BarrierCost", "DiscreteBarrierCost", "Avoid"])
-def test_a_time_varying_barrier_in_a_cost_without_time_is_refused(kind: str) -> None:
-    """These costs evaluate b(x) without the rollout's times: a moving obstacle would be read
-    at t = 0, so it is refused at construction and, made time-varying later, at the call."""
+def _moving_barriers(device, dtype):
+    """A Ball with a velocity and a MovingBall on a curved path, with ``h(x, t)`` by hand."""
     from torchcbf.barriers import Ball, MovingBall
+
+    def path(t: torch.Tensor) -> torch.Tensor:
+        return torch.stack([0.3 * t, torch.sin(t)], -1)
+
+    ball = Ball([0.1, -0.2], 0.4, velocity=[0.5, -1.0]).to(device, dtype)
+    moving = MovingBall(path, 0.3).to(device, dtype)
+    c0 = torch.tensor([0.1, -0.2], dtype=torch.float64)
+    v = torch.tensor([0.5, -1.0], dtype=torch.float64)
+
+    def ball_h(x, t):
+        c = c0.to(x) + v.to(x) * t[..., None]
+        return ((x[..., :2] - c) ** 2).sum(-1) - 0.4**2
+
+    def moving_h(x, t):
+        return ((x[..., :2] - path(t)) ** 2).sum(-1) - 0.3**2
+
+    return [(ball, ball_h), (moving, moving_h)]
+
+
+def test_barrier_costs_read_a_time_varying_barrier_at_each_state_time(device, dtype):
+    """Rollout state k is at t0 + k dt: each barrier cost, and Avoid's cost and robustness,
+    against a per-step loop over hand-written h(x, t)."""
+    from torchcbf.mppi import Avoid, DiscreteBarrierCost
+
+    states, controls, _ = _rollouts(device, dtype, B=2, K=3, H=5)
+    t0 = torch.tensor([0.4, 2.0], device=device, dtype=dtype)
+    dt = 0.3
+    B, K, T, _ = states.shape
+    for barrier, h_of in _moving_barriers(device, dtype):
+        h = torch.stack([h_of(states[:, :, k], (t0 + k * dt)[:, None]) for k in range(T)], -1)
+        want = (2.0 / h[..., 1:].clamp_min(0.01)).sum(-1)
+        cost = BarrierCost(barrier, weight=2.0)
+        assert cost.needs_time
+        _close(cost(states, controls, t0, dt=dt), want, dtype)
+        goal = QuadraticGoal([1.0, 0.0], index=(0, 1))
+        total = goal + cost
+        assert total.needs_time and cost in total.whole_terms
+        _close(total(states, controls, t0, dt=dt), goal(states, controls, t0) + want, dtype)
+
+        disc = DiscreteBarrierCost(barrier, gamma=0.2, weight=3.0, steps=3)
+        viol = torch.relu(0.8 * h[..., :3] - h[..., 1:4]).sum(-1)
+        _close(disc(states, controls, t0, dt=dt), 3.0 * viol, dtype)
+
+        avoid = Avoid(barrier=barrier, weight=0.5, interval=(0.9, 2.7))
+        times = t0[:, None] + dt * torch.arange(T, device=device, dtype=dtype)
+        inside = ((times >= 0.9 - 1e-5) & (times <= 2.7 + 1e-5))[:, None].expand(B, K, T)
+        worst = h.masked_fill(~inside, float("inf")).amin(-1)
+        want_a = torch.where(inside.any(-1), 0.5 / worst.clamp_min(0.01), torch.zeros_like(worst))
+        _close(avoid(states, controls, t0, dt=dt), want_a, dtype)
+        times_k = times[:, None].expand(B, K, T)
+        _close(avoid.robustness(states, times_k), worst, dtype)
+
+
+@pytest.mark.parametrize("kind", ["BarrierCost", "DiscreteBarrierCost", "Avoid"])
+def test_a_time_varying_barrier_without_times_is_refused(kind: str) -> None:
+    """Where a barrier cost has no times (a call without dt=, BarrierCost.stage,
+    Avoid.predicate) a moving obstacle would be read at t = 0: it is refused, also for a
+    ball made time-varying after the cost was built."""
+    from torchcbf.barriers import Ball
     from torchcbf.mppi import Avoid, DiscreteBarrierCost
 
     build = {
@@ -108,20 +165,24 @@ def test_a_time_varying_barrier_in_a_cost_without_time_is_refused(kind: str) -> 
         "DiscreteBarrierCost": lambda b: DiscreteBarrierCost(b, gamma=0.1),
         "Avoid": lambda b: Avoid(barrier=b),
     }[kind]
-    moving = MovingBall(lambda t: torch.stack([t, torch.zeros_like(t)], -1), 0.5)
-    for barrier in (moving, Ball([0.0, 0.0], 0.5, velocity=[1.0, 0.0])):
-        with pytest.raises(ValueError, match="time-varying"):
-            build(barrier)
     ball = Ball([0.0, 0.0], 0.5)
     cost = build(ball)
     states, controls = torch.ones(1, 3, 5, 2), torch.zeros(1, 3, 4, 2)
     t0 = torch.zeros(1)
-    call = (
-        (lambda: cost(states, controls, t0, dt=0.1))
-        if kind == "Avoid"
-        else (lambda: cost(states, controls, t0))
-    )
-    assert call().shape == (1, 3)
+    assert cost(states, controls, t0, dt=0.1).shape == (1, 3)
+    if kind != "Avoid":
+        assert not cost.needs_time
+        assert cost(states, controls, t0).shape == (1, 3)
     ball.velocity = torch.tensor([1.0, 0.0])
-    with pytest.raises(ValueError, match="time-varying"):
-        call()
+    if kind != "Avoid":
+        assert cost.needs_time
+    with pytest.raises(ValueError, match="dt="):
+        cost(states, controls, t0)
+    untimed = {
+        "BarrierCost": lambda: cost.stage(states, None),
+        "DiscreteBarrierCost": None,
+        "Avoid": lambda: cost.predicate(states),
+    }[kind]
+    if untimed is not None:
+        with pytest.raises(ValueError, match="time-varying"):
+            untimed()

@@ -297,6 +297,53 @@ def test_history_and_spec_cost():
     assert int(planner.history.valid.sum()) == 1
 
 
+def _crossing_loop(cost_ball, true_ball, seed: int) -> float:
+    """A single integrator from the origin to (4, 0) while a ball crosses its path; the
+    closed loop's least ``h`` of ``true_ball`` at the true times."""
+    from torchcbf.mppi import BarrierCost
+
+    dt = 0.1
+    cost = QuadraticGoal([4.0, 0.0], terminal_weight=5.0) + BarrierCost(cost_ball, eps=0.01)
+    planner = MPPI(SingleIntegrator(2), cost, 20, 500, dt, 0.5, 0.05, 0.0, seed=seed,
+                   u_min=-1.0, u_max=1.0)  # fmt: skip
+    x, least = torch.zeros(1, 2), math.inf
+    for k in range(60):
+        x = x + dt * planner(x, t=k * dt).u
+        least = min(least, float(true_ball(x, torch.tensor([(k + 1) * dt]))))
+    assert planner.path == ("rollout" if cost_ball.time_varying else "fused")
+    return least
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_moving_obstacle_in_a_barrier_cost_is_avoided_where_it_will_be(seed: int) -> None:
+    """A BarrierCost reads a time-varying ball at each rollout state's time: the closed loop
+    passes behind the crossing ball, where the same ball read at t = 0 is hit."""
+    from torchcbf.barriers import Ball
+
+    moving = Ball([2.0, -2.0], 0.6, velocity=[0.0, 1.0])
+    assert _crossing_loop(moving, moving, seed) > 0.05
+    assert _crossing_loop(Ball([2.0, -2.0], 0.6), moving, seed) < -0.1
+
+
+def test_a_ball_given_a_velocity_after_a_fused_call_is_planned_in_time():
+    """The kept kernel configuration of a static ball is dropped when the ball starts
+    moving: the planner scores in torch, with the ball's times, as backend="torch" does."""
+    from torchcbf.barriers import Ball
+    from torchcbf.mppi import BarrierCost
+
+    plans = []
+    for backend in ("auto", "torch"):
+        ball = Ball([1.0, 0.2], 0.5)
+        cost = QuadraticGoal([2.0, 0.0]) + BarrierCost(ball)
+        planner = MPPI(SingleIntegrator(2), cost, 10, 64, 0.1, 0.5, 0.1, seed=3, backend=backend)
+        planner(torch.zeros(2), t=0.0)
+        ball.velocity = torch.tensor([0.0, -1.0])
+        out = planner(torch.zeros(2), t=0.5)
+        assert planner.path == ("rollout" if backend == "auto" else "torch")
+        plans.append(out.plan)
+    torch.testing.assert_close(plans[0], plans[1], atol=1e-5, rtol=1e-5)
+
+
 def test_shift_fill_last():
     p = _planner(shift_fill="last")
     x = _x0(1)[0]

@@ -3,7 +3,9 @@
 A cost scores whole rollouts: ``cost(states [B, K, H+1, n], controls [B, K, H, m], t0 [B])
 -> [B, K]``, where ``states[..., 0, :]`` is the current state at global time ``t0``. Any
 callable with that signature works with :class:`~torchcbf.mppi.MPPI`; the classes here build
-one from a per-step (stage) and a terminal function.
+one from a per-step (stage) and a terminal function. A cost with ``needs_time = True`` is
+also given ``dt=`` (rollout state ``k`` is at ``t0 + k dt``): the barrier costs set it for a
+time-varying barrier, which they read at each state's time.
 
 Stage convention (as pytorch-mppi): the stage cost of step ``k`` is evaluated on the state
 *after* the control, ``stage(x_{k+1}, u_k)`` for ``k = 0..H-1``, summed over time; the
@@ -53,15 +55,32 @@ def squared_distance(x: Tensor, index: tuple[int, ...] | slice, center: Tensor) 
     return diff.square_().sum(-1)
 
 
+def time_varying(barrier: object) -> bool:
+    """Whether a barrier (any callable) declares itself time-varying (``b(x, t)``)."""
+    return bool(getattr(barrier, "time_varying", False))
+
+
 def untimed(name: str, barrier: object) -> None:
-    """Refuse a time-varying barrier in a cost that evaluates ``b(x)`` without the rollout's
-    times (it would be read at ``t = 0`` on every step of every call)."""
-    if getattr(barrier, "time_varying", False):
+    """Refuse a time-varying barrier where ``name`` has no times to read it at (it would be
+    read at ``t = 0``)."""
+    if time_varying(barrier):
         raise ValueError(
-            f"{name} evaluates its barrier without time, and {type(barrier).__name__} is "
-            "time-varying: it would be read at t = 0. Write the cost as a function of "
-            "(states, controls, t0) that times step k at t0 + k dt"
+            f"{name} has no times, and {type(barrier).__name__} is time-varying: it would be "
+            "read at t = 0. Call the whole cost with t0= and dt= (as the planner does)"
         )
+
+
+def rollout_times(states: Tensor, t0: Tensor | float | None, dt: float | None, name: str) -> Tensor:
+    """Global times ``[B, T]`` of rollouts ``states [B, K, T, n]`` whose state ``k`` is at
+    ``t0 + k dt`` (``t0 [B]``, a number, or ``None`` for 0); ``ValueError`` naming ``name``
+    without ``dt``."""
+    if dt is None:
+        raise ValueError(f"{name} needs dt= (the rollout step) to time its states")
+    if states.dim() != 4:
+        raise ValueError(f"states must have shape [B, K, T, n], got {tuple(states.shape)}")
+    t0_t = as_tensor("t0", 0.0 if t0 is None else t0, device=states.device, dtype=states.dtype)
+    steps = torch.arange(states.shape[-2], device=states.device, dtype=states.dtype)
+    return (t0_t.reshape(-1, 1) + dt * steps).expand(states.shape[0], states.shape[-2])
 
 
 class RolloutCost(nn.Module):
@@ -71,6 +90,9 @@ class RolloutCost(nn.Module):
     ``sum_k stage(x_{k+1}, u_k) + terminal(x_H)``. Costs add: ``cost_a + cost_b`` is a
     :class:`SumCost`.
     """
+
+    #: Whether the planner must pass ``dt=`` (a term that reads the rollout's times sets it).
+    needs_time: bool = False
 
     def stage(self, states: Tensor, controls: Tensor | None) -> Tensor:
         """Per-step cost ``[..., n], [..., m] -> [...]``."""
@@ -173,7 +195,9 @@ class BarrierCost(RolloutCost):
     weight 2, eps 0.01.
 
     A barrier whose output has as many dimensions as its input is taken as multi-output.
-    The barrier is evaluated without time: a time-varying one is refused (:func:`untimed`).
+    A time-varying barrier (``time_varying``: a :class:`~torchcbf.barriers.MovingBall`, a
+    ``Ball`` with a velocity) is read at each state's time ``t0 + k dt``: the cost then
+    ``needs_time`` and its ``forward`` takes ``dt=`` (the planner passes it).
     """
 
     def __init__(
@@ -187,15 +211,34 @@ class BarrierCost(RolloutCost):
             raise TypeError(f"barrier must be callable, got {type(barrier).__name__}")
         if not eps > 0:
             raise ValueError(f"eps must be > 0, got {eps}")
-        untimed("BarrierCost", barrier)
         self.barrier = barrier
         self.weight, self.eps = float(weight), float(eps)
 
+    @property
+    def needs_time(self) -> bool:  # type: ignore[override]
+        """Whether the barrier is time-varying (``forward`` then needs ``dt=``)."""
+        return time_varying(self.barrier)
+
     def stage(self, states: Tensor, controls: Tensor | None) -> Tensor:
-        untimed("BarrierCost", self.barrier)
-        h = self.barrier(states)
+        untimed("BarrierCost.stage", self.barrier)
+        return self._penalty(self.barrier(states), states)
+
+    def _penalty(self, h: Tensor, states: Tensor) -> Tensor:
         cost = self.weight / h.clamp_min(self.eps)
         return cost.sum(-1) if h.dim() == states.dim() else cost
+
+    def forward(
+        self,
+        states: Tensor,
+        controls: Tensor,
+        t0: Tensor | float | None = None,
+        dt: float | None = None,
+    ) -> Tensor:
+        if not self.needs_time:
+            return super().forward(states, controls, t0)
+        times = rollout_times(states, t0, dt, "BarrierCost over a time-varying barrier")
+        after = states[..., 1:, :]
+        return self._penalty(self.barrier(after, times[:, None, 1:]), after).sum(-1)
 
 
 class DiscreteBarrierCost(nn.Module):
@@ -211,9 +254,10 @@ class DiscreteBarrierCost(nn.Module):
     that a CBF filter would correct cost more: a planner-side counterpart of the filter.
 
     It reads consecutive states, so it is a whole-rollout cost: ``forward(states [B, K, H+1,
-    n], controls [B, K, H, m], t0=None) -> [B, K]``. With an
+    n], controls [B, K, H, m], t0=None, dt=None) -> [B, K]``. With an
     :class:`~torchcbf.barriers.Ellipse` or :class:`~torchcbf.barriers.Ball` barrier the
-    planner evaluates it in its C kernel.
+    planner evaluates it in its C kernel. A time-varying barrier is read at each state's
+    time ``t0 + k dt`` (the cost then ``needs_time``: the planner passes ``dt=``).
 
     Args:
         barrier: ``b: [..., n] -> [...]`` or ``[..., k]`` (``b >= 0`` safe; an output with as
@@ -234,16 +278,26 @@ class DiscreteBarrierCost(nn.Module):
             raise ValueError(f"gamma must be in (0, 1], got {gamma!r}")
         if not isinstance(weight, (int, float)) or not weight >= 0.0:
             raise ValueError(f"weight must be >= 0, got {weight!r}")
-        untimed("DiscreteBarrierCost", barrier)
         self.barrier = barrier
         self.gamma, self.weight = float(gamma), float(weight)
         self.steps = None if steps is None else check_positive_int("steps", steps)
 
-    def forward(self, states: Tensor, controls: Tensor, t0: Tensor | None = None) -> Tensor:
+    needs_time = BarrierCost.needs_time
+
+    def forward(
+        self,
+        states: Tensor,
+        controls: Tensor,
+        t0: Tensor | float | None = None,
+        dt: float | None = None,
+    ) -> Tensor:
         if self.steps is not None:
             states = states[..., : self.steps + 1, :]
-        untimed("DiscreteBarrierCost", self.barrier)
-        h = self.barrier(states)
+        if self.needs_time:
+            what = "DiscreteBarrierCost over a time-varying barrier"
+            h = self.barrier(states, rollout_times(states, t0, dt, what)[:, None])
+        else:
+            h = self.barrier(states)
         if h.dim() < states.dim():
             h = h.unsqueeze(-1)
         viol = torch.relu((1.0 - self.gamma) * h[..., :-1, :] - h[..., 1:, :])
@@ -291,13 +345,19 @@ class SumCost(RolloutCost):
     @property
     def stepwise_terms(self) -> list[RolloutCost]:
         """The :class:`RolloutCost` terms (stage and terminal parts added pointwise), but
-        those with forward hooks (called whole, so that their hooks run)."""
-        return [c for c in self._stepwise if not hooked(c)]
+        those with forward hooks (called whole, so that their hooks run) and those that read
+        the rollout's times."""
+        return [c for c in self._stepwise if not (hooked(c) or c.needs_time)]
 
     @property
     def whole_terms(self) -> list[Callable[..., Tensor]]:
         """The other terms, each called on the whole rollout and added after."""
-        return [c for c in self._stepwise if hooked(c)] + self._whole
+        return [c for c in self._stepwise if hooked(c) or c.needs_time] + self._whole
+
+    @property
+    def needs_time(self) -> bool:  # type: ignore[override]
+        """Whether a term reads the rollout's times (the planner then passes ``dt=``)."""
+        return any(getattr(c, "needs_time", False) for c in self._stepwise + self._whole)
 
     @property
     def needs_history(self) -> bool:
@@ -317,6 +377,8 @@ class SumCost(RolloutCost):
         for c in whole:
             if getattr(c, "needs_history", False):
                 value = c(states, controls, t0, dt=dt, history=history)
+            elif getattr(c, "needs_time", False):
+                value = c(states, controls, t0, dt=dt)
             else:
                 value = c(states, controls, t0)
             total = value if total is None else total + value
@@ -333,8 +395,10 @@ __all__ = [
     "StageCost",
     "SumCost",
     "constant",
+    "rollout_times",
     "select",
     "squared_distance",
     "state_index",
+    "time_varying",
     "untimed",
 ]

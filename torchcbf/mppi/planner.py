@@ -363,8 +363,9 @@ class MPPI(ExactConstants):
         cost: ``cost(states [B, K, H+1, n], controls [B, K, H, m], t0 [B]) -> [B, K]``; a
             callable or module. The cost of a sample must depend on its own rollout only
             (the planner may call it on slices of the samples, see ``cost_chunk``). Costs
-            with ``needs_history = True`` (the specifications of :mod:`torchcbf.mppi.specs`)
-            are also given ``dt=`` and ``history=``.
+            with ``needs_time = True`` (a barrier cost over a time-varying barrier) are also
+            given ``dt=``, those with ``needs_history = True`` (the specifications of
+            :mod:`torchcbf.mppi.specs`) ``dt=`` and ``history=``.
         horizon: ``H >= 1`` steps.
         num_samples: ``K >= 1`` samples per environment.
         dt: rollout time step.
@@ -1070,13 +1071,14 @@ class MPPI(ExactConstants):
         read_key(hooks)
         chunk = self._chunk(states)
         K = states.shape[1]
+        timed = bool(getattr(self.cost, "needs_time", False))
         if chunk >= K:
-            cost = self._check_cost(self._rollout_cost(states, controls, t0, history))
+            cost = self._check_cost(self._rollout_cost(states, controls, t0, history, timed))
         else:  # slices small enough for the cost's intermediates to stay in cache
             cost = states.new_empty(states.shape[:2])
             for k in range(0, K, chunk):
                 part = self._rollout_cost(
-                    states[:, k : k + chunk], controls[:, k : k + chunk], t0, history
+                    states[:, k : k + chunk], controls[:, k : k + chunk], t0, history, timed
                 )
                 cost[:, k : k + chunk] = self._check_cost(part, min(chunk, K - k))
         if self.control_cost_weight > 0.0 and eps is not None:
@@ -1096,10 +1098,14 @@ class MPPI(ExactConstants):
         return hook_key(obj) if self._compiled else ""
 
     def _rollout_cost(
-        self, states: Tensor, controls: Tensor, t0: Tensor, history: History | None
+        self, states: Tensor, controls: Tensor, t0: Tensor, history: History | None, timed: bool
     ) -> Tensor:
+        """The cost of rollouts, given ``dt=`` where it reads times (``timed``: its
+        ``needs_time``) and ``history=`` too where it ``needs_history``."""
         if self._needs_history:
             return self.cost(states, controls, t0, dt=self.dt, history=history)
+        if timed:
+            return self.cost(states, controls, t0, dt=self.dt)
         return self.cost(states, controls, t0)
 
     def _chunk(self, states: Tensor) -> int:

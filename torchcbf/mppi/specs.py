@@ -47,8 +47,15 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor, check_positive
-from torchcbf.mppi.costs import constant, squared_distance, state_index, untimed
+from torchcbf._checks import check_positive
+from torchcbf.mppi.costs import (
+    constant,
+    rollout_times,
+    squared_distance,
+    state_index,
+    time_varying,
+    untimed,
+)
 from torchcbf.mppi.history import History
 
 Predicate = Callable[[Tensor], Tensor]
@@ -78,14 +85,7 @@ class Spec(nn.Module):
         history: History | None = None,
     ) -> Tensor:
         """MPPI cost ``[B, K]`` of ``states [B, K, T, n]``, state ``k`` at ``t0 + k dt``."""
-        if dt is None:
-            raise ValueError(f"{type(self).__name__} as a cost needs dt= (the rollout step)")
-        if states.dim() != 4:
-            raise ValueError(f"states must have shape [B, K, T, n], got {tuple(states.shape)}")
-        t0_t = as_tensor("t0", 0.0 if t0 is None else t0, device=states.device, dtype=states.dtype)
-        steps = torch.arange(states.shape[-2], device=states.device, dtype=states.dtype)
-        times = t0_t.reshape(-1, 1) * 1.0 + dt * steps
-        times = times.expand(states.shape[0], states.shape[-2])
+        times = rollout_times(states, t0, dt, f"{type(self).__name__} as a cost")
         return self.plan_cost(states, times, history)
 
     def __and__(self, other: Spec) -> And:
@@ -123,6 +123,12 @@ class _Temporal(Spec):
         """Pointwise robustness ``rho(x)``: ``[..., n] -> [...]``."""
         assert self.predicate_fn is not None
         return self.predicate_fn(states)
+
+    def predicate_at(self, states: Tensor, times: Tensor) -> Tensor:
+        """``rho`` of ``states [..., n]`` at global ``times`` (broadcasting to
+        ``states.shape[:-1]``): :meth:`predicate`, which does not read time, unless a
+        subclass's predicate does."""
+        return self.predicate(states)
 
     def pointwise_cost(self, states: Tensor) -> Tensor:
         """Pointwise cost ``c(x)``: ``[..., n] -> [...]`` (``-rho`` by default)."""
@@ -164,7 +170,7 @@ class Eventually(_Temporal):
         self.urgency = float(urgency)
 
     def robustness(self, states: Tensor, times: Tensor) -> Tensor:
-        rho = self.predicate(states)
+        rho = self.predicate_at(states, times)
         mask = self.in_window(times.to(rho.dtype)).expand(rho.shape)
         return rho.masked_fill(~mask, -math.inf).amax(-1)
 
@@ -219,7 +225,7 @@ class Always(_Temporal):
         super().__init__(predicate, interval, cost)
 
     def robustness(self, states: Tensor, times: Tensor) -> Tensor:
-        rho = self.predicate(states)
+        rho = self.predicate_at(states, times)
         mask = self.in_window(times.to(rho.dtype)).expand(rho.shape)
         return rho.masked_fill(~mask, math.inf).amin(-1)
 
@@ -231,7 +237,11 @@ class Always(_Temporal):
 
     def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
         window = self.in_window(times)  # [B, T]
-        worst = self.rollout_max_cost(states, window)
+        return self._windowed(self.rollout_max_cost(states, window), window)
+
+    @staticmethod
+    def _windowed(worst: Tensor, window: Tensor) -> Tensor:
+        """``worst [B, K]``, or 0 in the rows whose ``window [B, T]`` holds no state."""
         return torch.where(window.any(-1, keepdim=True), worst, torch.zeros_like(worst))
 
 
@@ -293,7 +303,9 @@ class Avoid(Always):
 
     ``rho = |p - center| - radius`` (or ``barrier(x)`` for any callable/module
     ``[..., n] -> [...]``); planning cost ``weight / max(rho, eps)`` (scenario A: ``c_o``
-    with ``weight = k_o = 0.3``, ``eps = 0.01``).
+    with ``weight = k_o = 0.3``, ``eps = 0.01``). A time-varying barrier (``time_varying``:
+    a :class:`~torchcbf.barriers.MovingBall`, a ``Ball`` with a velocity) is read at each
+    state's global time, in the cost and in :meth:`robustness`.
     """
 
     def __init__(
@@ -315,7 +327,6 @@ class Avoid(Always):
         if barrier is not None:
             if not callable(barrier):
                 raise TypeError(f"barrier must be callable, got {type(barrier).__name__}")
-            untimed("Avoid", barrier)
         else:
             if radius is None or radius < 0:
                 raise ValueError(f"Avoid with a center needs radius >= 0, got {radius}")
@@ -327,9 +338,14 @@ class Avoid(Always):
 
     def predicate(self, states: Tensor) -> Tensor:
         if self.barrier is not None:
-            untimed("Avoid", self.barrier)
+            untimed("Avoid.predicate", self.barrier)
             return self.barrier(states)
         return squared_distance(states, self.index, self.center).sqrt() - self.radius
+
+    def predicate_at(self, states: Tensor, times: Tensor) -> Tensor:
+        if self.barrier is not None and time_varying(self.barrier):
+            return self.barrier(states, times)
+        return self.predicate(states)
 
     def pointwise_cost(self, states: Tensor) -> Tensor:
         return self.weight / self.predicate(states).clamp_min(self.eps)
@@ -338,11 +354,23 @@ class Avoid(Always):
         # c is decreasing in rho: reduce rho (or |p - o|^2), transform [B, K] only
         outside = ~window.unsqueeze(1)
         if self.barrier is not None:
-            rho_min = self.predicate(states).masked_fill(outside, math.inf).amin(-1)
-        else:
-            d2 = squared_distance(states, self.index, self.center)
-            rho_min = d2.masked_fill_(outside, math.inf).amin(-1).sqrt() - self.radius
+            return self._cost_of(self.predicate(states).masked_fill(outside, math.inf))
+        d2 = squared_distance(states, self.index, self.center)
+        rho_min = d2.masked_fill_(outside, math.inf).amin(-1).sqrt() - self.radius
         return self.weight / rho_min.clamp_min(self.eps)
+
+    def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
+        if self.barrier is None or not time_varying(self.barrier):
+            return super().plan_cost(states, times, history)
+        window = self.in_window(times)  # [B, T]
+        rho = self.predicate_at(states, times.unsqueeze(1))
+        rho = rho.masked_fill(~window.unsqueeze(1), math.inf)
+        return self._windowed(self._cost_of(rho), window)
+
+    def _cost_of(self, rho: Tensor) -> Tensor:
+        """The planning cost of the worst state, ``[B, K]``, from ``rho [B, K, T]`` (``+inf``
+        outside the window)."""
+        return self.weight / rho.amin(-1).clamp_min(self.eps)
 
 
 class _Combination(Spec):
