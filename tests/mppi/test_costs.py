@@ -186,3 +186,29 @@ def test_a_time_varying_barrier_without_times_is_refused(kind: str) -> None:
     if untimed is not None:
         with pytest.raises(ValueError, match="time-varying"):
             untimed()
+
+
+def test_a_sum_scores_the_terms_it_holds_now():
+    """A term replaced in or appended to ``SumCost.terms`` is scored, also by the planner's
+    fused kernel, as a sum built with it."""
+    from torchcbf import MPPI, SingleIntegrator
+
+    states, controls, t0 = _rollouts("cpu", torch.float64, n=2)
+    cost = QuadraticGoal([1.0, 1.0]) + ObstacleCost([0.5, 0.0], 0.2)
+    cost.terms[0] = QuadraticGoal([-3.0, 2.0])
+    fresh = QuadraticGoal([-3.0, 2.0]) + ObstacleCost([0.5, 0.0], 0.2)
+    _close(cost(states, controls, t0), fresh(states, controls, t0), torch.float64)
+    extra = QuadraticGoal([5.0, 5.0], weight=100.0)
+    cost.terms.append(extra)
+    _close(cost(states, controls, t0), (fresh + extra)(states, controls, t0), torch.float64)
+
+    plans = {}
+    for backend in ("auto", "torch"):
+        built = QuadraticGoal([1.0, 1.0]) + ObstacleCost([0.5, 0.0], 0.2)
+        planner = MPPI(SingleIntegrator(2), built, 10, 64, 0.1, 4.0, 0.1, seed=0, backend=backend)
+        planner(torch.zeros(2))
+        built.terms[0] = QuadraticGoal([-20.0, 15.0])
+        plans[backend] = planner(torch.zeros(2)).u
+        assert planner.path == ("torch" if backend == "torch" else "fused")
+    torch.testing.assert_close(plans["auto"], plans["torch"], atol=1e-5, rtol=1e-5)
+    assert plans["auto"][0] < 0.0  # towards the new goal, behind the start

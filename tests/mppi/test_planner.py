@@ -759,3 +759,20 @@ def test_a_cost_holding_tensors_without_storage_plans(backend, grad):
     assert paths == [expected, expected]
     for a, b in zip(*outs, strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+def test_a_loaded_noise_covariance_is_sampled(backend):
+    """``load_state_dict`` from a planner of another noise covariance (isotropic into
+    isotropic, correlated into diagonal) plans as that planner: torch's draws (``noise_mu``
+    set) follow the loaded covariance."""
+    cost = QuadraticGoal([1.0, -1.0])
+    for source_sigma, built_sigma in ((4.0, 1.0), ([[1.0, 0.9], [0.9, 4.0]], [1.0, 4.0])):
+        planners = [
+            MPPI(SingleIntegrator(2), cost, 8, 256, 0.1, sigma, 0.5, seed=0, noise_mu=0.0,
+                 backend=backend)  # fmt: skip
+            for sigma in (source_sigma, built_sigma)
+        ]
+        planners[1].load_state_dict(planners[0].state_dict())
+        u = [p(torch.zeros(2)).u for p in planners]
+        torch.testing.assert_close(u[0], u[1])

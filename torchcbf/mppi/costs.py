@@ -309,6 +309,12 @@ class DiscreteBarrierCost(nn.Module):
         return SumCost(self, other)
 
 
+def _whole_term(cost: RolloutCost) -> bool:
+    """Whether a :class:`SumCost` calls this term on the whole rollout: it has forward hooks
+    (which must run) or reads the rollout's times."""
+    return hooked(cost) or cost.needs_time
+
+
 class SumCost(RolloutCost):
     """Sum of costs. Stage/terminal parts of :class:`RolloutCost` terms are added pointwise
     before the one sum over time; other callables are called on the whole rollout."""
@@ -322,10 +328,9 @@ class SumCost(RolloutCost):
             if not callable(c):
                 raise TypeError(f"every cost must be callable, got {type(c).__name__}")
             flat.extend(c.terms if isinstance(c, SumCost) else [c])
+        #: the terms that are modules (a term replaced or appended here is scored)
         self.terms = nn.ModuleList([c for c in flat if isinstance(c, nn.Module)])
         self._plain = [c for c in flat if not isinstance(c, nn.Module)]
-        self._stepwise = [c for c in self.terms if isinstance(c, RolloutCost)]
-        self._whole = [c for c in self.terms if not isinstance(c, RolloutCost)] + self._plain
 
     def stage(self, states: Tensor, controls: Tensor | None) -> Tensor:
         stepwise = self.stepwise_terms
@@ -347,22 +352,23 @@ class SumCost(RolloutCost):
         """The :class:`RolloutCost` terms (stage and terminal parts added pointwise), but
         those with forward hooks (called whole, so that their hooks run) and those that read
         the rollout's times."""
-        return [c for c in self._stepwise if not (hooked(c) or c.needs_time)]
+        return [c for c in self.terms if isinstance(c, RolloutCost) and not _whole_term(c)]
 
     @property
     def whole_terms(self) -> list[Callable[..., Tensor]]:
         """The other terms, each called on the whole rollout and added after."""
-        return [c for c in self._stepwise if hooked(c) or c.needs_time] + self._whole
+        rolled = [c for c in self.terms if isinstance(c, RolloutCost) and _whole_term(c)]
+        return rolled + [c for c in self.terms if not isinstance(c, RolloutCost)] + self._plain
 
     @property
     def needs_time(self) -> bool:  # type: ignore[override]
         """Whether a term reads the rollout's times (the planner then passes ``dt=``)."""
-        return any(getattr(c, "needs_time", False) for c in self._stepwise + self._whole)
+        return any(getattr(c, "needs_time", False) for c in [*self.terms, *self._plain])
 
     @property
     def needs_history(self) -> bool:
         """Whether a term is a specification that reads the planner's history."""
-        return any(getattr(c, "needs_history", False) for c in self._whole)
+        return any(getattr(c, "needs_history", False) for c in [*self.terms, *self._plain])
 
     def forward(
         self,

@@ -596,10 +596,7 @@ class MPPI(ExactConstants):
                 self.register_buffer(name, value)
             else:  # Python numbers: exact under .double()
                 remember(self, name, value)
-        self._diagonal = bool(torch.equal(cov, torch.diag(torch.diagonal(cov))))
-        diag = torch.diagonal(cov)
-        isotropic = self._diagonal and bool((diag == diag[0]).all())
-        self._isotropic_std = float(diag[0].sqrt()) if isotropic else None
+        self._noise_form_kept: tuple[tuple, bool, float | None] | None = None
         lo = _limit("u_min", u_min, m) if u_min is not None else dynamics.u_min
         hi = _limit("u_max", u_max, m) if u_max is not None else dynamics.u_max
         check_bounds("u_min", lo, "u_max", hi)
@@ -609,7 +606,6 @@ class MPPI(ExactConstants):
             else:
                 self.register_buffer(name, None if value is None else value.clone())
 
-        self._needs_history = bool(getattr(cost, "needs_history", False))
         self._compiled = bool(compile)
         self._step_into_fn: Callable[..., None] = self._step_into
         self._score_fn: Callable[..., Tensor] = self._score
@@ -911,8 +907,23 @@ class MPPI(ExactConstants):
             and _rollout.available()
         )
 
+    def _noise_form(self) -> tuple[bool, float | None]:
+        """``(diagonal, std)`` of ``noise_cov`` as it is now: whether it is diagonal, and
+        ``s`` where it is ``s^2 I`` (else ``None``). Worked out again where the buffer was
+        replaced or written in place (``load_state_dict``, ``copy_``)."""
+        cov = self.noise_cov
+        key = (cov.data_ptr(), cov._version, cov.device, cov.dtype)
+        kept = self._noise_form_kept
+        if kept is None or kept[0] != key:
+            diag = torch.diagonal(cov)
+            diagonal = bool(torch.equal(cov, torch.diag(diag)))
+            isotropic = diagonal and bool((diag == diag[0]).all())
+            kept = (key, diagonal, float(diag[0].sqrt()) if isotropic else None)
+            self._noise_form_kept = kept
+        return kept[1], kept[2]
+
     def _sample_noise(self, eps: Tensor) -> None:
-        std = self._isotropic_std
+        diagonal, std = self._noise_form()
         if self._kernel_draws(eps):
             keys = _rollout.draw_keys(self._generators, self._plan.device)
             _rollout.normals(keys, eps, std=1.0 if std is None else float(std))
@@ -926,7 +937,7 @@ class MPPI(ExactConstants):
                 target.normal_(0.0, 1.0 if std is None else std, generator=gen)
                 if scratch is not None:
                     storage[b].copy_(scratch)
-        if std is None and self._diagonal:
+        if std is None and diagonal:
             eps.mul_(torch.diagonal(self.noise_cov).to(eps).sqrt())
         elif std is None:
             eps.copy_(eps @ self.noise_chol.to(eps).mT)
@@ -1096,6 +1107,11 @@ class MPPI(ExactConstants):
         argument of a compiled step or cost that makes a new hook trace again), else
         ``""``."""
         return hook_key(obj) if self._compiled else ""
+
+    @property
+    def _needs_history(self) -> bool:
+        """Whether the cost reads the history (read at each call: a cost's terms may change)."""
+        return bool(getattr(self.cost, "needs_history", False))
 
     def _rollout_cost(
         self, states: Tensor, controls: Tensor, t0: Tensor, history: History | None, timed: bool
