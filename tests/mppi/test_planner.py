@@ -776,3 +776,19 @@ def test_a_loaded_noise_covariance_is_sampled(backend):
         planners[1].load_state_dict(planners[0].state_dict())
         u = [p(torch.zeros(2)).u for p in planners]
         torch.testing.assert_close(u[0], u[1])
+
+
+def test_a_number_of_samples_set_after_a_call_is_sampled_on_every_path():
+    """``num_samples`` (and ``layout``) set between calls: the sample buffers follow, and
+    the paths still agree for one seed."""
+    plans = []
+    for backend in ("auto", "torch"):
+        planner = MPPI(SingleIntegrator(2), QuadraticGoal([1.0, -1.0]), 8, 128, 0.1, 1.0, 0.5,
+                       seed=0, backend=backend)  # fmt: skip
+        planner(torch.zeros(3, 2))
+        planner.num_samples = 64
+        out = planner(torch.zeros(3, 2))
+        planner.layout = "sample"
+        plans.append((out.plan, planner(torch.zeros(3, 2)).plan))
+    for a, b in zip(*plans, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)

@@ -635,7 +635,7 @@ class MPPI(ExactConstants):
             return
         H, m, n = self.horizon, self.dynamics.control_dim, self.dynamics.state_dim
         self._plan = torch.zeros(B, H, m, device=device, dtype=dtype)
-        self._work: tuple[Tensor, Tensor] | None = None
+        self._work: tuple[tuple, Tensor, Tensor] | None = None
         self._noise: Tensor | None = None
         self._generators = [
             torch.Generator(device=device).manual_seed(self.seed + b) for b in range(B)
@@ -660,16 +660,18 @@ class MPPI(ExactConstants):
         allocated on first use (the fused path never needs them)."""
         B, H, m = self._plan.shape
         K, n = self.num_samples, self.dynamics.state_dim
-        like, layout = self._plan, self.layout
-        if self._work is None:
+        like, layout, steps = self._plan, self.layout, self._sampling_steps()
+        shape = (K, H, m, n, steps, layout)  # a number of samples or a layout set since
+        if self._work is None or self._work[0] != shape:
             self._work = (
+                shape,
                 _rollout.rollout_buffer(like, B, K, H, m, layout),
                 _rollout.rollout_buffer(like, B, K, H + 1, n, layout),
             )
+            self._noise = None
         if noise and self._noise is None:
-            steps = self._sampling_steps()
             self._noise = _rollout.rollout_buffer(like, B, K, steps, m, layout)
-        return (self._noise if noise else None), *self._work
+        return (self._noise if noise else None), *self._work[1:]
 
     @property
     def history(self) -> History | None:
