@@ -356,3 +356,16 @@ def test_variants_check_their_options() -> None:
     p = planner(KMPPI, num_support_points=6)
     with pytest.raises(ValueError, match="num_support_points"):
         p.change_horizon(5)
+
+
+@pytest.mark.parametrize("cls", [MPPI, SMPPI, KMPPI])
+def test_every_variant_pickles_after_a_call(cls: type[MPPI]) -> None:
+    """A planner (KMPPI with its default kernel too) survives pickling after a call and
+    plans on from the same state as the original."""
+    import pickle
+
+    p = planner(cls)
+    x = torch.tensor([0.2, -0.1], dtype=torch.float64)
+    p(x)
+    copy = pickle.loads(pickle.dumps(p))
+    torch.testing.assert_close(copy(x).u, p(x).u)

@@ -34,16 +34,24 @@ from torchcbf.mppi.planner import MPPI, _resized, _shifted
 TimeKernel = Callable[[Tensor, Tensor], Tensor]
 
 
+class _RBF:
+    """The kernel :func:`rbf_kernel` returns (a class, so that a planner holding it pickles)."""
+
+    def __init__(self, width: float) -> None:
+        self.width = float(width)
+
+    def __call__(self, t: Tensor, tau: Tensor) -> Tensor:
+        return torch.exp((-0.5 / self.width**2) * (t.unsqueeze(-1) - tau).square())
+
+    def __repr__(self) -> str:
+        return f"rbf_kernel(width={self.width})"
+
+
 def rbf_kernel(width: float = 1.0) -> TimeKernel:
     """``k(t [N], tau [S]) = exp(-(t - tau)^2 / (2 width^2)) -> [N, S]`` (times in steps)."""
     if isinstance(width, bool) or not isinstance(width, (int, float)) or not width > 0:
         raise ValueError(f"width must be a positive number, got {width!r}")
-    scale = -0.5 / float(width) ** 2
-
-    def kernel(t: Tensor, tau: Tensor) -> Tensor:
-        return torch.exp(scale * (t.unsqueeze(-1) - tau).square())
-
-    return kernel
+    return _RBF(width)
 
 
 class KMPPI(MPPI):
