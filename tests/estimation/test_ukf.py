@@ -48,6 +48,29 @@ def test_sigma_point_parameters_keep_linear_exactness(alpha, kappa):
     assert np.abs(covs[:, 1].numpy() - ref_p).max() < tol
 
 
+def test_sigma_point_parameters_set_later_are_used():
+    """alpha, beta and kappa set on a built UKF predict as a UKF built with them; a value
+    that leaves alpha^2 (n + kappa) <= 0 is refused at the step."""
+    dyn = Unicycle(sigma=0.1).double()
+    sensor = GaussianSensor(C=torch.eye(3, dtype=torch.float64), std=0.1)
+    state = EstimatorState(
+        torch.tensor([[0.1, -0.2, 0.3]], dtype=torch.float64),
+        torch.diag(torch.tensor([0.2, 0.1, 0.3], dtype=torch.float64)).unsqueeze(0),
+        torch.zeros(1, dtype=torch.long),
+    )
+    u = torch.tensor([[1.0, 0.5]], dtype=torch.float64)
+    edited = UKF(dyn, sensor, Q=0.01)
+    edited.alpha, edited.beta, edited.kappa = 0.5, 0.0, 1.0
+    fresh = UKF(dyn, sensor, Q=0.01, alpha=0.5, beta=0.0, kappa=1.0)
+    a, b = edited.predict(state, u, 0.5), fresh.predict(state, u, 0.5)
+    torch.testing.assert_close(a.mean, b.mean, rtol=0, atol=0)
+    torch.testing.assert_close(a.cov, b.cov, rtol=0, atol=0)
+    assert (a.cov - UKF(dyn, sensor, Q=0.01).predict(state, u, 0.5).cov).abs().max() > 1e-3
+    edited.kappa = -3.0
+    with pytest.raises(ValueError, match="kappa"):
+        edited.predict(state, u, 0.5)
+
+
 def test_bearing_wrap_in_unscented_update(dtype):
     """A landmark straight behind the robot: the predicted bearings straddle +-pi. With the
     residual wrapping the UKF update agrees with the EKF (nearly linear for a small P);

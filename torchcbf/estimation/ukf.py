@@ -59,26 +59,34 @@ class UKF(_KalmanFilter):
         kappa = check_number("kappa", kappa)
         if not n + kappa > 0:
             raise ValueError(f"n + kappa must be positive, got n={n}, kappa={kappa}")
+        #: the sigma-point parameters, read at each step (a value set later is used)
         self.alpha, self.beta, self.kappa = float(alpha), float(beta), float(kappa)
-        c = alpha**2 * (n + kappa)  # n + lam
-        lam = c - n
-        # Python floats, cast to the state's dtype at use (no float32 buffer rounding)
-        self._w0_mean = lam / c
-        self._w0_cov = lam / c + 1.0 - alpha**2 + beta
-        self._w = 0.5 / c
-        self._spread = math.sqrt(c)
+
+    def _scale(self) -> float:
+        """``n + lam = alpha^2 (n + kappa)`` of the parameters as they are now."""
+        c = float(self.alpha) ** 2 * (self.state_dim + float(self.kappa))
+        if not c > 0:
+            raise ValueError(
+                f"alpha^2 (n + kappa) must be positive, got alpha={self.alpha}, "
+                f"kappa={self.kappa}, n={self.state_dim}"
+            )
+        return c
 
     def _weights(self, like: Tensor) -> tuple[Tensor, Tensor]:
-        """Mean and covariance weights ``[2n+1]`` in the dtype/device of ``like``."""
-        wm = torch.full((2 * self.state_dim + 1,), self._w, dtype=like.dtype, device=like.device)
+        """Mean and covariance weights ``[2n+1]`` in the dtype/device of ``like`` (Python
+        floats cast at use: no float32 rounding of a float64 filter's weights)."""
+        c = self._scale()  # n + lam
+        lam = c - self.state_dim
+        wm = torch.full((2 * self.state_dim + 1,), 0.5 / c, dtype=like.dtype, device=like.device)
         wc = wm.clone()
-        wm[0], wc[0] = self._w0_mean, self._w0_cov
+        wm[0] = lam / c
+        wc[0] = lam / c + 1.0 - float(self.alpha) ** 2 + float(self.beta)
         return wm, wc
 
     def _sigma_points(self, m: Tensor, P: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Sigma points ``[B, 2n+1, n]``, their deviations from ``m`` and a regularized flag."""
         L, regularized = robust_cholesky(P)
-        D = self._spread * L.mT  # row i is column i of L
+        D = math.sqrt(self._scale()) * L.mT  # row i is column i of L
         dX = torch.cat([torch.zeros_like(m).unsqueeze(1), D, -D], dim=1)
         return m.unsqueeze(1) + dX, dX, regularized
 
