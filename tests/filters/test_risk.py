@@ -326,3 +326,38 @@ def test_local_margin_follows_a_loaded_horizon() -> None:
         dst.load_state_dict(src.state_dict())
         torch.testing.assert_close(dst(x, u_nom).u, src(x, u_nom).u)
     torch.testing.assert_close(dst(x.clone().requires_grad_(), u_nom).u, src(x, u_nom).u)
+
+
+def _risk_filter(horizon, eta) -> SafetyFilter:
+    dyn = SingleIntegrator(2, u_min=-2.0, u_max=2.0, sigma=0.3).double()
+    return SafetyFilter(dyn, Ball([1.0, 0.0], 0.5).double(), mode=RiskAware(0.05, horizon, eta=eta))
+
+
+def test_a_constant_margin_follows_its_eta_and_horizon() -> None:
+    """The margin of a constant eta is made from eta, rho and the horizon as they are at the
+    call: its gradient to the horizon is the central difference's, and a trained eta moves
+    it (two optimiser steps, each answering as a filter built with the new eta)."""
+    x = torch.tensor([[0.0, 0.0], [0.3, 0.3]], dtype=F64)
+    u_nom = torch.tensor([[1.0, 1.0], [1.9, 1.1]], dtype=F64)
+
+    def total(T: float) -> float:
+        return float(_risk_filter(T, 0.4)(x, u_nom).u[:, 0].sum())
+
+    filt = _risk_filter(0.1, 0.4)
+    filt.condition.horizon.requires_grad_(True)
+    (dT,) = torch.autograd.grad(filt(x, u_nom).u[:, 0].sum(), filt.condition.horizon)
+    e = 1e-6
+    assert float(dT) == pytest.approx((total(0.1 + e) - total(0.1 - e)) / (2 * e), rel=1e-6)
+
+    eta = torch.nn.Parameter(torch.tensor(0.4, dtype=F64))
+    filt = _risk_filter(0.1, eta)
+    opt = torch.optim.SGD([eta], lr=0.05)
+    for _ in range(2):
+        opt.zero_grad()
+        filt(x, u_nom).u.square().sum().backward()
+        opt.step()
+        fresh = _risk_filter(0.1, float(eta.detach()))
+        torch.testing.assert_close(filt.cbf_margin.detach(), fresh.cbf_margin)
+        with torch.no_grad():
+            torch.testing.assert_close(filt(x, u_nom).u, fresh(x, u_nom).u)
+    assert float(eta.detach()) != 0.4

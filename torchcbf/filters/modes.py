@@ -26,6 +26,7 @@ from torchcbf._checks import (
     check_number,
     honour_overrides,
 )
+from torchcbf._constants import store
 from torchcbf.barriers.lie import LieFunction, LieTerms
 from torchcbf.barriers.native import Affine
 from torchcbf.dynamics.base import ControlAffine
@@ -179,6 +180,32 @@ class Stochastic(FilterMode):
         return Affine(trace_weight=0.5, gain=gain, offset=self.beta, offset_scale=-1.0)
 
 
+def _keep_bound(mode: nn.Module, name: str, eta: object) -> None:
+    """Keep a noise bound as given: a tensor by :func:`~torchcbf._constants.store`'s rules
+    (a parameter is trained, a tensor that requires grad keeps its graph), anything else as
+    the attribute (numbers, sequences, ``None``)."""
+    if isinstance(eta, Tensor):
+        store(mode, name, eta)
+    else:
+        setattr(mode, name, eta)
+
+
+def _identity(value: object) -> object:
+    """What tells a constant apart from its later values: a tensor's storage, version, dtype
+    and device (an in-place update, ``.to``, a load), else the value itself."""
+    if isinstance(value, Tensor):
+        return (value.data_ptr(), value._version, value.dtype, value.device)
+    return value if value is None or isinstance(value, float) else repr(value)
+
+
+def _checked_bound(name: str, eta: object) -> Tensor:
+    """``eta`` as a float64 tensor (scalar or ``[k]``, non-negative), its graph kept."""
+    bound = as_tensor(name, eta, dtype=torch.float64)
+    if bound.dim() > 1 or bool((bound.detach() < 0).any()):
+        raise ValueError(f"{name} must be a non-negative scalar or [k], got {bound.tolist()}")
+    return bound
+
+
 class RiskAware(FilterMode):
     """Risk-aware conditions: leave the safe set within ``horizon`` with probability at most
     ``rho`` (needs dynamics with ``sigma``); ``alpha`` is unused.
@@ -232,15 +259,18 @@ class RiskAware(FilterMode):
             raise ValueError(f"eta must be a bound (number or [k]) or 'local', got {eta!r}")
         #: each row's margin from its own ``|dh/dx sigma|`` (``eta="local"``)
         self.local = isinstance(eta, str)
-        self.eta = None if self.local else eta
+        _keep_bound(self, "eta", None if self.local else eta)
         self.safe_states = safe_states
         self.clf_rho = self.rho if clf_rho is None else float(clf_rho)
         if not 0 < self.clf_rho < 1:
             raise ValueError(f"clf_rho must be in (0, 1), got {clf_rho!r}")
-        self.clf_eta = clf_eta
+        _keep_bound(self, "clf_eta", clf_eta)
         self.register_buffer("clf_gamma", torch.tensor(float(clf_gamma), dtype=torch.float64))
-        self.register_buffer("cbf_margin", None)
-        self.register_buffer("clf_margin", None)
+        # noise bounds computed over safe_states when a filter binds the mode
+        self.register_buffer("cbf_noise_bound", None)
+        self.register_buffer("clf_noise_bound", None)
+        self._binds: tuple[bool, bool] = (False, False)  # (barriers, lyapunovs)
+        self._margins: dict[str, tuple[tuple, Tensor]] = {}
 
     def bind(
         self,
@@ -253,58 +283,83 @@ class RiskAware(FilterMode):
         if states is not None:
             check_last_dim("safe_states", states, dynamics.state_dim)
         if barriers and not self.local:
-            self.cbf_margin = self._margin(
+            self.cbf_noise_bound = self._noise_bound(
                 "eta",
                 self.eta,
                 barriers,
                 dynamics,
-                self.rho,
                 safe_only=True,
                 missing="RiskAware needs eta= (noise bound |dh/dx sigma| on the safe "
                 "set) or safe_states= (sample states to compute it from)",
             )
         if lyapunovs:
-            self.clf_margin = self._margin(
+            self.clf_noise_bound = self._noise_bound(
                 "clf_eta",
                 self.clf_eta,
                 lyapunovs,
                 dynamics,
-                self.clf_rho,
                 safe_only=False,
                 missing="RiskAware with lyapunovs needs clf_eta= (bound on "
                 "|dV/dx sigma|) or safe_states=",
             )
+        self._binds = (bool(barriers) and not self.local, bool(lyapunovs))
 
-    def _margin(
+    def _noise_bound(
         self,
         name: str,
         eta: Tensor | float | Sequence[float] | None,
         functions: Sequence[LieFunction],
         dynamics: ControlAffine,
-        rho: float,
         *,
         safe_only: bool,
         missing: str,
-    ) -> Tensor:
-        """``Delta [k]`` of ``functions`` from the bound ``eta`` (given, or computed over
-        ``safe_states``, on its safe points only where ``safe_only``); ``missing`` is the
-        error where neither is given."""
-        f64 = torch.float64
-        if eta is None:
-            if self.safe_states is None:
-                raise ValueError(missing)
-            parts = [
-                noise_bound(fn, dynamics, self.safe_states, safe_only=safe_only).reshape(-1)
-                for fn in functions
-            ]
-            bound = torch.cat(parts).to(f64)
-        else:
-            bound = as_tensor(name, eta, dtype=f64)
-            if bound.dim() > 1 or bool((bound < 0).any()):
-                raise ValueError(
-                    f"{name} must be a non-negative scalar or [k], got {bound.tolist()}"
-                )
-        return risk_margin(bound, rho, self.horizon)
+    ) -> Tensor | None:
+        """The bound of ``functions`` computed over ``safe_states`` (on its safe points only
+        where ``safe_only``) where ``eta`` is not given (``None`` where it is: it is read at
+        each call, checked here); ``missing`` is the error where neither is given."""
+        if eta is not None:
+            _checked_bound(name, eta)
+            return None
+        if self.safe_states is None:
+            raise ValueError(missing)
+        parts = [
+            noise_bound(fn, dynamics, self.safe_states, safe_only=safe_only).reshape(-1)
+            for fn in functions
+        ]
+        return torch.cat(parts).to(torch.float64)
+
+    @property
+    def cbf_margin(self) -> Tensor | None:
+        """``Delta [k] = sqrt(2 T) eta erfinv(1 - rho)`` of the barriers from ``eta`` (or the
+        bound computed over ``safe_states``), ``rho`` and ``horizon`` as they are now (so a
+        trained or edited ``eta`` or ``horizon`` is used, with its gradient); ``None``
+        before a filter binds the mode and with ``eta="local"``."""
+        if not self._binds[0]:
+            return None
+        return self._margin("eta", self.eta, self.cbf_noise_bound, self.rho)
+
+    @property
+    def clf_margin(self) -> Tensor | None:
+        """The CLF's ``Delta`` from ``clf_eta``, ``clf_rho`` and ``horizon`` (as
+        :attr:`cbf_margin`); ``None`` without Lyapunov functions."""
+        if not self._binds[1]:
+            return None
+        return self._margin("clf_eta", self.clf_eta, self.clf_noise_bound, self.clf_rho)
+
+    def _margin(self, name: str, eta: object, computed: Tensor | None, rho: float) -> Tensor:
+        """``Delta`` of a bound (``eta`` given, else ``computed``); kept until ``eta``, the
+        bound, ``rho`` or ``horizon`` changes, and made afresh where one requires grad."""
+        source = computed if eta is None else eta
+        graph = self.horizon.requires_grad or (isinstance(source, Tensor) and source.requires_grad)
+        key = (name, rho, _identity(self.horizon), _identity(source))
+        kept = self._margins.get(name)
+        if not graph and kept is not None and kept[0] == key:
+            return kept[1]
+        bound = as_tensor(name, source, dtype=torch.float64)
+        margin = risk_margin(bound, rho, self.horizon.to(bound))
+        if not graph:
+            self._margins[name] = (key, margin)
+        return margin
 
     def cbf(self, terms: LieTerms, alpha: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
         if self.local:
@@ -352,14 +407,17 @@ class RiskAware(FilterMode):
         )
 
     def affine_cbf(self, alpha: nn.Module) -> Affine | None:
-        if self.horizon.requires_grad or (self.cbf_margin is None and not self.local):
+        margin = None if self.local else self.cbf_margin
+        if self.horizon.requires_grad or (margin is None and not self.local):
             return None
+        if margin is not None and margin.requires_grad:
+            return None  # the kernel does not differentiate the margin
         T = float(self.horizon)
         rate = 1.0 / T
         if self.local:  # Delta(x) = scale |sigma' dh/dx|
             noise = -rate * self._local_scale_number(T)
             return Affine(trace_weight=0.5, gain_scale=rate, noise_scale=noise)
-        return Affine(trace_weight=0.5, gain_scale=rate, offset=self.cbf_margin,
+        return Affine(trace_weight=0.5, gain_scale=rate, offset=margin,
                       offset_scale=-rate)  # fmt: skip
 
     def extra_repr(self) -> str:
