@@ -24,6 +24,7 @@ a model cast to float32 and back keeps the float32 rounding.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -128,9 +129,100 @@ def store(
 
 def reshape(module: nn.Module, name: str, fn: Callable[[Tensor], Tensor]) -> Tensor:
     """Replace the constant ``name`` by ``fn(constant)`` (an expand, an unsqueeze), applying
-    ``fn`` to its remembered exact value too; return the new tensor."""
-    setattr(module, name, fn(getattr(module, name)))
+    ``fn`` to its remembered exact value too; return the new tensor. A constant that
+    requires grad is kept and ``name`` derived from it (:func:`derive`)."""
+    derived = _derived(module).get(name)
+    if derived is not None:  # reshaped before: apply fn after the earlier derivation
+        _derived(module)[name] = (derived[0], _Then(derived[1], fn))
+        return getattr(module, name)
+    current = getattr(module, name)
+    if isinstance(current, Tensor) and current.requires_grad:
+        module._parameters.pop(name, None)
+        module._buffers.pop(name, None)
+        return derive(module, name, current, fn)
+    setattr(module, name, fn(current))
     exact = _exact_values(module)
     if name in exact:
         exact[name] = fn(exact[name])
     return getattr(module, name)
+
+
+_DERIVED = "_derived_constants"
+
+
+def _derived(module: nn.Module) -> dict[str, tuple[str, Callable[[Tensor], Tensor]]]:
+    values = module.__dict__.get(_DERIVED)
+    if values is None:
+        values = {}
+        object.__setattr__(module, _DERIVED, values)
+    return values
+
+
+class DerivedConstants(nn.Module):
+    """Mixin answering the constants :func:`derive` keeps as a function of their source."""
+
+    def __getattr__(self, name: str) -> Any:
+        # nn.Module's lookup written out (parameters, buffers, submodules), then the derived
+        # constants: a module's own tensors cost no more than on a plain module
+        own = self.__dict__
+        for table in ("_parameters", "_buffers", "_modules"):
+            values = own.get(table)
+            if values is not None and name in values:
+                return values[name]
+        entry = (own.get(_DERIVED) or {}).get(name)
+        if entry is not None:
+            return entry[1](getattr(self, entry[0]))
+        raise AttributeError(f"'{type(self).__name__}' object has no attribute '{name}'")
+
+
+def derive_from(module: nn.Module, name: str, source: str, fn: Callable[[Tensor], Tensor]) -> None:
+    """Make the constant ``name`` be ``fn`` of the constant ``source`` at every read (a
+    Cholesky factor of a covariance that trains); ``module`` is a :class:`DerivedConstants`."""
+    if not isinstance(module, DerivedConstants):
+        raise TypeError(f"{type(module).__name__} cannot derive {name} from {source}")
+    module._buffers.pop(name, None)
+    _derived(module)[name] = (source, fn)
+
+
+class _Then:
+    """``second(first(t))``: two derivations in a row (picklable, unlike a lambda)."""
+
+    def __init__(self, first: Callable[[Tensor], Tensor], second: Callable[[Tensor], Tensor]):
+        self.first, self.second = first, second
+
+    def __call__(self, t: Tensor) -> Tensor:
+        return self.second(self.first(t))
+
+
+def derive(
+    module: nn.Module,
+    name: str,
+    value: object,
+    fn: Callable[[object], Tensor | None],
+    *,
+    exact: bool = False,
+) -> Tensor | None:
+    """Register the constant ``name = fn(value)`` (a checked cast, an expand, a diagonal
+    matrix of a vector) and return it.
+
+    A ``value`` that requires grad (an ``nn.Parameter``, a tensor with a graph) and that
+    ``fn`` changes is kept as given as ``name + "_source"`` (a parameter stays one: the
+    module trains it), and ``name`` is ``fn`` of it at every read: an optimiser step or an
+    edit is seen, and each call has a graph of its own (``module`` is then a
+    :class:`DerivedConstants`; ``fn`` is checked on ``value`` here). One that ``fn`` leaves
+    as it is, is registered as given (a parameter as a parameter). Anything else is stored
+    as ``fn(value)``, a buffer (``exact``: Python numbers remembered, :func:`remember`)."""
+    out = fn(value)
+    module._buffers.pop(name, None)
+    if isinstance(value, Tensor) and value.requires_grad:
+        if out is value:
+            return store(module, name, value)
+        if not isinstance(module, DerivedConstants):
+            raise TypeError(f"{type(module).__name__} cannot derive {name} from a tensor")
+        store(module, name + "_source", value)
+        _derived(module)[name] = (name + "_source", fn)
+        return out
+    if out is None or not exact:
+        module.register_buffer(name, out)
+        return out
+    return remember(module, name, out, dtype=out.dtype)

@@ -769,8 +769,18 @@ def test_a_loaded_noise_covariance_is_sampled(backend):
     cost = QuadraticGoal([1.0, -1.0])
     for source_sigma, built_sigma in ((4.0, 1.0), ([[1.0, 0.9], [0.9, 4.0]], [1.0, 4.0])):
         planners = [
-            MPPI(SingleIntegrator(2), cost, 8, 256, 0.1, sigma, 0.5, seed=0, noise_mu=0.0,
-                 backend=backend)  # fmt: skip
+            MPPI(
+                SingleIntegrator(2),
+                cost,
+                8,
+                256,
+                0.1,
+                sigma,
+                0.5,
+                seed=0,
+                noise_mu=0.0,
+                backend=backend,
+            )  # fmt: skip
             for sigma in (source_sigma, built_sigma)
         ]
         planners[1].load_state_dict(planners[0].state_dict())

@@ -20,7 +20,7 @@ from torchcbf import (
     SingleIntegrator,
     VanDerPol,
 )
-from torchcbf.barriers import LinkSphereBarrier
+from torchcbf.barriers import LinkSphereBarrier, Scaled
 from torchcbf.estimation import RangeBearing
 
 F64 = torch.float64
@@ -48,6 +48,7 @@ SHAPES = [
         lambda g, P: QuadraticLyapunov(g, P),
         [[0.3, 0.5], [[2.0, 0.3], [0.3, 1.0]]],
     ),
+    ("Scaled", lambda c, s: Scaled(Ball(c, 0.7), s), [[1.0, 0.5], [2.0]]),
 ]
 
 
@@ -209,3 +210,99 @@ def test_mlp_box_is_exact_and_checked():
         MLP(2, 4)
     with pytest.raises(TypeError, match="low is a fixed input normalisation"):
         MLP(2, (4,), low=torch.zeros(2, requires_grad=True), high=[1.0, 1.0])
+
+
+def _sgd_steps(params, loss_of, steps: int = 2) -> None:
+    opt = torch.optim.SGD(params, lr=0.05)
+    for _ in range(steps):
+        opt.zero_grad()
+        loss_of().backward()
+        opt.step()
+
+
+SHAPED = [
+    # (name, the module built of a parameter p, the same built of a plain value, p's start)
+    ("sigma scalar", lambda p: SingleIntegrator(2, sigma=p), 0.3),
+    ("sigma vector", lambda p: SingleIntegrator(2, sigma=p), [0.3, 0.2]),
+    ("u_max scalar", lambda p: SingleIntegrator(2, u_min=-1.0, u_max=p), 0.5),
+    ("u_max float32", lambda p: SingleIntegrator(2, u_min=-1.0, u_max=p), [0.5, 0.6]),
+    ("disturbance_bound", lambda p: SingleIntegrator(2, disturbance_bound=p), 0.1),
+    ("R vector", None, [1.0, 0.2]),
+    ("sensor std", None, [0.1, 0.2]),
+    ("EKF Q vector", None, [0.02, 0.01]),
+    ("HOCBF gain", None, 2.0),
+]
+
+
+def _shaped(name: str, value):
+    """A module built once of the shaped constant ``value``, as a function giving a float64
+    output that depends on it."""
+    from torchcbf.barriers import rectify
+    from torchcbf.dynamics import DoubleIntegrator
+    from torchcbf.filters import Robust, SafetyFilter, Stochastic
+
+    x = torch.tensor([[0.2, 0.1], [0.4, -0.3]], dtype=F64)
+    u = torch.tensor([[1.5, 0.2], [2.0, -0.5]], dtype=F64)
+    ball = Ball([1.0, 0.0], 0.5).double()
+    build = dict((s[0], s[1]) for s in SHAPED)[name]
+    if name in ("sensor std", "EKF Q vector"):
+        std, Q = (value, 0.01) if name == "sensor std" else ([0.1, 0.1], value)
+        est = EKF(SingleIntegrator(2), GaussianSensor(std=std), Q=Q).double()
+        state = est.init(x, torch.eye(2, dtype=F64))
+        return lambda: est.update(est.predict(state, u, 0.1), x + 0.3).mean
+    if name == "HOCBF gain":
+        dyn = DoubleIntegrator(2)
+        filt = SafetyFilter(dyn, rectify(ball, dyn, "high_order", gains=value)).double()
+        x4 = torch.cat([x, torch.ones_like(x)], -1)
+        return lambda: filt(x4, u).u
+    if name.startswith("sigma"):
+        filt = SafetyFilter(build(value), ball, mode=Stochastic()).double()
+    elif name.startswith("u_max"):
+        filt = SafetyFilter(build(value), ball).double()
+    elif name == "disturbance_bound":
+        filt = SafetyFilter(build(value), ball, mode=Robust()).double()
+    else:
+        filt = SafetyFilter(SingleIntegrator(2), ball, R=value).double()
+    return lambda: filt(x, u).u
+
+
+@pytest.mark.parametrize("name", [s[0] for s in SHAPED])
+def test_a_parameter_a_module_shapes_trains(name: str) -> None:
+    """A parameter the module casts or shapes (a scalar bound expanded, a vector made a
+    diagonal matrix, float32 cast to float64) is one of its parameters, trains over two
+    optimiser steps, and each answer equals the module built afresh from its value then;
+    its gradient is the central difference's."""
+    start = dict((s[0], s[2]) for s in SHAPED)[name]
+    dtype = torch.float32 if name == "u_max float32" else F64
+    p = nn.Parameter(torch.tensor(start, dtype=dtype))
+    out = _shaped(name, p)
+    (grad,) = torch.autograd.grad(out().square().sum(), p)
+    eps, tol = (1e-6, 1e-5) if dtype == F64 else (1e-3, 1e-3)
+    with torch.no_grad():
+        loss = lambda v: float(_shaped(name, v.to(dtype))().square().sum())  # noqa: E731
+        fd = _fd(loss, p.double(), eps)
+    torch.testing.assert_close(grad.double(), fd, atol=tol, rtol=tol)
+    _sgd_steps([p], lambda: out().square().sum())
+    with torch.no_grad():
+        exact = 1e-12 if dtype == F64 else 1e-6
+        torch.testing.assert_close(
+            out(), _shaped(name, p.detach().clone())(), atol=exact, rtol=exact
+        )
+    assert not torch.equal(p.detach(), torch.tensor(start, dtype=dtype))
+
+
+def test_a_scalar_parameter_radius_on_arm_links_trains() -> None:
+    pytest.importorskip("pytorch_kinematics")
+    from torchcbf.dynamics import Manipulator
+
+    arm = Manipulator("planar3").double()
+    r = nn.Parameter(torch.tensor(0.1, dtype=F64))
+    links = ["link2", "link3"]
+    barrier = LinkSphereBarrier(arm, links, r, [0.5, 0.5, 0.0], 0.2).double()
+    assert any(t is r for t in barrier.parameters())
+    q = torch.tensor([[0.3, -0.2, 0.1]], dtype=F64)
+    before = barrier(q).detach()
+    _sgd_steps([r], lambda: barrier(q).sum())
+    fresh = LinkSphereBarrier(arm, links, float(r.detach()), [0.5, 0.5, 0.0], 0.2).double()
+    torch.testing.assert_close(barrier(q).detach(), fresh(q))
+    assert not torch.equal(before, barrier(q).detach())

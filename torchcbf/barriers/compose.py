@@ -123,10 +123,9 @@ class Scaled(_OfOne):
         super().__init__(barrier)
         if isinstance(scale, bool):
             raise TypeError("scale must be a number or a sequence/tensor of numbers")
-        value = torch.as_tensor(scale, dtype=torch.float64).detach().clone()
-        if value.dim() > 1 or value.numel() == 0 or not bool((value > 0).all()):
+        value = self.register_constant("scale", scale)  # a parameter trains
+        if value.dim() > 1 or value.numel() == 0 or not bool((value.detach() > 0).all()):
             raise ValueError(f"scale must be positive numbers (scalar or [k]), got {scale!r}")
-        self.register_buffer("scale", value)
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """``x [..., n] -> scale * h [...]`` (or ``[..., k]``)."""

@@ -19,7 +19,7 @@ import torch
 from torch import Tensor, nn
 
 from torchcbf._checks import ClosedForms, as_tensor, check_finite
-from torchcbf._constants import remember, store
+from torchcbf._constants import DerivedConstants, derive, remember, store
 from torchcbf.barriers._params import float_spec
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.lie import (
@@ -77,36 +77,43 @@ class LieDerivative(Barrier):
 def _gain_tensor(
     module: nn.Module, name: str, gains: GainSpec, count: int, default: float
 ) -> Tensor:
-    """Register ``count`` gains (a number is repeated) as a buffer, or as given ``nn.Parameter``."""
+    """Register ``count`` gains (a number is repeated): Python numbers as a buffer exact
+    under ``.double()``, a tensor as a buffer, and one that requires grad (an
+    ``nn.Parameter``, a tensor with a graph) kept as given and repeated at each read
+    (:func:`~torchcbf._constants.derive`), so that it trains."""
     if gains is None:
         gains = default
-    if isinstance(gains, nn.Parameter):
-        value: Tensor = gains
-        if value.shape != (count,):
-            raise ValueError(
-                f"{name} as an nn.Parameter must have shape [{count}], got {tuple(value.shape)}"
-            )
-        module.register_parameter(name, value)
-    else:
-        device, dtype = float_spec(module)
-        given = isinstance(gains, Tensor)
-        value = as_tensor(name, gains, dtype=dtype if given else torch.float64, device=device)
-        value = value.detach().clone()
-        check_finite(name, value)
-        if value.dim() == 0:
-            value = value.expand(count).clone()
-        if value.shape != (count,):
-            raise ValueError(
-                f"{name} must be a number or have {count} entries, got shape {tuple(value.shape)}"
-            )
-        if given:
-            module.register_buffer(name, value)
-        else:  # Python numbers: exact under .double()
-            remember(module, name, value, dtype=dtype, device=device)
+    device, dtype = float_spec(module)
+    if isinstance(gains, Tensor) and gains.requires_grad:
+        out = derive(module, name, gains, functools.partial(_gains, name=name, count=count))
+        assert out is not None
+        return out
+    given = isinstance(gains, Tensor)
+    value = _gains(
+        as_tensor(name, gains, dtype=dtype if given else torch.float64, device=device),
+        name=name,
+        count=count,
+    ).clone()
+    if given:
+        module.register_buffer(name, value)
+    else:  # Python numbers: exact under .double()
+        remember(module, name, value, dtype=dtype, device=device)
     return getattr(module, name)
 
 
-class HighOrderBarrier(Barrier):
+def _gains(value: Tensor, *, name: str, count: int) -> Tensor:
+    """``value`` checked and, a scalar, repeated: ``[count]``."""
+    check_finite(name, value)
+    if value.dim() == 0:
+        return value.expand(count)
+    if value.shape != (count,):
+        raise ValueError(
+            f"{name} must be a number or have {count} entries, got shape {tuple(value.shape)}"
+        )
+    return value
+
+
+class HighOrderBarrier(Barrier, DerivedConstants):
     """High-order CBF (Xiao & Belta) with linear class-K gains.
 
     ``psi_0 = h``, ``psi_i = D psi_{i-1} + alpha_i psi_{i-1}`` for ``i = 1..r-1``; this module

@@ -14,6 +14,7 @@ axis-aligned boxes.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
@@ -21,7 +22,7 @@ import torch
 from torch import Tensor
 
 from torchcbf._checks import behaves_as, check_number
-from torchcbf._constants import reshape
+from torchcbf._constants import DerivedConstants, reshape
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.lie import AnalyticDerivatives, FollowsTime, LieFunction
 
@@ -40,12 +41,27 @@ def _check_arm(arm: object) -> None:
         raise TypeError(f"arm must be a torchcbf Manipulator, got {type(arm).__name__}")
 
 
+def _expanded(t: Tensor, size: int) -> Tensor:
+    """A scalar as ``[size]``."""
+    return t.expand(size).clone()
+
+
+def _one_row(t: Tensor) -> Tensor:
+    """``[d]`` as ``[1, d]``."""
+    return t.unsqueeze(0)
+
+
 def _norm(v: Tensor) -> Tensor:
     """``|v|`` over the last axis, smoothed at zero."""
     return torch.sqrt((v * v).sum(-1) + _EPS**2)
 
 
-class _LinkSpheres(Barrier):
+class _Shaped(Barrier, DerivedConstants):
+    """A barrier whose constants :func:`~torchcbf._constants.reshape` shapes (a parameter is
+    kept and shaped at each read, so that it trains)."""
+
+
+class _LinkSpheres(_Shaped):
     """Shared part of the sphere barriers: ``S`` spheres on links of ``arm``."""
 
     def __init__(
@@ -62,7 +78,7 @@ class _LinkSpheres(Barrier):
         s = len(self.links)
         r = self.register_constant("radii", radii)
         if r.dim() == 0:
-            reshape(self, "radii", lambda t: t.expand(s).clone())
+            reshape(self, "radii", functools.partial(_expanded, size=s))
         elif r.shape != (s,):
             raise ValueError(
                 f"radii must be a scalar or [{s}] (one per link), got {tuple(r.shape)}"
@@ -90,7 +106,7 @@ def _obstacles(module: Barrier, center: object) -> int:
     """Register obstacle centres ``obstacle_center [O, 3]``; return ``O``."""
     c = module.register_constant("obstacle_center", center)
     if c.dim() == 1:
-        reshape(module, "obstacle_center", lambda t: t.unsqueeze(0))
+        reshape(module, "obstacle_center", _one_row)
     if module.obstacle_center.dim() != 2 or module.obstacle_center.shape[-1] != 3:
         raise ValueError(f"obstacle_center must have shape [3] or [O, 3], got {tuple(c.shape)}")
     return module.obstacle_center.shape[0]
@@ -127,7 +143,7 @@ class LinkSphereBarrier(_LinkSpheres):
         o = _obstacles(self, obstacle_center)
         rad = self.register_constant("obstacle_radius", obstacle_radius)
         if rad.dim() == 0:
-            reshape(self, "obstacle_radius", lambda t: t.expand(o).clone())
+            reshape(self, "obstacle_radius", functools.partial(_expanded, size=o))
         elif rad.shape != (o,):
             raise ValueError(f"obstacle_radius must be a scalar or [{o}], got {tuple(rad.shape)}")
         if bool((self.obstacle_radius.detach() <= 0).any()):
@@ -192,7 +208,7 @@ class LinkBoxBarrier(_LinkSpheres):
         o = _obstacles(self, box_center)
         e = self.register_constant("half_extents", box_half_extents)
         if e.dim() == 1:
-            reshape(self, "half_extents", lambda t: t.unsqueeze(0))
+            reshape(self, "half_extents", _one_row)
         if self.half_extents.shape != (o, 3):
             raise ValueError(
                 f"box_half_extents must have shape [3] or [{o}, 3], got {tuple(e.shape)}"

@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any, ClassVar, NamedTuple
 
@@ -26,7 +27,7 @@ from torchcbf._checks import (
     stale_on,
     unless_hooked,
 )
-from torchcbf._constants import store
+from torchcbf._constants import DerivedConstants, derive, store
 
 SigmaSpec = float | Tensor | Callable[[Tensor], Tensor] | None
 LimitSpec = float | Tensor | list[float] | tuple[float, ...] | None
@@ -83,7 +84,7 @@ def matmat(a: Tensor, b: Tensor) -> Tensor:
     return out
 
 
-class ControlAffine(nn.Module):
+class ControlAffine(DerivedConstants):
     """Control-affine system ``xdot = f(x) + g(x) u (+ M w)``, optionally an SDE.
 
     Subclasses set ``state_dim`` and ``control_dim`` (through ``super().__init__``) and write
@@ -147,21 +148,24 @@ class ControlAffine(nn.Module):
         self.control_dim = int(control_dim)
         self._sigma_fn: Callable[[Tensor], Tensor] | None = None
         self.register_buffer("sigma_matrix", None)
+        # constants given as a parameter that these casts and shapes change are kept and
+        # cast and shaped at each read (torchcbf._constants.derive): they train
         if callable(sigma) and not isinstance(sigma, Tensor):
             self._sigma_fn = sigma
         elif sigma is not None:
-            self.sigma_matrix = _sigma_matrix(sigma, self.state_dim)
-        self.register_buffer("u_min", as_limit("u_min", u_min, self.control_dim))
-        self.register_buffer("u_max", as_limit("u_max", u_max, self.control_dim))
-        check_bounds("u_min", self.u_min, "u_max", self.u_max)
+            derive(self, "sigma_matrix", sigma, functools.partial(_sigma_matrix, n=self.state_dim))
+        m = self.control_dim
+        lo = derive(self, "u_min", u_min, functools.partial(as_limit, "u_min", size=m))
+        hi = derive(self, "u_max", u_max, functools.partial(as_limit, "u_max", size=m))
+        check_bounds("u_min", lo, "u_max", hi)
         self.register_buffer("disturbance_matrix", None)
         self.register_buffer("disturbance_bound", None)
         if disturbance_bound is not None or disturbance_matrix is not None:
-            M = (
-                torch.eye(self.state_dim, dtype=torch.float64)
-                if disturbance_matrix is None
-                else as_tensor("disturbance_matrix", disturbance_matrix, dtype=torch.float64)
-            )
+            if disturbance_matrix is None:
+                disturbance_matrix = torch.eye(self.state_dim, dtype=torch.float64)
+            as_f64 = functools.partial(as_tensor, "disturbance_matrix", dtype=torch.float64)
+            M = derive(self, "disturbance_matrix", disturbance_matrix, as_f64)
+            assert M is not None
             if M.dim() != 2 or M.shape[0] != self.state_dim:
                 raise ValueError(
                     f"disturbance_matrix must have shape [{self.state_dim}, p], "
@@ -169,13 +173,12 @@ class ControlAffine(nn.Module):
                 )
             check_finite("disturbance_matrix", M)
             bound = 0.0 if disturbance_bound is None else disturbance_bound
-            w_max = as_limit("disturbance_bound", bound, M.shape[1])
+            limit = functools.partial(as_limit, "disturbance_bound", size=M.shape[1])
+            w_max = derive(self, "disturbance_bound", bound, limit)
             assert w_max is not None
             check_finite("disturbance_bound", w_max)
             if bool((w_max.detach() < 0).any()):
                 raise ValueError(f"disturbance_bound must be >= 0, got {w_max.detach().tolist()}")
-            self.disturbance_matrix = M
-            self.disturbance_bound = w_max
 
     # -- to be written by subclasses -------------------------------------------------------
     def f(self, x: Tensor) -> Tensor:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from enum import IntEnum
 from typing import NamedTuple
 
@@ -19,7 +20,7 @@ from torchcbf._checks import (
     check_spd,
     check_tensor,
 )
-from torchcbf._constants import ExactConstants, remember
+from torchcbf._constants import DerivedConstants, ExactConstants, derive, remember
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.estimation._linalg import symmetrize
 from torchcbf.estimation.sensors import Perfect, Sensor
@@ -184,14 +185,16 @@ def _check_state(state: object, n: int | None) -> tuple[Tensor, Tensor, Tensor]:
 def _noise_spec(module: nn.Module, buffer: str, name: str, value: object, n: int) -> Tensor:
     """Register as ``buffer`` the covariance argument ``name``: a scalar (``v I``), a vector
     (diagonal) or ``[n, n]`` (symmetric positive definite), exact under ``.double()`` when
-    given as numbers; a tensor keeps its dtype (and its gradient when it requires grad)."""
+    given as numbers; a tensor keeps its dtype, and one that requires grad is kept and made
+    the matrix at each read (:func:`~torchcbf._constants.derive`: a parameter trains)."""
     if isinstance(value, Tensor):
-        module.register_buffer(buffer, as_matrix(name, value, n))
-        return getattr(module, buffer)
+        out = derive(module, buffer, value, functools.partial(as_matrix, name, size=n))
+        assert out is not None
+        return out
     return remember(module, buffer, as_matrix(name, value, n, dtype=torch.float64))
 
 
-class _KalmanFilter(ExactConstants, Estimator):
+class _KalmanFilter(ExactConstants, DerivedConstants, Estimator):
     """Shared construction, validation and batching of the Kalman-type filters.
 
     Process noise: ``Q`` is the continuous-time intensity ``Q_c [n, n]`` of the white noise

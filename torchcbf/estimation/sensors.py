@@ -14,10 +14,11 @@ Every sensor has
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from torchcbf._checks import (
     as_tensor,
@@ -29,14 +30,21 @@ from torchcbf._checks import (
     check_spd,
     check_tensor,
 )
-from torchcbf._constants import ExactConstants, remember, store
+from torchcbf._constants import (
+    DerivedConstants,
+    ExactConstants,
+    derive,
+    derive_from,
+    remember,
+    store,
+)
 from torchcbf.barriers._params import take
 from torchcbf.estimation._linalg import wrap_angle
 
 __all__ = ["FunctionSensor", "GaussianSensor", "Perfect", "RangeBearing", "Sensor", "wrap_angle"]
 
 
-class Sensor(ExactConstants, nn.Module):
+class Sensor(ExactConstants, DerivedConstants):
     """Base class: subclasses implement :meth:`expected` and call ``_set_noise``.
 
     Noise given as Python numbers is exact under ``.double()``; a tensor that requires grad
@@ -67,9 +75,14 @@ class Sensor(ExactConstants, nn.Module):
             mask[list(self.angle_index)] = True
         self.register_buffer("angle_mask", mask)
 
-    def _set_noise(self, R: Tensor, *, exact: bool = False) -> None:
-        """Register ``R [p, p]`` and its Cholesky factor; ``exact``: ``R`` is the float64 value
-        of Python numbers (stored in the default dtype, re-derived by ``.double()``)."""
+    def _set_noise(
+        self, value: object, fn: Callable[[object], Tensor], *, exact: bool = False
+    ) -> None:
+        """Register ``R = fn(value) [p, p]`` (``value``: the covariance, or the standard
+        deviations it is made of) and its Cholesky factor ``R_sqrt``; ``exact``: ``value`` is
+        Python numbers (``R`` stored in the default dtype, re-derived by ``.double()``). A
+        ``value`` that requires grad is kept, and both are made from it at each read."""
+        R = fn(value)
         p = R.shape[-1]
         if R.shape != (p, p) or (self.output_dim is not None and p != self.output_dim):
             raise ValueError(
@@ -77,7 +90,10 @@ class Sensor(ExactConstants, nn.Module):
             )
         check_finite("R", R)
         check_spd("R", R)
-        if exact:
+        if isinstance(value, Tensor) and value.requires_grad:
+            derive(self, "R", value, fn)
+            derive_from(self, "R_sqrt", "R", torch.linalg.cholesky)
+        elif exact:
             remember(self, "R", R)
             remember(self, "R_sqrt", torch.linalg.cholesky(R))
         else:
@@ -135,16 +151,26 @@ def _from_numbers(value: object) -> bool:
     return value is not None and not isinstance(value, Tensor)
 
 
-def _noise_matrix(std: object, R: object, p: int | None) -> Tensor:
-    """``R`` from exactly one of ``std`` (scalar or ``[p]``) and ``R`` (``[p, p]``), in float64
-    when given as Python numbers."""
+def _noise(std: object, R: object, p: int | None) -> tuple[object, Callable[[object], Tensor]]:
+    """Exactly one of ``std`` (scalar or ``[p]``) and ``R`` (``[p, p]``), with the function
+    that makes the covariance of it."""
     if (std is None) == (R is None):
         raise ValueError("give exactly one of std= (standard deviations) and R= (covariance)")
     if R is not None:
-        R_t = _number_or_tensor("R", R)
-        if R_t.dim() != 2:
-            raise ValueError(f"R must be a matrix [p, p], got {tuple(R_t.shape)}")
-        return R_t
+        return R, _covariance
+    return std, functools.partial(_covariance_of_std, p=p)
+
+
+def _covariance(R: object) -> Tensor:
+    """``R [p, p]`` as given (a tensor), or exact float64 of Python numbers."""
+    R_t = _number_or_tensor("R", R)
+    if R_t.dim() != 2:
+        raise ValueError(f"R must be a matrix [p, p], got {tuple(R_t.shape)}")
+    return R_t
+
+
+def _covariance_of_std(std: object, p: int | None) -> Tensor:
+    """``diag(std^2)`` of standard deviations given as a scalar (needs ``p``) or ``[p]``."""
     s = check_finite("std", _number_or_tensor("std", std))
     if s.dim() == 0:
         if p is None:
@@ -212,13 +238,14 @@ class GaussianSensor(Sensor):
             if p is None:
                 raise ValueError("GaussianSensor without C needs state_dim=, a vector std or R")
             C_t = torch.eye(p, dtype=torch.float64)
-        R_t = _noise_matrix(std, R, p)
+        noise, covariance = _noise(std, R, p)
+        covariance(noise)  # checked before the module is built
         super().__init__(output_dim=C_t.shape[0], state_dim=C_t.shape[1])
         if C is None or _from_numbers(C):
             remember(self, "C", C_t)
         else:
             store(self, "C", C_t)
-        self._set_noise(R_t, exact=_from_numbers(std) or _from_numbers(R))
+        self._set_noise(noise, covariance, exact=_from_numbers(std) or _from_numbers(R))
 
     def expected(self, x: Tensor) -> Tensor:
         """``C x``: ``[..., n] -> [..., p]``."""
@@ -253,15 +280,13 @@ class FunctionSensor(Sensor):
     ) -> None:
         if not callable(fn):
             raise TypeError(f"fn must be callable, got {type(fn).__name__}")
-        R_t = _noise_matrix(std, R, output_dim)
-        p = R_t.shape[-1]
+        noise, covariance = _noise(std, R, output_dim)
+        p = covariance(noise).shape[-1]
         if output_dim is not None and p != output_dim:
-            raise ValueError(
-                f"R must have shape [{output_dim}, {output_dim}], got {tuple(R_t.shape)}"
-            )
+            raise ValueError(f"R must have shape [{output_dim}, {output_dim}], got {(p, p)}")
         super().__init__(output_dim=p, state_dim=state_dim, angle_index=angle_index)
         self.fn = fn
-        self._set_noise(R_t, exact=_from_numbers(std) or _from_numbers(R))
+        self._set_noise(noise, covariance, exact=_from_numbers(std) or _from_numbers(R))
 
     def expected(self, x: Tensor) -> Tensor:
         """``fn(x)``: ``[..., n] -> [..., p]``, angle components wrapped."""
@@ -315,7 +340,7 @@ class RangeBearing(Sensor):
             raise ValueError(f"position_index must name 2 components, got {position_index}")
         self.heading_index = None if heading_index is None else int(heading_index)
         var = torch.tensor([std_range**2, std_bearing**2], dtype=torch.float64).repeat(L)
-        self._set_noise(torch.diag(var), exact=True)
+        self._set_noise(torch.diag(var), _covariance, exact=True)
 
     def expected(self, x: Tensor) -> Tensor:
         """``[r_1, b_1, ..., r_L, b_L]``: ``[..., n] -> [..., 2L]``."""

@@ -10,6 +10,7 @@ import torch
 from torch import Tensor, nn
 
 from torchcbf._checks import check_last_dim
+from torchcbf._constants import store
 
 FallbackSpec = Literal["clip", "brake"] | Tensor | Callable[[Tensor, Tensor], Tensor]
 
@@ -19,7 +20,8 @@ class Fallback(nn.Module):
 
     Args:
         spec: ``"clip"`` (``u_nom`` clipped to the limits, default), ``"brake"`` (zero
-            clipped to the limits), a tensor ``[m]``, or a callable
+            clipped to the limits), a tensor ``[m]`` (one that requires grad keeps its
+            gradient, a parameter trains), or a callable
             ``(x [B, n], u_nom [B, m]) -> [B, m]``. Wherever the result is non-finite, zero
             clipped to the limits is used.
         control_dim: ``m``.
@@ -41,7 +43,8 @@ class Fallback(nn.Module):
                     f"fallback as a tensor must have shape [{control_dim}], got {tuple(spec.shape)}"
                 )
             self.kind = "tensor"
-            self.control = spec.detach().clone()
+            del self._buffers["control"]
+            store(self, "control", spec)  # a tensor that requires grad keeps its gradient
         elif callable(spec):
             self.kind = "callable"
             self.function = spec

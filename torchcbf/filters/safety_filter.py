@@ -39,6 +39,7 @@ call as the QP; every other case takes the torch closed forms and autograd.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from enum import IntEnum
@@ -61,6 +62,7 @@ from torchcbf._checks import (
     rows_finite,
 )
 from torchcbf._compile import Traced, TraceError, logger
+from torchcbf._constants import DerivedConstants, ExactConstants, derive
 from torchcbf.barriers import native
 from torchcbf.barriers.compiled import CompiledLie
 from torchcbf.barriers.lie import LieFunction, LieTerms, own_lie, stacked_lie_derivatives
@@ -203,7 +205,7 @@ def _slack(slack: Slack | str) -> Slack:
     raise TypeError(f"slack must be a Slack or one of {SLACK_MODES}, got {type(slack).__name__}")
 
 
-class SafetyFilter(nn.Module):
+class SafetyFilter(ExactConstants, DerivedConstants):
     """CBF/CLF-QP safety filter (vanilla, robust, stochastic or risk-aware), batched.
 
     Args:
@@ -322,10 +324,14 @@ class SafetyFilter(nn.Module):
         m = dynamics.control_dim
         self.alpha = _alphas("alpha", alpha, len(self.barriers))
         self.clf_rate = _alphas("clf_rate", clf_rate, len(self.lyapunovs))
+        # Python numbers stay exact under .double(); a parameter (a vector R, a scalar bound)
+        # is kept and shaped at each read, so that it trains
         weight = torch.eye(m, dtype=torch.float64) if R is None else R
-        self.register_buffer("R", as_matrix("R", weight, m, dtype=torch.float64))
-        self.register_buffer("u_min", as_limit("u_min", u_min, m))
-        self.register_buffer("u_max", as_limit("u_max", u_max, m))
+        as_weight = functools.partial(as_matrix, "R", size=m, dtype=torch.float64)
+        derive(self, "R", weight, as_weight, exact=not isinstance(R, Tensor))
+        for name, limit in (("u_min", u_min), ("u_max", u_max)):
+            as_bound = functools.partial(as_limit, name, size=m)
+            derive(self, name, limit, as_bound, exact=not isinstance(limit, Tensor))
         lo, hi = self._limit_tensors()
         check_bounds("u_min", lo, "u_max", hi)
         self.slack = _slack(slack).resolved(lyapunovs=bool(self.lyapunovs))
