@@ -239,3 +239,30 @@ def test_a_saddle_of_a_rounded_singular_q_is_never_solved(kernel, method, dtype,
     for i in range(5):
         ref = least_stationary_objective(Q[i], p[i], G[i], h[i])
         assert abs(float(got[i]) - ref) <= 1e-4 * (1 + abs(ref)), (i, float(got[i]), ref)
+
+
+@pytest.mark.parametrize("B", [1, 8, 64])
+@pytest.mark.parametrize("grad", [False, True])
+def test_an_indefinite_box_problem_is_solved_at_its_minimiser_not_a_degenerate_corner(B, grad):
+    """A separable problem with some curvatures negative on the box [-1, 1]^n: a corner
+    where every bound is tight with a zero multiplier (the gradient zero there) is a KKT
+    point but no minimiser; every batch size and path answers the global minimiser, which
+    the separable problem gives coordinate by coordinate."""
+    gen = torch.Generator().manual_seed(B)
+    n = 4
+    curv = torch.randn(B, n, generator=gen, dtype=torch.float64)
+    curv[:, 0] = -1.0  # one negative curvature in each row
+    # p so that the point x* = -sign pattern is a corner with zero gradient: q_i x_i + p_i = 0
+    corner = torch.where(torch.rand(B, n, generator=gen) < 0.5, -1.0, 1.0).double()
+    p = -curv * corner
+    Q = torch.diag_embed(curv)
+    candidates = torch.stack([-torch.ones_like(p), torch.ones_like(p),
+                              (-p / curv).clamp(-1.0, 1.0)], -1)  # fmt: skip
+    values = 0.5 * curv.unsqueeze(-1) * candidates**2 + p.unsqueeze(-1) * candidates
+    best = values.amin(-1).sum(-1)
+    pq = p.clone().requires_grad_(grad)
+    sol = solve_qp(Q, pq, lb=-1.0, ub=1.0)
+    assert bool((sol.status == 0).all())
+    x = sol.x.detach()
+    f = (0.5 * curv * x**2 + p * x).sum(-1)
+    torch.testing.assert_close(f, best, atol=1e-9, rtol=1e-9)

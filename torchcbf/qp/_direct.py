@@ -27,8 +27,9 @@ import torch
 from torch import Tensor
 
 from torchcbf.qp._backends import WATCH_TOL, descends, solve_watched
+from torchcbf.qp._data import QPData
 from torchcbf.qp._eliminate import RANK_TOL
-from torchcbf.qp._function import ROUTE_EPS, ROUTE_MAX_ITER, data_scaling
+from torchcbf.qp._function import ROUTE_EPS, ROUTE_MAX_ITER, data_scaling, saddle_solved
 from torchcbf.qp._lu import lu_factor_ex
 
 _BIG = 1e20
@@ -120,6 +121,8 @@ def solve_direct(
                                         lam_lb, lam_ub)  # fmt: skip
     if descends(P, q, Gn, An, lbn, ubn, free, x, eps_inf):
         return None
+    if _saddle(P, q, Gn, hn, An, bn, lbn, ubn, x, eps):
+        return None
     lam, y, lam_lb, lam_ub = lam / c, y / c, lam_lb / c, lam_ub / c  # of (P, q) again
     dtype = Q.dtype
 
@@ -131,6 +134,32 @@ def solve_direct(
         out(x), status, out(lam), out(y), torch.from_numpy(iters).reshape(shape),
         out(lam_lb), out(lam_ub), out(np.zeros((B, m))),
     )  # fmt: skip
+
+
+def _saddle(
+    P: np.ndarray,
+    q: np.ndarray,
+    G: np.ndarray,
+    h: np.ndarray,
+    A: np.ndarray,
+    b: np.ndarray,
+    lb: np.ndarray,
+    ub: np.ndarray,
+    x: np.ndarray,
+    eps: float,
+) -> bool:
+    """Whether some row's ``x`` is a KKT point but no minimiser (``P`` indefinite: proxsuite
+    stops at any KKT point), by :func:`torchcbf.qp._function.saddle_solved` with the bounds
+    as rows."""
+    if np.all(np.linalg.eigvalsh(P)[:, 0] > 0):
+        return False
+    n = P.shape[-1]
+    eye = np.broadcast_to(np.eye(n), (P.shape[0], n, n))
+    rows = np.concatenate([G, eye, -eye], axis=1)
+    bounds = np.concatenate([h, ub, -lb], axis=1)
+    data = QPData(*(torch.from_numpy(np.ascontiguousarray(v)) for v in (P, q, rows, bounds, A, b)))
+    xt = torch.from_numpy(x)
+    return bool(saddle_solved(data, xt, torch.ones(x.shape[0], dtype=torch.bool), eps).any())
 
 
 def _rank_deficient(A: np.ndarray) -> bool:

@@ -519,7 +519,7 @@ def _polish_and_resolve(
         data, x, s, z, y, status, eps=cfg.eps
     )
     # a saddle is no answer: the row is re-solved like one the method gave up on
-    saddle = saddle_solved(data, x, status == int(Status.SOLVED), cfg)
+    saddle = saddle_solved(data, x, status == int(Status.SOLVED), cfg.eps)
     status = torch.where(saddle, int(Status.NUMERICAL_ERROR), status)
     solved = status == int(Status.SOLVED)
     failed = (status == int(Status.NUMERICAL_ERROR)) | (status == int(Status.MAX_ITER))
@@ -639,7 +639,7 @@ def unbounded_solved(data: QPData, x: Tensor, solved: Tensor, cfg: SolverConfig)
     return torch.zeros_like(cand).index_copy(0, idx, found)
 
 
-def saddle_solved(data: QPData, x: Tensor, solved: Tensor, cfg: SolverConfig) -> Tensor:
+def saddle_solved(data: QPData, x: Tensor, solved: Tensor, eps: float) -> Tensor:
     """Rows ``[B]`` among ``solved`` whose ``x`` is a stationary point but no minimiser: ``P``
     is not positive definite, and along a direction of negative curvature in the null space
     of the rows tight at ``x`` (equality rows included) the objective falls, inside the
@@ -660,37 +660,59 @@ def saddle_solved(data: QPData, x: Tensor, solved: Tensor, cfg: SolverConfig) ->
     idx = cand.nonzero().squeeze(-1)
     P, q, G, h, A = (t.index_select(0, idx) for t in (P, q, G, h, A))
     x = x.index_select(0, idx)
-    n = P.shape[-1]
     Gx = G @ x.unsqueeze(-1)
     slack = h - Gx.squeeze(-1)
-    tight = slack <= cfg.eps * (1.0 + Gx.squeeze(-1).abs())
-    C = torch.cat([A, G * tight.unsqueeze(-1)], dim=-2)
+    tight = slack <= eps * (1.0 + Gx.squeeze(-1).abs())
+    g = (P @ x.unsqueeze(-1)).squeeze(-1) + q
+    f = 0.5 * (x * (g + q)).sum(-1)
+    worst = torch.zeros_like(f)
+    # first in the null space of every tight row; then in that of the equality rows alone,
+    # leaving the tight rows inwards (a tight row whose multiplier is zero does not hold a
+    # minimiser on its face: at a corner of the box every direction may be blocked by one)
+    for inwards in (False, True):
+        fall = _curvature_fall(P, G, A, g, slack, tight, inwards)
+        worst = torch.maximum(worst, fall)
+    found = worst > eps * (1.0 + f.abs())
+    return torch.zeros_like(cand).index_copy(0, idx, found)
+
+
+def _curvature_fall(
+    P: Tensor, G: Tensor, A: Tensor, g: Tensor, slack: Tensor, tight: Tensor, inwards: bool
+) -> Tensor:
+    """The largest fall of the objective ``[b]`` along a direction of negative curvature of
+    ``P`` (an eigenvector of ``P`` reduced to the null space of ``A`` and, unless
+    ``inwards``, of the ``tight`` rows), followed either way to the first row it crosses;
+    with ``inwards``, a way that leaves a tight row outwards is blocked. ``g``: the
+    gradient ``P x + q`` at the point, ``slack [b, M]`` of its rows."""
+    n = P.shape[-1]
+    C = A if inwards else torch.cat([A, G * tight.unsqueeze(-1)], dim=-2)
     eye = torch.eye(n, dtype=P.dtype, device=P.device)
     if C.shape[-2] > 0:
         _, sv, Vh = torch.linalg.svd(C, full_matrices=False)
         keep = sv > 1e-9 * sv.amax(-1, keepdim=True).clamp_min(torch.finfo(P.dtype).tiny)
         V = Vh.mT * keep.unsqueeze(-2)
-        Z = eye - V @ V.mT  # projector on the null space of the tight rows
+        Z = eye - V @ V.mT  # projector on the null space of the rows
     else:
         Z = eye.expand_as(P)
     mu, D = torch.linalg.eigh(Z @ (0.5 * (P + P.mT)) @ Z)
     tau = rounding_scale(P, torch.finfo(P.dtype).eps).unsqueeze(-1)
     neg = mu < -tau  # [b, n]: directions (columns of D) of negative curvature
-    g = (P @ x.unsqueeze(-1)).squeeze(-1) + q
-    f = 0.5 * (x * (g + q)).sum(-1)
     gd = (g.unsqueeze(-1) * D).sum(-2)  # [b, n]
     Gd = G @ D  # [b, M, n]
     free = ~tight.unsqueeze(-1) & torch.isfinite(slack).unsqueeze(-1)
-    worst = torch.zeros_like(f)
+    worst = torch.zeros_like(g[..., 0])
     for sign in (1.0, -1.0):
         rate = sign * Gd
-        crosses = free & (rate > 1e-12 * Gd.abs().amax(-2, keepdim=True))
+        moving = rate > 1e-12 * Gd.abs().amax(-2, keepdim=True)
+        crosses = free & moving
         ratio = torch.where(crosses, slack.clamp_min(0.0).unsqueeze(-1) / rate, torch.inf)
         t = ratio.amin(-2)  # [b, n]; inf: a ray without a row
         fall = torch.where(torch.isinf(t), torch.inf, -(sign * t * gd + 0.5 * mu * t * t))
-        worst = torch.maximum(worst, torch.where(neg, fall, 0.0).amax(-1))
-    found = worst > cfg.eps * (1.0 + f.abs())
-    return torch.zeros_like(cand).index_copy(0, idx, found)
+        usable = neg
+        if inwards:
+            usable = usable & ~(tight.unsqueeze(-1) & moving).any(-2)
+        worst = torch.maximum(worst, torch.where(usable, fall, 0.0).amax(-1))
+    return worst
 
 
 def _drop_unbounded(
@@ -919,7 +941,8 @@ def _certify_ill_conditioned(
         # answer; both need P singular to rounding, which one factorisation rules out
         odd = done & singular_to_rounding(data.P, data.P, cfg.rounding)
         if bool(odd.any()):
-            done = done & ~saddle_solved(data, x, odd, cfg) & ~unbounded_solved(data, x, odd, cfg)
+            bad = saddle_solved(data, x, odd, cfg.eps) | unbounded_solved(data, x, odd, cfg)
+            done = done & ~bad
         left = rows & ~done
         if not bool(left.any()):
             return x, z, done
@@ -934,7 +957,7 @@ def _certify_ill_conditioned(
     good = conv
     if bool(conv.any()):
         good = conv & _kkt.kkt_point(sub, xs, zs, ys)
-        good = good & ~unbounded_solved(sub, xs, good, cfg) & ~saddle_solved(sub, xs, good, cfg)
+        good = good & ~unbounded_solved(sub, xs, good, cfg) & ~saddle_solved(sub, xs, good, cfg.eps)
     rho = PROX_WEIGHT * sub.P.diagonal(dim1=-2, dim2=-1).amax(-1)
     Pr = sub.P + torch.diag_embed(rho.unsqueeze(-1).expand_as(sub.q))
     center = torch.zeros_like(xs)
@@ -953,7 +976,7 @@ def _certify_ill_conditioned(
         new = ~good & solved & _kkt.kkt_point(sub, xp, zp, yp)
         # a point far along a direction where P is singular to rounding is no answer (the
         # interior point method certifies such a row unbounded), nor a saddle
-        new = new & ~unbounded_solved(sub, xp, new, cfg) & ~saddle_solved(sub, xp, new, cfg)
+        new = new & ~unbounded_solved(sub, xp, new, cfg) & ~saddle_solved(sub, xp, new, cfg.eps)
         keep = new.unsqueeze(-1)
         xs, zs = torch.where(keep, xp, xs), torch.where(keep, zp, zs)
         good = good | new
