@@ -185,6 +185,26 @@ def test_a_velocity_set_after_the_first_call_is_seen(compile) -> None:
     torch.testing.assert_close(a.u, b.u, atol=1e-9, rtol=1e-9)
 
 
+@pytest.mark.parametrize("compile", [True, {}])
+def test_a_barrier_replaced_after_the_first_call_is_traced(compile) -> None:
+    """A barrier the filter's list holds instead of another after a call is the one the
+    compiled filter answers with, as a filter built with it."""
+    model = Unicycle(u_min=-2.0, u_max=2.0).double()
+    fns = [SuperEllipse([2.0, 0.5], [0.6, 0.4]).double(), Ball([0.0, 3.0], 0.5).double()]
+    filt = SafetyFilter(model, fns, compile=compile).double()
+    x = torch.tensor([[0.2, 0.1, 0.3], [0.9, 0.0, -1.0]], dtype=torch.float64)
+    u = torch.tensor([[1.5, 1.0], [1.0, -1.0]], dtype=torch.float64)
+    new = SuperEllipse([0.6, 0.4], [0.3, 0.3]).double()
+    with torch.no_grad():
+        filt(x, u)
+        filt.barriers[0] = new
+        a = filt(x, u)
+        b = SafetyFilter(model, [new, fns[1]], backend="torch").double()(x, u)
+    assert a.path.startswith("compiled/")
+    torch.testing.assert_close(a.h, b.h, atol=1e-9, rtol=1e-9)
+    torch.testing.assert_close(a.u, b.u, atol=1e-9, rtol=1e-9)
+
+
 def test_a_backend_that_fails_warns_and_runs_eager(caplog: pytest.LogCaptureFixture) -> None:
     def failing(gm, example_inputs):
         raise RuntimeError("no compiler here")

@@ -42,9 +42,10 @@ class CompiledLie:
         options: keyword arguments of ``torch.compile`` (default ``dynamic=False``).
 
     It holds references to ``fns`` and ``dynamics`` (the owner's modules, moved and trained
-    with it). ``self(x [B, n], t [B]) -> (LieTerms, sizes)`` as
-    :func:`~torchcbf.barriers.lie.stacked_lie_derivatives` returns them (``h, lfh, dhdt,
-    hess_trace [B, K]``, ``lgh [B, K, m]``, ``dhdx [B, K, n]``), without a graph.
+    with it; an owner that replaces one calls :meth:`follow`). ``self(x [B, n], t [B]) ->
+    (LieTerms, sizes)`` as :func:`~torchcbf.barriers.lie.stacked_lie_derivatives` returns
+    them (``h, lfh, dhdt, hess_trace [B, K]``, ``lgh [B, K, m]``, ``dhdx [B, K, n]``),
+    without a graph.
     """
 
     def __init__(
@@ -58,8 +59,18 @@ class CompiledLie:
         self.fns = list(fns)
         self.dynamics = dynamics
         self.sizes: list[int] | None = None
-        self.hessian = bool(hessian) and dynamics.has_diffusion
+        self._hessian_asked = bool(hessian)
+        self.hessian = self._hessian_asked and dynamics.has_diffusion
         self._call: Compiled | None = Compiled(self._terms, {"dynamic": False, **(options or {})})
+
+    def follow(self, fns: Sequence[LieFunction], dynamics: ControlAffine) -> None:
+        """Hold ``fns`` and ``dynamics`` from now on where they are not those held (an owner
+        whose function or model was replaced: the next call traces them)."""
+        same = dynamics is self.dynamics and len(fns) == len(self.fns)
+        if same and all(a is b for a, b in zip(fns, self.fns, strict=True)):
+            return
+        self.fns, self.dynamics, self.sizes = list(fns), dynamics, None
+        self.hessian = self._hessian_asked and dynamics.has_diffusion
 
     @property
     def timed(self) -> bool:

@@ -554,6 +554,7 @@ class SafetyFilter(ExactConstants, DerivedConstants):
         ``V [B,c]`` and where the Lie terms came from (``native``, ``torch`` or ``mixed``).
         With ``prepare``, the CBF conditions may be a prepared native call (see
         :meth:`_native_cbf`), for the real-time path."""
+        compiled = self._compiled_lies()
         traced = (
             self._traced is not None and self.lie_method == "auto" and not torch.is_grad_enabled()
         )
@@ -566,7 +567,6 @@ class SafetyFilter(ExactConstants, DerivedConstants):
             found = self._traced_conditions(x, t)
             if found is not None:
                 return found
-        compiled = self._compiled_lie or (None, None)
         if native_cbf:
             cbf_terms, cbf_sizes, cbf_from = None, [], "native"
         else:
@@ -588,6 +588,20 @@ class SafetyFilter(ExactConstants, DerivedConstants):
             V = clf_terms.h
         return cbf, clf, h, V, lie  # type: ignore[return-value]
 
+    def _compiled_lies(self) -> tuple[CompiledLie | None, CompiledLie | None]:
+        """The compiled Lie terms of the barriers and of the Lyapunov functions, following the
+        functions and the model the filter holds now (a replaced one is traced again;
+        functions added where there were none take the autograd path)."""
+        if self._compiled_lie is None:
+            return None, None
+        held = (self.barriers, self.lyapunovs)
+        lies = []
+        for lie, fns in zip(self._compiled_lie, held, strict=True):
+            if lie is not None:
+                lie.follow(fns, self.dynamics)
+            lies.append(lie if lie is not None and len(fns) > 0 else None)
+        return lies[0], lies[1]
+
     def _compiled_conditions(self, x: Tensor, t: Tensor) -> tuple[Tensor, ...]:
         """``(h, a, b)`` of the CBF rows, then ``(V, a, b)`` of the CLF rows (where there are
         functions) from the compiled Lie terms' own function: what ``compile=True`` traces
@@ -599,7 +613,7 @@ class SafetyFilter(ExactConstants, DerivedConstants):
             (self._compiled_lie[1], self.clf_rate, "clf_rate", self.condition.clf),
         )
         for lie, gains, name, condition in parts:
-            if lie is None:
+            if lie is None or not lie.fns:
                 continue
             terms, sizes = lie.evaluate(x, t)
             k = lambda v, g=gains, s=sizes, n=name: self._class_k(g, v, s, n)  # noqa: E731
