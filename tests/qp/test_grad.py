@@ -192,3 +192,20 @@ def test_gradient_at_a_degenerate_vertex_is_zero(kernel):
         sol = solve_qp(torch.eye(2, dtype=F64), p, G, h, method=method)
         (grad,) = torch.autograd.grad(sol.x @ torch.tensor([1.0, -2.0], dtype=F64), p)
         assert grad.abs().max() <= 1e-12, method
+
+
+@pytest.mark.parametrize("method", ["auto", "enumerate", "ipm"])
+@pytest.mark.parametrize("q_depends", [False, True])
+def test_a_second_derivative_through_the_qp_raises(method, q_depends):
+    """The backward reuses the forward's factor: a second derivative would be wrong, so
+    backpropagating through a first derivative taken with create_graph=True raises."""
+    f64 = torch.float64
+    p = torch.tensor([-3.0, -1.0], dtype=f64, requires_grad=True)
+    Q = torch.tensor([[2.0, 0.3], [0.3, 1.0]], dtype=f64)
+    if q_depends:
+        Q = Q + torch.diag(p.square())
+    G, h = torch.tensor([[1.0, 1.0]], dtype=f64), torch.tensor([10.0], dtype=f64)
+    x = solve_qp(Q, p, G, h, method=method).x
+    (g,) = torch.autograd.grad((x**3).sum(), p, create_graph=True)
+    with pytest.raises(RuntimeError, match="once_differentiable"):
+        g.square().sum().backward()

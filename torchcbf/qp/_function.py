@@ -14,6 +14,7 @@ from typing import NamedTuple
 
 import torch
 from torch import Tensor
+from torch.autograd.function import once_differentiable
 
 from torchcbf.qp import _dual_native, _kkt
 from torchcbf.qp import _eliminate as eliminate
@@ -1142,6 +1143,7 @@ class QPFunction(torch.autograd.Function):
         return _cast(x, dtype), _cast(z, dtype), _cast(y, dtype), status, iters, method
 
     @staticmethod
+    @once_differentiable  # the factor is the forward's: a second derivative would be wrong
     def backward(ctx, gx, gz, gy, _gs, _gi, _gm):  # noqa: D102
         x, z, y, status = ctx.saved_tensors
         gx, gz, gy = (g.to(torch.float64) for g in (gx, gz, gy))
