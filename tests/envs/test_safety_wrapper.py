@@ -11,7 +11,7 @@ import torch
 gym = pytest.importorskip("gymnasium")
 envs = pytest.importorskip("torchcbf.envs")
 
-from torchcbf.barriers import Ball  # noqa: E402
+from torchcbf.barriers import Ball, rectify  # noqa: E402
 from torchcbf.dynamics import SingleIntegrator  # noqa: E402
 from torchcbf.filters import FilterStatus, SafetyFilter  # noqa: E402
 from torchcbf.scenarios import mppi_cbf  # noqa: E402
@@ -144,3 +144,22 @@ def test_a_users_env_works_given_a_state_function() -> None:
         envs.SafetyFilterWrapper(_PointEnv(), 3.0, state_fn=lambda obs: obs[:2])
     with pytest.raises(TypeError, match="env"):
         envs.SafetyFilterWrapper("not an env", filt)
+
+
+def test_a_wrapped_env_passes_gymnasiums_checker_and_is_made_again_from_its_spec() -> None:
+    """The wrapper records its arguments in the env's spec (holding the same filter), so
+    Gymnasium's check_env passes and ``env.spec.make()`` builds the wrapped env again."""
+    import warnings
+
+    from gymnasium.utils.env_checker import check_env
+
+    env = gym.make("torchcbf/UnicycleEllipses-v0")
+    dyn = env.unwrapped.dynamics
+    barriers = [rectify(b, dyn, form="exponential", gains=[5.0]) for b in env.unwrapped.barriers]
+    filt = SafetyFilter(dyn, barriers, alpha=5.0)
+    safe = envs.SafetyFilterWrapper(env, filt)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # Gymnasium's advice to check the unwrapped env
+        check_env(safe, skip_render_check=True)
+    again = safe.spec.make()
+    assert isinstance(again, envs.SafetyFilterWrapper) and again.safety_filter is filt

@@ -94,7 +94,7 @@ class _Filtering:
         return obs, info
 
 
-class SafetyFilterWrapper(_Filtering, gymnasium.Wrapper):
+class SafetyFilterWrapper(_Filtering, gymnasium.Wrapper, gymnasium.utils.RecordConstructorArgs):
     """Filter every action of ``env`` through ``safety_filter`` (a
     :class:`~torchcbf.filters.SafetyFilter` or a module with its call signature).
 
@@ -130,6 +130,12 @@ class SafetyFilterWrapper(_Filtering, gymnasium.Wrapper):
     ) -> None:
         if not isinstance(env, gymnasium.Env):
             raise TypeError(f"env must be a gymnasium Env or VectorEnv, got {type(env).__name__}")
+        # the env's spec records the wrapper (so env.spec.make() builds it again), holding
+        # the same filter and functions rather than copies of them
+        gymnasium.utils.RecordConstructorArgs.__init__(
+            self, _disable_deepcopy=True, safety_filter=safety_filter, state_fn=state_fn,
+            time_fn=time_fn, device=device, dtype=dtype,
+        )  # fmt: skip
         gymnasium.Wrapper.__init__(self, env)
         self._setup(env, safety_filter, state_fn, time_fn, device, dtype)
 
