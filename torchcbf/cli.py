@@ -108,7 +108,9 @@ def _plan(
         sizes = dict(sizes)
         num_seeds = sizes.pop("num_seeds", num_seeds)
         params.update(sizes)
-    text = getattr(args, "variants", None) or "all"
+    text = getattr(args, "variants", None)
+    if text is None:  # not given (an empty list given is an error, as ',' is)
+        text = "all"
     if entry.variant is not None and entry.variant in params:
         if text != "all":
             raise ValueError(f"give --{entry.variant}s or --set {entry.variant}=..., not both")

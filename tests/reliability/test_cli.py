@@ -26,10 +26,13 @@ def test_cli_usage_errors_name_the_argument(argv, pattern, capsys):
     assert pattern in capsys.readouterr().err
 
 
-def test_cli_unknown_method_names_it(tmp_path, capsys):
-    argv = ["mppi-cbf", "--seeds", "1", "--methods", "foo", "--samples", "10", "--horizon", "5",
-            "--no-progress", "--no-gif", "--out", str(tmp_path)]  # fmt: skip
-    assert main(argv) == 2  # a usage error, before any work
+@pytest.mark.parametrize("methods", ["foo", "", ","])
+def test_cli_unknown_method_names_it(methods, tmp_path, capsys):
+    """An unknown or empty method list is a usage error before any work (an empty one does
+    not mean every method)."""
+    argv = ["mppi-cbf", "--seeds", "1", "--methods", methods, "--samples", "10", "--horizon",
+            "5", "--no-progress", "--no-gif", "--out", str(tmp_path)]  # fmt: skip
+    assert main(argv) == 2
     assert "torchcbf mppi-cbf: --methods must be" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
 
