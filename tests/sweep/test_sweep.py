@@ -65,6 +65,10 @@ def test_bad_grid_items_name_the_problem(items, match) -> None:
 def test_bad_values_fail_before_anything_runs() -> None:
     with pytest.raises(ValueError, match="method"):
         run_sweep("mppi-cbf", {"method": ["nope"]}, num_seeds=1, progress=False)
+    # one value where a list belongs (a string is not split into its characters)
+    for value in (5, "scbf"):
+        with pytest.raises(TypeError, match=r"grid\['method'\] must be a list"):
+            run_sweep("mppi-cbf", {"method": value}, num_seeds=1, progress=False)
     with pytest.raises(ValueError, match="engine"):
         run_sweep("reach-avoid", {}, engine="spark", progress=False)
     with pytest.raises(ValueError, match="scenario"):

@@ -36,10 +36,18 @@ RATES = ("success", "collision", "goal")
 
 
 def configurations(grid: Mapping[str, Sequence[Any]]) -> list[dict[str, Any]]:
-    """Every combination of the grid's values, the last key varying fastest."""
+    """Every combination of the grid's values, the last key varying fastest. Each value is
+    a list (a tuple, an array) of values: a single value, a string too, raises naming it."""
+    if not isinstance(grid, Mapping):
+        raise TypeError(f"grid must map parameter names to lists of values, got {grid!r}")
     keys = list(grid)
     for key in keys:
-        if len(grid[key]) == 0:
+        values = grid[key]
+        if isinstance(values, (str, bytes, Mapping)) or not hasattr(values, "__len__"):
+            raise TypeError(
+                f"grid[{key!r}] must be a list of values, got {values!r} (write [{values!r}])"
+            )
+        if len(values) == 0:
             raise ValueError(f"grid[{key!r}] has no values")
     return [dict(zip(keys, combo, strict=True)) for combo in itertools.product(*grid.values())]
 
