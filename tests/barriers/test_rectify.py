@@ -83,6 +83,13 @@ def test_relative_degree_three_and_errors():
         rectify(Ball([0.0, 0.0], 1.0), DoubleIntegrator(), gains=[0.0])
     with pytest.raises(ValueError, match="relative_degree"):
         rectify(Ball([0.0, 0.0], 1.0), DoubleIntegrator(), relative_degree=0)
+    ball = Ball([0.0, 0.0], 1.0)
+    with pytest.raises(ValueError, match=r"gains must hold r - 1 = 1 values.*got 2"):
+        rectify(ball, DoubleIntegrator(), "exponential", gains=[1.0, 2.0])
+    with pytest.raises(ValueError, match="poles= or gains=, not both"):
+        rectify(ball, DoubleIntegrator(), "exponential", gains=[1.0], poles=[-1.0])
+    with pytest.raises(ValueError, match="got form='high_order'"):
+        rectify(ball, DoubleIntegrator(), "high_order", poles=[-1.0])
 
 
 def test_poles_to_coefficients():

@@ -261,6 +261,8 @@ def test_errors_name_the_argument():
         solve_qp(Q, p, lb=torch.zeros(3, dtype=F64))
     with pytest.raises(ValueError, match="max_iter"):
         solve_qp(Q, p, max_iter=0)
+    with pytest.raises(TypeError, match="polish"):
+        solve_qp(Q, p, polish="yes")  # type: ignore[arg-type]
 
 
 def test_solution_is_namedtuple():

@@ -441,8 +441,10 @@ def rectify(
     """
     if form not in ("high_order", "exponential"):
         raise ValueError(f"form must be 'high_order' or 'exponential', got {form!r}")
-    if poles is not None and (gains is not None or form != "exponential"):
-        raise ValueError("poles are only for form='exponential', and exclude gains")
+    if poles is not None and form != "exponential":
+        raise ValueError(f"poles are only for form='exponential', got form={form!r}")
+    if poles is not None and gains is not None:
+        raise ValueError("give poles= or gains=, not both")
     if relative_degree is None:
         r = find_relative_degree(barrier, dynamics, samples, seed=seed, tol=tol)
     else:
@@ -466,8 +468,15 @@ def rectify(
         coefficients = coefficients_from_poles([-1.0] * (r - 1) if poles is None else poles)
         if coefficients.shape != (r - 1,):
             raise ValueError(f"poles must hold r - 1 = {r - 1} values, got {coefficients.numel()}")
-    elif isinstance(gains, Tensor):
-        coefficients = gains
     else:
-        coefficients = [float(g) for g in np.asarray(gains, dtype=np.float64).reshape(-1)]
+        count = gains.numel() if isinstance(gains, Tensor) else np.asarray(gains).size
+        if count != r - 1:
+            raise ValueError(
+                f"gains must hold r - 1 = {r - 1} values for form='exponential' (relative "
+                f"degree {r}), got {count}"
+            )
+        if isinstance(gains, Tensor):
+            coefficients = gains
+        else:
+            coefficients = [float(g) for g in np.asarray(gains, dtype=np.float64).reshape(-1)]
     return ExponentialBarrier(barrier, dynamics, r, coefficients)

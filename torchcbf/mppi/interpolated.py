@@ -86,18 +86,19 @@ class KMPPI(MPPI):
         noise_sigma: float | Tensor,
         temperature: float,
         control_cost_weight: float = 0.0,
+        *,
         u_min: float | Tensor | None = None,
         u_max: float | Tensor | None = None,
         integrator: str = "euler",
         seed: int = 0,
-        *,
         num_support_points: int | None = None,
         kernel: TimeKernel | None = None,
         **kwargs: Any,
     ) -> None:
         super().__init__(
             dynamics, cost, horizon, num_samples, dt, noise_sigma, temperature,
-            control_cost_weight, u_min, u_max, integrator, seed, **kwargs,
+            control_cost_weight, u_min=u_min, u_max=u_max, integrator=integrator, seed=seed,
+            **kwargs,
         )  # fmt: skip
         S = max(horizon // 2, 1) if num_support_points is None else num_support_points
         if not isinstance(S, int) or isinstance(S, bool) or not 1 <= S <= horizon:

@@ -63,11 +63,11 @@ class SMPPI(MPPI):
         noise_sigma: float | Tensor,
         temperature: float,
         control_cost_weight: float = 0.0,
+        *,
         u_min: float | Tensor | None = None,
         u_max: float | Tensor | None = None,
         integrator: str = "euler",
         seed: int = 0,
-        *,
         smoothness_weight: float = 1.0,
         delta_t: float = 1.0,
         du_min: float | Tensor | None = None,
@@ -76,7 +76,8 @@ class SMPPI(MPPI):
     ) -> None:
         super().__init__(
             dynamics, cost, horizon, num_samples, dt, noise_sigma, temperature,
-            control_cost_weight, u_min, u_max, integrator, seed, **kwargs,
+            control_cost_weight, u_min=u_min, u_max=u_max, integrator=integrator, seed=seed,
+            **kwargs,
         )  # fmt: skip
         if isinstance(smoothness_weight, bool) or not isinstance(smoothness_weight, (int, float)):
             raise TypeError(f"smoothness_weight must be a number, got {smoothness_weight!r}")

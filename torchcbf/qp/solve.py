@@ -268,6 +268,8 @@ def solve_qp(
 
     Raises ``TypeError``/``ValueError`` naming the argument on bad types or shapes.
     """
+    if polish is not None and not isinstance(polish, bool):
+        raise TypeError(f"polish must be True, False or None, got {polish!r}")
     inp = _validate(Q, p, G, h, A, b, lb, ub, soft, warm_start, backend, method, max_iter,
                     check_every, eps)  # fmt: skip
     if inp.B == 0:
