@@ -3,6 +3,8 @@ non-finite steps are skipped; the MLP's input normalisation."""
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 from torch import nn
@@ -69,6 +71,47 @@ def test_checkpoint_round_trip_and_resume_equals_one_run(tmp_path, device) -> No
     assert info == {"step": 3, "extra": {"note": "x"}}
     with pytest.raises(ValueError, match="no optimizer state"):
         load_checkpoint(tmp_path / "plain.pt", fresh, fresh_opt)
+
+
+def test_a_resumed_run_keeps_its_learning_rate_schedule(tmp_path) -> None:
+    """The scheduler's state is in the checkpoint: a run resumed from it with the same
+    optimizer, scheduler and start_step ends where an uninterrupted one does."""
+
+    def setup():
+        model, x, y = _problem()
+        opt = torch.optim.SGD(model.parameters(), lr=0.05)
+        sched = torch.optim.lr_scheduler.StepLR(opt, step_size=3, gamma=0.1)
+        return model, opt, sched, lambda s: ((model(x) - y) ** 2).mean()
+
+    ref, opt, sched, loss = setup()
+    train(loss, opt, 8, scheduler=sched, progress=False)
+
+    model, opt, sched, loss = setup()
+    path = tmp_path / "run.pt"
+    train(loss, opt, 4, scheduler=sched, checkpoint=path, module=model, progress=False)
+    fresh, fresh_opt, fresh_sched, fresh_loss = setup()
+    info = load_checkpoint(path, fresh, fresh_opt, scheduler=fresh_sched)
+    train(fresh_loss, fresh_opt, 4, start_step=info["step"], scheduler=fresh_sched,
+          progress=False)  # fmt: skip
+    torch.testing.assert_close(fresh.weight, ref.weight, atol=1e-12, rtol=0)
+    with pytest.raises(ValueError, match="no scheduler state"):
+        save_checkpoint(tmp_path / "plain.pt", fresh)
+        load_checkpoint(tmp_path / "plain.pt", fresh, scheduler=fresh_sched)
+
+
+def test_a_checkpoint_refuses_extras_it_could_not_load(tmp_path) -> None:
+    import numpy as np
+
+    model, _, _ = _problem()
+    for value, name in (
+        (np.float64(1.5), "extra['loss']"),
+        ({"dir": tmp_path}, "extra['loss']['dir']"),
+    ):
+        with pytest.raises(TypeError, match=re.escape(name)):
+            save_checkpoint(tmp_path / "x.pt", model, loss=value)
+    assert not (tmp_path / "x.pt").exists()
+    save_checkpoint(tmp_path / "x.pt", model, loss=[1.5, {"tag": "a", "t": torch.ones(2)}])
+    assert load_checkpoint(tmp_path / "x.pt", model)["extra"]["loss"][0] == 1.5
 
 
 def test_non_finite_steps_are_skipped() -> None:

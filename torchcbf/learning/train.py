@@ -23,6 +23,7 @@ from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor, nn
+from torch.optim.lr_scheduler import LRScheduler
 from tqdm.auto import tqdm
 
 log = logging.getLogger(__name__)
@@ -53,14 +54,21 @@ def save_checkpoint(
     optimizer: torch.optim.Optimizer | None = None,
     *,
     step: int = 0,
+    scheduler: LRScheduler | None = None,
     **extra: Any,
 ) -> None:
-    """Save ``module.state_dict()`` (and the optimizer's, the step and ``extra``) to ``path``."""
+    """Save ``module.state_dict()`` (and the optimizer's, the scheduler's, the step and
+    ``extra``) to ``path``. ``extra`` holds what :func:`load_checkpoint` reads back with
+    ``weights_only=True``: tensors, Python numbers, strings, ``None`` and lists, tuples and
+    dicts of them (anything else raises ``TypeError`` naming it, before writing)."""
+    for key, value in extra.items():
+        _check_loadable(f"extra[{key!r}]", value)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {
         "model": module.state_dict(),
         "optimizer": None if optimizer is None else optimizer.state_dict(),
+        "scheduler": None if scheduler is None else scheduler.state_dict(),
         "step": int(step),
         "extra": extra,
     }
@@ -69,16 +77,38 @@ def save_checkpoint(
     tmp.replace(path)  # atomic: an interrupted save never leaves a truncated checkpoint
 
 
+def _check_loadable(name: str, value: object) -> None:
+    """Raise ``TypeError`` naming ``name`` where ``value`` would not load with
+    ``weights_only=True``."""
+    # exact types: a NumPy float64 is a float, and does not load with weights_only
+    if value is None or type(value) in (bool, int, float, str) or isinstance(value, Tensor):
+        return
+    if type(value) in (list, tuple):
+        for i, item in enumerate(value):
+            _check_loadable(f"{name}[{i}]", item)
+        return
+    if type(value) is dict:
+        for key, item in value.items():
+            _check_loadable(f"{name}[{key!r}]", item)
+        return
+    raise TypeError(
+        f"{name} is a {type(value).__module__}.{type(value).__qualname__}: a checkpoint holds "
+        "tensors, numbers, strings, None and lists, tuples and dicts of them (it is loaded "
+        "with weights_only=True); convert it (float(), str(), torch.as_tensor())"
+    )
+
+
 def load_checkpoint(
     path: str | Path,
     module: nn.Module,
     optimizer: torch.optim.Optimizer | None = None,
     *,
+    scheduler: LRScheduler | None = None,
     map_location: str | torch.device | None = None,
     strict: bool = True,
 ) -> dict[str, Any]:
     """Load a checkpoint written by :func:`save_checkpoint` into ``module`` (and
-    ``optimizer``); returns ``{"step": int, "extra": dict}``."""
+    ``optimizer``, ``scheduler``); returns ``{"step": int, "extra": dict}``."""
     state = torch.load(Path(path), map_location=map_location, weights_only=True)
     if not isinstance(state, dict) or "model" not in state:
         raise ValueError(f"{path} is not a checkpoint written by save_checkpoint")
@@ -87,6 +117,10 @@ def load_checkpoint(
         if state.get("optimizer") is None:
             raise ValueError(f"{path} holds no optimizer state")
         optimizer.load_state_dict(state["optimizer"])
+    if scheduler is not None:
+        if state.get("scheduler") is None:
+            raise ValueError(f"{path} holds no scheduler state")
+        scheduler.load_state_dict(state["scheduler"])
     return {"step": int(state.get("step", 0)), "extra": dict(state.get("extra") or {})}
 
 
@@ -100,7 +134,7 @@ def train(
     steps: int,
     *,
     start_step: int = 0,
-    scheduler: torch.optim.lr_scheduler.LRScheduler | None = None,
+    scheduler: LRScheduler | None = None,
     grad_clip: float | None = None,
     progress: bool = True,
     desc: str = "train",
@@ -119,9 +153,11 @@ def train(
         scheduler: optional learning-rate scheduler, stepped after every optimizer step.
         grad_clip: clip the global gradient norm to this value.
         progress: show a tqdm bar.
-        checkpoint, checkpoint_every, module: save ``module`` (and the optimizer) to
-            ``checkpoint`` every ``checkpoint_every`` steps (0: only at the end) with
-            :func:`save_checkpoint`; resume with :func:`load_checkpoint` and ``start_step``.
+        checkpoint, checkpoint_every, module: save ``module`` (and the optimizer and the
+            scheduler) to ``checkpoint`` every ``checkpoint_every`` steps (0: only at the
+            end) with :func:`save_checkpoint`; resume with :func:`load_checkpoint` (given
+            the same three) and ``start_step``: the run continues as one that was not
+            interrupted.
         callback: ``(step, loss, metrics)`` after every step.
 
     A step whose loss or gradient is not finite is skipped (no parameter update) and counted
@@ -172,10 +208,10 @@ def train(
         if callback is not None:
             callback(step, value, metrics)
         if checkpoint is not None and checkpoint_every > 0 and (step + 1) % checkpoint_every == 0:
-            save_checkpoint(checkpoint, module, optimizer, step=step + 1)
+            save_checkpoint(checkpoint, module, optimizer, step=step + 1, scheduler=scheduler)
     next_step = start_step + steps
     if checkpoint is not None:
-        save_checkpoint(checkpoint, module, optimizer, step=next_step)
+        save_checkpoint(checkpoint, module, optimizer, step=next_step, scheduler=scheduler)
     timed = times[1:] if len(times) > 1 else times
     per_step = sum(timed) / len(timed) if timed else math.nan
     log.debug("trained %d steps, %.4f s/step, %d skipped", steps, per_step, skipped)
