@@ -266,3 +266,22 @@ def test_an_indefinite_box_problem_is_solved_at_its_minimiser_not_a_degenerate_c
     x = sol.x.detach()
     f = (0.5 * curv * x**2 + p * x).sum(-1)
     torch.testing.assert_close(f, best, atol=1e-9, rtol=1e-9)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_problems_without_rows_on_every_method(method):
+    """No rows at all: a singular convex problem with an optimum is SOLVED at it, and one
+    with negative curvature (unbounded below) is never SOLVED."""
+    f64 = torch.float64
+    for Q, p, x in (
+        (torch.zeros(2, 2, dtype=f64), torch.zeros(2, dtype=f64), None),
+        (torch.diag(torch.tensor([1.0, 0.0], dtype=f64)), torch.tensor([1.0, 0.0], dtype=f64),
+         -1.0),
+    ):  # fmt: skip
+        for batch in ((), (3,)):
+            sol = solve_qp(Q.expand(*batch, 2, 2), p.expand(*batch, 2), method=method)
+            assert bool((sol.status == Status.SOLVED).all())
+            if x is not None:
+                torch.testing.assert_close(sol.x[..., 0], torch.full(batch, x, dtype=f64))
+    sol = solve_qp(-torch.eye(2, dtype=f64), torch.zeros(2, dtype=f64), method=method)
+    assert int(sol.status) != Status.SOLVED

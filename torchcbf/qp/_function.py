@@ -702,12 +702,13 @@ def _curvature_fall(
     Gd = G @ D  # [b, M, n]
     free = ~tight.unsqueeze(-1) & torch.isfinite(slack).unsqueeze(-1)
     worst = torch.zeros_like(g[..., 0])
+    scale = Gd.abs().amax(-2, keepdim=True) if G.shape[-2] else Gd.new_zeros(())
     for sign in (1.0, -1.0):
         rate = sign * Gd
-        moving = rate > 1e-12 * Gd.abs().amax(-2, keepdim=True)
+        moving = rate > 1e-12 * scale
         crosses = free & moving
         ratio = torch.where(crosses, slack.clamp_min(0.0).unsqueeze(-1) / rate, torch.inf)
-        t = ratio.amin(-2)  # [b, n]; inf: a ray without a row
+        t = ratio.amin(-2) if G.shape[-2] else torch.full_like(gd, torch.inf)  # inf: no row
         fall = torch.where(torch.isinf(t), torch.inf, -(sign * t * gd + 0.5 * mu * t * t))
         usable = neg
         if inwards:
