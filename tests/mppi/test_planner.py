@@ -264,6 +264,18 @@ def test_large_and_nonfinite_costs_are_safe():
     assert float(out.ess[0]) >= 1.0
 
 
+def test_the_mean_of_large_float32_costs_does_not_overflow():
+    """Costs of 1e37 are finite in float32, and so is their mean."""
+
+    def cost(states, controls, t0):
+        return torch.full(states.shape[:2], 1e37, dtype=states.dtype)
+
+    planner = MPPI(SingleIntegrator(2), cost, 3, 64, 0.1, 1.0, 1.0)
+    out = planner(torch.zeros(1, 2))
+    assert out.plan.dtype == torch.float32
+    torch.testing.assert_close(out.cost_mean, torch.tensor([1e37]))
+
+
 @pytest.mark.parametrize("backend", ["auto", "torch"])
 def test_rk4_rollouts_match_integrator(backend):
     seen = {}

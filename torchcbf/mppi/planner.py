@@ -1365,7 +1365,10 @@ class MPPI(ExactConstants):
             w,
             cost_min,
             best,
-            cost_mean=torch.where(finite, cost, 0.0).sum(-1) / count.clamp_min(1),
+            # summed in float64: float32 costs of 1e37 would overflow their sum
+            cost_mean=(
+                torch.where(finite, cost, 0.0).sum(-1, dtype=torch.float64) / count.clamp_min(1)
+            ).to(cost.dtype),
             ess=ok / w.square().sum(-1).clamp_min(1e-30),  # 0 where no cost is finite
             status=torch.where(ok, 0, 1),
             nonfinite=cost.shape[-1] - count,
