@@ -361,3 +361,38 @@ def test_a_constant_margin_follows_its_eta_and_horizon() -> None:
         with torch.no_grad():
             torch.testing.assert_close(filt(x, u_nom).u, fresh(x, u_nom).u)
     assert float(eta.detach()) != 0.4
+
+
+def test_mode_options_that_leave_no_finite_margin_are_refused() -> None:
+    """A margin of NaN or inf (beta, eta) or an erfinv(1 - rho) that is inf in float64
+    would make every row fall back: refused, naming the option."""
+    for build, name in (
+        (lambda: Stochastic(beta=float("nan")), "beta"),
+        (lambda: Stochastic(beta=[0.1, float("inf")]), "beta"),
+        (lambda: RiskAware(0.05, 1.0, eta=float("nan")), "eta"),
+        (lambda: RiskAware(0.05, 1.0, eta=float("inf")), "eta"),
+        (lambda: RiskAware(1e-17, 1.0, eta=0.1), "rho"),
+        (lambda: RiskAware(0.05, 1.0, eta=0.1, clf_rho=0.0), "clf_rho"),
+    ):
+        with pytest.raises(ValueError, match=name):
+            build()
+
+
+def test_a_tiny_risk_gives_the_same_margin_in_float32_and_float64() -> None:
+    """erfinv(1 - rho) is formed in float64: in float32 1 - 1e-8 is 1 and the local margin
+    was infinite, so every row of the general path fell back."""
+    dhdx = torch.tensor([[[0.6, -0.8]]], dtype=F64)
+    sigma = 0.3 * torch.eye(2, dtype=F64).expand(1, 2, 2)
+    m32 = local_margin(dhdx.float(), sigma.float(), 1e-8, torch.tensor(1.0))
+    m64 = local_margin(dhdx, sigma, 1e-8, torch.tensor(1.0, dtype=F64))
+    assert m32.dtype == torch.float32 and torch.isfinite(m32).all()
+    want = math.sqrt(2.0) * 0.3 * float(erfinv(1 - 1e-8))
+    assert float(m64) == pytest.approx(want, rel=1e-12)
+    assert float(m32) == pytest.approx(want, rel=1e-6)
+    model = SingleIntegrator(2, sigma=0.3)
+    filt = SafetyFilter(model, Ball([1.0, 0.0], 0.5), mode=RiskAware(1e-8, 1.0, eta="local"))
+    x, u = torch.tensor([[0.0, 0.0]]), torch.tensor([[1.0, 0.0]])
+    out = SafetyFilter(model, Ball([1.0, 0.0], 0.5), mode=RiskAware(1e-8, 1.0, eta="local"),
+                       backend="torch")(x, u)  # fmt: skip
+    assert int(out.status) == 0 and float(out.u[0, 0]) < 1.0
+    torch.testing.assert_close(out.u, filt(x, u).u, atol=1e-5, rtol=1e-5)

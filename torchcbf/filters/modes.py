@@ -12,6 +12,7 @@ A new mode subclasses :class:`FilterMode` and writes :meth:`~FilterMode.cbf` (an
 from __future__ import annotations
 
 import copy
+import numbers
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar
 
@@ -22,6 +23,7 @@ from torchcbf._checks import (
     ClosedForms,
     as_tensor,
     behaves_as,
+    check_finite,
     check_last_dim,
     check_number,
     honour_overrides,
@@ -157,6 +159,7 @@ class Stochastic(FilterMode):
         self.register_buffer("beta", as_tensor("beta", beta, dtype=torch.float64))
         if self.beta.dim() > 1:
             raise ValueError(f"beta must be a scalar or [k], got shape {tuple(self.beta.shape)}")
+        check_finite("beta", self.beta)
 
     def bind(
         self,
@@ -183,7 +186,9 @@ class Stochastic(FilterMode):
 def _keep_bound(mode: nn.Module, name: str, eta: object) -> None:
     """Keep a noise bound as given: a tensor by :func:`~torchcbf._constants.store`'s rules
     (a parameter is trained, a tensor that requires grad keeps its graph), anything else as
-    the attribute (numbers, sequences, ``None``)."""
+    the attribute (numbers, sequences, ``None``); checked (:func:`_checked_bound`)."""
+    if eta is not None:
+        _checked_bound(name, eta)
     if isinstance(eta, Tensor):
         store(mode, name, eta)
     else:
@@ -199,11 +204,24 @@ def _identity(value: object) -> object:
 
 
 def _checked_bound(name: str, eta: object) -> Tensor:
-    """``eta`` as a float64 tensor (scalar or ``[k]``, non-negative), its graph kept."""
+    """``eta`` as a float64 tensor (scalar or ``[k]``, finite, non-negative), its graph
+    kept."""
     bound = as_tensor(name, eta, dtype=torch.float64)
-    if bound.dim() > 1 or bool((bound.detach() < 0).any()):
-        raise ValueError(f"{name} must be a non-negative scalar or [k], got {bound.tolist()}")
+    if bound.dim() > 1 or not bool((bound.detach() >= 0).all() & bound.detach().isfinite().all()):
+        raise ValueError(
+            f"{name} must be a finite non-negative scalar or [k], got {bound.detach().tolist()}"
+        )
     return bound
+
+
+def _check_risk(name: str, rho: object) -> float:
+    """A probability bound in ``(0, 1)`` whose ``erfinv(1 - rho)`` is finite in float64
+    (``rho`` at least about 1.1e-16), as a float."""
+    if isinstance(rho, bool) or not isinstance(rho, numbers.Real) or not 0 < rho < 1:
+        raise ValueError(f"{name} must be a number in (0, 1), got {rho!r}")
+    if 1.0 - float(rho) == 1.0:
+        raise ValueError(f"{name}={rho!r} is 0 to float64 (1 - {name} == 1): give at least 1.2e-16")
+    return float(rho)
 
 
 class RiskAware(FilterMode):
@@ -247,8 +265,7 @@ class RiskAware(FilterMode):
         clf_gamma: float = 0.0,
     ) -> None:
         super().__init__()
-        if rho is None or not (0 < float(rho) < 1):
-            raise ValueError(f"rho must be in (0, 1) for RiskAware, got {rho!r}")
+        _check_risk("rho", rho)
         if horizon is None:
             raise ValueError("horizon (T > 0) is required for RiskAware")
         self.rho = float(rho)
@@ -261,9 +278,7 @@ class RiskAware(FilterMode):
         self.local = isinstance(eta, str)
         _keep_bound(self, "eta", None if self.local else eta)
         self.safe_states = safe_states
-        self.clf_rho = self.rho if clf_rho is None else float(clf_rho)
-        if not 0 < self.clf_rho < 1:
-            raise ValueError(f"clf_rho must be in (0, 1), got {clf_rho!r}")
+        self.clf_rho = self.rho if clf_rho is None else _check_risk("clf_rho", clf_rho)
         _keep_bound(self, "clf_eta", clf_eta)
         self.register_buffer("clf_gamma", torch.tensor(float(clf_gamma), dtype=torch.float64))
         # noise bounds computed over safe_states when a filter binds the mode
