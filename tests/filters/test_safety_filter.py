@@ -219,6 +219,34 @@ def test_nonfinite_rows_fallback_and_others_untouched(dtype: torch.dtype) -> Non
     assert torch.isnan(out.h[1]).all() and torch.isfinite(out.h[keep]).all()
 
 
+@pytest.mark.parametrize("path", ["auto", "torch"])
+def test_a_row_whose_conditions_are_not_finite_leaves_the_gradients_clean(path: str) -> None:
+    """A state at the centre of a radius-form ellipse has a 0/0 derivative: that row falls
+    back (qp_status NON_FINITE, its QP was a stand-in), and the gradients of the shared
+    learnable centre, axes and class-K gain are those of the batch without it."""
+    from torchcbf.barriers import Ellipse, Transformed
+    from torchcbf.filters import LinearClassK
+
+    def grads(x, u):
+        dyn = SingleIntegrator(2, u_min=-2.0, u_max=2.0)
+        ell = Ellipse([1.0, 0.0], [0.5, 0.3], learnable=True)
+        gain = LinearClassK(1.0, learnable=True)
+        filt = SafetyFilter(dyn, Transformed(ell, "radius"), alpha=gain, backend=path).double()
+        out = filt(x, u)
+        (out.u[:2] ** 2).sum().backward()
+        return out, {n: p.grad.clone() for n, p in filt.named_parameters()}
+
+    x = torch.tensor([[0.0, 0.0], [0.2, 0.1], [1.0, 0.0]], dtype=torch.float64)
+    u = torch.tensor([[1.0, 0.0], [1.0, 0.2], [1.0, 0.0]], dtype=torch.float64)
+    out, with_centre = grads(x, u)
+    _, without = grads(x[:2], u[:2])
+    assert out.status.tolist() == [0, 0, FilterStatus.FALLBACK]
+    assert int(out.qp_status[2]) == Status.NON_FINITE
+    for name, g in without.items():
+        assert torch.isfinite(g).all() and bool((g != 0).any()), name
+        torch.testing.assert_close(with_centre[name], g, atol=1e-12, rtol=1e-12)
+
+
 @pytest.mark.parametrize("fallback", ["clip", "brake", "tensor", "callable"])
 def test_fallback_on_qp_failure(fallback: str) -> None:
     xs, us = random_states(4, seed=5)

@@ -388,6 +388,8 @@ class SafetyFilter(ExactConstants, DerivedConstants):
         ts = torch.where(finite, tb, 0.0)
         if conditions is None:
             conditions = self._conditions(xs, ts)
+        if torch.is_grad_enabled():
+            conditions = self._without_nonfinite_rows(conditions, xs, ts)
         cbf, clf, h, V, lie = conditions
         lo, hi = self._limits(xs)
         sl = self.slack
@@ -411,6 +413,34 @@ class SafetyFilter(ExactConstants, DerivedConstants):
         h = torch.where(fin, h, math.nan)
         V = torch.where(fin, V, math.nan)
         return _output(batch, u, status, h, slack, V, qp_status, cval, f"{lie}/{qp_path}")
+
+    def _without_nonfinite_rows(self, conditions: Any, xs: Tensor, ts: Tensor) -> Any:
+        """``conditions`` where every row's are finite; else those of the finite rows made
+        again from their states alone, the other rows' values kept without a graph. A row
+        whose conditions are not finite (a state where a barrier's derivative is 0/0) falls
+        back; its values must not reach a gradient either: the backward of the operation
+        that made them multiplies its zero gradient by NaN, and parameters that every row
+        shares (a barrier's centre, a class-K gain) would get NaN gradients. One host
+        synchronisation, in grad mode only."""
+        cbf, clf = conditions[0], conditions[1]
+        B = xs.shape[0]
+        ok = torch.ones(B, dtype=torch.bool, device=xs.device)
+        for cond in (cbf, clf):
+            if cond is not None:
+                ok = ok & rows_finite(cond[0], 2, B) & rows_finite(cond[1], 1, B)
+        if bool(ok.all()):
+            return conditions
+        keep = ok.nonzero().squeeze(-1)
+        again = self._conditions(xs.index_select(0, keep), ts.index_select(0, keep))
+
+        def merged(full: Any, part: Any) -> Any:
+            if isinstance(full, Tensor):
+                return full.detach().index_put((keep,), part)
+            if isinstance(full, tuple):
+                return tuple(merged(f, p) for f, p in zip(full, part, strict=True))
+            return full  # None, or where the terms came from
+
+        return tuple(merged(f, p) for f, p in zip(conditions, again, strict=True))
 
     # -- the steps of forward --------------------------------------------------------------
     def _inputs(
@@ -692,7 +722,9 @@ class SafetyFilter(ExactConstants, DerivedConstants):
         if not self._two_pass(qp.ks):
             sol = qp_layer.solve_qp(qp.Q, qp.p, G, hq, lb=qp.lb, ub=qp.ub, **self.qp_options)
             ok = data_ok & (sol.status == Status.SOLVED) & rows_finite(sol.x, 1, B)
-            return sol.x, sol.status, ok, sol.path
+            # a row whose data was not finite had a stand-in QP: report its data's trouble
+            status = torch.where(data_ok, sol.status, int(Status.NON_FINITE))
+            return sol.x, status, ok, sol.path
         # rows [B:2B]: the hard QP (the slack columns of the CBF rows zeroed; s then
         # decouples and sits at its bound 0), solved in the same call as the elastic one
         k, m = qp.norms.shape[1], self.dynamics.control_dim
@@ -705,6 +737,7 @@ class SafetyFilter(ExactConstants, DerivedConstants):
         el_ok, hard_ok = good[:B], good[B:]
         z = torch.where(hard_ok.unsqueeze(-1), sol.x[B:], sol.x[:B])
         qp_status = torch.where(hard_ok, sol.status[B:], sol.status[:B])
+        qp_status = torch.where(data_ok, qp_status, int(Status.NON_FINITE))
         return z, qp_status, hard_ok | el_ok, sol.path
 
     # -- the real-time path ----------------------------------------------------------------
