@@ -18,8 +18,15 @@ from estimation_reference import (
     run_filter,
 )
 
-from torchcbf.dynamics import Unicycle
-from torchcbf.estimation import EKF, UKF, EstimatorState, GaussianSensor, RangeBearing
+from torchcbf.dynamics import DoubleIntegrator, Unicycle
+from torchcbf.estimation import (
+    EKF,
+    UKF,
+    EstimatorState,
+    EstimatorStatus,
+    GaussianSensor,
+    RangeBearing,
+)
 
 
 @pytest.mark.parametrize("model", ["unicycle", "accel_unicycle"])
@@ -99,3 +106,25 @@ def test_invalid_sigma_parameters():
         UKF(dyn, sensor, alpha=0.0)
     with pytest.raises(ValueError, match="alpha"):
         UKF(dyn, sensor, alpha=math.inf)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
+def test_a_precise_measurement_of_a_wide_prior_leaves_a_positive_variance(dtype):
+    """The update's covariance is a sum of positive semidefinite terms (Joseph form): a
+    measurement far more precise than the prior gives the Kalman variance P R / (P + R)
+    where the dtype can hold the ratio, and never a covariance that is not positive
+    definite without the REGULARIZED flag (P - K S K' gave negative variances, status OK)."""
+    exact_up_to = 1e12 if dtype == torch.float64 else 1e6
+    tol = 1e-9 if dtype == torch.float64 else 1e-3
+    for P0 in (1e2, 1e4, 1e6, 1e8, 1e10):
+        for std in (1e-2, 1e-3, 1e-4, 1e-6, 1e-8):
+            C = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
+            ukf = UKF(DoubleIntegrator(1), GaussianSensor(C=C, std=std), Q=1e-2).to(dtype)
+            state = ukf.init(torch.zeros(1, 2, dtype=dtype), P0 * torch.eye(2, dtype=dtype))
+            out = ukf.update(state, torch.full((1, 1), 0.5, dtype=dtype))
+            R = std**2
+            if P0 / R <= exact_up_to:
+                exact = P0 * R / (P0 + R)
+                assert float(out.cov[0, 0, 0]) == pytest.approx(exact, rel=tol), (P0, std)
+            positive = bool((torch.linalg.eigvalsh(out.cov.double()) > 0).all())
+            assert positive or int(out.status) & EstimatorStatus.REGULARIZED, (P0, std)

@@ -30,7 +30,9 @@ class EstimatorStatus(IntEnum):
     """Per-row status bits of an :class:`EstimatorState` (a row may carry several, OR-ed).
 
     ``REGULARIZED``: a covariance (``P`` or the innovation covariance ``S``) was not
-    numerically positive definite and a jitter or diagonal fallback was used.
+    numerically positive definite and a jitter or diagonal fallback was used, or the
+    covariance the step returns is not (rounding of a prior far wider than the measurement
+    in float32, say: the next step factors it with a jitter).
     ``NON_FINITE``: the step produced a non-finite value in that row (or its measurement
     was non-finite); the row kept its previous mean and covariance.
     """
@@ -314,9 +316,12 @@ class _KalmanFilter(ExactConstants, DerivedConstants, Estimator):
         cov: Tensor,
         status: Tensor,
     ) -> EstimatorState:
-        """Symmetrise, reject non-finite rows (keep the previous estimate) and reshape."""
+        """Symmetrise, flag a covariance that is not numerically positive definite, reject
+        non-finite rows (keep the previous estimate) and reshape."""
         cov = symmetrize(cov)
         finite = torch.isfinite(mean).all(-1) & torch.isfinite(cov).flatten(1).all(-1)
+        not_pd = finite & (torch.linalg.cholesky_ex(cov.detach())[1] != 0)
+        status = status | torch.where(not_pd, int(EstimatorStatus.REGULARIZED), 0)
         mean = torch.where(finite[:, None], mean, prev_mean)
         cov = torch.where(finite[:, None, None], cov, prev_cov)
         status = status | torch.where(finite, 0, int(EstimatorStatus.NON_FINITE))

@@ -28,7 +28,11 @@ class UKF(_KalmanFilter):
     ``Qd`` of ``Q_c`` under the Jacobian at the mean. On a linear system this is the exact
     Kalman filter. Update: sigma points through ``sensor.expected``; means and deviations of
     the measurements use ``sensor.residual`` (so bearings are averaged on the circle);
-    ``P = P - K S K^T``, symmetrised.
+    ``K = P_xy S^-1`` and the Joseph form ``P = (I - K H) P (I - K H)^T + K R K^T`` with the
+    statistically linearised sensor ``H = P_xy^T P^-1`` (``C`` itself for a linear sensor,
+    where it is the Kalman update): positive semidefinite by construction, where
+    ``P - K S K^T`` loses the variance to rounding when the measurement is far more precise
+    than the prior (a negative variance with ``P = 1e10``, ``R = 1e-6`` in float64).
 
     The default ``alpha = 1`` (``lam = kappa``) keeps the weights of order ``1/n``: small
     ``alpha`` (e.g. 1e-3) gives weights of order ``1/alpha^2`` whose cancellation costs about
@@ -132,6 +136,13 @@ class UKF(_KalmanFilter):
         L, reg_s = robust_cholesky(S)
         K = torch.cholesky_solve(Pxy.mT, L).mT  # Pxy S^-1
         mean = m + (K @ self.sensor.residual(y, y_pred).unsqueeze(-1)).squeeze(-1)
-        cov = P - K @ S @ K.mT
+        # Joseph form with the statistically linearised sensor H = Pxy' P^-1 (the sensor's
+        # own matrix where it is linear): a sum of two positive semidefinite terms, where
+        # P - K S K' cancels to rounding, or below zero, when the measurement is far more
+        # precise than the prior
+        Lp, _ = robust_cholesky(P)
+        H = torch.cholesky_solve(Pxy, Lp).mT  # [B, p, n]
+        A = torch.eye(m.shape[-1], dtype=m.dtype, device=m.device) - K @ H
+        cov = A @ P @ A.mT + K @ self._R(m) @ K.mT
         flags = torch.where(reg_p | reg_s, int(EstimatorStatus.REGULARIZED), 0)
         return self._finish(bs, m, P, mean, cov, status | flags)
