@@ -431,3 +431,41 @@ def test_interior_point_hard_qp_matches_exact_enumeration() -> None:
 def test_interior_point_elastic_qp_matches_exact_enumeration() -> None:
     """Unverified interior point rows of the elastic QP are re-solved exactly."""
     assert _ipm_vs_enumeration(elastic=True) < 1e-8
+
+
+@pytest.mark.parametrize("opening", [5e-4, 1e-3])
+def test_a_relaxed_answer_where_the_penalty_weight_binds_has_the_right_jacobian(opening):
+    """Two half-spaces whose safe controls form a narrow wedge: the shared slack's weight
+    binds and the answer is RELAXED, a function of that weight (which depends on u_nom and
+    the rows): its Jacobian to u_nom, x and the rows' offsets is the central difference's."""
+    f64 = torch.float64
+    th = opening
+    A = -torch.tensor([[math.cos(th), math.sin(th)], [-math.cos(th), math.sin(th)]], dtype=f64)
+
+    def answer(u_nom, x, b):
+        filt = SafetyFilter(SingleIntegrator(2), HalfSpace(A, b), alpha=1.0).double()
+        return filt(x, u_nom)
+
+    u0 = torch.tensor([[0.3, 0.2]], dtype=f64)
+    x0 = torch.tensor([[0.05, -0.02]], dtype=f64)
+    b0 = torch.tensor([-0.01, -0.01], dtype=f64)
+    out = answer(u0, x0, b0)
+    assert int(out.status) == FilterStatus.RELAXED
+    args = [u0, x0, b0]
+    for i in range(3):
+        given = [a.clone().requires_grad_(j == i) for j, a in enumerate(args)]
+        u = answer(*given).u[0]
+        J = torch.stack(
+            [torch.autograd.grad(u[r], given[i], retain_graph=True)[0] for r in range(2)]
+        )
+        e = 1e-6
+        cols = []
+        for j in range(args[i].numel()):
+            d = torch.zeros_like(args[i]).view(-1)
+            d[j] = e
+            d = d.view_as(args[i])
+            hi = [a + d if k == i else a for k, a in enumerate(args)]
+            lo = [a - d if k == i else a for k, a in enumerate(args)]
+            cols.append((answer(*hi).u[0] - answer(*lo).u[0]) / (2 * e))
+        fd = torch.stack(cols, -1).view_as(J)
+        torch.testing.assert_close(J, fd, atol=1e-5, rtol=1e-5)

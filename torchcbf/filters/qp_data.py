@@ -116,14 +116,15 @@ def slack_columns(k: int, slack: SlackMode) -> int:
 def penalty_scale(
     a: Tensor, b: Tensor, norms: Tensor, u_nom: Tensor, lo: Tensor, hi: Tensor
 ) -> Tensor:
-    """``1 + v`` per row ``[B, 1]``, detached: ``v`` estimates the hard QP's multipliers (in
-    units of ``rbar``) by how far ``u_nom`` is from the box and the CBF half-spaces
-    (normalised violation), capped at ``MAX_PENALTY_SCALE``."""
-    with torch.no_grad():
-        viol = (-(matvec(a, u_nom) + b) / norms).clamp_min(0)
-        box = (u_nom - torch.clamp(u_nom, lo, hi)).abs()
-        v = viol.amax(-1, keepdim=True) + box.amax(-1, keepdim=True)
-        v = torch.nan_to_num(v, nan=0.0, posinf=MAX_PENALTY_SCALE).clamp_max(MAX_PENALTY_SCALE)
+    """``1 + v`` per row ``[B, 1]``: ``v`` estimates the hard QP's multipliers (in units of
+    ``rbar``) by how far ``u_nom`` is from the box and the CBF half-spaces (normalised
+    violation), capped at ``MAX_PENALTY_SCALE``. Differentiable: where the weight binds (a
+    ``RELAXED`` row whose slack is not zero) the answer depends on it; elsewhere its
+    derivative does not reach the answer."""
+    viol = (-(matvec(a, u_nom) + b) / norms).clamp_min(0)
+    box = (u_nom - torch.clamp(u_nom, lo, hi)).abs()
+    v = viol.amax(-1, keepdim=True) + box.amax(-1, keepdim=True)
+    v = torch.nan_to_num(v, nan=0.0, posinf=MAX_PENALTY_SCALE).clamp_max(MAX_PENALTY_SCALE)
     return 1.0 + v
 
 
