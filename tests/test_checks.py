@@ -229,3 +229,16 @@ def test_finiteness_checks_match_torch_isfinite(device, dtype):
         rows_finite(t[:, :, :0], 1, 200), torch.ones(200, dtype=torch.bool, device=device)
     )
     assert rows_finite(None, 1, 3) is None
+
+
+def test_a_number_beyond_the_dtype_is_a_value_error_naming_it() -> None:
+    from torchcbf._checks import as_tensor
+    from torchcbf.barriers import Ball
+    from torchcbf.dynamics import SingleIntegrator
+    from torchcbf.filters import SafetyFilter
+
+    with pytest.raises(ValueError, match=r"gain = 1e\+39 does not fit in torch.float32"):
+        as_tensor("gain", 1e39, dtype=torch.float32)
+    assert float(as_tensor("gain", 1e39, dtype=torch.float64)) == 1e39
+    with pytest.raises(ValueError, match="alpha"):
+        SafetyFilter(SingleIntegrator(2), Ball([1.0, 0.0], 0.5), alpha=1e39)

@@ -127,7 +127,10 @@ def as_tensor(name: str, value: object, *, dtype: torch.dtype | None = None, dev
     dtype = dtype or torch.get_default_dtype()
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         # filled on the device: no copy from the host to wait for
-        return torch.full((), value, dtype=dtype, device=device)
+        try:
+            return torch.full((), value, dtype=dtype, device=device)
+        except RuntimeError as err:  # a number beyond the dtype's range
+            raise ValueError(f"{name} = {value!r} does not fit in {dtype}") from err
     try:
         return torch.as_tensor(value, dtype=dtype, device=device)
     except (TypeError, ValueError, RuntimeError) as err:
