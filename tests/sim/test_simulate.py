@@ -441,3 +441,78 @@ def test_filtered_loop_on_device_equals_cpu(dtype: torch.dtype, device: torch.de
     x, u_nom, u, h, status = device_matches_cpu(run, device, dtype, **loose)
     assert bool(torch.isfinite(x).all()) and bool(h.amin() > -1e-6)
     assert bool((u - u_nom).abs().amax() > 0.1)  # the filter acted
+
+
+def test_a_frozen_row_records_no_barrier_values_and_is_no_collision() -> None:
+    """A row whose nominal control goes NaN freezes; its filter then sees a zero stand-in
+    state, so from the next step on nothing of it is recorded (h NaN, status NON_FINITE)
+    and the metrics read its recorded steps only: no collision where it never was."""
+    from torchcbf.filters import FilterStatus
+
+    ball = Ball([0.0, 0.0], 0.5)
+
+    def nominal(x, t):
+        u = torch.ones_like(x)
+        if t > 0.25:
+            u[1] = math.nan
+        return u
+
+    x0 = torch.tensor([[2.0, 0.0], [2.0, 0.0]])
+    traj = simulate(
+        SingleIntegrator(2),
+        x0,
+        steps=6,
+        dt=0.1,
+        nominal=nominal,
+        safety_filter=SafetyFilter(SingleIntegrator(2), ball),
+        progress=False,
+    )
+    assert traj.failed.tolist() == [False, True] and int(traj.fail_step[1]) == 3
+    assert torch.isnan(traj.h[1, 4:]).all() and torch.isfinite(traj.h[1, :4]).all()
+    assert (traj.status[1, 4:] == FilterStatus.NON_FINITE).all()
+    m = metrics(traj)
+    assert m["collision"].tolist() == [False, False]
+    torch.testing.assert_close(m["min_h"], torch.tensor([3.75, 3.75]))  # h at the start
+
+
+def test_times_are_exact_steps_at_a_large_start_time_in_float32() -> None:
+    """Times are float64: at t0 = 1e5 float32 times lost the step (dt read 0.0078 for 0.01)
+    and a goal reached at its deadline was missed."""
+    traj = simulate(SingleIntegrator(1), torch.zeros(1, 1), steps=100, dt=0.01, t0=1e5,
+                    nominal=lambda x, t: torch.ones_like(x), progress=False)  # fmt: skip
+    assert traj.t.dtype == torch.float64
+    assert traj.dt == pytest.approx(0.01, rel=1e-9)
+    assert float(metrics(traj)["effort"]) == pytest.approx(1.0, rel=1e-6)
+    line = simulate(SingleIntegrator(1), torch.zeros(1, 1), steps=20, dt=0.1,
+                    nominal=lambda x, t: torch.ones_like(x), progress=False)  # fmt: skip
+    m = metrics(line, goals=[Goal([0.9], 0.001, index=(0,), deadline=0.9)])
+    assert bool(m["goal0_reached"]) and float(m["goal0_time"]) == pytest.approx(0.9)
+
+
+def test_one_scenario_of_a_trajectory_by_index() -> None:
+    traj = simulate(SingleIntegrator(2), torch.arange(6.0).reshape(3, 2), steps=2, dt=0.1,
+                    nominal=lambda x, t: -x, progress=False)  # fmt: skip
+    assert torch.equal(traj.scenario(-1).x, traj.x[2:])
+    for index in (3, -4):
+        with pytest.raises(IndexError, match="batch of 3"):
+            traj.scenario(index)
+
+
+def test_a_stateful_nominal_controller_is_reset_before_each_run() -> None:
+    """A nominal controller with reset() (a roadmap controller's progress) is reset as the
+    planner is: the same loop run twice gives the same trajectories."""
+
+    class Counting:
+        def __init__(self) -> None:
+            self.calls = 0
+
+        def reset(self) -> None:
+            self.calls = 0
+
+        def __call__(self, x, t):
+            self.calls += 1
+            return torch.full_like(x, float(self.calls))
+
+    loop = ClosedLoop(dynamics=SingleIntegrator(1), nominal=Counting())
+    runs = [loop.simulate(torch.zeros(2, 1), steps=5, dt=0.1, progress=False) for _ in range(2)]
+    assert torch.equal(runs[0].x, runs[1].x)

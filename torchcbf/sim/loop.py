@@ -9,7 +9,9 @@ the library are; so are plain functions):
   ``planner_every=k`` it runs every k steps and in between the loop follows its plan (index
   by elapsed time over ``planner.dt`` when the planner has one).
 - :class:`Nominal`: ``nominal(x_hat, t)`` without a planner, ``nominal(x_hat, t, u_plan)``
-  with one, ``-> u_nom [B, m]``. Without a nominal controller the planner's control is the
+  with one, ``-> u_nom [B, m]``; a stateful one's ``reset()`` is called before a run too
+  (a roadmap controller's progress along its path), so that running a loop twice gives
+  the same trajectories. Without a nominal controller the planner's control is the
   nominal one; with neither, the safety filter acts on a zero nominal control.
 - :class:`Filter`: ``safety_filter(x_hat, u_nom, t) -> FilterResult`` (``u``, ``status``,
   ``h``). Without one, ``u_nom`` is clipped to the dynamics' control limits.
@@ -34,6 +36,7 @@ from torchcbf._checks import check_last_dim, check_number, check_positive_int
 from torchcbf._random import counter_normal
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.estimation import Estimator, Sensor
+from torchcbf.filters import FilterStatus
 from torchcbf.integrators import METHODS
 from torchcbf.integrators import step as integrate
 from torchcbf.sim.trajectory import Trajectory
@@ -198,7 +201,8 @@ class _Run:
         self.seeds = _seeds(seed, B, x0.device)
         sigma0 = dyn.sigma(x0)
         self.q = None if sigma0 is None else sigma0.shape[-1]
-        self.t = t0 + dt * torch.arange(steps + 1, device=x0.device, dtype=x0.dtype)
+        # float64 whatever the states' dtype: float32 times lose the step where t0 is large
+        self.t = t0 + dt * torch.arange(steps + 1, device=x0.device, dtype=torch.float64)
         self.xs = x0.new_zeros(B, steps + 1, n)
         self.xs_hat = x0.new_zeros(B, steps + 1, n)
         self.u_noms = x0.new_zeros(B, steps, m)
@@ -206,6 +210,7 @@ class _Run:
         self.hs: Tensor | None = None
         self.statuses: Tensor | None = None
         self.failed = torch.zeros(B, dtype=torch.bool, device=x0.device)
+        self.blind = self.failed
         self.fail_step = torch.full((B,), -1, dtype=torch.int64, device=x0.device)
         self.snapshots: dict[int, Any] = {}
         self.snapshot_set = set(snapshot_steps)
@@ -223,8 +228,10 @@ class _Run:
             if P0 is None:
                 P0 = 1e-2 * torch.eye(self.n, device=self.device, dtype=self.dtype)
             self.est_state = loop.estimator.init(mean0, P0.to(x0).expand(self.B, self.n, self.n))
-        if loop.planner is not None and hasattr(loop.planner, "reset"):
-            loop.planner.reset()
+        for part in (loop.planner, loop.nominal):
+            reset = getattr(part, "reset", None)
+            if callable(reset):
+                reset()
 
     # -- one step, in order -----------------------------------------------------------------
     def step(self, k: int) -> None:
@@ -246,6 +253,7 @@ class _Run:
             x_hat = self.x
         self.mark(_finite_rows(self.x) & _finite_rows(x_hat), k)
         x_hat = self.clean(x_hat)
+        self.blind = self.failed  # these rows' controllers see a zero stand-in this step
         self.xs_hat[:, k] = x_hat
         return x_hat
 
@@ -297,8 +305,10 @@ class _Run:
                 self.statuses = torch.zeros(
                     self.B, self.steps, dtype=torch.int64, device=self.device
                 )
-            self.hs[:, k] = h
-            self.statuses[:, k] = out.status
+            # a frozen row's filter saw a zero stand-in state: nothing of it is recorded
+            blind = self.blind
+            self.hs[:, k] = torch.where(blind.unsqueeze(-1), math.nan, h)
+            self.statuses[:, k] = torch.where(blind, int(FilterStatus.NON_FINITE), out.status)
         self.mark(_finite_rows(u), k)
         u = self.clean(u)
         self.us[:, k] = u

@@ -107,7 +107,8 @@ def metrics(
         ``collision`` (at a sample or, with ``barriers``, between two samples),
         ``collision_between_samples`` (with ``barriers``: a segment crosses an obstacle that
         no sample is inside), ``first_collision_time`` (nan if none; a point between samples
-        at its interpolated time), ``min_h`` (over the samples), per goal
+        at its interpolated time), ``min_h`` (over the samples; a frozen row's unrecorded
+        steps skipped), per goal
         ``goal{i}_reached`` and ``goal{i}_time``, ``goal_reached`` (all goals),
         ``spec_robustness``/``spec_satisfied``, ``steps_{name}`` per status, ``effort``
         (``sum |u|^2 dt``) and ``failed``.
@@ -149,7 +150,10 @@ def metrics(
         unsafe = h_min < 0
         out["collision"] = unsafe.any(-1)
         out["first_collision_time"] = _first_time(unsafe, t[:-1])
-        out["min_h"] = h_min.min(-1).values
+        # the steps a frozen row did not record (NaN) do not count; NaN where none did
+        recorded = ~torch.isnan(h_min)
+        least = torch.where(recorded, h_min, torch.inf).amin(-1)
+        out["min_h"] = torch.where(recorded.any(-1), least, math.nan)
     all_reached = torch.ones(traj.batch_size, dtype=torch.bool, device=traj.x.device)
     for i, goal in enumerate(goals):
         centre = torch.as_tensor(goal.center, dtype=traj.x.dtype, device=traj.x.device)

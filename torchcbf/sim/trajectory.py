@@ -49,13 +49,15 @@ class Trajectory:
     """B scenarios over T steps of length ``dt``.
 
     Attributes:
-        t: times ``[T+1]``.
+        t: times ``[T+1]``, float64 (exact steps at any start time).
         x: true states ``[B, T+1, n]``.
         x_hat: estimated (or measured) states the controllers saw ``[B, T+1, n]``.
         u_nom: nominal controls ``[B, T, m]`` (planner or nominal controller output).
         u: applied controls ``[B, T, m]``.
-        h: barrier values reported by the safety filter ``[B, T, k]`` (``None`` without one).
-        status: safety-filter status per step ``[B, T]`` (``None`` without a filter).
+        h: barrier values reported by the safety filter ``[B, T, k]`` (``None`` without one;
+            NaN from a row's ``fail_step`` on).
+        status: safety-filter status per step ``[B, T]`` (``None`` without a filter;
+            ``NON_FINITE`` from a row's ``fail_step`` on).
         failed: ``[B]`` bool, a scenario whose state, estimate or a component's output went
             non-finite; from ``fail_step [B]`` on (``-1`` if never) it is frozen.
         planner: snapshots of planner outputs, ``{step: output}`` (on the device it ran on).
@@ -145,7 +147,12 @@ class Trajectory:
         return cls(**{k: _restore(v) for k, v in data.items()})
 
     def scenario(self, index: int) -> Trajectory:
-        """Scenario ``index`` alone (batch of one)."""
+        """Scenario ``index`` alone (batch of one; negative indices count from the end,
+        others outside the batch raise ``IndexError``)."""
+        B = self.batch_size
+        if not -B <= index < B:
+            raise IndexError(f"scenario {index} is outside a batch of {B}")
+        index %= B
         sl = slice(index, index + 1)
         return Trajectory(
             t=self.t,
