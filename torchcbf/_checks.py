@@ -200,10 +200,23 @@ def as_limit(name: str, value: object, size: int) -> Tensor | None:
         return None
     t = as_tensor(name, value, dtype=torch.float64)
     if t.dim() == 0:
-        t = t.expand(size).clone()
+        t = limit_shape(t, size).clone()
     if t.shape != (size,):
         raise ValueError(f"{name} must be a scalar or have shape [{size}], got {tuple(t.shape)}")
     return check_finite(name, t, allow_inf=True)
+
+
+def limit_shape(value: Tensor, size: int) -> Tensor:
+    """The float64 ``[size]`` that :func:`as_limit` makes of a tensor already checked by it
+    (a scalar expanded), without checks: what a module reads at each call from a bound it
+    keeps as given (:func:`torchcbf._constants.derive`)."""
+    t = value.to(torch.float64)
+    return t.expand(size) if t.dim() == 0 else t
+
+
+def to_float64(value: Tensor) -> Tensor:
+    """``value`` in float64 (its graph kept)."""
+    return value.to(torch.float64)
 
 
 def check_bounds(name_lo: str, lo: Tensor | None, name_hi: str, hi: Tensor | None) -> None:
@@ -238,12 +251,9 @@ def as_matrix(
     """A square ``[size, size]`` matrix given as a scalar (``v I``), a vector ``[size]`` (its
     diagonal) or the matrix itself; finite, and symmetric positive definite when ``spd``."""
     t = as_tensor(name, value, dtype=dtype)
-    if t.dim() == 0:
-        t = t * torch.eye(size, dtype=t.dtype, device=t.device)
-    elif t.dim() == 1:
-        if t.shape[0] != size:
-            raise ValueError(f"{name} as a vector must have shape [{size}], got {tuple(t.shape)}")
-        t = torch.diag(t)
+    if t.dim() == 1 and t.shape[0] != size:
+        raise ValueError(f"{name} as a vector must have shape [{size}], got {tuple(t.shape)}")
+    t = matrix_shape(t, size)
     if t.shape != (size, size):
         raise ValueError(
             f"{name} must be a scalar, [{size}] or [{size}, {size}], got {tuple(t.shape)}"
@@ -252,6 +262,16 @@ def as_matrix(
     if spd and t.device.type != "meta":
         check_spd(name, t)
     return t
+
+
+def matrix_shape(value: Tensor, size: int, dtype: torch.dtype | None = None) -> Tensor:
+    """The ``[size, size]`` matrix that :func:`as_matrix` makes of a tensor (a scalar times
+    ``I``, a vector on the diagonal; in ``dtype`` where given), without checks: what a module
+    reads at each call from a matrix it keeps as given."""
+    t = value if dtype is None else value.to(dtype)
+    if t.dim() == 0:
+        return t * torch.eye(size, dtype=t.dtype, device=t.device)
+    return torch.diag(t) if t.dim() == 1 else t
 
 
 def check_number(

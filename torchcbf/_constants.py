@@ -200,6 +200,7 @@ def derive(
     value: object,
     fn: Callable[[object], Tensor | None],
     *,
+    shape: Callable[[Tensor], Tensor] | None = None,
     exact: bool = False,
 ) -> Tensor | None:
     """Register the constant ``name = fn(value)`` (a checked cast, an expand, a diagonal
@@ -207,11 +208,13 @@ def derive(
 
     A ``value`` that requires grad (an ``nn.Parameter``, a tensor with a graph) and that
     ``fn`` changes is kept as given as ``name + "_source"`` (a parameter stays one: the
-    module trains it), and ``name`` is ``fn`` of it at every read: an optimiser step or an
+    module trains it), and ``name`` is ``shape`` of it at every read (``fn`` where not
+    given; ``shape`` makes what ``fn`` makes without its checks, which run once, here: a
+    read then costs a cast or two and no host synchronisation): an optimiser step or an
     edit is seen, and each call has a graph of its own (``module`` is then a
-    :class:`DerivedConstants`; ``fn`` is checked on ``value`` here). One that ``fn`` leaves
-    as it is, is registered as given (a parameter as a parameter). Anything else is stored
-    as ``fn(value)``, a buffer (``exact``: Python numbers remembered, :func:`remember`)."""
+    :class:`DerivedConstants`). One that ``fn`` leaves as it is, is registered as given (a
+    parameter as a parameter). Anything else is stored as ``fn(value)``, a buffer
+    (``exact``: Python numbers remembered, :func:`remember`)."""
     out = fn(value)
     module._buffers.pop(name, None)
     if isinstance(value, Tensor) and value.requires_grad:
@@ -220,7 +223,7 @@ def derive(
         if not isinstance(module, DerivedConstants):
             raise TypeError(f"{type(module).__name__} cannot derive {name} from a tensor")
         store(module, name + "_source", value)
-        _derived(module)[name] = (name + "_source", fn)
+        _derived(module)[name] = (name + "_source", fn if shape is None else shape)
         return out
     if out is None or not exact:
         module.register_buffer(name, out)

@@ -128,3 +128,33 @@ def test_a_precise_measurement_of_a_wide_prior_leaves_a_positive_variance(dtype)
                 assert float(out.cov[0, 0, 0]) == pytest.approx(exact, rel=tol), (P0, std)
             positive = bool((torch.linalg.eigvalsh(out.cov.double()) > 0).all())
             assert positive or int(out.status) & EstimatorStatus.REGULARIZED, (P0, std)
+
+
+def test_the_update_of_a_nonlinear_sensor_is_the_textbook_unscented_update():
+    """The Joseph-form update equals P - K S K' of the textbook unscented update (sigma
+    points x +- sqrt(n + lam) L_i, weights lam/(n+lam) + 1 - alpha^2 + beta and
+    1/(2(n+lam))), written here as a loop, for a range sensor (float64)."""
+    from torchcbf.estimation import FunctionSensor
+
+    f64 = torch.float64
+    sensor = FunctionSensor(lambda x: x[..., :2].norm(dim=-1, keepdim=True), std=0.05,
+                            output_dim=1)  # fmt: skip
+    ukf = UKF(Unicycle(sigma=0.1), sensor, Q=0.01).double()
+    m = torch.tensor([1.0, 0.5, 0.3], dtype=f64)
+    P = torch.tensor([[0.3, 0.05, 0.0], [0.05, 0.2, 0.02], [0.0, 0.02, 0.1]], dtype=f64)
+    y = torch.tensor([1.3], dtype=f64)
+    out = ukf.update(EstimatorState(m[None], P[None], torch.zeros(1, dtype=torch.long)), y[None])
+    n, lam = 3, 0.0  # alpha = 1, kappa = 0
+    L = torch.linalg.cholesky(P)
+    points = [m] + [m + math.sqrt(n + lam) * L[:, i] for i in range(n)]
+    points += [m - math.sqrt(n + lam) * L[:, i] for i in range(n)]
+    wm = [lam / (n + lam)] + [0.5 / (n + lam)] * (2 * n)
+    wc = [lam / (n + lam) + 1 - 1 + 2.0] + [0.5 / (n + lam)] * (2 * n)
+    ys = [p[:2].norm().reshape(1) for p in points]
+    y_bar = sum(w * v for w, v in zip(wm, ys, strict=True))
+    S = sum(w * torch.outer(v - y_bar, v - y_bar) for w, v in zip(wc, ys, strict=True))
+    S = S + 0.05**2 * torch.eye(1, dtype=f64)
+    Pxy = sum(w * torch.outer(p - m, v - y_bar) for w, p, v in zip(wc, points, ys, strict=True))
+    K = Pxy @ torch.linalg.inv(S)
+    torch.testing.assert_close(out.mean[0], m + K @ (y - y_bar), atol=1e-12, rtol=1e-12)
+    torch.testing.assert_close(out.cov[0], P - K @ S @ K.T, atol=1e-12, rtol=1e-12)

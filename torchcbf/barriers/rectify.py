@@ -85,7 +85,8 @@ def _gain_tensor(
         gains = default
     device, dtype = float_spec(module)
     if isinstance(gains, Tensor) and gains.requires_grad:
-        out = derive(module, name, gains, functools.partial(_gains, name=name, count=count))
+        check = functools.partial(_gains, name=name, count=count)
+        out = derive(module, name, gains, check, shape=functools.partial(_repeated, count=count))
         assert out is not None
         return out
     given = isinstance(gains, Tensor)
@@ -101,11 +102,16 @@ def _gain_tensor(
     return getattr(module, name)
 
 
+def _repeated(value: Tensor, *, count: int) -> Tensor:
+    """A scalar repeated ``[count]`` (gains checked by :func:`_gains`)."""
+    return value.expand(count) if value.dim() == 0 else value
+
+
 def _gains(value: Tensor, *, name: str, count: int) -> Tensor:
     """``value`` checked and, a scalar, repeated: ``[count]``."""
     check_finite(name, value)
     if value.dim() == 0:
-        return value.expand(count)
+        return _repeated(value, count=count)
     if value.shape != (count,):
         raise ValueError(
             f"{name} must be a number or have {count} entries, got shape {tuple(value.shape)}"

@@ -24,7 +24,10 @@ from torchcbf._checks import (
     check_same,
     clamp_control,
     honour_overrides,
+    limit_shape,
+    matrix_shape,
     stale_on,
+    to_float64,
     unless_hooked,
 )
 from torchcbf._constants import DerivedConstants, derive, store
@@ -153,10 +156,13 @@ class ControlAffine(DerivedConstants):
         if callable(sigma) and not isinstance(sigma, Tensor):
             self._sigma_fn = sigma
         elif sigma is not None:
-            derive(self, "sigma_matrix", sigma, functools.partial(_sigma_matrix, n=self.state_dim))
+            n = self.state_dim
+            shape = functools.partial(matrix_shape, size=n, dtype=torch.float64)
+            derive(self, "sigma_matrix", sigma, functools.partial(_sigma_matrix, n=n), shape=shape)
         m = self.control_dim
-        lo = derive(self, "u_min", u_min, functools.partial(as_limit, "u_min", size=m))
-        hi = derive(self, "u_max", u_max, functools.partial(as_limit, "u_max", size=m))
+        bound = functools.partial(limit_shape, size=m)
+        lo = derive(self, "u_min", u_min, functools.partial(as_limit, "u_min", size=m), shape=bound)
+        hi = derive(self, "u_max", u_max, functools.partial(as_limit, "u_max", size=m), shape=bound)
         check_bounds("u_min", lo, "u_max", hi)
         self.register_buffer("disturbance_matrix", None)
         self.register_buffer("disturbance_bound", None)
@@ -164,7 +170,7 @@ class ControlAffine(DerivedConstants):
             if disturbance_matrix is None:
                 disturbance_matrix = torch.eye(self.state_dim, dtype=torch.float64)
             as_f64 = functools.partial(as_tensor, "disturbance_matrix", dtype=torch.float64)
-            M = derive(self, "disturbance_matrix", disturbance_matrix, as_f64)
+            M = derive(self, "disturbance_matrix", disturbance_matrix, as_f64, shape=to_float64)
             assert M is not None
             if M.dim() != 2 or M.shape[0] != self.state_dim:
                 raise ValueError(
@@ -173,8 +179,10 @@ class ControlAffine(DerivedConstants):
                 )
             check_finite("disturbance_matrix", M)
             bound = 0.0 if disturbance_bound is None else disturbance_bound
-            limit = functools.partial(as_limit, "disturbance_bound", size=M.shape[1])
-            w_max = derive(self, "disturbance_bound", bound, limit)
+            p = M.shape[1]
+            limit = functools.partial(as_limit, "disturbance_bound", size=p)
+            shaped = functools.partial(limit_shape, size=p)
+            w_max = derive(self, "disturbance_bound", bound, limit, shape=shaped)
             assert w_max is not None
             check_finite("disturbance_bound", w_max)
             if bool((w_max.detach() < 0).any()):
@@ -292,12 +300,8 @@ def register_constant(
 
 def _sigma_matrix(sigma: float | Tensor, n: int) -> Tensor:
     s = check_finite("sigma", as_tensor("sigma", sigma, dtype=torch.float64))
-    if s.dim() == 0:
-        return s * torch.eye(n, dtype=s.dtype)
-    if s.dim() == 1:
-        if s.shape[0] != n:
-            raise ValueError(f"sigma as a vector must have shape [{n}], got {tuple(s.shape)}")
-        return torch.diag(s)
-    if s.dim() == 2 and s.shape[0] == n:
-        return s
+    if s.dim() == 1 and s.shape[0] != n:
+        raise ValueError(f"sigma as a vector must have shape [{n}], got {tuple(s.shape)}")
+    if s.dim() <= 1 or (s.dim() == 2 and s.shape[0] == n):
+        return matrix_shape(s, n)
     raise ValueError(f"sigma must be a scalar, [{n}], [{n}, q] or a callable, got {tuple(s.shape)}")

@@ -19,6 +19,7 @@ from torchcbf._checks import (
     check_same,
     check_spd,
     check_tensor,
+    matrix_shape,
 )
 from torchcbf._constants import DerivedConstants, ExactConstants, derive, remember
 from torchcbf.dynamics.base import ControlAffine
@@ -190,7 +191,8 @@ def _noise_spec(module: nn.Module, buffer: str, name: str, value: object, n: int
     given as numbers; a tensor keeps its dtype, and one that requires grad is kept and made
     the matrix at each read (:func:`~torchcbf._constants.derive`: a parameter trains)."""
     if isinstance(value, Tensor):
-        out = derive(module, buffer, value, functools.partial(as_matrix, name, size=n))
+        check = functools.partial(as_matrix, name, size=n)
+        out = derive(module, buffer, value, check, shape=functools.partial(matrix_shape, size=n))
         assert out is not None
         return out
     return remember(module, buffer, as_matrix(name, value, n, dtype=torch.float64))

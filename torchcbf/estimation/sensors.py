@@ -91,7 +91,8 @@ class Sensor(ExactConstants, DerivedConstants):
         check_finite("R", R)
         check_spd("R", R)
         if isinstance(value, Tensor) and value.requires_grad:
-            derive(self, "R", value, fn)
+            shape = functools.partial(_variances, p=p)  # std (a tensor R is kept as given)
+            derive(self, "R", value, fn, shape=shape)
             derive_from(self, "R_sqrt", "R", torch.linalg.cholesky)
         elif exact:
             remember(self, "R", R)
@@ -157,7 +158,7 @@ def _noise(std: object, R: object, p: int | None) -> tuple[object, Callable[[obj
     if (std is None) == (R is None):
         raise ValueError("give exactly one of std= (standard deviations) and R= (covariance)")
     if R is not None:
-        return R, _covariance
+        return R, _covariance  # a tensor R is kept as it is
     return std, functools.partial(_covariance_of_std, p=p)
 
 
@@ -172,14 +173,20 @@ def _covariance(R: object) -> Tensor:
 def _covariance_of_std(std: object, p: int | None) -> Tensor:
     """``diag(std^2)`` of standard deviations given as a scalar (needs ``p``) or ``[p]``."""
     s = check_finite("std", _number_or_tensor("std", std))
-    if s.dim() == 0:
-        if p is None:
-            raise ValueError("a scalar std needs the output size (output_dim/state_dim or C)")
-        s = s.expand(p)
-    if s.dim() != 1 or (p is not None and s.shape[0] != p):
+    if s.dim() == 0 and p is None:
+        raise ValueError("a scalar std needs the output size (output_dim/state_dim or C)")
+    if s.dim() > 1 or (s.dim() == 1 and p is not None and s.shape[0] != p):
         raise ValueError(f"std must be a scalar or have shape [{p}], got {tuple(s.shape)}")
     if not bool((s.detach() > 0).all()):
         raise ValueError(f"std must be positive, got {s.detach().tolist()}")
+    return _variances(s, p)
+
+
+def _variances(std: Tensor, p: int | None) -> Tensor:
+    """``diag(std^2)`` of standard deviations checked by :func:`_covariance_of_std` (a
+    scalar repeated ``p`` times): what a sensor reads at each step from a ``std`` that
+    trains."""
+    s = std.expand(p) if std.dim() == 0 else std
     return torch.diag(s**2)
 
 

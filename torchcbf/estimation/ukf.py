@@ -28,11 +28,12 @@ class UKF(_KalmanFilter):
     ``Qd`` of ``Q_c`` under the Jacobian at the mean. On a linear system this is the exact
     Kalman filter. Update: sigma points through ``sensor.expected``; means and deviations of
     the measurements use ``sensor.residual`` (so bearings are averaged on the circle);
-    ``K = P_xy S^-1`` and the Joseph form ``P = (I - K H) P (I - K H)^T + K R K^T`` with the
-    statistically linearised sensor ``H = P_xy^T P^-1`` (``C`` itself for a linear sensor,
-    where it is the Kalman update): positive semidefinite by construction, where
-    ``P - K S K^T`` loses the variance to rounding when the measurement is far more precise
-    than the prior (a negative variance with ``P = 1e10``, ``R = 1e-6`` in float64).
+    ``K = P_xy S^-1`` and ``P - K S K^T`` in Joseph form, ``(I - K H) P (I - K H)^T +
+    K (R + D) K^T`` with the statistically linearised sensor ``H = P_xy^T P^-1`` (``C``
+    itself for a linear sensor) and ``D = sum Wc E E^T`` of the sigma points' linearisation
+    errors ``E = dY - dX H^T``: the same covariance, positive semidefinite by construction,
+    where the difference loses the variance to rounding when the measurement is far more
+    precise than the prior (a negative variance with ``P = 1e10``, ``R = 1e-6`` in float64).
 
     The default ``alpha = 1`` (``lam = kappa``) keeps the weights of order ``1/n``: small
     ``alpha`` (e.g. 1e-3) gives weights of order ``1/alpha^2`` whose cancellation costs about
@@ -76,6 +77,12 @@ class UKF(_KalmanFilter):
             )
         return c
 
+    def _center_weight(self) -> float:
+        """The covariance weight of the centre sigma point, ``lam / (n + lam) + 1 - alpha^2 +
+        beta``."""
+        c = self._scale()
+        return (c - self.state_dim) / c + 1.0 - float(self.alpha) ** 2 + float(self.beta)
+
     def _weights(self, like: Tensor) -> tuple[Tensor, Tensor]:
         """Mean and covariance weights ``[2n+1]`` in the dtype/device of ``like`` (Python
         floats cast at use: no float32 rounding of a float64 filter's weights)."""
@@ -84,7 +91,7 @@ class UKF(_KalmanFilter):
         wm = torch.full((2 * self.state_dim + 1,), 0.5 / c, dtype=like.dtype, device=like.device)
         wc = wm.clone()
         wm[0] = lam / c
-        wc[0] = lam / c + 1.0 - float(self.alpha) ** 2 + float(self.beta)
+        wc[0] = self._center_weight()
         return wm, wc
 
     def _sigma_points(self, m: Tensor, P: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -136,13 +143,19 @@ class UKF(_KalmanFilter):
         L, reg_s = robust_cholesky(S)
         K = torch.cholesky_solve(Pxy.mT, L).mT  # Pxy S^-1
         mean = m + (K @ self.sensor.residual(y, y_pred).unsqueeze(-1)).squeeze(-1)
-        # Joseph form with the statistically linearised sensor H = Pxy' P^-1 (the sensor's
-        # own matrix where it is linear): a sum of two positive semidefinite terms, where
-        # P - K S K' cancels to rounding, or below zero, when the measurement is far more
-        # precise than the prior
+        # P - K S K' in Joseph form: with the statistically linearised sensor H = Pxy' P^-1
+        # (the sensor's own matrix where it is linear) and the sigma points' linearisation
+        # errors E, S = H P H' + R + D with D = sum Wc E E', so P - K S K' = A P A' +
+        # K (R + D) K': a sum of positive semidefinite terms, where the difference cancels
+        # to rounding, or below zero, when the measurement is far more precise than the prior
         Lp, _ = robust_cholesky(P)
         H = torch.cholesky_solve(Pxy, Lp).mT  # [B, p, n]
+        E = dY - dX @ H.mT  # [B, 2n+1, p]
+        D = symmetrize((E * Wc[:, None]).mT @ E)
+        if self._center_weight() < 0:  # a negative weight: D may be indefinite
+            vals, vecs = torch.linalg.eigh(D)
+            D = (vecs * vals.clamp_min(0.0).unsqueeze(-2)) @ vecs.mT
         A = torch.eye(m.shape[-1], dtype=m.dtype, device=m.device) - K @ H
-        cov = A @ P @ A.mT + K @ self._R(m) @ K.mT
+        cov = A @ P @ A.mT + K @ (self._R(m) + D) @ K.mT
         flags = torch.where(reg_p | reg_s, int(EstimatorStatus.REGULARIZED), 0)
         return self._finish(bs, m, P, mean, cov, status | flags)

@@ -18,6 +18,7 @@ from typing import Any, ClassVar
 
 import torch
 from torch import Tensor, nn
+from torch._subclasses.fake_tensor import is_fake
 
 from torchcbf._checks import (
     ClosedForms,
@@ -196,10 +197,14 @@ def _keep_bound(mode: nn.Module, name: str, eta: object) -> None:
 
 
 def _identity(value: object) -> object:
-    """What tells a constant apart from its later values: a tensor's storage, version, dtype
-    and device (an in-place update, ``.to``, a load), else the value itself."""
+    """What tells a constant apart from its later values: a small CPU tensor's values (a
+    write through ``.data`` or a NumPy view does not bump its version), another tensor's
+    storage and version (on a GPU, change it by tensor operations), else the value."""
     if isinstance(value, Tensor):
-        return (value.data_ptr(), value._version, value.dtype, value.device)
+        v = value.detach()
+        if v.device.type == "cpu" and v.numel() <= 64:
+            return (v.dtype, tuple(v.reshape(-1).tolist()))
+        return (v.data_ptr(), v._version, v.dtype, v.device)
     return value if value is None or isinstance(value, float) else repr(value)
 
 
@@ -366,14 +371,17 @@ class RiskAware(FilterMode):
         bound, ``rho`` or ``horizon`` changes, and made afresh where one requires grad."""
         source = computed if eta is None else eta
         graph = self.horizon.requires_grad or (isinstance(source, Tensor) and source.requires_grad)
+        if graph or torch.compiler.is_compiling() or is_fake(self.horizon):
+            # traced (torch.compile, or make_fx on fake tensors): the graph makes it each call
+            bound = as_tensor(name, source, dtype=torch.float64)
+            return risk_margin(bound, rho, self.horizon.to(bound))
         key = (name, rho, _identity(self.horizon), _identity(source))
         kept = self._margins.get(name)
-        if not graph and kept is not None and kept[0] == key:
+        if kept is not None and kept[0] == key:
             return kept[1]
         bound = as_tensor(name, source, dtype=torch.float64)
         margin = risk_margin(bound, rho, self.horizon.to(bound))
-        if not graph:
-            self._margins[name] = (key, margin)
+        self._margins[name] = (key, margin)
         return margin
 
     def cbf(self, terms: LieTerms, alpha: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:

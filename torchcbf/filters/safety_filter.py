@@ -58,6 +58,8 @@ from torchcbf._checks import (
     check_last_dim,
     follow_parts,
     isfinite,
+    limit_shape,
+    matrix_shape,
     placement,
     rows_finite,
 )
@@ -328,10 +330,12 @@ class SafetyFilter(ExactConstants, DerivedConstants):
         # is kept and shaped at each read, so that it trains
         weight = torch.eye(m, dtype=torch.float64) if R is None else R
         as_weight = functools.partial(as_matrix, "R", size=m, dtype=torch.float64)
-        derive(self, "R", weight, as_weight, exact=not isinstance(R, Tensor))
+        shape = functools.partial(matrix_shape, size=m, dtype=torch.float64)
+        derive(self, "R", weight, as_weight, shape=shape, exact=not isinstance(R, Tensor))
+        bound = functools.partial(limit_shape, size=m)
         for name, limit in (("u_min", u_min), ("u_max", u_max)):
             as_bound = functools.partial(as_limit, name, size=m)
-            derive(self, name, limit, as_bound, exact=not isinstance(limit, Tensor))
+            derive(self, name, limit, as_bound, shape=bound, exact=not isinstance(limit, Tensor))
         lo, hi = self._limit_tensors()
         check_bounds("u_min", lo, "u_max", hi)
         self.slack = _slack(slack).resolved(lyapunovs=bool(self.lyapunovs))
