@@ -800,6 +800,24 @@ def test_a_loaded_noise_covariance_is_sampled(backend):
         torch.testing.assert_close(u[0], u[1])
 
 
+
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+@pytest.mark.parametrize("noise_mu", [None, 0.0])
+def test_a_noise_covariance_written_in_place_is_sampled(backend, noise_mu):
+    """noise_cov is the planner's noise: written in place (its factors follow), the next
+    call plans as a planner built with it, on every sampling route."""
+    cost = QuadraticGoal([1.0, -1.0])
+    target = torch.tensor([[4.0, 1.0], [1.0, 4.0]])
+    made = [
+        MPPI(SingleIntegrator(2), cost, 8, 256, 0.1, sigma, 0.5, seed=0, noise_mu=noise_mu,
+             backend=backend)  # fmt: skip
+        for sigma in (1.0, target)
+    ]
+    made[0].noise_cov.copy_(target)
+    u = [p(torch.zeros(2)).u for p in made]
+    torch.testing.assert_close(u[0], u[1], atol=1e-5, rtol=1e-5)
+
+
 def test_a_number_of_samples_set_after_a_call_is_sampled_on_every_path():
     """``num_samples`` (and ``layout``) set between calls: the sample buffers follow, and
     the paths still agree for one seed."""

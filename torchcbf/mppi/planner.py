@@ -735,6 +735,7 @@ class MPPI(ExactConstants):
             raise ValueError(f"t must be a scalar or have shape [{B}], got {tuple(t0.shape)}")
         t0 = t0.reshape(-1).expand(B)
         shifting = shift and not self._fresh
+        self._noise_form()  # a noise_cov set since the last call: its factors made again
         kernel = self._kernel(xb)
         self._fresh = False
         self.engine = None if kernel is None else kernel.name
@@ -912,7 +913,9 @@ class MPPI(ExactConstants):
     def _noise_form(self) -> tuple[bool, float | None]:
         """``(diagonal, std)`` of ``noise_cov`` as it is now: whether it is diagonal, and
         ``s`` where it is ``s^2 I`` (else ``None``). Worked out again where the buffer was
-        replaced or written in place (``load_state_dict``, ``copy_``)."""
+        replaced or written in place (``load_state_dict``, ``copy_``), and then
+        ``noise_chol`` and ``noise_cov_inv`` are made again from it: ``noise_cov`` is the
+        one a user sets."""
         cov = self.noise_cov
         key = (cov.data_ptr(), cov._version, cov.device, cov.dtype)
         kept = self._noise_form_kept
@@ -920,7 +923,14 @@ class MPPI(ExactConstants):
             diag = torch.diagonal(cov)
             diagonal = bool(torch.equal(cov, torch.diag(diag)))
             isotropic = diagonal and bool((diag == diag[0]).all())
-            kept = (key, diagonal, float(diag[0].sqrt()) if isotropic else None)
+            chol = self.noise_chol.detach()
+            tol = 1e-10 if cov.dtype == torch.float64 else 1e-5
+            if not torch.allclose(chol @ chol.mT, cov.detach(), rtol=tol, atol=0.0):
+                exact = torch.linalg.cholesky(cov.detach().double())  # the factors follow
+                self.noise_chol.copy_(exact)
+                self.noise_cov_inv.copy_(torch.cholesky_inverse(exact))
+            kept = ((cov.data_ptr(), cov._version, cov.device, cov.dtype), diagonal,
+                    float(diag[0].sqrt()) if isotropic else None)  # fmt: skip
             self._noise_form_kept = kept
         return kept[1], kept[2]
 
