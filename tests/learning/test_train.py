@@ -110,8 +110,10 @@ def test_a_checkpoint_refuses_extras_it_could_not_load(tmp_path) -> None:
         with pytest.raises(TypeError, match=re.escape(name)):
             save_checkpoint(tmp_path / "x.pt", model, loss=value)
     assert not (tmp_path / "x.pt").exists()
-    save_checkpoint(tmp_path / "x.pt", model, loss=[1.5, {"tag": "a", "t": torch.ones(2)}])
-    assert load_checkpoint(tmp_path / "x.pt", model)["extra"]["loss"][0] == 1.5
+    save_checkpoint(tmp_path / "x.pt", model, loss=[1.5, {"tag": "a", "t": torch.ones(2)}],
+                    ema=model.state_dict())  # fmt: skip
+    extra = load_checkpoint(tmp_path / "x.pt", model)["extra"]
+    assert extra["loss"][0] == 1.5 and torch.equal(extra["ema"]["weight"], model.weight)
 
 
 def test_non_finite_steps_are_skipped() -> None:

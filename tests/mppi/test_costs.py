@@ -66,8 +66,16 @@ def test_standard_costs_analytic(device, dtype):
     torch.testing.assert_close(
         total(states, controls, t0), want + want_o + want_b, atol=_tol(dtype), rtol=_tol(dtype)
     )
-    # "+" builds the same sum; plain rollout-level callables are summed as well
+    # "+" builds the same sum; plain rollout-level callables are summed as well, also
+    # inside a sum that is a term of another
     plain = lambda s, u, t: s[..., 0].sum(-1)  # noqa: E731
+    nested = (goal + plain) + obst
+    torch.testing.assert_close(
+        nested(states, controls, t0),
+        want + want_o + states[..., 0].sum(-1),
+        atol=_tol(dtype),
+        rtol=_tol(dtype),
+    )
     combined = goal + obst + plain
     torch.testing.assert_close(
         combined(states, controls, t0),

@@ -202,7 +202,9 @@ def test_weights_pass_matches_the_torch_weights(dtype, K, temperature):
     cost[2] = 3.0  # all tied: the first sample is the best
     cost[3] = float("inf")
     cost[3, K // 2] = 1.0  # one finite cost
+    cost[4, : K // 2 + 1] = 1e37  # finite in float32; their float32 sum would not be
     want = planner._weights(cost.clone())
+    assert torch.isfinite(want.cost_mean[4])
     lam = max(temperature, torch.finfo(dtype).tiny)
     got = _triton.weights(cost.to(TARGET), lam)
     assert len(got) == len(want)

@@ -306,3 +306,12 @@ def test_a_scalar_parameter_radius_on_arm_links_trains() -> None:
     fresh = LinkSphereBarrier(arm, links, float(r.detach()), [0.5, 0.5, 0.0], 0.2).double()
     torch.testing.assert_close(barrier(q).detach(), fresh(q))
     assert not torch.equal(before, barrier(q).detach())
+
+
+def test_a_scale_of_numbers_takes_its_barriers_dtype_and_stays_exact() -> None:
+    ball = Ball([0.3, 0.1], 0.7).double()
+    x = torch.tensor([[0.2, -0.3], [1.5, 0.4]], dtype=F64)
+    scaled = Scaled(ball, 0.1)
+    assert scaled.scale.dtype == F64
+    assert torch.equal(scaled(x), 0.1 * ball(x))
+    assert torch.equal(Scaled(Ball([0.3, 0.1], 0.7), 0.1).double()(x), 0.1 * ball(x))

@@ -9,7 +9,10 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
+from torchcbf._checks import as_tensor, check_finite
+from torchcbf._constants import remember
 from torchcbf.barriers._minmax import Mode, combine, reduce
+from torchcbf.barriers._params import float_spec
 from torchcbf.barriers.base import Barrier
 from torchcbf.barriers.lie import (
     AnalyticDerivatives,
@@ -123,7 +126,12 @@ class Scaled(_OfOne):
         super().__init__(barrier)
         if isinstance(scale, bool):
             raise TypeError("scale must be a number or a sequence/tensor of numbers")
-        value = self.register_constant("scale", scale)  # a parameter trains
+        if isinstance(scale, Tensor):
+            value = self.register_constant("scale", scale)  # a parameter trains
+        else:  # Python numbers: in the inner barrier's dtype, exact under .double()
+            device, dtype = float_spec(barrier)
+            exact = check_finite("scale", as_tensor("scale", scale, dtype=torch.float64))
+            value = remember(self, "scale", exact, dtype=dtype, device=device)
         if value.dim() > 1 or value.numel() == 0 or not bool((value.detach() > 0).all()):
             raise ValueError(f"scale must be positive numbers (scalar or [k]), got {scale!r}")
 

@@ -222,6 +222,10 @@ def _checked_bound(name: str, eta: object) -> Tensor:
 def _check_risk(name: str, rho: object) -> float:
     """A probability bound in ``(0, 1)`` whose ``erfinv(1 - rho)`` is finite in float64
     (``rho`` at least about 1.1e-16), as a float."""
+    if isinstance(rho, Tensor):
+        if rho.requires_grad or rho.numel() != 1:
+            raise TypeError(f"{name} must be a number (a tensor of one value, without grad)")
+        rho = rho.item()
     if isinstance(rho, bool) or not isinstance(rho, numbers.Real) or not 0 < rho < 1:
         raise ValueError(f"{name} must be a number in (0, 1), got {rho!r}")
     if 1.0 - float(rho) == 1.0:

@@ -13,8 +13,10 @@ periodic checkpoints; copy it if you need something else::
 
 from __future__ import annotations
 
+import io
 import logging
 import math
+import pickle
 import time
 import warnings
 from collections.abc import Callable, Mapping
@@ -59,8 +61,8 @@ def save_checkpoint(
 ) -> None:
     """Save ``module.state_dict()`` (and the optimizer's, the scheduler's, the step and
     ``extra``) to ``path``. ``extra`` holds what :func:`load_checkpoint` reads back with
-    ``weights_only=True``: tensors, Python numbers, strings, ``None`` and lists, tuples and
-    dicts of them (anything else raises ``TypeError`` naming it, before writing)."""
+    ``weights_only=True`` (tensors, Python numbers, strings, ``None``, containers of them,
+    state dicts); anything else raises ``TypeError`` naming it, before writing."""
     for key, value in extra.items():
         _check_loadable(f"extra[{key!r}]", value)
     path = Path(path)
@@ -78,24 +80,26 @@ def save_checkpoint(
 
 
 def _check_loadable(name: str, value: object) -> None:
-    """Raise ``TypeError`` naming ``name`` where ``value`` would not load with
-    ``weights_only=True``."""
-    # exact types: a NumPy float64 is a float, and does not load with weights_only
-    if value is None or type(value) in (bool, int, float, str) or isinstance(value, Tensor):
-        return
-    if type(value) in (list, tuple):
-        for i, item in enumerate(value):
-            _check_loadable(f"{name}[{i}]", item)
-        return
-    if type(value) is dict:
-        for key, item in value.items():
-            _check_loadable(f"{name}[{key!r}]", item)
-        return
-    raise TypeError(
-        f"{name} is a {type(value).__module__}.{type(value).__qualname__}: a checkpoint holds "
-        "tensors, numbers, strings, None and lists, tuples and dicts of them (it is loaded "
-        "with weights_only=True); convert it (float(), str(), torch.as_tensor())"
-    )
+    """Raise ``TypeError`` naming ``name`` (or the first entry inside it that is at fault)
+    where ``value`` would not load back with ``weights_only=True``."""
+    buffer = io.BytesIO()
+    try:
+        torch.save(value, buffer)
+        buffer.seek(0)
+        torch.load(buffer, weights_only=True)
+    except (pickle.PickleError, AttributeError, TypeError):
+        items: Any = ()
+        if isinstance(value, Mapping):
+            items = ((f"{name}[{k!r}]", v) for k, v in value.items())
+        elif isinstance(value, (list, tuple)):
+            items = ((f"{name}[{i}]", v) for i, v in enumerate(value))
+        for inner, item in items:
+            _check_loadable(inner, item)
+        raise TypeError(
+            f"{name} is a {type(value).__module__}.{type(value).__qualname__}: a checkpoint "
+            "is loaded with weights_only=True, which reads tensors, numbers, strings, None "
+            "and containers of them; convert it (float(), str(), torch.as_tensor())"
+        ) from None
 
 
 def load_checkpoint(

@@ -453,7 +453,7 @@ if triton is not None:
         low = tl.full([BLOCK], inf, real)
         at = lane
         count = tl.zeros([BLOCK], tl.int32)
-        total = tl.zeros([BLOCK], real)
+        total = tl.zeros([BLOCK], tl.float64)  # float32 costs near 1e37 would overflow
         for step in range(STEPS):
             k = step * BLOCK + lane
             c = tl.load(row + k, mask=k < K, other=inf)
@@ -463,7 +463,7 @@ if triton is not None:
             low = tl.where(better, clean, low)
             at = tl.where(better, k, at)
             count += finite.to(tl.int32)
-            total += tl.where(finite, c, 0.0)
+            total += tl.where(finite, c, 0.0).to(tl.float64)
         cmin = tl.min(low, 0)
         best = tl.min(tl.where(low == cmin, at, K), 0)
         ok = cmin < inf
@@ -487,7 +487,7 @@ if triton is not None:
         ssq = tl.maximum(tl.sum(squares, 0), tl.full([], 1e-30, real))
         tl.store(min_ptr + b, cmin)
         tl.store(best_ptr + b, best.to(tl.int64))
-        tl.store(mean_ptr + b, tl.sum(total, 0) / tl.maximum(n, 1).to(real))
+        tl.store(mean_ptr + b, (tl.sum(total, 0) / tl.maximum(n, 1).to(tl.float64)).to(real))
         tl.store(ess_ptr + b, tl.where(ok, 1.0 / ssq, 0.0))
         tl.store(status_ptr + b, tl.where(ok, 0, 1).to(tl.int64))
         tl.store(nonfinite_ptr + b, (K - n).to(tl.int64))

@@ -327,7 +327,7 @@ class SumCost(RolloutCost):
         for c in costs:
             if not callable(c):
                 raise TypeError(f"every cost must be callable, got {type(c).__name__}")
-            flat.extend(c.terms if isinstance(c, SumCost) else [c])
+            flat.extend([*c.terms, *c._plain] if isinstance(c, SumCost) else [c])
         #: the terms that are modules (a term replaced or appended here is scored)
         self.terms = nn.ModuleList([c for c in flat if isinstance(c, nn.Module)])
         self._plain = [c for c in flat if not isinstance(c, nn.Module)]
