@@ -800,7 +800,6 @@ def test_a_loaded_noise_covariance_is_sampled(backend):
         torch.testing.assert_close(u[0], u[1])
 
 
-
 @pytest.mark.parametrize("backend", ["auto", "torch"])
 @pytest.mark.parametrize("noise_mu", [None, 0.0])
 def test_a_noise_covariance_written_in_place_is_sampled(backend, noise_mu):
@@ -808,10 +807,9 @@ def test_a_noise_covariance_written_in_place_is_sampled(backend, noise_mu):
     call plans as a planner built with it, on every sampling route."""
     cost = QuadraticGoal([1.0, -1.0])
     target = torch.tensor([[4.0, 1.0], [1.0, 4.0]])
+    kw = {"seed": 0, "noise_mu": noise_mu, "backend": backend}
     made = [
-        MPPI(SingleIntegrator(2), cost, 8, 256, 0.1, sigma, 0.5, seed=0, noise_mu=noise_mu,
-             backend=backend)  # fmt: skip
-        for sigma in (1.0, target)
+        MPPI(SingleIntegrator(2), cost, 8, 256, 0.1, sigma, 0.5, **kw) for sigma in (1.0, target)
     ]
     made[0].noise_cov.copy_(target)
     u = [p(torch.zeros(2)).u for p in made]
