@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchcbf.dynamics import ControlAffine, DoubleIntegrator, SingleIntegrator, VanDerPol
-from torchcbf.integrators import step
+from torchcbf.integrators import euler, euler_maruyama, rk4, step
 
 
 class _Decay(ControlAffine):
@@ -209,3 +209,13 @@ def test_unchecked_step_in_both_layouts_matches_the_public_step(dtype, method, m
     out = unchecked_step(dyn, method, xc, uc, 0.05, form=form, component=True)
     assert out.shape == xc.shape
     torch.testing.assert_close(out.mT, ref, **tol)
+
+
+@pytest.mark.parametrize("integrate", [euler, rk4, euler_maruyama])
+def test_a_step_that_is_not_a_positive_number_is_refused(integrate) -> None:
+    model = SingleIntegrator(2, sigma=0.1)
+    x, u = torch.zeros(1, 2), torch.ones(1, 2)
+    kw = {"noise": torch.zeros(1, 2)} if integrate is euler_maruyama else {}
+    for dt in (-0.1, 0.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="dt"):
+            integrate(model, x, u, dt, **kw)

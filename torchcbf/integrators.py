@@ -126,19 +126,24 @@ def unchecked_step(
     return stepper(rate, x, u, dt)
 
 
-def _checked(dynamics: ControlAffine, x: Tensor, u: Tensor, w: Tensor | None) -> None:
+def _checked(
+    dynamics: ControlAffine, x: Tensor, u: Tensor, w: Tensor | None, dt: float
+) -> float:
+    """Check the inputs of a public integrator; return ``dt`` (a positive finite number)."""
+    dt = check_positive("dt", dt)
     if not isinstance(dynamics, ControlAffine):
         raise TypeError(f"dynamics must be a ControlAffine module, got {type(dynamics).__name__}")
     dynamics.check_inputs(x, u)
     if w is not None:
         check_same("x", x, "w", w)
+    return dt
 
 
 def euler(
     dynamics: ControlAffine, x: Tensor, u: Tensor, dt: float, w: Tensor | None = None
 ) -> Tensor:
     """Explicit Euler: ``x + dt * xdot(x, u)`` for ``x [..., n]``, ``u [..., m]``."""
-    _checked(dynamics, x, u, w)
+    dt = _checked(dynamics, x, u, w, dt)
     return _euler(dynamics, x, u, dt, w)
 
 
@@ -147,7 +152,7 @@ def rk4(
 ) -> Tensor:
     """Classical fourth-order Runge-Kutta with ``u`` (and ``w``) held over the step, for
     ``x [..., n]``, ``u [..., m]``."""
-    _checked(dynamics, x, u, w)
+    dt = _checked(dynamics, x, u, w, dt)
     return _rk4(dynamics, x, u, dt, w)
 
 
@@ -173,6 +178,7 @@ def euler_maruyama(
     ``z ~ N(0, I_q)`` is drawn from ``generator`` or given as ``noise [..., q]``. Without a
     diffusion this is :func:`euler`.
     """
+    dt = check_positive("dt", dt)
     drift = x + dt * dynamics(x, u, w)
     sigma = dynamics.sigma(x)
     if sigma is None:
@@ -218,8 +224,7 @@ def step(
     Raises ``TypeError`` when ``u``, ``w`` or ``noise`` has another dtype than ``x`` and
     ``ValueError`` when it is on another device (both named), as for a bad shape or ``dt``.
     """
-    _checked(dynamics, x, u, w)
-    dt = check_positive("dt", dt)
+    dt = _checked(dynamics, x, u, w, dt)
     if method == "euler":
         return _euler(dynamics, x, u, dt, w)
     if method == "rk4":

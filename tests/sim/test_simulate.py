@@ -516,3 +516,25 @@ def test_a_stateful_nominal_controller_is_reset_before_each_run() -> None:
     loop = ClosedLoop(dynamics=SingleIntegrator(1), nominal=Counting())
     runs = [loop.simulate(torch.zeros(2, 1), steps=5, dt=0.1, progress=False) for _ in range(2)]
     assert torch.equal(runs[0].x, runs[1].x)
+
+
+def test_counts_seeds_and_barrier_lists_in_their_usual_forms() -> None:
+    """wilson_interval refuses counts that are no counts; a NumPy or one-value tensor seed
+    is one integer; metrics takes its barriers as an nn.ModuleList too."""
+    import numpy as np
+    from torch import nn
+
+    for successes, total in ((3, -2), (5, 3), (-1, 10), (1.5, 3)):
+        with pytest.raises(ValueError, match="successes|total"):
+            wilson_interval(successes, total)
+    loop = dict(steps=3, dt=0.1, nominal=lambda x, t: -x, progress=False)
+    dyn = SingleIntegrator(2, sigma=0.1)
+    x0 = torch.ones(3, 2)
+    want = simulate(dyn, x0, seed=5, **loop).x
+    for seed in (np.int64(5), torch.tensor(5)):
+        assert torch.equal(simulate(dyn, x0, seed=seed, **loop).x, want)
+    traj = simulate(dyn, x0, seed=5, **loop)
+    balls = [Ball([0.0, 0.0], 0.5), Ball([2.0, 2.0], 0.3)]
+    a = metrics(traj, barriers=nn.ModuleList(balls))
+    b = metrics(traj, barriers=balls)
+    assert torch.equal(a["min_h"], b["min_h"])

@@ -24,6 +24,7 @@ the library are; so are plain functions):
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
@@ -371,8 +372,12 @@ class _Run:
 
 
 def _seeds(seed: int | Sequence[int] | Tensor, batch: int, device: torch.device) -> Tensor:
-    if isinstance(seed, int):
-        return torch.arange(batch, device=device, dtype=torch.int64) + seed
+    """One seed per scenario: ``seed + b`` from one integer (a NumPy or one-value tensor
+    integer too), or the given ``[batch]``."""
+    if isinstance(seed, Tensor) and seed.numel() == 1 and batch != 1:
+        seed = int(seed)
+    if isinstance(seed, numbers.Integral) and not isinstance(seed, bool):
+        return torch.arange(batch, device=device, dtype=torch.int64) + int(seed)
     seeds = torch.as_tensor(seed, dtype=torch.int64, device=device).reshape(-1)
     if seeds.shape != (batch,):
         raise ValueError(

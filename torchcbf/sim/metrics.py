@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from torchcbf.sim.trajectory import Trajectory
 
@@ -67,7 +68,12 @@ def _swept(
 
 
 def wilson_interval(successes: int, total: int, z: float = 1.96) -> tuple[float, float]:
-    """Wilson score interval for a rate (95% by default)."""
+    """Wilson score interval for a rate (95% by default): ``0 <= successes <= total``."""
+    for name, value in (("successes", successes), ("total", total)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 0:
+            raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
+    if successes > total:
+        raise ValueError(f"successes ({successes}) must not exceed total ({total})")
     if total == 0:
         return (0.0, 1.0)
     p = successes / total
@@ -126,7 +132,9 @@ def metrics(
     out: dict[str, Tensor] = {"failed": traj.failed}
     h: Tensor | None = None
     if barriers is not None:
-        fns = [barriers] if callable(barriers) else list(barriers)
+        # a ModuleList is callable (nn.Module) but holds the barriers
+        listed = isinstance(barriers, (nn.ModuleList, list, tuple))
+        fns = list(barriers) if listed or not callable(barriers) else [barriers]
         h = _barrier_values(fns, traj.x)
         h_min = h.min(-1).values
         unsafe = h_min < 0
