@@ -538,3 +538,18 @@ def test_counts_seeds_and_barrier_lists_in_their_usual_forms() -> None:
     a = metrics(traj, barriers=nn.ModuleList(balls))
     b = metrics(traj, barriers=balls)
     assert torch.equal(a["min_h"], b["min_h"])
+
+
+def test_a_snapshot_step_that_is_no_planning_step_is_refused() -> None:
+    """With planner_every=3, step 100 has no planner output of its own: refused, naming the
+    planning steps around it (it was dropped without a word)."""
+
+    def planner(x, t):
+        return _Plan(u=-x, plan=(-x).unsqueeze(1).expand(-1, 4, -1))
+
+    loop = ClosedLoop(dynamics=SingleIntegrator(2), planner=planner, planner_every=3)
+    with pytest.raises(ValueError, match="take 99 or 102"):
+        loop.simulate(torch.zeros(1, 2), steps=120, dt=0.1, snapshot_steps=(100,), progress=False)
+    traj = loop.simulate(torch.zeros(1, 2), steps=120, dt=0.1, snapshot_steps=(99,),
+                         progress=False)  # fmt: skip
+    assert list(traj.planner) == [99]

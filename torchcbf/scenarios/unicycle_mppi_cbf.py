@@ -474,7 +474,8 @@ def build(
         goals=[goal_region],
         metric_goals=[goal_region],
         status_names={int(s): s.name.lower() for s in FilterStatus},
-        snapshot_steps=(100,) if planner is not None else (),
+        # the planning call at or before 1 s (2 s / 2 replanning steps by default)
+        snapshot_steps=(100 - 100 % planner_every,) if planner is not None else (),
         params=record,
         extra_metrics=extra,
     )

@@ -147,8 +147,9 @@ class ClosedLoop:
                 its rows run alone.
             x0_hat, P0: the estimator's initial mean ``[B, n]`` (default ``x0``) and
                 covariance ``[B, n, n]`` or ``[n, n]`` (default ``1e-2 I``).
-            snapshot_steps: steps at which the planner's whole output is kept in
-                ``Trajectory.planner``.
+            snapshot_steps: planning steps (multiples of ``planner_every``) at which the
+                planner's whole output is kept in ``Trajectory.planner`` (a step the run
+                does not reach keeps nothing).
             progress: show a progress bar labelled ``progress_label``.
             differentiable: keep the autograd graph through the whole loop (to train
                 through rollouts). Off by default: the loop runs under ``torch.no_grad()``.
@@ -215,6 +216,15 @@ class _Run:
         self.fail_step = torch.full((B,), -1, dtype=torch.int64, device=x0.device)
         self.snapshots: dict[int, Any] = {}
         self.snapshot_set = set(snapshot_steps)
+        every = loop.planner_every
+        for k in self.snapshot_set:
+            if isinstance(k, bool) or not isinstance(k, int) or k < 0:
+                raise ValueError(f"snapshot_steps must be non-negative steps, got {k!r}")
+            if loop.planner is not None and k < steps and k % every:
+                raise ValueError(
+                    f"snapshot step {k} is not a planning step (the planner runs every {every} "
+                    f"steps): take {k - k % every} or {k - k % every + every}"
+                )
         self.x = x0.clone()
         self.est_state: Any = None
         self.plan_out: Any = None
