@@ -553,3 +553,11 @@ def test_a_snapshot_step_that_is_no_planning_step_is_refused() -> None:
     traj = loop.simulate(torch.zeros(1, 2), steps=120, dt=0.1, snapshot_steps=(99,),
                          progress=False)  # fmt: skip
     assert list(traj.planner) == [99]
+
+
+def test_metrics_of_an_empty_batch_with_barriers() -> None:
+    traj = simulate(SingleIntegrator(2), torch.zeros(0, 2), steps=3, dt=0.1,
+                    nominal=lambda x, t: -x, progress=False)  # fmt: skip
+    for points in (0, 8):
+        m = metrics(traj, barriers=[Ball([1.0, 0.0], 0.3)], segment_points=points)
+        assert m["collision"].shape == (0,) and m["min_h"].shape == (0,)

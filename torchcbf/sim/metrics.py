@@ -36,6 +36,10 @@ def _barrier_values(fns: Sequence[Callable[[Tensor], Tensor]], x: Tensor) -> Ten
     on the flattened states, so a function needs to take one batch dimension only)."""
     flat = x.reshape(-1, x.shape[-1])
     with torch.no_grad():
+        if flat.shape[0] == 0:  # no state: each function's outputs counted on a stand-in
+            flat = flat.new_zeros(1, flat.shape[-1])
+            k = sum(math.prod(fn(flat).shape[1:]) for fn in fns)
+            return x.new_zeros(*x.shape[:-1], k)
         values = [fn(flat).reshape(flat.shape[0], -1) for fn in fns]
     return torch.cat(values, -1).reshape(*x.shape[:-1], -1)
 
@@ -145,7 +149,7 @@ def metrics(
             out["collision_between_samples"] = crossed.any(-1) & ~unsafe.any(-1)
             # samples and segment points in time order: sample k, then its segment's points
             B, T = crossed.shape
-            merged = torch.cat([unsafe[:, :-1, None], between], -1).reshape(B, -1)
+            merged = torch.cat([unsafe[:, :-1, None], between], -1).flatten(1)
             merged = torch.cat([merged, unsafe[:, -1:]], -1)
             out["collision"] = merged.any(-1)
             out["first_collision_time"] = _first_time(merged, dense_t)
