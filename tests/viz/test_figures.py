@@ -111,3 +111,24 @@ def test_legends_do_not_cover_the_workspace() -> None:
     fig = plot_rollouts(torch.randn(20, 6, 2), torch.rand(20), torch.randn(6, 2),
                         barriers=[obstacle])  # fmt: skip
     assert _outside(fig, fig.axes[0])
+
+
+@pytest.mark.parametrize("kind", ["empty", "all_nan", "one_nan_row"])
+def test_barrier_figures_draw_what_is_finite(kind: str) -> None:
+    """An empty batch, a batch whose states are all NaN and one NaN row among finite ones:
+    the figures draw the finite values (the lowest marker only where there is one) and
+    never fail."""
+    x = torch.stack([torch.linspace(0.0, 1.0, 6), torch.zeros(6)], -1).expand(3, 6, 2).clone()
+    if kind == "empty":
+        x = x[:0]
+    elif kind == "all_nan":
+        x[:] = float("nan")
+    else:
+        x[1] = float("nan")
+    traj = _traj(x)
+    ball = Ball([2.0, 0.0], 0.5)
+    fig = plot_barrier_bands({"a": traj, "b": _traj(x.clone())}, [ball])
+    h = ball(x)
+    plot_barrier_values(traj.t, h)
+    marks = [ln for ax in fig.axes for ln in ax.lines if ln.get_label().startswith("lowest")]
+    assert len(marks) == (1 if kind == "one_nan_row" else 0)

@@ -4,6 +4,7 @@ seed with every method."""
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -87,9 +88,12 @@ def plot_methods(
 
 
 def barrier_traces(traj: Trajectory, barriers: Sequence[BarrierFn]) -> np.ndarray:
-    """``min_i b_i(x)`` over the true states: ``[B, T+1]``."""
+    """``min_i b_i(x)`` over the true states: ``[B, T+1]`` (NaN where a state is)."""
+    B, T = traj.x.shape[:2]
+    if B == 0:
+        return np.zeros((0, T))
     with torch.no_grad():
-        h = torch.cat([b(traj.x).reshape(*traj.x.shape[:2], -1) for b in barriers], -1)
+        h = torch.cat([b(traj.x).reshape(B, T, -1) for b in barriers], -1)
     return _np(h.min(-1).values)
 
 
@@ -111,22 +115,29 @@ def plot_barrier_bands(
         color = COLORS[j % len(COLORS)]
         t = _np(traj.t)
         h = barrier_traces(traj, barriers)
+        if not np.isfinite(h).any():  # no seed, or none with a finite state: nothing to draw
+            continue
         b, k = np.unravel_index(np.nanargmin(h), h.shape)
         lowest[name] = (float(h[b, k]), int(b), float(t[k]))
-        lo, med, hi = np.percentile(h, [5, 50, 95], axis=0)
+        with warnings.catch_warnings():  # a time where every seed is NaN stays NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            lo, med, hi = np.nanpercentile(h, [5, 50, 95], axis=0)
+            least = np.nanmin(h, axis=0)
         ax.fill_between(t, lo, hi, color=color, alpha=0.2, lw=0)
         ax.plot(t, med, color=color, lw=1.8, label=f"{name}: median, 5-95 % band")
-        ax.plot(t, h.min(0), color=color, lw=0.8, ls=":", label=f"{name}: minimum over seeds")
+        ax.plot(t, least, color=color, lw=0.8, ls=":", label=f"{name}: minimum over seeds")
     ax.axhline(0.0, color="tab:red", ls="--", lw=1.0, label="contact (b = 0)")
     if ylim is not None:
         ax.set_ylim(*ylim)
-    worst = min(trajectories, key=lambda name: lowest[name][0])
-    value, seed, when = lowest[worst]
-    lo, hi = ax.get_ylim()
-    if value < lo + 0.05 * (hi - lo):
-        ax.set_ylim(value - 0.08 * (hi - value), hi)
-    label = f"lowest: {value:.2f} ({worst}, seed index {seed}, t = {when:.2f} s)"
-    ax.plot(when, value, marker="v", color="tab:red", ms=8, mec="k", mew=0.5, zorder=5, label=label)
+    if lowest:
+        worst = min(lowest, key=lambda name: lowest[name][0])
+        value, seed, when = lowest[worst]
+        lo, hi = ax.get_ylim()
+        if value < lo + 0.05 * (hi - lo):
+            ax.set_ylim(value - 0.08 * (hi - value), hi)
+        label = f"lowest: {value:.2f} ({worst}, seed index {seed}, t = {when:.2f} s)"
+        ax.plot(when, value, marker="v", color="tab:red", ms=8, mec="k", mew=0.5, zorder=5,
+                label=label)  # fmt: skip
     ax.set_xlabel("t [s]")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
@@ -151,6 +162,11 @@ def animate_methods(
     """A GIF of scenario ``seed_index`` (the same noise seed) under every method; returns
     its path."""
     path = Path(path)
+    for name, traj in trajectories.items():
+        if not -traj.batch_size <= seed_index < traj.batch_size:
+            raise IndexError(
+                f"seed_index {seed_index} is outside {name!r}'s batch of {traj.batch_size}"
+            )
     fig, ax = plt.subplots(figsize=(8.4, 6))
     fig.subplots_adjust(left=0.08, right=0.7)  # room for the legend (frames keep this box)
     xys = {name: _xy(t, index)[seed_index] for name, t in trajectories.items()}

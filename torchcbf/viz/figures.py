@@ -8,6 +8,7 @@ Goals are anything with ``center`` and ``radius`` (and optionally ``interval``, 
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -116,6 +117,8 @@ def weight_ranks(weights: np.ndarray) -> np.ndarray:
 def mark_minimum(ax: Axes, t: np.ndarray, h: np.ndarray, color: str = "tab:red") -> None:
     """Mark the smallest value of ``h [B, T]`` over time ``t [T]`` with its value, and widen
     the y-axis so that it shows (a fixed lower limit hides the worst collision)."""
+    if not np.isfinite(h).any():
+        return  # nothing finite to mark (an empty batch, every value NaN)
     b, j = np.unravel_index(np.nanargmin(h), h.shape)
     value = float(h[b, j])
     ax.plot(t[j], value, marker="v", color=color, ms=8, mec="k", mew=0.5, zorder=5,
@@ -229,12 +232,16 @@ def plot_barrier_values(
     fig, ax = (ax.figure, ax) if ax is not None else plt.subplots(figsize=(7, 3.5))
     t, h = _np(t), _np(h)
     if h.ndim == 3:
-        h = h.min(-1)
+        h = h.min(-1) if h.shape[-1] else np.full(h.shape[:2], np.nan)
     t = t[: h.shape[1]]
     for b in range(h.shape[0]):
         label = f"one line per scenario ({h.shape[0]})" if b == 0 else None
         ax.plot(t, h[b], color="tab:blue", alpha=0.3, lw=0.8, label=label)
-    ax.plot(t, h.min(0), color="tab:blue", lw=2.0, label="minimum over scenarios")
+    if h.shape[0]:
+        with warnings.catch_warnings():  # a time where every scenario is NaN stays NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            least = np.nanmin(h, axis=0)
+        ax.plot(t, least, color="tab:blue", lw=2.0, label="minimum over scenarios")
     ax.axhline(0.0, color="tab:red", ls="--", lw=1.0, label="h = 0 (boundary)")
     mark_minimum(ax, t, h)
     ax.set_xlabel("t [s]")
