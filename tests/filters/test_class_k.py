@@ -61,3 +61,16 @@ def test_as_class_k_specifications() -> None:
         as_class_k("fast")
     with pytest.raises(ValueError, match="power"):
         PowerClassK(1.0, power=-1.0)
+
+
+@pytest.mark.parametrize("power", [1.0, 1.5, 2.0, 3.0])
+def test_a_power_class_k_has_its_derivative_at_zero(power: float) -> None:
+    """alpha(h) = gain sign(h) |h|^p: at h = 0 its derivative is gain for p = 1 (sign(h) |h|
+    gave 0 there) and 0 above; elsewhere it is autograd's of the formula."""
+    alpha = PowerClassK(2.0, power=power).double()
+    h = torch.tensor([0.0, 0.3, -0.7], dtype=torch.float64, requires_grad=True)
+    (grad,) = torch.autograd.grad(alpha(h).sum(), h)
+    want = 2.0 * power * h.detach().abs() ** (power - 1.0)
+    want[0] = 2.0 if power == 1.0 else 0.0
+    torch.testing.assert_close(grad, want)
+    torch.testing.assert_close(alpha(h), 2.0 * torch.sign(h) * h.abs() ** power)

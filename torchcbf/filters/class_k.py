@@ -82,7 +82,8 @@ class CubicClassK(_GainClassK):
 
 
 class PowerClassK(_GainClassK):
-    """``alpha(h) = gain * sign(h) |h|^power`` (``power > 0``; extended class-K)."""
+    """``alpha(h) = gain * sign(h) |h|^power`` (``power > 0``; extended class-K). Its
+    derivative at ``h = 0`` is ``gain`` for ``power = 1``, 0 above, infinite below."""
 
     def __init__(
         self,
@@ -96,7 +97,13 @@ class PowerClassK(_GainClassK):
         self.power = float(power)
 
     def _phi(self, h: Tensor) -> Tensor:
-        return torch.sign(h) * h.abs() ** self.power
+        p = self.power
+        if p == 1.0:
+            return h  # its derivative 1 at h = 0, where sign(h) |h| gives 0
+        if p > 1.0:  # h |h|^(p-1), with the derivative 0 at h = 0 (no 0 * inf there)
+            zero = h == 0
+            return torch.where(zero, 0.0, h * torch.where(zero, 1.0, h.abs()) ** (p - 1.0))
+        return torch.sign(h) * h.abs() ** p  # p < 1: the derivative at h = 0 is infinite
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, power={self.power}"
