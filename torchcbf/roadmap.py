@@ -48,14 +48,17 @@ def sample_free_configurations(
     *,
     max_rounds: int = 100,
 ) -> Tensor:
-    """``num`` configurations within the joint limits (0.15 rad inside) whose barrier values
-    all exceed ``clearance``: rejection sampling in rounds of ``4 num`` draws, at most
-    ``max_rounds`` rounds (``RuntimeError`` if too few are free: lower the clearance)."""
+    """``num`` configurations within the joint limits (0.15 rad or a quarter of a joint's
+    range inside, whichever is less) whose barrier values all exceed ``clearance``:
+    rejection sampling in rounds of ``4 num`` draws, at most ``max_rounds`` rounds
+    (``RuntimeError`` if too few are free: lower the clearance)."""
     found: list[Tensor] = []
     total = 0
+    lo, hi = arm.position_range()
+    margin = ((hi - lo) / 4).clamp_max(0.15)  # a short joint (a gripper's slide) keeps room
     for _ in range(max_rounds):
         q = arm.random_configurations(
-            4 * num, generator=gen, margin=0.15, dtype=dtype, device=device
+            4 * num, generator=gen, margin=margin, dtype=dtype, device=device
         )
         keep = q[(barrier(q) > clearance).all(-1)]
         found.append(keep)

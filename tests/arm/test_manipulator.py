@@ -300,3 +300,35 @@ def test_import_without_pytorch_kinematics() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "ok"
+
+
+_SLIDE_URDF = """<robot name="g"><link name="base"/><link name="l1"/><link name="finger"/>
+<link name="tip"/>
+<joint name="j1" type="continuous"><parent link="base"/><child link="l1"/>
+ <axis xyz="0 0 1"/><limit effort="10" velocity="2.0"/></joint>
+<joint name="slide" type="prismatic"><parent link="l1"/><child link="finger"/>
+ <origin xyz="0.3 0 0"/><axis xyz="1 0 0"/>
+ <limit lower="0.0" upper="0.1" effort="1" velocity="0.1"/></joint>
+<joint name="jt" type="fixed"><parent link="finger"/><child link="tip"/>
+ <origin xyz="0.1 0 0"/></joint></robot>"""
+
+
+def test_a_continuous_joint_has_no_position_limits_and_a_short_joint_keeps_its_room() -> None:
+    """A continuous joint (no lower/upper in the URDF) is unlimited, not pinned at [0, 0];
+    a margin wider than a joint's range is refused; roadmap nodes stay inside the limits
+    of a 0.1 m slide (the fixed 0.15 margin drew half of them outside)."""
+    from torchcbf.barriers import JointLimitBarrier, LinkSphereBarrier
+    from torchcbf.roadmap import sample_free_configurations
+
+    arm = Manipulator(_SLIDE_URDF).double()
+    assert arm.q_min.tolist() == [-float("inf"), 0.0] and arm.q_max.tolist() == [float("inf"), 0.1]
+    gen = torch.Generator().manual_seed(0)
+    q = arm.random_configurations(500, generator=gen)
+    assert q[:, 0].std() > 1.0 and bool(((q[:, 1] >= 0.0) & (q[:, 1] <= 0.1)).all())
+    with pytest.raises(ValueError, match=r"no room in joint\(s\) \[1\]"):
+        arm.random_configurations(5, margin=0.15)
+    JointLimitBarrier(arm)  # the continuous joint leaves no empty range
+    ball = LinkSphereBarrier(arm, ["tip"], 0.02, [5.0, 5.0, 0.0], 0.1).double()
+    nodes = sample_free_configurations(arm, ball, 100, 0.0, gen, torch.float64,
+                                       torch.device("cpu"))  # fmt: skip
+    assert bool(((nodes >= arm.q_min) & (nodes <= arm.q_max)).all())

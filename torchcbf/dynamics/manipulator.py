@@ -38,6 +38,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
 from typing import Any, Literal
+from xml.etree import ElementTree
 
 import torch
 from torch import Tensor, nn
@@ -88,6 +89,12 @@ def _read_urdf(source: str | bytes | os.PathLike[str]) -> str:
             f"urdf {source!r} is neither URDF XML, an asset name {list(ASSETS)}, nor a file"
         )
     return path.read_text()
+
+
+def _continuous_joints(urdf: str | bytes) -> set[str]:
+    """The names of the URDF's ``continuous`` joints (no position limits)."""
+    root = ElementTree.fromstring(urdf)
+    return {j.get("name", "") for j in root.iter("joint") if j.get("type") == "continuous"}
 
 
 def _limits(values: Sequence[float], fallback: float) -> list[float]:
@@ -150,6 +157,12 @@ class Manipulator(ControlAffine):
                 f"the chain from {root_link or 'the root'} to {end_link!r} has no joint"
             )
         lo, hi = chain.get_joint_limits()
+        # pytorch-kinematics reads a continuous joint as a revolute one with the limits the
+        # URDF parser fills in (0, 0): it has none
+        continuous = _continuous_joints(text)
+        for i, name in enumerate(chain.get_joint_parameter_names()):
+            if name in continuous:
+                lo[i], hi[i] = -math.inf, math.inf
         _, vel = chain.get_joint_velocity_limits()
         _, eff = chain.get_joint_effort_limits()
         vel_lim = _limits(vel, math.inf)
@@ -331,21 +344,38 @@ class Manipulator(ControlAffine):
         num: int,
         *,
         generator: torch.Generator | None = None,
-        margin: float = 0.0,
+        margin: float | Tensor = 0.0,
         dtype: torch.dtype | None = None,
         device: torch.device | str | None = None,
     ) -> Tensor:
-        """Joint angles uniform within the position limits shrunk by ``margin``: ``[num, dof]``.
+        """Joint angles uniform within the position limits shrunk by ``margin`` (a number or
+        ``[dof]``): ``[num, dof]``.
 
         Joints without a finite limit are drawn in ``[-pi, pi]``. Deterministic given the
-        ``generator`` (which must live on ``device``).
+        ``generator`` (which must live on ``device``). A margin that leaves a joint no room
+        raises ``ValueError``.
         """
         dtype = dtype or self.q_min.dtype
         device = torch.device(device) if device is not None else self.q_min.device
-        lo = torch.where(torch.isfinite(self.q_min), self.q_min, -math.pi).to(device, dtype)
-        hi = torch.where(torch.isfinite(self.q_max), self.q_max, math.pi).to(device, dtype)
+        lo, hi = self.position_range()
+        lo, hi = lo.to(device, dtype), hi.to(device, dtype)
+        m = torch.as_tensor(margin, dtype=dtype, device=device)
+        room = hi - lo - 2 * m
+        if bool((room < 0).any()):
+            bad = (room < 0).nonzero().flatten().tolist()
+            raise ValueError(
+                f"margin {margin} leaves no room in joint(s) {bad} (position ranges "
+                f"{(hi - lo)[bad].tolist()})"
+            )
         r = torch.rand(num, self.dof, generator=generator, dtype=dtype, device=device)
-        return lo + margin + r * (hi - lo - 2 * margin)
+        return lo + m + r * room
+
+    def position_range(self) -> tuple[Tensor, Tensor]:
+        """The position limits ``q_min, q_max [dof]``, ``[-pi, pi]`` for a joint without
+        finite ones (a continuous joint)."""
+        lo = torch.where(torch.isfinite(self.q_min), self.q_min, -math.pi)
+        hi = torch.where(torch.isfinite(self.q_max), self.q_max, math.pi)
+        return lo, hi
 
     #: ``arm.inverse_kinematics(target, q_init=None, *, restarts=8, ...) -> IKResult``: joint
     #: angles whose end effector reaches point targets (projected Levenberg-Marquardt inside
