@@ -215,3 +215,21 @@ def test_closed_loop_double_integrator_stays_safe(form, gain):
     assert float(h_min.min()) < 0.3  # the filter was active: trajectories came close
     unfiltered = _closed_loop(rect, dyn, x0, goal, filtered=False)
     assert bool((unfiltered < 0).any())  # without it, they collide
+
+
+def test_an_output_that_does_not_depend_on_the_state_is_named_at_once() -> None:
+    """A constant output (a frame that never moves) has no relative degree: rectify and
+    the filter say so at once, naming it, instead of differentiating ever deeper (each
+    level nests the last one's autograd) or advising a rectification."""
+    from torchcbf.barriers import Barrier, BarrierStack
+    from torchcbf.filters import SafetyFilter
+
+    class Constant(Barrier):
+        def forward(self, x, t=None):
+            return torch.full_like(x[..., 0], 0.7)
+
+    stack = BarrierStack(Ball([0.0, 0.0], 1.0), Constant())
+    with pytest.raises(ValueError, match=r"outputs \[1\].*do not depend on the state"):
+        rectify(stack, DoubleIntegrator())
+    with pytest.raises(ValueError, match=r"outputs \[1\]\) does not depend on the state"):
+        SafetyFilter(SingleIntegrator(2), [stack])

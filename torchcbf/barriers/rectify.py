@@ -401,6 +401,18 @@ def find_relative_degree(
             degree = torch.where((degree == 0) & found, torch.full_like(degree, k), degree)
             if bool((degree > 0).all()):
                 break
+            # an output whose derivative does not depend on the state on any sample has no
+            # degree to find (differentiating it further only costs: each level's autograd
+            # nests the last one's)
+            flat = (degree == 0) & (grad.amax(dim=(*rows, grad.dim() - 1)) == 0)
+            if bool(flat.any()):
+                which = flat.nonzero().flatten().tolist() if flat.dim() else []
+                raise ValueError(
+                    f"{'outputs ' + str(which) + ' of ' if which else ''}"
+                    f"{type(barrier).__name__} do not depend on the state after {k - 1} "
+                    "derivatives (d/dx = 0 on every sample): no relative degree; a barrier of "
+                    "a frame that never moves (on the base's axis, say) is constant"
+                )
             psi = LieDerivative(psi, dynamics)
     assert degree is not None
     if bool((degree == 0).any()):

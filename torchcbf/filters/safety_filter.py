@@ -177,7 +177,17 @@ def _require_control_authority(
             lgh, grad = lgh.unsqueeze(1), grad.unsqueeze(1)
         g_max = float(dynamics.g(x).detach().abs().amax().clamp_min(1.0))
         reach = lgh.amax(dim=(0, 2))  # [k]
-        scale = (grad.amax(dim=(0, 2)) * g_max).clamp_min(1.0)
+        slope = grad.amax(dim=(0, 2))
+        scale = (slope * g_max).clamp_min(1.0)
+        constant = (slope == 0).nonzero().flatten().tolist()
+        if constant:
+            raise ValueError(
+                f"barriers[{i}] ({type(barrier).__name__}, outputs {constant}) does not depend "
+                f"on the state (dh/dx = 0 on every sample state of {type(dynamics).__name__}): "
+                "the filter could never act on it, and no rectification gives it a relative "
+                "degree. Leave such outputs out (a frame on the base's axis never moves), or "
+                "pass check_relative_degree=False if it is flat only where the samples are."
+            )
         dead = (reach <= 1e-9 * scale).nonzero().flatten().tolist()
         if dead:
             raise ValueError(
