@@ -60,7 +60,7 @@ def sample_free_configurations(
         q = arm.random_configurations(
             4 * num, generator=gen, margin=margin, dtype=dtype, device=device
         )
-        keep = q[(barrier(q) > clearance).all(-1)]
+        keep = q[_least(barrier, q) > clearance]
         found.append(keep)
         total += keep.shape[0]
         if total >= num:
@@ -71,6 +71,13 @@ def sample_free_configurations(
     )
 
 
+def _least(barrier: WorkspaceBarrier, q: Tensor) -> Tensor:
+    """The least output of ``barrier`` at ``q [..., dof]``: ``[...]`` (a barrier gives
+    ``[...]``, one output, or ``[..., k]``)."""
+    h = barrier(q)
+    return h if h.dim() == q.dim() - 1 else h.amin(-1)
+
+
 def segment_clearance(
     barrier: WorkspaceBarrier, qa: Tensor, qb: Tensor, samples: int = 32
 ) -> Tensor:
@@ -79,7 +86,7 @@ def segment_clearance(
     check (not a proof): consecutive points are at most ``|qb - qa| / (samples - 1)`` apart."""
     s = torch.linspace(0.0, 1.0, samples, dtype=qa.dtype, device=qa.device)[:, None, None]
     q = qa + s * (qb - qa)  # [samples, B, dof]
-    return barrier(q).amin(-1).amin(0)
+    return _least(barrier, q).amin(0)
 
 
 @dataclass
@@ -270,8 +277,8 @@ class RoadmapController(nn.Module):
         options = torch.cat([nodes.expand(M, -1, -1), self.q_target[rows, None]], 1)  # [M,N+1,d]
         s = torch.linspace(0.0, 1.0, 16, dtype=q.dtype, device=q.device)[:, None, None, None]
         pts = qs[:, None] + s * (options - qs[:, None])  # [16, M, N+1, dof]
-        seg = self.barrier(pts).amin(-1).amin(0)  # [M, N+1]
-        need = torch.clamp(self.barrier(qs).amin(-1) - 1e-3, max=self.clearance)
+        seg = _least(self.barrier, pts).amin(0)  # [M, N+1]
+        need = torch.clamp(_least(self.barrier, qs) - 1e-3, max=self.clearance)
         length = (options - qs[:, None]).norm(dim=-1)
         togo = torch.cat([self.roadmap.cost_to_go[rows], torch.zeros_like(length[:, :1])], 1)
         ok = (seg >= need[:, None]) & (length < self.radius) & torch.isfinite(togo)

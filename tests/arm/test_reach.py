@@ -212,3 +212,25 @@ def test_reach_1000_scenarios_cartesian() -> None:
     )
     result = arm_reach.run(sc, steps=300, dt=0.02)
     _check(result, min_reach=0.65)  # measured 0.713
+
+
+def test_roadmap_helpers_take_a_barrier_with_one_output() -> None:
+    """A barrier giving ``[...]`` (a point barrier around one ball): the helpers reduce over
+    its outputs, not over the batch (they returned [5, 20, 3] configurations and one
+    clearance for two segments)."""
+    from torchcbf.barriers import Ball, PointBarrier
+    from torchcbf.dynamics import Manipulator
+    from torchcbf.roadmap import sample_free_configurations, segment_clearance
+
+    f64 = torch.float64
+    arm = Manipulator("planar3")
+    point = PointBarrier(arm, Ball([0.6, 0.0, 0.0], 0.3, index=(0, 1, 2))).double()
+    gen = torch.Generator().manual_seed(0)
+    q = sample_free_configurations(arm, point, 5, 0.0, gen, f64, torch.device("cpu"))
+    assert q.shape == (5, 3) and bool((point(q) > 0).all())
+    qa = torch.tensor([[0.0, 0.0, 0.0], [1.5, 0.0, 0.0]], dtype=f64)
+    qb = torch.tensor([[0.0, 2.0, 0.0], [1.6, 0.0, 0.0]], dtype=f64)
+    both = segment_clearance(point, qa, qb)
+    one = [segment_clearance(lambda z: point(z)[..., None], qa[i : i + 1], qb[i : i + 1])
+           for i in range(2)]  # fmt: skip
+    torch.testing.assert_close(both, torch.cat(one))
