@@ -23,7 +23,7 @@ from torchcbf import (
     rectify,
 )
 from torchcbf.estimation import FunctionSensor, RangeBearing
-from torchcbf.learning import classification_loss, closed_loop_loss, uniform_box
+from torchcbf.learning import MLP, classification_loss, closed_loop_loss, uniform_box
 
 CASES = [
     (lambda: Union(1, 2), TypeError, r"barriers\[0\] must be a Barrier"),
@@ -102,6 +102,7 @@ CASES = [
     (lambda: uniform_box([1.0, 1.0], [0.0, 0.0], 10), ValueError, "high must exceed low"),
     (lambda: uniform_box([math.nan, 0.0], [1.0, 1.0], 10), ValueError, "low must not contain"),
     (lambda: uniform_box([0.0, 0.0], [1.0, 1.0], 0), ValueError, "num"),
+    (lambda: MLP(2, low=[-1.0, -1.0, -1.0], high=1.0), ValueError, r"low must .* in_dim = 2"),
 ]
 
 

@@ -67,6 +67,12 @@ class MLP(ExactConstants, nn.Module):
         hi = check_finite(
             "high", as_tensor("high", 1.0 if high is None else high, dtype=torch.float64)
         )
+        for name, v in (("low", lo), ("high", hi)):
+            if v.dim() > 1 or (v.dim() == 1 and v.shape[0] != in_dim):
+                raise ValueError(
+                    f"{name} must be a number or have in_dim = {in_dim} entries, got shape "
+                    f"{tuple(v.shape)}"
+                )
         lo, hi = lo.expand(in_dim).detach().clone(), hi.expand(in_dim).detach().clone()
         if not bool((hi > lo).all()):
             raise ValueError(f"high must exceed low, got low={lo.tolist()}, high={hi.tolist()}")
