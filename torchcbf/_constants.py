@@ -34,12 +34,18 @@ from torchcbf._checks import as_tensor, check_finite
 _EXACT = "_exact_constants"
 
 
-def _exact_values(module: nn.Module) -> dict[str, Tensor]:
-    values = module.__dict__.get(_EXACT)
+def _own_dict(module: nn.Module, key: str) -> dict[str, Any]:
+    """The dict ``module`` keeps under ``key`` in its ``__dict__`` (made on first use; not
+    an attribute nn.Module tracks, so it is copied and pickled with the module)."""
+    values = module.__dict__.get(key)
     if values is None:
         values = {}
-        object.__setattr__(module, _EXACT, values)
+        object.__setattr__(module, key, values)
     return values
+
+
+def _exact_values(module: nn.Module) -> dict[str, Tensor]:
+    return _own_dict(module, _EXACT)
 
 
 class ExactConstants(nn.Module):
@@ -151,11 +157,7 @@ _DERIVED = "_derived_constants"
 
 
 def _derived(module: nn.Module) -> dict[str, tuple[str, Callable[[Tensor], Tensor]]]:
-    values = module.__dict__.get(_DERIVED)
-    if values is None:
-        values = {}
-        object.__setattr__(module, _DERIVED, values)
-    return values
+    return _own_dict(module, _DERIVED)
 
 
 class DerivedConstants(nn.Module):
