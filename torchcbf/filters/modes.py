@@ -274,10 +274,9 @@ class RiskAware(FilterMode):
         clf_gamma: float = 0.0,
     ) -> None:
         super().__init__()
-        _check_risk("rho", rho)
+        self.rho = _check_risk("rho", rho)
         if horizon is None:
             raise ValueError("horizon (T > 0) is required for RiskAware")
-        self.rho = float(rho)
         T = check_number("horizon", horizon, low=0.0, strict=True)
         self.register_buffer("horizon", torch.tensor(T, dtype=torch.float64))
         self._scale_of: tuple[float, float, float] | None = None  # (rho, T, local scale)
