@@ -126,9 +126,7 @@ def unchecked_step(
     return stepper(rate, x, u, dt)
 
 
-def _checked(
-    dynamics: ControlAffine, x: Tensor, u: Tensor, w: Tensor | None, dt: float
-) -> float:
+def _checked(dynamics: ControlAffine, x: Tensor, u: Tensor, w: Tensor | None, dt: float) -> float:
     """Check the inputs of a public integrator; return ``dt`` (a positive finite number)."""
     dt = check_positive("dt", dt)
     if not isinstance(dynamics, ControlAffine):

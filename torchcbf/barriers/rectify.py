@@ -83,12 +83,12 @@ def _gain_tensor(
     (:func:`~torchcbf._constants.derive`), so that it trains."""
     if gains is None:
         gains = default
-    device, dtype = float_spec(module)
     if isinstance(gains, Tensor) and gains.requires_grad:
         check = functools.partial(_gains, name=name, count=count)
         out = derive(module, name, gains, check, shape=functools.partial(_repeated, count=count))
         assert out is not None
         return out
+    device, dtype = float_spec(module)
     given = isinstance(gains, Tensor)
     value = _gains(
         as_tensor(name, gains, dtype=dtype if given else torch.float64, device=device),

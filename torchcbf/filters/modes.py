@@ -374,17 +374,16 @@ class RiskAware(FilterMode):
         bound, ``rho`` or ``horizon`` changes, and made afresh where one requires grad."""
         source = computed if eta is None else eta
         graph = self.horizon.requires_grad or (isinstance(source, Tensor) and source.requires_grad)
-        if graph or torch.compiler.is_compiling() or is_fake(self.horizon):
-            # traced (torch.compile, or make_fx on fake tensors): the graph makes it each call
-            bound = as_tensor(name, source, dtype=torch.float64)
-            return risk_margin(bound, rho, self.horizon.to(bound))
-        key = (name, rho, _identity(self.horizon), _identity(source))
-        kept = self._margins.get(name)
-        if kept is not None and kept[0] == key:
-            return kept[1]
-        bound = as_tensor(name, source, dtype=torch.float64)
-        margin = risk_margin(bound, rho, self.horizon.to(bound))
-        self._margins[name] = (key, margin)
+        # traced (torch.compile, or make_fx on fake tensors): the graph makes it each call
+        keep = not (graph or torch.compiler.is_compiling() or is_fake(self.horizon))
+        if keep:
+            key = (name, rho, _identity(self.horizon), _identity(source))
+            kept = self._margins.get(name)
+            if kept is not None and kept[0] == key:
+                return kept[1]
+        margin = risk_margin(as_tensor(name, source, dtype=torch.float64), rho, self.horizon)
+        if keep:
+            self._margins[name] = (key, margin)
         return margin
 
     def cbf(self, terms: LieTerms, alpha: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:

@@ -13,7 +13,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchcbf._checks import check_last_dim
+from torchcbf._checks import as_tensor, check_last_dim
 from torchcbf.barriers.lie import LieFunction
 from torchcbf.dynamics.base import ControlAffine
 
@@ -79,16 +79,9 @@ def risk_margin(eta: Tensor, rho: float | Tensor, horizon: float | Tensor) -> Te
     """``Delta = sqrt(2 T) eta erfinv(1 - rho)`` (shapes broadcast), in ``eta``'s dtype.
     The factor ``sqrt(2 T) erfinv(1 - rho)`` is formed in float64: in float32 ``1 - rho``
     is 1 for ``rho`` below about 6e-8, and the margin infinite."""
-    rho_t = _float64(rho, eta.device)
-    T = _float64(horizon, eta.device)
+    rho_t = as_tensor("rho", rho, dtype=torch.float64, device=eta.device)
+    T = as_tensor("horizon", horizon, dtype=torch.float64, device=eta.device)
     return (torch.sqrt(2 * T) * torch.erfinv(1 - rho_t)).to(eta.dtype) * eta
-
-
-def _float64(value: float | Tensor, device: torch.device) -> Tensor:
-    """A number (exact) or a tensor (its graph kept) as float64 on ``device``."""
-    if isinstance(value, Tensor):
-        return value.to(device=device, dtype=torch.float64)
-    return torch.as_tensor(value, dtype=torch.float64, device=device)
 
 
 def local_margin(

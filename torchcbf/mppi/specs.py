@@ -354,10 +354,9 @@ class Avoid(Always):
         # c is decreasing in rho: reduce rho (or |p - o|^2), transform [B, K] only
         outside = ~window.unsqueeze(1)
         if self.barrier is not None:
-            return self._cost_of(self.predicate(states).masked_fill(outside, math.inf))
+            return self._cost_of(self.predicate(states).masked_fill(outside, math.inf).amin(-1))
         d2 = squared_distance(states, self.index, self.center)
-        rho_min = d2.masked_fill_(outside, math.inf).amin(-1).sqrt() - self.radius
-        return self.weight / rho_min.clamp_min(self.eps)
+        return self._cost_of(d2.masked_fill_(outside, math.inf).amin(-1).sqrt() - self.radius)
 
     def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
         if self.barrier is None or not time_varying(self.barrier):
@@ -365,12 +364,12 @@ class Avoid(Always):
         window = self.in_window(times)  # [B, T]
         rho = self.predicate_at(states, times.unsqueeze(1))
         rho = rho.masked_fill(~window.unsqueeze(1), math.inf)
-        return self._windowed(self._cost_of(rho), window)
+        return self._windowed(self._cost_of(rho.amin(-1)), window)
 
-    def _cost_of(self, rho: Tensor) -> Tensor:
-        """The planning cost of the worst state, ``[B, K]``, from ``rho [B, K, T]`` (``+inf``
-        outside the window)."""
-        return self.weight / rho.amin(-1).clamp_min(self.eps)
+    def _cost_of(self, rho_min: Tensor) -> Tensor:
+        """The planning cost ``[B, K]`` of the worst state, from its ``rho_min [B, K]``
+        (``+inf`` where no state is in the window)."""
+        return self.weight / rho_min.clamp_min(self.eps)
 
 
 class _Combination(Spec):
