@@ -116,7 +116,7 @@ def triton_target() -> torch.device | None:
     """Where the Triton kernels' tests run: CUDA where present, else the CPU in Triton's
     interpreter (``TRITON_INTERPRET=1`` set before Python starts), else nowhere."""
     if torch.cuda.is_available():
-        return torch.device("cuda")
+        return torch.device("cuda", torch.cuda.current_device())  # equal to a tensor's device
     return torch.device("cpu") if triton_interpreted() else None
 
 

@@ -260,8 +260,8 @@ def test_the_kernel_weighs_the_samples_where_it_can(
 
 def test_tables_follow_a_changed_goal():
     goal = QuadraticGoal(goal=[6.0, 0.0], index=[0, 1], weight=1.0)
-    planner = _planner(Unicycle, "euler", torch.float64, "triton", cost=goal).to(TARGET)
     ref = _planner(Unicycle, "euler", torch.float64, "auto", cost=copy.deepcopy(goal))
+    planner = _planner(Unicycle, "euler", torch.float64, "triton", cost=goal).to(TARGET)
     x = torch.zeros(3, dtype=torch.float64)
     planner(x.to(TARGET))
     first = planner._kernel_cache[1]

@@ -88,10 +88,11 @@ class UKF(_KalmanFilter):
         floats cast at use: no float32 rounding of a float64 filter's weights)."""
         c = self._scale()  # n + lam
         lam = c - self.state_dim
-        wm = torch.full((2 * self.state_dim + 1,), 0.5 / c, dtype=like.dtype, device=like.device)
-        wc = wm.clone()
-        wm[0] = lam / c
-        wc[0] = self._center_weight()
+        kw = {"dtype": like.dtype, "device": like.device}
+        # filled, not indexed: a Python number written into a device tensor waits for it
+        rest = torch.full((2 * self.state_dim,), 0.5 / c, **kw)
+        wm = torch.cat([torch.full((1,), lam / c, **kw), rest])
+        wc = torch.cat([torch.full((1,), self._center_weight(), **kw), rest])
         return wm, wc
 
     def _sigma_points(self, m: Tensor, P: Tensor) -> tuple[Tensor, Tensor, Tensor]:
