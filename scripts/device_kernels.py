@@ -9,7 +9,9 @@ answers are compared with the first setting's (the default, unless ``--settings`
 otherwise: rows solved, largest difference of ``x``).
 A program of fewer problems than threads splits each problem's tiles over several threads
 (fewer registers per thread, reductions across threads); a register cap trades registers
-for spills and more resident warps.
+for spills and more resident warps. The first setting is timed once more with the inputs
+copied into planes with the batch last before the launch (layout ``planes``; the kernel
+reads the inputs at their own strides otherwise).
 
     python scripts/device_kernels.py --device cuda --out kernels.json
     TRITON_INTERPRET=1 python scripts/device_kernels.py --device cpu --states 64 --reps 1
@@ -80,10 +82,15 @@ def _synchronize(device: torch.device) -> None:
 
 
 def measure(
-    problem: tuple[torch.Tensor, ...], setting: tuple[int, int, int | None], reps: int
+    problem: tuple[torch.Tensor, ...],
+    setting: tuple[int, int, int | None],
+    reps: int,
+    *,
+    planes: bool = False,
 ) -> tuple[dict, object]:
     """One setting on one problem: the first call's seconds, the median of ``reps`` more in
-    ms, and the registers and spills of the variant the first call compiled."""
+    ms, and the registers and spills of the variant the first call compiled; ``planes``: the
+    inputs copied into planes with the batch last first (the copies timed with the kernel)."""
     from torchcbf.qp import _dual_triton
 
     block, warps, maxnreg = setting
@@ -92,8 +99,9 @@ def measure(
 
     def call() -> _dual_triton.Solution:
         return _dual_triton.solve(
-            *problem, eps=eps, max_iter=50, block=block, warps=warps, maxnreg=maxnreg
-        )
+            *problem, eps=eps, max_iter=50, block=block, warps=warps, maxnreg=maxnreg,
+            planes=planes,
+        )  # fmt: skip
 
     before = _compiled(device)
     _synchronize(device)
@@ -108,6 +116,7 @@ def measure(
         _synchronize(device)
         times.append(time.perf_counter() - t)
     row = {"block": block, "warps": warps, "maxnreg": maxnreg, "first_s": first}
+    row["layout"] = "planes" if planes else "strides"
     row["median_ms"] = 1e3 * statistics.median(times) if times else None
     new = [k for k in _compiled(device) if all(k is not b for b in before)]
     if len(new) == 1:  # a setting seen before in this process reuses its variant: not read
@@ -228,8 +237,10 @@ def main() -> int:
         dtype = getattr(torch, dtype_name)
         problem = filter_qp(args.states, dtype, device)
         reference = None
-        for setting in settings:
-            row, sol = measure(problem, setting, args.reps)
+        # every setting on the inputs as given, then the first on inputs copied into planes
+        runs = [(s, False) for s in settings] + [(settings[0], True)]
+        for setting, planes in runs:
+            row, sol = measure(problem, setting, args.reps, planes=planes)
             if reference is None:
                 reference = sol
             both = reference.ok & sol.ok
@@ -246,7 +257,8 @@ def main() -> int:
             median = "-" if row["median_ms"] is None else f"{row['median_ms']:.3f} ms"
             print(
                 f"{dtype_name} block={row['block']} warps={row['warps']} "
-                f"maxnreg={row['maxnreg']}: {median} (first {row['first_s']:.1f} s), "
+                f"maxnreg={row['maxnreg']} {row['layout']}: {median} "
+                f"(first {row['first_s']:.1f} s), "
                 f"regs {row.get('regs', '-')}, spills {row.get('spills', '-')}, solved "
                 f"{row['solved']}/{args.states} (default {row['solved_default']}), "
                 f"max |dx| {row['max_dx']:.2e}",

@@ -109,15 +109,16 @@ def render(data: dict[str, Any], ref: dict[str, Any] | None = None) -> str:
             "",
             "QP kernel launch settings (scripts/device_kernels.py, the filter's QP):",
             "",
-            "| dtype | states | block | warps | maxnreg | median ms | regs | spills | solved "
-            "| max dx |",
-            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+            "| dtype | states | block | warps | maxnreg | inputs | median ms | regs | spills "
+            "| solved | max dx |",
+            "|---|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|",
         ]
         for k in kernels:
             median = "-" if k.get("median_ms") is None else f"{k['median_ms']:.3f}"
             lines.append(
                 f"| {k['dtype']} | {k['states']} | {k['block']} | {k['warps']} | "
-                f"{k['maxnreg'] or '-'} | {median} | {k.get('regs', '-')} | "
+                f"{k['maxnreg'] or '-'} | {k.get('layout', 'planes')} | {median} | "
+                f"{k.get('regs', '-')} | "
                 f"{k.get('spills', '-')} | {k['solved']} | {k['max_dx']:.1e} |"
             )
     tests = data.get("tests") or {}

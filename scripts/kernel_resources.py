@@ -43,7 +43,7 @@ def compile_kernel(
 
     fn = _dual_triton._dual_solve_kernel
     real = {"float32": "fp32", "float64": "fp64"}[dtype]
-    ints = {"B": batch, "max_iter": max_iter}
+    ints = {"B": batch, "max_iter": max_iter} | dict.fromkeys(_dual_triton.STRIDE_ARGS, 1)
     signature, attrs = {}, {}
     for i, param in enumerate(fn.params):
         name = param.name

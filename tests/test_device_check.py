@@ -171,7 +171,7 @@ def test_collect_and_report_the_kernel_launch_settings(tmp_path: Path) -> None:
     settings = [
         {"block": 32, "warps": 1, "maxnreg": None, "first_s": 9.0, "median_ms": 21.7,
          "regs": 255, "spills": 0, "card": "H", "dtype": "float32", "states": 1000000,
-         "solved": 999990, "solved_default": 999990, "max_dx": 0.0},
+         "solved": 999990, "solved_default": 999990, "max_dx": 0.0, "layout": "strides"},
         {"block": 16, "warps": 1, "maxnreg": 128, "first_s": 9.0, "median_ms": None,
          "card": "H", "dtype": "float64", "states": 1000000, "solved": 5,
          "solved_default": 5, "max_dx": 2.5e-9},
@@ -182,8 +182,10 @@ def test_collect_and_report_the_kernel_launch_settings(tmp_path: Path) -> None:
     data = json.loads(out.read_text())
     assert data["kernels"] == settings
     text = report.render(data)
-    assert "| float32 | 1000000 | 32 | 1 | - | 21.700 | 255 | 0 | 999990 | 0.0e+00 |" in text
-    assert "| float64 | 1000000 | 16 | 1 | 128 | - | - | - | 5 | 2.5e-09 |" in text
+    row = "| float32 | 1000000 | 32 | 1 | - | strides | 21.700 | 255 | 0 | 999990 | 0.0e+00 |"
+    assert row in text
+    # a run before the kernel read strides copied its inputs into planes
+    assert "| float64 | 1000000 | 16 | 1 | 128 | planes | - | - | - | 5 | 2.5e-09 |" in text
 
 
 def test_kernel_settings_from_their_names() -> None:

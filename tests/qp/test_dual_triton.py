@@ -173,6 +173,27 @@ def test_launch_settings_give_the_default_answers(setting, dtype):
 
 
 @runs
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_inputs_at_any_strides_give_the_answers_of_planes(dtype):
+    # the kernel reads each tensor at its own strides: contiguous, copied into planes with
+    # the batch last, or views into larger tensors in another index order
+    (P, q, G, h, _), _ = _problems(45, 3, 7, seed=5, dtype=dtype)
+    eps = _eps(dtype)
+    ref = _dual_triton.solve(P, q, G, h, eps=eps, max_iter=100, planes=True)
+    wide_G = torch.zeros(45, 3, 2 * G.shape[1], dtype=dtype, device=G.device)
+    wide_G[:, :, ::2] = G.mT  # G seen as every other column of a wider tensor, transposed
+    wide_h = torch.zeros(h.shape[1], 90, dtype=dtype, device=h.device)
+    wide_h[:, 1::2] = h.T
+    views = (P.mT, q.T.contiguous().T, wide_G[:, :, ::2].mT, wide_h[:, 1::2].T)
+    assert not any(t.is_contiguous() for t in views[1:])
+    for args in ((P, q, G, h), views):
+        out = _dual_triton.solve(*args, eps=eps, max_iter=100)
+        assert ref.ok.any()
+        for a, b in zip(out, ref, strict=True):
+            torch.testing.assert_close(a, b, atol=0.0, rtol=0.0)
+
+
+@runs
 def test_engine_choice_and_errors():
     (P, q, G, h, _), _ = _problems(4, 2, 3, seed=1)
     M = G.shape[-2]
@@ -201,10 +222,11 @@ def test_kernel_compiles_for_a_gpu_one_problem_per_thread(real):
     from triton.compiler import ASTSource
 
     fn = _dual_triton._dual_solve_kernel
-    names = ("p", "q", "rc", "hr", "x", "z", "active", "ok", "iters", "l", "s", "rs", "us")
+    names = ("p", "q", "g", "h", "x", "z", "active", "ok", "iters", "l", "s", "rs", "us")
     kinds = [f"*{real}"] * 6 + ["*i8", "*i8", "*i64", f"*{real}", "*i64", f"*{real}", f"*{real}"]
     signature = {f"{name}_ptr": kind for name, kind in zip(names, kinds, strict=True)}
-    signature.update(B="i32", max_iter="i32", eps="fp64", mach="fp64", piv_tol="fp64")
+    signature.update(B="i32", **dict.fromkeys(_dual_triton.STRIDE_ARGS, "i32"))
+    signature.update(max_iter="i32", eps="fp64", mach="fp64", piv_tol="fp64")
     signature.update(tiny="fp64")
     sizes = {"N": 3, "M": 13, "NP": 4, "MP": 16, "BLOCK": _dual_triton.BLOCK}
     signature.update(dict.fromkeys(sizes, "constexpr"))

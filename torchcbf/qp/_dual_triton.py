@@ -9,8 +9,10 @@ until the row is done, the exact multipliers on the final active set with one re
 step, and the KKT check that decides the row, by the torch implementation's formulas in its
 order of operations (rounding still differs where one side fuses a multiply and an add, so
 on a degenerate row the two may end on different active sets of the same point). It reads
-and writes planes with the batch last (the lanes of a program touch consecutive addresses)
-and returns what the torch implementation returns, the backward's factors included.
+its inputs at their own strides (a thread loads its problem's entries once, with no copy of
+the batch into another layout first), writes planes with the batch last (the lanes of a
+program touch consecutive addresses) and returns what the torch implementation returns,
+the backward's factors included.
 
 Each thread holds one problem as tiles (``R'`` as ``[N, M]``; ``P^{-1} R'`` only while the
 rows' scales are formed, then one column per step); the batch size is not a specialised
@@ -46,7 +48,9 @@ BLOCK = 32
 #: warps per program
 WARPS = 1
 #: the kernel's version (its inputs and outputs, for ``torchcbf info``)
-KERNEL_VERSION = 2
+KERNEL_VERSION = 3
+#: the kernel's stride arguments, in order: ``P``'s (batch, row, column), ``q``'s, ``G``'s, ``h``'s
+STRIDE_ARGS = ("sp", "sp0", "sp1", "sq", "sq0", "sg", "sg0", "sg1", "sh", "sh0")
 
 
 def applies(q: Tensor, M: int, *, explicit: bool = False) -> bool:
@@ -86,6 +90,25 @@ if triton is not None:
         """The entries of ``X`` at per-lane index ``j [BLOCK]`` along ``AXIS`` (``idx``: that
         axis' indices, shaped to broadcast against ``X``); one term is not zero, so exact."""
         return tl.sum(tl.where(idx == j, X, 0.0), axis=AXIS)
+
+    @triton.jit
+    def _load_tile(
+        ptr, base, live, s0, s1, R: tl.constexpr, C: tl.constexpr, RP: tl.constexpr,
+        CP: tl.constexpr, BLOCK: tl.constexpr,
+    ):  # fmt: skip
+        """Entries ``(i, j)`` at ``ptr + base + i s0 + j s1`` of each lane as a ``[RP, CP,
+        BLOCK]`` tile (zero outside ``[R, C]``), loaded one entry at a time: a tile loaded
+        through a tile of pointers at strides unknown to the compiler gets a layout that
+        spreads a problem over threads (115,896 instructions and 7.7 kB of spills at the
+        filter's size in float32, against 5,272 and none with one problem per thread)."""
+        ri = tl.arange(0, RP)[:, None, None]
+        ci = tl.arange(0, CP)[None, :, None]
+        tile = tl.zeros([RP, CP, BLOCK], dtype=ptr.dtype.element_ty)
+        for i in tl.static_range(R):
+            for j in tl.static_range(C):
+                v = tl.load(ptr + base + i * s0 + j * s1, mask=live, other=0.0)
+                tile = tl.where((ri == i) & (ci == j), v[None, None, :], tile)
+        return tile
 
     @triton.jit
     def _cho_solve(L, R, NP: tl.constexpr):
@@ -143,15 +166,16 @@ if triton is not None:
             mu = tl.where(r2 == NP - 1 - ii, (acc / piv)[None, :], mu)
         return mu, nonsing
 
-    # B unspecialised: a batch divisible by 16 would let the compiler prove 16-byte runs of
-    # lanes and vectorise the loads, giving each thread four problems instead of one (four
-    # times the registers; 2.6 kB of spills at the filter's size in float32, sm_90)
-    @triton.jit(do_not_specialize=["B"])
+    # B and the strides unspecialised: a batch divisible by 16 (or a batch stride of 1)
+    # would let the compiler prove 16-byte runs of lanes and vectorise the loads, giving each
+    # thread four problems instead of one (four times the registers; 2.6 kB of spills at the
+    # filter's size in float32, sm_90), and one compiled variant serves every layout
+    @triton.jit(do_not_specialize=["B", *STRIDE_ARGS])
     def _dual_solve_kernel(
-        p_ptr,  # [N, N, B]
-        q_ptr,  # [N, B]
-        rc_ptr,  # [N, M, B] R' by components
-        hr_ptr,  # [M, B]
+        p_ptr,  # [B, N, N] at strides (sp, sp0, sp1)
+        q_ptr,  # [B, N] at (sq, sq0)
+        g_ptr,  # [B, M, N] at (sg, sg0, sg1)
+        h_ptr,  # [B, M] at (sh, sh0)
         x_ptr,  # out [N, B]
         z_ptr,  # out [M, B]
         active_ptr,  # out [M, B] int8
@@ -162,6 +186,16 @@ if triton is not None:
         rs_ptr,  # out [N, N, B]
         us_ptr,  # out [N, N, B]
         B,
+        sp,
+        sp0,
+        sp1,
+        sq,
+        sq0,
+        sg,
+        sg0,
+        sg1,
+        sh,
+        sh0,
         max_iter,
         eps,
         mach,
@@ -189,20 +223,18 @@ if triton is not None:
         nn = (cn[:, None] * N + cn[None, :]).to(tl.int64)
         nn_mask = (n_ok[:, None] & n_ok[None, :])[:, :, None] & live[None, None, :]
         nn_off = nn[:, :, None] * B + lane[None, None, :]
-        nm = (cn[:, None] * M + cm[None, :]).to(tl.int64)
-        nm_mask = (n_ok[:, None] & m_ok[None, :])[:, :, None] & live[None, None, :]
-        nm_off = nm[:, :, None] * B + lane[None, None, :]
         m_off = cm.to(tl.int64)[:, None] * B + lane[None, :]
         m_mask = m_ok[:, None] & live[None, :]
         n_off = cn.to(tl.int64)[:, None] * B + lane[None, :]
         n_mask = n_ok[:, None] & live[None, :]
 
-        # padded components: an identity block of P, zero data (they stay zero)
-        P = tl.load(p_ptr + nn_off, mask=nn_mask, other=0.0)
+        # the inputs at their own strides (no copy into planes), entry by entry; padded
+        # components: an identity block of P, zero data (they stay zero)
+        P = _load_tile(p_ptr, lane * sp, live, sp0, sp1, N, N, NP, NP, BLOCK)
         P = P + tl.where(eye & (r3 >= N), 1.0, 0.0)
-        q = tl.load(q_ptr + n_off, mask=n_mask, other=0.0)  # [NP, BLOCK]
-        Rc = tl.load(rc_ptr + nm_off, mask=nm_mask, other=0.0)  # [NP, MP, BLOCK]
-        hr = tl.load(hr_ptr + m_off, mask=m_mask, other=0.0)  # [MP, BLOCK]
+        q = tl.sum(_load_tile(q_ptr, lane * sq, live, sq0, 0, N, 1, NP, 1, BLOCK), axis=1)
+        Rc = _load_tile(g_ptr, lane * sg, live, sg1, sg0, N, M, NP, MP, BLOCK)  # R' [NP, MP, BLOCK]
+        hr = tl.sum(_load_tile(h_ptr, lane * sh, live, sh0, 0, M, 1, MP, 1, BLOCK), axis=1)
         real = q.dtype
 
         # Cholesky factor of P, column by column; a pivot at most 1e-13 of its diagonal
@@ -378,13 +410,16 @@ def solve(
     block: int = BLOCK,
     warps: int = WARPS,
     maxnreg: int | None = None,
+    planes: bool = False,
 ) -> Solution:
     """Solve ``min 1/2 x'Px + q'x s.t. Gx <= h`` for ``P [B, N, N]``, ``q [B, N]``,
     ``G [B, M, N]``, ``h [B, M]`` (finite, one dtype and device) as
     :func:`torchcbf.qp._dual.solve_dual` does; see :class:`Solution`. ``block`` (problems
     per program, a power of two), ``warps`` and ``maxnreg`` (registers per thread, ``None``:
-    the compiler's choice) set the launch; the answers do not depend on them
-    (``scripts/device_kernels.py`` times them)."""
+    the compiler's choice) set the launch and ``planes=True`` copies the inputs into planes
+    with the batch last before it (the lanes of a program then read consecutive addresses;
+    by default the kernel reads the inputs at their own strides, with no copy); the answers
+    do not depend on them (``scripts/device_kernels.py`` times them)."""
     if triton is None:
         raise RuntimeError("torchcbf: the QP's GPU kernel needs Triton, which does not import")
     B, M, N = G.shape
@@ -394,12 +429,10 @@ def solve(
                 f"{name} must be a {G.dtype} tensor of shape {list(shape)} on {G.device}, "
                 f"got {t.dtype} {list(t.shape)} on {t.device}"
             )
-    planes = (
-        P.permute(1, 2, 0).contiguous(),
-        q.T.contiguous(),
-        G.permute(2, 1, 0).contiguous(),
-        h.T.contiguous(),
-    )
+    data = (P, q, G, h)
+    if planes:  # each tensor copied batch last, then seen in its own index order again
+        data = tuple(t.movedim(0, -1).contiguous().movedim(-1, 0) for t in data)
+    strides = [s for t in data for s in t.stride()]
     new = functools.partial(torch.empty, device=G.device)
     x, z = new(N, B, dtype=G.dtype), new(M, B, dtype=G.dtype)
     active, ok = new(M, B, dtype=torch.int8), new(B, dtype=torch.int8)
@@ -412,8 +445,8 @@ def solve(
         launch = {} if maxnreg is None else {"maxnreg": maxnreg}
         with on_device(G):
             _dual_solve_kernel[grid](
-                *planes, x, z, active, ok, iters, L, S, R_S, U_S,
-                B, min(max_iter, 2**31 - 1), eps, info.eps, piv_tol, info.tiny,
+                *data, x, z, active, ok, iters, L, S, R_S, U_S,
+                B, *strides, min(max_iter, 2**31 - 1), eps, info.eps, piv_tol, info.tiny,
                 N=N, M=M, NP=tile(N), MP=tile(M), BLOCK=block, num_warps=warps, **launch,
             )  # fmt: skip
     return Solution(x, z, active.bool(), ok.bool(), iters, L, S, R_S, U_S)

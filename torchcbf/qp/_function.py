@@ -882,8 +882,8 @@ def _forward_dual(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> Forward
     x, z, rescued = _certify_ill_conditioned(data, res, ok, cfg)
     codes = _codes(data.batch, "active_set", x.device)
     x, z, y, status, iters, active, codes = _ipm_fallback(
-        data, cfg, x0, x, z, y, res.active, ok | rescued, res.iterations, codes,
-        infeasible=res.infeasible,
+        data, cfg, x0, x, z, y, res.active, ok if rescued is None else ok | rescued,
+        res.iterations, codes, infeasible=res.infeasible, none_fail=rescued is None,
     )  # fmt: skip
     if not cfg.need_factor:
         return Forward(x, z, y, status, iters, codes, None)
@@ -911,9 +911,10 @@ def _certify_ill_conditioned(
     res: DualResult,
     ok: Tensor,
     cfg: SolverConfig,
-) -> tuple[Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor | None]:
     """``(x, z, certified [B])`` for the rows the dual method left uncertified (not ``ok``:
-    not converged, or ``P`` beyond :data:`MAX_DUAL_CONDITION`) and did not prove infeasible.
+    not converged, or ``P`` beyond :data:`MAX_DUAL_CONDITION`) and did not prove infeasible;
+    ``certified`` is ``None`` where there are no such rows.
 
     A row is certified where a point is a KKT point to rounding
     (:func:`torchcbf.qp._kkt.kkt_point`) and no certificate of unboundedness
@@ -927,7 +928,7 @@ def _certify_ill_conditioned(
     whether any row needs this is one host synchronisation (none on a CPU)."""
     rows = ~ok & ~res.infeasible
     if not bool(rows.any()):
-        return res.x, res.z, rows
+        return res.x, res.z, None
     x, z = res.x, res.z
     N, M, _ = data.sizes
     steps = dual_budget(cfg.max_iter, M, N)
@@ -997,19 +998,22 @@ def _ipm_fallback(
     iters: Tensor,
     codes: Tensor,
     infeasible: Tensor | None = None,
+    none_fail: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Re-solve the rows with ``ok = False`` by the interior point method (with polish); rows
     marked ``infeasible`` (proved so by the first solver) are reported ``PRIMAL_INFEASIBLE``.
 
     Deciding whether any row needs it is the one host synchronisation of the exact paths
-    (``bool(fail.any())``). Returns ``(x, z, y, status, iterations, active, method)``, the
-    method's codes (:data:`ANSWERED_BY`) updated from ``codes`` on the rows re-solved."""
+    (``bool(fail.any())``), spared where the caller found already that every row not
+    ``infeasible`` is ``ok`` (``none_fail``). Returns ``(x, z, y, status, iterations,
+    active, method)``, the method's codes (:data:`ANSWERED_BY`) updated from ``codes`` on
+    the rows re-solved."""
     status = torch.where(ok, int(Status.SOLVED), int(Status.MAX_ITER))
     fail = ~ok
     if infeasible is not None:  # proved by the solver: PRIMAL_INFEASIBLE, x = 0, no re-solve
         status = torch.where(infeasible, int(Status.PRIMAL_INFEASIBLE), status)
         fail = fail & ~infeasible
-    if not bool(fail.any()):
+    if none_fail or not bool(fail.any()):
         return x, z, y, status, iters, active, codes
     idx = fail.nonzero().squeeze(-1)
     N, M, E = data.sizes
