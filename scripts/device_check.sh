@@ -21,7 +21,8 @@
 # call's limit loses only the step it stops); on an H200 the first six steps took 54, 79,
 # 75 (8 test workers), 9, 61 and 41 s, so about 8.5 minutes with the bench's budget: the
 # last two steps fit one 600 s call only with others skipped, so a session runs them in a
-# second call (below). A step that fails does not stop the others; the script ends with a
+# second call (below), or in one call without the bench step (--skip bench --skip ncu:
+# 324 s on an H200, the launch settings 45 s of it). A step that fails does not stop the others; the script ends with a
 # list of the failed steps and exit status 1 if there is any.
 #
 # Right before the device call, HERE (the machine with the project's .venv; it records the commit):
