@@ -14,6 +14,7 @@ from _problems import make_batch
 from torchcbf._triton import interpreted
 from torchcbf.qp import _dual_native, _dual_triton, solve_qp
 from torchcbf.qp._dual import dual_adjoints, dual_engine, solve_dual
+from torchcbf.qp._function import MAX_DUAL_CONDITION, condition_estimate
 
 TARGET = triton_target()
 pytestmark = [pytest.mark.device, NEEDS_TRITON]
@@ -194,6 +195,31 @@ def test_inputs_at_any_strides_give_the_answers_of_planes(dtype):
 
 
 @runs
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_the_kernels_condition_estimate_is_the_torch_one(dtype):
+    # well and badly conditioned P (a spread of eigenvalues up to 1e12), N = 1 to 4
+    for n in (1, 2, 3, 4):
+        gen = torch.Generator().manual_seed(n)
+        B = 40
+        rot, _ = torch.linalg.qr(torch.randn(B, n, n, generator=gen, dtype=F64))
+        spread = 10.0 ** (12 * torch.rand(B, n, generator=gen, dtype=F64))
+        P = rot @ torch.diag_embed(spread) @ rot.mT
+        P = 0.5 * (P + P.mT)
+        q = torch.randn(B, n, generator=gen, dtype=F64)
+        G = torch.randn(B, 3, n, generator=gen, dtype=F64)
+        h = torch.rand(B, 3, generator=gen, dtype=F64)
+        args = [t.to(TARGET, dtype) for t in (P, q, G, h)]
+        sol = _dual_triton.solve(*args, eps=_eps(dtype), max_iter=100)
+        want = condition_estimate(sol.L, batch_first=False)
+        pd = torch.isfinite(want) & (want > 0)
+        assert pd.sum() >= B // 2
+        rtol = 1e-9 if dtype == F64 else 1e-3
+        torch.testing.assert_close(sol.condition[pd], want[pd], rtol=rtol, atol=0.0)
+        if n > 1 and dtype == F64:  # the cases reach beyond the layer's MAX_DUAL_CONDITION
+            assert bool((want[pd] > MAX_DUAL_CONDITION).any())
+
+
+@runs
 def test_engine_choice_and_errors():
     (P, q, G, h, _), _ = _problems(4, 2, 3, seed=1)
     M = G.shape[-2]
@@ -222,8 +248,8 @@ def test_kernel_compiles_for_a_gpu_one_problem_per_thread(real):
     from triton.compiler import ASTSource
 
     fn = _dual_triton._dual_solve_kernel
-    names = ("p", "q", "g", "h", "x", "z", "active", "ok", "iters", "l", "s", "rs", "us")
-    kinds = [f"*{real}"] * 6 + ["*i8", "*i8", "*i64", f"*{real}", "*i64", f"*{real}", f"*{real}"]
+    names = ("p", "q", "g", "h", "x", "z", "active", "ok", "iters", "l", "s", "rs", "us", "cond")
+    kinds = [f"*{real}"] * 6 + ["*i8", "*i8", "*i64", f"*{real}", "*i64"] + [f"*{real}"] * 3
     signature = {f"{name}_ptr": kind for name, kind in zip(names, kinds, strict=True)}
     signature.update(B="i32", **dict.fromkeys(_dual_triton.STRIDE_ARGS, "i32"))
     signature.update(max_iter="i32", eps="fp64", mach="fp64", piv_tol="fp64")

@@ -53,6 +53,8 @@ class DualFactor(NamedTuple):
     R_S: Tensor  # [N(component), N(slot), B]
     U_S: Tensor  # [N(component), N(slot), B] = P^{-1} R_S'
     ok: Tensor  # [B] rows solved by this method
+    #: [B] condition estimate of P where the implementation computed it (the Triton kernel)
+    condition: Tensor | None = None
 
 
 class NativeFactor(NamedTuple):
@@ -289,7 +291,7 @@ def solve_dual(
         return DualResult(x, z, active, ok, iters, NativeFactor(G, L, slots, ok), infeasible)
     if engine == "triton":
         sol = _dual_triton.solve(P, q, G, h, eps=eps, max_iter=max_iter)
-        factor = DualFactor(sol.L, sol.S, sol.R_S, sol.U_S, sol.ok)
+        factor = DualFactor(sol.L, sol.S, sol.R_S, sol.U_S, sol.ok, sol.condition)
         none = torch.zeros_like(sol.ok)
         return DualResult(sol.x.T, sol.z.T, sol.active.T, sol.ok, sol.iters, factor, none)
     dtype, device = q.dtype, q.device

@@ -70,7 +70,9 @@ class Solution(NamedTuple):
     ``ok``), ``active [M, B]`` and ``ok [B]`` bool, ``iters [B]`` int64, and the backward's
     factors: ``L [N, N, B]`` (Cholesky factor of ``P``), ``S [N, B]`` int64 row per slot
     (``M``: empty), ``R_S`` and ``U_S`` ``[N(component), N(slot), B]`` (the slots' rows of
-    ``R'`` and ``P^{-1} R'``, zero on empty slots)."""
+    ``R'`` and ``P^{-1} R'``, zero on empty slots); ``condition [B]``: ``max_i P_ii
+    (P^{-1})_ii`` from ``L``, as :func:`torchcbf.qp._function.condition_estimate` computes it
+    (meaningful where ``P`` is positive definite)."""
 
     x: Tensor
     z: Tensor
@@ -81,6 +83,7 @@ class Solution(NamedTuple):
     S: Tensor
     R_S: Tensor
     U_S: Tensor
+    condition: Tensor
 
 
 if triton is not None:
@@ -111,9 +114,9 @@ if triton is not None:
         return tile
 
     @triton.jit
-    def _cho_solve(L, R, NP: tl.constexpr):
-        """``L L' Y = R`` for ``L [NP, NP, BLOCK]`` and ``R [NP, X, BLOCK]`` (components
-        first), the torch implementation's substitutions in its order."""
+    def _lower_solve(L, R, NP: tl.constexpr):
+        """``L Y = R`` for lower triangular ``L [NP, NP, BLOCK]`` and ``R [NP, X, BLOCK]``
+        (components first) by forward substitution."""
         ci = tl.arange(0, NP)
         r3 = ci[:, None, None]
         c2 = ci[:, None]
@@ -124,6 +127,16 @@ if triton is not None:
             for k in tl.static_range(i):
                 acc = acc - _pick(Li, c2, k, 0)[None, :] * _pick(Y, r3, k, 0)
             Y = tl.where(r3 == i, (acc / _pick(Li, c2, i, 0)[None, :])[None, :, :], Y)
+        return Y
+
+    @triton.jit
+    def _cho_solve(L, R, NP: tl.constexpr):
+        """``L L' Y = R`` for ``L [NP, NP, BLOCK]`` and ``R [NP, X, BLOCK]`` (components
+        first), the torch implementation's substitutions in its order."""
+        ci = tl.arange(0, NP)
+        r3 = ci[:, None, None]
+        c2 = ci[:, None]
+        Y = _lower_solve(L, R, NP)
         X = tl.zeros_like(R)
         for ii in tl.static_range(NP):
             acc = _pick(Y, r3, NP - 1 - ii, 0)
@@ -185,6 +198,7 @@ if triton is not None:
         s_ptr,  # out [N, B] int64
         rs_ptr,  # out [N, N, B]
         us_ptr,  # out [N, N, B]
+        cond_ptr,  # out [B]
         B,
         sp,
         sp0,
@@ -254,6 +268,11 @@ if triton is not None:
         # P^{-1} R' [NP, MP, BLOCK] for the rows' scales only: the steps and the end solve
         # for the columns they use (the same operations per column, so the same values),
         # which keeps a second [NP, MP] tile out of the registers of the loop
+        # max_i P_ii (P^{-1})_ii (_function.condition_estimate): squared norms of L's rows
+        # and of L^{-1}'s columns (padded components give 1, which never exceeds it)
+        Linv = _lower_solve(L, tl.where(eye, 1.0, 0.0).to(real) + tl.zeros_like(L), NP)
+        cond = tl.max(tl.sum(L * L, axis=1) * tl.sum(Linv * Linv, axis=0), axis=0)
+        tl.store(cond_ptr + lane, cond, mask=live)
         Ui = _cho_solve(L, Rc, NP)
         xu = tl.sum(_cho_solve(L, -q[:, None, :], NP), axis=1)  # [NP, BLOCK]
 
@@ -438,6 +457,7 @@ def solve(
     active, ok = new(M, B, dtype=torch.int8), new(B, dtype=torch.int8)
     iters, S = new(B, dtype=torch.int64), new(N, B, dtype=torch.int64)
     L, R_S, U_S = (new(N, N, B, dtype=G.dtype) for _ in range(3))
+    cond = new(B, dtype=G.dtype)
     if B > 0:
         info = torch.finfo(G.dtype)
         piv_tol = 1e-12 if G.dtype == torch.float64 else 1e-6
@@ -445,8 +465,8 @@ def solve(
         launch = {} if maxnreg is None else {"maxnreg": maxnreg}
         with on_device(G):
             _dual_solve_kernel[grid](
-                *data, x, z, active, ok, iters, L, S, R_S, U_S,
+                *data, x, z, active, ok, iters, L, S, R_S, U_S, cond,
                 B, *strides, min(max_iter, 2**31 - 1), eps, info.eps, piv_tol, info.tiny,
                 N=N, M=M, NP=tile(N), MP=tile(M), BLOCK=block, num_warps=warps, **launch,
             )  # fmt: skip
-    return Solution(x, z, active.bool(), ok.bool(), iters, L, S, R_S, U_S)
+    return Solution(x, z, active.bool(), ok.bool(), iters, L, S, R_S, U_S, cond)

@@ -877,6 +877,8 @@ def _forward_dual(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> Forward
     native = isinstance(res.factor, NativeFactor)
     if native:  # the same rule in the kernel, without a pass of tensor operations
         ok = _dual_native.well_conditioned(res.factor.L, res.ok, MAX_DUAL_CONDITION)
+    elif res.factor.condition is not None:  # the Triton kernel's, from its own factor
+        ok = res.ok & (res.factor.condition <= MAX_DUAL_CONDITION)
     else:
         ok = res.ok & (condition_estimate(res.factor.L, batch_first=False) <= MAX_DUAL_CONDITION)
     x, z, rescued = _certify_ill_conditioned(data, res, ok, cfg)
@@ -1109,7 +1111,10 @@ def _cast(t: Tensor, dtype: torch.dtype) -> Tensor:
     if dtype == torch.float64:
         return t
     big = torch.finfo(dtype).max
-    return t.clamp(-big, big).to(dtype)
+    # cast, then clamp the infinities an overflow made (in place, in the narrower dtype:
+    # the same values as clamping first, in fewer bytes); a float64 infinity or NaN is kept
+    # as clamping first keeps it: inf becomes the largest finite value, NaN stays NaN
+    return t.to(dtype).clamp_(-big, big)
 
 
 class QPFunction(torch.autograd.Function):
@@ -1141,6 +1146,7 @@ class QPFunction(torch.autograd.Function):
         ctx.scaling = scaling
         ctx.save_for_backward(x, z, y, status)
         ctx.dtype = dtype
+        ctx.dtypes = tuple(t.dtype for t in (P, q, G, h, A, b))
         ctx.mark_non_differentiable(status, iters, method)
         if scaling is not None:
             inv_c = (1.0 / scaling.c).unsqueeze(-1)
@@ -1173,4 +1179,5 @@ class QPFunction(torch.autograd.Function):
             dP = None if dP is None else dP * scaling.c.view(-1, 1, 1)
             dq = None if dq is None else dq * scaling.c.unsqueeze(-1)
             grads = (dP, dq, *grads[2:])
-        return (*(None if g is None else g.to(ctx.dtype) for g in grads), None, None)
+        grads = (None if g is None else g.to(d) for g, d in zip(grads, ctx.dtypes, strict=True))
+        return (*grads, None, None)

@@ -690,7 +690,9 @@ def _standard_form(f: _Flat, inp: _Inputs) -> _Standard:
     bounds = [(bound, sign) for bound, sign in ((f.ub, 1.0), (f.lb, -1.0)) if bound is not None]
     if bounds:  # one row per bounded variable and side, written into one buffer
         rows = box_start + n * len(bounds)
-        G_all, h_all = Gs.new_empty(B, rows, N), hs.new_empty(B, rows)
+        # in float64, the solvers' working precision: the cast made in the same pass
+        G_all = Gs.new_empty(B, rows, N, dtype=torch.float64)
+        h_all = hs.new_empty(B, rows, dtype=torch.float64)
         G_all[:, :box_start] = Gs
         h_all[:, :box_start] = hs
         G_all[:, box_start:] = 0.0
