@@ -49,7 +49,8 @@ def compile_kernel(
         name = param.name
         if name.endswith("_ptr"):
             signature[name] = _INTS.get(name, "*" + real)
-            attrs[(i,)] = [["tt.divisibility", 16]]
+            if not param.do_not_specialize_on_alignment:
+                attrs[(i,)] = [["tt.divisibility", 16]]
         elif name in ints:
             signature[name] = "i32"
             if not param.do_not_specialize and ints[name] % 16 == 0:

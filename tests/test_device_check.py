@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from _devices import assert_same_answers, device_matches_cpu, devices
+from _devices import assert_same_answers, device_matches_cpu, devices, triton_target
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -257,3 +257,21 @@ def test_device_check_without_cuda_fails_before_any_work(tmp_path: Path) -> None
     assert done.returncode == 2
     assert "torch.cuda.is_available() is False" in done.stderr
     assert not (tmp_path / "device_check.json").exists()
+
+
+@pytest.mark.skipif(
+    getattr(triton_target(), "type", None) != "cpu",
+    reason="the count runs the QP's Triton kernel on the CPU: Triton and TRITON_INTERPRET=1",
+)
+def test_the_launch_count_sees_the_gpus_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    from torchcbf.qp import _dual, solve
+
+    counter = _script("count_launches")
+    monkeypatch.setattr(_dual, "dual_engine", _dual.dual_engine)  # the script replaces it
+    monkeypatch.setattr(solve, "dual_engine", solve.dual_engine)
+    path, ops = counter.count(torch.float32, 300)
+    assert path == "torch/active_set_triton"
+    names = {name for name, _, _ in ops}
+    assert "view" not in names and "aminmax" not in names  # a CPU checks with amax and amin
+    assert 100 < len(ops) < 1000 and all(size >= 0 for _, _, size in ops)
+    assert any(where.startswith("qp/solve.py") for _, where, _ in ops)

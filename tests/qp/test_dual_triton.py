@@ -181,17 +181,23 @@ def test_inputs_at_any_strides_give_the_answers_of_planes(dtype):
     (P, q, G, h, _), _ = _problems(45, 3, 7, seed=5, dtype=dtype)
     eps = _eps(dtype)
     ref = _dual_triton.solve(P, q, G, h, eps=eps, max_iter=100, planes=True)
+    assert ref.ok.any()
     wide_G = torch.zeros(45, 3, 2 * G.shape[1], dtype=dtype, device=G.device)
     wide_G[:, :, ::2] = G.mT  # G seen as every other column of a wider tensor, transposed
-    wide_h = torch.zeros(h.shape[1], 90, dtype=dtype, device=h.device)
-    wide_h[:, 1::2] = h.T
-    views = (P.mT, q.T.contiguous().T, wide_G[:, :, ::2].mT, wide_h[:, 1::2].T)
-    assert not any(t.is_contiguous() for t in views[1:])
+    wide_h = torch.zeros(h.shape[1], 91, dtype=dtype, device=h.device)
+    wide_h[:, 1:-1:2] = h.T  # batch last, at an offset that breaks 16-byte alignment
+    views = (P.mT.contiguous().mT, q.T.contiguous().T, wide_G[:, :, ::2].mT, wide_h[:, 1:-1:2].T)
+    assert not any(t.is_contiguous() for t in views)
     for args in ((P, q, G, h), views):
         out = _dual_triton.solve(*args, eps=eps, max_iter=100)
-        assert ref.ok.any()
         for a, b in zip(out, ref, strict=True):
             torch.testing.assert_close(a, b, atol=0.0, rtol=0.0)
+    # one problem repeated by stride-0 views: each row the answer of the problem alone
+    one = [t[:1].expand(6, *t.shape[1:]) for t in (P, q, G, h)]
+    alone = _dual_triton.solve(*(t[:1].contiguous() for t in (P, q, G, h)), eps=eps, max_iter=100)
+    out = _dual_triton.solve(*one, eps=eps, max_iter=100)
+    for a, b in zip(out, alone, strict=True):
+        torch.testing.assert_close(a, b.expand_as(a), atol=0.0, rtol=0.0)
 
 
 @runs
@@ -258,7 +264,9 @@ def test_kernel_compiles_for_a_gpu_one_problem_per_thread(real):
     signature.update(dict.fromkeys(sizes, "constexpr"))
     # the hints a launch on 10^6 problems gives: pointers aligned to 16 bytes, and B
     # divisible by 16 unless the kernel keeps it unspecialised
-    hinted = [p.num for p in fn.params if p.name.endswith("_ptr")]
+    hinted = [
+        p.num for p in fn.params if p.name.endswith("_ptr") and not p.do_not_specialize_on_alignment
+    ]
     hinted += [p.num for p in fn.params if p.name == "B" and not p.do_not_specialize]
     attrs = {(i,): [["tt.divisibility", 16]] for i in hinted}
     src = ASTSource(fn, signature, constexprs=sizes, attrs=attrs)

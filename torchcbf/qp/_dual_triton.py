@@ -20,9 +20,10 @@ argument, since a size divisible by 16 lets the compiler vectorise the loads ove
 hand each thread four problems (on the filter's QP in float32, 2.6 kB of spills and six
 times the instructions per step). Compiled for sm_90 (255 registers a
 thread), float32 runs without spilling at ``N = 4``, ``M = 8`` and at the filter's ``N = 3``,
-``M = 13``, and spills 0.3 kB to local memory at ``N = 4``, ``M = 16``; float64 spills from
-``N = 2``, ``M = 12`` on (0.2 kB there, 0.9 kB at ``N = 3``, ``M = 13``, 1.4 kB at ``N = 4``,
-``M = 16``; ``scripts/kernel_resources.py`` reads these on any machine). The kernel serves
+``M = 13``, and spills 88 B to local memory at ``N = 4``, ``M = 16`` (none inside its
+steps); float64 spills from ``N = 2``, ``M = 12`` on (48 B there, 0.5 kB at ``N = 4``,
+``M = 8``, 0.7 kB at ``N = 3``, ``M = 13``, 1.2 kB at ``N = 4``, ``M = 16``;
+``scripts/kernel_resources.py`` reads these on any machine). The kernel serves
 problems of up to :data:`MAX_VARS` variables and :data:`MAX_TILE` entries (padded to powers
 of two); larger ones take the torch implementation. On the CPU it runs only under
 ``TRITON_INTERPRET=1`` (the tests).
@@ -103,13 +104,15 @@ if triton is not None:
         BLOCK]`` tile (zero outside ``[R, C]``), loaded one entry at a time: a tile loaded
         through a tile of pointers at strides unknown to the compiler gets a layout that
         spreads a problem over threads (115,896 instructions and 7.7 kB of spills at the
-        filter's size in float32, against 5,272 and none with one problem per thread)."""
+        filter's size in float32, against 5,320 and none with one problem per thread)."""
         ri = tl.arange(0, RP)[:, None, None]
         ci = tl.arange(0, CP)[None, :, None]
         tile = tl.zeros([RP, CP, BLOCK], dtype=ptr.dtype.element_ty)
         for i in tl.static_range(R):
             for j in tl.static_range(C):
-                v = tl.load(ptr + base + i * s0 + j * s1, mask=live, other=0.0)
+                # in int64: an index times a 32-bit stride may pass 2^31 (batch-last inputs)
+                off = tl.full([], i, tl.int64) * s0 + tl.full([], j, tl.int64) * s1
+                v = tl.load(ptr + base + off, mask=live, other=0.0)
                 tile = tl.where((ri == i) & (ci == j), v[None, None, :], tile)
         return tile
 
@@ -180,10 +183,15 @@ if triton is not None:
         return mu, nonsing
 
     # B and the strides unspecialised: a batch divisible by 16 (or a batch stride of 1)
-    # would let the compiler prove 16-byte runs of lanes and vectorise the loads, giving each
-    # thread four problems instead of one (four times the registers; 2.6 kB of spills at the
-    # filter's size in float32, sm_90), and one compiled variant serves every layout
-    @triton.jit(do_not_specialize=["B", *STRIDE_ARGS])
+    # would let the compiler prove 16-byte runs of lanes in the planes it writes (or the
+    # inputs it reads) and vectorise them, giving each thread four problems instead of one
+    # (four times the registers; 2.6 kB of spills at the filter's size in float32, sm_90);
+    # with the inputs' alignment unspecialised too, one compiled variant serves every layout
+    # and view
+    @triton.jit(
+        do_not_specialize=["B", *STRIDE_ARGS],
+        do_not_specialize_on_alignment=["p_ptr", "q_ptr", "g_ptr", "h_ptr"],
+    )
     def _dual_solve_kernel(
         p_ptr,  # [B, N, N] at strides (sp, sp0, sp1)
         q_ptr,  # [B, N] at (sq, sq0)
