@@ -264,12 +264,13 @@ def test_device_check_without_cuda_fails_before_any_work(tmp_path: Path) -> None
     reason="the count runs the QP's Triton kernel on the CPU: Triton and TRITON_INTERPRET=1",
 )
 def test_the_launch_count_sees_the_gpus_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    from torchcbf.filters import realtime
     from torchcbf.qp import _dual, solve
 
     counter = _script("count_launches")
     monkeypatch.setattr(_dual, "dual_engine", _dual.dual_engine)  # the script replaces it
     monkeypatch.setattr(solve, "dual_engine", solve.dual_engine)
-    path, ops = counter.count(torch.float32, 300)
+    path, ops = counter.count(torch.float32, realtime.MAX_BATCH + 1)  # fewer: the C path
     assert path == "torch/active_set_triton"
     names = {name for name, _, _ in ops}
     assert "view" not in names and "aminmax" not in names  # a CPU checks with amax and amin
