@@ -273,14 +273,14 @@ if triton is not None:
             pd = pd & (piv > 1e-13 * tl.abs(_pick(Pj, r2, j, 0)))
             root = tl.sqrt(tl.where(pd, piv, 1.0))
             L = tl.where(c3 == j, tl.where(r2 >= j, col / root[None, :], 0.0)[:, None, :], L)
-        # P^{-1} R' [NP, MP, BLOCK] for the rows' scales only: the steps and the end solve
-        # for the columns they use (the same operations per column, so the same values),
-        # which keeps a second [NP, MP] tile out of the registers of the loop
         # max_i P_ii (P^{-1})_ii (_function.condition_estimate): squared norms of L's rows
         # and of L^{-1}'s columns (padded components give 1, which never exceeds it)
         Linv = _lower_solve(L, tl.where(eye, 1.0, 0.0).to(real) + tl.zeros_like(L), NP)
         cond = tl.max(tl.sum(L * L, axis=1) * tl.sum(Linv * Linv, axis=0), axis=0)
         tl.store(cond_ptr + lane, cond, mask=live)
+        # P^{-1} R' [NP, MP, BLOCK] for the rows' scales only: the steps and the end solve
+        # for the columns they use (the same operations per column, so the same values),
+        # which keeps a second [NP, MP] tile out of the registers of the loop
         Ui = _cho_solve(L, Rc, NP)
         xu = tl.sum(_cho_solve(L, -q[:, None, :], NP), axis=1)  # [NP, BLOCK]
 

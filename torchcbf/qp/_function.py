@@ -1111,9 +1111,8 @@ def _cast(t: Tensor, dtype: torch.dtype) -> Tensor:
     if dtype == torch.float64:
         return t
     big = torch.finfo(dtype).max
-    # cast, then clamp the infinities an overflow made (in place, in the narrower dtype:
-    # the same values as clamping first, in fewer bytes); a float64 infinity or NaN is kept
-    # as clamping first keeps it: inf becomes the largest finite value, NaN stays NaN
+    # cast, then clamp in place in the narrower dtype: the values of clamping first (an
+    # overflow or an infinity becomes the largest finite value, NaN stays NaN), fewer bytes
     return t.to(dtype).clamp_(-big, big)
 
 
