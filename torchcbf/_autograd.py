@@ -28,3 +28,21 @@ def needs_graph(
                 if t is not None and t.requires_grad:
                     return True
     return False
+
+
+def reaches_other_leaf(out: Tensor, x: Tensor) -> bool:
+    """Whether ``out``'s graph reaches a tensor that requires grad other than ``x`` (a
+    tensor a user function holds in a closure, which :func:`needs_graph` cannot see): a walk
+    over the graph's nodes, for code that asks its own results."""
+    seen: set = set()
+    stack = [out.grad_fn]
+    while stack:
+        node = stack.pop()
+        if node is None or node in seen:
+            continue
+        seen.add(node)
+        leaf = getattr(node, "variable", None)  # an AccumulateGrad node holds its leaf
+        if leaf is not None and leaf is not x:
+            return True
+        stack.extend(nxt for nxt, _ in node.next_functions)
+    return False

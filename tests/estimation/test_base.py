@@ -203,6 +203,33 @@ def test_non_finite_measurement_row_is_skipped_and_flagged(cls, dtype, device):
     assert bool((est.predict(new, torch.ones(3, 2, **f), 0.1).status == 0).all())
 
 
+@pytest.mark.parametrize("cls", FILTERS, ids=lambda c: c.__name__)
+def test_a_skipped_measurement_row_leaves_the_gradients_of_the_others_clean(cls):
+    # a learned measurement covariance shared by the batch: its gradient from a batch with
+    # one NaN measurement is the gradient from the batch without that row
+    dyn, sensor = _unicycle_rb()
+    x = torch.tensor([[0.1, -0.2, 0.3], [0.5, 0.4, -0.1], [-0.3, 0.2, 0.6]], dtype=torch.float64)
+    y = sensor.expected(x + 0.05)
+    y[1, 0] = float("nan")
+
+    def grads(rows: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        std = torch.tensor([0.2, 0.1, 0.3, 0.05], dtype=torch.float64, requires_grad=True)
+        m0 = x[rows].clone().requires_grad_()
+        est = cls(dyn, sensor, R=torch.diag(std**2))
+        state = est.init(m0, torch.eye(3, dtype=torch.float64) * 0.1)
+        new = est.update(state, y[rows])
+        (new.mean.sum() + new.cov.sum()).backward()
+        return std.grad, m0.grad
+
+    g_all, gm_all = grads([0, 1, 2])
+    g_two, gm_two = grads([0, 2])
+    assert bool(torch.isfinite(g_all).all() and torch.isfinite(gm_all).all())
+    torch.testing.assert_close(g_all, g_two, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(gm_all[[0, 2]], gm_two, rtol=1e-12, atol=1e-14)
+    # the skipped row keeps its estimate: d(sum mean)/d m0 = 1, nothing else
+    torch.testing.assert_close(gm_all[1], torch.ones(3, dtype=torch.float64))
+
+
 @pytest.mark.parametrize("cls", [UKF, HybridEKFUKF], ids=lambda c: c.__name__)
 def test_indefinite_covariance_is_regularized_not_nan(cls, dtype):
     """A covariance that lost definiteness (e.g. handed in from outside) gets a jitter or a

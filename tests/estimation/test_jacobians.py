@@ -177,3 +177,25 @@ def test_prediction_is_differentiable_in_u_for_a_model_constant_in_x(cls):
     out = est.predict(state, u, dt)
     (grad,) = torch.autograd.grad(out.mean[0, 0], u)
     assert torch.allclose(grad, torch.tensor([[dt, 0.0]], dtype=torch.float64))
+
+
+@pytest.mark.parametrize("cls", [EKF, UKF, HybridEKFUKF], ids=lambda c: c.__name__)
+def test_a_tensor_held_by_a_users_function_gets_its_gradient(cls):
+    # a learned sensor gain and a learned drift held in closures (not module parameters)
+    gain = torch.tensor(1.5, dtype=torch.float64, requires_grad=True)
+    drift = torch.tensor([0.3, -0.2], dtype=torch.float64, requires_grad=True)
+
+    def run(g, d):
+        class Drifting(SingleIntegrator):
+            def f(self, x):
+                return d.expand_as(x) * torch.cos(x)
+
+        sensor = FunctionSensor(lambda x: g * torch.sin(x), std=0.1, output_dim=2)
+        est = cls(Drifting(2), sensor, Q=0.01).double()
+        m0 = torch.tensor([[0.2, -0.1], [0.4, 0.3]], dtype=torch.float64)
+        state = est.predict(est.init(m0, torch.eye(2, dtype=torch.float64)), m0 * 0, 0.1)
+        y = torch.tensor([[1.0, 0.5], [0.2, -0.3]], dtype=torch.float64)
+        new = est.update(state, y)
+        return new.mean.sum() + new.cov.sum()
+
+    assert torch.autograd.gradcheck(run, (gain, drift), eps=1e-6, atol=1e-7)

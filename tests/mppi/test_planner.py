@@ -830,3 +830,25 @@ def test_a_number_of_samples_set_after_a_call_is_sampled_on_every_path():
         plans.append((out.plan, planner(torch.zeros(3, 2)).plan))
     for a, b in zip(*plans, strict=True):
         torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+@pytest.mark.parametrize("variant", ["MPPI", "SMPPI", "KMPPI"])
+def test_a_differentiable_call_leaves_no_graph_to_the_next(variant, backend):
+    from torchcbf.mppi import KMPPI, SMPPI
+
+    cls = {"MPPI": MPPI, "SMPPI": SMPPI, "KMPPI": KMPPI}[variant]
+    planner = cls(
+        DoubleIntegrator(2), QuadraticGoal([1.0, 1.0], index=(0, 1)), 6, 40, 0.1, 0.5, 0.5, 0.3,
+        u_min=-1.0, u_max=1.0, backend=backend,
+    ).double()  # fmt: skip
+    x = torch.tensor([[0.0, 0.0, 0.3, 0.1]], dtype=torch.float64)
+    x1 = x.clone().requires_grad_()
+    first = planner(x1)
+    if first.u.requires_grad:  # this call's outputs carry its graph
+        (grad,) = torch.autograd.grad(first.u.sum(), x1)
+        assert bool(torch.isfinite(grad).all())
+    for i in range(3):  # later calls on plain states: nothing to differentiate, nothing kept
+        out = planner(x + 0.01 * (i + 1))
+        assert not out.u.requires_grad and not out.plan.requires_grad
+    assert not any(t.requires_grad for t in planner._kept())

@@ -10,6 +10,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from torchcbf._autograd import reaches_other_leaf
+
 
 def symmetrize(A: Tensor) -> Tensor:
     """``(A + A^T) / 2`` for ``[..., k, k]``."""
@@ -24,17 +26,24 @@ def jacobian(
     Rows are independent, so the Jacobian of row ``b`` is the gradient of the summed output
     component: one backward pass per output component (a loop over ``k``, never over rows).
     With ``create_graph`` the result stays differentiable (second derivatives included);
-    without it the value and the Jacobian are detached.
+    without it the value and the Jacobian are detached, unless grad mode is on and ``fn``
+    holds a tensor that requires grad (a closure's), whose gradient they then carry.
 
     Returns:
         ``(fn(x) [B, k], J [B, k, n])``.
     """
+    outer = torch.is_grad_enabled()
     with torch.enable_grad():
         if create_graph and x.requires_grad:
             xr = x
         else:
             xr = x.detach().requires_grad_(True)
         out = fn(xr)
+        if not create_graph and outer and out.requires_grad and reaches_other_leaf(out, xr):
+            create_graph = True  # the caller's test saw modules only: keep the graph
+            if x.requires_grad:
+                xr = x
+                out = fn(xr)
         if not out.requires_grad:
             # the map does not depend on x (nor on anything that requires grad): its
             # Jacobian is zero, and autograd has no graph to differentiate

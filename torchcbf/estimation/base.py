@@ -20,6 +20,7 @@ from torchcbf._checks import (
     check_spd,
     check_tensor,
     matrix_shape,
+    rows_finite,
 )
 from torchcbf._constants import DerivedConstants, ExactConstants, derive, remember
 from torchcbf.dynamics.base import ControlAffine
@@ -301,12 +302,17 @@ class _KalmanFilter(ExactConstants, DerivedConstants, Estimator):
         check_batch_match("state.mean", mean, "y", y)
         bs = broadcast_shapes(mean.shape[:-1], y.shape[:-1])
         n = self.state_dim
+        y = y.expand(*bs, p).reshape(-1, p)
+        # a non-finite row is answered by a finite stand-in, then by the previous estimate
+        # (_finish's skip): its NaN never enters a product whose gradient reaches the batch
+        y_ok = rows_finite(y, 1, y.shape[0])
         return (
             bs,
             mean.expand(*bs, n).reshape(-1, n),
             cov.expand(*bs, n, n).reshape(-1, n, n),
             status.expand(bs).reshape(-1),
-            y.expand(*bs, p).reshape(-1, p),
+            torch.where(y_ok[:, None], y, 0.0),
+            ~y_ok,
         )
 
     @staticmethod
@@ -317,11 +323,15 @@ class _KalmanFilter(ExactConstants, DerivedConstants, Estimator):
         mean: Tensor,
         cov: Tensor,
         status: Tensor,
+        skip: Tensor | None = None,
     ) -> EstimatorState:
         """Symmetrise, flag a covariance that is not numerically positive definite, reject
-        non-finite rows (keep the previous estimate) and reshape."""
+        non-finite rows and the rows ``skip [B]`` marks (keep the previous estimate, flagged
+        ``NON_FINITE``) and reshape."""
         cov = symmetrize(cov)
         finite = torch.isfinite(mean).all(-1) & torch.isfinite(cov).flatten(1).all(-1)
+        if skip is not None:
+            finite = finite & ~skip
         not_pd = finite & (torch.linalg.cholesky_ex(cov.detach())[1] != 0)
         status = status | torch.where(not_pd, int(EstimatorStatus.REGULARIZED), 0)
         mean = torch.where(finite[:, None], mean, prev_mean)

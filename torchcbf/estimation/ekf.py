@@ -52,7 +52,7 @@ class EKF(_KalmanFilter):
 
     def update(self, state: EstimatorState, y: Tensor) -> EstimatorState:
         """Correct ``state`` with ``y [..., p]`` (a non-finite ``y`` row is skipped and flagged)."""
-        bs, m, P, status, y = self._flat_update(state, y)
+        bs, m, P, status, y, skip = self._flat_update(state, y)
         graph = needs_graph(self.sensor, m)
         y_pred, H = jacobian(self.sensor.expected, m, graph)
         R = self._R(m)
@@ -63,4 +63,4 @@ class EKF(_KalmanFilter):
         A = torch.eye(m.shape[-1], dtype=m.dtype, device=m.device) - K @ H
         cov = A @ P @ A.mT + K @ R @ K.mT
         status = status | torch.where(regularized, int(EstimatorStatus.REGULARIZED), 0)
-        return self._finish(bs, m, P, mean, cov, status)
+        return self._finish(bs, m, P, mean, cov, status, skip=skip)

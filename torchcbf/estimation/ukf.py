@@ -133,7 +133,7 @@ class UKF(_KalmanFilter):
 
     def update(self, state: EstimatorState, y: Tensor) -> EstimatorState:
         """Correct ``state`` with ``y [..., p]`` (a non-finite ``y`` row is skipped and flagged)."""
-        bs, m, P, status, y = self._flat_update(state, y)
+        bs, m, P, status, y, skip = self._flat_update(state, y)
         Wm, Wc = self._weights(m)
         X, dX, reg_p = self._sigma_points(m, P)
         Yp = self.sensor.expected(X)
@@ -159,4 +159,4 @@ class UKF(_KalmanFilter):
         A = torch.eye(m.shape[-1], dtype=m.dtype, device=m.device) - K @ H
         cov = A @ P @ A.mT + K @ (self._R(m) + D) @ K.mT
         flags = torch.where(reg_p | reg_s, int(EstimatorStatus.REGULARIZED), 0)
-        return self._finish(bs, m, P, mean, cov, status | flags)
+        return self._finish(bs, m, P, mean, cov, status | flags, skip=skip)

@@ -194,5 +194,15 @@ class KMPPI(MPPI):
         self._theta.add_(delta)
         self._plan.copy_(self._clamp(self._W @ self._theta))
 
+    def _kept(self) -> tuple[Tensor, ...]:
+        scratch = () if self._scratch is None else (self._scratch,)
+        return (*super()._kept(), self._theta, *scratch)
+
+    def _release_graph(self) -> None:
+        super()._release_graph()
+        self._theta = self._theta.detach()
+        if self._scratch is not None:
+            self._scratch = self._scratch.detach()
+
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, num_support_points={self.num_support_points}"

@@ -1394,7 +1394,7 @@ class MPPI(ExactConstants):
         self._update_plan(delta)
         plan = self._plan
         w = weights.w
-        return MPPIOutput(
+        out = MPPIOutput(
             u=plan[:, 0].clone(),
             plan=plan.clone(),
             cost_min=weights.cost_min,
@@ -1407,6 +1407,29 @@ class MPPI(ExactConstants):
             nonfinite=weights.nonfinite,
             path=self.path,
         )
+        # the outputs keep this call's graph; what later calls start from or write into does
+        # not (a graph carried from call to call would grow and reach back to old states)
+        if any(t.requires_grad for t in self._kept()):
+            self._release_graph()
+        return out
+
+    def _kept(self) -> tuple[Tensor, ...]:
+        """The tensors a call leaves for later calls: the plan, the history and the buffers
+        the rollouts are written into."""
+        buffers = () if self._work is None else self._work[1:]
+        noise = () if self._noise is None else (self._noise,)
+        return (self._plan, self._history.states, self._history.times, *buffers, *noise)
+
+    def _release_graph(self) -> None:
+        """Replace each of :meth:`_kept` by its values without their graph (the buffers are
+        views, which cannot be detached in place)."""
+        self._plan = self._plan.detach()
+        history = self._history
+        history.states, history.times = history.states.detach(), history.times.detach()
+        if self._work is not None:
+            self._work = (self._work[0], *(t.detach() for t in self._work[1:]))
+        if self._noise is not None:
+            self._noise = self._noise.detach()
 
     def extra_repr(self) -> str:
         return (

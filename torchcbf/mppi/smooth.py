@@ -143,6 +143,13 @@ class SMPPI(MPPI):
         self._clamp_rate(self._rate.add_(delta))
         self._clamp(self._plan.add_(self._rate, alpha=self.delta_t))
 
+    def _kept(self) -> tuple[Tensor, ...]:
+        return (*super()._kept(), self._rate)
+
+    def _release_graph(self) -> None:
+        super()._release_graph()
+        self._rate = self._rate.detach()
+
     def extra_repr(self) -> str:
         return (
             f"{super().extra_repr()}, smoothness_weight={self.smoothness_weight}, "
