@@ -852,3 +852,32 @@ def test_a_differentiable_call_leaves_no_graph_to_the_next(variant, backend):
         out = planner(x + 0.01 * (i + 1))
         assert not out.u.requires_grad and not out.plan.requires_grad
     assert not any(t.requires_grad for t in planner._kept())
+
+
+@pytest.mark.parametrize(
+    ("name", "value"),
+    [
+        ("temperature", -1.0),
+        ("temperature", 0.0),
+        ("control_cost_weight", -0.5),
+        ("cost_normalization", "ranged"),
+        ("shift_fill", "lst"),
+        ("integrator", "rk5"),
+        ("zero_noise_samples", 50),
+        ("keep_rollouts", 41),
+    ],
+)
+def test_an_option_set_between_calls_is_checked_as_the_constructor_checks_it(name, value):
+    planner = MPPI(
+        DoubleIntegrator(2), QuadraticGoal([1.0, 1.0], index=(0, 1)), 6, 40, 0.1, 0.5, 0.5
+    )
+    x = torch.zeros(4)
+    planner(x)
+    setattr(planner, name, value)
+    with pytest.raises(ValueError, match=name):
+        planner(x)
+    with pytest.raises(ValueError, match=name):  # the same message at construction
+        MPPI(
+            DoubleIntegrator(2), QuadraticGoal([1.0, 1.0], index=(0, 1)), 6, 40, 0.1, 0.5,
+            **{"temperature": 0.5, name: value},
+        )  # fmt: skip

@@ -140,6 +140,47 @@ logger = logging.getLogger("torchcbf")
 _AnyKernel = _rollout.Kernel | _triton.Kernel
 
 
+def _check_options(
+    *,
+    num_samples: object,
+    keep_rollouts: object,
+    zero_noise_samples: object,
+    integrator: object,
+    cost_normalization: object,
+    shift_fill: object,
+    temperature: object,
+    control_cost_weight: object,
+) -> None:
+    """The planner's options a user may set between calls, checked at construction and at
+    each call (a ``ValueError`` naming the option)."""
+    for name, value, low in (
+        ("num_samples", num_samples, 1),
+        ("keep_rollouts", keep_rollouts, 0),
+        ("zero_noise_samples", zero_noise_samples, 0),
+    ):
+        if not isinstance(value, int) or isinstance(value, bool) or value < low:
+            raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+    if keep_rollouts > num_samples or zero_noise_samples > num_samples:  # type: ignore[operator]
+        raise ValueError(
+            f"keep_rollouts ({keep_rollouts}) and zero_noise_samples ({zero_noise_samples})"
+            f" must not exceed num_samples ({num_samples})"
+        )
+    for name, value, allowed in (
+        ("integrator", integrator, INTEGRATORS),
+        ("cost_normalization", cost_normalization, NORMALIZATIONS),
+        ("shift_fill", shift_fill, SHIFT_FILLS),
+    ):
+        if value not in allowed:
+            raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
+    check_positive("temperature", temperature)  # type: ignore[arg-type]
+    if (
+        isinstance(control_cost_weight, bool)
+        or not isinstance(control_cost_weight, (int, float))
+        or not 0 <= control_cost_weight < math.inf
+    ):
+        raise ValueError(f"control_cost_weight must be >= 0, got {control_cost_weight!r}")
+
+
 class MPPIOutput(NamedTuple):
     """Result of one planning call (``B`` dimension absent when ``x`` was ``[n]``).
 
@@ -499,28 +540,15 @@ class MPPI(ExactConstants):
             )
         if not callable(cost):
             raise TypeError(f"cost must be callable, got {type(cost).__name__}")
-        for name, value, low in (
-            ("horizon", horizon, 1),
-            ("num_samples", num_samples, 1),
-            ("history_size", history_size, 1),
-            ("keep_rollouts", keep_rollouts, 0),
-            ("zero_noise_samples", zero_noise_samples, 0),
-        ):
+        for name, value, low in (("horizon", horizon, 1), ("history_size", history_size, 1)):
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
-        if keep_rollouts > num_samples or zero_noise_samples > num_samples:
-            raise ValueError(
-                f"keep_rollouts ({keep_rollouts}) and zero_noise_samples ({zero_noise_samples})"
-                f" must not exceed num_samples ({num_samples})"
-            )
-        if integrator not in INTEGRATORS:
-            raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
-        if cost_normalization not in NORMALIZATIONS:
-            raise ValueError(
-                f"cost_normalization must be one of {NORMALIZATIONS}, got {cost_normalization!r}"
-            )
-        if shift_fill not in SHIFT_FILLS:
-            raise ValueError(f"shift_fill must be one of {SHIFT_FILLS}, got {shift_fill!r}")
+        _check_options(
+            num_samples=num_samples, keep_rollouts=keep_rollouts,
+            zero_noise_samples=zero_noise_samples, integrator=integrator,
+            cost_normalization=cost_normalization, shift_fill=shift_fill,
+            temperature=temperature, control_cost_weight=control_cost_weight,
+        )  # fmt: skip
         if cost_chunk is not None and (
             not isinstance(cost_chunk, int) or isinstance(cost_chunk, bool) or cost_chunk < 0
         ):
@@ -529,8 +557,6 @@ class MPPI(ExactConstants):
             raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-        if not isinstance(control_cost_weight, (int, float)) or not control_cost_weight >= 0:
-            raise ValueError(f"control_cost_weight must be >= 0, got {control_cost_weight!r}")
         if not isinstance(seed, int):
             raise TypeError(f"seed must be an int, got {type(seed).__name__}")
         if step is not None and not callable(step):
@@ -726,6 +752,13 @@ class MPPI(ExactConstants):
                 f"x is on device {x.device} but the planner is on device "
                 f"{self.noise_cov.device}: move one of them (planner.to(x.device))"
             )
+        # options set since the last call are checked as the constructor checks them
+        _check_options(
+            num_samples=self.num_samples, keep_rollouts=self.keep_rollouts,
+            zero_noise_samples=self.zero_noise_samples, integrator=self.integrator,
+            cost_normalization=self.cost_normalization, shift_fill=self.shift_fill,
+            temperature=self.temperature, control_cost_weight=self.control_cost_weight,
+        )  # fmt: skip
         unbatched = x.dim() == 1
         xb = x.unsqueeze(0) if unbatched else x
         B = xb.shape[0]
