@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 from torch.nn.modules.module import _global_forward_hooks as _GLOBAL_HOOKS
@@ -287,7 +289,8 @@ def check_number(
             f"{name} must be a Python number, got a tensor (it would be cut from the autograd "
             "graph: pass float(...) explicitly)"
         )
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
+    # NumPy's scalars are numbers.Real too (a configuration file's np.float32, say)
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         raise TypeError(f"{name} must be a number, got {type(value).__name__}")
     v = float(value)
     bound = "" if low is None else f" {'>' if strict else '>='} {low:g}"

@@ -845,13 +845,16 @@ def test_a_differentiable_call_leaves_no_graph_to_the_next(variant, backend):
     x = torch.tensor([[0.0, 0.0, 0.3, 0.1]], dtype=torch.float64)
     x1 = x.clone().requires_grad_()
     first = planner(x1)
+    grad = None
     if first.u.requires_grad:  # this call's outputs carry its graph
-        (grad,) = torch.autograd.grad(first.u.sum(), x1)
+        (grad,) = torch.autograd.grad(first.u.sum(), x1, retain_graph=True)
         assert bool(torch.isfinite(grad).all())
     for i in range(3):  # later calls on plain states: nothing to differentiate, nothing kept
         out = planner(x + 0.01 * (i + 1))
         assert not out.u.requires_grad and not out.plan.requires_grad
     assert not any(t.requires_grad for t in planner._kept())
+    if grad is not None:  # the first call's graph is intact after the later calls
+        torch.testing.assert_close(torch.autograd.grad(first.u.sum(), x1)[0], grad)
 
 
 @pytest.mark.parametrize(
@@ -881,3 +884,19 @@ def test_an_option_set_between_calls_is_checked_as_the_constructor_checks_it(nam
             DoubleIntegrator(2), QuadraticGoal([1.0, 1.0], index=(0, 1)), 6, 40, 0.1, 0.5,
             **{"temperature": 0.5, name: value},
         )  # fmt: skip
+
+
+def test_numpy_numbers_are_options_like_python_ones():
+    import numpy as np
+
+    kw = {"keep_rollouts": np.int64(3), "zero_noise_samples": np.int32(2)}
+    goal = QuadraticGoal([1.0, 1.0], index=(0, 1))
+    planner = MPPI(DoubleIntegrator(2), goal, 6, 40, 0.1, 0.5, np.float32(0.5), **kw)
+    ref = MPPI(DoubleIntegrator(2), copy.deepcopy(goal), 6, 40, 0.1, 0.5, 0.5, keep_rollouts=3,
+               zero_noise_samples=2)  # fmt: skip
+    x = torch.zeros(4)
+    torch.testing.assert_close(planner(x).plan, ref(x).plan)
+    planner.num_samples, planner.temperature = np.int64(64), np.float32(0.3)
+    planner.control_cost_weight = np.float64(0.1)
+    ref.num_samples, ref.temperature, ref.control_cost_weight = 64, float(np.float32(0.3)), 0.1
+    torch.testing.assert_close(planner(x).plan, ref(x).plan)

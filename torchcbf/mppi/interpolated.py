@@ -200,9 +200,7 @@ class KMPPI(MPPI):
 
     def _release_graph(self) -> None:
         super()._release_graph()
-        self._theta = self._theta.detach()
-        if self._scratch is not None:
-            self._scratch = self._scratch.detach()
+        self._theta, self._scratch = self._theta.detach().clone(), None
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, num_support_points={self.num_support_points}"

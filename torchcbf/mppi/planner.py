@@ -88,6 +88,7 @@ from __future__ import annotations
 
 import logging
 import math
+import numbers
 from collections.abc import Callable
 from typing import Any, ClassVar, NamedTuple
 
@@ -105,6 +106,7 @@ from torchcbf._checks import (
     behaves_as,
     check_bounds,
     check_last_dim,
+    check_number,
     check_positive,
     follow_parts,
     hook_dicts,
@@ -158,7 +160,7 @@ def _check_options(
         ("keep_rollouts", keep_rollouts, 0),
         ("zero_noise_samples", zero_noise_samples, 0),
     ):
-        if not isinstance(value, int) or isinstance(value, bool) or value < low:
+        if not isinstance(value, numbers.Integral) or isinstance(value, bool) or value < low:
             raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
     if keep_rollouts > num_samples or zero_noise_samples > num_samples:  # type: ignore[operator]
         raise ValueError(
@@ -173,12 +175,7 @@ def _check_options(
         if value not in allowed:
             raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
     check_positive("temperature", temperature)  # type: ignore[arg-type]
-    if (
-        isinstance(control_cost_weight, bool)
-        or not isinstance(control_cost_weight, (int, float))
-        or not 0 <= control_cost_weight < math.inf
-    ):
-        raise ValueError(f"control_cost_weight must be >= 0, got {control_cost_weight!r}")
+    check_number("control_cost_weight", control_cost_weight, low=0.0)
 
 
 class MPPIOutput(NamedTuple):
@@ -1454,15 +1451,16 @@ class MPPI(ExactConstants):
         return (self._plan, self._history.states, self._history.times, *buffers, *noise)
 
     def _release_graph(self) -> None:
-        """Replace each of :meth:`_kept` by its values without their graph (the buffers are
-        views, which cannot be detached in place)."""
-        self._plan = self._plan.detach()
+        """Replace each of :meth:`_kept` by a copy of its values without their graph, and let
+        the next call allocate its buffers afresh: the graph this call's outputs keep may
+        have saved them, and writing into them in place would break its backward."""
+        self._plan = self._plan.detach().clone()
         history = self._history
-        history.states, history.times = history.states.detach(), history.times.detach()
-        if self._work is not None:
-            self._work = (self._work[0], *(t.detach() for t in self._work[1:]))
-        if self._noise is not None:
-            self._noise = self._noise.detach()
+        history.states, history.times = (
+            history.states.detach().clone(),
+            history.times.detach().clone(),
+        )
+        self._work, self._noise = None, None
 
     def extra_repr(self) -> str:
         return (

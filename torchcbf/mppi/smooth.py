@@ -148,7 +148,7 @@ class SMPPI(MPPI):
 
     def _release_graph(self) -> None:
         super()._release_graph()
-        self._rate = self._rate.detach()
+        self._rate = self._rate.detach().clone()
 
     def extra_repr(self) -> str:
         return (
