@@ -577,7 +577,7 @@ class MPPI(ExactConstants):
         m = dynamics.control_dim
         self.horizon, self.num_samples = horizon, num_samples
         self.dt = check_positive("dt", dt)
-        self.temperature = check_positive("temperature", temperature)
+        self.temperature = float(temperature)  # checked by _check_options above
         self.control_cost_weight = float(control_cost_weight)
         self.integrator, self.seed, self.shift_fill = integrator, seed, shift_fill
         self.keep_rollouts, self.history_size = keep_rollouts, history_size
