@@ -98,3 +98,42 @@ def test_ekf_covariance_stays_spd_and_symmetric(dtype):
 def test_ekf_monte_carlo_consistent_and_beats_sensor(model, dtype):
     """500 runs in one batch: run-averaged NEES inside its 95% chi-square band."""
     assert_monte_carlo_consistent(EKF, dtype, model)
+
+
+def _stiff_reference(A: np.ndarray, Qc: np.ndarray, P0: np.ndarray, x0: np.ndarray, dt: float):
+    """Mean and covariance after ``dt`` of ``dx = A x dt + dW`` (``E[dW dW'] = Qc dt``) with
+    diagonalisable ``A``, by its eigenvectors: ``Qd = V [W_ij (e^{(l_i + l_j) dt} - 1) /
+    (l_i + l_j)] V'`` with ``W = V^-1 Qc V^-T``, no matrix exponential."""
+    lam, V = np.linalg.eig(A)
+    Vi = np.linalg.inv(V)
+    Phi = (V * np.exp(lam * dt)) @ Vi
+    W = Vi @ Qc @ Vi.T
+    s = lam[:, None] + lam[None, :]
+    Qd = V @ (W * np.expm1(s * dt) / s) @ V.T
+    return (Phi @ x0).real, (Phi @ P0 @ Phi.T + Qd).real
+
+
+@pytest.mark.parametrize("cls", FILTERS)
+def test_stiff_stable_prediction_is_finite_and_exact(cls, dtype, device):
+    """A stable linear system far stiffer than the step (``|A dt|`` up to 5e4, where
+    ``exp(-A' dt)`` overflows in both dtypes) next to a mild one in the same batch: each
+    row's prediction equals the eigenvector reference, with status 0."""
+    A_mild = np.array([[-0.5, 1.0], [-1.0, -0.3]])
+    A_stiff = np.array([[-1000.0, 30.0], [0.0, -200.0]])
+    Qc = np.array([[0.3, 0.05], [0.05, 0.2]])
+    x0 = np.array([[1.0, -2.0], [1.5, 0.5], [-0.7, 2.0]])
+    P0 = np.array([[0.5, 0.1], [0.1, 0.4]])
+    t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
+    for A, dt in ((A_mild, 0.1), (A_stiff, 50.0), (A_stiff, 0.5)):
+        dyn = LinearSystem(t(A), t(np.eye(2)))
+        est = cls(dyn, GaussianSensor(std=0.1, state_dim=2).to(device, dtype), Q=t(Qc))
+        P = t(P0).expand(3, 2, 2)
+        out = est.predict(est.init(t(x0), P), t(np.zeros((3, 2))), dt)
+        assert torch.equal(out.status.cpu(), torch.zeros(3, dtype=torch.int64))
+        for b in range(3):
+            m_ref, P_ref = _stiff_reference(A, Qc, P0, x0[b], dt)
+            scale = 1e-9 if dtype == torch.float64 else 1e-4
+            np.testing.assert_allclose(out.mean[b].double().cpu().numpy(), m_ref, atol=scale)
+            np.testing.assert_allclose(
+                out.cov[b].double().cpu().numpy(), P_ref, rtol=scale, atol=scale * 1e-3
+            )

@@ -90,11 +90,24 @@ def matrix_exp(A: Tensor) -> Tensor:
 
 def pade_matrix_exp(A: Tensor) -> Tensor:
     """The accelerator path of :func:`matrix_exp` (any device), ``A [B, k, k]``."""
-    b = _PADE13
-    norm = A.abs().sum(-2).amax(-1)  # [B] 1-norm
+    s = _halvings(A)
+    E = _pade13(A / torch.exp2(s)[:, None, None])
+    for i in range(_MAX_SQUARINGS):
+        E = torch.where((s > i)[:, None, None], E @ E, E)
+    return E
+
+
+def _halvings(A: Tensor) -> Tensor:
+    """``[B]``: how many times to halve ``A [B, k, k]`` for its 1-norm to be at most
+    ``_THETA13`` (0 for a non-finite norm, at most ``_MAX_SQUARINGS``)."""
+    norm = A.detach().abs().sum(-2).amax(-1)
     s = torch.ceil(torch.log2(norm / _THETA13)).clamp(0, _MAX_SQUARINGS)
-    s = torch.where(torch.isfinite(s), s, 0.0)
-    A = A / torch.exp2(s)[:, None, None]
+    return torch.where(torch.isfinite(s), s, 0.0)
+
+
+def _pade13(A: Tensor) -> Tensor:
+    """Pade [13/13] of ``exp(A)`` for ``A [B, k, k]`` of 1-norm at most ``_THETA13``."""
+    b = _PADE13
     eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device).expand_as(A)
     A2 = A @ A
     A4 = A2 @ A2
@@ -105,10 +118,7 @@ def pade_matrix_exp(A: Tensor) -> Tensor:
     V = V + b[0] * eye
     # solve_ex: torch.linalg.solve reads its error code back to raise (V - U is well
     # conditioned once the norm is below theta)
-    E = torch.linalg.solve_ex(V - U, V + U).result
-    for i in range(_MAX_SQUARINGS):
-        E = torch.where((s > i)[:, None, None], E @ E, E)
-    return E
+    return torch.linalg.solve_ex(V - U, V + U).result
 
 
 def discretize(
@@ -116,10 +126,15 @@ def discretize(
 ) -> tuple[Tensor, Tensor | None, Tensor | None]:
     """Exact discretization of ``d(dx)/dt = F dx + xdot`` and ``dP/dt = F P + P F^T + Qc``.
 
-    One matrix exponential of the block matrix ``[[F, Qc, xdot], [0, -F^T, 0], [0, 0, 0]] h``
-    gives ``Phi = exp(F h)`` (top-left), ``G`` (top-middle) with ``Qd = G Phi^T =
-    int_0^h exp(F s) Qc exp(F s)^T ds`` (Van Loan) and ``phi1(F h) h xdot`` (top-right
-    column), the exponential-Euler increment.
+    One matrix exponential of the block matrix ``[[F, Qc, xdot], [0, -F^T, 0], [0, 0, 0]] t``
+    gives ``Phi = exp(F t)`` (top-left), ``G`` (top-middle) with ``Qd = G Phi^T =
+    int_0^t exp(F s) Qc exp(F s)^T ds`` (Van Loan) and ``phi1(F t) t xdot`` (top-right
+    column), the exponential-Euler increment. The exponential is taken over ``t = h / 2^s``
+    with ``s`` per row such that the block's 1-norm is at most about 5, and the piece is
+    doubled ``s`` times (``Qd <- Phi Qd Phi^T + Qd``, ``dx <- Phi dx + dx``, ``Phi <- Phi
+    Phi``): squaring the whole block instead would form ``exp(-F^T h)``, which overflows
+    for a stiff stable ``F`` (``|F h|`` past 709 in float64, 88 in float32) though ``Phi``
+    and ``Qd`` are bounded.
 
     Args:
         F: ``[B, n, n]``; xdot: ``[B, n]`` or None; Qc: ``[B, n, n]`` or None.
@@ -138,11 +153,27 @@ def discretize(
         col = 2 * n
     if xdot is not None:
         M[:, :n, col] = xdot
-    E = matrix_exp(M * h)
+    M = M * h
+    s = _halvings(M)
+    M = M / torch.exp2(s)[:, None, None]
+    # the CPU's torch.linalg.matrix_exp takes any norm; elsewhere the norm is now in Pade's range
+    E = torch.linalg.matrix_exp(M) if M.device.type == "cpu" else _pade13(M)
     Phi = E[:, :n, :n]
     dx = E[:, :n, col] if xdot is not None else None
-    Qd = symmetrize(E[:, :n, n : 2 * n] @ Phi.mT) if Qc is not None else None
-    return Phi, dx, Qd
+    Qd = E[:, :n, n : 2 * n] @ Phi.mT if Qc is not None else None
+    # on the CPU reading the count back costs nothing; elsewhere it would be a synchronisation
+    if s.device.type != "cpu":
+        doublings = _MAX_SQUARINGS
+    else:
+        doublings = int(s.max()) if s.numel() else 0
+    for i in range(doublings):
+        more = (s > i)[:, None, None]
+        if Qd is not None:
+            Qd = torch.where(more, Phi @ Qd @ Phi.mT + Qd, Qd)
+        if dx is not None:
+            dx = torch.where(more[..., 0], dx + (Phi @ dx.unsqueeze(-1)).squeeze(-1), dx)
+        Phi = torch.where(more, Phi @ Phi, Phi)
+    return Phi, dx, symmetrize(Qd) if Qd is not None else None
 
 
 def robust_cholesky(A: Tensor) -> tuple[Tensor, Tensor]:
