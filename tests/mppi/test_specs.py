@@ -213,6 +213,45 @@ def test_avoid_and_combinations_cost(dtype):
     )
 
 
+@pytest.mark.parametrize("T", [2, 3, 7])
+def test_multi_output_predicates_hold_where_all_outputs_hold(dtype, T):
+    """``Avoid(barrier=Ball of k centres)``, ``Always`` and ``Eventually`` with a ``[..., k]``
+    predicate equal the same specifications over the loop's minimum of the outputs, also
+    when the horizon equals ``k``; a predicate or cost of another shape names the shapes."""
+    from torchcbf.barriers import Ball
+
+    gen = torch.Generator().manual_seed(T)
+    states = torch.randn(2, 4, T, 2, generator=gen, dtype=dtype)
+    t0 = torch.tensor([0.0, 0.1], dtype=dtype)
+    balls = Ball([[0.5, 0.5], [1.0, -0.3], [-0.4, 0.2]], torch.tensor([0.2, 0.3, 0.25]))
+    balls = balls.to(dtype)
+    one = [lambda x, i=i: balls(x)[..., i] for i in range(3)]
+    least = lambda x: torch.stack([f(x) for f in one], -1).amin(-1)  # noqa: E731
+    times = t0[:, None] + 0.1 * torch.arange(T, dtype=dtype)
+    for interval in (None, (0.05, 0.15)):
+        got = Avoid(barrier=balls, interval=interval, weight=0.4)(states, None, t0, dt=0.1)
+        want = Avoid(barrier=least, interval=interval, weight=0.4)(states, None, t0, dt=0.1)
+        torch.testing.assert_close(got, want, atol=0.0, rtol=0.0)
+        for cls in (Always, Eventually):
+            spec, ref = cls(balls, interval), cls(least, interval)
+            got, want = spec(states, None, t0, dt=0.1), ref(states, None, t0, dt=0.1)
+            torch.testing.assert_close(got, want)
+            rho = spec.robustness(states, times[:, None])
+            assert rho.shape == (2, 4)
+            torch.testing.assert_close(rho, ref.robustness(states, times[:, None]))
+    moving = Ball([[0.5, 0.5], [1.0, -0.3]], [0.2, 0.3], velocity=[[1.0, 0.0], [0.0, 1.0]])
+    moving = moving.to(dtype)
+    got = Avoid(barrier=moving)(states, None, t0, dt=0.1)
+    c = moving.center + moving.velocity * times[:, None, :, None, None]  # [2, 1, T, 2, 2]
+    d2 = ((states.unsqueeze(-2) - c) ** 2).sum(-1) - moving.radius**2  # [2, 4, T, 2]
+    rho_min = d2.amin((-1, -2))
+    torch.testing.assert_close(got, 1.0 / rho_min.clamp_min(0.01))
+    with pytest.raises(ValueError, match=rf"predicate maps states \(2, 4, {T}, 2\) to \(\)"):
+        Always(lambda x: x.sum(), None)(states, None, t0, dt=0.1)
+    with pytest.raises(ValueError, match="cost maps states"):
+        Eventually(least, None, cost=lambda x: x)(states, None, t0, dt=0.1)
+
+
 def test_bad_specs():
     with pytest.raises(ValueError, match="interval"):
         Reach(G1, 0.5, (3.0, 1.0))

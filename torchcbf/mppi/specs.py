@@ -61,6 +61,22 @@ from torchcbf.mppi.history import History
 Predicate = Callable[[Tensor], Tensor]
 
 
+def pointwise(rho: Tensor, states: Tensor, name: str) -> Tensor:
+    """A predicate's values ``rho`` of ``states [..., n]`` as ``[...]``: ``rho`` of that
+    shape as it is, ``[..., k]`` (``k`` outputs, e.g. a :class:`~torchcbf.barriers.Ball`
+    of several centres) by its minimum, the robustness of all ``k`` holding; any other
+    shape is a ``ValueError`` naming ``name``."""
+    batch = states.shape[:-1]
+    if rho.shape == batch:
+        return rho
+    if rho.dim() == states.dim() and rho.shape[:-1] == batch:
+        return rho.amin(-1)
+    raise ValueError(
+        f"the {name} maps states {tuple(states.shape)} to {tuple(rho.shape)}; it must give "
+        f"{tuple(batch)} (one value per state) or {tuple(batch)} + (k,) (k outputs, all to hold)"
+    )
+
+
 class Spec(nn.Module):
     """Base of the specifications: ``robustness`` and the MPPI cost ``forward``."""
 
@@ -120,9 +136,10 @@ class _Temporal(Spec):
         self.cost_fn = cost
 
     def predicate(self, states: Tensor) -> Tensor:
-        """Pointwise robustness ``rho(x)``: ``[..., n] -> [...]``."""
+        """Pointwise robustness ``rho(x)``: ``[..., n] -> [...]`` (a predicate with ``k``
+        outputs ``[..., k]`` holds where all of them hold: their minimum)."""
         assert self.predicate_fn is not None
-        return self.predicate_fn(states)
+        return pointwise(self.predicate_fn(states), states, "predicate")
 
     def predicate_at(self, states: Tensor, times: Tensor) -> Tensor:
         """``rho`` of ``states [..., n]`` at global ``times`` (broadcasting to
@@ -132,7 +149,15 @@ class _Temporal(Spec):
 
     def pointwise_cost(self, states: Tensor) -> Tensor:
         """Pointwise cost ``c(x)``: ``[..., n] -> [...]`` (``-rho`` by default)."""
-        return -self.predicate(states) if self.cost_fn is None else self.cost_fn(states)
+        if self.cost_fn is None:
+            return -self.predicate(states)
+        c = self.cost_fn(states)
+        if c.shape != states.shape[:-1]:
+            raise ValueError(
+                f"{type(self).__name__}'s cost maps states {tuple(states.shape)} to "
+                f"{tuple(c.shape)}; it must give one value per state, {tuple(states.shape[:-1])}"
+            )
+        return c
 
     def in_window(self, times: Tensor) -> Tensor:
         """Bool mask of the times inside the interval (closed, with ``time_tol``)."""
@@ -147,7 +172,8 @@ class Eventually(_Temporal):
     """``F[t1, t2] rho``: the predicate holds at some sampled time in the window.
 
     Args:
-        predicate: ``rho: [..., n] -> [...]``, ``>= 0`` where it holds.
+        predicate: ``rho: [..., n] -> [...]``, ``>= 0`` where it holds (or ``[..., k]``:
+            it holds where all ``k`` outputs are ``>= 0``).
         interval: ``(t1, t2)`` in global time, ``None`` for all times.
         cost: pointwise planning cost ``c: [..., n] -> [...]`` (default ``-rho``).
         urgency: ``rho_u >= 0``; the planning cost of rollout state ``j`` becomes
@@ -211,7 +237,8 @@ class Always(_Temporal):
     """``G[t1, t2] rho``: the predicate holds at every sampled time in the window.
 
     Args:
-        predicate: ``rho: [..., n] -> [...]``, ``>= 0`` where it holds.
+        predicate: ``rho: [..., n] -> [...]``, ``>= 0`` where it holds (or ``[..., k]``:
+            it holds where all ``k`` outputs are ``>= 0``).
         interval: ``(t1, t2)`` in global time, ``None`` for all times.
         cost: pointwise planning cost ``c: [..., n] -> [...]`` (default ``-rho``).
     """
@@ -302,7 +329,8 @@ class Avoid(Always):
     ``interval`` (all times by default).
 
     ``rho = |p - center| - radius`` (or ``barrier(x)`` for any callable/module
-    ``[..., n] -> [...]``); planning cost ``weight / max(rho, eps)`` (scenario A: ``c_o``
+    ``[..., n] -> [...]``, or the least of its outputs ``[..., k]``: a ``Ball`` of several
+    centres avoids them all); planning cost ``weight / max(rho, eps)`` (scenario A: ``c_o``
     with ``weight = k_o = 0.3``, ``eps = 0.01``). A time-varying barrier (``time_varying``:
     a :class:`~torchcbf.barriers.MovingBall`, a ``Ball`` with a velocity) is read at each
     state's global time, in the cost and in :meth:`robustness`.
@@ -339,12 +367,12 @@ class Avoid(Always):
     def predicate(self, states: Tensor) -> Tensor:
         if self.barrier is not None:
             untimed("Avoid.predicate", self.barrier)
-            return self.barrier(states)
+            return pointwise(self.barrier(states), states, "barrier")
         return squared_distance(states, self.index, self.center).sqrt() - self.radius
 
     def predicate_at(self, states: Tensor, times: Tensor) -> Tensor:
         if self.barrier is not None and time_varying(self.barrier):
-            return self.barrier(states, times)
+            return pointwise(self.barrier(states, times), states, "barrier")
         return self.predicate(states)
 
     def pointwise_cost(self, states: Tensor) -> Tensor:
