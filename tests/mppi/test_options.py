@@ -155,6 +155,31 @@ def test_change_horizon_keeps_the_plan_and_plans_on(cls: type[MPPI]) -> None:
         p.change_horizon(0)
 
 
+@pytest.mark.parametrize("cls", [MPPI, SMPPI, KMPPI])
+def test_setting_horizon_is_change_horizon(cls: type[MPPI]) -> None:
+    """``planner.horizon = H`` plans on exactly as ``change_horizon(H)`` does, with its checks."""
+    x = torch.tensor([0.3, 0.0], dtype=torch.float64)
+    a, b = planner(cls), planner(cls)
+    a(x), b(x)
+    a.horizon = 5
+    b.change_horizon(5)
+    assert a.horizon == 5
+    torch.testing.assert_close(a(x).plan, b(x).plan, atol=0.0, rtol=0.0)
+    with pytest.raises(ValueError, match="horizon"):
+        a.horizon = 0
+    assert a.horizon == 5
+
+
+def test_a_step_set_between_calls_is_checked() -> None:
+    p = planner()
+    x = torch.tensor([0.3, 0.0], dtype=torch.float64)
+    p(x)
+    for bad in (-0.1, 0.0, float("nan")):
+        p.dt = bad
+        with pytest.raises(ValueError, match="dt must be"):
+            p(x)
+
+
 def test_change_horizon_on_the_fused_path() -> None:
     p = planner()
     x = torch.tensor([0.3, 0.0], dtype=torch.float64)

@@ -152,6 +152,7 @@ def _check_options(
     shift_fill: object,
     temperature: object,
     control_cost_weight: object,
+    dt: object,
 ) -> None:
     """The planner's options a user may set between calls, checked at construction and at
     each call (a ``ValueError`` naming the option)."""
@@ -176,6 +177,7 @@ def _check_options(
             raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
     check_positive("temperature", temperature)  # type: ignore[arg-type]
     check_number("control_cost_weight", control_cost_weight, low=0.0)
+    check_positive("dt", dt)  # type: ignore[arg-type]
 
 
 class MPPIOutput(NamedTuple):
@@ -544,7 +546,7 @@ class MPPI(ExactConstants):
             num_samples=num_samples, keep_rollouts=keep_rollouts,
             zero_noise_samples=zero_noise_samples, integrator=integrator,
             cost_normalization=cost_normalization, shift_fill=shift_fill,
-            temperature=temperature, control_cost_weight=control_cost_weight,
+            temperature=temperature, control_cost_weight=control_cost_weight, dt=dt,
         )  # fmt: skip
         if cost_chunk is not None and (
             not isinstance(cost_chunk, int) or isinstance(cost_chunk, bool) or cost_chunk < 0
@@ -575,8 +577,8 @@ class MPPI(ExactConstants):
         self.dynamics = dynamics
         self.cost = cost
         m = dynamics.control_dim
-        self.horizon, self.num_samples = horizon, num_samples
-        self.dt = check_positive("dt", dt)
+        self._horizon, self.num_samples = horizon, num_samples
+        self.dt = float(dt)  # checked by _check_options above
         self.temperature = float(temperature)  # checked by _check_options above
         self.control_cost_weight = float(control_cost_weight)
         self.integrator, self.seed, self.shift_fill = integrator, seed, shift_fill
@@ -755,6 +757,7 @@ class MPPI(ExactConstants):
             zero_noise_samples=self.zero_noise_samples, integrator=self.integrator,
             cost_normalization=self.cost_normalization, shift_fill=self.shift_fill,
             temperature=self.temperature, control_cost_weight=self.control_cost_weight,
+            dt=self.dt,
         )  # fmt: skip
         unbatched = x.dim() == 1
         xb = x.unsqueeze(0) if unbatched else x
@@ -838,7 +841,16 @@ class MPPI(ExactConstants):
         if self._key is not None:
             self._resize(horizon)
             self._work, self._noise = None, None
-        self.horizon = horizon
+        self._horizon = horizon
+
+    @property
+    def horizon(self) -> int:
+        """Steps ``H`` of the plan; setting it is :meth:`change_horizon`."""
+        return self._horizon
+
+    @horizon.setter
+    def horizon(self, horizon: int) -> None:
+        self.change_horizon(horizon)
 
     def _resize(self, horizon: int) -> None:
         self._plan = _resized(self._plan, horizon, self.shift_fill)
@@ -1215,7 +1227,8 @@ class MPPI(ExactConstants):
         engine = self._engine(x, grad)
         if engine is None:
             return None
-        signature = (engine, x.device, x.dtype, self.backend, state)
+        # the horizon is kept as the private `_horizon` behind its property
+        signature = (engine, x.device, x.dtype, self.backend, self.horizon, state)
         cached = self._kernel_cache
         if cached is not None and cached[0] == signature and cached[2].unchanged():
             return cached[1]
