@@ -111,6 +111,14 @@ def test_traced_reads_mutated_containers_and_replaced_data():
         mod.w.data = torch.tensor([3.0, 4.0], dtype=torch.float32)  # the same Parameter
         torch.testing.assert_close(traced(x)[0], fn(x)[0])
         assert traced.compiles == 3
+        mod.w.data = torch.tensor([[3.0, 4.0]], dtype=torch.float32)  # a new shape
+        torch.testing.assert_close(traced(x)[0], fn(x)[0])
+        mod.w.data = torch.tensor([[3.0], [4.0]], dtype=torch.float32).mT  # new strides
+        torch.testing.assert_close(traced(x)[0], fn(x)[0])
+        lookups = traced.lookups
+        for _ in range(3):  # each new layout is traced once, then found without a lookup
+            torch.testing.assert_close(traced(x)[0], fn(x)[0])
+        assert traced.compiles == 5 and traced.lookups == lookups
 
 
 SHIFT = 1.0

@@ -49,6 +49,20 @@ def check_last_dim(name: str, value: object, size: int) -> Tensor:
     return value
 
 
+def several_outputs(name: str, h: Tensor, x: Tensor) -> bool:
+    """Whether ``h``, a function's values at states ``x [..., n]``, is ``[..., k]`` (True:
+    ``k`` outputs) or ``[...]`` (False); any other shape is a ``ValueError`` naming ``name``."""
+    batch = x.shape[:-1]
+    if h.shape == batch:
+        return False
+    if h.dim() == x.dim() and h.shape[:-1] == batch:
+        return True
+    raise ValueError(
+        f"{name} must return [...] or [..., k] for a state of shape {tuple(x.shape)}, "
+        f"got {tuple(h.shape)}"
+    )
+
+
 def check_batch_match(name_a: str, a: Tensor, name_b: str, b: Tensor, trailing: int = 1) -> None:
     """Check the leading (batch) dimensions of ``a`` and ``b`` broadcast together.
 

@@ -200,8 +200,8 @@ class _Record(NamedTuple):
 
     objects: tuple[Any, ...]  # the modules' state values, by identity
     containers: list[tuple[int, Any]]  # (position, frozen contents) of mutable values
-    args: list[tuple[int, torch.Size, tuple[int, ...], torch.dtype]]
-    dtypes: list[tuple[int, torch.dtype]]  # of the state tensors the graph reads
+    # (position, shape, strides, dtype) of the arguments and the state tensors the graph reads
+    tensors: list[tuple[int, torch.Size, tuple[int, ...], torch.dtype]]
     device: torch.device  # of the first argument
     graph: Callable[..., Any]
     used: list[int]  # positions in (*args, *state) of the tensors the graph reads
@@ -468,20 +468,18 @@ class Traced:
     @staticmethod
     def _same(values: tuple[Any, ...], last: _Record) -> bool:
         """Whether ``values`` (arguments, then the modules' state) have the last call's key:
-        the same state objects, the same contents of mutable containers, the same shape,
-        strides, dtype and device of the arguments, and the same dtype of every state tensor
-        the graph reads (``.data =`` keeps the object; the compiled code itself asserts the
-        shapes and strides of its inputs)."""
+        the same state objects, the same contents of mutable containers, and the same
+        shape, strides and dtype of the arguments and of every state tensor the graph reads
+        (``.data =`` keeps the object but may change all three), on the same device."""
         n_args = last.n_args
         return (
             len(values) == len(last.objects) + n_args
             and all(map(operator.is_, values[n_args:], last.objects))
             and all(
                 values[i].shape == shape and values[i].stride() == st and values[i].dtype is dt
-                for i, shape, st, dt in last.args
+                for i, shape, st, dt in last.tensors
             )
             and values[0].device == last.device
-            and all(values[i].dtype is dt for i, dt in last.dtypes)
             and all(_freeze(values[i]) == frozen for i, frozen in last.containers)
         )
 
@@ -501,8 +499,10 @@ class Traced:
         self._last = _Record(
             objects=values[n_args:],
             containers=[(i, key[i]) for i, v in enumerate(values) if isinstance(v, _MUTABLE)],
-            args=[(i, values[i].shape, values[i].stride(), values[i].dtype) for i in range(n_args)],
-            dtypes=[(i, values[i].dtype) for i in used if i >= n_args],
+            tensors=[
+                (i, values[i].shape, values[i].stride(), values[i].dtype)
+                for i in (*range(n_args), *(j for j in used if j >= n_args))
+            ],
             device=values[0].device,
             graph=graph,
             used=used,

@@ -114,6 +114,30 @@ def test_elementwise_needs_one_output_count() -> None:
         b(torch.zeros(2, 4))
 
 
+def test_scales_need_one_output_each() -> None:
+    """``[k]`` scales on a barrier of one output (or of another count) are a ValueError on
+    every path, also where the batch size equals ``k`` (broadcast, row ``i`` would be
+    scaled by ``scale[i]``); a scalar or ``[1]`` scale, or ``k`` scales on ``k`` outputs, work."""
+    from torchcbf.dynamics import SingleIntegrator
+
+    model = SingleIntegrator(2).double()
+    x = torch.tensor([[2.0, 0.0], [2.0, 0.0]], dtype=torch.float64)
+    one = Ball([0.0, 0.0], 1.0).double()
+    two = Ball([[0.0, 0.0], [1.0, 0.0]], 1.0).double()
+    for inner in (one, Ball([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], 1.0).double()):
+        bad = Scaled(inner, [1.0, 100.0])
+        assert bad.quadric() is None
+        with pytest.raises(ValueError, match="Scaled has 2 scales, one per output, but Ball"):
+            bad(x)
+        for method in ("analytic", "autograd"):
+            with pytest.raises(ValueError, match="Scaled has 2 scales"):
+                bad.lie(x, model, method=method)
+        with pytest.raises(ValueError, match="Scaled has 2 scales"):
+            SafetyFilter(model, [bad])(x, torch.zeros(2, 2, dtype=torch.float64))
+    torch.testing.assert_close(Scaled(one, [3.0])(x), 3.0 * one(x))
+    torch.testing.assert_close(Scaled(two, [3.0, 5.0])(x), torch.tensor([3.0, 5.0]) * two(x))
+
+
 class _Rewritten(Intersection):
     """The same function written by a user: ``forward`` overridden, so the closed forms of
     :class:`Intersection` are not trusted and autograd answers."""

@@ -246,7 +246,8 @@ def test_multi_output_predicates_hold_where_all_outputs_hold(dtype, T):
     d2 = ((states.unsqueeze(-2) - c) ** 2).sum(-1) - moving.radius**2  # [2, 4, T, 2]
     rho_min = d2.amin((-1, -2))
     torch.testing.assert_close(got, 1.0 / rho_min.clamp_min(0.01))
-    with pytest.raises(ValueError, match=rf"predicate maps states \(2, 4, {T}, 2\) to \(\)"):
+    shapes = rf"predicate must return .* of shape \(2, 4, {T}, 2\), got \(\)"
+    with pytest.raises(ValueError, match=shapes):
         Always(lambda x: x.sum(), None)(states, None, t0, dt=0.1)
     with pytest.raises(ValueError, match="cost maps states"):
         Eventually(least, None, cost=lambda x: x)(states, None, t0, dt=0.1)

@@ -9,7 +9,7 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor, check_finite
+from torchcbf._checks import as_tensor, check_finite, several_outputs
 from torchcbf._constants import remember
 from torchcbf.barriers._minmax import Mode, combine, reduce
 from torchcbf.barriers._params import float_spec
@@ -137,18 +137,33 @@ class Scaled(_OfOne):
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """``x [..., n] -> scale * h [...]`` (or ``[..., k]``)."""
-        return self.scale.to(x) * self.barrier(x, t)
+        h = self.barrier(x, t)
+        return self._scales(h, x) * h
+
+    def _scales(self, h: Tensor, x: Tensor) -> Tensor:
+        """The scales for the inner values ``h`` at ``x [..., n]``; ``[k]`` scales need
+        ``k`` outputs (broadcast over a one-output barrier they would scale the batch)."""
+        k = self.scale.numel()
+        if self.scale.dim() == 1 and k > 1:
+            inner = type(self.barrier).__name__
+            if not several_outputs(inner, h, x) or h.shape[-1] != k:
+                raise ValueError(
+                    f"Scaled has {k} scales, one per output, but {inner} gives "
+                    f"{tuple(h.shape)} for states {tuple(x.shape)}"
+                )
+        return self.scale.to(x)
 
     def quadric(self) -> Quadric | None:
         inner = self.barrier.quadric()
-        if inner is None:
-            return None
+        k = self.scale.numel()
+        if inner is None or (k > 1 and inner.center.shape[:-1] != (k,)):
+            return None  # scales that fit no outputs: forward names them
         scale = self.scale if inner.scale is None else self.scale * inner.scale
         return inner._replace(scale=scale)
 
     def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         d = self.barrier.derivatives(x, t)
-        c = self.scale.to(x)
+        c = self._scales(d.h, x)
 
         def quad(s: Tensor) -> Tensor:
             return c * d.hess_quad(s)

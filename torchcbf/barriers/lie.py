@@ -21,7 +21,7 @@ from collections.abc import Callable
 from typing import Any, ClassVar, Literal, NamedTuple
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from torchcbf._autograd import needs_graph
 from torchcbf._checks import (
@@ -29,6 +29,7 @@ from torchcbf._checks import (
     as_tensor,
     check_tensor,
     honour_overrides,
+    several_outputs,
     shadowed,
     unless_hooked,
 )
@@ -530,23 +531,10 @@ def _analytic_terms(
             f"{type(fn).__name__} has no closed-form derivatives; use method='autograd'"
         )
     d = fn.derivatives(x, time_tensor(t, x))
-    multi = _check_output(fn, d.h, x)
+    check_tensor(f"{type(fn).__name__} output", d.h)
+    multi = several_outputs(type(fn).__name__, d.h, x)
     hess = d.hess_quad(dynamics.sigma(x)) if diffusion else None
     return _assemble(d.h, d.dhdx, d.dhdt, hess, x, dynamics, multi, control)
-
-
-def _check_output(fn: nn.Module, h: Tensor, x: Tensor) -> bool:
-    """Whether ``h`` is ``[..., k]`` (True) or ``[...]`` (False); raise on anything else."""
-    check_tensor(f"{type(fn).__name__} output", h)
-    batch = x.shape[:-1]
-    if h.shape == batch:
-        return False
-    if h.dim() == x.dim() and h.shape[:-1] == batch:
-        return True
-    raise ValueError(
-        f"{type(fn).__name__} must return [...] or [..., k] for a state of shape "
-        f"{tuple(x.shape)}, got {tuple(h.shape)}"
-    )
 
 
 def _assemble(

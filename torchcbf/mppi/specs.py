@@ -47,7 +47,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import check_positive
+from torchcbf._checks import check_positive, several_outputs
 from torchcbf.mppi.costs import (
     constant,
     rollout_times,
@@ -62,19 +62,10 @@ Predicate = Callable[[Tensor], Tensor]
 
 
 def pointwise(rho: Tensor, states: Tensor, name: str) -> Tensor:
-    """A predicate's values ``rho`` of ``states [..., n]`` as ``[...]``: ``rho`` of that
-    shape as it is, ``[..., k]`` (``k`` outputs, e.g. a :class:`~torchcbf.barriers.Ball`
-    of several centres) by its minimum, the robustness of all ``k`` holding; any other
-    shape is a ``ValueError`` naming ``name``."""
-    batch = states.shape[:-1]
-    if rho.shape == batch:
-        return rho
-    if rho.dim() == states.dim() and rho.shape[:-1] == batch:
-        return rho.amin(-1)
-    raise ValueError(
-        f"the {name} maps states {tuple(states.shape)} to {tuple(rho.shape)}; it must give "
-        f"{tuple(batch)} (one value per state) or {tuple(batch)} + (k,) (k outputs, all to hold)"
-    )
+    """A predicate's values ``rho`` of ``states [..., n]`` as ``[...]``: ``[..., k]`` (``k``
+    outputs, e.g. a :class:`~torchcbf.barriers.Ball` of several centres) by its minimum, the
+    robustness of all ``k`` holding; a shape of neither kind is a ``ValueError``."""
+    return rho.amin(-1) if several_outputs(f"the {name}", rho, states) else rho
 
 
 class Spec(nn.Module):
