@@ -297,7 +297,8 @@ def kernel_file(directory: Path, stem: str) -> Path | None:
 def float64_pointers(tensors: Iterable[Tensor | None]) -> tuple[list[int], list[Tensor]]:
     """The data pointers of ``tensors`` as contiguous float64 CPU memory for a kernel (0, a
     NULL pointer, for ``None``), and the tensors they point into (copies where a tensor was
-    of another dtype or strided): the caller keeps that list alive through the call."""
+    of another dtype, strided or a negated view): the caller keeps that list alive through
+    the call."""
     f64 = torch.float64
     pointers = []
     held = []
@@ -305,8 +306,8 @@ def float64_pointers(tensors: Iterable[Tensor | None]) -> tuple[list[int], list[
         if v is None:
             pointers.append(0)
             continue
-        if v.dtype is not f64 or not v.is_contiguous():
-            v = v.detach().to(f64).contiguous()
+        if v.dtype is not f64 or not v.is_contiguous() or v.is_neg():
+            v = v.detach().resolve_neg().to(f64).contiguous()
         held.append(v)
         pointers.append(v.data_ptr())
     return pointers, held

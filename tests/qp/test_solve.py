@@ -199,6 +199,27 @@ def test_broadcast_and_multi_batch_dims():
     assert one.x.shape == (1, 3) and one.status.shape == (1,)
 
 
+@pytest.mark.parametrize("method", ["auto", "active_set", "ipm"])
+@pytest.mark.parametrize("name", ["Q", "p", "G", "h", "lb"])
+def test_negated_views_are_read_as_their_values(method, name):
+    """A tensor whose negative bit is set (``torch._neg_view``, or ``t.conj().imag`` of a
+    complex tensor: its memory holds the values negated) gives the answer of its values on
+    every method, the C kernels included."""
+    batch = make_batch(5, 3, 4, 0, True, seed=7, frac_infeasible=0.0)
+    args = dict(Q=batch.Q, p=batch.p, G=batch.G, h=batch.h, lb=batch.lb, ub=batch.ub)
+    want = solve_qp(**args, method=method)
+    args[name] = torch._neg_view(-args[name])
+    assert args[name].is_neg()
+    got = solve_qp(**args, method=method)
+    torch.testing.assert_close(got.x, want.x, atol=0.0, rtol=0.0)
+    torch.testing.assert_close(got.status, want.status)
+    h = torch.complex(torch.zeros(1, 1, dtype=F64), torch.full((1, 1), -0.2, dtype=F64))
+    G = torch.tensor([[[1.0, 0.0]]], dtype=F64)
+    one = solve_qp(torch.eye(2, dtype=F64), -torch.ones(1, 2, dtype=F64), G, h.conj().imag,
+                   method=method)  # fmt: skip
+    torch.testing.assert_close(one.x, torch.tensor([[0.2, 1.0]], dtype=F64))
+
+
 def test_closed_form_one_constraint(kernel):
     """Without the C kernel the closed form runs; with it (CPU) the dual method does."""
     g = torch.Generator().manual_seed(0)
