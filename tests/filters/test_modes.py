@@ -95,6 +95,10 @@ def test_fallback_policy_errors_and_values() -> None:
     assert torch.equal(Fallback("brake", 2)(x, u, lo, hi), torch.zeros(2, 2))
     nan = Fallback(lambda xx, uu: torch.full_like(uu, float("nan")), 2)(x, u, lo, hi)
     assert torch.equal(nan, torch.zeros(2, 2))
+    far = Fallback(torch.tensor([5.0, -3.0]), 2)(x, u, lo, hi)  # clipped to the limits
+    assert torch.equal(far, torch.tensor([[1.0, -1.0], [1.0, -1.0]]))
+    scaled = Fallback(lambda xx, uu: 4.0 * uu, 2)(x, u, lo, hi)
+    assert torch.equal(scaled, torch.clamp(4.0 * u, lo, hi))
     with pytest.raises(ValueError, match="shape \\[2\\]"):
         Fallback(torch.zeros(3), 2)
     with pytest.raises(TypeError, match="fallback must be"):

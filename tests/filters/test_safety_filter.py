@@ -270,10 +270,45 @@ def test_fallback_on_qp_failure(fallback: str) -> None:
         "clip": torch.clamp(u, lo, hi),
         "brake": torch.zeros_like(u),
         "tensor": torch.tensor([0.5, -0.5]).expand_as(u),
-        "callable": -u,
+        "callable": torch.clamp(-u, lo, hi),
     }[fallback]
     assert torch.equal(out.u, expected)
     assert (out.slack == 0).all()
+
+
+def test_an_unused_callable_fallback_leaves_gradients_alone() -> None:
+    """A callable fallback whose derivatives are NaN at a row that does not fall back
+    (``x / |x|`` at ``x = 0``) leaves that row's gradient as 'brake' gives it and its own
+    parameter untouched; at a row that falls back it is clipped to the limits and its
+    parameter gets the gradient of its clipped value."""
+    from torchcbf.barriers import Ball
+    from torchcbf.dynamics import SingleIntegrator
+
+    f64 = torch.float64
+    model = SingleIntegrator(2, u_min=-2.0, u_max=2.0)
+    balls = Ball([[1.0, 0.0], [0.0, 1.5]], [0.5, 0.4]).double()
+    k = torch.tensor(3.0, dtype=f64, requires_grad=True)
+    away = lambda x, u: -k * x / x.norm(dim=-1, keepdim=True)  # noqa: E731
+    x = torch.tensor([[0.0, 0.0], [0.3, 0.0], [-1.0, 1.4]], dtype=f64, requires_grad=True)
+    u = torch.tensor([[1.0, 0.0], [2.0, 0.0], [0.5, 1.0]], dtype=f64)
+    for backend in ("auto", "torch"):
+        out = SafetyFilter(model, balls, alpha=1.0, fallback=away, backend=backend)(x, u)
+        ref = SafetyFilter(model, balls, alpha=1.0, fallback="brake", backend=backend)(x, u)
+        assert out.status.tolist() == ref.status.tolist() == [0, 0, 0]
+        (gx, gk) = torch.autograd.grad(out.u.sum(), (x, k), allow_unused=True)
+        (gx_ref,) = torch.autograd.grad(ref.u.sum(), (x,))
+        torch.testing.assert_close(gx, gx_ref, atol=0.0, rtol=0.0)
+        assert gk is None or float(gk) == 0.0
+    # the ball's centre with no slack: that row falls back to -k x/|x| = (-3, 0) -> (-2, 0)
+    x = torch.tensor([[1.0 + 1e-3, 0.0], [0.3, 0.0]], dtype=f64, requires_grad=True)
+    k2 = torch.tensor(1.5, dtype=f64, requires_grad=True)
+    soft = lambda x, u: -k2 * x / x.norm(dim=-1, keepdim=True)  # noqa: E731
+    for kk, fb, want_u, want_gk in ((k, away, -2.0, 0.0), (k2, soft, -1.5, -1.0)):
+        out = SafetyFilter(model, balls, alpha=1.0, fallback=fb, slack="none")(x, u[:2])
+        assert out.status.tolist()[0] == FilterStatus.FALLBACK
+        torch.testing.assert_close(out.u[0], torch.tensor([want_u, 0.0], dtype=f64))
+        (gk,) = torch.autograd.grad(out.u[0, 0], (kk,))
+        torch.testing.assert_close(gk, torch.tensor(want_gk, dtype=f64))
 
 
 def test_batch_equals_loop_and_shapes() -> None:

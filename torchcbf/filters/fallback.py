@@ -16,14 +16,16 @@ FallbackSpec = Literal["clip", "brake"] | Tensor | Callable[[Tensor, Tensor], Te
 
 
 class Fallback(nn.Module):
-    """A fallback control ``[B, m]``, always finite and within the limits where it can be.
+    """A fallback control ``[B, m]``, always finite and within the limits (clipped to them).
 
     Args:
         spec: ``"clip"`` (``u_nom`` clipped to the limits, default), ``"brake"`` (zero
             clipped to the limits), a tensor ``[m]`` (one that requires grad keeps its
             gradient, a parameter trains), or a callable
-            ``(x [B, n], u_nom [B, m]) -> [B, m]``. Wherever the result is non-finite, zero
-            clipped to the limits is used.
+            ``(x [B, n], u_nom [B, m]) -> [B, m]``. A tensor's or a callable's control is
+            clipped to the limits; wherever it is non-finite, zero clipped to the limits is
+            used. Under grad mode :class:`~torchcbf.filters.SafetyFilter` calls a callable
+            on the rows that fall back alone (see :meth:`select`).
         control_dim: ``m``.
     """
 
@@ -66,8 +68,25 @@ class Fallback(nn.Module):
             fb = self.function(x, u_nom)
             check_last_dim("fallback(x, u_nom)", fb, u_nom.shape[-1])
             fb = fb.expand_as(u_nom)
+        if self.kind in ("tensor", "callable"):
+            fb = torch.clamp(fb, lo, hi)
         ok = torch.isfinite(fb).all(-1, keepdim=True)
         return torch.where(ok, fb, zero)
+
+    def select(
+        self, ok: Tensor, u: Tensor, x: Tensor, u_nom: Tensor, lo: Tensor, hi: Tensor
+    ) -> Tensor:
+        """``u [B, m]`` in the rows ``ok [B]``, the fallback's control in the others. A
+        callable under grad mode runs on the other rows alone (one host synchronisation):
+        its backward on a row that does not use it would multiply a zero gradient by its
+        partial derivatives there, NaN where it divides by zero (``x / |x|`` at 0), and
+        every parameter it shares across rows would get a NaN gradient."""
+        if self.kind != "callable" or not torch.is_grad_enabled():
+            return torch.where(ok.unsqueeze(-1), u, self(x, u_nom, lo, hi))
+        rows = (~ok).nonzero().squeeze(-1)
+        if rows.numel() == 0:
+            return u
+        return u.index_put((rows,), self(x[rows], u_nom[rows], lo, hi))
 
     def extra_repr(self) -> str:
         return self.kind

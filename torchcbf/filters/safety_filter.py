@@ -411,7 +411,7 @@ class SafetyFilter(ExactConstants, DerivedConstants):
         qp = assemble(cbf, clf, us, self.R.to(us), lo, hi, slack=sl.mode, **weights)
         z, qp_status, qp_ok, qp_path = self._solve(qp, finite)
         m = us.shape[-1]
-        u = torch.where(qp_ok.unsqueeze(-1), z[:, :m], self.fallback(xb, ub, lo, hi))
+        u = self.fallback.select(qp_ok, z[:, :m], xb, ub, lo, hi)
         s = z[:, m : m + qp.ks]
         delta = z[:, m + qp.ks :]
         relaxed = (s > self._slack_tol(xs)).any(-1) if qp.ks else torch.zeros_like(finite)
