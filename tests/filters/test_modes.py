@@ -103,3 +103,27 @@ def test_fallback_policy_errors_and_values() -> None:
         Fallback(torch.zeros(3), 2)
     with pytest.raises(TypeError, match="fallback must be"):
         Fallback(3, 2)
+
+
+def test_a_callable_diffusion_of_another_dtype_is_cast_on_every_path() -> None:
+    """A callable ``sigma`` that returns float64 on float32 states: the stochastic filter
+    answers in float32 on both backends, equal to the float32 constant diffusion's answer."""
+    from torchcbf.barriers import Ellipse
+    from torchcbf.dynamics import SingleIntegrator
+    from torchcbf.filters import SafetyFilter, Stochastic
+
+    S = torch.tensor([[0.3, 0.0], [0.1, 0.2]], dtype=torch.float64)
+    wide = SingleIntegrator(2, sigma=lambda x: S.expand(*x.shape[:-1], 2, 2))
+    plain = SingleIntegrator(2, sigma=S.float())
+    ellipse = Ellipse([1.0, 0.5], [0.6, 0.3])
+    x = torch.tensor([[0.0, 0.0], [0.2, 1.0]])
+    u = torch.tensor([[1.5, 0.3], [1.0, -0.5]])
+    assert wide.sigma(x).dtype == torch.float32
+    for backend in ("auto", "torch"):
+        got = SafetyFilter(wide, [ellipse], mode=Stochastic(), backend=backend)(x, u)
+        want = SafetyFilter(plain, [ellipse], mode=Stochastic(), backend=backend)(x, u)
+        assert got.u.dtype == torch.float32
+        torch.testing.assert_close(got.u, want.u)
+        assert got.status.tolist() == want.status.tolist()
+    with pytest.raises(TypeError, match="sigma\\(x\\) must return a tensor"):
+        SingleIntegrator(2, sigma=lambda x: 0.3).sigma(x)

@@ -103,7 +103,8 @@ class ControlAffine(DerivedConstants):
         state_dim: ``n``.
         control_dim: ``m``.
         sigma: diffusion of ``dx = (f + g u) dt + sigma dW``: a scalar (``sigma * I``), a
-            vector ``[n]`` (diagonal), a matrix ``[n, q]``, or a callable ``x -> [..., n, q]``.
+            vector ``[n]`` (diagonal), a matrix ``[n, q]``, or a callable ``x -> [..., n, q]``
+            (its values are cast to the state's dtype, as a constant's are).
         u_min, u_max: control limits, scalars or ``[m]`` (``None``: unbounded).
         disturbance_bound: ``w_max``, scalar or ``[p]``; the disturbance is ``|w|_inf <= w_max``.
         disturbance_matrix: ``M`` of shape ``[n, p]`` (identity by default).
@@ -267,7 +268,10 @@ class ControlAffine(DerivedConstants):
     def sigma(self, x: Tensor) -> Tensor | None:
         """Diffusion ``sigma(x) -> [..., n, q]``, or ``None`` for an ODE."""
         if self._sigma_fn is not None:
-            return self._sigma_fn(x)
+            s = self._sigma_fn(x)
+            if not isinstance(s, Tensor):
+                raise TypeError(f"sigma(x) must return a tensor, got {type(s).__name__}")
+            return s if s.dtype == x.dtype else s.to(x.dtype)
         if self.sigma_matrix is None:
             return None
         s = self.sigma_matrix.to(x)
