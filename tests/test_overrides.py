@@ -5,6 +5,7 @@ and a subclass that changes nothing keeps the fast paths."""
 
 from __future__ import annotations
 
+import types
 from collections.abc import Callable
 
 import pytest
@@ -718,6 +719,137 @@ def test_a_shape_rewriting_a_private_helper_answers_by_autograd(name: str, helpe
         b = general(x, u)
     assert a.path.startswith("torch/")
     torch.testing.assert_close(a.u, b.u, atol=1e-7, rtol=1e-7)
+
+
+@pytest.mark.parametrize(
+    ("name", "helper"),
+    [(name, helper) for name in [*SHAPES, *WRAPPERS] for helper in _private_helpers(name)],
+)
+def test_a_private_helper_set_on_the_instance_answers_by_autograd(name: str, helper: str) -> None:
+    """``shape._helper = ...`` on one instance (its class untouched) turns its fast forms
+    off as a subclass's rewrite does, and turns them back on when deleted."""
+    fn = _make(name)()
+    fast = (fn.has_analytic, fn.quadric() is not None, fn.parts() is not None)
+    setattr(fn, helper, types.MethodType(getattr(type(fn), helper), fn))
+    assert not fn.has_analytic and fn.quadric() is None and fn.parts() is None
+    dyn = SingleIntegrator(2).double()
+    x = _states(8, 2)
+    got, want = fn.lie(x, dyn), fn.lie(x, dyn, method="autograd")
+    torch.testing.assert_close(got.lgh, want.lgh)
+    delattr(fn, helper)
+    assert (fn.has_analytic, fn.quadric() is not None, fn.parts() is not None) == fast
+
+
+def test_a_ball_whose_helper_changes_on_the_instance_is_filtered_as_its_forward() -> None:
+    """``ball._diff`` doubled on the instance: every filter path answers as autograd of
+    the ball's new ``forward`` (``|2p - c|^2 - r^2``), none with Ball's closed forms."""
+    ball = Ball([0.0, 0.0], 0.5).double()
+    ball._diff = types.MethodType(lambda self, x, t: 2.0 * Ball._diff(self, x, t), ball)
+    dyn = SingleIntegrator(2).double()
+    x = torch.tensor([[1.0, 0.2], [0.4, -0.9]], dtype=F64)
+    u = torch.tensor([[-2.0, 0.1], [0.5, 1.0]], dtype=F64)
+
+    class Doubled(Barrier):
+        def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+            return (2.0 * x).square().sum(-1) - 0.25
+
+    want = SafetyFilter(dyn, [Doubled()], backend="torch").double()
+    with torch.no_grad():
+        b = want(x, u)
+        for options in ({}, {"backend": "torch"}, {"lie_method": "autograd"}):
+            a = SafetyFilter(dyn, [ball], **options).double()(x, u)
+            assert not a.path.startswith("native"), options
+            torch.testing.assert_close(a.h, b.h)
+            torch.testing.assert_close(a.u, b.u, atol=1e-9, rtol=1e-9)
+
+
+def test_a_mode_whose_condition_is_set_on_the_instance_is_filtered_with_it() -> None:
+    """``mode.cbf = ...`` on a Vanilla instance: the filter's kernels do not evaluate
+    Vanilla's condition in its place; the answer is the subclass form's on every path."""
+    from torchcbf.filters import LinearClassK, Vanilla
+    from torchcbf.filters.conditions import cbf_condition
+
+    def margin(terms, alpha, dynamics, x):
+        c = cbf_condition(terms, "vanilla", alpha, dynamics, x)
+        return c._replace(b=c.b - 0.3)
+
+    class Margin(Vanilla):
+        def cbf(self, terms, alpha, dynamics, x):
+            return margin(terms, alpha, dynamics, x)
+
+    mode, gain = Vanilla(), LinearClassK(2.0)
+    assert mode.affine_cbf(gain) is not None
+    mode.cbf = margin
+    assert mode.affine_cbf(gain) is None
+    dyn, ball = SingleIntegrator(2).double(), Ball([0.0, 0.0], 0.5).double()
+    x = torch.tensor([[1.0, 0.2]], dtype=F64)
+    u = torch.tensor([[-2.0, 0.1]], dtype=F64)
+    with torch.no_grad():
+        want = SafetyFilter(dyn, [ball], mode=Margin(), backend="torch").double()(x, u)
+        for backend in ("auto", "torch"):
+            got = SafetyFilter(dyn, [ball], mode=mode, backend=backend).double()(x, u)
+            torch.testing.assert_close(got.u, want.u, atol=1e-12, rtol=1e-12)
+    # a = 2p, b = h - 0.3 = 0.49: u = u_nom + lam a
+    a, un = torch.tensor([2.0, 0.4], dtype=F64), u[0]
+    torch.testing.assert_close(want.u[0], un - (a @ un + 0.49) / (a @ a) * a)
+
+
+def _replacement(obj: torch.nn.Module, method: str) -> Callable[..., Tensor]:
+    """A new ``method`` for the instance ``obj``: a constant drift, a slower ``xdot``, a
+    padded ``forward``, a tripled stage cost."""
+    fn = getattr(type(obj), method)
+    if method == "f":
+        return lambda x: torch.ones_like(x)
+    if method == "forward":
+        return lambda x, t=None: fn(obj, x, t) - 0.2
+    scale = 0.5 if method == "xdot" else 3.0
+    return types.MethodType(lambda self, *a, **k: scale * fn(self, *a, **k), obj)
+
+
+@pytest.mark.parametrize("what", ["model.f", "model.xdot", "ball.forward", "goal.stage"])
+def test_mppi_sees_a_method_set_on_an_instance_after_its_first_call(what: str) -> None:
+    """A planner that has planned once keeps its kernel only while its model and cost keep
+    their methods: one set on an instance afterwards gives the torch planner's answer."""
+
+    def planner(model, cost, backend):
+        return MPPI(model, cost, horizon=6, num_samples=64, dt=0.1, noise_sigma=0.5,
+                    temperature=1.0, seed=3, backend=backend)  # fmt: skip
+
+    def build():
+        model = SingleIntegrator(2).double()
+        ball = Ball([[0.6, 0.4]], [0.3]).double()
+        goal = QuadraticGoal([2.0, 1.0], weight=1.0, terminal_weight=5.0)
+        return model, ball, goal, goal + BarrierCost(ball, weight=2.0)
+
+    x0 = torch.tensor([0.0, 0.0], dtype=F64)
+    runs = []
+    for backend in ("auto", "torch"):
+        model, ball, goal, cost = build()
+        p = planner(model, cost, backend)
+        assert p(x0).path == ("fused" if backend == "auto" else "torch")
+        owner, method = what.split(".")
+        obj = {"model": model, "ball": ball, "goal": goal}[owner]
+        setattr(obj, method, _replacement(obj, method))
+        runs.append(p(x0 + 0.01))
+    (fast, torch_run) = runs
+    assert fast.path != "fused"
+    torch.testing.assert_close(fast.u, torch_run.u, atol=1e-9, rtol=1e-9)
+
+
+def test_the_methods_an_instance_shadows_are_tracked_as_set_and_deleted() -> None:
+    from torchcbf._checks import shadowed_methods
+
+    ball, model = Ball([0.0, 0.0], 0.5), SingleIntegrator(2)
+    assert not shadowed_methods(ball) and not shadowed_methods(model)
+    ball._diff = lambda x, t: x
+    ball.radius_scale = 2.0  # not a method
+    model.f = lambda x: x
+    assert set(shadowed_methods(ball)) == {"_diff"} and set(shadowed_methods(model)) == {"f"}
+    del ball._diff, model.f
+    assert not shadowed_methods(ball) and not shadowed_methods(model)
+    plain = torch.nn.Linear(2, 2)  # not tracked: found by a look at its attributes
+    plain.extra_repr = lambda: "x"
+    assert list(shadowed_methods(plain)) == ["extra_repr"]
 
 
 def test_an_arm_rewriting_its_transforms_moves_its_link_spheres() -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import functools
 import math
 import numbers
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Collection, Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -423,6 +423,45 @@ def stale_on(obj: object, fast: str, rules: ClosedForms) -> bool:
     return fast not in getattr(obj, "__dict__", ()) and shadowed(obj, rules[fast][0])
 
 
+class TracksShadows(torch.nn.Module):
+    """A module that keeps, in ``obj.__dict__["_shadows"]``, the names of the methods of its
+    class (public or private, properties too) that the instance shadows with attributes of
+    its own (``model.f = ...``, ``ball._diff = ...``), updated as they are set and deleted:
+    the instance counterpart of :func:`rewritten_helpers`, read in one lookup by the fast
+    forms (:func:`unless_hooked`) and by :func:`behaves_as` (see :func:`shadowed_methods`)."""
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        super().__setattr__(name, value)
+        _track_shadow(self, name)
+
+    def __delattr__(self, name: str) -> None:
+        super().__delattr__(name)
+        _track_shadow(self, name)
+
+
+def _track_shadow(obj: torch.nn.Module, name: str) -> None:
+    own = obj.__dict__
+    if name == "_shadows":
+        return
+    was = own.get("_shadows", frozenset())
+    shadows = name in own and _is_method(getattr(type(obj), name, None))
+    now = was | {name} if shadows else was - {name}
+    if now != was:
+        own["_shadows"] = now
+
+
+def shadowed_methods(obj: object) -> Collection[str]:
+    """The methods of ``obj``'s class that ``obj`` shadows with attributes of its own: kept
+    up to date by :class:`TracksShadows`, found by a look at every attribute otherwise."""
+    own = getattr(obj, "__dict__", None)
+    if not own:
+        return ()
+    if isinstance(obj, TracksShadows):
+        return own.get("_shadows", ())
+    kind = type(obj)
+    return [k for k, v in own.items() if k != "_shadows" and _is_method(getattr(kind, k, None))]
+
+
 def _stands_for(rules: ClosedForms) -> dict[str, tuple[str, ...]]:
     """Each fast form of ``rules`` and each of its companions, mapped to what it stands for."""
     out: dict[str, tuple[str, ...]] = {}
@@ -441,7 +480,9 @@ def unless_hooked(
     the class wrote it; a hook changes what a call computes, so a hooked instance takes the
     general path, which calls it. Likewise for an instance that shadows a method the form
     stands for in ``rules`` (:func:`stale_on`: ``obj.lie = ...``, ``model.f = ...``; an
-    instance ``forward`` for a form ``rules`` does not name). Called from
+    instance ``forward`` for a form ``rules`` does not name), and for an instance of a
+    :class:`TracksShadows` class that shadows any method of its class (a private helper the
+    closed forms call, ``ball._diff = ...``). A fast form may take arguments. Called from
     ``__init_subclass__`` next to :func:`honour_overrides`; a hook registered or removed, or
     an instance attribute set or deleted, at any time is seen at the next question."""
     stands = _stands_for(rules or {})
@@ -464,7 +505,9 @@ def unless_hooked(
         # an instance's __call__ is never called (Python looks it up on the class)
         extra = tuple(n for n in stands.get(name, ()) if n not in ("forward", "__call__"))
 
-        def guarded(self: torch.nn.Module, _fn=fn, _none=none, _extra=extra) -> object:
+        def guarded(
+            self: torch.nn.Module, *args: Any, _fn=fn, _none=none, _extra=extra, **kwargs: Any
+        ) -> object:
             # hooked(self) and shadowed(self, ...), inline: some fast forms are asked several
             # times per filter call
             own = self.__dict__
@@ -474,12 +517,13 @@ def unless_hooked(
                 or self._forward_hooks
                 or self._forward_pre_hooks
                 or "forward" in own
+                or own.get("_shadows")
             ):
                 return _none
             for n in _extra:
                 if n in own:
                     return _none
-            return _fn(self)
+            return _fn(self, *args, **kwargs)
 
         functools.update_wrapper(guarded, fn)
         guarded._unless_hooked = True  # type: ignore[attr-defined]
@@ -488,8 +532,9 @@ def unless_hooked(
 
 def behaves_as(obj: object, cls: type, methods: Sequence[str]) -> bool:
     """Whether ``obj`` is an instance of ``cls`` whose class keeps ``cls``'s ``methods`` (a
-    subclass may add to them, not change them), which shadows none of them
-    (:func:`shadowed`) and, where ``forward`` is among them, whose
+    subclass may add to them, not change them), which shadows none of them nor any other
+    method of its class (:func:`shadowed_methods`: a private helper shadowed on the instance
+    changes the formulas as a rewritten one does) and, where ``forward`` is among them, whose
     calls run no hooks (:func:`hooked`: a hook changes what a call computes): the test for
     handing ``obj`` to a kernel that evaluates ``cls``'s formulas. A class that rewrites
     ``__call__`` changes ``forward`` too, and one that rewrites a private helper of
@@ -499,7 +544,7 @@ def behaves_as(obj: object, cls: type, methods: Sequence[str]) -> bool:
             return False
         if isinstance(obj, torch.nn.Module):
             methods = (*methods, "__call__")
-    if shadowed(obj, methods):
+    if shadowed(obj, methods) or shadowed_methods(obj):
         return False
     return isinstance(obj, cls) and _keeps(type(obj), cls, tuple(methods))
 

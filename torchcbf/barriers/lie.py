@@ -26,6 +26,7 @@ from torch import Tensor
 from torchcbf._autograd import needs_graph
 from torchcbf._checks import (
     ClosedForms,
+    TracksShadows,
     as_tensor,
     check_tensor,
     honour_overrides,
@@ -123,7 +124,7 @@ class FollowsTime:
         obj.__dict__["_time_varying"] = bool(value)
 
 
-class LieFunction(ExactConstants):
+class LieFunction(TracksShadows, ExactConstants):
     """Base of :class:`~torchcbf.barriers.Barrier` and :class:`~torchcbf.barriers.Lyapunov`.
 
     Subclasses write ``forward(x [..., n], t=None) -> [...]`` (or ``[..., k]`` for ``k``

@@ -15,6 +15,7 @@ from torch import Tensor, nn
 
 from torchcbf._checks import (
     ClosedForms,
+    TracksShadows,
     as_limit,
     as_tensor,
     check_batch_match,
@@ -87,7 +88,7 @@ def matmat(a: Tensor, b: Tensor) -> Tensor:
     return out
 
 
-class ControlAffine(DerivedConstants):
+class ControlAffine(TracksShadows, DerivedConstants):
     """Control-affine system ``xdot = f(x) + g(x) u (+ M w)``, optionally an SDE.
 
     Subclasses set ``state_dim`` and ``control_dim`` (through ``super().__init__``) and write

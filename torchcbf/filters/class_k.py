@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor
+from torchcbf._checks import TracksShadows, as_tensor
 from torchcbf._constants import ExactConstants, remember
 
 ClassKSpec = float | Sequence[float] | Tensor | Callable[[Tensor], Tensor] | nn.Module
@@ -33,7 +33,7 @@ def _gain(name: str, gain: float | Sequence[float] | Tensor) -> Tensor:
     return value
 
 
-class _GainClassK(ExactConstants):
+class _GainClassK(TracksShadows, ExactConstants):
     """A class-K function ``gain * phi(h)`` with a positive gain (fixed or learnable; a gain
     given as Python numbers stays exact under ``.double()``)."""
 

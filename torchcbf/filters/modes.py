@@ -22,12 +22,14 @@ from torch._subclasses.fake_tensor import is_fake
 
 from torchcbf._checks import (
     ClosedForms,
+    TracksShadows,
     as_tensor,
     behaves_as,
     check_finite,
     check_last_dim,
     check_number,
     honour_overrides,
+    unless_hooked,
 )
 from torchcbf._constants import store
 from torchcbf.barriers.lie import LieFunction, LieTerms
@@ -52,7 +54,7 @@ def _like(value: Tensor | None, ref: Tensor) -> Tensor | None:
     return None if value is None else value.to(ref)
 
 
-class FilterMode(nn.Module):
+class FilterMode(TracksShadows):
     """Base of the condition modes. Subclasses set :attr:`name` and write :meth:`cbf`;
     :attr:`needs_hessian` asks the filter for ``hess_trace`` in the Lie terms."""
 
@@ -63,10 +65,14 @@ class FilterMode(nn.Module):
     #: :meth:`affine_cbf` is trusted only where the class defining it also defines
     #: :meth:`cbf` (see :func:`torchcbf._checks.honour_overrides`)
     closed_forms: ClassVar[ClosedForms] = {"affine_cbf": (("cbf",), ())}
+    #: what :meth:`affine_cbf` answers for an instance that shadows :meth:`cbf` or another
+    #: method of its class (``mode.cbf = ...``, see :func:`torchcbf._checks.unless_hooked`)
+    hooked_forms: ClassVar[dict[str, object]] = {"affine_cbf": None}
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         honour_overrides(cls, FilterMode, cls.closed_forms)
+        unless_hooked(cls, cls.hooked_forms, cls.closed_forms)
 
     def bind(
         self,

@@ -20,7 +20,14 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor, check_finite, check_index, check_positive_int, hooked
+from torchcbf._checks import (
+    TracksShadows,
+    as_tensor,
+    check_finite,
+    check_index,
+    check_positive_int,
+    hooked,
+)
 from torchcbf.barriers._params import take
 from torchcbf.mppi.history import History
 
@@ -83,7 +90,7 @@ def rollout_times(states: Tensor, t0: Tensor | float | None, dt: float | None, n
     return (t0_t.reshape(-1, 1) + dt * steps).expand(states.shape[0], states.shape[-2])
 
 
-class RolloutCost(nn.Module):
+class RolloutCost(TracksShadows):
     """Base of the stage + terminal costs. Subclasses write ``stage`` (and ``terminal``).
 
     ``forward(states [B, K, H+1, n], controls [B, K, H, m], t0=None) -> [B, K]`` is
@@ -241,7 +248,7 @@ class BarrierCost(RolloutCost):
         return self._penalty(self.barrier(after, times[:, None, 1:]), after).sum(-1)
 
 
-class DiscreteBarrierCost(nn.Module):
+class DiscreteBarrierCost(TracksShadows):
     """Penalty on the discrete-time CBF condition ``b(x_{k+1}) >= (1 - gamma) b(x_k)``.
 
     ``weight * sum_k sum_i relu((1 - gamma) b_i(x_k) - b_i(x_{k+1}))`` over the steps

@@ -100,6 +100,7 @@ from torch.nn.parameter import UninitializedTensorMixin
 from torchcbf import integrators
 from torchcbf._autograd import needs_graph
 from torchcbf._checks import (
+    TracksShadows,
     as_limit,
     as_matrix,
     as_tensor,
@@ -111,6 +112,7 @@ from torchcbf._checks import (
     follow_parts,
     hook_dicts,
     isfinite,
+    shadowed_methods,
 )
 from torchcbf._compile import Compiled, hook_key, read_key
 from torchcbf._constants import ExactConstants, remember
@@ -229,13 +231,18 @@ def _state_signature(module: nn.Module) -> tuple[tuple[Any, ...], bool, list[Ten
     sync: the storage and in-place version of each parameter and buffer of its modules,
     their public number, string and tuple attributes (``path`` and ``engine`` report, they
     configure nothing) and their forward hooks (a hooked model or cost runs in torch);
-    whether one of those parameters and buffers requires grad; and the tensors stamped."""
+    whether one of those parameters and buffers requires grad; the methods each module
+    shadows on itself and what shadows them (``model.f = ...``: the kernel read the class's);
+    and the tensors stamped."""
     modules = list(module.modules())
     out: list[Any] = [tuple(k for hooks in hook_dicts(modules) for k in hooks)]
     add = out.append
     tensors: list[Tensor] = []
     grad = False
     for mod in modules:
+        shadows = shadowed_methods(mod)
+        if shadows:
+            add(tuple((name, id(mod.__dict__[name])) for name in sorted(shadows)))
         for group in (mod._parameters, mod._buffers):
             for t in group.values():
                 if t is None:
@@ -395,7 +402,7 @@ def _step_options(kwargs: dict[str, Any]) -> dict[str, Any]:
     return {**kwargs, "options": {**own, **(kwargs.get("options") or {})}}
 
 
-class MPPI(ExactConstants):
+class MPPI(TracksShadows, ExactConstants):
     """MPPI planner (see the module docstring for the algorithm, the paths and the RNG).
 
     Args:
