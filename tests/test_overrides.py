@@ -836,6 +836,59 @@ def test_mppi_sees_a_method_set_on_an_instance_after_its_first_call(what: str) -
     torch.testing.assert_close(fast.u, torch_run.u, atol=1e-9, rtol=1e-9)
 
 
+def _padding(cls: type) -> type:
+    """A class decorator: ``forward`` replaced after the class statement, ``h - 0.3``."""
+    inner = cls.forward
+
+    def forward(self, x, t=None):
+        return inner(self, x, t) - 0.3
+
+    cls.forward = forward
+    return cls
+
+
+def test_a_class_changed_after_its_statement_answers_as_its_code() -> None:
+    """A decorated shape, a shape whose parent's ``__init_subclass__`` skips ``super()``
+    and a model whose ``g`` is set on the class afterwards: their instances have none of
+    the parent's fast forms, and the filter and the integrators answer as their code."""
+
+    @_padding
+    class Padded(Ball):
+        pass
+
+    class Registry(Ball):
+        def __init_subclass__(cls, **kwargs):  # forgets super().__init_subclass__
+            pass
+
+    class Registered(Registry):
+        def forward(self, x, t=None):
+            return super().forward(x, t) - 0.3
+
+    class Fast(Unicycle):
+        pass
+
+    Fast.g = lambda self, x: 2.0 * Unicycle.g(self, x)
+    dyn = SingleIntegrator(2).double()
+    x = torch.tensor([[1.0, 0.2]], dtype=F64)
+    u = torch.tensor([[-2.0, 0.1]], dtype=F64)
+    for cls in (Padded, Registered):
+        b = cls([0.0, 0.0], 0.5).double()
+        assert not b.has_analytic and b.quadric() is None
+        with torch.no_grad():
+            for backend in ("auto", "torch"):
+                out = SafetyFilter(dyn, [b], backend=backend).double()(x, u)
+                torch.testing.assert_close(out.h, torch.tensor([[0.49]], dtype=F64))
+                a, un = torch.tensor([2.0, 0.4], dtype=F64), u[0]
+                torch.testing.assert_close(out.u[0], un - (a @ un + 0.49) / (a @ a) * a)
+    model = Fast().double()
+    assert model.native_model() is None
+    x0 = torch.zeros(1, 3, dtype=F64)
+    u0 = torch.tensor([[1.0, 0.0]], dtype=F64)
+    got = integrators.step(model, x0, u0, 0.1, method="euler")
+    torch.testing.assert_close(got, torch.tensor([[0.2, 0.0, 0.0]], dtype=F64))
+    assert Ball([0.0, 0.0], 0.5).quadric() is not None  # the parent keeps its own
+
+
 def test_the_methods_an_instance_shadows_are_tracked_as_set_and_deleted() -> None:
     from torchcbf._checks import shadowed_methods
 

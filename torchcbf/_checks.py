@@ -379,6 +379,41 @@ def honour_overrides(cls: type, base: type, rules: ClosedForms) -> None:
             setattr(cls, name, base.__dict__[name])
 
 
+def apply_rules(cls: type, base: type) -> None:
+    """The rules of ``base``'s family for its subclass ``cls``: :func:`honour_overrides`
+    and :func:`unless_hooked` with ``cls.closed_forms`` and ``cls.hooked_forms``, noting the
+    methods they saw (:func:`reapply_rules` compares). Called from ``__init_subclass__``."""
+    honour_overrides(cls, base, cls.closed_forms)  # type: ignore[attr-defined]
+    unless_hooked(cls, cls.hooked_forms, cls.closed_forms)  # type: ignore[attr-defined]
+    type.__setattr__(cls, "_rules_seen", _class_state(cls))
+
+
+def reapply_rules(kind: type) -> None:
+    """Apply the rules of its family again to ``kind``, a class written outside torchcbf,
+    if its methods changed since they were applied (a class decorator that replaces
+    ``forward``, ``Cls.g = ...`` after the class statement) or they never were (a parent's
+    ``__init_subclass__`` that does not call ``super()``). Called as an instance is made
+    (:class:`TracksShadows`); families name their base as ``rules_base``."""
+    base = getattr(kind, "rules_base", None)
+    if base is None or _ours(kind):
+        return
+    if kind.__dict__.get("_rules_seen") != _class_state(kind):
+        apply_rules(kind, base)
+        _keeps.cache_clear()
+
+
+def _class_state(kind: type) -> tuple[tuple[str, int], ...]:
+    """The attributes of the classes above ``kind`` written outside torchcbf and torch, by
+    identity."""
+    return tuple(
+        (name, id(value))
+        for c in kind.__mro__
+        if c is not object and not _ours(c) and c.__module__.partition(".")[0] != "torch"
+        for name, value in vars(c).items()
+        if name != "_rules_seen"
+    )
+
+
 def hook_dicts(modules: Iterable[torch.nn.Module]) -> list[dict[int, Any]]:
     """The dicts of forward and forward-pre hooks that calls of ``modules`` run: the global
     module hooks' and each module's own (keyed by the hooks' handle ids)."""
@@ -428,7 +463,13 @@ class TracksShadows(torch.nn.Module):
     class (public or private, properties too) that the instance shadows with attributes of
     its own (``model.f = ...``, ``ball._diff = ...``), updated as they are set and deleted:
     the instance counterpart of :func:`rewritten_helpers`, read in one lookup by the fast
-    forms (:func:`unless_hooked`) and by :func:`behaves_as` (see :func:`shadowed_methods`)."""
+    forms (:func:`unless_hooked`) and by :func:`behaves_as` (see :func:`shadowed_methods`).
+    Making an instance applies its family's rules again where its class changed
+    (:func:`reapply_rules`)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        reapply_rules(type(self))
 
     def __setattr__(self, name: str, value: Any) -> None:
         super().__setattr__(name, value)

@@ -27,12 +27,11 @@ from torchcbf._autograd import needs_graph
 from torchcbf._checks import (
     ClosedForms,
     TracksShadows,
+    apply_rules,
     as_tensor,
     check_tensor,
-    honour_overrides,
     several_outputs,
     shadowed,
-    unless_hooked,
 )
 from torchcbf._constants import ExactConstants, store
 from torchcbf.dynamics.base import ControlAffine, matmat, matvec
@@ -159,8 +158,7 @@ class LieFunction(TracksShadows, ExactConstants):
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        honour_overrides(cls, LieFunction, cls.closed_forms)
-        unless_hooked(cls, cls.hooked_forms, cls.closed_forms)
+        apply_rules(cls, LieFunction)
 
     def register_constant(
         self, name: str, value: object, *, learnable: bool = False, allow_inf: bool = False
@@ -216,6 +214,10 @@ class LieFunction(TracksShadows, ExactConstants):
     ) -> LieTerms:
         """Lie derivatives at ``x [..., n]`` (see :func:`lie_derivatives`)."""
         return lie_derivatives(self, x, dynamics, t, method=method, hessian=hessian)
+
+
+#: the family whose rules :func:`torchcbf._checks.reapply_rules` applies to a subclass
+LieFunction.rules_base = LieFunction
 
 
 def own_lie(fn: LieFunction) -> bool:

@@ -16,6 +16,7 @@ from torch import Tensor, nn
 from torchcbf._checks import (
     ClosedForms,
     TracksShadows,
+    apply_rules,
     as_limit,
     as_tensor,
     check_batch_match,
@@ -24,12 +25,10 @@ from torchcbf._checks import (
     check_last_dim,
     check_same,
     clamp_control,
-    honour_overrides,
     limit_shape,
     matrix_shape,
     stale_on,
     to_float64,
-    unless_hooked,
 )
 from torchcbf._constants import DerivedConstants, derive, store
 
@@ -130,8 +129,7 @@ class ControlAffine(TracksShadows, DerivedConstants):
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        honour_overrides(cls, ControlAffine, cls.closed_forms)
-        unless_hooked(cls, cls.hooked_forms, cls.closed_forms)
+        apply_rules(cls, ControlAffine)
 
     def __init__(
         self,
@@ -284,6 +282,10 @@ class ControlAffine(TracksShadows, DerivedConstants):
 
     def extra_repr(self) -> str:
         return f"state_dim={self.state_dim}, control_dim={self.control_dim}"
+
+
+#: the family whose rules :func:`torchcbf._checks.reapply_rules` applies to a subclass
+ControlAffine.rules_base = ControlAffine
 
 
 def register_constant(

@@ -23,13 +23,12 @@ from torch._subclasses.fake_tensor import is_fake
 from torchcbf._checks import (
     ClosedForms,
     TracksShadows,
+    apply_rules,
     as_tensor,
     behaves_as,
     check_finite,
     check_last_dim,
     check_number,
-    honour_overrides,
-    unless_hooked,
 )
 from torchcbf._constants import store
 from torchcbf.barriers.lie import LieFunction, LieTerms
@@ -71,8 +70,7 @@ class FilterMode(TracksShadows):
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        honour_overrides(cls, FilterMode, cls.closed_forms)
-        unless_hooked(cls, cls.hooked_forms, cls.closed_forms)
+        apply_rules(cls, FilterMode)
 
     def bind(
         self,
@@ -101,6 +99,10 @@ class FilterMode(TracksShadows):
 
     def extra_repr(self) -> str:
         return self.name
+
+
+#: the family whose rules :func:`torchcbf._checks.reapply_rules` applies to a subclass
+FilterMode.rules_base = FilterMode
 
 
 class Vanilla(FilterMode):
