@@ -889,6 +889,84 @@ def test_a_class_changed_after_its_statement_answers_as_its_code() -> None:
     assert Ball([0.0, 0.0], 0.5).quadric() is not None  # the parent keeps its own
 
 
+#: whether a function's fast form is off
+_OFF: dict[str, Callable[[LieFunction], bool]] = {
+    "derivatives": lambda f: not f.has_analytic and not f.has_second_order,
+    "quadric": lambda f: f.quadric() is None,
+    "parts": lambda f: f.parts() is None,
+}
+
+
+@pytest.mark.parametrize(
+    ("name", "fast"),
+    [(n, f) for n in [*SHAPES, *WRAPPERS] for f in _OFF if not _OFF[f](_make(n)())],
+)
+def test_a_fast_form_rewritten_alone_is_not_trusted(name: str, fast: str) -> None:
+    """A user's subclass that rewrites one fast form a built-in has and keeps its
+    ``forward`` does not get that fast form trusted: the function is its ``forward``."""
+
+    def rewrite(cls: type) -> type:
+        def own(self, *args, **kwargs):
+            return getattr(cls, fast)(self, *args, **kwargs)
+
+        return type(f"Own{fast}{cls.__name__}", (cls,), {fast: own})
+
+    fn, _ = _subclassed(_make(name), rewrite)
+    assert _OFF[fast](fn)
+
+
+@pytest.mark.parametrize("batch", [1, 2000])
+def test_a_ball_with_its_own_quadric_or_derivatives_alone_answers_as_its_forward(batch) -> None:
+    """A ``Ball`` subclass whose ``quadric`` (twice the radius) or ``derivatives`` (``h -
+    0.3``) disagree with the ``forward`` it keeps: every path and batch size answers as
+    autograd of that ``forward``."""
+
+    class Bigger(Ball):
+        def quadric(self):
+            q = super().quadric()
+            return q._replace(radius=2.0 * q.radius)
+
+    class Shifted(Ball):
+        def derivatives(self, x, t):
+            d = super().derivatives(x, t)
+            return d._replace(h=d.h - 0.3)
+
+    dyn = SingleIntegrator(2).double()
+    x = _states(batch, 2, seed=3) - 1.5
+    u = torch.tensor([[-1.0, 0.3]], dtype=F64).expand(batch, 2)
+    with torch.no_grad():
+        want = SafetyFilter(dyn, [Ball([0.0, 0.0], 0.5).double()], backend="torch",
+                            lie_method="autograd").double()(x, u)  # fmt: skip
+        for cls in (Bigger, Shifted):
+            b = cls([0.0, 0.0], 0.5).double()
+            for options in ({}, {"backend": "torch"}):
+                got = SafetyFilter(dyn, [b], **options).double()(x, u)
+                torch.testing.assert_close(got.h, want.h)
+                torch.testing.assert_close(got.u, want.u, atol=1e-9, rtol=1e-9)
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_a_model_with_its_own_xdot_alone_integrates_f_plus_g_u(name: str) -> None:
+    """A built-in model's subclass that rewrites ``xdot`` alone (twice the rate) keeps
+    ``f`` and ``g``: it integrates ``f + g u`` and runs on no native kernel."""
+
+    base = MODELS[name]()
+    kind = type(base)
+    fast = type(
+        f"Twice{kind.__name__}", (kind,), {"xdot": lambda self, x, u: 2 * kind.xdot(self, x, u)}
+    )
+    model = fast.__new__(fast)
+    model.__dict__.update(base.__dict__)
+    model = model.double()
+    assert model.native_model() is None
+    gen = torch.Generator().manual_seed(1)
+    x = torch.randn(3, model.state_dim, generator=gen, dtype=F64)
+    u = torch.randn(3, model.control_dim, generator=gen, dtype=F64)
+    want = model.f(x) + (model.g(x) @ u.unsqueeze(-1)).squeeze(-1)
+    torch.testing.assert_close(model.xdot(x, u), want)
+    torch.testing.assert_close(integrators.step(model, x, u, 0.01, method="euler"), x + 0.01 * want)
+
+
 def test_the_methods_an_instance_shadows_are_tracked_as_set_and_deleted() -> None:
     from torchcbf._checks import shadowed_methods
 

@@ -321,12 +321,23 @@ def _defines(cls: type, name: str) -> type:
 
 def stale_closed_forms(cls: type, rules: ClosedForms) -> list[str]:
     """The fast forms of ``rules`` that class ``cls`` inherits from a class that does not
-    also define what they stand for (see :func:`honour_overrides`)."""
-    return [
-        fast
-        for fast, (stands_for, _) in rules.items()
-        if not all(issubclass(_defines(cls, fast), _defines(cls, ref)) for ref in stands_for)
-    ]
+    also define what they stand for, and those a class written outside torchcbf rewrites
+    alone, every method they stand for being torchcbf's (a ``quadric`` or ``derivatives``
+    of a ``Ball`` subclass that keeps ``Ball.forward``: the function is its ``forward``);
+    see :func:`honour_overrides`."""
+    stale = []
+    for fast, (stands_for, _) in rules.items():
+        owner = _defines(cls, fast)
+        refs = [_defines(cls, ref) for ref in stands_for]
+        alone = not _ours(owner) and all(_ours(r) or not _is_user(r) for r in refs)
+        if alone or not all(issubclass(owner, r) for r in refs):
+            stale.append(fast)
+    return stale
+
+
+def _is_user(cls: type) -> bool:
+    """Whether ``cls`` is written outside torchcbf and torch (a user's class)."""
+    return not _ours(cls) and cls.__module__.partition(".")[0] not in ("torch", "builtins")
 
 
 def rewritten_helpers(cls: type) -> list[str]:
@@ -365,7 +376,9 @@ def honour_overrides(cls: type, base: type, rules: ClosedForms) -> None:
     when the class defining it is the class defining each method it stands for, or a
     subclass of it: a subclass that overrides ``f`` alone does not inherit a closed-form
     ``xdot`` of the old ``f``; it gets ``f + g u``. A subclass restores an inherited fast
-    form by naming it in its own body (``xdot = Parent.xdot``). A class written outside
+    form by naming it in its own body (``xdot = Parent.xdot``). A fast form a user's class
+    rewrites alone, every method it stands for being torchcbf's, is not trusted either (a
+    ``Ball`` subclass's own ``quadric``: the ball is its ``forward``). A class written outside
     torchcbf that rewrites a private helper of a torchcbf class (:func:`rewritten_helpers`)
     gets the general version of every fast form it does not define itself. Called from
     ``__init_subclass__``, so the rule holds for every path that asks the object.
