@@ -353,19 +353,42 @@ def test_reductions_match_closed_forms_and_autograd(
     _assert_terms(terms, LieTerms(*(None if v is None else v.to(dtype) for v in auto)), dtype)
 
 
-def test_hard_reductions_take_the_first_active_column_at_ties() -> None:
+@pytest.mark.parametrize("dtype", [F64, torch.float32], ids=["float64", "float32"])
+def test_hard_reductions_average_the_active_columns_at_ties(dtype: torch.dtype) -> None:
+    """At a tie of a hard minimum or maximum every path gives the mean of the tied columns'
+    terms (the subgradient autograd of amin/amax gives): the kernel, the closed forms and
+    autograd agree, and the filter's control does not depend on the path."""
     dyn = AccelUnicycle(sigma=0.2).double()
     ball = Ball([0.5, 0.2], 0.4)
+    rect = ExponentialBarrier(ball, dyn, 2, [1.0])
     x = _states(4, 4, seed=11)
     x[:, 2] = 0.0  # at rest the rectified ball equals the ball, with another gradient
+    cols = [_columns(lie_derivatives(b.double(), x, dyn), x) for b in (ball, rect)]
     for cls in (Intersection, Union):
-        barrier = cls(ball, ExponentialBarrier(ball, dyn, 2, [1.0])).double()
-        terms, _ = native.lie_terms([barrier], x, dyn)
-        want = _columns(lie_derivatives(barrier, x, dyn, method="analytic"), x)
-        _assert_terms(terms, want, F64)
-        first = _columns(lie_derivatives(ball.double(), x, dyn), x)
-        assert torch.equal(terms.h, first.h)
-        torch.testing.assert_close(terms.lgh, first.lgh, atol=1e-14, rtol=0)
+        barrier = cls(ball, rect).to(dtype)
+        xd, dynd = x.to(dtype), dyn.to(dtype)
+        terms, _ = native.lie_terms([barrier], xd, dynd)
+        for method in ("analytic", "autograd"):
+            want = _columns(lie_derivatives(barrier, xd, dynd, method=method), xd)
+            _assert_terms(terms, want, dtype)
+        mean = (cols[0].lgh + cols[1].lgh) / 2
+        tol = 1e-12 if dtype == F64 else 1e-4
+        torch.testing.assert_close(terms.lgh.double(), mean, atol=tol, rtol=tol)
+        assert not torch.allclose(cols[0].lgh, cols[1].lgh)  # a real tie of two gradients
+    from torchcbf.filters import SafetyFilter
+
+    corner = torch.tensor([[0.9, 0.9]], dtype=F64)  # the x and y faces of the box tie
+    u = torch.tensor([[1.0, 1.0]], dtype=F64)
+    plane = SingleIntegrator(2, u_min=-2.0, u_max=2.0).double()
+    with torch.no_grad():
+        answers = [
+            SafetyFilter(plane, [Box([-1.0, -1.0], [1.0, 1.0]).double()], alpha=1.0, **kw)(
+                corner, u
+            ).u
+            for kw in ({}, {"backend": "torch"}, {"lie_method": "autograd"})
+        ]
+    for got in answers:  # both faces: -u_i >= -0.1
+        torch.testing.assert_close(got, torch.tensor([[0.1, 0.1]], dtype=F64))
 
 
 def test_non_finite_values_give_the_closed_forms_values() -> None:

@@ -27,7 +27,8 @@
  * Intersection (min) and Union (max): its c columns (the blocks' outputs concatenated) make
  * K outputs, output j the reduction of the columns j, j + K, j + 2 K, ... (K = 1: one
  * reduction of every column; K = k: k reductions of children with k outputs each). The
- * hard reduction takes the active column's terms (the first at ties, a NaN first of all);
+ * hard reduction takes the active column's terms, the mean of the active columns' at a tie
+ * (as autograd of amin/amax), and a NaN first of all;
  * the smooth one, with z_i = +-v_i / T (+ for max) and weights w = softmax(z),
  *     h = +-T logsumexp(z),  grad h = sum_i w_i grad_i,
  *     tr(S' hess h S) = sum_i w_i tr_i +- (sum_i w_i |S' grad_i|^2 - |S' grad h|^2) / T
@@ -320,7 +321,7 @@ static double noise_norm2(int n, const double *SS, const double *g) {
 static double reduced(Point *pt, const int64_t *mb, void *const *pb, const double *rates,
                       int64_t columns, int64_t K, int64_t j, int mode, int smooth, double T,
                       double *grad, double *trace_out) {
-    int n = pt->n, found = 0, nan = 0;
+    int n = pt->n, found = 0, nan = 0, ties = 0;
     double g[LIE_NMAX], tr, sign = mode == REDUCE_MAX ? 1.0 : -1.0;
     /* hard: the active column so far; smooth: sums weighted by exp(z_i - zmax) */
     double best = 0.0, zmax = -INFINITY, s = 0.0, tr_sum = 0.0, gg_sum = 0.0;
@@ -334,8 +335,11 @@ static double reduced(Point *pt, const int64_t *mb, void *const *pb, const doubl
         if (!smooth) {
             int better = isnan(v) || (mode == REDUCE_MIN ? v < best : v > best);
             if (!found || (!isnan(best) && better)) {
-                best = v, found = 1, *trace_out = tr;
+                best = v, found = 1, ties = 1, *trace_out = tr;
                 memcpy(grad, g, sizeof(double) * n);
+            } else if (v == best) { /* a tie: summed here, averaged below */
+                ++ties, *trace_out += tr;
+                for (int i = 0; i < n; ++i) grad[i] += g[i];
             }
             continue;
         }
@@ -356,7 +360,13 @@ static double reduced(Point *pt, const int64_t *mb, void *const *pb, const doubl
         for (int i = 0; i < n; ++i) grad[i] += e * g[i];
         if (pt->SS) gg_sum += e * noise_norm2(n, pt->SS, g);
     }
-    if (!smooth) return best;
+    if (!smooth) {
+        if (ties > 1) {
+            for (int i = 0; i < n; ++i) grad[i] /= ties;
+            *trace_out /= ties;
+        }
+        return best;
+    }
     for (int i = 0; i < n; ++i) grad[i] /= s;
     if (pt->SS)
         *trace_out = tr_sum / s + sign * (gg_sum / s - noise_norm2(n, pt->SS, grad)) / T;

@@ -32,21 +32,20 @@ def combine(
     """Derivatives of :func:`reduce` from those of its ``c`` arguments.
 
     ``values, dhdt [..., c]``, ``dhdx [..., c, n]``, ``hess_quad(S) -> [..., c]``. The hard
-    version uses the active argument (a subgradient at ties); the smooth one with weights
-    ``w = softmax(+-v/T)`` has gradient ``sum w_i g_i`` and Hessian
+    version uses the active argument, and the mean of the active ones at a tie (the
+    subgradient autograd of ``amin``/``amax`` gives, so every path agrees); the smooth one
+    with weights ``w = softmax(+-v/T)`` has gradient ``sum w_i g_i`` and Hessian
     ``sum w_i H_i +- (sum w_i g_i g_i' - gbar gbar') / T`` (+ for max, - for min).
     """
     if not smooth:
-        idx = values.argmin(-1, keepdim=True) if mode == "min" else values.argmax(-1, keepdim=True)
-        h = values.gather(-1, idx).squeeze(-1)
-        gidx = idx.unsqueeze(-1).expand(*idx.shape, dhdx.shape[-1])
-        grad = dhdx.gather(-2, gidx).squeeze(-2)
-        dt = dhdt.gather(-1, idx).squeeze(-1)
+        h = reduce(values, mode, smooth, temperature)
+        active = (values == h.unsqueeze(-1)).to(values.dtype)
+        w = active / active.sum(-1, keepdim=True).clamp_min(1.0)  # no weight on a NaN row
 
         def quad(s: Tensor) -> Tensor:
-            return hess_quad(s).gather(-1, idx).squeeze(-1)
+            return (w * hess_quad(s)).sum(-1)
 
-        return AnalyticDerivatives(h, grad, dt, quad)
+        return AnalyticDerivatives(h, (w.unsqueeze(-1) * dhdx).sum(-2), (w * dhdt).sum(-1), quad)
     sign = -1.0 if mode == "min" else 1.0
     h = reduce(values, mode, smooth, temperature)
     w = torch.softmax(sign * values / temperature, dim=-1)
