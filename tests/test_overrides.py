@@ -945,6 +945,24 @@ def test_a_ball_with_its_own_quadric_or_derivatives_alone_answers_as_its_forward
                 torch.testing.assert_close(got.u, want.u, atol=1e-9, rtol=1e-9)
 
 
+def test_a_fast_form_rewritten_alone_beside_a_private_helper_is_not_trusted() -> None:
+    """Rewriting a private helper as well (here ``_sign``, unchanged) does not make a
+    ``derivatives`` rewritten alone trusted, nor keeps the quadric of the parent."""
+
+    def shifted(self, x, t):
+        d = Ball.derivatives(self, x, t)
+        return d._replace(h=d.h - 1.0)
+
+    class AloneAndHelper(Ball):
+        derivatives = shifted
+
+        def _sign(self):
+            return Ball._sign(self)
+
+    b = AloneAndHelper([0.0, 0.0], 1.0)
+    assert not b.has_analytic and b.quadric() is None
+
+
 @pytest.mark.parametrize("name", MODELS)
 def test_a_model_with_its_own_xdot_alone_integrates_f_plus_g_u(name: str) -> None:
     """A built-in model's subclass that rewrites ``xdot`` alone (twice the rate) keeps

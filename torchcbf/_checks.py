@@ -383,10 +383,9 @@ def honour_overrides(cls: type, base: type, rules: ClosedForms) -> None:
     gets the general version of every fast form it does not define itself. Called from
     ``__init_subclass__``, so the rule holds for every path that asks the object.
     """
+    stale = stale_closed_forms(cls, rules)
     if rewritten_helpers(cls):
-        stale = [fast for fast in rules if fast not in vars(cls)]
-    else:
-        stale = stale_closed_forms(cls, rules)
+        stale += [fast for fast in rules if fast not in vars(cls) and fast not in stale]
     for fast in stale:
         for name in (fast, *rules[fast][1]):
             setattr(cls, name, base.__dict__[name])
@@ -512,8 +511,14 @@ def shadowed_methods(obj: object) -> Collection[str]:
         return ()
     if isinstance(obj, TracksShadows):
         return own.get("_shadows", ())
-    kind = type(obj)
-    return [k for k, v in own.items() if k != "_shadows" and _is_method(getattr(kind, k, None))]
+    methods = _method_names(type(obj))
+    return [k for k in own if k in methods]
+
+
+@functools.lru_cache(maxsize=512)
+def _method_names(kind: type) -> frozenset[str]:
+    """The names of the methods (properties too) the classes of ``kind``'s MRO define."""
+    return frozenset(k for c in kind.__mro__ for k, v in vars(c).items() if _is_method(v))
 
 
 def _stands_for(rules: ClosedForms) -> dict[str, tuple[str, ...]]:
@@ -607,6 +612,12 @@ def behaves_as(obj: object, cls: type, methods: Sequence[str]) -> bool:
 def _keeps(kind: type, cls: type, methods: tuple[str, ...]) -> bool:
     same = all(getattr(kind, name, None) is getattr(cls, name, None) for name in methods)
     return same and not rewritten_helpers(kind)
+
+
+def resolved(value: Tensor) -> Tensor:
+    """``value`` with its negative bit applied (``t.conj().imag`` of a complex tensor keeps
+    it): a C or Triton kernel reads memory, where such a view holds the values negated."""
+    return value.resolve_neg() if value.is_neg() else value
 
 
 def isfinite(t: Tensor) -> Tensor:

@@ -116,8 +116,8 @@ def _stiff_reference(A: np.ndarray, Qc: np.ndarray, P0: np.ndarray, x0: np.ndarr
 @pytest.mark.parametrize("cls", FILTERS)
 def test_stiff_stable_prediction_is_finite_and_exact(cls, dtype, device):
     """A stable linear system far stiffer than the step (``|A dt|`` up to 5e4, where
-    ``exp(-A' dt)`` overflows in both dtypes) next to a mild one in the same batch: each
-    row's prediction equals the eigenvector reference, with status 0."""
+    ``exp(-A' dt)`` overflows in both dtypes), and a mild one: the prediction equals the
+    eigenvector reference, with status 0 (rows of both in one batch: test_jacobians.py)."""
     A_mild = np.array([[-0.5, 1.0], [-1.0, -0.3]])
     A_stiff = np.array([[-1000.0, 30.0], [0.0, -200.0]])
     Qc = np.array([[0.3, 0.05], [0.05, 0.2]])

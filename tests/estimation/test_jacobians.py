@@ -4,6 +4,7 @@ the exact discretisation, and dtype/device mismatches named in the error."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -18,7 +19,7 @@ from torchcbf.dynamics import (
     VanDerPol,
 )
 from torchcbf.estimation import EKF, UKF, FunctionSensor, GaussianSensor, HybridEKFUKF
-from torchcbf.estimation._linalg import jacobian, matrix_exp, pade_matrix_exp
+from torchcbf.estimation._linalg import discretize, jacobian, matrix_exp, pade_matrix_exp
 
 MODELS = [
     SingleIntegrator(2),
@@ -199,3 +200,45 @@ def test_a_tensor_held_by_a_users_function_gets_its_gradient(cls):
         return new.mean.sum() + new.cov.sum()
 
     assert torch.autograd.gradcheck(run, (gain, drift), eps=1e-6, atol=1e-7)
+
+
+def _eigen_discretization(A, xdot, Qc, h):
+    """``Phi``, ``dx`` and ``Qd`` of a diagonalisable ``A`` by its eigenvectors, float64."""
+    lam, V = np.linalg.eig(A)
+    Vi = np.linalg.inv(V)
+    Phi = (V * np.exp(lam * h)) @ Vi
+    dx = V @ ((np.expm1(lam * h) / lam) * (Vi @ xdot))
+    W = Vi @ Qc @ Vi.T
+    s = lam[:, None] + lam[None, :]
+    Qd = V @ (W * np.expm1(s * h) / s) @ V.T
+    return Phi.real, dx.real, Qd.real
+
+
+@pytest.mark.parametrize("pade", [False, True], ids=["cpu_way", "accelerator_way"])
+def test_discretize_mild_and_stiff_rows_of_one_batch(dtype, pade):
+    """Rows of one batch from a mild ``F h`` to ``|F h| = 5e4`` (where ``exp(-F' h)``
+    overflows in both dtypes): each row's ``Phi``, ``dx`` and ``Qd`` equal the eigenvector
+    reference, by either way (the CPU's and the accelerator's, run here); gradients to
+    ``F`` pass gradcheck through the doublings."""
+    As = [
+        np.array([[-0.5, 1.0], [-1.0, -0.3]]),
+        np.array([[-1000.0, 30.0], [0.0, -200.0]]),
+        np.array([[-40.0, 0.0], [5.0, -3.0]]),
+    ]
+    hs = 0.2
+    xdot = np.array([1.0, -2.0])
+    Qc = np.array([[0.3, 0.05], [0.05, 0.2]])
+    scales = [1.0, 50.0, 1.0]  # row 1: |F h| = 1e4 after scaling
+    F = torch.tensor(np.stack([a * c for a, c in zip(As, scales, strict=True)]), dtype=dtype)
+    xd = torch.tensor(xdot, dtype=dtype).expand(3, 2)
+    Q = torch.tensor(Qc, dtype=dtype).expand(3, 2, 2)
+    Phi, dx, Qd = discretize(F, hs, xd, Q, pade=pade)
+    tol = 1e-9 if dtype == torch.float64 else 2e-4
+    for b in range(3):
+        ref = _eigen_discretization(As[b] * scales[b], xdot, Qc, hs)
+        for got, want in zip((Phi[b], dx[b], Qd[b]), ref, strict=True):
+            np.testing.assert_allclose(got.double().numpy(), want, atol=tol, rtol=tol)
+    if dtype == torch.float64:
+        small = (torch.tensor(np.stack(As[1:]), dtype=dtype) / 50.0).requires_grad_()
+        fn = lambda f: discretize(f * 50.0, hs, xd[:2], Q[:2], pade=pade)  # noqa: E731
+        assert torch.autograd.gradcheck(fn, (small,), eps=1e-7, atol=1e-6, rtol=1e-5)

@@ -311,6 +311,26 @@ def test_an_unused_callable_fallback_leaves_gradients_alone() -> None:
         torch.testing.assert_close(gk, torch.tensor(want_gk, dtype=f64))
 
 
+def test_a_callable_fallback_without_a_graph_is_called_on_every_row() -> None:
+    """A callable that returns a control it holds for the whole batch (a backup controller's
+    output, in float64 for a float32 filter) works in grad mode and without it, its control
+    cast to the filter's dtype and clipped to the limits."""
+    from torchcbf.barriers import Ball
+    from torchcbf.dynamics import SingleIntegrator
+
+    model = SingleIntegrator(2, u_min=-2.0, u_max=2.0)
+    held = torch.tensor([[3.0, 0.5], [0.0, 0.0]], dtype=torch.float64)
+    filt = SafetyFilter(model, Ball([1.0, 0.0], 0.5), fallback=lambda x, u: held, slack="none")
+    x = torch.tensor([[1.0, 0.0], [0.3, 0.0]])
+    u = torch.tensor([[1.0, 0.0], [2.0, 0.0]])
+    for grad in (True, False):
+        with torch.set_grad_enabled(grad):
+            out = filt(x, u)
+        assert out.u.dtype == torch.float32
+        assert out.status.tolist()[0] == FilterStatus.FALLBACK
+        torch.testing.assert_close(out.u[0], torch.tensor([2.0, 0.5]))
+
+
 def test_batch_equals_loop_and_shapes() -> None:
     xs, us = random_states(12, seed=11)
     filt = scene("stochastic")

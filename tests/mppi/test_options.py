@@ -180,6 +180,18 @@ def test_a_step_set_between_calls_is_checked() -> None:
             p(x)
 
 
+def test_a_negated_view_of_the_state_is_planned_from_its_values() -> None:
+    """A state whose negative bit is set (its memory holds the values negated) plans as
+    the state itself on the fused path, not as its negation."""
+    x = torch.tensor([0.3, -0.2], dtype=torch.float64)
+    view = torch._neg_view(-x)
+    assert view.is_neg() and torch.equal(view, x)
+    a, b = planner(), planner()
+    got, want = a(view), b(x)
+    assert got.path == want.path == "fused"
+    torch.testing.assert_close(got.plan, want.plan, atol=0.0, rtol=0.0)
+
+
 def test_change_horizon_on_the_fused_path() -> None:
     p = planner()
     x = torch.tensor([0.3, 0.0], dtype=torch.float64)

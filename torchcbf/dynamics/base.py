@@ -104,7 +104,7 @@ class ControlAffine(TracksShadows, DerivedConstants):
         control_dim: ``m``.
         sigma: diffusion of ``dx = (f + g u) dt + sigma dW``: a scalar (``sigma * I``), a
             vector ``[n]`` (diagonal), a matrix ``[n, q]``, or a callable ``x -> [..., n, q]``
-            (its values are cast to the state's dtype, as a constant's are).
+            (its values are cast to the state's dtype).
         u_min, u_max: control limits, scalars or ``[m]`` (``None``: unbounded).
         disturbance_bound: ``w_max``, scalar or ``[p]``; the disturbance is ``|w|_inf <= w_max``.
         disturbance_matrix: ``M`` of shape ``[n, p]`` (identity by default).
@@ -268,9 +268,9 @@ class ControlAffine(TracksShadows, DerivedConstants):
         """Diffusion ``sigma(x) -> [..., n, q]``, or ``None`` for an ODE."""
         if self._sigma_fn is not None:
             s = self._sigma_fn(x)
-            if not isinstance(s, Tensor):
+            if s is not None and not isinstance(s, Tensor):
                 raise TypeError(f"sigma(x) must return a tensor, got {type(s).__name__}")
-            return s if s.dtype == x.dtype else s.to(x.dtype)
+            return s if s is None or s.dtype == x.dtype else s.to(x.dtype)
         if self.sigma_matrix is None:
             return None
         s = self.sigma_matrix.to(x)

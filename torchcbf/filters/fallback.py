@@ -23,9 +23,10 @@ class Fallback(nn.Module):
             clipped to the limits), a tensor ``[m]`` (one that requires grad keeps its
             gradient, a parameter trains), or a callable
             ``(x [B, n], u_nom [B, m]) -> [B, m]``. A tensor's or a callable's control is
-            clipped to the limits; wherever it is non-finite, zero clipped to the limits is
-            used. Under grad mode :class:`~torchcbf.filters.SafetyFilter` calls a callable
-            on the rows that fall back alone (see :meth:`select`).
+            cast to ``u_nom``'s dtype and clipped to the limits; wherever it is non-finite,
+            zero clipped to the limits is used. Where its control carries a graph,
+            :class:`~torchcbf.filters.SafetyFilter` calls a callable again on the rows that
+            fall back alone (see :meth:`select`).
         control_dim: ``m``.
     """
 
@@ -67,7 +68,7 @@ class Fallback(nn.Module):
             assert self.function is not None
             fb = self.function(x, u_nom)
             check_last_dim("fallback(x, u_nom)", fb, u_nom.shape[-1])
-            fb = fb.expand_as(u_nom)
+            fb = fb.to(u_nom.dtype).expand_as(u_nom)
         if self.kind in ("tensor", "callable"):
             fb = torch.clamp(fb, lo, hi)
         ok = torch.isfinite(fb).all(-1, keepdim=True)
@@ -77,12 +78,14 @@ class Fallback(nn.Module):
         self, ok: Tensor, u: Tensor, x: Tensor, u_nom: Tensor, lo: Tensor, hi: Tensor
     ) -> Tensor:
         """``u [B, m]`` in the rows ``ok [B]``, the fallback's control in the others. A
-        callable under grad mode runs on the other rows alone (one host synchronisation):
-        its backward on a row that does not use it would multiply a zero gradient by its
-        partial derivatives there, NaN where it divides by zero (``x / |x|`` at 0), and
-        every parameter it shares across rows would get a NaN gradient."""
-        if self.kind != "callable" or not torch.is_grad_enabled():
-            return torch.where(ok.unsqueeze(-1), u, self(x, u_nom, lo, hi))
+        callable whose control carries a graph runs again on the other rows alone (one
+        host synchronisation): its backward on a row that does not use it would multiply a
+        zero gradient by its partial derivatives there, NaN where it divides by zero
+        (``x / |x|`` at 0), and every parameter it shares across rows would get a NaN
+        gradient."""
+        fb = self(x, u_nom, lo, hi)
+        if self.kind != "callable" or not fb.requires_grad:
+            return torch.where(ok.unsqueeze(-1), u, fb)
         rows = (~ok).nonzero().squeeze(-1)
         if rows.numel() == 0:
             return u

@@ -112,6 +112,7 @@ from torchcbf._checks import (
     follow_parts,
     hook_dicts,
     isfinite,
+    resolved,
     shadowed_methods,
 )
 from torchcbf._compile import Compiled, hook_key, read_key
@@ -242,7 +243,7 @@ def _state_signature(module: nn.Module) -> tuple[tuple[Any, ...], bool, list[Ten
     for mod in modules:
         shadows = shadowed_methods(mod)
         if shadows:
-            add(tuple((name, id(mod.__dict__[name])) for name in sorted(shadows)))
+            add(tuple((name, id(mod.__dict__.get(name))) for name in sorted(shadows)))
         for group in (mod._parameters, mod._buffers):
             for t in group.values():
                 if t is None:
@@ -767,10 +768,10 @@ class MPPI(TracksShadows, ExactConstants):
             dt=self.dt,
         )  # fmt: skip
         unbatched = x.dim() == 1
-        xb = x.unsqueeze(0) if unbatched else x
+        xb = resolved(x.unsqueeze(0) if unbatched else x)
         B = xb.shape[0]
         self._ensure_state(B, xb.device, xb.dtype)
-        t0 = as_tensor("t", t, device=xb.device, dtype=xb.dtype)  # a number: no host copy
+        t0 = resolved(as_tensor("t", t, device=xb.device, dtype=xb.dtype))  # a number: no copy
         if t0.dim() > 1 or (t0.dim() == 1 and t0.shape[0] not in (1, B)):
             raise ValueError(f"t must be a scalar or have shape [{B}], got {tuple(t0.shape)}")
         t0 = t0.reshape(-1).expand(B)
@@ -1234,7 +1235,7 @@ class MPPI(TracksShadows, ExactConstants):
         engine = self._engine(x, grad)
         if engine is None:
             return None
-        # the horizon is kept as the private `_horizon` behind its property
+        # `_horizon` is private, which _state_signature skips
         signature = (engine, x.device, x.dtype, self.backend, self.horizon, state)
         cached = self._kernel_cache
         if cached is not None and cached[0] == signature and cached[2].unchanged():

@@ -9,7 +9,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchcbf._checks import broadcast_shapes, isfinite, rows_finite
+from torchcbf._checks import broadcast_shapes, isfinite, resolved, rows_finite
 from torchcbf.qp import _direct, _dual_native, realtime
 from torchcbf.qp._dual import dual_engine
 from torchcbf.qp._enum import (
@@ -96,13 +96,7 @@ def _tensor(name: str, value: object, dtype: torch.dtype, device: torch.device) 
         raise TypeError(f"{name} has dtype {value.dtype} but Q has dtype {dtype}")
     if value.device != device:
         raise ValueError(f"{name} is on {value.device} but Q is on {device}")
-    return _resolved(value)
-
-
-def _resolved(value: Tensor) -> Tensor:
-    """``value`` with its negative bit applied (``t.conj().imag`` of a complex tensor keeps
-    it): the kernels read memory, where such a view holds the values negated."""
-    return value.resolve_neg() if value.is_neg() else value
+    return resolved(value)
 
 
 def _bound(name: str, value: object, n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
@@ -389,7 +383,7 @@ def _validate(
         raise ValueError(f"Q must have shape [..., n, n] with n >= 1, got {tuple(Q.shape)}")
     dtype, device = Q.dtype, Q.device
     n = Q.shape[-1]
-    Q = _resolved(Q)
+    Q = resolved(Q)
     p = _tensor("p", p, dtype, device)
     _check_trailing("p", p, (n,), str(n))
     G, h, m = _row_block("G", "h", "m", G, h, n, dtype, device)
