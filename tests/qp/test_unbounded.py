@@ -285,3 +285,35 @@ def test_problems_without_rows_on_every_method(method):
                 torch.testing.assert_close(sol.x[..., 0], torch.full(batch, x, dtype=f64))
     sol = solve_qp(-torch.eye(2, dtype=f64), torch.zeros(2, dtype=f64), method=method)
     assert int(sol.status) != Status.SOLVED
+
+
+@pytest.mark.parametrize("method", ["auto", "active_set", "enumerate", "ipm"])
+def test_negative_curvature_along_an_open_ray_is_unbounded(method):
+    """``Q`` with a negative eigenvalue whose eigenvector ``v`` no row blocks (``G v = 0``):
+    the objective falls without bound along ``v`` from any feasible point, and every row is
+    ``DUAL_INFEASIBLE`` with ``x = 0``, not a stationary point reported ``SOLVED``; the
+    same rows in a box are solved at their minimiser."""
+    gen = torch.Generator().manual_seed(11)
+    f64 = torch.float64
+    B = 6
+    U = torch.linalg.qr(torch.randn(B, 3, 3, generator=gen, dtype=f64)).Q
+    Q = U @ torch.diag_embed(torch.tensor([1.0, 0.5, -0.3], dtype=f64).expand(B, 3)) @ U.mT
+    v = U[..., 2]
+    G = torch.randn(B, 2, 3, generator=gen, dtype=f64)
+    G = G - (G @ v.unsqueeze(-1)) * v.unsqueeze(-2)
+    h = torch.rand(B, 2, generator=gen, dtype=f64) + 0.5
+    p = torch.randn(B, 3, generator=gen, dtype=f64)
+    sol = solve_qp(Q, p, G, h, method=method)
+    assert (sol.status == int(Status.DUAL_INFEASIBLE)).all(), sol.status
+    assert (sol.x == 0).all()
+    one = torch.ones(B, 3, dtype=f64)
+    boxed = solve_qp(Q, p, G, h, lb=-one, ub=one, method=method)
+    assert (boxed.status == int(Status.SOLVED)).all(), boxed.status
+    x = boxed.x
+    got = 0.5 * torch.einsum("bi,bij,bj->b", x, Q, x) + (p * x).sum(-1)
+    eye = torch.eye(3, dtype=f64).expand(B, 3, 3)
+    for i in range(B):
+        Gb = torch.cat([G[i], eye[i], -eye[i]]).numpy()
+        hb = torch.cat([h[i], one[i], one[i]]).numpy()
+        ref = least_stationary_objective(Q[i], p[i], torch.tensor(Gb), torch.tensor(hb))
+        assert abs(float(got[i]) - ref) <= 1e-6 * (1 + abs(ref)), (i, float(got[i]), ref)

@@ -654,10 +654,31 @@ def saddle_solved(data: QPData, x: Tensor, solved: Tensor, eps: float) -> Tensor
     (a ray without such a row is unbounded descent). The test (an SVD and an
     eigendecomposition) runs only on rows whose ``P`` has no Cholesky factor, after one host
     synchronisation."""
+    worst, f, _ = _curvature_worst(data, x, solved, eps)
+    return worst > eps * (1.0 + f.abs())
+
+
+def curvature_ray(data: QPData, x: Tensor, solved: Tensor, eps: float) -> Tensor:
+    """Rows ``[B]`` among ``solved`` where, from ``x``, a direction of firmly negative
+    curvature of ``P`` (as :func:`saddle_solved` follows them, below ``-eps^(1/3)`` of
+    ``P``'s scale) stays feasible for ever: the objective has no lower bound (a certificate
+    of unboundedness where ``P`` is indefinite)."""
+    return _curvature_worst(data, x, solved, eps)[2]
+
+
+def _curvature_worst(
+    data: QPData, x: Tensor, solved: Tensor, eps: float
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``(fall, f, ray)``, each ``[B]``: the largest fall of the objective from ``x`` along a
+    direction of negative curvature (``inf`` along a way that crosses no row), the
+    objective at ``x`` and whether such a way certifies unboundedness
+    (:func:`_curvature_fall`), on the ``solved`` rows whose ``P`` is not positive definite
+    (0 and False elsewhere); one host synchronisation."""
     P, q, G, h, A, b = data
     cand = solved & not_positive_definite(P)
+    zero = torch.zeros_like(x[..., 0])
     if not bool(cand.any()):
-        return cand
+        return zero, zero, torch.zeros_like(zero, dtype=torch.bool)
     idx = cand.nonzero().squeeze(-1)
     P, q, G, h, A = (t.index_select(0, idx) for t in (P, q, G, h, A))
     x = x.index_select(0, idx)
@@ -670,21 +691,26 @@ def saddle_solved(data: QPData, x: Tensor, solved: Tensor, eps: float) -> Tensor
     # first in the null space of every tight row; then in that of the equality rows alone,
     # leaving the tight rows inwards (a tight row whose multiplier is zero does not hold a
     # minimiser on its face: at a corner of the box every direction may be blocked by one)
+    ray = torch.zeros_like(worst, dtype=torch.bool)
     for inwards in (False, True):
-        fall = _curvature_fall(P, G, A, g, slack, tight, inwards)
-        worst = torch.maximum(worst, fall)
-    found = worst > eps * (1.0 + f.abs())
-    return torch.zeros_like(cand).index_copy(0, idx, found)
+        fall, open_ray = _curvature_fall(P, G, A, g, slack, tight, inwards)
+        worst, ray = torch.maximum(worst, fall), ray | open_ray
+    nothing = torch.zeros_like(zero, dtype=torch.bool)
+    return (zero.index_copy(0, idx, worst), zero.index_copy(0, idx, f),
+            nothing.index_copy(0, idx, ray))  # fmt: skip
 
 
 def _curvature_fall(
     P: Tensor, G: Tensor, A: Tensor, g: Tensor, slack: Tensor, tight: Tensor, inwards: bool
-) -> Tensor:
+) -> tuple[Tensor, Tensor]:
     """The largest fall of the objective ``[b]`` along a direction of negative curvature of
     ``P`` (an eigenvector of ``P`` reduced to the null space of ``A`` and, unless
     ``inwards``, of the ``tight`` rows), followed either way to the first row it crosses;
     with ``inwards``, a way that leaves a tight row outwards is blocked. ``g``: the
-    gradient ``P x + q`` at the point, ``slack [b, M]`` of its rows."""
+    gradient ``P x + q`` at the point, ``slack [b, M]`` of its rows. Also ``[b]`` bool:
+    whether such a way crosses no row along a curvature below ``-eps^(1/3)`` of ``P``'s
+    scale (a certificate of unboundedness; a curvature between that and the rounding is
+    taken for a rounded singular ``P``)."""
     n = P.shape[-1]
     C = A if inwards else torch.cat([A, G * tight.unsqueeze(-1)], dim=-2)
     eye = torch.eye(n, dtype=P.dtype, device=P.device)
@@ -698,11 +724,14 @@ def _curvature_fall(
     mu, D = torch.linalg.eigh(Z @ (0.5 * (P + P.mT)) @ Z)
     tau = rounding_scale(P, torch.finfo(P.dtype).eps).unsqueeze(-1)
     neg = mu < -tau  # [b, n]: directions (columns of D) of negative curvature
+    firm = mu < -rounding_scale(P, torch.finfo(P.dtype).eps ** (1 / 3)).unsqueeze(-1)
     gd = (g.unsqueeze(-1) * D).sum(-2)  # [b, n]
     Gd = G @ D  # [b, M, n]
     free = ~tight.unsqueeze(-1) & torch.isfinite(slack).unsqueeze(-1)
     worst = torch.zeros_like(g[..., 0])
-    scale = Gd.abs().amax(-2, keepdim=True) if G.shape[-2] else Gd.new_zeros(())
+    ray = torch.zeros_like(worst, dtype=torch.bool)
+    # a row the direction meets at a rounding of its own norm (|d| = 1) does not stop it
+    scale = G.norm(dim=-1, keepdim=True)
     for sign in (1.0, -1.0):
         rate = sign * Gd
         moving = rate > 1e-12 * scale
@@ -714,7 +743,8 @@ def _curvature_fall(
         if inwards:
             usable = usable & ~(tight.unsqueeze(-1) & moving).any(-2)
         worst = torch.maximum(worst, torch.where(usable, fall, 0.0).amax(-1))
-    return worst
+        ray = ray | (usable & firm & torch.isinf(t)).any(-1)
+    return worst, ray
 
 
 def _drop_unbounded(
@@ -724,13 +754,14 @@ def _drop_unbounded(
     status: Tensor,
     cfg: SolverConfig,
 ) -> tuple[Tensor, ...]:
-    """``(x, *others, status)`` with the rows whose ``x`` :func:`unbounded_solved` finds a
-    certificate of unboundedness reported ``DUAL_INFEASIBLE`` and ``x`` and ``others``
-    (multipliers, active sets) zeroed there: ``SOLVED`` rows, and rows left
+    """``(x, *others, status)`` with the rows whose ``x`` :func:`unbounded_solved` or
+    :func:`curvature_ray` finds a certificate of unboundedness reported ``DUAL_INFEASIBLE``
+    and ``x`` and ``others`` (multipliers, active sets) zeroed there: ``SOLVED`` rows, and rows left
     ``NUMERICAL_ERROR`` or ``MAX_ITER`` (a method stopped on a saddle far out, rejected as an
     answer, ends there; the certificate holds whichever way ``x`` was found)."""
     unfinished = (status == int(Status.NUMERICAL_ERROR)) | (status == int(Status.MAX_ITER))
-    unb = unbounded_solved(data, x, (status == int(Status.SOLVED)) | unfinished, cfg)
+    rows = (status == int(Status.SOLVED)) | unfinished
+    unb = unbounded_solved(data, x, rows, cfg) | curvature_ray(data, x, rows, cfg.eps)
     if not bool(unb.any()):
         return (x, *others, status)
     u = unb.unsqueeze(-1)
@@ -804,7 +835,8 @@ def _certified_enum(data: QPData, cfg: SolverConfig) -> EnumResult:
         en = EnumResult(*(t.index_copy(0, idx, u) for t, u in zip(en, ek, strict=True)))
     # a point far along a descent direction (P singular to rounding) is no answer: the row
     # goes to the interior point method, whose result carries the certificate
-    en = en._replace(ok=en.ok & ~unbounded_solved(data, en.x, en.ok, cfg))
+    unbounded = unbounded_solved(data, en.x, en.ok, cfg) | curvature_ray(data, en.x, en.ok, cfg.eps)
+    en = en._replace(ok=en.ok & ~unbounded)
     exact = en.ok & _kkt.kkt_point(data, en.x, en.z, en.y)
     redo = en.ok & ~exact
     if not bool(redo.any()):
