@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from _problems import make_batch
@@ -196,16 +198,23 @@ def test_gradient_at_a_degenerate_vertex_is_zero(kernel):
 
 @pytest.mark.parametrize("method", ["auto", "enumerate", "ipm"])
 @pytest.mark.parametrize("q_depends", [False, True])
-def test_a_second_derivative_through_the_qp_raises(method, q_depends):
+@pytest.mark.parametrize("loss", ["cubic", "linear"])
+def test_a_second_derivative_through_the_qp_raises(method, q_depends, loss):
     """The backward reuses the forward's factor: a second derivative would be wrong, so
-    backpropagating through a first derivative taken with create_graph=True raises."""
+    backpropagating through a first derivative taken with create_graph=True raises, also
+    for a loss linear in ``x`` (whose incoming gradient carries no graph); the first
+    derivative itself is the one taken without create_graph, and h's inf rows stay out."""
     f64 = torch.float64
     p = torch.tensor([-3.0, -1.0], dtype=f64, requires_grad=True)
     Q = torch.tensor([[2.0, 0.3], [0.3, 1.0]], dtype=f64)
     if q_depends:
         Q = Q + torch.diag(p.square())
-    G, h = torch.tensor([[1.0, 1.0]], dtype=f64), torch.tensor([10.0], dtype=f64)
+    G = torch.tensor([[1.0, 1.0], [1.0, -1.0]], dtype=f64)
+    h = torch.tensor([10.0, math.inf], dtype=f64, requires_grad=True)
     x = solve_qp(Q, p, G, h, method=method).x
-    (g,) = torch.autograd.grad((x**3).sum(), p, create_graph=True)
-    with pytest.raises(RuntimeError, match="once_differentiable"):
+    value = (x**3).sum() if loss == "cubic" else x.sum()
+    (g,) = torch.autograd.grad(value, p, create_graph=True)
+    (plain,) = torch.autograd.grad(value, p, retain_graph=True)
+    torch.testing.assert_close(g.detach(), plain, atol=0.0, rtol=0.0)
+    with pytest.raises(RuntimeError, match="first derivatives only"):
         g.square().sum().backward()

@@ -8,13 +8,14 @@ input dtype. The backward is the implicit differentiation of the active-set KKT 
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
-from torch.autograd.function import once_differentiable
+from torch._C import _functions
 
 from torchcbf.qp import _dual_native, _kkt
 from torchcbf.qp import _eliminate as eliminate
@@ -1148,6 +1149,31 @@ def _cast(t: Tensor, dtype: torch.dtype) -> Tensor:
     return t.to(dtype).clamp_(-big, big)
 
 
+def _first_derivative_only(backward: Callable[..., Any]) -> Callable[..., Any]:
+    """``backward`` run without a graph; under ``create_graph=True`` its gradients raise when
+    differentiated again. ``torch.autograd.function.once_differentiable`` does that only
+    where an incoming gradient carries a graph: a loss linear in ``x`` gives one that does
+    not, and a second derivative then silently lacks the QP's own term."""
+
+    @functools.wraps(backward)
+    def wrapper(ctx: Any, *grads: Any) -> Any:
+        with torch.no_grad():
+            out = backward(ctx, *grads)
+        if not torch.is_grad_enabled() or not ctx.graph_inputs:
+            return out
+        # an exact zero that reaches the inputs' graph (inf entries of h stay out of it), so
+        # that differentiating a gradient towards anything before the QP meets the error
+        link = sum(t.reshape(-1)[:0].sum() for t in ctx.graph_inputs)
+        err = _functions.DelayedError(
+            b"solve_qp gives first derivatives only: a second derivative through it (its "
+            b"gradient computed with create_graph=True, then differentiated) is not available",
+            len(out),
+        )
+        return err(*[None if g is None else g + link for g in out])
+
+    return wrapper
+
+
 class QPFunction(torch.autograd.Function):
     """``(P, q, G, h, A, b) -> (x, z, y, status, iterations, method)``, batched ``[B, ...]``
     (``method``: the :data:`ANSWERED_BY` code of each row).
@@ -1162,6 +1188,7 @@ class QPFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, P, q, G, h, A, b, cfg: SolverConfig, x0):  # noqa: D102
         dtype = q.dtype
+        ctx.graph_inputs = tuple(t for t in (P, q, G, h, A, b) if t.requires_grad)
         data = QPData(P, q, G, h, A, b).to_float64()
         x0d = None if x0 is None else x0.detach().to(torch.float64)
         scaling = data_scaling(data.P, data.q)
@@ -1185,7 +1212,7 @@ class QPFunction(torch.autograd.Function):
         return _cast(x, dtype), _cast(z, dtype), _cast(y, dtype), status, iters, method
 
     @staticmethod
-    @once_differentiable  # the factor is the forward's: a second derivative would be wrong
+    @_first_derivative_only  # the factor is the forward's: a second derivative would be wrong
     def backward(ctx, gx, gz, gy, _gs, _gi, _gm):  # noqa: D102
         x, z, y, status = ctx.saved_tensors
         gx, gz, gy = (g.to(torch.float64) for g in (gx, gz, gy))
