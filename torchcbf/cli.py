@@ -219,6 +219,17 @@ def _dest(flag: str) -> str:
 
 
 # -- command line --------------------------------------------------------------------------
+def _seed(text: str) -> int:
+    """A first seed: an integer in ``[0, 2^32)`` (the noise streams are 32-bit)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if not 0 <= value < 2**32:
+        raise argparse.ArgumentTypeError(f"a seed lies in [0, 2^32), got {value}")
+    return value
+
+
 def _positive_int(text: str) -> int:
     try:
         value = int(text)
@@ -230,7 +241,7 @@ def _positive_int(text: str) -> int:
 
 
 def _common_run_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seed", type=int, default=0, help="first seed")
+    p.add_argument("--seed", type=_seed, default=0, help="first seed")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     p.add_argument("--out", default="out", help="directory for metrics.json and the figures")
     _add_output_options(p)
@@ -550,7 +561,7 @@ def _add_engine_options(p: argparse.ArgumentParser, seeds: int, seed: int) -> No
     p.add_argument(
         "--seeds", type=_positive_int, default=seeds, help="seeds per configuration (one batch)"
     )
-    p.add_argument("--seed", type=int, default=seed, help="first seed")
+    p.add_argument("--seed", type=_seed, default=seed, help="first seed")
     p.add_argument("--engine", default="local", choices=["local", "ray"], help="where to run")
     p.add_argument(
         "--address",
@@ -585,7 +596,7 @@ def _add_ecosystem_commands(sub: Any) -> None:
     t = sub.add_parser("tune", help="Optuna search over a scenario's parameters")
     _add_engine_options(t, seeds=16, seed=10_000)
     t.add_argument("--trials", type=_positive_int, default=20, help="Optuna trials")
-    t.add_argument("--eval-seed", type=int, default=0, help="first evaluation seed")
+    t.add_argument("--eval-seed", type=_seed, default=0, help="first evaluation seed")
     t.add_argument(
         "--eval-seeds",
         type=_positive_int,
@@ -644,10 +655,16 @@ def _bench(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
             for w in args.only.split(",")
             if w.strip()
         }
+        if not wanted:
+            print(f"torchcbf bench: --only names no benchmark: {args.only!r}", file=sys.stderr)
+            return 2
         unknown = wanted - {p.name for p in scripts}
         if unknown:
             names = ", ".join(p.stem.removeprefix("bench_") for p in scripts) or "none"
-            print(f"--only: no benchmark {sorted(unknown)}; found: {names}", file=sys.stderr)
+            print(
+                f"torchcbf bench: --only: no benchmark {sorted(unknown)}; found: {names}",
+                file=sys.stderr,
+            )
             return 2
         scripts = [p for p in scripts if p.name in wanted]
     if not scripts:

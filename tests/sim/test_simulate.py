@@ -533,6 +533,11 @@ def test_counts_seeds_and_barrier_lists_in_their_usual_forms() -> None:
     want = simulate(dyn, x0, seed=5, **loop).x
     for seed in (np.int64(5), torch.tensor(5)):
         assert torch.equal(simulate(dyn, x0, seed=seed, **loop).x, want)
+    # the noise streams are 32-bit: 2^32 would repeat seed 0, so it is refused
+    for seed in (-1, 2**32 - 2, torch.tensor([0, 1, 2**32])):
+        with pytest.raises(ValueError, match="seed"):
+            simulate(dyn, x0, seed=seed, **loop)
+    assert simulate(dyn, x0, seed=2**32 - 3, **loop).x.shape == (3, 4, 2)
     traj = simulate(dyn, x0, seed=5, **loop)
     balls = [Ball([0.0, 0.0], 0.5), Ball([2.0, 2.0], 0.3)]
     a = metrics(traj, barriers=nn.ModuleList(balls))

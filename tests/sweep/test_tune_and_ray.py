@@ -79,6 +79,17 @@ def test_tune_rejects_overlapping_seeds() -> None:
         _tune(seed=0, eval_seed=1)
 
 
+@pytest.mark.parametrize("flag", ["--seed", "--eval-seed"])
+@pytest.mark.parametrize("value", ["-1", str(2**32)])
+def test_cli_refuses_seeds_outside_the_noise_streams(flag, value, capsys) -> None:
+    """The noise streams are 32-bit: 2^32 would be seed 0 again (a held-out evaluation on
+    the tuning seeds), -1 would be 2^32 - 1."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(["tune", "reach-avoid", flag, value, "--trials", "1", "--no-progress"])
+    assert exit_info.value.code == 2
+    assert f"argument {flag}: a seed lies in [0, 2^32)" in capsys.readouterr().err
+
+
 def test_cli_tune_writes_best_json_and_study(tmp_path, capsys) -> None:
     pytest.importorskip("optuna")
     code = main(

@@ -381,18 +381,30 @@ class _Run:
         return torch.where(mask, torch.zeros_like(value), value)
 
 
+#: seeds of the noise streams are 32-bit (:mod:`torchcbf._random`): 0 <= seed < SEED_LIMIT
+SEED_LIMIT = 2**32
+
+
 def _seeds(seed: int | Sequence[int] | Tensor, batch: int, device: torch.device) -> Tensor:
     """One seed per scenario: ``seed + b`` from one integer (a NumPy or one-value tensor
-    integer too), or the given ``[batch]``."""
+    integer too), or the given ``[batch]``; each in ``[0, 2^32)`` (the noise streams read 32
+    bits: ``2^32`` would repeat seed 0's stream)."""
     if isinstance(seed, Tensor) and seed.numel() == 1 and batch != 1:
         seed = int(seed)
     if isinstance(seed, numbers.Integral) and not isinstance(seed, bool):
+        if not 0 <= int(seed) <= SEED_LIMIT - max(batch, 1):
+            raise ValueError(
+                f"seed must lie in [0, {SEED_LIMIT - max(batch, 1)}] for {batch} scenarios "
+                f"(32-bit noise streams), got {int(seed)}"
+            )
         return torch.arange(batch, device=device, dtype=torch.int64) + int(seed)
     seeds = torch.as_tensor(seed, dtype=torch.int64, device=device).reshape(-1)
     if seeds.shape != (batch,):
         raise ValueError(
             f"seed must be an int or hold one seed per scenario ({batch}), got {tuple(seeds.shape)}"
         )
+    if seeds.numel() and not bool(((seeds >= 0) & (seeds < SEED_LIMIT)).all()):
+        raise ValueError(f"seeds must lie in [0, 2^32) (32-bit noise streams): {seeds.tolist()}")
     return seeds
 
 
