@@ -209,6 +209,11 @@ def solve_proxsuite(
         qp = proxqp.dense.QP(n, me, m_in, box)
         qp.settings.eps_abs = eps
         qp.settings.eps_rel = 0.0
+        # without it proxsuite stops on feasibility and stationarity alone: points 1% above
+        # the minimum, with a multiplier on a loose row, were called solved
+        qp.settings.check_duality_gap = True
+        qp.settings.eps_duality_gap_abs = eps
+        qp.settings.eps_duality_gap_rel = 0.0
         qp.settings.max_iter = max_iter
         qp.settings.verbose = False
         if x0n is not None:
