@@ -21,7 +21,9 @@ Every command checks its arguments, its device and its output folder before any 
 non-empty ``--out`` that is not this command's own run is refused unless ``--overwrite``
 (which removes the outputs of earlier torchcbf runs there); ``--resume`` continues an
 interrupted run, keeping what finished. Ctrl-C ends a run cleanly (exit code 130) with what
-finished saved, and says how to resume. Every file is written to a temporary name and renamed.
+finished saved, and says how to resume. A sweep whose every configuration failed, or a tune
+whose every trial did, exits with code 1. Every file is written to a temporary name and
+renamed.
 """
 
 from __future__ import annotations
@@ -49,6 +51,7 @@ PAPER_SIZE_B = "torchcbf mppi-cbf --config default --seeds 32 --samples 20000 --
 
 
 INTERRUPTED = 130  # the exit code of a run ended by Ctrl-C (128 + SIGINT)
+FAILED = 1  # the exit code of a sweep whose every configuration (a tune whose every trial) failed
 
 
 def _num(value: float | None, fmt: str = "{:.3f}") -> str:
@@ -777,7 +780,7 @@ def _sweep(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
         print(f"{failed} of {len(rows)} configuration(s) failed (status and error in the table)")
     out = Path(args.out)
     print("wrote " + ", ".join(str(out / n) for n in ("sweep.csv", "sweep.json", "sweep.png")))
-    return 0
+    return FAILED if rows and failed == len(rows) else 0
 
 
 def _tune(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
@@ -839,13 +842,16 @@ def _tune(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
     labelled = [{**evaluation[k], "label": k} for k in ("best", "default") if evaluation[k]]
     _print_rows(labelled, [])
     recommended = result["recommended"]
-    print(f"recommended: the {recommended['source']} configuration ({recommended['reason']})")
+    if best is None and recommended.get("default_objective") is None:
+        print("recommended: nothing (every trial failed, and the default on the evaluation seeds)")
+    else:
+        print(f"recommended: the {recommended['source']} configuration ({recommended['reason']})")
     out = Path(args.out)
     print(
         "wrote "
         + ", ".join(str(out / n) for n in ("best.json", "study.csv", "study.png", "study.db"))
     )
-    return 0
+    return FAILED if best is None else 0
 
 
 def _info(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:

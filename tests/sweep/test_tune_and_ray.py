@@ -192,6 +192,25 @@ def test_a_failing_trial_is_recorded_and_the_study_goes_on(monkeypatch, tmp_path
     assert (tmp_path / "study.csv").read_text().count("failed") == len(result["failed_trials"])
 
 
+def _always_fails(**kwargs: Any) -> dict[str, Any]:
+    raise RuntimeError("boom")
+
+
+def test_cli_tune_whose_every_trial_failed_exits_1(monkeypatch, tmp_path, capsys) -> None:
+    """Every trial and the default fail: exit code 1, and nothing is recommended."""
+    import sys
+
+    pytest.importorskip("optuna")
+    monkeypatch.setattr(sys.modules["torchcbf.sweep.tune"], "evaluate", _always_fails)
+    code = main(
+        ["tune", "reach-avoid", "--trials", "2", "--seeds", "2", "--set", "num_samples=32",
+         "--params", "horizon", "--out", str(tmp_path), "--no-progress"]
+    )  # fmt: skip
+    assert code == 1
+    out = capsys.readouterr().out
+    assert "every trial failed" in out and "recommended: nothing" in out
+
+
 @pytest.mark.slow  # a local Ray cluster: 7 s to start
 def test_ray_records_a_failing_point_and_runs_the_rest(ray_cluster, monkeypatch) -> None:
     import sys

@@ -391,7 +391,7 @@ def recommend(
     default_obj = default.get("objective") if ok[1] else None
     common = {"best_objective": best_obj, "default_objective": default_obj}
     if best_arguments is None or best_obj is None:
-        reason = "no trial finished" if best_arguments is None else "the best trial failed to run"
+        reason = "no trial succeeded" if best_arguments is None else "the best trial failed to run"
         return {"source": "default", "arguments": dict(default_arguments), "reason": reason,
                 **common}  # fmt: skip
     if default_obj is None or best_obj > default_obj:
