@@ -256,3 +256,25 @@ def test_overwrite_removes_only_what_a_torchcbf_manifest_lists(tmp_path, capsys)
     with pytest.raises(OutputError, match="in use by another torchcbf run"):
         RunDir.claim(tmp_path / "held", kind="sweep", settings={}, resume=True)
     del held
+
+
+def test_resume_with_the_grid_keys_in_another_order_runs_nothing_again(
+    tmp_path, monkeypatch
+) -> None:
+    """The same grid with its keys given in another order is the same sweep: --resume finds
+    every finished configuration by its parameters (their indices differ) and runs none."""
+    args = ["sweep", "reach-avoid", "--grid", "num_samples=32,48", "--grid", "horizon=6,8",
+            "--seeds", "2", "--out", str(tmp_path), "--no-progress"]  # fmt: skip
+    assert main(args) == 0
+    first = json.loads((tmp_path / "sweep.json").read_text())["rows"]
+    monkeypatch.setattr("torchcbf.sweep.sweep.evaluate", _always_fails)
+    swapped = ["sweep", "reach-avoid", "--grid", "horizon=6,8", "--grid", "num_samples=32,48",
+               "--seeds", "2", "--out", str(tmp_path), "--no-progress", "--resume"]  # fmt: skip
+    assert main(swapped) == 0
+    again = json.loads((tmp_path / "sweep.json").read_text())["rows"]
+    assert all(r["status"] == "ok" for r in again) and len(again) == 4
+    key = lambda r: (r["num_samples"], r["horizon"])  # noqa: E731
+    assert sorted(map(key, again)) == sorted(map(key, first))
+    by_key = {key(r): r["success_count"] for r in first}
+    assert all(by_key[key(r)] == r["success_count"] for r in again)
+    assert len((tmp_path / "sweep.jsonl").read_text().splitlines()) == 4

@@ -191,9 +191,13 @@ def _row(params: Mapping[str, Any], num_seeds: int, seed: int, outcome: Outcome)
 def read_journal(
     path: Path, configs: Sequence[Mapping[str, Any]] | None = None
 ) -> dict[int, dict[str, Any]]:
-    """``{grid index: row}`` of the configurations a sweep's journal records as finished
-    (a last line cut by a kill is left out; with ``configs``, lines whose parameters are
-    not those of their index are too)."""
+    """``{grid index: row}`` of the configurations a sweep's journal records as finished (a
+    last line cut by a kill is left out). With ``configs``, a row is found by its
+    parameters, whatever index it was written under (the same grid given in another order
+    of its keys), and rows of no configuration of ``configs`` are left out."""
+    where = None
+    if configs is not None:
+        where = {_key(config, config): i for i, config in enumerate(configs)}
     done: dict[int, dict[str, Any]] = {}
     for line in _io.read_lines(path):
         try:
@@ -201,13 +205,20 @@ def read_journal(
             i, row = int(entry["index"]), dict(entry["row"])
         except (ValueError, KeyError, TypeError):
             continue
-        if configs is not None:
-            if not 0 <= i < len(configs):
+        if configs is not None and where is not None:
+            if not configs:
                 continue
-            if any(row.get(k) != strict(v) for k, v in configs[i].items()):
+            found = where.get(_key(row, configs[0]))
+            if found is None:
                 continue
+            i = found
         done[i] = row
     return done
+
+
+def _key(values: Mapping[str, Any], config: Mapping[str, Any]) -> str:
+    """The parameters of ``config`` as ``values`` holds them, in one canonical text."""
+    return json.dumps({k: strict(values.get(k)) for k in config}, sort_keys=True)
 
 
 def _trim_journal(path: Path) -> None:
