@@ -348,10 +348,18 @@ def build_scenario(
     target, inflated = sc.target, sc.inflated
 
     def extra(traj: Trajectory) -> dict[str, Tensor]:
-        err = (sc.arm.end_effector(traj.x[:, -1]) - target).norm(dim=-1)
+        B, T1, n = traj.x.shape
+        ee = sc.arm.end_effector(traj.x.reshape(B * T1, n)).reshape(B, T1, -1)
+        errs = (ee - target.unsqueeze(1)).norm(dim=-1)  # [B, T + 1]
+        err = errs[:, -1]
         blocked = inflated(traj.x[:, -1]).amin(-1) < 0.02
+        inside = errs < p.tol
+        # first time within tol (nan where never): what time_to_goal_s averages
+        first = torch.argmax(inside.to(torch.int8), dim=-1)
+        when = traj.t.to(errs.dtype)[first]
         return {
             "goal_reached": err < p.tol,
+            "goal_time": torch.where(inside.any(-1), when, torch.nan),
             "final_error": err,
             "missed_at_obstacle": (err >= p.tol) & blocked,
         }
