@@ -32,6 +32,7 @@ import argparse
 import functools
 import importlib.util
 import json
+import os
 import shlex
 import subprocess
 import sys
@@ -188,10 +189,18 @@ def _run_scenario(
     named.update({k: v for k, v in params.items() if k not in named})
     title = ", ".join([entry.name, *(f"{k}={v}" for k, v in named.items())])
     draw = entry.figures or functools.partial(standard_figures, stem=entry.name.replace("-", "_"))
-    figures = draw(
-        trajectories, scenario, parts.run.path, title=title, gif=not args.no_gif,
-        first_seed=args.seed,
-    )  # fmt: skip
+    folder = parts.run.path
+    before = set(os.listdir(folder))
+    try:
+        figures = draw(
+            trajectories, scenario, folder, title=title, gif=not args.no_gif,
+            first_seed=args.seed,
+        )  # fmt: skip
+    finally:
+        # the figures drawn so far, in the manifest even where Ctrl-C cut the drawing: an
+        # --overwrite removes them with the rest of the run
+        drawn = set(os.listdir(folder)) - before
+        parts.run.record(*sorted(n for n in drawn if not _io.is_temporary(folder / n)))
     for record in results.values():
         record["figures"] = [str(p) for p in figures]
     return results

@@ -278,3 +278,24 @@ def test_resume_with_the_grid_keys_in_another_order_runs_nothing_again(
     by_key = {key(r): r["success_count"] for r in first}
     assert all(by_key[key(r)] == r["success_count"] for r in again)
     assert len((tmp_path / "sweep.jsonl").read_text().splitlines()) == 4
+
+
+def test_figures_drawn_before_an_interrupt_are_removed_by_overwrite(tmp_path, monkeypatch):
+    """Ctrl-C while the figures are drawn: the manifest lists the ones already written, so
+    a later --overwrite removes them with the rest of the run (they stayed beside the new
+    run's outputs)."""
+    import torchcbf.scenarios.figures as figures
+
+    def half_drawn(trajectories, scenario, folder, **kwargs):
+        (folder / "old_rollouts.png").write_bytes(b"png")
+        raise KeyboardInterrupt
+
+    args = ["reach-avoid", "--seeds", "1", "--samples", "64", "--horizon", "6", "--no-gif",
+            "--no-progress", "--out", str(tmp_path)]  # fmt: skip
+    monkeypatch.setattr(figures, "standard_figures", half_drawn)
+    assert main(args) == 130
+    assert "old_rollouts.png" in json.loads((tmp_path / "run.json").read_text())["files"]
+    monkeypatch.undo()
+    assert main([*args, "--overwrite"]) == 0
+    assert not (tmp_path / "old_rollouts.png").exists()
+    assert (tmp_path / "metrics.json").exists()
