@@ -146,6 +146,23 @@ def test_infeasible_box_and_equality_flagged():
     torch.testing.assert_close(sol.x[1], torch.tensor([0.5, 0.0, 0.0], dtype=F64))
 
 
+@pytest.mark.parametrize("method", ["auto", "enumerate", "ipm"])
+def test_a_zero_equality_row_with_a_nonzero_right_side_is_infeasible(method):
+    """``0'x = 1`` contradicts itself as ``0'x <= -1`` does: PRIMAL_INFEASIBLE with x = 0,
+    its neighbours in the batch solved; ``0'x = 0`` constrains nothing."""
+    Q = torch.eye(3, dtype=F64).expand(3, 3, 3)
+    p = torch.tensor([-1.0, -1.0, 0.0], dtype=F64).expand(3, 3)
+    A = torch.tensor([[[0.0, 0.0, 0.0]], [[1.0, -1.0, 0.0]], [[0.0, 0.0, 0.0]]], dtype=F64)
+    b = torch.tensor([[1.0], [0.0], [0.0]], dtype=F64)
+    G = torch.tensor([[1.0, 1.0, 1.0]], dtype=F64).expand(3, 1, 3)
+    h = torch.full((3, 1), 1.0, dtype=F64)
+    sol = solve_qp(Q, p, G, h, A, b, method=method)
+    assert sol.status.tolist() == [Status.PRIMAL_INFEASIBLE, Status.SOLVED, Status.SOLVED]
+    assert (sol.x[0] == 0).all()
+    want = torch.tensor([[2.0, 2.0, -1.0]] * 2, dtype=F64) / 3  # x = (1, 1, 0) - (1, 1, 1) / 3
+    torch.testing.assert_close(sol.x[1:], want)
+
+
 def test_batch_equals_loop():
     batch = make_batch(12, 4, 6, 1, True, seed=11)
     args = (batch.Q, batch.p, batch.G, batch.h, batch.A, batch.b, batch.lb, batch.ub)

@@ -562,7 +562,7 @@ class _Flat(NamedTuple):
     soft: Tensor | None
     x0: Tensor | None
     bad: Tensor  # [B] non-finite data
-    infeasible_bound: Tensor  # [B] lb = +inf or ub = -inf
+    infeasible_bound: Tensor  # [B] lb = +inf, ub = -inf, h = -inf or a row 0'x = b != 0
     masked: bool  # whether some row may be skipped (always off the CPU)
 
 
@@ -603,6 +603,8 @@ def _flatten(inp: _Inputs) -> _Flat:
         infeasible_bound = infeasible_bound | (ubf == -math.inf).any(-1)
     if softf is not None:
         bad = bad | torch.isnan(softf).any(-1)
+    if bf.numel() > 0:  # an equality row 0'x = b with b != 0: nothing satisfies it
+        infeasible_bound = infeasible_bound | ((Af == 0).all(-1) & (bf != 0)).any(-1)
     infeasible_bound = infeasible_bound & ~bad
     skip = bad | infeasible_bound
     # on a CPU, asking whether any row is skipped costs no device synchronisation and spares
