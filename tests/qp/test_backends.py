@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -179,3 +181,27 @@ def test_proxsuite_backend_solved_rows_are_minimisers():
     assert solved.float().mean() >= 0.9 and bool((ref.status == Status.SOLVED).all())
     err = (sol.x - ref.x).abs().amax(-1) / (1.0 + ref.x.abs().amax(-1))
     assert float(err[solved].max()) <= 1e-6, err
+
+
+@pytest.mark.parametrize("backend", ["torch", "proxsuite", "qpsolvers:clarabel"])
+def test_multipliers_of_infinite_bounds_are_zero(backend):
+    """``lam_lb`` and ``lam_ub`` are exactly zero where the bound is infinite, whatever an
+    outside solver leaves there (1e-12), and the finite bounds keep theirs."""
+    if backend == "proxsuite":
+        pytest.importorskip("proxsuite")
+    elif backend != "torch":
+        qpsolvers = pytest.importorskip("qpsolvers")
+        if "clarabel" not in qpsolvers.available_solvers:
+            pytest.skip("clarabel not installed")
+    Q = torch.eye(2, dtype=F64).expand(3, 2, 2)
+    p = torch.tensor([[-3.0, 3.0], [1.0, -1.0], [0.5, 0.5]], dtype=F64)
+    lb = torch.tensor([-math.inf, -1.0], dtype=F64)
+    ub = torch.tensor([1.0, math.inf], dtype=F64)
+    with torch.no_grad():
+        sol = solve_qp(Q, p, lb=lb, ub=ub, backend=backend)
+    assert (sol.status == Status.SOLVED).all()
+    assert (sol.lam_lb[:, 0] == 0).all() and (sol.lam_ub[:, 1] == 0).all()
+    torch.testing.assert_close(sol.lam_ub[:, 0], torch.tensor([2.0, 0.0, 0.0], dtype=F64),
+                               atol=1e-6, rtol=0)  # fmt: skip
+    torch.testing.assert_close(sol.lam_lb[:, 1], torch.tensor([2.0, 0.0, 0.0], dtype=F64),
+                               atol=1e-6, rtol=0)  # fmt: skip

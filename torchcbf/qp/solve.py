@@ -831,11 +831,12 @@ def _unpack(
         slack = kept(xs[:, n:].clamp_min(0.0) * std.is_soft)
         off += m
     lam_ub = lam_lb = xs.new_zeros(B, n)
+    # an infinite bound holds nothing (an outside solver may leave 1e-12 there)
     if f.ub is not None:
-        lam_ub = kept(z[:, off : off + n])
+        lam_ub = torch.where(f.ub == math.inf, 0.0, kept(z[:, off : off + n]))
         off += n
     if f.lb is not None:
-        lam_lb = kept(z[:, off : off + n])
+        lam_lb = torch.where(f.lb == -math.inf, 0.0, kept(z[:, off : off + n]))
     nu = kept(y)
 
     def unflat(t: Tensor) -> Tensor:
