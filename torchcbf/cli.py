@@ -437,6 +437,13 @@ def _main(argv: Sequence[str] | None = None) -> int:
             return 2
     parser = build_parser()
     args = parser.parse_args(argv)
+    for first, count in (("seed", "seeds"), ("eval_seed", "eval_seeds")):
+        start, n = getattr(args, first, None), getattr(args, count, None)
+        if start is not None and n is not None and start + n > 2**32:
+            parser.error(
+                f"argument --{first.replace('_', '-')}: seeds {start}..{start + n - 1} pass "
+                "2^32 - 1 (the noise streams are 32-bit)"
+            )
     if getattr(args, "device", "cpu") == "cuda" and not torch.cuda.is_available():
         parser.error("argument --device: cuda, but CUDA is not available on this machine")
     if args.command in ECOSYSTEM_COMMANDS:
@@ -851,8 +858,8 @@ def _tune(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
     labelled = [{**evaluation[k], "label": k} for k in ("best", "default") if evaluation[k]]
     _print_rows(labelled, [])
     recommended = result["recommended"]
-    if best is None and recommended.get("default_objective") is None:
-        print("recommended: nothing (every trial failed, and the default on the evaluation seeds)")
+    if recommended["source"] == "none":
+        print(f"recommended: nothing ({recommended['reason']})")
     else:
         print(f"recommended: the {recommended['source']} configuration ({recommended['reason']})")
     out = Path(args.out)

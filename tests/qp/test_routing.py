@@ -217,6 +217,11 @@ def test_problems_the_kernel_fits_are_not_routed():
     sol = solve_qp(singular, p, G, h)
     assert sol.path == "small_proxsuite" and int(sol.status) == Status.SOLVED
     torch.testing.assert_close(sol.x, torch.tensor([1.0, 1.0], dtype=F64))
+    # an indefinite Q is not routed: proxsuite, made for convex problems, ran its whole
+    # budget (about 50 s) on one unbounded along its negative curvature
+    indefinite = torch.diag(torch.tensor([1.0, -1.0], dtype=F64))
+    sol = solve_qp(indefinite, p, G[:1] * torch.tensor([1.0, 0.0], dtype=F64), h[:1])
+    assert "proxsuite" not in sol.path and int(sol.status) == Status.DUAL_INFEASIBLE
 
 
 def test_dependent_equality_rows_are_never_solved_wrong(cvx):

@@ -209,6 +209,18 @@ def test_cli_tune_whose_every_trial_failed_exits_1(monkeypatch, tmp_path, capsys
     assert code == 1
     out = capsys.readouterr().out
     assert "every trial failed" in out and "recommended: nothing" in out
+    recommended = json.loads((tmp_path / "best.json").read_text())["recommended"]
+    assert recommended["source"] == "none" and recommended["arguments"] is None
+
+
+@pytest.mark.parametrize(
+    ("first", "count"), [("--seed", "--seeds"), ("--eval-seed", "--eval-seeds")]
+)
+def test_cli_refuses_seeds_that_pass_2_to_the_32(first, count, capsys) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["tune", "reach-avoid", first, str(2**32 - 2), count, "3", "--no-progress"])
+    assert exit_info.value.code == 2
+    assert "pass 2^32 - 1" in capsys.readouterr().err
 
 
 @pytest.mark.slow  # a local Ray cluster: 7 s to start

@@ -182,7 +182,8 @@ def _forward_closed_form(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> 
     if res is None:
         return _forward_ipm(data, cfg, x0)
     x, s, z, status, iters = res
-    x, z, status = _drop_unbounded(data, x, (z,), status, cfg)
+    # _closed_form answers only where every P is positive definite: no curvature to follow
+    x, z, status = _drop_unbounded(data, x, (z,), status, cfg, convex=True)
     y = data.q.new_zeros(data.batch, data.b.shape[-1])
     fac = _factor(data, x, z > s, status) if cfg.need_factor else None
     return Forward(x, z, y, status, iters, _codes(data.batch, "closed_form", x.device), fac)
@@ -208,7 +209,7 @@ def _forward_outside(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> Forw
     from torchcbf.qp import _backends
 
     if cfg.backend == "proxsuite":
-        out = _backends.solve_proxsuite(data, eps=cfg.eps, max_iter=cfg.max_iter, x0=x0)
+        out = _backends.solve_proxsuite(data, eps=cfg.eps, max_iter=cfg.max_iter, x0=x0, gap=True)
         name = "proxsuite"
     else:
         solver = cfg.backend.split(":", 1)[1]
@@ -744,7 +745,10 @@ def _curvature_fall(
         if inwards:
             usable = usable & ~(tight.unsqueeze(-1) & moving).any(-2)
         worst = torch.maximum(worst, torch.where(usable, fall, 0.0).amax(-1))
-        ray = ray | (usable & firm & torch.isinf(t)).any(-1)
+        # a certificate also leaves no tight row outwards (one the null space kept only to
+        # its rank tolerance, a nearly dependent pair, may close the way)
+        leaves = (tight.unsqueeze(-1) & moving).any(-2)
+        ray = ray | (usable & firm & torch.isinf(t) & ~leaves).any(-1)
     return worst, ray
 
 
@@ -754,6 +758,8 @@ def _drop_unbounded(
     others: tuple[Tensor, ...],
     status: Tensor,
     cfg: SolverConfig,
+    *,
+    convex: bool = False,
 ) -> tuple[Tensor, ...]:
     """``(x, *others, status)`` with the rows whose ``x`` :func:`unbounded_solved` or
     :func:`curvature_ray` finds a certificate of unboundedness reported ``DUAL_INFEASIBLE``
@@ -762,7 +768,9 @@ def _drop_unbounded(
     answer, ends there; the certificate holds whichever way ``x`` was found)."""
     unfinished = (status == int(Status.NUMERICAL_ERROR)) | (status == int(Status.MAX_ITER))
     rows = (status == int(Status.SOLVED)) | unfinished
-    unb = unbounded_solved(data, x, rows, cfg) | curvature_ray(data, x, rows, cfg.eps)
+    unb = unbounded_solved(data, x, rows, cfg)
+    if not convex:  # ``convex``: every P known positive definite
+        unb = unb | curvature_ray(data, x, rows, cfg.eps)
     if not bool(unb.any()):
         return (x, *others, status)
     u = unb.unsqueeze(-1)

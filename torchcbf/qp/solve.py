@@ -544,7 +544,14 @@ def _direct_applies(inp: _Inputs) -> bool:
     if _beyond_kernel(inp):
         return True
     Q = inp.Q.detach().double()
-    return bool(not_positive_definite(0.5 * (Q + Q.mT)).any())
+    Q = 0.5 * (Q + Q.mT)
+    if not bool(not_positive_definite(Q).any()):
+        return False
+    # a singular Q, which the dual method never takes; not an indefinite one, on which
+    # proxsuite (made for convex problems) may run its whole budget: half a minute for
+    # three variables unbounded along a direction of negative curvature
+    tau = 2.0 * Q.shape[-1] * torch.finfo(Q.dtype).eps * Q.abs().sum(-1).amax(-1)
+    return not bool((torch.linalg.eigvalsh(Q)[..., 0] < -tau).any())
 
 
 class _Flat(NamedTuple):

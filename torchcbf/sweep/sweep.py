@@ -195,9 +195,9 @@ def read_journal(
     last line cut by a kill is left out). With ``configs``, a row is found by its
     parameters, whatever index it was written under (the same grid given in another order
     of its keys), and rows of no configuration of ``configs`` are left out."""
-    where = None
-    if configs is not None:
-        where = {_key(config, config): i for i, config in enumerate(configs)}
+    where: dict[str, list[int]] = {}
+    for i, config in enumerate(configs or ()):
+        where.setdefault(_key(config, config), []).append(i)  # a repeated point: every index
     done: dict[int, dict[str, Any]] = {}
     for line in _io.read_lines(path):
         try:
@@ -205,20 +205,23 @@ def read_journal(
             i, row = int(entry["index"]), dict(entry["row"])
         except (ValueError, KeyError, TypeError):
             continue
-        if configs is not None and where is not None:
-            if not configs:
-                continue
-            found = where.get(_key(row, configs[0]))
-            if found is None:
-                continue
-            i = found
-        done[i] = row
+        if configs is None:
+            done[i] = row
+        elif configs:
+            for j in where.get(_key(row, configs[0]), ()):
+                done[j] = row
     return done
 
 
 def _key(values: Mapping[str, Any], config: Mapping[str, Any]) -> str:
-    """The parameters of ``config`` as ``values`` holds them, in one canonical text."""
-    return json.dumps({k: strict(values.get(k)) for k in config}, sort_keys=True)
+    """The parameters of ``config`` as ``values`` holds them, in one canonical text (a
+    number as a float: ``1`` and ``1.0`` are one point, as the run's settings compare)."""
+
+    def canonical(v: Any) -> Any:
+        v = strict(v)
+        return float(v) if isinstance(v, int) and not isinstance(v, bool) else v
+
+    return json.dumps({k: canonical(values.get(k)) for k in config}, sort_keys=True)
 
 
 def _trim_journal(path: Path) -> None:

@@ -384,7 +384,8 @@ def recommend(
 ) -> dict[str, Any]:
     """The configuration to use: the best trial's only when its objective on the evaluation
     seeds is above the default's, otherwise the default (``source``, ``arguments`` and the
-    ``reason``, with both evaluation objectives)."""
+    ``reason``, with both evaluation objectives); ``source`` ``"none"`` (``arguments``
+    None) where neither ran on the evaluation seeds."""
     best, default = evaluation.get("best"), evaluation.get("default")
     ok = [r is not None and r.get("status") == "ok" for r in (best, default)]
     best_obj = best.get("objective") if ok[0] else None
@@ -392,6 +393,10 @@ def recommend(
     common = {"best_objective": best_obj, "default_objective": default_obj}
     if best_arguments is None or best_obj is None:
         reason = "no trial succeeded" if best_arguments is None else "the best trial failed to run"
+        if default_obj is None:  # nothing that ran on the evaluation seeds to recommend
+            return {"source": "none", "arguments": None,
+                    "reason": f"{reason}, and the default failed on the evaluation seeds",
+                    **common}  # fmt: skip
         return {"source": "default", "arguments": dict(default_arguments), "reason": reason,
                 **common}  # fmt: skip
     if default_obj is None or best_obj > default_obj:
