@@ -164,19 +164,16 @@ def test_a_failing_point_is_recorded_and_the_rest_run(tmp_path, monkeypatch, cap
     with (tmp_path / "sweep.csv").open() as f:
         assert [r["status"] for r in csv.DictReader(f)] == ["ok", "failed", "ok"]
     assert json.loads((tmp_path / "run.json").read_text())["complete"] is True
+    # every point failing: the run completes, and the command exits 1
+    monkeypatch.setattr("torchcbf.sweep.sweep.evaluate", _always_fails)
+    args[args.index(str(tmp_path))] = str(tmp_path / "every")
+    assert main(args) == 1
+    assert "3 of 3 configuration(s) failed" in capsys.readouterr().out
+    assert json.loads((tmp_path / "every" / "run.json").read_text())["complete"] is True
 
 
 def _always_fails(**kwargs):
     raise RuntimeError("boom")
-
-
-def test_a_sweep_whose_every_point_failed_exits_1(tmp_path, monkeypatch, capsys) -> None:
-    monkeypatch.setattr("torchcbf.sweep.sweep.evaluate", _always_fails)
-    args = ["sweep", "reach-avoid", "--grid", "num_samples=32,48", "--grid", "horizon=8",
-            "--seeds", "2", "--out", str(tmp_path), "--no-progress"]  # fmt: skip
-    assert main(args) == 1
-    assert "2 of 2 configuration(s) failed" in capsys.readouterr().out
-    assert json.loads((tmp_path / "run.json").read_text())["complete"] is True
 
 
 def test_out_is_checked_before_any_work(tmp_path, monkeypatch, capsys) -> None:
