@@ -329,7 +329,7 @@ def stale_closed_forms(cls: type, rules: ClosedForms) -> list[str]:
     for fast, (stands_for, _) in rules.items():
         owner = _defines(cls, fast)
         refs = [_defines(cls, ref) for ref in stands_for]
-        alone = not _ours(owner) and all(_ours(r) or not _is_user(r) for r in refs)
+        alone = not _ours(owner) and not any(_is_user(r) for r in refs)
         if alone or not all(issubclass(owner, r) for r in refs):
             stale.append(fast)
     return stale
@@ -420,7 +420,7 @@ def _class_state(kind: type) -> tuple[tuple[str, int], ...]:
     return tuple(
         (name, id(value))
         for c in kind.__mro__
-        if c is not object and not _ours(c) and c.__module__.partition(".")[0] != "torch"
+        if _is_user(c)
         for name, value in vars(c).items()
         if name != "_rules_seen"
     )
@@ -497,7 +497,7 @@ def _track_shadow(obj: torch.nn.Module, name: str) -> None:
     if name == "_shadows":
         return
     was = own.get("_shadows", frozenset())
-    shadows = name in own and _is_method(getattr(type(obj), name, None))
+    shadows = name in own and name in _method_names(type(obj))
     now = was | {name} if shadows else was - {name}
     if now != was:
         own["_shadows"] = now
