@@ -108,6 +108,49 @@ def test_tiny_objective_interior_point(dtype):
         _check(solve_qp(*data, method=method), ref_x, ref_ok, dtype, method)
 
 
+def _tight_problems(seed: int, B: int = 16, n: int = 4, m: int = 6):
+    """``(Q, p, G, h)`` float64, row ``i`` drawn from seed ``seed + i``, half of its rows
+    tight at a random point (active sets of several rows)."""
+    rows = []
+    for i in range(B):
+        g = torch.Generator().manual_seed(seed + i)
+        L = torch.randn(n, n, generator=g, dtype=F64)
+        Q = L @ L.T + 0.5 * torch.eye(n, dtype=F64)
+        p = 3.0 * torch.randn(n, generator=g, dtype=F64)
+        G = torch.randn(m, n, generator=g, dtype=F64)
+        x0 = torch.randn(n, generator=g, dtype=F64)
+        slack = torch.rand(m, generator=g, dtype=F64)
+        slack[: m // 2] = 0.0
+        rows.append((Q, p, G, G @ x0 + slack + 0.05))
+    return tuple(torch.stack(t) for t in zip(*rows, strict=True))
+
+
+@pytest.mark.parametrize("rows", [1e16, 1e14, 1e10, 1e-10, 1e-14])
+def test_rows_of_any_magnitude_every_method(rows):
+    """Every row of ``G, h`` scaled by one factor far from 1 (multipliers of 1e-16 at 1e16):
+    the feasible set and the minimiser do not change. Enumeration's sign test on the
+    multipliers was absolute and took a wrong active set SOLVED (0.73 off)."""
+    Q, p, G, h = _tight_problems(200)
+    ref_x, ref_ok = _reference(Q, p, G, h, None, None, None, None)
+    assert ref_ok.all()
+    for method in METHODS:
+        _check(solve_qp(Q, p, G * rows, h * rows, method=method), ref_x, ref_ok, F64, method)
+
+
+@pytest.mark.parametrize("seed", [200, 31])
+def test_a_problem_in_other_units_every_method(seed):
+    """Objective x 1e4, variables in micro-units (x 1e6), rows x 1e8: ``Q`` of 1e16, ``G``
+    of 1e14, multipliers of 1e-21 after the solver's own scaling. Every method gives the
+    minimiser in the new units."""
+    Q, p, G, h = _tight_problems(seed)
+    ref_x, ref_ok = _reference(Q, p, G, h, None, None, None, None)
+    assert ref_ok.all()
+    obj, dx, con = 1e4, 1e6, 1e8
+    for method in METHODS:
+        sol = solve_qp(Q * obj * dx * dx, p * obj * dx, G * con * dx, h * con, method=method)
+        _check(sol._replace(x=sol.x * dx), ref_x, ref_ok, F64, method)
+
+
 def test_multipliers_and_gradients_of_a_scaled_problem():
     """The multipliers come back in the problem's own units (stationarity holds), and the
     gradients match finite differences where the scaling is far from one."""

@@ -38,7 +38,7 @@ from torch import Tensor
 
 from torchcbf.qp import _kkt
 from torchcbf.qp._data import QPData
-from torchcbf.qp._kkt import row_scale, scaled_violation
+from torchcbf.qp._kkt import multiplier_size, row_scale, scaled_violation
 
 #: ``method="auto"`` enumerates when the candidate count is at most ``MAX_CANDIDATES``, or at
 #: most ``MAX_CANDIDATES_SMALL_BATCH`` for batches of at most ``SMALL_BATCH`` rows (measured on
@@ -216,8 +216,14 @@ def _solve_chunk(
     pviol = torch.maximum(res.amax(-1), res.gather(-1, tab.T.expand(B, C, K)).amin(-1).neg())
     if E > 0:
         pviol = torch.maximum(pviol, res[..., :E].abs().amax(-1))
-    neg = (mu * tab.ineq.to(dtype)).amin(0).neg().clamp_min(0.0)
-    dviol = neg / (1.0 + mu.abs().amax(0))  # [C, B]
+    # each multiplier judged as its term in the stationarity, against the largest term
+    # (:func:`multiplier_size`), so the test does not depend on the units
+    w = torch.cat((R.abs().amax(-1).T, R.new_zeros(1, B)), 0)[tab.T.T]  # [K, C, B]
+    size = mu * w
+    grad = q.abs().amax(-1)
+    scale = torch.maximum(grad, size.abs().amax(0)) if K else grad.expand(C, B)
+    neg = (size * tab.ineq.to(dtype)).amin(0).neg().clamp_min(0.0)
+    dviol = neg / torch.where(scale > 0, scale, 1.0)  # [C, B]
     score = torch.maximum(pviol, dviol.T).nan_to_num_(nan=math.inf)
     score = torch.where(nonsing.T, score, math.inf)
     best_score, best = score.min(-1)
@@ -225,11 +231,9 @@ def _solve_chunk(
     chosen = tab.absmask[best] & ~(torch.arange(Rn, device=q.device) < E)
     x = xu - (U @ mult.unsqueeze(-1)).squeeze(-1)
     # stationarity check of the winner (guards against an inaccurate P^{-1})
-    stat = (L @ (L.mT @ x.unsqueeze(-1))).squeeze(-1) + q
-    stat = stat + (R.mT @ mult.unsqueeze(-1)).squeeze(-1)
-    dscale = 1.0 + q.abs().amax(-1)
-    if Rn > 0:
-        dscale = dscale + (R.abs().amax(-1) * mult.abs()).amax(-1)
+    Px = (L @ (L.mT @ x.unsqueeze(-1))).squeeze(-1)
+    stat = Px + q + (R.mT @ mult.unsqueeze(-1)).squeeze(-1)
+    _, dscale = multiplier_size(R, mult, torch.maximum(q.abs().amax(-1), Px.abs().amax(-1)))
     ok = (best_score <= eps) & (stat.abs().amax(-1) <= eps * dscale)
     ok = ok & torch.isfinite(x).all(-1)
     # the winner's rows on its own scale: the candidates were judged on x_u's, which a weak
@@ -313,8 +317,9 @@ def solve_enum_kkt(
     each = data.expand(C)
     x, z, y, solved = _kkt.solve_active(each, act)
     pviol = scaled_violation(each.G, each.h, each.A, each.b, x)
-    zmax = 1.0 + z.abs().amax(-1) if M > 0 else x.new_ones(B * C)
-    dviol = (-z.amin(-1)).clamp_min(0.0) / zmax if M > 0 else x.new_zeros(B * C)
+    grad = torch.maximum(each.q.abs().amax(-1), (each.P @ x.unsqueeze(-1)).abs().amax((-2, -1)))
+    zs, zscale = multiplier_size(each.G, z, grad)
+    dviol = (-zs.amin(-1)).clamp_min(0.0) / zscale if M > 0 else x.new_zeros(B * C)
     score = torch.where(solved, torch.maximum(pviol, dviol), math.inf).view(B, C)
     score = score.nan_to_num(nan=math.inf)
     best_score, best = score.min(-1)

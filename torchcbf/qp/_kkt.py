@@ -295,15 +295,27 @@ def kkt_point(
     slack = (h - torch.einsum("bmn,bn->bm", G, x)) / row_scale(G, h, x).clamp_min(
         torch.finfo(x.dtype).tiny
     )
-    za = torch.cat((z, z.new_zeros(len(z), 1)), -1)
-    zmax = 1.0 + za.abs().amax(-1)
-    loose = (z > rounding * zmax.unsqueeze(-1)) & (slack > rounding)
+    grad = torch.maximum(q.abs().amax(-1), torch.einsum("bij,bj->bi", P, x).abs().amax(-1))
+    zs, scale = multiplier_size(G, z, grad)
+    loose = (zs > rounding * scale.unsqueeze(-1)) & (slack > rounding)
+    negative = (zs < -rounding * scale.unsqueeze(-1)).any(-1)
     return (
         (scaled_violation(G, h, A, b, x) <= rounding)
-        & (za.amin(-1) >= -rounding * zmax)
+        & ~negative
         & ~loose.any(-1)
         & (stationarity_error(P, q, G, A, x, z, y) <= rounding)
     )
+
+
+def multiplier_size(R: Tensor, mult: Tensor, grad: Tensor) -> tuple[Tensor, Tensor]:
+    """Each multiplier's size as its term in the stationarity, ``mult_i max|R_i|``
+    ``[B, K]``, and the scale it is judged on ``[B]``: the largest such term or objective
+    gradient ``grad [B]`` (``max|q|``, ``max|Px|``), or 1 where all are zero. Scaling the
+    objective or a row leaves the ratio alone, so a wrong sign is seen whatever the units
+    (an absolute test passes ``-1e-21`` where the true multipliers are ``1e-21``)."""
+    size = mult * R.abs().amax(-1)
+    scale = torch.maximum(grad, size.abs().amax(-1)) if R.shape[-2] else grad
+    return size, torch.where(scale > 0, scale, 1.0)
 
 
 def kkt_residuals_ok(
@@ -364,17 +376,20 @@ def stationarity_error(
         + torch.einsum("bmn,bm->bn", G, z)
         + torch.einsum("ben,be->bn", A, y)
     )
+    objective = torch.einsum("bij,bj->bi", P.abs(), x.abs()) + q.abs()
     s = (
-        torch.einsum("bij,bj->bi", P.abs(), x.abs())
-        + q.abs()
+        objective
         + torch.einsum("bmn,bm->bn", G.abs(), z.abs())
         + torch.einsum("ben,be->bn", A.abs(), y.abs())
     )
     # a component whose terms are all rounding noise (a zero multiplier computed as 1e-27)
-    # is judged against the largest component's scale, and against the terms multipliers of
-    # unit size would give (where every term is noise: P = 0, q = 0, any feasible x)
+    # is judged against the largest component's scale; where the objective's gradient is
+    # zero (P x = 0, q = 0: every multiplier term is noise) against multipliers of unit size
+    # too. Elsewhere nothing absolute: true multipliers of 1e-21 (huge rows, a tiny
+    # objective) are no noise.
     rounding = 1e4 * torch.finfo(x.dtype).eps
-    unit = G.abs().sum(-2) + A.abs().sum(-2)
+    flat = objective.amax(-1, keepdim=True) == 0
+    unit = torch.where(flat, G.abs().sum(-2) + A.abs().sum(-2), 0.0)
     s = s + rounding * (s.amax(-1, keepdim=True) + unit)
     return (r.abs() / s.clamp_min(torch.finfo(x.dtype).tiny)).amax(-1)
 
