@@ -88,3 +88,17 @@ def test_shortcuts_and_empty_batches_report_methods():
     assert sol.path == "small_native" and sol.method_names() == ["active_set"] * 2
     empty = solve_qp(Q[:0], p[:0], G[:0], h[:0])
     assert empty.path == "empty" and empty.method.shape == (0,)
+
+
+@pytest.mark.parametrize("kw", [{}, {"method": "ipm"}, {"method": "enumerate"}])
+@pytest.mark.parametrize("B", [1, 3])
+def test_rows_no_method_answered_say_none(kw, B):
+    """A row with a NaN is NON_FINITE before any method runs: its method is ``"none"``,
+    not the algorithm that solved the other rows."""
+    Q, p, G, h = _batch(B, 2, 1, seed=3)
+    p[0, 0] = float("nan")
+    sol = solve_qp(Q, p, G, h, **kw)
+    assert int(sol.status[0]) == Status.NON_FINITE
+    names = sol.method_names()
+    assert names[0] == "none"
+    assert "none" not in names[1:] and (sol.status[1:] == Status.SOLVED).all()

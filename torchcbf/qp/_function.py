@@ -88,7 +88,10 @@ BackwardFactor = _kkt.KKTFactor | DualFactor | NativeFactor | MixedFactor
 #: :attr:`torchcbf.qp.QPSolution.method`): the projection formula, the dual active-set
 #: method, active-set enumeration, the interior point method (with its polish and exact
 #: re-solves), proxsuite's dense solver, a ``qpsolvers`` solver
-ANSWERED_BY = ("closed_form", "active_set", "enumerate", "ipm", "proxsuite", "qpsolvers")
+#: ``"none"``: a row decided before any method ran (non-finite data, ``lb > ub`` and the like)
+ANSWERED_BY = (
+    "closed_form", "active_set", "enumerate", "ipm", "proxsuite", "qpsolvers", "none"
+)  # fmt: skip
 
 
 def method_code(name: str) -> int:

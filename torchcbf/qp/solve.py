@@ -51,9 +51,11 @@ class QPSolution(NamedTuple):
       point method), ``"proxsuite"``, ``"qpsolvers:<solver>"``, or ``"empty"`` (no rows).
     - ``method [...]`` int64: the algorithm that answered each row, an index into
       :data:`METHODS_ANSWERED` (``"closed_form"``, ``"active_set"``, ``"enumerate"``,
-      ``"ipm"``, ``"proxsuite"``, ``"qpsolvers"``): rows an exact method cannot certify are
-      solved again by another (enumeration for a few, else the interior point method), and
-      this says which one's answer and status the row holds.
+      ``"ipm"``, ``"proxsuite"``, ``"qpsolvers"``, or ``"none"`` where the status was decided
+      from the data before any method ran: ``NON_FINITE``, or ``PRIMAL_INFEASIBLE`` bounds):
+      rows an exact method cannot certify are solved again by another (enumeration for a
+      few, else the interior point method), and this says which one's answer and status the
+      row holds.
     """
 
     x: Tensor
@@ -302,6 +304,9 @@ def solve_qp(
     )
     sol = _unpack(inp, flat, std, xs, z, y, status, iters)
     path = _path(cfg, std.q, std.G.shape[-2])
+    if flat.masked:
+        decided = flat.bad | flat.infeasible_bound
+        answered = torch.where(decided, method_code("none"), answered)
     return sol._replace(path=path, method=answered.reshape(inp.batch_shape))
 
 
