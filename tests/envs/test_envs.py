@@ -216,6 +216,23 @@ def test_seeding_is_reproducible_and_episodes_differ() -> None:
     assert not np.allclose(first, second_episode)
 
 
+@pytest.mark.parametrize("seed", [2**32, 2**32 + 7, -1])
+def test_seeds_outside_32_bits_are_refused(seed) -> None:
+    """The noise streams read 32 bits: seed ``s + 2^32`` drew seed ``s``'s episode."""
+    env = gym.make("torchcbf/UnicycleEllipses-v0")
+    with pytest.raises(ValueError, match="seed must lie in"):
+        env.reset(seed=seed)
+    vec = gym.make_vec(
+        "torchcbf/UnicycleEllipses-v0", num_envs=2, vectorization_mode="vector_entry_point"
+    )
+    with pytest.raises(ValueError, match="seed must lie in"):
+        vec.reset(seed=[3, seed])
+    with pytest.raises(ValueError, match="seed must lie in"):
+        vec.reset(seed=2**32 - 1)  # the second row would be 2^32
+    vec.reset(seed=[3, 2**32 - 1])
+    vec.reset(seed=2**32 - 2)
+
+
 def test_return_tensors_and_float64_match_numpy() -> None:
     kw = {"num_envs": 3, "vectorization_mode": "vector_entry_point", "start_noise": 0.3}
     a = gym.make_vec("torchcbf/UnicycleEllipses-v0", **kw)

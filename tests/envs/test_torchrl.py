@@ -112,6 +112,14 @@ def test_set_seed_restarts_the_sequence():
     torch.testing.assert_close(_run(env, actions)["next", "observation"], first)
 
 
+def test_seeds_outside_32_bits_are_refused():
+    with pytest.raises(ValueError, match="seed must lie in"):
+        TorchRLEnv("torchcbf/UnicycleEllipses-v0", 1, seed=2**32 + 5)
+    env = TorchRLEnv("torchcbf/UnicycleEllipses-v0", 2, seed=2**32 - 2)
+    with pytest.raises(ValueError, match="seed must lie in"):
+        env.set_seed(2**32 - 1)  # the second row would be 2^32
+
+
 def test_partial_reset_resets_only_the_masked_rows():
     env = TorchRLEnv("torchcbf/UnicycleEllipses-v0", 3, seed=0, sigma=0.0)
     td = env.reset()

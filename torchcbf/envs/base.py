@@ -31,6 +31,7 @@ from gymnasium.vector.utils import batch_space
 from torch import Tensor, nn
 
 from torchcbf._checks import check_positive_int
+from torchcbf._random import seed_rows
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.envs import _noise
 
@@ -172,15 +173,15 @@ class TorchVectorEnv(gymnasium.vector.VectorEnv):
             drawn = self.np_random.integers(0, _SEED_RANGE, size=self.num_envs)
             return torch.as_tensor(drawn, dtype=torch.int64, device=self.device)
         if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
-            return torch.arange(self.num_envs, device=self.device) + int(seed)
+            return seed_rows(int(seed), self.num_envs, self.device, per="sub-environment")
         seeds = list(seed)
         if len(seeds) != self.num_envs:
             raise ValueError(
                 f"seed as a list needs num_envs = {self.num_envs} entries, got {seeds}"
             )
         fill = self.np_random.integers(0, _SEED_RANGE, size=self.num_envs)
-        values = [int(f) if s is None else int(s) for s, f in zip(seeds, fill, strict=True)]
-        return torch.as_tensor(values, dtype=torch.int64, device=self.device)
+        values = [int(f) if s is None else s for s, f in zip(seeds, fill, strict=True)]
+        return seed_rows(values, self.num_envs, self.device, per="sub-environment")
 
     def reset(
         self,
@@ -193,6 +194,8 @@ class TorchVectorEnv(gymnasium.vector.VectorEnv):
         ``seed``: an int (sub-environment ``i`` gets ``seed + i``), one seed per
         sub-environment, or None (the next episode of each one's seed).
         """
+        if seed is not None:
+            seeds = self._seed_tensor(seed)  # refused before any state changes
         super().reset(seed=seed if isinstance(seed, int) else None)
         rows = torch.ones(self.num_envs, dtype=torch.bool, device=self.device)
         if options is not None and "reset_mask" in options:
@@ -205,7 +208,8 @@ class TorchVectorEnv(gymnasium.vector.VectorEnv):
             rows = torch.as_tensor(mask, device=self.device)
             if not self._started:
                 raise ValueError("options['reset_mask'] needs a full reset first")
-        seeds = self._seed_tensor(seed)
+        if seed is None:
+            seeds = self._seed_tensor(seed)
         self._seeded = True
         with torch.no_grad():
             self._reset_rows(rows, seeds)
@@ -330,6 +334,8 @@ class TorchEnv(gymnasium.Env):
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """Start an episode; ``seed`` fixes every random draw of it and of later episodes."""
+        if seed is not None:
+            seed_rows(seed, 1, self.vector.device, per="environment")
         super().reset(seed=seed)
         vec = self.vector
         if seed is None and vec._seeded:

@@ -34,6 +34,7 @@ from torch import Tensor, nn
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from torchcbf._random import seed_rows
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.envs.base import TorchVectorEnv, check_finite_action
 
@@ -113,7 +114,7 @@ class TorchRLEnv(EnvBase):
         vec.return_tensors = True
         super().__init__(device=vec.device, batch_size=torch.Size([vec.num_envs]))
         self.vector_env = vec
-        self._pending_seed: int | None = None
+        self._pending_seed: Tensor | None = None
         self._make_specs()
         self._set_seed(int(secrets.randbelow(_SEED_RANGE)) if seed is None else seed)
 
@@ -182,7 +183,8 @@ class TorchRLEnv(EnvBase):
             seed = int(secrets.randbelow(_SEED_RANGE))
         if isinstance(seed, bool) or not isinstance(seed, int):
             raise TypeError(f"seed must be an int or None, got {type(seed).__name__}")
-        self._pending_seed = seed
+        vec = self.vector_env
+        self._pending_seed = seed_rows(seed, vec.num_envs, vec.device, per="sub-environment")
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
         vec = self.vector_env
@@ -193,8 +195,7 @@ class TorchRLEnv(EnvBase):
             rows = torch.ones(vec.num_envs, dtype=torch.bool, device=vec.device)
         seeds = None
         if self._pending_seed is not None and (mask is None or not vec._started):
-            seeds = torch.arange(vec.num_envs, device=vec.device) + self._pending_seed
-            self._pending_seed = None
+            seeds, self._pending_seed = self._pending_seed, None
             rows = torch.ones_like(rows)
         elif not vec._started:
             raise RuntimeError("the first reset must reset every sub-environment")

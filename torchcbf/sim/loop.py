@@ -24,7 +24,6 @@ the library are; so are plain functions):
 from __future__ import annotations
 
 import math
-import numbers
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
@@ -34,7 +33,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from torchcbf._checks import check_last_dim, check_number, check_positive_int
-from torchcbf._random import counter_normal
+from torchcbf._random import counter_normal, seed_rows
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.estimation import Estimator, Sensor
 from torchcbf.filters import FilterStatus
@@ -200,7 +199,7 @@ class _Run:
         B, n, m = x0.shape[0], dyn.state_dim, dyn.control_dim
         self.B, self.n, self.m = B, n, m
         self.device, self.dtype = x0.device, x0.dtype
-        self.seeds = _seeds(seed, B, x0.device)
+        self.seeds = seed_rows(seed, B, x0.device, per="scenario")
         sigma0 = dyn.sigma(x0)
         self.q = None if sigma0 is None else sigma0.shape[-1]
         # float64 whatever the states' dtype: float32 times lose the step where t0 is large
@@ -379,33 +378,6 @@ class _Run:
         """``value`` with the failed rows zeroed (a frozen row feeds no NaN forward)."""
         mask = self.failed.view(-1, *([1] * (value.dim() - 1)))
         return torch.where(mask, torch.zeros_like(value), value)
-
-
-#: seeds of the noise streams are 32-bit (:mod:`torchcbf._random`): 0 <= seed < SEED_LIMIT
-SEED_LIMIT = 2**32
-
-
-def _seeds(seed: int | Sequence[int] | Tensor, batch: int, device: torch.device) -> Tensor:
-    """One seed per scenario: ``seed + b`` from one integer (a NumPy or one-value tensor
-    integer too), or the given ``[batch]``; each in ``[0, 2^32)`` (the noise streams read 32
-    bits: ``2^32`` would repeat seed 0's stream)."""
-    if isinstance(seed, Tensor) and seed.numel() == 1 and batch != 1:
-        seed = int(seed)
-    if isinstance(seed, numbers.Integral) and not isinstance(seed, bool):
-        if not 0 <= int(seed) <= SEED_LIMIT - max(batch, 1):
-            raise ValueError(
-                f"seed must lie in [0, {SEED_LIMIT - max(batch, 1)}] for {batch} scenarios "
-                f"(32-bit noise streams), got {int(seed)}"
-            )
-        return torch.arange(batch, device=device, dtype=torch.int64) + int(seed)
-    seeds = torch.as_tensor(seed, dtype=torch.int64, device=device).reshape(-1)
-    if seeds.shape != (batch,):
-        raise ValueError(
-            f"seed must be an int or hold one seed per scenario ({batch}), got {tuple(seeds.shape)}"
-        )
-    if seeds.numel() and not bool(((seeds >= 0) & (seeds < SEED_LIMIT)).all()):
-        raise ValueError(f"seeds must lie in [0, 2^32) (32-bit noise streams): {seeds.tolist()}")
-    return seeds
 
 
 def _check_shape(what: str, value: Any, shape: tuple[int, ...]) -> None:
