@@ -642,3 +642,15 @@ def rows_finite(t: Tensor | None, trailing: int, batch: int) -> Tensor | None:
     else:
         lo, hi = torch.aminmax(flat, dim=-1)
     return (hi < math.inf) & (lo > -math.inf)
+
+
+def check_finite_action(name: str, action: Tensor) -> None:
+    """Refuse a non-finite ``action`` (``ValueError`` naming ``name``). On the CPU at once; on
+    an accelerator asynchronously (``torch._assert_async``: the failure surfaces at a later
+    synchronisation), so that a step never waits for the device."""
+    finite = torch.isfinite(action).all()
+    if action.device.type == "cpu":
+        if not bool(finite):  # a CPU reduction: nothing to wait for
+            raise ValueError(f"{name} must be finite")
+    else:
+        torch._assert_async(finite, f"{name} must be finite")

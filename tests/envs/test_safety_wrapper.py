@@ -163,3 +163,33 @@ def test_a_wrapped_env_passes_gymnasiums_checker_and_is_made_again_from_its_spec
         check_env(safe, skip_render_check=True)
     again = safe.spec.make()
     assert isinstance(again, envs.SafetyFilterWrapper) and again.safety_filter is filt
+
+
+@pytest.mark.parametrize("tensor", [False, True])
+def test_an_integer_action_steps_the_filters_real_control(tensor) -> None:
+    """The filtered control is real: cast to an integer action's dtype it was truncated
+    (2.544 applied as 2)."""
+    runs = []
+    for action in (np.array([5.0, 5.0]), np.array([5, 5])):
+        base = gym.make("torchcbf/ReachAvoid-v0")
+        env = envs.SafetyFilterWrapper(base, _reach_avoid_filter(base))
+        env.reset(seed=0)
+        for _ in range(4):
+            env.step(np.array([5.0, 5.0]))
+        given = torch.as_tensor(action) if tensor else action
+        obs, *_, info = env.step(given)
+        runs.append((np.asarray(obs), info["filter_status"]))
+    np.testing.assert_array_equal(runs[0][0], runs[1][0])
+
+
+def test_a_non_finite_action_is_refused_behind_the_filter() -> None:
+    base = gym.make("torchcbf/ReachAvoid-v0")
+    env = envs.SafetyFilterWrapper(base, _reach_avoid_filter(base))
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="action must be finite"):
+        env.step(np.array([np.nan, 1.0]))
+    vec = gym.make_vec("torchcbf/ReachAvoid-v0", num_envs=2, **KW)
+    wrapped = envs.SafetyFilterWrapper(vec, _reach_avoid_filter(vec))
+    wrapped.reset(seed=0)
+    with pytest.raises(ValueError, match="action must be finite"):
+        wrapped.step(np.array([[0.0, 0.0], [np.inf, 0.0]]))

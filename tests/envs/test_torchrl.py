@@ -190,6 +190,16 @@ def _shielded(env_id: str, n: int, dtype=torch.float32, **kwargs):
     return TransformedEnv(base, SafetyFilterTransform(safety_filter)), safety_filter
 
 
+def test_the_transform_refuses_a_non_finite_action():
+    """As the env alone does: behind the filter a NaN became the filter's stand-in control
+    and stepped the env, hiding a broken policy."""
+    env, _ = _shielded("torchcbf/ReachAvoid-v0", 2)
+    td = env.reset()
+    td["action"] = torch.tensor([[float("nan"), 1.0], [1.0, 1.0]])
+    with pytest.raises(ValueError, match="action must be finite"):
+        env.step(td)
+
+
 @pytest.mark.parametrize("env_id", IDS)
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_transform_matches_a_direct_filter_call(env_id, dtype):

@@ -30,24 +30,12 @@ from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 from torch import Tensor, nn
 
-from torchcbf._checks import check_positive_int
+from torchcbf._checks import check_finite_action, check_positive_int
 from torchcbf._random import seed_rows
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.envs import _noise
 
 _SEED_RANGE = 2**31
-
-
-def check_finite_action(name: str, action: Tensor) -> None:
-    """Refuse a non-finite ``action`` (``ValueError`` naming ``name``). On the CPU at once; on
-    an accelerator asynchronously (``torch._assert_async``: the failure surfaces at a later
-    synchronisation), so that a step never waits for the device."""
-    finite = torch.isfinite(action).all()
-    if action.device.type == "cpu":
-        if not bool(finite):  # a CPU reduction: nothing to wait for
-            raise ValueError(f"{name} must be finite")
-    else:
-        torch._assert_async(finite, f"{name} must be finite")
 
 
 class TorchVectorEnv(gymnasium.vector.VectorEnv):

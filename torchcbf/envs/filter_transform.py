@@ -32,7 +32,7 @@ from torch import Tensor, nn
 from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import Transform
 
-from torchcbf._checks import placement
+from torchcbf._checks import check_finite_action, placement
 
 __all__ = ["FILTER_KEYS", "SafetyFilterTransform", "barrier_values"]
 
@@ -132,10 +132,12 @@ class SafetyFilterTransform(Transform):
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         u_nom = tensordict.get(self.action_key)
+        check_finite_action("action", u_nom)  # else the env steps the filter's stand-in
         x, t = self._state(tensordict)
         with torch.no_grad():
             out = self.safety_filter(x, u_nom.to(x), t)
-        u = out.u.to(device=u_nom.device, dtype=u_nom.dtype)
+        dtype = u_nom.dtype if u_nom.is_floating_point() else out.u.dtype
+        u = out.u.to(device=u_nom.device, dtype=dtype)
         change = (u - u_nom).abs().amax(-1, keepdim=True)
         tensordict.set(self.action_key, u)
         record = {

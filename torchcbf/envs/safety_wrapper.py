@@ -20,7 +20,7 @@ import torch
 from gymnasium.vector import VectorEnv, VectorWrapper
 from torch import Tensor, nn
 
-from torchcbf._checks import placement
+from torchcbf._checks import check_finite_action, placement
 
 StateFn = Callable[[Any], Any]
 
@@ -71,15 +71,21 @@ class _Filtering:
         kw = {"device": self.filter_device, "dtype": self.filter_dtype}
         x = torch.as_tensor(self.state_fn(self._last_obs), **kw)
         u_nom = torch.as_tensor(np.asarray(action) if not isinstance(action, Tensor) else action)
+        # a NaN would reach the filter as a status, and the env as the filter's stand-in
+        check_finite_action("action", u_nom)
         u_nom = u_nom.to(**kw)
         t = None if self.time_fn is None else torch.as_tensor(self.time_fn(self._last_obs), **kw)
         with torch.no_grad():
             out = self.safety_filter(x, u_nom, t)
         if isinstance(action, Tensor):
-            u: Any = out.u.to(device=action.device, dtype=action.dtype)
+            dtype = action.dtype if action.is_floating_point() else out.u.dtype
+            u: Any = out.u.to(device=action.device, dtype=dtype)
             extra = {"filter_status": out.status, "filter_h": out.h, "action_nominal": action}
         else:
-            u = out.u.cpu().numpy().astype(np.asarray(action).dtype, copy=False)
+            given = np.asarray(action).dtype
+            # the filtered control is real: an integer action would truncate it
+            u = out.u.cpu().numpy()
+            u = u.astype(given if np.issubdtype(given, np.floating) else u.dtype, copy=False)
             extra = {
                 "filter_status": out.status.cpu().numpy(),
                 "filter_h": out.h.cpu().numpy(),
@@ -110,7 +116,10 @@ class SafetyFilterWrapper(_Filtering, gymnasium.Wrapper, gymnasium.utils.RecordC
         device, dtype: where the filter runs (default: those of its parameters/buffers).
 
     ``info`` gains ``filter_status`` (int codes), ``filter_h`` (``[k]`` barrier values at
-    the state the filter saw) and ``action_nominal``.
+    the state the filter saw) and ``action_nominal``. A non-finite action is refused
+    (``ValueError``) as the env alone refuses it; the env steps the filter's control in the
+    action's dtype where that is floating (else the filter's: an integer action would
+    truncate it).
     """
 
     def __new__(cls, env: Any, *args: Any, **kwargs: Any) -> Any:

@@ -34,9 +34,10 @@ from torch import Tensor, nn
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from torchcbf._checks import check_finite_action
 from torchcbf._random import seed_rows
 from torchcbf.dynamics.base import ControlAffine
-from torchcbf.envs.base import TorchVectorEnv, check_finite_action
+from torchcbf.envs.base import TorchVectorEnv
 
 __all__ = ["TorchRLEnv"]
 
