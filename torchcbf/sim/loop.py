@@ -211,7 +211,6 @@ class _Run:
         self.hs: Tensor | None = None
         self.statuses: Tensor | None = None
         self.failed = torch.zeros(B, dtype=torch.bool, device=x0.device)
-        self.blind = self.failed
         self.fail_step = torch.full((B,), -1, dtype=torch.int64, device=x0.device)
         self.snapshots: dict[int, Any] = {}
         self.snapshot_set = set(snapshot_steps)
@@ -263,7 +262,6 @@ class _Run:
             x_hat = self.x
         self.mark(_finite_rows(self.x) & _finite_rows(x_hat), k)
         x_hat = self.clean(x_hat)
-        self.blind = self.failed  # these rows' controllers see a zero stand-in this step
         self.xs_hat[:, k] = x_hat
         return x_hat
 
@@ -315,11 +313,13 @@ class _Run:
                 self.statuses = torch.zeros(
                     self.B, self.steps, dtype=torch.int64, device=self.device
                 )
-            # a frozen row's filter saw a zero stand-in state: nothing of it is recorded
-            blind = self.blind
-            self.hs[:, k] = torch.where(blind.unsqueeze(-1), math.nan, h)
-            self.statuses[:, k] = torch.where(blind, int(FilterStatus.NON_FINITE), out.status)
         self.mark(_finite_rows(u), k)
+        if safety_filter is not None:
+            # a row failed by this step (its state, estimate, nominal or control) fed the
+            # filter a zero stand-in or got no control: nothing of the filter is recorded
+            failed = self.failed
+            self.hs[:, k] = torch.where(failed.unsqueeze(-1), math.nan, h)
+            self.statuses[:, k] = torch.where(failed, int(FilterStatus.NON_FINITE), out.status)
         u = self.clean(u)
         self.us[:, k] = u
         return u
