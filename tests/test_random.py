@@ -5,16 +5,16 @@ from __future__ import annotations
 
 import torch
 
-from torchcbf._random import _uniform, counter_normal
+from torchcbf._random import _uniform, counter_normal, seed_keys
 
 
 def test_no_two_seeds_share_a_uniform():
     """Seeds 0-63 at counters 0-31, both Box-Muller streams, 4 elements: every uniform
     differs (53 random bits each). Seeds ``s`` and ``s ^ 1`` once drew each other's two
     uniforms at every even counter."""
-    seeds = torch.arange(64)
+    keys = seed_keys(torch.arange(64))
     drawn = torch.cat(
-        [_uniform(seeds, c, stream, 4).reshape(-1) for c in range(32) for stream in (0, 1)]
+        [_uniform(keys, c, stream, 4).reshape(-1) for c in range(32) for stream in (0, 1)]
     )
     assert drawn.unique().numel() == drawn.numel()
 

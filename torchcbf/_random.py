@@ -59,8 +59,8 @@ def seed_rows(
     return seeds
 
 
-def _mix32(h: Tensor | int) -> Tensor | int:
-    """murmur3's 32-bit finaliser on int64 tensors (or Python ints) in [0, 2^32)."""
+def _mix32(h: Tensor) -> Tensor:
+    """murmur3's 32-bit finaliser on int64 tensors holding values in [0, 2^32)."""
     h = h ^ (h >> 16)
     h = (h * 0x85EBCA6B) & _MASK
     h = h ^ (h >> 13)
@@ -68,29 +68,39 @@ def _mix32(h: Tensor | int) -> Tensor | int:
     return h ^ (h >> 16)
 
 
-def _uniform(seeds: Tensor, counter: int, stream: int, numel: int) -> Tensor:
-    """Uniforms in (0, 1), shape ``[B, numel]``, from 32-bit hashes of (seed, counter, index).
-
-    The seed is hashed before it meets the counter (and the counter is not hashed the same
-    way, which would make seed ``s`` at word ``w`` draw what seed ``w`` draws at ``s``):
-    combined raw (``seed ^ f(counter)``), seeds ``s`` and ``s ^ 1`` drew each other's
-    uniforms at every even counter, so neighbouring scenarios were dependent."""
-    idx = torch.arange(numel, device=seeds.device, dtype=torch.int64)
-    at = (counter * 0x9E3779B9 + 2 * stream + 1) & _MASK  # a Python int: no copy
-    # the offset: the finaliser maps 0 to 0, which would leave seed 0's keys the counter's
-    key = _mix32(_mix32((seeds.to(torch.int64) ^ 0x3C6EF372) & _MASK) ^ at)
+def _uniform(keys: Tensor, counter: int, stream: int, numel: int) -> Tensor:
+    """Uniforms in (0, 1), shape ``[B, numel]``, from 32-bit hashes of (key, counter,
+    index); ``keys [B]`` are hashes already (:func:`seed_keys`)."""
+    idx = torch.arange(numel, device=keys.device, dtype=torch.int64)
+    key = _mix32((keys.to(torch.int64) & _MASK) ^ ((counter * 0x9E3779B9 + stream) & _MASK))
     h = _mix32((key.unsqueeze(-1) + _mix32(idx * 2 + 1)) & _MASK)
     h2 = _mix32((h ^ 0x5BD1E995) & _MASK)
     bits = (h << 21) | (h2 >> 11)  # 53 random bits
     return (bits.to(torch.float64) + 0.5) / float(1 << 53)
 
 
+def seed_keys(seeds: Tensor) -> Tensor:
+    """The 32-bit key ``[B]`` of each seed. Seeds meet the counter only hashed: raw,
+    ``seed ^ f(counter, stream)`` gave seeds ``s`` and ``s ^ 1`` each other's uniforms at
+    every even counter, so neighbouring scenarios were dependent. (The offset: the
+    finaliser maps 0 to 0.)"""
+    return _mix32((seeds.to(torch.int64) ^ 0x3C6EF372) & _MASK)
+
+
+def keyed_normal(
+    keys: Tensor, counter: int, shape: tuple[int, ...], *, dtype: torch.dtype = torch.float32
+) -> Tensor:
+    """Standard normal samples ``[B, *shape]`` for hashed ``keys [B]`` at step ``counter``
+    (Box-Muller over two streams of uniforms)."""
+    numel = math.prod(shape)
+    u1 = _uniform(keys, counter, 0, numel)
+    u2 = _uniform(keys, counter, 1, numel)
+    z = torch.sqrt(-2.0 * torch.log(u1)) * torch.cos(2.0 * math.pi * u2)
+    return z.to(dtype).reshape(keys.shape[0], *shape)
+
+
 def counter_normal(
     seeds: Tensor, counter: int, shape: tuple[int, ...], *, dtype: torch.dtype = torch.float32
 ) -> Tensor:
     """Standard normal samples ``[B, *shape]`` for integer ``seeds [B]`` at step ``counter``."""
-    numel = math.prod(shape)
-    u1 = _uniform(seeds, counter, 0, numel)
-    u2 = _uniform(seeds, counter, 1, numel)
-    z = torch.sqrt(-2.0 * torch.log(u1)) * torch.cos(2.0 * math.pi * u2)
-    return z.to(dtype).reshape(seeds.shape[0], *shape)
+    return keyed_normal(seed_keys(seeds), counter, shape, dtype=dtype)

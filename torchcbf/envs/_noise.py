@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchcbf._random import counter_normal
+from torchcbf._random import keyed_normal
 
 _MASK = 0xFFFFFFFF
 
@@ -43,4 +43,4 @@ def normal(
     dtype: torch.dtype,
 ) -> Tensor:
     """Standard normal samples ``[B, dim]``, one independent stream per (seed, episode, step)."""
-    return counter_normal(row_keys(seeds, episodes, steps), 0, (dim,), dtype=dtype)
+    return keyed_normal(row_keys(seeds, episodes, steps), 0, (dim,), dtype=dtype)
