@@ -103,3 +103,30 @@ def test_elastic_filter_qp_status_does_not_depend_on_batch_size(method, dtype):
         copies = [t[:1].expand(B, *t.shape[1:]) for t in data]
         out = solve_qp(*copies[:4], lb=copies[4], ub=copies[5], method=method)
         assert (out.status == int(full.status[0])).all(), B
+
+
+@pytest.mark.parametrize("hard", [1, 16, 17, 40])
+def test_a_rows_answer_does_not_depend_on_how_many_rows_are_hard(hard):
+    """A far unconstrained minimiser (``p`` of 1e12) that enumeration by Schur complement
+    loses: the rescue solved every candidate's KKT system only while few rows (16) needed
+    it; the 17th sent them all to the interior point method, which ended NUMERICAL_ERROR."""
+    f64 = torch.float64
+    Q = torch.diag(torch.tensor([1.0, 1.0, 100.0, 100.0], dtype=f64))
+    G = torch.tensor([[0.83, 0.5576, -1.0, 0.0], [0.3167, 0.9485, 0.0, -1.0]], dtype=f64)
+    h = torch.tensor([1.1118, 1.4487], dtype=f64)
+    lb = torch.tensor([-2.0, -2.0, 0.0, 0.0], dtype=f64)
+    ub = torch.tensor([2.0, 2.0, math.inf, math.inf], dtype=f64)
+    B = 64
+    p = torch.tensor([-0.1, 0.2, 0.0, 0.0], dtype=f64).repeat(B, 1)
+    p[:hard] = torch.tensor([-1e12, -1e12, 0.0, 0.0], dtype=f64)
+
+    def expand(t):
+        return t.expand(B, *t.shape)
+
+    sol = solve_qp(expand(Q), p, expand(G), expand(h), lb=expand(lb), ub=expand(ub))
+    assert (sol.status == Status.SOLVED).all(), sol.status
+    # the minimiser of the hard row: u at the box corner, the slacks of its two rows
+    u = torch.tensor([2.0, 2.0], dtype=f64)
+    s = (G[:, :2] @ u - h).clamp_min(0.0)
+    expected = torch.cat((u, s))
+    torch.testing.assert_close(sol.x[:hard], expected.expand(hard, 4), rtol=0, atol=1e-9)

@@ -23,7 +23,6 @@ from torchcbf.qp._data import QPData
 from torchcbf.qp._dual import DualFactor, DualResult, NativeFactor, dual_adjoints, solve_dual
 from torchcbf.qp._enum import (
     MAX_CANDIDATES_SMALL_BATCH,
-    SMALL_BATCH,
     EnumResult,
     num_candidates,
     solve_enum,
@@ -43,8 +42,9 @@ MAX_DUAL_CONDITION = 1e4
 #: diagonal entry, and the most proximal steps it takes
 PROX_WEIGHT = 1e-5
 PROX_STEPS = 2
-#: most candidate KKT systems (rows times candidate sets) :func:`_certified_enum` solves for
-#: the rows enumeration by Schur complement could not certify (:func:`solve_enum_kkt`)
+#: most candidate KKT systems (rows times candidate sets) :func:`_certified_enum` solves in
+#: one block for the rows enumeration by Schur complement could not certify
+#: (:func:`solve_enum_kkt`)
 KKT_ENUM_SYSTEMS = 4096
 #: largest number of variables (after softening) the dual active-set method is used for by
 #: its torch implementation (its unrolled eliminations grow as N^3 tensor operations); the C
@@ -837,14 +837,15 @@ def _certified_enum(data: QPData, cfg: SolverConfig) -> EnumResult:
     fail = ~en.ok
     N, M, E = data.sizes
     C = num_candidates(M, E, N, cfg.pairs)
-    n_fail = int(fail.sum())
-    if 0 < n_fail * C <= KKT_ENUM_SYSTEMS:
-        # a few rows the Schur complement lost (P too ill-conditioned): every candidate's
-        # own KKT system, before the interior point method's iterations
-        idx = fail.nonzero().squeeze(-1)
-        sub = data.rows(idx)
-        ek = solve_enum_kkt(sub, eps=cfg.eps, pairs=cfg.pairs)
-        en = EnumResult(*(t.index_copy(0, idx, u) for t, u in zip(en, ek, strict=True)))
+    if bool(fail.any()):
+        # rows the Schur complement lost (P too ill-conditioned, a far minimiser): every
+        # candidate's own KKT system, before the interior point method's iterations; in
+        # blocks of rows, however many there are, so that a row's answer does not depend on
+        # how many others failed
+        fails = fail.nonzero().squeeze(-1)
+        for idx in fails.split(max(1, KKT_ENUM_SYSTEMS // max(C, 1))):
+            ek = solve_enum_kkt(data.rows(idx), eps=cfg.eps, pairs=cfg.pairs)
+            en = EnumResult(*(t.index_copy(0, idx, u) for t, u in zip(en, ek, strict=True)))
     # a point far along a descent direction (P singular to rounding) is no answer: the row
     # goes to the interior point method, whose result carries the certificate
     unbounded = unbounded_solved(data, en.x, en.ok, cfg) | curvature_ray(data, en.x, en.ok, cfg.eps)
@@ -1065,12 +1066,12 @@ def _ipm_fallback(
     N, M, E = data.sizes
     if (
         cfg.method != "enumerate"
-        and len(idx) <= SMALL_BATCH
         and num_candidates(M, E, N, cfg.pairs, cap=MAX_CANDIDATES_SMALL_BATCH)
         <= MAX_CANDIDATES_SMALL_BATCH
     ):
-        # a few rows the exact method could not certify (degenerate vertices, ties):
-        # enumeration's fixed cost is far below the interior point method's iterations
+        # rows the exact method could not certify (degenerate vertices, ties): enumeration's
+        # fixed cost is far below the interior point method's iterations; every such row
+        # (not only a few: a row's answer must not depend on how many failed beside it)
         sub = data.rows(idx)
         en = _certified_enum(sub, cfg)
         if bool(en.ok.any()):
