@@ -19,7 +19,7 @@
 
 /* Bumped whenever an exported signature or its meaning changes (see _native.py); the version
  * reported folds in the linked QP kernel's, whose solver this library carries. */
-#define FILTER_KERNEL_VERSION 9
+#define FILTER_KERNEL_VERSION 10
 
 int torchcbf_filter_version(void) {
     return 100 * FILTER_KERNEL_VERSION + TORCHCBF_DUAL_KERNEL_VERSION;
@@ -191,7 +191,9 @@ int torchcbf_filter_solve(int64_t B, int m, int k, int c, int slack, int two_pas
         int64_t pick = b;
         if (Bq > B) {
             if (ok[B + b]) pick = B + b;
-            else if (!infeasible[B + b]) code = 1;
+            /* infeasible with a CLF: the least-violating control needs the CBF rows alone
+             * (the general path's third problem), which a CLF's pull may not move */
+            else if (!infeasible[B + b] || c > 0) code = 1;
         }
         if (code != 0 || !ok[pick]) {
             code = 1;

@@ -52,7 +52,9 @@ class Slack:
             (default 1e-6 in float64, 1e-3 in float32).
         exact: with the shared slack, also solve the hard QP (stacked in the same call)
             and prefer its solution where it is solved (default: when the filter has
-            Lyapunov functions, which can pull against a barrier harder than ``w``).
+            Lyapunov functions, which can pull against a barrier harder than ``w``); with
+            Lyapunov functions, where the hard QP is infeasible, the least violation of
+            the CBF rows alone bounds the answer's.
 
     ``SafetyFilter(..., slack="none")`` is short for ``slack=Slack("none")``.
     """

@@ -15,7 +15,9 @@ control (in the box, minimising the largest normalised violation, then the dista
 and its multipliers stay below ``w`` the two solutions are equal (``s = 0``). A CLF can
 pull against a CBF harder than that, so with Lyapunov functions (``Slack.exact=None``
 default, or ``True``) the hard QP is stacked into the SAME :func:`~torchcbf.qp.solve_qp`
-call and a row takes the hard solution wherever that one is ``SOLVED``. ``"none"``: hard
+call and a row takes the hard solution wherever that one is ``SOLVED``; where it is not, the
+elastic QP of the CBF rows alone is in the call too, and a row whose CLF pulled its
+violation beyond that one's takes its control. ``"none"``: hard
 rows only (infeasible rows fall back). ``"per_row"``: soft CBF rows, one slack each, ``1/2
 w rbar |s|^2`` (``w`` default 1e2).
 
@@ -740,17 +742,41 @@ class SafetyFilter(ExactConstants, DerivedConstants):
             status = torch.where(data_ok, sol.status, int(Status.NON_FINITE))
             return sol.x, status, ok, sol.path
         # rows [B:2B]: the hard QP (the slack columns of the CBF rows zeroed; s then
-        # decouples and sits at its bound 0), solved in the same call as the elastic one
+        # decouples and sits at its bound 0), solved in the same call as the elastic one;
+        # with CLFs, rows [2B:3B]: the elastic QP of the CBF rows alone (the CLF rows'
+        # controls zeroed, delta at 0), whose slack is the least violation a CLF's pull on
+        # the elastic QP must not exceed where the hard QP is infeasible
         k, m = qp.norms.shape[1], self.dynamics.control_dim
+        c = G.shape[1] - k
         G_hard = G.clone()
         G_hard[:, :k, m : m + qp.ks] = 0
-        cat = lambda v: torch.cat([v, v], 0)  # noqa: E731
-        sol = qp_layer.solve_qp(cat(qp.Q), cat(qp.p), torch.cat([G, G_hard], 0), cat(hq),
+        Gs, hs = [G, G_hard], [hq, hq]
+        if c:
+            G_cbf = G.clone()
+            G_cbf[:, k:, :m] = 0
+            Gs.append(G_cbf)
+            hs.append(torch.cat((hq[:, :k], torch.zeros_like(hq[:, k:])), -1))
+        n = len(Gs)
+        cat = lambda v: torch.cat([v] * n, 0)  # noqa: E731
+        sol = qp_layer.solve_qp(cat(qp.Q), cat(qp.p), torch.cat(Gs, 0), torch.cat(hs, 0),
                        lb=cat(qp.lb), ub=cat(qp.ub), **self.qp_options)  # fmt: skip
-        good = (sol.status == Status.SOLVED) & rows_finite(sol.x, 1, 2 * B) & cat(data_ok)
-        el_ok, hard_ok = good[:B], good[B:]
-        z = torch.where(hard_ok.unsqueeze(-1), sol.x[B:], sol.x[:B])
-        qp_status = torch.where(hard_ok, sol.status[B:], sol.status[:B])
+        good = (sol.status == Status.SOLVED) & rows_finite(sol.x, 1, n * B) & cat(data_ok)
+        el_ok, hard_ok = good[:B], good[B : 2 * B]
+        z_el, st_el = sol.x[:B], sol.status[:B]
+        if c:
+            cbf_ok, z_cbf = good[2 * B :], sol.x[2 * B :]
+            s_el = z_el[:, m : m + qp.ks].amax(-1)
+            s_cbf = z_cbf[:, m : m + qp.ks].amax(-1)
+            pulled = cbf_ok & (~el_ok | (s_el > s_cbf + self._slack_tol(z_el)))
+            # the CLF rows' relaxation at that control
+            u_cbf = z_cbf[:, :m].unsqueeze(-1)
+            delta = ((G[:, k:, :m] @ u_cbf).squeeze(-1) - hq[:, k:]).clamp_min(0.0)
+            z_cbf = torch.cat((z_cbf[:, : m + qp.ks], delta), -1)
+            z_el = torch.where(pulled.unsqueeze(-1), z_cbf, z_el)
+            st_el = torch.where(pulled, sol.status[2 * B :], st_el)
+            el_ok = el_ok | pulled
+        z = torch.where(hard_ok.unsqueeze(-1), sol.x[B : 2 * B], z_el)
+        qp_status = torch.where(hard_ok, sol.status[B : 2 * B], st_el)
         qp_status = torch.where(data_ok, qp_status, int(Status.NON_FINITE))
         return z, qp_status, hard_ok | el_ok, sol.path
 
