@@ -233,3 +233,15 @@ def test_an_output_that_does_not_depend_on_the_state_is_named_at_once() -> None:
         rectify(stack, DoubleIntegrator())
     with pytest.raises(ValueError, match=r"outputs \[1\]\) does not depend on the state"):
         SafetyFilter(SingleIntegrator(2), [stack])
+
+
+def test_poles_given_as_numbers_stay_exact_in_float64() -> None:
+    """Poles and gains of the same exponential CBF give the same float64 barrier; poles went
+    through a float32 tensor (0.3 kept as 0.30000001 after ``.double()``)."""
+    dyn = DoubleIntegrator(2).double()
+    ball = Ball([1.0, 0.0], 0.5).double()
+    by_poles = rectify(ball, dyn, "exponential", poles=[-0.3]).double()
+    by_gains = rectify(ball, dyn, "exponential", gains=[0.3]).double()
+    x = torch.tensor([[3.0, 4.0, 0.5, -0.2]], dtype=torch.float64)
+    assert by_poles.coefficients.tolist() == by_gains.coefficients.tolist()
+    assert torch.equal(by_poles(x), by_gains(x))

@@ -341,12 +341,19 @@ def _check_hurwitz(coefficients: Tensor) -> None:
 
 
 def coefficients_from_poles(poles: Sequence[float] | Tensor) -> Tensor:
-    """``[k_0, ..., k_{r-2}]`` of ``prod_i (s - p_i)`` for real negative poles ``p_i``."""
+    """``[k_0, ..., k_{r-2}]`` of ``prod_i (s - p_i)`` for real negative poles ``p_i`` (in
+    torch's default dtype)."""
+    return torch.tensor(_pole_coefficients(poles), dtype=torch.get_default_dtype())
+
+
+def _pole_coefficients(poles: Sequence[float] | Tensor) -> list[float]:
+    """:func:`coefficients_from_poles` as Python numbers, which stay exact under
+    ``.double()`` where a float32 tensor would keep its rounding (0.3 as 0.30000001)."""
     p = np.asarray(torch.as_tensor(poles, dtype=torch.float64).reshape(-1), dtype=np.float64)
     if p.size == 0 or not bool(np.all(np.isfinite(p))) or not bool(np.all(p < 0)):
         raise ValueError(f"poles must be finite negative real numbers, got {p.tolist()}")
     coeffs = np.poly(p)  # [1, c_{r-2}, ..., c_0]
-    return torch.as_tensor(coeffs[1:][::-1].copy(), dtype=torch.get_default_dtype())
+    return [float(c) for c in coeffs[1:][::-1]]
 
 
 def find_relative_degree(
@@ -483,9 +490,9 @@ def rectify(
     if form == "high_order":
         return HighOrderBarrier(barrier, dynamics, r, gains)
     if gains is None:
-        coefficients = coefficients_from_poles([-1.0] * (r - 1) if poles is None else poles)
-        if coefficients.shape != (r - 1,):
-            raise ValueError(f"poles must hold r - 1 = {r - 1} values, got {coefficients.numel()}")
+        coefficients = _pole_coefficients([-1.0] * (r - 1) if poles is None else poles)
+        if len(coefficients) != r - 1:
+            raise ValueError(f"poles must hold r - 1 = {r - 1} values, got {len(coefficients)}")
     else:
         count = gains.numel() if isinstance(gains, Tensor) else np.asarray(gains).size
         if count != r - 1:
