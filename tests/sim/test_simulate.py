@@ -377,6 +377,10 @@ def test_metrics_sees_a_collision_between_two_samples() -> None:
     m = metrics(inside, barriers=[ball])
     assert m["collision"].tolist() == [True] and m["collision_between_samples"].tolist() == [False]
     assert m["first_collision_time"].tolist() == [0.0]
+    # per obstacle: a sample inside one ball does not hide a segment jumping over another
+    far = Ball(torch.tensor([5.0, 0.5]), 1.0)  # crossed between x = 0 and 10, no sample in it
+    m = metrics(inside, barriers=[ball, far])
+    assert m["collision_between_samples"].tolist() == [True]
 
 
 def test_trajectory_load_names_missing_fields(tmp_path) -> None:

@@ -51,9 +51,9 @@ SWEPT_CHUNK_ELEMENTS = 2**22
 def _swept(
     fns: Sequence[Callable[[Tensor], Tensor]], x: Tensor, t: Tensor, points: int
 ) -> tuple[Tensor | None, Tensor]:
-    """Whether some barrier is negative at each of the ``points`` interior points of the
-    straight segments between consecutive samples ``[B, T, points]`` (evaluated a few steps
-    at a time), and the times of samples and points in order ``[T (points + 1) + 1]``
+    """Whether each barrier is negative at each of the ``points`` interior points of the
+    straight segments between consecutive samples ``[B, T, points, K]`` (evaluated a few
+    steps at a time), and the times of samples and points in order ``[T (points + 1) + 1]``
     (``None`` and the sample times when there is nothing to add)."""
     if points == 0 or x.shape[1] < 2:
         return None, t
@@ -65,7 +65,7 @@ def _swept(
         end = min(j + steps, T)
         start = x[:, j:end, None, :]
         step = (x[:, j + 1 : end + 1] - x[:, j:end])[:, :, None, :]
-        between.append(_barrier_values(fns, start + s[:, None] * step).min(-1).values < 0)
+        between.append(_barrier_values(fns, start + s[:, None] * step) < 0)
     frac = torch.cat([torch.zeros(1, device=x.device, dtype=x.dtype), s])
     times = (t[:-1, None] + frac * (t[1:] - t[:-1])[:, None]).reshape(-1)
     return torch.cat(between, 1), torch.cat([times, t[-1:]])
@@ -143,12 +143,13 @@ def metrics(
         h_min = h.min(-1).values
         unsafe = h_min < 0
         out["min_h"] = h_min.min(-1).values
-        between, dense_t = _swept(fns, traj.x, t, segment_points)  # [B, T, P]
-        if between is not None:
-            crossed = between.any(-1)  # [B, T]
-            out["collision_between_samples"] = crossed.any(-1) & ~unsafe.any(-1)
+        swept, dense_t = _swept(fns, traj.x, t, segment_points)  # [B, T, P, K]
+        if swept is not None:
+            # per obstacle: crossed by a segment, and no sample inside that same one
+            crossed = swept.any(2).any(1) & ~(h < 0).any(1)  # [B, K]
+            out["collision_between_samples"] = crossed.any(-1)
+            between = swept.any(-1)  # [B, T, P]
             # samples and segment points in time order: sample k, then its segment's points
-            B, T = crossed.shape
             merged = torch.cat([unsafe[:, :-1, None], between], -1).flatten(1)
             merged = torch.cat([merged, unsafe[:, -1:]], -1)
             out["collision"] = merged.any(-1)
