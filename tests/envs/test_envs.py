@@ -233,6 +233,20 @@ def test_seeds_outside_32_bits_are_refused(seed) -> None:
     vec.reset(seed=2**32 - 2)
 
 
+@pytest.mark.filterwarnings("ignore:.*not in the possible render_modes")
+@pytest.mark.parametrize("env_id", IDS)
+def test_render_mode_is_taken_and_a_mode_refused_by_name(env_id) -> None:
+    """``gymnasium.make(id, render_mode=...)`` passes the keyword to the environment, which
+    failed with a TypeError of an unexpected argument."""
+    assert gym.make(env_id, render_mode=None).render_mode is None
+    with pytest.raises(ValueError, match="render_mode='rgb_array'"):
+        gym.make(env_id, render_mode="rgb_array")
+    with pytest.raises(ValueError, match="render_mode='human'"):
+        gym.make_vec(
+            env_id, num_envs=2, vectorization_mode="vector_entry_point", render_mode="human"
+        )
+
+
 def test_return_tensors_and_float64_match_numpy() -> None:
     kw = {"num_envs": 3, "vectorization_mode": "vector_entry_point", "start_noise": 0.3}
     a = gym.make_vec("torchcbf/UnicycleEllipses-v0", **kw)

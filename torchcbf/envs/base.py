@@ -63,8 +63,15 @@ class TorchVectorEnv(gymnasium.vector.VectorEnv):
         dtype: torch.dtype = torch.float32,
         return_tensors: bool = False,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+        render_mode: str | None = None,
     ) -> None:
         check_positive_int("num_envs", num_envs)
+        if render_mode is not None:  # gymnasium.make passes it to every environment
+            raise ValueError(
+                f"render_mode={render_mode!r}: torchcbf's environments render nothing "
+                "(metadata['render_modes'] is empty); draw their trajectories with torchcbf.viz"
+            )
+        self.render_mode = None
         try:
             mode = AutoresetMode(autoreset_mode)
         except ValueError:

@@ -64,6 +64,8 @@ class ReachAvoidVectorEnv(TorchVectorEnv):
             starts again at the next step), ``SAME_STEP`` (at once, the ended episode's last
             observation in ``info["final_obs"]``) or ``DISABLED`` (reset rows with
             ``reset(options={"reset_mask": ...})``).
+        render_mode: ``None`` only (Gymnasium passes it; nothing is rendered: a mode is a
+            ``ValueError``, and :mod:`torchcbf.viz` draws trajectories).
     """
 
     def __init__(
@@ -79,6 +81,7 @@ class ReachAvoidVectorEnv(TorchVectorEnv):
         dtype: torch.dtype = torch.float32,
         return_tensors: bool = False,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+        render_mode: str | None = None,
     ) -> None:
         super().__init__(
             num_envs,
@@ -87,6 +90,7 @@ class ReachAvoidVectorEnv(TorchVectorEnv):
             dtype=dtype,
             return_tensors=return_tensors,
             autoreset_mode=autoreset_mode,
+            render_mode=render_mode,
         )
         self.goal_bonus = check_number("goal_bonus", goal_bonus, low=0.0)
         self.collision_penalty = check_number("collision_penalty", collision_penalty, low=0.0)

@@ -66,6 +66,8 @@ class UnicycleEllipsesVectorEnv(TorchVectorEnv):
             starts again at the next step), ``SAME_STEP`` (at once, the ended episode's last
             observation in ``info["final_obs"]``) or ``DISABLED`` (reset rows with
             ``reset(options={"reset_mask": ...})``).
+        render_mode: ``None`` only (Gymnasium passes it; nothing is rendered: a mode is a
+            ``ValueError``, and :mod:`torchcbf.viz` draws trajectories).
     """
 
     def __init__(
@@ -83,6 +85,7 @@ class UnicycleEllipsesVectorEnv(TorchVectorEnv):
         dtype: torch.dtype = torch.float32,
         return_tensors: bool = False,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+        render_mode: str | None = None,
     ) -> None:
         super().__init__(
             num_envs,
@@ -91,6 +94,7 @@ class UnicycleEllipsesVectorEnv(TorchVectorEnv):
             dtype=dtype,
             return_tensors=return_tensors,
             autoreset_mode=autoreset_mode,
+            render_mode=render_mode,
         )
         limit = [float(v) for v in control_limit]
         if len(limit) != 2 or not all(0 < v < math.inf for v in limit):
