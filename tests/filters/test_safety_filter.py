@@ -199,23 +199,28 @@ def test_infeasible_rows_are_relaxed_least_violating(dtype: torch.dtype) -> None
 
 
 @pytest.mark.parametrize("backend", ["auto", "torch"])
-def test_a_clf_does_not_pull_a_relaxed_row_deeper(dtype: torch.dtype, backend: str) -> None:
+def test_a_clf_does_not_pull_a_relaxed_row_deeper(
+    dtype: torch.dtype, backend: str, device: torch.device
+) -> None:
     """States inside a ball, controls too small to leave it (the hard QP infeasible), a goal
     behind the ball: the CBF rows alone give the least violation; a CLF pulling towards the
     goal (V about 11) had the elastic QP drive through the ball's centre (a . u + b of
     -0.22 where -0.10 was possible), RELAXED all the same."""
     dyn = SingleIntegrator(2, u_min=-0.1, u_max=0.1)
     ball = Ball([1.0, 0.0], 0.5)
-    angles = torch.linspace(0.0, 2 * math.pi, 9, dtype=dtype)[:-1]
+    angles = torch.linspace(0.0, 2 * math.pi, 9, dtype=dtype, device=device)[:-1]
     x = torch.stack((1.0 + 0.3 * angles.cos(), 0.3 * angles.sin()), -1)
+    x = torch.cat((x, torch.tensor([[3.0, 0.0]], dtype=dtype, device=device)))  # outside
     u_nom = torch.zeros_like(x)
-    alone = SafetyFilter(dyn, ball, backend=backend).to(dtype)(x, u_nom)
+    alone = SafetyFilter(dyn, ball, backend=backend).to(device, dtype)(x, u_nom)
     for goal in ([1.0, 3.0], [1.0, -3.0], [4.0, 0.0], [1.0, 0.6]):
         clf = QuadraticLyapunov(goal)
-        out = SafetyFilter(dyn, ball, clf, backend=backend).to(dtype)(x, u_nom)
-        assert (out.status == FilterStatus.RELAXED).all()
-        least = alone.constraint_value[:, 0]
-        assert (out.constraint_value[:, 0] >= least - _tol(dtype)).all(), (goal, out.u)
+        out = SafetyFilter(dyn, ball, clf, backend=backend).to(device, dtype)(x, u_nom)
+        assert (out.status[:-1] == FilterStatus.RELAXED).all()
+        assert out.status[-1] == FilterStatus.SOLVED  # the hard QP answers outside the ball
+        least = alone.constraint_value[:-1, 0]
+        assert (out.constraint_value[:-1, 0] >= least - _tol(dtype)).all(), (goal, out.u)
+        assert out.constraint_value[-1, 0] >= 0
         # the CLF's relaxation is reported at the control returned
         V_rate = -out.constraint_value[:, 1]
         torch.testing.assert_close(out.slack[:, 1], V_rate.clamp_min(0), atol=_tol(dtype), rtol=0)

@@ -742,43 +742,77 @@ class SafetyFilter(ExactConstants, DerivedConstants):
             status = torch.where(data_ok, sol.status, int(Status.NON_FINITE))
             return sol.x, status, ok, sol.path
         # rows [B:2B]: the hard QP (the slack columns of the CBF rows zeroed; s then
-        # decouples and sits at its bound 0), solved in the same call as the elastic one;
-        # with CLFs, rows [2B:3B]: the elastic QP of the CBF rows alone (the CLF rows'
-        # controls zeroed, delta at 0), whose slack is the least violation a CLF's pull on
-        # the elastic QP must not exceed where the hard QP is infeasible
+        # decouples and sits at its bound 0), solved in the same call as the elastic one
         k, m = qp.norms.shape[1], self.dynamics.control_dim
-        c = G.shape[1] - k
         G_hard = G.clone()
         G_hard[:, :k, m : m + qp.ks] = 0
-        Gs, hs = [G, G_hard], [hq, hq]
-        if c:
-            G_cbf = G.clone()
-            G_cbf[:, k:, :m] = 0
-            Gs.append(G_cbf)
-            hs.append(torch.cat((hq[:, :k], torch.zeros_like(hq[:, k:])), -1))
-        n = len(Gs)
-        cat = lambda v: torch.cat([v] * n, 0)  # noqa: E731
-        sol = qp_layer.solve_qp(cat(qp.Q), cat(qp.p), torch.cat(Gs, 0), torch.cat(hs, 0),
+        cat = lambda v: torch.cat([v, v], 0)  # noqa: E731
+        sol = qp_layer.solve_qp(cat(qp.Q), cat(qp.p), torch.cat([G, G_hard], 0), cat(hq),
                        lb=cat(qp.lb), ub=cat(qp.ub), **self.qp_options)  # fmt: skip
-        good = (sol.status == Status.SOLVED) & rows_finite(sol.x, 1, n * B) & cat(data_ok)
-        el_ok, hard_ok = good[:B], good[B : 2 * B]
+        good = (sol.status == Status.SOLVED) & rows_finite(sol.x, 1, 2 * B) & cat(data_ok)
+        el_ok, hard_ok = good[:B], good[B:]
         z_el, st_el = sol.x[:B], sol.status[:B]
-        if c:
-            cbf_ok, z_cbf = good[2 * B :], sol.x[2 * B :]
-            s_el = z_el[:, m : m + qp.ks].amax(-1)
-            s_cbf = z_cbf[:, m : m + qp.ks].amax(-1)
-            pulled = cbf_ok & (~el_ok | (s_el > s_cbf + self._slack_tol(z_el)))
-            # the CLF rows' relaxation at that control
-            u_cbf = z_cbf[:, :m].unsqueeze(-1)
-            delta = ((G[:, k:, :m] @ u_cbf).squeeze(-1) - hq[:, k:]).clamp_min(0.0)
-            z_cbf = torch.cat((z_cbf[:, : m + qp.ks], delta), -1)
-            z_el = torch.where(pulled.unsqueeze(-1), z_cbf, z_el)
-            st_el = torch.where(pulled, sol.status[2 * B :], st_el)
-            el_ok = el_ok | pulled
-        z = torch.where(hard_ok.unsqueeze(-1), sol.x[B : 2 * B], z_el)
-        qp_status = torch.where(hard_ok, sol.status[B : 2 * B], st_el)
+        if G.shape[1] > k:  # Lyapunov functions: their pull bounded where the hard QP fails
+            z_el, st_el, el_ok = self._least_violation(
+                qp, G, hq, data_ok, hard_ok, z_el, st_el, el_ok
+            )
+        z = torch.where(hard_ok.unsqueeze(-1), sol.x[B:], z_el)
+        qp_status = torch.where(hard_ok, sol.status[B:], st_el)
         qp_status = torch.where(data_ok, qp_status, int(Status.NON_FINITE))
         return z, qp_status, hard_ok | el_ok, sol.path
+
+    def _least_violation(
+        self,
+        qp: Any,
+        G: Tensor,
+        hq: Tensor,
+        data_ok: Tensor,
+        hard_ok: Tensor,
+        z_el: Tensor,
+        st_el: Tensor,
+        el_ok: Tensor,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """The elastic answer ``(z, status, ok)`` where a CLF pulled it beyond the least
+        violation of the CBF rows alone (their elastic QP, the CLF rows' controls zeroed and
+        delta at 0), on the rows whose hard QP failed: that problem's control there. On the
+        CPU only those rows are solved (asking which costs no synchronisation); elsewhere
+        every row, without a synchronisation."""
+        k, m = qp.norms.shape[1], self.dynamics.control_dim
+        B = hq.shape[0]
+        rows = (~hard_ok & data_ok).nonzero().squeeze(-1) if G.is_cpu else None
+        if rows is not None and rows.numel() == 0:
+            return z_el, st_el, el_ok
+
+        def pick(t: Tensor) -> Tensor:
+            return t if rows is None else t.index_select(0, rows)
+
+        G_cbf = pick(G).clone()
+        G_cbf[:, k:, :m] = 0
+        h_cbf = pick(hq).clone()
+        h_cbf[:, k:] = 0
+        lb, ub = qp.lb.expand(B, -1), qp.ub.expand(B, -1)
+        sol = qp_layer.solve_qp(pick(qp.Q), pick(qp.p), G_cbf, h_cbf, lb=pick(lb), ub=pick(ub),
+                                **self.qp_options)  # fmt: skip
+        n = sol.x.shape[0]
+        cbf_ok = (sol.status == Status.SOLVED) & rows_finite(sol.x, 1, n) & pick(data_ok)
+        z_sub, ok_sub = pick(z_el), pick(el_ok)
+        s_el = z_sub[:, m : m + qp.ks].amax(-1)
+        s_cbf = sol.x[:, m : m + qp.ks].amax(-1)
+        pulled = cbf_ok & (~ok_sub | (s_el > s_cbf + self._slack_tol(z_el)))
+        # the CLF rows' relaxation at that control
+        u_cbf = sol.x[:, :m].unsqueeze(-1)
+        delta = ((pick(G)[:, k:, :m] @ u_cbf).squeeze(-1) - pick(hq)[:, k:]).clamp_min(0.0)
+        z_cbf = torch.cat((sol.x[:, : m + qp.ks], delta), -1)
+        z_new = torch.where(pulled.unsqueeze(-1), z_cbf, z_sub)
+        st_new = torch.where(pulled, sol.status, pick(st_el))
+        ok_new = ok_sub | pulled
+        if rows is None:
+            return z_new, st_new, ok_new
+        return (
+            z_el.index_copy(0, rows, z_new),
+            st_el.index_copy(0, rows, st_new),
+            el_ok.index_copy(0, rows, ok_new),
+        )
 
     # -- the real-time path ----------------------------------------------------------------
     def _realtime_applies(self, xb: Tensor, ub: Tensor, tb: Tensor) -> bool:
