@@ -802,7 +802,13 @@ class MPPI(TracksShadows, ExactConstants):
             if ctrl is not None:
                 cost = cost + ctrl
             weights = self._weights(cost, kernel)
-            delta = kernel.update(xc, plan, keys, weights.w)
+            if weights.w.requires_grad:
+                # a cost holding a tensor that requires grad (a closure's): the update in
+                # torch from the stored samples (``u - plan`` is the kernel's noise, clipped
+                # as it clips it), so that the plan keeps that gradient
+                delta = _weighted_sum(controls - plan.unsqueeze(1), weights.w)
+            else:
+                delta = kernel.update(xc, plan, keys, weights.w)
         else:
             self.path = "torch"
             assert eps is not None
@@ -1110,6 +1116,15 @@ class MPPI(TracksShadows, ExactConstants):
         # graph traced for one model is not reused for a model of the same class that is
         # evaluated otherwise (torch.compile does not guard on a module's hooks)
         rate = integrators.rate_form(self.dynamics)
+        if needs_graph(self, x, controls):
+            # out of place: a step writing into the buffer would change, under autograd,
+            # the state an earlier step saved for its backward (a cos of a heading)
+            steps = [states.select(2, 0).clone()]
+            for j in range(self.horizon):
+                u = controls.select(2, j)
+                steps.append(self._step(steps[-1], u, j, rate=rate, component=component))
+            states.copy_(torch.stack(steps, 2))
+            return
         hooks = self._compile_key(self.dynamics)
         for j in range(self.horizon):
             self._step_into_fn(states, controls, j, component, rate, hooks)
