@@ -209,7 +209,7 @@ def test_mppi_cbf_risk_aware_horizon_starts_inside_the_margin() -> None:
 @pytest.mark.slow
 def test_mppi_cbf_scbf_paper_reading_collides() -> None:
     """SCBF alone over 32 seeds in the paper configuration (alpha = beta = 1): collisions in
-    some seeds (measured 6/32); the literal reading (k = 2, c_i = 1, R = I) in most
+    some seeds (measured 1/32); the literal reading (k = 2, c_i = 1, R = I) in most
     (measured 30/32). The noise band, not the solver, limits it (docs/scenarios.md)."""
     _, new = mppi_cbf("scbf", config="paper", num_seeds=32).run(progress=False)
     _, old = mppi_cbf(
