@@ -11,6 +11,7 @@ import math
 import numbers
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -32,6 +33,10 @@ def seed_rows(
     ``name`` where one lies outside ``[0, 2^32)`` (it would share another's stream) or the
     count is wrong (``per``: the word for a row in the message), a ``TypeError`` for what
     is no integer."""
+    if isinstance(seed, np.ndarray):
+        if not np.issubdtype(seed.dtype, np.integer):
+            raise TypeError(f"{name} must hold integers, got a {seed.dtype} array")
+        seed = torch.as_tensor(seed, dtype=torch.int64)
     if isinstance(seed, Tensor) and seed.numel() == 1 and rows != 1:
         seed = int(seed)
     if isinstance(seed, numbers.Integral) and not isinstance(seed, bool):
@@ -44,7 +49,10 @@ def seed_rows(
         return torch.arange(rows, device=device, dtype=torch.int64) + int(seed)
     if isinstance(seed, bool) or (
         not isinstance(seed, Tensor)
-        and not all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in seed)
+        and not (
+            isinstance(seed, Sequence)
+            and all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in seed)
+        )
     ):
         raise TypeError(f"{name} must be an int or a sequence of ints, got {seed!r}")
     if isinstance(seed, Tensor) and (seed.dtype.is_floating_point or seed.dtype == torch.bool):

@@ -231,6 +231,17 @@ def test_seeds_outside_32_bits_are_refused(seed) -> None:
         vec.reset(seed=2**32 - 1)  # the second row would be 2^32
     vec.reset(seed=[3, 2**32 - 1])
     vec.reset(seed=2**32 - 2)
+    # one seed per sub-environment as a list, a tensor or an array: the same episodes
+    vec = gym.make_vec(
+        "torchcbf/UnicycleEllipses-v0", num_envs=2, vectorization_mode="vector_entry_point",
+        start_noise=0.3,
+    )  # fmt: skip
+    first = vec.reset(seed=[3, 9])[0]
+    assert not np.array_equal(first, vec.reset(seed=[3, 10])[0])
+    np.testing.assert_array_equal(vec.reset(seed=torch.tensor([3, 9]))[0], first)
+    np.testing.assert_array_equal(vec.reset(seed=np.array([3, 9]))[0], first)
+    with pytest.raises(TypeError, match="integers"):
+        vec.reset(seed=np.array([3.0, 9.0]))
 
 
 @pytest.mark.filterwarnings("ignore:.*not in the possible render_modes")

@@ -169,6 +169,8 @@ class TorchVectorEnv(gymnasium.vector.VectorEnv):
             return torch.as_tensor(drawn, dtype=torch.int64, device=self.device)
         if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
             return seed_rows(int(seed), self.num_envs, self.device, per="sub-environment")
+        if isinstance(seed, (Tensor, np.ndarray)):  # no None among them
+            return seed_rows(seed, self.num_envs, self.device, per="sub-environment")
         seeds = list(seed)
         if len(seeds) != self.num_envs:
             raise ValueError(
