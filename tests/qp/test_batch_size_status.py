@@ -130,3 +130,23 @@ def test_a_rows_answer_does_not_depend_on_how_many_rows_are_hard(hard):
     s = (G[:, :2] @ u - h).clamp_min(0.0)
     expected = torch.cat((u, s))
     torch.testing.assert_close(sol.x[:hard], expected.expand(hard, 4), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("scale", [1e12, 1e13, 1e14, 1e16, 1e20])
+@pytest.mark.parametrize("method", ["auto", "active_set", "enumerate"])
+def test_a_far_minimiser_beside_a_box_is_solved_at_any_distance(method, scale):
+    """``p`` of 1e13, 1e14 or 1e20 (not 1e12 or 1e16) ended NUMERICAL_ERROR: enumeration by
+    Schur complement took a candidate a rounding off, which no polish certified, and the
+    rescue on each candidate's own KKT system ran only where it had found none."""
+    f64 = torch.float64
+    Q = torch.diag(torch.tensor([1.0, 1.0, 100.0, 100.0], dtype=f64))
+    G = torch.tensor([[0.83, 0.56, -1.0, 0.0], [0.32, 0.95, 0.0, -1.0]], dtype=f64)
+    h = torch.tensor([1.11, 1.45], dtype=f64)
+    lb = torch.tensor([-2.0, -2.0, 0.0, 0.0], dtype=f64)
+    ub = torch.tensor([2.0, 2.0, math.inf, math.inf], dtype=f64)
+    p = torch.tensor([-scale, -scale, 0.0, 0.0], dtype=f64)
+    sol = solve_qp(Q, p, G, h, lb=lb, ub=ub, method=method)
+    assert int(sol.status) == Status.SOLVED
+    u = torch.tensor([2.0, 2.0], dtype=f64)
+    expected = torch.cat((u, G[:, :2] @ u - h))  # both rows' slacks at the box corner
+    torch.testing.assert_close(sol.x, expected, rtol=0, atol=1e-9)

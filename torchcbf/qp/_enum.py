@@ -53,13 +53,16 @@ _CHUNK_ELEMENTS = 1 << 15
 
 
 class EnumResult(NamedTuple):
-    """``x [B,N]``, ``z [B,M]``, ``y [B,E]``, ``active [B,M]`` bool, ``ok [B]`` bool."""
+    """``x [B,N]``, ``z [B,M]``, ``y [B,E]``, ``active [B,M]`` bool, ``ok [B]`` bool and
+    ``score [B]``, the chosen candidate's scaled KKT violation (``ok`` where at most
+    ``eps``; ``inf`` where no candidate was solvable)."""
 
     x: Tensor
     z: Tensor
     y: Tensor
     active: Tensor
     ok: Tensor
+    score: Tensor
 
 
 @functools.lru_cache(maxsize=256)
@@ -182,8 +185,9 @@ def _solve_chunk(
     E: int,
     tab: _Table,
     eps: float,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Enumerate for one chunk; returns ``(x, mult [B,E+M], chosen-set mask [B,E+M], ok)``."""
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Enumerate for one chunk; returns ``(x, mult [B,E+M], chosen-set mask [B,E+M], ok,
+    score)``."""
     B, N = q.shape
     Rn = R.shape[-2]
     C, K = tab.T.shape
@@ -239,7 +243,7 @@ def _solve_chunk(
     # the winner's rows on its own scale: the candidates were judged on x_u's, which a weak
     # curvature makes huge enough to pass an O(1) violation
     ok = ok & (scaled_violation(R[:, E:], hr[:, E:], R[:, :E], hr[:, :E], x) <= eps)
-    return x, mult, chosen, ok
+    return x, mult, chosen, ok, best_score
 
 
 def solve_enum(
@@ -262,7 +266,7 @@ def solve_enum(
         return EnumResult(
             q.new_zeros(B, N), h.new_zeros(B, M), b.new_zeros(B, E),
             torch.zeros(B, M, dtype=torch.bool, device=q.device),
-            torch.zeros(B, dtype=torch.bool, device=q.device),
+            torch.zeros(B, dtype=torch.bool, device=q.device), q.new_full((B,), math.inf),
         )  # fmt: skip
     L, info = torch.linalg.cholesky_ex(P)
     pd = info == 0
@@ -279,16 +283,16 @@ def solve_enum(
         for i in range(0, B, chunk)
     ]
     if len(outs) == 1:
-        x, mult, chosen, ok = outs[0]
+        x, mult, chosen, ok, score = outs[0]
     else:
-        x, mult, chosen, ok = (torch.cat(t, 0) for t in zip(*outs, strict=True))
+        x, mult, chosen, ok, score = (torch.cat(t, 0) for t in zip(*outs, strict=True))
     ok = ok & pd
     okc = ok.unsqueeze(-1)
     x = torch.where(okc, x, 0.0)
     mult = torch.where(okc, mult, 0.0)
     y, z = mult[:, :E], mult[:, E:].clamp_min(0.0)
     active = chosen[:, E:] & okc
-    return EnumResult(x, z, y, active, ok)
+    return EnumResult(x, z, y, active, ok, score)
 
 
 def solve_enum_kkt(
@@ -305,8 +309,8 @@ def solve_enum_kkt(
     scale, multipliers against their largest); the best one within ``eps`` is kept (``ok``),
     and where ``P`` is not positive definite (a saddle is a KKT point too) the one of least
     objective among those within ``eps``.
-    Its cost is about ``B C`` small LU factorisations for ``C`` candidates: meant for a few
-    rows (the caller's ``SMALL_BATCH``)."""
+    Its cost is about ``B C`` small LU factorisations for ``C`` candidates: meant for the
+    few rows the Schur complement loses (the caller solves them in blocks)."""
     P, q, G, h, A, b = data
     B, N = q.shape
     M, E = G.shape[-2], A.shape[-2]
@@ -343,5 +347,5 @@ def solve_enum_kkt(
     okc = ok.unsqueeze(-1)
     return EnumResult(
         torch.where(okc, x, 0.0), torch.where(okc, z, 0.0), torch.where(okc, y, 0.0),
-        active & okc, ok,
+        active & okc, ok, best_score,
     )  # fmt: skip

@@ -88,7 +88,7 @@ BackwardFactor = _kkt.KKTFactor | DualFactor | NativeFactor | MixedFactor
 #: :attr:`torchcbf.qp.QPSolution.method`): the projection formula, the dual active-set
 #: method, active-set enumeration, the interior point method (with its polish and exact
 #: re-solves), proxsuite's dense solver, a ``qpsolvers`` solver
-#: ``"none"``: a row decided before any method ran (non-finite data, ``lb > ub`` and the like)
+#: ``"none"``: a row decided before any method ran (non-finite data, ``lb = +inf``, ``h = -inf``)
 ANSWERED_BY = (
     "closed_form", "active_set", "enumerate", "ipm", "proxsuite", "qpsolvers", "none"
 )  # fmt: skip
@@ -817,7 +817,7 @@ def _exact_resolve(
         <= MAX_CANDIDATES_SMALL_BATCH
     ):
         # the same certified enumeration (polished on its active set where the direct solve
-        # is a little off) that takes a few failed rows before the interior point method, so
+        # is a little off) that takes the failed rows before the interior point method, so
         # that a row's status does not depend on how many rows failed beside it
         en = _certified_enum(data, cfg)
         take = en.ok & second
@@ -830,24 +830,33 @@ def _exact_resolve(
 
 def _certified_enum(data: QPData, cfg: SolverConfig) -> EnumResult:
     """Enumeration's answer, kept (``ok``) only where it is a KKT point to rounding, directly
-    or once polished on its active set (an ill-conditioned ``P`` leaves the direct solve a
-    little off): enumeration judges its choice to ``eps``, which a nearly dependent active
-    set can pass with ``x`` far off."""
-    en = solve_enum(data, eps=cfg.eps, pairs=cfg.pairs)
-    fail = ~en.ok
+    or once polished on its active set (:func:`_certify`). Rows the Schur complement loses
+    (``P`` too ill-conditioned, a far minimiser: a best candidate within rounding of
+    ``eps``, or none solvable, yet no certified answer) are enumerated again on each
+    candidate's own KKT system (:func:`solve_enum_kkt`), in blocks of rows however many
+    there are, so that a row's answer does not depend on how many others failed; rows no
+    candidate comes near (infeasible ones) are left to the interior point method, whose
+    answer carries the certificate."""
+    en = _certify(data, solve_enum(data, eps=cfg.eps, pairs=cfg.pairs), cfg)
+    lost = ~en.ok & ~(en.score > cfg.eps**0.5)
+    if not bool(lost.any()):
+        return en
     N, M, E = data.sizes
-    C = num_candidates(M, E, N, cfg.pairs)
-    if bool(fail.any()):
-        # rows the Schur complement lost (P too ill-conditioned, a far minimiser): every
-        # candidate's own KKT system, before the interior point method's iterations; in
-        # blocks of rows, however many there are, so that a row's answer does not depend on
-        # how many others failed
-        fails = fail.nonzero().squeeze(-1)
-        for idx in fails.split(max(1, KKT_ENUM_SYSTEMS // max(C, 1))):
-            ek = solve_enum_kkt(data.rows(idx), eps=cfg.eps, pairs=cfg.pairs)
-            en = EnumResult(*(t.index_copy(0, idx, u) for t, u in zip(en, ek, strict=True)))
-    # a point far along a descent direction (P singular to rounding) is no answer: the row
-    # goes to the interior point method, whose result carries the certificate
+    block = max(1, KKT_ENUM_SYSTEMS // max(num_candidates(M, E, N, cfg.pairs), 1))
+    for idx in lost.nonzero().squeeze(-1).split(block):
+        sub = data.rows(idx)
+        ek = _certify(sub, solve_enum_kkt(sub, eps=cfg.eps, pairs=cfg.pairs), cfg)
+        en = EnumResult(*(t.index_copy(0, idx, u) for t, u in zip(en, ek, strict=True)))
+    return en
+
+
+def _certify(data: QPData, en: EnumResult, cfg: SolverConfig) -> EnumResult:
+    """``en`` with ``ok`` only where its point is a KKT point to rounding, directly or once
+    polished on its active set (an ill-conditioned ``P`` leaves the direct solve a little
+    off): enumeration judges its choice to ``eps``, which a nearly dependent active set can
+    pass with ``x`` far off. A point far along a descent direction (``P`` singular to
+    rounding) is no answer: the row goes to the interior point method, whose result carries
+    the certificate."""
     unbounded = unbounded_solved(data, en.x, en.ok, cfg) | curvature_ray(data, en.x, en.ok, cfg.eps)
     en = en._replace(ok=en.ok & ~unbounded)
     exact = en.ok & _kkt.kkt_point(data, en.x, en.z, en.y)

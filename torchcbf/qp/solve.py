@@ -52,10 +52,11 @@ class QPSolution(NamedTuple):
     - ``method [...]`` int64: the algorithm that answered each row, an index into
       :data:`METHODS_ANSWERED` (``"closed_form"``, ``"active_set"``, ``"enumerate"``,
       ``"ipm"``, ``"proxsuite"``, ``"qpsolvers"``, or ``"none"`` where the status was decided
-      from the data before any method ran: ``NON_FINITE``, or ``PRIMAL_INFEASIBLE`` bounds):
-      rows an exact method cannot certify are solved again by another (enumeration for a
-      few, else the interior point method), and this says which one's answer and status the
-      row holds.
+      from the data before any method ran: ``NON_FINITE``, or ``PRIMAL_INFEASIBLE`` for a
+      bound that holds nothing, ``lb = +inf``, ``ub = -inf`` or ``h = -inf``): rows an exact
+      method cannot certify are solved again by another (enumeration where the problem is
+      small, else the interior point method), and this says which one's answer and status
+      the row holds.
     """
 
     x: Tensor
