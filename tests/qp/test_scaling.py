@@ -151,6 +151,32 @@ def test_a_problem_in_other_units_every_method(seed):
         _check(sol._replace(x=sol.x * dx), ref_x, ref_ok, F64, method)
 
 
+def test_ill_conditioned_problems_with_huge_rows_are_certified():
+    """``P`` of condition up to 1e10 (random eigenvectors), rows scaled by 1e12: the
+    stationarity of the right answer misses by 1e4 epsilons of its terms (multipliers of
+    1e-15 on rows of 1e12 cancel against an objective gradient of 1e-6), which left rows
+    NUMERICAL_ERROR; no wrong answer is certified either."""
+    g = torch.Generator().manual_seed(17)
+    B, n, m = 64, 4, 6
+    U, _ = torch.linalg.qr(torch.randn(B, n, n, generator=g, dtype=F64))
+    power = 10 * torch.rand(B, 1, generator=g, dtype=F64)
+    Q = U @ torch.diag_embed(torch.logspace(0, 1, n, dtype=F64).expand(B, n) ** power) @ U.mT
+    p = 3.0 * torch.randn(B, n, generator=g, dtype=F64)
+    G = torch.randn(B, m, n, generator=g, dtype=F64)
+    x0 = torch.randn(B, n, 1, generator=g, dtype=F64)
+    slack = torch.rand(B, m, generator=g, dtype=F64)
+    slack[:, : m // 2] = 0.0
+    h = (G @ x0).squeeze(-1) + slack + 0.05
+    ref = solve_qp(Q, p, G, h, method="ipm")
+    assert (ref.status == Status.SOLVED).all()
+    for method in METHODS:
+        sol = solve_qp(Q, p, G * 1e12, h * 1e12, method=method)
+        solved = sol.status == Status.SOLVED
+        err = (sol.x - ref.x).abs().amax(-1) / (1.0 + ref.x.abs().amax(-1))
+        assert (err[solved] <= 1e-6).all(), (method, err[solved].max())
+        assert int(solved.sum()) >= B - 1, (method, sol.status)
+
+
 def test_multipliers_and_gradients_of_a_scaled_problem():
     """The multipliers come back in the problem's own units (stationarity holds), and the
     gradients match finite differences where the scaling is far from one."""
