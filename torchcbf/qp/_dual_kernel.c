@@ -740,6 +740,8 @@ int torchcbf_dual_tight_rows(int64_t B, int N, int M, const double *G, const dou
  * of unboundedness can exist (P - tau I positive definite, or q'x >= 0). */
 
 #define CERT_ROUNDING (1e4 * 2.220446049250313e-16)
+/* stationarity's tolerance: its terms can cancel by orders of magnitude (torch's STATIONARY) */
+#define CERT_STATIONARY (3e5 * 2.220446049250313e-16)
 #define CERT_REFINED (4.0 * 2.220446049250313e-16)
 #define CERT_TINY 2.2250738585072014e-308
 
@@ -749,18 +751,34 @@ int torchcbf_dual_tight_rows(int64_t B, int N, int M, const double *G, const dou
 static int kkt_point_row(int N, int M, const double *P, const double *q, const double *G,
                          const double *h, const double *x, const double *z) {
     const double r = CERT_ROUNDING;
-    double xmax = 0.0, zmax = 0.0, zmin = 0.0, viol = 0.0;
+    double xmax = 0.0, viol = 0.0;
     for (int c = 0; c < N; ++c) {
         if (!isfinite(x[c])) return 0;
         xmax = dmax(xmax, fabs(x[c]));
     }
-    for (int i = 0; i < M; ++i) {
+    for (int i = 0; i < M; ++i)
         if (!isfinite(z[i])) return 0;
-        zmax = dmax(zmax, fabs(z[i]));
-        zmin = dmin(zmin, z[i]);
+    /* stationarity's terms; the objective's gradient scale max(|q|, |Px|) */
+    double res[NMAX], terms[NMAX], smax = 0.0, grad = 0.0;
+    for (int c = 0; c < N; ++c) {
+        double s = 0.0, t = 0.0;
+        for (int j = 0; j < N; ++j) {
+            s += P[c * N + j] * x[j];
+            t += fabs(P[c * N + j]) * fabs(x[j]);
+        }
+        grad = dmax(grad, dmax(fabs(q[c]), fabs(s)));
+        res[c] = s + q[c], terms[c] = t + fabs(q[c]);
     }
-    zmax += 1.0;
-    if (!(zmin >= -r * zmax)) return 0;
+    /* each multiplier judged as its stationarity term z_i max|G_i| against the largest term
+     * (torch's multiplier_size): the test does not depend on the units */
+    double zscale = grad;
+    for (int i = 0; i < M; ++i) {
+        const double *g = G + (size_t)i * N;
+        double gmax = 0.0;
+        for (int c = 0; c < N; ++c) gmax = dmax(gmax, fabs(g[c]));
+        zscale = dmax(zscale, fabs(z[i]) * gmax);
+    }
+    if (!(zscale > 0.0)) zscale = 1.0;
     for (int i = 0; i < M; ++i) {
         const double *g = G + (size_t)i * N;
         double gx = 0.0, gmax = 0.0;
@@ -769,20 +787,12 @@ static int kkt_point_row(int N, int M, const double *P, const double *q, const d
             gmax = dmax(gmax, fabs(g[c]));
         }
         double scale = dmax(fabs(h[i]) + gmax * (1.0 + xmax), CERT_TINY);
-        double slack = (h[i] - gx) / scale;
+        double slack = (h[i] - gx) / scale, size = z[i] * gmax;
         viol = dmax(viol, -slack);
-        if (z[i] > r * zmax && slack > r) return 0;
+        if (size < -r * zscale) return 0;
+        if (size > r * zscale && slack > r) return 0;
     }
     if (!(viol <= r)) return 0;
-    double res[NMAX], terms[NMAX], smax = 0.0;
-    for (int c = 0; c < N; ++c) {
-        double s = q[c], t = fabs(q[c]);
-        for (int j = 0; j < N; ++j) {
-            s += P[c * N + j] * x[j];
-            t += fabs(P[c * N + j]) * fabs(x[j]);
-        }
-        res[c] = s, terms[c] = t;
-    }
     for (int i = 0; i < M; ++i) {
         if (z[i] == 0.0) continue;
         const double *g = G + (size_t)i * N;
@@ -794,7 +804,7 @@ static int kkt_point_row(int N, int M, const double *P, const double *q, const d
     for (int c = 0; c < N; ++c) smax = dmax(smax, terms[c]);
     for (int c = 0; c < N; ++c) {
         double s = dmax(terms[c] + r * smax, CERT_TINY);
-        if (!(fabs(res[c]) <= r * s)) return 0;
+        if (!(fabs(res[c]) <= CERT_STATIONARY * s)) return 0;
     }
     return 1;
 }

@@ -8,7 +8,7 @@
 
 /* Bumped whenever an exported signature or its meaning changes; _dual_native.py refuses a
  * built library of another version (e.g. an editable install not rebuilt after an edit). */
-#define TORCHCBF_DUAL_KERNEL_VERSION 8
+#define TORCHCBF_DUAL_KERNEL_VERSION 9
 
 /* most variables a problem may have */
 #define TORCHCBF_DUAL_NMAX 64

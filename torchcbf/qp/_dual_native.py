@@ -28,7 +28,7 @@ MIN_WORK_PER_THREAD = 1024 * (4 * 4 + 8 * 4)
 #: most variables the kernel handles (``NMAX`` in the C source)
 MAX_VARS = 64
 #: ``TORCHCBF_DUAL_KERNEL_VERSION`` of the C source this module calls (_dual_kernel.h)
-KERNEL_VERSION = 8
+KERNEL_VERSION = 9
 #: the file name of the built kernel, without its extension suffix
 KERNEL_STEM = "_dual_kernel"
 
