@@ -88,13 +88,10 @@ def test_realtime_path_matches_general_path(
     with torch.no_grad():
         batch = filt(x, u)
         one = filt(x[0], u[0])
-    # the kernel answers unless a hard QP is infeasible on some row: the general path's
-    # fallback then serves it, or, with a CLF beside the shared slack, its least-violating
-    # problem of the CBF rows alone
+    # the kernel answers unless a hard QP is infeasible on some row (the general path's
+    # fallback then serves it)
     fell_back = bool((batch.status == FilterStatus.FALLBACK).any())
-    relaxed = bool((batch.status == FilterStatus.RELAXED).any())
-    deferred = fell_back or (clf and slack == "shared" and relaxed)
-    assert (_qp(batch) == "realtime") != deferred, batch.path
+    assert (_qp(batch) == "realtime") != fell_back, batch.path
     assert _qp(one) == "realtime", one.path
     _same(batch, _general(filt, x, u), tol)
     _same(one, _general(filt, x[0], u[0]), tol)

@@ -19,7 +19,7 @@
 
 /* Bumped whenever an exported signature or its meaning changes (see _native.py); the version
  * reported folds in the linked QP kernel's, whose solver this library carries. */
-#define FILTER_KERNEL_VERSION 10
+#define FILTER_KERNEL_VERSION 11
 
 int torchcbf_filter_version(void) {
     return 100 * FILTER_KERNEL_VERSION + TORCHCBF_DUAL_KERNEL_VERSION;
@@ -149,7 +149,9 @@ int torchcbf_filter_solve(int64_t B, int m, int k, int c, int slack, int two_pas
     int limits = 0;
     for (int j = 0; j < m; ++j) limits += isfinite(lo[j]) + isfinite(hi[j]);
     int M = k + c + limits + ks + c;
-    int64_t Bq = two_pass && ks ? 2 * B : B; /* problems: [elastic (B); hard (B)] */
+    /* problems: [elastic (B); hard (B); with CLFs, the CBF rows' elastic problems of the
+     * rows whose hard problem is infeasible (at most B, solved in a second call)] */
+    int64_t Bq = two_pass && ks ? (c > 0 ? 3 * B : 2 * B) : B;
     /* u_nom was checked with the states (inputs_finite); the conditions come from them */
     const double *inputs[] = {a_cbf, b_cbf, a_clf, b_clf, R};
     const int64_t sizes[] = {(int64_t)k * m * B, (int64_t)k * B, (int64_t)c * m * B,
@@ -182,18 +184,50 @@ int torchcbf_filter_solve(int64_t B, int m, int k, int c, int slack, int two_pas
                 for (int j = m; j < m + ks; ++j) G[b * M * N + i * N + j] = 0.0;
     }
     int budget = max_iter > 4 * (M + N) ? max_iter : 4 * (M + N);
-    int code = torchcbf_dual_all_finite(Bq * (N * N + N + M * N + M), buf) ? 0 : 1;
-    if (code == 0 && torchcbf_dual_forward(Bq, N, M, P, q, G, h, eps, budget, x, z, active,
+    int64_t Bs = Bq > 2 * B ? 2 * B : Bq; /* solved in the first call */
+    int code = torchcbf_dual_all_finite(Bs * (N * N + N + M * N + M), buf) ? 0 : 1;
+    if (code == 0 && torchcbf_dual_forward(Bs, N, M, P, q, G, h, eps, budget, x, z, active,
                                            slots, L, ok, iters, infeasible) != 0)
         code = -1;
+    /* with CLFs, where the hard problem is infeasible: the elastic problem of the CBF rows
+     * alone (the CLF rows' controls and right-hand sides zeroed: delta sits at 0), whose
+     * slack is the least violation a CLF's pull on the elastic problem may not exceed;
+     * row b's at 2B + (its rank among those rows) */
+    int64_t extra = 0;
+    for (int64_t b = 0; Bq > Bs && b < B && code == 0; ++b) {
+        if (ok[B + b] || !infeasible[B + b]) continue;
+        int64_t e = 2 * B + extra++;
+        memcpy(P + e * N * N, P + b * N * N, sizeof(double) * N * N);
+        memcpy(q + e * N, q + b * N, sizeof(double) * N);
+        memcpy(G + e * M * N, G + b * M * N, sizeof(double) * M * N);
+        memcpy(h + e * M, h + b * M, sizeof(double) * M);
+        for (int i = k; i < k + c; ++i) {
+            for (int j = 0; j < m; ++j) G[e * M * N + i * N + j] = 0.0;
+            h[e * M + i] = 0.0;
+        }
+    }
+    if (code == 0 && extra > 0 &&
+        torchcbf_dual_forward(extra, N, M, P + 2 * B * N * N, q + 2 * B * N, G + 2 * B * M * N,
+                              h + 2 * B * M, eps, budget, x + 2 * B * N, z + 2 * B * M,
+                              active + 2 * B * M, slots + 2 * B * N, L + 2 * B * N * N,
+                              ok + 2 * B, iters + 2 * B, infeasible + 2 * B) != 0)
+        code = -1;
     /* the solution each row keeps; the dual method is trusted only on Q it conditions well */
-    for (int64_t b = 0; b < B && code == 0; ++b) {
+    for (int64_t b = 0, e = 2 * B; b < B && code == 0; ++b) {
         int64_t pick = b;
+        int least = 0; /* the CBF rows' own problem answers: delta follows from u */
         if (Bq > B) {
             if (ok[B + b]) pick = B + b;
-            /* infeasible with a CLF: the least-violating control needs the CBF rows alone
-             * (the general path's third problem), which a CLF's pull may not move */
-            else if (!infeasible[B + b] || c > 0) code = 1;
+            else if (!infeasible[B + b]) code = 1;
+            else if (Bq > Bs) {
+                double s_el = 0.0, s_cbf = 0.0;
+                for (int j = 0; j < ks; ++j) {
+                    s_el = fmax(s_el, x[b * N + m + j]);
+                    s_cbf = fmax(s_cbf, x[e * N + m + j]);
+                }
+                if (ok[e] && (!ok[b] || s_el > s_cbf + slack_tol)) pick = e, least = 1;
+                ++e;
+            }
         }
         if (code != 0 || !ok[pick]) {
             code = 1;
@@ -218,7 +252,8 @@ int torchcbf_filter_solve(int64_t B, int m, int k, int c, int slack, int two_pas
             double v = b_clf[b * c + i];
             for (int j = 0; j < m; ++j) v += a_clf[(b * c + i) * m + j] * zb[j];
             val[k + i] = -v;
-            slk[k + i] = delta[i] > 0.0 ? delta[i] : 0.0;
+            double d = least ? v : delta[i];
+            slk[k + i] = d > 0.0 ? d : 0.0;
         }
         status[b] = relaxed ? STATUS_RELAXED : STATUS_SOLVED;
     }

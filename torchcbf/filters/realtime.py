@@ -25,7 +25,7 @@ from torchcbf.qp import realtime as qp_realtime
 
 #: ``100 FILTER_KERNEL_VERSION + TORCHCBF_DUAL_KERNEL_VERSION`` of the C sources this module
 #: calls (the filter's kernel carries the QP kernel's solver)
-KERNEL_VERSION = 100 * 10 + qp_realtime.KERNEL_VERSION
+KERNEL_VERSION = 100 * 11 + qp_realtime.KERNEL_VERSION
 #: the file name of the built kernel, without its extension suffix
 KERNEL_STEM = "_filter_kernel"
 #: most states the path takes: on one thread the kernel, a state after another, beats the
