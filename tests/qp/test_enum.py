@@ -319,3 +319,19 @@ def test_a_feasible_point_of_a_zero_objective_is_a_kkt_point_whatever_the_noise(
     # a multiplier of real size on a loose row is still refused
     z = torch.tensor([[0.0, 0.0, 0.3, 0.0, 0.0]], dtype=F64)
     assert not bool(kkt_point(data, x, z, y))
+
+
+@pytest.mark.parametrize(("tiny", "pull"), [(1e-300, -1e10), (1e-200, -1e150)])
+def test_rows_whose_every_candidate_overflows_are_enumerated_on_their_own_systems(tiny, pull):
+    """``P`` of 1e-300 along a direction pulled by 1e10: the unconstrained minimiser
+    overflows and no Schur candidate is solvable; each candidate's own KKT system answers
+    (the rows went to the interior point method instead)."""
+    f64 = torch.float64
+    P = torch.diag(torch.tensor([1.0, tiny], dtype=f64))
+    q = torch.tensor([0.5, pull], dtype=f64)
+    G = torch.tensor([[0.3, 1.0], [1.0, 0.2]], dtype=f64)
+    h = torch.tensor([1.0, 2.0], dtype=f64)
+    box = torch.ones(2, dtype=f64)
+    sol = solve_qp(P, q, G, h, lb=-box, ub=box, method="enumerate")
+    assert int(sol.status) == Status.SOLVED and sol.method_names() == ["enumerate"]
+    torch.testing.assert_close(sol.x, torch.tensor([-0.5, 1.0], dtype=f64))

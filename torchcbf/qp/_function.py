@@ -838,7 +838,7 @@ def _certified_enum(data: QPData, cfg: SolverConfig) -> EnumResult:
     candidate comes near (infeasible ones) are left to the interior point method, whose
     answer carries the certificate."""
     en = _certify(data, solve_enum(data, eps=cfg.eps, pairs=cfg.pairs), cfg)
-    lost = ~en.ok & ~(en.score > cfg.eps**0.5)
+    lost = ~en.ok & ((en.score <= cfg.eps**0.5) | ~torch.isfinite(en.score))
     if not bool(lost.any()):
         return en
     N, M, E = data.sizes
