@@ -105,30 +105,36 @@ def test_elastic_filter_qp_status_does_not_depend_on_batch_size(method, dtype):
         assert (out.status == int(full.status[0])).all(), B
 
 
+def _box_corner_problem(pull: float):
+    """``(Q, p, G, h, lb, ub, x*)``: two controls in a box of 2 pulled by ``p = -pull`` to
+    its corner, two rows with their own slack variables (weight 100); ``x*`` the corner
+    and the rows' slacks there."""
+    f64 = torch.float64
+    Q = torch.diag(torch.tensor([1.0, 1.0, 100.0, 100.0], dtype=f64))
+    G = torch.tensor([[0.83, 0.56, -1.0, 0.0], [0.32, 0.95, 0.0, -1.0]], dtype=f64)
+    h = torch.tensor([1.11, 1.45], dtype=f64)
+    lb = torch.tensor([-2.0, -2.0, 0.0, 0.0], dtype=f64)
+    ub = torch.tensor([2.0, 2.0, math.inf, math.inf], dtype=f64)
+    p = torch.tensor([-pull, -pull, 0.0, 0.0], dtype=f64)
+    u = torch.tensor([2.0, 2.0], dtype=f64)
+    return Q, p, G, h, lb, ub, torch.cat((u, G[:, :2] @ u - h))
+
+
 @pytest.mark.parametrize("hard", [1, 16, 17, 40])
 def test_a_rows_answer_does_not_depend_on_how_many_rows_are_hard(hard):
     """A far unconstrained minimiser (``p`` of 1e12) that enumeration by Schur complement
     loses: the rescue solved every candidate's KKT system only while few rows (16) needed
     it; the 17th sent them all to the interior point method, which ended NUMERICAL_ERROR."""
-    f64 = torch.float64
-    Q = torch.diag(torch.tensor([1.0, 1.0, 100.0, 100.0], dtype=f64))
-    G = torch.tensor([[0.83, 0.5576, -1.0, 0.0], [0.3167, 0.9485, 0.0, -1.0]], dtype=f64)
-    h = torch.tensor([1.1118, 1.4487], dtype=f64)
-    lb = torch.tensor([-2.0, -2.0, 0.0, 0.0], dtype=f64)
-    ub = torch.tensor([2.0, 2.0, math.inf, math.inf], dtype=f64)
+    Q, p_hard, G, h, lb, ub, expected = _box_corner_problem(1e12)
     B = 64
-    p = torch.tensor([-0.1, 0.2, 0.0, 0.0], dtype=f64).repeat(B, 1)
-    p[:hard] = torch.tensor([-1e12, -1e12, 0.0, 0.0], dtype=f64)
+    p = torch.tensor([-0.1, 0.2, 0.0, 0.0], dtype=torch.float64).repeat(B, 1)
+    p[:hard] = p_hard
 
     def expand(t):
         return t.expand(B, *t.shape)
 
     sol = solve_qp(expand(Q), p, expand(G), expand(h), lb=expand(lb), ub=expand(ub))
     assert (sol.status == Status.SOLVED).all(), sol.status
-    # the minimiser of the hard row: u at the box corner, the slacks of its two rows
-    u = torch.tensor([2.0, 2.0], dtype=f64)
-    s = (G[:, :2] @ u - h).clamp_min(0.0)
-    expected = torch.cat((u, s))
     torch.testing.assert_close(sol.x[:hard], expected.expand(hard, 4), rtol=0, atol=1e-9)
 
 
@@ -138,15 +144,7 @@ def test_a_far_minimiser_beside_a_box_is_solved_at_any_distance(method, scale):
     """``p`` of 1e13, 1e14 or 1e20 (not 1e12 or 1e16) ended NUMERICAL_ERROR: enumeration by
     Schur complement took a candidate a rounding off, which no polish certified, and the
     rescue on each candidate's own KKT system ran only where it had found none."""
-    f64 = torch.float64
-    Q = torch.diag(torch.tensor([1.0, 1.0, 100.0, 100.0], dtype=f64))
-    G = torch.tensor([[0.83, 0.56, -1.0, 0.0], [0.32, 0.95, 0.0, -1.0]], dtype=f64)
-    h = torch.tensor([1.11, 1.45], dtype=f64)
-    lb = torch.tensor([-2.0, -2.0, 0.0, 0.0], dtype=f64)
-    ub = torch.tensor([2.0, 2.0, math.inf, math.inf], dtype=f64)
-    p = torch.tensor([-scale, -scale, 0.0, 0.0], dtype=f64)
+    Q, p, G, h, lb, ub, expected = _box_corner_problem(scale)
     sol = solve_qp(Q, p, G, h, lb=lb, ub=ub, method=method)
     assert int(sol.status) == Status.SOLVED
-    u = torch.tensor([2.0, 2.0], dtype=f64)
-    expected = torch.cat((u, G[:, :2] @ u - h))  # both rows' slacks at the box corner
     torch.testing.assert_close(sol.x, expected, rtol=0, atol=1e-9)
