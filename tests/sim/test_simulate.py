@@ -383,6 +383,24 @@ def test_metrics_sees_a_collision_between_two_samples() -> None:
     assert m["collision_between_samples"].tolist() == [True]
 
 
+def test_metrics_read_a_moving_obstacle_at_each_states_time() -> None:
+    """A ball crossing the robot's path at 1 m/s: read at t = 0 it stayed 2 m away (min h
+    3.91, no collision); at the states' own times the robot meets it at t = 2."""
+    from torchcbf.barriers import Ball
+    from torchcbf.viz import barrier_traces
+
+    ball = Ball(center=[2.0, -2.0], radius=0.3, velocity=[0.0, 1.0])
+    right = lambda x, t: torch.tensor([[1.0, 0.0]]).expand_as(x)  # noqa: E731
+    traj = simulate(SingleIntegrator(2), torch.zeros(1, 2), 40, 0.1, nominal=right, progress=False)
+    m = metrics(traj, barriers=[ball])
+    exact = ball(traj.x[0], traj.t.float())
+    assert m["collision"].tolist() == [True]
+    torch.testing.assert_close(m["min_h"], exact.min().reshape(1))
+    assert m["first_collision_time"][0] < 2.0  # entered before the centres align
+    traces = torch.as_tensor(barrier_traces(traj, [ball])[0])
+    torch.testing.assert_close(traces, exact, rtol=1e-6, atol=1e-6)
+
+
 def test_trajectory_load_names_missing_fields(tmp_path) -> None:
     path = tmp_path / "partial.pt"
     torch.save({"t": torch.zeros(2)}, path)

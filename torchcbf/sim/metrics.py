@@ -31,16 +31,28 @@ def _first_time(mask: Tensor, t: Tensor) -> Tensor:
     return torch.where(hit, t[first], torch.full_like(t[first], float("nan")))
 
 
-def _barrier_values(fns: Sequence[Callable[[Tensor], Tensor]], x: Tensor) -> Tensor:
-    """Every barrier's values on the states ``x [B, ..., n]`` as ``[B, ..., k]`` (evaluated
-    on the flattened states, so a function needs to take one batch dimension only)."""
+def _barrier_values(
+    fns: Sequence[Callable[..., Tensor]], x: Tensor, t: Tensor | None = None
+) -> Tensor:
+    """Every barrier's values on the states ``x [B, ..., n]`` at the times ``t`` (broadcast
+    to ``x``'s batch dimensions) as ``[B, ..., k]``, evaluated on the flattened states, so a
+    function needs to take one batch dimension only. A time-varying barrier
+    (``time_varying``) is read at the states' own times; other functions take ``x`` alone."""
     flat = x.reshape(-1, x.shape[-1])
+    times = None if t is None else t.to(x).expand(x.shape[:-1]).reshape(-1)
+
+    def value(fn: Callable[..., Tensor], states: Tensor, at: Tensor | None) -> Tensor:
+        if at is not None and getattr(fn, "time_varying", False):
+            return fn(states, at)
+        return fn(states)
+
     with torch.no_grad():
         if flat.shape[0] == 0:  # no state: each function's outputs counted on a stand-in
             flat = flat.new_zeros(1, flat.shape[-1])
-            k = sum(math.prod(fn(flat).shape[1:]) for fn in fns)
+            at = None if times is None else flat.new_zeros(1)
+            k = sum(math.prod(value(fn, flat, at).shape[1:]) for fn in fns)
             return x.new_zeros(*x.shape[:-1], k)
-        values = [fn(flat).reshape(flat.shape[0], -1) for fn in fns]
+        values = [value(fn, flat, times).reshape(flat.shape[0], -1) for fn in fns]
     return torch.cat(values, -1).reshape(*x.shape[:-1], -1)
 
 
@@ -65,7 +77,8 @@ def _swept(
         end = min(j + steps, T)
         start = x[:, j:end, None, :]
         step = (x[:, j + 1 : end + 1] - x[:, j:end])[:, :, None, :]
-        between.append(_barrier_values(fns, start + s[:, None] * step) < 0)
+        at = t[j:end, None] + s.to(t) * (t[j + 1 : end + 1] - t[j:end])[:, None]  # [steps, P]
+        between.append(_barrier_values(fns, start + s[:, None] * step, at) < 0)
     frac = torch.cat([torch.zeros(1, device=x.device, dtype=x.dtype), s])
     times = (t[:-1, None] + frac * (t[1:] - t[:-1])[:, None]).reshape(-1)
     return torch.cat(between, 1), torch.cat([times, t[-1:]])
@@ -139,7 +152,7 @@ def metrics(
         # a ModuleList is callable (nn.Module) but holds the barriers
         listed = isinstance(barriers, (nn.ModuleList, list, tuple))
         fns = list(barriers) if listed or not callable(barriers) else [barriers]
-        h = _barrier_values(fns, traj.x)
+        h = _barrier_values(fns, traj.x, t)
         h_min = h.min(-1).values
         unsafe = h_min < 0
         out["min_h"] = h_min.min(-1).values

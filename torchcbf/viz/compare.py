@@ -11,11 +11,11 @@ from typing import Any
 
 import matplotlib.pyplot as plt
 import numpy as np
-import torch
 from matplotlib.animation import FuncAnimation, PillowWriter
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
+from torchcbf.sim.metrics import _barrier_values
 from torchcbf.sim.trajectory import Trajectory
 from torchcbf.viz.figures import BarrierFn, _draw_scene, _np
 
@@ -88,13 +88,12 @@ def plot_methods(
 
 
 def barrier_traces(traj: Trajectory, barriers: Sequence[BarrierFn]) -> np.ndarray:
-    """``min_i b_i(x)`` over the true states: ``[B, T+1]`` (NaN where a state is)."""
+    """``min_i b_i(x)`` over the true states: ``[B, T+1]`` (NaN where a state is); a
+    time-varying barrier read at the trajectory's times."""
     B, T = traj.x.shape[:2]
     if B == 0:
         return np.zeros((0, T))
-    with torch.no_grad():
-        h = torch.cat([b(traj.x).reshape(B, T, -1) for b in barriers], -1)
-    return _np(h.min(-1).values)
+    return _np(_barrier_values(list(barriers), traj.x, traj.t).min(-1).values)
 
 
 def plot_barrier_bands(

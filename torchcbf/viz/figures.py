@@ -49,7 +49,9 @@ def draw_unsafe_set(
     """Shade ``{h < 0}`` of ``barrier`` over the plane of state components ``index``.
 
     The other state components are taken from ``fill`` (zeros by default). A barrier that
-    returns ``[..., k]`` is reduced by its minimum over ``k``.
+    returns ``[..., k]`` is reduced by its minimum over ``k``. A time-varying barrier is
+    drawn where it is at ``t = 0`` (the figures of trajectories show the start; the
+    metrics and :func:`~torchcbf.viz.barrier_traces` read it at each state's time).
     """
     xs = np.linspace(*xlim, resolution)
     ys = np.linspace(*ylim, resolution)
