@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import numpy as np
 import pytest
 import torch
 from _devices import device_matches_cpu
@@ -406,6 +407,59 @@ def test_trajectory_load_names_missing_fields(tmp_path) -> None:
     torch.save({"t": torch.zeros(2)}, path)
     with pytest.raises(ValueError, match="missing fail_step, failed"):
         Trajectory.load(path)
+
+
+def _zero(x: torch.Tensor, t: float) -> torch.Tensor:
+    return torch.zeros_like(x)
+
+
+def test_a_file_that_is_no_torch_save_is_a_value_error(tmp_path) -> None:
+    for name, content in (("empty.pt", b""), ("text.pt", b"hello"), ("cut.pt", None)):
+        path = tmp_path / name
+        if content is None:  # a real trajectory file cut in half
+            traj = simulate(
+                SingleIntegrator(2), torch.zeros(2, 2), 3, 0.1, nominal=_zero, progress=False
+            )
+            traj.save(path)
+            path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+        else:
+            path.write_bytes(content)
+        with pytest.raises(ValueError, match="not a file torch.save wrote"):
+            Trajectory.load(path)
+    with pytest.raises(FileNotFoundError):
+        Trajectory.load(tmp_path / "missing.pt")
+
+
+def test_snapshots_of_dataclasses_and_nested_named_tuples_round_trip(tmp_path) -> None:
+    """A planner output may be a dataclass (the protocol asks for ``.u`` and ``.plan``):
+    ``save`` wrote it as an object ``load`` then refused; named tuples inside a tuple came
+    back as tagged dicts."""
+    import dataclasses
+
+    class Stage(NamedTuple):
+        mean: torch.Tensor
+
+    @dataclasses.dataclass
+    class Plan:
+        u: torch.Tensor
+        plan: torch.Tensor
+        stages: tuple
+
+    traj = simulate(SingleIntegrator(2), torch.zeros(2, 2), 3, 0.1, nominal=_zero, progress=False)
+    stages = (Stage(torch.ones(2, 2)), Stage(torch.zeros(2, 2)))
+    traj.planner = {0: Plan(torch.ones(2, 2), torch.zeros(2, 4, 2), stages)}
+    path = tmp_path / "snap.pt"
+    traj.save(path)
+    back = Trajectory.load(path).planner[0]
+    assert type(back).__name__ == "Plan" and back._fields == ("u", "plan", "stages")
+    assert isinstance(back.stages, tuple) and type(back.stages[1]).__name__ == "Stage"
+    assert torch.equal(back.stages[0].mean, torch.ones(2, 2))
+    as_numpy = traj.numpy()["planner"][0]
+    assert isinstance(as_numpy["stages"][0]["mean"], np.ndarray)
+    # one scenario's file holds that row only
+    one = tmp_path / "one.pt"
+    traj.scenario(1).save(one)
+    assert one.stat().st_size < path.stat().st_size
 
 
 def test_the_swept_check_in_slices_equals_the_whole(monkeypatch) -> None:

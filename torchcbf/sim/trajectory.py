@@ -17,12 +17,25 @@ from torchcbf import _io
 _TUPLE = "__namedtuple__"
 
 
-def _plain(value: Any) -> Any:
-    """``value`` with named tuples as tagged dicts: what ``torch.load(weights_only=True)``
-    reads back (tensors, numbers, strings, lists, tuples, dicts)."""
+def _record(value: Any) -> tuple[str, dict[str, Any]] | None:
+    """``(name, fields)`` of a named tuple or a dataclass instance (a planner's output),
+    else ``None``."""
     if isinstance(value, tuple) and hasattr(value, "_fields"):
-        fields = {k: _plain(v) for k, v in value._asdict().items()}
-        return {_TUPLE: type(value).__name__, "fields": fields}
+        return type(value).__name__, value._asdict()
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return type(value).__name__, {
+            f.name: getattr(value, f.name) for f in dataclasses.fields(value)
+        }
+    return None
+
+
+def _plain(value: Any) -> Any:
+    """``value`` with named tuples and dataclass instances as tagged dicts: what
+    ``torch.load(weights_only=True)`` reads back (tensors, numbers, strings, lists, tuples,
+    dicts)."""
+    record = _record(value)
+    if record is not None:
+        return {_TUPLE: record[0], "fields": {k: _plain(v) for k, v in record[1].items()}}
     if isinstance(value, dict):
         return {k: _plain(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
@@ -32,16 +45,38 @@ def _plain(value: Any) -> Any:
 
 def _restore(value: Any) -> Any:
     """The inverse of :func:`_plain`: tagged dicts as named tuples of the same name and fields
-    (built here, so reading a file never imports or runs code named by it)."""
+    (built here, so reading a file never imports or runs code named by it; a dataclass
+    comes back as such a named tuple)."""
     if isinstance(value, dict):
         if set(value) == {_TUPLE, "fields"} and isinstance(value["fields"], dict):
             fields = {str(k): _restore(v) for k, v in value["fields"].items()}
             kind = collections.namedtuple(str(value[_TUPLE]), list(fields))  # noqa: PYI024
             return kind(**fields)
         return {k: _restore(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_restore(v) for v in value]
+    if isinstance(value, (list, tuple)):
+        return type(value)(_restore(v) for v in value)
     return value
+
+
+def _walk(value: Any, leaf: Any, record: Any) -> Any:
+    """``value`` with ``leaf`` applied to its tensors, through dicts, lists, tuples, named
+    tuples and dataclass instances (those rebuilt by ``record(value, mapped fields)``)."""
+    if isinstance(value, Tensor):
+        return leaf(value)
+    fields = _record(value)
+    if fields is not None:
+        return record(value, {k: _walk(v, leaf, record) for k, v in fields[1].items()})
+    if isinstance(value, dict):
+        return {k: _walk(v, leaf, record) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_walk(v, leaf, record) for v in value)
+    return value
+
+
+def _same_kind(value: Any, fields: dict[str, Any]) -> Any:
+    if isinstance(value, tuple):
+        return type(value)(**fields)
+    return dataclasses.replace(value, **fields)
 
 
 @dataclass
@@ -83,17 +118,11 @@ class Trajectory:
         return float(self.t[1] - self.t[0]) if self.t.numel() > 1 else 0.0
 
     def _map(self, fn) -> Trajectory:
-        def apply(value: Any) -> Any:
-            if isinstance(value, Tensor):
-                return fn(value)
-            if isinstance(value, tuple) and hasattr(value, "_fields"):
-                return type(value)(*(apply(v) for v in value))
-            if isinstance(value, dict):
-                return {k: apply(v) for k, v in value.items()}
-            return value
-
         return Trajectory(
-            **{f.name: apply(getattr(self, f.name)) for f in dataclasses.fields(self)}
+            **{
+                f.name: _walk(getattr(self, f.name), fn, _same_kind)
+                for f in dataclasses.fields(self)
+            }
         )
 
     def to(self, device: torch.device | str) -> Trajectory:
@@ -103,16 +132,15 @@ class Trajectory:
     def numpy(self) -> dict[str, Any]:
         """Every field as numpy arrays (planner snapshots as dicts of arrays)."""
 
-        def conv(value: Any) -> Any:
-            if isinstance(value, Tensor):
-                return value.detach().cpu().numpy()
-            if isinstance(value, tuple) and hasattr(value, "_fields"):
-                return {k: conv(v) for k, v in value._asdict().items()}
-            if isinstance(value, dict):
-                return {k: conv(v) for k, v in value.items()}
-            return value
+        def leaf(value: Tensor) -> Any:
+            return value.detach().cpu().numpy()
 
-        return {f.name: conv(getattr(self, f.name)) for f in dataclasses.fields(self)}
+        def record(_: Any, fields: dict[str, Any]) -> dict[str, Any]:
+            return fields
+
+        return {
+            f.name: _walk(getattr(self, f.name), leaf, record) for f in dataclasses.fields(self)
+        }
 
     def save(self, path: str | Path) -> None:
         """Save with ``torch.save`` (tensors moved to the CPU; planner snapshots as plain
@@ -127,13 +155,21 @@ class Trajectory:
         """Load a trajectory written by :meth:`save`. Tensors and plain containers only
         (``torch.load(weights_only=True)``): a file holding any other Python object is refused
         with a ValueError, never unpickled, so a file from elsewhere cannot run code.
-        Planner snapshots come back as named tuples with the fields they were saved with."""
+        Planner snapshots come back as named tuples with the fields they were saved with (a
+        dataclass output as a named tuple of its fields)."""
         try:
             data = torch.load(Path(path), map_location=map_location, weights_only=True)
         except pickle.UnpicklingError as error:
             raise ValueError(
                 f"{path} is not a trajectory file of tensors only (Trajectory.save writes "
                 f"one); refused without unpickling its objects: {error}"
+            ) from None
+        except (OSError, EOFError, RuntimeError, KeyError) as error:
+            if isinstance(error, (FileNotFoundError, IsADirectoryError, PermissionError)):
+                raise
+            raise ValueError(
+                f"{path} is not a file torch.save wrote (empty, truncated or of another "
+                f"format): {type(error).__name__}: {error}"
             ) from None
         fields = dataclasses.fields(cls)
         names = {f.name for f in fields}
@@ -147,22 +183,28 @@ class Trajectory:
         return cls(**{k: _restore(v) for k, v in data.items()})
 
     def scenario(self, index: int) -> Trajectory:
-        """Scenario ``index`` alone (batch of one; negative indices count from the end,
-        others outside the batch raise ``IndexError``)."""
+        """Scenario ``index`` alone (batch of one, its own copies of the rows, so that
+        :meth:`save` writes that row only; negative indices count from the end, others
+        outside the batch raise ``IndexError``). Planner snapshots hold the whole batch's
+        outputs and are not carried over (``planner`` is empty)."""
         B = self.batch_size
         if not -B <= index < B:
             raise IndexError(f"scenario {index} is outside a batch of {B}")
         index %= B
         sl = slice(index, index + 1)
+
+        def row(value: Tensor | None) -> Tensor | None:
+            return None if value is None else value[sl].clone()
+
         return Trajectory(
             t=self.t,
-            x=self.x[sl],
-            x_hat=self.x_hat[sl],
-            u_nom=self.u_nom[sl],
-            u=self.u[sl],
-            h=None if self.h is None else self.h[sl],
-            status=None if self.status is None else self.status[sl],
-            failed=self.failed[sl],
-            fail_step=self.fail_step[sl],
+            x=row(self.x),
+            x_hat=row(self.x_hat),
+            u_nom=row(self.u_nom),
+            u=row(self.u),
+            h=row(self.h),
+            status=row(self.status),
+            failed=row(self.failed),
+            fail_step=row(self.fail_step),
             planner={},
         )
