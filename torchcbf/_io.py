@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import signal
 import tempfile
 import threading
@@ -156,5 +157,9 @@ def remove_stale(folder: str | Path) -> list[Path]:
 
 def is_temporary(path: str | Path) -> bool:
     """Whether ``path`` names a temporary file of :func:`atomic_path`."""
-    name = Path(path).name
-    return name.startswith(".") and name.endswith(TMP_SUFFIX + Path(name).suffix)
+    # ".NAME." + mkstemp's 8 random characters + ".tmp" + NAME's suffix (none for a name
+    # without one): a user's ".draft.tmp.md" is not one
+    return (
+        re.fullmatch(rf"\..+\.[a-z0-9_]{{8}}{re.escape(TMP_SUFFIX)}(\.[^.]+)?", Path(path).name)
+        is not None
+    )

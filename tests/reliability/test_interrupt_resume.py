@@ -132,7 +132,7 @@ def test_sweep_killed_then_resumed_equals_an_uninterrupted_run(
     _whole_files(out, killed=sig == signal.SIGKILL)
     assert not json.loads((out / "run.json").read_text())["complete"]
     assert 1 <= len(read_journal(out / "sweep.jsonl")) < 4  # what finished is saved
-    (out / ".sweep.json.cut.tmp.json").write_text('{"rows": [')  # as a kill mid-write leaves
+    (out / ".sweep.json.cut_9x2k.tmp.json").write_text('{"rows": [')  # as a kill mid-write leaves
     _run(SWEEP, out, "--resume")
     _whole_files(out)
     resumed, reference = _json(out / "sweep.json"), _json(sweep_reference / "sweep.json")
@@ -225,3 +225,11 @@ def test_ctrl_c_while_a_temporary_file_is_created_leaves_none(tmp_path, monkeypa
     assert len(created) == 3 and not created[-1].exists()
     assert not [p for p in out.rglob("*") if is_temporary(p)]
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_only_the_writers_own_temporary_names_count_as_temporary():
+    """A user's ``.draft.tmp.md`` in ``--out`` was taken for a killed write and deleted."""
+    assert is_temporary(".sweep.json.k2j3h4g5.tmp.json")
+    assert is_temporary(".noext.abcdefgh.tmp")  # a name without a suffix
+    assert not is_temporary(".draft.tmp.md")
+    assert not is_temporary("sweep.json")

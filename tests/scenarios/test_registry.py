@@ -132,6 +132,10 @@ def _build(p, *, num_seeds, seed, device, dtype=None):
 
 
 def test_entries_are_checked_when_made() -> None:
+    # a name becomes file and folder names of every run: "my/robot" failed after the run
+    for name in ("my/robot", "../x", ".hidden", "two words", ""):
+        with pytest.raises(ValueError, match="must be a word"):
+            ScenarioEntry(name=name, build=_build, params=_Params)
     with pytest.raises(TypeError, match="dataclass"):
         ScenarioEntry(name="x", build=_build, params=dict)
     with pytest.raises(ValueError, match="not a field"):

@@ -117,6 +117,10 @@ def test_objective_counts_successes_first_then_the_tie_break() -> None:
 
 
 def test_cli_sweep_writes_csv_strict_json_and_figure(tmp_path, capsys) -> None:
+    import matplotlib
+
+    backend = matplotlib.get_backend()
+    matplotlib.use("svg")  # a user's choice, which drawing the figure switched to Agg
     code = main(
         ["sweep", "reach-avoid", "--grid", "num_samples=32,64", "--grid", "horizon=8",
          "--seeds", "2", "--out", str(tmp_path), "--no-progress"]
@@ -135,6 +139,8 @@ def test_cli_sweep_writes_csv_strict_json_and_figure(tmp_path, capsys) -> None:
         table = list(csv.DictReader(f))
     assert [int(r["num_samples"]) for r in table] == [32, 64]
     assert (tmp_path / "sweep.png").stat().st_size > 1000
+    assert matplotlib.get_backend() == "svg"
+    matplotlib.use(backend)
 
 
 def test_cli_sweep_unknown_key_exits_2(tmp_path, capsys) -> None:

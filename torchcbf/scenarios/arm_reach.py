@@ -395,10 +395,7 @@ def top_view(
     """A matplotlib figure, top view (x-y) of arm ``name``'s end-effector paths of the first
     ``shown`` rows of ``x [B, T+1, dof]`` (blue where ``reached [B]``, else orange), the arm
     at the start and the end, the obstacle and the targets ``[B, 3]``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # the user's backend stays (no display: Agg)
     from matplotlib.patches import Circle
 
     n = min(shown, x.shape[0])

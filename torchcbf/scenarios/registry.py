@@ -23,6 +23,7 @@ import functools
 import importlib
 import importlib.metadata
 import os
+import re
 import sys
 import types
 import typing
@@ -196,8 +197,14 @@ class ScenarioEntry:
     env: EnvEntry | None = None
 
     def __post_init__(self) -> None:
-        if not self.name or not isinstance(self.name, str) or " " in self.name:
-            raise ValueError(f"ScenarioEntry.name must be a word, got {self.name!r}")
+        if not isinstance(self.name, str) or not re.fullmatch(
+            r"[A-Za-z0-9][A-Za-z0-9_.-]*", self.name
+        ):
+            # it names files and folders of every run: no separators, no leading dot
+            raise ValueError(
+                f"ScenarioEntry.name must be a word (letters, digits, '_', '-', '.'; not "
+                f"starting with '.'), got {self.name!r}"
+            )
         if self.name in COMMANDS:
             raise ValueError(
                 f"ScenarioEntry.name {self.name!r} is a command of torchcbf; the names "

@@ -277,10 +277,7 @@ def write_json(data: Mapping[str, Any], path: Path) -> Path:
 def plot_sweep(rows: Sequence[Mapping[str, Any]], grid: Mapping[str, Sequence[Any]], path: Path):
     """Success, collision and goal rates (95% intervals) against the first varied grid key,
     one line per combination of the other keys."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # the user's backend stays (no display: Agg)
 
     varied = [k for k, v in grid.items() if len(v) > 1] or list(grid)
     x_key = varied[0] if varied else None

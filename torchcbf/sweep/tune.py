@@ -440,10 +440,7 @@ def plot_study(
 ) -> Path:
     """Objective per trial, the best so far, and the default configuration's objective
     (failed trials left out)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # the user's backend stays (no display: Agg)
 
     rows = [r for r in rows if r.get("objective") is not None]
     x = [r["trial"] for r in rows]
