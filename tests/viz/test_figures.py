@@ -132,3 +132,34 @@ def test_barrier_figures_draw_what_is_finite(kind: str) -> None:
     plot_barrier_values(traj.t, h)
     marks = [ln for ax in fig.axes for ln in ax.lines if ln.get_label().startswith("lowest")]
     assert len(marks) == (1 if kind == "one_nan_row" else 0)
+
+
+def test_figures_of_batches_without_a_finite_state(tmp_path) -> None:
+    """An empty batch or every state NaN: figures framed around the origin (a reduction
+    over no finite point raised), and an animation that fails leaves no figure open."""
+    from torchcbf.viz import animate, plot_trajectories
+
+    ball = Ball([0.5, 0.5], 0.2)
+    for x in (torch.zeros(0, 4, 2), torch.full((2, 4, 2), float("nan"))):
+        assert plot_trajectories(_traj(x), [ball]).axes
+        animate(_traj(x), tmp_path / "a.gif", [ball])
+    one = _traj(torch.zeros(1, 4, 2))
+    plt.close("all")  # the figures above are the caller's
+    with pytest.raises(FileNotFoundError):
+        animate(one, tmp_path / "missing" / "a.gif")
+    assert plt.get_fignums() == []
+    with pytest.raises(ValueError, match="outside the 1 components"):
+        plot_trajectories(_traj(torch.zeros(1, 4, 1)))
+
+
+def test_empty_inputs_are_named() -> None:
+    from torchcbf.viz import animate_methods
+
+    with pytest.raises(ValueError, match="trajectories is empty"):
+        plot_methods({})
+    with pytest.raises(ValueError, match="trajectories is empty"):
+        animate_methods({}, "x.gif")
+    with pytest.raises(ValueError, match="barriers is empty"):
+        plot_barrier_bands({"a": _traj(torch.zeros(1, 4, 2))}, [])
+    with pytest.raises(ValueError, match="h is None"):
+        plot_barrier_values(torch.arange(4.0), None)

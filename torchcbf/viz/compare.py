@@ -64,6 +64,7 @@ def plot_methods(
     colour per method, over the obstacles and goals. The view is ``xlim`` x ``ylim`` (default:
     fitted to the goals and the starts); paths that leave it end in a triangle on the border,
     counted in the legend, which sits right of the axes (never over an obstacle or a goal)."""
+    _check_methods(trajectories)
     fig, ax = plt.subplots(figsize=(7, 7))
     firsts = np.concatenate([_xy(t, index)[:, :1] for t in trajectories.values()])
     xlim, ylim = _draw_scene(ax, firsts, barriers, goals, firsts.shape[-1], index, xlim, ylim)
@@ -87,6 +88,11 @@ def plot_methods(
     return fig
 
 
+def _check_methods(trajectories: Mapping[str, Trajectory]) -> None:
+    if not trajectories:
+        raise ValueError("trajectories is empty: give {method name: Trajectory}")
+
+
 def barrier_traces(traj: Trajectory, barriers: Sequence[BarrierFn]) -> np.ndarray:
     """``min_i b_i(x)`` over the true states: ``[B, T+1]`` (NaN where a state is); a
     time-varying barrier read at the trajectory's times."""
@@ -108,6 +114,9 @@ def plot_barrier_bands(
     seeds (the noise band) and the minimum over seeds; ``b = 0`` (contact) dashed. ``ylim``
     frames the bands; its lower end moves down to show the lowest value of any method,
     which is marked with its value."""
+    _check_methods(trajectories)
+    if not barriers:
+        raise ValueError("barriers is empty: the bands are of min_i b_i(x), give the barriers")
     fig, ax = plt.subplots(figsize=(8, 4))
     lowest: dict[str, tuple[float, int, float]] = {}
     for j, (name, traj) in enumerate(trajectories.items()):
@@ -160,6 +169,7 @@ def animate_methods(
 ) -> Path:
     """A GIF of scenario ``seed_index`` (the same noise seed) under every method; returns
     its path."""
+    _check_methods(trajectories)
     path = Path(path)
     for name, traj in trajectories.items():
         if not -traj.batch_size <= seed_index < traj.batch_size:
@@ -167,36 +177,40 @@ def animate_methods(
                 f"seed_index {seed_index} is outside {name!r}'s batch of {traj.batch_size}"
             )
     fig, ax = plt.subplots(figsize=(8.4, 6))
-    fig.subplots_adjust(left=0.08, right=0.7)  # room for the legend (frames keep this box)
-    xys = {name: _xy(t, index)[seed_index] for name, t in trajectories.items()}
-    starts = np.stack([xy[:1] for xy in xys.values()])
-    xlim, ylim = _draw_scene(ax, starts, barriers, goals, starts.shape[-1], index, xlim, ylim)
-    ax.set_xlim(*xlim)
-    ax.set_ylim(*ylim)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    if title:
-        ax.set_title(title)
-    lines, dots = [], []
-    for j, name in enumerate(xys):
-        color = COLORS[j % len(COLORS)]
-        lines.append(ax.plot([], [], color=color, lw=1.5, label=name)[0])
-        dots.append(ax.plot([], [], "o", color=color, ms=5)[0])
-    _legend_right(ax)
-    t = _np(next(iter(trajectories.values())).t)
-    steps = len(t)
-    ticks = np.linspace(0, steps - 1, min(frames, steps)).round().astype(int)
-    stamp = ax.text(0.98, 0.02, "", transform=ax.transAxes, ha="right", va="bottom")
+    try:
+        fig.subplots_adjust(left=0.08, right=0.7)  # room for the legend (frames keep this box)
+        xys = {name: _xy(t, index)[seed_index] for name, t in trajectories.items()}
+        starts = np.stack([xy[:1] for xy in xys.values()])
+        xlim, ylim = _draw_scene(ax, starts, barriers, goals, starts.shape[-1], index, xlim, ylim)
+        ax.set_xlim(*xlim)
+        ax.set_ylim(*ylim)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        if title:
+            ax.set_title(title)
+        lines, dots = [], []
+        for j, name in enumerate(xys):
+            color = COLORS[j % len(COLORS)]
+            lines.append(ax.plot([], [], color=color, lw=1.5, label=name)[0])
+            dots.append(ax.plot([], [], "o", color=color, ms=5)[0])
+        _legend_right(ax)
+        t = _np(next(iter(trajectories.values())).t)
+        steps = len(t)
+        ticks = np.linspace(0, steps - 1, min(frames, steps)).round().astype(int)
+        stamp = ax.text(0.98, 0.02, "", transform=ax.transAxes, ha="right", va="bottom")
 
-    def draw(i: int) -> list[Any]:
-        k = ticks[i]
-        for xy, line, dot in zip(xys.values(), lines, dots, strict=True):
-            line.set_data(xy[: k + 1, 0], xy[: k + 1, 1])
-            dot.set_data(xy[k : k + 1, 0], xy[k : k + 1, 1])
-        stamp.set_text(f"t = {t[k]:.2f} s")
-        return [*lines, *dots, stamp]
+        def draw(i: int) -> list[Any]:
+            k = ticks[i]
+            for xy, line, dot in zip(xys.values(), lines, dots, strict=True):
+                line.set_data(xy[: k + 1, 0], xy[: k + 1, 1])
+                dot.set_data(xy[k : k + 1, 0], xy[k : k + 1, 1])
+            stamp.set_text(f"t = {t[k]:.2f} s")
+            return [*lines, *dots, stamp]
 
-    FuncAnimation(fig, draw, frames=len(ticks), blit=False).save(path, writer=PillowWriter(fps=fps))
-    plt.close(fig)
+        FuncAnimation(fig, draw, frames=len(ticks), blit=False).save(
+            path, writer=PillowWriter(fps=fps)
+        )
+    finally:
+        plt.close(fig)
     return path

@@ -146,6 +146,8 @@ def _limits(
         pts.append(_np(g.center).reshape(1, -1)[:, :2])
     allp = np.concatenate(pts)
     allp = allp[np.isfinite(allp).all(-1)]
+    if allp.shape[0] == 0:  # no finite point (an empty batch, every state NaN): around 0
+        allp = np.zeros((1, 2))
     lo, hi = allp.min(0) - margin, allp.max(0) + margin
     return (float(lo[0]), float(hi[0])), (float(lo[1]), float(hi[1]))
 
@@ -195,6 +197,9 @@ def plot_trajectories(
 ) -> Figure:
     """Paths of (up to ``max_paths``) scenarios over obstacles and goal regions (axis
     ``labels`` as :func:`axis_labels`)."""
+    n = trajectory.x.shape[-1]
+    if not all(0 <= i < n for i in index):
+        raise ValueError(f"index {tuple(index)} is outside the {n} components of the state")
     fig, ax = (ax.figure, ax) if ax is not None else plt.subplots(figsize=(6, 6))
     xy = _np(trajectory.x)[..., list(index)]
     xlim, ylim = _draw_scene(ax, xy, barriers, goals, trajectory.x.shape[-1], index, xlim, ylim)
@@ -231,6 +236,11 @@ def plot_barrier_values(
 ) -> Figure:
     """``h [B, T, k]`` (or ``[B, T]``) over time: the minimum over barriers for each scenario,
     with the batch's minimum in bold and the safety boundary ``h = 0`` dashed."""
+    if h is None:
+        raise ValueError(
+            "h is None: a trajectory without a safety filter records no barrier values; "
+            "pass barrier_traces(traj, barriers) for the barriers' values along it"
+        )
     fig, ax = (ax.figure, ax) if ax is not None else plt.subplots(figsize=(7, 3.5))
     t, h = _np(t), _np(h)
     if h.ndim == 3:
@@ -313,22 +323,26 @@ def animate(
     """Write a GIF of the scenarios moving over obstacles and goals; returns its path."""
     path = Path(path)
     fig = plot_trajectories(trajectory, barriers, goals, index=index, max_paths=0)
-    ax = fig.axes[0]
-    xy = _np(trajectory.x)[:max_paths, :, list(index)]
-    t = _np(trajectory.t)
-    lines = [ax.plot([], [], color="tab:blue", lw=1.2)[0] for _ in range(xy.shape[0])]
-    dots = ax.plot([], [], "o", color="tab:blue", ms=4)[0]
-    stamp = ax.text(0.02, 0.97, "", transform=ax.transAxes, va="top")
-    ticks = np.linspace(0, xy.shape[1] - 1, min(frames, xy.shape[1])).round().astype(int)
+    try:
+        ax = fig.axes[0]
+        xy = _np(trajectory.x)[:max_paths, :, list(index)]
+        t = _np(trajectory.t)
+        lines = [ax.plot([], [], color="tab:blue", lw=1.2)[0] for _ in range(xy.shape[0])]
+        dots = ax.plot([], [], "o", color="tab:blue", ms=4)[0]
+        stamp = ax.text(0.02, 0.97, "", transform=ax.transAxes, va="top")
+        ticks = np.linspace(0, xy.shape[1] - 1, min(frames, xy.shape[1])).round().astype(int)
 
-    def draw(i: int) -> list[Any]:
-        k = ticks[i]
-        for b, line in enumerate(lines):
-            line.set_data(xy[b, : k + 1, 0], xy[b, : k + 1, 1])
-        dots.set_data(xy[:, k, 0], xy[:, k, 1])
-        stamp.set_text(f"t = {t[k]:.2f} s")
-        return [*lines, dots, stamp]
+        def draw(i: int) -> list[Any]:
+            k = ticks[i]
+            for b, line in enumerate(lines):
+                line.set_data(xy[b, : k + 1, 0], xy[b, : k + 1, 1])
+            dots.set_data(xy[:, k, 0], xy[:, k, 1])
+            stamp.set_text(f"t = {t[k]:.2f} s")
+            return [*lines, dots, stamp]
 
-    FuncAnimation(fig, draw, frames=len(ticks), blit=False).save(path, writer=PillowWriter(fps=fps))
-    plt.close(fig)
+        FuncAnimation(fig, draw, frames=len(ticks), blit=False).save(
+            path, writer=PillowWriter(fps=fps)
+        )
+    finally:
+        plt.close(fig)
     return path
