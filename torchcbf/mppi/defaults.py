@@ -16,7 +16,8 @@ and the specification's weights, each with the reason it was chosen
   allowed (the rollouts must be able to beat the best state already visited, which a goal's
   cost keeps from the executed history), and no longer than three travel times of the leg
   (a detour and a turn around), at most ``max_horizon`` steps.
-- **weights.** Goal ``i`` of ``N`` gets ``3^(N-1-i) / D_i^2``: each leg's cost is of order
+- **weights.** Goal ``i`` of ``N`` gets ``3^(N-1-i) / D_i^2`` (``D_i``: from the leg's start,
+  ``x0`` or the previous goal's centre, to the goal's edge): each leg's cost is of order
   one at its start, and an earlier deadline outweighs the goals after it (whose stand-in at
   the rollout's end otherwise pulls the robot away too early). An obstacle disc of radius
   ``r`` gets a weight whose pull one radius away from it is a quarter of the weakest goal's
