@@ -296,6 +296,7 @@ def _add_scenario_command(sub: Any, entry: Any) -> None:
         p.add_argument(
             f"--{flag}",
             dest=_dest(flag),
+            metavar=None if entry.choices.get(key) else flag.replace("-", "_").upper(),
             type=_option_type(entry, key),
             choices=entry.choices.get(key),
             default=None,
@@ -423,6 +424,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:  # before a run started: nothing to save
         print("\ntorchcbf: interrupted", file=sys.stderr)
         return INTERRUPTED
+    except BrokenPipeError:  # the reader left (`torchcbf info | head`): nothing more to say
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # no second error when Python flushes at exit
+        return 1
 
 
 def _main(argv: Sequence[str] | None = None) -> int:
@@ -680,8 +685,9 @@ def _bench(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
         unknown = wanted - {p.name for p in scripts}
         if unknown:
             names = ", ".join(p.stem.removeprefix("bench_") for p in scripts) or "none"
+            asked = ", ".join(sorted(n.removeprefix("bench_").removesuffix(".py") for n in unknown))
             print(
-                f"torchcbf bench: --only: no benchmark {sorted(unknown)}; found: {names}",
+                f"torchcbf bench: --only: no benchmark named {asked}; found: {names}",
                 file=sys.stderr,
             )
             return 2
