@@ -144,7 +144,9 @@ def _run_scenario(
     values = {**entry.defaults(), **params}
     shown = describe({**{k: values[k] for k in entry.options.values()}, **params}) or "defaults"
     print(
-        f"\n{entry.name}: {entry.description}\n{num_seeds} seeds from {args.seed}, "
+        f"\n{entry.name}"
+        + (f": {entry.description}" if entry.description else "")
+        + f"\n{num_seeds} seeds from {args.seed}, "
         f"{shown}, device {args.device}"
     )
     header = " ".join(f"{c.header:>{w}}" for c, w in zip(entry.columns, widths, strict=True))
@@ -486,7 +488,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
         results: dict[str, Any] = {}
         for entry, sizes in plan:
             results.update(_run_scenario(entry, args, parts, sizes))
-        if args.command == "demo":
+        if args.command == "demo" and any(entry.name == "mppi-cbf" for entry, _ in plan):
             print(f"\nThe paper's size of scenario B (32 seeds, K = 20,000): {PAPER_SIZE_B}")
         record = {"command": " ".join(_run_arguments(argv)), "run": run_info(args.device)}
         metrics_path = run.path / "metrics.json"
