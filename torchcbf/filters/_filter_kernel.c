@@ -185,7 +185,11 @@ int torchcbf_filter_solve(int64_t B, int m, int k, int c, int slack, int two_pas
     }
     int budget = max_iter > 4 * (M + N) ? max_iter : 4 * (M + N);
     int64_t Bs = Bq > 2 * B ? 2 * B : Bq; /* solved in the first call */
-    int code = torchcbf_dual_all_finite(Bs * (N * N + N + M * N + M), buf) ? 0 : 1;
+    /* the problems solved first; P, q, G and h are each laid out for all Bq problems */
+    int code = torchcbf_dual_all_finite(Bs * N * N, P) && torchcbf_dual_all_finite(Bs * N, q) &&
+                       torchcbf_dual_all_finite(Bs * M * N, G) && torchcbf_dual_all_finite(Bs * M, h)
+                   ? 0
+                   : 1;
     if (code == 0 && torchcbf_dual_forward(Bs, N, M, P, q, G, h, eps, budget, x, z, active,
                                            slots, L, ok, iters, infeasible) != 0)
         code = -1;
