@@ -323,8 +323,9 @@ static double reduced(Point *pt, const int64_t *mb, void *const *pb, const doubl
                       double *grad, double *trace_out) {
     int n = pt->n, found = 0, nan = 0, ties = 0;
     double g[LIE_NMAX], tr, sign = mode == REDUCE_MAX ? 1.0 : -1.0;
-    /* hard: the active column so far; smooth: sums weighted by exp(z_i - zmax) */
-    double best = 0.0, zmax = -INFINITY, s = 0.0, tr_sum = 0.0, gg_sum = 0.0;
+    /* hard: the active column so far; smooth: sums weighted by exp((u_i - umax) / T) with
+     * u_i = +-v_i, shifted before the division, so a subnormal T does not overflow */
+    double best = 0.0, umax = -INFINITY, s = 0.0, tr_sum = 0.0, gg_sum = 0.0;
     int64_t first = 0; /* the first column of block b */
     int b = 0;
     memset(grad, 0, sizeof(double) * n);
@@ -343,18 +344,18 @@ static double reduced(Point *pt, const int64_t *mb, void *const *pb, const doubl
             }
             continue;
         }
-        double z = sign * v / T, e = 1.0;
-        if (isnan(z)) nan = 1;
-        if (z > zmax) { /* the new largest term: the sums so far scaled down to it */
-            if (zmax > -INFINITY) {
-                double r = exp(zmax - z);
+        double u = sign * v, e = 1.0;
+        if (isnan(u)) nan = 1;
+        if (u > umax) { /* the new largest term: the sums so far scaled down to it */
+            if (umax > -INFINITY) {
+                double r = exp((umax - u) / T);
                 s *= r, tr_sum *= r, gg_sum *= r;
                 for (int i = 0; i < n; ++i) grad[i] *= r;
             }
-            zmax = z;
-            if (isinf(z)) e = NAN; /* softmax: exp(inf - inf) */
+            umax = u;
+            if (isinf(u)) e = NAN; /* softmax: exp(inf - inf) */
         } else {
-            e = z == -INFINITY ? 0.0 : exp(z - zmax); /* softmax gives -inf no weight */
+            e = u == -INFINITY ? 0.0 : exp((u - umax) / T); /* softmax gives -inf no weight */
         }
         s += e, tr_sum += e * tr;
         for (int i = 0; i < n; ++i) grad[i] += e * g[i];
@@ -371,7 +372,7 @@ static double reduced(Point *pt, const int64_t *mb, void *const *pb, const doubl
     if (pt->SS)
         *trace_out = tr_sum / s + sign * (gg_sum / s - noise_norm2(n, pt->SS, grad)) / T;
     if (nan) return NAN;
-    return isinf(zmax) ? sign * T * zmax : sign * T * (zmax + log(s));
+    return isinf(umax) ? sign * umax : sign * (umax + T * log(s));
 }
 
 /* Where the terms go: the outputs of torchcbf_lie_quadrics (NULL: not written) and the

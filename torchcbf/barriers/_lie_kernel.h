@@ -7,7 +7,7 @@
 #define TORCHCBF_LIE_KERNEL_H
 
 /* Bumped whenever an exported signature or its meaning changes (see _native.py). */
-#define LIE_KERNEL_VERSION 5
+#define LIE_KERNEL_VERSION 6
 
 /* The header of `meta`: the number of states, n, m, q, the outer model's code and size, the
  * number of blocks, the strides per output of the condition's gain and offset, the number of

@@ -17,7 +17,19 @@ def reduce(values: Tensor, mode: Mode, smooth: bool, temperature: float) -> Tens
     if not smooth:
         return values.amin(-1) if mode == "min" else values.amax(-1)
     sign = -1.0 if mode == "min" else 1.0
-    return sign * temperature * torch.logsumexp(sign * values / temperature, dim=-1)
+    z, shift = _shifted(values, sign)
+    return sign * (shift.squeeze(-1) + temperature * torch.logsumexp(z / temperature, dim=-1))
+
+
+def _shifted(values: Tensor, sign: float) -> tuple[Tensor, Tensor]:
+    """``(sign v - c, c)`` with ``c`` the largest of ``sign v`` (detached: the log-sum-exp's
+    derivative is the softmax either way), so that ``(sign v - c) / T`` stays finite for a
+    subnormal ``T`` where ``v / T`` overflows; rows whose largest is not finite are not
+    shifted."""
+    z = sign * values
+    shift = z.detach().amax(-1, keepdim=True)
+    shift = torch.where(torch.isfinite(shift), shift, 0.0)
+    return z - shift, shift
 
 
 def combine(
@@ -48,7 +60,7 @@ def combine(
         return AnalyticDerivatives(h, (w.unsqueeze(-1) * dhdx).sum(-2), (w * dhdt).sum(-1), quad)
     sign = -1.0 if mode == "min" else 1.0
     h = reduce(values, mode, smooth, temperature)
-    w = torch.softmax(sign * values / temperature, dim=-1)
+    w = torch.softmax(_shifted(values, sign)[0] / temperature, dim=-1)
     grad = (w.unsqueeze(-1) * dhdx).sum(-2)
     dt = (w * dhdt).sum(-1)
 

@@ -51,7 +51,7 @@ __all__ = [
 ]
 
 #: version of ``_lie_kernel.c`` this module calls (``LIE_KERNEL_VERSION``)
-KERNEL_VERSION = 5
+KERNEL_VERSION = 6
 #: the file name of the built kernel, without its extension suffix
 KERNEL_STEM = "_lie_kernel"
 #: the kernel's sources (``_lie_kernel.h`` names its arguments' fields and codes)
