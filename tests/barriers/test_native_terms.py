@@ -531,3 +531,22 @@ def test_scenario_b_risk_aware_filter_runs_in_the_kernels(
     other = SafetyFilter(filt.dynamics, barriers=rewritten, mode=again, R=filt.R).to(dtype)
     with torch.no_grad():
         assert other(x, u).path != "native/realtime"  # a subclass's forward: not the kernel's
+
+
+@pytest.mark.parametrize(("dtype", "temperature"), [(torch.float32, 1e-39), (F64, 1e-320)])
+@pytest.mark.parametrize("cls", [Intersection, Union])
+def test_a_subnormal_temperature_gives_the_hard_reduction(cls, dtype, temperature) -> None:
+    """``v / T`` overflowed (inf and NaN on every path where the kernel computes in the
+    dtype); the log-sum-exp is shifted by its largest term before the division."""
+    dyn = SingleIntegrator(2, sigma=0.3).to(dtype)
+    balls = (Ball([1.0, 0.5], 0.7), Ball([-1.0, 0.0], 0.5))
+    smooth = cls(*balls, smooth=True, temperature=temperature).to(dtype)
+    hard = cls(*balls).to(dtype)
+    x = torch.tensor([[0.1, 0.2], [2.0, 0.5]], dtype=dtype)
+    want = lie_derivatives(hard, x, dyn, method="autograd")
+    for method in ("autograd", "analytic"):
+        got = lie_derivatives(smooth, x, dyn, method=method)
+        torch.testing.assert_close(got.h, want.h)
+        torch.testing.assert_close(got.dhdx, want.dhdx)
+    terms, _ = native.lie_terms([smooth], x, dyn)
+    torch.testing.assert_close(terms.h.reshape(-1), want.h.reshape(-1).to(terms.h))
