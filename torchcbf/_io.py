@@ -27,6 +27,11 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """A temporary path beside ``path``; renamed to ``path`` when the block ends without an
     exception, removed otherwise. Write to it with any library (``savefig``, ``torch.save``)."""
     path = Path(path)
+    # named here: a failure further down would name the temporary file instead
+    if not path.parent.is_dir():
+        raise FileNotFoundError(f"no folder {path.parent} to write {path.name} into")
+    if path.is_dir():
+        raise IsADirectoryError(f"{path} is a folder, not a file to write")
     tmp_path = None
     deferred = _DeferredCtrlC()
     try:

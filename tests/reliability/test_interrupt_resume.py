@@ -233,3 +233,14 @@ def test_only_the_writers_own_temporary_names_count_as_temporary():
     assert is_temporary(".noext.abcdefgh.tmp")  # a name without a suffix
     assert not is_temporary(".draft.tmp.md")
     assert not is_temporary("sweep.json")
+
+
+def test_a_write_into_no_folder_names_the_path_asked_for(tmp_path):
+    from torchcbf import _io
+
+    with pytest.raises(FileNotFoundError, match="no folder .*missing to write t.json"):
+        _io.write_json(tmp_path / "missing" / "t.json", {})
+    (tmp_path / "d.json").mkdir()
+    with pytest.raises(IsADirectoryError, match="d.json is a folder"):
+        _io.write_json(tmp_path / "d.json", {})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.json"]  # no temporary left
