@@ -29,22 +29,8 @@ def _record(value: Any) -> tuple[str, dict[str, Any]] | None:
     return None
 
 
-def _plain(value: Any) -> Any:
-    """``value`` with named tuples and dataclass instances as tagged dicts: what
-    ``torch.load(weights_only=True)`` reads back (tensors, numbers, strings, lists, tuples,
-    dicts)."""
-    record = _record(value)
-    if record is not None:
-        return {_TUPLE: record[0], "fields": {k: _plain(v) for k, v in record[1].items()}}
-    if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return type(value)(_plain(v) for v in value)
-    return value
-
-
 def _restore(value: Any) -> Any:
-    """The inverse of :func:`_plain`: tagged dicts as named tuples of the same name and fields
+    """The inverse of :func:`_tagged`: tagged dicts as named tuples of the same name and fields
     (built here, so reading a file never imports or runs code named by it; a dataclass
     comes back as such a named tuple)."""
     if isinstance(value, dict):
@@ -71,6 +57,13 @@ def _walk(value: Any, leaf: Any, record: Any) -> Any:
     if isinstance(value, (list, tuple)):
         return type(value)(_walk(v, leaf, record) for v in value)
     return value
+
+
+def _tagged(value: Any, fields: dict[str, Any]) -> dict[str, Any]:
+    """A named tuple or dataclass instance as a tagged dict: what
+    ``torch.load(weights_only=True)`` reads back (tensors, numbers, strings, lists, tuples,
+    dicts)."""
+    return {_TUPLE: type(value).__name__, "fields": fields}
 
 
 def _same_kind(value: Any, fields: dict[str, Any]) -> Any:
@@ -145,8 +138,10 @@ class Trajectory:
     def save(self, path: str | Path) -> None:
         """Save with ``torch.save`` (tensors moved to the CPU; planner snapshots as plain
         dicts), written to a temporary name and renamed, so ``path`` is never half-written."""
-        cpu = self.to("cpu")
-        data = {f.name: _plain(getattr(cpu, f.name)) for f in dataclasses.fields(self)}
+        data = {
+            f.name: _walk(getattr(self, f.name), lambda t: t.to("cpu"), _tagged)
+            for f in dataclasses.fields(self)
+        }
         with _io.atomic_path(path) as tmp:
             torch.save(data, tmp)
 
