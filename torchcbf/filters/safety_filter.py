@@ -778,7 +778,6 @@ class SafetyFilter(ExactConstants, DerivedConstants):
         CPU only those rows are solved (asking which costs no synchronisation); elsewhere
         every row, without a synchronisation."""
         k, m = qp.norms.shape[1], self.dynamics.control_dim
-        B = hq.shape[0]
         rows = (~hard_ok & data_ok).nonzero().squeeze(-1) if G.is_cpu else None
         if rows is not None and rows.numel() == 0:
             return z_el, st_el, el_ok
@@ -790,9 +789,8 @@ class SafetyFilter(ExactConstants, DerivedConstants):
         G_cbf[:, k:, :m] = 0
         h_cbf = pick(hq).clone()
         h_cbf[:, k:] = 0
-        lb, ub = qp.lb.expand(B, -1), qp.ub.expand(B, -1)
-        sol = qp_layer.solve_qp(pick(qp.Q), pick(qp.p), G_cbf, h_cbf, lb=pick(lb), ub=pick(ub),
-                                **self.qp_options)  # fmt: skip
+        sol = qp_layer.solve_qp(pick(qp.Q), pick(qp.p), G_cbf, h_cbf, lb=pick(qp.lb),
+                                ub=pick(qp.ub), **self.qp_options)  # fmt: skip
         n = sol.x.shape[0]
         cbf_ok = (sol.status == Status.SOLVED) & rows_finite(sol.x, 1, n) & pick(data_ok)
         z_sub, ok_sub = pick(z_el), pick(el_ok)
