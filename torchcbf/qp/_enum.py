@@ -38,7 +38,7 @@ from torch import Tensor
 
 from torchcbf.qp import _kkt
 from torchcbf.qp._data import QPData
-from torchcbf.qp._kkt import multiplier_size, row_scale, scaled_violation
+from torchcbf.qp._kkt import gradient_size, multiplier_size, row_scale, scaled_violation
 
 #: ``method="auto"`` enumerates when the candidate count is at most ``MAX_CANDIDATES``, or at
 #: most ``MAX_CANDIDATES_SMALL_BATCH`` for batches of at most ``SMALL_BATCH`` rows (measured on
@@ -237,7 +237,7 @@ def _solve_chunk(
     # stationarity check of the winner (guards against an inaccurate P^{-1})
     Px = (L @ (L.mT @ x.unsqueeze(-1))).squeeze(-1)
     stat = Px + q + (R.mT @ mult.unsqueeze(-1)).squeeze(-1)
-    _, dscale = multiplier_size(R, mult, torch.maximum(q.abs().amax(-1), Px.abs().amax(-1)))
+    _, dscale = multiplier_size(R, mult, gradient_size(q, Px))
     ok = (best_score <= eps) & (stat.abs().amax(-1) <= eps * dscale)
     ok = ok & torch.isfinite(x).all(-1)
     # the winner's rows on its own scale: the candidates were judged on x_u's, which a weak
@@ -321,7 +321,7 @@ def solve_enum_kkt(
     each = data.expand(C)
     x, z, y, solved = _kkt.solve_active(each, act)
     pviol = scaled_violation(each.G, each.h, each.A, each.b, x)
-    grad = torch.maximum(each.q.abs().amax(-1), (each.P @ x.unsqueeze(-1)).abs().amax((-2, -1)))
+    grad = gradient_size(each.q, (each.P @ x.unsqueeze(-1)).squeeze(-1))
     zs, zscale = multiplier_size(each.G, z, grad)
     dviol = (-zs.amin(-1)).clamp_min(0.0) / zscale if M > 0 else x.new_zeros(B * C)
     score = torch.where(solved, torch.maximum(pviol, dviol), math.inf).view(B, C)

@@ -303,8 +303,7 @@ def kkt_point(
     slack = (h - torch.einsum("bmn,bn->bm", G, x)) / row_scale(G, h, x).clamp_min(
         torch.finfo(x.dtype).tiny
     )
-    grad = torch.maximum(q.abs().amax(-1), torch.einsum("bij,bj->bi", P, x).abs().amax(-1))
-    zs, scale = multiplier_size(G, z, grad)
+    zs, scale = multiplier_size(G, z, gradient_size(q, torch.einsum("bij,bj->bi", P, x)))
     loose = (zs > rounding * scale.unsqueeze(-1)) & (slack > rounding)
     negative = (zs < -rounding * scale.unsqueeze(-1)).any(-1)
     return (
@@ -315,10 +314,16 @@ def kkt_point(
     )
 
 
+def gradient_size(q: Tensor, Px: Tensor) -> Tensor:
+    """The objective gradient's size ``max(max|q|, max|Px|) [B]`` for ``q, Px [B, N]``: the
+    scale of :func:`multiplier_size` where no multiplier term is larger."""
+    return torch.maximum(q.abs().amax(-1), Px.abs().amax(-1))
+
+
 def multiplier_size(R: Tensor, mult: Tensor, grad: Tensor) -> tuple[Tensor, Tensor]:
     """Each multiplier's size as its term in the stationarity, ``mult_i max|R_i|``
     ``[B, K]``, and the scale it is judged on ``[B]``: the largest such term or objective
-    gradient ``grad [B]`` (``max|q|``, ``max|Px|``), or 1 where all are zero. Scaling the
+    gradient ``grad [B]`` (:func:`gradient_size`), or 1 where all are zero. Scaling the
     objective or a row leaves the ratio alone, so a wrong sign is seen whatever the units
     (an absolute test passes ``-1e-21`` where the true multipliers are ``1e-21``)."""
     size = mult * R.abs().amax(-1)
