@@ -158,6 +158,7 @@ def check_spd(name: str, matrix: Tensor) -> Tensor:
     matrix = check_tensor(name, matrix)
     if matrix.dim() < 2 or matrix.shape[-1] != matrix.shape[-2]:
         raise ValueError(f"{name} must be a square matrix [..., n, n], got {tuple(matrix.shape)}")
+    check_finite(name, matrix)
     if not torch.allclose(matrix, matrix.mT, atol=1e-8, rtol=1e-6):
         raise ValueError(f"{name} must be symmetric")
     _, info = torch.linalg.cholesky_ex(matrix)
@@ -177,7 +178,8 @@ def check_finite(name: str, value: Tensor, *, allow_inf: bool = False) -> Tensor
     bad = torch.isnan(data) if allow_inf else ~torch.isfinite(data)
     if bool(bad.any()):
         what = "NaN" if allow_inf else "NaN or inf"
-        raise ValueError(f"{name} must not contain {what}, got {data.tolist()}")
+        got = data.tolist() if data.numel() <= 16 else f"{int(bad.sum())} of {data.numel()} entries"
+        raise ValueError(f"{name} must not contain {what}, got {got}")
     return value
 
 
@@ -200,6 +202,8 @@ def check_generator(generator: torch.Generator, name: str, like: Tensor) -> None
     """Raise ``ValueError`` unless ``generator`` draws on the device of ``like`` (the tensor
     ``name``). A CUDA generator made with ``device="cuda"`` reports no index: it draws on
     the current device."""
+    if not isinstance(generator, torch.Generator):
+        raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
     gen = generator.device
     index = gen.index
     if gen.type == "cuda" and index is None:

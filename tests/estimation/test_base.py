@@ -19,6 +19,7 @@ from torchcbf.estimation import (
     PassThrough,
     Perfect,
     RangeBearing,
+    Sensor,
 )
 
 FILTERS = [EKF, UKF, HybridEKFUKF]
@@ -228,6 +229,74 @@ def test_a_skipped_measurement_row_leaves_the_gradients_of_the_others_clean(cls)
     torch.testing.assert_close(gm_all[[0, 2]], gm_two, rtol=1e-12, atol=1e-14)
     # the skipped row keeps its estimate: d(sum mean)/d m0 = 1, nothing else
     torch.testing.assert_close(gm_all[1], torch.ones(3, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("cls", FILTERS, ids=lambda c: c.__name__)
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), 1e200], ids=["nan", "inf", "huge"])
+def test_a_rejected_prediction_row_leaves_the_gradients_of_the_others_clean(cls, bad):
+    """A control that is not finite, or so large the exponential overflows: the row keeps
+    its estimate, and a learned process noise shared by the batch gets the gradient of the
+    batch without that row (the backward of the overflowed row's own steps forms 0 * inf)."""
+    dyn, sensor = _unicycle_rb()
+    x = torch.tensor([[0.1, -0.2, 0.3], [0.5, 0.4, -0.1], [-0.3, 0.2, 0.6]], dtype=torch.float64)
+    u = torch.tensor([[0.5, 0.1], [bad, 0.2], [0.3, -0.4]], dtype=torch.float64)
+
+    def grads(rows: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        q = torch.tensor([0.02, 0.03, 0.01], dtype=torch.float64, requires_grad=True)
+        m0 = x[rows].clone().requires_grad_()
+        est = cls(dyn, sensor, Q=q)
+        state = est.init(m0, torch.eye(3, dtype=torch.float64) * 0.1)
+        new = est.predict(state, u[rows], 0.2)
+        (new.mean.sum() + new.cov.sum()).backward()
+        return q.grad, m0.grad, new.status
+
+    g_all, gm_all, status = grads([0, 1, 2])
+    g_two, gm_two, _ = grads([0, 2])
+    assert status.tolist() == [0, int(EstimatorStatus.NON_FINITE), 0]
+    torch.testing.assert_close(g_all, g_two, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(gm_all[[0, 2]], gm_two, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(gm_all[1], torch.ones(3, dtype=torch.float64))
+
+
+def test_priors_that_are_not_finite_are_refused_and_a_scalar_R_needs_a_size():
+    dyn, sensor = _unicycle_rb()
+    ekf = EKF(dyn, sensor)
+    x0 = torch.tensor([[0.0, 0.0, 0.0], [float("nan"), 0.0, 0.0]], dtype=torch.float64)
+    with pytest.raises(ValueError, match="x0 must not contain NaN or inf"):
+        ekf.init(x0, torch.eye(3, dtype=torch.float64))
+    with pytest.raises(ValueError, match="x0 must not contain NaN or inf"):
+        PassThrough(state_dim=3).init(x0)
+    P0 = torch.eye(3, dtype=torch.float64)
+    P0[0, 0] = float("inf")
+    with pytest.raises(ValueError, match="P0 must not contain NaN or inf"):
+        ekf.init(torch.zeros(2, 3, dtype=torch.float64), P0)
+
+    class Position(Sensor):
+        def __init__(self, R=None):
+            super().__init__()
+            if R is not None:
+                self._set_noise(R, lambda v: v)
+
+        def expected(self, x):
+            return x[..., :2]
+
+    with pytest.raises(ValueError, match="a scalar R needs the measurement size: Position"):
+        EKF(dyn, Position(), Q=0.01, R=0.01)
+    # the sensor's own R says the size
+    est = EKF(dyn, Position(torch.eye(2) * 0.01), Q=0.01, R=0.05).double()
+    state = est.init(torch.zeros(1, 3, dtype=torch.float64), torch.eye(3, dtype=torch.float64))
+    new = est.update(state, torch.ones(1, 2, dtype=torch.float64))
+    # P = I, H = [I 0], R = 0.05 I: gain 1 / 1.05
+    torch.testing.assert_close(new.mean[0, :2], torch.full((2,), 1 / 1.05, dtype=torch.float64))
+
+
+def test_passthrough_keeps_its_estimate_on_a_measurement_that_is_not_finite():
+    est = PassThrough(state_dim=2)
+    state = est.init(torch.tensor([[1.0, 2.0], [3.0, 4.0]]))
+    new = est.update(state, torch.tensor([[5.0, 6.0], [float("nan"), 7.0]]))
+    assert new.mean.tolist() == [[5.0, 6.0], [3.0, 4.0]]
+    assert new.status.tolist() == [0, int(EstimatorStatus.NON_FINITE)]
+    assert bool(torch.isfinite(new.cov).all())
 
 
 @pytest.mark.parametrize("cls", [UKF, HybridEKFUKF], ids=lambda c: c.__name__)

@@ -137,3 +137,30 @@ def test_wrap_angle():
     w = wrap_angle(a)
     assert bool(((w >= -math.pi) & (w < math.pi)).all())
     assert torch.allclose(torch.sin(w), torch.sin(a)) and torch.allclose(torch.cos(w), torch.cos(a))
+
+
+def test_wrap_angle_just_below_minus_pi_stays_in_range():
+    """remainder rounds an angle an ulp below -pi up to 2 pi, which wraps to +pi."""
+    for dtype in (torch.float32, torch.float64):
+        a = torch.tensor(-math.pi, dtype=dtype)
+        below = [torch.nextafter(a, torch.tensor(-10.0, dtype=dtype))]
+        for _ in range(5):
+            below.append(torch.nextafter(below[-1], torch.tensor(-10.0, dtype=dtype)))
+        w = wrap_angle(torch.stack(below))
+        assert bool(((w >= -math.pi) & (w < math.pi)).all()), w.tolist()
+        assert torch.allclose(torch.cos(w), torch.cos(torch.stack(below)))
+
+
+def test_sensor_inputs_of_the_wrong_kind():
+    s = GaussianSensor(torch.tensor([[0.5, 0.0, 0.0], [0.0, 0.7, 0.7]]), 0.1)
+    with pytest.raises(TypeError, match="x must be a floating-point tensor, got torch.int64"):
+        s.expected(torch.tensor([[3, 1, 1]]))
+    for bad in (5, "seed", torch.Generator):
+        with pytest.raises(TypeError, match="generator must be a torch.Generator, got"):
+            s.measure(torch.zeros(1, 3), bad)
+
+
+def test_range_bearing_on_an_empty_batch():
+    s = RangeBearing(torch.tensor([[3.0, 1.0], [-2.0, 4.0]]), 0.1, 0.05)
+    assert s.expected(torch.zeros(0, 3)).shape == (0, 4)
+    assert s.expected(torch.zeros(2, 0, 3)).shape == (2, 0, 4)

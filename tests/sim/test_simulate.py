@@ -644,3 +644,22 @@ def test_metrics_of_an_empty_batch_with_barriers() -> None:
     for points in (0, 8):
         m = metrics(traj, barriers=[Ball([1.0, 0.0], 0.3)], segment_points=points)
         assert m["collision"].shape == (0,) and m["min_h"].shape == (0,)
+
+
+def test_estimator_priors_and_sensor_size_name_the_argument() -> None:
+    dyn = SingleIntegrator(2)
+    zero = lambda x, t: torch.zeros_like(x)  # noqa: E731
+    ekf = EKF(dyn, GaussianSensor(std=0.1, state_dim=2), Q=0.01)
+    loop = ClosedLoop(dynamics=dyn, nominal=zero, sensor=ekf.sensor, estimator=ekf)
+    x0 = torch.zeros(3, 2)
+    with pytest.raises(ValueError, match=r"x0_hat must broadcast to \[3, 2\], got \(4,\)"):
+        loop.simulate(x0, 2, 0.1, x0_hat=torch.zeros(4), progress=False)
+    with pytest.raises(ValueError, match=r"P0 must broadcast to \[3, 2, 2\], got \(2, 2, 2\)"):
+        loop.simulate(x0, 2, 0.1, P0=torch.eye(2).expand(2, 2, 2), progress=False)
+    # a prior shared by every row broadcasts
+    traj = loop.simulate(x0, 2, 0.1, x0_hat=torch.ones(2), P0=torch.eye(2), progress=False)
+    assert torch.equal(traj.x_hat[:, 0], torch.ones(3, 2))
+    # without an estimator the measurement stands for the state: it must be one
+    partial = ClosedLoop(dynamics=dyn, nominal=zero, sensor=GaussianSensor(torch.ones(1, 2), 0.1))
+    with pytest.raises(ValueError, match="must then be a full state of size 2: GaussianSensor"):
+        partial.simulate(x0, 2, 0.1, progress=False)

@@ -220,4 +220,6 @@ def robust_cholesky(A: Tensor) -> tuple[Tensor, Tensor]:
 
 def wrap_angle(a: Tensor) -> Tensor:
     """Wrap angles to ``[-pi, pi)``."""
-    return torch.remainder(a + torch.pi, 2 * torch.pi) - torch.pi
+    w = torch.remainder(a + torch.pi, 2 * torch.pi) - torch.pi
+    # an angle a rounding below -pi comes back as +pi (remainder rounds up to 2 pi)
+    return torch.where(w >= torch.pi, w - 2 * torch.pi, w)

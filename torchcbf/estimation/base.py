@@ -14,6 +14,7 @@ from torchcbf._checks import (
     as_tensor,
     broadcast_shapes,
     check_batch_match,
+    check_finite,
     check_last_dim,
     check_positive,
     check_same,
@@ -109,7 +110,7 @@ class PassThrough(Estimator):
     def init(self, x0: Tensor, P0: Tensor | None = None) -> EstimatorState:
         """``mean = x0 [..., n]``, ``cov = P0`` (``[n, n]`` or ``[..., n, n]``, broadcast to
         the batch of ``x0``; zeros when ``None``), status OK."""
-        x0 = _check_vector("x0", x0, self.state_dim)
+        x0 = check_finite("x0", _check_vector("x0", x0, self.state_dim))
         n = x0.shape[-1]
         cov = x0.new_zeros(*x0.shape, n) if P0 is None else _check_cov("P0", P0, x0, spd=False)
         return EstimatorState(x0, cov, _zero_status(x0))
@@ -121,15 +122,20 @@ class PassThrough(Estimator):
         return state
 
     def update(self, state: EstimatorState, y: Tensor) -> EstimatorState:
-        """``mean = y [..., n]`` (broadcast with the state's batch), zero covariance."""
-        mean, _, _ = _check_state(state, self.state_dim)
+        """``mean = y [..., n]`` (broadcast with the state's batch), zero covariance; a row
+        of ``y`` that is not finite keeps the previous estimate, flagged ``NON_FINITE``."""
+        mean, cov, _ = _check_state(state, self.state_dim)
         n = mean.shape[-1]
         check_last_dim("y", y, n)
         check_same("state.mean", mean, "y", y)
         check_batch_match("state.mean", mean, "y", y)
         bs = broadcast_shapes(mean.shape[:-1], y.shape[:-1])
         y = y.expand(*bs, n)
-        return EstimatorState(y, y.new_zeros(*bs, n, n), _zero_status(y))
+        ok = torch.isfinite(y.detach()).all(-1)
+        new_mean = torch.where(ok.unsqueeze(-1), y, mean.expand(*bs, n))
+        new_cov = torch.where(ok[..., None, None], 0.0, cov.expand(*bs, n, n))
+        status = torch.where(ok, 0, int(EstimatorStatus.NON_FINITE))
+        return EstimatorState(new_mean, new_cov, status)
 
 
 # -- helpers shared by the Kalman filters ----------------------------------------------------
@@ -199,6 +205,54 @@ def _noise_spec(module: nn.Module, buffer: str, name: str, value: object, n: int
     return remember(module, buffer, as_matrix(name, value, n, dtype=torch.float64))
 
 
+class RowGuard:
+    """Keeps a step's rejected rows out of the gradient of everything the rows share.
+
+    A row the step rejects (not finite, :meth:`_KalmanFilter._finish`) keeps its previous
+    estimate, so the step's own result on it gets no gradient; yet the backward of the
+    step's operations on that row (an exponential that overflowed, a product with an
+    infinity) still forms ``0 * inf = NaN``, which a shared ``Q``, ``R`` or model parameter
+    sums over the rows. The tensors :meth:`watch` returns (the step's inputs, and what the
+    model, the sensor and the noise give per row) have those rows' gradient set to zero in
+    the backward pass, once :attr:`bad` is known."""
+
+    def __init__(self) -> None:
+        self.bad: Tensor | None = None
+
+    def watch(self, t: Tensor, repeat: int = 1) -> Tensor:
+        """``t [B * repeat, ...]`` (each row's ``repeat`` entries together) as an alias whose
+        gradient skips the bad rows; the tensor itself is left alone (the rejected rows'
+        previous estimate takes its gradient through it)."""
+        if not t.requires_grad:
+            return t
+        alias = t.view_as(t)
+        alias.register_hook(functools.partial(self._zero, repeat=repeat))
+        return alias
+
+    def _zero(self, g: Tensor | None, repeat: int) -> Tensor | None:
+        if g is None or self.bad is None:  # the step is still running (a Jacobian's backward)
+            return g
+        bad = self.bad.repeat_interleave(repeat) if repeat > 1 else self.bad
+        return torch.where(bad.view(-1, *(1,) * (g.dim() - 1)), 0.0, g)
+
+
+def _output_size(sensor: Sensor, R: object) -> int:
+    """The measurement size ``p`` an ``R`` override must have: the sensor's, or the size of
+    the sensor's own ``R``, or that of the override itself (a scalar needs one of the
+    others)."""
+    if sensor.output_dim is not None:
+        return sensor.output_dim
+    if sensor.R is not None:
+        return sensor.R.shape[-1]
+    R_t = as_tensor("R", R)
+    if R_t.dim() == 0:
+        raise ValueError(
+            f"a scalar R needs the measurement size: {type(sensor).__name__} declares no "
+            "output_dim and no R of its own; give R as a vector [p] or a matrix [p, p]"
+        )
+    return R_t.shape[-1]
+
+
 class _KalmanFilter(ExactConstants, DerivedConstants, Estimator):
     """Shared construction, validation and batching of the Kalman-type filters.
 
@@ -250,20 +304,20 @@ class _KalmanFilter(ExactConstants, DerivedConstants, Estimator):
             if sensor.R is None:
                 raise ValueError(f"R is required: {type(sensor).__name__} has no noise covariance")
         else:
-            p = sensor.output_dim if sensor.output_dim is not None else as_tensor("R", R).shape[-1]
-            _noise_spec(self, "R_override", "R", R, p)
+            _noise_spec(self, "R_override", "R", R, _output_size(sensor, R))
 
     # -- pieces used by the subclasses ------------------------------------------------------
-    def _R(self, like: Tensor) -> Tensor:
+    def _R(self, like: Tensor, guard: RowGuard) -> Tensor:
+        """The measurement covariance ``[B, p, p]`` for the rows of ``like [B, n]``."""
         R = self.R_override if self.R_override is not None else self.sensor.R
-        return R.to(like)
+        return guard.watch(R.to(like).expand(like.shape[0], -1, -1))
 
-    def _Qc(self, m: Tensor) -> Tensor:
+    def _Qc(self, m: Tensor, guard: RowGuard) -> Tensor:
         """Continuous process-noise intensity at the mean ``m [B, n]``: ``[B, n, n]``."""
         if self.Q is not None:
-            return self.Q.to(m).expand(m.shape[0], -1, -1)
+            return guard.watch(self.Q.to(m).expand(m.shape[0], -1, -1))
         s = self.dynamics.sigma(m)
-        return s @ s.mT
+        return guard.watch(s @ s.mT)
 
     def init(self, x0: Tensor, P0: Tensor | None = None) -> EstimatorState:
         """Prior mean ``x0 [..., n]`` and covariance ``P0`` (required): ``[n, n]`` or
@@ -272,7 +326,7 @@ class _KalmanFilter(ExactConstants, DerivedConstants, Estimator):
 
         Returns an :class:`EstimatorState` with the batch of ``x0``.
         """
-        x0 = _check_vector("x0", x0, self.state_dim)
+        x0 = check_finite("x0", _check_vector("x0", x0, self.state_dim))
         if P0 is None:
             raise ValueError(f"{type(self).__name__}.init needs the prior covariance P0")
         P = _check_cov("P0", P0, x0)
@@ -296,7 +350,8 @@ class _KalmanFilter(ExactConstants, DerivedConstants, Estimator):
 
     def _flat_update(self, state: EstimatorState, y: Tensor):
         mean, cov, status = _check_state(state, self.state_dim)
-        p = self._R(mean).shape[-1]
+        R = self.R_override if self.R_override is not None else self.sensor.R
+        p = R.shape[-1]
         check_last_dim("y", y, p)
         check_same("state.mean", mean, "y", y)
         check_batch_match("state.mean", mean, "y", y)
@@ -323,15 +378,19 @@ class _KalmanFilter(ExactConstants, DerivedConstants, Estimator):
         mean: Tensor,
         cov: Tensor,
         status: Tensor,
+        guard: RowGuard,
         skip: Tensor | None = None,
     ) -> EstimatorState:
         """Symmetrise, flag a covariance that is not numerically positive definite, reject
         non-finite rows and the rows ``skip [B]`` marks (keep the previous estimate, flagged
-        ``NON_FINITE``) and reshape."""
+        ``NON_FINITE``, and out of the gradient through ``guard``) and reshape."""
         cov = symmetrize(cov)
-        finite = torch.isfinite(mean).all(-1) & torch.isfinite(cov).flatten(1).all(-1)
+        finite = torch.isfinite(mean.detach()).all(-1) & torch.isfinite(cov.detach()).flatten(
+            1
+        ).all(-1)
         if skip is not None:
             finite = finite & ~skip
+        guard.bad = ~finite
         not_pd = finite & (torch.linalg.cholesky_ex(cov.detach())[1] != 0)
         status = status | torch.where(not_pd, int(EstimatorStatus.REGULARIZED), 0)
         mean = torch.where(finite[:, None], mean, prev_mean)

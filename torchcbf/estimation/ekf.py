@@ -7,7 +7,7 @@ from torch import Tensor
 
 from torchcbf._autograd import needs_graph
 from torchcbf.estimation._linalg import discretize, jacobian, robust_cholesky, symmetrize
-from torchcbf.estimation.base import EstimatorState, EstimatorStatus, _KalmanFilter
+from torchcbf.estimation.base import EstimatorState, EstimatorStatus, RowGuard, _KalmanFilter
 
 
 class EKF(_KalmanFilter):
@@ -38,24 +38,29 @@ class EKF(_KalmanFilter):
 
     def predict(self, state: EstimatorState, u: Tensor, dt: float) -> EstimatorState:
         """Propagate ``state`` (mean ``[..., n]``, cov ``[..., n, n]``) with ``u [..., m]``."""
-        bs, m, P, u, dt = self._flat_predict(state, u, dt)
-        m0, P0 = m, P
+        bs, m0, P0, u, dt = self._flat_predict(state, u, dt)
+        guard = RowGuard()
+        m, P, u = guard.watch(m0), guard.watch(P0), guard.watch(u)
         h = dt / self.substeps
         graph = needs_graph(self.dynamics, m, u)
         for _ in range(self.substeps):
             xdot, F = jacobian(lambda z: self.dynamics(z, u), m, graph)
-            Phi, dx, Qd = discretize(F, h, xdot, self._Qc(m))
+            xdot, F = guard.watch(xdot), guard.watch(F)
+            Phi, dx, Qd = discretize(F, h, xdot, self._Qc(m, guard))
             m = m + dx
             P = symmetrize(Phi @ P @ Phi.mT + Qd)
         status = torch.zeros(m.shape[0], dtype=torch.int64, device=m.device)
-        return self._finish(bs, m0, P0, m, P, status)
+        return self._finish(bs, m0, P0, m, P, status, guard)
 
     def update(self, state: EstimatorState, y: Tensor) -> EstimatorState:
         """Correct ``state`` with ``y [..., p]`` (a non-finite ``y`` row is skipped and flagged)."""
-        bs, m, P, status, y, skip = self._flat_update(state, y)
+        bs, m0, P0, status, y, skip = self._flat_update(state, y)
+        guard = RowGuard()
+        m, P, y = guard.watch(m0), guard.watch(P0), guard.watch(y)
         graph = needs_graph(self.sensor, m)
         y_pred, H = jacobian(self.sensor.expected, m, graph)
-        R = self._R(m)
+        y_pred, H = guard.watch(y_pred), guard.watch(H)
+        R = self._R(m, guard)
         S = symmetrize(H @ P @ H.mT + R)
         L, regularized = robust_cholesky(S)
         K = torch.cholesky_solve(H @ P, L).mT  # P H^T S^-1, [B, n, p]
@@ -63,4 +68,4 @@ class EKF(_KalmanFilter):
         A = torch.eye(m.shape[-1], dtype=m.dtype, device=m.device) - K @ H
         cov = A @ P @ A.mT + K @ R @ K.mT
         status = status | torch.where(regularized, int(EstimatorStatus.REGULARIZED), 0)
-        return self._finish(bs, m, P, mean, cov, status, skip=skip)
+        return self._finish(bs, m0, P0, mean, cov, status, guard, skip=skip)

@@ -257,6 +257,8 @@ class GaussianSensor(Sensor):
     def expected(self, x: Tensor) -> Tensor:
         """``C x``: ``[..., n] -> [..., p]``."""
         check_last_dim("x", x, self.C.shape[1])
+        if not x.is_floating_point():
+            raise TypeError(f"x must be a floating-point tensor, got {x.dtype}")
         return x @ self.C.to(x).mT
 
 
@@ -364,4 +366,4 @@ class RangeBearing(Sensor):
         if self.heading_index is not None:
             bearing = bearing - x[..., self.heading_index].unsqueeze(-1)
         y = torch.stack([rng, wrap_angle(bearing)], dim=-1)
-        return y.reshape(*y.shape[:-2], -1)
+        return y.reshape(*y.shape[:-2], 2 * y.shape[-2])

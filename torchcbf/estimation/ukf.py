@@ -11,7 +11,7 @@ from torchcbf._autograd import needs_graph
 from torchcbf._checks import check_number
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.estimation._linalg import discretize, jacobian, robust_cholesky, symmetrize
-from torchcbf.estimation.base import EstimatorState, EstimatorStatus, _KalmanFilter
+from torchcbf.estimation.base import EstimatorState, EstimatorStatus, RowGuard, _KalmanFilter
 from torchcbf.estimation.sensors import Sensor
 
 
@@ -110,8 +110,9 @@ class UKF(_KalmanFilter):
 
     def predict(self, state: EstimatorState, u: Tensor, dt: float) -> EstimatorState:
         """Propagate ``state`` (mean ``[..., n]``, cov ``[..., n, n]``) with ``u [..., m]``."""
-        bs, m, P, u, dt = self._flat_predict(state, u, dt)
-        m0, P0 = m, P
+        bs, m0, P0, u, dt = self._flat_predict(state, u, dt)
+        guard = RowGuard()
+        m, P, u = guard.watch(m0), guard.watch(P0), guard.watch(u)
         B, n = m.shape
         Wm, Wc = self._weights(m)
         h = dt / self.substeps
@@ -123,23 +124,27 @@ class UKF(_KalmanFilter):
             Xf = X.reshape(-1, n)
             graph = needs_graph(self.dynamics, Xf, u_rep)
             xdot, F = jacobian(lambda z: self.dynamics(z, u_rep), Xf, graph)
+            xdot, F = guard.watch(xdot, 2 * n + 1), guard.watch(F, 2 * n + 1)
             _, dx, _ = discretize(F, h, xdot)
             Y = (Xf + dx).reshape(B, 2 * n + 1, n)
             F0 = F.reshape(B, 2 * n + 1, n, n)[:, 0]
-            _, _, Qd = discretize(F0, h, None, self._Qc(m))
+            _, _, Qd = discretize(F0, h, None, self._Qc(m, guard))
             m, dY = self._mean(Y, Wm, torch.sub)
             P = symmetrize((dY * Wc[:, None]).mT @ dY + Qd)
-        return self._finish(bs, m0, P0, m, P, status)
+        return self._finish(bs, m0, P0, m, P, status, guard)
 
     def update(self, state: EstimatorState, y: Tensor) -> EstimatorState:
         """Correct ``state`` with ``y [..., p]`` (a non-finite ``y`` row is skipped and flagged)."""
-        bs, m, P, status, y, skip = self._flat_update(state, y)
+        bs, m0, P0, status, y, skip = self._flat_update(state, y)
+        guard = RowGuard()
+        m, P, y = guard.watch(m0), guard.watch(P0), guard.watch(y)
+        R = self._R(m, guard)
         Wm, Wc = self._weights(m)
         X, dX, reg_p = self._sigma_points(m, P)
-        Yp = self.sensor.expected(X)
+        Yp = guard.watch(self.sensor.expected(X))
         y_pred, dY = self._mean(Yp, Wm, self.sensor.residual)
         WdY = dY * Wc[:, None]
-        S = symmetrize(WdY.mT @ dY + self._R(m))
+        S = symmetrize(WdY.mT @ dY + R)
         Pxy = dX.mT @ WdY  # [B, n, p]
         L, reg_s = robust_cholesky(S)
         K = torch.cholesky_solve(Pxy.mT, L).mT  # Pxy S^-1
@@ -157,6 +162,6 @@ class UKF(_KalmanFilter):
             vals, vecs = torch.linalg.eigh(D)
             D = (vecs * vals.clamp_min(0.0).unsqueeze(-2)) @ vecs.mT
         A = torch.eye(m.shape[-1], dtype=m.dtype, device=m.device) - K @ H
-        cov = A @ P @ A.mT + K @ (self._R(m) + D) @ K.mT
+        cov = A @ P @ A.mT + K @ (R + D) @ K.mT
         flags = torch.where(reg_p | reg_s, int(EstimatorStatus.REGULARIZED), 0)
-        return self._finish(bs, m, P, mean, cov, status | flags, skip=skip)
+        return self._finish(bs, m0, P0, mean, cov, status | flags, guard, skip=skip)

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from torchcbf._checks import check_last_dim, check_number, check_positive_int
+from torchcbf._checks import check_last_dim, check_number, check_positive_int, check_tensor
 from torchcbf._random import counter_normal, seed_rows
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.estimation import Estimator, Sensor
@@ -180,6 +180,18 @@ class ClosedLoop:
             return run.finish()
 
 
+def _broadcast(name: str, value: object, like: Tensor, shape: tuple[int, ...]) -> Tensor:
+    """``value`` in ``like``'s dtype and device, broadcast to ``shape`` (a clear error
+    naming ``name`` where it does not broadcast)."""
+    value = check_tensor(name, value).to(like)
+    try:
+        return value.expand(shape)
+    except RuntimeError:
+        raise ValueError(
+            f"{name} must broadcast to {list(shape)}, got {tuple(value.shape)}"
+        ) from None
+
+
 class _Run:
     """One simulation of a :class:`ClosedLoop`: its buffers and one method per stage of a
     step, in the order a step runs them."""
@@ -233,12 +245,20 @@ class _Run:
 
     # -- before the first step ------------------------------------------------------------
     def start(self, x0_hat: Tensor | None, P0: Tensor | None) -> None:
-        loop, x0 = self.loop, self.x
+        loop, x0, B, n = self.loop, self.x, self.B, self.n
         if loop.estimator is not None:
-            mean0 = x0 if x0_hat is None else x0_hat.to(x0).expand(self.B, self.n)
+            mean0 = x0 if x0_hat is None else _broadcast("x0_hat", x0_hat, x0, (B, n))
             if P0 is None:
-                P0 = 1e-2 * torch.eye(self.n, device=self.device, dtype=self.dtype)
-            self.est_state = loop.estimator.init(mean0, P0.to(x0).expand(self.B, self.n, self.n))
+                P0 = 1e-2 * torch.eye(n, device=self.device, dtype=self.dtype)
+            self.est_state = loop.estimator.init(mean0, _broadcast("P0", P0, x0, (B, n, n)))
+        elif loop.sensor is not None:
+            p = getattr(loop.sensor, "output_dim", None) or loop.sensor.expected(x0).shape[-1]
+            if p != n:
+                raise ValueError(
+                    f"without an estimator the controllers see the measurement, which must then "
+                    f"be a full state of size {n}: {type(loop.sensor).__name__} measures {p} "
+                    "values (add an estimator)"
+                )
         for part in (loop.planner, loop.nominal):
             reset = getattr(part, "reset", None)
             if callable(reset):
