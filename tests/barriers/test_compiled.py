@@ -4,6 +4,7 @@ outside grad mode only."""
 from __future__ import annotations
 
 import logging
+import types
 
 import pytest
 import torch
@@ -322,3 +323,76 @@ def test_a_hook_registered_after_the_first_call_is_seen(compile) -> None:
             torch.testing.assert_close(a.h, b.h, atol=1e-9, rtol=1e-9)
             torch.testing.assert_close(a.u, b.u, atol=1e-9, rtol=1e-9)
             handle.remove()
+
+
+class OwnTerms(SuperEllipse):
+    """A superellipse whose class gives its own Lie terms (here twice the true gradient)."""
+
+    def lie(self, x, dynamics, t=None, *, method="autograd", hessian=True):
+        own = Barrier.lie(self, x, dynamics, t, method="autograd", hessian=hessian)
+        dhdx = 2.0 * own.dhdx
+        lgh = (dhdx.unsqueeze(-2) @ dynamics.g(x)).squeeze(-2)
+        lfh = (dhdx * dynamics.f(x)).sum(-1)
+        return own._replace(lfh=lfh, lgh=lgh, dhdx=dhdx)
+
+
+@pytest.mark.parametrize("compile", [True, TRACED], ids=["true", "dict"])
+@pytest.mark.parametrize("where", ["class", "instance"])
+def test_a_barrier_with_its_own_lie_gives_its_terms_to_a_compiled_filter(compile, where) -> None:
+    model = Glider().double()
+    if where == "class":
+        shape = OwnTerms([2.0, 0.5], [0.6, 0.4]).double()
+    else:
+        shape = SuperEllipse([2.0, 0.5], [0.6, 0.4]).double()
+        shape.lie = types.MethodType(OwnTerms.lie, shape)
+    reference = SafetyFilter(model, [shape], backend="torch").double()
+    compiled = SafetyFilter(model, [shape], compile=compile).double()
+    x = torch.tensor([[1.0, 0.4, 0.1], [0.0, -0.5, 2.0]], dtype=torch.float64)
+    u = torch.tensor([[3.0, 0.0], [2.0, 1.0]], dtype=torch.float64)
+    with torch.no_grad():
+        a, b = compiled(x, u), reference(x, u)
+    torch.testing.assert_close(a.u, b.u, atol=1e-12, rtol=1e-12)
+    assert not a.path.startswith("compiled")
+    # the terms are the barrier's own: not those of its forward
+    plain = SafetyFilter(model, [SuperEllipse([2.0, 0.5], [0.6, 0.4])], backend="torch").double()
+    with torch.no_grad():
+        assert not torch.allclose(plain(x, u).u, a.u)
+
+
+class Growing(Barrier):
+    """A barrier with ``count`` outputs (a plain attribute the user may change)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.count = 1
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        d = (x[..., None, :2] ** 2).sum(-1) - 1.0  # [..., 1]
+        return d + torch.arange(self.count, dtype=x.dtype)
+
+
+def test_a_compiled_filter_follows_a_change_in_the_number_of_outputs() -> None:
+    model = Glider().double()
+    fns = [Growing(), Ball([3.0, 0.0], 0.5).double()]
+    # one class-K function per barrier: the outputs are split by barrier
+    alpha = [lambda h: 1.0 * h, lambda h: 5.0 * h]
+    compiled = SafetyFilter(model, fns, compile=TRACED, alpha=alpha).double()
+    reference = SafetyFilter(model, fns, backend="torch", alpha=alpha).double()
+    x = torch.tensor([[2.0, 0.4, 0.1]], dtype=torch.float64)
+    u = torch.tensor([[-3.0, 0.5]], dtype=torch.float64)
+    with torch.no_grad():
+        for count in (1, 3):
+            fns[0].count = count
+            a, b = compiled(x, u), reference(x, u)
+            assert a.constraint_value.shape[-1] == count + 1
+            torch.testing.assert_close(a.u, b.u, atol=1e-10, rtol=1e-10)
+
+
+def test_half_precision_states_are_refused_on_every_path() -> None:
+    model = Glider()
+    for backend in ("auto", "torch"):
+        f = SafetyFilter(model, [SuperEllipse([2.0, 0.5], [0.6, 0.4])], backend=backend)
+        for dtype in (torch.float16, torch.bfloat16):
+            x, u = torch.zeros(3, 3, dtype=dtype), torch.zeros(3, 2, dtype=dtype)
+            with pytest.raises(TypeError, match="x must be float32 or float64"):
+                f(x, u)

@@ -119,7 +119,7 @@ class CompiledLie:
         if self._call is None:
             return None
         with torch.no_grad():
-            if self.sizes is None:  # once, eager: a Python int per function
+            if self.sizes is None:  # eager: a Python int per function, again where they change
                 self.sizes = [torch.atleast_1d(fn(x[0], t[0])).shape[-1] for fn in self.fns]
             try:
                 out = self._call(x, t, hook_key(*self.fns, self.dynamics))
@@ -134,6 +134,8 @@ class CompiledLie:
                 )
                 self._call = None
                 return None
-        h, lfh, lgh, dhdt, dhdx = out[:5]
+            h, lfh, lgh, dhdt, dhdx = out[:5]
+            if h.shape[-1] != sum(self.sizes):  # a function's output count changed
+                self.sizes = [torch.atleast_1d(fn(x[0], t[0])).shape[-1] for fn in self.fns]
         terms = LieTerms(h, lfh, lgh, dhdt, out[5] if self.hessian else None, dhdx)
         return terms, self.sizes

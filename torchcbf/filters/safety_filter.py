@@ -481,6 +481,11 @@ class SafetyFilter(ExactConstants, DerivedConstants):
             raise TypeError(
                 f"x and u_nom must share a floating dtype, got {x.dtype} and {u_nom.dtype}"
             )
+        if x.dtype not in (torch.float32, torch.float64):
+            raise TypeError(
+                f"x must be float32 or float64 (the QP solves in those), got {x.dtype}: "
+                "cast the inputs with .float()"
+            )
         if u_nom.device != x.device or x.device != self.R.device:
             raise ValueError(
                 f"x is on device {x.device}, u_nom on {u_nom.device} and the filter on "
@@ -601,8 +606,12 @@ class SafetyFilter(ExactConstants, DerivedConstants):
         With ``prepare``, the CBF conditions may be a prepared native call (see
         :meth:`_native_cbf`), for the real-time path."""
         compiled = self._compiled_lies()
+        # a function with its own lie gives its terms itself: no traced graph of its calls
         traced = (
-            self._traced is not None and self.lie_method == "auto" and not torch.is_grad_enabled()
+            self._traced is not None
+            and self.lie_method == "auto"
+            and not torch.is_grad_enabled()
+            and not any(own_lie(fn) for fn in (*self.barriers, *self.lyapunovs))
         )
         if traced and self._native_known is None:
             self._native_known = native.describes(self.barriers, self.dynamics)
