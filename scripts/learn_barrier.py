@@ -96,6 +96,8 @@ def main() -> None:
     ap.add_argument("--load", default=None, help="skip training: load this checkpoint")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args()
+    if args.steps < 1:
+        ap.error(f"--steps must be at least 1, got {args.steps}")
     if args.quick:
         args.steps = min(args.steps, 150)
         args.batch = min(args.batch, 1024)
@@ -160,6 +162,7 @@ def main() -> None:
             checkpoint=ckpt,
             checkpoint_every=200,
             module=barrier,
+            generator=gen,
         )
         metrics = result.metrics
         print(

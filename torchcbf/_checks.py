@@ -133,6 +133,8 @@ def check_index(name: str, index: Sequence[int], state_dim: int | None) -> tuple
 
 def as_tensor(name: str, value: object, *, dtype: torch.dtype | None = None, device=None) -> Tensor:
     """Convert a number, sequence or tensor to a floating tensor (default dtype if not a tensor)."""
+    if device is not None and not isinstance(device, torch.device):
+        device = check_device(device)
     if isinstance(value, Tensor):
         out = value
         if not out.is_floating_point():
@@ -151,6 +153,18 @@ def as_tensor(name: str, value: object, *, dtype: torch.dtype | None = None, dev
         return torch.as_tensor(value, dtype=dtype, device=device)
     except (TypeError, ValueError, RuntimeError) as err:
         raise TypeError(f"{name} must be a number, sequence or tensor, got {value!r}") from err
+
+
+def check_device(device: object) -> torch.device:
+    """``device`` (a string, index or ``torch.device``) as a ``torch.device``; ``ValueError``
+    for a name torch does not know or a device this machine does not have."""
+    try:
+        dev = torch.device(device)  # type: ignore[arg-type]
+    except (RuntimeError, TypeError) as err:
+        raise ValueError(f"device {device!r} is not a device torch knows: {err}") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r}: this torch has no CUDA device available")
+    return dev
 
 
 def check_spd(name: str, matrix: Tensor) -> Tensor:

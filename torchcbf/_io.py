@@ -55,32 +55,34 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
 
 class _DeferredCtrlC:
-    """SIGINT held back while a temporary file is created, so that a Ctrl-C cannot land
-    between its creation and the handler that removes it; :meth:`deliver` puts the
-    previous handler back and hands it a signal that arrived meanwhile. Only the main
-    thread can change handlers, and only a handler set from Python can be put back;
-    otherwise nothing is held back."""
+    """SIGINT and SIGTERM held back while a temporary file is created, so that a Ctrl-C
+    cannot land between its creation and the handler that removes it; :meth:`deliver` puts
+    the previous handlers back and hands a signal that arrived meanwhile to its own. Only
+    the main thread can change handlers, and only a handler set from Python can be put
+    back; otherwise nothing is held back."""
 
     def __init__(self) -> None:
-        self.previous: Any = None
+        self.previous: dict[int, Any] = {}
         self.received: list[tuple[int, Any]] = []
-        main = threading.current_thread() is threading.main_thread()
-        if main and signal.getsignal(signal.SIGINT) is not None:
-            self.previous = signal.signal(signal.SIGINT, self._record)
+        if threading.current_thread() is threading.main_thread():
+            for signum in (signal.SIGINT, signal.SIGTERM):
+                if signal.getsignal(signum) is not None:
+                    self.previous[signum] = signal.signal(signum, self._record)
 
     def _record(self, signum: int, frame: Any) -> None:
         self.received.append((signum, frame))
 
     def deliver(self) -> None:
-        previous, self.previous = self.previous, None
-        if previous is None:
-            return
-        signal.signal(signal.SIGINT, previous)
+        previous, self.previous = self.previous, {}
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
         if self.received:
-            if callable(previous):
-                previous(*self.received[0])
-            elif previous == signal.SIG_DFL:
-                os.kill(os.getpid(), signal.SIGINT)
+            signum, frame = self.received[0]
+            handler = previous.get(signum)
+            if callable(handler):
+                handler(signum, frame)
+            elif handler == signal.SIG_DFL:
+                os.kill(os.getpid(), signum)
 
 
 def _umask() -> int:

@@ -34,6 +34,7 @@ import importlib.util
 import json
 import os
 import shlex
+import signal
 import subprocess
 import sys
 import time
@@ -420,7 +421,12 @@ def _scenario_settings(args: argparse.Namespace, plan: list[tuple[Any, Any]]) ->
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the ``torchcbf`` command; the exit code (130 after Ctrl-C)."""
+    """Run the ``torchcbf`` command; the exit code (130 after Ctrl-C or a SIGTERM, which a
+    run answers as it answers Ctrl-C: finished work saved, a command to continue)."""
+    try:
+        previous = signal.signal(signal.SIGTERM, _terminate)
+    except ValueError:  # not the main thread: the signal stays as it is
+        previous = None
     try:
         return _main(argv)
     except KeyboardInterrupt:  # before a run started: nothing to save
@@ -430,6 +436,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())  # no second error when Python flushes at exit
         return 1
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _terminate(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
 
 
 def _main(argv: Sequence[str] | None = None) -> int:
@@ -639,7 +652,7 @@ def _add_ecosystem_commands(sub: Any) -> None:
     t.add_argument(
         "--params", default=None, help="comma-separated dimensions to search (default: all)"
     )
-    t.add_argument("--sampler-seed", type=int, default=0, help="seed of the TPE sampler")
+    t.add_argument("--sampler-seed", type=_seed, default=0, help="seed of the TPE sampler")
     t.add_argument(
         "--batch", type=_positive_int, default=2, help="trials asked at once (parallel Ray tasks)"
     )
@@ -761,6 +774,14 @@ def _check_engine(command: str, args: argparse.Namespace) -> bool:
         print(f'torchcbf {command}: --engine ray needs Ray: pip install "torchcbf[ray]"',
               file=sys.stderr)  # fmt: skip
         return False
+    if args.engine == "ray" and args.address is not None:
+        from torchcbf.sweep.engines import check_address
+
+        try:
+            check_address(args.address)  # before the run folder is taken
+        except ValueError as error:
+            print(f"torchcbf {command}: {error}", file=sys.stderr)
+            return False
     return True
 
 

@@ -511,3 +511,18 @@ def test_safe_rl_script_runs_at_tiny_sizes(tmp_path):
     assert risk.returncode == 0, risk.stderr
     rows = [line for line in risk.stdout.splitlines() if line.startswith("| 0.")]
     assert len(rows) == 4
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("minibatch_size", 0, "minibatch_size must be a positive int"),
+        ("num_envs", 2.5, "num_envs must be a positive int"),
+        ("lr", 0.0, "lr must be a finite number > 0"),
+        ("gamma", 1.5, r"gamma must lie in \[0, 1\]"),
+        ("entropy_coef", -0.1, "entropy_coef must be a finite number >= 0"),
+    ],
+)
+def test_ppo_settings_are_checked_when_made(field, value, message) -> None:
+    with pytest.raises(ValueError, match=message):
+        PPOConfig(**{field: value})

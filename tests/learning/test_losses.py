@@ -192,3 +192,10 @@ def test_closed_loop_loss_gradient_through_simulate_matches_finite_differences()
     fd = (up - down) / (2 * eps)
     assert abs(float(grad)) > 1e-3  # the gain matters here
     assert abs(float(grad - fd)) < 1e-5 * max(1.0, abs(float(fd)))
+
+
+def test_classification_loss_refuses_a_temperature_that_is_not_a_number() -> None:
+    h, safe = torch.tensor([0.3, -0.2]), torch.tensor([True, False])
+    for temperature in (float("nan"), -1.0, float("inf")):
+        with pytest.raises(ValueError, match="temperature must be a finite number >= 0"):
+            classification_loss(h, safe, temperature=temperature)

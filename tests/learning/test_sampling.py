@@ -41,6 +41,17 @@ def test_uniform_box_errors() -> None:
         uniform_box([0.0], [1.0], 0)
     with pytest.raises(TypeError, match="generator"):
         uniform_box([0.0], [1.0], 2, generator=1)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="device 'bogus' is not a device torch knows"):
+        uniform_box([-1.0, 0.0], [1.0, 2.0], 3, device="bogus")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="device 'cuda': this torch has no CUDA device"):
+            uniform_box([-1.0, 0.0], [1.0, 2.0], 3, device="cuda")
+    occupied = occupancy_from_barrier(Ball([0.0, 0.0], 0.5))
+    for margin in (-0.5, float("nan")):
+        with pytest.raises(ValueError, match="margin must be a finite number >= 0"):
+            sample_free(occupied, [-1.0, -1.0], [1.0, 1.0], 4, margin=margin)
+    with pytest.raises(ValueError, match="max_rounds must be a positive int"):
+        sample_free(occupied, [-1.0, -1.0], [1.0, 1.0], 4, max_rounds=0)
 
 
 def test_labels_match_a_loop_over_states(dtype) -> None:

@@ -142,6 +142,66 @@ def test_train_errors() -> None:
         train(lambda s: model.weight.sum(), opt, 1, checkpoint="x.pt")
     with pytest.raises(ValueError, match="scalar"):
         train(lambda s: model.weight, opt, 1, progress=False)
+    loss = lambda s: model.weight.sum()  # noqa: E731
+    for clip in (-1.0, 0.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="grad_clip must be a finite number > 0"):
+            train(loss, opt, 1, grad_clip=clip, progress=False)
+    with pytest.raises(ValueError, match="start_step must be a non-negative int"):
+        train(loss, opt, 1, start_step=-1, progress=False)
+    with pytest.raises(ValueError, match="checkpoint_every must be a non-negative int"):
+        train(loss, opt, 1, checkpoint_every=-5, progress=False)
+    with pytest.raises(TypeError, match="generator must be a torch.Generator"):
+        save_checkpoint("never.pt", model, generator=3)  # type: ignore[arg-type]
+
+
+def test_a_resumed_run_draws_the_data_it_would_have_drawn(tmp_path) -> None:
+    """A loss that draws its batch from a generator: the checkpoint holds the generator's
+    state, so the resumed run sees the batches of the uninterrupted one."""
+
+    def setup():
+        model, x, y = _problem()
+        gen = torch.Generator().manual_seed(7)
+        opt = torch.optim.SGD(model.parameters(), lr=0.05)
+
+        def loss_fn(step: int):
+            idx = torch.randint(64, (8,), generator=gen)
+            return ((model(x[idx]) - y[idx]) ** 2).mean()
+
+        return model, opt, gen, loss_fn
+
+    ref, opt, gen, loss = setup()
+    whole = train(loss, opt, 10, progress=False).losses
+    model, opt, gen, loss = setup()
+    path = tmp_path / "run.pt"
+    first = train(loss, opt, 4, checkpoint=path, module=model, generator=gen, progress=False)
+    fresh, fresh_opt, fresh_gen, fresh_loss = setup()
+    info = load_checkpoint(path, fresh, fresh_opt, generator=fresh_gen)
+    rest = train(fresh_loss, fresh_opt, 6, start_step=info["step"], progress=False)
+    assert first.losses + rest.losses == whole
+    torch.testing.assert_close(fresh.weight, ref.weight, atol=0, rtol=0)
+    save_checkpoint(tmp_path / "plain.pt", fresh)
+    with pytest.raises(ValueError, match="no generator state"):
+        load_checkpoint(tmp_path / "plain.pt", fresh, generator=fresh_gen)
+
+
+def test_a_metric_named_loss_is_shown_beside_the_loss() -> None:
+    model, x, y = _problem()
+    opt = torch.optim.SGD(model.parameters(), lr=0.01)
+
+    def loss_fn(step: int):
+        loss = ((model(x) - y) ** 2).mean()
+        return loss, {"loss": loss.detach() * 2}
+
+    res = train(loss_fn, opt, 2, progress=True)
+    assert res.metrics["loss"] == pytest.approx(2 * res.losses[-1], rel=1e-6, abs=0)
+
+
+def test_a_checkpoint_into_a_folder_names_the_folder(tmp_path) -> None:
+    model, _, _ = _problem()
+    (tmp_path / "adir").mkdir()
+    with pytest.raises(IsADirectoryError, match="adir is a folder"):
+        save_checkpoint(tmp_path / "adir", model)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["adir"]
 
 
 def test_mlp_normalises_its_input(dtype) -> None:

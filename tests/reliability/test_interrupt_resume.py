@@ -1,4 +1,4 @@
-"""Long commands killed at any moment (SIGINT or SIGKILL) and run again with ``--resume``
+"""Long commands killed at any moment (SIGINT, SIGTERM or SIGKILL) and run again with ``--resume``
 end with the outputs of an uninterrupted run, and never leave a half-written file."""
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ def _interrupt(
     if signalled:
         proc.send_signal(sig)
     _, err = proc.communicate(timeout=240)
-    if signalled and sig == signal.SIGINT:
+    if signalled and sig in (signal.SIGINT, signal.SIGTERM):
         assert proc.returncode == 130, err[-3000:]
         assert "Traceback" not in err and "--resume" in err, err[-3000:]
     elif signalled:
@@ -116,6 +116,7 @@ def sweep_reference(tmp_path_factory) -> Path:
     ("sig", "when"),
     [
         (signal.SIGINT, "after one point"),
+        (signal.SIGTERM, "after one point"),
         pytest.param(signal.SIGKILL, "after two points", marks=pytest.mark.slow),
     ],
 )
@@ -204,7 +205,8 @@ def test_ray_sweep_interrupted_then_resumed_equals_an_uninterrupted_run(
     assert _csv(out / "sweep.csv") == _csv(sweep_reference / "sweep.csv")
 
 
-def test_ctrl_c_while_a_temporary_file_is_created_leaves_none(tmp_path, monkeypatch) -> None:
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["int", "term"])
+def test_a_signal_while_a_temporary_file_is_created_leaves_none(tmp_path, monkeypatch, sig) -> None:
     import tempfile
 
     from torchcbf import _io
@@ -216,7 +218,7 @@ def test_ctrl_c_while_a_temporary_file_is_created_leaves_none(tmp_path, monkeypa
         fd, name = mkstemp(*args, **kwargs)
         created.append(Path(name))
         if len(created) == 3:  # the signal lands right after the file exists
-            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), sig)
         return fd, name
 
     monkeypatch.setattr(_io.tempfile, "mkstemp", mkstemp_then_ctrl_c)
@@ -225,6 +227,7 @@ def test_ctrl_c_while_a_temporary_file_is_created_leaves_none(tmp_path, monkeypa
     assert len(created) == 3 and not created[-1].exists()
     assert not [p for p in out.rglob("*") if is_temporary(p)]
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
 
 
 def test_only_the_writers_own_temporary_names_count_as_temporary():

@@ -79,7 +79,7 @@ def test_tune_rejects_overlapping_seeds() -> None:
         _tune(seed=0, eval_seed=1)
 
 
-@pytest.mark.parametrize("flag", ["--seed", "--eval-seed"])
+@pytest.mark.parametrize("flag", ["--seed", "--eval-seed", "--sampler-seed"])
 @pytest.mark.parametrize("value", ["-1", str(2**32)])
 def test_cli_refuses_seeds_outside_the_noise_streams(flag, value, capsys) -> None:
     """The noise streams are 32-bit: 2^32 would be seed 0 again (a held-out evaluation on
@@ -88,6 +88,20 @@ def test_cli_refuses_seeds_outside_the_noise_streams(flag, value, capsys) -> Non
         main(["tune", "reach-avoid", flag, value, "--trials", "1", "--no-progress"])
     assert exit_info.value.code == 2
     assert f"argument {flag}: a seed lies in [0, 2^32)" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["sweep", "tune"])
+def test_an_address_where_no_ray_cluster_answers_is_refused_before_any_work(
+    command, tmp_path, capsys
+) -> None:
+    """Ray retries such an address for minutes; the folder would be taken meanwhile."""
+    pytest.importorskip("ray")
+    out = tmp_path / "run"
+    extra = ["--grid", "num_samples=32"] if command == "sweep" else ["--trials", "1"]
+    args = [command, "reach-avoid", *extra, "--engine", "ray", "--address", "127.0.0.1:1"]
+    assert main([*args, "--out", str(out), "--no-progress"]) == 2
+    assert "no Ray cluster answers at 127.0.0.1:1" in capsys.readouterr().err
+    assert not out.exists()
 
 
 def test_cli_tune_writes_best_json_and_study(tmp_path, capsys) -> None:

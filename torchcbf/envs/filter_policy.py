@@ -32,7 +32,8 @@ class FilteredPolicy(nn.Module):
     the filtered action (differentiable in the network's parameters and the observation),
     the network's action and the filter's :class:`~torchcbf.filters.FilterStatus` codes.
     Wrapped in a ``tensordict.nn.TensorDictModule`` (``out_keys=["loc", "loc_nominal",
-    "policy_filter_status"]``) it is the mean of a TorchRL ``ProbabilisticActor``.
+    "policy_status"]``: the key :mod:`~torchcbf.envs.safe_ppo` reads) it is the mean of a
+    TorchRL ``ProbabilisticActor``.
     """
 
     def __init__(

@@ -45,6 +45,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 from torchrl.objectives.value import GAE
 
+from torchcbf._checks import check_number, check_positive_int
 from torchcbf.barriers import Ellipse, HalfSpace, rectify
 from torchcbf.barriers._params import take
 from torchcbf.envs.filter_policy import FilteredPolicy
@@ -129,6 +130,31 @@ class PPOConfig:
     eval_episodes: int = 256
     shaping: bool = True
     filter_margin: float | None = None
+
+    def __post_init__(self) -> None:
+        for name in (
+            "num_envs",
+            "rollout_steps",
+            "total_frames",
+            "epochs",
+            "minibatch_size",
+            "hidden",
+            "eval_episodes",
+        ):
+            check_positive_int(name, getattr(self, name))
+        for name in ("lr", "clip", "init_std"):
+            check_number(name, getattr(self, name), low=0.0, strict=True)
+        for name in (
+            "entropy_coef",
+            "cost_limit",
+            "lagrangian_lr",
+            "intervention_weight",
+            "shield_penalty",
+        ):
+            check_number(name, getattr(self, name), low=0.0)
+        for name in ("gamma", "lmbda"):
+            if not 0.0 <= check_number(name, getattr(self, name)) <= 1.0:
+                raise ValueError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
 
 
 @dataclass

@@ -25,7 +25,7 @@ Example (classification plus the CBF condition at the filter's solution)::
         l_cbf = cbf_condition_loss(filt, xs, nominal(xs, 0.0))
         return l_cls + l_cbf, {"cls": l_cls, "cbf": l_cbf}
 
-    train(loss_fn, opt, steps=500, checkpoint="barrier.pt", module=barrier)
+    train(loss_fn, opt, steps=500, checkpoint="barrier.pt", module=barrier, generator=gen)
 """
 
 from torchcbf.learning.losses import (

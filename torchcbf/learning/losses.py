@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchcbf._checks import as_tensor, check_tensor
+from torchcbf._checks import as_tensor, check_number, check_tensor
 from torchcbf.barriers._params import take
 
 
@@ -87,8 +87,7 @@ def classification_loss(
     """
     _check_pair(h, safe)
     m_unsafe = margin if unsafe_margin is None else unsafe_margin
-    if temperature < 0:
-        raise ValueError(f"temperature must be >= 0, got {temperature}")
+    temperature = check_number("temperature", temperature, low=0.0)
     if temperature > 0:
         loss_safe = temperature * F.softplus((margin - h) / temperature)
         loss_unsafe = temperature * F.softplus((m_unsafe + h) / temperature)

@@ -20,6 +20,7 @@ from torchcbf._checks import (
     check_finite,
     check_generator,
     check_index,
+    check_number,
     check_positive,
     check_positive_int,
     check_tensor,
@@ -155,7 +156,10 @@ def dilate(
     A state is occupied if it, or a probe point at distance ``radius * j / rings``
     (``j = 1..rings``) along one of ``probes`` directions, is occupied. Approximate: an
     obstacle thinner than the probe spacing (``2 pi radius / probes`` in 2D) can slip
-    between probes.
+    between probes, and the directions cover a sphere more thinly in more dimensions (a unit
+    ball in 3D grown by ``radius`` 0.5: in the worst direction by 0.31 with 32 probes, 0.39
+    with 64, 0.42 with 128, against 0.496 in 2D with 32): raise ``probes`` with the
+    dimension.
     """
     radius = check_positive("radius", radius)
     index = check_index("index", index, None)
@@ -216,6 +220,8 @@ def sample_free(
     """
     lo, hi = _box(low, high, dtype, device)
     num = check_positive_int("num", num)
+    margin = check_number("margin", margin, low=0.0)
+    max_rounds = check_positive_int("max_rounds", max_rounds)
     gen = make_generator(generator, seed, lo.device)
     occ = dilate(occupied, margin, index=index) if margin > 0 else occupied
     found: list[Tensor] = []

@@ -28,6 +28,9 @@ from torch import Tensor, nn
 from torch.optim.lr_scheduler import LRScheduler
 from tqdm.auto import tqdm
 
+from torchcbf._checks import check_number
+from torchcbf._io import atomic_path
+
 log = logging.getLogger(__name__)
 
 LossOutput = Tensor | tuple[Tensor, Mapping[str, Tensor | float]]
@@ -57,26 +60,31 @@ def save_checkpoint(
     *,
     step: int = 0,
     scheduler: LRScheduler | None = None,
+    generator: torch.Generator | None = None,
     **extra: Any,
 ) -> None:
-    """Save ``module.state_dict()`` (and the optimizer's, the scheduler's, the step and
-    ``extra``) to ``path``. ``extra`` holds what :func:`load_checkpoint` reads back with
-    ``weights_only=True`` (tensors, Python numbers, strings, ``None``, containers of them,
-    state dicts); anything else raises ``TypeError`` naming it, before writing."""
+    """Save ``module.state_dict()`` (and the optimizer's, the scheduler's, the state of the
+    random ``generator`` the data is drawn with, the step and ``extra``) to ``path``, in one
+    atomic write (an interrupted save leaves the previous checkpoint). ``extra`` holds what
+    :func:`load_checkpoint` reads back with ``weights_only=True`` (tensors, Python numbers,
+    strings, ``None``, containers of them, state dicts); anything else raises ``TypeError``
+    naming it, before writing."""
     for key, value in extra.items():
         _check_loadable(f"extra[{key!r}]", value)
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {
         "model": module.state_dict(),
         "optimizer": None if optimizer is None else optimizer.state_dict(),
         "scheduler": None if scheduler is None else scheduler.state_dict(),
+        "generator": None if generator is None else generator.get_state(),
         "step": int(step),
         "extra": extra,
     }
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(state, tmp)
-    tmp.replace(path)  # atomic: an interrupted save never leaves a truncated checkpoint
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
 
 
 def _check_loadable(name: str, value: object) -> None:
@@ -108,11 +116,13 @@ def load_checkpoint(
     optimizer: torch.optim.Optimizer | None = None,
     *,
     scheduler: LRScheduler | None = None,
+    generator: torch.Generator | None = None,
     map_location: str | torch.device | None = None,
     strict: bool = True,
 ) -> dict[str, Any]:
     """Load a checkpoint written by :func:`save_checkpoint` into ``module`` (and
-    ``optimizer``, ``scheduler``); returns ``{"step": int, "extra": dict}``."""
+    ``optimizer``, ``scheduler``, the state of ``generator``); returns ``{"step": int,
+    "extra": dict}``."""
     state = torch.load(Path(path), map_location=map_location, weights_only=True)
     if not isinstance(state, dict) or "model" not in state:
         raise ValueError(f"{path} is not a checkpoint written by save_checkpoint")
@@ -125,6 +135,10 @@ def load_checkpoint(
         if state.get("scheduler") is None:
             raise ValueError(f"{path} holds no scheduler state")
         scheduler.load_state_dict(state["scheduler"])
+    if generator is not None:
+        if state.get("generator") is None:
+            raise ValueError(f"{path} holds no generator state")
+        generator.set_state(state["generator"])
     return {"step": int(state.get("step", 0)), "extra": dict(state.get("extra") or {})}
 
 
@@ -139,6 +153,7 @@ def train(
     *,
     start_step: int = 0,
     scheduler: LRScheduler | None = None,
+    generator: torch.Generator | None = None,
     grad_clip: float | None = None,
     progress: bool = True,
     desc: str = "train",
@@ -155,20 +170,33 @@ def train(
         optimizer: any ``torch.optim`` optimizer over the parameters to train.
         steps: number of steps; they are numbered ``start_step .. start_step + steps - 1``.
         scheduler: optional learning-rate scheduler, stepped after every optimizer step.
-        grad_clip: clip the global gradient norm to this value.
+        generator: the random generator ``loss_fn`` draws its data with, saved in the
+            checkpoints.
+        grad_clip: clip the global gradient norm to this value (a finite number > 0).
         progress: show a tqdm bar.
-        checkpoint, checkpoint_every, module: save ``module`` (and the optimizer and the
-            scheduler) to ``checkpoint`` every ``checkpoint_every`` steps (0: only at the
-            end) with :func:`save_checkpoint`; resume with :func:`load_checkpoint` (given
-            the same three) and ``start_step``: the run continues as one that was not
-            interrupted.
+        checkpoint, checkpoint_every, module: save ``module`` (and the optimizer, the
+            scheduler and the generator) to ``checkpoint`` every ``checkpoint_every`` steps
+            (0: only at the end) with :func:`save_checkpoint`; resume with
+            :func:`load_checkpoint` (given the same four) and ``start_step``: the run
+            continues as one that was not interrupted, where ``loss_fn`` draws only from
+            ``generator`` (or is a function of the step alone).
         callback: ``(step, loss, metrics)`` after every step.
 
     A step whose loss or gradient is not finite is skipped (no parameter update) and counted
-    in ``TrainResult.skipped``, with a warning. One host sync per step reads the loss.
+    in ``TrainResult.skipped``, with a warning. One host sync per step reads the loss and
+    the gradient's norm.
     """
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
-        raise ValueError(f"steps must be a non-negative int, got {steps!r}")
+    for name, value in (("steps", steps), ("start_step", start_step)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ValueError(f"{name} must be a non-negative int, got {value!r}")
+    if (
+        isinstance(checkpoint_every, bool)
+        or not isinstance(checkpoint_every, int)
+        or checkpoint_every < 0
+    ):
+        raise ValueError(f"checkpoint_every must be a non-negative int, got {checkpoint_every!r}")
+    if grad_clip is not None:
+        grad_clip = check_number("grad_clip", grad_clip, low=0.0, strict=True)
     if not isinstance(optimizer, torch.optim.Optimizer):
         raise TypeError(
             f"optimizer must be a torch.optim.Optimizer, got {type(optimizer).__name__}"
@@ -195,8 +223,8 @@ def train(
             norm = torch.nn.utils.clip_grad_norm_(params, grad_clip)
         else:
             norm = torch.stack([g.norm() for g in grads]).norm() if grads else loss
-        value = float(loss.detach())
-        if math.isfinite(value) and bool(torch.isfinite(norm)):
+        value, size = torch.stack((loss.detach().double(), norm.detach().double())).tolist()
+        if math.isfinite(value) and math.isfinite(size):
             optimizer.step()
             if scheduler is not None:
                 scheduler.step()
@@ -208,14 +236,24 @@ def train(
         losses.append(value)
         metrics = {k: float(v.detach() if isinstance(v, Tensor) else v) for k, v in raw.items()}
         if progress:
-            bar.set_postfix(loss=f"{value:.4g}", **{k: f"{v:.4g}" for k, v in metrics.items()})
+            shown = {f"metric {k}" if k == "loss" else k: f"{v:.4g}" for k, v in metrics.items()}
+            bar.set_postfix({"loss": f"{value:.4g}", **shown})
         if callback is not None:
             callback(step, value, metrics)
         if checkpoint is not None and checkpoint_every > 0 and (step + 1) % checkpoint_every == 0:
-            save_checkpoint(checkpoint, module, optimizer, step=step + 1, scheduler=scheduler)
+            save_checkpoint(
+                checkpoint,
+                module,
+                optimizer,
+                step=step + 1,
+                scheduler=scheduler,
+                generator=generator,
+            )
     next_step = start_step + steps
     if checkpoint is not None:
-        save_checkpoint(checkpoint, module, optimizer, step=next_step, scheduler=scheduler)
+        save_checkpoint(
+            checkpoint, module, optimizer, step=next_step, scheduler=scheduler, generator=generator
+        )
     timed = times[1:] if len(times) > 1 else times
     per_step = sum(timed) / len(timed) if timed else math.nan
     log.debug("trained %d steps, %.4f s/step, %d skipped", steps, per_step, skipped)

@@ -9,6 +9,7 @@ on both engines) while the other calls go on.
 
 from __future__ import annotations
 
+import socket
 import traceback
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -40,6 +41,7 @@ def ray_session(address: str | None = None, num_cpus: int | None = None) -> Iter
     if not ray.is_initialized():
         kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False}
         if address is not None:
+            check_address(address)
             ray.init(address=address, **kwargs)
         else:
             ray.init(num_cpus=num_cpus, **kwargs)
@@ -49,6 +51,22 @@ def ray_session(address: str | None = None, num_cpus: int | None = None) -> Iter
     finally:
         if started:
             ray.shutdown()
+
+
+def check_address(address: str, *, timeout: float = 5.0) -> None:
+    """Raise ``ValueError`` where nothing answers at a Ray cluster's ``host:port`` (also
+    ``ray://host:port``) within ``timeout`` seconds: Ray itself retries such an address for
+    minutes. ``"auto"`` and other forms are left to Ray."""
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not port.isdigit() or not host:
+        return
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
+    except OSError as error:
+        raise ValueError(
+            f"no Ray cluster answers at {address} ({error.strerror or error}); start one with "
+            "`ray start --head` or leave out the address to run a local one"
+        ) from None
 
 
 @dataclass(frozen=True)
