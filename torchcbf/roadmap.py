@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from torchcbf._checks import check_finite, check_number, check_positive_int, check_tensor
 from torchcbf.dynamics.manipulator import JointSpaceController, Manipulator
 
 __all__ = [
@@ -52,6 +53,9 @@ def sample_free_configurations(
     range inside, whichever is less) whose barrier values all exceed ``clearance``:
     rejection sampling in rounds of ``4 num`` draws, at most ``max_rounds`` rounds
     (``RuntimeError`` if too few are free: lower the clearance)."""
+    num = check_positive_int("num", num)
+    max_rounds = check_positive_int("max_rounds", max_rounds)
+    clearance = check_number("clearance", clearance)
     found: list[Tensor] = []
     total = 0
     lo, hi = arm.position_range()
@@ -83,7 +87,10 @@ def segment_clearance(
 ) -> Tensor:
     """Smallest barrier value along the straight joint-space segments ``qa -> qb`` (both
     ``[B, dof]``), checked at ``samples`` evenly spaced points: ``[B]``. A discretised
-    check (not a proof): consecutive points are at most ``|qb - qa| / (samples - 1)`` apart."""
+    check (not a proof): consecutive points are at most ``|qb - qa| / (samples - 1)`` apart
+    (``samples >= 2``: both ends and the points between)."""
+    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 2:
+        raise ValueError(f"samples must be an int >= 2 (both ends), got {samples!r}")
     s = torch.linspace(0.0, 1.0, samples, dtype=qa.dtype, device=qa.device)[:, None, None]
     q = qa + s * (qb - qa)  # [samples, B, dof]
     return _least(barrier, q).amin(0)
@@ -128,6 +135,18 @@ def roadmap_paths(
     :class:`Roadmap` (for re-planning in :class:`RoadmapController`).
     """
     inf = math.inf
+    dof = arm.dof
+    for name, q in (("q0", q0), ("qt", qt)):
+        check_tensor(name, q)
+        if q.dim() != 2 or q.shape[-1] != dof:
+            raise ValueError(f"{name} must have shape [B, {dof}], got {tuple(q.shape)}")
+        check_finite(name, q)
+    if q0.shape != qt.shape:
+        raise ValueError(
+            f"q0 {tuple(q0.shape)} and qt {tuple(qt.shape)} must have the same shape [B, {dof}]"
+        )
+    nodes = check_positive_int("nodes", nodes)
+    clearance = check_number("clearance", clearance)
     cand = sample_free_configurations(arm, barrier, nodes, 2 * clearance, gen, q0.dtype, q0.device)
     N, B = cand.shape[0], q0.shape[0]
     direct = segment_clearance(barrier, q0, qt) >= clearance
@@ -214,6 +233,11 @@ class RoadmapController(nn.Module):
         clearance: float = 0.03,
     ) -> None:
         super().__init__()
+        if arm.control != "velocity":
+            raise ValueError(
+                "RoadmapController commands joint velocities: it needs an arm with "
+                f"control='velocity', got {arm.control!r}"
+            )
         self.roadmap = roadmap
         self.barrier = barrier
         N = roadmap.nodes.shape[0]

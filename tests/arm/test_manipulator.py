@@ -332,3 +332,41 @@ def test_a_continuous_joint_has_no_position_limits_and_a_short_joint_keeps_its_r
     nodes = sample_free_configurations(arm, ball, 100, 0.0, gen, torch.float64,
                                        torch.device("cpu"))  # fmt: skip
     assert bool(((nodes >= arm.q_min) & (nodes <= arm.q_max)).all())
+
+
+@pytest.mark.parametrize("name", ["planar3", "arm7"])
+def test_the_null_space_task_leaves_the_end_effector_still(name: str) -> None:
+    """``k_0 (I - J^+ J)(q_mid - q)`` adds no end-effector velocity: with the damped
+    pseudo-inverse of the primary task it would (and the arm would stop short)."""
+    arm = Manipulator(name).double()
+    gen = torch.Generator().manual_seed(2)
+    q = arm.random_configurations(64, generator=gen, margin=0.3, dtype=torch.float64)
+    target = arm.end_effector(arm.random_configurations(64, generator=gen, margin=0.3))
+    kw = {"gain": 2.0, "damping": 0.05, "saturate": False}
+    plain = ResolvedRateController(arm, target, **kw)(q)
+    centred = ResolvedRateController(arm, target, null_space_gain=1.0, **kw)(q)
+    extra = centred - plain
+    assert bool((extra.norm(dim=-1) > 1e-3).any())  # the task does move the joints
+    moved = (arm.jacobian(q) @ extra.unsqueeze(-1)).squeeze(-1).norm(dim=-1)
+    assert float(moved.max()) < 1e-9 * (1.0 + float(extra.norm(dim=-1).max()))
+
+
+def test_limits_given_on_one_side_and_a_joint_that_cannot_move() -> None:
+    arm = Manipulator("planar3", u_min=-1.0)
+    assert arm.u_min.tolist() == [-1.0] * 3 and arm.u_max.tolist() == [1.5, 2.0, 2.5]
+    acc = Manipulator("planar3", control="acceleration", accel_limit=4.0, u_max=2.0)
+    assert acc.u_min.tolist() == [-4.0] * 3 and acc.u_max.tolist() == [2.0] * 3
+    assert Manipulator("planar3.urdf").dof == 3
+    with pytest.raises(ValueError, match="not well-formed XML"):
+        Manipulator("<robot name='x'><link name='a'></robot>")
+    with pytest.raises(ValueError, match="margin must be >= 0"):
+        arm.random_configurations(4, margin=-0.5)
+    # a joint whose velocity limit is zero stays still; the others still move
+    urdf = asset_path("planar3").read_text().replace('velocity="2.0"', 'velocity="0"', 1)
+    frozen = Manipulator(urdf).double()
+    assert frozen.velocity_limit.tolist()[1] == 0.0
+    q = torch.tensor([[0.3, 0.2, -0.1]], dtype=torch.float64)
+    at_target = JointSpaceController(frozen, q[0])(q)
+    assert torch.equal(at_target, torch.zeros_like(q))
+    away = JointSpaceController(frozen, torch.zeros(3, dtype=torch.float64))(q)
+    assert away[0, 1] == 0.0 and bool((away[0, [0, 2]] != 0).all())

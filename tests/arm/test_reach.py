@@ -234,3 +234,28 @@ def test_roadmap_helpers_take_a_barrier_with_one_output() -> None:
     one = [segment_clearance(lambda z: point(z)[..., None], qa[i : i + 1], qb[i : i + 1])
            for i in range(2)]  # fmt: skip
     torch.testing.assert_close(both, torch.cat(one))
+
+
+def test_roadmap_inputs_are_checked(ik_scenario: arm_reach.ArmReachScenario) -> None:
+    from torchcbf.dynamics import Manipulator
+    from torchcbf.roadmap import roadmap_paths, segment_clearance
+
+    sc = ik_scenario
+    q0, qt, gen = sc.q0[:2], sc.q_goal[:2], torch.Generator().manual_seed(0)
+    dof = sc.arm.dof
+    with pytest.raises(ValueError, match="samples must be an int >= 2"):
+        segment_clearance(sc.collision, q0, qt, samples=1)
+    for bad, message in (
+        ((q0[0], qt[0]), rf"q0 must have shape \[B, {dof}\]"),
+        ((q0, qt[:1]), "must have the same shape"),
+        ((q0[:, :2], qt), rf"q0 must have shape \[B, {dof}\]"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            roadmap_paths(sc.arm, sc.collision, *bad, 0.03, gen)
+    with pytest.raises(ValueError, match="nodes must be a positive int"):
+        roadmap_paths(sc.arm, sc.collision, q0, qt, 0.03, gen, nodes=0)
+    with pytest.raises(ValueError, match="clearance must be a finite number"):
+        roadmap_paths(sc.arm, sc.collision, q0, qt, float("nan"), gen)
+    accel = Manipulator("planar3", control="acceleration")
+    with pytest.raises(ValueError, match="needs an arm with control='velocity'"):
+        RoadmapController(accel, sc.nominal.roadmap, sc.collision, sc.q_goal, sc.q0)

@@ -21,7 +21,13 @@ from typing import Literal, NamedTuple, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
-from torchcbf._checks import broadcast_shapes, check_positive, check_tensor
+from torchcbf._checks import (
+    broadcast_shapes,
+    check_finite,
+    check_number,
+    check_positive,
+    check_tensor,
+)
 
 
 @runtime_checkable
@@ -185,14 +191,17 @@ def inverse_kinematics(
         raise TypeError(f"target must be a floating tensor, got {target.dtype}")
     if target.dim() == 0 or target.shape[-1] not in (2, 3):
         raise ValueError(f"target must have shape [..., 3] or [..., 2], got {tuple(target.shape)}")
+    check_finite("target", target)
     if isinstance(restarts, bool) or not isinstance(restarts, int) or restarts < 1:
         raise ValueError(f"restarts must be an int >= 1, got {restarts!r}")
     if isinstance(iters, bool) or not isinstance(iters, int) or iters < 1:
         raise ValueError(f"iters must be an int >= 1, got {iters!r}")
-    if not isinstance(check_every, int) or check_every < 0:
-        raise ValueError(f"check_every must be an int >= 0, got {check_every!r}")
-    if not isinstance(reseed_every, int) or reseed_every < 0:
-        raise ValueError(f"reseed_every must be an int >= 0, got {reseed_every!r}")
+    for name, value in (("check_every", check_every), ("reseed_every", reseed_every)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ValueError(f"{name} must be an int >= 0, got {value!r}")
+    if generator is None and (isinstance(seed, bool) or not isinstance(seed, int)):
+        raise TypeError(f"seed must be an int, got {seed!r}")
+    clearance = check_number("clearance", clearance)
     if prefer not in ("nearest", "error"):
         raise ValueError(f"prefer must be 'nearest' or 'error', got {prefer!r}")
     tol = check_positive("tol", tol)
@@ -212,6 +221,7 @@ def inverse_kinematics(
         check_tensor("q_init", q_init)
         if q_init.dim() == 0 or q_init.shape[-1] != dof:
             raise ValueError(f"q_init must have shape [..., {dof}], got {tuple(q_init.shape)}")
+        check_finite("q_init", q_init)
         try:
             shape = broadcast_shapes(batch, tuple(q_init.shape[:-1]))
         except RuntimeError:
@@ -249,7 +259,8 @@ def inverse_kinematics(
         )
         r, _, error = obj(q)
         clear = obj.clearance(q)
-        cost = (r * r).sum(-1)
+        # a restart whose objective is not finite (a barrier's NaN) is the last choice
+        cost = torch.nan_to_num((r * r).sum(-1), nan=math.inf)
         valid = (error <= tol) & (clear >= clearance)
         q, error, clear, valid, cost = (
             t.reshape(B, R, *t.shape[1:]) for t in (q, error, clear, valid, cost)

@@ -81,7 +81,7 @@ def _read_urdf(source: str | bytes | os.PathLike[str]) -> str:
         )
     if source.lstrip().startswith("<"):
         return source
-    if source in ASSETS:
+    if source.removesuffix(".urdf") in ASSETS and not Path(source).is_file():
         return asset_path(source).read_text()
     path = Path(source)
     if not path.is_file():
@@ -112,10 +112,10 @@ class Manipulator(ControlAffine):
             link moved by a joint, in chain order, ending with ``end_link``).
         root_link: the base link of the chain (default: the URDF root).
         accel_limit: ``|qddot| <= accel_limit`` for acceleration control, scalar or
-            ``[dof]`` (ignored when ``u_min``/``u_max`` are given).
+            ``[dof]`` (for the sides ``u_min``/``u_max`` leave open).
         sigma, u_min, u_max, disturbance_bound, disturbance_matrix: as for
             :class:`~torchcbf.dynamics.ControlAffine`; ``u_min``/``u_max`` override the
-            limits read from the URDF.
+            limits read from the URDF, each side on its own (a side not given keeps them).
 
     Buffers (float64, ``[dof]``): ``q_min``, ``q_max`` (position limits, ``+-inf`` for a
     joint without), ``velocity_limit`` and ``effort_limit`` (``inf`` where absent).
@@ -145,6 +145,10 @@ class Manipulator(ControlAffine):
             raise ValueError(f"control must be 'velocity' or 'acceleration', got {control!r}")
         pk = _pk()
         text = _read_urdf(urdf)
+        try:
+            ElementTree.fromstring(text)
+        except ElementTree.ParseError as err:
+            raise ValueError(f"urdf is not well-formed XML: {err}") from None
         if end_link is None:
             end_link = _leaf_link(pk.build_chain_from_urdf(text))
         try:
@@ -168,16 +172,19 @@ class Manipulator(ControlAffine):
         vel_lim = _limits(vel, math.inf)
         if control == "velocity":
             state_dim = dof
-            if u_min is None and u_max is None:
+            # a side not given keeps the URDF's limit
+            if u_min is None:
                 u_min = [-v for v in vel_lim]
+            if u_max is None:
                 u_max = list(vel_lim)
         else:
             state_dim = 2 * dof
-            if u_min is None and u_max is None and accel_limit is not None:
+            if (u_min is None or u_max is None) and accel_limit is not None:
                 a = as_tensor("accel_limit", accel_limit, dtype=torch.float64)
                 if bool((a <= 0).any()):
                     raise ValueError(f"accel_limit must be positive, got {a.tolist()}")
-                u_min, u_max = -a, a
+                u_min = -a if u_min is None else u_min
+                u_max = a if u_max is None else u_max
         super().__init__(
             state_dim,
             dof,
@@ -360,6 +367,8 @@ class Manipulator(ControlAffine):
         lo, hi = self.position_range()
         lo, hi = lo.to(device, dtype), hi.to(device, dtype)
         m = torch.as_tensor(margin, dtype=dtype, device=device)
+        if not bool((m >= 0).all()):
+            raise ValueError(f"margin must be >= 0 (it shrinks the limits), got {margin}")
         room = hi - lo - 2 * m
         if bool((room < 0).any()):
             bad = (room < 0).nonzero().flatten().tolist()
@@ -425,8 +434,11 @@ class _JointVelocityNominal(nn.Module):
     def _saturated(self, qd: Tensor) -> Tensor:
         if not self.saturate:
             return qd
-        ratio = (qd.abs() / self.arm.velocity_limit.to(qd)).amax(-1, keepdim=True)
-        return qd / ratio.clamp_min(1.0)
+        limit = self.arm.velocity_limit.to(qd)
+        moves = limit > 0  # a joint whose limit is zero stays still; the others scale
+        qd = torch.where(moves, qd, 0.0)
+        ratio = torch.where(moves, qd.abs() / limit.clamp_min(torch.finfo(qd.dtype).tiny), 0.0)
+        return qd / ratio.amax(-1, keepdim=True).clamp_min(1.0)
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
         """Nominal control ``u [..., dof]`` at ``x [..., n]``."""
@@ -445,8 +457,10 @@ class ResolvedRateController(_JointVelocityNominal):
     acceleration control the output is ``qddot = k_v (qdot* - qdot)``. A redundant arm
     may add a secondary task in the null space of ``J``: ``k_0 (I - J^+ J)(q_mid - q)``
     pulls the joints toward the middle of their ranges (away from the limits) without
-    moving the end effector (to first order). With ``saturate=True`` the velocity ``qdot*``
-    is scaled down uniformly (keeping its direction) to fit the arm's velocity limits.
+    moving the end effector (to first order; ``J^+`` the exact pseudo-inverse, not the
+    damped one of the primary task, whose projector would move the end effector). With
+    ``saturate=True`` the velocity ``qdot*`` is scaled down uniformly (keeping its
+    direction) to fit the arm's velocity limits; a joint whose limit is zero stays still.
 
     Args:
         arm: the :class:`Manipulator`.
@@ -498,8 +512,12 @@ class ResolvedRateController(_JointVelocityNominal):
             finite = torch.isfinite(lo) & torch.isfinite(hi)
             mid = torch.where(finite, 0.5 * (lo + hi), q)
             z = (self.null_space_gain * (mid - q)).unsqueeze(-1)
-            # (I - J^+ J) z with the damped pseudo-inverse J^+ = J' (J J' + lambda^2 I)^-1
-            qd = qd + (z - J.mT @ torch.linalg.solve(JJt, J @ z)).squeeze(-1)
+            # (I - J^+ J) z with the exact pseudo-inverse (singular values below sqrt(eps)
+            # of the largest count as zero: a planar arm's z row): the damped one of the
+            # primary task leaks lambda^2 (J J' + lambda^2 I)^-1 J z into the end effector's
+            # motion, which stops it centimetres short of its target
+            rtol = torch.finfo(x.dtype).eps ** 0.5
+            qd = qd + (z - torch.linalg.pinv(J, rtol=rtol) @ (J @ z)).squeeze(-1)
         return self._saturated(qd)
 
 
