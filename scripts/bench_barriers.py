@@ -3,7 +3,10 @@
 Compares ``barrier.lie`` (batched autograd, and the closed-form path) against a
 ``torch.func`` formulation (``vmap(jacrev)`` for the gradient, ``vmap(hessian)`` for the
 Hessian trace) and a per-row Python loop (timed on a subset, extrapolated to the batch).
-The setting is scenario B's: AccelUnicycle with diffusion ``sigma = 0.28 I``.
+The setting is scenario B's: AccelUnicycle with diffusion ``sigma = 0.28 I``. The answers
+of every timed formulation (those of its last timed call) are checked against the
+``torch.func`` formulation in float64 on the first 1,000 states (the loop's on its rows):
+the largest difference is printed per formulation under each table.
 
     python scripts/bench_barriers.py            # 100,000 states, 16 barriers
     python scripts/bench_barriers.py --quick    # 10,000 states
@@ -12,6 +15,7 @@ The setting is scenario B's: AccelUnicycle with diffusion ``sigma = 0.28 I``.
 from __future__ import annotations
 
 import argparse
+import copy
 import time
 from collections.abc import Callable
 
@@ -22,14 +26,59 @@ from torchcbf.barriers import Ball, BarrierStack, Ellipse
 from torchcbf.dynamics import AccelUnicycle
 
 
-def _best(fn: Callable[[], object], repeats: int) -> float:
-    fn()  # warm-up
+def _positive_int(text: str) -> int:
+    """argparse type: an integer >= 1 (a bad value exits 2 with a message naming the flag)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def _best(fn: Callable[[], object], repeats: int) -> tuple[float, object]:
+    """Best wall time of ``fn`` over ``repeats`` calls after a warm-up, and the answer of its
+    last call (checked after the timing)."""
+    out = fn()  # warm-up
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
-        fn()
+        out = fn()
         times.append(time.perf_counter() - start)
-    return min(times)
+    return min(times), out
+
+
+#: states of the agreement check (the loop's rows: the first of them it timed)
+CHECK_ROWS = 1000
+
+
+def _terms(out: object, rows: int) -> tuple[torch.Tensor, ...]:
+    """``(lfh, lgh[, hess_trace])`` of the first ``rows`` states of a formulation's answer:
+    a ``LieTerms``, ``_func_terms``' tuple, or the loop's list of one-state ``LieTerms``."""
+    if isinstance(out, list):
+        per_row = [_terms(o, 1) for o in out[:rows]]
+        return tuple(torch.cat(t) for t in zip(*per_row, strict=True))
+    if isinstance(out, tuple) and not hasattr(out, "lfh"):
+        lfh, lgh, hess = out
+    else:
+        lfh, lgh, hess = out.lfh, out.lgh, out.hess_trace
+    if lfh.dim() == 1:  # one state
+        lfh, lgh = lfh.unsqueeze(0), lgh.unsqueeze(0)
+        hess = None if hess is None else hess.unsqueeze(0)
+    found = (lfh[:rows], lgh[:rows]) + (() if hess is None else (hess[:rows],))
+    return tuple(t.double() for t in found)
+
+
+def _max_difference(out: object, ref: tuple[torch.Tensor, ...]) -> float:
+    """Largest absolute difference of a formulation's terms from the reference's (on the
+    rows the formulation has); ``inf`` when a term the reference has is missing."""
+    got = _terms(out, ref[0].shape[0])
+    if len(got) < len(ref):
+        return float("inf")
+    rows = got[0].shape[0]
+    diffs = [float((g.cpu() - r[:rows].cpu()).abs().max()) for g, r in zip(got, ref, strict=False)]
+    return max(diffs)
 
 
 def _func_terms(barrier, dyn, x: torch.Tensor, with_hessian: bool):
@@ -52,18 +101,22 @@ def _func_terms(barrier, dyn, x: torch.Tensor, with_hessian: bool):
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="10,000 states, fewer repeats")
-    parser.add_argument("--batch", type=int, default=None, help="number of states")
-    parser.add_argument("--barriers", type=int, default=16)
-    parser.add_argument("--loop-rows", type=int, default=100, help="rows timed in the loop")
-    parser.add_argument("--repeats", type=int, default=None)
-    parser.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
+    parser.add_argument("--batch", type=_positive_int, default=None, help="number of states")
+    parser.add_argument("--barriers", type=_positive_int, default=16)
+    parser.add_argument(
+        "--loop-rows", type=_positive_int, default=100, help="rows timed in the loop"
+    )
+    parser.add_argument("--repeats", type=_positive_int, default=None)
+    parser.add_argument(
+        "--threads", type=_positive_int, default=None, help="torch.set_num_threads (>= 1)"
+    )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
-    batch = args.batch or (10_000 if args.quick else 100_000)
-    repeats = args.repeats or (2 if args.quick else 3)
+    batch = args.batch if args.batch is not None else (10_000 if args.quick else 100_000)
+    repeats = args.repeats if args.repeats is not None else (2 if args.quick else 3)
     dtype = getattr(torch, args.dtype)
     device = torch.device(args.device)
     k = args.barriers
@@ -86,60 +139,75 @@ def main() -> None:
         f"lie() of {k} barriers at {batch:,} states, AccelUnicycle (n=4, m=2, q=4), "
         f"{args.dtype}, {device}, {torch.get_num_threads()} threads, best of {repeats}"
     )
+    # the reference of the agreement check: torch.func in float64 on the first states
+    dyn64 = copy.deepcopy(dyn).to(torch.float64)
+    x64 = x[:CHECK_ROWS].to(torch.float64)
+    worst = 0.0
     for name, barrier in setups.items():
         barrier = barrier.to(device, dtype)
+        barrier64 = copy.deepcopy(barrier).to(torch.float64)
         for with_hessian in (False, True):
             rows: list[tuple[str, float]] = []
+            answers: list[tuple[str, object]] = []
 
-            def ours(method: str, wh: bool = with_hessian, b=barrier) -> None:
+            def ours(method: str, wh: bool = with_hessian, b=barrier) -> object:
                 with torch.no_grad():
-                    b.lie(x, dyn, method=method, hessian=wh)
+                    out = b.lie(x, dyn, method=method, hessian=wh)
                 sync()
+                return out
 
-            rows.append(("torchcbf lie (autograd)", _best(lambda: ours("autograd"), repeats)))
-            rows.append(("torchcbf lie (analytic)", _best(lambda: ours("analytic"), repeats)))
+            for method in ("autograd", "analytic"):
+                sec, out = _best(lambda m=method: ours(m), repeats)
+                rows.append((f"torchcbf lie ({method})", sec))
+                answers.append((method, out))
 
-            def func(wh: bool = with_hessian, b=barrier) -> None:
+            def func(wh: bool = with_hessian, b=barrier) -> object:
                 with torch.no_grad():
-                    _func_terms(b, dyn, x, wh)
+                    out = _func_terms(b, dyn, x, wh)
                 sync()
+                return out
 
-            rows.append(("torch.func vmap(jacrev/hessian)", _best(func, repeats)))
+            sec, out = _best(func, repeats)
+            rows.append(("torch.func vmap(jacrev/hessian)", sec))
+            answers.append(("torch.func", out))
 
             sub = x[: args.loop_rows]
 
-            def loop(wh: bool = with_hessian, b=barrier, sub: torch.Tensor = sub) -> None:
+            def loop(wh: bool = with_hessian, b=barrier, sub: torch.Tensor = sub) -> list:
+                outs = []
                 with torch.no_grad():
                     for i in range(sub.shape[0]):
-                        b.lie(sub[i], dyn, hessian=wh)
+                        outs.append(b.lie(sub[i], dyn, hessian=wh))
                 sync()
+                return outs
 
-            t_loop = _best(loop, 1) * batch / sub.shape[0]
+            sec, out = _best(loop, 1)
+            t_loop = sec * batch / sub.shape[0]
             rows.append(
                 (f"per-row loop (x{batch // sub.shape[0]} from {sub.shape[0]} rows)", t_loop)
             )
+            answers.append((f"per-row loop ({min(sub.shape[0], CHECK_ROWS)} rows)", out))
 
             ref = rows[0][1]
             print(f"\n{name}, hess_trace={'yes' if with_hessian else 'no'}")
             print(f"  {'method':<44}{'time [ms]':>12}{'vs autograd':>14}")
             for label, sec in rows:
                 print(f"  {label:<44}{1e3 * sec:>12.1f}{sec / ref:>13.2f}x")
+            with torch.no_grad():
+                reference = _terms(_func_terms(barrier64, dyn64, x64, with_hessian), CHECK_ROWS)
+            diffs = [(label, _max_difference(out, reference)) for label, out in answers]
+            worst = max([worst, *(d for _, d in diffs)])
+            print(
+                f"  max |difference| from torch.func in float64 on {x64.shape[0]:,} states "
+                f"({'lfh, lgh, hess_trace' if with_hessian else 'lfh, lgh'}): "
+                + ", ".join(f"{label} {d:.2e}" for label, d in diffs)
+            )
 
-    # agreement check between the three formulations (first setup, with Hessian)
-    barrier = next(iter(setups.values())).to(device, dtype)
-    sub = x[:1000]
-    with torch.no_grad():
-        a = barrier.lie(sub, dyn)
-        b = barrier.lie(sub, dyn, method="analytic")
-        lfh, lgh, hess = _func_terms(barrier, dyn, sub, True)
-    err = max(
-        float((a.lfh - lfh).abs().max()),
-        float((a.lgh - lgh).abs().max()),
-        float((a.hess_trace - hess).abs().max()),
-        float((a.lfh - b.lfh).abs().max()),
-        float((a.hess_trace - b.hess_trace).abs().max()),
+    print(
+        f"\nmax |difference| between formulations on {x64.shape[0]:,} states: {worst:.2e} "
+        f"(every timed formulation of every setup, against torch.func in float64; {args.dtype} "
+        "answers)"
     )
-    print(f"\nmax |difference| between formulations on 1,000 states: {err:.2e}")
 
 
 if __name__ == "__main__":

@@ -58,8 +58,11 @@ Usage::
     python scripts/bench_mppi.py --quick               # a short run: K / 10, 2 calls, no compile
 
 ``--quick`` runs every line but ``compiled`` (and no compiled planner of the other lines)
-with a tenth of the samples and 2 timed calls: a
+with a tenth of the samples and 2 timed calls (the labels give the sizes run): a
 check that every path runs, not figures to quote.
+
+A planner whose process fails gets a ``failed`` row (the tail of its stderr is shown on
+stderr); the other planners and lines still run, and the script then exits with status 1.
 """
 
 from __future__ import annotations
@@ -237,10 +240,23 @@ def timed(step: Callable[[torch.Tensor], object], x: torch.Tensor, reps: int) ->
 
 
 QUICK_SCALE = 10  # --quick: samples divided by this
+#: lines of the child's stderr shown when a planner fails
+STDERR_TAIL = 15
 
 
-def run_one(name: str, reps: int, device: str, quick: bool = False) -> dict:
-    """One planner of one line in this process (``quick``: K / :data:`QUICK_SCALE`)."""
+def _positive_int(text: str) -> int:
+    """argparse type: an integer >= 1 (a bad value exits 2 with a message naming the flag)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def sizes(name: str, quick: bool = False) -> tuple[int, int, int, int]:
+    """``(B, K, H, nx)`` of one planner of one line (``quick``: K / :data:`QUICK_SCALE`)."""
     which, _, who = name.partition(":")
     if which == "batched":
         B, K, H, nx = (1, 20000, 80, 4) if who == "pytorch-mppi" else (32, 2000, 80, 4)
@@ -258,6 +274,13 @@ def run_one(name: str, reps: int, device: str, quick: bool = False) -> dict:
         B, K, H, nx = 32, 20000, 80, 4
     if quick:
         K = max(K // QUICK_SCALE, 1)
+    return B, K, H, nx
+
+
+def run_one(name: str, reps: int, device: str, quick: bool = False) -> dict:
+    """One planner of one line in this process (``quick``: K / :data:`QUICK_SCALE`)."""
+    which, _, who = name.partition(":")
+    B, K, H, nx = sizes(name, quick)
     if who == "pytorch-mppi":
         step = pytorch_mppi(K, H, nx, device)
         if step is None:
@@ -451,10 +474,23 @@ def filtered(num_samples: int, steps: int) -> None:
         print(f"LOADED: load average {load:.1f} during the run; compare rows, not absolutes")
 
 
+def _child_result(out: subprocess.CompletedProcess) -> dict | None:
+    """The JSON result a ``--one`` child printed last, or ``None`` if it failed (non-zero
+    exit, or no JSON object on its last line)."""
+    if out.returncode != 0:
+        return None
+    lines = out.stdout.strip().splitlines()
+    try:
+        res = json.loads(lines[-1]) if lines else None
+    except json.JSONDecodeError:
+        return None
+    return res if isinstance(res, dict) else None
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--reps", type=int, default=5)
+    parser.add_argument("--threads", type=_positive_int, default=1, help="torch threads (>= 1)")
+    parser.add_argument("--reps", type=_positive_int, default=5, help="timed calls per planner")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--only", nargs="+", choices=LINES, help="lines to run")
     parser.add_argument(
@@ -489,10 +525,10 @@ def main() -> None:
         print(f"--quick: K / {QUICK_SCALE} in every line, {args.reps} timed calls, no compile")
     plan = {
         "batched": [
-            ("batched:pytorch-mppi", "pytorch-mppi K=20000 (B=1)"),
-            ("batched:auto", "torchcbf B=32 x K=2000"),
-            ("batched:compiled", "torchcbf B=32 x K=2000 comp."),
-            ("batched:fused", "torchcbf B=32 x K=2000 terms"),
+            ("batched:pytorch-mppi", "pytorch-mppi K={K} (B=1)"),
+            ("batched:auto", "torchcbf B={B} x K={K}"),
+            ("batched:compiled", "torchcbf B={B} x K={K} comp."),
+            ("batched:fused", "torchcbf B={B} x K={K} terms"),
         ],
         "user": [
             ("user:pytorch-mppi", "pytorch-mppi"),
@@ -505,7 +541,7 @@ def main() -> None:
             ("realtime:pytorch-mppi", "pytorch-mppi"),
             ("realtime:auto", "torchcbf fused"),
         ],
-        "paper": [("paper:auto", "torchcbf fused B=32")],
+        "paper": [("paper:auto", "torchcbf fused B={B}")],
         "model": [
             ("model:pytorch-mppi", "pytorch-mppi"),
             ("model:auto", "torchcbf user model"),
@@ -521,11 +557,11 @@ def main() -> None:
             ("model20k:stepcompiled", "torchcbf user step comp."),
         ],
         "modelbatch": [
-            ("modelbatch:pytorch-mppi", "pytorch-mppi K=20000 (B=1)"),
-            ("modelbatch:auto", "torchcbf B=32 x K=2000"),
-            ("modelbatch:compiled", "torchcbf B=32 x K=2000 comp."),
-            ("modelbatch:step", "torchcbf B=32 x K=2000 step"),
-            ("modelbatch:stepcompiled", "torchcbf B=32 x K=2000 step comp."),
+            ("modelbatch:pytorch-mppi", "pytorch-mppi K={K} (B=1)"),
+            ("modelbatch:auto", "torchcbf B={B} x K={K}"),
+            ("modelbatch:compiled", "torchcbf B={B} x K={K} comp."),
+            ("modelbatch:step", "torchcbf B={B} x K={K} step"),
+            ("modelbatch:stepcompiled", "torchcbf B={B} x K={K} step comp."),
         ],
         "compiled": [
             ("user:pytorch-mppi", "pytorch-mppi"),
@@ -549,12 +585,15 @@ def main() -> None:
         head + f" {'cpu s':>8} {'M/s':>7} {'first s':>7} {'cpu':>5} {'load':>5} {'faults':>7}  "
         f"{'flags':<12} ratio"
     )
+    failed: list[str] = []
     for line in lines:
         ref: dict | None = None
         with tempfile.TemporaryDirectory(prefix="bench-mppi-inductor-") as cache:  # starts cold
             for name, label in plan[line]:
                 if args.quick and name.endswith("compiled"):
                     continue  # --quick compiles nothing
+                B, K, _, _ = sizes(name, args.quick)
+                label = label.format(B=B, K=K)  # the sizes this run uses (--quick: K / 10)
                 cmd = [
                     sys.executable,
                     __file__,
@@ -571,8 +610,18 @@ def main() -> None:
                 env = dict(os.environ)
                 if "compiled" in name:
                     env["TORCHINDUCTOR_CACHE_DIR"] = cache
-                out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
-                res = json.loads(out.stdout.strip().splitlines()[-1])
+                out = subprocess.run(cmd, capture_output=True, text=True, env=env)
+                res = _child_result(out)
+                if res is None:  # the child failed: say so, show why, go on with the rest
+                    failed.append(f"{line}/{label}")
+                    print(f"{line:<10} {label:<34} failed (exit status {out.returncode})")
+                    tail = (out.stderr or "").rstrip().splitlines()[-STDERR_TAIL:]
+                    print(f"--- {name}: last lines of its stderr:", file=sys.stderr)
+                    for text in tail or ["(empty)"]:
+                        print(f"    {text}", file=sys.stderr)
+                    sys.stdout.flush()
+                    sys.stderr.flush()
+                    continue
                 if not res:
                     print(f"{line:<10} {label:<34} not installed, skipped")
                     continue
@@ -596,6 +645,9 @@ def main() -> None:
                         f"{total:.0f} s ({total / 60:.1f} min) per MPPI method of the paper-size "
                         f"scenario B run (planner only; {res['cpu'] * PAPER_CALLS:.0f} s CPU time)"
                     )
+    if failed:
+        print(f"bench_mppi: {len(failed)} planner(s) failed: {', '.join(failed)}", file=sys.stderr)
+        sys.exit(1)
 
 
 if __name__ == "__main__":

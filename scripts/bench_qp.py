@@ -17,6 +17,13 @@ and the time of B=4, n=8 against m up to 4,096 (``--scaling-only``); and forward
 throughput at B=1,000,000, n=2, m=6 on --device. Figures taken on a
 loaded machine vary: the load average is printed, compare ratios within one run.
 
+Every line that times a peer also checks its answers against torchcbf's (after the timing):
+the rows whose ``x`` agree to 1e-5, and for the others whose answer is the worse one (the
+objective higher by more than 1e-6, or a constraint violated by more than 1e-6), with
+torchcbf's KKT residual computed here from its ``x`` and multipliers; the tolerance settings
+of every solver are printed at the top. The equality-constrained and hard-row/growing-m lines
+run on the CPU whatever ``--device`` says.
+
     python scripts/bench_qp.py --quick
     python scripts/bench_qp.py --device cuda
 """
@@ -71,11 +78,147 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
+def _positive_int(text: str) -> int:
+    """argparse type: an integer >= 1 (a bad value exits 2 with a message naming the flag)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+#: a peer's row agrees with torchcbf's when ``max_i |x_peer,i - x_torchcbf,i|`` is at most this
+AGREE_X = 1e-5
+#: where they disagree, an answer is the worse one when its objective is higher by more than
+#: this (times ``1 + |objective|``) or it violates a constraint by more than this
+MARGIN = 1e-6
+#: torchcbf's answer counts as a KKT point when its KKT residual (stationarity, primal and
+#: dual feasibility, complementarity, over ``1 +`` the row's largest datum), computed here
+#: from its ``x`` and multipliers, is at most this
+KKT_TOL = 1e-8
+#: the tolerance settings each peer runs with in this script, printed beside its answers
+SETTINGS = {
+    "torchcbf[proxsuite]": "torchcbf's proxsuite backend, eps=1e-7",
+    "proxsuite.QPFunction": "eps=1e-9, maxIter=1000",
+    "proxsuite dense": "eps_abs=1e-9, eps_rel=0",
+    "qpth": "eps=1e-12, maxIter=20, its defaults",
+    "qpax": "solver_tol=1e-5, max_iter=30, its defaults",
+    "cvxpylayers": "diffcp/SCS defaults",
+}
+
+
+def _tolerances_line() -> str:
+    """The tolerance settings of torchcbf and of each peer, as this script runs them."""
+    peers = "; ".join(f"{name} {value}" for name, value in SETTINGS.items())
+    return (
+        f"# tolerances: torchcbf solve_qp eps=1e-7 (its float64 default); {peers}. Answers "
+        f"agree when max |x_peer - x_torchcbf| <= {AGREE_X:.0e}"
+    )
+
+
+def _rows(t: object, dims: int, Bp: int | None) -> torch.Tensor:
+    """The first ``Bp`` problems of ``t`` (a tensor or array; ``dims`` trailing dimensions
+    per problem), float64 on the CPU, with one batch dimension."""
+    t = t if isinstance(t, torch.Tensor) else torch.as_tensor(np.array(t))
+    t = t.detach().cpu().double()
+    return t.reshape(-1, *t.shape[t.dim() - dims :])[:Bp]
+
+
+def _mv(M: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    return (M @ v.unsqueeze(-1))[..., 0]
+
+
+def agreement(
+    peer: str, sol, x_peer: object, data: tuple, *, short: bool = False, peer_status=None
+) -> str:
+    """How a peer's answers ``x_peer`` (the first ``Bp`` problems of the batch) compare with
+    torchcbf's ``sol`` on the QPs ``data = (Q, p, G, h[, A, b])``: the rows that agree to
+    :data:`AGREE_X`; for the others, whose answer is the worse one (objective higher by more
+    than :data:`MARGIN`, or a constraint violated by more than it), and on how many torchcbf's
+    answer is a KKT point to :data:`KKT_TOL` by this script's own check. Rows torchcbf does
+    not report ``SOLVED`` are left out (and counted); ``peer_status`` (a peer with statuses:
+    torchcbf's proxsuite backend) counts the disagreeing rows the peer itself does not call
+    ``SOLVED``. Vectorised, run after the timing."""
+    n = data[1].shape[-1]
+    xp = _rows(x_peer, 1, None)
+    Bp = xp.shape[0]
+    Q, p, G, h = (_rows(t, d, Bp) for t, d in zip(data[:4], (2, 1, 2, 1), strict=True))
+    eq = len(data) > 4 and data[4].shape[-2] > 0
+    A, b = (_rows(data[4], 2, Bp), _rows(data[5], 1, Bp)) if eq else (None, None)
+    x, lam = _rows(sol.x, 1, Bp), _rows(sol.lam, 1, Bp)
+    solved = sol.status.detach().cpu().reshape(-1)[:Bp] == Status.SOLVED
+    assert xp.shape == x.shape == (Bp, n), (xp.shape, x.shape)
+    dx = (xp - x).abs().amax(-1)
+    dx = torch.where(torch.isnan(dx), torch.inf, dx)
+    close, apart = (dx <= AGREE_X) & solved, (dx > AGREE_X) & solved
+
+    def violation(z: torch.Tensor) -> torch.Tensor:
+        v = (_mv(G, z) - h).clamp_min(0).amax(-1)
+        if eq:
+            v = torch.maximum(v, (_mv(A, z) - b).abs().amax(-1))
+        return torch.where(torch.isfinite(z).all(-1), v, torch.inf)
+
+    f_o = 0.5 * (x * _mv(Q, x)).sum(-1) + (p * x).sum(-1)
+    f_p = 0.5 * (xp * _mv(Q, xp)).sum(-1) + (p * xp).sum(-1)
+    f_p = torch.where(torch.isnan(f_p), torch.inf, f_p)
+    bad_o, bad_p = violation(x) > MARGIN, violation(xp) > MARGIN
+    tol = MARGIN * (1 + f_o.abs())
+    peer_infeasible = apart & bad_p & ~bad_o
+    peer_higher = apart & ~bad_p & ~bad_o & (f_p > f_o + tol)
+    peer_worse = peer_infeasible | peer_higher
+    ours_worse = apart & ((bad_o & ~bad_p) | (~bad_p & ~bad_o & (f_o > f_p + tol)))
+    even = apart & ~peer_worse & ~ours_worse
+    # torchcbf's KKT residual from its x and multipliers
+    grad = _mv(Q, x) + p + _mv(G.mT, lam)
+    slack = _mv(G, x) - h
+    scale = torch.stack([Q.abs().amax((-2, -1)), p.abs().amax(-1), G.abs().amax((-2, -1)),
+                         h.abs().amax(-1)], -1).amax(-1)  # fmt: skip
+    extra = [slack.clamp_min(0).amax(-1), (-lam).clamp_min(0).amax(-1)]
+    extra.append((lam * slack).abs().amax(-1))
+    if eq:
+        grad = grad + _mv(A.mT, _rows(sol.nu, 1, Bp))
+        extra.append((_mv(A, x) - b).abs().amax(-1))
+        scale = torch.maximum(scale, torch.maximum(A.abs().amax((-2, -1)), b.abs().amax(-1)))
+    res = torch.stack([grad.abs().amax(-1), *extra], -1).amax(-1) / (1 + scale)
+    kkt = apart & (res <= KKT_TOL)
+    k, n_ok = int(close.sum()), int(solved.sum())
+    pw, ow, ev, kk = (int(t.sum()) for t in (peer_worse, ours_worse, even, kkt))
+    p_hi, p_inf = int(peer_higher.sum()), int(peer_infeasible.sum())
+    flagged = ""
+    if peer_status is not None:
+        unsolved = peer_status.detach().cpu().reshape(-1)[:Bp] != Status.SOLVED
+        flagged = f", {int((apart & unsolved).sum())} of them not SOLVED by {peer}'s status"
+    if short:
+        text = f"{k}/{n_ok}"
+        if n_ok > k:
+            text += f" ({pw} {peer} worse, {ow} torchcbf worse, {ev} even{flagged})"
+    else:
+        worst = float(dx[solved].max()) if n_ok else float("nan")
+        text = (
+            f"answers ({peer}: {SETTINGS.get(peer, 'defaults')}): {k}/{n_ok} agree with "
+            f"torchcbf's to {AGREE_X:.0e} (max |dx| {worst:.1e})"
+        )
+        if n_ok > k:
+            text += (
+                f"; of the other {n_ok - k}: {p_hi} where {peer}'s objective is worse by > "
+                f"{MARGIN:.0e}, {p_inf} where {peer}'s x violates a row by > {MARGIN:.0e}, "
+                f"{ow} where torchcbf's answer is the worse, {ev} where both are feasible and "
+                f"their objectives within {MARGIN:.0e}; torchcbf's answer a KKT point "
+                f"(residual <= {KKT_TOL:.0e}) on {kk} of the {n_ok - k}{flagged}"
+            )
+    if n_ok < Bp:
+        text += f" ({Bp - n_ok} rows torchcbf did not solve left out)"
+    return text
+
+
 def run_torchcbf(backend: str, device: str, method: str = "auto"):
     def fwd(Q, p, G, h):
         with torch.no_grad():
-            solve_qp(Q, p, G, h, backend=backend, method=method)
+            sol = solve_qp(Q, p, G, h, backend=backend, method=method)
         _sync(device)
+        return sol
 
     def fwdbwd(Q, p, G, h):
         p = p.detach().requires_grad_(True)
@@ -100,6 +243,7 @@ def run_proxsuite_qpfunction():
         x = QPFunction(maxIter=1000)(Q, p, A, b, G, lower, h)[0]
         if grad:
             x.sum().backward()
+        return x.detach()
 
     return (lambda *a: call(*a, False)), (lambda *a: call(*a, True))
 
@@ -115,7 +259,8 @@ def run_qpth():
             x.sum().backward()
         else:
             with torch.no_grad():
-                QPFunction(verbose=-1)(Q, p, G, h, e, e)
+                x = QPFunction(verbose=-1)(Q, p, G, h, e, e)
+        return x.detach()
 
     return (lambda *a: call(*a, False)), (lambda *a: call(*a, True))
 
@@ -139,23 +284,26 @@ def run_cvxpylayers(n: int, m: int):
         (sol,) = layer(L, p, G, h)
         if grad:
             sol.sum().backward()
+        return sol.detach()
 
     return (lambda *a: call(*a, False)), (lambda *a: call(*a, True))
 
 
-def proxsuite_dense_direct(Q, p, G, h) -> Callable[[], None]:
-    """Forward of one QP through proxsuite's dense solver, no torch in the loop."""
+def proxsuite_dense_direct(Q, p, G, h) -> Callable[[], np.ndarray]:
+    """Forward of one QP through proxsuite's dense solver, no torch in the loop (returns
+    its ``x``)."""
     from proxsuite import proxqp
 
     Qn, pn, Gn, hn = (t[0].cpu().numpy() for t in (Q, p, G, h))
     n, m = pn.shape[0], hn.shape[0]
     lower = np.full(m, -1e20)
 
-    def solve() -> None:
+    def solve() -> np.ndarray:
         qp = proxqp.dense.QP(n, 0, m)
         qp.settings.eps_abs = 1e-9
         qp.init(Qn, pn, None, None, Gn, lower, hn)
         qp.solve()
+        return qp.results.x
 
     return solve
 
@@ -176,26 +324,29 @@ def make_equality_problems(B: int, n: int, m: int, k: int, seed: int = 0):
     return Q, p, G, h, A, b
 
 
-def proxsuite_equality_direct(Q, p, G, h, A, b) -> Callable[[], None]:
-    """Forward of one QP with equalities through proxsuite's dense solver (eps 1e-9)."""
+def proxsuite_equality_direct(Q, p, G, h, A, b) -> Callable[[], np.ndarray]:
+    """Forward of one QP with equalities through proxsuite's dense solver (eps 1e-9; returns
+    its ``x``)."""
     from proxsuite import proxqp
 
     Qn, pn, Gn, hn, An, bn = (t.numpy() for t in (Q, p, G, h, A, b))
     n, m, k = pn.shape[0], hn.shape[0], bn.shape[0]
     lower = np.full(m, -1e20)
 
-    def solve() -> None:
+    def solve() -> np.ndarray:
         qp = proxqp.dense.QP(n, k, m)
         qp.settings.eps_abs = 1e-9
         qp.settings.verbose = False
         qp.init(Qn, pn, An, bn, Gn, lower, hn)
         qp.solve()
+        return qp.results.x
 
     return solve
 
 
-def qpax_batch(Q, p, G, h, A, b) -> Callable[[], None] | None:
-    """qpax (jax, float64, ``jit(vmap(solve_qp))``) on the batch; ``None`` if not installed."""
+def qpax_batch(Q, p, G, h, A, b) -> Callable[[], object] | None:
+    """qpax (jax, float64, ``jit(vmap(solve_qp))``, its default tolerances) on the batch
+    (returns its ``x``); ``None`` if not installed."""
     try:
         import jax
         import jax.numpy as jnp
@@ -206,15 +357,19 @@ def qpax_batch(Q, p, G, h, A, b) -> Callable[[], None] | None:
     data = [jnp.asarray(t.numpy()) for t in (Q, p, A, b, G, h)]
     solve = jax.jit(jax.vmap(lambda *a: qpax.solve_qp(*a)[0]))
 
-    def run() -> None:
-        solve(*data).block_until_ready()
+    def run() -> object:
+        return solve(*data).block_until_ready()
 
     return run
 
 
 def equality_lines() -> None:
-    """One QP with equalities against proxsuite's dense solver, and batches against qpax."""
-    print("\n# equality-constrained QPs (forward, float64, under torch.no_grad())")
+    """One QP with equalities against proxsuite's dense solver, and batches against qpax,
+    each with the agreement of the answers; on the CPU whatever ``--device`` says."""
+    print(
+        "\n# equality-constrained QPs (forward, float64, under torch.no_grad(); CPU lines, "
+        "whatever --device says)"
+    )
     for n, m, k in ((10, 8, 3), (50, 40, 10)):
         one = tuple(t[0] for t in make_equality_problems(1, n, m, k, seed=n))
         with torch.no_grad():
@@ -234,6 +389,7 @@ def equality_lines() -> None:
             f"{ours}; proxsuite dense (construct + solve) {t_px * 1e6:.1f} us; "
             f"torchcbf/proxsuite {t1 / t_px:.2f}"
         )
+        print("  " + agreement("proxsuite dense", sol, direct(), one))
     for B, n, m, k in ((64, 10, 8, 3), (1000, 10, 8, 3), (1000, 4, 6, 2)):
         data = make_equality_problems(B, n, m, k, seed=B + n)
         with torch.no_grad():
@@ -246,19 +402,22 @@ def equality_lines() -> None:
         )
         run = qpax_batch(*data)
         if run is None:
-            line += "; qpax not installed"
-        else:
-            t_qpax = timeit(run, min_time=1.0, max_reps=20) / B
-            line += (
-                f"; qpax (jit+vmap) {t_qpax * 1e6:.2f} us/QP -> torchcbf/qpax {t_ours / t_qpax:.2f}"
-            )
+            print(line + "; qpax not installed")
+            continue
+        t_qpax = timeit(run, min_time=1.0, max_reps=20) / B
+        line += f"; qpax (jit+vmap) {t_qpax * 1e6:.2f} us/QP -> torchcbf/qpax {t_ours / t_qpax:.2f}"
         print(line)
+        print("  " + agreement("qpax", sol, run(), data))
 
 
 def hard_row_and_scaling_lines() -> None:
     """A batch with one rotated cond-1e9 row against the same batch without it, and the
-    time of one batch (B=4, n=8) as the number of rows m grows, ``method="ipm"`` and auto."""
-    print("\n# one hard row in a batch; time against m (forward, float64, no_grad)")
+    time of one batch (B=4, n=8) as the number of rows m grows, ``method="ipm"`` and auto;
+    on the CPU whatever ``--device`` says."""
+    print(
+        "\n# one hard row in a batch; time against m (forward, float64, no_grad; CPU lines, "
+        "whatever --device says)"
+    )
     for B in (64, 1024):
         Q, p, G, h = make_problems(B, 4, 8, "cpu", seed=3)
         hard = Q.clone()
@@ -291,13 +450,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="small subset of the grid")
     parser.add_argument("--device", default="cpu", help="device for torchcbf (peers: CPU)")
-    parser.add_argument("--peer-max-batch", type=int, default=1024, help="largest peer batch")
+    parser.add_argument(
+        "--peer-max-batch", type=_positive_int, default=1024, help="largest peer batch"
+    )
     parser.add_argument("--no-grid", action="store_true", help="only the headline lines")
     parser.add_argument(
-        "--goal-peer-batch", type=int, default=4096, help="peer batch of the B=4096 line"
+        "--goal-peer-batch", type=_positive_int, default=4096, help="peer batch of the B=4096 line"
     )
-    parser.add_argument("--big", type=int, default=1_000_000, help="batch of the throughput line")
-    parser.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
+    parser.add_argument(
+        "--big", type=_positive_int, default=1_000_000, help="batch of the throughput line"
+    )
+    parser.add_argument(
+        "--threads", type=_positive_int, default=None, help="torch.set_num_threads (>= 1)"
+    )
     parser.add_argument(
         "--equality-only", action="store_true", help="only the equality-constrained lines"
     )
@@ -311,6 +476,7 @@ def main() -> None:
     if args.equality_only or args.scaling_only:
         load = os.getloadavg()
         print(f"# threads {torch.get_num_threads()}, load average {load[0]:.2f}")
+        print(_tolerances_line())
         if args.equality_only:
             equality_lines()
         if args.scaling_only:
@@ -344,6 +510,7 @@ def main() -> None:
         f"# torch {torch.__version__}, threads {torch.get_num_threads()}, device {dev}, "
         f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}"
     )
+    print(_tolerances_line())
 
     # headline lines first: a fresh process, before the grid's peers have churned the heap
     # (the small batched kernels are sensitive to allocator state on a CPU)
@@ -373,13 +540,14 @@ def main() -> None:
         if maker is None:
             continue
         Bp = min(B, args.goal_peer_batch)
-        _, fb2 = maker()
+        f2, fb2 = maker()
         sl = (Qc[:Bp], pc[:Bp], Gc[:Bp], hc[:Bp])
         t_peer = timeit(lambda fb2=fb2, sl=sl: fb2(*sl), min_time=0.5, max_reps=3) / Bp
         print(
             f"  {name} (B={Bp}): {t_peer * 1e6:.2f} us/QP -> torchcbf is "
             f"{t_peer / t_ours:.1f}x faster"
         )
+        print("    " + agreement(name, sol, f2(*sl), sl))
 
     # hard rows in a batch: about half the rows exactly tight at a known feasible point, and
     # the same construction with every row's slack positive (the batch without them)
@@ -411,9 +579,14 @@ def main() -> None:
     Gi[rows, 1] = -Gi[rows, 0]
     hi[rows, 1] = -hi[rows, 0] - 1.0
     Gr, hr = make_problems(B, n, m, dev, seed=1)[2:]
+
+    def fwd_synced(*data: torch.Tensor) -> None:
+        solve_qp(*data)
+        _sync(dev)
+
     with torch.no_grad():
-        t_inf = timeit(lambda: solve_qp(Qi, pi, Gi, hi), min_time=1.0) / B
-        t_rnd = timeit(lambda: solve_qp(Qi, pi, Gr, hr), min_time=1.0) / B
+        t_inf = timeit(lambda: fwd_synced(Qi, pi, Gi, hi), min_time=1.0) / B
+        t_rnd = timeit(lambda: fwd_synced(Qi, pi, Gr, hr), min_time=1.0) / B
     st = solve_qp(Qi, pi, Gi, hi).status
     print(
         f"B=4096 n=4 m=8 forward, {len(rows)} infeasible rows: {t_inf * 1e6:.2f} us/QP "
@@ -426,17 +599,20 @@ def main() -> None:
         Q2, p2, G2, h2 = make_problems(B2, n2, m2, dev, seed=n2)
         mid = (Q2, p2, G2, h2)
         t_mid = timeit(lambda mid=mid: fb(*mid), min_time=1.0, max_reps=5) / B2
-        st = solve_qp(Q2, p2, G2, h2).status
+        with torch.no_grad():
+            sol2 = solve_qp(Q2, p2, G2, h2)
         line = (
             f"B={B2} n={n2} m={m2} fwd+bwd torchcbf[torch]: {t_mid * 1e6:.1f} us/QP "
-            f"(solved {int((st == Status.SOLVED).sum())}/{B2})"
+            f"(solved {int((sol2.status == Status.SOLVED).sum())}/{B2})"
         )
-        if "proxsuite.QPFunction" in peers:
-            _, fb2 = run_proxsuite_qpfunction()
-            mid_cpu = tuple(t.cpu() for t in mid)
-            t_peer = timeit(lambda fb2=fb2, m=mid_cpu: fb2(*m), min_time=0.5, max_reps=2) / B2
-            line += f"; proxsuite.QPFunction: {t_peer * 1e6:.1f} us/QP -> {t_peer / t_mid:.1f}x"
-        print(line)
+        if "proxsuite.QPFunction" not in peers:
+            print(line)
+            continue
+        f2, fb2 = run_proxsuite_qpfunction()
+        mid_cpu = tuple(t.cpu() for t in mid)
+        t_peer = timeit(lambda fb2=fb2, m=mid_cpu: fb2(*m), min_time=0.5, max_reps=2) / B2
+        print(line + f"; proxsuite.QPFunction: {t_peer * 1e6:.1f} us/QP -> {t_peer / t_mid:.1f}x")
+        print("  " + agreement("proxsuite.QPFunction", sol2, f2(*mid_cpu), mid_cpu))
 
     # the safety filter's shape at scale: 2 controls + 1 slack, 8 barrier rows, box bounds
     Q, p, G, h = make_problems(B, 3, 8, dev, seed=5)
@@ -465,14 +641,17 @@ def main() -> None:
             single.append(f"method={method!r}: {t_m * 1e6:.1f} us")
         line = f"one QP n={n1} m={m1} forward torchcbf[torch] (auto: {dual_path('cpu')}): "
         line += f"{t1 * 1e6:.1f} us; " + "; ".join(single)
-        if "proxsuite.QPFunction" in peers:
-            direct = proxsuite_dense_direct(*(t.unsqueeze(0) for t in one))
-            t_direct = timeit(direct, min_time=0.5, max_reps=2000)
-            line += (
-                f"; proxsuite dense (construct + solve): {t_direct * 1e6:.1f} us; "
-                f"torchcbf/proxsuite {t1 / t_direct:.2f}"
-            )
+        if "proxsuite.QPFunction" not in peers:
+            print(line)
+            continue
+        direct = proxsuite_dense_direct(*(t.unsqueeze(0) for t in one))
+        t_direct = timeit(direct, min_time=0.5, max_reps=2000)
+        line += (
+            f"; proxsuite dense (construct + solve): {t_direct * 1e6:.1f} us; "
+            f"torchcbf/proxsuite {t1 / t_direct:.2f}"
+        )
         print(line)
+        print("  " + agreement("proxsuite dense", fwd(*one), direct(), one))
     # a safety-filter-shaped problem: 2 bounded controls + 1 bounded slack, 8 barrier rows
     Q, p, G, h = make_problems(1, 3, 8, "cpu", seed=4)
     lb = torch.full((3,), -2.0, dtype=Q.dtype)
@@ -502,8 +681,15 @@ def main() -> None:
         grid = [(B, n, m) for B in (1, 64, 1024, 8192) for n in (2, 4, 8) for m in (1, 5, 10, 20)]
 
     if not args.no_grid:
+        if peers:
+            print(
+                f"\n# answers: rows whose x agrees with torchcbf[torch]'s to {AGREE_X:.0e}, of the "
+                f"rows torchcbf solved; where some do not, on how many the peer's answer is worse "
+                f"(objective higher by > {MARGIN:.0e} or a row violated by > {MARGIN:.0e}), "
+                "torchcbf's is worse, or neither (even); peers' settings as on the tolerances line"
+            )
         hdr = f"{'B':>6} {'n':>2} {'m':>3} {'solver':<22} {'fwd us/QP':>10} {'fwd+bwd us/QP':>14}"
-        print(hdr + f" {'x vs torchcbf (fwd+bwd)':>24}")
+        print(hdr + f" {'x vs torchcbf (fwd+bwd)':>24}  answers")
         for B, n, m in grid:
             Q, p, G, h = make_problems(B, n, m, dev)
             Qc, pc, Gc, hc = (t.cpu() for t in (Q, p, G, h))
@@ -511,6 +697,7 @@ def main() -> None:
             data = (Q, p, G, h)
             t_f = timeit(lambda fwd=fwd, data=data: fwd(*data)) / B
             t_fb = timeit(lambda fb=fb, data=data: fb(*data)) / B
+            sol = fwd(*data)
             print(
                 f"{B:>6} {n:>2} {m:>3} {'torchcbf[torch]':<22} {t_f * 1e6:>10.2f} "
                 f"{t_fb * 1e6:>14.2f} {'1.0':>24}"
@@ -531,13 +718,20 @@ def main() -> None:
                 try:
                     pf = timeit(lambda f2=f2, sl=sl: f2(*sl), min_time=0.2, max_reps=5) / Bp
                     pfb = timeit(lambda fb2=fb2, sl=sl: fb2(*sl), min_time=0.2, max_reps=5) / Bp
+                    out = f2(*sl)
+                    if hasattr(out, "status"):  # torchcbf's proxsuite backend: a QPSolution
+                        answers = agreement(
+                            name, sol, out.x, sl, short=True, peer_status=out.status
+                        )
+                    else:
+                        answers = agreement(name, sol, out, sl, short=True)
                 except Exception as err:  # a peer failing must not stop the benchmark
                     print(f"{B:>6} {n:>2} {m:>3} {name:<22} failed: {type(err).__name__}: {err}")
                     continue
                 tag = f" (B={Bp})" if Bp != B else ""
                 print(
                     f"{B:>6} {n:>2} {m:>3} {name + tag:<22} {pf * 1e6:>10.2f} "
-                    f"{pfb * 1e6:>14.2f} {pfb / t_fb:>24.1f}"
+                    f"{pfb * 1e6:>14.2f} {pfb / t_fb:>24.1f}  {answers}"
                 )
 
 
