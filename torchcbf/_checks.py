@@ -114,16 +114,32 @@ def check_positive(name: str, value: float) -> float:
 
 def check_positive_int(name: str, value: object) -> int:
     """Check a Python int is >= 1 (a bool is not an int here)."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name} must be a positive int, got {value!r}")
-    return value
+    return check_int(name, value, low=1, what="a positive int")
+
+
+def check_int(name: str, value: object, *, low: int, what: str | None = None) -> int:
+    """Check ``value`` is an int (NumPy's too; not a bool) ``>= low``: ``ValueError``
+    naming ``name`` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+        raise ValueError(f"{name} must be {what or f'an int >= {low}'}, got {value!r}")
+    return int(value)
 
 
 def check_index(name: str, index: Sequence[int], state_dim: int | None) -> tuple[int, ...]:
-    """Check a tuple of state indices is valid for ``state_dim`` (if known)."""
+    """Check a tuple of state indices is valid for ``state_dim`` (if known): integers, none
+    repeated (a closed form keeps one copy of a repeated component, autograd both)."""
+    if isinstance(index, (np.ndarray, Tensor)) and index.ndim == 1:
+        index = index.tolist()
+    if isinstance(index, (str, bytes)) or not isinstance(index, Sequence):
+        raise TypeError(f"{name} must be a sequence of ints, got {index!r}")
+    for i in index:
+        if isinstance(i, bool) or not isinstance(i, (int, np.integer)):
+            raise TypeError(f"{name} must hold ints, got {index!r}")
     index = tuple(int(i) for i in index)
     if len(index) == 0:
         raise ValueError(f"{name} must name at least one state component")
+    if len(set(index)) != len(index):
+        raise ValueError(f"{name}={index} names a component twice")
     if state_dim is not None and any(i < 0 or i >= state_dim for i in index):
         raise ValueError(f"{name}={index} is outside a state of size {state_dim}")
     if any(i < 0 for i in index):
@@ -133,7 +149,7 @@ def check_index(name: str, index: Sequence[int], state_dim: int | None) -> tuple
 
 def as_tensor(name: str, value: object, *, dtype: torch.dtype | None = None, device=None) -> Tensor:
     """Convert a number, sequence or tensor to a floating tensor (default dtype if not a tensor)."""
-    if device is not None and not isinstance(device, torch.device):
+    if device is not None and (not isinstance(device, torch.device) or device.type != "cpu"):
         device = check_device(device)
     if isinstance(value, Tensor):
         out = value
@@ -164,6 +180,8 @@ def check_device(device: object) -> torch.device:
         raise ValueError(f"device {device!r} is not a device torch knows: {err}") from None
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device {device!r}: this torch has no CUDA device available")
+    if dev.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"device {device!r}: this torch has no MPS device available")
     return dev
 
 

@@ -362,29 +362,32 @@ def test_a_barrier_with_its_own_lie_gives_its_terms_to_a_compiled_filter(compile
 class Growing(Barrier):
     """A barrier with ``count`` outputs (a plain attribute the user may change)."""
 
-    def __init__(self) -> None:
+    def __init__(self, center: float) -> None:
         super().__init__()
         self.count = 1
+        self.center = center
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
-        d = (x[..., None, :2] ** 2).sum(-1) - 1.0  # [..., 1]
-        return d + torch.arange(self.count, dtype=x.dtype)
+        d = ((x[..., None, :2] - self.center) ** 2).sum(-1) - 1.0  # [..., 1]
+        return d - 0.1 * torch.arange(self.count, dtype=x.dtype)
 
 
 def test_a_compiled_filter_follows_a_change_in_the_number_of_outputs() -> None:
+    """Counts that change, in total or only between the functions: one class-K function per
+    barrier is applied to that barrier's outputs."""
     model = Glider().double()
-    fns = [Growing(), Ball([3.0, 0.0], 0.5).double()]
-    # one class-K function per barrier: the outputs are split by barrier
+    fns = [Growing(0.0), Growing(3.0)]
     alpha = [lambda h: 1.0 * h, lambda h: 5.0 * h]
     compiled = SafetyFilter(model, fns, compile=TRACED, alpha=alpha).double()
     reference = SafetyFilter(model, fns, backend="torch", alpha=alpha).double()
-    x = torch.tensor([[2.0, 0.4, 0.1]], dtype=torch.float64)
+    x = torch.tensor([[1.3, 0.0, 0.1]], dtype=torch.float64)
     u = torch.tensor([[-3.0, 0.5]], dtype=torch.float64)
     with torch.no_grad():
-        for count in (1, 3):
-            fns[0].count = count
+        for counts in ((1, 1), (1, 3), (3, 1)):
+            fns[0].count, fns[1].count = counts
             a, b = compiled(x, u), reference(x, u)
-            assert a.constraint_value.shape[-1] == count + 1
+            assert a.path.startswith("compiled/")
+            assert a.constraint_value.shape[-1] == sum(counts)
             torch.testing.assert_close(a.u, b.u, atol=1e-10, rtol=1e-10)
 
 

@@ -245,3 +245,29 @@ def test_poles_given_as_numbers_stay_exact_in_float64() -> None:
     x = torch.tensor([[3.0, 4.0, 0.5, -0.2]], dtype=torch.float64)
     assert by_poles.coefficients.tolist() == by_gains.coefficients.tolist()
     assert torch.equal(by_poles(x), by_gains(x))
+
+
+def test_relative_degree_one_still_checks_what_it_was_given() -> None:
+    speed = HalfSpace([1.0, 0.0], 1.0, index=(2, 3))  # v_x <= 1: relative degree 1
+    model = DoubleIntegrator(2)
+    assert rectify(speed, model, "exponential", poles=[-2.0]) is speed
+    for kw, message in (
+        ({"poles": [1.0]}, "poles must be finite negative real numbers"),
+        ({"poles": [float("nan")]}, "poles must be finite negative real numbers"),
+        ({"gains": -5.0}, "gains must be finite positive numbers"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            rectify(speed, model, "exponential", **kw)
+        with pytest.raises(ValueError, match=message):
+            rectify(speed, model, "exponential", relative_degree=1, **kw)
+
+
+def test_relative_degrees_and_sizes_are_ints() -> None:
+    ball = Ball([0.0, 0.0], 1.0)
+    for degree in (2.5, 3.0):
+        with pytest.raises(ValueError, match="relative_degree must be an int >= 2"):
+            HighOrderBarrier(ball, DoubleIntegrator(2), degree)
+        with pytest.raises(ValueError, match="relative_degree must be an int >= 2"):
+            ExponentialBarrier(ball, DoubleIntegrator(2), degree, [1.0])
+    with pytest.raises(ValueError, match="state_dim must be an int >= 1, got 2.5"):
+        SingleIntegrator(2.5)

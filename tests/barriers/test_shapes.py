@@ -169,3 +169,32 @@ def test_bad_input_raises():
         Ball([0.0, 0.0], 1.0).lie(torch.zeros(5, 2), dyn, method="fd")
     with pytest.raises(ValueError, match="closed-form"):
         NeuralBarrier(nn.Linear(2, 1)).lie(torch.zeros(5, 2), dyn, method="analytic")
+
+
+def test_learnable_shapes_with_a_velocity_or_an_angle() -> None:
+    ball = Ball([0.0, 0.0], 1.0, velocity=[0.5, 0.0], learnable=True)
+    assert {n for n, _ in ball.named_parameters()} == {"center", "radius", "velocity"}
+    x = torch.tensor([[2.0, 0.0]])
+    ball(x, torch.tensor([1.0])).sum().backward()
+    assert ball.velocity.grad is not None and float(ball.velocity.grad[0]) != 0.0
+    ell = Ellipse([0.0, 0.0], [1.0, 0.5], angle=0.3, learnable=True)
+    assert {n for n, _ in ell.named_parameters()} == {"center", "axes", "angle"}
+    given = Ellipse([0.0, 0.0], [1.0, 0.5], angle=nn.Parameter(torch.tensor(0.3)))
+    assert [n for n, _ in given.named_parameters()] == ["angle"]
+
+
+def test_state_indices_must_be_distinct_ints() -> None:
+    """A repeated component: the closed forms kept one copy of it, autograd both."""
+    for make in (
+        lambda index: Ball([0.0, 0.0], 1.0, index=index),
+        lambda index: Ellipse([0.0, 0.0], [1.0, 0.5], index=index),
+        lambda index: HalfSpace([1.0, 1.0], 0.0, index=index),
+        lambda index: QuadraticLyapunov(torch.zeros(2), index=index),
+    ):
+        with pytest.raises(ValueError, match=r"index=\(0, 0\) names a component twice"):
+            make((0, 0))
+        with pytest.raises(TypeError, match="index must hold ints"):
+            make((0.7, 1.9))
+    import numpy as np
+
+    assert Ball([0.0, 0.0], 1.0, index=np.array([2, 0])).index == (2, 0)

@@ -235,3 +235,14 @@ def test_matmat_equals_matmul_and_differentiates(a_shape, b_shape, dtype):
     if dtype == torch.float64:
         a, b = a[..., :4, :].requires_grad_(True), b.requires_grad_(True)
         torch.autograd.gradcheck(matmat, (a, b))
+
+
+def test_a_diffusion_callable_must_give_one_matrix_per_state() -> None:
+    def per_row_diagonal(x: torch.Tensor) -> torch.Tensor:
+        return 0.1 * torch.ones_like(x)  # [B, n]: not [B, n, q]
+
+    model = SingleIntegrator(3, sigma=per_row_diagonal)
+    with pytest.raises(ValueError, match=r"sigma\(x\) must return \[\.\.\., 3, q\]"):
+        model.sigma(torch.zeros(3, 3))
+    good = SingleIntegrator(3, sigma=lambda x: 0.1 * torch.eye(3).expand(*x.shape[:-1], 3, 3))
+    assert good.sigma(torch.zeros(5, 3)).shape == (5, 3, 3)

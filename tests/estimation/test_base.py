@@ -6,8 +6,9 @@ from __future__ import annotations
 import pytest
 import torch
 from _devices import device_matches_cpu
+from torch import nn
 
-from torchcbf.dynamics import AccelUnicycle, DoubleIntegrator, Unicycle
+from torchcbf.dynamics import AccelUnicycle, ControlAffine, DoubleIntegrator, Unicycle
 from torchcbf.estimation import (
     EKF,
     UKF,
@@ -256,6 +257,38 @@ def test_a_rejected_prediction_row_leaves_the_gradients_of_the_others_clean(cls,
     torch.testing.assert_close(g_all, g_two, rtol=1e-12, atol=1e-14)
     torch.testing.assert_close(gm_all[[0, 2]], gm_two, rtol=1e-12, atol=1e-14)
     torch.testing.assert_close(gm_all[1], torch.ones(3, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("cls", FILTERS, ids=lambda c: c.__name__)
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")], ids=["nan", "inf"])
+def test_a_control_that_is_not_finite_leaves_the_models_parameters_clean(cls, bad):
+    """The model never sees such a control (a stand-in takes its place): its parameters'
+    gradient is that of the batch without the row."""
+
+    class Gained(ControlAffine):
+        def __init__(self) -> None:
+            super().__init__(2, 2, sigma=[0.1, 0.1])
+            self.a = nn.Parameter(torch.tensor(1.5, dtype=torch.float64))
+
+        def f(self, x):
+            return -0.1 * x
+
+        def g(self, x):
+            return self.a * torch.eye(2, dtype=x.dtype).expand(*x.shape[:-1], 2, 2)
+
+    x = torch.tensor([[0.1, 0.2], [0.3, 0.4], [0.5, 0.6]], dtype=torch.float64)
+    u = torch.tensor([[0.5, 0.1], [bad, 0.2], [0.3, -0.4]], dtype=torch.float64)
+    model = Gained()
+    est = cls(model, GaussianSensor(std=0.1, state_dim=2), Q=0.01).double()
+
+    def grad(rows: list[int]) -> torch.Tensor:
+        model.a.grad = None
+        state = est.init(x[rows], torch.eye(2, dtype=torch.float64) * 0.1)
+        new = est.predict(state, u[rows], 0.1)
+        (new.mean.sum() + new.cov.sum()).backward()
+        return model.a.grad.clone()
+
+    torch.testing.assert_close(grad([0, 1, 2]), grad([0, 2]), rtol=1e-12, atol=1e-14)
 
 
 def test_priors_that_are_not_finite_are_refused_and_a_scalar_R_needs_a_size():

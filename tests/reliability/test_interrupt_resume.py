@@ -190,13 +190,16 @@ def test_mppi_cbf_killed_then_resumed_equals_an_uninterrupted_run(tmp_path) -> N
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["int", "term"])
 def test_ray_sweep_interrupted_then_resumed_equals_an_uninterrupted_run(
-    tmp_path, sweep_reference
+    tmp_path, sweep_reference, sig
 ) -> None:
+    """Ray installs a SIGTERM handler of its own that exits at once; the run puts back
+    the command's, which saves the finished work as Ctrl-C does."""
     pytest.importorskip("ray")
     out = tmp_path / "run"
     ray_args = [*SWEEP, "--engine", "ray", "--num-cpus", "1"]
-    signalled, _, _ = _interrupt(ray_args, out, _lines(out / "sweep.jsonl", 1), signal.SIGINT)
+    signalled, _, _ = _interrupt(ray_args, out, _lines(out / "sweep.jsonl", 1), sig)
     assert signalled
     _whole_files(out)
     assert 1 <= len(read_journal(out / "sweep.jsonl")) < 4

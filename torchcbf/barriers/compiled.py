@@ -59,6 +59,7 @@ class CompiledLie:
         self.fns = list(fns)
         self.dynamics = dynamics
         self.sizes: list[int] | None = None
+        self.traced_sizes: list[int] = []
         self._hessian_asked = bool(hessian)
         self.hessian = self._hessian_asked and dynamics.has_diffusion
         self._call: Compiled | None = Compiled(self._terms, {"dynamic": False, **(options or {})})
@@ -93,6 +94,9 @@ class CompiledLie:
         """The terms at ``x [B, n]``, ``t [B]``; ``hooks``: the functions' and the model's
         :func:`~torchcbf._compile.hook_key` (compiled, a new value traces again)."""
         read_key(hooks)
+        # each function's number of outputs as this trace sees them: a side effect the
+        # compiled code repeats on every call, so a new trace (a count changed) updates it
+        self.traced_sizes = [torch.atleast_1d(fn(x[0], t[0])).shape[-1] for fn in self.fns]
         values = torch.func.vmap(self._values)
         h = values(x, t)
         if self.timed:
@@ -119,8 +123,6 @@ class CompiledLie:
         if self._call is None:
             return None
         with torch.no_grad():
-            if self.sizes is None:  # eager: a Python int per function, again where they change
-                self.sizes = [torch.atleast_1d(fn(x[0], t[0])).shape[-1] for fn in self.fns]
             try:
                 out = self._call(x, t, hook_key(*self.fns, self.dynamics))
             except Exception as err:  # noqa: BLE001 - any failure: the general path answers
@@ -135,7 +137,6 @@ class CompiledLie:
                 self._call = None
                 return None
             h, lfh, lgh, dhdt, dhdx = out[:5]
-            if h.shape[-1] != sum(self.sizes):  # a function's output count changed
-                self.sizes = [torch.atleast_1d(fn(x[0], t[0])).shape[-1] for fn in self.fns]
+            self.sizes = list(self.traced_sizes)
         terms = LieTerms(h, lfh, lgh, dhdt, out[5] if self.hessian else None, dhdx)
         return terms, self.sizes

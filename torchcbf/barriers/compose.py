@@ -9,7 +9,7 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor, check_finite, several_outputs
+from torchcbf._checks import as_tensor, check_finite, check_number, several_outputs
 from torchcbf._constants import remember
 from torchcbf.barriers._minmax import Mode, combine, reduce
 from torchcbf.barriers._params import float_spec
@@ -211,8 +211,7 @@ class Transformed(_OfOne):
         super().__init__(barrier)
         if form not in self.FORMS:
             raise ValueError(f"form must be one of {self.FORMS}, got {form!r}")
-        if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not rate > 0:
-            raise ValueError(f"rate must be a positive number, got {rate!r}")
+        rate = check_number("rate", rate, low=0.0, strict=True)
         self.form = form
         self.rate = float(rate)
 
@@ -287,8 +286,7 @@ class _Reduction(Barrier):
         super().__init__()
         if not barriers:
             raise ValueError(f"{type(self).__name__} needs at least one barrier")
-        if not temperature > 0:
-            raise ValueError(f"temperature must be positive, got {temperature}")
+        temperature = check_number("temperature", temperature, low=0.0, strict=True)
         self.stack = BarrierStack(*barriers)
         self.smooth = bool(smooth)
         self.temperature = float(temperature)

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import ClosedForms, as_tensor, check_finite
+from torchcbf._checks import ClosedForms, as_tensor, check_finite, check_int
 from torchcbf._constants import DerivedConstants, derive, remember, store
 from torchcbf.barriers._params import float_spec
 from torchcbf.barriers.base import Barrier
@@ -144,13 +144,12 @@ class HighOrderBarrier(Barrier, DerivedConstants):
         gains: GainSpec = None,
     ) -> None:
         super().__init__()
-        if relative_degree < 2:
-            raise ValueError(
-                f"relative_degree must be >= 2 for a high-order barrier, got {relative_degree}"
-            )
+        relative_degree = check_int(
+            "relative_degree", relative_degree, low=2, what="an int >= 2 for a high-order barrier"
+        )
         self.barrier = barrier
         self.dynamics = dynamics
-        self.relative_degree = int(relative_degree)
+        self.relative_degree = relative_degree
         g = _gain_tensor(self, "gains", gains, relative_degree - 1, 1.0)
         if bool((g.detach() <= 0).any()):
             raise ValueError(f"gains must be positive, got {g.detach().tolist()}")
@@ -226,13 +225,12 @@ class ExponentialBarrier(Barrier):
         coefficients: Tensor | Sequence[float],
     ) -> None:
         super().__init__()
-        if relative_degree < 2:
-            raise ValueError(
-                f"relative_degree must be >= 2 for an exponential barrier, got {relative_degree}"
-            )
+        relative_degree = check_int(
+            "relative_degree", relative_degree, low=2, what="an int >= 2 for an exponential barrier"
+        )
         self.barrier = barrier
         self.dynamics = dynamics
-        self.relative_degree = int(relative_degree)
+        self.relative_degree = relative_degree
         if isinstance(coefficients, nn.Parameter):
             k = self.register_constant("coefficients", coefficients)
         elif isinstance(coefficients, Tensor):
@@ -485,7 +483,13 @@ def rectify(
                 f"{dynamics.state_dim}"
             )
         r = relative_degree
-    if r == 1:
+    if r == 1:  # nothing to build; what was given must still be valid
+        if poles is not None:
+            _pole_coefficients(poles)
+        if gains is not None:
+            g = as_tensor("gains", gains).detach()
+            if not bool(torch.isfinite(g).all() & (g > 0).all()):
+                raise ValueError(f"gains must be finite positive numbers, got {g.tolist()}")
         return barrier
     if form == "high_order":
         return HighOrderBarrier(barrier, dynamics, r, gains)

@@ -158,8 +158,9 @@ class Ball(_SignedShapeStack):
         r = self.register_constant("radius", radius, learnable=learnable)
         _check_per_shape("radius", r, self.num)
         _check_positive_tensor("radius", r.detach())
-        self.register_buffer("velocity", None)
-        if velocity is not None:
+        if velocity is None:
+            self.register_buffer("velocity", None)  # a velocity assigned later is a buffer
+        else:
             v = self.register_constant("velocity", velocity, learnable=learnable)
             if v.shape != c.shape:
                 raise ValueError(
@@ -316,8 +317,9 @@ class Ellipse(_SignedShapeStack):
                 f"axes must have the shape of center {tuple(c.shape)}, got {tuple(a.shape)}"
             )
         _check_positive_tensor("axes", a.detach())
-        self.register_buffer("angle", None)
-        if angle is not None:
+        if angle is None:
+            self.register_buffer("angle", None)
+        else:
             if c.shape[-1] != 2:
                 raise ValueError(f"angle needs a 2-D ellipse, got center of shape {tuple(c.shape)}")
             ang = self.register_constant("angle", angle, learnable=learnable)

@@ -15,6 +15,7 @@ optional "all rows done" test every ``check_every`` iterations.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable, Sequence
 from typing import Literal, NamedTuple, Protocol, runtime_checkable
 
@@ -23,7 +24,6 @@ from torch import Tensor
 
 from torchcbf._checks import (
     broadcast_shapes,
-    check_finite,
     check_number,
     check_positive,
     check_tensor,
@@ -191,7 +191,6 @@ def inverse_kinematics(
         raise TypeError(f"target must be a floating tensor, got {target.dtype}")
     if target.dim() == 0 or target.shape[-1] not in (2, 3):
         raise ValueError(f"target must have shape [..., 3] or [..., 2], got {tuple(target.shape)}")
-    check_finite("target", target)
     if isinstance(restarts, bool) or not isinstance(restarts, int) or restarts < 1:
         raise ValueError(f"restarts must be an int >= 1, got {restarts!r}")
     if isinstance(iters, bool) or not isinstance(iters, int) or iters < 1:
@@ -199,7 +198,7 @@ def inverse_kinematics(
     for name, value in (("check_every", check_every), ("reseed_every", reseed_every)):
         if isinstance(value, bool) or not isinstance(value, int) or value < 0:
             raise ValueError(f"{name} must be an int >= 0, got {value!r}")
-    if generator is None and (isinstance(seed, bool) or not isinstance(seed, int)):
+    if generator is None and (isinstance(seed, bool) or not isinstance(seed, numbers.Integral)):
         raise TypeError(f"seed must be an int, got {seed!r}")
     clearance = check_number("clearance", clearance)
     if prefer not in ("nearest", "error"):
@@ -221,7 +220,6 @@ def inverse_kinematics(
         check_tensor("q_init", q_init)
         if q_init.dim() == 0 or q_init.shape[-1] != dof:
             raise ValueError(f"q_init must have shape [..., {dof}], got {tuple(q_init.shape)}")
-        check_finite("q_init", q_init)
         try:
             shape = broadcast_shapes(batch, tuple(q_init.shape[:-1]))
         except RuntimeError:

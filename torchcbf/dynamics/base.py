@@ -22,6 +22,7 @@ from torchcbf._checks import (
     check_batch_match,
     check_bounds,
     check_finite,
+    check_int,
     check_last_dim,
     check_same,
     clamp_control,
@@ -143,12 +144,8 @@ class ControlAffine(TracksShadows, DerivedConstants):
         disturbance_matrix: Tensor | None = None,
     ) -> None:
         super().__init__()
-        if state_dim < 1 or control_dim < 1:
-            raise ValueError(
-                f"state_dim and control_dim must be >= 1, got {state_dim} and {control_dim}"
-            )
-        self.state_dim = int(state_dim)
-        self.control_dim = int(control_dim)
+        self.state_dim = check_int("state_dim", state_dim, low=1)
+        self.control_dim = check_int("control_dim", control_dim, low=1)
         self._sigma_fn: Callable[[Tensor], Tensor] | None = None
         self.register_buffer("sigma_matrix", None)
         # constants given as a parameter that these casts and shapes change are kept and
@@ -268,9 +265,18 @@ class ControlAffine(TracksShadows, DerivedConstants):
         """Diffusion ``sigma(x) -> [..., n, q]``, or ``None`` for an ODE."""
         if self._sigma_fn is not None:
             s = self._sigma_fn(x)
-            if s is not None and not isinstance(s, Tensor):
+            if s is None:
+                return None
+            if not isinstance(s, Tensor):
                 raise TypeError(f"sigma(x) must return a tensor, got {type(s).__name__}")
-            return s if s is None or s.dtype == x.dtype else s.to(x.dtype)
+            n = self.state_dim
+            if s.dim() != x.dim() + 1 or s.shape[-2] != n or s.shape[:-2] != x.shape[:-1]:
+                raise ValueError(
+                    f"sigma(x) must return [..., {n}, q] with the batch of x "
+                    f"{tuple(x.shape)}, got {tuple(s.shape)} (a constant matrix: expand it "
+                    "to the batch, or give sigma as a tensor)"
+                )
+            return s if s.dtype == x.dtype else s.to(x.dtype)
         if self.sigma_matrix is None:
             return None
         s = self.sigma_matrix.to(x)

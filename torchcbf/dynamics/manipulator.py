@@ -81,7 +81,7 @@ def _read_urdf(source: str | bytes | os.PathLike[str]) -> str:
         )
     if source.lstrip().startswith("<"):
         return source
-    if source.removesuffix(".urdf") in ASSETS and not Path(source).is_file():
+    if source in ASSETS or (source.removesuffix(".urdf") in ASSETS and not Path(source).is_file()):
         return asset_path(source).read_text()
     path = Path(source)
     if not path.is_file():
@@ -515,7 +515,9 @@ class ResolvedRateController(_JointVelocityNominal):
             # (I - J^+ J) z with the exact pseudo-inverse (singular values below sqrt(eps)
             # of the largest count as zero: a planar arm's z row): the damped one of the
             # primary task leaks lambda^2 (J J' + lambda^2 I)^-1 J z into the end effector's
-            # motion, which stops it centimetres short of its target
+            # motion, which stops it centimetres short of its target. The projector jumps
+            # where a singular value crosses that threshold (at a singular pose), and its
+            # gradient grows as 1/sigma on the way there
             rtol = torch.finfo(x.dtype).eps ** 0.5
             qd = qd + (z - torch.linalg.pinv(J, rtol=rtol) @ (J @ z)).squeeze(-1)
         return self._saturated(qd)

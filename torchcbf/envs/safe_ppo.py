@@ -152,6 +152,8 @@ class PPOConfig:
             "shield_penalty",
         ):
             check_number(name, getattr(self, name), low=0.0)
+        if self.filter_margin is not None:
+            check_number("filter_margin", self.filter_margin, low=0.0)
         for name in ("gamma", "lmbda"):
             if not 0.0 <= check_number(name, getattr(self, name)) <= 1.0:
                 raise ValueError(f"{name} must lie in [0, 1], got {getattr(self, name)}")

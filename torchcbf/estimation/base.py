@@ -211,10 +211,12 @@ class RowGuard:
     A row the step rejects (not finite, :meth:`_KalmanFilter._finish`) keeps its previous
     estimate, so the step's own result on it gets no gradient; yet the backward of the
     step's operations on that row (an exponential that overflowed, a product with an
-    infinity) still forms ``0 * inf = NaN``, which a shared ``Q``, ``R`` or model parameter
-    sums over the rows. The tensors :meth:`watch` returns (the step's inputs, and what the
-    model, the sensor and the noise give per row) have those rows' gradient set to zero in
-    the backward pass, once :attr:`bad` is known."""
+    infinity) still forms ``0 * inf = NaN``, which a shared ``Q`` or ``R`` sums over the
+    rows. The tensors :meth:`watch` returns (the step's inputs, and what the model, the
+    sensor and the noise give per row) have those rows' gradient set to zero in the
+    backward pass, once :attr:`bad` is known. Inputs that are not finite never reach the
+    model (a stand-in takes their place); a value that overflows inside the model itself
+    can still reach the model's own parameters through its backward."""
 
     def __init__(self) -> None:
         self.bad: Tensor | None = None
@@ -340,12 +342,18 @@ class _KalmanFilter(ExactConstants, DerivedConstants, Estimator):
         check_batch_match("state.mean", mean, "u", u)
         bs = broadcast_shapes(mean.shape[:-1], u.shape[:-1])
         n, m = self.state_dim, self.dynamics.control_dim
+        u = u.expand(*bs, m).reshape(-1, m)
+        # a control that is not finite is answered by a finite stand-in, then by the
+        # previous estimate (_finish's skip): the model never sees it, so its parameters'
+        # gradient never meets it
+        u_ok = rows_finite(u, 1, u.shape[0])
         return (
             bs,
             mean.expand(*bs, n).reshape(-1, n),
             cov.expand(*bs, n, n).reshape(-1, n, n),
-            u.expand(*bs, m).reshape(-1, m),
+            torch.where(u_ok[:, None], u, 0.0),
             dt,
+            ~u_ok,
         )
 
     def _flat_update(self, state: EstimatorState, y: Tensor):

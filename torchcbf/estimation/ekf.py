@@ -38,7 +38,7 @@ class EKF(_KalmanFilter):
 
     def predict(self, state: EstimatorState, u: Tensor, dt: float) -> EstimatorState:
         """Propagate ``state`` (mean ``[..., n]``, cov ``[..., n, n]``) with ``u [..., m]``."""
-        bs, m0, P0, u, dt = self._flat_predict(state, u, dt)
+        bs, m0, P0, u, dt, skip = self._flat_predict(state, u, dt)
         guard = RowGuard()
         m, P, u = guard.watch(m0), guard.watch(P0), guard.watch(u)
         h = dt / self.substeps
@@ -50,7 +50,7 @@ class EKF(_KalmanFilter):
             m = m + dx
             P = symmetrize(Phi @ P @ Phi.mT + Qd)
         status = torch.zeros(m.shape[0], dtype=torch.int64, device=m.device)
-        return self._finish(bs, m0, P0, m, P, status, guard)
+        return self._finish(bs, m0, P0, m, P, status, guard, skip=skip)
 
     def update(self, state: EstimatorState, y: Tensor) -> EstimatorState:
         """Correct ``state`` with ``y [..., p]`` (a non-finite ``y`` row is skipped and flagged)."""

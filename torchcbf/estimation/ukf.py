@@ -110,7 +110,7 @@ class UKF(_KalmanFilter):
 
     def predict(self, state: EstimatorState, u: Tensor, dt: float) -> EstimatorState:
         """Propagate ``state`` (mean ``[..., n]``, cov ``[..., n, n]``) with ``u [..., m]``."""
-        bs, m0, P0, u, dt = self._flat_predict(state, u, dt)
+        bs, m0, P0, u, dt, skip = self._flat_predict(state, u, dt)
         guard = RowGuard()
         m, P, u = guard.watch(m0), guard.watch(P0), guard.watch(u)
         B, n = m.shape
@@ -131,7 +131,7 @@ class UKF(_KalmanFilter):
             _, _, Qd = discretize(F0, h, None, self._Qc(m, guard))
             m, dY = self._mean(Y, Wm, torch.sub)
             P = symmetrize((dY * Wc[:, None]).mT @ dY + Qd)
-        return self._finish(bs, m0, P0, m, P, status, guard)
+        return self._finish(bs, m0, P0, m, P, status, guard, skip=skip)
 
     def update(self, state: EstimatorState, y: Tensor) -> EstimatorState:
         """Correct ``state`` with ``y [..., p]`` (a non-finite ``y`` row is skipped and flagged)."""

@@ -138,7 +138,7 @@ def load_checkpoint(
     if generator is not None:
         if state.get("generator") is None:
             raise ValueError(f"{path} holds no generator state")
-        generator.set_state(state["generator"])
+        generator.set_state(state["generator"].cpu())  # map_location may have moved it
     return {"step": int(state.get("step", 0)), "extra": dict(state.get("extra") or {})}
 
 
@@ -223,7 +223,8 @@ def train(
             norm = torch.nn.utils.clip_grad_norm_(params, grad_clip)
         else:
             norm = torch.stack([g.norm() for g in grads]).norm() if grads else loss
-        value, size = torch.stack((loss.detach().double(), norm.detach().double())).tolist()
+        # in the loss's dtype (no float64 on some devices): one read for both
+        value, size = torch.stack((loss.detach(), norm.detach().to(loss.dtype))).tolist()
         if math.isfinite(value) and math.isfinite(size):
             optimizer.step()
             if scheduler is not None:

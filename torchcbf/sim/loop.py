@@ -257,7 +257,7 @@ class _Run:
                 raise ValueError(
                     f"without an estimator the controllers see the measurement, which must then "
                     f"be a full state of size {n}: {type(loop.sensor).__name__} measures {p} "
-                    "values (add an estimator)"
+                    f"value{'s' if p != 1 else ''} (add an estimator)"
                 )
         for part in (loop.planner, loop.nominal):
             reset = getattr(part, "reset", None)

@@ -9,7 +9,9 @@ on both engines) while the other calls go on.
 
 from __future__ import annotations
 
+import signal
 import socket
+import threading
 import traceback
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -42,9 +44,14 @@ def ray_session(address: str | None = None, num_cpus: int | None = None) -> Iter
         kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False}
         if address is not None:
             check_address(address)
-            ray.init(address=address, **kwargs)
+            kwargs["address"] = address
         else:
-            ray.init(num_cpus=num_cpus, **kwargs)
+            kwargs["num_cpus"] = num_cpus
+        main = threading.current_thread() is threading.main_thread()
+        sigterm = signal.getsignal(signal.SIGTERM) if main else None
+        ray.init(**kwargs)
+        if sigterm is not None:  # Ray's own handler exits at once: the caller's answers
+            signal.signal(signal.SIGTERM, sigterm)
         started = True
     try:
         yield ray
