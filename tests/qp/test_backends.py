@@ -183,6 +183,31 @@ def test_proxsuite_backend_solved_rows_are_minimisers():
     assert float(err[solved].max()) <= 1e-6, err
 
 
+def test_proxsuites_claims_of_infeasibility_are_checked():
+    """proxsuite calls a few strictly feasible problems (the origin inside every row by 0.2
+    or more) primal infeasible; those rows are solved again and take a certified answer,
+    while a truly infeasible row keeps its status."""
+    pytest.importorskip("proxsuite")
+    g = torch.Generator().manual_seed(0)
+    B, n, m = 1024, 2, 5
+    L = torch.randn(B, n, n, generator=g, dtype=F64)
+    Q = L @ L.mT / n + 0.5 * torch.eye(n, dtype=F64)
+    p = 3.0 * torch.randn(B, n, generator=g, dtype=F64)
+    G = torch.randn(B, m, n, generator=g, dtype=F64)
+    h = 0.2 + torch.rand(B, m, generator=g, dtype=F64)
+    # row 0 infeasible: x_0 <= -1 and -x_0 <= -1
+    G[0, :2] = torch.tensor([[1.0, 0.0], [-1.0, 0.0]], dtype=F64)
+    h[0, :2] = -1.0
+    ref = solve_qp(Q, p, G, h)
+    with torch.no_grad():
+        sol = solve_qp(Q, p, G, h, backend="proxsuite")
+    assert int(ref.status[0]) == int(sol.status[0]) == Status.PRIMAL_INFEASIBLE
+    assert bool((ref.status[1:] == Status.SOLVED).all())
+    assert bool((sol.status[1:] == Status.SOLVED).all())
+    err = (sol.x - ref.x)[1:].abs().amax(-1) / (1.0 + ref.x[1:].abs().amax(-1))
+    assert float(err.max()) <= 1e-6
+
+
 @pytest.mark.parametrize("backend", ["torch", "proxsuite", "qpsolvers:clarabel"])
 def test_multipliers_of_infinite_bounds_are_zero(backend):
     """``lam_lb`` and ``lam_ub`` are exactly zero where the bound is infinite, whatever an
