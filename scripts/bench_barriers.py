@@ -22,19 +22,9 @@ from collections.abc import Callable
 import torch
 from torch.func import hessian, jacrev, vmap
 
+from torchcbf._argtypes import positive_int
 from torchcbf.barriers import Ball, BarrierStack, Ellipse
 from torchcbf.dynamics import AccelUnicycle
-
-
-def _positive_int(text: str) -> int:
-    """argparse type: an integer >= 1 (a bad value exits 2 with a message naming the flag)."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
 
 
 def _best(fn: Callable[[], object], repeats: int) -> tuple[float, object]:
@@ -101,14 +91,14 @@ def _func_terms(barrier, dyn, x: torch.Tensor, with_hessian: bool):
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="10,000 states, fewer repeats")
-    parser.add_argument("--batch", type=_positive_int, default=None, help="number of states")
-    parser.add_argument("--barriers", type=_positive_int, default=16)
+    parser.add_argument("--batch", type=positive_int, default=None, help="number of states")
+    parser.add_argument("--barriers", type=positive_int, default=16)
     parser.add_argument(
-        "--loop-rows", type=_positive_int, default=100, help="rows timed in the loop"
+        "--loop-rows", type=positive_int, default=100, help="rows timed in the loop"
     )
-    parser.add_argument("--repeats", type=_positive_int, default=None)
+    parser.add_argument("--repeats", type=positive_int, default=None)
     parser.add_argument(
-        "--threads", type=_positive_int, default=None, help="torch.set_num_threads (>= 1)"
+        "--threads", type=positive_int, default=None, help="torch.set_num_threads (>= 1)"
     )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])

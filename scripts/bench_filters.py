@@ -55,31 +55,10 @@ import numpy as np
 import torch
 
 import torchcbf.qp as qp_module
+from torchcbf._argtypes import non_negative_int, positive_int
 from torchcbf.barriers import Ball, Barrier
 from torchcbf.dynamics import ControlAffine, SingleIntegrator
 from torchcbf.filters import SafetyFilter
-
-
-def _positive_int(text: str) -> int:
-    """argparse type: an integer >= 1 (a bad value exits 2 with a message naming the flag)."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
-
-
-def _nonnegative_int(text: str) -> int:
-    """argparse type: an integer >= 0."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
-    return value
 
 
 def _sync() -> None:
@@ -535,19 +514,17 @@ def _proxsuite_whole(ball: Ball, dyn: SingleIntegrator, x: torch.Tensor, u_nom: 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--batch", type=_positive_int, default=4096)
-    parser.add_argument("--barriers", type=_positive_int, default=8)
-    parser.add_argument("--loop-subset", type=_positive_int, default=64)
-    parser.add_argument("--repeat", type=_positive_int, default=3)
+    parser.add_argument("--batch", type=positive_int, default=4096)
+    parser.add_argument("--barriers", type=positive_int, default=8)
+    parser.add_argument("--loop-subset", type=positive_int, default=64)
+    parser.add_argument("--repeat", type=positive_int, default=3)
     parser.add_argument("--dtype", choices=["float64", "float32"], default="float64")
     parser.add_argument(
-        "--threads", type=_nonnegative_int, default=0, help="torch threads (0: leave)"
+        "--threads", type=non_negative_int, default=0, help="torch threads (0: leave)"
     )
     parser.add_argument("--quick", action="store_true", help="batch 512, subset 16, repeat 1")
     parser.add_argument("--device", default="cpu", help="device of torchcbf (proxsuite: CPU)")
-    parser.add_argument(
-        "--calls", type=_positive_int, default=2000, help="calls per one-state line"
-    )
+    parser.add_argument("--calls", type=positive_int, default=2000, help="calls per one-state line")
     parser.add_argument(
         "--one-state", action="store_true", help="the real-time one-state lines alone"
     )

@@ -79,6 +79,7 @@ from collections.abc import Callable
 
 import torch
 
+from torchcbf._argtypes import positive_int
 from torchcbf.barriers import Ellipse
 from torchcbf.dynamics import AccelUnicycle, ControlAffine, SingleIntegrator
 from torchcbf.mppi import MPPI, BarrierCost, QuadraticGoal, SumCost
@@ -242,17 +243,6 @@ def timed(step: Callable[[torch.Tensor], object], x: torch.Tensor, reps: int) ->
 QUICK_SCALE = 10  # --quick: samples divided by this
 #: lines of the child's stderr shown when a planner fails
 STDERR_TAIL = 15
-
-
-def _positive_int(text: str) -> int:
-    """argparse type: an integer >= 1 (a bad value exits 2 with a message naming the flag)."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
 
 
 def sizes(name: str, quick: bool = False) -> tuple[int, int, int, int]:
@@ -489,8 +479,8 @@ def _child_result(out: subprocess.CompletedProcess) -> dict | None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--threads", type=_positive_int, default=1, help="torch threads (>= 1)")
-    parser.add_argument("--reps", type=_positive_int, default=5, help="timed calls per planner")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads (>= 1)")
+    parser.add_argument("--reps", type=positive_int, default=5, help="timed calls per planner")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--only", nargs="+", choices=LINES, help="lines to run")
     parser.add_argument(

@@ -39,6 +39,7 @@ from unittest import mock
 import numpy as np
 import torch
 
+from torchcbf._argtypes import positive_int
 from torchcbf.qp import Status, _dual_native, solve_qp
 
 
@@ -76,17 +77,6 @@ def dual_path(device: str) -> str:
 def _sync(device: str) -> None:
     if device.startswith("cuda"):
         torch.cuda.synchronize()
-
-
-def _positive_int(text: str) -> int:
-    """argparse type: an integer >= 1 (a bad value exits 2 with a message naming the flag)."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
 
 
 #: a peer's row agrees with torchcbf's when ``max_i |x_peer,i - x_torchcbf,i|`` is at most this
@@ -451,17 +441,17 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="small subset of the grid")
     parser.add_argument("--device", default="cpu", help="device for torchcbf (peers: CPU)")
     parser.add_argument(
-        "--peer-max-batch", type=_positive_int, default=1024, help="largest peer batch"
+        "--peer-max-batch", type=positive_int, default=1024, help="largest peer batch"
     )
     parser.add_argument("--no-grid", action="store_true", help="only the headline lines")
     parser.add_argument(
-        "--goal-peer-batch", type=_positive_int, default=4096, help="peer batch of the B=4096 line"
+        "--goal-peer-batch", type=positive_int, default=4096, help="peer batch of the B=4096 line"
     )
     parser.add_argument(
-        "--big", type=_positive_int, default=1_000_000, help="batch of the throughput line"
+        "--big", type=positive_int, default=1_000_000, help="batch of the throughput line"
     )
     parser.add_argument(
-        "--threads", type=_positive_int, default=None, help="torch.set_num_threads (>= 1)"
+        "--threads", type=positive_int, default=None, help="torch.set_num_threads (>= 1)"
     )
     parser.add_argument(
         "--equality-only", action="store_true", help="only the equality-constrained lines"

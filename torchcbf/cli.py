@@ -45,6 +45,8 @@ from typing import Any
 import torch
 
 from torchcbf import _io
+from torchcbf._argtypes import positive_int
+from torchcbf._argtypes import seed as seed_type
 from torchcbf.sim import Trajectory, run_info, strict
 
 # Benchmarks in the order ``torchcbf bench`` runs them (each a script of scripts/).
@@ -234,29 +236,8 @@ def _dest(flag: str) -> str:
 
 
 # -- command line --------------------------------------------------------------------------
-def _seed(text: str) -> int:
-    """A first seed: an integer in ``[0, 2^32)`` (the noise streams are 32-bit)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if not 0 <= value < 2**32:
-        raise argparse.ArgumentTypeError(f"a seed lies in [0, 2^32), got {value}")
-    return value
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
-    return value
-
-
 def _common_run_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seed", type=_seed, default=0, help="first seed")
+    p.add_argument("--seed", type=seed_type, default=0, help="first seed")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     p.add_argument("--out", default="out", help="directory for metrics.json and the figures")
     _add_output_options(p)
@@ -290,7 +271,7 @@ def _add_scenario_command(sub: Any, entry: Any) -> None:
     )
     p.add_argument(
         "--seeds",
-        type=_positive_int,
+        type=positive_int,
         default=entry.num_seeds,
         help="noise/planner seeds, run as one batch",
     )
@@ -598,9 +579,9 @@ def _add_engine_options(p: argparse.ArgumentParser, seeds: int, seed: int) -> No
 
     p.add_argument("scenario", choices=list(scenarios()), help="a registered scenario")
     p.add_argument(
-        "--seeds", type=_positive_int, default=seeds, help="seeds per configuration (one batch)"
+        "--seeds", type=positive_int, default=seeds, help="seeds per configuration (one batch)"
     )
-    p.add_argument("--seed", type=_seed, default=seed, help="first seed")
+    p.add_argument("--seed", type=seed_type, default=seed, help="first seed")
     p.add_argument("--engine", default="local", choices=["local", "ray"], help="where to run")
     p.add_argument(
         "--address",
@@ -609,12 +590,12 @@ def _add_engine_options(p: argparse.ArgumentParser, seeds: int, seed: int) -> No
     )
     p.add_argument(
         "--num-cpus",
-        type=_positive_int,
+        type=positive_int,
         default=None,
         help="CPUs of the local Ray cluster (default: all)",
     )
     p.add_argument(
-        "--threads", type=_positive_int, default=1, help="torch threads per configuration"
+        "--threads", type=positive_int, default=1, help="torch threads per configuration"
     )
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="torch device")
     p.add_argument("--out", default="out", help="output directory")
@@ -634,11 +615,11 @@ def _add_ecosystem_commands(sub: Any) -> None:
     )
     t = sub.add_parser("tune", help="Optuna search over a scenario's parameters")
     _add_engine_options(t, seeds=16, seed=10_000)
-    t.add_argument("--trials", type=_positive_int, default=20, help="Optuna trials")
-    t.add_argument("--eval-seed", type=_seed, default=0, help="first evaluation seed")
+    t.add_argument("--trials", type=positive_int, default=20, help="Optuna trials")
+    t.add_argument("--eval-seed", type=seed_type, default=0, help="first evaluation seed")
     t.add_argument(
         "--eval-seeds",
-        type=_positive_int,
+        type=positive_int,
         default=None,
         help="evaluation seeds (default: twice --seeds)",
     )
@@ -652,9 +633,9 @@ def _add_ecosystem_commands(sub: Any) -> None:
     t.add_argument(
         "--params", default=None, help="comma-separated dimensions to search (default: all)"
     )
-    t.add_argument("--sampler-seed", type=_seed, default=0, help="seed of the TPE sampler")
+    t.add_argument("--sampler-seed", type=seed_type, default=0, help="seed of the TPE sampler")
     t.add_argument(
-        "--batch", type=_positive_int, default=2, help="trials asked at once (parallel Ray tasks)"
+        "--batch", type=positive_int, default=2, help="trials asked at once (parallel Ray tasks)"
     )
     b = sub.add_parser("bench", help="run the benchmark scripts")
     b.add_argument("--quick", action="store_true", help="each script's short run (--quick)")
