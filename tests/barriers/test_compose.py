@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from torchcbf.barriers import Ball, Ellipse, Intersection, Scaled, Transformed, Union, rectify
-from torchcbf.dynamics import AccelUnicycle
+from torchcbf.dynamics import AccelUnicycle, SingleIntegrator
 from torchcbf.filters import RiskAware, SafetyFilter
 
 CENTERS = [[1.0, 2.0], [3.0, 2.0], [-1.0, 1.0]]
@@ -168,3 +168,15 @@ def test_risk_aware_filter_on_the_closed_forms_matches_autograd(dtype: torch.dty
     torch.testing.assert_close(a.h, b.h, **tol)
     torch.testing.assert_close(a.u, b.u, **tol)
     torch.testing.assert_close(a.status, b.status)
+
+
+def test_one_scale_in_a_list_scales_a_one_output_barrier_as_a_number() -> None:
+    ball = Ball([1.0, 0.0], 0.5)
+    model = AccelUnicycle()
+    x = torch.tensor([0.2, 0.3, 0.1, 0.5])
+    for scale in (2.0, [2.0]):
+        s = Scaled(ball, scale)
+        assert s(x[:2]).shape == ()
+        for method in ("autograd", "analytic"):
+            assert s.lie(x[:2], SingleIntegrator(2), method=method).h.shape == ()
+    assert Scaled(ball, [2.0]).lie(x, model).lgh.shape == (2,)

@@ -246,3 +246,10 @@ def test_a_diffusion_callable_must_give_one_matrix_per_state() -> None:
         model.sigma(torch.zeros(3, 3))
     good = SingleIntegrator(3, sigma=lambda x: 0.1 * torch.eye(3).expand(*x.shape[:-1], 3, 3))
     assert good.sigma(torch.zeros(5, 3)).shape == (5, 3, 3)
+
+
+def test_a_disturbance_batch_that_does_not_match_the_states_is_named() -> None:
+    model = SingleIntegrator(3, disturbance_bound=[0.1, 0.1, 0.1])
+    x, u, w = torch.zeros(3, 3), torch.zeros(3, 3), torch.zeros(5, 3)
+    with pytest.raises(ValueError, match=r"batch dimensions of x \(3, 3\) and w \(5, 3\)"):
+        model(x, u, w)

@@ -151,6 +151,12 @@ class Scaled(_OfOne):
                     f"Scaled has {k} scales, one per output, but {inner} gives "
                     f"{tuple(h.shape)} for states {tuple(x.shape)}"
                 )
+        if (
+            self.scale.dim() == 1
+            and k == 1
+            and not several_outputs(type(self.barrier).__name__, h, x)
+        ):
+            return self.scale.to(x).reshape(())  # one scale of one output: a number
         return self.scale.to(x)
 
     def quadric(self) -> Quadric | None:

@@ -251,6 +251,7 @@ class ControlAffine(TracksShadows, DerivedConstants):
         M = self.disturbance_matrix.to(x)
         check_last_dim("w", w, M.shape[1])
         check_same("x", x, "w", w)
+        check_batch_match("x", x, "w", w)
         return w @ M.mT
 
     @property
