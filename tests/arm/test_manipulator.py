@@ -359,6 +359,13 @@ def test_limits_given_on_one_side_and_a_joint_that_cannot_move() -> None:
     assert Manipulator("planar3.urdf").dof == 3
     with pytest.raises(ValueError, match="not well-formed XML"):
         Manipulator("<robot name='x'><link name='a'></robot>")
+    no_effort = (
+        '<robot name="r"><link name="a"/><link name="b"/><joint name="j" type="revolute">'
+        '<parent link="a"/><child link="b"/><limit lower="-1" upper="1" velocity="1"/>'
+        "</joint></robot>"
+    )
+    with pytest.raises(ValueError, match="not a valid URDF: .*effort"):
+        Manipulator(no_effort)
     with pytest.raises(ValueError, match="margin must be >= 0"):
         arm.random_configurations(4, margin=-0.5)
     # a joint whose velocity limit is zero stays still; the others still move

@@ -149,8 +149,15 @@ class Manipulator(ControlAffine):
             ElementTree.fromstring(text)
         except ElementTree.ParseError as err:
             raise ValueError(f"urdf is not well-formed XML: {err}") from None
+        parse_error = importlib.import_module(
+            "pytorch_kinematics.urdf_parser_py.xml_reflection.core"
+        ).ParseError
+        try:
+            tree = pk.build_chain_from_urdf(text)
+        except parse_error as err:  # a required attribute missing, say
+            raise ValueError(f"urdf is not a valid URDF: {err}") from None
         if end_link is None:
-            end_link = _leaf_link(pk.build_chain_from_urdf(text))
+            end_link = _leaf_link(tree)
         try:
             chain = pk.build_serial_chain_from_urdf(text, end_link, root_link)
         except (KeyError, ValueError) as err:
