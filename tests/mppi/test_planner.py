@@ -945,3 +945,17 @@ def test_a_cost_closure_that_requires_grad_keeps_the_plans_gradient(backend):
             [(plan(goal + 1e-6 * e).plan - plan(goal - 1e-6 * e).plan).sum() / 2e-6 for e in eye]
         )
     torch.testing.assert_close(grad, diff, rtol=1e-5, atol=1e-8)
+
+
+def test_a_time_that_is_not_finite_is_refused_or_plans_nothing() -> None:
+    """Its windows would all be empty and its obstacles ignored: a number is refused, a row
+    of a tensor reports status 1 and leaves the other rows alone."""
+    planner = _planner()
+    x = torch.zeros(3, planner.dynamics.state_dim, dtype=torch.float64)
+    for t in (math.nan, math.inf, True):
+        with pytest.raises(ValueError, match="t must be a finite number or tensor"):
+            planner(x, t=t)
+    out = _planner()(x, t=torch.tensor([0.0, math.nan, 0.0], dtype=torch.float64))
+    ref = _planner()(x, t=0.0)
+    assert out.status.tolist() == [0, 1, 0]
+    torch.testing.assert_close(out.u[[0, 2]], ref.u[[0, 2]])

@@ -376,3 +376,61 @@ def test_spec_cost_and_history_make_no_host_traffic() -> None:
         costs = [spec(states, None, t0, dt=0.1, history=buffer.view()) for spec in specs]
     assert not traffic.events, dict(traffic.events)
     assert all(cost.shape == (2, 5) for cost in costs)
+
+
+def _passing_ball(keep_in: bool = False):
+    from torchcbf.barriers import MovingBall
+
+    # the centre moves along x at 1 m/s: over (5, 0) at t = 5
+    return MovingBall(lambda t: torch.stack([t, torch.zeros_like(t)], -1), 0.5, keep_in=keep_in)
+
+
+def test_a_time_varying_predicate_is_read_at_each_states_time() -> None:
+    """Always and Eventually of a moving ball read it at the states' times (they read it at
+    t = 0: a robot the ball passes over at t = 5 was 'safe', one it covers 'never' there)."""
+    times = torch.arange(11, dtype=torch.float64)
+    states = torch.tensor([5.0, 0.0], dtype=torch.float64).expand(11, 2)
+    truth = _passing_ball()(states, times)  # 24.75 at t = 0, -0.25 at t = 5
+    assert float(Always(_passing_ball()).robustness(states, times)) == float(truth.min())
+    inside = _passing_ball(keep_in=True)
+    assert float(Eventually(inside).robustness(states, times)) == float(-truth.min())
+    # the planning costs too: the rollout parked at (5, 0) from t0 = 0 with dt = 1
+    rollout = states.reshape(1, 1, 11, 2)
+    cost = Eventually(inside)(rollout, None, 0.0, dt=1.0)
+    torch.testing.assert_close(cost, torch.full((1, 1), float(truth.min()), dtype=torch.float64))
+    worst = Always(_passing_ball())(rollout, None, 0.0, dt=1.0)
+    torch.testing.assert_close(worst, torch.full((1, 1), -float(truth.min()), dtype=torch.float64))
+    with pytest.raises(ValueError, match="Always.predicate has no times"):
+        Always(_passing_ball()).predicate(states)
+
+
+def test_a_cost_that_returns_a_view_leaves_the_states_alone() -> None:
+    states = torch.linspace(0.0, 1.0, 6, dtype=torch.float64).expand(2, 6).T.reshape(1, 1, 6, 2)
+    states = states.clone()
+    before = states.clone()
+    for spec in (
+        Eventually(lambda x: x[..., 0] - 0.5, (0.2, 0.4), cost=lambda x: x[..., 1]),
+        Always(lambda x: x[..., 0] - 0.5, (0.2, 0.4), cost=lambda x: x[..., 1]),
+    ):
+        spec(states, None, 0.0, dt=0.1)
+        assert torch.equal(states, before)
+
+
+def test_spec_arguments_that_would_silence_a_term_are_refused() -> None:
+    with pytest.raises(ValueError, match="center has 1 entries but index names 2"):
+        Avoid([1.0], 0.5)
+    for radius in (math.nan, math.inf, -1.0):
+        with pytest.raises(ValueError, match="radius must be a finite number >= 0"):
+            Avoid([1.0, 0.0], radius)
+    with pytest.raises(ValueError, match="Avoid with a barrier takes no radius"):
+        Avoid(barrier=lambda x: x[..., 0], radius=0.5)
+    with pytest.raises(ValueError, match="urgency must be a finite number >= 0"):
+        Reach([1.0, 0.0], 0.3, urgency=math.inf)
+    rollout = torch.zeros(1, 2, 4, 2, dtype=torch.float64)
+    reach = Reach([1.0, 0.0], 0.3, (0.0, 1.0))
+    with pytest.raises(ValueError, match="dt must be a finite number > 0"):
+        reach(rollout, None, 0.0, dt=math.nan)
+    with pytest.raises(ValueError, match="t0 must be finite"):
+        reach(rollout, None, math.nan, dt=0.1)
+    with pytest.raises(ValueError, match=r"t0 must be a number or have one time per row \[1\]"):
+        reach(rollout, None, torch.zeros(3), dt=0.1)

@@ -15,6 +15,7 @@ so it would not change the weights.)
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
 import torch
@@ -25,6 +26,7 @@ from torchcbf._checks import (
     as_tensor,
     check_finite,
     check_index,
+    check_number,
     check_positive_int,
     hooked,
 )
@@ -45,6 +47,16 @@ def state_index(index: Sequence[int], name: str = "index") -> tuple[int, ...] | 
     idx = check_index(name, index, None)
     if idx == tuple(range(idx[0], idx[0] + len(idx))):
         return slice(idx[0], idx[0] + len(idx))
+    return idx
+
+
+def point_index(center: Tensor, index: Sequence[int]) -> tuple[int, ...] | slice:
+    """:func:`state_index` of ``index``, which must name as many components as ``center``
+    has entries (``ValueError`` otherwise: a shorter center would broadcast)."""
+    idx = state_index(index)
+    d = idx.stop - idx.start if isinstance(idx, slice) else len(idx)
+    if d != center.numel():
+        raise ValueError(f"center has {center.numel()} entries but index names {d}")
     return idx
 
 
@@ -83,9 +95,17 @@ def rollout_times(states: Tensor, t0: Tensor | float | None, dt: float | None, n
     without ``dt``."""
     if dt is None:
         raise ValueError(f"{name} needs dt= (the rollout step) to time its states")
+    dt = check_number("dt", dt, low=0.0, strict=True)
     if states.dim() != 4:
         raise ValueError(f"states must have shape [B, K, T, n], got {tuple(states.shape)}")
+    if isinstance(t0, float) and not math.isfinite(t0):
+        raise ValueError(f"t0 must be finite, got {t0}")
     t0_t = as_tensor("t0", 0.0 if t0 is None else t0, device=states.device, dtype=states.dtype)
+    if t0_t.numel() not in (1, states.shape[0]):
+        raise ValueError(
+            f"t0 must be a number or have one time per row [{states.shape[0]}], "
+            f"got {tuple(t0_t.shape)}"
+        )
     steps = torch.arange(states.shape[-2], device=states.device, dtype=states.dtype)
     return (t0_t.reshape(-1, 1) + dt * steps).expand(states.shape[0], states.shape[-2])
 
@@ -184,11 +204,11 @@ class ObstacleCost(RolloutCost):
     ) -> None:
         super().__init__()
         center_t = constant("center", center)
-        self.index = state_index(index)
-        if radius < 0 or eps <= 0:
-            raise ValueError(f"radius must be >= 0 and eps > 0, got radius={radius}, eps={eps}")
+        self.index = point_index(center_t, index)
+        radius = check_number("radius", radius, low=0.0)
+        eps = check_number("eps", eps, low=0.0, strict=True)
         self.register_buffer("center", center_t)
-        self.radius, self.k_o, self.eps = float(radius), float(k_o), float(eps)
+        self.radius, self.k_o, self.eps = radius, float(k_o), eps
 
     def stage(self, states: Tensor, controls: Tensor | None) -> Tensor:
         dist = squared_distance(states, self.index, self.center).sqrt() - self.radius

@@ -733,7 +733,9 @@ class MPPI(TracksShadows, ExactConstants):
 
     # -- one planning call -------------------------------------------------------------------
     def forward(self, x: Tensor, t: float | Tensor = 0.0, shift: bool = True) -> MPPIOutput:
-        """Plan from ``x [n]`` or ``[B, n]`` at global time ``t`` (scalar or ``[B]``).
+        """Plan from ``x [n]`` or ``[B, n]`` at global time ``t`` (scalar or ``[B]``). A
+        time that is not finite is a ``ValueError`` given as a number; in a tensor, its row
+        plans nothing (``status`` 1, as where no sample has a finite cost).
 
         ``shift=False`` refines the plan without the warm-start shift (e.g. several
         iterations at the same time).
@@ -771,10 +773,17 @@ class MPPI(TracksShadows, ExactConstants):
         xb = resolved(x.unsqueeze(0) if unbatched else x)
         B = xb.shape[0]
         self._ensure_state(B, xb.device, xb.dtype)
+        if isinstance(t, bool) or (isinstance(t, float) and not math.isfinite(t)):
+            raise ValueError(f"t must be a finite number or tensor, got {t!r}")
         t0 = resolved(as_tensor("t", t, device=xb.device, dtype=xb.dtype))  # a number: no copy
         if t0.dim() > 1 or (t0.dim() == 1 and t0.shape[0] not in (1, B)):
             raise ValueError(f"t must be a scalar or have shape [{B}], got {tuple(t0.shape)}")
         t0 = t0.reshape(-1).expand(B)
+        if isinstance(t, Tensor):
+            # a row whose time is not finite plans nothing (its windows would all be empty,
+            # its obstacles ignored): its state is made NaN, so no sample has a finite cost
+            # and the row reports status 1 (read on the device, no host synchronisation)
+            xb = torch.where(torch.isfinite(t0).unsqueeze(-1), xb, math.nan)
         shifting = shift and not self._fresh
         self._noise_form()  # a noise_cov set since the last call: its factors made again
         kernel = self._kernel(xb)

@@ -47,18 +47,24 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import check_positive, several_outputs
+from torchcbf._checks import check_number, check_positive, several_outputs
 from torchcbf.mppi.costs import (
     constant,
+    point_index,
     rollout_times,
     squared_distance,
-    state_index,
     time_varying,
     untimed,
 )
 from torchcbf.mppi.history import History
 
 Predicate = Callable[[Tensor], Tensor]
+
+
+def _masked(c: Tensor, mask: Tensor, value: float, *, own: bool) -> Tensor:
+    """``c`` with ``value`` where ``mask``: in place where ``own`` (a tensor made here), out
+    of place where ``c`` is what a user's function returned (a view of the states, say)."""
+    return c.masked_fill_(mask, value) if own else c.masked_fill(mask, value)
 
 
 def pointwise(rho: Tensor, states: Tensor, name: str) -> Tensor:
@@ -128,20 +134,26 @@ class _Temporal(Spec):
 
     def predicate(self, states: Tensor) -> Tensor:
         """Pointwise robustness ``rho(x)``: ``[..., n] -> [...]`` (a predicate with ``k``
-        outputs ``[..., k]`` holds where all of them hold: their minimum)."""
-        assert self.predicate_fn is not None
+        outputs ``[..., k]`` holds where all of them hold: their minimum). A time-varying
+        predicate (``time_varying``: a :class:`~torchcbf.barriers.MovingBall`) has no time
+        to be read at here: :meth:`predicate_at` reads it."""
+        if self.predicate_fn is None:
+            raise ValueError(f"{type(self).__name__} was built without a predicate")
+        untimed(f"{type(self).__name__}.predicate", self.predicate_fn)
         return pointwise(self.predicate_fn(states), states, "predicate")
 
     def predicate_at(self, states: Tensor, times: Tensor) -> Tensor:
         """``rho`` of ``states [..., n]`` at global ``times`` (broadcasting to
-        ``states.shape[:-1]``): :meth:`predicate`, which does not read time, unless a
-        subclass's predicate does."""
+        ``states.shape[:-1]``): a time-varying predicate is read at each state's time."""
+        if self.predicate_fn is not None and time_varying(self.predicate_fn):
+            return pointwise(self.predicate_fn(states, times), states, "predicate")
         return self.predicate(states)
 
-    def pointwise_cost(self, states: Tensor) -> Tensor:
-        """Pointwise cost ``c(x)``: ``[..., n] -> [...]`` (``-rho`` by default)."""
+    def pointwise_cost(self, states: Tensor, times: Tensor | None = None) -> Tensor:
+        """Pointwise cost ``c(x)``: ``[..., n] -> [...]`` (``-rho`` by default, read at
+        global ``times`` broadcasting to ``states.shape[:-1]`` where given)."""
         if self.cost_fn is None:
-            return -self.predicate(states)
+            return -(self.predicate(states) if times is None else self.predicate_at(states, times))
         c = self.cost_fn(states)
         if c.shape != states.shape[:-1]:
             raise ValueError(
@@ -182,9 +194,7 @@ class Eventually(_Temporal):
         urgency: float = 0.0,
     ) -> None:
         super().__init__(predicate, interval, cost)
-        if not isinstance(urgency, (int, float)) or not urgency >= 0:
-            raise ValueError(f"urgency must be >= 0, got {urgency!r}")
-        self.urgency = float(urgency)
+        self.urgency = check_number("urgency", urgency, low=0.0)
 
     def robustness(self, states: Tensor, times: Tensor) -> Tensor:
         rho = self.predicate_at(states, times)
@@ -198,26 +208,34 @@ class Eventually(_Temporal):
         return (self.urgency * (times - times[:, :1])).unsqueeze(1)
 
     def rollout_min_cost(
-        self, states: Tensor, window: Tensor, ramp: Tensor | None = None
+        self,
+        states: Tensor,
+        window: Tensor,
+        ramp: Tensor | None = None,
+        times: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]:
         """Minimum of ``c (+ ramp)`` over the rollout states inside ``window [B, T]``
-        (``+inf`` when none is) and the same at the last state: two ``[B, K]`` tensors."""
-        c = self.pointwise_cost(states)  # [B, K, T]
+        (``+inf`` when none is) and the same at the last state: two ``[B, K]`` tensors
+        (``times [B, T]``: the states' global times, for a predicate that reads them)."""
+        c = self.pointwise_cost(states, None if times is None else times.unsqueeze(1))
         if ramp is not None:
             c = c + ramp
         last = c[..., -1].clone()
-        return c.masked_fill_(~window.unsqueeze(1), math.inf).amin(-1), last
+        return _masked(
+            c, ~window.unsqueeze(1), math.inf, own=self.cost_fn is None or ramp is not None
+        ).amin(-1), last
 
     def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
         window = self.in_window(times)  # [B, T]
-        roll_min, last = self.rollout_min_cost(states, window, self._ramp(times))
+        roll_min, last = self.rollout_min_cost(states, window, self._ramp(times), times)
         roll = torch.where(window.any(-1, keepdim=True), roll_min, last)
         passed = times[:, :1] > self.interval[1] + self.time_tol
         if history is None:
             return torch.where(passed, torch.zeros_like(roll), roll)
         h_window = history.valid & self.in_window(history.times)  # [B, N]
-        h_min = self.pointwise_cost(history.states).masked_fill(~h_window, math.inf).amin(-1)
-        reached = (h_window & (self.predicate(history.states) >= 0)).any(-1)
+        h_cost = self.pointwise_cost(history.states, history.times)
+        h_min = h_cost.masked_fill(~h_window, math.inf).amin(-1)
+        reached = (h_window & (self.predicate_at(history.states, history.times) >= 0)).any(-1)
         frozen = reached.unsqueeze(-1) | passed
         h_min = h_min.unsqueeze(-1)
         constant = torch.where(torch.isfinite(h_min), h_min, torch.zeros_like(h_min))
@@ -247,15 +265,17 @@ class Always(_Temporal):
         mask = self.in_window(times.to(rho.dtype)).expand(rho.shape)
         return rho.masked_fill(~mask, math.inf).amin(-1)
 
-    def rollout_max_cost(self, states: Tensor, window: Tensor) -> Tensor:
+    def rollout_max_cost(
+        self, states: Tensor, window: Tensor, times: Tensor | None = None
+    ) -> Tensor:
         """Maximum of ``c`` over the rollout states inside ``window [B, T]``: ``[B, K]``
-        (``-inf`` when none is)."""
-        c = self.pointwise_cost(states)  # [B, K, T]
-        return c.masked_fill_(~window.unsqueeze(1), -math.inf).amax(-1)
+        (``-inf`` when none is; ``times [B, T]``: the states' global times)."""
+        c = self.pointwise_cost(states, None if times is None else times.unsqueeze(1))
+        return _masked(c, ~window.unsqueeze(1), -math.inf, own=self.cost_fn is None).amax(-1)
 
     def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
         window = self.in_window(times)  # [B, T]
-        return self._windowed(self.rollout_max_cost(states, window), window)
+        return self._windowed(self.rollout_max_cost(states, window, times), window)
 
     @staticmethod
     def _windowed(worst: Tensor, window: Tensor) -> Tensor:
@@ -284,10 +304,7 @@ class Reach(Eventually):
     ) -> None:
         super().__init__(None, interval, None, urgency)
         center_t = constant("center", center)
-        self.index = state_index(index)
-        d = self.index.stop - self.index.start if isinstance(self.index, slice) else len(self.index)
-        if d != center_t.numel():
-            raise ValueError(f"center has {center_t.numel()} entries but index names {d}")
+        self.index = point_index(center_t, index)
         self.register_buffer("center", center_t)
         self.radius = check_positive("radius", radius)
         self.weight = check_positive("weight", weight)
@@ -295,11 +312,15 @@ class Reach(Eventually):
     def predicate(self, states: Tensor) -> Tensor:
         return self.radius - squared_distance(states, self.index, self.center).sqrt()
 
-    def pointwise_cost(self, states: Tensor) -> Tensor:
+    def pointwise_cost(self, states: Tensor, times: Tensor | None = None) -> Tensor:
         return self.weight * (squared_distance(states, self.index, self.center) - self.radius**2)
 
     def rollout_min_cost(
-        self, states: Tensor, window: Tensor, ramp: Tensor | None = None
+        self,
+        states: Tensor,
+        window: Tensor,
+        ramp: Tensor | None = None,
+        times: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]:
         d2 = squared_distance(states, self.index, self.center)
         if ramp is not None:
@@ -346,12 +367,15 @@ class Avoid(Always):
         if barrier is not None:
             if not callable(barrier):
                 raise TypeError(f"barrier must be callable, got {type(barrier).__name__}")
+            if radius is not None:
+                raise ValueError("Avoid with a barrier takes no radius (the barrier is the set)")
         else:
-            if radius is None or radius < 0:
-                raise ValueError(f"Avoid with a center needs radius >= 0, got {radius}")
+            if radius is None:
+                raise ValueError("Avoid with a center needs radius >= 0")
+            radius = check_number("radius", radius, low=0.0)
             self.center = constant("center", center)
-            self.index = state_index(index)
-        self.radius = None if radius is None else float(radius)
+            self.index = point_index(self.center, index)
+        self.radius = radius
         self.weight = check_positive("weight", weight)
         self.eps = check_positive("eps", eps)
 
@@ -366,10 +390,13 @@ class Avoid(Always):
             return pointwise(self.barrier(states, times), states, "barrier")
         return self.predicate(states)
 
-    def pointwise_cost(self, states: Tensor) -> Tensor:
-        return self.weight / self.predicate(states).clamp_min(self.eps)
+    def pointwise_cost(self, states: Tensor, times: Tensor | None = None) -> Tensor:
+        rho = self.predicate(states) if times is None else self.predicate_at(states, times)
+        return self.weight / rho.clamp_min(self.eps)
 
-    def rollout_max_cost(self, states: Tensor, window: Tensor) -> Tensor:
+    def rollout_max_cost(
+        self, states: Tensor, window: Tensor, times: Tensor | None = None
+    ) -> Tensor:
         # c is decreasing in rho: reduce rho (or |p - o|^2), transform [B, K] only
         outside = ~window.unsqueeze(1)
         if self.barrier is not None:
