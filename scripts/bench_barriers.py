@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import sys
 import time
 from collections.abc import Callable
 
@@ -60,14 +61,23 @@ def _terms(out: object, rows: int) -> tuple[torch.Tensor, ...]:
     return tuple(t.double() for t in found)
 
 
+#: largest relative difference ``|a - r| / (1 + |r|)`` from the float64 reference that a
+#: formulation's answers may have: rounding of their dtype, with room
+TOLERANCE = {torch.float32: 1e-4, torch.float64: 1e-9}
+
+
 def _max_difference(out: object, ref: tuple[torch.Tensor, ...]) -> float:
-    """Largest absolute difference of a formulation's terms from the reference's (on the
-    rows the formulation has); ``inf`` when a term the reference has is missing."""
+    """Largest relative difference ``|a - r| / (1 + |r|)`` of a formulation's terms from
+    the reference's (on the rows the formulation has); ``inf`` when a term the reference
+    has is missing."""
     got = _terms(out, ref[0].shape[0])
     if len(got) < len(ref):
         return float("inf")
     rows = got[0].shape[0]
-    diffs = [float((g.cpu() - r[:rows].cpu()).abs().max()) for g, r in zip(got, ref, strict=False)]
+    diffs = [
+        float(((g.cpu().double() - r[:rows].cpu()).abs() / (1.0 + r[:rows].cpu().abs())).max())
+        for g, r in zip(got, ref, strict=False)
+    ]
     return max(diffs)
 
 
@@ -188,16 +198,20 @@ def main() -> None:
             diffs = [(label, _max_difference(out, reference)) for label, out in answers]
             worst = max([worst, *(d for _, d in diffs)])
             print(
-                f"  max |difference| from torch.func in float64 on {x64.shape[0]:,} states "
+                f"  max relative difference from torch.func in float64 on {x64.shape[0]:,} states "
                 f"({'lfh, lgh, hess_trace' if with_hessian else 'lfh, lgh'}): "
                 + ", ".join(f"{label} {d:.2e}" for label, d in diffs)
             )
 
     print(
-        f"\nmax |difference| between formulations on {x64.shape[0]:,} states: {worst:.2e} "
-        f"(every timed formulation of every setup, against torch.func in float64; {args.dtype} "
-        "answers)"
+        f"\nmax relative difference between formulations on {x64.shape[0]:,} states: "
+        f"{worst:.2e} (every timed formulation of every setup, against torch.func in float64; "
+        f"{args.dtype} answers)"
     )
+    tol = TOLERANCE[getattr(torch, args.dtype)]
+    if not worst <= tol:
+        print(f"bench_barriers: answers differ by more than {tol:.0e}", file=sys.stderr)
+        raise SystemExit(1)
 
 
 if __name__ == "__main__":

@@ -159,7 +159,8 @@ def agreement(
     peer_higher = apart & ~bad_p & ~bad_o & (f_p > f_o + tol)
     peer_worse = peer_infeasible | peer_higher
     ours_worse = apart & ((bad_o & ~bad_p) | (~bad_p & ~bad_o & (f_o > f_p + tol)))
-    even = apart & ~peer_worse & ~ours_worse
+    even = apart & ~peer_worse & ~ours_worse & ~bad_o & ~bad_p
+    both_infeasible = apart & bad_o & bad_p
     # torchcbf's KKT residual from its x and multipliers
     grad = _mv(Q, x) + p + _mv(G.mT, lam)
     slack = _mv(G, x) - h
@@ -175,6 +176,7 @@ def agreement(
     kkt = apart & (res <= KKT_TOL)
     k, n_ok = int(close.sum()), int(solved.sum())
     pw, ow, ev, kk = (int(t.sum()) for t in (peer_worse, ours_worse, even, kkt))
+    bi = int(both_infeasible.sum())
     p_hi, p_inf = int(peer_higher.sum()), int(peer_infeasible.sum())
     flagged = ""
     if peer_status is not None:
@@ -183,7 +185,7 @@ def agreement(
     if short:
         text = f"{k}/{n_ok}"
         if n_ok > k:
-            text += f" ({pw} {peer} worse, {ow} torchcbf worse, {ev} even{flagged})"
+            text += f" ({pw} {peer} worse, {ow} torchcbf worse, {ev} even, {bi} both off{flagged})"
     else:
         worst = float(dx[solved].max()) if n_ok else float("nan")
         text = (
@@ -195,7 +197,8 @@ def agreement(
                 f"; of the other {n_ok - k}: {p_hi} where {peer}'s objective is worse by > "
                 f"{MARGIN:.0e}, {p_inf} where {peer}'s x violates a row by > {MARGIN:.0e}, "
                 f"{ow} where torchcbf's answer is the worse, {ev} where both are feasible and "
-                f"their objectives within {MARGIN:.0e}; torchcbf's answer a KKT point "
+                f"their objectives within {MARGIN:.0e}, {bi} where both violate a row; "
+                "torchcbf's answer a KKT point "
                 f"(residual <= {KKT_TOL:.0e}) on {kk} of the {n_ok - k}{flagged}"
             )
     if n_ok < Bp:
@@ -676,10 +679,11 @@ def main() -> None:
                 f"\n# answers: rows whose x agrees with torchcbf[torch]'s to {AGREE_X:.0e}, of the "
                 f"rows torchcbf solved; where some do not, on how many the peer's answer is worse "
                 f"(objective higher by > {MARGIN:.0e} or a row violated by > {MARGIN:.0e}), "
-                "torchcbf's is worse, or neither (even); peers' settings as on the tolerances line"
+                "torchcbf's is worse, neither (even), or both violate a row (both off); peers' "
+                "settings as on the tolerances line"
             )
         hdr = f"{'B':>6} {'n':>2} {'m':>3} {'solver':<22} {'fwd us/QP':>10} {'fwd+bwd us/QP':>14}"
-        print(hdr + f" {'x vs torchcbf (fwd+bwd)':>24}  answers")
+        print(hdr + f" {'time / torchcbf (fwd+bwd)':>24}  answers")
         for B, n, m in grid:
             Q, p, G, h = make_problems(B, n, m, dev)
             Qc, pc, Gc, hc = (t.cpu() for t in (Q, p, G, h))

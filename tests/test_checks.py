@@ -242,3 +242,16 @@ def test_a_number_beyond_the_dtype_is_a_value_error_naming_it() -> None:
     assert float(as_tensor("gain", 1e39, dtype=torch.float64)) == 1e39
     with pytest.raises(ValueError, match="alpha"):
         SafetyFilter(SingleIntegrator(2), Ball([1.0, 0.0], 0.5), alpha=1e39)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="a machine without CUDA")
+def test_a_device_the_machine_lacks_is_named() -> None:
+    from torchcbf._checks import as_tensor
+
+    for device in ("cuda", torch.device("cuda:0")):
+        with pytest.raises(ValueError, match="this torch has no CUDA device"):
+            as_tensor("low", [1.0, 2.0], device=device)
+        with pytest.raises(ValueError, match="this torch has no CUDA device"):
+            as_tensor("low", 1.0, device=device)
+    with pytest.raises(ValueError, match="'bogus' is not a device torch knows"):
+        as_tensor("low", [1.0], device="bogus")

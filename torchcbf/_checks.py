@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import math
 import numbers
+import operator
 from collections.abc import Collection, Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
@@ -113,7 +114,7 @@ def check_positive(name: str, value: float) -> float:
 
 
 def check_positive_int(name: str, value: object) -> int:
-    """Check a Python int is >= 1 (a bool is not an int here)."""
+    """Check an int (Python's or NumPy's; a bool is not one here) is >= 1."""
     return check_int(name, value, low=1, what="a positive int")
 
 
@@ -130,12 +131,15 @@ def check_index(name: str, index: Sequence[int], state_dim: int | None) -> tuple
     repeated (a closed form keeps one copy of a repeated component, autograd both)."""
     if isinstance(index, (np.ndarray, Tensor)) and index.ndim == 1:
         index = index.tolist()
-    if isinstance(index, (str, bytes)) or not isinstance(index, Sequence):
+    if isinstance(index, (str, bytes)) or not isinstance(index, Iterable):
         raise TypeError(f"{name} must be a sequence of ints, got {index!r}")
-    for i in index:
-        if isinstance(i, bool) or not isinstance(i, (int, np.integer)):
-            raise TypeError(f"{name} must hold ints, got {index!r}")
-    index = tuple(int(i) for i in index)
+    index = tuple(index)
+    try:
+        if any(isinstance(i, bool) for i in index):
+            raise TypeError
+        index = tuple(operator.index(i) for i in index)
+    except TypeError:
+        raise TypeError(f"{name} must hold ints, got {index!r}") from None
     if len(index) == 0:
         raise ValueError(f"{name} must name at least one state component")
     if len(set(index)) != len(index):
@@ -149,8 +153,8 @@ def check_index(name: str, index: Sequence[int], state_dim: int | None) -> tuple
 
 def as_tensor(name: str, value: object, *, dtype: torch.dtype | None = None, device=None) -> Tensor:
     """Convert a number, sequence or tensor to a floating tensor (default dtype if not a tensor)."""
-    if device is not None and (not isinstance(device, torch.device) or device.type != "cpu"):
-        device = check_device(device)
+    if device is not None and not isinstance(device, torch.device):
+        device = check_device(device)  # a name given by a user (a tensor's device exists)
     if isinstance(value, Tensor):
         out = value
         if not out.is_floating_point():
@@ -163,11 +167,15 @@ def as_tensor(name: str, value: object, *, dtype: torch.dtype | None = None, dev
         # filled on the device: no copy from the host to wait for
         try:
             return torch.full((), value, dtype=dtype, device=device)
-        except RuntimeError as err:  # a number beyond the dtype's range
+        except (RuntimeError, AssertionError) as err:  # the range, or a device not built in
+            if device is not None:
+                check_device(device)
             raise ValueError(f"{name} = {value!r} does not fit in {dtype}") from err
     try:
         return torch.as_tensor(value, dtype=dtype, device=device)
-    except (TypeError, ValueError, RuntimeError) as err:
+    except (TypeError, ValueError, RuntimeError, AssertionError) as err:
+        if device is not None:
+            check_device(device)
         raise TypeError(f"{name} must be a number, sequence or tensor, got {value!r}") from err
 
 

@@ -180,3 +180,15 @@ def test_one_scale_in_a_list_scales_a_one_output_barrier_as_a_number() -> None:
         for method in ("autograd", "analytic"):
             assert s.lie(x[:2], SingleIntegrator(2), method=method).h.shape == ()
     assert Scaled(ball, [2.0]).lie(x, model).lgh.shape == (2,)
+
+
+def test_smooth_temperatures_and_rates_are_finite_positive_numbers() -> None:
+    a, b = Ball([0.0, 0.0], 1.0), Ball([3.0, 0.0], 1.0)
+    for cls in (Intersection, Union):
+        for bad in (float("inf"), 0.0, -1.0):
+            with pytest.raises(ValueError, match="temperature must be a finite number > 0"):
+                cls(a, b, smooth=True, temperature=bad)
+        with pytest.raises(TypeError, match="temperature must be a Python number"):
+            cls(a, b, smooth=True, temperature=torch.tensor(0.1, requires_grad=True))
+    with pytest.raises(ValueError, match="rate must be a finite number > 0"):
+        Transformed(a, "exp", rate=float("inf"))

@@ -198,3 +198,7 @@ def test_state_indices_must_be_distinct_ints() -> None:
     import numpy as np
 
     assert Ball([0.0, 0.0], 1.0, index=np.array([2, 0])).index == (2, 0)
+    assert Ball([0.0, 0.0], 1.0, index=[torch.tensor(2), np.int64(0)]).index == (2, 0)
+    assert Ball([0.0, 0.0], 1.0, index=range(1, 3)).index == (1, 2)
+    with pytest.raises(TypeError, match="index must hold ints"):
+        Ball([0.0, 0.0], 1.0, index=(True, False))

@@ -253,3 +253,10 @@ def test_a_disturbance_batch_that_does_not_match_the_states_is_named() -> None:
     x, u, w = torch.zeros(3, 3), torch.zeros(3, 3), torch.zeros(5, 3)
     with pytest.raises(ValueError, match=r"batch dimensions of x \(3, 3\) and w \(5, 3\)"):
         model(x, u, w)
+
+
+def test_model_sizes_take_numpy_ints() -> None:
+    import numpy as np
+
+    model = DoubleIntegrator(np.int64(2))
+    assert model.state_dim == 4 and type(model.state_dim) is int

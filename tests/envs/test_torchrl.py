@@ -521,6 +521,7 @@ def test_safe_rl_script_runs_at_tiny_sizes(tmp_path):
         ("lr", 0.0, "lr must be a finite number > 0"),
         ("gamma", 1.5, r"gamma must lie in \[0, 1\]"),
         ("entropy_coef", -0.1, "entropy_coef must be a finite number >= 0"),
+        ("filter_margin", float("nan"), "filter_margin must be a finite number >= 0"),
     ],
 )
 def test_ppo_settings_are_checked_when_made(field, value, message) -> None:

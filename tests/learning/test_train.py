@@ -216,3 +216,12 @@ def test_mlp_normalises_its_input(dtype) -> None:
         MLP(2, activation="relu6")
     with pytest.raises(ValueError, match="high must exceed low"):
         MLP(2, low=[0.0, 0.0], high=[1.0, 0.0])
+
+
+def test_a_half_precision_loss_with_a_large_gradient_is_not_skipped() -> None:
+    """The loss and the gradient's norm are read in at least float32: a norm of 1e5 is
+    finite there and infinite in float16."""
+    w = torch.nn.Parameter(torch.full((4,), 1e-3))
+    opt = torch.optim.SGD([w], lr=1e-9)
+    res = train(lambda s: (w * 5e4).half().sum(), opt, 2, progress=False)  # norm 1e5
+    assert res.skipped == 0 and res.losses[0] == pytest.approx(200.0, rel=1e-3)

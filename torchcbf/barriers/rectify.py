@@ -471,12 +471,7 @@ def rectify(
     if relative_degree is None:
         r = find_relative_degree(barrier, dynamics, samples, seed=seed, tol=tol)
     else:
-        if (
-            isinstance(relative_degree, bool)
-            or not isinstance(relative_degree, int)
-            or relative_degree < 1
-        ):
-            raise ValueError(f"relative_degree must be an integer >= 1, got {relative_degree!r}")
+        relative_degree = check_int("relative_degree", relative_degree, low=1)
         if relative_degree > dynamics.state_dim:
             raise ValueError(
                 f"relative_degree={relative_degree} exceeds the state dimension "

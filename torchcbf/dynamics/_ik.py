@@ -24,6 +24,7 @@ from torch import Tensor
 
 from torchcbf._checks import (
     broadcast_shapes,
+    check_int,
     check_number,
     check_positive,
     check_tensor,
@@ -185,19 +186,19 @@ def inverse_kinematics(
     Returns:
         :class:`IKResult` ``(q [..., dof], converged [...], error [...])``, in the target's
         dtype and device. The solve is not differentiated (the outputs carry no gradient).
+        A row whose target is not finite is not converged (its error NaN) and leaves the
+        others alone; a start ``q_init`` that is not finite is the last choice among the
+        row's restarts.
     """
     check_tensor("target", target)
     if not target.is_floating_point():
         raise TypeError(f"target must be a floating tensor, got {target.dtype}")
     if target.dim() == 0 or target.shape[-1] not in (2, 3):
         raise ValueError(f"target must have shape [..., 3] or [..., 2], got {tuple(target.shape)}")
-    if isinstance(restarts, bool) or not isinstance(restarts, int) or restarts < 1:
-        raise ValueError(f"restarts must be an int >= 1, got {restarts!r}")
-    if isinstance(iters, bool) or not isinstance(iters, int) or iters < 1:
-        raise ValueError(f"iters must be an int >= 1, got {iters!r}")
-    for name, value in (("check_every", check_every), ("reseed_every", reseed_every)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-            raise ValueError(f"{name} must be an int >= 0, got {value!r}")
+    restarts = check_int("restarts", restarts, low=1)
+    iters = check_int("iters", iters, low=1)
+    check_every = check_int("check_every", check_every, low=0)
+    reseed_every = check_int("reseed_every", reseed_every, low=0)
     if generator is None and (isinstance(seed, bool) or not isinstance(seed, numbers.Integral)):
         raise TypeError(f"seed must be an int, got {seed!r}")
     clearance = check_number("clearance", clearance)

@@ -223,8 +223,10 @@ def train(
             norm = torch.nn.utils.clip_grad_norm_(params, grad_clip)
         else:
             norm = torch.stack([g.norm() for g in grads]).norm() if grads else loss
-        # in the loss's dtype (no float64 on some devices): one read for both
-        value, size = torch.stack((loss.detach(), norm.detach().to(loss.dtype))).tolist()
+        # one read for both, in at least float32 (a float16 loss would overflow the norm;
+        # some devices have no float64)
+        read = torch.promote_types(torch.promote_types(loss.dtype, norm.dtype), torch.float32)
+        value, size = torch.stack((loss.detach().to(read), norm.detach().to(read))).tolist()
         if math.isfinite(value) and math.isfinite(size):
             optimizer.step()
             if scheduler is not None:

@@ -50,7 +50,10 @@ def ray_session(address: str | None = None, num_cpus: int | None = None) -> Iter
         main = threading.current_thread() is threading.main_thread()
         sigterm = signal.getsignal(signal.SIGTERM) if main else None
         ray.init(**kwargs)
-        if sigterm is not None:  # Ray's own handler exits at once: the caller's answers
+        # Ray installs a SIGTERM handler that exits (sys.exit); a handler of the caller's
+        # own (the command line's: Ctrl-C's answer) is put back, the default is not (it
+        # would end the process without unwinding, leaving Ray's processes behind)
+        if callable(sigterm):
             signal.signal(signal.SIGTERM, sigterm)
         started = True
     try:
