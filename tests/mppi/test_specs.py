@@ -434,3 +434,20 @@ def test_spec_arguments_that_would_silence_a_term_are_refused() -> None:
         reach(rollout, None, math.nan, dt=0.1)
     with pytest.raises(ValueError, match=r"t0 must be a number or have one time per row \[1\]"):
         reach(rollout, None, torch.zeros(3), dt=0.1)
+
+
+def test_a_full_history_warns_once_that_it_forgets() -> None:
+    buffer = HistoryBuffer(3, 1, 2, device="cpu", dtype=torch.float64)
+    x, t = torch.zeros(1, 2, dtype=torch.float64), torch.zeros(1, dtype=torch.float64)
+    for _ in range(3):
+        buffer.record(x, t)
+    with pytest.warns(UserWarning, match="history of 3 slots is full"):
+        buffer.record(x, t)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        buffer.record(x, t)  # once per buffer
+        buffer.clear()
+        for _ in range(3):
+            buffer.record(x, t)

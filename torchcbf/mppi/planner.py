@@ -426,7 +426,9 @@ class MPPI(TracksShadows, ExactConstants):
             the integrators) or ``"rk4"``.
         seed: environment ``b`` uses a generator seeded with ``seed + b``.
         keep_rollouts: return the first ``R`` sampled rollouts and weights (0: none).
-        history_size: slots of the executed-state history read by specifications.
+        history_size: slots of the executed-state history read by specifications (a
+            warning when it is full: older states, a goal reached among them too, are
+            forgotten).
         shift_fill: ``"zero"`` (default) or ``"last"``: control appended by the warm start.
         zero_noise_samples: the first samples of each environment get no noise (they
             evaluate the shifted previous plan itself).
