@@ -10,7 +10,7 @@ import torch
 
 from torchcbf.dynamics import DoubleIntegrator, SingleIntegrator, Unicycle
 from torchcbf.mppi import MPPI, And, Avoid, Reach
-from torchcbf.mppi.defaults import MPPISettings, propose_settings, travel_curve
+from torchcbf.mppi.defaults import GOAL_RATIO, MPPISettings, propose_settings, travel_curve
 from torchcbf.sim import metrics, simulate
 
 
@@ -141,3 +141,37 @@ def test_families_meet_their_specifications_in_most_seeds(name) -> None:
     model, spec, x0, dt, steps = module.family(name)
     planner = propose_settings(model, spec, dt=dt, x0=x0).planner(model, num_samples=1000, seed=100)
     assert module.success(model, spec, planner, x0, dt, steps, 16, 100) >= 14
+
+
+def test_a_travel_curve_ends_once_it_reaches_what_is_asked() -> None:
+    model = SingleIntegrator(2, u_min=-1.0, u_max=2.0).double()
+    x0 = torch.zeros(2, dtype=torch.float64)
+    full = travel_curve(model, x0, (0, 1), dt=0.1, duration=1000.0, reach=0.5)
+    # sqrt(8) * 0.1 j >= 0.5 from j = 2 on: the curve stops there, not at 10,000 steps
+    assert full.shape == (3,)
+    torch.testing.assert_close(full, math.sqrt(8.0) * 0.1 * torch.arange(3, dtype=torch.float64))
+
+
+def test_legs_follow_their_deadlines() -> None:
+    """A goal whose window closes first is the first leg, whatever window opens first: it
+    takes the larger weight, and no leg gets a negative time."""
+    model = SingleIntegrator(2, u_min=-1.0, u_max=1.0)
+    late = Reach((4.0, 0.0), 0.5, interval=(0.0, 10.0))
+    early = Reach((0.0, 3.0), 0.5, interval=(1.0, 5.0))
+    s = propose_settings(model, And(late, early), dt=0.1)
+    planned_late, planned_early = (g for g in s.spec.specs if isinstance(g, Reach))
+    d_early = 3.0 - 0.5
+    d_late = math.hypot(4.0, -3.0) - 0.5  # from the first leg's goal
+    assert planned_early.weight == pytest.approx(GOAL_RATIO / d_early**2)
+    assert planned_late.weight == pytest.approx(1.0 / d_late**2)
+    assert "min(-" not in s.reasons["horizon"]
+
+
+def test_proposals_refuse_times_and_starts_that_are_not_finite() -> None:
+    model = SingleIntegrator(2, u_min=-1.0, u_max=1.0)
+    spec = Reach((1.0, 0.0), 0.3, interval=(0.0, 5.0))
+    for dt in (math.nan, math.inf, 0.0):
+        with pytest.raises(ValueError, match="dt must be a finite number > 0"):
+            propose_settings(model, spec, dt=dt)
+    with pytest.raises(ValueError, match="x0 must not contain NaN"):
+        propose_settings(model, spec, dt=0.1, x0=[math.nan, 0.0])

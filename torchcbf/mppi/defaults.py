@@ -45,6 +45,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchcbf._checks import check_finite, check_number
 from torchcbf.dynamics import ControlAffine
 from torchcbf.integrators import step
 from torchcbf.mppi.planner import MPPI
@@ -147,11 +148,18 @@ def _box_controls(lo: Tensor, hi: Tensor) -> Tensor:
 
 
 def travel_curve(
-    dynamics: ControlAffine, x0: Tensor, index: Sequence[int] | slice, *, dt: float, duration: float
+    dynamics: ControlAffine,
+    x0: Tensor,
+    index: Sequence[int] | slice,
+    *,
+    dt: float,
+    duration: float,
+    reach: float = math.inf,
 ) -> Tensor:
     """``d [T+1]``: the farthest the coordinates ``index`` of ``x0 [n]`` move from where they
     start within ``j dt`` seconds, over constant controls at the corners and face centres
-    of the control box (``T = ceil(duration / dt)``)."""
+    of the control box (``T = ceil(duration / dt)``, or fewer: the curve ends once it
+    reaches ``reach``)."""
     lo, hi = _limits(dynamics)
     u = _box_controls(lo, hi).to(x0.dtype)
     x = x0.expand(u.shape[0], -1).clone()
@@ -162,6 +170,8 @@ def travel_curve(
         for _ in range(math.ceil(duration / dt)):
             x = step(dynamics, x, u, dt, method="euler")
             far.append(torch.maximum(far[-1], (x[..., index] - p0).norm(dim=-1).amax()))
+            if float(far[-1]) >= reach:
+                break
     return torch.stack(far)
 
 
@@ -188,8 +198,9 @@ def propose_settings(
         dynamics: the model the planner rolls out; it must have finite ``u_min``/``u_max``.
         spec: a specification with at least one :class:`Reach` (goals); :class:`Avoid`
             discs are re-weighted, other nodes are kept as they are. The rules read the
-            goals as visited one after the other, in the order of their windows (an
-            ``And`` of goals); under an ``Or`` they apply to each goal all the same.
+            goals as visited one after the other, in the order of their deadlines (the
+            ends of their windows; an ``And`` of goals); under an ``Or`` they apply to each
+            goal all the same.
         dt: the planning step (s).
         x0: ``[n]`` the start state (zeros by default).
         max_horizon: the longest horizon proposed (steps).
@@ -202,8 +213,7 @@ def propose_settings(
         raise TypeError(f"dynamics must be a ControlAffine module, got {type(dynamics).__name__}")
     if not isinstance(spec, Spec):
         raise TypeError(f"spec must be a torchcbf.mppi Spec, got {type(spec).__name__}")
-    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not dt > 0:
-        raise ValueError(f"dt must be a positive number, got {dt!r}")
+    dt = check_number("dt", dt, low=0.0, strict=True)
     if isinstance(max_horizon, bool) or not isinstance(max_horizon, int) or max_horizon < 1:
         raise ValueError(f"max_horizon must be an integer >= 1, got {max_horizon!r}")
     lo, hi = _limits(dynamics)
@@ -215,10 +225,14 @@ def propose_settings(
         x0_t = torch.as_tensor(x0, dtype=dtype, device=lo.device)
         if x0_t.shape != (n,):
             raise ValueError(f"x0 must have shape [{n}], got {list(x0_t.shape)}")
+        check_finite("x0", x0_t)
 
     planned = copy.deepcopy(spec)
     nodes = _nodes(planned)
-    goals = sorted((s for s in nodes if isinstance(s, Reach)), key=lambda s: s.interval)
+    # the legs in the order of their deadlines (a tie by the window's start)
+    goals = sorted(
+        (s for s in nodes if isinstance(s, Reach)), key=lambda s: (s.interval[1], s.interval[0])
+    )
     if not goals:
         raise ValueError(
             "spec has no Reach goal: propose_settings reads the legs of the task from its "
@@ -227,22 +241,25 @@ def propose_settings(
     finite = [t for g in goals for t in g.interval if math.isfinite(t)]
     duration = max(finite + [dt * max_horizon])
 
-    travel, lengths, gaps = [], [], []
-    curves: dict[str, Tensor] = {}
+    lengths, gaps = [], []
     previous, deadline = None, 0.0
     for g in goals:
         centre = g.center.to(dtype)
         start = x0_t[..., _as_index(g.index)] if previous is None else previous
-        length = max(float((centre - start).norm()) - g.radius, g.radius)
-        key = repr(g.index)
-        if key not in curves:
-            curves[key] = travel_curve(dynamics, x0_t, g.index, dt=dt, duration=duration)
-        travel.append(_first_time(curves[key], length, dt))
-        lengths.append(length)
+        lengths.append(max(float((centre - start).norm()) - g.radius, g.radius))
         end = g.interval[1] if math.isfinite(g.interval[1]) else math.inf
-        gaps.append(end - deadline)
+        gaps.append(max(end - deadline, 0.0))  # a deadline already passed leaves no time
         deadline = end if math.isfinite(end) else deadline
         previous = centre
+    curves: dict[str, Tensor] = {}
+    for g in goals:  # each coordinate set's curve, as far as its longest leg
+        key = repr(g.index)
+        if key not in curves:
+            far = max(d for h, d in zip(goals, lengths, strict=True) if repr(h.index) == key)
+            curves[key] = travel_curve(dynamics, x0_t, g.index, dt=dt, duration=duration, reach=far)
+    travel = [
+        _first_time(curves[repr(g.index)], d, dt) for g, d in zip(goals, lengths, strict=True)
+    ]
 
     spans = [min(gap, TRAVEL_FACTOR * tau) for gap, tau in zip(gaps, travel, strict=True)]
     span = max(spans)
