@@ -6,9 +6,10 @@ a given time under its control limits, and proposes the horizon, the noise, the 
 and the specification's weights, each with the reason it was chosen
 (:attr:`MPPISettings.reasons`). The rules:
 
-- **legs.** The goals are visited in the order of their windows ``(t1, t2)``; leg ``i`` runs
-  from the previous goal (the start for the first) to goal ``i``, of length ``D_i`` (centre
-  to centre, less the goal's radius), with ``gap_i`` seconds between the two deadlines.
+- **legs.** The goals are visited in the order of their deadlines ``t2`` (a tie by ``t1``);
+  leg ``i`` runs from the previous goal (the start for the first) to goal ``i``, of length
+  ``D_i`` (centre to centre, less the goal's radius), with ``gap_i`` seconds between the two
+  deadlines (none for a deadline already passed).
 - **travel time.** ``tau(D)``: the first time at which the model, started from ``x0`` under a
   constant control at a corner or a face centre of its control box, is ``D`` away from where
   it started (the model's own dynamics, integrated with Euler at ``dt``).
