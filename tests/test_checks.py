@@ -255,3 +255,5 @@ def test_a_device_the_machine_lacks_is_named() -> None:
             as_tensor("low", 1.0, device=device)
     with pytest.raises(ValueError, match="'bogus' is not a device torch knows"):
         as_tensor("low", [1.0], device="bogus")
+    with pytest.raises(ValueError, match="this torch has no CUDA device"):
+        as_tensor("low", torch.ones(2), device=torch.device("cuda"))

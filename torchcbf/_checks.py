@@ -129,14 +129,17 @@ def check_int(name: str, value: object, *, low: int, what: str | None = None) ->
 def check_index(name: str, index: Sequence[int], state_dim: int | None) -> tuple[int, ...]:
     """Check a tuple of state indices is valid for ``state_dim`` (if known): integers, none
     repeated (a closed form keeps one copy of a repeated component, autograd both)."""
-    if isinstance(index, (np.ndarray, Tensor)) and index.ndim == 1:
+    if isinstance(index, (np.ndarray, Tensor)):
+        if index.ndim != 1 or index.dtype in (torch.bool, np.bool_):
+            raise TypeError(f"{name} must be a 1-D sequence of ints, got {index!r}")
         index = index.tolist()
-    if isinstance(index, (str, bytes)) or not isinstance(index, Iterable):
-        raise TypeError(f"{name} must be a sequence of ints, got {index!r}")
+    if isinstance(index, (str, bytes)) or not isinstance(index, Sequence):
+        raise TypeError(f"{name} must be a sequence of ints (in order), got {index!r}")
     index = tuple(index)
     try:
-        if any(isinstance(i, bool) for i in index):
-            raise TypeError
+        for i in index:
+            if isinstance(i, (bool, np.bool_)) or (isinstance(i, Tensor) and i.dtype == torch.bool):
+                raise TypeError
         index = tuple(operator.index(i) for i in index)
     except TypeError:
         raise TypeError(f"{name} must hold ints, got {index!r}") from None
@@ -160,7 +163,12 @@ def as_tensor(name: str, value: object, *, dtype: torch.dtype | None = None, dev
         if not out.is_floating_point():
             out = out.to(torch.get_default_dtype())
         if dtype is not None or device is not None:
-            out = out.to(device=device, dtype=dtype)
+            try:
+                out = out.to(device=device, dtype=dtype)
+            except (RuntimeError, AssertionError):  # a device not built in: named
+                if device is not None:
+                    check_device(device)
+                raise
         return out
     dtype = dtype or torch.get_default_dtype()
     if isinstance(value, (int, float)) and not isinstance(value, bool):

@@ -202,3 +202,5 @@ def test_state_indices_must_be_distinct_ints() -> None:
     assert Ball([0.0, 0.0], 1.0, index=range(1, 3)).index == (1, 2)
     with pytest.raises(TypeError, match="index must hold ints"):
         Ball([0.0, 0.0], 1.0, index=(True, False))
+    with pytest.raises(TypeError, match=r"index must be a sequence of ints \(in order\)"):
+        Ball([0.0, 0.0], 1.0, index={1, 0})

@@ -948,14 +948,25 @@ def test_a_cost_closure_that_requires_grad_keeps_the_plans_gradient(backend):
 
 
 def test_a_time_that_is_not_finite_is_refused_or_plans_nothing() -> None:
-    """Its windows would all be empty and its obstacles ignored: a number is refused, a row
-    of a tensor reports status 1 and leaves the other rows alone."""
+    """Its windows would all be empty and its obstacles ignored: a number, list or array is
+    refused; a row of a tensor reports status 1 and leaves the other rows alone, whatever
+    the cost (an Avoid alone gives such a row a finite cost)."""
+    import numpy as np
+
+    from torchcbf.mppi import Avoid
+
     planner = _planner()
     x = torch.zeros(3, planner.dynamics.state_dim, dtype=torch.float64)
-    for t in (math.nan, math.inf, True):
-        with pytest.raises(ValueError, match="t must be a finite number or tensor"):
+    for t in (math.nan, math.inf, [0.0, math.nan, 0.0], np.float32("nan")):
+        with pytest.raises(ValueError, match="t must be finite"):
             planner(x, t=t)
-    out = _planner()(x, t=torch.tensor([0.0, math.nan, 0.0], dtype=torch.float64))
-    ref = _planner()(x, t=0.0)
+    with pytest.raises(TypeError, match="t must be a number or a tensor of times"):
+        planner(x, t=True)
+    t = torch.tensor([0.0, math.nan, 0.0], dtype=torch.float64)
+    out, ref = _planner()(x, t=t), _planner()(x, t=0.0)
     assert out.status.tolist() == [0, 1, 0]
     torch.testing.assert_close(out.u[[0, 2]], ref.u[[0, 2]])
+    dyn = AccelUnicycle(u_min=-2.0, u_max=2.0)
+    sigma = torch.tensor([[1.0, 0.3], [0.3, 0.5]])
+    only_avoid = MPPI(dyn, Avoid([1.0, 0.0], 0.3), 8, 64, 0.02, sigma, 0.5, 0.1, seed=0)
+    assert only_avoid(x, t=t).status.tolist() == [0, 1, 0]

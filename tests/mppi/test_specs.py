@@ -386,8 +386,8 @@ def _passing_ball(keep_in: bool = False):
 
 
 def test_a_time_varying_predicate_is_read_at_each_states_time() -> None:
-    """Always and Eventually of a moving ball read it at the states' times (they read it at
-    t = 0: a robot the ball passes over at t = 5 was 'safe', one it covers 'never' there)."""
+    """Always and Eventually of a moving ball read it at the states' times: a robot the ball
+    passes over at t = 5 is not safe throughout, and one it covers then is reached."""
     times = torch.arange(11, dtype=torch.float64)
     states = torch.tensor([5.0, 0.0], dtype=torch.float64).expand(11, 2)
     truth = _passing_ball()(states, times)  # 24.75 at t = 0, -0.25 at t = 5
@@ -436,18 +436,41 @@ def test_spec_arguments_that_would_silence_a_term_are_refused() -> None:
         reach(rollout, None, torch.zeros(3), dt=0.1)
 
 
-def test_a_full_history_warns_once_that_it_forgets() -> None:
-    buffer = HistoryBuffer(3, 1, 2, device="cpu", dtype=torch.float64)
-    x, t = torch.zeros(1, 2, dtype=torch.float64), torch.zeros(1, dtype=torch.float64)
-    for _ in range(3):
-        buffer.record(x, t)
-    with pytest.warns(UserWarning, match="history of 3 slots is full"):
-        buffer.record(x, t)
+def test_a_full_history_warns_where_a_goal_reads_it() -> None:
+    """One slot per call: the planner warns once when a goal's term would forget a visit,
+    and not for terms that do not read what the history holds as achieved."""
     import warnings
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        buffer.record(x, t)  # once per buffer
-        buffer.clear()
-        for _ in range(3):
-            buffer.record(x, t)
+    from torchcbf.dynamics import SingleIntegrator
+    from torchcbf.mppi import MPPI, QuadraticGoal
+
+    def planner(cost):
+        dyn = SingleIntegrator(2, u_min=-1.0, u_max=1.0)
+        return MPPI(dyn, cost, 5, 16, 0.1, torch.eye(2) * 0.25, 0.5, 0.1, history_size=3)
+
+    x = torch.zeros(1, 2)
+    goal = planner(Reach([1.0, 0.0], 0.3, (0.0, 10.0)))
+    for k in range(3):
+        goal(x, t=0.1 * k)
+    with pytest.warns(UserWarning, match="history of 3 slots .* is full"):
+        goal(x, t=0.3)
+    for cost in (QuadraticGoal((1.0, 0.0), 1.0, (0, 1), 1.0), Always(lambda z: z[..., 0] + 1.0)):
+        quiet = planner(cost)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            for k in range(5):
+                quiet(x, t=0.1 * k)
+
+
+class _OneArgumentCost(Eventually):
+    """A subclass written against the one-argument ``pointwise_cost``."""
+
+    def pointwise_cost(self, states):
+        return (states[..., 0] - 1.0).abs()
+
+
+def test_a_subclass_with_a_one_argument_pointwise_cost_still_plans() -> None:
+    spec = _OneArgumentCost(lambda x: 0.1 - (x[..., 0] - 1.0).abs(), (0.0, 1.0))
+    states = torch.linspace(0.0, 2.0, 5).reshape(1, 1, 5, 1).expand(1, 2, 5, 1)
+    cost = spec(states.double(), None, 0.0, dt=0.1)
+    torch.testing.assert_close(cost, torch.zeros(1, 2, dtype=torch.float64))

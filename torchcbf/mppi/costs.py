@@ -85,7 +85,8 @@ def untimed(name: str, barrier: object) -> None:
     if time_varying(barrier):
         raise ValueError(
             f"{name} has no times, and {type(barrier).__name__} is time-varying: it would be "
-            "read at t = 0. Call the whole cost with t0= and dt= (as the planner does)"
+            "read at t = 0. Call the whole cost with t0= and dt= (as the planner does), or "
+            "read it with predicate_at(x, t) or robustness(x, t)"
         )
 
 

@@ -6,7 +6,6 @@ in the past is not revisited.
 
 from __future__ import annotations
 
-import warnings
 from typing import NamedTuple
 
 import torch
@@ -32,9 +31,8 @@ class HistoryBuffer:
 
     ``record`` writes at slot ``count % size`` with tensor indexing (no host sync, no
     reallocation as the history grows); when more than ``size`` states were recorded the
-    oldest are overwritten, with one warning per buffer: what they held is forgotten (a goal
-    reached among them counts as not reached again). ``count`` is a 0-d int64 tensor on
-    the device.
+    oldest are overwritten (the planner warns where a cost reads them). ``count`` is a 0-d
+    int64 tensor on the device.
     """
 
     def __init__(self, size: int, batch: int, state_dim: int, *, device, dtype) -> None:
@@ -45,18 +43,9 @@ class HistoryBuffer:
         self.times = torch.zeros(batch, self.size, device=device, dtype=dtype)
         self.count = torch.zeros((), device=device, dtype=torch.long)
         self._slots = torch.arange(self.size, device=device)
-        self._recorded = 0  # on the host: the wrap is seen without reading ``count``
 
     def record(self, x: Tensor, t: Tensor) -> None:
         """Append ``x [B, n]`` at times ``t [B]`` (in place)."""
-        self._recorded += 1
-        if self._recorded == self.size + 1:
-            warnings.warn(
-                f"the executed-state history of {self.size} slots is full: the oldest "
-                "states are overwritten and forgotten (a goal reached among them counts as "
-                "not reached again); raise history_size (or reset() between episodes)",
-                stacklevel=3,
-            )
         slot = torch.remainder(self.count, self.size).reshape(1)
         self.states.index_copy_(1, slot, x.unsqueeze(1))
         self.times.index_copy_(1, slot, t.unsqueeze(1))
@@ -70,4 +59,3 @@ class HistoryBuffer:
     def clear(self) -> None:
         """Forget every recorded state."""
         self.count.zero_()
-        self._recorded = 0

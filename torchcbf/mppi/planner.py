@@ -89,6 +89,7 @@ from __future__ import annotations
 import logging
 import math
 import numbers
+import warnings
 from collections.abc import Callable
 from typing import Any, ClassVar, NamedTuple
 
@@ -426,9 +427,9 @@ class MPPI(TracksShadows, ExactConstants):
             the integrators) or ``"rk4"``.
         seed: environment ``b`` uses a generator seeded with ``seed + b``.
         keep_rollouts: return the first ``R`` sampled rollouts and weights (0: none).
-        history_size: slots of the executed-state history read by specifications (a
-            warning when it is full: older states, a goal reached among them too, are
-            forgotten).
+        history_size: slots of the executed-state history read by specifications (one per
+            call; a warning where a goal's term reads it and it is full: older states, a
+            goal reached among them, are forgotten).
         shift_fill: ``"zero"`` (default) or ``"last"``: control appended by the warm start.
         zero_noise_samples: the first samples of each environment get no noise (they
             evaluate the shifted previous plan itself).
@@ -654,6 +655,8 @@ class MPPI(TracksShadows, ExactConstants):
         self._kernel_cache: tuple[Any, _AnyKernel | None, _Values] | None = None
         self._captured: _Capture | None = None
         self._fresh = True
+        self._unknown_time: Tensor | None = None  # rows of a call whose time is not finite
+        self._calls = 0  # since the history was last cleared: one slot each
         follow_parts(self, [dynamics, cost])
 
     # -- state -------------------------------------------------------------------------------
@@ -663,6 +666,11 @@ class MPPI(TracksShadows, ExactConstants):
         self._kernel_cache = None
         self._captured = None
         self._fresh = True
+
+    def _history_matters(self) -> bool:
+        """Whether a term of the cost reads what the history holds as achieved (a goal's)."""
+        parts = self.cost.modules() if isinstance(self.cost, nn.Module) else [self.cost]
+        return self._needs_history and any(getattr(m, "remembers_history", False) for m in parts)
 
     def _ensure_state(self, B: int, device: torch.device, dtype: torch.dtype) -> None:
         key = (B, device, dtype)
@@ -676,6 +684,7 @@ class MPPI(TracksShadows, ExactConstants):
             torch.Generator(device=device).manual_seed(self.seed + b) for b in range(B)
         ]
         self._history = HistoryBuffer(self.history_size, B, n, device=device, dtype=dtype)
+        self._calls = 0
         self._rows = torch.arange(B, device=device)
         self._allocate(B, device, dtype)
         self._key = key
@@ -736,8 +745,9 @@ class MPPI(TracksShadows, ExactConstants):
     # -- one planning call -------------------------------------------------------------------
     def forward(self, x: Tensor, t: float | Tensor = 0.0, shift: bool = True) -> MPPIOutput:
         """Plan from ``x [n]`` or ``[B, n]`` at global time ``t`` (scalar or ``[B]``). A
-        time that is not finite is a ``ValueError`` given as a number; in a tensor, its row
-        plans nothing (``status`` 1, as where no sample has a finite cost).
+        time that is not finite is a ``ValueError`` given as a number, a list or an array;
+        in a tensor, its row plans nothing (``status`` 1, as where no sample has a finite
+        cost: read on the device).
 
         ``shift=False`` refines the plan without the warm-start shift (e.g. several
         iterations at the same time).
@@ -775,17 +785,26 @@ class MPPI(TracksShadows, ExactConstants):
         xb = resolved(x.unsqueeze(0) if unbatched else x)
         B = xb.shape[0]
         self._ensure_state(B, xb.device, xb.dtype)
-        if isinstance(t, bool) or (isinstance(t, float) and not math.isfinite(t)):
-            raise ValueError(f"t must be a finite number or tensor, got {t!r}")
+        if isinstance(t, (bool, np.bool_)):
+            raise TypeError(f"t must be a number or a tensor of times, got {t!r}")
+        if not isinstance(t, Tensor) and not bool(np.isfinite(np.asarray(t, dtype=float)).all()):
+            raise ValueError(f"t must be finite, got {t!r}")  # read on the host: no sync
         t0 = resolved(as_tensor("t", t, device=xb.device, dtype=xb.dtype))  # a number: no copy
         if t0.dim() > 1 or (t0.dim() == 1 and t0.shape[0] not in (1, B)):
             raise ValueError(f"t must be a scalar or have shape [{B}], got {tuple(t0.shape)}")
         t0 = t0.reshape(-1).expand(B)
-        if isinstance(t, Tensor):
-            # a row whose time is not finite plans nothing (its windows would all be empty,
-            # its obstacles ignored): its state is made NaN, so no sample has a finite cost
-            # and the row reports status 1 (read on the device, no host synchronisation)
-            xb = torch.where(torch.isfinite(t0).unsqueeze(-1), xb, math.nan)
+        self._calls += 1
+        if self._calls == self.history_size + 1 and self._history_matters():
+            warnings.warn(
+                f"the executed-state history of {self.history_size} slots (one per call) is "
+                "full: the oldest states are overwritten, and a goal reached among them counts "
+                "as not reached again; raise history_size (or reset() between episodes)",
+                stacklevel=2,
+            )
+        # a row of a tensor t that is not finite plans nothing (its windows would all be
+        # empty, its obstacles ignored): its costs are NaN, so it reports status 1 (read on
+        # the device, no host synchronisation)
+        self._unknown_time = ~torch.isfinite(t0) if isinstance(t, Tensor) else None
         shifting = shift and not self._fresh
         self._noise_form()  # a noise_cov set since the last call: its factors made again
         kernel = self._kernel(xb)
@@ -1418,6 +1437,8 @@ class MPPI(TracksShadows, ExactConstants):
         ``kernel``'s weights pass where it has one for this call
         (:meth:`torchcbf.mppi._triton.Kernel.weights`), else in torch."""
         lam = max(self.temperature, torch.finfo(cost.dtype).tiny)
+        if self._unknown_time is not None:
+            cost = torch.where(self._unknown_time.unsqueeze(-1), math.nan, cost)
         if kernel is not None and self.cost_normalization == "none":
             fused = kernel.weights(cost, lam)
             if fused is not None:

@@ -149,11 +149,29 @@ class _Temporal(Spec):
             return pointwise(self.predicate_fn(states, times), states, "predicate")
         return self.predicate(states)
 
-    def pointwise_cost(self, states: Tensor, times: Tensor | None = None) -> Tensor:
-        """Pointwise cost ``c(x)``: ``[..., n] -> [...]`` (``-rho`` by default, read at
-        global ``times`` broadcasting to ``states.shape[:-1]`` where given)."""
+    def pointwise_cost_at(self, states: Tensor, times: Tensor) -> Tensor:
+        """:meth:`pointwise_cost` of ``states [..., n]`` at global ``times`` (broadcasting to
+        ``states.shape[:-1]``): ``-rho`` of a time-varying predicate read at the times."""
+        if self.cost_fn is None and self.predicate_fn is not None:
+            if time_varying(self.predicate_fn):
+                return -self.predicate_at(states, times)
+        return self.pointwise_cost(states)
+
+    def _own_costs(self) -> bool:
+        """Whether :meth:`pointwise_cost` makes a new tensor (the library's ``-rho``), which
+        may be filled in place: a user's ``cost=`` or override may return a view of the
+        states."""
+        kind = type(self)
+        return (
+            self.cost_fn is None
+            and kind.pointwise_cost is _Temporal.pointwise_cost
+            and kind.pointwise_cost_at is _Temporal.pointwise_cost_at
+        )
+
+    def pointwise_cost(self, states: Tensor) -> Tensor:
+        """Pointwise cost ``c(x)``: ``[..., n] -> [...]`` (``-rho`` by default)."""
         if self.cost_fn is None:
-            return -(self.predicate(states) if times is None else self.predicate_at(states, times))
+            return -self.predicate(states)
         c = self.cost_fn(states)
         if c.shape != states.shape[:-1]:
             raise ValueError(
@@ -186,6 +204,10 @@ class Eventually(_Temporal):
             of the window; a small urgency breaks that tie in favour of reaching early.
     """
 
+    #: the cost freezes once the history shows the goal reached: a history that wraps
+    #: forgets that (the planner warns)
+    remembers_history = True
+
     def __init__(
         self,
         predicate: Predicate | None = None,
@@ -217,13 +239,15 @@ class Eventually(_Temporal):
         """Minimum of ``c (+ ramp)`` over the rollout states inside ``window [B, T]``
         (``+inf`` when none is) and the same at the last state: two ``[B, K]`` tensors
         (``times [B, T]``: the states' global times, for a predicate that reads them)."""
-        c = self.pointwise_cost(states, None if times is None else times.unsqueeze(1))
+        if times is None:
+            c = self.pointwise_cost(states)
+        else:
+            c = self.pointwise_cost_at(states, times.unsqueeze(1))
+        own = self._own_costs() or ramp is not None
         if ramp is not None:
             c = c + ramp
         last = c[..., -1].clone()
-        return _masked(
-            c, ~window.unsqueeze(1), math.inf, own=self.cost_fn is None or ramp is not None
-        ).amin(-1), last
+        return _masked(c, ~window.unsqueeze(1), math.inf, own=own).amin(-1), last
 
     def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
         window = self.in_window(times)  # [B, T]
@@ -233,7 +257,7 @@ class Eventually(_Temporal):
         if history is None:
             return torch.where(passed, torch.zeros_like(roll), roll)
         h_window = history.valid & self.in_window(history.times)  # [B, N]
-        h_cost = self.pointwise_cost(history.states, history.times)
+        h_cost = self.pointwise_cost_at(history.states, history.times)
         h_min = h_cost.masked_fill(~h_window, math.inf).amin(-1)
         reached = (h_window & (self.predicate_at(history.states, history.times) >= 0)).any(-1)
         frozen = reached.unsqueeze(-1) | passed
@@ -270,8 +294,11 @@ class Always(_Temporal):
     ) -> Tensor:
         """Maximum of ``c`` over the rollout states inside ``window [B, T]``: ``[B, K]``
         (``-inf`` when none is; ``times [B, T]``: the states' global times)."""
-        c = self.pointwise_cost(states, None if times is None else times.unsqueeze(1))
-        return _masked(c, ~window.unsqueeze(1), -math.inf, own=self.cost_fn is None).amax(-1)
+        if times is None:
+            c = self.pointwise_cost(states)
+        else:
+            c = self.pointwise_cost_at(states, times.unsqueeze(1))
+        return _masked(c, ~window.unsqueeze(1), -math.inf, own=self._own_costs()).amax(-1)
 
     def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
         window = self.in_window(times)  # [B, T]
@@ -312,7 +339,7 @@ class Reach(Eventually):
     def predicate(self, states: Tensor) -> Tensor:
         return self.radius - squared_distance(states, self.index, self.center).sqrt()
 
-    def pointwise_cost(self, states: Tensor, times: Tensor | None = None) -> Tensor:
+    def pointwise_cost(self, states: Tensor) -> Tensor:
         return self.weight * (squared_distance(states, self.index, self.center) - self.radius**2)
 
     def rollout_min_cost(
@@ -390,9 +417,11 @@ class Avoid(Always):
             return pointwise(self.barrier(states, times), states, "barrier")
         return self.predicate(states)
 
-    def pointwise_cost(self, states: Tensor, times: Tensor | None = None) -> Tensor:
-        rho = self.predicate(states) if times is None else self.predicate_at(states, times)
-        return self.weight / rho.clamp_min(self.eps)
+    def pointwise_cost(self, states: Tensor) -> Tensor:
+        return self.weight / self.predicate(states).clamp_min(self.eps)
+
+    def pointwise_cost_at(self, states: Tensor, times: Tensor) -> Tensor:
+        return self.weight / self.predicate_at(states, times).clamp_min(self.eps)
 
     def rollout_max_cost(
         self, states: Tensor, window: Tensor, times: Tensor | None = None

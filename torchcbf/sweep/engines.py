@@ -50,10 +50,10 @@ def ray_session(address: str | None = None, num_cpus: int | None = None) -> Iter
         main = threading.current_thread() is threading.main_thread()
         sigterm = signal.getsignal(signal.SIGTERM) if main else None
         ray.init(**kwargs)
-        # Ray installs a SIGTERM handler that exits (sys.exit); a handler of the caller's
-        # own (the command line's: Ctrl-C's answer) is put back, the default is not (it
+        # Ray installs a SIGTERM handler that exits (sys.exit); the caller's own (the
+        # command line's: Ctrl-C's answer; or SIG_IGN) is put back, the default is not (it
         # would end the process without unwinding, leaving Ray's processes behind)
-        if callable(sigterm):
+        if sigterm is not None and sigterm is not signal.SIG_DFL:
             signal.signal(signal.SIGTERM, sigterm)
         started = True
     try:
