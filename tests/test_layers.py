@@ -15,7 +15,7 @@ ROOT = Path(torchcbf.__file__).parent
 LAYERS = {
     "_autograd": 0, "_checks": 0, "_compile": 0, "_constants": 0, "_io": 0, "_native": 0,
     "_graphs": 0, "_triton": 0,
-    "_random": 0,
+    "_random": 0, "_argtypes": 0,
     "_version": 0,
     "dynamics": 1, "integrators": 1, "qp": 1,
     "barriers": 2,
