@@ -187,6 +187,17 @@ def as_tensor(name: str, value: object, *, dtype: torch.dtype | None = None, dev
         raise TypeError(f"{name} must be a number, sequence or tensor, got {value!r}") from err
 
 
+def check_times(name: str, t: object) -> None:
+    """Refuse a time ``t`` that is a bool (``TypeError``) or, given as a number, a list or
+    an array, is not finite (``ValueError``; read on the host). A tensor is left to the
+    caller, which can mark its rows on the device without a synchronisation."""
+    if isinstance(t, (bool, np.bool_)):
+        raise TypeError(f"{name} must be a number or a tensor of times, got {t!r}")
+    if t is not None and not isinstance(t, Tensor):
+        if not bool(np.isfinite(np.asarray(t, dtype=float)).all()):
+            raise ValueError(f"{name} must be finite, got {t!r}")
+
+
 def check_device(device: object) -> torch.device:
     """``device`` (a string, index or ``torch.device``) as a ``torch.device``; ``ValueError``
     for a name torch does not know or a device this machine does not have."""

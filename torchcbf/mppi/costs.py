@@ -15,7 +15,6 @@ so it would not change the weights.)
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 
 import torch
@@ -28,6 +27,7 @@ from torchcbf._checks import (
     check_index,
     check_number,
     check_positive_int,
+    check_times,
     hooked,
 )
 from torchcbf.barriers._params import take
@@ -99,8 +99,7 @@ def rollout_times(states: Tensor, t0: Tensor | float | None, dt: float | None, n
     dt = check_number("dt", dt, low=0.0, strict=True)
     if states.dim() != 4:
         raise ValueError(f"states must have shape [B, K, T, n], got {tuple(states.shape)}")
-    if isinstance(t0, float) and not math.isfinite(t0):
-        raise ValueError(f"t0 must be finite, got {t0}")
+    check_times("t0", t0)
     t0_t = as_tensor("t0", 0.0 if t0 is None else t0, device=states.device, dtype=states.dtype)
     if t0_t.numel() not in (1, states.shape[0]):
         raise ValueError(

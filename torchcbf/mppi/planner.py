@@ -110,6 +110,7 @@ from torchcbf._checks import (
     check_last_dim,
     check_number,
     check_positive,
+    check_times,
     follow_parts,
     hook_dicts,
     isfinite,
@@ -785,10 +786,7 @@ class MPPI(TracksShadows, ExactConstants):
         xb = resolved(x.unsqueeze(0) if unbatched else x)
         B = xb.shape[0]
         self._ensure_state(B, xb.device, xb.dtype)
-        if isinstance(t, (bool, np.bool_)):
-            raise TypeError(f"t must be a number or a tensor of times, got {t!r}")
-        if not isinstance(t, Tensor) and not bool(np.isfinite(np.asarray(t, dtype=float)).all()):
-            raise ValueError(f"t must be finite, got {t!r}")  # read on the host: no sync
+        check_times("t", t)
         t0 = resolved(as_tensor("t", t, device=xb.device, dtype=xb.dtype))  # a number: no copy
         if t0.dim() > 1 or (t0.dim() == 1 and t0.shape[0] not in (1, B)):
             raise ValueError(f"t must be a scalar or have shape [{B}], got {tuple(t0.shape)}")
