@@ -404,6 +404,19 @@ def test_a_time_varying_predicate_is_read_at_each_states_time() -> None:
         Always(_passing_ball()).predicate(states)
 
 
+def test_avoid_reads_a_moving_barrier_at_the_times_it_is_given() -> None:
+    """``rollout_max_cost`` with times equals the worst pointwise cost in the window."""
+    times = torch.arange(11, dtype=torch.float64)
+    states = torch.tensor([5.0, 0.0], dtype=torch.float64).expand(1, 1, 11, 2)
+    window = (times >= 3.0).unsqueeze(0)
+    avoid = Avoid(barrier=_passing_ball(), weight=0.3)
+    costs = avoid.pointwise_cost_at(states, times)
+    expected = costs.masked_fill(~window.unsqueeze(1), -math.inf).amax(-1)
+    torch.testing.assert_close(avoid.rollout_max_cost(states, window, times.unsqueeze(0)), expected)
+    with pytest.raises(ValueError, match="has no times"):
+        avoid.rollout_max_cost(states, window)
+
+
 def test_a_cost_that_returns_a_view_leaves_the_states_alone() -> None:
     states = torch.linspace(0.0, 1.0, 6, dtype=torch.float64).expand(2, 6).T.reshape(1, 1, 6, 2)
     states = states.clone()

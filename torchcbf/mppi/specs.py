@@ -428,18 +428,14 @@ class Avoid(Always):
     ) -> Tensor:
         # c is decreasing in rho: reduce rho (or |p - o|^2), transform [B, K] only
         outside = ~window.unsqueeze(1)
-        if self.barrier is not None:
-            return self._cost_of(self.predicate(states).masked_fill(outside, math.inf).amin(-1))
-        d2 = squared_distance(states, self.index, self.center)
-        return self._cost_of(d2.masked_fill_(outside, math.inf).amin(-1).sqrt() - self.radius)
-
-    def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
-        if self.barrier is None or not time_varying(self.barrier):
-            return super().plan_cost(states, times, history)
-        window = self.in_window(times)  # [B, T]
-        rho = self.predicate_at(states, times.unsqueeze(1))
-        rho = rho.masked_fill(~window.unsqueeze(1), math.inf)
-        return self._windowed(self._cost_of(rho.amin(-1)), window)
+        if self.barrier is None:
+            d2 = squared_distance(states, self.index, self.center)
+            return self._cost_of(d2.masked_fill_(outside, math.inf).amin(-1).sqrt() - self.radius)
+        if times is None:
+            rho = self.predicate(states)
+        else:
+            rho = self.predicate_at(states, times.unsqueeze(1))
+        return self._cost_of(rho.masked_fill(outside, math.inf).amin(-1))
 
     def _cost_of(self, rho_min: Tensor) -> Tensor:
         """The planning cost ``[B, K]`` of the worst state, from its ``rho_min [B, K]``
