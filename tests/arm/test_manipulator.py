@@ -3,6 +3,7 @@ against finite differences, batching, dtype/device, and the optional-dependency 
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -366,6 +367,10 @@ def test_limits_given_on_one_side_and_a_joint_that_cannot_move() -> None:
     )
     with pytest.raises(ValueError, match="(?s)not a valid URDF: .*effort"):
         Manipulator(no_effort)
+    no_limit = no_effort.replace('<limit lower="-1" upper="1" velocity="1"/>', "")
+    with pytest.raises(ValueError, match="revolute joint 'j' has no <limit>"):
+        Manipulator(no_limit)
+    assert Manipulator(no_limit.replace("revolute", "continuous")).q_max.tolist() == [math.inf]
     with pytest.raises(ValueError, match="margin must be >= 0"):
         arm.random_configurations(4, margin=-0.5)
     # a joint whose velocity limit is zero stays still; the others still move

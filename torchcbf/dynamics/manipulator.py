@@ -92,8 +92,16 @@ def _read_urdf(source: str | bytes | os.PathLike[str]) -> str:
 
 
 def _continuous_joints(urdf: str | bytes) -> set[str]:
-    """The names of the URDF's ``continuous`` joints (no position limits)."""
+    """The names of the URDF's ``continuous`` joints (no position limits); a ``revolute``
+    or ``prismatic`` joint without its required ``<limit>`` is a ``ValueError`` (the parser
+    would read it as fixed at 0 with a velocity limit of 0)."""
     root = ElementTree.fromstring(urdf)
+    for j in root.iter("joint"):
+        if j.get("type") in ("revolute", "prismatic") and j.find("limit") is None:
+            raise ValueError(
+                f"urdf: {j.get('type')} joint {j.get('name')!r} has no <limit> (URDF requires "
+                "one; a joint without position limits is type='continuous')"
+            )
     return {j.get("name", "") for j in root.iter("joint") if j.get("type") == "continuous"}
 
 
