@@ -37,6 +37,28 @@ def test_relative_degree_detection():
     assert rectify(ball, SingleIntegrator()) is ball
 
 
+@pytest.mark.parametrize("unit", [1.0, 1e-7, 1e-12, 1e7])
+def test_relative_degree_does_not_depend_on_units(unit: float) -> None:
+    """A barrier or an input matrix in small or large units has the same relative degree."""
+    assert find_relative_degree(HalfSpace([unit, 0.0], 0.0), SingleIntegrator()) == 1
+    assert find_relative_degree(HalfSpace([unit, 0.0], 0.0, (0, 1)), DoubleIntegrator()) == 2
+    assert find_relative_degree(Ball([0.5, 0.5], 1.0), _Slow(unit)) == 1
+
+
+class _Slow(ControlAffine):
+    """x' = unit * u."""
+
+    def __init__(self, unit: float) -> None:
+        super().__init__(2, 2)
+        self.unit = unit
+
+    def f(self, x):
+        return torch.zeros_like(x)
+
+    def g(self, x):
+        return self.unit * torch.eye(2, dtype=x.dtype).expand(*x.shape[:-1], 2, 2)
+
+
 class _Chain3(ControlAffine):
     """x1' = x2, x2' = x3, x3' = u: position has relative degree 3."""
 

@@ -366,8 +366,9 @@ def find_relative_degree(
 ) -> int:
     """Relative degree ``r`` of ``barrier`` w.r.t. ``dynamics``, by autograd on sample states.
 
-    ``r`` is the least ``k`` with ``L_g D^{k-1} h`` non-zero at some sample (relative to
-    ``tol * max(1, max|dD^{k-1}h/dx| * max|g|)``, which absorbs round-off).
+    ``r`` is the least ``k`` with ``L_g D^{k-1} h`` non-zero at some sample, relative to
+    ``tol * max(s_1, s_k)`` with ``s_k = max|dD^{k-1}h/dx| * max|g|`` (round-off is far
+    below it; the test does not depend on the units of ``h``, ``x`` or ``u``).
 
     Args:
         samples: states ``[N, n]``, or a number ``N`` of states drawn from
@@ -392,15 +393,17 @@ def find_relative_degree(
     psi: LieFunction = barrier
     degree: Tensor | None = None
     with torch.no_grad():
-        g_max = dynamics.g(x).abs().amax().clamp_min(1.0)
+        g_max = dynamics.g(x).abs().amax()
+        first: Tensor | None = None
         for k in range(1, n + 1):
             terms = terms_of(psi, x, dynamics, time, hessian=False)
             lgh = terms.lgh.nan_to_num(0.0, 0.0, 0.0).abs()
             grad = terms.dhdx.nan_to_num(0.0, 0.0, 0.0).abs()
             rows = tuple(range(x.dim() - 1))
             lg_max = lgh.amax(dim=(*rows, lgh.dim() - 1))  # [] or [k]
-            scale_k = (grad.amax(dim=(*rows, grad.dim() - 1)) * g_max).clamp_min(1.0)
-            found = lg_max > tol * scale_k
+            scale_k = grad.amax(dim=(*rows, grad.dim() - 1)) * g_max
+            first = scale_k if first is None else first
+            found = lg_max > tol * torch.maximum(scale_k, first)
             if degree is None:
                 degree = torch.zeros_like(found, dtype=torch.long)
             degree = torch.where((degree == 0) & found, torch.full_like(degree, k), degree)
