@@ -417,6 +417,28 @@ def test_avoid_reads_a_moving_barrier_at_the_times_it_is_given() -> None:
         avoid.rollout_max_cost(states, window)
 
 
+def test_a_specification_adds_to_a_cost_on_either_side() -> None:
+    from torchcbf.mppi.costs import QuadraticGoal, SumCost
+
+    reach, goal = Reach([1.0, 0.0], 0.3, (0.0, 2.0)), QuadraticGoal([1.0, 0.0])
+    states = torch.randn(
+        2, 3, 5, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0)
+    )
+    controls = torch.zeros(2, 3, 4, 2, dtype=torch.float64)
+    expected = reach(states, controls, 0.0, dt=0.1) + goal(states, controls)
+    for total in (reach + goal, goal + reach, reach + (lambda x, u, t0=None: goal(x, u))):
+        assert isinstance(total, SumCost) and total.needs_history
+        torch.testing.assert_close(total(states, controls, 0.0, dt=0.1), expected)
+    both = reach + Avoid([0.5, 0.0], 0.1)
+    torch.testing.assert_close(
+        both(states, controls, 0.0, dt=0.1),
+        reach(states, controls, 0.0, dt=0.1)
+        + Avoid([0.5, 0.0], 0.1)(states, controls, 0.0, dt=0.1),
+    )
+    with pytest.raises(TypeError):
+        reach + 1.0
+
+
 def test_a_cost_that_returns_a_view_leaves_the_states_alone() -> None:
     states = torch.linspace(0.0, 1.0, 6, dtype=torch.float64).expand(2, 6).T.reshape(1, 1, 6, 2)
     states = states.clone()

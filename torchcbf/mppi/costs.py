@@ -110,12 +110,26 @@ def rollout_times(states: Tensor, t0: Tensor | float | None, dt: float | None, n
     return (t0_t.reshape(-1, 1) + dt * steps).expand(states.shape[0], states.shape[-2])
 
 
-class RolloutCost(TracksShadows):
+class Adds:
+    """Costs add: ``a + b`` with a cost module on either side and any callable cost on the
+    other is a :class:`SumCost` (a specification plus a goal term, say)."""
+
+    def __add__(self, other: object) -> SumCost:
+        if not callable(other):
+            return NotImplemented
+        return SumCost(self, other)  # type: ignore[arg-type]
+
+    def __radd__(self, other: object) -> SumCost:
+        if not callable(other):
+            return NotImplemented
+        return SumCost(other, self)  # type: ignore[arg-type]
+
+
+class RolloutCost(Adds, TracksShadows):
     """Base of the stage + terminal costs. Subclasses write ``stage`` (and ``terminal``).
 
     ``forward(states [B, K, H+1, n], controls [B, K, H, m], t0=None) -> [B, K]`` is
-    ``sum_k stage(x_{k+1}, u_k) + terminal(x_H)``. Costs add: ``cost_a + cost_b`` is a
-    :class:`SumCost`.
+    ``sum_k stage(x_{k+1}, u_k) + terminal(x_H)``. Costs add (:class:`Adds`).
     """
 
     #: Whether the planner must pass ``dt=`` (a term that reads the rollout's times sets it).
@@ -133,11 +147,6 @@ class RolloutCost(TracksShadows):
         cost = self.stage(states[..., 1:, :], controls).sum(-1)
         term = self.terminal(states[..., -1, :])
         return cost if term is None else cost + term
-
-    def __add__(self, other: object) -> SumCost:
-        if not callable(other):
-            return NotImplemented
-        return SumCost(self, other)
 
 
 class StageCost(RolloutCost):
@@ -268,7 +277,7 @@ class BarrierCost(RolloutCost):
         return self._penalty(self.barrier(after, times[:, None, 1:]), after).sum(-1)
 
 
-class DiscreteBarrierCost(TracksShadows):
+class DiscreteBarrierCost(Adds, TracksShadows):
     """Penalty on the discrete-time CBF condition ``b(x_{k+1}) >= (1 - gamma) b(x_k)``.
 
     ``weight * sum_k sum_i relu((1 - gamma) b_i(x_k) - b_i(x_{k+1}))`` over the steps
@@ -329,11 +338,6 @@ class DiscreteBarrierCost(TracksShadows):
             h = h.unsqueeze(-1)
         viol = torch.relu((1.0 - self.gamma) * h[..., :-1, :] - h[..., 1:, :])
         return self.weight * viol.sum((-2, -1))
-
-    def __add__(self, other: object) -> SumCost:
-        if not callable(other):
-            return NotImplemented
-        return SumCost(self, other)
 
 
 def _whole_term(cost: RolloutCost) -> bool:
@@ -420,6 +424,7 @@ class SumCost(RolloutCost):
 
 
 __all__ = [
+    "Adds",
     "BarrierCost",
     "DiscreteBarrierCost",
     "ObstacleCost",

@@ -49,6 +49,7 @@ from torch import Tensor, nn
 
 from torchcbf._checks import check_number, check_positive, several_outputs
 from torchcbf.mppi.costs import (
+    Adds,
     constant,
     point_index,
     rollout_times,
@@ -74,8 +75,9 @@ def pointwise(rho: Tensor, states: Tensor, name: str) -> Tensor:
     return rho.amin(-1) if several_outputs(f"the {name}", rho, states) else rho
 
 
-class Spec(nn.Module):
-    """Base of the specifications: ``robustness`` and the MPPI cost ``forward``."""
+class Spec(Adds, nn.Module):
+    """Base of the specifications: ``robustness`` and the MPPI cost ``forward``; ``&`` and
+    ``|`` combine specifications, ``+`` adds a specification's cost to another cost."""
 
     #: The planner passes ``dt=`` and ``history=`` to costs that set this.
     needs_history = True
