@@ -16,6 +16,7 @@ from torch import Tensor
 from torchcbf._checks import (
     behaves_as,
     broadcast_shapes,
+    check_batch_match,
     check_generator,
     check_last_dim,
     check_positive,
@@ -173,10 +174,23 @@ def euler_maruyama(
 ) -> Tensor:
     """Euler-Maruyama for ``dx = (f + g u) dt + sigma dW``: ``x + dt xdot + sqrt(dt) sigma z``.
 
-    ``z ~ N(0, I_q)`` is drawn from ``generator`` or given as ``noise [..., q]``. Without a
-    diffusion this is :func:`euler`.
+    ``z ~ N(0, I_q)`` is drawn from ``generator`` or given as ``noise [..., q]`` (batch
+    dimensions broadcasting with those of ``x`` and ``u``). Without a diffusion this is
+    :func:`euler`.
     """
-    dt = check_positive("dt", dt)
+    dt = _checked(dynamics, x, u, w, dt)
+    return _euler_maruyama(dynamics, x, u, dt, w, generator, noise)
+
+
+def _euler_maruyama(
+    dynamics: ControlAffine,
+    x: Tensor,
+    u: Tensor,
+    dt: float,
+    w: Tensor | None,
+    generator: torch.Generator | None,
+    noise: Tensor | None,
+) -> Tensor:
     drift = x + dt * dynamics(x, u, w)
     sigma = dynamics.sigma(x)
     if sigma is None:
@@ -194,6 +208,7 @@ def euler_maruyama(
     else:
         check_last_dim("noise", noise, q)
         check_same("x", x, "noise", noise)
+        check_batch_match("the step of (x, u)", drift, "noise", noise)
     return drift + math.sqrt(dt) * (sigma @ noise.unsqueeze(-1)).squeeze(-1)
 
 
@@ -228,5 +243,5 @@ def step(
     if method == "rk4":
         return _rk4(dynamics, x, u, dt, w)
     if method == "euler_maruyama":
-        return euler_maruyama(dynamics, x, u, dt, w, generator=generator, noise=noise)
+        return _euler_maruyama(dynamics, x, u, dt, w, generator, noise)
     raise ValueError(f"method must be one of {METHODS}, got {method!r}")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -314,6 +315,10 @@ def test_strict_replaces_non_finite_values() -> None:
     value = {"a": float("nan"), "b": [1.0, float("inf")], "c": torch.tensor([0.5, float("nan")])}
     assert strict(value) == {"a": None, "b": [1.0, None], "c": [0.5, None]}
     json.dumps(strict(value), allow_nan=False)
+    numpy = {"n": np.float32("nan"), "h": np.float32(0.5), "k": np.int64(3), "f": np.bool_(True)}
+    assert strict(numpy | {"a": np.array([1.0, np.inf])}) == {
+        "n": None, "h": 0.5, "k": 3, "f": True, "a": [1.0, None]
+    }  # fmt: skip
 
 
 def test_risk_failures_matches_a_loop() -> None:

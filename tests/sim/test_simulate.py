@@ -663,3 +663,52 @@ def test_estimator_priors_and_sensor_size_name_the_argument() -> None:
     partial = ClosedLoop(dynamics=dyn, nominal=zero, sensor=GaussianSensor(torch.ones(1, 2), 0.1))
     with pytest.raises(ValueError, match="must then be a full state of size 2: GaussianSensor"):
         partial.simulate(x0, 2, 0.1, progress=False)
+
+
+def test_a_start_time_is_a_finite_number_and_the_controllers_see_the_recorded_times() -> None:
+    model, x0 = SingleIntegrator(1).double(), torch.zeros(2, 1, dtype=torch.float64)
+    seen: list[float] = []
+
+    def nominal(x, t):
+        seen.append(t)
+        return torch.zeros_like(x)
+
+    traj = simulate(model, x0, 4, 0.01, nominal=nominal, t0=np.float32(1e5), progress=False)
+    assert seen == traj.t[:-1].tolist()
+    for t0 in (math.nan, math.inf):
+        with pytest.raises(ValueError, match="t0 must be a finite number"):
+            simulate(model, x0, 2, 0.1, nominal=nominal, t0=t0, progress=False)
+    with pytest.raises(TypeError, match="t0 must be a Python number"):
+        simulate(model, x0, 2, 0.1, nominal=nominal, t0=torch.zeros(2), progress=False)
+
+
+def test_the_estimators_priors_are_checked_under_their_own_names() -> None:
+    model = SingleIntegrator(2).double()
+    sensor = GaussianSensor(std=0.1, state_dim=2).double()
+    kw = {"nominal": lambda x, t: -x, "sensor": sensor, "estimator": EKF(model, sensor, Q=0.01)}
+    x0 = torch.zeros(2, 2, dtype=torch.float64)
+    with pytest.raises(ValueError, match="x0_hat must not contain NaN"):
+        simulate(model, x0, 2, 0.1, x0_hat=torch.tensor([math.nan, 0.0]).double(), **kw)
+    with pytest.raises(TypeError, match="x0_hat has dtype torch.float32 but x0"):
+        simulate(model, x0, 2, 0.1, x0_hat=torch.zeros(2), **kw)
+    with pytest.raises(TypeError, match="P0 has dtype torch.float32 but x0"):
+        simulate(model, x0, 2, 0.1, P0=torch.eye(2), **kw)
+
+
+def test_a_failed_rows_last_estimate_is_frozen_like_the_others() -> None:
+    model = SingleIntegrator(2, disturbance_bound=1.0).double()
+    sensor = GaussianSensor(std=0.1, state_dim=2).double()
+
+    def disturbance(x, t):
+        w = torch.zeros_like(x)
+        if t > 0.15:
+            w[1] = math.inf
+        return w
+
+    x0 = torch.tensor([[0.0, 0.0], [1.0, 1.0]], dtype=torch.float64)
+    traj = simulate(model, x0, 5, 0.1, nominal=lambda x, t: -x, sensor=sensor,
+                    estimator=EKF(model, sensor, Q=0.01), disturbance=disturbance,
+                    progress=False)  # fmt: skip
+    k = int(traj.fail_step[1])
+    assert 0 < k < 5
+    assert bool((traj.x_hat[1, k:] == 0).all())

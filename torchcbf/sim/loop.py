@@ -32,7 +32,14 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from torchcbf._checks import check_last_dim, check_number, check_positive_int, check_tensor
+from torchcbf._checks import (
+    check_finite,
+    check_last_dim,
+    check_number,
+    check_positive_int,
+    check_same,
+    check_tensor,
+)
 from torchcbf._random import counter_normal, seed_rows
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.estimation import Estimator, Sensor
@@ -154,6 +161,10 @@ class ClosedLoop:
             progress: show a progress bar labelled ``progress_label``.
             differentiable: keep the autograd graph through the whole loop (to train
                 through rollouts). Off by default: the loop runs under ``torch.no_grad()``.
+                A failed row's values are masked out, but a value that overflowed inside a
+                component (a controller's ``-k x^3`` at ``x = 1e200``) can still give that
+                component's shared parameters a NaN gradient (``0 * inf`` in its backward):
+                check ``failed`` before stepping an optimiser.
 
         Returns:
             A :class:`Trajectory`. A scenario whose state or a component's output goes
@@ -168,6 +179,7 @@ class ClosedLoop:
             )
         check_positive_int("steps", steps)
         dt = check_number("dt", dt, low=0.0, strict=True)
+        t0 = check_number("t0", t0)
         _check_model(self.dynamics, x0)
         with torch.set_grad_enabled(differentiable and torch.is_grad_enabled()):
             run = _Run(self, x0, steps, dt, seed=seed, t0=t0, snapshot_steps=snapshot_steps)
@@ -181,9 +193,11 @@ class ClosedLoop:
 
 
 def _broadcast(name: str, value: object, like: Tensor, shape: tuple[int, ...]) -> Tensor:
-    """``value`` in ``like``'s dtype and device, broadcast to ``shape`` (a clear error
-    naming ``name`` where it does not broadcast)."""
-    value = check_tensor(name, value).to(like)
+    """``value`` (a tensor in ``like``'s dtype and device, finite) broadcast to ``shape``;
+    a clear error naming ``name`` otherwise."""
+    value = check_tensor(name, value)
+    check_same("x0", like, name, value)
+    check_finite(name, value)
     try:
         return value.expand(shape)
     except RuntimeError:
@@ -365,11 +379,12 @@ class _Run:
         steps = self.steps
         self.xs[:, steps] = self.x
         if self.est_state is not None:
-            self.xs_hat[:, steps] = self.est_state.mean
+            x_hat = self.est_state.mean
         elif self.loop.sensor is not None:
-            self.xs_hat[:, steps] = self.measure(self.x, steps)
+            x_hat = self.measure(self.x, steps)
         else:
-            self.xs_hat[:, steps] = self.x
+            x_hat = self.x
+        self.xs_hat[:, steps] = self.clean(x_hat)
         return Trajectory(
             t=self.t,
             x=self.xs,

@@ -14,6 +14,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from torchcbf._version import __version__
@@ -21,10 +22,13 @@ from torchcbf._version import __version__
 
 def strict(value: Any) -> Any:
     """``value`` as strict JSON, ready for ``json.dumps(..., allow_nan=False)``: every
-    non-finite float (nan, inf) as ``None``, tensors and tuples as lists, mappings with
+    non-finite float (nan, inf) as ``None``, tensors, arrays and tuples as lists (NumPy
+    scalars as Python numbers), mappings with
     string keys, dtypes by name, anything else that is not a JSON scalar as its ``str``."""
     if isinstance(value, torch.Tensor):
         value = value.detach().cpu().tolist()
+    if isinstance(value, (np.ndarray, np.generic)):
+        value = value.tolist()
     if isinstance(value, float):
         return value if math.isfinite(value) else None
     if isinstance(value, Mapping):
