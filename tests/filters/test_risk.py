@@ -280,6 +280,35 @@ def test_local_eta_errors() -> None:
         SafetyFilter(SingleIntegrator(2), ball, mode=RiskAware(0.1, 1.0, eta="local"))
 
 
+def test_a_scalar_eta_margin_is_one_per_output_of_each_state() -> None:
+    model = SingleIntegrator(2, sigma=0.2)
+    expected = math.sqrt(2.0) * 0.3 * float(erfinv(0.9))
+    for barrier, k in ((Ball([1.0, 0.0], 0.5), 1), (Ball([[1.0, 0.0], [0.0, 2.0]], 0.5), 2)):
+        filt = SafetyFilter(model, barrier, mode=RiskAware(0.1, 1.0, eta=0.3))
+        margin = filt.condition.margin_at(barrier, model, torch.zeros(3, 2))
+        torch.testing.assert_close(margin, torch.full((3, k), expected))
+
+
+def test_the_clf_goal_level_is_checked_and_keeps_its_graph() -> None:
+    model = SingleIntegrator(2, u_min=-5.0, u_max=5.0, sigma=0.2)
+    lyap = QuadraticLyapunov([2.0, 0.0])
+    x, u = torch.zeros(1, 2, dtype=F64), torch.zeros(1, 2, dtype=F64)
+
+    def u_of(gamma):
+        mode = RiskAware(0.1, 1.0, clf_eta=0.1, clf_gamma=gamma)
+        return SafetyFilter(model, [], lyap, mode=mode)(x, u).u[0, 0]
+
+    gamma = torch.tensor(0.3, dtype=F64, requires_grad=True)
+    (grad,) = torch.autograd.grad(u_of(gamma), (gamma,))
+    fd = (u_of(0.3 + 1e-6) - u_of(0.3 - 1e-6)) / 2e-6
+    torch.testing.assert_close(grad, fd, rtol=1e-6, atol=1e-9)
+    for bad, error in ((math.nan, ValueError), (math.inf, ValueError), ("goal", TypeError)):
+        with pytest.raises(error, match="clf_gamma"):
+            RiskAware(0.1, 1.0, clf_eta=0.1, clf_gamma=bad)
+    with pytest.raises(ValueError, match=r"clf_gamma must be a scalar or \[k\]"):
+        RiskAware(0.1, 1.0, clf_eta=0.1, clf_gamma=torch.zeros(1, 1))
+
+
 def test_local_eta_horizon_with_gradient_gives_the_same_margin() -> None:
     filt = _radius_scene(F64)
     x = _unicycle_states(F64, rows=5, seed=9)

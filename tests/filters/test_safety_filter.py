@@ -339,6 +339,39 @@ def test_an_unused_callable_fallback_leaves_gradients_alone() -> None:
         torch.testing.assert_close(gk, torch.tensor(want_gk, dtype=f64))
 
 
+def test_a_fallback_row_where_the_callable_is_not_finite_leaves_shared_gradients_alone() -> None:
+    """Rows that fall back where the callable is NaN (a non-finite state, or its own 0/0)
+    get zero clipped to the limits and put no NaN in the gradient of a parameter the
+    callable shares with the other fallback rows."""
+    from torchcbf.barriers import Ball
+    from torchcbf.dynamics import SingleIntegrator
+    from torchcbf.filters import Stochastic
+
+    f64 = torch.float64
+    model = SingleIntegrator(2, u_min=-0.3, u_max=0.3, sigma=0.2)
+    k = torch.tensor(0.2, dtype=f64, requires_grad=True)
+    centre = torch.tensor([1.0, 0.0], dtype=f64)
+    for fallback in (
+        lambda x, u: -k * x,
+        lambda x, u: k * (x - centre) / (x - centre).norm(dim=-1, keepdim=True),
+    ):
+        filt = SafetyFilter(
+            model, Ball([1.0, 0.0], 0.5), mode=Stochastic(0.1), slack="none", fallback=fallback
+        )
+        x = torch.tensor([[0.9, 0.1], [math.nan, 0.0], [1.0, 0.0]], dtype=f64)
+        u = torch.zeros(3, 2, dtype=f64)
+        out = filt(x, u)
+        assert out.status.tolist() == [
+            FilterStatus.FALLBACK,
+            FilterStatus.NON_FINITE,
+            FilterStatus.FALLBACK,
+        ]
+        assert float(out.u[1].abs().max()) == 0.0  # zero clipped to the limits
+        (grad,) = torch.autograd.grad(out.u[0, 1], (k,))
+        (alone,) = torch.autograd.grad(filt(x[:1], u[:1]).u[0, 1], (k,))
+        assert torch.isfinite(grad) and float(grad) == float(alone) != 0.0
+
+
 def test_a_callable_fallback_without_a_graph_is_called_on_every_row() -> None:
     """A callable that returns a control it holds for the whole batch (a backup controller's
     output, in float64 for a float32 filter) works in grad mode and without it, its control

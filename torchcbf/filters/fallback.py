@@ -57,39 +57,48 @@ class Fallback(nn.Module):
     def forward(self, x: Tensor, u_nom: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
         """Fallback controls ``[B, m]`` at ``x [B, n]`` for ``u_nom [B, m]`` within
         ``lo, hi [m]``."""
-        zero = torch.clamp(torch.zeros_like(u_nom), lo, hi)
+        fb = self._control(x, u_nom, lo, hi)
+        return torch.where(torch.isfinite(fb).all(-1, keepdim=True), fb, self._zero(u_nom, lo, hi))
+
+    @staticmethod
+    def _zero(u_nom: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+        return torch.clamp(torch.zeros_like(u_nom), lo, hi)
+
+    def _control(self, x: Tensor, u_nom: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+        """The spec's control clipped to the limits, before non-finite rows are replaced."""
         if self.kind == "clip":
-            fb = torch.clamp(u_nom, lo, hi)
-        elif self.kind == "brake":
-            fb = zero
-        elif self.kind == "tensor":
+            return torch.clamp(u_nom, lo, hi)
+        if self.kind == "brake":
+            return self._zero(u_nom, lo, hi)
+        if self.kind == "tensor":
             fb = self.control.to(u_nom).expand_as(u_nom)
         else:
             assert self.function is not None
             fb = self.function(x, u_nom)
             check_last_dim("fallback(x, u_nom)", fb, u_nom.shape[-1])
             fb = fb.to(u_nom.dtype).expand_as(u_nom)
-        if self.kind in ("tensor", "callable"):
-            fb = torch.clamp(fb, lo, hi)
-        ok = torch.isfinite(fb).all(-1, keepdim=True)
-        return torch.where(ok, fb, zero)
+        return torch.clamp(fb, lo, hi)
 
     def select(
         self, ok: Tensor, u: Tensor, x: Tensor, u_nom: Tensor, lo: Tensor, hi: Tensor
     ) -> Tensor:
         """``u [B, m]`` in the rows ``ok [B]``, the fallback's control in the others. A
-        callable whose control carries a graph runs again on the other rows alone (one
-        host synchronisation): its backward on a row that does not use it would multiply a
-        zero gradient by its partial derivatives there, NaN where it divides by zero
-        (``x / |x|`` at 0), and every parameter it shares across rows would get a NaN
-        gradient."""
-        fb = self(x, u_nom, lo, hi)
+        callable whose control carries a graph runs again on the rows that use it and where
+        it is finite, alone (one host synchronisation): its backward on any other row would
+        multiply a zero gradient by its partial derivatives there, NaN where it divides by
+        zero (``x / |x|`` at 0) or where ``x`` is not finite, and every parameter it shares
+        across rows would get a NaN gradient."""
+        fb = self._control(x, u_nom, lo, hi)
+        finite = torch.isfinite(fb).all(-1)
+        zero = self._zero(u_nom, lo, hi)
         if self.kind != "callable" or not fb.requires_grad:
+            fb = torch.where(finite.unsqueeze(-1), fb, zero)
             return torch.where(ok.unsqueeze(-1), u, fb)
-        rows = (~ok).nonzero().squeeze(-1)
+        rows = (~ok & finite).nonzero().squeeze(-1)
+        out = torch.where(ok.unsqueeze(-1), u, zero)
         if rows.numel() == 0:
-            return u
-        return u.index_put((rows,), self(x[rows], u_nom[rows], lo, hi))
+            return out
+        return out.index_put((rows,), self(x[rows], u_nom[rows], lo, hi))
 
     def extra_repr(self) -> str:
         return self.kind

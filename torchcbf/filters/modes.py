@@ -264,7 +264,8 @@ class RiskAware(FilterMode):
             the filter binds the mode; one of the two is required with barriers).
         clf_rho, clf_eta, clf_gamma: risk-aware CLF: risk (default ``rho``), noise bound of
             ``V`` (default: :func:`noise_bound` over ``safe_states``), goal level ``gamma``
-            of ``{V <= gamma}`` (default 0).
+            of ``{V <= gamma}`` (default 0; a number, or a scalar or ``[k]`` tensor, whose
+            graph is kept).
     """
 
     name = "risk_aware"
@@ -296,7 +297,13 @@ class RiskAware(FilterMode):
         self.safe_states = safe_states
         self.clf_rho = self.rho if clf_rho is None else _check_risk("clf_rho", clf_rho)
         _keep_bound(self, "clf_eta", clf_eta)
-        self.register_buffer("clf_gamma", torch.tensor(float(clf_gamma), dtype=torch.float64))
+        if isinstance(clf_gamma, bool) or not isinstance(clf_gamma, (numbers.Real, Tensor)):
+            raise TypeError(
+                f"clf_gamma must be a number or a tensor, got {type(clf_gamma).__name__}"
+            )
+        if isinstance(clf_gamma, Tensor) and clf_gamma.dim() > 1:
+            raise ValueError(f"clf_gamma must be a scalar or [k], got {tuple(clf_gamma.shape)}")
+        store(self, "clf_gamma", clf_gamma, dtype=torch.float64)  # a tensor keeps its graph
         # noise bounds computed over safe_states when a filter binds the mode
         self.register_buffer("cbf_noise_bound", None)
         self.register_buffer("clf_noise_bound", None)
@@ -421,7 +428,11 @@ class RiskAware(FilterMode):
         if not self.local:
             if self.cbf_margin is None:
                 raise ValueError("the mode has no CBF margin until a filter binds it")
-            return self.cbf_margin.to(x).expand(*x.shape[:-1], -1)
+            margin = self.cbf_margin.to(x)
+            if margin.dim() == 0:  # one margin for every output: count them
+                h = barrier.lie(x, dynamics, t, hessian=False).h
+                margin = margin.expand(h.shape[-1] if h.dim() == x.dim() else 1)
+            return margin.expand(*x.shape[:-1], -1)
         terms = barrier.lie(x, dynamics, t, hessian=False)
         dhdx = terms.dhdx if terms.dhdx.dim() == x.dim() + 1 else terms.dhdx.unsqueeze(-2)
         return local_margin(dhdx, dynamics.sigma(x), self.rho, self.horizon.to(x))
