@@ -113,6 +113,14 @@ def check_positive(name: str, value: float) -> float:
     return check_number(name, value, low=0.0, strict=True)
 
 
+def check_bool(name: str, value: object) -> bool:
+    """A bool (Python's or NumPy's): ``TypeError`` naming ``name`` for anything else (a
+    string ``"False"`` would read as true)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be a bool, got {type(value).__name__}")
+    return bool(value)
+
+
 def check_positive_int(name: str, value: object) -> int:
     """Check an int (Python's or NumPy's; a bool is not one here) is >= 1."""
     return check_int(name, value, low=1, what="a positive int")

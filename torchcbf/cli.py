@@ -22,8 +22,9 @@ non-empty ``--out`` that is not this command's own run is refused unless ``--ove
 (which removes the outputs of earlier torchcbf runs there); ``--resume`` continues an
 interrupted run, keeping what finished. Ctrl-C ends a run cleanly (exit code 130) with what
 finished saved, and says how to resume. A sweep whose every configuration failed, or a tune
-whose every trial did, exits with code 1. Every file is written to a temporary name and
-renamed.
+whose every trial did, exits with code 1, as does a run whose figures failed (its
+``metrics.json`` is written, with the error under ``figures_failed``). Every file is
+written to a temporary name and renamed.
 """
 
 from __future__ import annotations
@@ -196,18 +197,28 @@ def _run_scenario(
     draw = entry.figures or functools.partial(standard_figures, stem=entry.name.replace("-", "_"))
     folder = parts.run.path
     before = set(os.listdir(folder))
+    failure = None
     try:
         figures = draw(
             trajectories, scenario, folder, title=title, gif=not args.no_gif,
             first_seed=args.seed,
         )  # fmt: skip
+    except Exception as error:  # the results stand without their figures: keep them
+        failure = f"{type(error).__name__}: {error}"
+        print(f"torchcbf {args.command}: the figures of {entry.name} failed: {failure}",
+              file=sys.stderr)  # fmt: skip
     finally:
         # the figures drawn so far, in the manifest even where Ctrl-C cut the drawing: an
         # --overwrite removes them with the rest of the run
-        drawn = set(os.listdir(folder)) - before
-        parts.run.record(*sorted(n for n in drawn if not _io.is_temporary(folder / n)))
+        drawn = sorted(n for n in set(os.listdir(folder)) - before)
+        drawn = [n for n in drawn if not _io.is_temporary(folder / n)]
+        parts.run.record(*drawn)
+    if failure is not None:
+        figures = [folder / n for n in drawn]
     for record in results.values():
         record["figures"] = [str(p) for p in figures]
+        if failure is not None:
+            record["figures_failed"] = failure
     return results
 
 
@@ -491,13 +502,14 @@ def _main(argv: Sequence[str] | None = None) -> int:
         saved = f"{len(parts.done)} finished part(s) ({', '.join(parts.done) or 'none'})"
         return _interrupted(args.command, argv, run.path, saved)
     figures = {Path(f).name for entry in results.values() for f in entry.get("figures", [])}
+    failed = any("figures_failed" in entry for entry in results.values())
     run.record(metrics_path, *sorted(figures))
     run.finish()
     out = run.path
     kinds = sorted({Path(f).suffix for f in figures})
     shown = ", ".join(f"{out}/*{kind}" for kind in kinds) or "none"
     print(f"metrics: {out / 'metrics.json'}; figures: {shown}")
-    return 0
+    return 1 if failed else 0
 
 
 # ---------------------------------------------------------------------------------------------

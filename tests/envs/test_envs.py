@@ -314,6 +314,15 @@ def test_bad_input_names_the_argument() -> None:
     assert np.isfinite(obs).all()
     with pytest.raises(ValueError, match="seed"):
         env.reset(seed=[1, 2, 3])
+    with pytest.raises(TypeError, match="seed must be an int, one per sub-environment"):
+        env.reset(seed=1.5)
+    with pytest.raises(ValueError, match="control_limit must be two positive numbers"):
+        envs.UnicycleEllipsesVectorEnv(2, control_limit=5)
+    with pytest.raises(TypeError, match=r"control_limit\[0\] must be a number"):
+        envs.UnicycleEllipsesVectorEnv(2, control_limit=("fast", "slow"))
+    for kind in (envs.ReachAvoidVectorEnv, envs.UnicycleEllipsesVectorEnv):
+        with pytest.raises(TypeError, match="terminate_on_collision must be a bool"):
+            kind(2, terminate_on_collision="False")
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

@@ -146,6 +146,16 @@ def test_entries_are_checked_when_made() -> None:
         )
     with pytest.raises(ValueError, match="kind"):
         Column("c", "m", "median")
+    with pytest.raises(ValueError, match="num_seeds must be a positive int"):
+        ScenarioEntry(name="x", build=_build, params=_Params, num_seeds=0)
+    with pytest.raises(ValueError, match=r"demo\['kk'\] names 'kk', which is not a field"):
+        ScenarioEntry(name="x", build=_build, params=_Params, demo={"kk": 2.0})
+    with pytest.raises(ValueError, match=r"demo\['num_seeds'\] must be a positive int"):
+        ScenarioEntry(name="x", build=_build, params=_Params, demo={"num_seeds": 0, "k": 2.0})
+    with pytest.raises(ValueError, match="dimension 'k': low 4.0 > high 0.5"):
+        Dimension("k", "float", 4.0, 0.5)
+    with pytest.raises(ValueError, match="log scale: low > 0"):
+        Dimension("k", "float", 0.0, 1.0, log=True)
     entry = ScenarioEntry(name="x-test", build=_build, params=_Params)
     with pytest.raises(ValueError, match="unknown parameter"):
         entry.parameters(gain=2.0)
@@ -236,3 +246,48 @@ def test_the_arm_scenario_records_its_time_to_the_goal() -> None:
                    device="cpu", threads=1)  # fmt: skip
     assert row["goal_count"] >= 1
     assert row["time_to_goal_s"] is not None and 0.0 < row["time_to_goal_s"] <= 200 * 0.02
+
+
+@dataclass(frozen=True)
+class _WallParams:
+    speed: float = 1.0
+
+
+def _wall(p, *, num_seeds, seed, device, dtype=None):
+    """A one-component state driven toward a wall at x = 1."""
+    import torch
+
+    from torchcbf.dynamics import SingleIntegrator
+    from torchcbf.scenarios import Scenario
+
+    model = SingleIntegrator(1, u_min=-2.0, u_max=2.0).double()
+    x0 = torch.zeros(num_seeds, 1, dtype=torch.float64)
+    return Scenario(name="x-wall", dynamics=model, x0=x0, steps=5, dt=0.05,
+                    seeds=torch.arange(seed, seed + num_seeds),
+                    nominal=lambda x, t: p.speed * torch.ones_like(x),
+                    barriers=[lambda x: 1.0 - x[..., 0]])  # fmt: skip
+
+
+def _failing_figures(*args, **kwargs):
+    raise RuntimeError("no display")
+
+
+@pytest.mark.parametrize("figures", [None, _failing_figures])
+def test_a_run_keeps_its_metrics_whatever_its_figures(figures, tmp_path, capsys) -> None:
+    """A state of one component gets the bands alone; figures that fail leave the results
+    written and the exit code 1."""
+    register(ScenarioEntry(name="x-wall", build=_wall, params=_WallParams, figures=figures))
+    try:
+        code = main(["x-wall", "--seeds", "2", "--out", str(tmp_path), "--no-progress"])
+    finally:
+        unregister("x-wall")
+    data = json.loads((tmp_path / "metrics.json").read_text())
+    result = data["results"]["x-wall"]
+    assert result["summary"]["collision"]["n"] == 2
+    if figures is None:
+        assert code == 0 and [p.split("/")[-1] for p in result["figures"]] == [
+            "x_wall_barriers.png"
+        ]
+    else:
+        assert code == 1 and result["figures_failed"] == "RuntimeError: no display"
+        assert "the figures of x-wall failed: RuntimeError: no display" in capsys.readouterr().err

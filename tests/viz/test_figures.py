@@ -85,6 +85,30 @@ def test_barrier_bands_show_and_mark_the_deepest_violation() -> None:
     assert any(label.startswith("lowest: -0.64 (scbf") for label in labels)
 
 
+def test_barrier_bands_far_above_contact_are_in_view() -> None:
+    x = torch.zeros(3, 21, 2)
+    x[:, :, 0] = torch.linspace(4.0, 5.5, 21)  # h from 15 to 29.25: above the default view
+    fig = plot_barrier_bands({"filter": _traj(x)}, [Ball(center=[0.0, 0.0], radius=1.0)])
+    low, high = fig.axes[0].get_ylim()
+    assert low <= 15.0 <= high
+
+
+def test_the_rollouts_view_holds_the_executed_path_and_the_plan() -> None:
+    rollouts = torch.randn(20, 6, 2, generator=torch.Generator().manual_seed(0)) * 0.1 + 5.0
+    executed = torch.linspace(0.0, 5.0, 30).unsqueeze(-1).expand(30, 2)
+    plan = torch.linspace(5.0, 8.0, 6).unsqueeze(-1).expand(6, 2)
+    ax = plot_rollouts(rollouts, torch.ones(20), plan, executed=executed).axes[0]
+    for lo, hi in (ax.get_xlim(), ax.get_ylim()):
+        assert lo <= 0.0 and hi >= 8.0
+
+
+def test_a_state_of_one_component_has_no_plane_to_draw() -> None:
+    with pytest.raises(ValueError, match=r"index \(0, 1\) is outside the 1 components"):
+        plot_methods({"a": _traj(torch.zeros(2, 5, 1))}, [], [])
+    with pytest.raises(ValueError, match=r"index \(0, 1\) is outside the 1 components"):
+        plot_rollouts(torch.zeros(4, 3, 1), torch.ones(4))
+
+
 def test_barrier_values_mark_the_minimum() -> None:
     h = torch.tensor([[1.0, 0.5, 0.2], [1.0, -0.9, 0.3]])
     fig = plot_barrier_values(torch.tensor([0.0, 0.1, 0.2]), h)

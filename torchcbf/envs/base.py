@@ -171,6 +171,11 @@ class TorchVectorEnv(gymnasium.vector.VectorEnv):
             return seed_rows(int(seed), self.num_envs, self.device, per="sub-environment")
         if isinstance(seed, (Tensor, np.ndarray)):  # no None among them
             return seed_rows(seed, self.num_envs, self.device, per="sub-environment")
+        if not isinstance(seed, Sequence) or isinstance(seed, str):
+            raise TypeError(
+                f"seed must be an int, one per sub-environment (ints or None) or None, "
+                f"got {type(seed).__name__}"
+            )
         seeds = list(seed)
         if len(seeds) != self.num_envs:
             raise ValueError(

@@ -30,7 +30,7 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 from torch import Tensor, nn
 
-from torchcbf._checks import check_number
+from torchcbf._checks import check_bool, check_number
 from torchcbf.barriers import Ball
 from torchcbf.dynamics import SingleIntegrator
 from torchcbf.envs.base import TorchEnv, TorchVectorEnv
@@ -94,7 +94,7 @@ class ReachAvoidVectorEnv(TorchVectorEnv):
         )
         self.goal_bonus = check_number("goal_bonus", goal_bonus, low=0.0)
         self.collision_penalty = check_number("collision_penalty", collision_penalty, low=0.0)
-        self.terminate_on_collision = bool(terminate_on_collision)
+        self.terminate_on_collision = check_bool("terminate_on_collision", terminate_on_collision)
         self.start_noise = check_number("start_noise", start_noise, low=0.0)
         self.dt = DT
         kw = {"device": self.device, "dtype": dtype}

@@ -35,7 +35,7 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 from torch import Tensor, nn
 
-from torchcbf._checks import check_number
+from torchcbf._checks import check_bool, check_number
 from torchcbf.dynamics import AccelUnicycle
 from torchcbf.envs.base import TorchEnv, TorchVectorEnv
 from torchcbf.integrators import step
@@ -96,13 +96,16 @@ class UnicycleEllipsesVectorEnv(TorchVectorEnv):
             autoreset_mode=autoreset_mode,
             render_mode=render_mode,
         )
-        limit = [float(v) for v in control_limit]
-        if len(limit) != 2 or not all(0 < v < math.inf for v in limit):
+        if not isinstance(control_limit, Sequence) or len(control_limit) != 2:
             raise ValueError(f"control_limit must be two positive numbers, got {control_limit!r}")
+        limit = [
+            check_number(f"control_limit[{i}]", v, low=0.0, strict=True)
+            for i, v in enumerate(control_limit)
+        ]
         self.sigma = check_number("sigma", sigma, low=0.0)
         self.goal_bonus = check_number("goal_bonus", goal_bonus, low=0.0)
         self.collision_penalty = check_number("collision_penalty", collision_penalty, low=0.0)
-        self.terminate_on_collision = bool(terminate_on_collision)
+        self.terminate_on_collision = check_bool("terminate_on_collision", terminate_on_collision)
         self.start_noise = check_number("start_noise", start_noise, low=0.0)
         self.dt = DT
         kw = {"device": self.device, "dtype": dtype}

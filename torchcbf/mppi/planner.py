@@ -106,6 +106,7 @@ from torchcbf._checks import (
     as_matrix,
     as_tensor,
     behaves_as,
+    check_bool,
     check_bounds,
     check_last_dim,
     check_number,
@@ -579,8 +580,7 @@ class MPPI(TracksShadows, ExactConstants):
         for name, flag in (("noise_abs_cost", noise_abs_cost),
                            ("sample_null_action", sample_null_action),
                            ("cuda_graph", cuda_graph)):  # fmt: skip
-            if not isinstance(flag, bool):
-                raise TypeError(f"{name} must be a bool, got {type(flag).__name__}")
+            check_bool(name, flag)
         if sample_null_action and zero_noise_samples + 1 > num_samples:
             raise ValueError(
                 f"sample_null_action needs a sample beyond the zero_noise_samples "

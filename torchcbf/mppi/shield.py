@@ -25,6 +25,7 @@ from typing import Any
 
 from torch import Tensor, nn
 
+from torchcbf._checks import check_bool
 from torchcbf.mppi.planner import MPPI, MPPIOutput
 
 
@@ -52,8 +53,7 @@ class ShieldMPPI(nn.Module):
             raise TypeError(f"planner must be an MPPI planner, got {type(planner).__name__}")
         if not callable(safety_filter):
             raise TypeError(f"safety_filter must be callable, got {type(safety_filter).__name__}")
-        if not isinstance(in_loop, bool):
-            raise TypeError(f"in_loop must be a bool, got {type(in_loop).__name__}")
+        check_bool("in_loop", in_loop)
         self.planner = planner
         self.safety_filter = safety_filter
         self.in_loop = in_loop

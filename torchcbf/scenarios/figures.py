@@ -67,7 +67,8 @@ def standard_figures(
     paths (``{stem}_trajectories.png``), its rollouts and ``{stem}.gif``; a comparison of
     variants (``compare``; default: more than one trajectory) gives the paths in one colour
     per variant, the closest-obstacle bands (``{stem}_barriers.png``), each variant's
-    rollouts (``{stem}_{variant}_rollouts_*``) and an animation of all of them."""
+    rollouts (``{stem}_{variant}_rollouts_*``) and an animation of all of them. A state of
+    one component has no plane to draw paths in: it gets the bands alone."""
     from torchcbf.viz import (
         animate,
         animate_methods,
@@ -79,7 +80,18 @@ def standard_figures(
     view = dict(view or {})
     out = Path(out)
     barriers, goals = list(scenario.barriers), list(scenario.goals)
-    n = next(iter(trajectories.values())).x.shape[0] if trajectories else 0
+    first = next(iter(trajectories.values()), None)
+    n = first.x.shape[0] if first is not None else 0
+
+    def bands() -> list[Path]:
+        if not barriers:
+            return []
+        title_bands = f"{title}: closest obstacle over time ({n} seeds)"
+        figure = plot_barrier_bands(trajectories, barriers, title=title_bands)
+        return [save(figure, out / f"{stem}_barriers.png")]
+
+    if first is not None and first.x.shape[-1] < 2 and "index" not in view:
+        return bands()
     if not (len(trajectories) > 1 if compare is None else compare):
         ((name, traj),) = trajectories.items()
         figures = [
@@ -102,15 +114,7 @@ def standard_figures(
             out / f"{stem}_trajectories.png",
         )
     ]
-    if barriers:
-        figures.append(
-            save(
-                plot_barrier_bands(
-                    trajectories, barriers, title=f"{title}: closest obstacle over time ({n} seeds)"
-                ),
-                out / f"{stem}_barriers.png",
-            )
-        )
+    figures += bands()
     for name, traj in trajectories.items():
         label = f"{name}, seed {first_seed}"
         figures += rollout_figures(traj, scenario, out / f"{stem}_{name}", label, **view)

@@ -35,6 +35,7 @@ from typing import Any
 
 import torch
 
+from torchcbf._checks import check_number, check_positive_int
 from torchcbf.scenarios.base import Scenario
 
 ENTRY_POINT_GROUP = "torchcbf.scenarios"
@@ -70,8 +71,17 @@ class Dimension:
             raise ValueError(f"Dimension.kind must be float, int or categorical, got {self.kind!r}")
         if self.kind == "categorical" and not self.choices:
             raise ValueError(f"categorical dimension {self.name!r} needs choices")
-        if self.kind != "categorical" and (self.low is None or self.high is None):
-            raise ValueError(f"dimension {self.name!r} needs low and high")
+        if self.kind != "categorical":
+            if self.low is None or self.high is None:
+                raise ValueError(f"dimension {self.name!r} needs low and high")
+            low = check_number(f"dimension {self.name!r}: low", self.low)
+            high = check_number(f"dimension {self.name!r}: high", self.high)
+            if low > high:
+                raise ValueError(f"dimension {self.name!r}: low {low} > high {high}")
+            if self.log and low <= 0:
+                raise ValueError(
+                    f"dimension {self.name!r} is searched on a log scale: low > 0, got {low}"
+                )
 
     @property
     def keyword(self) -> str:
@@ -226,7 +236,13 @@ class ScenarioEntry:
                 f"ScenarioEntry {self.name!r}: the variant {self.variant!r} needs its values "
                 "in choices (what 'all' runs)"
             )
+        check_positive_int(f"ScenarioEntry {self.name!r}: num_seeds", self.num_seeds)
+        if self.demo is not None and "num_seeds" in self.demo:
+            check_positive_int(
+                f"ScenarioEntry {self.name!r}: demo['num_seeds']", self.demo["num_seeds"]
+            )
         named = [("variant", self.variant)] if self.variant is not None else []
+        named += [(f"demo[{key!r}]", key) for key in self.demo or {} if key != "num_seeds"]
         named += [(f"options[{flag!r}]", key) for flag, key in self.options.items()]
         named += [(f"choices[{key!r}]", key) for key in self.choices]
         named += [(f"search_space[{d.name!r}]", d.keyword) for d in self.search_space]

@@ -17,13 +17,9 @@ from matplotlib.figure import Figure
 
 from torchcbf.sim.metrics import _barrier_values
 from torchcbf.sim.trajectory import Trajectory
-from torchcbf.viz.figures import BarrierFn, _draw_scene, _np
+from torchcbf.viz.figures import BarrierFn, _draw_scene, _np, plane
 
 COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink")
-
-
-def _xy(traj: Trajectory, index: tuple[int, int]) -> np.ndarray:
-    return _np(traj.x)[..., list(index)]
 
 
 def _mark_exits(
@@ -66,11 +62,11 @@ def plot_methods(
     counted in the legend, which sits right of the axes (never over an obstacle or a goal)."""
     _check_methods(trajectories)
     fig, ax = plt.subplots(figsize=(7, 7))
-    firsts = np.concatenate([_xy(t, index)[:, :1] for t in trajectories.values()])
+    firsts = np.concatenate([plane(t.x, index)[:, :1] for t in trajectories.values()])
     xlim, ylim = _draw_scene(ax, firsts, barriers, goals, firsts.shape[-1], index, xlim, ylim)
     for j, (name, traj) in enumerate(trajectories.items()):
         color = COLORS[j % len(COLORS)]
-        xy = _xy(traj, index)
+        xy = plane(traj.x, index)
         for b in range(xy.shape[0]):
             ax.plot(xy[b, :, 0], xy[b, :, 1], color=color, lw=0.9, alpha=0.55)
         exits = _mark_exits(ax, xy, xlim, ylim, color)
@@ -112,8 +108,8 @@ def plot_barrier_bands(
 ) -> Figure:
     """Per method: the median over seeds of ``min_i b_i(x(t))``, the 5-95 % band across
     seeds (the noise band) and the minimum over seeds; ``b = 0`` (contact) dashed. ``ylim``
-    frames the bands; its lower end moves down to show the lowest value of any method,
-    which is marked with its value."""
+    frames the bands; its lower end moves down (or its upper end up) to show the lowest
+    value of any method, which is marked with its value."""
     _check_methods(trajectories)
     if not barriers:
         raise ValueError("barriers is empty: the bands are of min_i b_i(x), give the barriers")
@@ -143,6 +139,8 @@ def plot_barrier_bands(
         lo, hi = ax.get_ylim()
         if value < lo + 0.05 * (hi - lo):
             ax.set_ylim(value - 0.08 * (hi - value), hi)
+        elif value > hi - 0.05 * (hi - lo):
+            ax.set_ylim(lo, value + 0.08 * (value - lo))
         label = f"lowest: {value:.2f} ({worst}, seed index {seed}, t = {when:.2f} s)"
         ax.plot(when, value, marker="v", color="tab:red", ms=8, mec="k", mew=0.5, zorder=5,
                 label=label)  # fmt: skip
@@ -179,7 +177,7 @@ def animate_methods(
     fig, ax = plt.subplots(figsize=(8.4, 6))
     try:
         fig.subplots_adjust(left=0.08, right=0.7)  # room for the legend (frames keep this box)
-        xys = {name: _xy(t, index)[seed_index] for name, t in trajectories.items()}
+        xys = {name: plane(t.x, index)[seed_index] for name, t in trajectories.items()}
         starts = np.stack([xy[:1] for xy in xys.values()])
         xlim, ylim = _draw_scene(ax, starts, barriers, goals, starts.shape[-1], index, xlim, ylim)
         ax.set_xlim(*xlim)

@@ -33,6 +33,16 @@ def _np(value: Any) -> np.ndarray:
     return np.asarray(value)
 
 
+def plane(states: Any, index: tuple[int, int]) -> np.ndarray:
+    """The two drawn components ``[..., 2]`` of ``states [..., n]`` (``ValueError`` where
+    ``index`` names a component the state does not have)."""
+    values = _np(states)
+    n = values.shape[-1]
+    if len(index) != 2 or not all(0 <= i < n for i in index):
+        raise ValueError(f"index {tuple(index)} is outside the {n} components of the state")
+    return values[..., list(index)]
+
+
 def draw_unsafe_set(
     ax: Axes,
     barrier: BarrierFn,
@@ -197,11 +207,8 @@ def plot_trajectories(
 ) -> Figure:
     """Paths of (up to ``max_paths``) scenarios over obstacles and goal regions (axis
     ``labels`` as :func:`axis_labels`)."""
-    n = trajectory.x.shape[-1]
-    if not all(0 <= i < n for i in index):
-        raise ValueError(f"index {tuple(index)} is outside the {n} components of the state")
+    xy = plane(trajectory.x, index)
     fig, ax = (ax.figure, ax) if ax is not None else plt.subplots(figsize=(6, 6))
-    xy = _np(trajectory.x)[..., list(index)]
     xlim, ylim = _draw_scene(ax, xy, barriers, goals, trajectory.x.shape[-1], index, xlim, ylim)
     for b in range(min(xy.shape[0], max_paths)):
         ax.plot(
@@ -283,20 +290,23 @@ def plot_rollouts(
     executed path ``[T, n]``. MPPI's weights span tens of orders of magnitude, so a colour
     scale on the weight (or its logarithm over a few decades) puts almost every rollout at
     its bottom; ranks spread them evenly. The legend sits below the axes."""
+    R = plane(rollouts, index)
+    E = None if executed is None else plane(executed, index)
+    P = None if plan_states is None else plane(plan_states, index)
     fig, ax = (ax.figure, ax) if ax is not None else plt.subplots(figsize=(6, 6))
-    R = _np(rollouts)[..., list(index)]
     rank = weight_ranks(_np(weights))
-    xlim, ylim = _draw_scene(ax, R, barriers, goals, _np(rollouts).shape[-1], index, xlim, ylim)
+    # the view holds the rollouts, the executed path and the plan
+    shown = np.concatenate([a.reshape(-1, 2) for a in (R, E, P) if a is not None])
+    n = _np(rollouts).shape[-1]
+    xlim, ylim = _draw_scene(ax, shown, barriers, goals, n, index, xlim, ylim)
     cmap = plt.get_cmap("viridis")
     for k in np.argsort(rank, kind="stable"):  # the heaviest drawn last, on top
         ax.plot(R[k, :, 0], R[k, :, 1], color=cmap(rank[k]), lw=0.6, alpha=0.2 + 0.6 * rank[k])
     sm = plt.cm.ScalarMappable(cmap=cmap, norm=Normalize(0.0, 1.0))
     fig.colorbar(sm, ax=ax, label="rank of the sample's weight (1 = heaviest)")
-    if executed is not None:
-        E = _np(executed)[..., list(index)]
+    if E is not None:
         ax.plot(E[:, 0], E[:, 1], "k-", lw=2.0, label="executed")
-    if plan_states is not None:
-        P = _np(plan_states)[..., list(index)]
+    if P is not None:
         ax.plot(P[:, 0], P[:, 1], color="tab:orange", lw=2.5, label=plan_label)
     ax.set_xlim(*xlim)
     ax.set_ylim(*ylim)
@@ -325,7 +335,7 @@ def animate(
     fig = plot_trajectories(trajectory, barriers, goals, index=index, max_paths=0)
     try:
         ax = fig.axes[0]
-        xy = _np(trajectory.x)[:max_paths, :, list(index)]
+        xy = plane(trajectory.x[:max_paths], index)
         t = _np(trajectory.t)
         lines = [ax.plot([], [], color="tab:blue", lw=1.2)[0] for _ in range(xy.shape[0])]
         dots = ax.plot([], [], "o", color="tab:blue", ms=4)[0]
