@@ -533,11 +533,14 @@ def test_scenario_b_risk_aware_filter_runs_in_the_kernels(
         assert other(x, u).path != "native/realtime"  # a subclass's forward: not the kernel's
 
 
-@pytest.mark.parametrize(("dtype", "temperature"), [(torch.float32, 1e-39), (F64, 1e-320)])
+@pytest.mark.parametrize(
+    ("dtype", "temperature"), [(torch.float32, 1e-39), (torch.float32, 1e-46), (F64, 1e-320)]
+)
 @pytest.mark.parametrize("cls", [Intersection, Union])
 def test_a_subnormal_temperature_gives_the_hard_reduction(cls, dtype, temperature) -> None:
     """``v / T`` overflowed (inf and NaN on every path where the kernel computes in the
-    dtype); the log-sum-exp is shifted by its largest term before the division."""
+    dtype); the log-sum-exp is shifted by its largest term before the division, and a ``T``
+    the dtype cannot hold (0 in float32) is its least normal number."""
     dyn = SingleIntegrator(2, sigma=0.3).to(dtype)
     balls = (Ball([1.0, 0.5], 0.7), Ball([-1.0, 0.0], 0.5))
     smooth = cls(*balls, smooth=True, temperature=temperature).to(dtype)

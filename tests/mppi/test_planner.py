@@ -970,3 +970,65 @@ def test_a_time_that_is_not_finite_is_refused_or_plans_nothing() -> None:
     sigma = torch.tensor([[1.0, 0.3], [0.3, 0.5]])
     only_avoid = MPPI(dyn, Avoid([1.0, 0.0], 0.3), 8, 64, 0.02, sigma, 0.5, 0.1, seed=0)
     assert only_avoid(x, t=t).status.tolist() == [0, 1, 0]
+
+
+@pytest.mark.parametrize("kind", ["MPPI", "SMPPI", "KMPPI"])
+@pytest.mark.parametrize("bad", [math.nan, math.inf])
+def test_a_candidate_that_is_not_finite_has_no_say_in_the_plan(kind: str, bad: float) -> None:
+    from torchcbf.mppi import KMPPI, SMPPI
+
+    cls = {"MPPI": MPPI, "SMPPI": SMPPI, "KMPPI": KMPPI}[kind]
+    H, f64 = 4, torch.float64
+    candidate = torch.zeros(1, H, 2, dtype=f64)
+    candidate[0, 2, 0] = bad
+    limits = {"u_min": -1.0, "u_max": 1.0} if math.isnan(bad) else {}
+    planner = cls(SingleIntegrator(2), QuadraticGoal([1.0, 1.0]), H, 16, 0.1, 0.5, 0.5,
+                  action_sampler=lambda x, t: candidate, **limits).double()  # fmt: skip
+    for call in range(3):
+        out = planner(torch.zeros(2, dtype=f64), t=0.1 * call)
+        assert int(out.status) == 0 and int(out.nonfinite) == 1
+        assert bool(torch.isfinite(out.plan).all()) and bool(torch.isfinite(out.u).all())
+
+
+def test_std_normalisation_of_widely_spread_float32_costs() -> None:
+    def cost(states, controls, t0):
+        value = torch.full(states.shape[:2], 1e20, dtype=states.dtype)
+        value[:, 0], value[:, 1] = 0.0, 1e19
+        return value
+
+    weights = [
+        MPPI(SingleIntegrator(2), cost, 3, 8, 0.1, 0.5, 0.5, keep_rollouts=8,
+             cost_normalization="std").to(dtype)(torch.zeros(2, dtype=dtype)).rollout_weights
+        for dtype in (torch.float64, torch.float32)
+    ]  # fmt: skip
+    torch.testing.assert_close(weights[1], weights[0].float())
+    assert float(weights[0][0]) > 0.5
+
+
+def test_limits_flags_and_integers_are_checked_as_given() -> None:
+    import numpy as np
+
+    from torchcbf.mppi import SMPPI
+
+    def make(**kw):
+        return MPPI(SingleIntegrator(2), QuadraticGoal([1.0, 1.0]), 4, 8, 0.1, 0.4, 1.0, **kw)
+
+    planner = make(u_min=-1.0, u_max=1.0)
+    with pytest.raises(ValueError, match="u_max must not contain NaN"):
+        planner.u_max = torch.tensor([math.nan, 1.0])
+    with pytest.raises(ValueError, match=r"u_min \[2.0, 2.0\] exceeds u_max"):
+        planner.u_min = torch.tensor([2.0, 2.0])
+    planner.u_max = torch.tensor([0.5, 0.5])  # a valid bound is taken
+    assert float(planner(torch.zeros(2)).u.abs().max()) <= 0.5
+    with pytest.raises(TypeError, match="compile must be a bool or a dict"):
+        make(compile="no")
+    with pytest.raises(TypeError, match="shift must be a bool"):
+        planner(torch.zeros(2), shift="False")
+    with pytest.raises(ValueError, match="smoothness_weight must be a finite number >= 0"):
+        SMPPI(SingleIntegrator(2), QuadraticGoal([1.0, 1.0]), 4, 8, 0.1, 0.4, 1.0,
+              smoothness_weight=math.inf)  # fmt: skip
+    assert make(seed=np.int64(1)).seed == 1
+    goal = QuadraticGoal([1.0, 1.0])
+    assert MPPI(SingleIntegrator(2), goal, np.int64(3), 8, 0.1, 0.4, 1.0).horizon == 3
+    with pytest.raises(ValueError, match=r"seed must lie in \[-2\^63, 2\^63\)"):
+        make(seed=2**64 - 1)

@@ -18,7 +18,15 @@ def reduce(values: Tensor, mode: Mode, smooth: bool, temperature: float) -> Tens
         return values.amin(-1) if mode == "min" else values.amax(-1)
     sign = -1.0 if mode == "min" else 1.0
     z, shift = _shifted(values, sign)
+    temperature = _representable(temperature, values)
     return sign * (shift.squeeze(-1) + temperature * torch.logsumexp(z / temperature, dim=-1))
+
+
+def _representable(temperature: float, values: Tensor) -> float:
+    """``T``, or the least normal number of ``values``' dtype where ``T`` is below it (a
+    float32 ``T`` under 1.4e-45 is 0, and ``0 / 0`` NaN): the reduction is then the hard
+    one to within ``T log c``, as in float64."""
+    return max(temperature, torch.finfo(values.dtype).tiny)
 
 
 def _shifted(values: Tensor, sign: float) -> tuple[Tensor, Tensor]:
@@ -60,6 +68,7 @@ def combine(
         return AnalyticDerivatives(h, (w.unsqueeze(-1) * dhdx).sum(-2), (w * dhdt).sum(-1), quad)
     sign = -1.0 if mode == "min" else 1.0
     h = reduce(values, mode, smooth, temperature)
+    temperature = _representable(temperature, values)
     w = torch.softmax(_shifted(values, sign)[0] / temperature, dim=-1)
     grad = (w.unsqueeze(-1) * dhdx).sum(-2)
     dt = (w * dhdt).sum(-1)

@@ -3,7 +3,9 @@
 Gymnasium's ``Pendulum-v1`` (``g = 10``, ``m = l = 1``, ``dt = 0.05``): the angle ``theta``
 is 0 upright, the torque is clipped to ``[-2, 2]`` and the speed to ``[-8, 8]``. The planner's
 model is pytorch-mppi's (its test's ``dynamics`` and ``running_cost``), with the torque and
-the speed clipped inside the step, so the planner samples unbounded torques:
+the speed clipped inside the step, so pytorch-mppi's test planner samples unbounded torques:
+build that one with ``PendulumModel(u_min=None, u_max=None)``; ``PendulumModel()`` bounds the
+torque to ``[-2, 2]``, and a planner on it clamps its samples there:
 
 - :class:`PendulumModel`, the continuous dynamics ``theta'' = 3 g / (2 l) sin(theta) +
   3 / (m l^2) u`` (for ``n``, ``m`` and the limits; its Euler step is not the clipped one);

@@ -108,6 +108,7 @@ from torchcbf._checks import (
     behaves_as,
     check_bool,
     check_bounds,
+    check_int,
     check_last_dim,
     check_number,
     check_positive,
@@ -552,9 +553,8 @@ class MPPI(TracksShadows, ExactConstants):
             )
         if not callable(cost):
             raise TypeError(f"cost must be callable, got {type(cost).__name__}")
-        for name, value, low in (("horizon", horizon, 1), ("history_size", history_size, 1)):
-            if not isinstance(value, int) or isinstance(value, bool) or value < low:
-                raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+        horizon = check_int("horizon", horizon, low=1, what="an integer >= 1")
+        history_size = check_int("history_size", history_size, low=1, what="an integer >= 1")
         _check_options(
             num_samples=num_samples, keep_rollouts=keep_rollouts,
             zero_noise_samples=zero_noise_samples, integrator=integrator,
@@ -569,8 +569,11 @@ class MPPI(TracksShadows, ExactConstants):
             raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-        if not isinstance(seed, int):
+        if not isinstance(seed, numbers.Integral) or isinstance(seed, bool):
             raise TypeError(f"seed must be an int, got {type(seed).__name__}")
+        seed = int(seed)
+        if not -(2**63) <= seed < 2**63:  # row b's generator takes seed + b
+            raise ValueError(f"seed must lie in [-2^63, 2^63), got {seed}")
         if step is not None and not callable(step):
             raise TypeError(f"step must be callable or None, got {type(step).__name__}")
         if action_sampler is not None and not callable(action_sampler):
@@ -643,6 +646,8 @@ class MPPI(TracksShadows, ExactConstants):
             else:
                 self.register_buffer(name, None if value is None else value.clone())
 
+        if not isinstance(compile, (bool, dict)):
+            raise TypeError(f"compile must be a bool or a dict, got {type(compile).__name__}")
         self._compiled = bool(compile)
         self._step_into_fn: Callable[..., None] = self._step_into
         self._score_fn: Callable[..., Tensor] = self._score
@@ -657,10 +662,20 @@ class MPPI(TracksShadows, ExactConstants):
         self._captured: _Capture | None = None
         self._fresh = True
         self._unknown_time: Tensor | None = None  # rows of a call whose time is not finite
+        self._sampled_rows: slice | None = None  # the action_sampler's rows of this call
         self._calls = 0  # since the history was last cleared: one slot each
         follow_parts(self, [dynamics, cost])
 
     # -- state -------------------------------------------------------------------------------
+    def __setattr__(self, name: str, value: Any) -> None:
+        # a bound set between calls is checked as the constructor checks it
+        if name in ("u_min", "u_max") and isinstance(value, Tensor) and "_buffers" in vars(self):
+            as_limit(name, value, self.dynamics.control_dim)
+            other = self._buffers.get("u_max" if name == "u_min" else "u_min")
+            lo, hi = (value, other) if name == "u_min" else (other, value)
+            check_bounds("u_min", lo, "u_max", hi)
+        super().__setattr__(name, value)
+
     def reset(self) -> None:
         """Forget the plan, the history and re-seed the generators (next call starts afresh)."""
         self._key = None
@@ -803,7 +818,7 @@ class MPPI(TracksShadows, ExactConstants):
         # empty, its obstacles ignored): its costs are NaN, so it reports status 1 (read on
         # the device, no host synchronisation)
         self._unknown_time = ~torch.isfinite(t0) if isinstance(t, Tensor) else None
-        shifting = shift and not self._fresh
+        shifting = check_bool("shift", shift) and not self._fresh
         self._noise_form()  # a noise_cov set since the last call: its factors made again
         kernel = self._kernel(xb)
         self._fresh = False
@@ -834,7 +849,8 @@ class MPPI(TracksShadows, ExactConstants):
                 # a cost holding a tensor that requires grad (a closure's): the update in
                 # torch from the stored samples (``u - plan`` is the kernel's noise, clipped
                 # as it clips it), so that the plan keeps that gradient
-                delta = _weighted_sum(controls - plan.unsqueeze(1), weights.w)
+                noise = self._finite_candidates(controls - plan.unsqueeze(1))
+                delta = _weighted_sum(noise, weights.w)
             else:
                 delta = kernel.update(xc, plan, keys, weights.w)
         else:
@@ -849,7 +865,7 @@ class MPPI(TracksShadows, ExactConstants):
             if extra is not None:
                 cost = cost + extra
             weights = self._weights(cost)
-            delta = _weighted_sum(eps, weights.w)
+            delta = _weighted_sum(self._finite_candidates(eps), weights.w)
         best_states = states[self._rows, weights.best].contiguous()  # [B, H+1, n]
         rollouts = None
         if self.keep_rollouts:
@@ -1087,11 +1103,27 @@ class MPPI(TracksShadows, ExactConstants):
         if self.sample_null_action:
             controls[:, row].zero_()
             row += 1
+        self._sampled_rows = None
         if self.action_sampler is not None:
             seqs = self._sampled_actions(x, t0, row)
             controls[:, row : row + seqs.shape[1]] = seqs
+            self._sampled_rows = slice(row, row + seqs.shape[1])
             row += seqs.shape[1]
         return slice(first, row) if row > first else None
+
+    def _finite_candidates(self, z: Tensor) -> Tensor:
+        """``z [B, K, ...]`` (the samples' noise) with the non-finite entries of the
+        ``action_sampler``'s rows zeroed: such a candidate's cost is not finite and its
+        weight 0, and ``0 * NaN`` would still reach the plan."""
+        rows = self._sampled_rows
+        if rows is None:
+            return z
+        block = z[:, rows]
+        clean = block.masked_fill(~torch.isfinite(block), 0.0)
+        if z.requires_grad:
+            return torch.cat((z[:, : rows.start], clean, z[:, rows.stop :]), 1)
+        block.copy_(clean)
+        return z
 
     def _sampled_actions(self, x: Tensor, t0: Tensor, row: int) -> Tensor:
         """The sampler's sequences ``[B, S, H, m]``, checked (``[S, H, m]`` is broadcast)."""
@@ -1454,10 +1486,13 @@ class MPPI(TracksShadows, ExactConstants):
             if self.cost_normalization == "range":
                 span = kept.amax(-1, keepdim=True)
             else:  # "std": standard deviation of the finite costs
+                # in units of the range: float32 costs spread by 1e20 would overflow the sums
+                top = kept.amax(-1, keepdim=True).clamp_min(torch.finfo(cost.dtype).tiny)
+                unit = kept / top
                 n_fin = finite.sum(-1, keepdim=True).clamp_min(1)
-                mean = kept.sum(-1, keepdim=True) / n_fin
-                dev = torch.where(finite, kept - mean, 0.0)
-                span = (dev.square().sum(-1, keepdim=True) / n_fin).sqrt()
+                mean = unit.sum(-1, keepdim=True) / n_fin
+                dev = torch.where(finite, unit - mean, 0.0)
+                span = top * (dev.square().sum(-1, keepdim=True) / n_fin).sqrt()
             shifted = shifted / span.clamp_min(torch.finfo(cost.dtype).tiny)
         # exponents below log(tiny) give weight 0 (their exp would be subnormal: no
         # difference to the weights); exp runs on 0 there instead, since results at the

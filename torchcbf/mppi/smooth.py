@@ -27,7 +27,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcbf._checks import as_limit, check_bounds, check_positive
+from torchcbf._checks import as_limit, check_bounds, check_number, check_positive
 from torchcbf._constants import remember
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.mppi.planner import MPPI, _limit, _resized, _shifted
@@ -79,11 +79,7 @@ class SMPPI(MPPI):
             control_cost_weight, u_min=u_min, u_max=u_max, integrator=integrator, seed=seed,
             **kwargs,
         )  # fmt: skip
-        if isinstance(smoothness_weight, bool) or not isinstance(smoothness_weight, (int, float)):
-            raise TypeError(f"smoothness_weight must be a number, got {smoothness_weight!r}")
-        if not smoothness_weight >= 0:
-            raise ValueError(f"smoothness_weight must be >= 0, got {smoothness_weight!r}")
-        self.smoothness_weight = float(smoothness_weight)
+        self.smoothness_weight = check_number("smoothness_weight", smoothness_weight, low=0.0)
         self.delta_t = check_positive("delta_t", delta_t)
         m = dynamics.control_dim
         lo = None if du_min is None else _limit("du_min", du_min, m)
