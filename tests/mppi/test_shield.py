@@ -115,6 +115,10 @@ def test_shield_mppi_filters_and_feeds_back() -> None:
     torch.testing.assert_close(out.plan[:, 0], expected)
     torch.testing.assert_close(out.plan[:, 1:], raw.plan[:, 1:])
     torch.testing.assert_close(planner._plan[:, 0], expected)
+    assert torch.equal(out.filtered.u, out.u) and out.filtered.status.shape == (2,)
+    assert torch.equal(out.filtered.status, filt(x, raw.u, 0.0).status)
+    assert raw.filtered is None
+    assert shield(x[0], 0.0).filtered.status.shape == ()  # one state: the filter's own shape
     assert shield.dt == planner.dt
     with pytest.raises(TypeError, match="planner"):
         ShieldMPPI(filt, filt)  # type: ignore[arg-type]

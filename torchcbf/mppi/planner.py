@@ -204,6 +204,9 @@ class MPPIOutput(NamedTuple):
         path: the path that planned (``"fused"``, ``"fused_graph"`` (the fused call
             replayed from a CUDA graph), ``"rollout"`` or ``"torch"``, see
             :mod:`torchcbf.mppi.planner`).
+        filtered: the safety filter's output for ``u`` where a
+            :class:`~torchcbf.mppi.ShieldMPPI` filtered it (its per-row ``status``, ``h``,
+            ``path``), else None.
     """
 
     u: Tensor
@@ -217,6 +220,7 @@ class MPPIOutput(NamedTuple):
     rollout_weights: Tensor | None
     nonfinite: Tensor | None = None
     path: str = "torch"
+    filtered: Any = None
 
 
 _PLAIN = (bool, int, float, str, slice, tuple, type(None))

@@ -40,9 +40,10 @@ class ShieldMPPI(nn.Module):
             planner's output unfiltered.
 
     ``forward(x [n] or [B, n], t=0.0) -> MPPIOutput`` is the planner's output with ``u`` the
-    filtered control and ``plan[..., 0, :] = u`` (with ``in_loop``: once the loop filter has
-    filtered it). ``dt``, ``reset()`` and ``history`` are the planner's, so the wrapper drops
-    into :func:`torchcbf.sim.simulate` as a planner.
+    filtered control, ``plan[..., 0, :] = u`` and the filter's output in ``filtered`` (with
+    ``in_loop``: ``u`` unfiltered, ``filtered`` None, and the plan corrected once the loop
+    filter has filtered it). ``dt``, ``reset()`` and ``history`` are the planner's, so the
+    wrapper drops into :func:`torchcbf.sim.simulate` as a planner.
     """
 
     def __init__(
@@ -83,9 +84,9 @@ class ShieldMPPI(nn.Module):
         if self.in_loop:
             self._pending = out.plan  # the loop filter writes the filtered control into it
             return out
-        u = self.safety_filter(x, out.u, t).u
-        self._feed_back(u, out.plan)
-        return out._replace(u=u)
+        filtered = self.safety_filter(x, out.u, t)
+        self._feed_back(filtered.u, out.plan)
+        return out._replace(u=filtered.u, filtered=filtered)
 
     def _feed_back(self, u: Tensor, plan: Tensor) -> None:
         """The filtered control into the planner's plan and into the returned ``plan``."""
