@@ -218,3 +218,34 @@ def test_a_second_derivative_through_the_qp_raises(method, q_depends, loss):
     torch.testing.assert_close(g.detach(), plain, atol=0.0, rtol=0.0)
     with pytest.raises(RuntimeError, match="first derivatives only"):
         g.square().sum().backward()
+
+
+@pytest.mark.parametrize("method", ["auto", "enumerate", "ipm"])
+def test_multipliers_of_dependent_tight_rows_get_the_solvers_selections_derivative(method) -> None:
+    """A variable pinned by ``lb = ub``, a zero row and an inequality repeating an equality
+    leave several multiplier vectors valid; the adjoint moves the strictly active rows'
+    multipliers (the selection the solver returned) and leaves the weak rows' at zero,
+    where the regularised solve answered ``1 / delta`` (2e11)."""
+    f64 = torch.float64
+    Q, p = torch.eye(2, dtype=f64), torch.tensor([-1.0, -1.0], dtype=f64)
+    c = torch.tensor(0.3, dtype=f64, requires_grad=True)  # lb1 = ub1 = c: lam_ub1 = 1 - c
+    lb = torch.stack([c, torch.tensor(-5.0, dtype=f64)])
+    ub = torch.stack([c, torch.tensor(5.0, dtype=f64)])
+    sol = solve_qp(Q, p, lb=lb, ub=ub, method=method)
+    (grad,) = torch.autograd.grad(sol.lam_ub[0], (c,))
+    assert float(sol.lam_ub[0]) == pytest.approx(0.7) and float(grad) == pytest.approx(
+        -1.0, abs=1e-4
+    )
+    # a zero row 0'x <= 0: its multiplier stays 0 whatever h
+    h = torch.tensor([0.5, 0.0], dtype=f64, requires_grad=True)
+    G = torch.tensor([[1.0, 0.0], [0.0, 0.0]], dtype=f64)
+    (grad,) = torch.autograd.grad(solve_qp(Q, p, G, h, method=method).lam.sum(), (h,))
+    torch.testing.assert_close(grad, torch.tensor([-1.0, 0.0], dtype=f64), atol=1e-4, rtol=0)
+    # x1 <= c repeating x1 = c: the multipliers sum to 1 - c, in the solver's proportions
+    # (all on the equality, or split by the interior point method)
+    c = torch.tensor(0.5, dtype=f64, requires_grad=True)
+    h3 = torch.stack([c, torch.tensor(5.0, dtype=f64)])
+    A = torch.tensor([[1.0, 0.0]], dtype=f64)
+    sol = solve_qp(Q, p, torch.eye(2, dtype=f64), h3, A, c.reshape(1), method=method)
+    (grad,) = torch.autograd.grad(sol.nu.sum(), (c,))
+    assert float(grad) == pytest.approx(-float(sol.nu[0]) / 0.5, abs=1e-4)

@@ -368,7 +368,9 @@ def _forward_dependent(
 def _factor(data: QPData, x: Tensor, active: Tensor, status: Tensor) -> _kkt.KKTFactor:
     """The backward's KKT factor: on ``active`` plus every row tight at ``x``."""
     G = data.G
-    return _kkt.factor_kkt(data.P, G, data.A, _kkt.with_tight_rows(G, data.h, x, active, status))
+    backward_set = _kkt.with_tight_rows(G, data.h, x, active, status)
+    weak = backward_set & ~active
+    return _kkt.factor_kkt(data.P, G, data.A, backward_set, dependent=True, weak=weak)
 
 
 #: absolute tolerance and iteration budget of proxsuite's dense solver where ``auto`` routes
@@ -975,8 +977,8 @@ def _forward_dual(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> Forward
     if len(rows) == 0:
         return Forward(x, z, y, status, iters, codes, dual_factor)
     # the other rows keep the dual method's factors: hard rows do not slow the whole batch
-    sub = [t.index_select(0, rows) for t in (P, G, A, backward_set)]
-    fac = MixedFactor(dual_factor, rows, _kkt.factor_kkt(*sub))
+    sub = [t.index_select(0, rows) for t in (P, G, A, backward_set, backward_set & ~active)]
+    fac = MixedFactor(dual_factor, rows, _kkt.factor_kkt(*sub[:4], dependent=True, weak=sub[4]))
     return Forward(x, z, y, status, iters, codes, fac)
 
 

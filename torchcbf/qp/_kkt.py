@@ -18,7 +18,9 @@ lies in the null space of all of them, not only of the rows a method's multiplie
 support (at a degenerate vertex several multiplier vectors are valid). Where ``x`` has a kink
 (a weakly active row that leaves under some perturbation) this is the one-sided derivative
 for perturbations that keep every tight row tight. Dependent tight rows are handled by the
-regularised factorisation.
+regularised factorisation; where they leave several multiplier vectors valid, the backward's
+factor gives the least-norm adjoint (:func:`solve_kkt`), so a loss on those multipliers
+gets a finite gradient (one of the valid selections' one-sided derivatives need not be it).
 """
 
 from __future__ import annotations
@@ -45,7 +47,8 @@ REFINED = 4 * torch.finfo(torch.float64).eps
 
 class KKTFactor(NamedTuple):
     """LU factorisation of the equilibrated, regularised active-set KKT matrix ``D K D``
-    (``D = diag(d)``), plus the exact matrix ``K``."""
+    (``D = diag(d)``), plus the exact matrix ``K``; ``LU2, pivots2``: the same with twice
+    the regularisation (see :func:`solve_kkt`), or None."""
 
     K: Tensor
     LU: Tensor
@@ -53,6 +56,8 @@ class KKTFactor(NamedTuple):
     active: Tensor
     ok: Tensor
     d: Tensor
+    LU2: Tensor | None = None
+    pivots2: Tensor | None = None
 
 
 def build_kkt(P: Tensor, G: Tensor, A: Tensor, active: Tensor) -> Tensor:
@@ -70,30 +75,48 @@ def build_kkt(P: Tensor, G: Tensor, A: Tensor, active: Tensor) -> Tensor:
     return torch.cat((top, mid, bot), -2)
 
 
-def factor_kkt(P: Tensor, G: Tensor, A: Tensor, active: Tensor) -> KKTFactor:
+#: regularisation of a weakly active row (tight, its multiplier not above its slack)
+#: relative to a strictly active one's in the backward's factor: among multiplier vectors
+#: that dependent rows leave valid, the adjoint then moves the strictly active rows' (the
+#: solver's selection: a pinned variable's one bound, an equality rather than an inequality
+#: repeating it); small enough that refinement still reaches ``K``'s own solution elsewhere
+WEAK_WEIGHT = {torch.float64: 1e6, torch.float32: 10.0}
+
+
+def factor_kkt(
+    P: Tensor,
+    G: Tensor,
+    A: Tensor,
+    active: Tensor,
+    *,
+    dependent: bool = False,
+    weak: Tensor | None = None,
+) -> KKTFactor:
     """Factor the active-set KKT matrix, equilibrated (``D K D`` with every row's largest
     entry near one, :func:`_equilibrate`), with a tiny quasi-definite regularisation.
     Without the equilibration the regularisation, relative to the largest entry, swamps the
     small ones: a weight of 5e5 beside one of 1e-3 (a filter's slack and its controls) leaves
-    the polished vertex 1e-7 off and uncertified."""
+    the polished vertex 1e-7 off and uncertified. ``dependent``: also factor it with twice
+    the regularisation, for solves whose right-hand side may leave ``K``'s range (dependent
+    active rows: :func:`solve_kkt`), the rows of ``weak [B, M]`` regularised
+    :data:`WEAK_WEIGHT` times more."""
     n, M, me = P.shape[-1], G.shape[-2], A.shape[-2]
     K = build_kkt(P, G, A, active)
     d = _equilibrate(K)
     Ks = d.unsqueeze(-1) * K * d.unsqueeze(-2)
     scale = Ks.abs().amax((-2, -1)).clamp_min(1.0)
     delta = (1e-11 if K.dtype == torch.float64 else 1e-6) * scale
-    sign = torch.cat(
-        (
-            K.new_ones(K.shape[0], n),
-            -active.to(K.dtype),
-            -K.new_ones(K.shape[0], me),
-        ),
-        -1,
-    )
+    rows = active.to(K.dtype)
+    if weak is not None:
+        rows = rows * torch.where(weak, WEAK_WEIGHT.get(K.dtype, 10.0), 1.0)
+    sign = torch.cat((K.new_ones(K.shape[0], n), -rows, -K.new_ones(K.shape[0], me)), -1)
     del M
-    Kreg = Ks + torch.diag_embed(sign * delta.unsqueeze(-1))
-    LU, pivots, ok = _checked_lu(Kreg)
-    return KKTFactor(K, LU, pivots, active, ok, d)
+    shift = sign * delta.unsqueeze(-1)
+    LU, pivots, ok = _checked_lu(Ks + torch.diag_embed(shift))
+    if not dependent:
+        return KKTFactor(K, LU, pivots, active, ok, d)
+    LU2, pivots2, ok2 = _checked_lu(Ks + torch.diag_embed(2.0 * shift))
+    return KKTFactor(K, LU, pivots, active, ok & ok2, d, LU2, pivots2)
 
 
 def _checked_lu(K: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -134,15 +157,28 @@ def _equilibrate(K: Tensor, sweeps: int = 3) -> Tensor:
 
 def solve_kkt(fac: KKTFactor, rhs: Tensor, steps: int = REFINE_STEPS) -> Tensor:
     """Solve ``K w = rhs`` (``rhs [B, N]``) by the equilibrated, regularised factor and
-    ``steps`` of iterative refinement on ``K`` itself."""
+    ``steps`` of iterative refinement on ``K`` itself.
+
+    Where dependent active rows make ``K`` singular and ``rhs`` has a part outside its range
+    (a loss on multipliers that are not unique), the regularised solve answers that part
+    with ``-1 / delta`` times it, and each refinement step adds as much again. A factor with
+    ``LU2`` solves by ``2 K_{2 delta}^-1 - K_delta^-1`` instead, which maps that part to
+    zero and the range as ``K``'s inverse to first order: the least-norm answer there."""
     d = fac.d.unsqueeze(-1)
+
+    def solve(r: Tensor) -> Tensor:
+        w = torch.linalg.lu_solve(fac.LU, fac.pivots, d * r)
+        if fac.LU2 is not None:
+            w = 2.0 * torch.linalg.lu_solve(fac.LU2, fac.pivots2, d * r) - w
+        return d * w
+
     r = rhs.unsqueeze(-1)
-    w = d * torch.linalg.lu_solve(fac.LU, fac.pivots, d * r)
+    w = solve(r)
     # on a CPU, asking whether the refinement has reached rounding costs no device
     # synchronisation: the steps stop there
     check = rhs.device.type == "cpu"
     for _ in range(steps):
-        step = d * torch.linalg.lu_solve(fac.LU, fac.pivots, d * (r - fac.K @ w))
+        step = solve(r - fac.K @ w)
         w = w + step
         if check and not bool((step.abs() > REFINED * w.abs().amax(-2, keepdim=True)).any()):
             break
