@@ -69,6 +69,8 @@ def test_arm7_ik_hits_targets(arm7: Manipulator, dtype: torch.dtype) -> None:
     assert float((arm7.end_effector(q) - target).norm(dim=-1).max()) <= 1e-5 + 1e-7
     assert float(err.max()) <= 1e-5
     assert _within_limits(arm7, q)
+    with pytest.raises(ValueError, match=r"target \[\.\.\., 2\] is for a planar arm"):
+        arm7.inverse_kinematics(target[:, :2].to(dtype))
 
 
 def test_obstacle_clearance(planar: Manipulator, dtype: torch.dtype) -> None:

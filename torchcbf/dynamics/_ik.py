@@ -133,6 +133,15 @@ class _Objective:
         return r, Jr, error
 
 
+def _planar(arm: Manipulator) -> bool:
+    """Whether the end effector moves in the x-y plane only: no joint moves it in z at a few
+    random configurations."""
+    gen = torch.Generator().manual_seed(0)
+    q = arm.random_configurations(4, generator=gen, dtype=torch.float64)
+    J = arm.jacobian(q.to(arm.q_min.device))
+    return bool(J[..., 2, :].abs().amax() <= 1e-9 * (1.0 + J.abs().amax()))
+
+
 def inverse_kinematics(
     arm: Manipulator,
     target: Tensor,
@@ -157,7 +166,8 @@ def inverse_kinematics(
 
     Args:
         arm: the :class:`~torchcbf.dynamics.manipulator.Manipulator`.
-        target: ``[..., 3]``, or ``[..., 2]`` for a planar arm (only ``x, y`` are matched).
+        target: ``[..., 3]``, or ``[..., 2]`` for a planar arm (only ``x, y`` are matched; an
+            arm whose end effector also moves in z refuses it).
         q_init: initial guess ``[..., dof]`` (broadcast against the target's batch): the
             first restart starts there, the others uniformly inside the joint limits (joints
             without limits in ``[-pi, pi]``); ``None``: all restarts random.
@@ -195,6 +205,11 @@ def inverse_kinematics(
         raise TypeError(f"target must be a floating tensor, got {target.dtype}")
     if target.dim() == 0 or target.shape[-1] not in (2, 3):
         raise ValueError(f"target must have shape [..., 3] or [..., 2], got {tuple(target.shape)}")
+    if target.shape[-1] == 2 and not _planar(arm):
+        raise ValueError(
+            "target [..., 2] is for a planar arm (its end effector moves in the x-y plane); "
+            "this arm's also moves in z: give targets [..., 3]"
+        )
     restarts = check_int("restarts", restarts, low=1)
     iters = check_int("iters", iters, low=1)
     check_every = check_int("check_every", check_every, low=0)
