@@ -138,17 +138,10 @@ def test_bad_inputs() -> None:
         step(lambda x, u: x, torch.zeros(2), torch.zeros(2), 0.1)
     with pytest.raises(TypeError, match="u must be a torch.Tensor"):
         step(model, torch.zeros(2), 0.0, 0.1)
-    with pytest.raises(
-        ValueError, match=r"batch dimensions of the step of \(x, u\) \(3, 2\) and noise"
-    ):
-        step(
-            model,
-            torch.zeros(3, 2),
-            torch.zeros(3, 2),
-            0.1,
-            "euler_maruyama",
-            noise=torch.zeros(4, 2),
-        )
+    x = torch.zeros(3, 2)
+    for noise in (torch.zeros(4, 2), torch.zeros(4, 3, 2)):  # not broadcasting, or widening
+        with pytest.raises(ValueError, match=r"broadcast to the step's \(x, u\) \(3,\)"):
+            step(model, x, x, 0.1, "euler_maruyama", noise=noise)
     with pytest.raises(TypeError, match="dynamics must be a ControlAffine"):
         euler_maruyama(lambda x, u: x, torch.zeros(2), torch.zeros(2), 0.1, noise=torch.zeros(2))
     with pytest.raises(ValueError, match="u must have shape"):

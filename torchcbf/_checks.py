@@ -121,6 +121,18 @@ def check_bool(name: str, value: object) -> bool:
     return bool(value)
 
 
+def check_compile(value: object) -> bool | dict:
+    """The ``compile=`` option: a bool (NumPy's too) or a dict of ``torch.compile``
+    options."""
+    if isinstance(value, dict):
+        return value
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(
+            f"compile must be True, False or a dict of torch.compile options, got {value!r}"
+        )
+    return bool(value)
+
+
 def check_positive_int(name: str, value: object) -> int:
     """Check an int (Python's or NumPy's; a bool is not one here) is >= 1."""
     return check_int(name, value, low=1, what="a positive int")

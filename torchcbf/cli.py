@@ -187,22 +187,11 @@ def _run_scenario(
         )
         print(f"{name:<{label_width}} {cells} {record['seconds']:>9.1f}", flush=True)
         results[key] = record
-    from torchcbf.scenarios.figures import standard_figures
-
-    scenario = entry.make(**run_params, num_seeds=num_seeds, seed=args.seed, device="cpu")
-    values = {**entry.defaults(), **params}
-    named = {k: values[k] for k in entry.options.values() if k in entry.choices}
-    named.update({k: v for k, v in params.items() if k not in named})
-    title = ", ".join([entry.name, *(f"{k}={v}" for k, v in named.items())])
-    draw = entry.figures or functools.partial(standard_figures, stem=entry.name.replace("-", "_"))
     folder = parts.run.path
     before = set(os.listdir(folder))
     failure = None
     try:
-        figures = draw(
-            trajectories, scenario, folder, title=title, gif=not args.no_gif,
-            first_seed=args.seed,
-        )  # fmt: skip
+        figures = _draw(entry, args, params, run_params, num_seeds, trajectories, folder)
     except Exception as error:  # the results stand without their figures: keep them
         failure = f"{type(error).__name__}: {error}"
         print(f"torchcbf {args.command}: the figures of {entry.name} failed: {failure}",
@@ -220,6 +209,39 @@ def _run_scenario(
         if failure is not None:
             record["figures_failed"] = failure
     return results
+
+
+def _draw(
+    entry: Any,
+    args: argparse.Namespace,
+    params: dict[str, Any],
+    run_params: dict[str, Any],
+    num_seeds: int,
+    trajectories: dict[str, Any],
+    folder: Path,
+) -> list[Path]:
+    """The figures of a finished run of ``entry`` into ``folder`` (figures left open by a
+    failure are closed)."""
+    import matplotlib.pyplot as plt
+
+    from torchcbf.scenarios.figures import standard_figures
+
+    scenario = entry.make(**run_params, num_seeds=num_seeds, seed=args.seed, device="cpu")
+    values = {**entry.defaults(), **params}
+    named = {k: values[k] for k in entry.options.values() if k in entry.choices}
+    named.update({k: v for k, v in params.items() if k not in named})
+    title = ", ".join([entry.name, *(f"{k}={v}" for k, v in named.items())])
+    draw = entry.figures or functools.partial(standard_figures, stem=entry.name.replace("-", "_"))
+    opened = set(plt.get_fignums())
+    try:
+        return draw(
+            trajectories, scenario, folder, title=title, gif=not args.no_gif,
+            first_seed=args.seed,
+        )  # fmt: skip
+    except BaseException:
+        for number in set(plt.get_fignums()) - opened:
+            plt.close(number)
+        raise
 
 
 def _parameters(entry: Any, args: argparse.Namespace) -> dict[str, Any]:

@@ -16,7 +16,6 @@ from torch import Tensor
 from torchcbf._checks import (
     behaves_as,
     broadcast_shapes,
-    check_batch_match,
     check_generator,
     check_last_dim,
     check_positive,
@@ -175,7 +174,7 @@ def euler_maruyama(
     """Euler-Maruyama for ``dx = (f + g u) dt + sigma dW``: ``x + dt xdot + sqrt(dt) sigma z``.
 
     ``z ~ N(0, I_q)`` is drawn from ``generator`` or given as ``noise [..., q]`` (batch
-    dimensions broadcasting with those of ``x`` and ``u``). Without a diffusion this is
+    dimensions broadcasting to those of ``x`` and ``u``). Without a diffusion this is
     :func:`euler`.
     """
     dt = _checked(dynamics, x, u, w, dt)
@@ -208,7 +207,16 @@ def _euler_maruyama(
     else:
         check_last_dim("noise", noise, q)
         check_same("x", x, "noise", noise)
-        check_batch_match("the step of (x, u)", drift, "noise", noise)
+        batch = tuple(drift.shape[:-1])
+        try:
+            fits = broadcast_shapes(batch, noise.shape[:-1]) == batch
+        except RuntimeError:
+            fits = False
+        if not fits:
+            raise ValueError(
+                f"noise must have shape [..., {q}] with batch dimensions that broadcast to "
+                f"the step's (x, u) {tuple(batch)}, got {tuple(noise.shape)}"
+            )
     return drift + math.sqrt(dt) * (sigma @ noise.unsqueeze(-1)).squeeze(-1)
 
 

@@ -222,7 +222,7 @@ def test_a_backend_that_fails_warns_and_runs_eager(caplog: pytest.LogCaptureFixt
 
 
 def test_compile_option_is_checked() -> None:
-    with pytest.raises(TypeError, match="compile must be a bool or a dict"):
+    with pytest.raises(TypeError, match="compile must be True, False or a dict"):
         SafetyFilter(Unicycle(), [Ball([0.0, 3.0], 0.5)], compile="yes")
 
 

@@ -538,9 +538,9 @@ def test_scenario_b_risk_aware_filter_runs_in_the_kernels(
 )
 @pytest.mark.parametrize("cls", [Intersection, Union])
 def test_a_subnormal_temperature_gives_the_hard_reduction(cls, dtype, temperature) -> None:
-    """``v / T`` overflowed (inf and NaN on every path where the kernel computes in the
-    dtype); the log-sum-exp is shifted by its largest term before the division, and a ``T``
-    the dtype cannot hold (0 in float32) is its least normal number."""
+    """``v / T`` would overflow (inf and NaN on every path that computes in the dtype): the
+    log-sum-exp is shifted by its largest term before the division, and a ``T`` the dtype
+    cannot hold (0 in float32) is its least normal number."""
     dyn = SingleIntegrator(2, sigma=0.3).to(dtype)
     balls = (Ball([1.0, 0.5], 0.7), Ball([-1.0, 0.0], 0.5))
     smooth = cls(*balls, smooth=True, temperature=temperature).to(dtype)

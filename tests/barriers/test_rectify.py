@@ -60,18 +60,29 @@ class _Slow(ControlAffine):
 
 
 class _Chain3(ControlAffine):
-    """x1' = x2, x2' = x3, x3' = u: position has relative degree 3."""
+    """x1' = x2, x2' = x3, x3' = u (each rate times ``rate``: another time unit): position
+    has relative degree 3."""
 
-    def __init__(self) -> None:
+    def __init__(self, rate: float = 1.0) -> None:
         super().__init__(3, 1)
+        self.rate = rate
 
     def f(self, x):
-        return torch.stack([x[..., 1], x[..., 2], torch.zeros_like(x[..., 0])], -1)
+        return self.rate * torch.stack([x[..., 1], x[..., 2], torch.zeros_like(x[..., 0])], -1)
 
     def g(self, x):
         g = x.new_zeros(*x.shape[:-1], 3, 1)
-        g[..., 2, 0] = 1.0
+        g[..., 2, 0] = self.rate
         return g
+
+
+@pytest.mark.parametrize("unit", [1.0, 1e-3, 1e5, 1e7])
+def test_relative_degree_does_not_depend_on_a_components_or_times_unit(unit: float) -> None:
+    # h = a p + v on p' = v, v' = u: degree 1 whatever the unit of p
+    assert find_relative_degree(HalfSpace([unit, 1.0], 0.0, (0, 1)), DoubleIntegrator(1)) == 1
+    if unit <= 1.0:  # rates in milliseconds
+        position = HalfSpace([1.0, 0.0, 0.0], 0.0, (0, 1, 2))
+        assert find_relative_degree(position, _Chain3(unit)) == 3
 
 
 class _Uncontrolled(ControlAffine):

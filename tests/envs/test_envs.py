@@ -316,8 +316,11 @@ def test_bad_input_names_the_argument() -> None:
         env.reset(seed=[1, 2, 3])
     with pytest.raises(TypeError, match="seed must be an int, one per sub-environment"):
         env.reset(seed=1.5)
-    with pytest.raises(ValueError, match="control_limit must be two positive numbers"):
+    with pytest.raises(TypeError, match="control_limit must be two positive numbers"):
         envs.UnicycleEllipsesVectorEnv(2, control_limit=5)
+    for limit in (np.array([2.0, 3.0]), torch.tensor([2.0, 3.0])):
+        env2 = envs.UnicycleEllipsesVectorEnv(2, control_limit=limit)
+        assert env2.dynamics.u_max.tolist() == [2.0, 3.0]
     with pytest.raises(TypeError, match=r"control_limit\[0\] must be a number"):
         envs.UnicycleEllipsesVectorEnv(2, control_limit=("fast", "slow"))
     for kind in (envs.ReachAvoidVectorEnv, envs.UnicycleEllipsesVectorEnv):

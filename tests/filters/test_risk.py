@@ -307,6 +307,9 @@ def test_the_clf_goal_level_is_checked_and_keeps_its_graph() -> None:
             RiskAware(0.1, 1.0, clf_eta=0.1, clf_gamma=bad)
     with pytest.raises(ValueError, match=r"clf_gamma must be a scalar or \[k\]"):
         RiskAware(0.1, 1.0, clf_eta=0.1, clf_gamma=torch.zeros(1, 1))
+    with pytest.raises(ValueError, match=r"clf_gamma must be a scalar or have one entry"):
+        u_of(torch.tensor([0.0, 1.0, 3.0], dtype=F64))
+    torch.testing.assert_close(u_of(torch.tensor([0.3], dtype=F64)), u_of(0.3))
 
 
 def test_local_eta_horizon_with_gradient_gives_the_same_margin() -> None:

@@ -341,8 +341,8 @@ def test_an_unused_callable_fallback_leaves_gradients_alone() -> None:
 
 def test_a_fallback_row_where_the_callable_is_not_finite_leaves_shared_gradients_alone() -> None:
     """Rows that fall back where the callable is NaN (a non-finite state, or its own 0/0)
-    get zero clipped to the limits and put no NaN in the gradient of a parameter the
-    callable shares with the other fallback rows."""
+    get zero clipped to the limits, and rows where it is infinite its value clipped; neither
+    puts NaN in the gradient of a parameter the callable shares with the other rows."""
     from torchcbf.barriers import Ball
     from torchcbf.dynamics import SingleIntegrator
     from torchcbf.filters import Stochastic
@@ -354,6 +354,7 @@ def test_a_fallback_row_where_the_callable_is_not_finite_leaves_shared_gradients
     for fallback in (
         lambda x, u: -k * x,
         lambda x, u: k * (x - centre) / (x - centre).norm(dim=-1, keepdim=True),
+        lambda x, u: -k / x,  # -inf at (1, 0): clipped to the limit, without a gradient
     ):
         filt = SafetyFilter(
             model, Ball([1.0, 0.0], 0.5), mode=Stochastic(0.1), slack="none", fallback=fallback
@@ -367,8 +368,8 @@ def test_a_fallback_row_where_the_callable_is_not_finite_leaves_shared_gradients
             FilterStatus.FALLBACK,
         ]
         assert float(out.u[1].abs().max()) == 0.0  # zero clipped to the limits
-        (grad,) = torch.autograd.grad(out.u[0, 1], (k,))
-        (alone,) = torch.autograd.grad(filt(x[:1], u[:1]).u[0, 1], (k,))
+        (grad,) = torch.autograd.grad(out.u[0, 0], (k,))
+        (alone,) = torch.autograd.grad(filt(x[:1], u[:1]).u[0, 0], (k,))
         assert torch.isfinite(grad) and float(grad) == float(alone) != 0.0
 
 

@@ -1020,8 +1020,19 @@ def test_limits_flags_and_integers_are_checked_as_given() -> None:
         planner.u_min = torch.tensor([2.0, 2.0])
     planner.u_max = torch.tensor([0.5, 0.5])  # a valid bound is taken
     assert float(planner(torch.zeros(2)).u.abs().max()) <= 0.5
-    with pytest.raises(TypeError, match="compile must be a bool or a dict"):
+    fresh = make(u_min=-1.0, u_max=1.0)
+    fresh.u_min, fresh.u_max = torch.tensor(-0.05), torch.tensor([0.5, 0.5])
+    assert fresh.u_min.tolist() == pytest.approx([-0.05, -0.05])  # one number for each
+    torch.testing.assert_close(
+        fresh(torch.zeros(2)).plan, make(u_min=-0.05, u_max=0.5)(torch.zeros(2)).plan
+    )
+    smooth = SMPPI(SingleIntegrator(2), QuadraticGoal([1.0, 1.0]), 4, 8, 0.1, 0.4, 1.0,
+                   du_min=-1.0, du_max=1.0)  # fmt: skip
+    with pytest.raises(ValueError, match=r"du_min \[2.0, 2.0\] exceeds du_max"):
+        smooth.du_min = torch.tensor([2.0, 2.0])
+    with pytest.raises(TypeError, match="compile must be True, False or a dict"):
         make(compile="no")
+    assert make(compile=np.False_)._compiled is False
     with pytest.raises(TypeError, match="shift must be a bool"):
         planner(torch.zeros(2), shift="False")
     with pytest.raises(ValueError, match="smoothness_weight must be a finite number >= 0"):

@@ -712,3 +712,16 @@ def test_a_failed_rows_last_estimate_is_frozen_like_the_others() -> None:
     k = int(traj.fail_step[1])
     assert 0 < k < 5
     assert bool((traj.x_hat[1, k:] == 0).all())
+
+
+def test_a_measurement_that_fails_at_the_last_step_fails_the_row() -> None:
+    from torchcbf.estimation import FunctionSensor
+
+    model = SingleIntegrator(1).double()
+    # sqrt(min(x, 0.25) - 0.25) is 0 while x >= 0.25 and NaN below it
+    sensor = FunctionSensor(lambda x: x.clamp_max(0.25).sub(0.25).sqrt().add(x), std=[1e-9])
+    x0 = torch.tensor([[1.0], [2.0]], dtype=torch.float64)
+    traj = simulate(model, x0, 4, 0.25, nominal=lambda x, t: -torch.ones_like(x),
+                    sensor=sensor.double(), progress=False)  # fmt: skip
+    assert traj.failed.tolist() == [True, False] and traj.fail_step.tolist() == [4, -1]
+    assert bool(torch.isfinite(traj.x_hat).all())

@@ -354,6 +354,11 @@ def _pole_coefficients(poles: Sequence[float] | Tensor) -> list[float]:
     return [float(c) for c in coeffs[1:][::-1]]
 
 
+#: scale, relative to the first derivative's, below which ``L_g`` of a higher one counts as
+#: the round-off of a zero
+_FLOOR = 1e-9
+
+
 def find_relative_degree(
     barrier: LieFunction,
     dynamics: ControlAffine,
@@ -366,9 +371,10 @@ def find_relative_degree(
 ) -> int:
     """Relative degree ``r`` of ``barrier`` w.r.t. ``dynamics``, by autograd on sample states.
 
-    ``r`` is the least ``k`` with ``L_g D^{k-1} h`` non-zero at some sample, relative to
-    ``tol * max(s_1, s_k)`` with ``s_k = max|dD^{k-1}h/dx| * max|g|`` (round-off is far
-    below it; the test does not depend on the units of ``h``, ``x`` or ``u``).
+    ``r`` is the least ``k`` with ``L_g D^{k-1} h`` non-zero at some sample: an entry above
+    ``tol`` times its own scale ``sum_i |dD^{k-1}h/dx_i| |g_ij|`` (round-off is far below
+    it, whatever the units of ``h``, of each state and of each control), and above ``1e-9``
+    times the first derivative's largest scale (the round-off of an exact zero).
 
     Args:
         samples: states ``[N, n]``, or a number ``N`` of states drawn from
@@ -393,17 +399,24 @@ def find_relative_degree(
     psi: LieFunction = barrier
     degree: Tensor | None = None
     with torch.no_grad():
-        g_max = dynamics.g(x).abs().amax()
+        g_abs = dynamics.g(x).abs()
         first: Tensor | None = None
         for k in range(1, n + 1):
             terms = terms_of(psi, x, dynamics, time, hessian=False)
             lgh = terms.lgh.nan_to_num(0.0, 0.0, 0.0).abs()
             grad = terms.dhdx.nan_to_num(0.0, 0.0, 0.0).abs()
             rows = tuple(range(x.dim() - 1))
-            lg_max = lgh.amax(dim=(*rows, lgh.dim() - 1))  # [] or [k]
-            scale_k = grad.amax(dim=(*rows, grad.dim() - 1)) * g_max
-            first = scale_k if first is None else first
-            found = lg_max > tol * torch.maximum(scale_k, first)
+            # each entry's own scale sum_i |dpsi/dx_i| |g_ij|, whatever the units of x_i
+            if grad.dim() == x.dim():
+                ref = (grad.unsqueeze(-2) @ g_abs).squeeze(-2)  # [..., m]
+            else:
+                ref = grad @ g_abs  # [..., k, m]
+            top = ref.amax(dim=(*rows, ref.dim() - 1))  # [] or [k]
+            first = top if first is None else first
+            # a derivative that is round-off of an exact zero is far below the first one's
+            floor = _FLOOR * (first.unsqueeze(-1) if first.dim() else first)
+            excess = lgh - tol * torch.maximum(ref, floor)
+            found = excess.amax(dim=(*rows, lgh.dim() - 1)) > 0
             if degree is None:
                 degree = torch.zeros_like(found, dtype=torch.long)
             degree = torch.where((degree == 0) & found, torch.full_like(degree, k), degree)

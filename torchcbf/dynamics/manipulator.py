@@ -92,17 +92,20 @@ def _read_urdf(source: str | bytes | os.PathLike[str]) -> str:
 
 
 def _continuous_joints(urdf: str | bytes) -> set[str]:
-    """The names of the URDF's ``continuous`` joints (no position limits); a ``revolute``
-    or ``prismatic`` joint without its required ``<limit>`` is a ``ValueError`` (the parser
-    would read it as fixed at 0 with a velocity limit of 0)."""
+    """The names of the URDF's ``continuous`` joints (no position limits)."""
     root = ElementTree.fromstring(urdf)
-    for j in root.iter("joint"):
+    return {j.get("name", "") for j in root.iter("joint") if j.get("type") == "continuous"}
+
+
+def _check_limits_given(urdf: str | bytes) -> None:
+    """A ``revolute`` or ``prismatic`` joint without its required ``<limit>`` is a
+    ``ValueError`` (the parser would read it as fixed at 0 with a velocity limit of 0)."""
+    for j in ElementTree.fromstring(urdf).iter("joint"):
         if j.get("type") in ("revolute", "prismatic") and j.find("limit") is None:
             raise ValueError(
                 f"urdf: {j.get('type')} joint {j.get('name')!r} has no <limit> (URDF requires "
                 "one; a joint without position limits is type='continuous')"
             )
-    return {j.get("name", "") for j in root.iter("joint") if j.get("type") == "continuous"}
 
 
 def _limits(values: Sequence[float], fallback: float) -> list[float]:
@@ -157,6 +160,7 @@ class Manipulator(ControlAffine):
             ElementTree.fromstring(text)
         except ElementTree.ParseError as err:
             raise ValueError(f"urdf is not well-formed XML: {err}") from None
+        _check_limits_given(text)
         parse_error = importlib.import_module(
             "pytorch_kinematics.urdf_parser_py.xml_reflection.core"
         ).ParseError

@@ -96,7 +96,11 @@ class UnicycleEllipsesVectorEnv(TorchVectorEnv):
             autoreset_mode=autoreset_mode,
             render_mode=render_mode,
         )
-        if not isinstance(control_limit, Sequence) or len(control_limit) != 2:
+        if isinstance(control_limit, (Tensor, np.ndarray)):
+            control_limit = control_limit.tolist()
+        if not isinstance(control_limit, Sequence) or isinstance(control_limit, str):
+            raise TypeError(f"control_limit must be two positive numbers, got {control_limit!r}")
+        if len(control_limit) != 2:
             raise ValueError(f"control_limit must be two positive numbers, got {control_limit!r}")
         limit = [
             check_number(f"control_limit[{i}]", v, low=0.0, strict=True)

@@ -57,27 +57,28 @@ class Fallback(nn.Module):
     def forward(self, x: Tensor, u_nom: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
         """Fallback controls ``[B, m]`` at ``x [B, n]`` for ``u_nom [B, m]`` within
         ``lo, hi [m]``."""
-        fb = self._control(x, u_nom, lo, hi)
-        return torch.where(torch.isfinite(fb).all(-1, keepdim=True), fb, self._zero(u_nom, lo, hi))
+        return self._finished(self._control(x, u_nom), u_nom, lo, hi)
 
     @staticmethod
-    def _zero(u_nom: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
-        return torch.clamp(torch.zeros_like(u_nom), lo, hi)
+    def _finished(raw: Tensor, u_nom: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+        """``raw [B, m]`` clipped to the limits, zero clipped to them in non-finite rows."""
+        fb = torch.clamp(raw, lo, hi)
+        zero = torch.clamp(torch.zeros_like(u_nom), lo, hi)
+        return torch.where(torch.isfinite(fb).all(-1, keepdim=True), fb, zero)
 
-    def _control(self, x: Tensor, u_nom: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
-        """The spec's control clipped to the limits, before non-finite rows are replaced."""
+    def _control(self, x: Tensor, u_nom: Tensor) -> Tensor:
+        """The spec's control ``[B, m]`` before it is clipped and non-finite rows replaced
+        (``"brake"``: zero)."""
         if self.kind == "clip":
-            return torch.clamp(u_nom, lo, hi)
+            return u_nom
         if self.kind == "brake":
-            return self._zero(u_nom, lo, hi)
+            return torch.zeros_like(u_nom)
         if self.kind == "tensor":
-            fb = self.control.to(u_nom).expand_as(u_nom)
-        else:
-            assert self.function is not None
-            fb = self.function(x, u_nom)
-            check_last_dim("fallback(x, u_nom)", fb, u_nom.shape[-1])
-            fb = fb.to(u_nom.dtype).expand_as(u_nom)
-        return torch.clamp(fb, lo, hi)
+            return self.control.to(u_nom).expand_as(u_nom)
+        assert self.function is not None
+        fb = self.function(x, u_nom)
+        check_last_dim("fallback(x, u_nom)", fb, u_nom.shape[-1])
+        return fb.to(u_nom.dtype).expand_as(u_nom)
 
     def select(
         self, ok: Tensor, u: Tensor, x: Tensor, u_nom: Tensor, lo: Tensor, hi: Tensor
@@ -87,15 +88,14 @@ class Fallback(nn.Module):
         it is finite, alone (one host synchronisation): its backward on any other row would
         multiply a zero gradient by its partial derivatives there, NaN where it divides by
         zero (``x / |x|`` at 0) or where ``x`` is not finite, and every parameter it shares
-        across rows would get a NaN gradient."""
-        fb = self._control(x, u_nom, lo, hi)
-        finite = torch.isfinite(fb).all(-1)
-        zero = self._zero(u_nom, lo, hi)
-        if self.kind != "callable" or not fb.requires_grad:
-            fb = torch.where(finite.unsqueeze(-1), fb, zero)
-            return torch.where(ok.unsqueeze(-1), u, fb)
+        across rows would get a NaN gradient. A row where it is infinite keeps its value
+        clipped to the limits, without a gradient (it is saturated there)."""
+        raw = self._control(x, u_nom)
+        if self.kind != "callable" or not raw.requires_grad:
+            return torch.where(ok.unsqueeze(-1), u, self._finished(raw, u_nom, lo, hi))
+        finite = torch.isfinite(raw).all(-1)
+        out = torch.where(ok.unsqueeze(-1), u, self._finished(raw.detach(), u_nom, lo, hi))
         rows = (~ok & finite).nonzero().squeeze(-1)
-        out = torch.where(ok.unsqueeze(-1), u, zero)
         if rows.numel() == 0:
             return out
         return out.index_put((rows,), self(x[rows], u_nom[rows], lo, hi))

@@ -439,6 +439,7 @@ class RiskAware(FilterMode):
 
     def clf(self, terms: LieTerms, rate: Gain, dynamics: ControlAffine, x: Tensor) -> Condition:
         _check_k("clf_eta", self.clf_margin, terms.h.shape[-1])
+        _check_k("clf_gamma", self.clf_gamma, terms.h.shape[-1])
         return clf_condition(
             terms,
             "risk_aware",

@@ -57,6 +57,7 @@ from torchcbf._checks import (
     as_tensor,
     broadcast_shapes,
     check_bounds,
+    check_compile,
     check_last_dim,
     follow_parts,
     isfinite,
@@ -322,8 +323,7 @@ class SafetyFilter(ExactConstants, DerivedConstants):
         # again after the traced state changed)
         self._native_known: bool | None = None
         self._traced_lookups = 0
-        if not isinstance(compile, (bool, dict)):
-            raise TypeError(f"compile must be a bool or a dict, got {type(compile).__name__}")
+        compile = check_compile(compile)
         if compile is not False:
             opts = compile if isinstance(compile, dict) else None
             hess = self.condition.needs_hessian

@@ -27,6 +27,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchcbf._checks import check_int
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.mppi import _rollout
 from torchcbf.mppi.planner import MPPI, _resized, _shifted
@@ -100,11 +101,12 @@ class KMPPI(MPPI):
             control_cost_weight, u_min=u_min, u_max=u_max, integrator=integrator, seed=seed,
             **kwargs,
         )  # fmt: skip
-        S = max(horizon // 2, 1) if num_support_points is None else num_support_points
-        if not isinstance(S, int) or isinstance(S, bool) or not 1 <= S <= horizon:
-            raise ValueError(
-                f"num_support_points must be an integer in [1, horizon={horizon}], got {S!r}"
-            )
+        H = self.horizon
+        S = max(H // 2, 1) if num_support_points is None else num_support_points
+        what = f"an integer in [1, horizon={H}]"
+        S = check_int("num_support_points", S, low=1, what=what)
+        if S > H:
+            raise ValueError(f"num_support_points must be {what}, got {S}")
         if kernel is not None and not callable(kernel):
             raise TypeError(f"kernel must be callable, got {type(kernel).__name__}")
         self.num_support_points = S
@@ -159,12 +161,11 @@ class KMPPI(MPPI):
         self._theta = self._W_shift @ self._theta
 
     def change_horizon(self, horizon: int) -> None:
-        if isinstance(horizon, int) and not isinstance(horizon, bool):
-            if horizon < self.num_support_points:
-                raise ValueError(
-                    f"horizon must be >= num_support_points ({self.num_support_points}), "
-                    f"got {horizon}"
-                )
+        horizon = check_int("horizon", horizon, low=1, what="an integer >= 1")
+        if horizon < self.num_support_points:
+            raise ValueError(
+                f"horizon must be >= num_support_points ({self.num_support_points}), got {horizon}"
+            )
         super().change_horizon(horizon)
 
     def _resize(self, horizon: int) -> None:

@@ -108,6 +108,7 @@ from torchcbf._checks import (
     behaves_as,
     check_bool,
     check_bounds,
+    check_compile,
     check_int,
     check_last_dim,
     check_number,
@@ -302,6 +303,15 @@ class _Values:
             elif not torch.equal(live, kept):
                 return False
         return True
+
+
+def _check_seed(seed: object) -> int:
+    """A generator seed as an int (row ``b`` of a batch takes ``seed + b``)."""
+    if not isinstance(seed, numbers.Integral) or isinstance(seed, bool):
+        raise TypeError(f"seed must be an int, got {type(seed).__name__}")
+    if not -(2**63) <= int(seed) < 2**63:
+        raise ValueError(f"seed must lie in [-2^63, 2^63), got {seed}")
+    return int(seed)
 
 
 def _limit(name: str, value: object, m: int) -> Tensor | None:
@@ -573,11 +583,7 @@ class MPPI(TracksShadows, ExactConstants):
             raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-        if not isinstance(seed, numbers.Integral) or isinstance(seed, bool):
-            raise TypeError(f"seed must be an int, got {type(seed).__name__}")
-        seed = int(seed)
-        if not -(2**63) <= seed < 2**63:  # row b's generator takes seed + b
-            raise ValueError(f"seed must lie in [-2^63, 2^63), got {seed}")
+        seed = _check_seed(seed)
         if step is not None and not callable(step):
             raise TypeError(f"step must be callable or None, got {type(step).__name__}")
         if action_sampler is not None and not callable(action_sampler):
@@ -613,10 +619,10 @@ class MPPI(TracksShadows, ExactConstants):
         self.engine: str | None = None
 
         self.step = step
-        self.noise_abs_cost = noise_abs_cost
+        self.noise_abs_cost = bool(noise_abs_cost)  # checked above
         self.action_sampler = action_sampler
-        self.sample_null_action = sample_null_action
-        self.cuda_graph = cuda_graph
+        self.sample_null_action = bool(sample_null_action)
+        self.cuda_graph = bool(cuda_graph)
         given = isinstance(noise_sigma, Tensor)
         cov = as_matrix("noise_sigma", noise_sigma, m, dtype=None if given else torch.float64)
         scale = _scale(u_scale, m, cov)
@@ -650,8 +656,7 @@ class MPPI(TracksShadows, ExactConstants):
             else:
                 self.register_buffer(name, None if value is None else value.clone())
 
-        if not isinstance(compile, (bool, dict)):
-            raise TypeError(f"compile must be a bool or a dict, got {type(compile).__name__}")
+        compile = check_compile(compile)
         self._compiled = bool(compile)
         self._step_into_fn: Callable[..., None] = self._step_into
         self._score_fn: Callable[..., Tensor] = self._score
@@ -671,13 +676,17 @@ class MPPI(TracksShadows, ExactConstants):
         follow_parts(self, [dynamics, cost])
 
     # -- state -------------------------------------------------------------------------------
+    #: pairs of bounds ``[m]`` a user may set between calls, checked as the constructor
+    #: checks them
+    _BOUNDS: tuple[tuple[str, str], ...] = (("u_min", "u_max"),)
+
     def __setattr__(self, name: str, value: Any) -> None:
-        # a bound set between calls is checked as the constructor checks it
-        if name in ("u_min", "u_max") and isinstance(value, Tensor) and "_buffers" in vars(self):
-            as_limit(name, value, self.dynamics.control_dim)
-            other = self._buffers.get("u_max" if name == "u_min" else "u_min")
-            lo, hi = (value, other) if name == "u_min" else (other, value)
-            check_bounds("u_min", lo, "u_max", hi)
+        pair = next((p for p in self._BOUNDS if name in p), None)
+        if pair is not None and isinstance(value, Tensor) and "_buffers" in vars(self):
+            value = _limit(name, value, self.dynamics.control_dim)  # [m], NaN refused
+            other = self._buffers.get(pair[1] if name == pair[0] else pair[0])
+            lo, hi = (value, other) if name == pair[0] else (other, value)
+            check_bounds(pair[0], lo, pair[1], hi)
         super().__setattr__(name, value)
 
     def reset(self) -> None:
@@ -853,8 +862,7 @@ class MPPI(TracksShadows, ExactConstants):
                 # a cost holding a tensor that requires grad (a closure's): the update in
                 # torch from the stored samples (``u - plan`` is the kernel's noise, clipped
                 # as it clips it), so that the plan keeps that gradient
-                noise = self._finite_candidates(controls - plan.unsqueeze(1))
-                delta = _weighted_sum(noise, weights.w)
+                delta = _weighted_sum(controls - plan.unsqueeze(1), weights.w)
             else:
                 delta = kernel.update(xc, plan, keys, weights.w)
         else:
@@ -898,8 +906,7 @@ class MPPI(TracksShadows, ExactConstants):
         """Plan over ``horizon`` steps from the next call on, keeping the current plan: a
         shorter horizon truncates it, a longer one extends it with ``shift_fill``'s control
         (zero, or the last one). The sample buffers are rebuilt on the next call."""
-        if not isinstance(horizon, int) or isinstance(horizon, bool) or horizon < 1:
-            raise ValueError(f"horizon must be an integer >= 1, got {horizon!r}")
+        horizon = check_int("horizon", horizon, low=1, what="an integer >= 1")
         if self._key is not None:
             self._resize(horizon)
             self._work, self._noise = None, None
@@ -936,8 +943,8 @@ class MPPI(TracksShadows, ExactConstants):
         rollouts are equal. The planner's state is not changed.
         """
         n, m = self.dynamics.state_dim, self.dynamics.control_dim
-        if not isinstance(num_rollouts, int) or isinstance(num_rollouts, bool) or num_rollouts < 1:
-            raise ValueError(f"num_rollouts must be an integer >= 1, got {num_rollouts!r}")
+        num_rollouts = check_int("num_rollouts", num_rollouts, low=1, what="an integer >= 1")
+        seed = self.seed if seed is None else _check_seed(seed)
         check_last_dim("x", x, n)
         if x.dim() > 2:
             raise ValueError(f"x must have shape [{n}] or [B, {n}], got {tuple(x.shape)}")
@@ -960,7 +967,7 @@ class MPPI(TracksShadows, ExactConstants):
         plan = plan.to(xb).expand(B, *plan.shape[-2:])
         H, R = plan.shape[1], num_rollouts
         stochastic = self.step is None and self.dynamics.has_diffusion
-        gen = torch.Generator(device=xb.device).manual_seed(self.seed if seed is None else seed)
+        gen = torch.Generator(device=xb.device).manual_seed(seed)
         states = xb.new_empty(B, R, H + 1, n)
         states[:, :, 0] = xb.unsqueeze(1)
         state = states[:, :, 0]
@@ -1486,18 +1493,18 @@ class MPPI(TracksShadows, ExactConstants):
         # NaN (inf - inf) on the rows without a finite cost: every weight there is 0 below
         shifted = clean - cost_min.unsqueeze(-1)
         if self.cost_normalization != "none":
-            kept = torch.where(finite, shifted, 0.0)
+            # in float64: float32 costs spread by 1e20 overflow the sums, by 3e38 the shift
+            wide = clean.double() - cost_min.double().unsqueeze(-1)
+            kept = torch.where(finite, wide, 0.0)
             if self.cost_normalization == "range":
                 span = kept.amax(-1, keepdim=True)
             else:  # "std": standard deviation of the finite costs
-                # in units of the range: float32 costs spread by 1e20 would overflow the sums
-                top = kept.amax(-1, keepdim=True).clamp_min(torch.finfo(cost.dtype).tiny)
-                unit = kept / top
                 n_fin = finite.sum(-1, keepdim=True).clamp_min(1)
-                mean = unit.sum(-1, keepdim=True) / n_fin
-                dev = torch.where(finite, unit - mean, 0.0)
-                span = top * (dev.square().sum(-1, keepdim=True) / n_fin).sqrt()
-            shifted = shifted / span.clamp_min(torch.finfo(cost.dtype).tiny)
+                mean = kept.sum(-1, keepdim=True) / n_fin
+                dev = torch.where(finite, kept - mean, 0.0)
+                span = (dev.square().sum(-1, keepdim=True) / n_fin).sqrt()
+            tiny = torch.finfo(torch.float64).tiny
+            shifted = (wide / span.clamp_min(tiny)).to(cost.dtype)
         # exponents below log(tiny) give weight 0 (their exp would be subnormal: no
         # difference to the weights); exp runs on 0 there instead, since results at the
         # bottom of the normal range take a slow path of the vectorised exp (10x slower)

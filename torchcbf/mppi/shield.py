@@ -54,10 +54,9 @@ class ShieldMPPI(nn.Module):
             raise TypeError(f"planner must be an MPPI planner, got {type(planner).__name__}")
         if not callable(safety_filter):
             raise TypeError(f"safety_filter must be callable, got {type(safety_filter).__name__}")
-        check_bool("in_loop", in_loop)
         self.planner = planner
         self.safety_filter = safety_filter
-        self.in_loop = in_loop
+        self.in_loop = check_bool("in_loop", in_loop)
         self._pending: Tensor | None = None
 
     @property

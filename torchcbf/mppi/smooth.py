@@ -51,6 +51,8 @@ class SMPPI(MPPI):
     the rate plan ``U [B, H, m]``.
     """
 
+    _BOUNDS = (*MPPI._BOUNDS, ("du_min", "du_max"))
+
     sampling = "smooth"
 
     def __init__(

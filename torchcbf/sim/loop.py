@@ -154,7 +154,8 @@ class ClosedLoop:
                 update amplifies with its covariance's conditioning: 1e-16 in float64 at
                 ``P0 = 1e-2 I``, 1e-6 in float32).
             x0_hat, P0: the estimator's initial mean ``[B, n]`` (default ``x0``) and
-                covariance ``[B, n, n]`` or ``[n, n]`` (default ``1e-2 I``).
+                covariance ``[B, n, n]`` or ``[n, n]`` (default ``1e-2 I``), finite, in
+                ``x0``'s dtype and on its device.
             snapshot_steps: planning steps (multiples of ``planner_every``) at which the
                 planner's whole output is kept in ``Trajectory.planner`` (a step the run
                 does not reach keeps nothing).
@@ -384,6 +385,7 @@ class _Run:
             x_hat = self.measure(self.x, steps)
         else:
             x_hat = self.x
+        self.mark(_finite_rows(self.x) & _finite_rows(x_hat), steps)
         self.xs_hat[:, steps] = self.clean(x_hat)
         return Trajectory(
             t=self.t,
