@@ -688,12 +688,16 @@ def behaves_as(obj: object, cls: type, methods: Sequence[str]) -> bool:
             methods = (*methods, "__call__")
     if shadowed(obj, methods) or shadowed_methods(obj):
         return False
-    return isinstance(obj, cls) and _keeps(type(obj), cls, tuple(methods))
+    if not isinstance(obj, cls):
+        return False
+    kind, names = type(obj), tuple(methods)
+    # the methods themselves are in the key: one assigned to the class later is seen
+    return _keeps(kind, cls, names, tuple(getattr(kind, name, None) for name in names))
 
 
 @functools.lru_cache(maxsize=512)
-def _keeps(kind: type, cls: type, methods: tuple[str, ...]) -> bool:
-    same = all(getattr(kind, name, None) is getattr(cls, name, None) for name in methods)
+def _keeps(kind: type, cls: type, methods: tuple[str, ...], own: tuple[object, ...]) -> bool:
+    same = all(mine is getattr(cls, name, None) for name, mine in zip(methods, own, strict=True))
     return same and not rewritten_helpers(kind)
 
 

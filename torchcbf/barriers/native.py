@@ -458,8 +458,8 @@ def _arguments(
     if hessian and sigma is None and dynamics.has_diffusion:
         return None  # a callable diffusion
     q = 0 if sigma is None else sigma.shape[-1]
-    if q > MAX_SIZE:
-        return None
+    if q > MAX_SIZE or (sigma is not None and tuple(sigma.shape) != (n, q)):
+        return None  # a diffusion matrix of another layout: the torch path reads it
     blocks: list[int] = []  # the blocks' integers, then the groups'
     rates: list[float] = []
     tensors: list[Tensor | None] = []

@@ -109,8 +109,9 @@ def solve(
     States, times and ``u_nom`` are the caller's to check (:func:`inputs_finite`, before any
     computation). The outputs have the batch shape ``batch`` (default ``(B,)``).
 
-    Returns ``None`` when a condition is not finite, or when the kernel does not certify
-    every row (the caller then takes the general path)."""
+    Returns ``None`` when a tensor has another shape than these, when a condition is not
+    finite, or when the kernel does not certify every row (the caller then takes the
+    general path)."""
     lib = _library()
     if lib is None:
         return None
@@ -127,6 +128,12 @@ def solve(
     else:
         k = 0 if cbf is None else cbf[1].shape[1]
     c = 0 if clf is None else clf[1].shape[1]
+    expected = [(u_nom, (B, m)), (R, (m, m)), (lo, (m,)), (hi, (m,))]
+    for pair, rows in ((cbf, k), (clf, c)):
+        if pair is not None:
+            expected += [(pair[0], (B, rows, m)), (pair[1], (B, rows))]
+    if any(t is not None and tuple(t.shape) != want for t, want in expected):
+        return None  # not the layout the kernel reads: the general path answers
     shape = (B,) if batch is None else batch
     conditions = (None, None) if cbf is None else cbf
     conditions += (None, None) if clf is None else clf

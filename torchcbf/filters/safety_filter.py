@@ -714,9 +714,23 @@ class SafetyFilter(ExactConstants, DerivedConstants):
         )  # type: ignore[return-value]
 
     def _limit_tensors(self) -> tuple[Tensor | None, Tensor | None]:
-        """The filter's own limits ``[m]``, else the dynamics' (``None``: no limit)."""
-        lo, hi, dyn = self.u_min, self.u_max, self.dynamics
-        return (lo if lo is not None else dyn.u_min), (hi if hi is not None else dyn.u_max)
+        """The filter's own limits ``[m]``, else the dynamics' (``None``: no limit); one
+        number set on either stands for every control."""
+        m, dyn = self.dynamics.control_dim, self.dynamics
+        out = []
+        for name, own, model in (
+            ("u_min", self.u_min, dyn.u_min),
+            ("u_max", self.u_max, dyn.u_max),
+        ):
+            bound = own if own is not None else model
+            if bound is not None and bound.shape != (m,):
+                if bound.numel() != 1:
+                    raise ValueError(
+                        f"{name} must be a number or [{m}], got shape {tuple(bound.shape)}"
+                    )
+                bound = bound.reshape(1).expand(m)
+            out.append(bound)
+        return out[0], out[1]
 
     def _limits(self, x: Tensor) -> tuple[Tensor, Tensor]:
         m = self.dynamics.control_dim

@@ -266,6 +266,13 @@ def configuration(
     cost: tuple[list[list[float]], list[list[float]]] | None,
 ) -> Configuration:
     """The kernel's configuration (layout of its float64 vector in ``_rollout_kernel.c``)."""
+    for name, value, shape in (
+        ("u_min", u_min, (m,)),
+        ("u_max", u_max, (m,)),
+        ("noise_chol", chol, (m, m)),
+    ):
+        if value is not None and tuple(value.shape) != shape:
+            raise ValueError(f"{name} must be {list(shape)}, got {tuple(value.shape)}")
     terms, shapes = cost if cost is not None else ([], [])
     head = record(
         "HDR",

@@ -267,9 +267,19 @@ def _state_signature(module: nn.Module) -> tuple[tuple[Any, ...], bool, list[Ten
             if isinstance(value, Tensor):
                 add((name, _stamp(value)))
                 tensors.append(value)
-            elif isinstance(value, _PLAIN):
-                add((name, value))
+            elif isinstance(value, (*_PLAIN, list, np.ndarray)):
+                add((name, _plain(value)))
     return tuple(out), grad, tensors
+
+
+def _plain(value: object) -> object:
+    """A plain attribute as a comparable value: a list as a tuple of its items', an array
+    by its type, shape and bytes (a cost term's ``index = [0, 1]`` edited in place shows)."""
+    if isinstance(value, (list, tuple)):
+        return (type(value).__name__, *(_plain(v) for v in value))
+    if isinstance(value, np.ndarray):
+        return (value.dtype.str, value.shape, value.tobytes())
+    return value
 
 
 class _Values:
