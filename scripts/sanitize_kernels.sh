@@ -110,7 +110,8 @@ EOF
 status=0
 TESTS=()
 for t in tests/test_native.py tests/qp/test_dual_native.py tests/barriers/test_native_terms.py \
-    tests/filters/test_realtime.py tests/mppi/test_rollout_kernel.py tests/test_kernel_fuzz.py; do
+    tests/filters/test_realtime.py tests/mppi/test_rollout_kernel.py tests/test_kernel_fuzz.py \
+    tests/test_changed_between_calls.py; do
     [[ -e $t ]] && TESTS+=("$t")
 done
 # the pytest script, not `python -m pytest`: the latter puts the working directory (and the
