@@ -692,7 +692,7 @@ def behaves_as(obj: object, cls: type, methods: Sequence[str]) -> bool:
         return False
     kind, names = type(obj), tuple(methods)
     # the methods themselves are in the key: one assigned to the class later is seen
-    return _keeps(kind, cls, names, tuple(getattr(kind, name, None) for name in names))
+    return _keeps(kind, cls, names, tuple([getattr(kind, name, None) for name in names]))
 
 
 @functools.lru_cache(maxsize=512)

@@ -128,11 +128,13 @@ def solve(
     else:
         k = 0 if cbf is None else cbf[1].shape[1]
     c = 0 if clf is None else clf[1].shape[1]
-    expected = [(u_nom, (B, m)), (R, (m, m)), (lo, (m,)), (hi, (m,))]
-    for pair, rows in ((cbf, k), (clf, c)):
-        if pair is not None:
-            expected += [(pair[0], (B, rows, m)), (pair[1], (B, rows))]
-    if any(t is not None and tuple(t.shape) != want for t, want in expected):
+    if (
+        R.shape != (m, m)
+        or (lo is not None and lo.shape != (m,))
+        or (hi is not None and hi.shape != (m,))
+        or (cbf is not None and (cbf[0].shape != (B, k, m) or cbf[1].shape != (B, k)))
+        or (clf is not None and (clf[0].shape != (B, c, m) or clf[1].shape != (B, c)))
+    ):
         return None  # not the layout the kernel reads: the general path answers
     shape = (B,) if batch is None else batch
     conditions = (None, None) if cbf is None else cbf

@@ -716,13 +716,15 @@ class SafetyFilter(ExactConstants, DerivedConstants):
     def _limit_tensors(self) -> tuple[Tensor | None, Tensor | None]:
         """The filter's own limits ``[m]``, else the dynamics' (``None``: no limit); one
         number set on either stands for every control."""
-        m, dyn = self.dynamics.control_dim, self.dynamics
+        dyn = self.dynamics
+        m = dyn.control_dim
+        lo, hi = self.u_min, self.u_max
+        lo = dyn.u_min if lo is None else lo
+        hi = dyn.u_max if hi is None else hi
+        if (lo is None or lo.shape == (m,)) and (hi is None or hi.shape == (m,)):
+            return lo, hi
         out = []
-        for name, own, model in (
-            ("u_min", self.u_min, dyn.u_min),
-            ("u_max", self.u_max, dyn.u_max),
-        ):
-            bound = own if own is not None else model
+        for name, bound in (("u_min", lo), ("u_max", hi)):
             if bound is not None and bound.shape != (m,):
                 if bound.numel() != 1:
                     raise ValueError(
