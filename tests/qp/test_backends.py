@@ -107,6 +107,26 @@ def test_soft_exact_penalty_when_feasible():
     torch.testing.assert_close(inf_w.x, hard.x, atol=1e-7, rtol=0)
 
 
+@pytest.mark.parametrize("method", ["ipm", "auto", "enumerate"])
+def test_a_soft_rows_slack_is_the_least_its_x_needs(method):
+    """The slack reported is ``max(0, G x - h)`` of the answer: the interior point method
+    left a weightless slack (weight 1e-6 beside an objective of order one) at 0.10 on a row
+    satisfied by 0.52."""
+    Q = torch.tensor([[0.806, -0.504, 0.229], [-0.504, 3.444, 0.123], [0.229, 0.123, 1.275]])
+    p = torch.tensor([-3.128, 3.956, 2.243])
+    G = torch.tensor([[-1.326, -1.241, -0.103], [-0.950, 0.618, -0.238],
+                      [0.0245, -0.491, -0.0591], [-1.565, 0.426, -1.482]])  # fmt: skip
+    h = torch.tensor([0.4236, 0.1344, 0.8726, 0.0248])
+    A, b = torch.tensor([[0.417, 1.000, 0.601]]), torch.tensor([0.011])
+    lb, ub = torch.tensor([-0.166, -0.0981, -0.217]), torch.tensor([0.107, 0.111, 0.255])
+    soft = torch.tensor([1e-6, 2.0, 0.0, 5.0])
+    data = [t.double() for t in (Q, p, G, h, A, b, lb, ub)]
+    sol = solve_qp(*data, soft=soft.double(), method=method)
+    violation = data[2] @ sol.x - data[3]
+    assert float(violation[0]) < -0.5 and float(sol.slack[0]) == 0.0
+    torch.testing.assert_close(sol.slack, violation.clamp_min(0.0) * (soft > 0), atol=0, rtol=0)
+
+
 def _watched_problem(eps_abs: float, P, q, G, h):
     """proxsuite's dense problem ``min x'Px/2 + q'x`` s.t. ``Gx <= h`` to ``eps_abs``."""
     proxqp = pytest.importorskip("proxsuite").proxqp

@@ -39,8 +39,9 @@ class QPSolution(NamedTuple):
     - ``iterations [...]`` int64: interior point iterations (0 for the closed form).
     - ``lam_lb, lam_ub [..., n]``: multipliers of ``x >= lb`` and ``x <= ub`` (>= 0; zero where
       the bound is infinite or absent), so that ``Qx + p + G'lam + A'nu - lam_lb + lam_ub = 0``.
-    - ``slack [..., m]``: elastic violation ``t >= 0`` of each softened row (``Gx <= h + t``);
-      zero for hard rows and when ``soft`` is not given.
+    - ``slack [..., m]``: elastic violation ``t >= 0`` of each softened row (``Gx <= h + t``),
+      the least ``x`` needs, ``max(0, G x - h)`` (the optimum's: the penalty grows with
+      ``t``); zero for hard rows and when ``soft`` is not given.
     - ``path``: the route the batch took (see :data:`PATHS`): ``"small_native"`` (a few
       small problems in one call of the dual C kernel, :mod:`torchcbf.qp.realtime`),
       ``"small_proxsuite"`` (a few problems straight to proxsuite's dense solver),
@@ -841,7 +842,10 @@ def _unpack(
     off = m
     slack = xs.new_zeros(B, m)
     if std.is_soft is not None:
-        slack = kept(xs[:, n:].clamp_min(0.0) * std.is_soft)
+        # the least slack x needs: the optimum's (the penalty grows with t), exact where an
+        # iterative method leaves a weightless slack short of zero
+        violation = (f.G @ x.unsqueeze(-1)).squeeze(-1) - f.h
+        slack = kept(violation.clamp_min(0.0) * std.is_soft)
         off += m
     lam_ub = lam_lb = xs.new_zeros(B, n)
     # an infinite bound holds nothing (an outside solver may leave 1e-12 there)
