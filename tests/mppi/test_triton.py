@@ -358,3 +358,37 @@ def test_cuda_graph_changes_nothing_on_other_paths():
     for _ in range(3):
         out = planner(x)
     assert out.path == "rollout" and planner.path == "rollout"
+
+
+def test_the_kernels_check_the_control_weights_and_the_sample_weights() -> None:
+    """A strided ``wctrl`` is read as the C kernel reads it (a copy); one of another shape,
+    or sample weights of another batch, are refused by both kernels."""
+    f64 = torch.float64
+    planner = MPPI(Unicycle(), SumCost(QuadraticGoal([1.0, 0.0], index=[0, 1])), horizon=3,
+                   num_samples=8, dt=0.1, noise_sigma=0.5, temperature=1.0,
+                   control_cost_weight=0.5, integrator="euler").to(f64)  # fmt: skip
+    config = planner._configuration(
+        _rollout.encode_model(planner.dynamics), _rollout.encode_cost(planner.cost, 3)
+    )
+    c_kernel = _rollout.Kernel(config, fused=True)
+    kernel = _triton.Kernel(_triton.tables(config, f64, torch.device(TARGET)), fused=True)
+    gen = torch.Generator().manual_seed(0)
+    x, plan = (
+        torch.rand(2, 3, generator=gen, dtype=f64),
+        torch.randn(2, 3, 2, generator=gen, dtype=f64),
+    )
+    keys = torch.randint(0, 2**62, (2,), generator=gen)
+    wctrl = torch.randn(2, 2, 3, generator=gen, dtype=f64).transpose(1, 2)  # [B, H, m], strided
+    on = (x.to(TARGET), plan.to(TARGET), keys.to(TARGET))
+    torch.testing.assert_close(
+        kernel.costs(*on, wctrl.to(TARGET)).cpu(),
+        c_kernel.costs(x, plan, keys, wctrl),
+        rtol=TOL[f64][0],
+        atol=TOL[f64][1],
+    )
+    for k in (kernel, c_kernel):
+        args = on if k is kernel else (x, plan, keys)
+        with pytest.raises(ValueError, match="wctrl must"):
+            k.costs(*args, wctrl[:, :2].contiguous().to(args[0].device))
+        with pytest.raises(ValueError, match="weights must"):
+            k.update(*args, torch.rand(1, 8, dtype=f64).to(args[0].device))

@@ -255,11 +255,11 @@ def test_kernel_compiles_for_a_gpu_one_problem_per_thread(real):
 
     fn = _dual_triton._dual_solve_kernel
     names = ("p", "q", "g", "h", "x", "z", "active", "ok", "iters", "l", "s", "rs", "us", "cond")
-    kinds = [f"*{real}"] * 6 + ["*i8", "*i8", "*i64", f"*{real}", "*i64"] + [f"*{real}"] * 3
+    names += ("consts",)
+    kinds = [f"*{real}"] * 6 + ["*i8", "*i8", "*i64", f"*{real}", "*i64"] + [f"*{real}"] * 4
     signature = {f"{name}_ptr": kind for name, kind in zip(names, kinds, strict=True)}
     signature.update(B="i32", **dict.fromkeys(_dual_triton.STRIDE_ARGS, "i32"))
-    signature.update(max_iter="i32", eps="fp64", mach="fp64", piv_tol="fp64")
-    signature.update(tiny="fp64")
+    signature.update(max_iter="i32")
     sizes = {"N": 3, "M": 13, "NP": 4, "MP": 16, "BLOCK": _dual_triton.BLOCK}
     signature.update(dict.fromkeys(sizes, "constexpr"))
     # the hints a launch on 10^6 problems gives: pointers aligned to 16 bytes, and B
@@ -281,3 +281,21 @@ def test_kernel_compiles_for_a_gpu_one_problem_per_thread(real):
     # loads along the batch) multiplies the registers a thread needs and spills them
     per_thread = re.findall(r"sizePerThread = \[([\d, ]+)\]", compiled.asm["ttgir"])
     assert per_thread and all(set(p.replace(" ", "").split(",")) == {"1"} for p in per_thread)
+
+
+@runs
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_rows_of_data_that_is_not_finite_are_not_ok(dtype):
+    """A NaN the kernel's checks would drop (``tl.max`` skips it) fails them, as in torch:
+    an infeasible ``h = -inf``, a NaN in ``h`` or ``G``, a NaN in ``P``'s upper triangle."""
+    nan, inf = float("nan"), float("inf")
+    P = torch.eye(2, dtype=dtype).expand(4, 2, 2).clone()
+    P[3, 0, 1] = nan
+    q = torch.full((4, 2), -1.0, dtype=dtype)
+    G = torch.eye(2, dtype=dtype).expand(4, 2, 2).clone()
+    G[2, 0, 0] = nan
+    h = torch.tensor([[-inf, 0.5], [nan, 0.5], [0.5, 0.5], [0.5, 0.5]], dtype=dtype)
+    P, q, G, h = (t.to(TARGET) for t in (P, q, G, h))
+    fast = solve_dual(P, q, G, h, eps=_eps(dtype), max_iter=50, engine="triton")
+    reference = solve_dual(P, q, G, h, eps=_eps(dtype), max_iter=50, engine="torch")
+    assert fast.ok.tolist() == reference.ok.tolist() == [False] * 4

@@ -224,8 +224,7 @@ def test_a_second_derivative_through_the_qp_raises(method, q_depends, loss):
 def test_multipliers_of_dependent_tight_rows_get_the_solvers_selections_derivative(method) -> None:
     """A variable pinned by ``lb = ub``, a zero row and an inequality repeating an equality
     leave several multiplier vectors valid; the adjoint moves the strictly active rows'
-    multipliers (the selection the solver returned) and leaves the weak rows' at zero,
-    where the regularised solve answered ``1 / delta`` (2e11)."""
+    multipliers (the selection the solver returned), not ``1 / delta`` (2e11)."""
     f64 = torch.float64
     Q, p = torch.eye(2, dtype=f64), torch.tensor([-1.0, -1.0], dtype=f64)
     c = torch.tensor(0.3, dtype=f64, requires_grad=True)  # lb1 = ub1 = c: lam_ub1 = 1 - c
@@ -233,6 +232,10 @@ def test_multipliers_of_dependent_tight_rows_get_the_solvers_selections_derivati
     ub = torch.stack([c, torch.tensor(5.0, dtype=f64)])
     sol = solve_qp(Q, p, lb=lb, ub=ub, method=method)
     (grad,) = torch.autograd.grad(sol.lam_ub[0], (c,))
+    ub_alone = torch.tensor([0.3, 5.0], dtype=f64, requires_grad=True)
+    pinned = solve_qp(Q, p, lb=torch.tensor([0.3, -5.0], dtype=f64), ub=ub_alone, method=method)
+    (grad_ub,) = torch.autograd.grad(pinned.lam_ub[0], (ub_alone,))
+    assert float(grad_ub[0]) == pytest.approx(-1.0, abs=1e-4)  # lam_ub = 1 - ub where feasible
     assert float(sol.lam_ub[0]) == pytest.approx(0.7) and float(grad) == pytest.approx(
         -1.0, abs=1e-4
     )
@@ -249,3 +252,20 @@ def test_multipliers_of_dependent_tight_rows_get_the_solvers_selections_derivati
     sol = solve_qp(Q, p, torch.eye(2, dtype=f64), h3, A, c.reshape(1), method=method)
     (grad,) = torch.autograd.grad(sol.nu.sum(), (c,))
     assert float(grad) == pytest.approx(-float(sol.nu[0]) / 0.5, abs=1e-4)
+
+
+@pytest.mark.parametrize("method", ["auto", "enumerate", "ipm"])
+@pytest.mark.parametrize("angle", [1e-2, 1e-3, 1e-4])
+def test_a_weak_row_nearly_parallel_to_an_active_one_keeps_its_exact_gradient(method, angle):
+    """``x1 <= 0.5`` active and ``x1 + e x2 <= 0.5 + e`` tight with a zero multiplier: the
+    rows are independent however small ``e``, and ``dx2/dh2 = 1/e`` exactly."""
+    f64 = torch.float64
+    G = torch.tensor([[1.0, 0.0], [1.0, angle]], dtype=f64)
+    h = torch.tensor([0.5, 0.5 + angle], dtype=f64, requires_grad=True)
+    sol = solve_qp(
+        torch.eye(2, dtype=f64), torch.tensor([-1.0, -1.0], dtype=f64), G, h, method=method
+    )
+    (grad,) = torch.autograd.grad(sol.x[1], (h,))
+    torch.testing.assert_close(
+        grad, torch.tensor([-1.0, 1.0], dtype=f64) / angle, rtol=1e-8, atol=0
+    )

@@ -596,6 +596,8 @@ class Kernel:
         """``sum_k w_k eps_k [B, H, m]`` for ``w [B, K]`` with the noise of the samples of
         non-zero weight regenerated (accumulated in float64)."""
         B, H, m = plan.shape
+        if w.dim() != 2 or w.shape[0] != B:
+            raise ValueError(f"weights must have shape [{B}, K], got {list(w.shape)}")
         pairs = (w > 0).nonzero()
         count = pairs.shape[0]
         wsum = torch.zeros(update_threads(count), B, H, m, dtype=torch.float64)

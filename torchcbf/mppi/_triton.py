@@ -529,16 +529,31 @@ def _launch(
         )  # fmt: skip
 
 
-def _check(tab: Tables, x0: Tensor, plan: Tensor, keys: Tensor, K: int) -> None:
-    """The checks at the kernel's boundary: device, dtype, shape and layout of the inputs."""
+def _check(
+    tab: Tables,
+    x0: Tensor,
+    plan: Tensor,
+    keys: Tensor,
+    K: int,
+    *,
+    wctrl: Tensor | None = None,
+    weights: Tensor | None = None,
+) -> None:
+    """The checks at the kernel's boundary: device, dtype, shape and layout of the inputs
+    (``wctrl [B, H, m]`` and ``weights [B, K]`` where a pass reads them)."""
     B, H, m = plan.shape
     n = tab.meta["N"]
-    for name, t, shape, dtype in (
+    given = [
         ("x0", x0, (B, n), plan.dtype),
         ("plan", plan, (B, H, m), plan.dtype),
         ("keys", keys, (B,), torch.int64),
         ("tables", tab.par, (_NPAR,), plan.dtype),
-    ):
+    ]
+    if wctrl is not None:
+        given.append(("wctrl", wctrl, (B, H, m), plan.dtype))
+    if weights is not None:
+        given.append(("weights", weights, (B, K), plan.dtype))
+    for name, t, shape, dtype in given:
         if t.device != plan.device:
             raise ValueError(f"{name} is on {t.device}, the plan on {plan.device}")
         if t.dtype != dtype or tuple(t.shape) != shape or not t.is_contiguous():
@@ -592,7 +607,8 @@ def costs(
     tab: Tables, x0: Tensor, plan: Tensor, keys: Tensor, K: int, wctrl: Tensor | None
 ) -> Tensor:
     """Total cost ``[B, K]`` of every sample (built-in terms and the control cost)."""
-    _check(tab, x0, plan, keys, K)
+    wctrl = None if wctrl is None else wctrl.to(plan.dtype).contiguous()
+    _check(tab, x0, plan, keys, K, wctrl=wctrl)
     B = plan.shape[0]
     cost = plan.new_empty(B, K)
     grid = (B, triton.cdiv(K, BLOCK))
@@ -603,11 +619,11 @@ def costs(
 def update(tab: Tables, x0: Tensor, plan: Tensor, keys: Tensor, weights: Tensor) -> Tensor:
     """``sum_k w_k eps_k [B, H, m]`` for ``weights [B, K]``, accumulated in float64."""
     B, H, m = plan.shape
-    K = weights.shape[1]
-    _check(tab, x0, plan, keys, K)
+    K = weights.shape[-1]
+    weights = weights.to(plan.dtype).contiguous()
+    _check(tab, x0, plan, keys, K, weights=weights)
     blocks = triton.cdiv(K, BLOCK)
     part = torch.empty(B, H, m, blocks, dtype=torch.float64, device=plan.device)
-    weights = weights.to(plan.dtype).contiguous()
     _launch(tab, _UPDATE, (B, blocks), x0, plan, keys, K=K, weights=weights, part=part)
     return part.sum(-1).to(plan.dtype)
 
@@ -637,10 +653,19 @@ def buffers(
     (:func:`torchcbf.mppi._rollout.component_major`) of every sample; return the control
     cost ``gamma sum_j U_j' Sigma^-1 eps_j`` ``[B, K]`` (zeros without ``wctrl``)."""
     B, K = states.shape[:2]
-    _check(tab, x0, plan, keys, K)
-    for name, t in (("states", states), ("controls", controls)):
-        if t.dtype != plan.dtype or not t.permute(0, 3, 2, 1).is_contiguous():
-            raise ValueError(f"{name} must be a component-major {plan.dtype} buffer")
+    wctrl = None if wctrl is None else wctrl.to(plan.dtype).contiguous()
+    _check(tab, x0, plan, keys, K, wctrl=wctrl)
+    H, n, m = plan.shape[1], tab.meta["N"], plan.shape[2]
+    for name, t, shape in (
+        ("states", states, (B, K, H + 1, n)),
+        ("controls", controls, (B, K, H, m)),
+    ):
+        if (
+            t.dtype != plan.dtype
+            or tuple(t.shape) != shape
+            or not t.permute(0, 3, 2, 1).is_contiguous()
+        ):
+            raise ValueError(f"{name} must be a component-major {plan.dtype} buffer {list(shape)}")
     cost = plan.new_empty(B, K)
     grid = (B, triton.cdiv(K, BLOCK))
     _launch(

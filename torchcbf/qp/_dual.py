@@ -280,9 +280,10 @@ def solve_dual(
         raise ValueError(f"engine must be one of {ENGINES} or None, got {engine!r}")
     if engine == "triton" and not _dual_triton.applies(q, M, explicit=True):
         raise ValueError(
-            "engine='triton' needs Triton, data on CUDA (on the CPU: TRITON_INTERPRET=1), at "
-            f"most {_dual_triton.MAX_VARS} variables and {_dual_triton.MAX_TILE} entries in "
-            f"the [N, M] tile padded to powers of two; got N={N}, M={M} on {q.device}"
+            "engine='triton' needs Triton, float32 or float64 data on CUDA (on the CPU: "
+            f"TRITON_INTERPRET=1), at most {_dual_triton.MAX_VARS} variables and "
+            f"{_dual_triton.MAX_TILE} entries in the [N, M] tile padded to powers of two; got "
+            f"{q.dtype}, N={N}, M={M} on {q.device}"
         )
     if engine == "c":
         x, z, active, slots, L, ok, iters, infeasible = _dual_native.forward(

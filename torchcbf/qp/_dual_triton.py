@@ -207,6 +207,7 @@ if triton is not None:
         rs_ptr,  # out [N, N, B]
         us_ptr,  # out [N, N, B]
         cond_ptr,  # out [B]
+        consts_ptr,  # [4]: eps, the dtype's eps, the pivot tolerance and its least normal
         B,
         sp,
         sp0,
@@ -219,10 +220,6 @@ if triton is not None:
         sh,
         sh0,
         max_iter,
-        eps,
-        mach,
-        piv_tol,
-        tiny,
         N: tl.constexpr,
         M: tl.constexpr,
         NP: tl.constexpr,
@@ -230,6 +227,11 @@ if triton is not None:
         BLOCK: tl.constexpr,
     ):
         INF = float("inf")
+        # in the data's dtype (a float argument launches as float32: tiny would be 0)
+        eps = tl.load(consts_ptr)
+        mach = tl.load(consts_ptr + 1)
+        piv_tol = tl.load(consts_ptr + 2)
+        tiny = tl.load(consts_ptr + 3)
         lane = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
         live = lane < B
         cn = tl.arange(0, NP)
@@ -396,6 +398,7 @@ if triton is not None:
         x_max = tl.max(tl.abs(x), axis=0)
         scale = tl.abs(hr) + gmax * (1.0 + x_max)[None, :]
         v = (tl.sum(Rc * x[:, None, :], axis=0) - hr) / tl.maximum(scale, tiny)
+        v = tl.where(v == v, v, INF)  # a NaN (data of inf) fails the check: tl.max skips it
         v_S = tl.sum(tl.where(sel, v[:, None, :], 0.0), axis=0)
         pviol = tl.maximum(tl.max(tl.where(valid, v, -INF), axis=0), tl.max(tl.abs(v_S), axis=0))
         stat = tl.sum(P * x[:, None, :], axis=0) + q + tl.sum(R_S * lam_S[None, :, :], axis=1)
@@ -409,7 +412,7 @@ if triton is not None:
             & nonsing
             & (pviol <= eps)
             & (tl.min(lam_S, axis=0) >= -eps * (1.0 + lam_abs))
-            & (tl.max(tl.abs(stat), axis=0) <= eps * dscale)
+            & (tl.max(tl.where(stat == stat, tl.abs(stat), INF), axis=0) <= eps * dscale)
             & finite
         )
 
@@ -469,12 +472,15 @@ def solve(
     if B > 0:
         info = torch.finfo(G.dtype)
         piv_tol = 1e-12 if G.dtype == torch.float64 else 1e-6
+        consts = G.new_full((4,), eps)  # filled on the device: no copy from the host
+        for i, value in enumerate((info.eps, piv_tol, info.tiny), start=1):
+            consts[i] = value
         grid = (triton.cdiv(B, block),)
         launch = {} if maxnreg is None else {"maxnreg": maxnreg}
         with on_device(G):
             _dual_solve_kernel[grid](
-                *data, x, z, active, ok, iters, L, S, R_S, U_S, cond,
-                B, *strides, min(max_iter, 2**31 - 1), eps, info.eps, piv_tol, info.tiny,
+                *data, x, z, active, ok, iters, L, S, R_S, U_S, cond, consts,
+                B, *strides, min(max_iter, 2**31 - 1),
                 N=N, M=M, NP=tile(N), MP=tile(M), BLOCK=block, num_warps=warps, **launch,
             )  # fmt: skip
     return Solution(x, z, active.bool(), ok.bool(), iters, L, S, R_S, U_S, cond)

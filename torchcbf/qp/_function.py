@@ -369,8 +369,7 @@ def _factor(data: QPData, x: Tensor, active: Tensor, status: Tensor) -> _kkt.KKT
     """The backward's KKT factor: on ``active`` plus every row tight at ``x``."""
     G = data.G
     backward_set = _kkt.with_tight_rows(G, data.h, x, active, status)
-    weak = backward_set & ~active
-    return _kkt.factor_kkt(data.P, G, data.A, backward_set, dependent=True, weak=weak)
+    return _kkt.backward_factor(data.P, G, data.A, active, backward_set)
 
 
 #: absolute tolerance and iteration budget of proxsuite's dense solver where ``auto`` routes
@@ -977,8 +976,8 @@ def _forward_dual(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> Forward
     if len(rows) == 0:
         return Forward(x, z, y, status, iters, codes, dual_factor)
     # the other rows keep the dual method's factors: hard rows do not slow the whole batch
-    sub = [t.index_select(0, rows) for t in (P, G, A, backward_set, backward_set & ~active)]
-    fac = MixedFactor(dual_factor, rows, _kkt.factor_kkt(*sub[:4], dependent=True, weak=sub[4]))
+    sub = [t.index_select(0, rows) for t in (P, G, A, active, backward_set)]
+    fac = MixedFactor(dual_factor, rows, _kkt.backward_factor(*sub))
     return Forward(x, z, y, status, iters, codes, fac)
 
 

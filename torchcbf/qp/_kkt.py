@@ -18,9 +18,9 @@ lies in the null space of all of them, not only of the rows a method's multiplie
 support (at a degenerate vertex several multiplier vectors are valid). Where ``x`` has a kink
 (a weakly active row that leaves under some perturbation) this is the one-sided derivative
 for perturbations that keep every tight row tight. Dependent tight rows are handled by the
-regularised factorisation; where they leave several multiplier vectors valid, the backward's
-factor gives the least-norm adjoint (:func:`solve_kkt`), so a loss on those multipliers
-gets a finite gradient (one of the valid selections' one-sided derivatives need not be it).
+regularised factorisation; where they leave several multiplier vectors valid and a loss
+reads those multipliers, the rows affected are solved again for the change that moves the
+strictly active rows' multipliers (:func:`kkt_adjoints`).
 """
 
 from __future__ import annotations
@@ -47,8 +47,10 @@ REFINED = 4 * torch.finfo(torch.float64).eps
 
 class KKTFactor(NamedTuple):
     """LU factorisation of the equilibrated, regularised active-set KKT matrix ``D K D``
-    (``D = diag(d)``), plus the exact matrix ``K``; ``LU2, pivots2``: the same with twice
-    the regularisation (see :func:`solve_kkt`), or None."""
+    (``D = diag(d)``), plus the exact matrix ``K``, the regularisation ``delta [B]`` of the
+    equilibrated matrix, and ``weak [B, M]``: the rows of the active set that are only tight
+    (their multiplier not above their slack; ``None``: not known). ``LU2, pivots2``: the
+    factor with twice the regularisation (:func:`solve_kkt`), or None."""
 
     K: Tensor
     LU: Tensor
@@ -56,6 +58,8 @@ class KKTFactor(NamedTuple):
     active: Tensor
     ok: Tensor
     d: Tensor
+    delta: Tensor
+    weak: Tensor | None = None
     LU2: Tensor | None = None
     pivots2: Tensor | None = None
 
@@ -75,48 +79,62 @@ def build_kkt(P: Tensor, G: Tensor, A: Tensor, active: Tensor) -> Tensor:
     return torch.cat((top, mid, bot), -2)
 
 
-#: regularisation of a weakly active row (tight, its multiplier not above its slack)
-#: relative to a strictly active one's in the backward's factor: among multiplier vectors
-#: that dependent rows leave valid, the adjoint then moves the strictly active rows' (the
-#: solver's selection: a pinned variable's one bound, an equality rather than an inequality
-#: repeating it); small enough that refinement still reaches ``K``'s own solution elsewhere
-WEAK_WEIGHT = {torch.float64: 1e6, torch.float32: 10.0}
+#: regularisation of a weak row relative to a strictly active one's where dependent rows
+#: leave several multiplier vectors valid (:func:`kkt_adjoints`): the adjoint then moves the
+#: strictly active rows' multipliers (the solver's selection: a pinned variable's one bound,
+#: an equality rather than an inequality repeating it) and a weak row's by 1e-6 of that
+WEAK_WEIGHT = 1e6
 
 
 def factor_kkt(
-    P: Tensor,
-    G: Tensor,
-    A: Tensor,
-    active: Tensor,
-    *,
-    dependent: bool = False,
-    weak: Tensor | None = None,
+    P: Tensor, G: Tensor, A: Tensor, active: Tensor, *, weak: Tensor | None = None
 ) -> KKTFactor:
     """Factor the active-set KKT matrix, equilibrated (``D K D`` with every row's largest
     entry near one, :func:`_equilibrate`), with a tiny quasi-definite regularisation.
     Without the equilibration the regularisation, relative to the largest entry, swamps the
     small ones: a weight of 5e5 beside one of 1e-3 (a filter's slack and its controls) leaves
-    the polished vertex 1e-7 off and uncertified. ``dependent``: also factor it with twice
-    the regularisation, for solves whose right-hand side may leave ``K``'s range (dependent
-    active rows: :func:`solve_kkt`), the rows of ``weak [B, M]`` regularised
-    :data:`WEAK_WEIGHT` times more."""
-    n, M, me = P.shape[-1], G.shape[-2], A.shape[-2]
+    the polished vertex 1e-7 off and uncertified. ``weak [B, M]``: kept for the adjoints of
+    dependent rows (:func:`kkt_adjoints`)."""
     K = build_kkt(P, G, A, active)
     d = _equilibrate(K)
     Ks = d.unsqueeze(-1) * K * d.unsqueeze(-2)
     scale = Ks.abs().amax((-2, -1)).clamp_min(1.0)
     delta = (1e-11 if K.dtype == torch.float64 else 1e-6) * scale
+    shift = _signs(K, active, P.shape[-1], None) * delta.unsqueeze(-1)
+    LU, pivots, ok = _checked_lu(Ks + torch.diag_embed(shift))
+    return KKTFactor(K, LU, pivots, active, ok, d, delta, weak)
+
+
+def backward_factor(
+    P: Tensor, G: Tensor, A: Tensor, active: Tensor, backward_set: Tensor
+) -> KKTFactor:
+    """The backward's factor on ``backward_set [B, M]`` (:func:`with_tight_rows` of the
+    solver's ``active`` set), the rows only tight marked weak."""
+    return factor_kkt(P, G, A, backward_set, weak=backward_set & ~active)
+
+
+def _signs(K: Tensor, active: Tensor, n: int, weak: Tensor | None) -> Tensor:
+    """The regularisation's pattern ``[B, N]``: ``+1`` on the variables, ``-1`` on the
+    active and equality rows (:data:`WEAK_WEIGHT` times that on ``weak`` rows), 0 on the
+    inactive ones (pinned by the identity)."""
     rows = active.to(K.dtype)
     if weak is not None:
-        rows = rows * torch.where(weak, WEAK_WEIGHT.get(K.dtype, 10.0), 1.0)
-    sign = torch.cat((K.new_ones(K.shape[0], n), -rows, -K.new_ones(K.shape[0], me)), -1)
-    del M
-    shift = sign * delta.unsqueeze(-1)
+        rows = rows * torch.where(weak, WEAK_WEIGHT, 1.0)
+    me = K.shape[-1] - n - active.shape[-1]
+    return torch.cat((K.new_ones(K.shape[0], n), -rows, -K.new_ones(K.shape[0], me)), -1)
+
+
+def _least_change_factor(fac: KKTFactor, rows: Tensor, n: int) -> KKTFactor:
+    """The factors of ``fac``'s ``rows`` with the weak rows regularised more, at ``delta``
+    and ``2 delta`` (:func:`solve_kkt` combines them)."""
+    K, d, delta = (t.index_select(0, rows) for t in (fac.K, fac.d, fac.delta))
+    active = fac.active.index_select(0, rows)
+    weak = None if fac.weak is None else fac.weak.index_select(0, rows)
+    Ks = d.unsqueeze(-1) * K * d.unsqueeze(-2)
+    shift = _signs(K, active, n, weak) * delta.unsqueeze(-1)
     LU, pivots, ok = _checked_lu(Ks + torch.diag_embed(shift))
-    if not dependent:
-        return KKTFactor(K, LU, pivots, active, ok, d)
     LU2, pivots2, ok2 = _checked_lu(Ks + torch.diag_embed(2.0 * shift))
-    return KKTFactor(K, LU, pivots, active, ok & ok2, d, LU2, pivots2)
+    return KKTFactor(K, LU, pivots, active, ok & ok2, d, delta, weak, LU2, pivots2)
 
 
 def _checked_lu(K: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -163,7 +181,8 @@ def solve_kkt(fac: KKTFactor, rhs: Tensor, steps: int = REFINE_STEPS) -> Tensor:
     (a loss on multipliers that are not unique), the regularised solve answers that part
     with ``-1 / delta`` times it, and each refinement step adds as much again. A factor with
     ``LU2`` solves by ``2 K_{2 delta}^-1 - K_delta^-1`` instead, which maps that part to
-    zero and the range as ``K``'s inverse to first order: the least-norm answer there."""
+    zero and the range as ``K``'s inverse to first order (only for such rows: it triples the
+    error along a weak curvature, which refinement then corrects more slowly)."""
     d = fac.d.unsqueeze(-1)
 
     def solve(r: Tensor) -> Tensor:
@@ -480,8 +499,21 @@ def kkt_adjoints(
     :func:`input_gradients`. Rows that are not ``SOLVED`` get zeros."""
     n, M = x.shape[-1], z.shape[-1]
     af = fac.active.to(x.dtype)
-    w = solve_kkt(fac, torch.cat((gx, gz * af, gy), -1))
-    good = (status == int(Status.SOLVED)) & fac.ok & torch.isfinite(w).all(-1)
+    rhs = torch.cat((gx, gz * af, gy), -1)
+    w = solve_kkt(fac, rhs)
+    # rows where the regularisation took up a part of rhs (K singular there, by dependent
+    # active rows, and rhs outside its range): their answer is that part over delta. They
+    # are solved again for the least change of the strictly active rows' multipliers; one
+    # host synchronisation asks whether any row is one
+    absorbed = fac.delta * (w / fac.d)[..., n:].abs().amax(-1)
+    dependent = absorbed > 1e-3 * (fac.d * rhs).abs().amax(-1)
+    ok = fac.ok
+    if bool(dependent.any()):
+        rows = dependent.nonzero().squeeze(-1)
+        refactored = _least_change_factor(fac, rows, n)
+        w = w.index_copy(0, rows, solve_kkt(refactored, rhs.index_select(0, rows)))
+        ok = ok.index_copy(0, rows, ok.index_select(0, rows) & refactored.ok)
+    good = (status == int(Status.SOLVED)) & ok & torch.isfinite(w).all(-1)
     w = torch.where(good.unsqueeze(-1), w, torch.zeros_like(w))
     return w[..., :n], w[..., n : n + M] * af, w[..., n + M :], z * af
 
