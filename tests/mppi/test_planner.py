@@ -1018,7 +1018,9 @@ def test_limits_flags_and_integers_are_checked_as_given() -> None:
         planner.u_max = torch.tensor([math.nan, 1.0])
     with pytest.raises(ValueError, match=r"u_min \[2.0, 2.0\] exceeds u_max"):
         planner.u_min = torch.tensor([2.0, 2.0])
-    planner.u_max = torch.tensor([0.5, 0.5])  # a valid bound is taken
+    bound = torch.tensor([0.5, 0.5])
+    planner.u_max = bound  # a valid bound is taken as given
+    assert planner.u_max is bound
     assert float(planner(torch.zeros(2)).u.abs().max()) <= 0.5
     fresh = make(u_min=-1.0, u_max=1.0)
     fresh.u_min, fresh.u_max = torch.tensor(-0.05), torch.tensor([0.5, 0.5])

@@ -133,15 +133,6 @@ class _Objective:
         return r, Jr, error
 
 
-def _planar(arm: Manipulator) -> bool:
-    """Whether the end effector moves in the x-y plane only: no joint moves it in z at a few
-    random configurations."""
-    gen = torch.Generator().manual_seed(0)
-    q = arm.random_configurations(4, generator=gen, dtype=torch.float64)
-    J = arm.jacobian(q.to(arm.q_min.device))
-    return bool(J[..., 2, :].abs().amax() <= 1e-9 * (1.0 + J.abs().amax()))
-
-
 def inverse_kinematics(
     arm: Manipulator,
     target: Tensor,
@@ -205,7 +196,7 @@ def inverse_kinematics(
         raise TypeError(f"target must be a floating tensor, got {target.dtype}")
     if target.dim() == 0 or target.shape[-1] not in (2, 3):
         raise ValueError(f"target must have shape [..., 3] or [..., 2], got {tuple(target.shape)}")
-    if target.shape[-1] == 2 and not _planar(arm):
+    if target.shape[-1] == 2 and not arm.is_planar():
         raise ValueError(
             "target [..., 2] is for a planar arm (its end effector moves in the x-y plane); "
             "this arm's also moves in z: give targets [..., 3]"

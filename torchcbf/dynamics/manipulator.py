@@ -224,6 +224,7 @@ class Manipulator(ControlAffine):
         if moving[-1] != end_link:
             moving.append(end_link)
         self.links: list[str] = self.check_links(moving if links is None else links)
+        self._planar: bool | None = None  # is_planar(), found on first use
         f64 = torch.float64
         self.register_buffer("q_min", torch.tensor(_limits(lo, -math.inf), dtype=f64))
         self.register_buffer("q_max", torch.tensor(_limits(hi, math.inf), dtype=f64))
@@ -347,6 +348,16 @@ class Manipulator(ControlAffine):
     def end_effector(self, x: Tensor) -> Tensor:
         """End-effector position: ``x [..., dof or n] -> [..., 3]``."""
         return self.fk(x, [self.end_link])[..., 0, :]
+
+    def is_planar(self) -> bool:
+        """Whether the end effector moves in the x-y plane only (no joint moves it in z at a
+        few random configurations; found once)."""
+        if self._planar is None:
+            gen = torch.Generator().manual_seed(0)
+            q = self.random_configurations(4, generator=gen, dtype=torch.float64)
+            J = self.jacobian(q.to(self.q_min.device))
+            self._planar = bool(J[..., 2, :].abs().amax() <= 1e-9 * (1.0 + J.abs().amax()))
+        return self._planar
 
     def jacobian(self, x: Tensor) -> Tensor:
         """Positional end-effector Jacobian ``d ee / d q``: ``x [..., dof or n] -> [..., 3, dof]``.

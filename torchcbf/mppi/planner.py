@@ -272,12 +272,22 @@ def _state_signature(module: nn.Module) -> tuple[tuple[Any, ...], bool, list[Ten
     return tuple(out), grad, tensors
 
 
+#: most items of a list or array attribute whose values a configuration's signature holds
+#: (a kernel reads short ones: a cost term's ``index``); a longer one counts by identity
+_PLAIN_ITEMS = 64
+
+
 def _plain(value: object) -> object:
-    """A plain attribute as a comparable value: a list as a tuple of its items', an array
-    by its type, shape and bytes (a cost term's ``index = [0, 1]`` edited in place shows)."""
+    """A plain attribute as a comparable value: a short list as a tuple of its items', a
+    small array by its type, shape and bytes (a cost term's ``index = [0, 1]`` edited in
+    place shows); a long one (a user's map of 10^5 cells) by its identity and length."""
     if isinstance(value, (list, tuple)):
+        if len(value) > _PLAIN_ITEMS:
+            return ("long", id(value), len(value))
         return (type(value).__name__, *(_plain(v) for v in value))
     if isinstance(value, np.ndarray):
+        if value.size > _PLAIN_ITEMS:
+            return ("long", id(value), value.shape)
         return (value.dtype.str, value.shape, value.tobytes())
     return value
 
@@ -693,7 +703,11 @@ class MPPI(TracksShadows, ExactConstants):
     def __setattr__(self, name: str, value: Any) -> None:
         pair = next((p for p in self._BOUNDS if name in p), None)
         if pair is not None and isinstance(value, Tensor) and "_buffers" in vars(self):
-            value = _limit(name, value, self.dynamics.control_dim)  # [m], NaN refused
+            m = self.dynamics.control_dim
+            if value.shape == (m,):
+                as_limit(name, value, m)  # NaN refused; the tensor kept as given
+            else:
+                value = _limit(name, value, m)  # one number for every control: [m]
             other = self._buffers.get(pair[1] if name == pair[0] else pair[0])
             lo, hi = (value, other) if name == pair[0] else (other, value)
             check_bounds(pair[0], lo, pair[1], hi)
