@@ -713,6 +713,11 @@ def isfinite(t: Tensor) -> Tensor:
     return t.detach().abs() < math.inf
 
 
+def per_row(rows: Tensor, like: Tensor) -> Tensor:
+    """``rows [B]`` viewed to broadcast over ``like [B, ...]`` (a mask per row, say)."""
+    return rows.view(-1, *(1,) * (like.dim() - 1))
+
+
 def rows_finite(t: Tensor | None, trailing: int, batch: int) -> Tensor | None:
     """``[batch]`` bool: which rows of ``t`` (``batch`` rows of ``trailing`` dimensions each)
     hold neither a NaN nor an infinity (``None`` for no tensor)."""

@@ -21,6 +21,7 @@ from torchcbf._checks import (
     check_spd,
     check_tensor,
     matrix_shape,
+    per_row,
     rows_finite,
 )
 from torchcbf._constants import DerivedConstants, ExactConstants, derive, remember
@@ -235,7 +236,7 @@ class RowGuard:
         if g is None or self.bad is None:  # the step is still running (a Jacobian's backward)
             return g
         bad = self.bad.repeat_interleave(repeat) if repeat > 1 else self.bad
-        return torch.where(bad.view(-1, *(1,) * (g.dim() - 1)), 0.0, g)
+        return torch.where(per_row(bad, g), 0.0, g)
 
 
 def _output_size(sensor: Sensor, R: object) -> int:

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 from torch._C import _functions
 
+from torchcbf._checks import per_row
 from torchcbf.qp import _dual_native, _kkt
 from torchcbf.qp import _eliminate as eliminate
 from torchcbf.qp._data import QPData
@@ -230,16 +231,11 @@ def _forward_outside(data: QPData, cfg: SolverConfig, x0: Tensor | None) -> Forw
         own = _ipm(data.rows(idx), replace(cfg, backend="torch", method="ipm"), None)
         take = own[3] == int(Status.SOLVED)
         x, z, y, status, iters, active, codes = (
-            t.index_copy(0, idx, torch.where(_rows_like(take, t), o.to(t.dtype), t[idx]))
+            t.index_copy(0, idx, torch.where(per_row(take, t), o.to(t.dtype), t[idx]))
             for t, o in zip((x, z, y, status, iters, active, codes), own, strict=True)
         )
     fac = _factor(data, x, active, status) if cfg.need_factor else None
     return Forward(x, z, y, status, iters, codes, fac)
-
-
-def _rows_like(rows: Tensor, t: Tensor) -> Tensor:
-    """``rows [B]`` shaped to broadcast over ``t [B, ...]``."""
-    return rows.view(-1, *(1,) * (t.dim() - 1))
 
 
 def _forward_eliminated(
