@@ -1515,8 +1515,9 @@ class MPPI(TracksShadows, ExactConstants):
         cost_min, best = clean.min(-1)
         ok = cost_min < math.inf
         # NaN (inf - inf) on the rows without a finite cost: every weight there is 0 below
-        shifted = clean - cost_min.unsqueeze(-1)
-        if self.cost_normalization != "none":
+        if self.cost_normalization == "none":
+            shifted = clean - cost_min.unsqueeze(-1)
+        else:
             # in float64: float32 costs spread by 1e20 overflow the sums, by 3e38 the shift
             wide = clean.double() - cost_min.double().unsqueeze(-1)
             kept = torch.where(finite, wide, 0.0)

@@ -159,6 +159,13 @@ class _Temporal(Spec):
                 return -self.predicate_at(states, times)
         return self.pointwise_cost(states)
 
+    def _rollout_costs(self, states: Tensor, times: Tensor | None) -> Tensor:
+        """Pointwise costs ``[B, K, T]`` of rollout ``states [B, K, T, n]``, read at their
+        global ``times [B, T]`` where given."""
+        if times is None:
+            return self.pointwise_cost(states)
+        return self.pointwise_cost_at(states, times.unsqueeze(1))
+
     def _own_costs(self) -> bool:
         """Whether :meth:`pointwise_cost` makes a new tensor (the library's ``-rho``), which
         may be filled in place: a user's ``cost=`` or override may return a view of the
@@ -241,10 +248,7 @@ class Eventually(_Temporal):
         """Minimum of ``c (+ ramp)`` over the rollout states inside ``window [B, T]``
         (``+inf`` when none is) and the same at the last state: two ``[B, K]`` tensors
         (``times [B, T]``: the states' global times, for a predicate that reads them)."""
-        if times is None:
-            c = self.pointwise_cost(states)
-        else:
-            c = self.pointwise_cost_at(states, times.unsqueeze(1))
+        c = self._rollout_costs(states, times)
         own = self._own_costs() or ramp is not None
         if ramp is not None:
             c = c + ramp
@@ -296,10 +300,7 @@ class Always(_Temporal):
     ) -> Tensor:
         """Maximum of ``c`` over the rollout states inside ``window [B, T]``: ``[B, K]``
         (``-inf`` when none is; ``times [B, T]``: the states' global times)."""
-        if times is None:
-            c = self.pointwise_cost(states)
-        else:
-            c = self.pointwise_cost_at(states, times.unsqueeze(1))
+        c = self._rollout_costs(states, times)
         return _masked(c, ~window.unsqueeze(1), -math.inf, own=self._own_costs()).amax(-1)
 
     def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:

@@ -39,6 +39,7 @@ from torchcbf._checks import (
     check_positive_int,
     check_same,
     check_tensor,
+    per_row,
 )
 from torchcbf._random import counter_normal, seed_rows
 from torchcbf.dynamics.base import ControlAffine
@@ -379,14 +380,7 @@ class _Run:
     def finish(self) -> Trajectory:
         steps = self.steps
         self.xs[:, steps] = self.x
-        if self.est_state is not None:
-            x_hat = self.est_state.mean
-        elif self.loop.sensor is not None:
-            x_hat = self.measure(self.x, steps)
-        else:
-            x_hat = self.x
-        self.mark(_finite_rows(self.x) & _finite_rows(x_hat), steps)
-        self.xs_hat[:, steps] = self.clean(x_hat)
+        self.observe(steps)  # the last sample as every other: marked and cleaned
         return Trajectory(
             t=self.t,
             x=self.xs,
@@ -415,8 +409,7 @@ class _Run:
 
     def clean(self, value: Tensor) -> Tensor:
         """``value`` with the failed rows zeroed (a frozen row feeds no NaN forward)."""
-        mask = self.failed.view(-1, *([1] * (value.dim() - 1)))
-        return torch.where(mask, torch.zeros_like(value), value)
+        return torch.where(per_row(self.failed, value), torch.zeros_like(value), value)
 
 
 def _check_shape(what: str, value: Any, shape: tuple[int, ...]) -> None:
