@@ -204,3 +204,30 @@ def test_state_indices_must_be_distinct_ints() -> None:
         Ball([0.0, 0.0], 1.0, index=(True, False))
     with pytest.raises(TypeError, match=r"index must be a sequence of ints \(in order\)"):
         Ball([0.0, 0.0], 1.0, index={1, 0})
+
+
+@pytest.mark.parametrize("method", ["autograd", "analytic"])
+def test_constants_replaced_by_another_count_are_followed(method) -> None:
+    """Assigning ``k'`` centres (or normals) in place of ``k``: every part is evaluated."""
+    dyn = SingleIntegrator()
+    x = _x(4, 2, torch.float64)
+    three = torch.tensor([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.5]], dtype=torch.float64)
+    cases = [
+        (Ball(three[:2], 0.5), {"center": three}, Ball(three, 0.5)),
+        (Ball(three, 0.5), {"center": three[:1]}, Ball(three[:1], 0.5)),
+        (
+            Ellipse(three[:2], torch.ones(2, 2)),
+            {"center": three, "axes": torch.ones(3, 2)},
+            Ellipse(three, torch.ones(3, 2)),
+        ),
+        (HalfSpace(three[:2], 0.5), {"a": three}, HalfSpace(three, 0.5)),
+    ]
+    for shape, new, fresh in cases:
+        shape.to(torch.float64)
+        for name, value in new.items():
+            setattr(shape, name, value)
+        assert shape.num == fresh.num
+        got, want = shape.lie(x, dyn, method=method), fresh.to(torch.float64).lie(x, dyn)
+        for a, b in zip(got, want, strict=True):
+            if isinstance(a, torch.Tensor):
+                torch.testing.assert_close(a, b)

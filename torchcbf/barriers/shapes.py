@@ -96,8 +96,15 @@ class _ShapeStack(Barrier):
     """A shape whose constants may carry a leading ``k`` axis (``self.num``): the ``k`` shapes
     are independent Lie parts, all with closed-form derivatives."""
 
-    num: int | None
     _sel: StateIndex
+    #: the constant whose leading axis counts the shapes (``center``, or ``a``)
+    _count_by = "center"
+
+    @property
+    def num(self) -> int | None:
+        """The number of shapes ``k`` (``None``: one shape, no ``k`` axis), read from the
+        constant now stored, so a constant replaced by one of another count is followed."""
+        return _check_centers(self._count_by, getattr(self, self._count_by))
 
     @property
     def index(self) -> tuple[int, ...]:
@@ -154,7 +161,7 @@ class Ball(_SignedShapeStack):
     ) -> None:
         super().__init__()
         c = self.register_constant("center", center, learnable=learnable)
-        self.num = _check_centers("center", c)
+        _check_centers("center", c)
         r = self.register_constant("radius", radius, learnable=learnable)
         _check_per_shape("radius", r, self.num)
         _check_positive_tensor("radius", r.detach())
@@ -310,7 +317,7 @@ class Ellipse(_SignedShapeStack):
     ) -> None:
         super().__init__()
         c = self.register_constant("center", center, learnable=learnable)
-        self.num = _check_centers("center", c)
+        _check_centers("center", c)
         a = self.register_constant("axes", axes, learnable=learnable)
         if a.shape != c.shape:
             raise ValueError(
@@ -415,6 +422,8 @@ class HalfSpace(_ShapeStack):
         learnable, state_dim: as for :class:`Ball`.
     """
 
+    _count_by = "a"
+
     def __init__(
         self,
         a: Tensor | Sequence[float],
@@ -426,7 +435,7 @@ class HalfSpace(_ShapeStack):
     ) -> None:
         super().__init__()
         av = self.register_constant("a", a, learnable=learnable)
-        self.num = _check_centers("a", av)
+        _check_centers("a", av)
         bv = self.register_constant("b", b, learnable=learnable)
         _check_per_shape("b", bv, self.num)
         if bool((av.detach().abs().sum(-1) == 0).any()):
