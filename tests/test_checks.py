@@ -15,6 +15,7 @@ from torchcbf._checks import (
     broadcast_shapes,
     check_batch_match,
     check_positive_int,
+    check_spd,
     honour_overrides,
     isfinite,
     rows_finite,
@@ -125,9 +126,22 @@ def test_check_same_and_check_number():
 
 def test_check_positive_int_takes_ints_from_one() -> None:
     assert check_positive_int("n", 1) == 1 and check_positive_int("n", 40) == 40
-    for bad in (0, -3, 2.0, 1.5, True, None, "3"):
+    for bad in (0, -3):
         with pytest.raises(ValueError, match="n must be a positive int"):
             check_positive_int("n", bad)
+    for bad in (2.0, 1.5, True, None, "3"):
+        with pytest.raises(TypeError, match="n must be a positive int"):
+            check_positive_int("n", bad)
+
+
+def test_check_spd_symmetry_is_relative_to_the_matrix_scale() -> None:
+    tiny = 1e-12 * torch.tensor([[1.0, 0.5], [0.0, 1.0]], dtype=torch.float64)
+    with pytest.raises(ValueError, match="P must be symmetric"):
+        check_spd("P", tiny)
+    big = 1e9 * torch.tensor([[2.0, 1.0], [1.0 + 1e-9, 2.0]], dtype=torch.float64)
+    assert check_spd("P", big) is big
+    a = torch.randn(5, 3, 3, generator=torch.Generator().manual_seed(0))
+    check_spd("P", a @ a.mT + 0.1 * torch.eye(3))  # float32 products: symmetric to rounding
 
 
 def test_honour_overrides_follows_the_class_that_defines_each_method() -> None:

@@ -35,6 +35,14 @@ def broadcast_shapes(*shapes: Sequence[int]) -> tuple[int, ...]:
     return tuple(out)
 
 
+def broadcasts_to(shape: Sequence[int], target: Sequence[int]) -> bool:
+    """Whether ``shape`` broadcasts to ``target`` (``expand`` would take it)."""
+    try:
+        return broadcast_shapes(shape, target) == tuple(target)
+    except RuntimeError:
+        return False
+
+
 def check_tensor(name: str, value: object) -> Tensor:
     """Raise ``TypeError`` unless ``value`` is a tensor; return it."""
     if not isinstance(value, Tensor):
@@ -138,10 +146,21 @@ def check_positive_int(name: str, value: object) -> int:
     return check_int(name, value, low=1, what="a positive int")
 
 
+def check_seed(seed: object) -> int:
+    """A generator seed as an int (NumPy's too; not a bool) in ``[-2^63, 2^63)``."""
+    if not isinstance(seed, numbers.Integral) or isinstance(seed, (bool, np.bool_)):
+        raise TypeError(f"seed must be an int, got {type(seed).__name__}")
+    if not -(2**63) <= int(seed) < 2**63:
+        raise ValueError(f"seed must lie in [-2^63, 2^63), got {seed}")
+    return int(seed)
+
+
 def check_int(name: str, value: object, *, low: int, what: str | None = None) -> int:
-    """Check ``value`` is an int (NumPy's too; not a bool) ``>= low``: ``ValueError``
-    naming ``name`` otherwise."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+    """Check ``value`` is an int (NumPy's too; not a bool) ``>= low``: ``TypeError``
+    naming ``name`` for another type, ``ValueError`` for a smaller int."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name} must be {what or f'an int >= {low}'}, got {value!r}")
+    if value < low:
         raise ValueError(f"{name} must be {what or f'an int >= {low}'}, got {value!r}")
     return int(value)
 
@@ -238,7 +257,8 @@ def check_spd(name: str, matrix: Tensor) -> Tensor:
     if matrix.dim() < 2 or matrix.shape[-1] != matrix.shape[-2]:
         raise ValueError(f"{name} must be a square matrix [..., n, n], got {tuple(matrix.shape)}")
     check_finite(name, matrix)
-    if not torch.allclose(matrix, matrix.mT, atol=1e-8, rtol=1e-6):
+    scale = matrix.detach().abs().amax(dim=(-2, -1), keepdim=True)
+    if bool(((matrix - matrix.mT).detach().abs() > 1e-6 * scale).any()):
         raise ValueError(f"{name} must be symmetric")
     _, info = torch.linalg.cholesky_ex(matrix)
     if bool((info != 0).any()):

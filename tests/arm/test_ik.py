@@ -193,7 +193,7 @@ def test_errors(planar: Manipulator) -> None:
     nan = float("nan")
     with pytest.raises(ValueError, match="clearance must be a finite number"):
         planar.inverse_kinematics(t, clearance=nan)
-    with pytest.raises(ValueError, match="check_every must be an int >= 0"):
+    with pytest.raises(TypeError, match="check_every must be an int >= 0"):
         planar.inverse_kinematics(t, check_every=True)
     with pytest.raises(TypeError, match="seed must be an int"):
         planar.inverse_kinematics(t, seed=1.5)  # type: ignore[arg-type]
