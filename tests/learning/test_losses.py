@@ -199,3 +199,31 @@ def test_classification_loss_refuses_a_temperature_that_is_not_a_number() -> Non
     for temperature in (float("nan"), -1.0, float("inf")):
         with pytest.raises(ValueError, match="temperature must be a finite number >= 0"):
             classification_loss(h, safe, temperature=temperature)
+
+
+def test_losses_over_no_states_are_zero_and_keep_the_graph() -> None:
+    """A minibatch without a safe state gives an empty condition set: 0, not NaN."""
+    net = NeuralBarrier(MLP(2, (8,)))
+    filt = SafetyFilter(SingleIntegrator(2), [net])
+    x, u = torch.zeros(0, 2), torch.zeros(0, 2)
+    loss = cbf_condition_loss(filt, x, u) + classification_loss(
+        net(x), torch.zeros(0, dtype=torch.bool)
+    )
+    assert float(loss.detach()) == 0.0
+    loss.backward()
+    assert all(p.grad is None or bool((p.grad == 0).all()) for p in net.parameters())
+
+
+def test_classification_accuracy_is_exact_under_half_precision() -> None:
+    h = torch.ones(1000, dtype=torch.bfloat16)
+    safe = torch.ones(1000, dtype=torch.bool)
+    safe[:3] = False
+    acc = classification_accuracy(h, safe)
+    assert acc.dtype == torch.float32 and float(acc) == pytest.approx(0.997, abs=1e-7)
+
+
+def test_classification_loss_refuses_nan_margins() -> None:
+    h, safe = torch.zeros(3), torch.ones(3, dtype=torch.bool)
+    for kw in ({"margin": float("nan")}, {"unsafe_margin": float("inf")}):
+        with pytest.raises(ValueError, match="margin must be a finite number"):
+            classification_loss(h, safe, **kw)

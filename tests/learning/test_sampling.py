@@ -98,3 +98,33 @@ def test_sample_free_respects_the_margin(device) -> None:
     assert bool((x.norm(dim=-1) < 1.3).any())
     with pytest.raises(ValueError, match="free states"):
         sample_free(lambda x: torch.ones(x.shape[:-1], dtype=torch.bool), [0.0], [1.0], 5)
+
+
+def test_sample_free_finds_a_small_free_region() -> None:
+    """A box 1% free: chunks grow with the rejection rate seen (a fixed chunk falls short)."""
+
+    def occupied(x):
+        return ~((x[..., 0] < 0.1) & (x[..., 1] < 0.1))
+
+    x = sample_free(occupied, [0.0, 0.0], [1.0, 1.0], 2000, seed=3, max_rounds=10)
+    assert x.shape == (2000, 2) and not bool(occupied(x).any())
+    with pytest.raises(ValueError, match=r"about 0 of the box is free"):
+        sample_free(lambda x: torch.ones(x.shape[:-1], dtype=torch.bool), [0.0], [1.0], 5,
+                    max_rounds=3)  # fmt: skip
+
+
+def test_a_nan_barrier_value_counts_as_occupied() -> None:
+    """``sqrt(1 - |x|^2)`` is NaN outside the unit disc: those states are not free."""
+    occ = occupancy_from_barrier(lambda x: torch.sqrt(1 - (x**2).sum(-1)))
+    assert occ(torch.tensor([[0.0, 0.0], [2.0, 0.0]])).tolist() == [False, True]
+    data = sample_labelled(occ, [-2.0, -2.0], [2.0, 2.0], 500, seed=0)
+    assert not bool((data.x[data.safe].norm(dim=-1) > 1).any())
+
+
+def test_make_generator_takes_numpy_seeds() -> None:
+    import numpy as np
+
+    a = torch.rand(3, generator=make_generator(seed=np.int64(3)))
+    assert torch.equal(a, torch.rand(3, generator=make_generator(seed=3)))
+    with pytest.raises(TypeError, match="seed must be an int"):
+        make_generator(seed=3.0)

@@ -225,3 +225,47 @@ def test_a_half_precision_loss_with_a_large_gradient_is_not_skipped() -> None:
     opt = torch.optim.SGD([w], lr=1e-9)
     res = train(lambda s: (w * 5e4).half().sum(), opt, 2, progress=False)  # norm 1e5
     assert res.skipped == 0 and res.losses[0] == pytest.approx(200.0, rel=1e-3)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_a_finite_gradient_whose_squares_overflow_is_not_skipped(dtype) -> None:
+    """Gradients of 1e20 (float32) or 1e160 (float64): their norm is finite, though the sum
+    of their squares is not."""
+    big = 1e20 if dtype == torch.float32 else 1e160
+    for clip in (None, 1.0):
+        w = torch.nn.Parameter(torch.ones(2, dtype=dtype))
+        opt = torch.optim.SGD([w], lr=0.3 / big if clip is None else 0.1)
+        res = train(lambda s, w=w: (w * big).sum(), opt, 1, grad_clip=clip, progress=False)
+        assert res.skipped == 0
+        # without clipping w - lr * grad; clipped to norm 1: each entry moves 1 / sqrt(2)
+        want = 0.7 if clip is None else 1 - 0.1 / 2**0.5
+        torch.testing.assert_close(w.detach(), torch.full((2,), want, dtype=dtype))
+
+
+def test_lbfgs_and_a_scheduler_that_reads_the_loss() -> None:
+    model, x, y = _problem()
+    opt = torch.optim.LBFGS(model.parameters(), lr=1.0, max_iter=20)
+    calls = []
+
+    def loss_fn(step):
+        calls.append(step)
+        return ((model(x) - y) ** 2).mean()
+
+    res = train(loss_fn, opt, 3, progress=False)
+    assert res.losses[-1] < 1e-12 and set(calls) == {0, 1, 2}
+    model, x, y = _problem()
+    opt = torch.optim.SGD(model.parameters(), lr=0.1)
+    plateau = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, patience=0, factor=0.5)
+    train(lambda s: x.new_tensor(1.0) + 0 * model(x).sum(), opt, 3, scheduler=plateau,
+          progress=False)  # fmt: skip
+    assert opt.param_groups[0]["lr"] == pytest.approx(0.1 * 0.5**2)  # no improvement: halved
+
+
+def test_a_metric_that_is_not_a_scalar_is_refused_before_the_step() -> None:
+    model, x, y = _problem()
+    before = [p.detach().clone() for p in model.parameters()]
+    opt = torch.optim.SGD(model.parameters(), lr=0.1)
+    with pytest.raises(ValueError, match=r"metrics\['vec'\] must be a scalar"):
+        train(lambda s: (((model(x) - y) ** 2).mean(), {"vec": x[0]}), opt, 1, progress=False)
+    for b, p in zip(before, model.parameters(), strict=True):
+        assert torch.equal(b, p)

@@ -60,6 +60,17 @@ def _check_pair(h: Tensor, safe: Tensor) -> None:
         raise TypeError(f"safe must be a bool tensor, got {safe.dtype}")
 
 
+def _margin(name: str, value: float | Tensor) -> float | Tensor:
+    """A margin: a finite number, or a tensor (a learned one) used as it is."""
+    return value if isinstance(value, Tensor) else check_number(name, value)
+
+
+def _mean(values: Tensor) -> Tensor:
+    """The mean of ``values``, 0 (still in the graph) for none: an empty minibatch adds
+    nothing to a loss rather than making it NaN."""
+    return values.sum() / max(values.numel(), 1)
+
+
 def classification_loss(
     h: Tensor,
     safe: Tensor,
@@ -83,10 +94,11 @@ def classification_loss(
             one mean over all states.
 
     Returns:
-        A scalar tensor.
+        A scalar tensor (0 for no states).
     """
     _check_pair(h, safe)
-    m_unsafe = margin if unsafe_margin is None else unsafe_margin
+    margin = _margin("margin", margin)
+    m_unsafe = margin if unsafe_margin is None else _margin("unsafe_margin", unsafe_margin)
     temperature = check_number("temperature", temperature, low=0.0)
     if temperature > 0:
         loss_safe = temperature * F.softplus((margin - h) / temperature)
@@ -95,7 +107,7 @@ def classification_loss(
         loss_safe = torch.relu(margin - h)
         loss_unsafe = torch.relu(m_unsafe + h)
     if not balanced:
-        return torch.where(safe, loss_safe, loss_unsafe).mean()
+        return _mean(torch.where(safe, loss_safe, loss_unsafe))
     w = safe.to(h.dtype)
     n_safe = w.sum().clamp_min(1.0)
     n_unsafe = (1 - w).sum().clamp_min(1.0)
@@ -103,9 +115,10 @@ def classification_loss(
 
 
 def classification_accuracy(h: Tensor, safe: Tensor) -> Tensor:
-    """Fraction of states with ``(h >= 0) == safe`` (a scalar tensor; no gradient)."""
+    """Fraction of states with ``(h >= 0) == safe`` (a scalar tensor in at least float32,
+    whatever the precision of ``h``; no gradient)."""
     _check_pair(h, safe)
-    return ((h.detach() >= 0) == safe).to(h.dtype).mean()
+    return ((h.detach() >= 0) == safe).to(torch.promote_types(h.dtype, torch.float32)).mean()
 
 
 def condition_violation(output: ConditionOutput, margin: float | Tensor = 0.0) -> Tensor:
@@ -138,10 +151,11 @@ def cbf_condition_loss(
     zero where the QP met the condition with room ``margin`` and positive where the control
     limits forced a relaxation (``h`` has no valid control there) or the margin is not met.
     Gradients reach the barrier's parameters, the class-K gains and ``u_nom``, both directly
-    and through ``u*`` (implicit differentiation of the QP).
+    and through ``u*`` (implicit differentiation of the QP). No states (a minibatch without
+    a safe one): 0.
     """
     out = safety_filter(x, u_nom, t)
-    return condition_violation(out, margin).mean()
+    return _mean(condition_violation(out, margin))
 
 
 class ClosedLoopLoss(NamedTuple):
@@ -195,13 +209,13 @@ def closed_loop_loss(
             f"{tuple(x.shape)}, {tuple(u.shape)}, {tuple(u_nom.shape)}"
         )
     zero = x.new_zeros(())
-    intervention = ((u - u_nom) ** 2).sum(-1).mean()
+    intervention = _mean(((u - u_nom) ** 2).sum(-1))
     collision = zero
     if true_barrier is not None:
         h = true_barrier(x)
         if h.shape == x.shape[:-1]:
             h = h.unsqueeze(-1)
-        collision = torch.relu(collision_margin - h).sum(-1).mean()
+        collision = _mean(torch.relu(collision_margin - h).sum(-1))
     goal_term = zero
     if goal is not None:
         g = as_tensor("goal", goal, dtype=x.dtype, device=x.device)
@@ -210,7 +224,7 @@ def closed_loop_loss(
             raise ValueError(f"goal must have shape [{len(idx)}], got {tuple(g.shape)}")
         # a smoothed norm: differentiable at the goal itself
         p = take(x, idx)
-        goal_term = torch.sqrt(((p - g) ** 2).sum(-1) + 1e-12).mean()
+        goal_term = _mean(torch.sqrt(((p - g) ** 2).sum(-1) + 1e-12))
     total = (
         intervention_weight * intervention + collision_weight * collision + goal_weight * goal_term
     )

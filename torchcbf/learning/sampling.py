@@ -23,8 +23,12 @@ from torchcbf._checks import (
     check_number,
     check_positive,
     check_positive_int,
+    check_seed,
     check_tensor,
 )
+
+#: the most states drawn at once (a free fraction of 1e-6 takes several rounds)
+_MAX_CHUNK = 1 << 20
 
 Occupancy = Callable[[Tensor], Tensor]
 
@@ -46,10 +50,8 @@ def make_generator(
         if not isinstance(generator, torch.Generator):
             raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
         return generator
-    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
-        raise TypeError(f"seed must be an int, got {type(seed).__name__}")
     gen = torch.Generator(device=device)
-    gen.manual_seed(0 if seed is None else seed)
+    gen.manual_seed(0 if seed is None else check_seed(seed))
     return gen
 
 
@@ -117,14 +119,14 @@ def label_states(x: Tensor, occupied: Occupancy) -> Tensor:
 
 def occupancy_from_barrier(barrier: Callable[[Tensor], Tensor]) -> Occupancy:
     """Occupancy of a barrier (or any ``x -> h [...]``/``[..., k]``): occupied where some
-    output is negative. Evaluated without gradients."""
+    output is negative or NaN. Evaluated without gradients."""
 
     def occupied(x: Tensor) -> Tensor:
         with torch.no_grad():
             h = barrier(x)
         if h.shape != x.shape[:-1]:
             h = h.amin(-1)
-        return h < 0
+        return ~(h >= 0)  # NaN (the barrier undefined there) counts as occupied
 
     return occupied
 
@@ -213,10 +215,10 @@ def sample_free(
 ) -> Tensor:
     """``num`` states uniform over the free part of ``[low, high]``: ``[num, n]``.
 
-    Rejection sampling in chunks (not a hot path: one host sync per chunk). With
-    ``margin > 0`` a state must be free of the occupancy dilated by ``margin`` in the
-    components ``index`` (:func:`dilate`). Raises ``ValueError`` if ``max_rounds`` chunks
-    do not yield enough free states.
+    Rejection sampling in chunks sized from the free fraction seen so far (not a hot path:
+    one host sync per chunk). With ``margin > 0`` a state must be free of the occupancy
+    dilated by ``margin`` in the components ``index`` (:func:`dilate`). Raises
+    ``ValueError`` if ``max_rounds`` chunks do not yield enough free states.
     """
     lo, hi = _box(low, high, dtype, device)
     num = check_positive_int("num", num)
@@ -225,15 +227,17 @@ def sample_free(
     gen = make_generator(generator, seed, lo.device)
     occ = dilate(occupied, margin, index=index) if margin > 0 else occupied
     found: list[Tensor] = []
-    have = 0
+    have = drawn = 0
     for _ in range(max_rounds):
-        x = uniform_box(lo, hi, max(2 * (num - have), 64), generator=gen)
+        rate = (have + 1) / (drawn + 2)  # the free fraction so far (Laplace's estimate)
+        chunk = min(max(math.ceil(1.25 * (num - have) / rate), 64), _MAX_CHUNK)
+        x = uniform_box(lo, hi, chunk, generator=gen)
         x = x[label_states(x, occ)]
         found.append(x)
-        have += x.shape[0]
+        have, drawn = have + x.shape[0], drawn + chunk
         if have >= num:
             return torch.cat(found)[:num]
     raise ValueError(
-        f"found only {have} of {num} free states in {max_rounds} rounds: the box is (nearly) "
-        "all occupied"
+        f"found only {have} of {num} free states in {drawn} draws ({max_rounds} rounds): "
+        f"about {have / drawn:.2g} of the box is free; raise max_rounds or narrow the box"
     )

@@ -13,6 +13,7 @@ periodic checkpoints; copy it if you need something else::
 
 from __future__ import annotations
 
+import inspect
 import io
 import logging
 import math
@@ -146,6 +147,73 @@ def _params(optimizer: torch.optim.Optimizer) -> list[Tensor]:
     return [p for group in optimizer.param_groups for p in group["params"]]
 
 
+def _required(method: Callable[..., Any], name: str) -> bool:
+    """Whether ``method`` must be given the argument ``name`` (``LBFGS.step`` a closure,
+    ``ReduceLROnPlateau.step`` the metric)."""
+    param = inspect.signature(method).parameters.get(name)
+    return param is not None and param.default is inspect.Parameter.empty
+
+
+def _loss(out: LossOutput) -> tuple[Tensor, Mapping[str, Tensor | float]]:
+    loss, raw = (out, {}) if isinstance(out, Tensor) else out
+    if not isinstance(loss, Tensor) or loss.dim() != 0:
+        raise ValueError("loss_fn must return a scalar tensor (or (loss, metrics))")
+    return loss, raw
+
+
+def _scalar(name: str, value: Tensor | float) -> float:
+    if isinstance(value, Tensor):
+        if value.numel() != 1:
+            raise ValueError(f"{name} must be a scalar, got shape {tuple(value.shape)}")
+        value = value.detach()
+    return float(value)
+
+
+def _clip(params: list[Tensor], max_norm: float | None) -> Tensor:
+    """The global norm of the gradients (computed scaled by their largest entry, so finite
+    gradients have a finite norm in their own precision), after clipping them to
+    ``max_norm`` when given; ``inf``/NaN where a gradient is not finite."""
+    grads = [p.grad.detach() for p in params if p.grad is not None]
+    if not grads:
+        return torch.zeros(())
+    top = torch.stack([g.abs().amax() if g.numel() else g.new_zeros(()) for g in grads]).amax()
+    scale = torch.where(top > 0, top, torch.ones_like(top))
+    norm = torch.stack([(g / scale.to(g.dtype)).norm().to(top.dtype) for g in grads]).norm()
+    norm = norm * scale
+    if max_norm is not None:
+        coef = (max_norm / (norm + 1e-6)).clamp(max=1.0)
+        torch._foreach_mul_(grads, [coef.to(g.dtype) for g in grads])
+    return norm
+
+
+class _Closure:
+    """``optimizer.step``'s closure for an optimizer that evaluates the loss again (LBFGS):
+    the first call returns the loss already evaluated (its gradients are in place)."""
+
+    def __init__(
+        self,
+        loss: Tensor,
+        loss_fn: Callable[[int], LossOutput],
+        step: int,
+        optimizer: torch.optim.Optimizer,
+        params: list[Tensor],
+        grad_clip: float | None,
+    ) -> None:
+        self.first: Tensor | None = loss.detach()
+        self.loss_fn, self.step, self.optimizer = loss_fn, step, optimizer
+        self.params, self.grad_clip = params, grad_clip
+
+    def __call__(self) -> Tensor:
+        if self.first is not None:
+            first, self.first = self.first, None
+            return first
+        loss, _ = _loss(self.loss_fn(self.step))
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        _clip(self.params, self.grad_clip)
+        return loss.detach()
+
+
 def train(
     loss_fn: Callable[[int], LossOutput],
     optimizer: torch.optim.Optimizer,
@@ -167,9 +235,12 @@ def train(
     Args:
         loss_fn: ``step -> loss`` (a scalar tensor) or ``(loss, metrics)`` with a mapping of
             scalars shown on the progress bar and passed to ``callback``.
-        optimizer: any ``torch.optim`` optimizer over the parameters to train.
+        optimizer: any ``torch.optim`` optimizer over the parameters to train (one whose
+            ``step`` needs a closure, as LBFGS, is given one that evaluates ``loss_fn`` at the
+            same step again).
         steps: number of steps; they are numbered ``start_step .. start_step + steps - 1``.
-        scheduler: optional learning-rate scheduler, stepped after every optimizer step.
+        scheduler: optional learning-rate scheduler, stepped after every optimizer step
+            (one whose ``step`` needs a metric, as ``ReduceLROnPlateau``, is given the loss).
         generator: the random generator ``loss_fn`` draws its data with, saved in the
             checkpoints.
         grad_clip: clip the global gradient norm to this value (a finite number > 0).
@@ -204,6 +275,8 @@ def train(
     if checkpoint is not None and module is None:
         raise ValueError("checkpoint needs module= (the model whose state_dict is saved)")
     params = _params(optimizer)
+    takes_closure = _required(optimizer.step, "closure")
+    wants_metric = scheduler is not None and _required(scheduler.step, "metrics")
     losses: list[float] = []
     metrics: dict[str, float] = {}
     skipped = 0
@@ -213,31 +286,27 @@ def train(
     for step in bar:
         t0 = time.perf_counter()
         out = loss_fn(step)
-        loss, raw = (out, {}) if isinstance(out, Tensor) else out
-        if not isinstance(loss, Tensor) or loss.dim() != 0:
-            raise ValueError("loss_fn must return a scalar tensor (or (loss, metrics))")
+        loss, raw = _loss(out)
+        metrics = {k: _scalar(f"metrics[{k!r}]", v) for k, v in raw.items()}
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        grads = [p.grad for p in params if p.grad is not None]
-        if grad_clip is not None:
-            norm = torch.nn.utils.clip_grad_norm_(params, grad_clip)
-        else:
-            norm = torch.stack([g.norm() for g in grads]).norm() if grads else loss
-        # one read for both, in at least float32 (a float16 loss would overflow the norm;
-        # some devices have no float64)
+        norm = _clip(params, grad_clip)
+        # one read for both, in at least float32 (some devices have no float64)
         read = torch.promote_types(torch.promote_types(loss.dtype, norm.dtype), torch.float32)
-        value, size = torch.stack((loss.detach().to(read), norm.detach().to(read))).tolist()
+        value, size = torch.stack((loss.detach().to(read), norm.to(read))).tolist()
         if math.isfinite(value) and math.isfinite(size):
-            optimizer.step()
+            if takes_closure:  # LBFGS: its first evaluation is the one above
+                optimizer.step(_Closure(loss, loss_fn, step, optimizer, params, grad_clip))
+            else:
+                optimizer.step()
             if scheduler is not None:
-                scheduler.step()
+                scheduler.step(value) if wants_metric else scheduler.step()
         else:
             skipped += 1
             optimizer.zero_grad(set_to_none=True)
             warnings.warn(f"step {step}: non-finite loss or gradient, step skipped", stacklevel=2)
         times.append(time.perf_counter() - t0)
         losses.append(value)
-        metrics = {k: float(v.detach() if isinstance(v, Tensor) else v) for k, v in raw.items()}
         if progress:
             shown = {f"metric {k}" if k == "loss" else k: f"{v:.4g}" for k, v in metrics.items()}
             bar.set_postfix({"loss": f"{value:.4g}", **shown})

@@ -113,6 +113,7 @@ from torchcbf._checks import (
     check_last_dim,
     check_number,
     check_positive,
+    check_seed,
     check_times,
     follow_parts,
     hook_dicts,
@@ -323,15 +324,6 @@ class _Values:
             elif not torch.equal(live, kept):
                 return False
         return True
-
-
-def _check_seed(seed: object) -> int:
-    """A generator seed as an int (row ``b`` of a batch takes ``seed + b``)."""
-    if not isinstance(seed, numbers.Integral) or isinstance(seed, bool):
-        raise TypeError(f"seed must be an int, got {type(seed).__name__}")
-    if not -(2**63) <= int(seed) < 2**63:
-        raise ValueError(f"seed must lie in [-2^63, 2^63), got {seed}")
-    return int(seed)
 
 
 def _limit(name: str, value: object, m: int) -> Tensor | None:
@@ -603,7 +595,7 @@ class MPPI(TracksShadows, ExactConstants):
             raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-        seed = _check_seed(seed)
+        seed = check_seed(seed)
         if step is not None and not callable(step):
             raise TypeError(f"step must be callable or None, got {type(step).__name__}")
         if action_sampler is not None and not callable(action_sampler):
@@ -968,7 +960,7 @@ class MPPI(TracksShadows, ExactConstants):
         """
         n, m = self.dynamics.state_dim, self.dynamics.control_dim
         num_rollouts = check_int("num_rollouts", num_rollouts, low=1, what="an integer >= 1")
-        seed = self.seed if seed is None else _check_seed(seed)
+        seed = self.seed if seed is None else check_seed(seed)
         check_last_dim("x", x, n)
         if x.dim() > 2:
             raise ValueError(f"x must have shape [{n}] or [B, {n}], got {tuple(x.shape)}")
