@@ -1,12 +1,69 @@
-"""Whether a computation must record a graph: the test behind the fast paths that carry no
-gradient and run only built-in code (the planner's C kernel, the estimators' Jacobians).
-Code that calls user functions (the safety filter's real-time path) asks its own results
-instead, since a user closure may hold a tensor that requires grad."""
+"""Autograd for the library's own derivatives: whether a computation must record a graph
+(the test behind the fast paths that carry no gradient and run only built-in code: the
+planner's C kernel, the estimators' Jacobians; code that calls user functions, as the
+safety filter's real-time path, asks its own results instead, since a user closure may hold
+a tensor that requires grad), and recording whatever the caller's grad or inference mode."""
 
 from __future__ import annotations
 
+import contextlib
+import functools
+from collections.abc import Callable, Iterator
+from typing import Any, TypeVar
+
 import torch
 from torch import Tensor, nn
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+@contextlib.contextmanager
+def recording() -> Iterator[None]:
+    """Grad mode on, and inference mode off where it is on (autograd records nothing
+    there): for the library's own derivatives, whatever mode the caller is in."""
+    if torch.is_inference_mode_enabled():
+        with torch.inference_mode(False), torch.enable_grad():
+            yield
+    else:
+        with torch.enable_grad():
+            yield
+
+
+def recordable(value: Any) -> Any:
+    """``value``, with an inference tensor (made under ``torch.inference_mode``, which
+    autograd cannot save) replaced by a normal copy; tuples (named ones too) entry by
+    entry."""
+    if isinstance(value, Tensor):
+        return value.clone() if value.is_inference() else value
+    if isinstance(value, tuple):
+        items = [recordable(v) for v in value]
+        return type(value)(*items) if hasattr(value, "_fields") else tuple(items)
+    return value
+
+
+def _holds_inference(value: Any) -> bool:
+    if isinstance(value, Tensor):
+        return value.is_inference()
+    return isinstance(value, tuple) and any(_holds_inference(v) for v in value)
+
+
+def outside_inference_mode(method: _F) -> _F:
+    """Run ``method`` (whose results come from autograd derivatives) outside inference
+    mode: under ``torch.inference_mode`` as under ``torch.no_grad``, and with inference
+    tensors among its arguments replaced by normal copies."""
+
+    @functools.wraps(method)
+    def run(*args: Any, **kwargs: Any) -> Any:
+        if torch.is_inference_mode_enabled():
+            with torch.inference_mode(False), torch.no_grad():
+                return method(
+                    *map(recordable, args), **{k: recordable(v) for k, v in kwargs.items()}
+                )
+        if any(map(_holds_inference, args)) or any(map(_holds_inference, kwargs.values())):
+            return method(*map(recordable, args), **{k: recordable(v) for k, v in kwargs.items()})
+        return method(*args, **kwargs)
+
+    return run  # type: ignore[return-value]
 
 
 def needs_graph(

@@ -411,3 +411,34 @@ def test_gradient_flows_to_model_parameters(dtype):
             dyn.k -= s * h
         fd = (vals[0] - vals[1]) / (2 * h)
     assert torch.allclose(dyn.k.grad, fd, rtol=1e-3 if dtype == torch.float64 else 5e-2)
+
+
+@pytest.mark.parametrize("make", FILTERS)
+def test_inference_mode_and_inference_tensors_answer_as_no_grad(make):
+    """Autograd records nothing under ``torch.inference_mode``: the Jacobians are taken
+    outside it, and tensors made under it are taken as inputs outside it."""
+    dyn, sensor = _unicycle_rb()
+    est = make(dyn, sensor, Q=0.01).double()
+    x0 = torch.tensor([[0.0, 0.0, 0.3], [0.5, -0.2, 1.0]], dtype=torch.float64)
+    P0 = 0.1 * torch.eye(3, dtype=torch.float64)
+    u = torch.tensor([[1.0, 0.5]], dtype=torch.float64)
+    y = torch.tensor([[5.0, -0.7, 5.0, 2.2]], dtype=torch.float64)
+    with torch.no_grad():
+        want = est.step(est.init(x0, P0), u, 0.5, y)
+    with torch.inference_mode():
+        got = est.step(est.init(x0, P0), u, 0.5, y)
+        made = (est.init(x0, P0), u.clone(), y.clone())  # inference tensors
+    again = est.step(made[0], made[1], 0.5, made[2])
+    for out in (got, again):
+        torch.testing.assert_close(out.mean, want.mean, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(out.cov, want.cov, rtol=1e-12, atol=1e-12)
+        assert torch.equal(out.status, want.status)
+    assert not torch.allclose(want.mean, est.predict(est.init(x0, P0), u, 0.5).mean)
+
+
+def test_passthrough_refuses_a_non_finite_covariance_and_filters_half_precision():
+    with pytest.raises(ValueError, match="P0"):
+        PassThrough().init(torch.zeros(2), torch.full((2, 2), float("nan")))
+    dyn, sensor = _unicycle_rb(torch.float32)
+    with pytest.raises(TypeError, match="x0 must be float32 or float64"):
+        EKF(dyn, sensor).init(torch.zeros(3, dtype=torch.float16), torch.eye(3).half())

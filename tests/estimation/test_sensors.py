@@ -164,3 +164,12 @@ def test_range_bearing_on_an_empty_batch():
     s = RangeBearing(torch.tensor([[3.0, 1.0], [-2.0, 4.0]]), 0.1, 0.05)
     assert s.expected(torch.zeros(0, 3)).shape == (0, 4)
     assert s.expected(torch.zeros(2, 0, 3)).shape == (2, 0, 4)
+
+
+def test_measurement_noise_must_broadcast_to_the_states():
+    s = GaussianSensor(torch.tensor([[0.5, 0.0, 0.0], [0.0, 0.7, 0.7]]), 0.1)
+    x = torch.zeros(2, 3)
+    assert s.measure(x, noise=torch.zeros(2)).shape == (2, 2)
+    for bad in (torch.zeros(3, 2), torch.zeros(4, 1, 2)):
+        with pytest.raises(ValueError, match=r"noise \[\.\.\., 2\] must broadcast to the batch"):
+            s.measure(x, noise=bad)

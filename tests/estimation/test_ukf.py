@@ -158,3 +158,27 @@ def test_the_update_of_a_nonlinear_sensor_is_the_textbook_unscented_update():
     K = Pxy @ torch.linalg.inv(S)
     torch.testing.assert_close(out.mean[0], m + K @ (y - y_bar), atol=1e-12, rtol=1e-12)
     torch.testing.assert_close(out.cov[0], P - K @ S @ K.T, atol=1e-12, rtol=1e-12)
+
+
+def test_a_clamped_negative_centre_weight_is_flagged():
+    """``beta + 1 - alpha^2 < 0``: the linearisation errors' ``D`` is indefinite and clamped,
+    a covariance above the textbook one, flagged ``REGULARIZED``; a linear sensor has
+    ``D = 0`` and stays unflagged."""
+    from torchcbf.estimation import EstimatorStatus, FunctionSensor, GaussianSensor
+
+    f64 = torch.float64
+
+    def h(x):
+        return torch.stack([x[..., 0] ** 2 + x[..., 1], torch.sin(x[..., 2]) * x[..., 0]], -1)
+
+    m = torch.tensor([[0.3, -1.1, 0.8]], dtype=f64)
+    P = torch.tensor([[0.4, 0.1, 0.0], [0.1, 0.3, 0.05], [0.0, 0.05, 0.2]], dtype=f64)[None]
+    state = EstimatorState(m, P, torch.zeros(1, dtype=torch.long))
+    y = torch.tensor([[-0.5, 0.4]], dtype=f64)
+    plain = UKF(Unicycle(), FunctionSensor(h, std=0.2, output_dim=2), Q=0.01).double()
+    wide = UKF(Unicycle(), FunctionSensor(h, std=0.2, output_dim=2), Q=0.01, beta=-2.5).double()
+    assert int(plain.update(state, y).status) == 0
+    out = wide.update(state, y)
+    assert int(out.status) & int(EstimatorStatus.REGULARIZED)
+    linear = UKF(Unicycle(), GaussianSensor(torch.eye(3, dtype=f64)[:2], 0.2), Q=0.01, beta=-2.5)
+    assert int(linear.double().update(state, y).status) == 0

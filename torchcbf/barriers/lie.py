@@ -16,14 +16,13 @@ one batched Hessian-vector product per column.
 
 from __future__ import annotations
 
-import contextlib
 from collections.abc import Callable
 from typing import Any, ClassVar, Literal, NamedTuple
 
 import torch
 from torch import Tensor
 
-from torchcbf._autograd import needs_graph
+from torchcbf._autograd import needs_graph, recordable, recording
 from torchcbf._checks import (
     ClosedForms,
     TracksShadows,
@@ -315,12 +314,8 @@ def lie_derivatives(
         # otherwise, so they need neither the autograd context nor a detach
         return _analytic_terms(fn, x, dynamics, t, diffusion, control)
     grad_mode = torch.is_grad_enabled()
-    inference = torch.is_inference_mode_enabled()
-    ctx = torch.inference_mode(False) if inference else contextlib.nullcontext()
-    with ctx, torch.enable_grad():
-        if inference:
-            x = x.clone()
-            t = t.clone() if isinstance(t, Tensor) else t
+    with recording():
+        x, t = recordable(x), recordable(t)
         terms = _autograd_terms(fn, x, dynamics, t, diffusion, control, grad_mode)
     if not grad_mode:
         terms = LieTerms(*(None if v is None else v.detach() for v in terms))
@@ -342,13 +337,9 @@ def stacked_lie_derivatives(
     function. Grad mode, inference mode and graphs as for :func:`lie_derivatives`."""
     dynamics.check_inputs(x)
     grad_mode = torch.is_grad_enabled()
-    inference = torch.is_inference_mode_enabled()
     diffusion = hessian and dynamics.has_diffusion
-    ctx = torch.inference_mode(False) if inference else contextlib.nullcontext()
-    with ctx, torch.enable_grad():
-        if inference:
-            x = x.clone()
-            t = t.clone() if isinstance(t, Tensor) else t
+    with recording():
+        x, t = recordable(x), recordable(t)
         split = [flat_parts(fn) for fn in fns]
         sigma = dynamics.sigma(x) if diffusion else None
         parts = [p for ps in split for p in ps]

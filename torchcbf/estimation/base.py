@@ -13,6 +13,7 @@ from torchcbf._checks import (
     as_matrix,
     as_tensor,
     broadcast_shapes,
+    broadcasts_to,
     check_batch_match,
     check_finite,
     check_last_dim,
@@ -163,18 +164,13 @@ def _check_cov(name: str, P: object, mean: Tensor, *, spd: bool = True) -> Tenso
     n = mean.shape[-1]
     if P.dim() < 2 or P.shape[-2:] != (n, n):
         raise ValueError(f"{name} must have shape [..., {n}, {n}], got {tuple(P.shape)}")
-    try:
-        bs = broadcast_shapes(mean.shape[:-1], P.shape[:-2])
-    except RuntimeError:
-        bs = None
-    if bs != mean.shape[:-1]:
+    if not broadcasts_to(P.shape[:-2], mean.shape[:-1]):
         raise ValueError(
             f"the batch of {name} {tuple(P.shape)} must broadcast to that of x0 {tuple(mean.shape)}"
         )
     check_same("x0", mean, name, P)
-    if spd:
-        check_spd(name, P)
-    return P.expand(*bs, n, n)
+    check_spd(name, P) if spd else check_finite(name, P)
+    return P.expand(*mean.shape, n)
 
 
 def _check_state(state: object, n: int | None) -> tuple[Tensor, Tensor, Tensor]:
@@ -330,6 +326,10 @@ class _KalmanFilter(ExactConstants, DerivedConstants, Estimator):
         Returns an :class:`EstimatorState` with the batch of ``x0``.
         """
         x0 = check_finite("x0", _check_vector("x0", x0, self.state_dim))
+        if x0.dtype not in (torch.float32, torch.float64):
+            raise TypeError(
+                f"x0 must be float32 or float64 (the factorisations need them), got {x0.dtype}"
+            )
         if P0 is None:
             raise ValueError(f"{type(self).__name__}.init needs the prior covariance P0")
         P = _check_cov("P0", P0, x0)

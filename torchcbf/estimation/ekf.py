@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchcbf._autograd import needs_graph
+from torchcbf._autograd import needs_graph, outside_inference_mode
 from torchcbf.estimation._linalg import discretize, jacobian, robust_cholesky, symmetrize
 from torchcbf.estimation.base import EstimatorState, EstimatorStatus, RowGuard, _KalmanFilter
 
@@ -36,6 +36,7 @@ class EKF(_KalmanFilter):
         substeps: pieces per ``predict`` (re-linearization points).
     """
 
+    @outside_inference_mode
     def predict(self, state: EstimatorState, u: Tensor, dt: float) -> EstimatorState:
         """Propagate ``state`` (mean ``[..., n]``, cov ``[..., n, n]``) with ``u [..., m]``."""
         bs, m0, P0, u, dt, skip = self._flat_predict(state, u, dt)
@@ -52,6 +53,7 @@ class EKF(_KalmanFilter):
         status = torch.zeros(m.shape[0], dtype=torch.int64, device=m.device)
         return self._finish(bs, m0, P0, m, P, status, guard, skip=skip)
 
+    @outside_inference_mode
     def update(self, state: EstimatorState, y: Tensor) -> EstimatorState:
         """Correct ``state`` with ``y [..., p]`` (a non-finite ``y`` row is skipped and flagged)."""
         bs, m0, P0, status, y, skip = self._flat_update(state, y)

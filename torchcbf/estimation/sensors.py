@@ -22,6 +22,7 @@ from torch import Tensor
 
 from torchcbf._checks import (
     as_tensor,
+    broadcasts_to,
     check_finite,
     check_generator,
     check_last_dim,
@@ -138,6 +139,11 @@ class Sensor(ExactConstants, DerivedConstants):
         else:
             check_last_dim("noise", noise, p)
             check_same("x", y, "noise", noise)
+            if not broadcasts_to(noise.shape[:-1], y.shape[:-1]):
+                raise ValueError(
+                    f"noise [..., {p}] must broadcast to the batch of x {tuple(y.shape[:-1])}, "
+                    f"got {tuple(noise.shape)}"
+                )
         y = y + noise @ self.R_sqrt.to(y).mT
         return self._wrap(y)
 

@@ -7,7 +7,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchcbf._autograd import needs_graph
+from torchcbf._autograd import needs_graph, outside_inference_mode
 from torchcbf._checks import check_number
 from torchcbf.dynamics.base import ControlAffine
 from torchcbf.estimation._linalg import discretize, jacobian, robust_cholesky, symmetrize
@@ -34,6 +34,9 @@ class UKF(_KalmanFilter):
     errors ``E = dY - dX H^T``: the same covariance, positive semidefinite by construction,
     where the difference loses the variance to rounding when the measurement is far more
     precise than the prior (a negative variance with ``P = 1e10``, ``R = 1e-6`` in float64).
+    A negative centre weight (``beta + 1 - alpha^2 < 0``) can make ``D`` indefinite: it is
+    then clamped to its positive semidefinite part, a larger covariance than the difference
+    (which may be indefinite), and the row is flagged ``REGULARIZED``.
 
     The default ``alpha = 1`` (``lam = kappa``) keeps the weights of order ``1/n``: small
     ``alpha`` (e.g. 1e-3) gives weights of order ``1/alpha^2`` whose cancellation costs about
@@ -108,6 +111,7 @@ class UKF(_KalmanFilter):
         ybar = Y0.squeeze(1) + (Wm[1:, None] * residual(Y[:, 1:], Y0)).sum(1)
         return ybar, residual(Y, ybar.unsqueeze(1))
 
+    @outside_inference_mode
     def predict(self, state: EstimatorState, u: Tensor, dt: float) -> EstimatorState:
         """Propagate ``state`` (mean ``[..., n]``, cov ``[..., n, n]``) with ``u [..., m]``."""
         bs, m0, P0, u, dt, skip = self._flat_predict(state, u, dt)
@@ -133,6 +137,7 @@ class UKF(_KalmanFilter):
             P = symmetrize((dY * Wc[:, None]).mT @ dY + Qd)
         return self._finish(bs, m0, P0, m, P, status, guard, skip=skip)
 
+    @outside_inference_mode
     def update(self, state: EstimatorState, y: Tensor) -> EstimatorState:
         """Correct ``state`` with ``y [..., p]`` (a non-finite ``y`` row is skipped and flagged)."""
         bs, m0, P0, status, y, skip = self._flat_update(state, y)
@@ -158,10 +163,13 @@ class UKF(_KalmanFilter):
         H = torch.cholesky_solve(Pxy, Lp).mT  # [B, p, n]
         E = dY - dX @ H.mT  # [B, 2n+1, p]
         D = symmetrize((E * Wc[:, None]).mT @ E)
+        clamped = torch.zeros_like(reg_p)
         if self._center_weight() < 0:  # a negative weight: D may be indefinite
             vals, vecs = torch.linalg.eigh(D)
+            tol = 64 * torch.finfo(D.dtype).eps * vals.abs().amax(-1)
+            clamped = (vals.amin(-1) < -tol).detach()
             D = (vecs * vals.clamp_min(0.0).unsqueeze(-2)) @ vecs.mT
         A = torch.eye(m.shape[-1], dtype=m.dtype, device=m.device) - K @ H
         cov = A @ P @ A.mT + K @ (R + D) @ K.mT
-        flags = torch.where(reg_p | reg_s, int(EstimatorStatus.REGULARIZED), 0)
+        flags = torch.where(reg_p | reg_s | clamped, int(EstimatorStatus.REGULARIZED), 0)
         return self._finish(bs, m0, P0, mean, cov, status | flags, guard, skip=skip)
