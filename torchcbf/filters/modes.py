@@ -430,7 +430,7 @@ class RiskAware(FilterMode):
                 raise ValueError("the mode has no CBF margin until a filter binds it")
             margin = self.cbf_margin.to(x)
             if margin.dim() == 0:  # one margin for every output: count them
-                h = barrier.lie(x, dynamics, t, hessian=False).h
+                h = barrier(x, t)
                 margin = margin.expand(h.shape[-1] if h.dim() == x.dim() else 1)
             return margin.expand(*x.shape[:-1], -1)
         terms = barrier.lie(x, dynamics, t, hessian=False)
