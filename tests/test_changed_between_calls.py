@@ -64,7 +64,15 @@ def test_conditions_of_another_layout_than_the_kernel_reads_take_the_general_pat
     def change(filt):
         filt.barriers[0].center = torch.tensor([0.5, 0.1], dtype=F64)
 
-    fast, general = _both(build, change)
+    # one centre for two radii: refused on every path, before a kernel reads it
+    with pytest.raises(ValueError, match=r"Ball.radius \(2,\) does not match the one shape"):
+        _both(build, change)
+
+    def more(filt):
+        filt.barriers[0].center = torch.tensor([[0.5, 0.1], [3.0, 3.0]], dtype=F64)
+        filt.barriers[0].radius = torch.tensor([0.3, 0.2], dtype=F64)
+
+    fast, general = _both(build, more)
     torch.testing.assert_close(fast.u, general.u, atol=1e-12, rtol=0)
     torch.testing.assert_close(fast.constraint_value, general.constraint_value)
 

@@ -231,3 +231,17 @@ def test_constants_replaced_by_another_count_are_followed(method) -> None:
         for a, b in zip(got, want, strict=True):
             if isinstance(a, torch.Tensor):
                 torch.testing.assert_close(a, b)
+
+
+def test_constants_of_different_counts_are_refused_on_every_path() -> None:
+    ball = Ball(torch.zeros(2, 2), torch.tensor([0.5, 0.4]))
+    x = torch.zeros(1, 2)
+    for center, count in ((torch.zeros(3, 2), "the 3 shapes"), (torch.ones(2), "the one shape")):
+        ball.center = center
+        for call in (
+            lambda: ball(x),
+            lambda: ball.lie(x, SingleIntegrator(), method="autograd"),
+            lambda: ball.lie(x, SingleIntegrator(), method="analytic"),
+        ):
+            with pytest.raises(ValueError, match=rf"Ball.radius \(2,\) does not match {count}"):
+                call()

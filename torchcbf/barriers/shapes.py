@@ -97,14 +97,26 @@ class _ShapeStack(Barrier):
     are independent Lie parts, all with closed-form derivatives."""
 
     _sel: StateIndex
-    #: the constant whose leading axis counts the shapes (``center``, or ``a``)
-    _count_by = "center"
+    #: the constants that may carry a leading ``k`` axis, each with its rank for one shape
+    #: (the first one counts the shapes)
+    _per_shape: tuple[tuple[str, int], ...]
 
     @property
     def num(self) -> int | None:
-        """The number of shapes ``k`` (``None``: one shape, no ``k`` axis), read from the
-        constant now stored, so a constant replaced by one of another count is followed."""
-        return _check_centers(self._count_by, getattr(self, self._count_by))
+        """The number of shapes ``k`` (``None``: one shape, no ``k`` axis), counted by the
+        first constant of ``_per_shape`` as stored now (one replaced by another count is
+        followed); every other one must be shared or hold ``k`` entries."""
+        (first, _), *rest = self._per_shape
+        k = _check_centers(first, getattr(self, first))
+        for name, rank in rest:
+            value = getattr(self, name)
+            if value is not None and value.dim() > rank and (k is None or value.shape[0] != k):
+                raise ValueError(
+                    f"{type(self).__name__}.{name} {tuple(value.shape)} does not match the "
+                    f"{'one shape' if k is None else f'{k} shapes'} of {first} "
+                    f"{tuple(getattr(self, first).shape)}"
+                )
+        return k
 
     @property
     def index(self) -> tuple[int, ...]:
@@ -148,6 +160,8 @@ class Ball(_SignedShapeStack):
         state_dim: check ``index`` (and the state size) at construction.
     """
 
+    _per_shape = (("center", 1), ("radius", 0), ("velocity", 1))
+
     def __init__(
         self,
         center: Tensor | Sequence[float],
@@ -161,9 +175,9 @@ class Ball(_SignedShapeStack):
     ) -> None:
         super().__init__()
         c = self.register_constant("center", center, learnable=learnable)
-        _check_centers("center", c)
+        k = _check_centers("center", c)
         r = self.register_constant("radius", radius, learnable=learnable)
-        _check_per_shape("radius", r, self.num)
+        _check_per_shape("radius", r, k)
         _check_positive_tensor("radius", r.detach())
         if velocity is None:
             self.register_buffer("velocity", None)  # a velocity assigned later is a buffer
@@ -304,6 +318,8 @@ class Ellipse(_SignedShapeStack):
         keep_in, learnable, state_dim: as for :class:`Ball`.
     """
 
+    _per_shape = (("center", 1), ("axes", 1), ("angle", 0))
+
     def __init__(
         self,
         center: Tensor | Sequence[float],
@@ -330,7 +346,7 @@ class Ellipse(_SignedShapeStack):
             if c.shape[-1] != 2:
                 raise ValueError(f"angle needs a 2-D ellipse, got center of shape {tuple(c.shape)}")
             ang = self.register_constant("angle", angle, learnable=learnable)
-            _check_per_shape("angle", ang, self.num)
+            _check_per_shape("angle", ang, _check_centers("center", c))
         self.keep_in = bool(keep_in)
         self._sel = StateIndex(index, c.shape[-1], state_dim)
 
@@ -422,7 +438,7 @@ class HalfSpace(_ShapeStack):
         learnable, state_dim: as for :class:`Ball`.
     """
 
-    _count_by = "a"
+    _per_shape = (("a", 1), ("b", 0))
 
     def __init__(
         self,
@@ -435,9 +451,9 @@ class HalfSpace(_ShapeStack):
     ) -> None:
         super().__init__()
         av = self.register_constant("a", a, learnable=learnable)
-        _check_centers("a", av)
+        k = _check_centers("a", av)
         bv = self.register_constant("b", b, learnable=learnable)
-        _check_per_shape("b", bv, self.num)
+        _check_per_shape("b", bv, k)
         if bool((av.detach().abs().sum(-1) == 0).any()):
             raise ValueError("a must be a non-zero normal vector")
         d = av.shape[-1]
