@@ -298,9 +298,9 @@ def test_relative_degree_one_still_checks_what_it_was_given() -> None:
 def test_relative_degrees_and_sizes_are_ints() -> None:
     ball = Ball([0.0, 0.0], 1.0)
     for degree in (2.5, 3.0):
-        with pytest.raises(ValueError, match="relative_degree must be an int >= 2"):
+        with pytest.raises(TypeError, match="relative_degree must be an int >= 2"):
             HighOrderBarrier(ball, DoubleIntegrator(2), degree)
-        with pytest.raises(ValueError, match="relative_degree must be an int >= 2"):
+        with pytest.raises(TypeError, match="relative_degree must be an int >= 2"):
             ExponentialBarrier(ball, DoubleIntegrator(2), degree, [1.0])
-    with pytest.raises(ValueError, match="state_dim must be an int >= 1, got 2.5"):
+    with pytest.raises(TypeError, match="state_dim must be an int >= 1, got 2.5"):
         SingleIntegrator(2.5)

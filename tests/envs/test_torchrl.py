@@ -517,7 +517,6 @@ def test_safe_rl_script_runs_at_tiny_sizes(tmp_path):
     ("field", "value", "message"),
     [
         ("minibatch_size", 0, "minibatch_size must be a positive int"),
-        ("num_envs", 2.5, "num_envs must be a positive int"),
         ("lr", 0.0, "lr must be a finite number > 0"),
         ("gamma", 1.5, r"gamma must lie in \[0, 1\]"),
         ("entropy_coef", -0.1, "entropy_coef must be a finite number >= 0"),
@@ -527,3 +526,5 @@ def test_safe_rl_script_runs_at_tiny_sizes(tmp_path):
 def test_ppo_settings_are_checked_when_made(field, value, message) -> None:
     with pytest.raises(ValueError, match=message):
         PPOConfig(**{field: value})
+    with pytest.raises(TypeError, match="num_envs must be a positive int"):
+        PPOConfig(num_envs=2.5)

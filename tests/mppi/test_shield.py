@@ -45,8 +45,13 @@ def test_discrete_barrier_cost_one_output_barrier_and_errors() -> None:
             DiscreteBarrierCost(ball, gamma=bad, weight=1.0)
     with pytest.raises(ValueError, match="weight"):
         DiscreteBarrierCost(ball, gamma=0.5, weight=-1.0)
-    for bad_steps in (0, -2, 1.5, True):
-        with pytest.raises(ValueError, match="steps"):
+    for bad_steps, error in (
+        (0, ValueError),
+        (-2, ValueError),
+        (1.5, TypeError),
+        (True, TypeError),
+    ):
+        with pytest.raises(error, match="steps"):
             DiscreteBarrierCost(ball, gamma=0.5, steps=bad_steps)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="barrier"):
         DiscreteBarrierCost(3.0, gamma=0.5, weight=1.0)  # type: ignore[arg-type]

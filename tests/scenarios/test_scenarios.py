@@ -242,8 +242,8 @@ def test_mppi_cbf_shield_penalty_steps() -> None:
     assert penalty(default).steps == default.params["shield_steps"]
     five = mppi_cbf("shield_mppi", num_seeds=1, num_samples=64, shield_steps=5)
     assert penalty(five).steps == 5 and five.params["shield_steps"] == 5
-    for bad in (0, -1, 2.5, True):
-        with pytest.raises(ValueError, match="shield_steps"):
+    for bad, error in ((0, ValueError), (-1, ValueError), (2.5, TypeError), (True, TypeError)):
+        with pytest.raises(error, match="shield_steps"):
             mppi_cbf("shield_mppi", num_seeds=1, shield_steps=bad)
 
 
