@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import pytest
 import torch
@@ -193,6 +194,32 @@ def test_a_subclass_may_still_declare_itself_time_varying():
     x = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
     terms = ball.double().lie(x, SingleIntegrator(), torch.zeros(1, dtype=torch.float64))
     torch.testing.assert_close(terms.dhdt, torch.tensor([-0.1], dtype=torch.float64))
+
+
+def test_a_barrier_that_reads_t_undeclared_gets_its_dhdt_and_a_warning():
+    """A disc closing in at 1 m/s (centre ``2 - t``) whose class does not declare
+    ``time_varying``: every path of the filter keeps ``dh/dt`` (the safe control backs away),
+    and the autograd path warns that the other users of the barrier will not pass ``t``."""
+    from torchcbf.filters import SafetyFilter
+
+    class Closing(Barrier):
+        def forward(self, x, t=None):
+            c = torch.stack([2.0 - time_tensor(t, x), torch.zeros(x.shape[:-1])], -1)
+            return ((x[..., :2] - c.to(x)) ** 2).sum(-1) - 0.25
+
+    f64 = torch.float64
+    dyn = SingleIntegrator(2).double()
+    x, u = torch.zeros(1, 2, dtype=f64), torch.tensor([[1.0, 0.0]], dtype=f64)
+    t = torch.tensor([0.5], dtype=f64)
+    with pytest.warns(UserWarning, match="Closing reads t but does not declare time_varying"):
+        terms = Closing().lie(x, dyn, t)
+    torch.testing.assert_close(terms.dhdt, torch.tensor([-3.0], dtype=f64))  # -2 (p - c) . c'
+    for grad in (True, False):
+        with torch.set_grad_enabled(grad), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            out = SafetyFilter(dyn, [Closing()], alpha=1.0)(x, u, t=t)
+        # 3 u_x - 3 + 2 >= 0 is violated by u_nom: the projection u_x = -1/3
+        torch.testing.assert_close(out.u, torch.tensor([[-1.0 / 3.0, 0.0]], dtype=f64))
 
 
 def test_moving_ball_trajectory_dhdt(dtype, device):

@@ -3,9 +3,9 @@
 A user's own function (a superellipse, a smooth polygon, a small network) has no closed
 forms, so the general path differentiates it by autograd at every call: on one state that is
 a few hundred tensor operations and two backward passes, most of it fixed cost. Here the
-whole computation, ``h``, ``dh/dx`` (``torch.func.jacrev``), ``dh/dt`` for time-varying
-functions, the Hessian trace ``tr(sigma' d2h/dx2 sigma)`` where asked (``jacrev`` of
-``jacrev``) and ``L_f h``, ``L_g h`` along the model, is one function of ``(x, t)`` that
+whole computation, ``h``, ``dh/dx`` (``torch.func.jacrev``), ``dh/dt`` (of every function
+that reads the time), the Hessian trace ``tr(sigma' d2h/dx2 sigma)`` where asked (``jacrev``
+of ``jacrev``) and ``L_f h``, ``L_g h`` along the model, is one function of ``(x, t)`` that
 ``torch.compile`` turns into a few fused loops (through :class:`torchcbf._compile.Compiled`:
 an eager run of the same function where the backend fails, with a warning).
 
@@ -73,12 +73,6 @@ class CompiledLie:
         self.fns, self.dynamics, self.sizes = list(fns), dynamics, None
         self.hessian = self._hessian_asked and dynamics.has_diffusion
 
-    @property
-    def timed(self) -> bool:
-        """Whether a function depends on time (read at each trace: a ``Ball`` given a
-        ``velocity`` later is)."""
-        return any(fn.time_varying for fn in self.fns)
-
     def evaluate(self, x: Tensor, t: Tensor) -> tuple[LieTerms, list[int]]:
         """The uncompiled function: ``(LieTerms, sizes)`` at ``x [B, n]``, ``t [B]``, for a
         caller that compiles more around it (``vmap`` and ``jacrev``: no graph to ``x``)."""
@@ -99,11 +93,8 @@ class CompiledLie:
         self.traced_sizes = [torch.atleast_1d(fn(x[0], t[0])).shape[-1] for fn in self.fns]
         values = torch.func.vmap(self._values)
         h = values(x, t)
-        if self.timed:
-            dhdx, dhdt = torch.func.vmap(torch.func.jacrev(self._values, argnums=(0, 1)))(x, t)
-        else:
-            dhdx = torch.func.vmap(torch.func.jacrev(self._values))(x, t)
-            dhdt = torch.zeros_like(h)
+        # dh/dt of every function: one that reads t without declaring time_varying too
+        dhdx, dhdt = torch.func.vmap(torch.func.jacrev(self._values, argnums=(0, 1)))(x, t)
         f = self.dynamics.f(x)
         g = self.dynamics.g(x)
         lfh = (dhdx @ f.unsqueeze(-1)).squeeze(-1)

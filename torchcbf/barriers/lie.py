@@ -16,6 +16,7 @@ one batched Hessian-vector product per column.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from typing import Any, ClassVar, Literal, NamedTuple
 
@@ -259,17 +260,29 @@ def time_tensor(t: Tensor | float | None, x: Tensor) -> Tensor:
         ) from None
 
 
-def _grad(out: Tensor, inputs: tuple[Tensor, ...], create: bool) -> tuple[Tensor, ...]:
-    """Gradient of ``out.sum()`` w.r.t. ``inputs``; zeros where ``out`` does not depend on one."""
+def _grad(
+    out: Tensor, inputs: tuple[Tensor, ...], create: bool, *, materialize: bool = True
+) -> tuple[Tensor | None, ...]:
+    """Gradient of ``out.sum()`` w.r.t. ``inputs``; zeros (``None`` unless ``materialize``)
+    where ``out`` does not depend on one."""
     if not out.requires_grad:
-        return tuple(torch.zeros_like(i) for i in inputs)
+        return tuple(torch.zeros_like(i) if materialize else None for i in inputs)
     return torch.autograd.grad(
         out.sum(),
         inputs,
         create_graph=create,
         retain_graph=True,
         allow_unused=True,
-        materialize_grads=True,
+        materialize_grads=materialize,
+    )
+
+
+def _undeclared_time(part: LieFunction) -> None:
+    warnings.warn(
+        f"{type(part).__name__} reads t but does not declare time_varying = True: its Lie "
+        "terms include dh/dt, but metrics, MPPI costs and specs call it without t; declare "
+        "it (a class attribute, or self.time_varying = True)",
+        stacklevel=4,
     )
 
 
@@ -404,14 +417,15 @@ def stacked_terms(
         out = out.expand(*batch, k, Q, *trailing).clone()
         return out if out.requires_grad else out.requires_grad_()
 
-    def run(part: LieFunction, k: int) -> tuple[Tensor, Tensor, Tensor | None]:
-        xk = copies(base, k, (n,))
-        tk = copies(tt, k, ()) if part.time_varying else tt[..., None, None]
-        return part(xk, tk), xk, tk if part.time_varying else None
+    def run(part: LieFunction, k: int) -> tuple[Tensor, Tensor, Tensor]:
+        # every part gets a time it can be differentiated in: one that reads t without
+        # declaring time_varying still gets its dh/dt (and a warning)
+        xk, tk = copies(base, k, (n,)), copies(tt, k, ())
+        return part(xk, tk), xk, tk
 
     leaves: list[Tensor] = []
     multi: list[bool] = []
-    t_leaves: list[Tensor | None] = []
+    t_leaves: list[Tensor] = []
     values: list[Tensor] = []  # [..., k, Q] per part
     total = x.new_zeros(())
     for part in parts:
@@ -433,9 +447,9 @@ def stacked_terms(
         t_leaves.append(tk)
         values.append(hd)
         total = total + hd.sum()
-    timed = [tl for tl in t_leaves if tl is not None]
-    grads = _grad(total, (*leaves, *timed), create or sigma is not None)
-    g_x, g_t = grads[: len(leaves)], list(grads[len(leaves) :])
+    grads = _grad(total, (*leaves, *t_leaves), create or sigma is not None, materialize=False)
+    g_x = [torch.zeros_like(v) if g is None else g for g, v in zip(grads, leaves, strict=False)]
+    g_t = grads[len(leaves) :]
     hess: list[Tensor] | None = None
     if sigma is not None:
         s_cols = sigma.movedim(-1, -2).unsqueeze(-3)  # [..., 1, Q, n]
@@ -443,8 +457,10 @@ def stacked_terms(
         hv = _grad(inner, tuple(leaves), create)  # type: ignore[arg-type]
         hess = [(v * s_cols).sum((-2, -1)) for v in hv]  # [..., k]
     dhdt = []
-    for hd, tl in zip(values, t_leaves, strict=True):
-        dhdt.append(g_t.pop(0)[..., 0] if tl is not None else torch.zeros_like(hd[..., 0]))
+    for part, hd, gt in zip(parts, values, g_t, strict=True):
+        if gt is not None and not part.time_varying:
+            _undeclared_time(part)
+        dhdt.append(torch.zeros_like(hd[..., 0]) if gt is None else gt[..., 0])
     sizes = [hd.shape[-2] for hd in values]
     out = (
         torch.cat([hd[..., 0] for hd in values], -1),
