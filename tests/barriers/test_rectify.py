@@ -283,7 +283,8 @@ def test_poles_given_as_numbers_stay_exact_in_float64() -> None:
 def test_relative_degree_one_still_checks_what_it_was_given() -> None:
     speed = HalfSpace([1.0, 0.0], 1.0, index=(2, 3))  # v_x <= 1: relative degree 1
     model = DoubleIntegrator(2)
-    assert rectify(speed, model, "exponential", poles=[-2.0]) is speed
+    with pytest.warns(UserWarning, match="HalfSpace has relative degree 1 along DoubleIntegrator"):
+        assert rectify(speed, model, "exponential", poles=[-2.0]) is speed
     for kw, message in (
         ({"poles": [1.0]}, "poles must be finite negative real numbers"),
         ({"poles": [float("nan")]}, "poles must be finite negative real numbers"),

@@ -11,6 +11,7 @@ barrier's parameters.
 from __future__ import annotations
 
 import functools
+import warnings
 from collections.abc import Sequence
 from typing import ClassVar, Literal
 
@@ -501,6 +502,13 @@ def rectify(
             g = as_tensor("gains", gains).detach()
             if not bool(torch.isfinite(g).all() & (g > 0).all()):
                 raise ValueError(f"gains must be finite positive numbers, got {g.tolist()}")
+        if gains is not None or poles is not None:
+            warnings.warn(
+                f"{type(barrier).__name__} has relative degree 1 along "
+                f"{type(dynamics).__name__}: it is returned as it is, and the "
+                f"{'gains' if gains is not None else 'poles'} given are not used",
+                stacklevel=2,
+            )
         return barrier
     if form == "high_order":
         return HighOrderBarrier(barrier, dynamics, r, gains)
