@@ -471,13 +471,15 @@ def _main(argv: Sequence[str] | None = None) -> int:
             return 2
     parser = build_parser()
     args = parser.parse_args(argv)
+    from torchcbf.sweep.params import check_seeds
+
     for first, count in (("seed", "seeds"), ("eval_seed", "eval_seeds")):
         start, n = getattr(args, first, None), getattr(args, count, None)
-        if start is not None and n is not None and start + n > 2**32:
-            parser.error(
-                f"argument --{first.replace('_', '-')}: seeds {start}..{start + n - 1} pass "
-                "2^32 - 1 (the noise streams are 32-bit)"
-            )
+        if start is not None and n is not None:
+            try:
+                check_seeds(start, n)
+            except ValueError as error:
+                parser.error(f"argument --{first.replace('_', '-')}: {error}")
     if getattr(args, "device", "cpu") == "cuda" and not torch.cuda.is_available():
         parser.error("argument --device: cuda, but CUDA is not available on this machine")
     if args.command in ECOSYSTEM_COMMANDS:

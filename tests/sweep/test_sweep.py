@@ -302,3 +302,74 @@ def test_figures_drawn_before_an_interrupt_are_removed_by_overwrite(tmp_path, mo
     assert main([*args, "--overwrite"]) == 0
     assert not (tmp_path / "old_rollouts.png").exists()
     assert (tmp_path / "metrics.json").exists()
+
+
+def test_grid_values_without_an_order_or_not_finite_are_refused() -> None:
+    import numpy as np
+
+    for bad in ({32, 48}, np.array(32)):
+        with pytest.raises(TypeError, match=r"grid\['num_samples'\] must be a list"):
+            configurations({"num_samples": bad})
+    for bad in (float("nan"), float("inf"), np.float64(-np.inf), (2.0, float("inf"))):
+        with pytest.raises(ValueError, match=r"grid\['gain'\] holds .* which is not finite"):
+            configurations({"gain": [1.0, bad]})
+    assert configurations({"k": range(2), "m": np.array([0.5])}) == [
+        {"k": 0, "m": 0.5},
+        {"k": 1, "m": 0.5},
+    ]
+
+
+def test_seeds_outside_the_noise_streams_are_refused_before_any_work(tmp_path) -> None:
+    for seed, count in ((-1, 2), (2**32 - 1, 2)):
+        with pytest.raises(ValueError, match=r"pass the bounds \[0, 2\^32 - 1\]"):
+            run_sweep("reach-avoid", {}, num_seeds=count, seed=seed, out=tmp_path / "x",
+                      progress=False)  # fmt: skip
+    assert not (tmp_path / "x").exists()
+
+
+def test_a_fresh_run_refuses_outputs_no_manifest_lists(tmp_path, capsys) -> None:
+    """A finished sweep whose run.json is gone: its journal is not read back as this run's
+    rows (they were for other seeds), and nothing of it is replaced."""
+    args = ["sweep", "reach-avoid", "--grid", "num_samples=32", "--grid", "horizon=6",
+            "--seeds", "2", "--out", str(tmp_path), "--no-progress"]  # fmt: skip
+    assert main(args) == 0
+    (tmp_path / "run.json").unlink()
+    journal = (tmp_path / "sweep.jsonl").read_text()
+    assert main([*args[:7], "3", *args[8:], "--overwrite"]) == 2
+    assert "holds sweep.jsonl, sweep.json, sweep.csv, sweep.png" in capsys.readouterr().err
+    assert (tmp_path / "sweep.jsonl").read_text() == journal
+
+
+def test_a_refused_folder_keeps_no_lock_file(tmp_path) -> None:
+    from torchcbf.sweep.rundir import LOCK, OutputError, RunDir
+
+    (tmp_path / "mine.txt").write_text("mine")
+    with pytest.raises(OutputError, match="files that are not a torchcbf run"):
+        RunDir.claim(tmp_path, kind="sweep", settings={})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine.txt"]
+    assert LOCK == ".torchcbf.lock"
+
+
+def test_a_sweep_interrupted_in_this_process_can_be_resumed_by_it(tmp_path, monkeypatch):
+    """The folder is released however the run ends (a notebook's Ctrl-C keeps the frames,
+    and with them an unreleased lock, alive)."""
+
+    def interrupted(**kwargs):
+        raise KeyboardInterrupt
+
+    grid = {"num_samples": [32], "horizon": [6]}
+    monkeypatch.setattr("torchcbf.sweep.sweep.evaluate", interrupted)
+    with pytest.raises(KeyboardInterrupt) as caught:  # its traceback holds the frames
+        run_sweep("reach-avoid", grid, num_seeds=1, out=tmp_path, progress=False)
+    monkeypatch.undo()
+    rows = run_sweep("reach-avoid", grid, num_seeds=1, out=tmp_path, resume=True, progress=False)
+    assert [r["status"] for r in rows] == ["ok"] and caught.value is not None
+
+
+def test_a_ray_address_of_another_form_is_refused() -> None:
+    from torchcbf.sweep.engines import check_address
+
+    for bad in ("localhost", "foo", "host:port", ":6379"):
+        with pytest.raises(ValueError, match="address must be 'auto', 'local', host:port"):
+            check_address(bad)
+    check_address("auto")

@@ -234,7 +234,7 @@ def test_cli_refuses_seeds_that_pass_2_to_the_32(first, count, capsys) -> None:
     with pytest.raises(SystemExit) as exit_info:
         main(["tune", "reach-avoid", first, str(2**32 - 2), count, "3", "--no-progress"])
     assert exit_info.value.code == 2
-    assert "pass 2^32 - 1" in capsys.readouterr().err
+    assert "pass the bounds [0, 2^32 - 1]" in capsys.readouterr().err
 
 
 @pytest.mark.slow  # a local Ray cluster: 7 s to start
@@ -293,3 +293,14 @@ def test_tune_checks_its_fixed_values_before_any_work(tmp_path) -> None:
         tune("mppi-cbf", trials=2, num_seeds=1, fixed={"method": "mppi_rascbf", "rho": 5.0},
              params=["noise_sigma"], out=tmp_path / "t", progress=False)  # fmt: skip
     assert not (tmp_path / "t").exists()
+
+
+def test_the_study_lives_in_the_run_folder_whatever_its_name(tmp_path) -> None:
+    """A '?' or '%' in a folder's name is part of the SQLite address's path, escaped."""
+    from sqlalchemy.engine import make_url
+
+    from torchcbf.sweep.tune import _sqlite_url
+
+    for name in ("run?a", "pct%41b", "sp ace#x"):
+        path = tmp_path / name / "study.db"
+        assert make_url(_sqlite_url(path)).database == str(path)

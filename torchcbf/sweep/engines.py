@@ -64,12 +64,17 @@ def ray_session(address: str | None = None, num_cpus: int | None = None) -> Iter
 
 
 def check_address(address: str, *, timeout: float = 5.0) -> None:
-    """Raise ``ValueError`` where nothing answers at a Ray cluster's ``host:port`` (also
-    ``ray://host:port``) within ``timeout`` seconds: Ray itself retries such an address for
-    minutes. ``"auto"`` and other forms are left to Ray."""
+    """Raise ``ValueError`` for an address Ray does not take (it takes ``"auto"``,
+    ``"local"``, ``host:port`` and ``ray://host:port``), or where nothing answers at a
+    ``host:port`` within ``timeout`` seconds: Ray itself retries such an address for
+    minutes."""
+    if address in ("auto", "local"):
+        return
     host, sep, port = address.removeprefix("ray://").rpartition(":")
     if not sep or not port.isdigit() or not host:
-        return
+        raise ValueError(
+            f"address must be 'auto', 'local', host:port or ray://host:port, got {address!r}"
+        )
     try:
         socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
     except OSError as error:

@@ -30,6 +30,18 @@ def builder_defaults(scenario: ScenarioName) -> dict[str, Any]:
     return get(scenario).defaults()
 
 
+def check_seeds(first: int, count: int) -> None:
+    """Seeds ``first .. first + count - 1`` lie in ``[0, 2^32)`` (the scenarios' noise
+    streams are 32-bit): ``ValueError`` saying which pass the bounds."""
+    if isinstance(first, bool) or not isinstance(first, int):
+        raise TypeError(f"seed must be an int, got {first!r}")
+    if first < 0 or first + count > 2**32:
+        raise ValueError(
+            f"seeds {first}..{first + count - 1} pass the bounds [0, 2^32 - 1] (the noise "
+            "streams are 32-bit)"
+        )
+
+
 def check_keys(scenario: ScenarioName, keys: Sequence[str]) -> None:
     """Raise a ValueError naming any key that is not a parameter of the scenario."""
     entry = get(scenario)

@@ -100,8 +100,31 @@ class RunDir:
         if resume and overwrite:
             raise OutputError("--resume and --overwrite exclude each other")
         path = check_location(out)
+        made_lock = not (path / LOCK).exists()
         lock = _lock(path)
-        settings = strict(settings)
+        try:
+            run = cls._take(path, kind, strict(settings), resume, overwrite, outputs)
+        except BaseException:
+            if made_lock:  # a folder refused keeps no trace of the attempt
+                with contextlib.suppress(OSError):
+                    (path / LOCK).unlink()
+            if lock is not None:
+                lock.close()
+            raise
+        run._lock = lock
+        return run
+
+    @classmethod
+    def _take(
+        cls,
+        path: Path,
+        kind: str,
+        settings: dict[str, Any],
+        resume: bool,
+        overwrite: bool,
+        outputs: tuple[str, ...],
+    ) -> RunDir:
+        """:meth:`claim` once the folder is checked and locked."""
         manifest = read_manifest(path)
         if manifest is None and (path / MANIFEST).exists():
             raise OutputError(
@@ -125,7 +148,6 @@ class RunDir:
                 )
             _io.remove_stale(path)
             run = cls(path, kind, settings, resumed=True)
-            run._lock = lock
             run.files = list(dict.fromkeys([*manifest.get("files", []), *outputs]))
             run._write_manifest(complete=False)
             return run
@@ -143,9 +165,15 @@ class RunDir:
                 )
                 raise OutputError(f"--out {path} holds {what}; use another --out, or {hint}")
             clear(path, manifest)
+        foreign = [name for name in outputs if (path / name).exists()]
+        if foreign:
+            raise OutputError(
+                f"--out {path} holds {', '.join(foreign)}, which no torchcbf manifest there "
+                "lists (an earlier run whose run.json is gone, or files of yours): move them "
+                "away, or use another --out"
+            )
         _io.remove_stale(path)
         run = cls(path, kind, settings, resumed=False)
-        run._lock = lock
         run.files = list(outputs)
         run._write_manifest(complete=False)
         return run
@@ -171,6 +199,11 @@ class RunDir:
     def finish(self) -> None:
         """Mark the run complete and release the folder."""
         self._write_manifest(complete=True)
+        self.release()
+
+    def release(self) -> None:
+        """Release the folder (the run stays incomplete unless :meth:`finish` said so): a
+        run interrupted in this process can be resumed by it."""
         if self._lock is not None:
             self._lock.close()
             self._lock = None

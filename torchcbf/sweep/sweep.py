@@ -15,6 +15,8 @@ import csv
 import io
 import itertools
 import json
+import math
+import numbers
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -25,7 +27,13 @@ from torchcbf.scenarios import get
 from torchcbf.sim import run_info, strict
 from torchcbf.sweep.engines import Outcome, check_engine, run_each
 from torchcbf.sweep.evaluate import evaluate
-from torchcbf.sweep.params import ScenarioName, check_buildable, check_keys, describe
+from torchcbf.sweep.params import (
+    ScenarioName,
+    check_buildable,
+    check_keys,
+    check_seeds,
+    describe,
+)
 from torchcbf.sweep.rundir import RunDir
 
 JOURNAL = "sweep.jsonl"
@@ -37,19 +45,35 @@ RATES = ("success", "collision", "goal")
 
 def configurations(grid: Mapping[str, Sequence[Any]]) -> list[dict[str, Any]]:
     """Every combination of the grid's values, the last key varying fastest. Each value is
-    a list (a tuple, an array) of values: a single value, a string too, raises naming it."""
+    a list (a tuple, a range, a 1-D array) of values: a single value, a string or a set (no
+    order) too, raises naming it, as does a value that is not finite (the run's files, JSON,
+    could not tell it from another)."""
     if not isinstance(grid, Mapping):
         raise TypeError(f"grid must map parameter names to lists of values, got {grid!r}")
     keys = list(grid)
     for key in keys:
         values = grid[key]
-        if isinstance(values, (str, bytes, Mapping)) or not hasattr(values, "__len__"):
+        ordered = isinstance(values, Sequence) or getattr(values, "ndim", None) == 1
+        if isinstance(values, (str, bytes)) or not ordered:
             raise TypeError(
                 f"grid[{key!r}] must be a list of values, got {values!r} (write [{values!r}])"
             )
         if len(values) == 0:
             raise ValueError(f"grid[{key!r}] has no values")
+        for value in values:
+            if not _finite(value):
+                raise ValueError(f"grid[{key!r}] holds {value!r}, which is not finite")
     return [dict(zip(keys, combo, strict=True)) for combo in itertools.product(*grid.values())]
+
+
+def _finite(value: Any) -> bool:
+    """Whether no number in ``value`` (a number, or a tuple or list of them) is NaN or
+    infinite."""
+    if isinstance(value, (list, tuple)):
+        return all(_finite(v) for v in value)
+    if isinstance(value, numbers.Real) or getattr(value, "ndim", None) == 0:
+        return math.isfinite(float(value))
+    return True
 
 
 def sweep_settings(
@@ -108,6 +132,7 @@ def run_sweep(
     check_keys(entry, list(grid))
     check_engine(engine)
     check_positive_int("num_seeds", num_seeds)
+    check_seeds(seed, num_seeds)
     check_positive_int("threads", threads)
     configs = configurations(grid)
     check_buildable(entry, configs, seed=seed, device=device)
@@ -118,57 +143,61 @@ def run_sweep(
     if out is not None and not isinstance(out, RunDir):
         run = RunDir.claim(out, kind="sweep", settings=settings, resume=resume,
                            overwrite=overwrite, outputs=OUTPUTS)  # fmt: skip
-    calls = [
-        {
-            "scenario": entry,
-            "params": params,
+    try:
+        calls = [
+            {
+                "scenario": entry,
+                "params": params,
+                "num_seeds": num_seeds,
+                "seed": seed,
+                "device": device,
+                "threads": threads,
+            }
+            for params in configs
+        ]
+        done: dict[int, dict[str, Any]] = {}
+        info = {
+            "scenario": entry.name,
+            "fixed": fixed_parameters(entry, grid),
             "num_seeds": num_seeds,
-            "seed": seed,
+            "first_seed": seed,
+            "engine": engine,
             "device": device,
-            "threads": threads,
+            "torch_threads": threads,  # what each configuration ran with
         }
-        for params in configs
-    ]
-    done: dict[int, dict[str, Any]] = {}
-    info = {
-        "scenario": entry.name,
-        "fixed": fixed_parameters(entry, grid),
-        "num_seeds": num_seeds,
-        "first_seed": seed,
-        "engine": engine,
-        "device": device,
-        "torch_threads": threads,  # what each configuration ran with
-    }
-    if run is not None:
-        done = read_journal(run.path / JOURNAL, configs)
-        _trim_journal(run.path / JOURNAL)
+        if run is not None and run.resumed:
+            done = read_journal(run.path / JOURNAL, configs)
+            _trim_journal(run.path / JOURNAL)
 
-    def finished(i: int, outcome: Outcome) -> None:
-        row = _row(configs[i], num_seeds, seed, outcome)
-        done[i] = row
+        def finished(i: int, outcome: Outcome) -> None:
+            row = _row(configs[i], num_seeds, seed, outcome)
+            done[i] = row
+            if run is not None:
+                line = json.dumps({"index": i, "row": strict(row)}, allow_nan=False)
+                _io.append_line(run.path / JOURNAL, line)
+                rows = [done[k] for k in sorted(done)]
+                _write_rows(rows, grid, run.path, complete=False, **info)
+
+        todo = [i for i in range(len(configs)) if i not in done]
+        run_each(
+            evaluate,
+            [calls[i] for i in todo],
+            lambda j, outcome: finished(todo[j], outcome),
+            engine=engine,
+            address=address,
+            num_cpus=num_cpus,
+            progress=progress,
+            desc=f"sweep {entry.name}",
+        )
+        rows = [done[i] for i in range(len(configs))]
         if run is not None:
-            line = json.dumps({"index": i, "row": strict(row)}, allow_nan=False)
-            _io.append_line(run.path / JOURNAL, line)
-            rows = [done[k] for k in sorted(done)]
-            _write_rows(rows, grid, run.path, complete=False, **info)
-
-    todo = [i for i in range(len(configs)) if i not in done]
-    run_each(
-        evaluate,
-        [calls[i] for i in todo],
-        lambda j, outcome: finished(todo[j], outcome),
-        engine=engine,
-        address=address,
-        num_cpus=num_cpus,
-        progress=progress,
-        desc=f"sweep {entry.name}",
-    )
-    rows = [done[i] for i in range(len(configs))]
-    if run is not None:
-        paths = write_sweep(rows, grid, run.path, **info)
-        run.record(JOURNAL, *paths.values())
-        run.finish()
-    return rows
+            paths = write_sweep(rows, grid, run.path, **info)
+            run.record(JOURNAL, *paths.values())
+            run.finish()
+        return rows
+    finally:
+        if run is not out:  # claimed here: released however the run ends
+            run.release()
 
 
 def fixed_parameters(scenario: ScenarioName, grid: Mapping[str, Sequence[Any]]) -> dict:

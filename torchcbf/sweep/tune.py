@@ -37,7 +37,7 @@ from torchcbf.scenarios import Dimension, get
 from torchcbf.sim import run_info, strict
 from torchcbf.sweep.engines import Outcome, check_engine, ray_session, run_each
 from torchcbf.sweep.evaluate import evaluate
-from torchcbf.sweep.params import ScenarioName, check_buildable, check_keys
+from torchcbf.sweep.params import ScenarioName, check_buildable, check_keys, check_seeds
 from torchcbf.sweep.rundir import RunDir
 from torchcbf.sweep.sweep import write_json, write_table
 
@@ -156,6 +156,14 @@ def _outcome_row(outcome: Outcome) -> dict[str, Any]:
     return {"status": "failed", "error": outcome.error}
 
 
+def _sqlite_url(path: Path) -> str:
+    """The SQLAlchemy address of the SQLite file ``path``, escaped (a ``?`` or ``%`` in a
+    folder's name would otherwise be read as the address's query or an escape)."""
+    from sqlalchemy.engine import URL
+
+    return URL.create("sqlite", database=str(path)).render_as_string(hide_password=False)
+
+
 def tune(
     scenario: ScenarioName,
     *,
@@ -218,6 +226,8 @@ def tune(
     for key, value in (("trials", trials), ("num_seeds", num_seeds), ("batch", batch),
                        ("eval_seeds", eval_seeds)):  # fmt: skip
         check_positive_int(key, value)
+    check_seeds(seed, num_seeds)
+    check_seeds(eval_seed, eval_seeds)
     if seed < eval_seed + eval_seeds and eval_seed < seed + num_seeds:
         raise ValueError(
             f"tuning seeds {seed}..{seed + num_seeds - 1} and evaluation seeds "
@@ -243,138 +253,148 @@ def tune(
     if out is not None and not isinstance(out, RunDir):
         run = RunDir.claim(out, kind="tune", settings=settings, resume=resume,
                            overwrite=overwrite, outputs=OUTPUTS)  # fmt: skip
-    storage: Any = None
-    if run is not None:
-        storage = optuna.storages.RDBStorage(f"sqlite:///{run.path / STORAGE}")
-    study = optuna.create_study(
-        direction="maximize",
-        sampler=_sampler(optuna, sampler_seed, 0, trials),
-        storage=storage,
-        study_name=STUDY_NAME,
-        load_if_exists=True,
-    )
-    common = {"device": device, "threads": threads}
+    try:
+        storage: Any = None
+        if run is not None:
+            storage = optuna.storages.RDBStorage(_sqlite_url(run.path / STORAGE))
+        study = optuna.create_study(
+            direction="maximize",
+            sampler=_sampler(optuna, sampler_seed, 0, trials),
+            storage=storage,
+            study_name=STUDY_NAME,
+            load_if_exists=True,
+        )
+        common = {"device": device, "threads": threads}
 
-    def call(arguments: Mapping[str, Any], first_seed: int, count: int = num_seeds) -> dict:
-        return {
-            "scenario": entry,
-            "params": {**fixed, **arguments},
-            "seed": first_seed,
-            "num_seeds": count,
-            **common,
+        def call(arguments: Mapping[str, Any], first_seed: int, count: int = num_seeds) -> dict:
+            return {
+                "scenario": entry,
+                "params": {**fixed, **arguments},
+                "seed": first_seed,
+                "num_seeds": count,
+                **common,
+            }
+
+        options = {"engine": engine, "address": address, "num_cpus": num_cpus, "progress": False}
+
+        def evaluate_once(
+            key: str, arguments: Mapping[str, Any], first_seed: int, count: int = num_seeds
+        ) -> dict:
+            """The row of one configuration, kept in the study so a resumed run reuses it."""
+            if key not in study.user_attrs:
+                outcomes: list[Outcome] = []
+                run_each(
+                    evaluate,
+                    [call(arguments, first_seed, count)],
+                    lambda i, o: outcomes.append(o),
+                    **options,
+                )
+                study.set_user_attr(key, _outcome_row(outcomes[0]))
+            return dict(study.user_attrs[key])
+
+        session = ray_session(address, num_cpus) if engine == "ray" else contextlib.nullcontext()
+        desc = f"tune {name} ({engine})"
+        with session, tqdm(total=trials + 3, desc=desc, disable=not progress) as bar:
+            default_row = evaluate_once("default_row", {}, seed)
+            bar.update(1)
+            for start in range(0, trials, batch):
+                numbers = range(start, min(start + batch, trials))
+                known = {t.number: t for t in study.get_trials(deepcopy=False)}
+                for number in numbers:
+                    seeds = {"sampler_seed": sampler_seed, "number": number, "trials": trials}
+                    if number not in known:  # asked in order: every earlier trial exists
+                        study.sampler = _sampler(optuna, **seeds)
+                        trial = study.ask()
+                        if trial.number != number:
+                            raise RuntimeError(
+                                f"the study asked trial {trial.number}, not {number}"
+                            )
+                        _suggest_all(optuna, study, trial, dims, **seeds)
+                    elif not known[number].state.is_finished() and set(known[number].params) != {
+                        d.name for d in dims
+                    }:  # cut off while its parameters were drawn: the rest are drawn now
+                        trial = optuna.trial.Trial(study, known[number]._trial_id)
+                        _suggest_all(optuna, study, trial, dims, **seeds)
+                known = {t.number: t for t in study.get_trials(deepcopy=False)}
+                pending = [n for n in numbers if not known[n].state.is_finished()]
+                bar.update(len(numbers) - len(pending))
+                arguments = [_arguments(dims, known[n].params) for n in pending]
+
+                def finished(i: int, outcome: Outcome, pending: list[int] = pending) -> None:
+                    number = pending[i]
+                    study.set_user_attr(f"row_{number}", _outcome_row(outcome))
+                    if outcome.ok:
+                        study.tell(number, outcome.value["objective"])
+                    else:
+                        study.tell(number, state=optuna.trial.TrialState.FAIL)
+                    bar.update(1)
+                    if run is not None:
+                        write_table(_trial_rows(study, trials), run.path / "study.csv")
+
+                run_each(evaluate, [call(a, seed) for a in arguments], finished, **options)
+            rows = _trial_rows(study, trials)
+            complete = [
+                t
+                for t in study.get_trials(deepcopy=False)
+                if t.number < trials and t.value is not None
+            ]
+            best = max(complete, key=lambda t: (t.value, -t.number)) if complete else None
+            best_arguments = _arguments(dims, best.params) if best is not None else None
+            evaluation = {"best": None, "default": None}
+            if best is not None:
+                evaluation["best"] = evaluate_once(
+                    f"evaluation_best_{best.number}", best_arguments, eval_seed, eval_seeds
+                )
+            evaluation["default"] = evaluate_once("evaluation_default", {}, eval_seed, eval_seeds)
+            bar.update(2)
+        defaults = {**entry.defaults(), **fixed}
+        make = entry.make
+
+        def resolved(arguments: Mapping[str, Any]) -> dict[str, Any]:
+            """Every parameter the scenario used (``Scenario.params``), where it records them."""
+            built = make(**arguments, num_seeds=1, seed=seed, device=device)
+            params = getattr(built, "params", None) or {}
+            return {k: v for k, v in params.items() if k not in ("num_seeds", "seed")}
+
+        result = {
+            "scenario": name,
+            "fixed": fixed,
+            "space": {d.name: d.describe() for d in dims},
+            "tuning_seeds": {"first": seed, "count": num_seeds},
+            "evaluation_seeds": {"first": eval_seed, "count": eval_seeds},
+            "sampler": {"name": "TPESampler", "seed": sampler_seed, "batch": batch},
+            "objective": "success rate + tie-break / (2 seeds) (torchcbf.sweep.evaluate)",
+            "best": None
+            if best is None
+            else {
+                "trial": best.number,
+                "params": best.params,
+                "arguments": {**fixed, **best_arguments},
+                "resolved": resolved({**fixed, **best_arguments}),
+                "objective": best.value,
+            },
+            "default": {
+                "arguments": defaults,
+                "resolved": resolved(fixed),
+                "objective": default_row.get("objective"),
+            },
+            "evaluation": evaluation,
+            "recommended": recommend(
+                evaluation, None if best is None else {**fixed, **best_arguments}, defaults
+            ),
+            "failed_trials": [r["trial"] for r in rows if r["status"] == "failed"],
+            "trials": rows,
         }
-
-    options = {"engine": engine, "address": address, "num_cpus": num_cpus, "progress": False}
-
-    def evaluate_once(
-        key: str, arguments: Mapping[str, Any], first_seed: int, count: int = num_seeds
-    ) -> dict:
-        """The row of one configuration, kept in the study so a resumed run reuses it."""
-        if key not in study.user_attrs:
-            outcomes: list[Outcome] = []
-            run_each(
-                evaluate,
-                [call(arguments, first_seed, count)],
-                lambda i, o: outcomes.append(o),
-                **options,
+        if run is not None:
+            paths = write_tune(
+                result, run.path, engine=engine, device=device, torch_threads=threads
             )
-            study.set_user_attr(key, _outcome_row(outcomes[0]))
-        return dict(study.user_attrs[key])
-
-    session = ray_session(address, num_cpus) if engine == "ray" else contextlib.nullcontext()
-    desc = f"tune {name} ({engine})"
-    with session, tqdm(total=trials + 3, desc=desc, disable=not progress) as bar:
-        default_row = evaluate_once("default_row", {}, seed)
-        bar.update(1)
-        for start in range(0, trials, batch):
-            numbers = range(start, min(start + batch, trials))
-            known = {t.number: t for t in study.get_trials(deepcopy=False)}
-            for number in numbers:
-                seeds = {"sampler_seed": sampler_seed, "number": number, "trials": trials}
-                if number not in known:  # asked in order: every earlier trial exists
-                    study.sampler = _sampler(optuna, **seeds)
-                    trial = study.ask()
-                    if trial.number != number:
-                        raise RuntimeError(f"the study asked trial {trial.number}, not {number}")
-                    _suggest_all(optuna, study, trial, dims, **seeds)
-                elif not known[number].state.is_finished() and set(known[number].params) != {
-                    d.name for d in dims
-                }:  # cut off while its parameters were drawn: the rest are drawn now
-                    trial = optuna.trial.Trial(study, known[number]._trial_id)
-                    _suggest_all(optuna, study, trial, dims, **seeds)
-            known = {t.number: t for t in study.get_trials(deepcopy=False)}
-            pending = [n for n in numbers if not known[n].state.is_finished()]
-            bar.update(len(numbers) - len(pending))
-            arguments = [_arguments(dims, known[n].params) for n in pending]
-
-            def finished(i: int, outcome: Outcome, pending: list[int] = pending) -> None:
-                number = pending[i]
-                study.set_user_attr(f"row_{number}", _outcome_row(outcome))
-                if outcome.ok:
-                    study.tell(number, outcome.value["objective"])
-                else:
-                    study.tell(number, state=optuna.trial.TrialState.FAIL)
-                bar.update(1)
-                if run is not None:
-                    write_table(_trial_rows(study, trials), run.path / "study.csv")
-
-            run_each(evaluate, [call(a, seed) for a in arguments], finished, **options)
-        rows = _trial_rows(study, trials)
-        complete = [
-            t for t in study.get_trials(deepcopy=False) if t.number < trials and t.value is not None
-        ]
-        best = max(complete, key=lambda t: (t.value, -t.number)) if complete else None
-        best_arguments = _arguments(dims, best.params) if best is not None else None
-        evaluation = {"best": None, "default": None}
-        if best is not None:
-            evaluation["best"] = evaluate_once(
-                f"evaluation_best_{best.number}", best_arguments, eval_seed, eval_seeds
-            )
-        evaluation["default"] = evaluate_once("evaluation_default", {}, eval_seed, eval_seeds)
-        bar.update(2)
-    defaults = {**entry.defaults(), **fixed}
-    make = entry.make
-
-    def resolved(arguments: Mapping[str, Any]) -> dict[str, Any]:
-        """Every parameter the scenario used (``Scenario.params``), where it records them."""
-        built = make(**arguments, num_seeds=1, seed=seed, device=device)
-        params = getattr(built, "params", None) or {}
-        return {k: v for k, v in params.items() if k not in ("num_seeds", "seed")}
-
-    result = {
-        "scenario": name,
-        "fixed": fixed,
-        "space": {d.name: d.describe() for d in dims},
-        "tuning_seeds": {"first": seed, "count": num_seeds},
-        "evaluation_seeds": {"first": eval_seed, "count": eval_seeds},
-        "sampler": {"name": "TPESampler", "seed": sampler_seed, "batch": batch},
-        "objective": "success rate + tie-break / (2 seeds) (torchcbf.sweep.evaluate)",
-        "best": None
-        if best is None
-        else {
-            "trial": best.number,
-            "params": best.params,
-            "arguments": {**fixed, **best_arguments},
-            "resolved": resolved({**fixed, **best_arguments}),
-            "objective": best.value,
-        },
-        "default": {
-            "arguments": defaults,
-            "resolved": resolved(fixed),
-            "objective": default_row.get("objective"),
-        },
-        "evaluation": evaluation,
-        "recommended": recommend(
-            evaluation, None if best is None else {**fixed, **best_arguments}, defaults
-        ),
-        "failed_trials": [r["trial"] for r in rows if r["status"] == "failed"],
-        "trials": rows,
-    }
-    if run is not None:
-        paths = write_tune(result, run.path, engine=engine, device=device, torch_threads=threads)
-        run.record(STORAGE, *paths.values())
-        run.finish()
-    return result
+            run.record(STORAGE, *paths.values())
+            run.finish()
+        return result
+    finally:
+        if run is not out:  # claimed here: released however the run ends
+            run.release()
 
 
 def recommend(
