@@ -179,6 +179,37 @@ def test_traced_sees_globals_and_record_fields_its_modules_read():
         SHIFT = 1.0
 
 
+class _Margin(torch.nn.Module):
+    """A class attribute read as ``self.MARGIN``, and two scalar buffers of one shape."""
+
+    MARGIN = 0.1
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.register_buffer("r", torch.tensor(0.5, dtype=torch.float64))
+        self.register_buffer("m", torch.tensor(0.1, dtype=torch.float64))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return (x**2).sum(-1) - self.r**2 - self.m - self.MARGIN
+
+
+def test_traced_sees_class_attributes_and_buffers_registered_again_in_another_order():
+    mod = _Margin()
+    traced = Traced(lambda x: (mod(x),), [mod])
+    x = torch.tensor([[0.3, 0.2]], dtype=torch.float64)
+    try:
+        with torch.no_grad():
+            torch.testing.assert_close(traced(x)[0], mod(x))
+            _Margin.MARGIN = 0.2  # the class's: every instance reads it
+            torch.testing.assert_close(traced(x)[0], mod(x))
+            del mod.r  # registered again after m: the same shapes, in another order
+            mod.register_buffer("r", torch.tensor(0.7, dtype=torch.float64))
+            torch.testing.assert_close(traced(x)[0], mod(x))
+            torch.testing.assert_close(mod(x), torch.tensor([0.13 - 0.49 - 0.1 - 0.2]).double())
+    finally:
+        _Margin.MARGIN = 0.1
+
+
 def test_traced_sees_hooks_registered_and_removed_after_its_first_call():
     mod = _Scaled().double()
     traced = Traced(lambda x: (mod(x),), [mod])
@@ -263,3 +294,21 @@ def test_compiled_instances_keep_graphs_of_their_own():
     torch.testing.assert_close(second(x), torch.full((3,), 21.0))
     assert first.compiled.__wrapped__.__code__ is not second.compiled.__wrapped__.__code__
     torch.testing.assert_close(Compiled(_Doubled().double, {})(x), torch.full((3,), 3.0))
+
+
+WIND = [0.0, 0.1, 0.2]
+
+
+def test_compiled_traces_an_argument_read_as_a_number_one_value_at_a_time():
+    """A step that indexes a list with its step index cannot take the index as an unbacked
+    symbol: it is compiled as torch.compile would, not refused."""
+    from torchcbf._compile import Compiled
+
+    def step(x, j):
+        return x + WIND[j]
+
+    compiled = Compiled(step, {"backend": "eager"}, unbacked=("j",))
+    x = torch.zeros(2)
+    for j in range(3):
+        torch.testing.assert_close(compiled(x, j), x + WIND[j])
+    assert compiled.compiled is not None and compiled.unbacked == ()

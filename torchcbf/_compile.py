@@ -72,10 +72,19 @@ class Compiled:
         if self.compiled is None:
             return self.eager(*args)
         from torch._dynamo.exc import BackendCompilerFailed
+        from torch.fx.experimental.symbolic_shapes import GuardOnDataDependentSymNode
 
         try:
             with _trusting_isa(self._first), _unbacked_arguments(self.unbacked, self._first):
                 out = self.compiled(*args)
+        except GuardOnDataDependentSymNode:
+            if not (self._first and self.unbacked):
+                raise
+            # the function reads an unbacked argument as a number (indexes a list with the
+            # step): trace it as torch would, one value at a time
+            self.unbacked = ()
+            self.compiled = torch.compile(_own_code(self.eager), **self.options)
+            return self(*args)
         except BackendCompilerFailed as err:
             logger.warning("torchcbf: torch.compile failed (%s); running eager", err)
             self.compiled = None
@@ -325,6 +334,19 @@ def _class_globals(cls: type) -> list[tuple[dict[str, Any], str]]:
     return found
 
 
+def _class_values(cls: type) -> list[tuple[Any, str]]:
+    """``(class dict, name)`` of the plain values (numbers, strings) that a user's module
+    class and its user bases hold as class attributes (``MARGIN = 0.1`` read as
+    ``self.MARGIN``; ``Disc.MARGIN = 0.2`` later is seen)."""
+    return [
+        (vars(klass), name)
+        for klass in cls.__mro__
+        if (getattr(klass, "__module__", None) or "").split(".")[0] not in _LIBRARY_MODULES
+        for name, value in vars(klass).items()
+        if not name.startswith("__") and isinstance(value, _PRIMITIVES)
+    ]
+
+
 #: top-level modules whose classes' methods read no global that changes
 _LIBRARY_MODULES = frozenset({"torch", "torchcbf", "builtins", ""})
 
@@ -362,7 +384,9 @@ class Traced:
     mutated in place is seen), the fields of a ``SimpleNamespace`` or dataclass among them
     (``module.cfg.gain = 2.0`` is seen; a tensor field is lifted like an attribute), the
     numbers and strings that the methods of a user's module class read as globals (not
-    those they assign: a call counter does not trace again), the identity of every other
+    those they assign: a call counter does not trace again) and that the class holds as
+    class attributes (``Disc.MARGIN = 0.2`` is seen), the names of the places of the state
+    (a buffer registered again in another order), the identity of every other
     attribute and submodule (a replaced function or network traces again), and the shape,
     dtype and device of every lifted tensor (``.data =`` with a new shape or dtype is seen).
     New tensor values, in place or by ``.to()``, reuse the code. A tensor that ``fn``
@@ -451,6 +475,7 @@ class Traced:
             if not any(c is type(mod) for c in classes):  # each class once
                 classes.append(type(mod))
                 slots.extend(_class_globals(type(mod)))
+                slots.extend(_class_values(type(mod)))
             stack.extend(m for m in mod._modules.values() if m is not None)
         return slots, hook_dicts(found)
 
@@ -487,7 +512,10 @@ class Traced:
         """The record of a call with ``values`` (arguments, then the modules' state), its
         graph compiled where its key is new."""
         self.lookups += 1
-        key = (*(_freeze(v) for v in values), *(_freeze(d) for d in self._hooks))
+        # the names of the state's places too: tensors of equal shapes in another order
+        # (a buffer registered again) would otherwise find a graph that reads them swapped
+        names = tuple(k for _, k in self._slots or ())
+        key = (*(_freeze(v) for v in values), *(_freeze(d) for d in self._hooks), names)
         found = self._graphs.get(key)
         if found is None:
             try:

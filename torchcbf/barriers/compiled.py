@@ -127,6 +127,9 @@ class CompiledLie:
                 )
                 self._call = None
                 return None
+            if self._call.compiled is None:  # the backend failed and ran it eagerly
+                self._call = None
+                return None
             h, lfh, lgh, dhdt, dhdx = out[:5]
             self.sizes = list(self.traced_sizes)
         terms = LieTerms(h, lfh, lgh, dhdt, out[5] if self.hessian else None, dhdx)
