@@ -509,3 +509,71 @@ def test_a_subclass_with_a_one_argument_pointwise_cost_still_plans() -> None:
     states = torch.linspace(0.0, 2.0, 5).reshape(1, 1, 5, 1).expand(1, 2, 5, 1)
     cost = spec(states.double(), None, 0.0, dt=0.1)
     torch.testing.assert_close(cost, torch.zeros(1, 2, dtype=torch.float64))
+
+
+def _line_rollouts(dtype: torch.dtype) -> torch.Tensor:
+    """Two rollouts of 5 states from the origin: one toward +x (to B), one toward -x."""
+    steps = torch.arange(5, dtype=dtype)[:, None] * torch.tensor([0.5, 0.0], dtype=dtype)
+    return torch.stack([steps, -steps])[None]  # [1, 2, 5, 2]
+
+
+def test_or_steers_to_the_children_the_history_has_not_made_fail(dtype):
+    """A's window closed unmet (its frozen cost would cap the minimum); an Always child
+    broken in the history likewise: the Or ranks rollouts as B alone does. Once the
+    history holds B, the Or's cost is constant."""
+    states = _line_rollouts(dtype)
+    A = Reach((1.0, 0.0), 0.2, (0.0, 0.3))
+    B = Reach((3.0, 0.0), 0.2, (0.0, 8.0))
+    stay = Always(lambda x: 0.1 - x[..., 1].abs(), (0.0, 0.5))  # |y| <= 0.1 until 0.5 s
+    past = torch.tensor([[[0.0, 0.0], [0.0, 0.5]]], dtype=dtype)
+    history = History(past, torch.tensor([[0.0, 0.2]], dtype=dtype), torch.ones(1, 2).bool())
+    t0 = torch.tensor([1.0], dtype=dtype)
+    alone = B(states, None, t0, dt=0.1, history=history)
+    assert float(alone[0, 0]) < float(alone[0, 1])
+    for failed in (A, stay):
+        got = Or(failed, B)(states, None, t0, dt=0.1, history=history)
+        torch.testing.assert_close(got, alone)
+        assert int(Or(failed, B).outcome(t0[:, None], history)) == 0
+        assert int(failed.outcome(t0[:, None], history)) == -1
+    at_b = History(torch.tensor([[[3.0, 0.05]]], dtype=dtype), torch.tensor([[0.9]], dtype=dtype),
+                   torch.ones(1, 1, dtype=torch.bool))  # fmt: skip
+    done = Or(A, B)(states, None, t0, dt=0.1, history=at_b)
+    assert float(done[0, 0]) == float(done[0, 1])
+    assert int(Or(A, B).outcome(t0[:, None], at_b)) == 1
+
+
+def test_robustness_gradient_at_a_disc_centre_is_finite():
+    """A state on the centre (outside the window, or not the extreme one) has no influence;
+    the square root's infinite derivative there made every gradient NaN."""
+    x = torch.tensor([[[4.0, 4.0], [0.0, 0.0], [3.8, 4.0]]], dtype=torch.float64)
+    x.requires_grad_(True)
+    times = torch.tensor([0.0, 1.0, 2.0], dtype=torch.float64)
+    rob = Reach((4.0, 4.0), 0.5, (1.5, 3.0)).robustness(x, times)
+    rob = rob + Avoid((0.0, 0.0), 0.1, interval=(0.0, 0.5)).robustness(x, times)
+    (grad,) = torch.autograd.grad(rob.sum(), x)
+    want = torch.zeros_like(x)
+    want[0, 2, 0] = 1.0  # Reach: -(p - c) / |p - c| at the one state in its window
+    want[0, 0] = 1.0 / math.sqrt(2.0)  # Avoid: p / |p| at (4, 4), its one state
+    torch.testing.assert_close(grad, want)
+
+
+def test_float32_window_edges_hold_far_from_time_zero():
+    """float32 times near 1,000 s are 6e-5 s apart: a state at a deadline stays in."""
+    spec = Reach((0.0, 0.0), 0.5, (1000.0, 1000.8))
+    states = torch.zeros(1, 1, 5, 2)
+    states[..., :-1, 0] = 5.0  # only the last state, at the deadline, is in the goal
+    cost = spec(states, None, torch.tensor([1000.4]), dt=0.1)
+    assert float(cost) < 0
+    assert float(spec.robustness(states[0], 1000.4 + 0.1 * torch.arange(5.0))) == 0.5
+
+
+def test_empty_trajectories_and_windows_that_hold_no_time():
+    states = torch.zeros(2, 0, 2)
+    assert Reach((0.0, 0.0), 0.5).robustness(states, torch.zeros(0)).tolist() == [-math.inf] * 2
+    assert Avoid((0.0, 0.0), 0.5).robustness(states, torch.zeros(0)).tolist() == [math.inf] * 2
+    for bad in ((math.inf, math.inf), (-math.inf, -math.inf), (2.0, 1.0), (0.0, 1.0, 2.0)):
+        with pytest.raises(ValueError, match="interval must be"):
+            Reach((0.0, 0.0), 0.5, bad)
+    for bad in (5, (None, 1.0)):
+        with pytest.raises(TypeError, match="interval must be a pair of numbers"):
+            Reach((0.0, 0.0), 0.5, bad)

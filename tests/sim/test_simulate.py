@@ -725,3 +725,17 @@ def test_a_measurement_that_fails_at_the_last_step_fails_the_row() -> None:
                     sensor=sensor.double(), progress=False)  # fmt: skip
     assert traj.failed.tolist() == [True, False] and traj.fail_step.tolist() == [4, -1]
     assert bool(torch.isfinite(traj.x_hat).all())
+
+
+def test_a_goal_is_checked_when_made():
+    for kwargs, error, message in (
+        ({"center": (1.0,), "radius": 0.2}, ValueError, "center has 1 entries but index names 2"),
+        ({"center": (1.0, 0.0), "radius": -0.5}, ValueError, "radius must be a finite number"),
+        ({"center": (1.0, 0.0), "radius": math.nan}, ValueError, "radius must be a finite"),
+        ({"center": (math.nan, 0.0), "radius": 0.2}, ValueError, "center"),
+        ({"center": (1.0, 0.0), "radius": 0.2, "deadline": math.nan}, ValueError, "deadline"),
+        ({"center": (1.0, 0.0), "radius": 0.2, "index": (0, 0)}, ValueError, "index"),
+    ):
+        with pytest.raises(error, match=message):
+            Goal(**kwargs)
+    assert Goal((1.0,), 0.2, index=(0,)).radius == 0.2

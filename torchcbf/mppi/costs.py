@@ -74,6 +74,12 @@ def squared_distance(x: Tensor, index: tuple[int, ...] | slice, center: Tensor) 
     return diff.square_().sum(-1)
 
 
+def root(d2: Tensor) -> Tensor:
+    """``sqrt(d2)`` of squared distances with the subgradient 0 at 0 (the square root's
+    derivative is infinite there, and a zero upstream gradient times it NaN)."""
+    return d2.clamp_min(torch.finfo(d2.dtype).tiny).sqrt()
+
+
 def time_varying(barrier: object) -> bool:
     """Whether a barrier (any callable) declares itself time-varying (``b(x, t)``)."""
     return bool(getattr(barrier, "time_varying", False))
@@ -220,7 +226,7 @@ class ObstacleCost(RolloutCost):
         self.radius, self.k_o, self.eps = radius, float(k_o), eps
 
     def stage(self, states: Tensor, controls: Tensor | None) -> Tensor:
-        dist = squared_distance(states, self.index, self.center).sqrt() - self.radius
+        dist = root(squared_distance(states, self.index, self.center)) - self.radius
         return self.k_o / dist.clamp_min(self.eps)
 
 
@@ -434,6 +440,7 @@ __all__ = [
     "SumCost",
     "constant",
     "rollout_times",
+    "root",
     "select",
     "squared_distance",
     "state_index",

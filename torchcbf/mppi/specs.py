@@ -3,8 +3,9 @@
 The fragment: Boolean combinations (:class:`And`, :class:`Or`) of timed :class:`Always` /
 :class:`Eventually` of *state predicates* ``rho(x) [..., n] -> [...]`` (``rho >= 0`` means the
 predicate holds). Intervals are in global time (the time of the simulation, not relative to
-the evaluation time), closed, with a tolerance ``time_tol`` (1e-5 s) so that sampled times
-like ``35 * 0.1`` fall inside ``[0, 3.5]`` in float32. :class:`Reach` and :class:`Avoid` are
+the evaluation time), closed, with a tolerance ``time_tol`` (1e-5 s, widened to the
+rounding of the times' dtype near the window's ends) so that sampled times like ``35 * 0.1``
+fall inside ``[0, 3.5]`` in float32. :class:`Reach` and :class:`Avoid` are
 the two predicates of scenario A (docs/scenarios.md).
 
 **Robustness** (``robustness(states [..., T, n], times [T] or [..., T]) -> [...]``, positive
@@ -53,6 +54,7 @@ from torchcbf.mppi.costs import (
     constant,
     point_index,
     rollout_times,
+    root,
     squared_distance,
     time_varying,
     untimed,
@@ -66,6 +68,13 @@ def _masked(c: Tensor, mask: Tensor, value: float, *, own: bool) -> Tensor:
     """``c`` with ``value`` where ``mask``: in place where ``own`` (a tensor made here), out
     of place where ``c`` is what a user's function returned (a view of the states, say)."""
     return c.masked_fill_(mask, value) if own else c.masked_fill(mask, value)
+
+
+def _over_time(rho: Tensor, reduce: Callable[..., Tensor], empty: float) -> Tensor:
+    """``reduce`` (amax or amin) of ``rho [..., T]`` over time; ``empty`` for no sample."""
+    if rho.shape[-1] == 0:
+        return rho.new_full(rho.shape[:-1], empty)
+    return reduce(rho, -1)
 
 
 def pointwise(rho: Tensor, states: Tensor, name: str) -> Tensor:
@@ -90,6 +99,13 @@ class Spec(Adds, nn.Module):
     def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
         """Cost ``[B, K]`` of rollouts ``states [B, K, T, n]`` at ``times [B, T]``."""
         raise NotImplementedError(f"{type(self).__name__} must define plan_cost()")
+
+    def outcome(self, times: Tensor, history: History | None) -> Tensor | None:
+        """``[B]``: 1 where the executed ``history`` has made the specification hold
+        whatever comes next, -1 where it has made it fail, 0 where the rollouts from
+        ``times [B, T]`` still decide; ``None`` where nothing is known (no history, or a
+        specification that does not say)."""
+        return None
 
     def forward(
         self,
@@ -128,9 +144,24 @@ class _Temporal(Spec):
             raise TypeError(f"cost must be callable or None, got {type(cost).__name__}")
         if interval is None:
             interval = (-math.inf, math.inf)
-        if len(interval) != 2 or not float(interval[0]) <= float(interval[1]):
-            raise ValueError(f"interval must be (t1, t2) with t1 <= t2, got {interval}")
-        self.interval = (float(interval[0]), float(interval[1]))
+        try:
+            ends = [float(t) for t in interval]
+        except (TypeError, ValueError):
+            raise TypeError(
+                f"interval must be a pair of numbers (t1, t2), got {interval!r}"
+            ) from None
+        if (
+            len(ends) != 2
+            or not ends[0] <= ends[1]
+            or math.inf in ends[:1]
+            or -math.inf in ends[1:]
+        ):
+            raise ValueError(
+                f"interval must be (t1, t2) with t1 <= t2 and a finite time in between, "
+                f"got {interval}"
+            )
+        t1, t2 = ends
+        self.interval = (t1, t2)
         self.predicate_fn = predicate
         self.cost_fn = cost
 
@@ -190,9 +221,20 @@ class _Temporal(Spec):
         return c
 
     def in_window(self, times: Tensor) -> Tensor:
-        """Bool mask of the times inside the interval (closed, with ``time_tol``)."""
+        """Bool mask of the times inside the interval (closed, with :meth:`tolerance`)."""
         t1, t2 = self.interval
-        return (times >= t1 - self.time_tol) & (times <= t2 + self.time_tol)
+        tol = self.tolerance(times)
+        return (times >= t1 - tol) & (times <= t2 + tol)
+
+    def tolerance(self, times: Tensor) -> float:
+        """``time_tol``, widened to the rounding of times of ``times``' dtype near the
+        window's ends (float32 times near 1,000 s are 6e-5 s apart)."""
+        ends = [abs(t) for t in self.interval if math.isfinite(t)]
+        return self.time_tol + 8 * torch.finfo(times.dtype).eps * max(ends, default=0.0)
+
+    def _passed(self, times: Tensor) -> Tensor:
+        """``[B]``: whether the window closed before the first of ``times [B, T]``."""
+        return times[:, 0] > self.interval[1] + self.tolerance(times)
 
     def extra_repr(self) -> str:
         return f"interval={self.interval}"
@@ -230,7 +272,7 @@ class Eventually(_Temporal):
     def robustness(self, states: Tensor, times: Tensor) -> Tensor:
         rho = self.predicate_at(states, times)
         mask = self.in_window(times.to(rho.dtype)).expand(rho.shape)
-        return rho.masked_fill(~mask, -math.inf).amax(-1)
+        return _over_time(rho.masked_fill(~mask, -math.inf), torch.amax, -math.inf)
 
     def _ramp(self, times: Tensor) -> Tensor | None:
         """``urgency (t_j - t0)``: ``[B, 1, T]``, or None without urgency."""
@@ -259,17 +301,27 @@ class Eventually(_Temporal):
         window = self.in_window(times)  # [B, T]
         roll_min, last = self.rollout_min_cost(states, window, self._ramp(times), times)
         roll = torch.where(window.any(-1, keepdim=True), roll_min, last)
-        passed = times[:, :1] > self.interval[1] + self.time_tol
+        passed = self._passed(times).unsqueeze(-1)
         if history is None:
             return torch.where(passed, torch.zeros_like(roll), roll)
         h_window = history.valid & self.in_window(history.times)  # [B, N]
         h_cost = self.pointwise_cost_at(history.states, history.times)
         h_min = h_cost.masked_fill(~h_window, math.inf).amin(-1)
-        reached = (h_window & (self.predicate_at(history.states, history.times) >= 0)).any(-1)
-        frozen = reached.unsqueeze(-1) | passed
+        frozen = self._held(history, h_window).unsqueeze(-1) | passed
         h_min = h_min.unsqueeze(-1)
         constant = torch.where(torch.isfinite(h_min), h_min, torch.zeros_like(h_min))
         return torch.where(frozen, constant, torch.minimum(roll, h_min))
+
+    def _held(self, history: History, h_window: Tensor) -> Tensor:
+        """``[B]``: whether a state of the history inside the window satisfies the predicate."""
+        return (h_window & (self.predicate_at(history.states, history.times) >= 0)).any(-1)
+
+    def outcome(self, times: Tensor, history: History | None) -> Tensor | None:
+        if history is None:
+            return None
+        held = self._held(history, history.valid & self.in_window(history.times))
+        passed = self._passed(times)
+        return torch.where(held, 1, torch.where(passed, -1, 0))
 
 
 class Always(_Temporal):
@@ -293,7 +345,7 @@ class Always(_Temporal):
     def robustness(self, states: Tensor, times: Tensor) -> Tensor:
         rho = self.predicate_at(states, times)
         mask = self.in_window(times.to(rho.dtype)).expand(rho.shape)
-        return rho.masked_fill(~mask, math.inf).amin(-1)
+        return _over_time(rho.masked_fill(~mask, math.inf), torch.amin, math.inf)
 
     def rollout_max_cost(
         self, states: Tensor, window: Tensor, times: Tensor | None = None
@@ -306,6 +358,14 @@ class Always(_Temporal):
     def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
         window = self.in_window(times)  # [B, T]
         return self._windowed(self.rollout_max_cost(states, window, times), window)
+
+    def outcome(self, times: Tensor, history: History | None) -> Tensor | None:
+        if history is None:
+            return None
+        h_window = history.valid & self.in_window(history.times)
+        broken = (h_window & (self.predicate_at(history.states, history.times) < 0)).any(-1)
+        passed = self._passed(times)
+        return torch.where(broken, -1, torch.where(passed, 1, 0))
 
     @staticmethod
     def _windowed(worst: Tensor, window: Tensor) -> Tensor:
@@ -340,7 +400,7 @@ class Reach(Eventually):
         self.weight = check_positive("weight", weight)
 
     def predicate(self, states: Tensor) -> Tensor:
-        return self.radius - squared_distance(states, self.index, self.center).sqrt()
+        return self.radius - root(squared_distance(states, self.index, self.center))
 
     def pointwise_cost(self, states: Tensor) -> Tensor:
         return self.weight * (squared_distance(states, self.index, self.center) - self.radius**2)
@@ -413,7 +473,7 @@ class Avoid(Always):
         if self.barrier is not None:
             untimed("Avoid.predicate", self.barrier)
             return pointwise(self.barrier(states), states, "barrier")
-        return squared_distance(states, self.index, self.center).sqrt() - self.radius
+        return root(squared_distance(states, self.index, self.center)) - self.radius
 
     def predicate_at(self, states: Tensor, times: Tensor) -> Tensor:
         if self.barrier is not None and time_varying(self.barrier):
@@ -433,7 +493,7 @@ class Avoid(Always):
         outside = ~window.unsqueeze(1)
         if self.barrier is None:
             d2 = squared_distance(states, self.index, self.center)
-            return self._cost_of(d2.masked_fill_(outside, math.inf).amin(-1).sqrt() - self.radius)
+            return self._cost_of(root(d2.masked_fill_(outside, math.inf).amin(-1)) - self.radius)
         if times is None:
             rho = self.predicate(states)
         else:
@@ -456,6 +516,15 @@ class _Combination(Spec):
                 raise TypeError(f"{type(self).__name__} takes Spec objects, got {type(s).__name__}")
         self.specs = nn.ModuleList(specs)
 
+    def _outcomes(self, times: Tensor, history: History | None) -> Tensor | None:
+        """The children's outcomes ``[C, B]`` (0 for one that does not say), or ``None``
+        where none says."""
+        found = [s.outcome(times, history) for s in self.specs]
+        if all(o is None for o in found):
+            return None
+        zero = next(o for o in found if o is not None).new_zeros(())
+        return torch.stack([zero.expand(times.shape[0]) if o is None else o for o in found])
+
 
 class And(_Combination):
     """All children hold. Robustness: minimum; cost: sum of the children's costs."""
@@ -472,9 +541,18 @@ class And(_Combination):
             out = out + s.plan_cost(states, times, history)
         return out
 
+    def outcome(self, times: Tensor, history: History | None) -> Tensor | None:
+        found = self._outcomes(times, history)
+        if found is None:
+            return None
+        return torch.where((found < 0).any(0), -1, torch.where((found > 0).all(0), 1, 0))
+
 
 class Or(_Combination):
-    """Some child holds. Robustness: maximum; cost: minimum of the children's costs."""
+    """Some child holds. Robustness: maximum; cost: minimum of the children's costs, over
+    those the executed history has not already made fail (a goal whose window closed unmet
+    would otherwise cap the cost with its constant, and nothing would steer to the others);
+    once the history makes one hold, the least of those that hold (a constant)."""
 
     def robustness(self, states: Tensor, times: Tensor) -> Tensor:
         out = self.specs[0].robustness(states, times)
@@ -483,7 +561,18 @@ class Or(_Combination):
         return out
 
     def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
-        out = self.specs[0].plan_cost(states, times, history)
-        for s in self.specs[1:]:
-            out = torch.minimum(out, s.plan_cost(states, times, history))
-        return out
+        costs = torch.stack([s.plan_cost(states, times, history) for s in self.specs])
+        least = costs.amin(0)
+        found = self._outcomes(times, history)
+        if found is None:
+            return least
+        held, failed = (found > 0).unsqueeze(-1), (found < 0).unsqueeze(-1)  # [C, B, 1]
+        open_least = costs.masked_fill(failed, math.inf).amin(0)
+        held_least = costs.masked_fill(~held, math.inf).amin(0)
+        return torch.where(held.any(0), held_least, torch.where(failed.all(0), least, open_least))
+
+    def outcome(self, times: Tensor, history: History | None) -> Tensor | None:
+        found = self._outcomes(times, history)
+        if found is None:
+            return None
+        return torch.where((found > 0).any(0), 1, torch.where((found < 0).all(0), -1, 0))

@@ -11,6 +11,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from torchcbf._checks import as_tensor, check_finite, check_index, check_number
 from torchcbf.sim.trajectory import Trajectory
 
 
@@ -22,6 +23,18 @@ class Goal:
     radius: float
     index: tuple[int, ...] = (0, 1)
     deadline: float | None = None
+
+    def __post_init__(self) -> None:
+        index = check_index("index", self.index, None)
+        center = as_tensor("center", self.center, dtype=torch.float64).reshape(-1)
+        check_finite("center", center)
+        if center.numel() != len(index):
+            raise ValueError(
+                f"center has {center.numel()} entries but index names {len(index)} components"
+            )
+        check_number("radius", self.radius, low=0.0)
+        if self.deadline is not None:
+            check_number("deadline", self.deadline)
 
 
 def _first_time(mask: Tensor, t: Tensor) -> Tensor:
