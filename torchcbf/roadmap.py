@@ -174,7 +174,7 @@ def roadmap_paths(
         d0[:, i] = torch.where(ok0, (vb - q0).norm(dim=-1), inf)
         d1[:, i] = torch.where(ok1, (qt - vb).norm(dim=-1), inf)
     total = d0[:, :, None] + dist[None] + d1[:, None, :]  # [B, N, N]
-    best, flat = total.reshape(B, -1).min(-1)
+    best, flat = total.reshape(B, N * N).min(-1)
     has_via = torch.isfinite(best) & ~direct
     first, last = flat // N, flat % N
     hops = [first]

@@ -207,3 +207,28 @@ def test_a_start_that_is_not_finite_is_the_last_choice(planar: Manipulator) -> N
     start = torch.tensor([[nan, 0.0, 0.0], [nan, 0.0, 0.0]], dtype=torch.float64)
     res = planar.inverse_kinematics(far, start, iters=50)
     assert bool(torch.isfinite(res.q).all()) and res.converged.tolist() == [False, True]
+
+
+def test_a_locked_joint_and_a_start_that_is_not_finite() -> None:
+    """A revolute joint whose <limit> gives no range (lower = upper = 0) keeps its value;
+    a start with NaN entries starts from random values there, inside the limits."""
+    urdf = (
+        '<robot name="r"><link name="base"/><link name="l1"/><link name="l2"/>'
+        '<link name="tip"/><joint name="j1" type="revolute"><parent link="base"/>'
+        '<child link="l1"/><axis xyz="0 0 1"/>'
+        '<limit lower="-2" upper="2" velocity="1" effort="1"/></joint>'
+        '<joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/>'
+        '<origin xyz="0.5 0 0"/><axis xyz="0 0 1"/><limit velocity="1" effort="1"/></joint>'
+        '<joint name="jt" type="fixed"><parent link="l2"/><child link="tip"/>'
+        '<origin xyz="0.3 0 0"/></joint></robot>'
+    )
+    arm = Manipulator(urdf)
+    target = arm.end_effector(torch.tensor([0.4, 0.0], dtype=torch.float64))
+    out = arm.inverse_kinematics(target)
+    assert bool(out.converged) and float(out.q[1]) == 0.0
+    planar = Manipulator("planar3")
+    goal = planar.end_effector(torch.tensor([0.3, -0.4, 0.2], dtype=torch.float64))
+    start = torch.tensor([float("nan"), 0.0, 0.0], dtype=torch.float64)
+    res = planar.inverse_kinematics(goal, q_init=start, restarts=1)
+    assert bool(torch.isfinite(res.q).all())
+    assert bool(((res.q >= planar.q_min) & (res.q <= planar.q_max)).all())

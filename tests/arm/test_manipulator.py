@@ -382,3 +382,22 @@ def test_limits_given_on_one_side_and_a_joint_that_cannot_move() -> None:
     assert torch.equal(at_target, torch.zeros_like(q))
     away = JointSpaceController(frozen, torch.zeros(3, dtype=torch.float64))(q)
     assert away[0, 1] == 0.0 and bool((away[0, [0, 2]] != 0).all())
+
+
+def test_a_floating_joint_and_controller_gains_that_are_not_finite_are_refused() -> None:
+    floating = (
+        '<robot name="r"><link name="a"/><link name="b"/><joint name="j" type="floating">'
+        '<parent link="a"/><child link="b"/></joint></robot>'
+    )
+    with pytest.raises(ValueError, match="urdf has a 'floating' joint"):
+        Manipulator(floating)
+    arm = Manipulator("planar3")
+    for kwargs in ({"gain": math.inf}, {"velocity_gain": math.nan}, {"damping": math.inf}):
+        with pytest.raises(ValueError, match="must be a finite number"):
+            ResolvedRateController(arm, [0.5, 0.5, 0.0], **kwargs)
+    with pytest.raises(ValueError, match="gain must be a finite number > 0"):
+        JointSpaceController(arm, [0.1, 0.2, 0.3], gain=math.inf)
+    # a target given as numbers stays exact for a float64 state
+    ctrl = JointSpaceController(arm, [0.1, 0.2, 0.3])
+    q = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    assert float(ctrl.joint_velocity(q).abs().max()) == 0.0

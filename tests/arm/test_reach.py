@@ -256,6 +256,9 @@ def test_roadmap_inputs_are_checked(ik_scenario: arm_reach.ArmReachScenario) -> 
         roadmap_paths(sc.arm, sc.collision, q0, qt, 0.03, gen, nodes=0)
     with pytest.raises(ValueError, match="clearance must be a finite number"):
         roadmap_paths(sc.arm, sc.collision, q0, qt, float("nan"), gen)
+    none = q0[:0]
+    waypoints, found, _, _ = roadmap_paths(sc.arm, sc.collision, none, none, 0.03, gen, nodes=8)
+    assert waypoints.shape[0] == 0 and waypoints.shape[-1] == dof and found.shape == (0,)
     accel = Manipulator("planar3", control="acceleration")
     with pytest.raises(ValueError, match="needs an arm with control='velocity'"):
         RoadmapController(accel, sc.nominal.roadmap, sc.collision, sc.q_goal, sc.q0)

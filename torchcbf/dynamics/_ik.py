@@ -73,7 +73,7 @@ def _limits(arm: Manipulator, margin: float, like: Tensor) -> tuple[Tensor, Tens
     """Clamp bounds (``+-inf`` for unlimited joints) and sampling bounds (``[-pi, pi]``)."""
     lo = arm.q_min.to(like) + margin
     hi = arm.q_max.to(like) - margin
-    if bool((lo >= hi).any()):
+    if bool((lo > hi).any()):  # a locked joint (q_min = q_max) keeps its one value
         raise ValueError(f"limit_margin {margin} leaves an empty range for some joint")
     s_lo = torch.where(torch.isfinite(lo), lo, torch.full_like(lo, -math.pi))
     s_hi = torch.where(torch.isfinite(hi), hi, torch.full_like(hi, math.pi))
@@ -187,9 +187,10 @@ def inverse_kinematics(
     Returns:
         :class:`IKResult` ``(q [..., dof], converged [...], error [...])``, in the target's
         dtype and device. The solve is not differentiated (the outputs carry no gradient).
-        A row whose target is not finite is not converged (its error NaN) and leaves the
-        others alone; a start ``q_init`` that is not finite is the last choice among the
-        row's restarts.
+        A row whose target is not finite is not converged (its error not finite); a start
+        ``q_init`` with entries that are not finite takes random values there. The restarts
+        are drawn for the whole batch, and every row iterates until all are done: a row's
+        answer (which of its valid solutions) may change with the other rows.
     """
     check_tensor("target", target)
     if not target.is_floating_point():
@@ -248,7 +249,8 @@ def inverse_kinematics(
     ref: Tensor | None = None
     if q_init is not None:
         ref = q_init.detach().to(target).expand(*batch, dof).reshape(B, dof)
-        q[:, 0] = torch.maximum(torch.minimum(ref, hi), lo)
+        # a start that is not finite keeps its random draw there: q stays inside the limits
+        q[:, 0] = torch.where(ref.isfinite(), torch.maximum(torch.minimum(ref, hi), lo), q[:, 0])
     q = q.reshape(B * R, dof)
     level = float(clearance) + float(penalty_buffer)
     obj = _Objective(arm, flat.repeat_interleave(R, 0), barriers, level, penalty_weight)

@@ -43,7 +43,7 @@ from xml.etree import ElementTree
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import as_tensor, broadcast_shapes, check_tensor
+from torchcbf._checks import as_tensor, broadcast_shapes, check_number, check_tensor
 from torchcbf.dynamics._ik import inverse_kinematics as _inverse_kinematics
 from torchcbf.dynamics.base import ControlAffine, LimitSpec, SigmaSpec
 
@@ -168,6 +168,11 @@ class Manipulator(ControlAffine):
             tree = pk.build_chain_from_urdf(text)
         except parse_error as err:  # a required attribute missing, say
             raise ValueError(f"urdf is not a valid URDF: {err}") from None
+        except KeyError as err:  # a joint type pytorch-kinematics does not model
+            raise ValueError(
+                f"urdf has a {err.args[0]!r} joint: an arm's joints are revolute, continuous, "
+                "prismatic or fixed"
+            ) from None
         if end_link is None:
             end_link = _leaf_link(tree)
         try:
@@ -448,14 +453,16 @@ class _JointVelocityNominal(nn.Module):
             raise TypeError(f"arm must be a Manipulator, got {type(arm).__name__}")
         self.arm = arm
         target_dim = arm.dof if target_dim is None else target_dim  # None: a configuration
-        t = as_tensor("target", target).detach().clone()
+        # a list stays exact (float64) until a state's dtype reads it
+        exact = None if isinstance(target, Tensor) else torch.float64
+        t = as_tensor("target", target, dtype=exact).detach().clone()
         if t.dim() == 0 or t.shape[-1] != target_dim:
             raise ValueError(
                 f"target must have shape [{target_dim}] or [B, {target_dim}], got {tuple(t.shape)}"
             )
         self.register_buffer("target", t)
-        self.gain = float(gain)
-        self.velocity_gain = float(velocity_gain)
+        self.gain = check_number("gain", gain, low=0.0, strict=True)
+        self.velocity_gain = check_number("velocity_gain", velocity_gain, low=0.0, strict=True)
         self.saturate = bool(saturate)
 
     def joint_velocity(self, x: Tensor) -> Tensor:
@@ -518,14 +525,9 @@ class ResolvedRateController(_JointVelocityNominal):
         null_space_gain: float = 0.0,
         saturate: bool = True,
     ) -> None:
-        if not gain > 0 or not velocity_gain > 0 or not damping >= 0 or not null_space_gain >= 0:
-            raise ValueError(
-                "gain and velocity_gain must be > 0, damping and null_space_gain >= 0, got "
-                f"{gain}, {velocity_gain}, {damping}, {null_space_gain}"
-            )
         super().__init__(arm, target, 3, gain, velocity_gain, saturate)
-        self.damping = float(damping)
-        self.null_space_gain = float(null_space_gain)
+        self.damping = check_number("damping", damping, low=0.0)
+        self.null_space_gain = check_number("null_space_gain", null_space_gain, low=0.0)
 
     def joint_velocity(self, x: Tensor) -> Tensor:
         """The resolved-rate joint velocity ``qdot* [..., dof]`` at ``x [..., n]``."""
@@ -583,8 +585,6 @@ class JointSpaceController(_JointVelocityNominal):
         velocity_gain: float = 5.0,
         saturate: bool = True,
     ) -> None:
-        if not gain > 0 or not velocity_gain > 0:
-            raise ValueError(f"gain and velocity_gain must be > 0, got {gain}, {velocity_gain}")
         super().__init__(arm, target, None, gain, velocity_gain, saturate)
 
     def joint_velocity(self, x: Tensor) -> Tensor:
