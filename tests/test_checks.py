@@ -140,6 +140,9 @@ def test_check_spd_symmetry_is_relative_to_the_matrix_scale() -> None:
         check_spd("P", tiny)
     big = 1e9 * torch.tensor([[2.0, 1.0], [1.0 + 1e-9, 2.0]], dtype=torch.float64)
     assert check_spd("P", big) is big
+    mixed = torch.tensor([[1e6, 0.5], [0.9, 1.0]], dtype=torch.float64)  # metres and radians
+    with pytest.raises(ValueError, match="P must be symmetric"):
+        check_spd("P", mixed)
     a = torch.randn(5, 3, 3, generator=torch.Generator().manual_seed(0))
     check_spd("P", a @ a.mT + 0.1 * torch.eye(3))  # float32 products: symmetric to rounding
 

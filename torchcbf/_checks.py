@@ -146,12 +146,12 @@ def check_positive_int(name: str, value: object) -> int:
     return check_int(name, value, low=1, what="a positive int")
 
 
-def check_seed(seed: object) -> int:
-    """A generator seed as an int (NumPy's too; not a bool) in ``[-2^63, 2^63)``."""
+def check_seed(seed: object, name: str = "seed") -> int:
+    """A generator seed ``name`` as an int (NumPy's too; not a bool) in ``[-2^63, 2^63)``."""
     if not isinstance(seed, numbers.Integral) or isinstance(seed, (bool, np.bool_)):
-        raise TypeError(f"seed must be an int, got {type(seed).__name__}")
+        raise TypeError(f"{name} must be an int, got {type(seed).__name__}")
     if not -(2**63) <= int(seed) < 2**63:
-        raise ValueError(f"seed must lie in [-2^63, 2^63), got {seed}")
+        raise ValueError(f"{name} must lie in [-2^63, 2^63), got {seed}")
     return int(seed)
 
 
@@ -257,7 +257,10 @@ def check_spd(name: str, matrix: Tensor) -> Tensor:
     if matrix.dim() < 2 or matrix.shape[-1] != matrix.shape[-2]:
         raise ValueError(f"{name} must be a square matrix [..., n, n], got {tuple(matrix.shape)}")
     check_finite(name, matrix)
-    scale = matrix.detach().abs().amax(dim=(-2, -1), keepdim=True)
+    # each entry against its row's and column's scales, sqrt(|a_ii a_jj|): relative in a
+    # matrix of any scale, and in one of mixed units (a covariance of metres and radians)
+    d = matrix.detach().diagonal(dim1=-2, dim2=-1).abs().sqrt()
+    scale = d.unsqueeze(-1) * d.unsqueeze(-2)
     if bool(((matrix - matrix.mT).detach().abs() > 1e-6 * scale).any()):
         raise ValueError(f"{name} must be symmetric")
     _, info = torch.linalg.cholesky_ex(matrix)

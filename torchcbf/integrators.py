@@ -16,6 +16,7 @@ from torch import Tensor
 from torchcbf._checks import (
     behaves_as,
     broadcast_shapes,
+    broadcasts_to,
     check_generator,
     check_last_dim,
     check_positive,
@@ -208,11 +209,7 @@ def _euler_maruyama(
         check_last_dim("noise", noise, q)
         check_same("x", x, "noise", noise)
         batch = tuple(drift.shape[:-1])
-        try:
-            fits = broadcast_shapes(batch, noise.shape[:-1]) == batch
-        except RuntimeError:
-            fits = False
-        if not fits:
+        if not broadcasts_to(noise.shape[:-1], batch):
             raise ValueError(
                 f"noise must have shape [..., {q}] with batch dimensions that broadcast to "
                 f"the step's (x, u) {tuple(batch)}, got {tuple(noise.shape)}"

@@ -232,3 +232,14 @@ def test_a_locked_joint_and_a_start_that_is_not_finite() -> None:
     res = planar.inverse_kinematics(goal, q_init=start, restarts=1)
     assert bool(torch.isfinite(res.q).all())
     assert bool(((res.q >= planar.q_min) & (res.q <= planar.q_max)).all())
+
+
+def test_barriers_under_inference_mode() -> None:
+    """The barrier penalty's gradient is taken outside inference mode."""
+    arm = Manipulator("planar3")
+    wall = _spheres(arm)
+    goal = arm.end_effector(torch.tensor([0.3, -0.4, 0.2], dtype=torch.float64))
+    want = arm.inverse_kinematics(goal, barriers=[wall])
+    with torch.inference_mode():
+        got = arm.inverse_kinematics(goal, barriers=[wall])
+    torch.testing.assert_close(got.q, want.q)

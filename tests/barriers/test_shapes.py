@@ -245,3 +245,18 @@ def test_constants_of_different_counts_are_refused_on_every_path() -> None:
         ):
             with pytest.raises(ValueError, match=rf"Ball.radius \(2,\) does not match {count}"):
                 call()
+    assert "k=2" in repr(ball.__class__(torch.zeros(2, 2), 0.5))
+    # a per-shape vector left for one shape, or a scalar with an extra axis: refused too
+    ellipse = Ellipse(torch.zeros(2), torch.ones(2))
+    ellipse.center = torch.zeros(3, 2)
+    with pytest.raises(ValueError, match=r"Ellipse.axes \(2,\) does not match the 3 shapes"):
+        ellipse.lie(x, SingleIntegrator(), method="autograd")
+    assert "k=3" in repr(ellipse)
+    moving = Ball(torch.zeros(2, 2), 0.5, velocity=torch.ones(2, 2))
+    moving.velocity = torch.ones(2)
+    with pytest.raises(ValueError, match=r"Ball.velocity \(2,\) does not match the 2 shapes"):
+        moving(x, 0.0)
+    wide = Ball(torch.zeros(2, 2), torch.ones(2))
+    wide.radius = torch.ones(2, 1)
+    with pytest.raises(ValueError, match=r"Ball.radius \(2, 1\) does not match"):
+        wide(x)

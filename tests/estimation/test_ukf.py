@@ -180,5 +180,14 @@ def test_a_clamped_negative_centre_weight_is_flagged():
     assert int(plain.update(state, y).status) == 0
     out = wide.update(state, y)
     assert int(out.status) & int(EstimatorStatus.REGULARIZED)
-    linear = UKF(Unicycle(), GaussianSensor(torch.eye(3, dtype=f64)[:2], 0.2), Q=0.01, beta=-2.5)
-    assert int(linear.double().update(state, y).status) == 0
+    C = torch.randn(2, 3, generator=torch.Generator().manual_seed(0), dtype=f64)
+    linear = UKF(Unicycle(), GaussianSensor(C, 0.2), Q=0.01, beta=-2.5).double()
+    rows = EstimatorState(
+        torch.randn(500, 3, generator=torch.Generator().manual_seed(1), dtype=f64),
+        P.expand(500, 3, 3),
+        torch.zeros(500, dtype=torch.long),
+    )
+    for dtype in (f64, torch.float32):
+        cast = EstimatorState(rows.mean.to(dtype), rows.cov.to(dtype), rows.status)
+        out = linear.to(dtype).update(cast, y.to(dtype))
+        assert not bool(out.status.any())  # D is rounding alone: nothing clamped

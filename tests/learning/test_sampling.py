@@ -101,7 +101,7 @@ def test_sample_free_respects_the_margin(device) -> None:
 
 
 def test_sample_free_finds_a_small_free_region() -> None:
-    """A box 1% free: chunks grow with the rejection rate seen (a fixed chunk falls short)."""
+    """A box 1% free: chunks grow with the rejection rate seen."""
 
     def occupied(x):
         return ~((x[..., 0] < 0.1) & (x[..., 1] < 0.1))

@@ -448,7 +448,10 @@ def stacked_terms(
         values.append(hd)
         total = total + hd.sum()
     grads = _grad(total, (*leaves, *t_leaves), create or sigma is not None, materialize=False)
-    g_x = [torch.zeros_like(v) if g is None else g for g, v in zip(grads, leaves, strict=False)]
+    g_x = [
+        torch.zeros_like(v) if g is None else g
+        for g, v in zip(grads[: len(leaves)], leaves, strict=True)
+    ]
     g_t = grads[len(leaves) :]
     hess: list[Tensor] | None = None
     if sigma is not None:

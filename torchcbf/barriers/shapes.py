@@ -101,20 +101,36 @@ class _ShapeStack(Barrier):
     #: (the first one counts the shapes)
     _per_shape: tuple[tuple[str, int], ...]
 
+    def _constant(self, name: str) -> Tensor | None:
+        """The constant ``name`` as stored now (read from the module's dicts: this runs on
+        every evaluation)."""
+        value = self._parameters.get(name)
+        return self._buffers.get(name) if value is None else value
+
+    def _lead_count(self) -> int | None:
+        """The count of the first constant alone (for ``repr``, which must not raise)."""
+        lead = self._constant(self._per_shape[0][0])
+        return lead.shape[0] if lead is not None and lead.dim() == 2 else None
+
     @property
     def num(self) -> int | None:
         """The number of shapes ``k`` (``None``: one shape, no ``k`` axis), counted by the
         first constant of ``_per_shape`` as stored now (one replaced by another count is
-        followed); every other one must be shared or hold ``k`` entries."""
+        followed). Every other one holds ``k`` entries, or is a scalar shared by all."""
         (first, _), *rest = self._per_shape
-        k = _check_centers(first, getattr(self, first))
+        lead = self._constant(first)
+        k = _check_centers(first, lead)
         for name, rank in rest:
-            value = getattr(self, name)
-            if value is not None and value.dim() > rank and (k is None or value.shape[0] != k):
+            value = self._constant(name)
+            if value is None:
+                continue
+            dims = rank if k is None else rank + 1
+            own = value.dim() == dims and (k is None or value.shape[0] == k)
+            if not (own or (rank == 0 and value.dim() == 0)):  # a scalar may be shared
                 raise ValueError(
                     f"{type(self).__name__}.{name} {tuple(value.shape)} does not match the "
                     f"{'one shape' if k is None else f'{k} shapes'} of {first} "
-                    f"{tuple(getattr(self, first).shape)}"
+                    f"{tuple(lead.shape)}"
                 )
         return k
 
@@ -143,7 +159,7 @@ class _SignedShapeStack(_ShapeStack):
         return -1.0 if self.keep_in else 1.0
 
     def extra_repr(self) -> str:
-        return f"index={self._sel.index}, keep_in={self.keep_in}, k={self.num}"
+        return f"index={self._sel.index}, keep_in={self.keep_in}, k={self._lead_count()}"
 
 
 class Ball(_SignedShapeStack):
@@ -196,11 +212,12 @@ class Ball(_SignedShapeStack):
     def _diff(self, x: Tensor, t: Tensor | float | None) -> Tensor:
         p = self._sel(x)
         c = self.center.to(x)
-        if self.num is not None:
+        many = self.num is not None
+        if many:
             p = p.unsqueeze(-2)
         if self.velocity is not None:
             tt = time_tensor(t, x)[..., None]
-            if self.num is not None:
+            if many:
                 tt = tt[..., None]
             c = c + self.velocity.to(x) * tt
         return p - c
@@ -232,6 +249,7 @@ class Ball(_SignedShapeStack):
     def derivatives(self, x: Tensor, t: Tensor) -> AnalyticDerivatives:
         sign = self._sign()
         diff = self._diff(x, t)
+        many = self.num is not None
         r = self.radius.to(x)
         h = (diff * diff).sum(-1) - r * r
         grad_p = diff * 2.0
@@ -245,11 +263,11 @@ class Ball(_SignedShapeStack):
 
         def quad(s: Tensor) -> Tensor:
             val = 2 * sign * (self._sel.rows(s) ** 2).sum((-2, -1))
-            return val.unsqueeze(-1).expand_as(h) if self.num is not None else val
+            return val.unsqueeze(-1).expand_as(h) if many else val
 
         def hess_mat(m: Tensor) -> Tensor:  # H = 2 I on the selected components
             out = _embed_rows(self._sel, 2 * sign * self._sel.rows(m), x.shape[-1])
-            return out.unsqueeze(-3).expand(*h.shape, *out.shape[-2:]) if self.num else out
+            return out.unsqueeze(-3).expand(*h.shape, *out.shape[-2:]) if many else out
 
         def hess_dir(v: Tensor, s: Tensor) -> Tensor:
             return torch.zeros_like(h)
@@ -398,6 +416,7 @@ class Ellipse(_SignedShapeStack):
         sign = self._sign()
         a = self.axes.to(x)
         q = self._q(x)
+        many = self.num is not None
         h = sign * (((q / a) ** 2).sum(-1) - 1)
         grad_p = self._body(2 * sign * q / a**2, x, transpose=False)
         dhdx = _embed(self._sel, grad_p, x.shape[-1])
@@ -405,7 +424,7 @@ class Ellipse(_SignedShapeStack):
         def body(s: Tensor, transpose: bool = True) -> Tensor:
             """``R' S_p`` (or ``R S`` with ``transpose=False``) ``[..., (1,) d, q]``."""
             sp = self._sel.rows(s) if transpose else s
-            if self.num is not None and transpose:
+            if many and transpose:
                 sp = sp.unsqueeze(-3)  # [..., 1, d, q]
             if self.angle is None:
                 return sp
@@ -418,7 +437,7 @@ class Ellipse(_SignedShapeStack):
         def hess_mat(m: Tensor) -> Tensor:  # H_p = 2 R diag(1 / a^2) R'
             hm = body(body(m) * (2 * sign / a.unsqueeze(-1) ** 2), transpose=False)
             out = _embed_rows(self._sel, hm, x.shape[-1])
-            return out.expand(*h.shape, *out.shape[-2:]) if self.num else out
+            return out.expand(*h.shape, *out.shape[-2:]) if many else out
 
         def hess_dir(v: Tensor, s: Tensor) -> Tensor:
             return torch.zeros_like(h)
@@ -487,7 +506,7 @@ class HalfSpace(_ShapeStack):
         return AnalyticDerivatives(h, dhdx, torch.zeros_like(h), quad)
 
     def extra_repr(self) -> str:
-        return f"index={self._sel.index}, k={self.num}"
+        return f"index={self._sel.index}, k={self._lead_count()}"
 
 
 class Box(Barrier):

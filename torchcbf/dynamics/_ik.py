@@ -22,6 +22,7 @@ from typing import Literal, NamedTuple, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
+from torchcbf._autograd import recordable, recording
 from torchcbf._checks import (
     broadcast_shapes,
     check_int,
@@ -118,8 +119,8 @@ class _Objective:
         error = e.norm(dim=-1)
         if not self.barriers:
             return e, J, error
-        with torch.enable_grad():
-            qg = q.detach().requires_grad_(True)
+        with recording():  # under inference mode too
+            qg = recordable(q).detach().requires_grad_(True)
             x = self._state(qg)
             h = torch.cat([b(x).reshape(q.shape[0], -1) for b in self.barriers], -1)
             pen = self.weight * torch.relu(self.level - h).sum(-1)  # [N]

@@ -169,7 +169,10 @@ def _check_cov(name: str, P: object, mean: Tensor, *, spd: bool = True) -> Tenso
             f"the batch of {name} {tuple(P.shape)} must broadcast to that of x0 {tuple(mean.shape)}"
         )
     check_same("x0", mean, name, P)
-    check_spd(name, P) if spd else check_finite(name, P)
+    if spd:
+        check_spd(name, P)
+    else:
+        check_finite(name, P)
     return P.expand(*mean.shape, n)
 
 

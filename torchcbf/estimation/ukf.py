@@ -166,7 +166,8 @@ class UKF(_KalmanFilter):
         clamped = torch.zeros_like(reg_p)
         if self._center_weight() < 0:  # a negative weight: D may be indefinite
             vals, vecs = torch.linalg.eigh(D)
-            tol = 64 * torch.finfo(D.dtype).eps * vals.abs().amax(-1)
+            # rounding is of the order of S's entries (D of a linear sensor is all rounding)
+            tol = 64 * torch.finfo(D.dtype).eps * S.diagonal(dim1=-2, dim2=-1).abs().amax(-1)
             clamped = (vals.amin(-1) < -tol).detach()
             D = (vecs * vals.clamp_min(0.0).unsqueeze(-2)) @ vecs.mT
         A = torch.eye(m.shape[-1], dtype=m.dtype, device=m.device) - K @ H

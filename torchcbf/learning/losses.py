@@ -68,7 +68,7 @@ def _margin(name: str, value: float | Tensor) -> float | Tensor:
 def _mean(values: Tensor) -> Tensor:
     """The mean of ``values``, 0 (still in the graph) for none: an empty minibatch adds
     nothing to a loss rather than making it NaN."""
-    return values.sum() / max(values.numel(), 1)
+    return values.mean() if values.numel() else values.sum()
 
 
 def classification_loss(
@@ -116,7 +116,7 @@ def classification_loss(
 
 def classification_accuracy(h: Tensor, safe: Tensor) -> Tensor:
     """Fraction of states with ``(h >= 0) == safe`` (a scalar tensor in at least float32,
-    whatever the precision of ``h``; no gradient)."""
+    whatever the precision of ``h``; NaN for no states; no gradient)."""
     _check_pair(h, safe)
     return ((h.detach() >= 0) == safe).to(torch.promote_types(h.dtype, torch.float32)).mean()
 

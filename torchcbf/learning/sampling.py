@@ -27,7 +27,7 @@ from torchcbf._checks import (
     check_tensor,
 )
 
-#: the most states drawn at once (a free fraction of 1e-6 takes several rounds)
+#: the most states drawn at once, whatever ``num``
 _MAX_CHUNK = 1 << 20
 
 Occupancy = Callable[[Tensor], Tensor]
@@ -230,7 +230,8 @@ def sample_free(
     have = drawn = 0
     for _ in range(max_rounds):
         rate = (have + 1) / (drawn + 2)  # the free fraction so far (Laplace's estimate)
-        chunk = min(max(math.ceil(1.25 * (num - have) / rate), 64), _MAX_CHUNK)
+        cap = min(max(64 * num, 4096), _MAX_CHUNK)  # the occupancy may be a network
+        chunk = min(max(math.ceil(1.25 * (num - have) / rate), 64), cap)
         x = uniform_box(lo, hi, chunk, generator=gen)
         x = x[label_states(x, occ)]
         found.append(x)

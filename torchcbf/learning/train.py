@@ -29,7 +29,7 @@ from torch import Tensor, nn
 from torch.optim.lr_scheduler import LRScheduler
 from tqdm.auto import tqdm
 
-from torchcbf._checks import check_number
+from torchcbf._checks import check_int, check_number
 from torchcbf._io import atomic_path
 
 log = logging.getLogger(__name__)
@@ -170,16 +170,14 @@ def _scalar(name: str, value: Tensor | float) -> float:
 
 
 def _clip(params: list[Tensor], max_norm: float | None) -> Tensor:
-    """The global norm of the gradients (computed scaled by their largest entry, so finite
-    gradients have a finite norm in their own precision), after clipping them to
-    ``max_norm`` when given; ``inf``/NaN where a gradient is not finite."""
+    """The global norm of the gradients, after clipping them to ``max_norm`` when given;
+    ``inf``/NaN where a gradient is not finite. The norms accumulate in float64 (float32
+    where the device has none), so finite gradients below float64 have a finite norm."""
     grads = [p.grad.detach() for p in params if p.grad is not None]
     if not grads:
         return torch.zeros(())
-    top = torch.stack([g.abs().amax() if g.numel() else g.new_zeros(()) for g in grads]).amax()
-    scale = torch.where(top > 0, top, torch.ones_like(top))
-    norm = torch.stack([(g / scale.to(g.dtype)).norm().to(top.dtype) for g in grads]).norm()
-    norm = norm * scale
+    acc = torch.float32 if grads[0].device.type == "mps" else torch.float64
+    norm = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads, 2, dtype=acc)))
     if max_norm is not None:
         coef = (max_norm / (norm + 1e-6)).clamp(max=1.0)
         torch._foreach_mul_(grads, [coef.to(g.dtype) for g in grads])
@@ -257,15 +255,14 @@ def train(
     in ``TrainResult.skipped``, with a warning. One host sync per step reads the loss and
     the gradient's norm.
     """
-    for name, value in (("steps", steps), ("start_step", start_step)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-            raise ValueError(f"{name} must be a non-negative int, got {value!r}")
-    if (
-        isinstance(checkpoint_every, bool)
-        or not isinstance(checkpoint_every, int)
-        or checkpoint_every < 0
-    ):
-        raise ValueError(f"checkpoint_every must be a non-negative int, got {checkpoint_every!r}")
+    steps, start_step, checkpoint_every = (
+        check_int(name, value, low=0, what="a non-negative int")
+        for name, value in (
+            ("steps", steps),
+            ("start_step", start_step),
+            ("checkpoint_every", checkpoint_every),
+        )
+    )
     if grad_clip is not None:
         grad_clip = check_number("grad_clip", grad_clip, low=0.0, strict=True)
     if not isinstance(optimizer, torch.optim.Optimizer):
@@ -300,7 +297,10 @@ def train(
             else:
                 optimizer.step()
             if scheduler is not None:
-                scheduler.step(value) if wants_metric else scheduler.step()
+                if wants_metric:
+                    scheduler.step(value)
+                else:
+                    scheduler.step()
         else:
             skipped += 1
             optimizer.zero_grad(set_to_none=True)

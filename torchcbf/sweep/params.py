@@ -13,6 +13,7 @@ import typing
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
+from torchcbf._checks import check_seed
 from torchcbf.scenarios import Scenario, ScenarioEntry, get
 from torchcbf.scenarios.registry import RUN_KEYWORDS as RESERVED
 
@@ -30,16 +31,17 @@ def builder_defaults(scenario: ScenarioName) -> dict[str, Any]:
     return get(scenario).defaults()
 
 
-def check_seeds(first: int, count: int) -> None:
-    """Seeds ``first .. first + count - 1`` lie in ``[0, 2^32)`` (the scenarios' noise
-    streams are 32-bit): ``ValueError`` saying which pass the bounds."""
-    if isinstance(first, bool) or not isinstance(first, int):
-        raise TypeError(f"seed must be an int, got {first!r}")
+def check_seeds(first: int, count: int, name: str = "seed") -> int:
+    """Seeds ``first .. first + count - 1`` (``name``: the first one's argument) lie in
+    ``[0, 2^32)`` (the scenarios' noise streams are 32-bit): ``ValueError`` saying which
+    pass the bounds; the first as an int."""
+    first = check_seed(first, name)
     if first < 0 or first + count > 2**32:
         raise ValueError(
             f"seeds {first}..{first + count - 1} pass the bounds [0, 2^32 - 1] (the noise "
             "streams are 32-bit)"
         )
+    return first
 
 
 def check_keys(scenario: ScenarioName, keys: Sequence[str]) -> None:

@@ -217,15 +217,23 @@ def _lock(path: Path) -> Any:
         import fcntl
     except ImportError:
         return None
-    handle = open(path / LOCK, "a")  # noqa: SIM115 - held open for the life of the run
-    try:
-        fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+    for _ in range(8):
+        handle = open(path / LOCK, "a")  # noqa: SIM115 - held open for the life of the run
+        try:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            raise OutputError(
+                f"--out {path} is in use by another torchcbf run (wait for it, or use another "
+                "--out)"
+            ) from None
+        try:  # the file locked is still the one at the path (a refused claim removes it)
+            if os.stat(path / LOCK).st_ino == os.fstat(handle.fileno()).st_ino:
+                return handle
+        except FileNotFoundError:
+            pass
         handle.close()
-        raise OutputError(
-            f"--out {path} is in use by another torchcbf run (wait for it, or use another --out)"
-        ) from None
-    return handle
+    raise OutputError(f"--out {path}: its lock file keeps changing; try again")
 
 
 def read_manifest(path: str | Path) -> dict[str, Any] | None:

@@ -132,7 +132,7 @@ def run_sweep(
     check_keys(entry, list(grid))
     check_engine(engine)
     check_positive_int("num_seeds", num_seeds)
-    check_seeds(seed, num_seeds)
+    seed = check_seeds(seed, num_seeds)
     check_positive_int("threads", threads)
     configs = configurations(grid)
     check_buildable(entry, configs, seed=seed, device=device)

@@ -226,8 +226,8 @@ def tune(
     for key, value in (("trials", trials), ("num_seeds", num_seeds), ("batch", batch),
                        ("eval_seeds", eval_seeds)):  # fmt: skip
         check_positive_int(key, value)
-    check_seeds(seed, num_seeds)
-    check_seeds(eval_seed, eval_seeds)
+    seed = check_seeds(seed, num_seeds)
+    eval_seed = check_seeds(eval_seed, eval_seeds, "eval_seed")
     if seed < eval_seed + eval_seeds and eval_seed < seed + num_seeds:
         raise ValueError(
             f"tuning seeds {seed}..{seed + num_seeds - 1} and evaluation seeds "
