@@ -13,6 +13,7 @@ pytest.importorskip("gymnasium")
 pytest.importorskip("torchrl")
 
 import gymnasium  # noqa: E402
+from tensordict import TensorDict  # noqa: E402
 from tensordict.nn import TensorDictModule  # noqa: E402
 from torchrl.envs import TransformedEnv  # noqa: E402
 from torchrl.envs.utils import check_env_specs, step_mdp  # noqa: E402
@@ -386,6 +387,33 @@ def test_ppo_smoke_run_is_reproducible():
     assert a.eval["collisions"] == 0  # the filter layer on the shielded env
     with pytest.raises(ValueError, match="method"):
         train("sac", config, seed=0)
+
+
+def test_ppo_counts_collisions_in_every_batch_and_takes_any_minibatch_and_seed():
+    """Batches where no episode ends still count their steps inside an obstacle (the
+    Lagrangian multiplier reads them); a minibatch of one frame is no NaN; a seed whose
+    environments' seeds pass 32 bits is refused before training; evaluate takes a policy
+    without a filter layer."""
+    from torchcbf.envs.safe_ppo import _episode_stats, evaluate
+
+    frames = TensorDict(
+        {"next": {"done": torch.zeros(2, 3, 1, dtype=torch.bool),
+                  "cost": torch.tensor([[[1.0], [0.0], [1.0]], [[0.0], [1.0], [0.0]]]),
+                  "episode_reward": torch.zeros(2, 3, 1), "success": torch.zeros(2, 3, 1).bool()}},
+        batch_size=[2, 3],
+    )  # fmt: skip
+    assert _episode_stats(frames)["collisions"] == 3.0
+    config = PPOConfig(env_id="torchcbf/ReachAvoid-v0", env_kwargs=(), num_envs=3,
+                       rollout_steps=11, total_frames=33, epochs=1, minibatch_size=32,
+                       eval_episodes=2)  # fmt: skip
+    run = train("ppo_lagrangian", config, seed=0)  # 33 frames: a last minibatch of one
+    assert all(torch.isfinite(torch.tensor(v)) for v in (run.eval["return"],))
+    with pytest.raises(ValueError, match=r"seed must lie in \[0, 3294\]"):
+        train("ppo_lagrangian", config, seed=3500)
+    env = make_env(config, "ppo_lagrangian", num_envs=2, seed=5)
+    still = TensorDictModule(lambda obs: obs.new_zeros(*obs.shape[:-1], 2),
+                             in_keys=["observation"], out_keys=["action"])  # fmt: skip
+    assert evaluate(env, still)["layer_intervention_rate"] == 0.0
 
 
 def test_shield_penalty_lowers_the_learning_reward_by_the_correction():

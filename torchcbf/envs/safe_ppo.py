@@ -45,7 +45,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 from torchrl.objectives.value import GAE
 
-from torchcbf._checks import check_number, check_positive_int
+from torchcbf._checks import check_bool, check_int, check_number, check_positive_int
 from torchcbf.barriers import Ellipse, HalfSpace, rectify
 from torchcbf.barriers._params import take
 from torchcbf.envs.filter_policy import FilteredPolicy
@@ -157,6 +157,7 @@ class PPOConfig:
         for name in ("gamma", "lmbda"):
             if not 0.0 <= check_number(name, getattr(self, name)) <= 1.0:
                 raise ValueError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
+        check_bool("shaping", self.shaping)
 
 
 @dataclass
@@ -420,18 +421,26 @@ def _collect(
     return torch.stack(frames, dim=1).contiguous(), td
 
 
+#: a run's training environments draw from seed * _SEED_STRIDE on, its held-out evaluation
+#: from _EVAL_SEEDS + seed * _SEED_STRIDE
+_SEED_STRIDE, _EVAL_SEEDS = 1_000_003, 10**9
+
+
 def _episode_stats(batch: TensorDictBase) -> dict[str, float]:
     done = batch["next", "done"].squeeze(-1)
     episodes = int(done.sum())
+    # steps inside an obstacle count in every batch, whether or not an episode ended in it
+    collisions = float(batch["next", "cost"].sum())
     if episodes == 0:
-        return {"episodes": 0.0, "return": math.nan, "goal_rate": math.nan, "collisions": 0.0}
+        return {"episodes": 0.0, "return": math.nan, "goal_rate": math.nan,
+                "collisions": collisions}  # fmt: skip
     ret = batch["next", "episode_reward"].squeeze(-1)[done]
     goals = batch["next", "success"].squeeze(-1)[done]
     return {
         "episodes": float(episodes),
         "return": float(ret.mean()),
         "goal_rate": float(goals.float().mean()),
-        "collisions": float(batch["next", "cost"].sum()),
+        "collisions": collisions,
     }
 
 
@@ -445,6 +454,9 @@ def train(
     """Train ``method`` (:data:`METHODS`) under ``config`` from ``seed``; evaluate the
     deterministic policy on ``config.eval_episodes`` held-out episodes."""
     _check_method(method)
+    top = (2**32 - _EVAL_SEEDS - config.eval_episodes) // _SEED_STRIDE  # 32-bit noise streams
+    if check_int("seed", seed, low=0) > top:
+        raise ValueError(f"seed must lie in [0, {top}] (the environments' seeds derive from it)")
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         return _train(method, config, seed, progress)
@@ -456,7 +468,7 @@ def _train(
     seed: int,
     progress: Callable[[dict[str, float]], None] | None,
 ) -> RunResult:
-    env = make_env(config, method, num_envs=config.num_envs, seed=seed * 1_000_003)
+    env = make_env(config, method, num_envs=config.num_envs, seed=seed * _SEED_STRIDE)
     layer_filter = None
     if method == "ppo_filter_layer":
         layer_filter = scenario_filter(env.base_env, margin=config.filter_margin)
@@ -521,7 +533,7 @@ def _train(
         "intervention_rate": totals["interventions"] / frames,
     }
     eval_env = make_env(
-        config, method, num_envs=config.eval_episodes, seed=10**9 + seed * 1_000_003
+        config, method, num_envs=config.eval_episodes, seed=_EVAL_SEEDS + seed * _SEED_STRIDE
     )
     evaluation = evaluate(eval_env, policy)
     return RunResult(method, seed, curve, train_stats, evaluation, wall, frames / wall)
@@ -561,7 +573,9 @@ def _update(
         for chunk in order.split(config.minibatch_size):
             sub = data[chunk]
             adv = sub["_adv"].squeeze(-1)
-            adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+            # one frame (a batch of B * T = 1 mod the minibatch size): no spread to divide by
+            spread = adv.std() if adv.numel() > 1 else adv.new_zeros(())
+            adv = (adv - adv.mean()) / (spread + 1e-8)
             dist = policy.get_dist(sub)
             log_prob = dist.log_prob(sub["action"])
             ratio = (log_prob - sub["action_log_prob"]).exp()
@@ -611,8 +625,9 @@ def evaluate(
             steps += alive.sum()
             if "filter_intervention" in nxt.keys():
                 shield += (nxt["filter_intervention"].squeeze(-1) & running).sum()
-            change = (out["loc"] - out["loc_nominal"]).abs().amax(-1)
-            layer += ((change > intervention_tol) & running).sum()
+            if "loc_nominal" in out.keys():  # a policy with a filter layer
+                change = (out["loc"] - out["loc_nominal"]).abs().amax(-1)
+                layer += ((change > intervention_tol) & running).sum()
             running = running & ~nxt["done"].squeeze(-1)
             td = step_mdp(out)
             index += 1
