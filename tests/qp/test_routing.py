@@ -303,3 +303,35 @@ def test_dependent_equality_rows_in_a_batch_are_solved_on_an_independent_set(cvx
         assert abs(float((up - down) / (2 * e)) - float((grad * d).sum())) <= 1e-5 * (
             1.0 + abs(float((grad * d).sum()))
         )
+
+
+def test_a_nan_row_of_a_small_batch_is_non_finite_and_the_others_solved():
+    """The check of whether some Q is singular saw the NaN row too (LAPACK refused the
+    whole batch)."""
+    n = 4
+    Q = (torch.eye(n, dtype=torch.float64) + 0.1).repeat(2, 1, 1)
+    Q[1, 0, 1] = float("nan")
+    p, G, h = torch.ones(2, n).double(), torch.ones(2, 1, n).double(), torch.ones(2, 1).double()
+    with torch.no_grad():
+        sol = solve_qp(Q, p, G, h)
+        want = solve_qp(Q[:1], p[:1], G[:1], h[:1])
+    assert sol.status.tolist() == [int(Status.SOLVED), int(Status.NON_FINITE)]
+    torch.testing.assert_close(sol.x[:1], want.x)
+
+
+def test_rows_of_any_magnitude_on_the_direct_route():
+    """A singular Q and rows scaled by 1e16 (the feasible set unchanged): proxsuite's
+    absolute tolerances saw rows it could never meet and ran its whole budget (minutes)."""
+    g = torch.Generator().manual_seed(0)
+    v = torch.randn(4, 1, generator=g, dtype=torch.float64)
+    Q, p = v @ v.T, torch.randn(4, generator=g, dtype=torch.float64)
+    eye = torch.eye(4, dtype=torch.float64)
+    G = torch.cat([torch.randn(8, 4, generator=g, dtype=torch.float64), eye, -eye])
+    h = torch.cat([torch.rand(8, generator=g, dtype=torch.float64) + 0.5,
+                   torch.full((8,), 3.0, dtype=torch.float64)])  # fmt: skip
+    with torch.no_grad():
+        base = solve_qp(Q, p, G, h)
+        for scale in (1e8, 1e16):
+            sol = solve_qp(Q, p, scale * G, scale * h)
+            assert sol.path == "small_proxsuite" and int(sol.status) == int(Status.SOLVED)
+            torch.testing.assert_close(sol.x, base.x, atol=1e-8, rtol=0)

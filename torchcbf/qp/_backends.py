@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from torchcbf.qp._data import QPData
+from torchcbf.qp._kkt import kkt_residuals_ok
 from torchcbf.qp.status import Status
 
 _BIG = 1e20
@@ -305,6 +306,23 @@ def _finish(
     return xt, s, zt, yt, status, torch.from_numpy(it)
 
 
+#: the tolerance options, from ``eps``, of the solvers whose defaults are looser than the
+#: answers are verified to (proxqp 1e-5 absolute, OSQP 1e-3; Clarabel's 1e-8 are kept)
+_TOLERANCES: dict[str, Callable[[float], dict[str, float]]] = {
+    "proxqp": lambda eps: {"eps_abs": eps, "eps_rel": 0.0},
+    "osqp": lambda eps: {"eps_abs": eps, "eps_rel": eps},
+}
+
+
+#: the least tolerance to which an answer of one of qpsolvers' solvers is verified
+OUTSIDE_VERIFY_EPS = 1e-6
+
+
+def _defaults(eps: float) -> dict[str, float]:
+    """No options: the solver's own tolerances."""
+    return {}
+
+
 def solve_qpsolvers(
     solver: str,
     data: QPData,
@@ -316,7 +334,11 @@ def solve_qpsolvers(
 
     Infeasibility is read from the solver's own status string where it exposes one
     (Clarabel, OSQP, proxqp, HiGHS, SCS report 'primal/dual infeasible'); any other failure is
-    ``MAX_ITER``. ``max_iter`` is not forwarded (option names differ between solvers)."""
+    ``MAX_ITER``. ``eps`` is forwarded as the tolerances of the solvers whose defaults are
+    looser (:data:`_TOLERANCES`; the others run to their defaults) and ``max_iter`` is not;
+    an answer the solver reports found is ``SOLVED`` only where it is a KKT point to
+    ``max(eps, OUTSIDE_VERIFY_EPS)`` (:func:`kkt_residuals_ok`: the solver's own tolerances
+    may be looser than ``eps``, a wrong answer is far looser), else ``MAX_ITER``."""
     P, q, G, h, A, b = data
     import qpsolvers
 
@@ -334,6 +356,7 @@ def solve_qpsolvers(
     y = np.zeros((B, me))
     st = np.zeros(B, dtype=np.int64)
     it = np.zeros(B, dtype=np.int64)
+    options = _TOLERANCES.get(solver, _defaults)(eps)
     for i in range(B):
         prob = qpsolvers.Problem(
             Pn[i],
@@ -345,7 +368,7 @@ def solve_qpsolvers(
         )
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            sol = qpsolvers.solve_problem(prob, solver=solver)
+            sol = qpsolvers.solve_problem(prob, solver=solver, **options)
         if sol.found and sol.x is not None:
             x[i] = sol.x
             if M > 0 and sol.z is not None:
@@ -355,7 +378,11 @@ def solve_qpsolvers(
             st[i] = int(Status.SOLVED)
         else:
             st[i] = int(_infeasibility_from_extras(sol.extras))
-    return _finish(x, z, y, st, it, G, h, A, b, eps)
+    xt, s, zt, yt, status, iters = _finish(x, z, y, st, it, G, h, A, b, eps)
+    given = QPData(*(torch.from_numpy(v) for v in (Pn, qn, Gn, hn, An, bn)))
+    verified = kkt_residuals_ok(given, xt, zt, yt, max(eps, OUTSIDE_VERIFY_EPS))
+    loose = (status == int(Status.SOLVED)) & ~verified
+    return xt, s, zt, yt, torch.where(loose, int(Status.MAX_ITER), status), iters
 
 
 def _infeasibility_from_extras(extras: dict | None) -> Status:

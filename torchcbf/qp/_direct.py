@@ -95,6 +95,12 @@ def solve_direct(
     free = hn == np.inf
     lo_box = np.maximum(lbn, -_BIG)
     hi_box = np.minimum(ubn, _BIG)
+    # every row scaled to unit length for proxsuite, whose tolerances are absolute: a row
+    # of norm 1e16 never meets 1e-9 and runs the whole budget (minutes); the multipliers
+    # scale back (the answer is verified and polished on the rows as given)
+    dg, da = _unit_rows(Gn), _unit_rows(An)
+    Gs, hs = Gn * dg[..., None], np.where(free, hn, hn * dg)
+    As, bs = An * da[..., None], bn * da
 
     def descending(i: int, d: np.ndarray) -> bool:
         rows = slice(i, i + 1)
@@ -103,13 +109,14 @@ def solve_direct(
 
     for box in (False, True):
         try:
-            out = _proxsuite(P, q, Gn, hn, An, bn, lo_box, hi_box, free, box=box,
+            out = _proxsuite(P, q, Gs, hs, As, bs, lo_box, hi_box, free, box=box,
                              descending=descending)  # fmt: skip
         except _Descending:
             return None
         if out is None:
             continue
         x, z, zb, y, iters = out
+        z, y = z * dg, y * da  # multipliers of the rows as given
         lam = np.maximum(z, 0.0)
         lam_ub = np.where(np.isfinite(ubn), np.maximum(zb, 0.0), 0.0)
         lam_lb = np.where(np.isfinite(lbn), np.maximum(-zb, 0.0), 0.0)
@@ -163,6 +170,13 @@ def _saddle(
     data = QPData(*(torch.from_numpy(np.ascontiguousarray(v)) for v in (P, q, rows, bounds, A, b)))
     xt = torch.from_numpy(x)
     return bool(saddle_solved(data, xt, torch.ones(x.shape[0], dtype=torch.bool), eps).any())
+
+
+def _unit_rows(M: np.ndarray) -> np.ndarray:
+    """``[B, r]`` scales making each row of ``M [B, r, n]`` of unit Euclidean length (1 for a
+    zero row)."""
+    norms = np.linalg.norm(M, axis=-1)
+    return np.where(norms > 0, 1.0 / np.where(norms > 0, norms, 1.0), 1.0)
 
 
 def _rank_deficient(A: np.ndarray) -> bool:

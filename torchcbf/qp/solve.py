@@ -552,6 +552,10 @@ def _direct_applies(inp: _Inputs) -> bool:
         return True
     Q = inp.Q.detach().double()
     Q = 0.5 * (Q + Q.mT)
+    # a row with NaN or inf data is answered NON_FINITE later: the identity stands in for
+    # it here (LAPACK refuses a NaN matrix, for the whole batch)
+    finite = torch.isfinite(Q).flatten(-2).all(-1)[..., None, None]
+    Q = torch.where(finite, Q, torch.eye(Q.shape[-1], dtype=Q.dtype))
     if not bool(not_positive_definite(Q).any()):
         return False
     # a singular Q, which the dual method never takes; not an indefinite one, on which
