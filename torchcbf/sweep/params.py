@@ -51,7 +51,7 @@ def check_keys(scenario: ScenarioName, keys: Sequence[str]) -> None:
     for key in keys:
         if key in RESERVED:
             raise ValueError(
-                f"{key!r} is set by the sweep itself (--seeds, --seed, --device), not in a grid"
+                f"{key!r} is set by the run itself (--seeds, --seed, --device), not as a parameter"
             )
         if key not in known:
             raise ValueError(
