@@ -389,8 +389,13 @@ def test_a_floating_joint_and_controller_gains_that_are_not_finite_are_refused()
         '<robot name="r"><link name="a"/><link name="b"/><joint name="j" type="floating">'
         '<parent link="a"/><child link="b"/></joint></robot>'
     )
-    with pytest.raises(ValueError, match="urdf has a 'floating' joint"):
+    with pytest.raises(ValueError, match="joint 'j' is of type 'floating'"):
         Manipulator(floating)
+    missing = floating.replace('type="floating"', 'type="continuous"').replace(
+        'parent link="a"', 'parent link="nope"'
+    )
+    with pytest.raises(ValueError, match="urdf names a link it does not define"):
+        Manipulator(missing)
     arm = Manipulator("planar3")
     for kwargs in ({"gain": math.inf}, {"velocity_gain": math.nan}, {"damping": math.inf}):
         with pytest.raises(ValueError, match="must be a finite number"):

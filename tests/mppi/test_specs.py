@@ -543,8 +543,8 @@ def test_or_steers_to_the_children_the_history_has_not_made_fail(dtype):
 
 
 def test_robustness_gradient_at_a_disc_centre_is_finite():
-    """A state on the centre (outside the window, or not the extreme one) has no influence;
-    the square root's infinite derivative there made every gradient NaN."""
+    """A state on the centre (outside the window, or not the extreme one) has no influence,
+    though the square root's derivative is infinite there."""
     x = torch.tensor([[[4.0, 4.0], [0.0, 0.0], [3.8, 4.0]]], dtype=torch.float64)
     x.requires_grad_(True)
     times = torch.tensor([0.0, 1.0, 2.0], dtype=torch.float64)

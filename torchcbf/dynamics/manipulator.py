@@ -97,10 +97,20 @@ def _continuous_joints(urdf: str | bytes) -> set[str]:
     return {j.get("name", "") for j in root.iter("joint") if j.get("type") == "continuous"}
 
 
+#: the joint types of an arm (a floating or planar joint is a mobile base, not modelled)
+_JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed")
+
+
 def _check_limits_given(urdf: str | bytes) -> None:
-    """A ``revolute`` or ``prismatic`` joint without its required ``<limit>`` is a
-    ``ValueError`` (the parser would read it as fixed at 0 with a velocity limit of 0)."""
+    """A joint of another type than :data:`_JOINT_TYPES`, or a ``revolute`` or
+    ``prismatic`` one without its required ``<limit>`` (the parser would read it as fixed at
+    0 with a velocity limit of 0), is a ``ValueError`` naming it."""
     for j in ElementTree.fromstring(urdf).iter("joint"):
+        if j.get("type") not in _JOINT_TYPES:
+            raise ValueError(
+                f"urdf: joint {j.get('name')!r} is of type {j.get('type')!r}; an arm's joints "
+                f"are {', '.join(_JOINT_TYPES)}"
+            )
         if j.get("type") in ("revolute", "prismatic") and j.find("limit") is None:
             raise ValueError(
                 f"urdf: {j.get('type')} joint {j.get('name')!r} has no <limit> (URDF requires "
@@ -168,11 +178,8 @@ class Manipulator(ControlAffine):
             tree = pk.build_chain_from_urdf(text)
         except parse_error as err:  # a required attribute missing, say
             raise ValueError(f"urdf is not a valid URDF: {err}") from None
-        except KeyError as err:  # a joint type pytorch-kinematics does not model
-            raise ValueError(
-                f"urdf has a {err.args[0]!r} joint: an arm's joints are revolute, continuous, "
-                "prismatic or fixed"
-            ) from None
+        except KeyError as err:  # a joint between links the file does not define
+            raise ValueError(f"urdf names a link it does not define: {err.args[0]!r}") from None
         if end_link is None:
             end_link = _leaf_link(tree)
         try:

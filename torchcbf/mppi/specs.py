@@ -37,7 +37,8 @@ node has a pointwise cost ``c(x)`` (``Reach``: ``weight (|p - g|^2 - r^2)``; ``A
 - ``Always``: the maximum of ``c`` over the rollout states inside the window (``0`` when none
   is); history states are the same for every sample and are ignored.
 - ``And``: the **sum** of the children's costs (a min would only ever push on the currently
-  worst term); ``Or``: the minimum.
+  worst term); ``Or``: the minimum over the children the history has not made fail (see
+  :meth:`Spec.outcome`), or, once it has made one hold, over those that hold.
 """
 
 from __future__ import annotations
@@ -553,6 +554,10 @@ class Or(_Combination):
     those the executed history has not already made fail (a goal whose window closed unmet
     would otherwise cap the cost with its constant, and nothing would steer to the others);
     once the history makes one hold, the least of those that hold (a constant)."""
+
+    #: its cost reads what the history has settled (an Always broken, a goal reached): a
+    #: history that wraps forgets that (the planner warns)
+    remembers_history = True
 
     def robustness(self, states: Tensor, times: Tensor) -> Tensor:
         out = self.specs[0].robustness(states, times)

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchcbf.qp._backends import WATCH_TOL, descends, solve_watched
+from torchcbf.qp._backends import WATCH_TOL, descends, row_tolerance, solve_watched, unit_rows
 from torchcbf.qp._data import QPData
 from torchcbf.qp._eliminate import RANK_TOL
 from torchcbf.qp._function import ROUTE_EPS, ROUTE_MAX_ITER, data_scaling, saddle_solved
@@ -95,12 +95,12 @@ def solve_direct(
     free = hn == np.inf
     lo_box = np.maximum(lbn, -_BIG)
     hi_box = np.minimum(ubn, _BIG)
-    # every row scaled to unit length for proxsuite, whose tolerances are absolute: a row
-    # of norm 1e16 never meets 1e-9 and runs the whole budget (minutes); the multipliers
-    # scale back (the answer is verified and polished on the rows as given)
-    dg, da = _unit_rows(Gn), _unit_rows(An)
+    # rows of unit length for proxsuite (unit_rows); the answer is verified and polished on
+    # the rows as given
+    dg, da = unit_rows(Gn), unit_rows(An)
     Gs, hs = Gn * dg[..., None], np.where(free, hn, hn * dg)
     As, bs = An * da[..., None], bn * da
+    tolerance = row_tolerance(ROUTE_EPS, dg, da)
 
     def descending(i: int, d: np.ndarray) -> bool:
         rows = slice(i, i + 1)
@@ -110,7 +110,7 @@ def solve_direct(
     for box in (False, True):
         try:
             out = _proxsuite(P, q, Gs, hs, As, bs, lo_box, hi_box, free, box=box,
-                             descending=descending)  # fmt: skip
+                             descending=descending, tolerance=tolerance)  # fmt: skip
         except _Descending:
             return None
         if out is None:
@@ -172,19 +172,14 @@ def _saddle(
     return bool(saddle_solved(data, xt, torch.ones(x.shape[0], dtype=torch.bool), eps).any())
 
 
-def _unit_rows(M: np.ndarray) -> np.ndarray:
-    """``[B, r]`` scales making each row of ``M [B, r, n]`` of unit Euclidean length (1 for a
-    zero row)."""
-    norms = np.linalg.norm(M, axis=-1)
-    return np.where(norms > 0, 1.0 / np.where(norms > 0, norms, 1.0), 1.0)
-
-
 def _rank_deficient(A: np.ndarray) -> bool:
     """Whether some row's ``A [k, n]`` is rank deficient: more rows than columns, or a
     singular value within ``RANK_TOL`` of its largest (the tolerance of
     :mod:`torchcbf.qp._eliminate`'s rank rule, which measures each row's distance to the
-    span of the rows before it)."""
-    sv = np.linalg.svd(A, compute_uv=False)
+    span of the rows before it), the rows of ``A`` taken at unit length (independent rows
+    of norms 1e8 and 1e-3 are not dependent)."""
+    norms = np.linalg.norm(A, axis=-1, keepdims=True)
+    sv = np.linalg.svd(A / np.where(norms > 0, norms, 1.0), compute_uv=False)
     return bool((sv[:, -1] <= RANK_TOL * sv[:, 0]).any()) if A.shape[1] <= A.shape[2] else True
 
 
@@ -205,13 +200,15 @@ def _proxsuite(
     *,
     box: bool,
     descending: Callable[[int, np.ndarray], bool],
+    tolerance: np.ndarray,
 ) -> tuple[np.ndarray, ...] | None:
     """proxsuite's dense solver on every row: ``(x, z, z_bounds, y, iterations)``, or
     ``None`` where some row is not solved. The bounds go in as proxsuite's box (``box``) or
     as identity rows of its double-sided inequalities: the rows are often faster, the box
     more robust (with the rows it has called problems with an optimum infeasible). A row
     whose iterates run along a direction ``d`` with ``descending(i, d)`` raises
-    :class:`_Descending` (:func:`~torchcbf.qp._backends.solve_watched`)."""
+    :class:`_Descending` (:func:`~torchcbf.qp._backends.solve_watched`); ``tolerance [B]``:
+    each problem's absolute tolerance."""
     from proxsuite import proxqp
 
     B, n = q.shape
@@ -230,7 +227,7 @@ def _proxsuite(
             C = np.vstack((C, eye))
             lo_i, hi_i = np.concatenate((lo_i, lo[i])), np.concatenate((hi_i, hi[i]))
         qp = proxqp.dense.QP(n, k, len(lo_i), box)
-        qp.settings.eps_abs = ROUTE_EPS
+        qp.settings.eps_abs = float(tolerance[i])
         qp.settings.eps_rel = 0.0
         qp.settings.verbose = False
         qp.init(
