@@ -24,7 +24,7 @@ import contextlib
 import json
 import os
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -207,6 +207,18 @@ class RunDir:
         if self._lock is not None:
             self._lock.close()
             self._lock = None
+
+
+@contextlib.contextmanager
+def owned(run: RunDir | None, given: object) -> Iterator[None]:
+    """A block in which ``run`` is used: released however the block ends where it was
+    claimed by the caller (it is not ``given``, a :class:`RunDir` claimed elsewhere), so a
+    run interrupted in a notebook can be resumed there."""
+    try:
+        yield
+    finally:
+        if run is not None and run is not given:
+            run.release()
 
 
 def _lock(path: Path) -> Any:

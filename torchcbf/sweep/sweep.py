@@ -34,7 +34,7 @@ from torchcbf.sweep.params import (
     check_seeds,
     describe,
 )
-from torchcbf.sweep.rundir import RunDir
+from torchcbf.sweep.rundir import RunDir, owned
 
 JOURNAL = "sweep.jsonl"
 #: the files a sweep writes in its run directory
@@ -143,7 +143,7 @@ def run_sweep(
     if out is not None and not isinstance(out, RunDir):
         run = RunDir.claim(out, kind="sweep", settings=settings, resume=resume,
                            overwrite=overwrite, outputs=OUTPUTS)  # fmt: skip
-    try:
+    with owned(run, out):
         calls = [
             {
                 "scenario": entry,
@@ -195,9 +195,6 @@ def run_sweep(
             run.record(JOURNAL, *paths.values())
             run.finish()
         return rows
-    finally:
-        if run is not out:  # claimed here: released however the run ends
-            run.release()
 
 
 def fixed_parameters(scenario: ScenarioName, grid: Mapping[str, Sequence[Any]]) -> dict:

@@ -38,7 +38,7 @@ from torchcbf.sim import run_info, strict
 from torchcbf.sweep.engines import Outcome, check_engine, ray_session, run_each
 from torchcbf.sweep.evaluate import evaluate
 from torchcbf.sweep.params import ScenarioName, check_buildable, check_keys, check_seeds
-from torchcbf.sweep.rundir import RunDir
+from torchcbf.sweep.rundir import RunDir, owned
 from torchcbf.sweep.sweep import write_json, write_table
 
 STORAGE = "study.db"
@@ -253,7 +253,7 @@ def tune(
     if out is not None and not isinstance(out, RunDir):
         run = RunDir.claim(out, kind="tune", settings=settings, resume=resume,
                            overwrite=overwrite, outputs=OUTPUTS)  # fmt: skip
-    try:
+    with owned(run, out):
         storage: Any = None
         if run is not None:
             storage = optuna.storages.RDBStorage(_sqlite_url(run.path / STORAGE))
@@ -392,9 +392,6 @@ def tune(
             run.record(STORAGE, *paths.values())
             run.finish()
         return result
-    finally:
-        if run is not out:  # claimed here: released however the run ends
-            run.release()
 
 
 def recommend(
