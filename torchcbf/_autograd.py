@@ -54,14 +54,14 @@ def outside_inference_mode(method: _F) -> _F:
 
     @functools.wraps(method)
     def run(*args: Any, **kwargs: Any) -> Any:
-        if torch.is_inference_mode_enabled():
-            with torch.inference_mode(False), torch.no_grad():
-                return method(
-                    *map(recordable, args), **{k: recordable(v) for k, v in kwargs.items()}
-                )
-        if any(map(_holds_inference, args)) or any(map(_holds_inference, kwargs.values())):
-            return method(*map(recordable, args), **{k: recordable(v) for k, v in kwargs.items()})
-        return method(*args, **kwargs)
+        inference = torch.is_inference_mode_enabled()
+        if not inference and not _holds_inference((*args, *kwargs.values())):
+            return method(*args, **kwargs)
+        args, kwargs = recordable(args), {k: recordable(v) for k, v in kwargs.items()}
+        if not inference:
+            return method(*args, **kwargs)
+        with torch.inference_mode(False), torch.no_grad():
+            return method(*args, **kwargs)
 
     return run  # type: ignore[return-value]
 
