@@ -228,9 +228,9 @@ def sample_free(
     occ = dilate(occupied, margin, index=index) if margin > 0 else occupied
     found: list[Tensor] = []
     have = drawn = 0
+    cap = min(max(64 * num, 4096), _MAX_CHUNK)  # the occupancy may be a network
     for _ in range(max_rounds):
         rate = (have + 1) / (drawn + 2)  # the free fraction so far (Laplace's estimate)
-        cap = min(max(64 * num, 4096), _MAX_CHUNK)  # the occupancy may be a network
         chunk = min(max(math.ceil(1.25 * (num - have) / rate), 64), cap)
         x = uniform_box(lo, hi, chunk, generator=gen)
         x = x[label_states(x, occ)]
