@@ -169,13 +169,14 @@ def _scalar(name: str, value: Tensor | float) -> float:
     return float(value)
 
 
-def _clip(params: list[Tensor], max_norm: float | None) -> Tensor:
+def _clip(params: list[Tensor], max_norm: float | None) -> Tensor | None:
     """The global norm of the gradients, after clipping them to ``max_norm`` when given;
-    ``inf``/NaN where a gradient is not finite. The norms accumulate in float64 (float32
-    where the device has none), so finite gradients below float64 have a finite norm."""
+    ``inf``/NaN where a gradient is not finite; ``None`` without gradients. The norms
+    accumulate in float64 (float32 where the device has none), so finite gradients below
+    float64 have a finite norm."""
     grads = [p.grad.detach() for p in params if p.grad is not None]
     if not grads:
-        return torch.zeros(())
+        return None
     acc = torch.float32 if grads[0].device.type == "mps" else torch.float64
     norm = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads, 2, dtype=acc)))
     if max_norm is not None:
@@ -288,6 +289,8 @@ def train(
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         norm = _clip(params, grad_clip)
+        if norm is None:  # nothing to step: the loss alone is read
+            norm = loss.detach()
         # one read for both, in at least float32 (some devices have no float64)
         read = torch.promote_types(torch.promote_types(loss.dtype, norm.dtype), torch.float32)
         value, size = torch.stack((loss.detach().to(read), norm.to(read))).tolist()
