@@ -26,6 +26,7 @@ from torchcbf.envs.filter_policy import FilteredPolicy  # noqa: E402
 from torchcbf.envs.filter_transform import FILTER_KEYS, SafetyFilterTransform  # noqa: E402
 from torchcbf.envs.safe_ppo import (  # noqa: E402
     METHODS,
+    SCENARIO_KWARGS,
     PPOConfig,
     RunResult,
     _penalize_shield,
@@ -556,3 +557,19 @@ def test_ppo_settings_are_checked_when_made(field, value, message) -> None:
         PPOConfig(**{field: value})
     with pytest.raises(TypeError, match="num_envs must be a positive int"):
         PPOConfig(num_envs=2.5)
+
+
+def test_ppo_environment_options_default_per_scenario_and_are_checked() -> None:
+    assert dict(PPOConfig().env_kwargs) == SCENARIO_KWARGS["torchcbf/UnicycleEllipses-v0"]
+    assert PPOConfig(env_id="torchcbf/ReachAvoid-v0").env_kwargs == ()
+    config = PPOConfig(env_kwargs={"sigma": 0.1})
+    assert config.env_kwargs == (("sigma", 0.1),)
+    hash(config)
+    with pytest.raises(ValueError, match=r"env_kwargs \['sigma'\] are not options of"):
+        PPOConfig(env_id="torchcbf/ReachAvoid-v0", env_kwargs={"sigma": 0.1})
+    with pytest.raises(ValueError, match=r"env_kwargs \['return_tensors'\]"):
+        PPOConfig(env_kwargs={"return_tensors": False})
+    with pytest.raises(TypeError, match="env_kwargs must be"):
+        PPOConfig(env_kwargs=5)
+    with pytest.raises(TypeError, match="env must be a registered torchcbf id"):
+        PPOConfig(env_id=3)

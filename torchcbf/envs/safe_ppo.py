@@ -30,6 +30,7 @@ forked and restored).
 from __future__ import annotations
 
 import copy
+import inspect
 import math
 import time
 from collections.abc import Callable
@@ -51,7 +52,7 @@ from torchcbf.barriers._params import take
 from torchcbf.envs.filter_policy import FilteredPolicy
 from torchcbf.envs.filter_transform import SafetyFilterTransform, barrier_values
 from torchcbf.envs.shaping import GeodesicProgress, geodesic_distance
-from torchcbf.envs.torchrl import TorchRLEnv
+from torchcbf.envs.torchrl import TorchRLEnv, vector_env_class
 from torchcbf.filters import SafetyFilter
 from torchcbf.scenarios import single_integrator_reach_avoid as scenario_a
 from torchcbf.scenarios import unicycle_mppi_cbf as scenario_b
@@ -60,6 +61,7 @@ __all__ = [
     "METHODS",
     "PPOConfig",
     "RunResult",
+    "SCENARIO_KWARGS",
     "SUMMARY_FIELDS",
     "config_dict",
     "evaluate",
@@ -72,6 +74,20 @@ __all__ = [
     "train",
 ]
 
+SCENARIO_KWARGS: dict[str, dict[str, Any]] = {
+    "torchcbf/UnicycleEllipses-v0": {
+        "sigma": 0.05,
+        "start_noise": 0.1,
+        "terminate_on_collision": False,
+        "collision_penalty": 0.0,
+    },
+}
+"""The environment options of a comparison when :class:`PPOConfig` is given none: scenario B
+with process noise, episodes that go on through collisions (counted as costs)."""
+
+# arguments of a TorchVectorEnv that TorchRLEnv sets itself
+_NOT_OPTIONS = frozenset({"num_envs", "return_tensors", "autoreset_mode", "render_mode"})
+
 METHODS = ("ppo", "ppo_lagrangian", "ppo_shield", "ppo_filter_layer")
 SHIELDED = ("ppo_shield", "ppo_filter_layer")
 
@@ -82,7 +98,8 @@ class PPOConfig:
 
     Attributes:
         env_id: the torchcbf environment id.
-        env_kwargs: the scenario's options as ``((name, value), ...)``.
+        env_kwargs: the scenario's options as ``((name, value), ...)`` (or a dict); ``None``:
+            :data:`SCENARIO_KWARGS` of ``env_id`` (none for other ids).
         num_envs: environments stepped as one batch while collecting.
         rollout_steps: steps per environment per batch (``num_envs * rollout_steps`` frames).
         total_frames: the frame budget.
@@ -105,12 +122,7 @@ class PPOConfig:
     """
 
     env_id: str = "torchcbf/UnicycleEllipses-v0"
-    env_kwargs: tuple[tuple[str, Any], ...] = (
-        ("sigma", 0.05),
-        ("start_noise", 0.1),
-        ("terminate_on_collision", False),
-        ("collision_penalty", 0.0),
-    )
+    env_kwargs: tuple[tuple[str, Any], ...] | None = None
     num_envs: int = 256
     rollout_steps: int = 128
     total_frames: int = 2_000_000
@@ -132,6 +144,25 @@ class PPOConfig:
     filter_margin: float | None = None
 
     def __post_init__(self) -> None:
+        cls = vector_env_class(self.env_id)
+        kwargs = self.env_kwargs
+        if kwargs is None:
+            kwargs = SCENARIO_KWARGS.get(self.env_id, {})
+        elif not isinstance(kwargs, dict):
+            try:
+                kwargs = dict(kwargs)
+            except (TypeError, ValueError):
+                raise TypeError(
+                    f"env_kwargs must be ((name, value), ...) or a dict, got {kwargs!r}"
+                ) from None
+        accepted = inspect.signature(cls).parameters
+        unknown = sorted(k for k in kwargs if k not in accepted or k in _NOT_OPTIONS)
+        if unknown:
+            raise ValueError(
+                f"env_kwargs {unknown} are not options of {self.env_id!r} "
+                f"({cls.__name__} takes {sorted(set(accepted) - _NOT_OPTIONS)})"
+            )
+        object.__setattr__(self, "env_kwargs", tuple(kwargs.items()))
         for name in (
             "num_envs",
             "rollout_steps",

@@ -44,6 +44,23 @@ __all__ = ["TorchRLEnv"]
 _SEED_RANGE = 2**31
 
 
+def vector_env_class(env: str) -> type[TorchVectorEnv]:
+    """The :class:`~torchcbf.envs.TorchVectorEnv` class registered under the id ``env``."""
+    if not isinstance(env, str):
+        raise TypeError(
+            f"env must be a registered torchcbf id (str) or a TorchVectorEnv, "
+            f"got {type(env).__name__}"
+        )
+    spec = gymnasium.spec(env)
+    if spec.vector_entry_point is None:
+        raise ValueError(f"env {env!r} has no vector entry point: not a torchcbf environment")
+    cls = spec.vector_entry_point
+    cls = load_env_creator(cls) if isinstance(cls, str) else cls
+    if not (isinstance(cls, type) and issubclass(cls, TorchVectorEnv)):
+        raise ValueError(f"env {env!r} is not a torchcbf TorchVectorEnv ({cls!r})")
+    return cls
+
+
 def _vector_env(
     env: str | TorchVectorEnv,
     num_envs: int,
@@ -59,19 +76,9 @@ def _vector_env(
                 "an env instance is already built"
             )
         return env
-    if not isinstance(env, str):
-        raise TypeError(
-            f"env must be a registered torchcbf id (str) or a TorchVectorEnv, "
-            f"got {type(env).__name__}"
-        )
-    spec = gymnasium.spec(env)
-    if spec.vector_entry_point is None:
-        raise ValueError(f"env {env!r} has no vector entry point: not a torchcbf environment")
-    cls = spec.vector_entry_point
-    cls = load_env_creator(cls) if isinstance(cls, str) else cls
-    if not (isinstance(cls, type) and issubclass(cls, TorchVectorEnv)):
-        raise ValueError(f"env {env!r} is not a torchcbf TorchVectorEnv ({cls!r})")
-    steps = spec.max_episode_steps if max_episode_steps is None else max_episode_steps
+    cls = vector_env_class(env)
+    steps = gymnasium.spec(env).max_episode_steps
+    steps = steps if max_episode_steps is None else max_episode_steps
     return cls(
         num_envs,
         max_episode_steps=steps,
