@@ -748,7 +748,11 @@ def _bench(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
     return 0
 
 
-def _print_rows(rows: list[dict[str, Any]], keys: list[str]) -> None:
+def _print_rows(
+    rows: list[dict[str, Any]], keys: list[str], *, names: list[str] | None = None
+) -> None:
+    """A table of ``rows``, each named by ``names`` or else by its values of ``keys``."""
+
     def pct(row: dict[str, Any], name: str) -> str:
         if f"{name}_rate" not in row:
             return "-"
@@ -760,10 +764,8 @@ def _print_rows(rows: list[dict[str, Any]], keys: list[str]) -> None:
 
     from torchcbf.sweep.params import describe
 
-    names = [
-        row.get("label") or describe({k: row[k] for k in keys if k in row}) or "defaults"
-        for row in rows
-    ]
+    if names is None:
+        names = [describe({k: row[k] for k in keys if k in row}) or "defaults" for row in rows]
     w = max([len("configuration"), *map(len, names)])
     print(
         f"{'configuration':<{w}} {'success (95% CI)':>17} {'collision (95% CI)':>19} "
@@ -901,8 +903,8 @@ def _tune(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
     evaluation, held_out = result["evaluation"], result["evaluation_seeds"]
     first, count = held_out["first"], held_out["count"]
     print(f"on the held-out evaluation seeds {first}..{first + count - 1}:")
-    labelled = [{**evaluation[k], "label": k} for k in ("best", "default") if evaluation[k]]
-    _print_rows(labelled, [])
+    kinds = [k for k in ("best", "default") if evaluation[k]]
+    _print_rows([evaluation[k] for k in kinds], [], names=kinds)
     recommended = result["recommended"]
     if recommended["source"] == "none":
         print(f"recommended: nothing ({recommended['reason']})")

@@ -373,3 +373,19 @@ def test_a_ray_address_of_another_form_is_refused() -> None:
         with pytest.raises(ValueError, match="address must be 'auto', 'local', host:port"):
             check_address(bad)
     check_address("auto")
+
+
+def test_table_names_rows_by_their_parameters_even_one_called_label(capsys) -> None:
+    from torchcbf.cli import _print_rows
+
+    rows = [
+        {"label": name, "status": "ok", "wall_s": 1.0, "success_rate": 0.5,
+         "success_ci95_low": 0.1, "success_ci95_high": 0.9}
+        for name in ("alpha", "beta")
+    ]  # fmt: skip
+    _print_rows(rows, ["label"])
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in lines[1:]] == ["label=alpha", "label=beta"]
+    _print_rows(rows, ["label"], names=["best", "default"])
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in lines[1:]] == ["best", "default"]
