@@ -542,6 +542,48 @@ def test_or_steers_to_the_children_the_history_has_not_made_fail(dtype):
     assert int(Or(A, B).outcome(t0[:, None], at_b)) == 1
 
 
+class _NeverDecided(Reach):
+    """A goal whose history never decides (its own ``outcome``)."""
+
+    def outcome(self, times, history):
+        return None
+
+
+class _Doubled(Reach):
+    """A goal that counts its planning cost twice (its own ``plan_cost``)."""
+
+    def plan_cost(self, states, times, history):
+        return 2 * super().plan_cost(states, times, history)
+
+
+def test_or_asks_a_child_that_overrides_its_cost_or_outcome_alone(dtype):
+    """The Or reads a child's cost and outcome through one call where the child's class
+    defines both; a subclass (or an instance) that overrides one is asked for it."""
+    states = _line_rollouts(dtype)
+    B = Reach((3.0, 0.0), 0.2, (0.0, 8.0))
+    past = torch.tensor([[[0.0, 0.0], [0.0, 0.5]]], dtype=dtype)
+    history = History(past, torch.tensor([[0.0, 0.2]], dtype=dtype), torch.ones(1, 2).bool())
+    t0 = torch.tensor([1.0], dtype=dtype)
+    alone = B(states, None, t0, dt=0.1, history=history)
+    # A's window closed unmet: an A that does not say so caps the Or's cost with its own
+    undecided = _NeverDecided((1.0, 0.0), 0.2, (0.0, 0.3))
+    capped = Reach((1.0, 0.0), 0.2, (0.0, 0.3))(states, None, t0, dt=0.1, history=history)
+    got = Or(undecided, B)(states, None, t0, dt=0.1, history=history)
+    torch.testing.assert_close(got, torch.minimum(capped, alone))
+    assert not torch.equal(got, alone)
+    shadowed = Reach((1.0, 0.0), 0.2, (0.0, 0.3))
+    shadowed.outcome = lambda times, history: None
+    torch.testing.assert_close(Or(shadowed, B)(states, None, t0, dt=0.1, history=history), got)
+    doubled = _Doubled((3.0, 0.0), 0.2, (0.0, 8.0))
+    got = Or(Reach((1.0, 0.0), 0.2, (0.0, 0.3)), doubled)(states, None, t0, dt=0.1, history=history)
+    torch.testing.assert_close(got, 2 * alone)
+    for spec in (B, And(B, Always(lambda x: 0.1 - x[..., 1].abs())), Or(undecided, doubled)):
+        times = t0[:, None] + 0.1 * torch.arange(5, dtype=dtype)
+        cost, outcome = spec.plan(states, times, history)
+        torch.testing.assert_close(cost, spec.plan_cost(states, times, history))
+        assert torch.equal(outcome, spec.outcome(times, history))
+
+
 def test_robustness_gradient_at_a_disc_centre_is_finite():
     """A state on the centre (outside the window, or not the extreme one) has no influence,
     though the square root's derivative is infinite there."""

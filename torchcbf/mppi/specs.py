@@ -45,11 +45,19 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor, nn
 
-from torchcbf._checks import check_number, check_positive, several_outputs
+from torchcbf._checks import (
+    ClosedForms,
+    TracksShadows,
+    apply_rules,
+    check_number,
+    check_positive,
+    several_outputs,
+)
 from torchcbf.mppi.costs import (
     Adds,
     constant,
@@ -85,12 +93,22 @@ def pointwise(rho: Tensor, states: Tensor, name: str) -> Tensor:
     return rho.amin(-1) if several_outputs(f"the {name}", rho, states) else rho
 
 
-class Spec(Adds, nn.Module):
+class Spec(Adds, TracksShadows):
     """Base of the specifications: ``robustness`` and the MPPI cost ``forward``; ``&`` and
     ``|`` combine specifications, ``+`` adds a specification's cost to another cost."""
 
     #: The planner passes ``dt=`` and ``history=`` to costs that set this.
     needs_history = True
+    #: :meth:`plan` is trusted only where the class defining it also defines what it
+    #: stands for (see :func:`torchcbf._checks.honour_overrides`)
+    closed_forms: ClassVar[ClosedForms] = {"plan": (("plan_cost", "outcome"), ())}
+    #: what :meth:`plan` answers for an instance that shadows a method of its class or runs
+    #: hooks (see :func:`torchcbf._checks.unless_hooked`)
+    hooked_forms: ClassVar[dict[str, object]] = {"plan": None}
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        apply_rules(cls, Spec)
 
     def robustness(self, states: Tensor, times: Tensor) -> Tensor:
         """Robustness ``[...]`` of trajectories ``states [..., T, n]`` sampled at global
@@ -107,6 +125,16 @@ class Spec(Adds, nn.Module):
         ``times [B, T]`` still decide; ``None`` where nothing is known (no history, or a
         specification that does not say)."""
         return None
+
+    def plan(
+        self, states: Tensor, times: Tensor, history: History | None
+    ) -> tuple[Tensor, Tensor | None] | None:
+        """``(plan_cost(...), outcome(...))`` together, as :func:`plan_of` asks: a
+        specification that reads the history for both defines this to read it once. It is
+        trusted only where the class defining it also defines :meth:`plan_cost` and
+        :meth:`outcome` (see :func:`torchcbf._checks.honour_overrides`); ``None`` for an
+        instance that shadows a method or runs hooks."""
+        return self.plan_cost(states, times, history), self.outcome(times, history)
 
     def forward(
         self,
@@ -125,6 +153,9 @@ class Spec(Adds, nn.Module):
 
     def __or__(self, other: Spec) -> Or:
         return Or(self, other)
+
+
+Spec.rules_base = Spec  # type: ignore[attr-defined]
 
 
 class _Temporal(Spec):
@@ -299,30 +330,44 @@ class Eventually(_Temporal):
         return _masked(c, ~window.unsqueeze(1), math.inf, own=own).amin(-1), last
 
     def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
+        return self._cost_and_outcome(states, times, history)[0]
+
+    def plan(
+        self, states: Tensor, times: Tensor, history: History | None
+    ) -> tuple[Tensor, Tensor | None] | None:
+        return self._cost_and_outcome(states, times, history)
+
+    def _cost_and_outcome(
+        self, states: Tensor, times: Tensor, history: History | None
+    ) -> tuple[Tensor, Tensor | None]:
         window = self.in_window(times)  # [B, T]
         roll_min, last = self.rollout_min_cost(states, window, self._ramp(times), times)
         roll = torch.where(window.any(-1, keepdim=True), roll_min, last)
-        passed = self._passed(times).unsqueeze(-1)
+        passed = self._passed(times)
         if history is None:
-            return torch.where(passed, torch.zeros_like(roll), roll)
+            return torch.where(passed.unsqueeze(-1), torch.zeros_like(roll), roll), None
         h_window = history.valid & self.in_window(history.times)  # [B, N]
         h_cost = self.pointwise_cost_at(history.states, history.times)
-        h_min = h_cost.masked_fill(~h_window, math.inf).amin(-1)
-        frozen = self._held(history, h_window).unsqueeze(-1) | passed
-        h_min = h_min.unsqueeze(-1)
+        h_min = h_cost.masked_fill(~h_window, math.inf).amin(-1, keepdim=True)
+        held = self._held(history, h_window)
         constant = torch.where(torch.isfinite(h_min), h_min, torch.zeros_like(h_min))
-        return torch.where(frozen, constant, torch.minimum(roll, h_min))
+        frozen = (held | passed).unsqueeze(-1)
+        cost = torch.where(frozen, constant, torch.minimum(roll, h_min))
+        return cost, self._verdict(held, passed)
 
     def _held(self, history: History, h_window: Tensor) -> Tensor:
         """``[B]``: whether a state of the history inside the window satisfies the predicate."""
         return (h_window & (self.predicate_at(history.states, history.times) >= 0)).any(-1)
 
+    @staticmethod
+    def _verdict(held: Tensor, passed: Tensor) -> Tensor:
+        return torch.where(held, 1, torch.where(passed, -1, 0))
+
     def outcome(self, times: Tensor, history: History | None) -> Tensor | None:
         if history is None:
             return None
         held = self._held(history, history.valid & self.in_window(history.times))
-        passed = self._passed(times)
-        return torch.where(held, 1, torch.where(passed, -1, 0))
+        return self._verdict(held, self._passed(times))
 
 
 class Always(_Temporal):
@@ -517,14 +562,53 @@ class _Combination(Spec):
                 raise TypeError(f"{type(self).__name__} takes Spec objects, got {type(s).__name__}")
         self.specs = nn.ModuleList(specs)
 
-    def _outcomes(self, times: Tensor, history: History | None) -> Tensor | None:
-        """The children's outcomes ``[C, B]`` (0 for one that does not say), or ``None``
-        where none says."""
-        found = [s.outcome(times, history) for s in self.specs]
-        if all(o is None for o in found):
-            return None
-        zero = next(o for o in found if o is not None).new_zeros(())
-        return torch.stack([zero.expand(times.shape[0]) if o is None else o for o in found])
+    def outcome(self, times: Tensor, history: History | None) -> Tensor | None:
+        return self._verdict(_stack_outcomes([s.outcome(times, history) for s in self.specs]))
+
+    def plan(
+        self, states: Tensor, times: Tensor, history: History | None
+    ) -> tuple[Tensor, Tensor | None] | None:
+        return self._cost_and_outcome(states, times, history)
+
+    def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
+        return self._cost_and_outcome(states, times, history)[0]
+
+    def _cost_and_outcome(
+        self, states: Tensor, times: Tensor, history: History | None
+    ) -> tuple[Tensor, Tensor | None]:
+        plans = [plan_of(s, states, times, history) for s in self.specs]
+        found = _stack_outcomes([o for _, o in plans])
+        return self._combine(torch.stack([c for c, _ in plans]), found), self._verdict(found)
+
+    def _combine(self, costs: Tensor, found: Tensor | None) -> Tensor:
+        """The cost ``[B, K]`` from the children's ``costs [C, B, K]`` and outcomes
+        ``found [C, B]`` (``None``: none says)."""
+        raise NotImplementedError
+
+    def _verdict(self, found: Tensor | None) -> Tensor | None:
+        """The outcome ``[B]`` from the children's ``found [C, B]``."""
+        raise NotImplementedError
+
+
+def plan_of(
+    spec: Spec, states: Tensor, times: Tensor, history: History | None
+) -> tuple[Tensor, Tensor | None]:
+    """``(spec.plan_cost(...), spec.outcome(...))``, through :meth:`Spec.plan` where it
+    answers."""
+    both = spec.plan(states, times, history)
+    if both is None:
+        return spec.plan_cost(states, times, history), spec.outcome(times, history)
+    return both
+
+
+def _stack_outcomes(found: list[Tensor | None]) -> Tensor | None:
+    """The children's outcomes ``[C, B]`` (0 for one that does not say), or ``None`` where
+    none says."""
+    known = [o for o in found if o is not None]
+    if not known:
+        return None
+    zero = known[0].new_zeros(known[0].shape)
+    return torch.stack([zero if o is None else o for o in found])
 
 
 class And(_Combination):
@@ -542,8 +626,12 @@ class And(_Combination):
             out = out + s.plan_cost(states, times, history)
         return out
 
-    def outcome(self, times: Tensor, history: History | None) -> Tensor | None:
-        found = self._outcomes(times, history)
+    plan = _Combination.plan  # the sum above, with the outcome an Or asks for
+
+    def _combine(self, costs: Tensor, found: Tensor | None) -> Tensor:
+        return costs.sum(0)
+
+    def _verdict(self, found: Tensor | None) -> Tensor | None:
         if found is None:
             return None
         return torch.where((found < 0).any(0), -1, torch.where((found > 0).all(0), 1, 0))
@@ -565,10 +653,8 @@ class Or(_Combination):
             out = torch.maximum(out, s.robustness(states, times))
         return out
 
-    def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
-        costs = torch.stack([s.plan_cost(states, times, history) for s in self.specs])
+    def _combine(self, costs: Tensor, found: Tensor | None) -> Tensor:
         least = costs.amin(0)
-        found = self._outcomes(times, history)
         if found is None:
             return least
         held, failed = (found > 0).unsqueeze(-1), (found < 0).unsqueeze(-1)  # [C, B, 1]
@@ -576,8 +662,7 @@ class Or(_Combination):
         held_least = costs.masked_fill(~held, math.inf).amin(0)
         return torch.where(held.any(0), held_least, torch.where(failed.all(0), least, open_least))
 
-    def outcome(self, times: Tensor, history: History | None) -> Tensor | None:
-        found = self._outcomes(times, history)
+    def _verdict(self, found: Tensor | None) -> Tensor | None:
         if found is None:
             return None
         return torch.where((found > 0).any(0), 1, torch.where((found < 0).all(0), -1, 0))
