@@ -171,6 +171,24 @@ def test_far_solutions_are_solved_and_far_contradictions_are_infeasible(method):
             assert int(sol.status) == Status.PRIMAL_INFEASIBLE, loose
 
 
+@pytest.mark.parametrize("method", ["auto", "ipm"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_a_zero_row_that_cannot_hold_is_infeasible_and_leaves_its_batch_alone(method, dtype):
+    """``0 <= h_i < 0`` (a CBF row whose ``L_g h`` vanishes where the condition is broken)
+    or ``0 = b_i != 0``; the rows beside it in the batch are solved as alone."""
+    eye, ones = torch.eye(3, dtype=dtype), torch.ones(3, dtype=dtype)
+    G = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], dtype=dtype).expand(3, 2, 3)
+    h = torch.tensor([[-1.0, 1.0], [0.0, 1.0], [1.0, -2.0]], dtype=dtype)
+    sol = solve_qp(eye, ones, G, h, method=method)
+    assert sol.status.tolist() == [Status.PRIMAL_INFEASIBLE, Status.SOLVED, Status.SOLVED]
+    torch.testing.assert_close(sol.x[1:], torch.tensor([[-1.0, -1, -1], [-2, -1, -1]], dtype=dtype))
+    A = torch.zeros(1, 3, dtype=dtype)
+    for b, want in ((1.0, Status.PRIMAL_INFEASIBLE), (0.0, Status.SOLVED)):
+        sol = solve_qp(eye, ones, G[0, 1:], h[0, 1:], A, torch.tensor([b], dtype=dtype),
+                       method=method)  # fmt: skip
+        assert int(sol.status) == want, b
+
+
 def test_rows_not_solved_get_zero_gradients_when_every_fallback_fails(monkeypatch):
     """Rows the dual method solved but handed on (every row: Q has condition 1e6) whose
     certification and fallbacks then fail get zero gradients, not the dual method's."""

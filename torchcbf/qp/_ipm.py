@@ -375,6 +375,12 @@ def solve_ipm(
     # largest entry of every row of G and A, to weigh the rows a Farkas certificate combines
     g_rows = G.abs().amax(-1) if n > 0 else G.new_zeros(B, M)  # [B, M]
     a_rows = A.abs().amax(-1) if n > 0 else A.new_zeros(B, A.shape[-2])  # [B, E]
+    # a zero row that asks 0 <= h_i < 0 or 0 = b_i != 0 is its own certificate (the
+    # weighted Farkas test below cannot see it: its multiplier weighs nothing)
+    tol = (eps * (1.0 + hn)).unsqueeze(-1)
+    contradiction = ((g_rows == 0) & (h < -tol)).any(-1) | ((a_rows == 0) & (b.abs() > tol)).any(-1)
+    status = torch.where(active & contradiction, int(Status.PRIMAL_INFEASIBLE), status)
+    active = active & ~contradiction
     # largest entries of P, G and A, the scales of an unboundedness certificate
     p_max = P.abs().amax((-2, -1)) if n > 0 else P.new_zeros(B)
     g_max = _inf_norm(g_rows)
