@@ -136,6 +136,28 @@ def test_dependent_equalities_take_the_general_path(cvx):
             assert np.abs(sol.x[i].numpy() - ref).max() <= 1e-7 * (1 + np.abs(ref).max())
 
 
+@pytest.mark.parametrize("B", [1, 20])
+def test_dependent_equalities_of_any_scale_are_judged_on_unit_rows(cvx, B):
+    """``a x = b`` repeated as ``1e12 a x = 1e12 (b + 1)`` contradicts it (infeasible, not a
+    solved row that misses the first by about 1); ``1e12 a x = 1e12 b`` repeats it (solved,
+    its multipliers stationary)."""
+    batch = make_batch(B, 5, 6, 2, False, seed=5, frac_infeasible=0.0)
+    first = batch.A[:, :1]
+    A = torch.cat((batch.A, 1e12 * first), 1)
+    for shift, want in ((1.0, Status.PRIMAL_INFEASIBLE), (0.0, Status.SOLVED)):
+        b = torch.cat((batch.b, 1e12 * (batch.b[:, :1] + shift)), 1)
+        data = (batch.Q, batch.p, batch.G, batch.h, A, b)
+        with torch.no_grad():
+            sol = solve_qp(*data)
+        assert sol.status.tolist() == [want] * B, shift
+        if want == Status.SOLVED:
+            for i in range(min(B, 3)):
+                ref, _, _ = cvx(*(t[i].numpy() for t in data[:4]), batch.A[i].numpy(),
+                                batch.b[i].numpy())  # fmt: skip
+                assert np.abs(sol.x[i].numpy() - ref).max() <= 1e-7 * (1 + np.abs(ref).max())
+            assert float(_kkt_residual(data, sol).max()) < 1e-8
+
+
 def test_a_batch_mixing_dependent_and_independent_equalities(cvx):
     batch = make_batch(30, 5, 6, 2, True, seed=8, frac_infeasible=0.0)
     A, b = batch.A.clone(), batch.b.clone()

@@ -326,12 +326,18 @@ def _forward_dependent(
     """``(x, z, y, status, iterations, method)`` of rows that :func:`_forward_eliminated`
     could not reduce. A ``deficient [B]`` row (``A`` rank deficient, also to float64
     rounding: :func:`torchcbf.qp._eliminate.numerical_rank`) whose ``b`` lies in the
-    range of ``A`` to ``eps (1 + |b|)`` is solved, by elimination, on the independent
+    range of ``A`` to ``eps (1 + |b|)``, both judged with every row of ``A`` and ``b``
+    divided by the row's norm, is solved, by elimination, on the independent
     equalities ``U'A x = U'b`` (:func:`torchcbf.qp._eliminate.independent_rows`; one pass per
     rank present), its multipliers mapped back (``y = U y_r``): dependent rows leave the KKT
     systems of the other methods singular. Every other row is solved by ``cfg.method`` with its
     equalities kept."""
-    rank, U_all = eliminate.numerical_rank(data.A)
+    # judged on unit rows: a row scaled by 1e12 would otherwise set the scale of both the
+    # rank and the consistency of the others (x1 = 0 beside 1e12 x1 = 1e12 held "consistent")
+    norm = data.A.norm(dim=-1)
+    norm = torch.where(norm > 0, norm, torch.ones_like(norm))
+    A_unit, b_unit = data.A / norm.unsqueeze(-1), data.b / norm
+    rank, U_all = eliminate.numerical_rank(A_unit)
     deficient = deficient & (rank < data.A.shape[-2])
     left = torch.ones_like(deficient)
     pieces: list[tuple[Tensor, tuple[Tensor, ...]]] = []
@@ -341,15 +347,18 @@ def _forward_dependent(
         group = (deficient & (rank == r)).nonzero().squeeze(-1)
         sub = data.rows(group)
         U = U_all.index_select(0, group)[..., :r]
-        A_r, b_r, residual = eliminate.independent_rows(sub.A, sub.b, U)
-        consistent = residual <= cfg.eps * (1.0 + sub.b.abs().amax(-1))
+        A_g, b_g = A_unit.index_select(0, group), b_unit.index_select(0, group)
+        A_r, b_r, residual = eliminate.independent_rows(A_g, b_g, U)
+        consistent = residual <= cfg.eps * (1.0 + b_g.abs().amax(-1))
         if not bool(consistent.any()):
             continue
         group, U = group[consistent], U[consistent]
         sub = QPData(*(t[consistent] for t in sub[:4]), A_r[consistent], b_r[consistent])
         x0g = None if x0 is None else x0.index_select(0, group)
         x, z, y_r, st, it, codes = _forward_eliminated(sub, cfg, x0g, dependent=False)[:6]
-        pieces.append((group, (x, z, (U @ y_r.unsqueeze(-1)).squeeze(-1), st, it, codes)))
+        # y of the unit rows, U y_r, divided by each row's norm: A'y = A_unit' (U y_r)
+        y = (U @ y_r.unsqueeze(-1)).squeeze(-1) / norm.index_select(0, group)
+        pieces.append((group, (x, z, y, st, it, codes)))
         left[group] = False
     if bool(left.any()):
         idx = left.nonzero().squeeze(-1)
