@@ -147,6 +147,16 @@ def test_check_spd_symmetry_is_relative_to_the_matrix_scale() -> None:
     check_spd("P", a @ a.mT + 0.1 * torch.eye(3))  # float32 products: symmetric to rounding
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_check_spd_refuses_singular_matrices_cholesky_rounds_through(dtype) -> None:
+    for singular in ([[2.0, 2.0], [2.0, 2.0]], [[0.3, 0.3], [0.3, 0.3]]):
+        with pytest.raises(ValueError, match="P must be positive definite"):
+            check_spd("P", torch.tensor(singular, dtype=dtype))
+    # mixed units and a strong correlation are still positive definite
+    check_spd("P", torch.tensor([[1e-6, 0.0], [0.0, 1e6]], dtype=dtype))
+    check_spd("P", torch.tensor([[1.0, 0.999], [0.999, 1.0]], dtype=dtype))
+
+
 def test_honour_overrides_follows_the_class_that_defines_each_method() -> None:
     rules = {"quadric": (("forward",), ("flag",)), "fast": (("f", "g"), ())}
 

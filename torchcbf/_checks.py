@@ -263,8 +263,13 @@ def check_spd(name: str, matrix: Tensor) -> Tensor:
     scale = d.unsqueeze(-1) * d.unsqueeze(-2)
     if bool(((matrix - matrix.mT).detach().abs() > 1e-6 * scale).any()):
         raise ValueError(f"{name} must be symmetric")
-    _, info = torch.linalg.cholesky_ex(matrix)
-    if bool((info != 0).any()):
+    L, info = torch.linalg.cholesky_ex(matrix.detach())
+    # Cholesky also succeeds on some singular matrices, by rounding ([[2, 2], [2, 2]]):
+    # each pivot L_ii^2 is the part of a_ii its row does not share with the rows before it
+    pivots = L.diagonal(dim1=-2, dim2=-1).square()
+    own = matrix.detach().diagonal(dim1=-2, dim2=-1)
+    tol = 8 * matrix.shape[-1] * torch.finfo(matrix.dtype).eps
+    if bool((info != 0).any()) or bool((pivots <= tol * own).any()):
         raise ValueError(f"{name} must be positive definite")
     return matrix
 

@@ -816,6 +816,44 @@ def test_a_noise_covariance_written_in_place_is_sampled(backend, noise_mu):
     torch.testing.assert_close(u[0], u[1], atol=1e-5, rtol=1e-5)
 
 
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+@pytest.mark.parametrize("how", ["data", "numpy", "number", "diagonal"])
+def test_a_noise_covariance_set_any_way_is_sampled(backend, how):
+    """Written through ``.data`` or a NumPy view (seen by value on the CPU), or assigned as a
+    number or a diagonal (as the constructor takes it): the next call plans as a planner
+    built with it, and so does the call after ``reset()``."""
+    cost = QuadraticGoal([1.0, -1.0])
+    target = 4.0 if how == "number" else [1.0, 4.0]
+    made = [
+        MPPI(SingleIntegrator(2), cost, 8, 64, 0.1, sigma, 0.5, seed=0, backend=backend)
+        for sigma in (1.0, target)
+    ]
+    made[0](torch.zeros(2))
+    made[0].reset()
+    if how == "data":
+        made[0].noise_cov.data.mul_(torch.tensor([1.0, 4.0]))
+    elif how == "numpy":
+        made[0].noise_cov.numpy()[1, 1] = 4.0
+    else:
+        made[0].noise_cov = torch.tensor(target)
+    u = [p(torch.zeros(2)).u for p in made]
+    torch.testing.assert_close(u[0], u[1], atol=1e-5, rtol=1e-5)
+
+
+def test_a_noise_covariance_set_between_calls_is_checked():
+    planner = MPPI(SingleIntegrator(2), QuadraticGoal([1.0, -1.0]), 8, 64, 0.1, 1.0, 0.5)
+    for bad, message in (
+        ([[1.0, 0.9], [0.0, 1.0]], "noise_cov must be symmetric"),
+        ([[2.0, 2.0], [2.0, 2.0]], "noise_cov must be positive definite"),
+        ([[1.0, 0.0, 0.0]], r"noise_cov must be a scalar, \[2\] or \[2, 2\]"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            planner.noise_cov = torch.tensor(bad)
+    planner.noise_cov.copy_(torch.tensor([[1.0, 2.0], [2.0, 1.0]]))
+    with pytest.raises(ValueError, match="noise_cov must be positive definite"):
+        planner(torch.zeros(2))
+
+
 def test_a_number_of_samples_set_after_a_call_is_sampled_on_every_path():
     """``num_samples`` (and ``layout``) set between calls: the sample buffers follow, and
     the paths still agree for one seed."""
@@ -1003,6 +1041,25 @@ def test_std_normalisation_of_widely_spread_float32_costs() -> None:
     ]  # fmt: skip
     torch.testing.assert_close(weights[1], weights[0].float())
     assert float(weights[0][0]) > 0.5
+
+
+@pytest.mark.parametrize("normalization", ["std", "range"])
+def test_normalised_weights_do_not_depend_on_the_costs_scale(normalization) -> None:
+    """``(S - min S) / spread`` is scale-free: costs ``k s`` weigh the same for ``s = 1``
+    and ``s = 1e200`` (whose squares overflow float64)."""
+
+    def weights(scale: float) -> torch.Tensor:
+        def cost(states, controls, t0):
+            return scale * torch.arange(states.shape[1], dtype=states.dtype).expand(
+                states.shape[:2]
+            )
+
+        planner = MPPI(SingleIntegrator(2), cost, 3, 8, 0.1, 0.5, 0.5, keep_rollouts=8,
+                       cost_normalization=normalization).double()  # fmt: skip
+        return planner(torch.zeros(2, dtype=torch.float64)).rollout_weights
+
+    torch.testing.assert_close(weights(1e200), weights(1.0), rtol=1e-12, atol=1e-15)
+    assert float(weights(1.0)[0]) > 0.25  # not the uniform 1/8
 
 
 def test_limits_flags_and_integers_are_checked_as_given() -> None:

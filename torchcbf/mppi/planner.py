@@ -114,6 +114,7 @@ from torchcbf._checks import (
     check_number,
     check_positive,
     check_seed,
+    check_spd,
     check_times,
     follow_parts,
     hook_dicts,
@@ -658,7 +659,7 @@ class MPPI(TracksShadows, ExactConstants):
                 self.register_buffer(name, value)
             else:  # Python numbers: exact under .double()
                 remember(self, name, value)
-        self._noise_form_kept: tuple[tuple, bool, float | None] | None = None
+        self._noise_form_kept: tuple[tuple, bool, float | None, Tensor] | None = None
         lo = _limit("u_min", u_min, m) if u_min is not None else dynamics.u_min
         hi = _limit("u_max", u_max, m) if u_max is not None else dynamics.u_max
         check_bounds("u_min", lo, "u_max", hi)
@@ -693,6 +694,11 @@ class MPPI(TracksShadows, ExactConstants):
     _BOUNDS: tuple[tuple[str, str], ...] = (("u_min", "u_max"),)
 
     def __setattr__(self, name: str, value: Any) -> None:
+        if name == "noise_cov" and isinstance(value, Tensor) and "_buffers" in vars(self):
+            m = self.dynamics.control_dim
+            if value.shape != (m, m):  # a number or a diagonal, as the constructor takes it
+                value = as_matrix(name, value, m, spd=False)
+            check_spd("noise_cov", value.detach())
         pair = next((p for p in self._BOUNDS if name in p), None)
         if pair is not None and isinstance(value, Tensor) and "_buffers" in vars(self):
             m = self.dynamics.control_dim
@@ -711,6 +717,7 @@ class MPPI(TracksShadows, ExactConstants):
         self._kernel_cache = None
         self._captured = None
         self._fresh = True
+        self._noise_form_kept = None
 
     def _history_matters(self) -> bool:
         """Whether a term of the cost reads what the history holds as achieved (a goal's)."""
@@ -1046,18 +1053,25 @@ class MPPI(TracksShadows, ExactConstants):
         cov = self.noise_cov
         key = (cov.data_ptr(), cov._version, cov.device, cov.dtype)
         kept = self._noise_form_kept
-        if kept is None or kept[0] != key:
-            diag = torch.diagonal(cov)
-            diagonal = bool(torch.equal(cov, torch.diag(diag)))
-            isotropic = diagonal and bool((diag == diag[0]).all())
+        # on the CPU the matrix is also compared by value: a write through ``.data`` or a
+        # NumPy view keeps its version (on a GPU that would wait for the device)
+        if (
+            kept is None
+            or kept[0] != key
+            or (cov.device.type == "cpu" and not torch.equal(cov.detach(), kept[3]))
+        ):
             chol = self.noise_chol.detach()
             tol = 1e-10 if cov.dtype == torch.float64 else 1e-5
             if not torch.allclose(chol @ chol.mT, cov.detach(), rtol=tol, atol=0.0):
+                check_spd("noise_cov", cov.detach())  # set in place: checked as when made
                 exact = torch.linalg.cholesky(cov.detach().double())  # the factors follow
                 self.noise_chol.copy_(exact)
                 self.noise_cov_inv.copy_(torch.cholesky_inverse(exact))
-            kept = ((cov.data_ptr(), cov._version, cov.device, cov.dtype), diagonal,
-                    float(diag[0].sqrt()) if isotropic else None)  # fmt: skip
+            diag = torch.diagonal(cov)
+            diagonal = bool(torch.equal(cov, torch.diag(diag)))
+            isotropic = diagonal and bool((diag == diag[0]).all())
+            std = float(diag[0].sqrt()) if isotropic else None
+            kept = (key, diagonal, std, cov.detach().clone())
             self._noise_form_kept = kept
         return kept[1], kept[2]
 
@@ -1516,10 +1530,13 @@ class MPPI(TracksShadows, ExactConstants):
             if self.cost_normalization == "range":
                 span = kept.amax(-1, keepdim=True)
             else:  # "std": standard deviation of the finite costs
+                # of the costs over their range: squares of spreads beyond 1e154 overflow
+                top = kept.amax(-1, keepdim=True).clamp_min(torch.finfo(torch.float64).tiny)
+                unit = kept / top
                 n_fin = finite.sum(-1, keepdim=True).clamp_min(1)
-                mean = kept.sum(-1, keepdim=True) / n_fin
-                dev = torch.where(finite, kept - mean, 0.0)
-                span = (dev.square().sum(-1, keepdim=True) / n_fin).sqrt()
+                mean = unit.sum(-1, keepdim=True) / n_fin
+                dev = torch.where(finite, unit - mean, 0.0)
+                span = top * (dev.square().sum(-1, keepdim=True) / n_fin).sqrt()
             tiny = torch.finfo(torch.float64).tiny
             shifted = (wide / span.clamp_min(tiny)).to(cost.dtype)
         # exponents below log(tiny) give weight 0 (their exp would be subnormal: no
