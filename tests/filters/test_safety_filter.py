@@ -339,6 +339,33 @@ def test_an_unused_callable_fallback_leaves_gradients_alone() -> None:
         torch.testing.assert_close(gk, torch.tensor(want_gk, dtype=f64))
 
 
+def test_a_trainable_fallback_gets_a_gradient_on_every_path_and_batch() -> None:
+    """A fallback parameter is trained: the control carries a graph whether or not a row of
+    the batch falls back (zero where none does), on every backend."""
+    f64 = torch.float64
+    model = SingleIntegrator(2, u_min=-2.0, u_max=2.0)
+    ball = Ball([1.0, 0.0], 0.5).double()
+    fallback = param = torch.nn.Parameter(torch.tensor([0.5, -0.5], dtype=f64))
+    x = torch.tensor([[-1.0, 0.0], [1.0, 0.0]], dtype=f64)  # the second at the centre
+    u = torch.tensor([[1.0, 0.0], [1.0, 0.0]], dtype=f64)
+    for backend in ("auto", "torch"):
+        filt = SafetyFilter(model, [ball], alpha=1.0, fallback=fallback, slack="none",
+                            backend=backend)  # fmt: skip
+        assert any(p is param for p in filt.parameters())
+        for part, falls in ((slice(0, 1), False), (slice(0, 2), True)):
+            out = filt(x[part], u[part])
+            assert out.u.requires_grad, (backend, part)
+            (g,) = torch.autograd.grad(out.u.sum(), (param,))
+            assert bool((g != 0).any()) == falls, (backend, part)
+
+
+def test_a_stochastic_margin_given_as_a_parameter_is_trained() -> None:
+    beta = torch.nn.Parameter(torch.tensor(0.1, dtype=torch.float64))
+    mode = Stochastic(beta=beta)
+    assert [name for name, _ in mode.named_parameters()] == ["beta"] and mode.beta is beta
+    assert list(dict(mode.named_buffers())) == []
+
+
 def test_a_fallback_row_where_the_callable_is_not_finite_leaves_shared_gradients_alone() -> None:
     """Rows that fall back where the callable is NaN (a non-finite state, or its own 0/0)
     get zero clipped to the limits, and rows where it is infinite its value clipped; neither

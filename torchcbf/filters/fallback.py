@@ -54,6 +54,12 @@ class Fallback(nn.Module):
         else:
             raise TypeError(f"fallback must be a string, tensor or callable, got {spec!r}")
 
+    def trains(self) -> bool:
+        """Whether the control is a tensor that requires grad (the filter's output then
+        carries a graph, zero where no row falls back; a callable's carries one where a row
+        falls back, see :meth:`select`)."""
+        return self.kind == "tensor" and self.control.requires_grad
+
     def forward(self, x: Tensor, u_nom: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
         """Fallback controls ``[B, m]`` at ``x [B, n]`` for ``u_nom [B, m]`` within
         ``lo, hi [m]``."""

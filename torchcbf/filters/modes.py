@@ -26,7 +26,6 @@ from torchcbf._checks import (
     apply_rules,
     as_tensor,
     behaves_as,
-    check_finite,
     check_last_dim,
     check_number,
 )
@@ -165,10 +164,10 @@ class Stochastic(FilterMode):
 
     def __init__(self, beta: float | Sequence[float] | Tensor = 0.0) -> None:
         super().__init__()
-        self.register_buffer("beta", as_tensor("beta", beta, dtype=torch.float64))
+        # a parameter is trained, a tensor that requires grad keeps its graph
+        store(self, "beta", beta, dtype=torch.float64)
         if self.beta.dim() > 1:
             raise ValueError(f"beta must be a scalar or [k], got shape {tuple(self.beta.shape)}")
-        check_finite("beta", self.beta)
 
     def bind(
         self,

@@ -390,7 +390,10 @@ class SafetyFilter(ExactConstants, DerivedConstants):
             conditions = self._conditions(xb, tb, prepare=True)
             limits = self._limit_tensors()
             grads = torch.is_grad_enabled()
-            if not (grads and _carries_grad(conditions, ub, self.R, *limits)):
+            trains = grads and (
+                _carries_grad(conditions, ub, self.R, *limits) or self.fallback.trains()
+            )
+            if not trains:
                 out = self._realtime(batch, xb, ub, conditions, limits)
                 if out is not None:
                     return out
