@@ -138,6 +138,23 @@ def test_non_finite_scenario_is_flagged_and_isolated() -> None:
     torch.testing.assert_close(traj.x[2, 6:], traj.x[2, 5].expand(5, 2))
 
 
+@pytest.mark.parametrize("estimator", [False, True])
+def test_a_sensor_that_goes_non_finite_fails_its_row_with_or_without_an_estimator(estimator):
+    """``log`` of a coordinate that turns negative: the row is flagged where its measurement
+    first is NaN (the estimator would otherwise keep its old estimate, running blind)."""
+    from torchcbf.estimation import FunctionSensor
+
+    dyn = SingleIntegrator(2).double()
+    sensor = FunctionSensor(lambda x: torch.stack([torch.log(x[..., 0]), x[..., 1]], -1),
+                            std=[1e-3, 1e-3], state_dim=2)  # fmt: skip
+    x0 = torch.tensor([[1.0, 0.0], [0.25, 0.0]], dtype=torch.float64)
+    u = torch.tensor([[0.5, 0.0], [-1.0, 0.0]], dtype=torch.float64)
+    kw = {"estimator": EKF(dyn, sensor, Q=1e-4)} if estimator else {}
+    traj = simulate(dyn, x0, 6, 0.1, nominal=lambda x, t: u, sensor=sensor, progress=False, **kw)
+    assert traj.failed.tolist() == [False, True]
+    assert traj.fail_step.tolist() == [-1, 3]
+
+
 def test_planner_at_lower_rate_follows_its_plan() -> None:
     dyn = SingleIntegrator(2).double()
     planner = _TowardsOrigin()

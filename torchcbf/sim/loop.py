@@ -43,7 +43,7 @@ from torchcbf._checks import (
 )
 from torchcbf._random import counter_normal, seed_rows
 from torchcbf.dynamics.base import ControlAffine
-from torchcbf.estimation import Estimator, Sensor
+from torchcbf.estimation import Estimator, EstimatorStatus, Sensor
 from torchcbf.filters import FilterStatus
 from torchcbf.integrators import METHODS
 from torchcbf.integrators import step as integrate
@@ -375,6 +375,9 @@ class _Run:
         if self.est_state is not None:
             state = loop.estimator.predict(self.est_state, u, self.dt)
             self.est_state = loop.estimator.update(state, self.measure(self.x, k + 1))
+            # a non-finite measurement (or step) kept the old estimate: the row runs blind
+            bits = self.est_state.status & int(EstimatorStatus.NON_FINITE)
+            self.mark(bits == 0, k + 1)
 
     # -- after the last step ----------------------------------------------------------------
     def finish(self) -> Trajectory:
