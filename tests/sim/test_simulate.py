@@ -756,3 +756,20 @@ def test_a_goal_is_checked_when_made():
         with pytest.raises(error, match=message):
             Goal(**kwargs)
     assert Goal((1.0,), 0.2, index=(0,)).radius == 0.2
+
+
+def test_metrics_without_barriers_count_no_collision() -> None:
+    """A filter of Lyapunov functions alone records ``h [B, T, 0]``; ``barriers=[]``."""
+    from torchcbf.barriers import QuadraticLyapunov
+
+    dyn = SingleIntegrator(2, u_min=-1, u_max=1).double()
+    clf_only = SafetyFilter(dyn, lyapunovs=[QuadraticLyapunov([0.0, 0.0])])
+    x0 = torch.ones(2, 2, dtype=torch.float64)
+    for traj, kw in (
+        (simulate(dyn, x0, 5, 0.1, safety_filter=clf_only, progress=False), {}),
+        (simulate(dyn, x0, 5, 0.1, nominal=lambda x, t: -x, progress=False), {"barriers": []}),
+    ):
+        out = metrics(traj, **kw)
+        assert out["collision"].tolist() == [False, False]
+        assert out["min_h"].tolist() == [math.inf, math.inf]
+        assert bool(out["first_collision_time"].isnan().all())

@@ -37,6 +37,14 @@ class Goal:
             check_number("deadline", self.deadline)
 
 
+def _least(h: Tensor) -> Tensor:
+    """The least barrier value ``[...]`` of ``h [..., k]``; ``+inf`` without any (``k = 0``:
+    a filter with Lyapunov functions alone)."""
+    if h.shape[-1] == 0:
+        return h.new_full(h.shape[:-1], math.inf)
+    return h.amin(-1)
+
+
 def _first_time(mask: Tensor, t: Tensor) -> Tensor:
     """Time of the first True along the last dim of ``mask [B, T]`` (nan where never)."""
     hit = mask.any(-1)
@@ -51,6 +59,8 @@ def _barrier_values(
     to ``x``'s batch dimensions) as ``[B, ..., k]``, evaluated on the flattened states, so a
     function needs to take one batch dimension only. A time-varying barrier
     (``time_varying``) is read at the states' own times; other functions take ``x`` alone."""
+    if not fns:
+        return x.new_zeros(*x.shape[:-1], 0)
     flat = x.reshape(-1, x.shape[-1])
     times = None if t is None else t.to(x).expand(x.shape[:-1]).reshape(-1)
 
@@ -144,7 +154,7 @@ def metrics(
         ``collision_between_samples`` (with ``barriers``: a segment crosses an obstacle that
         no sample is inside), ``first_collision_time`` (nan if none; a point between samples
         at its interpolated time), ``min_h`` (over the samples; a frozen row's unrecorded
-        steps skipped), per goal
+        steps skipped; ``+inf`` without any barrier), per goal
         ``goal{i}_reached`` and ``goal{i}_time``, ``goal_reached`` (all goals),
         ``spec_robustness``/``spec_satisfied``, ``steps_{name}`` per status, ``effort``
         (``sum |u|^2 dt``) and ``failed``.
@@ -166,10 +176,10 @@ def metrics(
         listed = isinstance(barriers, (nn.ModuleList, list, tuple))
         fns = list(barriers) if listed or not callable(barriers) else [barriers]
         h = _barrier_values(fns, traj.x, t)
-        h_min = h.min(-1).values
+        h_min = _least(h)
         unsafe = h_min < 0
-        out["min_h"] = h_min.min(-1).values
-        swept, dense_t = _swept(fns, traj.x, t, segment_points)  # [B, T, P, K]
+        out["min_h"] = h_min.amin(-1)
+        swept, dense_t = _swept(fns, traj.x, t, segment_points) if fns else (None, t)
         if swept is not None:
             # per obstacle: crossed by a segment, and no sample inside that same one
             crossed = swept.any(2).any(1) & ~(h < 0).any(1)  # [B, K]
@@ -185,7 +195,7 @@ def metrics(
             out["first_collision_time"] = _first_time(unsafe, t)
     elif traj.h is not None:
         h = traj.h
-        h_min = h.min(-1).values
+        h_min = _least(h)
         unsafe = h_min < 0
         out["collision"] = unsafe.any(-1)
         out["first_collision_time"] = _first_time(unsafe, t[:-1])
