@@ -193,3 +193,19 @@ def test_a_non_finite_action_is_refused_behind_the_filter() -> None:
     wrapped.reset(seed=0)
     with pytest.raises(ValueError, match="action must be finite"):
         wrapped.step(np.array([[0.0, 0.0], [np.inf, 0.0]]))
+
+
+@pytest.mark.parametrize("tensor", [False, True])
+def test_an_action_of_another_shape_is_taken_as_the_env_takes_it(tensor) -> None:
+    """``[[ax, ay]]`` steps as ``[ax, ay]`` (the env reshapes it); a wrong size is named."""
+    runs = []
+    for action in (np.array([1.0, 0.0]), np.array([[1.0, 0.0]])):
+        base = gym.make("torchcbf/ReachAvoid-v0")
+        env = envs.SafetyFilterWrapper(base, _reach_avoid_filter(base))
+        env.reset(seed=0)
+        obs, *_, info = env.step(torch.as_tensor(action) if tensor else action)
+        runs.append(np.asarray(obs))
+        assert int(info["filter_status"]) == FilterStatus.SOLVED
+    np.testing.assert_array_equal(runs[0], runs[1])
+    with pytest.raises(ValueError, match=r"action must have shape \(2,\), got \(3,\)"):
+        env.step(np.zeros(3))

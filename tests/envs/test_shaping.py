@@ -43,6 +43,10 @@ def test_field_is_bilinear_and_exact_on_affine_values(dtype):
     border = torch.tensor([[0.0, 0.0], [2.0, 1.5]], dtype=dtype)
     torch.testing.assert_close(field(outside), field(border))
     assert field(p.reshape(5, 10, 2)).shape == (5, 10)
+    # a point that is not finite has no value (it would index outside the grid)
+    odd = torch.tensor([[math.nan, 0.0], [0.5, math.inf], [0.5, 0.5]], dtype=dtype)
+    got = field(odd)
+    assert got[:2].isnan().all() and torch.equal(got[2:], field(odd[2:]))
 
 
 def test_free_space_distance_is_the_straight_line_within_the_grid_bias():

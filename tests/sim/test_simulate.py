@@ -591,6 +591,9 @@ def test_one_scenario_of_a_trajectory_by_index() -> None:
     for index in (3, -4):
         with pytest.raises(IndexError, match="batch of 3"):
             traj.scenario(index)
+    for index in (True, 1.0):
+        with pytest.raises(TypeError, match="index must be an int"):
+            traj.scenario(index)
 
 
 def test_a_stateful_nominal_controller_is_reset_before_each_run() -> None:

@@ -11,6 +11,7 @@ next-step autoreset defines.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -115,8 +116,10 @@ class SafetyFilterWrapper(_Filtering, gymnasium.Wrapper, gymnasium.utils.RecordC
         time_fn: observation -> time (s) for time-varying barriers; default: ``t = 0``.
         device, dtype: where the filter runs (default: those of its parameters/buffers).
 
-    ``info`` gains ``filter_status`` (int codes), ``filter_h`` (``[k]`` barrier values at
-    the state the filter saw) and ``action_nominal``. A non-finite action is refused
+    ``info`` gains ``filter_status`` (an int code; a tensor for a tensor action),
+    ``filter_h`` (``[k]`` barrier values at the state the filter saw) and
+    ``action_nominal``. An action of the space's size in another shape is reshaped, as the
+    env reshapes it. A non-finite action is refused
     (``ValueError``) as the env alone refuses it; the env steps the filter's control in the
     action's dtype where that is floating (else the filter's: an integer action would
     truncate it).
@@ -150,6 +153,13 @@ class SafetyFilterWrapper(_Filtering, gymnasium.Wrapper, gymnasium.utils.RecordC
 
     def step(self, action: Any) -> tuple[Any, Any, bool, bool, dict[str, Any]]:
         """Filter ``action``, step the environment with the result."""
+        shape = getattr(self.action_space, "shape", None)
+        given = action if isinstance(action, Tensor) else np.asarray(action)
+        if shape is not None and tuple(given.shape) != tuple(shape):
+            count = given.numel() if isinstance(given, Tensor) else given.size
+            if count != math.prod(shape):
+                raise ValueError(f"action must have shape {tuple(shape)}, got {tuple(given.shape)}")
+            action = given.reshape(shape)  # as the environment takes it
         u, extra = self._filter(action)
         if not isinstance(action, Tensor):
             extra["filter_status"] = int(extra["filter_status"])

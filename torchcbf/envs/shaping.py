@@ -48,6 +48,8 @@ class DistanceField(nn.Module):
         values = self.values.to(p)  # a field left on the CPU serves points on any device
         nx, ny = values.shape
         u = (p - self.low.to(p)) / self.spacing
+        finite = torch.isfinite(u).all(-1)  # NaN would index out of the grid: NaN out
+        u = torch.where(finite.unsqueeze(-1), u, 0.0)
         ux = u[..., 0].clamp(0, nx - 1)
         uy = u[..., 1].clamp(0, ny - 1)
         ix = ux.floor().clamp(max=nx - 2)
@@ -56,7 +58,8 @@ class DistanceField(nn.Module):
         i, j = ix.long(), iy.long()
         v00, v10 = values[i, j], values[i + 1, j]
         v01, v11 = values[i, j + 1], values[i + 1, j + 1]
-        return (v00 * (1 - fx) + v10 * fx) * (1 - fy) + (v01 * (1 - fx) + v11 * fx) * fy
+        out = (v00 * (1 - fx) + v10 * fx) * (1 - fy) + (v01 * (1 - fx) + v11 * fx) * fy
+        return torch.where(finite, out, math.nan)
 
 
 def _relax(dist: Tensor, update: Tensor, spacing: float, max_iter: int) -> Tensor:

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -183,6 +184,8 @@ class Trajectory:
         outside the batch raise ``IndexError``). Planner snapshots hold the whole batch's
         outputs and are not carried over (``planner`` is empty)."""
         B = self.batch_size
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)):
+            raise TypeError(f"index must be an int, got {index!r}")
         if not -B <= index < B:
             raise IndexError(f"scenario {index} is outside a batch of {B}")
         index %= B
