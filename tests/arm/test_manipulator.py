@@ -201,6 +201,9 @@ def test_control_affine_structure(dtype: torch.dtype) -> None:
     u = torch.randn(5, 7, generator=gen, dtype=dtype)
     torch.testing.assert_close(vel(x, u), u)
     torch.testing.assert_close(vel.f(x) + (vel.g(x) @ u[..., None])[..., 0], u)
+    before = u.clone()
+    vel(x, u).mul_(2.0)  # the rate is a copy: u stays as given
+    assert torch.equal(u, before)
     acc = Manipulator("arm7", control="acceleration")
     xa = torch.randn(2, 5, 14, generator=gen, dtype=dtype)
     ua = torch.randn(2, 5, 7, generator=gen, dtype=dtype)

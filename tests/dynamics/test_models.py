@@ -111,6 +111,10 @@ def test_shapes_and_values(name: str, batch: tuple[int, ...], dtype: torch.dtype
     torch.testing.assert_close(xdot.cpu().double(), ref, atol=atol, rtol=atol)
     # forward's fast closed form agrees with f + g u
     torch.testing.assert_close(xdot, f + (g @ u.unsqueeze(-1)).squeeze(-1), atol=atol, rtol=atol)
+    # the rate is the caller's own tensor: writing into it leaves u (and x) as they were
+    u_before, x_before = u.clone(), x.clone()
+    xdot.add_(1.0)
+    assert torch.equal(u, u_before) and torch.equal(x, x_before)
 
 
 @pytest.mark.parametrize("name", list(MODELS))

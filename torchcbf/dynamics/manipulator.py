@@ -274,7 +274,8 @@ class Manipulator(ControlAffine):
     def xdot(self, x: Tensor, u: Tensor) -> Tensor:
         """``f(x) + g(x) u`` in closed form: ``u`` or ``(qdot, u)``."""
         if self.control == "velocity":
-            return u.expand(broadcast_shapes(x.shape, u.shape))
+            # a copy, not a view of u: a caller may write into the rate it gets
+            return u.expand(broadcast_shapes(x.shape, u.shape)).clone()
         qd = x[..., self.dof :]
         shape = broadcast_shapes(qd.shape, u.shape)
         return torch.cat([qd.expand(shape), u.expand(shape)], -1)

@@ -66,7 +66,8 @@ class SingleIntegrator(ControlAffine):
         return _constant_drift(x)
 
     def xdot(self, x: Tensor, u: Tensor) -> Tensor:
-        return u.expand(broadcast_shapes(x.shape, u.shape))
+        # a copy, not a view of u: a caller may write into the rate it gets
+        return u.expand(broadcast_shapes(x.shape, u.shape)).clone()
 
     def native_model(self) -> NativeModel:
         return NativeModel("single_integrator", self.state_dim)
