@@ -294,6 +294,27 @@ def kernel_file(directory: Path, stem: str) -> Path | None:
     return next((path for path in found if path.exists()), None)
 
 
+def check_operands(
+    where: str,
+    operands: Iterable[tuple[str, Tensor | None, tuple[int, ...]]],
+    *,
+    dtype: torch.dtype | None = None,
+) -> None:
+    """Raise ``ValueError`` naming the operand of a kernel call that is not what the kernel
+    reads: each ``(name, tensor, shape)`` (``None``: absent) a CPU tensor of exactly
+    ``shape``, of ``dtype`` where given (else any floating dtype, cast by
+    :func:`float64_pointers`)."""
+    for name, t, shape in operands:
+        if t is None:
+            continue
+        if t.device.type != "cpu":
+            raise ValueError(f"{where}: {name} must be a CPU tensor, got one on {t.device}")
+        if (dtype is not None and t.dtype != dtype) or not t.is_floating_point():
+            raise ValueError(f"{where}: {name} must be {dtype or 'floating'}, got {t.dtype}")
+        if tuple(t.shape) != shape:
+            raise ValueError(f"{where}: {name} must have shape {list(shape)}, got {list(t.shape)}")
+
+
 def float64_pointers(tensors: Iterable[Tensor | None]) -> tuple[list[int], list[Tensor]]:
     """The data pointers of ``tensors`` as contiguous float64 CPU memory for a kernel (0, a
     NULL pointer, for ``None``), and the tensors they point into (copies where a tensor was

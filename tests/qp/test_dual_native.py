@@ -187,3 +187,33 @@ def test_infeasible_rows_are_proved_by_a_farkas_certificate(shape):
     default = solve_qp(P, q, G, h)
     assert torch.equal(default.status == Status.PRIMAL_INFEASIBLE, truly)
     assert bool((default.x[truly] == 0).all())
+
+
+def test_the_kernels_callers_refuse_operands_it_cannot_read():
+    """Another dtype or device, or a shape other than the batch's: a named error, never the
+    kernel reading or writing past a buffer."""
+    from torchcbf.qp import realtime
+
+    f64 = torch.float64
+    P = torch.eye(2, dtype=f64).expand(3, 2, 2)
+    q = torch.full((3, 2), -1.0, dtype=f64)
+    G, h = torch.eye(2, dtype=f64).expand(3, 2, 2), torch.full((3, 2), 0.5, dtype=f64)
+    ok = solve_dual(P, q, G, h, eps=1e-9, max_iter=50, engine="c")
+    torch.testing.assert_close(ok.x, torch.full((3, 2), 0.5, dtype=f64))
+    for bad, message in (
+        ((P.float(), q.float(), G.float(), h.float()), "P must be torch.float64"),
+        ((P.to("meta"), q.to("meta"), G.to("meta"), h.to("meta")), "P must be a CPU tensor"),
+        ((P, q, G[:, :1], h), r"G must have shape \[3, 2, 2\], got \[3, 1, 2\]"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            solve_dual(*bad, eps=1e-9, max_iter=50, engine="c")
+    small = realtime.solve_small(P, q, G, h, None, None, 1e-9, 50, (3,))
+    torch.testing.assert_close(small.x, ok.x)
+    for args, message in (
+        ((P, q, G[:, :1], h), r"G must have shape \[3, 2, 2\], got \[3, 1, 2\]"),
+        ((P.to("meta"), q, G, h), "P must be a CPU tensor"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            realtime.solve_small(*args, None, None, 1e-9, 50, (3,))
+    with pytest.raises(ValueError, match=r"P must have shape \[64, 2, 2\]"):
+        realtime.solve_small(P, q, G, h, None, None, 1e-9, 50, (64,))

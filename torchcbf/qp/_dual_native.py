@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from torchcbf._native import load_kernel, thread_pool
+from torchcbf._native import check_operands, load_kernel, thread_pool
 
 logger = logging.getLogger(__name__)
 
@@ -111,6 +111,8 @@ def forward(
     B, N = q.shape
     M = h.shape[-1]
     _check_sizes(N, M)
+    operands = (("P", P, (B, N, N)), ("q", q, (B, N)), ("G", G, (B, M, N)), ("h", h, (B, M)))
+    check_operands("the QP kernel", operands, dtype=torch.float64)
     P, q, G, h = (t.contiguous() for t in (P, q, G, h))
     x = q.new_empty(B, N)
     z = q.new_empty(B, M)

@@ -22,7 +22,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchcbf._native import float64_pointers
+from torchcbf._native import check_operands, float64_pointers
 from torchcbf.qp import _dual_native, _eliminate
 from torchcbf.qp._function import MAX_DUAL_CONDITION, dual_budget
 from torchcbf.qp._ipm import default_tolerances
@@ -107,6 +107,15 @@ def solve_small(
     fn = _dual_native.function("torchcbf_dual_solve_small_eq") if k else None
     if N > _dual_native.MAX_VARS or rows < 1 or k >= N or (k and fn is None):
         return None
+    check_operands(
+        "solve_small",
+        [(name, t, (*shape, *trailing)) for name, t, trailing in (
+            ("P", P, (N, N)), ("q", q, (N,)), ("G", G, (m, N)), ("h", h, (m,)),
+            ("A", A, (k, N)), ("b", b, (k,)), ("lb", lb, (N,)), ("ub", ub, (N,)),
+        )],
+    )  # fmt: skip
+    if (G is None) != (h is None) or (A is None) != (b is None):
+        raise ValueError("solve_small: G and h, A and b go together")
     pointers, held = float64_pointers((P, q, G, h, A, b, lb, ub))  # held: alive through the call
     f64 = torch.float64
     x, z, nu = (torch.empty(*shape, c, dtype=f64) for c in (N, m, k))
