@@ -269,3 +269,41 @@ def test_a_weak_row_nearly_parallel_to_an_active_one_keeps_its_exact_gradient(me
     torch.testing.assert_close(
         grad, torch.tensor([-1.0, 1.0], dtype=f64) / angle, rtol=1e-8, atol=0
     )
+
+
+@pytest.mark.parametrize("method", ["auto", "ipm"])
+def test_rows_not_solved_report_no_slack_and_pass_it_no_gradient(method) -> None:
+    """Hard rows that contradict each other beside a soft row: the row is infeasible, its
+    ``x`` answers no problem, so its slack is 0 with no gradient (a loss on the slack of a
+    batch is not pushed by its failed rows)."""
+    f64 = torch.float64
+    G = torch.tensor([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0]], dtype=f64)
+    h = torch.tensor([[-1.0, -1.0, -2.0], [1.0, 1.0, -2.0]], dtype=f64, requires_grad=True)
+    soft = torch.tensor([0.0, 0.0, 0.5], dtype=f64)  # row 2 soft: x1 = -1.5 > -2
+    sol = solve_qp(torch.eye(2, dtype=f64), torch.ones(2, dtype=f64), G, h, soft=soft,
+                   method=method)  # fmt: skip
+    assert sol.status.tolist() == [Status.PRIMAL_INFEASIBLE, Status.SOLVED]
+    assert sol.slack[0].tolist() == [0.0, 0.0, 0.0] and float(sol.slack[1, 2]) > 0
+    (grad,) = torch.autograd.grad(sol.slack.sum(), h)
+    assert grad[0].tolist() == [0.0, 0.0, 0.0] and float(grad[1, 2]) != 0.0
+
+
+def test_forward_mode_and_batched_transforms_are_refused_by_name() -> None:
+    """Reverse mode only: a forward-mode tangent would be dropped, a vmapped solve or a
+    batched backward would fail deep inside; each raises at the boundary, naming it."""
+    import torch.autograd.forward_ad as fwAD
+
+    f64 = torch.float64
+    Q, G, h = torch.eye(2, dtype=f64), torch.ones(1, 2, dtype=f64), torch.ones(1, dtype=f64)
+    p = torch.tensor([-1.0, -1.0], dtype=f64)
+    for B in (1, 40):  # the small C path and the general one
+        with fwAD.dual_level(), pytest.raises(NotImplementedError, match="forward-mode AD"):
+            solve_qp(Q, fwAD.make_dual(p.repeat(B, 1), torch.ones(B, 2, dtype=f64)), G, h)
+    with pytest.raises(NotImplementedError, match="torch.func transforms"):
+        torch.func.vmap(lambda q: solve_qp(Q, q, G, h).x)(p.expand(3, 2))
+    q = p.clone().requires_grad_()
+    x = solve_qp(Q, q, G, h).x
+    with pytest.raises(NotImplementedError, match="batched gradients"):
+        torch.autograd.grad(x, q, torch.eye(2, dtype=f64), is_grads_batched=True)
+    jac = torch.autograd.functional.jacobian(lambda v: solve_qp(Q, v, G, h).x, p)
+    torch.testing.assert_close(jac, torch.tensor([[-0.5, 0.5], [0.5, -0.5]], dtype=f64))

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 from torch._C import _functions
 
+from torchcbf._autograd import refuse_transforms
 from torchcbf._checks import per_row
 from torchcbf.qp import _dual_native, _kkt
 from torchcbf.qp import _eliminate as eliminate
@@ -1202,6 +1203,9 @@ def _first_derivative_only(backward: Callable[..., Any]) -> Callable[..., Any]:
 
     @functools.wraps(backward)
     def wrapper(ctx: Any, *grads: Any) -> Any:
+        # batched gradients (torch.autograd.grad(is_grads_batched=True), a vectorised
+        # jacobian) run the backward under vmap
+        refuse_transforms("solve_qp's backward", grads)
         with torch.no_grad():
             out = backward(ctx, *grads)
         if not torch.is_grad_enabled() or not ctx.graph_inputs:

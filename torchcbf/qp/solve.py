@@ -9,6 +9,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchcbf._autograd import refuse_transforms
 from torchcbf._checks import broadcast_shapes, isfinite, resolved, rows_finite
 from torchcbf.qp import _direct, _dual_native, realtime
 from torchcbf.qp._dual import dual_engine
@@ -424,6 +425,7 @@ def _validate(
         _check_trailing("warm_start", x0, (n,), str(n))
     trailing = (2, 1, 2, 1, 2, 1, 1, 1, 1, 1)
     values = (Q, p, G, h, A, b, lb, ub, soft, x0)
+    refuse_transforms("solve_qp", values)
     shapes = [
         (name, tuple(t.shape[: t.dim() - k]))
         for name, t, k in zip(_NAMES, values, trailing, strict=True)
@@ -849,7 +851,9 @@ def _unpack(
         # the least slack x needs: the optimum's (the penalty grows with t), exact where an
         # iterative method leaves a weightless slack short of zero
         violation = (f.G @ x.unsqueeze(-1)).squeeze(-1) - f.h
-        slack = kept(violation.clamp_min(0.0) * std.is_soft)
+        slack = violation.clamp_min(0.0) * std.is_soft
+        # x of a row not solved answers no problem: no slack, and no gradient through G, h
+        slack = torch.where((status == int(Status.SOLVED)).view(B, 1), slack, 0.0)
         off += m
     lam_ub = lam_lb = xs.new_zeros(B, n)
     # an infinite bound holds nothing (an outside solver may leave 1e-12 there)
