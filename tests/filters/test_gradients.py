@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 from torch import nn
 
@@ -100,3 +101,18 @@ def test_a_batch_of_gradients_on_the_device_equals_the_cpus(device, dtype) -> No
     assert int((status == FilterStatus.SOLVED).sum()) > 250
     changed = (u.cpu().double() - u_nom).abs().amax(-1) > 0.1  # the barrier row is active
     assert int(changed.sum()) > 100
+
+
+def test_forward_mode_and_torch_func_are_refused_by_name() -> None:
+    """Reverse mode only: the real-time path would drop a forward-mode tangent."""
+    import torch.autograd.forward_ad as fwAD
+
+    filt = SafetyFilter(SingleIntegrator(2), [Ball([1.0, 0.0], 0.5).double()], alpha=1.0)
+    x = torch.tensor([[0.0, 0.1]], dtype=torch.float64)
+    u = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
+    with fwAD.dual_level(), pytest.raises(NotImplementedError, match="forward-mode AD"):
+        filt(fwAD.make_dual(x, torch.ones_like(x)), u)
+    with pytest.raises(NotImplementedError, match="torch.func transforms"):
+        torch.func.jacrev(lambda v: filt(v, u).u)(x)
+    jac = torch.autograd.functional.jacobian(lambda v: filt(v, u).u, x)
+    assert jac.shape == (1, 2, 1, 2) and bool(torch.isfinite(jac).all())

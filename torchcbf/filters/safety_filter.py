@@ -51,6 +51,7 @@ import torch
 from torch import Tensor, nn
 
 import torchcbf.qp as qp_layer
+from torchcbf._autograd import refuse_transforms
 from torchcbf._checks import (
     as_limit,
     as_matrix,
@@ -471,6 +472,7 @@ class SafetyFilter(ExactConstants, DerivedConstants):
         n, m = dyn.state_dim, dyn.control_dim
         check_last_dim("x", x, n)
         check_last_dim("u_nom", u_nom, m)
+        refuse_transforms("SafetyFilter", (x, u_nom, t if isinstance(t, Tensor) else None))
         batch = x.shape[:-1]
         if u_nom.shape[:-1] != batch:
             try:
