@@ -12,6 +12,7 @@ from _host_traffic import HostTraffic
 
 from torchcbf.mppi import Always, And, Avoid, Eventually, History, Or, Reach
 from torchcbf.mppi.history import HistoryBuffer
+from torchcbf.mppi.specs import plan_of
 
 G1, G2, OBST = (4.0, 4.0), (6.0, 9.0), (3.0, 3.0)
 
@@ -549,6 +550,14 @@ class _NeverDecided(Reach):
         return None
 
 
+class _Routed(Reach):
+    """A goal that keeps a route of its own under the name ``plan``."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.plan = ["a", "b"]
+
+
 class _Doubled(Reach):
     """A goal that counts its planning cost twice (its own ``plan_cost``)."""
 
@@ -577,9 +586,11 @@ def test_or_asks_a_child_that_overrides_its_cost_or_outcome_alone(dtype):
     doubled = _Doubled((3.0, 0.0), 0.2, (0.0, 8.0))
     got = Or(Reach((1.0, 0.0), 0.2, (0.0, 0.3)), doubled)(states, None, t0, dt=0.1, history=history)
     torch.testing.assert_close(got, 2 * alone)
+    routed = _Routed((3.0, 0.0), 0.2, (0.0, 8.0))
+    torch.testing.assert_close(Or(routed, B)(states, None, t0, dt=0.1, history=history), alone)
     for spec in (B, And(B, Always(lambda x: 0.1 - x[..., 1].abs())), Or(undecided, doubled)):
         times = t0[:, None] + 0.1 * torch.arange(5, dtype=dtype)
-        cost, outcome = spec.plan(states, times, history)
+        cost, outcome = plan_of(spec, states, times, history)
         torch.testing.assert_close(cost, spec.plan_cost(states, times, history))
         assert torch.equal(outcome, spec.outcome(times, history))
 

@@ -99,12 +99,12 @@ class Spec(Adds, TracksShadows):
 
     #: The planner passes ``dt=`` and ``history=`` to costs that set this.
     needs_history = True
-    #: :meth:`plan` is trusted only where the class defining it also defines what it
+    #: :meth:`_plan` is trusted only where the class defining it also defines what it
     #: stands for (see :func:`torchcbf._checks.honour_overrides`)
-    closed_forms: ClassVar[ClosedForms] = {"plan": (("plan_cost", "outcome"), ())}
-    #: what :meth:`plan` answers for an instance that shadows a method of its class or runs
+    closed_forms: ClassVar[ClosedForms] = {"_plan": (("plan_cost", "outcome"), ())}
+    #: what :meth:`_plan` answers for an instance that shadows a method of its class or runs
     #: hooks (see :func:`torchcbf._checks.unless_hooked`)
-    hooked_forms: ClassVar[dict[str, object]] = {"plan": None}
+    hooked_forms: ClassVar[dict[str, object]] = {"_plan": None}
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -126,7 +126,7 @@ class Spec(Adds, TracksShadows):
         specification that does not say)."""
         return None
 
-    def plan(
+    def _plan(
         self, states: Tensor, times: Tensor, history: History | None
     ) -> tuple[Tensor, Tensor | None] | None:
         """``(plan_cost(...), outcome(...))`` together, as :func:`plan_of` asks: a
@@ -330,16 +330,17 @@ class Eventually(_Temporal):
         return _masked(c, ~window.unsqueeze(1), math.inf, own=own).amin(-1), last
 
     def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
-        return self._cost_and_outcome(states, times, history)[0]
+        return self._plan_once(states, times, history)[0]
 
-    def plan(
+    def _plan(
         self, states: Tensor, times: Tensor, history: History | None
     ) -> tuple[Tensor, Tensor | None] | None:
-        return self._cost_and_outcome(states, times, history)
+        return self._plan_once(states, times, history)
 
-    def _cost_and_outcome(
+    def _plan_once(
         self, states: Tensor, times: Tensor, history: History | None
     ) -> tuple[Tensor, Tensor | None]:
+        """The cost and the outcome from one reading of the history."""
         window = self.in_window(times)  # [B, T]
         roll_min, last = self.rollout_min_cost(states, window, self._ramp(times), times)
         roll = torch.where(window.any(-1, keepdim=True), roll_min, last)
@@ -353,21 +354,22 @@ class Eventually(_Temporal):
         constant = torch.where(torch.isfinite(h_min), h_min, torch.zeros_like(h_min))
         frozen = (held | passed).unsqueeze(-1)
         cost = torch.where(frozen, constant, torch.minimum(roll, h_min))
-        return cost, self._verdict(held, passed)
+        return cost, self._settled(held, passed)
 
     def _held(self, history: History, h_window: Tensor) -> Tensor:
         """``[B]``: whether a state of the history inside the window satisfies the predicate."""
         return (h_window & (self.predicate_at(history.states, history.times) >= 0)).any(-1)
 
     @staticmethod
-    def _verdict(held: Tensor, passed: Tensor) -> Tensor:
+    def _settled(held: Tensor, passed: Tensor) -> Tensor:
+        """The outcome ``[B]``: held in the history, else failed once the window passed."""
         return torch.where(held, 1, torch.where(passed, -1, 0))
 
     def outcome(self, times: Tensor, history: History | None) -> Tensor | None:
         if history is None:
             return None
         held = self._held(history, history.valid & self.in_window(history.times))
-        return self._verdict(held, self._passed(times))
+        return self._settled(held, self._passed(times))
 
 
 class Always(_Temporal):
@@ -565,17 +567,18 @@ class _Combination(Spec):
     def outcome(self, times: Tensor, history: History | None) -> Tensor | None:
         return self._verdict(_stack_outcomes([s.outcome(times, history) for s in self.specs]))
 
-    def plan(
+    def _plan(
         self, states: Tensor, times: Tensor, history: History | None
     ) -> tuple[Tensor, Tensor | None] | None:
-        return self._cost_and_outcome(states, times, history)
+        return self._plan_once(states, times, history)
 
     def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
-        return self._cost_and_outcome(states, times, history)[0]
+        return self._plan_once(states, times, history)[0]
 
-    def _cost_and_outcome(
+    def _plan_once(
         self, states: Tensor, times: Tensor, history: History | None
     ) -> tuple[Tensor, Tensor | None]:
+        """The cost and the outcome from one reading of the children's."""
         plans = [plan_of(s, states, times, history) for s in self.specs]
         found = _stack_outcomes([o for _, o in plans])
         return self._combine(torch.stack([c for c, _ in plans]), found), self._verdict(found)
@@ -593,9 +596,9 @@ class _Combination(Spec):
 def plan_of(
     spec: Spec, states: Tensor, times: Tensor, history: History | None
 ) -> tuple[Tensor, Tensor | None]:
-    """``(spec.plan_cost(...), spec.outcome(...))``, through :meth:`Spec.plan` where it
+    """``(spec.plan_cost(...), spec.outcome(...))``, through :meth:`Spec._plan` where it
     answers."""
-    both = spec.plan(states, times, history)
+    both = spec._plan(states, times, history)
     if both is None:
         return spec.plan_cost(states, times, history), spec.outcome(times, history)
     return both
@@ -621,12 +624,11 @@ class And(_Combination):
         return out
 
     def plan_cost(self, states: Tensor, times: Tensor, history: History | None) -> Tensor:
-        out = self.specs[0].plan_cost(states, times, history)
-        for s in self.specs[1:]:
-            out = out + s.plan_cost(states, times, history)
-        return out
+        # alone, no child's outcome is needed
+        costs = torch.stack([s.plan_cost(states, times, history) for s in self.specs])
+        return self._combine(costs, None)
 
-    plan = _Combination.plan  # the sum above, with the outcome an Or asks for
+    _plan = _Combination._plan  # the same sum, with the outcome an Or asks for
 
     def _combine(self, costs: Tensor, found: Tensor | None) -> Tensor:
         return costs.sum(0)
