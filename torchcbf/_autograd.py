@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import itertools
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any, TypeVar
 
@@ -18,26 +19,33 @@ from torch.autograd import forward_ad
 _F = TypeVar("_F", bound=Callable[..., Any])
 
 
-def refuse_transforms(where: str, tensors: Iterable[Tensor | None]) -> None:
-    """Raise ``NotImplementedError`` where a tensor of ``tensors`` carries a forward-mode
-    tangent (``torch.autograd.forward_ad``), comes from a ``torch.func`` transform (``vmap``,
-    ``jacrev``, ...) or is a batched gradient (``is_grads_batched``): ``where`` has plain
-    reverse-mode derivatives only, and a tangent would otherwise be dropped without a word
-    (``None``: no derivative)."""
-    dual = forward_ad._current_level >= 0
+def refuse_transforms(
+    where: str, tensors: Iterable[Tensor | None], *, module: nn.Module | None = None
+) -> None:
+    """Raise ``NotImplementedError`` inside a ``torch.func`` transform (``vmap``,
+    ``jacrev``, ...), or where a tensor of ``tensors`` (or, under a forward-mode level, of
+    ``module``'s parameters and buffers) carries a forward-mode tangent
+    (``torch.autograd.forward_ad``) or is a batched gradient (``is_grads_batched``):
+    ``where`` has plain reverse-mode derivatives only, and a tangent would otherwise be
+    dropped without a word (``None``: no derivative)."""
     functorch = torch._C._functorch
-    for t in tensors:
-        if t is None:
-            continue
-        # is_grads_batched and vectorised jacobians batch the backward by torch's legacy vmap
-        if functorch.is_functorch_wrapped_tensor(t) or functorch.is_legacy_batchedtensor(t):
+    dual = forward_ad._current_level >= 0
+    if module is not None and dual:
+        tensors = itertools.chain(tensors, module.parameters(), module.buffers())
+    inside = functorch.maybe_current_level() is not None
+    for t in itertools.chain([None], tensors):
+        # is_grads_batched and vectorised jacobians batch a backward by torch's legacy vmap
+        if inside or (
+            t is not None
+            and (functorch.is_functorch_wrapped_tensor(t) or functorch.is_legacy_batchedtensor(t))
+        ):
             raise NotImplementedError(
                 f"{where} does not run under torch.func transforms or batched gradients (vmap, "
                 "jacrev, jacfwd, grad, is_grads_batched=True, jacobian(vectorize=True)): batch "
                 "the problems along the leading dimensions instead, and take derivatives with "
                 "torch.autograd (reverse mode, one gradient at a time)"
             )
-        if dual and forward_ad.unpack_dual(t).tangent is not None:
+        if dual and t is not None and forward_ad.unpack_dual(t).tangent is not None:
             raise NotImplementedError(
                 f"{where} has reverse-mode derivatives only: forward-mode AD "
                 "(torch.autograd.forward_ad) would drop the tangent; use torch.autograd.grad "

@@ -114,5 +114,16 @@ def test_forward_mode_and_torch_func_are_refused_by_name() -> None:
         filt(fwAD.make_dual(x, torch.ones_like(x)), u)
     with pytest.raises(NotImplementedError, match="torch.func transforms"):
         torch.func.jacrev(lambda v: filt(v, u).u)(x)
+    # a filter tensor (the ball's centre) with a tangent, through functional_call
+    centre = dict(filt.named_buffers())["barriers.0.center"]
+    with fwAD.dual_level(), pytest.raises(NotImplementedError, match="forward-mode AD"):
+        dual = fwAD.make_dual(centre.clone(), torch.ones_like(centre))
+        torch.func.functional_call(filt, {"barriers.0.center": dual}, (x, u))
+    with pytest.raises(NotImplementedError, match="torch.func transforms"):
+        torch.func.jvp(
+            lambda c: torch.func.functional_call(filt, {"barriers.0.center": c}, (x, u)).u,
+            (centre,),
+            (torch.ones_like(centre),),
+        )
     jac = torch.autograd.functional.jacobian(lambda v: filt(v, u).u, x)
     assert jac.shape == (1, 2, 1, 2) and bool(torch.isfinite(jac).all())

@@ -355,6 +355,8 @@ def test_a_trainable_fallback_gets_a_gradient_on_every_path_and_batch() -> None:
         for part, falls in ((slice(0, 1), False), (slice(0, 2), True)):
             out = filt(x[part], u[part])
             assert out.u.requires_grad, (backend, part)
+            # the one-state path keeps serving a batch where no row falls back
+            assert out.path.endswith("realtime") == (backend == "auto" and not falls)
             (g,) = torch.autograd.grad(out.u.sum(), (param,))
             assert bool((g != 0).any()) == falls, (backend, part)
 

@@ -391,12 +391,13 @@ class SafetyFilter(ExactConstants, DerivedConstants):
             conditions = self._conditions(xb, tb, prepare=True)
             limits = self._limit_tensors()
             grads = torch.is_grad_enabled()
-            trains = grads and (
-                _carries_grad(conditions, ub, self.R, *limits) or self.fallback.trains()
-            )
-            if not trains:
+            if not (grads and _carries_grad(conditions, ub, self.R, *limits)):
                 out = self._realtime(batch, xb, ub, conditions, limits)
                 if out is not None:
+                    if grads and self.fallback.trains():
+                        # no row fell back: the fallback's gradient is zero, but it has one
+                        link = self.fallback.control.reshape(-1)[:0].sum().to(out.u.dtype)
+                        out = out._replace(u=out.u + link)
                     return out
             if isinstance(conditions[0], native.ConditionCall):
                 conditions = None
@@ -472,7 +473,9 @@ class SafetyFilter(ExactConstants, DerivedConstants):
         n, m = dyn.state_dim, dyn.control_dim
         check_last_dim("x", x, n)
         check_last_dim("u_nom", u_nom, m)
-        refuse_transforms("SafetyFilter", (x, u_nom, t if isinstance(t, Tensor) else None))
+        refuse_transforms(
+            "SafetyFilter", (x, u_nom, t if isinstance(t, Tensor) else None), module=self
+        )
         batch = x.shape[:-1]
         if u_nom.shape[:-1] != batch:
             try:
