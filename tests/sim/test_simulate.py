@@ -591,9 +591,13 @@ def test_one_scenario_of_a_trajectory_by_index() -> None:
     for index in (3, -4):
         with pytest.raises(IndexError, match="batch of 3"):
             traj.scenario(index)
-    for index in (True, 1.0):
+    for index in (True, 1.0, torch.tensor(True), torch.tensor([1])):
         with pytest.raises(TypeError, match="index must be an int"):
             traj.scenario(index)
+    # an argmax (a 0-d integer tensor) and NumPy's ints are indices
+    worst = traj.x[:, -1].norm(dim=-1).argmax()
+    assert torch.equal(traj.scenario(worst).x, traj.x[2:])
+    assert torch.equal(traj.scenario(np.int64(1)).x, traj.x[1:2])
 
 
 def test_a_stateful_nominal_controller_is_reset_before_each_run() -> None:

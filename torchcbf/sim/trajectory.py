@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import operator
 import pickle
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -184,8 +185,17 @@ class Trajectory:
         outside the batch raise ``IndexError``). Planner snapshots hold the whole batch's
         outputs and are not carried over (``planner`` is empty)."""
         B = self.batch_size
-        if isinstance(index, bool) or not isinstance(index, (int, np.integer)):
-            raise TypeError(f"index must be an int, got {index!r}")
+        # an int, a NumPy int or a 0-d integer tensor (an argmax); not a bool
+        given = index
+        ok = not isinstance(index, (bool, np.bool_)) and not (
+            isinstance(index, Tensor) and (index.dim() != 0 or index.dtype == torch.bool)
+        )
+        try:
+            index = operator.index(index) if ok else None
+        except TypeError:
+            index = None
+        if index is None:
+            raise TypeError(f"index must be an int, got {given!r}")
         if not -B <= index < B:
             raise IndexError(f"scenario {index} is outside a batch of {B}")
         index %= B
