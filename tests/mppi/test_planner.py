@@ -840,6 +840,31 @@ def test_a_noise_covariance_set_any_way_is_sampled(backend, how):
     torch.testing.assert_close(u[0], u[1], atol=1e-5, rtol=1e-5)
 
 
+@pytest.mark.parametrize("how", ["data", "numpy"])
+def test_a_noise_covariance_written_between_calls_without_a_version_is_seen(how):
+    """A write that keeps the tensor's version, between two calls (no ``reset()``): the
+    factors the next call samples with follow it (compared by value on the CPU)."""
+    planner = MPPI(SingleIntegrator(2), QuadraticGoal([1.0, -1.0]), 8, 64, 0.1, 1.0, 0.5)
+    planner(torch.zeros(2))
+    if how == "data":
+        planner.noise_cov.data.mul_(torch.tensor([1.0, 4.0]))
+    else:
+        planner.noise_cov.numpy()[1, 1] = 4.0
+    planner(torch.zeros(2))
+    torch.testing.assert_close(planner.noise_chol, torch.diag(torch.tensor([1.0, 2.0])))
+
+
+def test_a_noise_covariance_of_another_dtype_or_a_number_is_taken_in_the_planners():
+    planner = MPPI(SingleIntegrator(2), QuadraticGoal([1.0, -1.0]), 8, 64, 0.1, 1.0, 0.5)
+    planner.noise_cov = torch.tensor([[1.0, 0.0], [0.0, 4.0]], dtype=torch.float64)
+    assert planner.noise_cov.dtype == torch.float32
+    planner(torch.zeros(2))
+    torch.testing.assert_close(planner.noise_chol, torch.diag(torch.tensor([1.0, 2.0])))
+    planner.noise_cov = 9.0
+    planner(torch.zeros(2))
+    torch.testing.assert_close(planner.noise_chol, 3.0 * torch.eye(2))
+
+
 def test_a_noise_covariance_set_between_calls_is_checked():
     planner = MPPI(SingleIntegrator(2), QuadraticGoal([1.0, -1.0]), 8, 64, 0.1, 1.0, 0.5)
     for bad, message in (

@@ -694,10 +694,15 @@ class MPPI(TracksShadows, ExactConstants):
     _BOUNDS: tuple[tuple[str, str], ...] = (("u_min", "u_max"),)
 
     def __setattr__(self, name: str, value: Any) -> None:
-        if name == "noise_cov" and isinstance(value, Tensor) and "_buffers" in vars(self):
+        if name == "noise_cov" and "noise_chol" in self._buffers:
+            # a number, a diagonal or the matrix, as the constructor takes noise_sigma (here
+            # with u_scale applied), in the planner's dtype and on its device
+            ref = self._buffers["noise_chol"]
             m = self.dynamics.control_dim
-            if value.shape != (m, m):  # a number or a diagonal, as the constructor takes it
-                value = as_matrix(name, value, m, spd=False)
+            if not isinstance(value, Tensor) or value.shape != (m, m):
+                value = as_matrix(name, value, m, dtype=ref.dtype, spd=False)
+            if value.dtype != ref.dtype or value.device != ref.device:
+                value = value.to(ref)
             check_spd("noise_cov", value.detach())
         pair = next((p for p in self._BOUNDS if name in p), None)
         if pair is not None and isinstance(value, Tensor) and "_buffers" in vars(self):
@@ -1070,7 +1075,7 @@ class MPPI(TracksShadows, ExactConstants):
             diag = torch.diagonal(cov)
             diagonal = bool(torch.equal(cov, torch.diag(diag)))
             isotropic = diagonal and bool((diag == diag[0]).all())
-            std = float(diag[0].sqrt()) if isotropic else None
+            std = float(diag[0].detach().sqrt()) if isotropic else None
             kept = (key, diagonal, std, cov.detach().clone())
             self._noise_form_kept = kept
         return kept[1], kept[2]
