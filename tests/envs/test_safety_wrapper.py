@@ -209,3 +209,8 @@ def test_an_action_of_another_shape_is_taken_as_the_env_takes_it(tensor) -> None
     np.testing.assert_array_equal(runs[0], runs[1])
     with pytest.raises(ValueError, match=r"action must have shape \(2,\), got \(3,\)"):
         env.step(np.zeros(3))
+    vec = gym.make_vec("torchcbf/ReachAvoid-v0", num_envs=2, **KW)
+    wrapped = envs.SafetyFilterWrapper(vec, _reach_avoid_filter(vec))
+    wrapped.reset(seed=0)
+    with pytest.raises(ValueError, match=r"action must have shape \(2, 2\), got \(4,\)"):
+        wrapped.step(np.zeros(4))

@@ -3,6 +3,7 @@ runner (extra ``rl``)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -30,6 +31,7 @@ from torchcbf.envs.safe_ppo import (  # noqa: E402
     PPOConfig,
     RunResult,
     _penalize_shield,
+    config_dict,
     make_env,
     mean_ci,
     scenario_filter,
@@ -560,11 +562,14 @@ def test_ppo_settings_are_checked_when_made(field, value, message) -> None:
 
 
 def test_ppo_environment_options_default_per_scenario_and_are_checked() -> None:
-    assert dict(PPOConfig().env_kwargs) == SCENARIO_KWARGS["torchcbf/UnicycleEllipses-v0"]
-    assert PPOConfig(env_id="torchcbf/ReachAvoid-v0").env_kwargs == ()
+    assert PPOConfig().env_options == SCENARIO_KWARGS["torchcbf/UnicycleEllipses-v0"]
+    assert PPOConfig(env_id="torchcbf/ReachAvoid-v0").env_options == {}
     config = PPOConfig(env_kwargs={"sigma": 0.1})
-    assert config.env_kwargs == (("sigma", 0.1),)
+    assert config.env_kwargs == (("sigma", 0.1),) and config.env_options == {"sigma": 0.1}
     hash(config)
+    # the defaults follow the environment through dataclasses.replace
+    other = dataclasses.replace(PPOConfig(), env_id="torchcbf/ReachAvoid-v0")
+    assert other.env_options == {} and config_dict(other)["env_kwargs"] == {}
     with pytest.raises(ValueError, match=r"env_kwargs \['sigma'\] are not options of"):
         PPOConfig(env_id="torchcbf/ReachAvoid-v0", env_kwargs={"sigma": 0.1})
     with pytest.raises(ValueError, match=r"env_kwargs \['return_tensors'\]"):

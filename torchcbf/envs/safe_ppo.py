@@ -98,8 +98,9 @@ class PPOConfig:
 
     Attributes:
         env_id: the torchcbf environment id.
-        env_kwargs: the scenario's options as ``((name, value), ...)`` (or a dict); ``None``:
-            :data:`SCENARIO_KWARGS` of ``env_id`` (none for other ids).
+        env_kwargs: the scenario's options as ``((name, value), ...)`` (a dict is kept as
+            such pairs); ``None``: :data:`SCENARIO_KWARGS` of ``env_id`` (none for other
+            ids), resolved in :attr:`env_options`.
         num_envs: environments stepped as one batch while collecting.
         rollout_steps: steps per environment per batch (``num_envs * rollout_steps`` frames).
         total_frames: the frame budget.
@@ -122,7 +123,7 @@ class PPOConfig:
     """
 
     env_id: str = "torchcbf/UnicycleEllipses-v0"
-    env_kwargs: tuple[tuple[str, Any], ...] | None = None
+    env_kwargs: tuple[tuple[str, Any], ...] | dict[str, Any] | None = None
     num_envs: int = 256
     rollout_steps: int = 128
     total_frames: int = 2_000_000
@@ -146,23 +147,21 @@ class PPOConfig:
     def __post_init__(self) -> None:
         cls = vector_env_class(self.env_id)
         kwargs = self.env_kwargs
-        if kwargs is None:
-            kwargs = SCENARIO_KWARGS.get(self.env_id, {})
-        elif not isinstance(kwargs, dict):
+        if kwargs is not None:
             try:
-                kwargs = dict(kwargs)
+                kwargs = tuple(dict(kwargs).items())  # hashable, as the frozen config is
             except (TypeError, ValueError):
                 raise TypeError(
                     f"env_kwargs must be ((name, value), ...) or a dict, got {kwargs!r}"
                 ) from None
+            object.__setattr__(self, "env_kwargs", kwargs)
         accepted = inspect.signature(cls).parameters
-        unknown = sorted(k for k in kwargs if k not in accepted or k in _NOT_OPTIONS)
+        unknown = sorted(k for k in self.env_options if k not in accepted or k in _NOT_OPTIONS)
         if unknown:
             raise ValueError(
                 f"env_kwargs {unknown} are not options of {self.env_id!r} "
                 f"({cls.__name__} takes {sorted(set(accepted) - _NOT_OPTIONS)})"
             )
-        object.__setattr__(self, "env_kwargs", tuple(kwargs.items()))
         for name in (
             "num_envs",
             "rollout_steps",
@@ -189,6 +188,14 @@ class PPOConfig:
             if not 0.0 <= check_number(name, getattr(self, name)) <= 1.0:
                 raise ValueError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
         check_bool("shaping", self.shaping)
+
+    @property
+    def env_options(self) -> dict[str, Any]:
+        """The options the environment is made with: ``env_kwargs``, or ``env_id``'s
+        :data:`SCENARIO_KWARGS` where it is ``None``."""
+        if self.env_kwargs is None:
+            return dict(SCENARIO_KWARGS.get(self.env_id, {}))
+        return dict(self.env_kwargs)
 
 
 @dataclass
@@ -309,7 +316,7 @@ def make_env(config: PPOConfig, method: str, *, num_envs: int, seed: int) -> Tra
     """The environment of ``method``: shielded for :data:`SHIELDED`, with the episode return
     summed in ``"episode_reward"``."""
     _check_method(method)
-    base = TorchRLEnv(config.env_id, num_envs, seed=seed, **dict(config.env_kwargs))
+    base = TorchRLEnv(config.env_id, num_envs, seed=seed, **config.env_options)
     transforms: list[Transform] = [RewardSum()]
     if config.shaping:
         transforms.insert(0, scenario_shaping(base))
@@ -677,7 +684,7 @@ def evaluate(
 def config_dict(config: PPOConfig) -> dict[str, Any]:
     """``config`` as a JSON-ready dict."""
     out = asdict(config)
-    out["env_kwargs"] = dict(config.env_kwargs)
+    out["env_kwargs"] = config.env_options
     return out
 
 

@@ -69,6 +69,15 @@ class _Filtering:
     def _filter(self, action: Any) -> tuple[Any, dict[str, Any]]:
         if self._last_obs is None:
             raise RuntimeError("call reset() before step()")
+        shape = getattr(self.action_space, "shape", None)  # [m], or [N, m] for a vector env
+        given = action if isinstance(action, Tensor) else np.asarray(action)
+        if shape is not None and tuple(given.shape) != tuple(shape):
+            # as the environment takes it: one env reshapes an action of its size, a vector
+            # env refuses any other shape
+            count = given.numel() if isinstance(given, Tensor) else given.size
+            if isinstance(self.env, VectorEnv) or count != math.prod(shape):
+                raise ValueError(f"action must have shape {tuple(shape)}, got {tuple(given.shape)}")
+            action = given.reshape(shape)
         kw = {"device": self.filter_device, "dtype": self.filter_dtype}
         x = torch.as_tensor(self.state_fn(self._last_obs), **kw)
         u_nom = torch.as_tensor(np.asarray(action) if not isinstance(action, Tensor) else action)
@@ -153,13 +162,6 @@ class SafetyFilterWrapper(_Filtering, gymnasium.Wrapper, gymnasium.utils.RecordC
 
     def step(self, action: Any) -> tuple[Any, Any, bool, bool, dict[str, Any]]:
         """Filter ``action``, step the environment with the result."""
-        shape = getattr(self.action_space, "shape", None)
-        given = action if isinstance(action, Tensor) else np.asarray(action)
-        if shape is not None and tuple(given.shape) != tuple(shape):
-            count = given.numel() if isinstance(given, Tensor) else given.size
-            if count != math.prod(shape):
-                raise ValueError(f"action must have shape {tuple(shape)}, got {tuple(given.shape)}")
-            action = given.reshape(shape)  # as the environment takes it
         u, extra = self._filter(action)
         if not isinstance(action, Tensor):
             extra["filter_status"] = int(extra["filter_status"])
