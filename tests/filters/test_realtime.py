@@ -627,6 +627,12 @@ def test_plain_numbers_in_an_affine_form_and_a_mismatched_prepared_call() -> Non
         with pytest.raises(ValueError, match="prepared condition call"):
             realtime.solve(call, None, one, torch.eye(2, dtype=torch.float64), None, None,
                            **options)  # fmt: skip
+        # a batch shape of other than the rows given is not the layout the kernel writes
+        a, b = torch.ones(4, 1, 2, dtype=f64), torch.ones(4, 1, dtype=f64)
+        u = torch.zeros(4, 2, dtype=f64)
+        R = torch.eye(2, dtype=f64)
+        assert realtime.solve((a, b), None, u, R, None, None, batch=(1,), **options) is None
+        assert realtime.solve((a, b), None, u, R, None, None, batch=(2, 2), **options) is not None
 
 
 @pytest.mark.skipif(not native.available(), reason="Lie kernel not built")

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import math
 from pathlib import Path
 from typing import NamedTuple
 
@@ -134,6 +135,7 @@ def solve(
         or (hi is not None and hi.shape != (m,))
         or (cbf is not None and (cbf[0].shape != (B, k, m) or cbf[1].shape != (B, k)))
         or (clf is not None and (clf[0].shape != (B, c, m) or clf[1].shape != (B, c)))
+        or (batch is not None and math.prod(batch) != B)
     ):
         return None  # not the layout the kernel reads: the general path answers
     shape = (B,) if batch is None else batch
