@@ -252,7 +252,8 @@ def check_device(device: object) -> torch.device:
 
 
 def check_spd(name: str, matrix: Tensor) -> Tensor:
-    """Check a symmetric matrix ``[..., n, n]`` is positive definite (Cholesky succeeds)."""
+    """Check a symmetric matrix ``[..., n, n]`` is positive definite: Cholesky succeeds
+    and no pivot is lost to rounding (each ``L_ii^2`` above ``8 n eps a_ii``)."""
     matrix = check_tensor(name, matrix)
     if matrix.dim() < 2 or matrix.shape[-1] != matrix.shape[-2]:
         raise ValueError(f"{name} must be a square matrix [..., n, n], got {tuple(matrix.shape)}")

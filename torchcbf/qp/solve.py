@@ -42,7 +42,8 @@ class QPSolution(NamedTuple):
       the bound is infinite or absent), so that ``Qx + p + G'lam + A'nu - lam_lb + lam_ub = 0``.
     - ``slack [..., m]``: elastic violation ``t >= 0`` of each softened row (``Gx <= h + t``),
       the least ``x`` needs, ``max(0, G x - h)`` (the optimum's: the penalty grows with
-      ``t``); zero for hard rows and when ``soft`` is not given.
+      ``t``); zero for hard rows, when ``soft`` is not given, and on rows not ``SOLVED``
+      (their ``x`` answers no problem).
     - ``path``: the route the batch took (see :data:`PATHS`): ``"small_native"`` (a few
       small problems in one call of the dual C kernel, :mod:`torchcbf.qp.realtime`),
       ``"small_proxsuite"`` (a few problems straight to proxsuite's dense solver),
