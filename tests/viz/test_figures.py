@@ -3,6 +3,8 @@ outside the data."""
 
 from __future__ import annotations
 
+import math
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -187,3 +189,49 @@ def test_empty_inputs_are_named() -> None:
         plot_barrier_bands({"a": _traj(torch.zeros(1, 4, 2))}, [])
     with pytest.raises(ValueError, match="h is None"):
         plot_barrier_values(torch.arange(4.0), None)
+
+
+def test_an_obstacle_out_of_view_or_undefined_somewhere_is_drawn_as_what_is_there() -> None:
+    """Nothing of ``{h < 0}`` in view (``h >= 1`` everywhere) shades nothing; a barrier that
+    is NaN somewhere shades its finite part; a plain function wrapping a float32 network is
+    evaluated in its dtype."""
+    from torchcbf.viz import draw_unsafe_set
+
+    fig, ax = plt.subplots()
+    draw_unsafe_set(ax, Ball([6.0, 0.0], 0.5), (-1.0, 1.0), (-1.0, 1.0), state_dim=2)
+    assert not ax.collections
+    nan_beyond = lambda x: torch.where(x[..., 0] > 0.5, torch.nan, x.norm(dim=-1) - 0.3)  # noqa: E731
+    draw_unsafe_set(ax, nan_beyond, (-1.0, 1.0), (-1.0, 1.0), state_dim=2)
+    assert ax.collections
+    net = torch.nn.Linear(2, 1)  # float32
+    draw_unsafe_set(ax, lambda x: net(x)[..., 0], (-1.0, 1.0), (-1.0, 1.0), state_dim=2)
+
+
+def test_goals_are_drawn_in_the_plane_shown() -> None:
+    from torchcbf.mppi import Reach
+    from torchcbf.viz import plot_trajectories
+
+    goal = Reach((1.0, 2.0, 3.0), 0.3, index=(0, 1, 2))
+    x = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]]])
+    for index, want in (((0, 1), (1.0, 2.0)), ((0, 2), (1.0, 3.0)), ((1, 2), (2.0, 3.0))):
+        fig = plot_trajectories(_traj(x), goals=[goal], index=index)
+        (circle,) = fig.axes[0].patches
+        assert circle.center == pytest.approx(want)
+    fig = plot_trajectories(_traj(x), goals=[Reach((1.0, 2.0), 0.3)], index=(1, 2))
+    assert not fig.axes[0].patches  # a goal on (x0, x1) has no place in the plane (x1, x2)
+
+
+def test_barrier_figures_pass_over_minus_infinity() -> None:
+    """A log barrier at contact (-inf): the lowest finite value is marked, the axis holds."""
+    t = torch.arange(4) * 0.1
+    h = torch.tensor([[[1.0], [0.5], [-math.inf], [0.2]]])
+    fig = plot_barrier_values(t, h)
+    (mark,) = [ln for ln in fig.axes[0].lines if ln.get_label().startswith("lowest")]
+    assert mark.get_label().startswith("lowest finite: 0.20")
+
+
+def test_rollouts_and_weights_of_other_counts_are_named() -> None:
+    with pytest.raises(
+        ValueError, match=r"weights \[K\]: got rollouts \(50, 11, 2\) and weights \(10,\)"
+    ):
+        plot_rollouts(torch.zeros(50, 11, 2), torch.ones(10))

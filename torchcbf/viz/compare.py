@@ -17,7 +17,7 @@ from matplotlib.figure import Figure
 
 from torchcbf.sim.metrics import _barrier_values
 from torchcbf.sim.trajectory import Trajectory
-from torchcbf.viz.figures import BarrierFn, _draw_scene, _np, plane
+from torchcbf.viz.figures import BarrierFn, _draw_scene, _np, lowest_finite, plane
 
 COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink")
 
@@ -119,10 +119,12 @@ def plot_barrier_bands(
         color = COLORS[j % len(COLORS)]
         t = _np(traj.t)
         h = barrier_traces(traj, barriers)
-        if not np.isfinite(h).any():  # no seed, or none with a finite state: nothing to draw
+        found = lowest_finite(h)
+        if found is None:  # no seed, or none with a finite state: nothing to draw
             continue
-        b, k = np.unravel_index(np.nanargmin(h), h.shape)
-        lowest[name] = (float(h[b, k]), int(b), float(t[k]))
+        value, (b, k) = found
+        lowest[name] = (value, b, float(t[k]))
+        h = np.where(np.isneginf(h), np.nan, h)  # -inf (contact of a log barrier): off the axis
         with warnings.catch_warnings():  # a time where every seed is NaN stays NaN
             warnings.simplefilter("ignore", RuntimeWarning)
             lo, med, hi = np.nanpercentile(h, [5, 50, 95], axis=0)

@@ -73,23 +73,39 @@ def draw_unsafe_set(
     param = next(iter(barrier.parameters()), None) if isinstance(barrier, torch.nn.Module) else None
     buf = next(iter(barrier.buffers()), None) if isinstance(barrier, torch.nn.Module) else None
     ref = param if param is not None else buf
-    dtype = ref.dtype if ref is not None and ref.is_floating_point() else torch.float64
+    if ref is not None and ref.is_floating_point():
+        dtype = ref.dtype
+    elif isinstance(barrier, torch.nn.Module):
+        dtype = torch.float64  # a module without tensors: plain arithmetic, drawn exactly
+    else:
+        dtype = torch.get_default_dtype()  # a function: it may wrap a network of this dtype
     device = ref.device if ref is not None else "cpu"
     with torch.no_grad():
         h = barrier(torch.as_tensor(states, dtype=dtype, device=device))
-    h = _np(h)
+    h = _np(h).astype(float)
     if h.ndim == X.ndim + 1:
         h = h.min(-1)
-    ax.contourf(X, Y, h, levels=[h.min() - 1.0, 0.0], colors=[color], alpha=0.35)
-    ax.contour(X, Y, h, levels=[0.0], colors=[color], linewidths=1.2)
+    # NaN (a barrier undefined somewhere) is drawn as nothing; -inf as unsafe
+    h = np.where(np.isneginf(h), np.finfo(float).min, h)
+    finite = np.isfinite(h)
+    if finite.any() and h[finite].min() < 0.0:  # else nothing of {h < 0} is in view
+        lowest = h[finite].min()
+        h = np.ma.masked_invalid(h)
+        ax.contourf(X, Y, h, levels=[lowest - 1.0, 0.0], colors=[color], alpha=0.35)
+        ax.contour(X, Y, h, levels=[0.0], colors=[color], linewidths=1.2)
     if label:
         ax.plot([], [], color=color, lw=6, alpha=0.35, label=label)
 
 
-def draw_goals(ax: Axes, goals: Sequence[Any], color: str = "tab:green") -> None:
-    """Circles for goal regions, annotated with their time windows when they have one."""
+def draw_goals(
+    ax: Axes, goals: Sequence[Any], color: str = "tab:green", index: tuple[int, int] = (0, 1)
+) -> None:
+    """Circles for goal regions in the plane of state components ``index``, annotated with
+    their time windows when they have one."""
     for i, goal in enumerate(goals):
-        c = _np(goal.center).reshape(-1)[:2]
+        c = _goal_point(goal, index)
+        if c is None:
+            continue
         r = float(goal.radius)
         ax.add_patch(Circle(tuple(c), r, facecolor=color, alpha=0.25, edgecolor=color, lw=1.5))
         interval = getattr(goal, "interval", None)
@@ -126,15 +142,26 @@ def weight_ranks(weights: np.ndarray) -> np.ndarray:
     return ranks[inverse] / (w.size - 1)
 
 
+def lowest_finite(h: np.ndarray) -> tuple[float, tuple[int, ...]] | None:
+    """The least finite value of ``h`` and its index (``-inf``, a log barrier at contact,
+    and NaN are passed over; an axis cannot reach them); ``None`` where none is finite."""
+    finite = np.isfinite(h)
+    if not finite.any():
+        return None
+    at = np.unravel_index(np.argmin(np.where(finite, h, np.inf)), h.shape)
+    return float(h[at]), tuple(int(i) for i in at)
+
+
 def mark_minimum(ax: Axes, t: np.ndarray, h: np.ndarray, color: str = "tab:red") -> None:
     """Mark the smallest value of ``h [B, T]`` over time ``t [T]`` with its value, and widen
     the y-axis so that it shows (a fixed lower limit hides the worst collision)."""
-    if not np.isfinite(h).any():
+    found = lowest_finite(h)
+    if found is None:
         return  # nothing finite to mark (an empty batch, every value NaN)
-    b, j = np.unravel_index(np.nanargmin(h), h.shape)
-    value = float(h[b, j])
+    value, (b, j) = found
+    what = "lowest finite" if np.isneginf(h).any() else "lowest"
     ax.plot(t[j], value, marker="v", color=color, ms=8, mec="k", mew=0.5, zorder=5,
-            label=f"lowest: {value:.2f} (scenario {b}, t = {t[j]:.2f} s)")  # fmt: skip
+            label=f"{what}: {value:.2f} (scenario {b}, t = {t[j]:.2f} s)")  # fmt: skip
     lo, hi = ax.get_ylim()
     if value < lo + 0.05 * (hi - lo):
         ax.set_ylim(value - 0.08 * (hi - value), hi)
@@ -148,12 +175,30 @@ def _legend_below(ax: Axes, fontsize: int = 8) -> None:
               frameon=False)  # fmt: skip
 
 
+def _goal_point(goal: Any, index: tuple[int, int]) -> np.ndarray | None:
+    """The centre ``[2]`` of ``goal`` in the plane of state components ``index`` (its centre
+    holds the components of the goal's own ``index``, default the first ones); ``None`` for a
+    goal on other components (a position goal in a plane of velocities)."""
+    centre = _np(goal.center).reshape(-1)
+    own = getattr(goal, "index", None)
+    if own is None:
+        own = range(centre.shape[0])
+    elif isinstance(own, slice):  # a specification's contiguous components
+        own = range(own.start, own.stop)
+    own = [int(i) for i in own]
+    if not all(i in own for i in index):
+        return None
+    return np.array([centre[own.index(i)] for i in index], dtype=float)
+
+
 def _limits(
-    traj_xy: np.ndarray, goals: Sequence[Any], margin: float = 1.0
+    traj_xy: np.ndarray, goals: Sequence[Any], margin: float = 1.0, index: tuple[int, int] = (0, 1)
 ) -> tuple[tuple[float, float], tuple[float, float]]:
     pts = [traj_xy.reshape(-1, 2)]
     for g in goals:
-        pts.append(_np(g.center).reshape(1, -1)[:, :2])
+        c = _goal_point(g, index)
+        if c is not None:
+            pts.append(c.reshape(1, 2))
     allp = np.concatenate(pts)
     allp = allp[np.isfinite(allp).all(-1)]
     if allp.shape[0] == 0:  # no finite point (an empty batch, every state NaN): around 0
@@ -174,7 +219,7 @@ def _draw_scene(
 ) -> tuple[tuple[float, float], tuple[float, float]]:
     """Obstacles (the first labelled) and goals behind ``points [..., 2]``; returns the axis
     limits (those given, else fitted to the points and goals)."""
-    auto_x, auto_y = _limits(points, goals)
+    auto_x, auto_y = _limits(points, goals, index=index)
     xlim, ylim = xlim or auto_x, ylim or auto_y
     for j, barrier in enumerate(barriers):
         draw_unsafe_set(
@@ -186,7 +231,7 @@ def _draw_scene(
             index=index,
             label="obstacle" if j == 0 else None,
         )
-    draw_goals(ax, goals)
+    draw_goals(ax, goals, index=index)
     return xlim, ylim
 
 
@@ -291,10 +336,16 @@ def plot_rollouts(
     scale on the weight (or its logarithm over a few decades) puts almost every rollout at
     its bottom; ranks spread them evenly. The legend sits below the axes."""
     R = plane(rollouts, index)
+    w = _np(weights)
+    if R.ndim != 3 or w.shape != R.shape[:1]:
+        raise ValueError(
+            f"rollouts must be [K, H+1, n] and weights [K]: got rollouts "
+            f"{tuple(_np(rollouts).shape)} and weights {tuple(w.shape)}"
+        )
     E = None if executed is None else plane(executed, index)
     P = None if plan_states is None else plane(plan_states, index)
     fig, ax = (ax.figure, ax) if ax is not None else plt.subplots(figsize=(6, 6))
-    rank = weight_ranks(_np(weights))
+    rank = weight_ranks(w)
     # the view holds the rollouts, the executed path and the plan
     shown = np.concatenate([a.reshape(-1, 2) for a in (R, E, P) if a is not None])
     n = _np(rollouts).shape[-1]
