@@ -18,6 +18,7 @@ import time
 
 import torch
 
+from torchcbf._argtypes import torch_device
 from torchcbf.dynamics.manipulator import Manipulator
 from torchcbf.roadmap import sample_free_configurations
 from torchcbf.scenarios.arm_reach import (
@@ -114,7 +115,7 @@ def main() -> None:
     parser.add_argument("--alpha", type=float, default=5.0)
     parser.add_argument("--margin", type=float, default=0.01, help="sphere inflation (m)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--device", default="cpu", type=torch_device)
     parser.add_argument("--dtype", choices=["float32", "float64"], default="float64")
     parser.add_argument("--qp-backend", default="torch", help="torch, proxsuite, ...")
     parser.add_argument(

@@ -23,7 +23,7 @@ from collections.abc import Callable
 import torch
 from torch.func import hessian, jacrev, vmap
 
-from torchcbf._argtypes import positive_int
+from torchcbf._argtypes import positive_int, torch_device
 from torchcbf.barriers import Ball, BarrierStack, Ellipse
 from torchcbf.dynamics import AccelUnicycle
 
@@ -110,7 +110,7 @@ def main() -> None:
     parser.add_argument(
         "--threads", type=positive_int, default=None, help="torch.set_num_threads (>= 1)"
     )
-    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--device", default="cpu", type=torch_device)
     parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     args = parser.parse_args()
     if args.threads:

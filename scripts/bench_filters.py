@@ -55,7 +55,7 @@ import numpy as np
 import torch
 
 import torchcbf.qp as qp_module
-from torchcbf._argtypes import non_negative_int, positive_int
+from torchcbf._argtypes import non_negative_int, positive_int, torch_device
 from torchcbf.barriers import Ball, Barrier
 from torchcbf.dynamics import ControlAffine, SingleIntegrator
 from torchcbf.filters import SafetyFilter
@@ -523,7 +523,9 @@ def main() -> None:
         "--threads", type=non_negative_int, default=0, help="torch threads (0: leave)"
     )
     parser.add_argument("--quick", action="store_true", help="batch 512, subset 16, repeat 1")
-    parser.add_argument("--device", default="cpu", help="device of torchcbf (proxsuite: CPU)")
+    parser.add_argument(
+        "--device", default="cpu", type=torch_device, help="device of torchcbf (proxsuite: CPU)"
+    )
     parser.add_argument("--calls", type=positive_int, default=2000, help="calls per one-state line")
     parser.add_argument(
         "--one-state", action="store_true", help="the real-time one-state lines alone"

@@ -79,7 +79,7 @@ from collections.abc import Callable
 
 import torch
 
-from torchcbf._argtypes import positive_int
+from torchcbf._argtypes import positive_int, torch_device
 from torchcbf.barriers import Ellipse
 from torchcbf.dynamics import AccelUnicycle, ControlAffine, SingleIntegrator
 from torchcbf.mppi import MPPI, BarrierCost, QuadraticGoal, SumCost
@@ -481,7 +481,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--threads", type=positive_int, default=1, help="torch threads (>= 1)")
     parser.add_argument("--reps", type=positive_int, default=5, help="timed calls per planner")
-    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--device", default="cpu", type=torch_device)
     parser.add_argument("--only", nargs="+", choices=LINES, help="lines to run")
     parser.add_argument(
         "--profile", action="store_true", help="profile one call per path, and the noise draws"

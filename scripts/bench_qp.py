@@ -39,7 +39,7 @@ from unittest import mock
 import numpy as np
 import torch
 
-from torchcbf._argtypes import positive_int
+from torchcbf._argtypes import positive_int, torch_device
 from torchcbf.qp import Status, _dual_native, solve_qp
 
 
@@ -442,7 +442,9 @@ def hard_row_and_scaling_lines() -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="small subset of the grid")
-    parser.add_argument("--device", default="cpu", help="device for torchcbf (peers: CPU)")
+    parser.add_argument(
+        "--device", default="cpu", type=torch_device, help="device for torchcbf (peers: CPU)"
+    )
     parser.add_argument(
         "--peer-max-batch", type=positive_int, default=1024, help="largest peer batch"
     )

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import torch
 
+from torchcbf._argtypes import torch_device
 from torchcbf.barriers import NeuralBarrier
 from torchcbf.dynamics import SingleIntegrator
 from torchcbf.filters import SafetyFilter
@@ -71,7 +72,7 @@ def main() -> None:
     )
     ap.add_argument("--data", type=int, default=200_000, help="size of the labelled set")
     ap.add_argument("--lr", type=float, default=1e-2)
-    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--device", default="cpu", type=torch_device)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=None, help="directory for figures and the checkpoint")
     ap.add_argument("--quick", action="store_true", help="short run (smoke test)")

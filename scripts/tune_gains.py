@@ -22,6 +22,7 @@ import time
 
 import torch
 
+from torchcbf._argtypes import torch_device
 from torchcbf.dynamics import SingleIntegrator
 from torchcbf.filters import LinearClassK, SafetyFilter
 from torchcbf.learning import closed_loop_loss, occupancy_from_barrier, sample_free, train
@@ -62,7 +63,7 @@ def main() -> None:
     ap.add_argument("--collision-margin", type=float, default=0.05)
     ap.add_argument("--lr", type=float, default=0.1)
     ap.add_argument("--starts", type=int, default=500, help="held-out starts")
-    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--device", default="cpu", type=torch_device)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--quick", action="store_true")

@@ -71,6 +71,18 @@ def test_bad_size_flags_exit_2_naming_the_flag(
     assert f"argument {flag}: expected" in err or f"argument {flag}: invalid int value" in err
 
 
+@pytest.mark.parametrize("script", ["bench_qp", "bench_barriers", "bench_filters", "bench_mppi"])
+def test_a_device_that_is_not_here_exits_2_before_any_work(script, monkeypatch, capsys) -> None:
+    main = _load(script).main
+    bad = ["gpu"] + ([] if torch.cuda.is_available() else ["cuda"])
+    for device in bad:
+        monkeypatch.setattr(sys, "argv", [script, "--quick", "--device", device])
+        with pytest.raises(SystemExit) as exit_:
+            main()
+        assert exit_.value.code == 2
+        assert "argument --device:" in capsys.readouterr().err
+
+
 def test_bad_flag_from_the_command_line() -> None:
     done = _run("bench_barriers.py", "--quick", "--batch", "0", timeout=120)
     assert done.returncode == 2, done.stdout[-1000:] + done.stderr[-2000:]

@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 
+import torch
+
 
 def int_at_least(low: int) -> Callable[[str], int]:
     """An argparse type: an integer ``>= low``."""
@@ -36,3 +38,22 @@ def seed(text: str) -> int:
     if not 0 <= value < 2**32:
         raise argparse.ArgumentTypeError(f"a seed lies in [0, 2^32), got {value}")
     return value
+
+
+def torch_device(text: str) -> str:
+    """A torch device that is here: ``cpu``, ``cuda`` or ``cuda:N`` (with CUDA available and
+    that many devices), or another type torch names and this build has."""
+    try:
+        dev = torch.device(text)
+    except RuntimeError:
+        raise argparse.ArgumentTypeError(f"not a torch device: {text!r}") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise argparse.ArgumentTypeError(f"{text}, but CUDA is not available here")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise argparse.ArgumentTypeError(
+                f"{text}, but there are {torch.cuda.device_count()} CUDA devices"
+            )
+    elif dev.type != "cpu" and not getattr(torch, dev.type, None):
+        raise argparse.ArgumentTypeError(f"{text}: this torch has no {dev.type} backend")
+    return text
