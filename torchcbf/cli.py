@@ -102,6 +102,9 @@ def _variants(entry: Any, text: str | None) -> list[Any]:
     unknown = [v for v in names if allowed and v not in allowed]
     if unknown or not names:
         raise ValueError(f"--{entry.variant}s must be 'all' or a list from {allowed}, got {text!r}")
+    repeated = sorted({v for v in names if names.count(v) > 1})
+    if repeated:
+        raise ValueError(f"--{entry.variant}s names {', '.join(repeated)} more than once")
     return names
 
 
@@ -249,16 +252,25 @@ def _parameters(entry: Any, args: argparse.Namespace) -> dict[str, Any]:
     from torchcbf.sweep.params import parse_value
 
     params = {}
+    by_flag = {}
     for flag, key in entry.options.items():
         value = getattr(args, _dest(flag), None)
         if value is not None:
             params[key] = value
+            by_flag[key] = flag
+    by_set: dict[str, str] = {}
     for item in getattr(args, "set", None) or []:
         key, sep, value = item.partition("=")
+        key = key.strip()
         if not sep:
             raise ValueError(f"--set takes KEY=VALUE, got {item!r}")
+        if key in by_flag:
+            raise ValueError(f"give --{by_flag[key]} or --set {key}=..., not both")
+        if key in by_set:
+            raise ValueError(f"--set {key} given twice ({by_set[key]!r} and {item!r})")
+        by_set[key] = item
         try:
-            params[key.strip()] = parse_value(entry, key.strip(), value)
+            params[key] = parse_value(entry, key, value)
         except ValueError as error:
             raise ValueError(f"--set {item}: {error}") from None
     return params

@@ -201,6 +201,15 @@ def test_set_of_the_variant_runs_that_variant(tmp_path, capsys, monkeypatch) -> 
         main([*args, "--set", "method=scbf", "--methods", "mppi", "--out", str(tmp_path / "b")])
         == 2
     )
+    # an option given twice over, or a method named twice, is refused before any run
+    for extra, message in (
+        (["--set", "num_samples=20", "--methods", "scbf"], "give --samples or --set num_samples"),
+        (["--set", "beta=1", "--set", "beta=2", "--methods", "scbf"], "--set beta given twice"),
+        (["--methods", "scbf,scbf"], "--methods names scbf more than once"),
+    ):
+        assert main([*args, *extra, "--out", str(tmp_path / "c")]) == 2
+        assert message in capsys.readouterr().err
+        assert not (tmp_path / "c").exists()
 
 
 def test_the_reference_scenarios_are_registered() -> None:
