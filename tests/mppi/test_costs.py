@@ -2,10 +2,20 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
-from torchcbf.mppi import BarrierCost, ObstacleCost, QuadraticGoal, StageCost, SumCost
+from torchcbf.barriers import Ball
+from torchcbf.mppi import (
+    BarrierCost,
+    DiscreteBarrierCost,
+    ObstacleCost,
+    QuadraticGoal,
+    StageCost,
+    SumCost,
+)
 
 
 def _tol(dtype: torch.dtype) -> float:
@@ -102,6 +112,17 @@ def test_bad_costs():
         BarrierCost(3.0)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="stage"):
         StageCost(None)  # type: ignore[arg-type]
+    # a weight that is not a finite number >= 0 (every sample's cost NaN, or a barrier that
+    # attracts) is refused by every barrier term
+    ball = Ball([0.0, 0.0], 0.5)
+    for bad in (math.nan, math.inf, -5.0):
+        for make in (
+            lambda w: ObstacleCost((0.0, 0.0), 1.0, k_o=w),
+            lambda w: BarrierCost(ball, weight=w),
+            lambda w: DiscreteBarrierCost(ball, gamma=0.5, weight=w),
+        ):
+            with pytest.raises(ValueError, match=r"(k_o|weight) must be a finite number >= 0"):
+                make(bad)
 
 
 def _moving_barriers(device, dtype):

@@ -223,7 +223,8 @@ class ObstacleCost(RolloutCost):
         radius = check_number("radius", radius, low=0.0)
         eps = check_number("eps", eps, low=0.0, strict=True)
         self.register_buffer("center", center_t)
-        self.radius, self.k_o, self.eps = radius, float(k_o), eps
+        self.radius, self.eps = radius, eps
+        self.k_o = check_number("k_o", k_o, low=0.0)
 
     def stage(self, states: Tensor, controls: Tensor | None) -> Tensor:
         dist = root(squared_distance(states, self.index, self.center)) - self.radius
@@ -251,10 +252,9 @@ class BarrierCost(RolloutCost):
         super().__init__()
         if not callable(barrier):
             raise TypeError(f"barrier must be callable, got {type(barrier).__name__}")
-        if not eps > 0:
-            raise ValueError(f"eps must be > 0, got {eps}")
         self.barrier = barrier
-        self.weight, self.eps = float(weight), float(eps)
+        self.weight = check_number("weight", weight, low=0.0)
+        self.eps = check_number("eps", eps, low=0.0, strict=True)
 
     @property
     def needs_time(self) -> bool:  # type: ignore[override]
@@ -318,10 +318,9 @@ class DiscreteBarrierCost(Adds, TracksShadows):
             raise TypeError(f"barrier must be callable, got {type(barrier).__name__}")
         if not isinstance(gamma, (int, float)) or not 0.0 < gamma <= 1.0:
             raise ValueError(f"gamma must be in (0, 1], got {gamma!r}")
-        if not isinstance(weight, (int, float)) or not weight >= 0.0:
-            raise ValueError(f"weight must be >= 0, got {weight!r}")
         self.barrier = barrier
-        self.gamma, self.weight = float(gamma), float(weight)
+        self.gamma = float(gamma)
+        self.weight = check_number("weight", weight, low=0.0)
         self.steps = None if steps is None else check_positive_int("steps", steps)
 
     needs_time = BarrierCost.needs_time
