@@ -127,6 +127,11 @@ def test_shield_mppi_filters_and_feeds_back() -> None:
     assert shield.dt == planner.dt
     with pytest.raises(TypeError, match="planner"):
         ShieldMPPI(filt, filt)  # type: ignore[arg-type]
+    # a NumPy state is refused before the planner advances (no unfiltered control left)
+    before = planner._plan.clone()
+    with pytest.raises(TypeError, match="x must be a torch.Tensor"):
+        shield(x.numpy(), 0.0)
+    assert torch.equal(planner._plan, before)
 
 
 class _Counting:

@@ -79,6 +79,11 @@ class ShieldMPPI(nn.Module):
         self._pending = None
 
     def forward(self, x: Tensor, t: float | Tensor = 0.0) -> MPPIOutput:
+        if not isinstance(x, Tensor):  # before the planner advances its plan
+            raise TypeError(
+                f"x must be a torch.Tensor (the safety filter takes tensors), got "
+                f"{type(x).__name__}: pass torch.as_tensor(x)"
+            )
         out = self.planner(x, t)
         if self.in_loop:
             self._pending = out.plan  # the loop filter writes the filtered control into it
