@@ -260,3 +260,28 @@ def test_constants_of_different_counts_are_refused_on_every_path() -> None:
     wide.radius = torch.ones(2, 1)
     with pytest.raises(ValueError, match=r"Ball.radius \(2, 1\) does not match"):
         wide(x)
+
+
+@pytest.mark.parametrize("method", ["analytic", "autograd"])
+def test_a_batched_shape_with_no_shape_has_empty_terms_and_filters_nothing(method) -> None:
+    """No obstacle in view this tick (``center [0, 2]``): empty terms on every path, and a
+    filter holding it beside another barrier answers as the other alone."""
+    from torchcbf.filters import SafetyFilter
+
+    f64 = torch.float64
+    model = SingleIntegrator(2)
+    x = torch.tensor([[0.5, 1.0], [0.0, 0.2]], dtype=f64)
+    empties = (
+        Ball(torch.zeros(0, 2, dtype=f64), torch.zeros(0, dtype=f64)),
+        Ellipse(torch.zeros(0, 2, dtype=f64), torch.ones(0, 2, dtype=f64)),
+        HalfSpace(torch.zeros(0, 2, dtype=f64), torch.zeros(0, dtype=f64)),
+    )
+    for empty in empties:
+        terms = empty.lie(x, model, method=method)
+        assert terms.h.shape == (2, 0) and terms.lgh.shape == (2, 0, 2)
+    ball = Ball([1.0, 1.0], 0.3).double()
+    u = torch.tensor([[1.0, 1.0], [1.0, 1.0]], dtype=f64)
+    for backend in ("auto", "torch"):
+        got = SafetyFilter(model, [empties[0], ball], alpha=1.0, backend=backend)(x, u)
+        want = SafetyFilter(model, [ball], alpha=1.0, backend=backend)(x, u)
+        torch.testing.assert_close(got.u, want.u)

@@ -49,8 +49,9 @@ def _row(value: Tensor, j: int) -> Tensor:
 
 
 def _split(module: LieFunction, num: int | None) -> list[LieFunction] | None:
-    """The ``k`` shapes of a batched shape as parts (one backward pass each)."""
-    if num is None:
+    """The ``k`` shapes of a batched shape as parts (one backward pass each); none to split
+    for no shape (``k = 0``: the shape answers its empty terms as one part)."""
+    if num is None or num == 0:
         return None
     return [
         FunctionPart(functools.partial(module._one, j), module.time_varying) for j in range(num)
