@@ -142,6 +142,15 @@ def test_mppi_cbf_scales_put_the_margin_on_the_flat_sides(
         assert scenario.safety_filter.condition.beta.tolist() == pytest.approx(beta)
 
 
+def test_mppi_cbf_options_a_configuration_cannot_take_are_refused() -> None:
+    for option in ("barrier_scale", "margin", "goal_wall_margin", "blocking_margin"):
+        with pytest.raises(ValueError, match=f"config='cbfkit' takes no {option}"):
+            mppi_cbf("scbf", config="cbfkit", num_seeds=1, **{option: 0.5})
+    for horizon in (10.0, 1e-3):  # beyond the 5 s run, or shorter than a step
+        with pytest.raises(ValueError, match=r"risk_horizon must lie in \[0.01, 5\] s"):
+            mppi_cbf("mppi_rascbf", risk_horizon=horizon, num_seeds=1)
+
+
 def test_mppi_cbf_cbfkit_reading() -> None:
     """cbfkit: h_i = 1 - exp(-0.1 b_i) rectified as h + 0.3 L_f h (= h at rest), and
     L B + tr/2 <= -B + 1 on B = 1 - h is L h + tr/2 >= -h + 0 (alpha = 1, beta = 0)."""

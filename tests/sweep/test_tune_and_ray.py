@@ -34,6 +34,8 @@ def test_search_spaces_name_parameters() -> None:
     assert "noise_sigma" not in filter_only and "rectify_gain" in filter_only
     planner_only = [d.name for d in search_space("mppi-cbf", fixed={"method": "mppi"})]
     assert "rectify_gain" not in planner_only and "noise_sigma" in planner_only
+    cbfkit = [d.name for d in search_space("mppi-cbf", fixed={"config": "cbfkit"})]
+    assert "barrier_scale" not in cbfkit and "rectify_gain" in cbfkit  # its form fixes them
     with pytest.raises(ValueError, match="unknown parameter"):
         search_space("reach-avoid", ["nope"])
     with pytest.raises(ValueError, match="every dimension is fixed"):

@@ -53,7 +53,8 @@ class Dimension:
     parameter it sets (default: ``name``); ``to_argument`` maps the sampled value to the
     parameter's value; ``skip_variants``: values of the scenario's variant parameter (its
     ``method``) for which the dimension has no effect (an MPPI parameter for the filter
-    alone, a filter parameter for MPPI alone).
+    alone, a filter parameter for MPPI alone); ``skip_when``: ``(parameter, value)`` pairs
+    under which it has none either (a configuration that fixes it).
     """
 
     name: str
@@ -65,6 +66,7 @@ class Dimension:
     argument: str | None = None
     to_argument: Callable[[Any], Any] | None = field(default=None, compare=False)
     skip_variants: tuple[str, ...] = ()
+    skip_when: tuple[tuple[str, Any], ...] = ()
 
     def __post_init__(self) -> None:
         if self.kind not in ("float", "int", "categorical"):

@@ -336,6 +336,19 @@ def build(
         "risk_temperature": risk_temperature,
         "shield_weight": shield_weight,
     }
+    if config == "cbfkit":
+        fixed = {
+            "barrier_scale": barrier_scale,
+            "margin": margin,
+            "goal_wall_margin": goal_wall_margin,
+            "blocking_margin": blocking_margin,
+        }
+        given = sorted(name for name, value in fixed.items() if value is not None)
+        if given:
+            raise ValueError(
+                f"config='cbfkit' takes no {', '.join(given)}: its form fixes the scales "
+                "(B + 0.3 L_f B) and has no margins"
+            )
     params = CONFIG_PARAMS[config]
     for name, value in overrides.items():
         if value is not None:  # beta > 0 too: the scales c_i set by the margin are prop. to it
@@ -350,6 +363,13 @@ def build(
         params = replace(params, risk_budget=budget)
     if params.risk_budget is not None and params.risk_horizon is None:
         raise ValueError("risk_budget needs a fixed risk_horizon (T); got risk_horizon=None")
+    if params.risk_horizon is not None and not DT <= params.risk_horizon <= STEPS * DT:
+        # shorter than a step the windows are empty; longer than the run there is none, and
+        # a budget shared by its windows would give one window more than the whole run's
+        raise ValueError(
+            f"risk_horizon must lie in [{DT:g}, {STEPS * DT:g}] s (a step to the whole run), "
+            f"got {params.risk_horizon:g}"
+        )
     if p.risk_goal_wall_inflation is not None:
         wall = check_number("risk_goal_wall_inflation", p.risk_goal_wall_inflation, low=0.0)
         params = replace(params, risk_goal_wall_inflation=wall)
@@ -699,7 +719,15 @@ ENTRY = register(
         # that barrier_scale searches directly
         search_space=(
             Dimension("rectify_gain", "float", 1.0, 100.0, log=True, skip_variants=_NO_FILTER),
-            Dimension("barrier_scale", "float", 1e-3, 1.0, log=True, skip_variants=_SCALED),
+            Dimension(
+                "barrier_scale",
+                "float",
+                1e-3,
+                1.0,
+                log=True,
+                skip_variants=_SCALED,
+                skip_when=(("config", "cbfkit"),),  # its form fixes the scales
+            ),
             Dimension(
                 "control_weight_omega",
                 "float",

@@ -64,10 +64,13 @@ def search_space(
     entry = get(scenario)
     if not entry.search_space:
         raise ValueError(f"scenario {entry.name!r} declares no search space")
-    variant = None
-    if entry.variant is not None:
-        variant = {**entry.defaults(), **(fixed or {})}[entry.variant]
-    dims = [d for d in entry.search_space if variant not in d.skip_variants]
+    params = {**entry.defaults(), **(fixed or {})}
+    variant = None if entry.variant is None else params[entry.variant]
+    dims = [
+        d
+        for d in entry.search_space
+        if variant not in d.skip_variants and not any(params.get(k) == v for k, v in d.skip_when)
+    ]
     if names is not None:
         known = {d.name for d in dims}
         unknown = [n for n in names if n not in known]
