@@ -262,3 +262,17 @@ def test_roadmap_inputs_are_checked(ik_scenario: arm_reach.ArmReachScenario) -> 
     accel = Manipulator("planar3", control="acceleration")
     with pytest.raises(ValueError, match="needs an arm with control='velocity'"):
         RoadmapController(accel, sc.nominal.roadmap, sc.collision, sc.q_goal, sc.q0)
+
+
+def test_a_rows_problem_is_its_seeds_whatever_the_batch_and_dtype() -> None:
+    """Row ``i`` is drawn from seed ``seed + i`` alone, in float64: the first rows of a
+    larger batch, and the same rows in float32, are the same starts and targets."""
+    kw = {"seed": 3, "nominal": "cartesian", "plan_paths": False}
+    two = arm_reach.build("planar3", 2, **kw)
+    four = arm_reach.build("planar3", 4, **kw)
+    single = arm_reach.build("planar3", 32, **kw, dtype=torch.float32)
+    assert torch.equal(two.q0, four.q0[:2]) and torch.equal(two.target, four.target[:2])
+    torch.testing.assert_close(single.q0[:2], two.q0.float())
+    torch.testing.assert_close(single.target[:2], two.target.float())
+    late = arm_reach.build("planar3", 1, **{**kw, "seed": 4})
+    assert torch.equal(late.q0, four.q0[1:2])

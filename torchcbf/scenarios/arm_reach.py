@@ -136,6 +136,36 @@ def link_spheres(
     return LinkSphereBarrier(arm, links, radii, center, radius, offsets=offsets).to(dtype)
 
 
+def _problems(
+    name: str, num: int, seed: int, clearance: float, device: torch.device
+) -> tuple[Tensor, Tensor]:
+    """``(q0, q_target)``, ``[num, dof]`` each: row ``i`` drawn from seed ``seed + i`` alone,
+    in float64 (the same problems whatever the batch and the run's dtype). The target's end
+    effector lies clear of the obstacle and within the annulus the arm reaches well."""
+    f64 = torch.float64
+    arm = Manipulator(name).to(device=device, dtype=f64)
+    collision = link_spheres(arm, name, 0.0, f64).to(device)
+    center, radius = GEOMETRY[name]["obstacle"]
+    shoulder, r_in, r_out = GEOMETRY[name]["annulus"]
+    c = torch.tensor(center, dtype=f64, device=device)
+    s = torch.tensor(shoulder, dtype=f64, device=device)
+    starts, targets = [], []
+    for i in range(num):  # construction only: each row its own random stream
+        gen = torch.Generator(device=device).manual_seed(seed + i)
+        starts.append(sample_free_configurations(arm, collision, 1, clearance, gen, f64, device))
+        for _ in range(100):
+            qt = sample_free_configurations(arm, collision, 4, clearance, gen, f64, device)
+            p = arm.end_effector(qt)
+            reach = (p - s).norm(dim=-1)
+            ok = ((p - c).norm(dim=-1) > radius + clearance) & (reach > r_in) & (reach < r_out)
+            if bool(ok.any()):
+                targets.append(qt[ok][:1])
+                break
+        else:
+            raise RuntimeError("too few reachable targets: lower the clearance")
+    return torch.cat(starts), torch.cat(targets)
+
+
 def build(
     name: str = "planar3",
     num: int = 256,
@@ -157,7 +187,8 @@ def build(
     dtype: torch.dtype = torch.float64,
     device: str | torch.device = "cpu",
 ) -> ArmReachScenario:
-    """Build the arm, the filter and ``num`` scenarios (deterministic given ``seed``).
+    """Build the arm, the filter and ``num`` scenarios (row ``i`` from seed ``seed + i``, the
+    same problem whatever ``num`` and ``dtype``).
 
     ``nominal="ik"``: the target POINT goes through :meth:`Manipulator.inverse_kinematics`
     (collision spheres clear by ``path_clearance``, joints 0.06 rad inside their limits,
@@ -179,20 +210,9 @@ def build(
     safety_filter = SafetyFilter(
         arm, barriers=[inflated, limits], alpha=alpha, qp_options={"backend": qp_backend}
     ).to(device, dtype)
-    gen = torch.Generator(device=device).manual_seed(seed)
-    q0 = sample_free_configurations(arm, collision, num, clearance, gen, dtype, device)
-    qt = sample_free_configurations(arm, collision, 4 * num, clearance, gen, dtype, device)
+    q0, qt = _problems(name, num, seed, clearance, device)
+    q0, qt = q0.to(dtype), qt.to(dtype)
     target = arm.end_effector(qt)
-    center, radius = GEOMETRY[name]["obstacle"]
-    c = torch.tensor(center, dtype=dtype, device=device)
-    far = (target - c).norm(dim=-1) > radius + clearance
-    shoulder, r_in, r_out = GEOMETRY[name]["annulus"]
-    reach = (target - torch.tensor(shoulder, dtype=dtype, device=device)).norm(dim=-1)
-    far = far & (reach > r_in) & (reach < r_out)
-    target, qt = target[far], qt[far]
-    if target.shape[0] < num:
-        raise RuntimeError("too few reachable targets: lower the clearance")
-    target, qt = target[:num], qt[:num]
     no = torch.zeros_like(qt[:, 0], dtype=torch.bool)
     reachable, q_goal = no, qt
     if plan_paths or nominal != "cartesian":
@@ -211,6 +231,7 @@ def build(
         q_goal = torch.where(ik.converged[:, None], ik.q, strict.q)
     # the path search runs for every nominal (same generator use, same scenarios)
     if plan_paths or nominal != "cartesian":
+        gen = torch.Generator(device=device).manual_seed(seed)  # the roadmap's samples
         waypoints, found, has_via, roadmap = roadmap_paths(
             arm, collision, q0, q_goal, path_clearance, gen
         )
@@ -371,7 +392,7 @@ def build_scenario(
         x0=sc.q0,
         steps=p.steps,
         dt=p.dt,
-        seeds=torch.full((num_seeds,), seed),
+        seeds=seed + torch.arange(num_seeds),
         nominal=sc.nominal,
         safety_filter=sc.safety_filter,
         integrator="rk4",
