@@ -406,3 +406,21 @@ def test_every_variant_pickles_after_a_call(cls: type[MPPI]) -> None:
     p(x)
     copy = pickle.loads(pickle.dumps(p))
     torch.testing.assert_close(copy(x).u, p(x).u)
+
+
+def test_a_kernel_whose_gram_is_singular_to_rounding_is_named() -> None:
+    """A kernel as wide as the horizon over many points: k(tau, tau) is singular to
+    rounding, and the plan would not pass through its control points (W(tau) = I)."""
+    model = DoubleIntegrator(dim=1)
+    for width, points in ((1e6, 5), (6.0, 15), (math.inf, 5)):
+        p = KMPPI(model, quadratic_1d, horizon=15, num_samples=8, dt=0.1, noise_sigma=0.7,
+                  temperature=0.3, num_support_points=points, kernel=rbf_kernel(width))  # fmt: skip
+        with pytest.raises(ValueError, match="singular to rounding"):
+            p(torch.zeros(2))
+    fine = KMPPI(model, quadratic_1d, horizon=15, num_samples=8, dt=0.1, noise_sigma=0.7,
+                 temperature=0.3, num_support_points=8, kernel=rbf_kernel(6.0))  # fmt: skip
+    fine = fine.double()
+    fine(torch.zeros(2, dtype=torch.float64))
+    tau = fine.support(15, fine._plan)
+    eye = torch.eye(8, dtype=torch.float64)
+    torch.testing.assert_close(fine.interpolation(tau, tau), eye, atol=1e-6, rtol=0)

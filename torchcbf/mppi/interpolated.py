@@ -32,6 +32,9 @@ from torchcbf.dynamics.base import ControlAffine
 from torchcbf.mppi import _rollout
 from torchcbf.mppi.planner import MPPI, _resized, _shifted
 
+#: how far the interpolation may miss its control points (``|W(tau) - I|``, float64)
+INTERPOLATION_TOL = 1e-6
+
 TimeKernel = Callable[[Tensor, Tensor], Tensor]
 
 
@@ -134,7 +137,18 @@ class KMPPI(MPPI):
                 f"kernel(t [N], tau [S]) must return [N, S]; got {tuple(gram.shape)} for "
                 f"N = S = {tau.shape[0]}"
             )
-        return torch.linalg.solve(gram, cross, left=False)
+        out, info = torch.linalg.solve_ex(gram, cross, left=False)
+        # interpolation through the points: W(tau) = I, lost where k(tau, tau) is singular
+        # to rounding (a wide kernel over many points)
+        through = torch.linalg.solve_ex(gram, gram, left=False)[0]
+        eye = torch.eye(tau.shape[0], dtype=through.dtype, device=through.device)
+        if int(info) != 0 or not bool(((through - eye).abs() <= INTERPOLATION_TOL).all()):
+            raise ValueError(
+                f"the kernel's matrix k(tau, tau) over {tau.shape[0]} support points is singular "
+                "to rounding: the plan would not pass through its control points (use fewer "
+                "support points or a narrower kernel)"
+            )
+        return out
 
     def _allocate(self, B: int, device: torch.device, dtype: torch.dtype) -> None:
         m = self.dynamics.control_dim
@@ -147,8 +161,6 @@ class KMPPI(MPPI):
         tau = self.support(horizon, like)
         steps = torch.arange(horizon, dtype=torch.float64, device=like.device)
         W = self.interpolation(steps, tau)
-        if not bool(torch.isfinite(W).all()):
-            raise ValueError("the kernel's matrix k(tau, tau) is singular for this horizon")
         self._W = W.to(like.dtype)
         self._W_pinv = torch.linalg.pinv(W).to(like.dtype)
         self._W_shift = self.interpolation(tau + 1.0, tau).to(like.dtype)
