@@ -16,8 +16,10 @@ import torch
 SCRIPTS = Path(__file__).resolve().parent.parent / "scripts"
 
 
-def _run(script: str, *args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+def _run(
+    script: str, *args: str, timeout: float = 300, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", **(env or {})}
     return subprocess.run(
         [sys.executable, str(SCRIPTS / script), *args],
         capture_output=True,
@@ -114,8 +116,17 @@ def test_bench_qp_agreement_names_the_wrong_answer() -> None:
     assert "2 where torchcbf's answer is the worse" in text
 
 
-def test_bench_mppi_failing_planner_is_reported_and_the_run_goes_on() -> None:
-    done = _run("bench_mppi.py", "--quick", "--only", "realtime", "fused", "--device", "nosuch")
+def test_bench_mppi_failing_planner_is_reported_and_the_run_goes_on(tmp_path) -> None:
+    # every planner's child process fails as it starts (a site hook reading its --one flag)
+    (tmp_path / "sitecustomize.py").write_text(
+        "import os, sys\n"
+        "if '--one' in sys.orig_argv:\n"
+        "    sys.stderr.write('nosuch planner\\n')\n"
+        "    sys.stderr.flush()\n"
+        "    os._exit(3)\n"
+    )
+    path = os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])
+    done = _run("bench_mppi.py", "--quick", "--only", "realtime", "fused", env={"PYTHONPATH": path})
     assert done.returncode == 1, done.stdout[-1000:] + done.stderr[-2000:]
     rows = [line for line in done.stdout.splitlines() if "failed (exit status" in line]
     planners = 4 if importlib.util.find_spec("pytorch_mppi") else 2
