@@ -424,3 +424,9 @@ def test_a_kernel_whose_gram_is_singular_to_rounding_is_named() -> None:
     tau = fine.support(15, fine._plan)
     eye = torch.eye(8, dtype=torch.float64)
     torch.testing.assert_close(fine.interpolation(tau, tau), eye, atol=1e-6, rtol=0)
+    # a kernel computed in float32, well conditioned (about 6e3 over 30 points), is taken
+    wide = rbf_kernel(1.4)
+    f32 = KMPPI(model, quadratic_1d, horizon=30, num_samples=8, dt=0.1, noise_sigma=0.7,
+                temperature=0.3, num_support_points=30,
+                kernel=lambda a, b: wide(a.float(), b.float()))  # fmt: skip
+    f32(torch.zeros(2))

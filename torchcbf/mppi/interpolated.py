@@ -137,6 +137,7 @@ class KMPPI(MPPI):
                 f"kernel(t [N], tau [S]) must return [N, S]; got {tuple(gram.shape)} for "
                 f"N = S = {tau.shape[0]}"
             )
+        gram, cross = gram.double(), cross.double()  # a kernel may compute in float32
         out, info = torch.linalg.solve_ex(gram, cross, left=False)
         # interpolation through the points: W(tau) = I, lost where k(tau, tau) is singular
         # to rounding (a wide kernel over many points)
