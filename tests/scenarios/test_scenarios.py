@@ -16,6 +16,7 @@ from torchcbf.scenarios.unicycle_mppi_cbf import (
     BLOCKING,
     CONFIG_PARAMS,
     CONFIGS,
+    DT,
     FLAT_MARGIN,
     GOAL_WALL,
     SIGMA,
@@ -149,6 +150,12 @@ def test_mppi_cbf_options_a_configuration_cannot_take_are_refused() -> None:
     for horizon in (10.0, 1e-3):  # beyond the 5 s run, or shorter than a step
         with pytest.raises(ValueError, match=r"risk_horizon must lie in \[0.01, 5\] s"):
             mppi_cbf("mppi_rascbf", risk_horizon=horizon, num_seeds=1)
+    # the margin sets the risk-aware horizon, in cbfkit too; one that sets T below a step
+    kw = {"num_seeds": 1, "num_samples": 32, "horizon": 5}
+    tight = mppi_cbf("mppi_rascbf", config="cbfkit", margin=0.1, **kw).params
+    assert DT <= tight["risk_horizon"] < 0.059
+    with pytest.raises(ValueError, match="shorter than a step"):
+        mppi_cbf("mppi_rascbf", config="paper", margin=0.05, **kw)
 
 
 def test_mppi_cbf_cbfkit_reading() -> None:

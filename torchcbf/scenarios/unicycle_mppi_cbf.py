@@ -337,17 +337,20 @@ def build(
         "shield_weight": shield_weight,
     }
     if config == "cbfkit":
+        # its stochastic CBFs fix their scales (B + 0.3 L_f B) and keep no margins; the
+        # margin still sets the risk-aware filter's horizon
         fixed = {
             "barrier_scale": barrier_scale,
-            "margin": margin,
             "goal_wall_margin": goal_wall_margin,
             "blocking_margin": blocking_margin,
+            "margin": None if method == "mppi_rascbf" else margin,
         }
         given = sorted(name for name, value in fixed.items() if value is not None)
         if given:
             raise ValueError(
-                f"config='cbfkit' takes no {', '.join(given)}: its form fixes the scales "
-                "(B + 0.3 L_f B) and has no margins"
+                f"config='cbfkit' takes no {', '.join(given)} for method {method!r}: its "
+                "barriers fix their scales (B + 0.3 L_f B) and keep no margins (margin sets "
+                "the risk-aware filter's horizon only)"
             )
     params = CONFIG_PARAMS[config]
     for name, value in overrides.items():
@@ -636,6 +639,11 @@ def _risk_aware_filter(
         rho = params.risk_budget * T / (STEPS * DT)
     else:
         T = params.risk_horizon or risk_horizon(h0, eta, rho, params.margin)
+        if not DT <= T:  # computed from the margin: a window shorter than a step is empty
+            raise ValueError(
+                f"the risk-aware horizon T = {T:.3g} s the margin {params.margin:g} m sets is "
+                f"shorter than a step ({DT:g} s): widen margin or give risk_horizon"
+            )
     local = params.risk_eta == "local"
     safety_filter = SafetyFilter(
         plant,
