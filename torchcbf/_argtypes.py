@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 
-import torch
+from torchcbf._checks import check_device
 
 
 def int_at_least(low: int) -> Callable[[str], int]:
@@ -41,19 +41,9 @@ def seed(text: str) -> int:
 
 
 def torch_device(text: str) -> str:
-    """A torch device that is here: ``cpu``, ``cuda`` or ``cuda:N`` (with CUDA available and
-    that many devices), or another type torch names and this build has."""
+    """A torch device this machine has (:func:`torchcbf._checks.check_device`)."""
     try:
-        dev = torch.device(text)
-    except RuntimeError:
-        raise argparse.ArgumentTypeError(f"not a torch device: {text!r}") from None
-    if dev.type == "cuda":
-        if not torch.cuda.is_available():
-            raise argparse.ArgumentTypeError(f"{text}, but CUDA is not available here")
-        if dev.index is not None and dev.index >= torch.cuda.device_count():
-            raise argparse.ArgumentTypeError(
-                f"{text}, but there are {torch.cuda.device_count()} CUDA devices"
-            )
-    elif dev.type != "cpu" and not getattr(torch, dev.type, None):
-        raise argparse.ArgumentTypeError(f"{text}: this torch has no {dev.type} backend")
+        check_device(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
     return text

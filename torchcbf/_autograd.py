@@ -19,6 +19,12 @@ from torch.autograd import forward_ad
 _F = TypeVar("_F", bound=Callable[..., Any])
 
 
+def forward_mode_active() -> bool:
+    """Whether a forward-mode AD level is open (``torch.autograd.forward_ad.dual_level``):
+    a tangent may then ride on any tensor, one captured by a user's closure too."""
+    return forward_ad._current_level >= 0
+
+
 def refuse_transforms(
     where: str, tensors: Iterable[Tensor | None], *, module: nn.Module | None = None
 ) -> None:
@@ -29,7 +35,7 @@ def refuse_transforms(
     ``where`` has plain reverse-mode derivatives only, and a tangent would otherwise be
     dropped without a word (``None``: no derivative)."""
     functorch = torch._C._functorch
-    dual = forward_ad._current_level >= 0
+    dual = forward_mode_active()
     if module is not None and dual:
         tensors = itertools.chain(tensors, module.parameters(), module.buffers())
     inside = functorch.maybe_current_level() is not None

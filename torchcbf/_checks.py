@@ -244,10 +244,19 @@ def check_device(device: object) -> torch.device:
         dev = torch.device(device)  # type: ignore[arg-type]
     except (RuntimeError, TypeError) as err:
         raise ValueError(f"device {device!r} is not a device torch knows: {err}") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device {device!r}: this torch has no CUDA device available")
-    if dev.type == "mps" and not torch.backends.mps.is_available():
-        raise ValueError(f"device {device!r}: this torch has no MPS device available")
+    if dev.type in ("cpu", "meta"):
+        return dev
+    # cuda, mps, xpu, ...: torch's module of that type says whether one is here, and how many
+    module = getattr(torch, dev.type, None)
+    if dev.type == "mps":
+        module = torch.backends.mps
+    available = getattr(module, "is_available", None)
+    name = {"cuda": "CUDA", "mps": "MPS", "xpu": "XPU"}.get(dev.type, dev.type)
+    if available is None or not available():
+        raise ValueError(f"device {device!r}: this torch has no {name} device available")
+    count = getattr(module, "device_count", None)
+    if dev.index is not None and count is not None and dev.index >= count():
+        raise ValueError(f"device {device!r}: there are {count()} {name} devices here")
     return dev
 
 

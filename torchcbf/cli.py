@@ -48,6 +48,7 @@ import torch
 from torchcbf import _io
 from torchcbf._argtypes import positive_int
 from torchcbf._argtypes import seed as seed_type
+from torchcbf._checks import check_device
 from torchcbf.sim import Trajectory, run_info, strict
 
 # Benchmarks in the order ``torchcbf bench`` runs them (each a script of scripts/).
@@ -492,8 +493,11 @@ def _main(argv: Sequence[str] | None = None) -> int:
                 check_seeds(start, n)
             except ValueError as error:
                 parser.error(f"argument --{first.replace('_', '-')}: {error}")
-    if getattr(args, "device", "cpu") == "cuda" and not torch.cuda.is_available():
-        parser.error("argument --device: cuda, but CUDA is not available on this machine")
+    if getattr(args, "device", None) is not None:
+        try:
+            check_device(args.device)
+        except ValueError as error:
+            parser.error(f"argument --device: {error}")
     if args.command in ECOSYSTEM_COMMANDS:
         return ECOSYSTEM_COMMANDS[args.command](args, argv)
     from torchcbf.sweep.rundir import OutputError, RunDir

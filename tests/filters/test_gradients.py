@@ -125,5 +125,12 @@ def test_forward_mode_and_torch_func_are_refused_by_name() -> None:
             (centre,),
             (torch.ones_like(centre),),
         )
+    # a tangent on a tensor a class-K closure captures (the one-state path would drop it)
+    with fwAD.dual_level():
+        gain = fwAD.make_dual(torch.tensor(2.0, dtype=torch.float64), torch.tensor(1.0))
+        closure = SafetyFilter(SingleIntegrator(2), [Ball([1.0, 0.0], 0.5).double()],
+                               alpha=lambda h: gain * h)  # fmt: skip
+        with pytest.raises(NotImplementedError, match="forward-mode AD"):
+            closure(x, u)
     jac = torch.autograd.functional.jacobian(lambda v: filt(v, u).u, x)
     assert jac.shape == (1, 2, 1, 2) and bool(torch.isfinite(jac).all())

@@ -46,7 +46,9 @@ def test_cuda_without_cuda_is_a_usage_error_before_any_work(command, tmp_path, c
     with pytest.raises(SystemExit) as exc:
         main(argv)
     assert exc.value.code == 2
-    assert "argument --device: cuda, but CUDA is not available" in capsys.readouterr().err
+    assert "argument --device: device 'cuda': this torch has no CUDA device available" in (
+        capsys.readouterr().err
+    )
     assert not out.exists()
 
 

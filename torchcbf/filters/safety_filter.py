@@ -51,7 +51,7 @@ import torch
 from torch import Tensor, nn
 
 import torchcbf.qp as qp_layer
-from torchcbf._autograd import refuse_transforms
+from torchcbf._autograd import forward_mode_active, refuse_transforms
 from torchcbf._checks import (
     as_limit,
     as_matrix,
@@ -854,6 +854,7 @@ class SafetyFilter(ExactConstants, DerivedConstants):
         opts = self.qp_options
         if (
             self.backend != "auto"
+            or forward_mode_active()  # a closure's tangent: the general path's QP refuses it
             or not 1 <= xb.shape[0] <= realtime.MAX_BATCH
             or not xb.is_cpu
             or (opts and not (opts.keys() <= _REALTIME_QP_OPTIONS))
