@@ -28,6 +28,7 @@ __all__ = [
     "Roadmap",
     "RoadmapController",
     "WorkspaceBarrier",
+    "least_barrier",
     "roadmap_paths",
     "sample_free_configurations",
     "segment_clearance",
@@ -64,7 +65,7 @@ def sample_free_configurations(
         q = arm.random_configurations(
             4 * num, generator=gen, margin=margin, dtype=dtype, device=device
         )
-        keep = q[_least(barrier, q) > clearance]
+        keep = q[least_barrier(barrier, q) > clearance]
         found.append(keep)
         total += keep.shape[0]
         if total >= num:
@@ -75,7 +76,7 @@ def sample_free_configurations(
     )
 
 
-def _least(barrier: WorkspaceBarrier, q: Tensor) -> Tensor:
+def least_barrier(barrier: WorkspaceBarrier, q: Tensor) -> Tensor:
     """The least output of ``barrier`` at ``q [..., dof]``: ``[...]`` (a barrier gives
     ``[...]``, one output, or ``[..., k]``)."""
     h = barrier(q)
@@ -93,7 +94,7 @@ def segment_clearance(
         raise ValueError(f"samples must be an int >= 2 (both ends), got {samples!r}")
     s = torch.linspace(0.0, 1.0, samples, dtype=qa.dtype, device=qa.device)[:, None, None]
     q = qa + s * (qb - qa)  # [samples, B, dof]
-    return _least(barrier, q).amin(0)
+    return least_barrier(barrier, q).amin(0)
 
 
 @dataclass
@@ -301,8 +302,8 @@ class RoadmapController(nn.Module):
         options = torch.cat([nodes.expand(M, -1, -1), self.q_target[rows, None]], 1)  # [M,N+1,d]
         s = torch.linspace(0.0, 1.0, 16, dtype=q.dtype, device=q.device)[:, None, None, None]
         pts = qs[:, None] + s * (options - qs[:, None])  # [16, M, N+1, dof]
-        seg = _least(self.barrier, pts).amin(0)  # [M, N+1]
-        need = torch.clamp(_least(self.barrier, qs) - 1e-3, max=self.clearance)
+        seg = least_barrier(self.barrier, pts).amin(0)  # [M, N+1]
+        need = torch.clamp(least_barrier(self.barrier, qs) - 1e-3, max=self.clearance)
         length = (options - qs[:, None]).norm(dim=-1)
         togo = torch.cat([self.roadmap.cost_to_go[rows], torch.zeros_like(length[:, :1])], 1)
         ok = (seg >= need[:, None]) & (length < self.radius) & torch.isfinite(togo)

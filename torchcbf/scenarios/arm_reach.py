@@ -47,6 +47,7 @@ of the inflated obstacle at the end.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
@@ -60,7 +61,11 @@ from torchcbf._checks import check_number, check_positive_int
 from torchcbf.barriers.workspace import JointLimitBarrier, LinkSphereBarrier
 from torchcbf.dynamics.manipulator import Manipulator, ResolvedRateController
 from torchcbf.filters import SafetyFilter
-from torchcbf.roadmap import RoadmapController, roadmap_paths, sample_free_configurations
+from torchcbf.roadmap import (
+    RoadmapController,
+    least_barrier,
+    roadmap_paths,
+)
 from torchcbf.scenarios.base import Scenario
 from torchcbf.scenarios.registry import Column, Dimension, ScenarioEntry, register
 from torchcbf.sim import Trajectory, simulate
@@ -136,12 +141,19 @@ def link_spheres(
     return LinkSphereBarrier(arm, links, radii, center, radius, offsets=offsets).to(dtype)
 
 
+#: candidates each row draws per round, for its start and for its target
+_CANDIDATES = 8
+
+
 def _problems(
     name: str, num: int, seed: int, clearance: float, device: torch.device
 ) -> tuple[Tensor, Tensor]:
-    """``(q0, q_target)``, ``[num, dof]`` each: row ``i`` drawn from seed ``seed + i`` alone,
-    in float64 (the same problems whatever the batch and the run's dtype). The target's end
-    effector lies clear of the obstacle and within the annulus the arm reaches well."""
+    """``(q0, q_target)``, ``[num, dof]`` each: row ``i`` drawn from seed ``seed + i`` alone
+    (as every scenario's rows), in float64: the same problems whatever the batch size and
+    the run's dtype. A start is a configuration clear of the links' obstacle by
+    ``clearance``; a target's end effector also lies clear of it and within the annulus the
+    arm reaches well. Each round draws :data:`_CANDIDATES` of each for the rows still
+    without one, and checks them all in one call."""
     f64 = torch.float64
     arm = Manipulator(name).to(device=device, dtype=f64)
     collision = link_spheres(arm, name, 0.0, f64).to(device)
@@ -149,21 +161,33 @@ def _problems(
     shoulder, r_in, r_out = GEOMETRY[name]["annulus"]
     c = torch.tensor(center, dtype=f64, device=device)
     s = torch.tensor(shoulder, dtype=f64, device=device)
-    starts, targets = [], []
-    for i in range(num):  # construction only: each row its own random stream
-        gen = torch.Generator(device=device).manual_seed(seed + i)
-        starts.append(sample_free_configurations(arm, collision, 1, clearance, gen, f64, device))
-        for _ in range(100):
-            qt = sample_free_configurations(arm, collision, 4, clearance, gen, f64, device)
-            p = arm.end_effector(qt)
-            reach = (p - s).norm(dim=-1)
-            ok = ((p - c).norm(dim=-1) > radius + clearance) & (reach > r_in) & (reach < r_out)
-            if bool(ok.any()):
-                targets.append(qt[ok][:1])
-                break
-        else:
-            raise RuntimeError("too few reachable targets: lower the clearance")
-    return torch.cat(starts), torch.cat(targets)
+    lo, hi = arm.position_range()
+    margin = ((hi - lo) / 4).clamp_max(0.15)  # as sample_free_configurations keeps room
+    gens = [torch.Generator(device=device).manual_seed(seed + i) for i in range(num)]
+    starts = torch.full((num, arm.dof), math.nan, dtype=f64, device=device)
+    targets = starts.clone()
+    K = _CANDIDATES
+    for _ in range(100):
+        rows = (starts.isnan().any(-1) | targets.isnan().any(-1)).nonzero().flatten().tolist()
+        if not rows:
+            return starts, targets
+        q = torch.stack([
+            arm.random_configurations(2 * K, generator=gens[i], margin=margin, dtype=f64,
+                                      device=device)
+            for i in rows
+        ])  # fmt: skip
+        free = least_barrier(collision, q.flatten(0, 1)).view(len(rows), 2 * K) > clearance
+        p = arm.end_effector(q[:, K:].flatten(0, 1)).view(len(rows), K, -1)
+        reach = (p - s).norm(dim=-1)
+        aims = free[:, K:] & ((p - c).norm(dim=-1) > radius + clearance)
+        aims = aims & (reach > r_in) & (reach < r_out)
+        for out, ok, cand in ((starts, free[:, :K], q[:, :K]), (targets, aims, q[:, K:])):
+            index = torch.tensor(rows, device=device)
+            first = ok.to(torch.int8).argmax(-1)
+            pick = cand[torch.arange(len(rows), device=device), first]
+            take = ok.any(-1) & out[index].isnan().any(-1)
+            out[index[take]] = pick[take]
+    raise RuntimeError("too few clear starts or reachable targets: lower the clearance")
 
 
 def build(
