@@ -863,6 +863,8 @@ def test_a_noise_covariance_of_another_dtype_or_a_number_is_taken_in_the_planner
     planner.noise_cov = 9.0
     planner(torch.zeros(2))
     torch.testing.assert_close(planner.noise_chol, 3.0 * torch.eye(2))
+    planner.noise_cov = 0.1  # a number is kept exact, as the constructor keeps it
+    assert float(planner.double().noise_cov[0, 0]) == 0.1
 
 
 def test_a_noise_covariance_set_between_calls_is_checked():

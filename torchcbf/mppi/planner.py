@@ -699,7 +699,11 @@ class MPPI(TracksShadows, ExactConstants):
             # with u_scale applied), in the planner's dtype and on its device
             ref = self._buffers["noise_chol"]
             m = self.dynamics.control_dim
-            if not isinstance(value, Tensor) or value.shape != (m, m):
+            if not isinstance(value, Tensor):  # numbers: exact under .double(), as when made
+                exact = as_matrix(name, value, m, dtype=torch.float64)
+                remember(self, name, exact, dtype=ref.dtype, device=ref.device)
+                return
+            if value.shape != (m, m):
                 value = as_matrix(name, value, m, dtype=ref.dtype, spd=False)
             if value.dtype != ref.dtype or value.device != ref.device:
                 value = value.to(ref)

@@ -58,9 +58,9 @@ def search_space(
     names: Sequence[str] | None = None,
     fixed: Mapping[str, Any] | None = None,
 ) -> list[Dimension]:
-    """The dimensions of ``scenario``'s search space that its variant (from ``fixed`` or the
-    default) uses, restricted to ``names`` if given, without those whose parameter is in
-    ``fixed``."""
+    """The dimensions of ``scenario``'s search space that its variant and parameters (from
+    ``fixed`` or the defaults) use (``Dimension.skip_variants``, ``skip_when``), restricted
+    to ``names`` if given, without those whose parameter is in ``fixed``."""
     entry = get(scenario)
     if not entry.search_space:
         raise ValueError(f"scenario {entry.name!r} declares no search space")
@@ -73,6 +73,13 @@ def search_space(
     ]
     if names is not None:
         known = {d.name for d in dims}
+        unused = sorted({d.name for d in entry.search_space} & set(names) - known)
+        if unused:
+            raise ValueError(
+                f"parameter(s) {unused} of {entry.name!r} have no effect with these settings "
+                f"(its variant or configuration fixes them); searched here: "
+                f"{', '.join(sorted(known))}"
+            )
         unknown = [n for n in names if n not in known]
         if unknown:
             raise ValueError(
