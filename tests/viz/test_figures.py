@@ -235,3 +235,24 @@ def test_rollouts_and_weights_of_other_counts_are_named() -> None:
         ValueError, match=r"weights \[K\]: got rollouts \(50, 11, 2\) and weights \(10,\)"
     ):
         plot_rollouts(torch.zeros(50, 11, 2), torch.ones(10))
+
+
+def test_bad_figure_arguments_are_named(tmp_path) -> None:
+    from torchcbf.viz import animate, barrier_traces, draw_unsafe_set
+
+    fig, ax = plt.subplots()
+    ball = Ball([0.0, 0.0], 0.5)
+    for kw, message in (
+        ({"state_dim": 4, "fill": [0.0, 0.0]}, "fill must have 4 entries"),
+        ({"state_dim": 2, "index": (2, 3)}, r"index \(2, 3\) is outside the 2 components"),
+        ({"resolution": 1}, "resolution must be an int >= 2"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            draw_unsafe_set(ax, ball, (-1.0, 1.0), (-1.0, 1.0), **kw)
+    traj = _traj(torch.zeros(2, 5, 2))
+    with pytest.raises(ValueError, match="frames must be an int >= 1"):
+        animate(traj, tmp_path / "a.gif", frames=0)
+    with pytest.raises(ValueError, match="barriers is empty"):
+        barrier_traces(traj, [])
+    with pytest.raises(ValueError, match=r"got h \(2, 5\), t \(3,\)"):
+        plot_barrier_values(torch.arange(3.0), torch.zeros(2, 5))

@@ -15,6 +15,7 @@ from matplotlib.animation import FuncAnimation, PillowWriter
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
+from torchcbf._checks import check_int
 from torchcbf.sim.metrics import _barrier_values
 from torchcbf.sim.trajectory import Trajectory
 from torchcbf.viz.figures import BarrierFn, _draw_scene, _np, lowest_finite, plane
@@ -92,6 +93,8 @@ def _check_methods(trajectories: Mapping[str, Trajectory]) -> None:
 def barrier_traces(traj: Trajectory, barriers: Sequence[BarrierFn]) -> np.ndarray:
     """``min_i b_i(x)`` over the true states: ``[B, T+1]`` (NaN where a state is); a
     time-varying barrier read at the trajectory's times."""
+    if not barriers:
+        raise ValueError("barriers is empty: give the barriers whose least value to trace")
     B, T = traj.x.shape[:2]
     if B == 0:
         return np.zeros((0, T))
@@ -169,6 +172,8 @@ def animate_methods(
 ) -> Path:
     """A GIF of scenario ``seed_index`` (the same noise seed) under every method; returns
     its path."""
+    check_int("frames", frames, low=1)
+    check_int("fps", fps, low=1)
     _check_methods(trajectories)
     path = Path(path)
     for name, traj in trajectories.items():

@@ -22,6 +22,7 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
+from torchcbf._checks import check_int
 from torchcbf.sim.trajectory import Trajectory
 
 BarrierFn = Callable[[torch.Tensor], torch.Tensor]
@@ -63,10 +64,15 @@ def draw_unsafe_set(
     drawn where it is at ``t = 0`` (the figures of trajectories show the start; the
     metrics and :func:`~torchcbf.viz.barrier_traces` read it at each state's time).
     """
+    resolution = check_int("resolution", resolution, low=2)
+    if len(index) != 2 or not all(0 <= i < state_dim for i in index):
+        raise ValueError(f"index {tuple(index)} is outside the {state_dim} components of the state")
+    base = np.zeros(state_dim) if fill is None else np.asarray(fill, dtype=float)
+    if base.shape != (state_dim,):
+        raise ValueError(f"fill must have {state_dim} entries (state_dim), got {base.shape}")
     xs = np.linspace(*xlim, resolution)
     ys = np.linspace(*ylim, resolution)
     X, Y = np.meshgrid(xs, ys)
-    base = np.zeros(state_dim) if fill is None else np.asarray(fill, dtype=float)
     states = np.broadcast_to(base, (*X.shape, state_dim)).copy()
     states[..., index[0]] = X
     states[..., index[1]] = Y
@@ -293,8 +299,12 @@ def plot_barrier_values(
             "h is None: a trajectory without a safety filter records no barrier values; "
             "pass barrier_traces(traj, barriers) for the barriers' values along it"
         )
-    fig, ax = (ax.figure, ax) if ax is not None else plt.subplots(figsize=(7, 3.5))
     t, h = _np(t), _np(h)
+    if h.ndim not in (2, 3) or t.ndim != 1 or t.shape[0] < h.shape[1]:
+        raise ValueError(
+            f"h must be [B, T, k] or [B, T] with t [T] (or longer): got h {h.shape}, t {t.shape}"
+        )
+    fig, ax = (ax.figure, ax) if ax is not None else plt.subplots(figsize=(7, 3.5))
     if h.ndim == 3:
         h = h.min(-1) if h.shape[-1] else np.full(h.shape[:2], np.nan)
     t = t[: h.shape[1]]
@@ -382,6 +392,8 @@ def animate(
     max_paths: int = 16,
 ) -> Path:
     """Write a GIF of the scenarios moving over obstacles and goals; returns its path."""
+    check_int("frames", frames, low=1)
+    check_int("fps", fps, low=1)
     path = Path(path)
     fig = plot_trajectories(trajectory, barriers, goals, index=index, max_paths=0)
     try:
