@@ -21,9 +21,9 @@ JOINT_MIN_REACH = 0.99
 IK_MIN_REACH = 0.99  # of the reachable targets
 IK_MIN_REACH_FAST = 1.0  # 40 scenarios, seed 1
 ARM7_MIN_REACH = 0.99
-ESCAPE_MIN_DEADLOCKS_WITHOUT = 8  # measured 14 of 16
+ESCAPE_MIN_DEADLOCKS_WITHOUT = 8  # measured 16 of 17
 ESCAPE_MAX_DEADLOCKS_WITH = 0
-ESCAPE_MIN_GAIN = 0.3  # measured 0.125 -> 0.625
+ESCAPE_MIN_GAIN = 0.3  # measured 0.059 -> 0.529
 
 
 def _backend() -> str:
@@ -37,7 +37,7 @@ def _check(result: dict, min_reach: float, max_non_solved: float = 0.0) -> None:
     assert result["safe_rate"] == 1.0
     assert result["failed"] == 0
     assert result["non_solved_steps"] <= max_non_solved
-    # reach rate: Cartesian nominal 0.70 (64 scenarios) to 0.713 (1,000), misses are
+    # reach rate: Cartesian nominal 0.694 (1,000 scenarios, seed 0), misses are
     # deadlocks at the obstacle or at a joint limit; joint nominal with waypoints: see
     # JOINT_MIN_REACH
     assert result["reach_rate"] >= min_reach
@@ -152,8 +152,8 @@ def _via_rows(
 def test_escape_resolves_deadlocks(ik_scenario: arm_reach.ArmReachScenario) -> None:
     """Rows sent straight toward their goal configuration where the straight C-space
     segment is blocked: without the escape the filter holds some of them in front of the
-    obstacle (measured: 14 of 16 deadlocked, 2 reached); the re-planning escape frees every
-    one of them (0 deadlocks, 10 reached within 300 steps, the rest still on their detour)."""
+    obstacle (measured: 16 of 17 deadlocked, 1 reached); the re-planning escape frees every
+    one of them (0 deadlocks, 9 reached within 300 steps, the rest still on their detour)."""
     sub, roadmap = _via_rows(ik_scenario)
     out = {}
     for escape in (False, True):
@@ -211,7 +211,7 @@ def test_reach_1000_scenarios_cartesian() -> None:
         "planar3", 1000, seed=0, qp_backend=_backend(), nominal="cartesian", plan_paths=False
     )
     result = arm_reach.run(sc, steps=300, dt=0.02)
-    _check(result, min_reach=0.65)  # measured 0.713
+    _check(result, min_reach=0.65)  # measured 0.694
 
 
 def test_roadmap_helpers_take_a_barrier_with_one_output() -> None:
