@@ -147,11 +147,13 @@ def check_positive_int(name: str, value: object) -> int:
 
 
 def check_seed(seed: object, name: str = "seed") -> int:
-    """A generator seed ``name`` as an int (NumPy's too; not a bool) in ``[-2^63, 2^63)``."""
+    """A generator seed ``name`` as an int (NumPy's too; not a bool) in ``[0, 2^32)``: the
+    library's random streams and torch's CPU generator read 32 bits (``s + 2^32`` would
+    repeat seed ``s``)."""
     if not isinstance(seed, numbers.Integral) or isinstance(seed, (bool, np.bool_)):
         raise TypeError(f"{name} must be an int, got {type(seed).__name__}")
-    if not -(2**63) <= int(seed) < 2**63:
-        raise ValueError(f"{name} must lie in [-2^63, 2^63), got {seed}")
+    if not 0 <= int(seed) < 2**32:
+        raise ValueError(f"{name} must lie in [0, 2^32) (32-bit random streams), got {seed}")
     return int(seed)
 
 

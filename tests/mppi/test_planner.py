@@ -1127,5 +1127,11 @@ def test_limits_flags_and_integers_are_checked_as_given() -> None:
     assert make(seed=np.int64(1)).seed == 1
     goal = QuadraticGoal([1.0, 1.0])
     assert MPPI(SingleIntegrator(2), goal, np.int64(3), 8, 0.1, 0.4, 1.0).horizon == 3
-    with pytest.raises(ValueError, match=r"seed must lie in \[-2\^63, 2\^63\)"):
-        make(seed=2**64 - 1)
+    # torch's generator reads 32 bits: seed + 2^32 would plan as seed
+    for bad in (2**64 - 1, 2**32, -1):
+        with pytest.raises(ValueError, match=r"seed must lie in \[0, 2\^32\)"):
+            make(seed=bad)
+    last = make(seed=2**32 - 1)
+    last(torch.zeros(2))  # one environment: seed 2^32 - 1
+    with pytest.raises(ValueError, match=r"seed must lie in \[0, 4294967293\] for 3"):
+        last(torch.zeros(3, 2))  # its rows would reach 2^32

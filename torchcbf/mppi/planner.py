@@ -126,6 +126,7 @@ from torchcbf._compile import Compiled, hook_key, read_key
 from torchcbf._constants import ExactConstants, remember
 from torchcbf._graphs import CapturedCall
 from torchcbf._native import keep_freed_heap
+from torchcbf._random import seed_rows
 from torchcbf._triton import available as triton_available
 from torchcbf._triton import interpreted as triton_interpreted
 from torchcbf.dynamics.base import ControlAffine
@@ -741,9 +742,9 @@ class MPPI(TracksShadows, ExactConstants):
         self._plan = torch.zeros(B, H, m, device=device, dtype=dtype)
         self._work: tuple[tuple, Tensor, Tensor] | None = None
         self._noise: Tensor | None = None
-        self._generators = [
-            torch.Generator(device=device).manual_seed(self.seed + b) for b in range(B)
-        ]
+        # row b draws from seed + b: all of them 32-bit (torch's generator reads 32 bits)
+        seeds = seed_rows(self.seed, B, torch.device("cpu"), per="environment").tolist()
+        self._generators = [torch.Generator(device=device).manual_seed(s) for s in seeds]
         self._history = HistoryBuffer(self.history_size, B, n, device=device, dtype=dtype)
         self._calls = 0
         self._rows = torch.arange(B, device=device)

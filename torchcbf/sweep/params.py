@@ -9,11 +9,13 @@ admits (or, without one, the type of its default): ``int``, ``float``, ``bool``
 
 from __future__ import annotations
 
+import numbers
 import typing
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
-from torchcbf._checks import check_seed
+import numpy as np
+
 from torchcbf.scenarios import Scenario, ScenarioEntry, get
 from torchcbf.scenarios.registry import RUN_KEYWORDS as RESERVED
 
@@ -35,7 +37,9 @@ def check_seeds(first: int, count: int, name: str = "seed") -> int:
     """Seeds ``first .. first + count - 1`` (``name``: the first one's argument) lie in
     ``[0, 2^32)`` (the scenarios' noise streams are 32-bit): ``ValueError`` saying which
     pass the bounds; the first as an int."""
-    first = check_seed(first, name)
+    if not isinstance(first, numbers.Integral) or isinstance(first, (bool, np.bool_)):
+        raise TypeError(f"{name} must be an int, got {type(first).__name__}")
+    first = int(first)
     if first < 0 or first + count > 2**32:
         raise ValueError(
             f"seeds {first}..{first + count - 1} pass the bounds [0, 2^32 - 1] (the noise "
