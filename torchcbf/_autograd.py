@@ -35,28 +35,32 @@ def refuse_transforms(
     ``where`` has plain reverse-mode derivatives only, and a tangent would otherwise be
     dropped without a word (``None``: no derivative)."""
     functorch = torch._C._functorch
+    if functorch.maybe_current_level() is not None:
+        raise _batched(where)
     dual = forward_mode_active()
     if module is not None and dual:
         tensors = itertools.chain(tensors, module.parameters(), module.buffers())
-    inside = functorch.maybe_current_level() is not None
-    for t in itertools.chain([None], tensors):
+    for t in tensors:
+        if t is None:
+            continue
         # is_grads_batched and vectorised jacobians batch a backward by torch's legacy vmap
-        if inside or (
-            t is not None
-            and (functorch.is_functorch_wrapped_tensor(t) or functorch.is_legacy_batchedtensor(t))
-        ):
-            raise NotImplementedError(
-                f"{where} does not run under torch.func transforms or batched gradients (vmap, "
-                "jacrev, jacfwd, grad, is_grads_batched=True, jacobian(vectorize=True)): batch "
-                "the problems along the leading dimensions instead, and take derivatives with "
-                "torch.autograd (reverse mode, one gradient at a time)"
-            )
-        if dual and t is not None and forward_ad.unpack_dual(t).tangent is not None:
+        if functorch.is_functorch_wrapped_tensor(t) or functorch.is_legacy_batchedtensor(t):
+            raise _batched(where)
+        if dual and forward_ad.unpack_dual(t).tangent is not None:
             raise NotImplementedError(
                 f"{where} has reverse-mode derivatives only: forward-mode AD "
                 "(torch.autograd.forward_ad) would drop the tangent; use torch.autograd.grad "
                 "or torch.autograd.functional.jacobian"
             )
+
+
+def _batched(where: str) -> NotImplementedError:
+    return NotImplementedError(
+        f"{where} does not run under torch.func transforms or batched gradients (vmap, "
+        "jacrev, jacfwd, grad, is_grads_batched=True, jacobian(vectorize=True)): batch the "
+        "problems along the leading dimensions instead, and take derivatives with "
+        "torch.autograd (reverse mode, one gradient at a time)"
+    )
 
 
 @contextlib.contextmanager
