@@ -31,6 +31,7 @@ __all__ = [
     "least_barrier",
     "roadmap_paths",
     "sample_free_configurations",
+    "sampling_margin",
     "segment_clearance",
 ]
 
@@ -59,8 +60,7 @@ def sample_free_configurations(
     clearance = check_number("clearance", clearance)
     found: list[Tensor] = []
     total = 0
-    lo, hi = arm.position_range()
-    margin = ((hi - lo) / 4).clamp_max(0.15)  # a short joint (a gripper's slide) keeps room
+    margin = sampling_margin(arm)
     for _ in range(max_rounds):
         q = arm.random_configurations(
             4 * num, generator=gen, margin=margin, dtype=dtype, device=device
@@ -74,6 +74,13 @@ def sample_free_configurations(
         f"only {total} of {num} configurations clear by {clearance} after {max_rounds} rounds "
         f"of {4 * num} draws: lower the clearance"
     )
+
+
+def sampling_margin(arm: Manipulator) -> Tensor:
+    """How far inside each joint's limits :func:`sample_free_configurations` draws: 0.15 rad,
+    or a quarter of the joint's range where that is less (a gripper's slide keeps room)."""
+    lo, hi = arm.position_range()
+    return ((hi - lo) / 4).clamp_max(0.15)
 
 
 def least_barrier(barrier: WorkspaceBarrier, q: Tensor) -> Tensor:

@@ -65,6 +65,7 @@ from torchcbf.roadmap import (
     RoadmapController,
     least_barrier,
     roadmap_paths,
+    sampling_margin,
 )
 from torchcbf.scenarios.base import Scenario
 from torchcbf.scenarios.registry import Column, Dimension, ScenarioEntry, register
@@ -161,8 +162,7 @@ def _problems(
     shoulder, r_in, r_out = GEOMETRY[name]["annulus"]
     c = torch.tensor(center, dtype=f64, device=device)
     s = torch.tensor(shoulder, dtype=f64, device=device)
-    lo, hi = arm.position_range()
-    margin = ((hi - lo) / 4).clamp_max(0.15)  # as sample_free_configurations keeps room
+    margin = sampling_margin(arm)
     gens = [torch.Generator(device=device).manual_seed(seed + i) for i in range(num)]
     starts = torch.full((num, arm.dof), math.nan, dtype=f64, device=device)
     targets = starts.clone()
